@@ -1,0 +1,44 @@
+# sinewatch: the two commands a new user needs are `make demo` and `make test`.
+# Both create .venv on first use and install sinewatch (editable) into it.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: install demo test test-slow bench bench-kernels bench-e2e bench-accuracy schemas clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test,plots]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/sinewatch demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest
+
+# Long soak and Monte Carlo runs, skipped by `make test`.
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -m slow
+
+bench: bench-kernels bench-e2e
+
+bench-kernels: $(STAMP)
+	$(BIN)/sinewatch bench kernels
+
+bench-e2e: $(STAMP)
+	$(BIN)/sinewatch bench e2e
+
+bench-accuracy: $(STAMP)
+	$(BIN)/sinewatch bench accuracy
+
+# Regenerate the committed JSON Schemas in schemas/json/ from the pydantic models.
+schemas: $(STAMP)
+	$(BIN)/sinewatch schemas export schemas/json
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info sinewatch-runs bench-results

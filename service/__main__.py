@@ -1,0 +1,3 @@
+from sinewatch.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,68 @@
+"""Scenario library: named signals with per-sample truth.
+
+``get(name, **overrides)`` builds a scenario; ``names()`` lists them; ``register`` adds a
+factory. Every module of this package (other than ``base``) is imported once and
+registers its scenarios, so a family of scenarios is one module.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from collections.abc import Callable
+from typing import Any
+
+from sinewatch.errors import ParameterError
+from sinewatch.scenarios.base import Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
+
+__all__ = [
+    "Scenario",
+    "ScenarioStream",
+    "SumOfTones",
+    "Tone",
+    "Truth",
+    "get",
+    "names",
+    "register",
+    "wrap_phase",
+]
+
+_FACTORIES: dict[str, Callable[..., Scenario]] = {}
+_LOADED = False
+
+
+def register(name: str) -> Callable[[Callable[..., Scenario]], Callable[..., Scenario]]:
+    """Decorator for a factory ``(**overrides) -> Scenario`` registered under ``name``."""
+
+    def deco(factory: Callable[..., Scenario]) -> Callable[..., Scenario]:
+        if name in _FACTORIES and _FACTORIES[name] is not factory:
+            raise ValueError(f"scenario name {name!r} registered twice")
+        _FACTORIES[name] = factory
+        return factory
+
+    return deco
+
+
+def _load_all() -> None:
+    global _LOADED
+    if _LOADED:
+        return
+    for mod in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if mod.name != "base" and not mod.name.startswith("_"):
+            importlib.import_module(f"{__name__}.{mod.name}")
+    _LOADED = True
+
+
+def names() -> list[str]:
+    _load_all()
+    return sorted(_FACTORIES)
+
+
+def get(name: str, **overrides: Any) -> Scenario:
+    """Build scenario ``name``; overrides go to its factory (sample_rate_hz, duration_s, ...)."""
+    _load_all()
+    try:
+        factory = _FACTORIES[name]
+    except KeyError:
+        raise ParameterError(f"scenario: expected one of {sorted(_FACTORIES)}, got {name!r}") from None
+    return factory(**overrides)
