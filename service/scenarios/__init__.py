@@ -13,9 +13,10 @@ from collections.abc import Callable
 from typing import Any
 
 from sinewatch.errors import ParameterError
-from sinewatch.scenarios.base import Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
+from sinewatch.scenarios.base import FaultPlan, Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
 
 __all__ = [
+    "FaultPlan",
     "Scenario",
     "ScenarioStream",
     "SumOfTones",

@@ -45,12 +45,30 @@ class Truth:
         )
 
 
+@dataclass(frozen=True)
+class FaultPlan:
+    """Transport faults the feed injects, by block index (1-based counts): skip a block
+    (a sequence gap), send a block with a NaN in it, send a block twice."""
+
+    drop_every: int | None = None
+    nan_every: int | None = None
+    duplicate_every: int | None = None
+
+    def action(self, block_index: int) -> str | None:
+        i = block_index + 1
+        for name, every in (("drop", self.drop_every), ("nan", self.nan_every), ("duplicate", self.duplicate_every)):
+            if every and i % every == 0:
+                return name
+        return None
+
+
 class Scenario(ABC):
     """A named test signal. Subclasses implement :meth:`clean`."""
 
     name: ClassVar[str] = ""
     summary: ClassVar[str] = ""
     tags: ClassVar[tuple[str, ...]] = ()
+    faults: FaultPlan = FaultPlan()
 
     def __init__(
         self,

@@ -1,0 +1,103 @@
+"""Publishing SampleBlocks."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from sinewatch.schemas.codec import (
+    BLOCK_BINARY_ENCODING,
+    BLOCK_JSON_ENCODING,
+    Block,
+    encode_block_binary,
+    encode_block_json,
+)
+
+
+class BlockPublisher:
+    """Publishes blocks of samples on ``{prefix}/{channel}``.
+
+    Sequence numbers and first-sample timestamps are kept per channel (both can be given
+    explicitly). Publishers use ``CongestionControl.BLOCK``: when the daemon cannot keep
+    up, ``publish`` waits instead of silently dropping (Zenoh's default DROP lost 3-54 %
+    of messages under load here).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        *,
+        prefix: str = "sinewatch/in",
+        encoding: str = "binary",
+        dtype: str = "float32",
+        t0_ns: int | None = None,
+    ) -> None:
+        if encoding not in ("binary", "json"):
+            raise ValueError(f"encoding: expected 'binary' or 'json', got {encoding!r}")
+        self.session = session
+        self.prefix = prefix.rstrip("/")
+        self.encoding = encoding
+        self.dtype = dtype
+        self._start_ns = time.time_ns() if t0_ns is None else t0_ns
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._next_seq: dict[str, int] = {}
+        self._next_t0: dict[str, int] = {}
+        self.published = 0
+
+    def key(self, channel: str) -> str:
+        return f"{self.prefix}/{channel}"
+
+    def _publisher(self, channel: str) -> zenoh.Publisher:
+        pub = self._publishers.get(channel)
+        if pub is None:
+            enc = BLOCK_BINARY_ENCODING if self.encoding == "binary" else BLOCK_JSON_ENCODING
+            pub = self.session.declare_publisher(
+                self.key(channel),
+                encoding=zenoh.Encoding(enc),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            self._publishers[channel] = pub
+        return pub
+
+    def wait_for_subscriber(self, channel: str, timeout: float = 10.0) -> bool:
+        """Block until something (the daemon) subscribes to this channel's key."""
+        pub = self._publisher(channel)
+        matched = threading.Event()
+        listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
+        try:
+            return pub.matching_status.matching or matched.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    def block(self, channel: str, samples: np.ndarray, sample_rate_hz: float, *, seq: int | None = None,
+              t0_ns: int | None = None, unit: str | None = None) -> Block:
+        """The Block that ``publish`` would send (advances the channel's seq and time)."""
+        seq = self._next_seq.get(channel, 0) if seq is None else seq
+        t0 = self._next_t0.get(channel, self._start_ns) if t0_ns is None else t0_ns
+        samples = np.asarray(samples)
+        self._next_seq[channel] = seq + 1
+        self._next_t0[channel] = t0 + int(round(samples.shape[0] * 1e9 / sample_rate_hz))
+        return Block(channel, seq, t0, float(sample_rate_hz), samples, unit)
+
+    def encode(self, block: Block) -> bytes:
+        if self.encoding == "binary":
+            return encode_block_binary(block, self.dtype)
+        return encode_block_json(block)
+
+    def publish(self, channel: str, samples: np.ndarray, sample_rate_hz: float, **kw) -> Block:
+        block = self.block(channel, samples, sample_rate_hz, **kw)
+        self.publish_raw(channel, self.encode(block))
+        return block
+
+    def publish_raw(self, channel: str, payload: bytes) -> None:
+        """Send a payload as is (tests use it for hostile input)."""
+        self._publisher(channel).put(payload)
+        self.published += 1
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()

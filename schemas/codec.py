@@ -1,0 +1,239 @@
+"""Encoding and decoding of sinewatch messages (wire format version 1).
+
+Every message announces its encoding in its Zenoh Encoding:
+
+=========================================  =============================================
+``application/x-sinewatch-block;v=1``      SampleBlock, compact binary (layout below)
+``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/json/SampleBlock.json)
+``application/json;sinewatch/Estimate@1``      Estimate, JSON
+``application/json;sinewatch/ErrorReport@1``   ErrorReport, JSON
+``application/json;sinewatch/Status@1``        Status, JSON
+=========================================  =============================================
+
+A payload published without an encoding (Zenoh's default ``zenoh/bytes``) is sniffed:
+the binary magic ``SWSB`` or a JSON object.
+
+Binary SampleBlock, all little-endian, no padding (``struct`` format ``<4sBBBBQqdIHH``)::
+
+    offset size type     field
+    0      4    bytes    magic b"SWSB"
+    4      1    u8       format_version (1)
+    5      1    u8       dtype: 1 = float32, 2 = float64
+    6      1    u8       columns (>= 1): values per sample
+    7      1    u8       flags (0; reserved)
+    8      8    u64      seq
+    16     8    i64      t0_ns, time of the first sample, ns since the epoch
+    24     8    f64      sample_rate_hz
+    32     4    u32      n_samples
+    36     2    u16      channel_len (bytes)
+    38     2    u16      unit_len (bytes, 0 = no unit)
+    40     .    utf-8    channel
+    .      .    utf-8    unit
+    .      .    f32/f64  samples: n_samples * columns values, sample-major
+                         (s0c0, s0c1, ..., s1c0, ...); the payload ends here.
+
+A reader decodes the samples with ``np.frombuffer(payload, "<f4" or "<f8",
+offset=40 + channel_len + unit_len)``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from sinewatch.errors import DecodeError, InputError, UnsupportedVersionError
+from sinewatch.schemas.messages import CHANNEL_PATTERN, FORMAT_VERSION, SampleBlock
+
+BLOCK_BINARY_ENCODING = "application/x-sinewatch-block;v=1"
+BLOCK_JSON_ENCODING = "application/json;sinewatch/SampleBlock@1"
+ESTIMATE_JSON_ENCODING = "application/json;sinewatch/Estimate@1"
+ERROR_JSON_ENCODING = "application/json;sinewatch/ErrorReport@1"
+STATUS_JSON_ENCODING = "application/json;sinewatch/Status@1"
+
+MAGIC = b"SWSB"
+HEADER = struct.Struct("<4sBBBBQqdIHH")
+_DTYPE_CODES = {1: np.dtype("<f4"), 2: np.dtype("<f8")}
+_CODE_OF_DTYPE = {"float32": 1, "float64": 2}
+_CHANNEL_RE = re.compile(CHANNEL_PATTERN)
+
+
+@dataclass(slots=True)
+class Block:
+    """A decoded SampleBlock with its samples as a numpy array ((N,) or (N, columns))."""
+
+    channel: str
+    seq: int
+    t0_ns: int
+    sample_rate_hz: float
+    samples: np.ndarray
+    unit: str | None = None
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.samples.shape[0])
+
+    @property
+    def columns(self) -> int:
+        return 1 if self.samples.ndim == 1 else int(self.samples.shape[1])
+
+
+# ---- SampleBlock ------------------------------------------------------------------------
+def encode_block_binary(block: Block, dtype: str = "float64") -> bytes:
+    """The compact binary encoding (layout in the module docstring)."""
+    if dtype not in _CODE_OF_DTYPE:
+        raise InputError(f"dtype: expected float32 or float64, got {dtype!r}")
+    channel = block.channel.encode("utf-8")
+    unit = (block.unit or "").encode("utf-8")
+    arr = np.ascontiguousarray(block.samples, dtype=_DTYPE_CODES[_CODE_OF_DTYPE[dtype]])
+    header = HEADER.pack(
+        MAGIC,
+        FORMAT_VERSION,
+        _CODE_OF_DTYPE[dtype],
+        block.columns,
+        0,
+        block.seq,
+        block.t0_ns,
+        block.sample_rate_hz,
+        block.n_samples,
+        len(channel),
+        len(unit),
+    )
+    return b"".join((header, channel, unit, arr.tobytes()))
+
+
+def encode_block_json(block: Block) -> bytes:
+    samples = block.samples.tolist()
+    msg = {
+        "format_version": FORMAT_VERSION,
+        "channel": block.channel,
+        "seq": block.seq,
+        "t0_ns": block.t0_ns,
+        "sample_rate_hz": block.sample_rate_hz,
+        "dtype": "float64",
+        "columns": block.columns,
+        "unit": block.unit,
+        "samples": samples,
+    }
+    return json.dumps(msg, separators=(",", ":"), allow_nan=True).encode("utf-8")
+
+
+def decode_block(payload: bytes, encoding: str = "") -> Block:
+    """Decode a SampleBlock from either encoding; raise DecodeError (or its subclass
+    UnsupportedVersionError) with a reason when the payload is not a valid block."""
+    if encoding.startswith("application/x-sinewatch-block"):
+        return _decode_binary(payload, encoding)
+    if encoding.startswith("application/json") or encoding.startswith("text/json"):
+        return _decode_json(payload)
+    if payload[:4] == MAGIC:
+        return _decode_binary(payload, encoding)
+    if payload[:1] == b"{":
+        return _decode_json(payload)
+    raise DecodeError(
+        f"encoding: expected {BLOCK_BINARY_ENCODING!r} or {BLOCK_JSON_ENCODING!r}, "
+        f"got {encoding or 'none'!r} with a payload that is neither"
+    )
+
+
+def _decode_binary(payload: bytes, encoding: str) -> Block:
+    version = _encoding_version(encoding)
+    if version is not None and version != FORMAT_VERSION:
+        raise UnsupportedVersionError(
+            f"format version: expected {FORMAT_VERSION}, got {version} (from the encoding)"
+        )
+    if len(payload) < HEADER.size:
+        raise DecodeError(f"binary block: expected at least {HEADER.size} bytes, got {len(payload)}")
+    magic, ver, dcode, columns, _flags, seq, t0, fs, n, clen, ulen = HEADER.unpack_from(payload)
+    if magic != MAGIC:
+        raise DecodeError(f"binary block: expected magic {MAGIC!r}, got {magic!r}")
+    if ver != FORMAT_VERSION:
+        raise UnsupportedVersionError(f"format version: expected {FORMAT_VERSION}, got {ver}")
+    dtype = _DTYPE_CODES.get(dcode)
+    if dtype is None:
+        raise DecodeError(f"binary block dtype: expected 1 (float32) or 2 (float64), got {dcode}")
+    if columns < 1:
+        raise DecodeError("binary block columns: expected >= 1, got 0")
+    start = HEADER.size + clen + ulen
+    expected = start + n * columns * dtype.itemsize
+    if len(payload) != expected:
+        raise DecodeError(
+            f"binary block length: expected {expected} bytes for {n} x {columns} "
+            f"{dtype.name} samples, got {len(payload)}"
+        )
+    try:
+        channel = payload[HEADER.size : HEADER.size + clen].decode("utf-8")
+        unit = payload[HEADER.size + clen : start].decode("utf-8") or None
+    except UnicodeDecodeError as exc:
+        raise DecodeError(f"binary block: channel/unit are not UTF-8 ({exc})") from None
+    _check_channel(channel)
+    if not (math.isfinite(fs) and fs > 0):
+        raise DecodeError(f"sample_rate_hz: expected a finite value > 0, got {fs}")
+    samples = np.frombuffer(payload, dtype=dtype, count=n * columns, offset=start)
+    if columns > 1:
+        samples = samples.reshape(n, columns)
+    return Block(channel, seq, t0, fs, samples, unit)
+
+
+def _decode_json(payload: bytes) -> Block:
+    try:
+        raw = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DecodeError(f"JSON block: not valid JSON ({exc})") from None
+    if not isinstance(raw, dict):
+        raise DecodeError(f"JSON block: expected an object, got {type(raw).__name__}")
+    version = raw.get("format_version", FORMAT_VERSION)
+    if version != FORMAT_VERSION:
+        raise UnsupportedVersionError(f"format version: expected {FORMAT_VERSION}, got {version!r}")
+    try:
+        msg = SampleBlock.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"][:2])
+        raise DecodeError(f"JSON block: {where}: {first['msg']}") from None
+    if msg.columns == 1:
+        samples = np.asarray(msg.samples, dtype=np.float64)
+        if samples.ndim == 2 and samples.shape[1] == 1:
+            samples = samples[:, 0]
+    else:
+        try:
+            samples = np.asarray(msg.samples, dtype=np.float64)
+        except ValueError:
+            raise DecodeError("JSON block samples: expected rows of equal length") from None
+    want_ndim = 1 if msg.columns == 1 else 2
+    if samples.size and (samples.ndim != want_ndim or (want_ndim == 2 and samples.shape[1] != msg.columns)):
+        raise DecodeError(
+            f"JSON block samples: expected {msg.columns} column(s), got shape {samples.shape}"
+        )
+    if samples.size == 0:
+        samples = samples.reshape((0,) if msg.columns == 1 else (0, msg.columns))
+    return Block(msg.channel, msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, msg.unit)
+
+
+def _encoding_version(encoding: str) -> int | None:
+    m = re.search(r"[;,]v=(\d+)", encoding)
+    return int(m.group(1)) if m else None
+
+
+def _check_channel(channel: str) -> None:
+    if not channel or len(channel) > 256 or not _CHANNEL_RE.match(channel):
+        raise DecodeError(
+            f"channel: expected 1-256 chars of [A-Za-z0-9_.-] separated by '/', got {channel!r}"
+        )
+
+
+# ---- JSON messages out ----------------------------------------------------------------------
+def finite_or_none(x: float) -> float | None:
+    """JSON has no NaN/Inf: undefined values travel as null."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def dumps(msg: dict[str, Any]) -> bytes:
+    """Compact, deterministic JSON (key order as built, shortest round-trip floats)."""
+    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")

@@ -1,0 +1,144 @@
+"""Wire-format messages (format version 1), as pydantic v2 models.
+
+These models are the contract: the JSON Schemas in ``schemas/json/`` are exported from
+them (``sinewatch schemas export DIR``), MCAP recordings embed them, and the codec in
+:mod:`sinewatch.schemas.codec` produces and checks exactly these shapes.
+
+JSON has no NaN: an undefined estimate is ``null``.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+FORMAT_VERSION = 1
+
+CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SampleDtype(str, Enum):
+    float32 = "float32"
+    float64 = "float64"
+
+
+class SampleBlock(_Message):
+    """A block of consecutive samples of one channel.
+
+    ``samples`` is a list of rows: a plain list of numbers for a single-column block, or
+    a list of equal-length lists when known inputs travel with the signal (column 0 is
+    the measured signal, the others the inputs, see ``columns``).
+    """
+
+    format_version: Literal[1] = FORMAT_VERSION
+    channel: str = Field(pattern=CHANNEL_PATTERN, max_length=256, description="Channel name")
+    seq: int = Field(ge=0, lt=2**64, description="Sequence number of the block on its channel")
+    t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
+    sample_rate_hz: float = Field(gt=0, description="Sample rate, Hz")
+    dtype: SampleDtype = Field(SampleDtype.float64, description="Sample type on the binary encoding")
+    columns: int = Field(1, ge=1, le=255, description="Values per sample: 1, or 1 + number of inputs")
+    unit: str | None = Field(None, max_length=64, description="Physical unit of column 0, e.g. V")
+    samples: list[float] | list[list[float]] = Field(description="Samples, oldest first")
+
+
+class Diagnostics(_Message):
+    converged: bool = Field(description="The estimator considers its estimate valid")
+    residual_rms: float | None = Field(description="RMS one-step prediction error over the block")
+    gap: bool = Field(False, description="Samples were missing before this block (sequence gap)")
+    gap_blocks: int = Field(0, ge=0, description="How many blocks were missing before this one")
+    reset: bool = Field(False, description="The estimator was reset before this block")
+    extras: dict[str, float | None | list[float | None]] = Field(
+        default_factory=dict, description="Estimator-specific diagnostics at the last sample"
+    )
+
+
+class Estimate(_Message):
+    """The estimate at the last sample of one input block.
+
+    y = offset + sum_k amplitude[k] * sin(phase_rad[k]); phase at ``timestamp_ns``.
+    """
+
+    format_version: Literal[1] = FORMAT_VERSION
+    channel: str
+    seq: int = Field(description="Sequence number of the input block")
+    timestamp_ns: int = Field(description="Time of the block's last sample, ns since the epoch")
+    n_samples: int = Field(description="Samples in the input block")
+    estimator: str
+    frequency_hz: list[float | None]
+    amplitude: list[float | None]
+    phase_rad: list[float | None]
+    offset: float | None
+    diagnostics: Diagnostics
+
+
+class ErrorKind(str, Enum):
+    decode_error = "decode_error"
+    unsupported_version = "unsupported_version"
+    non_finite = "non_finite"
+    empty_block = "empty_block"
+    oversized_block = "oversized_block"
+    sample_rate_change = "sample_rate_change"
+    shape_mismatch = "shape_mismatch"
+    duplicate = "duplicate"
+    out_of_order = "out_of_order"
+    channel_key_mismatch = "channel_key_mismatch"
+    no_rule = "no_rule"
+    estimator_error = "estimator_error"
+    queue_overflow = "queue_overflow"
+    channel_limit = "channel_limit"
+
+
+class ErrorReport(_Message):
+    """Why an input was rejected (or data was lost). One per rejected input."""
+
+    format_version: Literal[1] = FORMAT_VERSION
+    key: str = Field(description="Zenoh key the input arrived on")
+    channel: str | None = Field(description="Channel, when the payload could be decoded that far")
+    seq: int | None = None
+    kind: ErrorKind
+    message: str
+    count: int = Field(ge=1, description="Errors of this kind on this key so far, this one included")
+
+
+class ChannelStatus(_Message):
+    channel: str
+    key: str
+    estimator: str
+    sample_rate_hz: float
+    blocks: int
+    samples: int
+    errors: int
+    gaps: int
+    last_seq: int | None
+    last_latency_us: float | None = Field(description="Receive-to-publish latency of the last block")
+    converged: bool
+
+
+class Status(_Message):
+    """Periodic daemon status."""
+
+    format_version: Literal[1] = FORMAT_VERSION
+    daemon_id: str
+    uptime_s: float
+    blocks_received: int
+    blocks_processed: int
+    dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
+    backpressure_waits: int = Field(description="Times the intake waited for queue space")
+    errors: int
+    queue_depth: int
+    recording: str | None = Field(description="Current MCAP file, if recording")
+    channels: list[ChannelStatus]
+
+
+MESSAGE_MODELS: dict[str, type[BaseModel]] = {
+    "SampleBlock": SampleBlock,
+    "Estimate": Estimate,
+    "ErrorReport": ErrorReport,
+    "Status": Status,
+}

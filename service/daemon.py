@@ -1,0 +1,323 @@
+"""The asyncio daemon: Zenoh intake -> pipeline -> Zenoh publisher + MCAP recorder.
+
+Threading model. Zenoh delivers samples on its own threads into a bounded FIFO channel
+(never blocking a Zenoh callback on Python work). One *pump* thread drains that channel
+in batches (a blocking ``recv`` then ``try_recv`` up to ``limits.intake_batch``) and
+hands each batch to the event loop with one ``call_soon_threadsafe`` (measured here: a
+call per message caps near 50-90 k msgs/s; per batch 90-200 k). The event loop runs the
+pipeline, so estimator state is only ever touched by one thread.
+
+Backpressure. A counting semaphore bounds the inputs in flight (``limits.queue_capacity``).
+With ``queue_policy = "block"`` (default) the pump waits for room, so the Zenoh FIFO
+fills and Zenoh pushes back to publishers that use ``CongestionControl.BLOCK``: nothing
+is lost, and every wait is counted. With ``"drop"`` the newest input is dropped, counted
+and reported as a ``queue_overflow`` ErrorReport.
+
+Shutdown, as uvicorn does it: SIGINT/SIGTERM set ``should_exit``; the daemon stops
+intake (undeclares the subscriber, so the pump drains Zenoh's FIFO and ends), processes
+everything already accepted, publishes a last Status and finishes the MCAP file. A
+second SIGINT sets ``force_exit``: processing stops at the next input, the MCAP file is
+still finished, and ``run`` returns 130.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from sinewatch.pipeline import NullSink, Pipeline, sanitize_log_time
+from sinewatch.recorder import McapRecorder
+from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, dumps
+from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.messages import FORMAT_VERSION
+from sinewatch.zenoh_session import open_session
+
+log = logging.getLogger("sinewatch.daemon")
+
+HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class ZenohPublisherSink(NullSink):
+    """Publishes estimates and errors (BLOCK: not dropped) and status (DROP)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    def _publisher(self, key: str, encoding: str, congestion: zenoh.CongestionControl) -> zenoh.Publisher:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._session.declare_publisher(
+                key, encoding=zenoh.Encoding(encoding), congestion_control=congestion
+            )
+            self._publishers[key] = pub
+        return pub
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._publisher(key, ESTIMATE_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._publisher(key, ERROR_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
+
+    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._publisher(key, STATUS_JSON_ENCODING, zenoh.CongestionControl.DROP).put(payload)
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()
+
+
+@dataclass
+class IntakeCounters:
+    received: int = 0
+    dropped: int = 0
+    backpressure_waits: int = 0
+
+
+# (key, payload, encoding, received monotonic ns)
+Item = tuple[str, bytes, str, int]
+
+
+class Intake:
+    """Zenoh subscriber + pump thread feeding the event loop in batches."""
+
+    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop) -> None:
+        cfg = daemon.config
+        self._daemon = daemon
+        self._loop = loop
+        self._batch = cfg.limits.intake_batch
+        self._policy = cfg.limits.queue_policy
+        self._room = threading.Semaphore(cfg.limits.queue_capacity)
+        self.counters = IntakeCounters()
+        # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
+        self._subscriber = daemon.session.declare_subscriber(
+            cfg.keys.input, zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        )
+        self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
+        self._closed = threading.Event()
+        self._thread.start()
+
+    def _pump(self) -> None:
+        handler = self._subscriber.handler
+        try:
+            while True:
+                sample = handler.recv()  # raises ZError once undeclared and drained
+                batch = [self._take(sample)]
+                while len(batch) < self._batch:
+                    more = handler.try_recv()
+                    if more is None:
+                        break
+                    batch.append(self._take(more))
+                batch = [item for item in batch if self._admit(item)]
+                if batch:
+                    self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+        except zenoh.ZError:
+            pass  # channel closed by stop(): intake is over
+        finally:
+            self._closed.set()
+
+    @staticmethod
+    def _take(sample: zenoh.Sample) -> Item:
+        return (str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
+
+    def _admit(self, item: Item) -> bool:
+        self.counters.received += 1
+        if self._room.acquire(blocking=False):
+            return True
+        if self._policy == "drop":
+            self.counters.dropped += 1
+            self._loop.call_soon_threadsafe(self._daemon.report_drop, item[0])
+            return False
+        self.counters.backpressure_waits += 1
+        while not self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
+            if self._daemon.force_exit.is_set():
+                return False
+        return True
+
+    def release(self, n: int) -> None:
+        for _ in range(n):
+            self._room.release()
+
+    async def stop(self) -> None:
+        """Stop intake: no new inputs; everything already received is handed over."""
+        self._subscriber.undeclare()
+        await asyncio.get_running_loop().run_in_executor(None, self._closed.wait)
+
+
+class Daemon:
+    def __init__(self, config: SinewatchConfig, *, install_signal_handlers: bool = True) -> None:
+        self.config = config
+        self.install_signal_handlers = install_signal_handlers
+        self.should_exit = asyncio.Event()
+        self.force_exit = threading.Event()
+        self.ready = asyncio.Event()
+        self.session: zenoh.Session | None = None
+        self.pipeline: Pipeline | None = None
+        self.recorder: McapRecorder | None = None
+        self.intake: Intake | None = None
+        self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
+        self._queued = 0
+        self._started = time.monotonic()
+        self._last_log_time = 0
+        self._sigint_count = 0
+        self.exit_code = 0
+
+    # ---- signals -------------------------------------------------------------------------------
+    def handle_signal(self, sig: int) -> None:
+        if sig == signal.SIGINT and self.should_exit.is_set():
+            self._sigint_count += 1
+            log.warning("second SIGINT: forcing exit (MCAP file is still finished)")
+            self.force_exit.set()
+            return
+        log.info("%s received: stopping intake, draining", signal.Signals(sig).name)
+        self.should_exit.set()
+
+    @contextlib.contextmanager
+    def _signals(self):
+        loop = asyncio.get_running_loop()
+        if not self.install_signal_handlers or threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        for sig in HANDLED_SIGNALS:
+            loop.add_signal_handler(sig, self.handle_signal, sig)
+        try:
+            yield
+        finally:
+            for sig in HANDLED_SIGNALS:
+                loop.remove_signal_handler(sig)
+
+    # ---- intake -> pipeline ---------------------------------------------------------------------
+    def enqueue(self, batch: list[Item]) -> None:
+        self._queued += len(batch)
+        self._queue.put_nowait(batch)
+
+    def report_drop(self, key: str) -> None:
+        self.pipeline.report_error(key, "queue_overflow", "intake queue full: input dropped", self._log_time())
+
+    def _log_time(self) -> int:
+        self._last_log_time = sanitize_log_time(self._last_log_time, time.time_ns())
+        return self._last_log_time
+
+    async def _consume(self) -> None:
+        while True:
+            batch = await self._queue.get()
+            if batch is None:
+                return
+            self._process(batch)
+
+    def _process(self, batch: list[Item]) -> None:
+        try:
+            for key, payload, encoding, received in batch:
+                if self.force_exit.is_set():
+                    return
+                self.pipeline.process(key, payload, encoding, self._log_time(), received)
+        finally:
+            self._queued -= len(batch)
+            self.intake.release(len(batch))
+
+    # ---- periodic tasks -------------------------------------------------------------------------
+    def status_payload(self) -> bytes:
+        c = self.intake.counters if self.intake else IntakeCounters()
+        p = self.pipeline
+        return dumps(
+            {
+                "format_version": FORMAT_VERSION,
+                "daemon_id": self.config.daemon_id,
+                "uptime_s": round(time.monotonic() - self._started, 3),
+                "blocks_received": c.received,
+                "blocks_processed": p.counters.inputs,
+                "dropped": c.dropped,
+                "backpressure_waits": c.backpressure_waits,
+                "errors": p.counters.errors,
+                "queue_depth": self._queued,
+                "recording": str(self.recorder.path) if self.recorder and self.recorder.path else None,
+                "channels": p.channel_status(),
+            }
+        )
+
+    def publish_status(self) -> None:
+        key = f"{self.config.keys.status_key}/{self.config.daemon_id}"
+        payload = self.status_payload()
+        for sink in self.pipeline.sinks:
+            sink.on_status(key, payload, self._log_time())
+
+    async def _every(self, seconds: float, fn) -> None:
+        while True:
+            await asyncio.sleep(seconds)
+            fn()
+
+    # ---- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the session and sinks and start intake (call from the event loop)."""
+        cfg = self.config
+        self.session = open_session(cfg.zenoh)
+        sinks = [ZenohPublisherSink(self.session)]
+        if cfg.recording.enabled:
+            self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
+            self.recorder.open()
+            sinks.append(self.recorder)
+        self.pipeline = Pipeline(cfg, sinks)
+        self.intake = Intake(self, asyncio.get_running_loop())
+        log.info(
+            "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
+            cfg.daemon_id, cfg.zenoh.mode, cfg.zenoh.listen, cfg.zenoh.connect,
+            cfg.keys.input, cfg.keys.estimates_prefix,
+        )
+
+    async def run(self) -> int:
+        """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
+        with self._signals():
+            self.start()
+            consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
+            periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
+            if self.recorder is not None:
+                periodic.append(
+                    asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.recorder.flush))
+                )
+            self.ready.set()
+            try:
+                await self.should_exit.wait()
+                await self._shutdown(consumer, periodic)
+            finally:
+                self._close()
+        return 130 if self.force_exit.is_set() else 0
+
+    async def _shutdown(self, consumer: asyncio.Task, periodic: list[asyncio.Task]) -> None:
+        for task in periodic:
+            task.cancel()
+        await self.intake.stop()  # no new inputs; the pump has handed over all it had
+        self._queue.put_nowait(None)  # the consumer ends after everything before it
+        await consumer
+        self.publish_status()
+        c = self.pipeline.counters
+        log.info("%s: %d inputs, %d estimates, %d errors",
+                 "forced exit" if self.force_exit.is_set() else "drained", c.inputs, c.estimates, c.errors)
+
+    def _close(self) -> None:
+        if self.pipeline is not None:
+            for sink in self.pipeline.sinks:
+                sink.close()
+        if self.session is not None:
+            self.session.close()
+
+    @property
+    def recording_paths(self) -> list[Path]:
+        return list(self.recorder.paths) if self.recorder else []
+
+
+def serve(config: SinewatchConfig) -> int:
+    """Run the daemon in the foreground until SIGINT/SIGTERM."""
+
+    async def main() -> int:
+        return await Daemon(config).run()
+
+    return asyncio.run(main())

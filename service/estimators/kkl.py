@@ -1,0 +1,543 @@
+"""``kkl``: nonlinear Luenberger (Kazantzis-Kravaris-Luenberger) observer of a sinusoid.
+
+Paper: ``shared/papers/003_29096b058aca5228.txt``, Praly, Marconi, Isidori, "A new observer
+for an unknown harmonic oscillator".
+
+Model (4): the signal is the output of the uncertain oscillator::
+
+    x1' = -x2,   x2' = x3 x1,   x3' = 0,   y = x1                               (4)
+
+so that ``y = A sin(theta)``, ``theta' = omega``, with ``x1 = A sin(theta)``,
+``x2 = -A omega cos(theta)``, ``x3 = omega^2``.
+
+Observer (2) with ``F = -diag(lambda_1..lambda_m)``, ``G = (1, .., 1)``: m first-order
+filters driven by the measured signal (12)::
+
+    xi_i' = -lambda_i xi_i + y,    i = 1..m,  m >= 4, lambda_i > 0 distinct      (12)
+
+whose state converges to ``T(x)`` with (5)-(6)::
+
+    T_i(x) = (lambda_i x1 + x2) / (lambda_i^2 + x3)                              (6)
+
+and the static left inverse (8)-(9) of T::
+
+    gamma(xi) = Phi(xi)^-1 L(xi)^T F^2 xi                                        (8)
+    Phi(xi)   = L(xi)^T L(xi) + mu(xi) I,   L(xi) = (lambda  1  -xi)  (m x 3)
+    mu(xi)    = max{ l |xi|^2 - 2 |M xi|^2, 0 }                                 (9)
+    l         = inf_{x in O_r, |T(x)| = 1} |M T(x)|^2                            (10)
+    O_r       = {x : x1^2 + x2^2 != 0, x3 in [x3_min, x3_max]}                   (11)
+
+i.e. the regularised least-squares solution (15) of ``L(xi) x = F^2 xi`` (13).
+
+What was rebuilt or checked here (the extraction is clean for this paper, but):
+
+* M (printed for m = 4 only) is skew-symmetric and ``|M xi|^2 = det(L(xi)^T L(xi))``
+  (checked numerically to 1e-14; it is the Gram determinant of (lambda, 1, xi)). That is
+  how the kernel evaluates it, and how it generalises to m > 4:
+  ``|M xi|^2 := det(L^T L) = det(C^T C) * |P_perp xi|^2`` with ``C = (lambda 1)`` and
+  ``P_perp`` the projector off span(C).
+* (10) is printed with ``x in O``; it is O_r of (11). T is linear in (x1, x2) for fixed x3
+  (``T = B(x3) (x1, x2)``), so ``l`` is the infimum over x3 in [x3_min, x3_max] of the
+  smallest generalised eigenvalue of ``(B^T M^T M B, B^T B)``; it is computed at
+  construction on a 2049-point grid of x3 refined by ``scipy.optimize.minimize_scalar``.
+* **The printed l = 5 is wrong for mu as printed.** For the paper's lambda = (1, 2, 3, 4)
+  and a 3 rad/s signal, (10) gives l = 1.46e-3 (x3 = 9 alone; smaller over a range above
+  it), while ``|M T(x)|^2 / |T(x)|^2`` runs from 4e-3 to 1.4 along the trajectory. With
+  l = 5, mu > 0 on almost all of T(O_r) and gamma is pulled towards 0 (the amplitude and
+  frequency estimates collapse; ``tests/test_kkl.py`` shows it with
+  :func:`gamma_reference`). With l from (10), mu = 0 on T(O_r) (the factor 2 in (9) is a
+  margin) and gamma is the exact inverse, as Section IV proves.
+* Amplitude, frequency and phase from x = gamma(xi): ``omega = sqrt(x3)``,
+  ``A = sqrt(x1^2 + x2^2 / x3)`` (Section III). The printed phase
+  ``Phi = arctan(sqrt(x30) x10 / x20)`` loses the quadrant and has the wrong sign for
+  y = A sin(omega t + Phi) with x1' = -x2; here, from ``x1 = A sin(theta)`` and
+  ``x2 = -A omega cos(theta)``: ``theta = atan2(x1 sqrt(x3), -x2)``, the instantaneous
+  phase at each sample.
+
+Design choices (not in the paper):
+
+* The user gives a frequency range [f_min, f_max] in Hz; x3 ranges over
+  [(2 pi f_min)^2, (2 pi f_max)^2] and ``lambda_i = lambda_factor_i * omega_ref`` with
+  ``omega_ref = 2 pi sqrt(f_min f_max)``. The default factors (1/3, 2/3, 1, 4/3) are the
+  paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal. gamma is evaluated in time
+  units of 1/omega_ref (``lambda~ = lambda/omega_ref``, ``x3~ = x3/omega_ref^2``, and l
+  in those units), so the same design serves 3 rad/s and 50 Hz.
+* gamma is evaluated on ``xi / |xi|`` and the amplitude rescaled by |xi|. Where mu = 0
+  (on and near T(O_r)) this is exactly (8), because (13) is homogeneous: T(a x1, a x2, x3)
+  = a T(x). Off it, the regularisation no longer depends on the signal's units, and the
+  3 x 3 system stays well conditioned for any amplitude.
+* Sampled input: each filter (12) is discretised exactly for an input that is linear
+  between samples (first-order hold, "connect the dots")::
+
+      xi_i(k+1) = a_i xi_i(k) + b0_i y(k) + b1_i y(k+1),   a_i = exp(-lambda_i Ts)
+      b1_i = (lambda_i Ts - 1 + a_i) / (lambda_i^2 Ts),  b0_i = (1 - a_i)/lambda_i - b1_i
+
+  The interpolated signal carries the tone at frequency w scaled by
+  ``sinc^2(w Ts/2)`` (the triangle kernel's spectrum) with zero phase, and images that
+  the filters reduce to O((w Ts)^3). A common scale on xi leaves x3 and theta unchanged,
+  so only the amplitude is corrected: ``A = A_gamma / sinc^2(w_hat Ts / 2)``.
+  A frequency estimate at or above Nyquist is treated as undefined.
+
+Outputs and flags, per sample:
+
+* Undefined (every output NaN, converged False): |xi| below ``1e-150`` or below
+  ``silence_ratio`` times its recent peak (a peak envelope decaying at lambda_min/10,
+  so a signal that stops is flagged ~8 filter time constants later), x3 <= 0, or
+  omega at/above Nyquist. The state stays finite (xi entries below 1e-250 are flushed
+  to 0, so a long silence costs no denormal arithmetic).
+* converged: defined, at least ``settle_time_constants / lambda_min`` seconds since the
+  start or since the last silence (the filters' memory of the initial state has decayed
+  by e^-settle), mu(xi) = 0 (xi lies where gamma is the exact inverse), and the relative
+  least-squares residual ``|L x - F^2 xi| / |F^2 xi|`` (zero on T(O)) at most
+  ``max_fit_residual``.
+* offset: 0 (the model has none) whenever the estimate is defined. The biased variant
+  ``kkl-biased`` (:mod:`sinewatch.estimators.kkl_biased`) estimates it.
+* residual: ``y(k+1) - A sin(theta_k + w Ts)`` (one-step prediction from the previous
+  sample's estimate; the prediction is 0 while it is undefined).
+* extras: ``manifold_margin`` = ``2 |M xi|^2 / (l |xi|^2)`` (>= 1 iff mu = 0, >= 2 on
+  T(O_r)) and ``fit_residual`` (the relative residual above).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from pydantic import Field, field_validator, model_validator
+
+from sinewatch.errors import ParameterError
+from sinewatch.estimators import register
+from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+
+#: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
+#: of the reference angular frequency.
+PAPER_LAMBDA_FACTORS = (1.0 / 3.0, 2.0 / 3.0, 1.0, 4.0 / 3.0)
+
+ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
+FLUSH = 1e-250  # xi entries below this are set to 0 (no denormals in long silences)
+ENV_SLOWDOWN = 10.0  # the peak envelope decays at lambda_min / ENV_SLOWDOWN
+
+
+# ---- design helpers (Python, run once at construction) ------------------------------------
+
+
+def validate_lambda_factors(v: list[float], m_min: int) -> list[float]:
+    """m >= m_min finite positive, mutually distinct factors (relative gap > 1e-6)."""
+    if len(v) < m_min:
+        raise ValueError(f"expected at least {m_min} filters (m >= {m_min}), got {len(v)}")
+    if not all(math.isfinite(x) and x > 0 for x in v):
+        raise ValueError(f"expected finite values > 0, got {v}")
+    s = sorted(v)
+    gaps = [b - a for a, b in zip(s, s[1:], strict=False)]
+    if min(gaps) <= 1e-6 * s[-1]:
+        raise ValueError(f"expected mutually distinct values (relative gap > 1e-6), got {v}")
+    return v
+
+
+def foh_coefficients(lam: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact discretisation of xi' = -lam xi + u for u linear between samples.
+
+    Returns (a, b0, b1) with xi(k+1) = a xi(k) + b0 u(k) + b1 u(k+1). For small lam Ts the
+    closed forms cancel, so a series is used there."""
+    x = lam * ts
+    a = np.exp(-x)
+    g0 = -np.expm1(-x) / lam  # integral of exp(-lam (Ts - tau)) over [0, Ts]
+    # b1 = Ts * (x - 1 + e^-x) / x^2 ; series (1/2 - x/6 + x^2/24 - x^3/120 + x^4/720) below 1e-2
+    small = x < 1e-2
+    xs = np.where(small, x, 1.0)
+    closed = (x + np.expm1(-x)) / (xs * xs)
+    series = 0.5 - x / 6.0 + x**2 / 24.0 - x**3 / 120.0 + x**4 / 720.0
+    b1 = ts * np.where(small, series, closed)
+    b0 = g0 - b1
+    return a, b0, b1
+
+
+def gram_weight(columns: np.ndarray) -> np.ndarray:
+    """Q with ``v^T Q v = det([C v]^T [C v])`` for C = columns (m x p): det(C^T C) P_perp."""
+    c = np.asarray(columns, dtype=np.float64)
+    g = c.T @ c
+    p_perp = np.eye(c.shape[0]) - c @ np.linalg.solve(g, c.T)
+    return np.linalg.det(g) * p_perp
+
+
+def min_generalised_ratio(b: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Batched ``min_v (v^T B^T Q B v) / (v^T B^T N B v)`` for B of shape (..., m, 2)."""
+    a = np.swapaxes(b, -1, -2) @ q @ b
+    c = np.swapaxes(b, -1, -2) @ n @ b
+    # det(A - t C) = 0: (c00 c11 - c01^2) t^2 - (a00 c11 + a11 c00 - 2 a01 c01) t + det A = 0
+    qa = c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1] ** 2
+    qb = a[..., 0, 0] * c[..., 1, 1] + a[..., 1, 1] * c[..., 0, 0] - 2.0 * a[..., 0, 1] * c[..., 0, 1]
+    qc = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] ** 2
+    disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
+    # smaller root, in the form that does not cancel: 2 qc / (qb + disc)
+    return 2.0 * qc / (qb + disc)
+
+
+def ell_eq10(
+    basis: np.ndarray,
+    image_columns,
+    x3_lo: float,
+    x3_hi: float,
+    norm_weight: np.ndarray | None = None,
+    n_grid: int = 2049,
+) -> tuple[float, float]:
+    """The constant l of (10): ``inf over x3 in [x3_lo, x3_hi] and (x1, x2) of
+    det([basis, v]^T [basis, v]) / |v|_N^2`` with ``v = image_columns(x3) @ (x1, x2)``.
+
+    Returns (l, the x3 where the infimum is reached). A 2049-point log grid, then
+    ``scipy.optimize.minimize_scalar`` (bounded) on the cells around the grid minimum."""
+    m = basis.shape[0]
+    q = gram_weight(basis)
+    nw = np.eye(m) if norm_weight is None else norm_weight
+
+    def ratio(x3s: np.ndarray) -> np.ndarray:
+        return min_generalised_ratio(image_columns(np.asarray(x3s, dtype=np.float64)), q, nw)
+
+    grid = np.geomspace(x3_lo, x3_hi, n_grid)
+    vals = ratio(grid)
+    i = int(np.argmin(vals))
+    best, best_x3 = float(vals[i]), float(grid[i])
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
+    if hi > lo:
+        from scipy.optimize import minimize_scalar  # imported here: 0.3 s, construction only
+
+        res = minimize_scalar(
+            lambda u: float(ratio(np.array([math.exp(u)]))[0]),
+            bounds=(math.log(lo), math.log(hi)),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        if res.success and float(res.fun) < best:
+            best, best_x3 = float(res.fun), math.exp(float(res.x))
+    return best, best_x3
+
+
+def kkl_image_columns(lam: np.ndarray):
+    """x3 -> B(x3) (..., m, 2) with T(x) = B(x3) (x1, x2), eq. (6)."""
+
+    def cols(x3: np.ndarray) -> np.ndarray:
+        d = lam[None, :] ** 2 + x3[:, None]
+        return np.stack([lam[None, :] / d, 1.0 / d], axis=-1)
+
+    return cols
+
+
+def kkl_ell(lam: np.ndarray, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+    """l of (10) for filters ``lam`` and x3 in [x3_lo, x3_hi] (same time unit)."""
+    basis = np.column_stack([lam, np.ones_like(lam)])
+    return ell_eq10(basis, kkl_image_columns(lam), x3_lo, x3_hi)
+
+
+def paper_m_matrix(lam: np.ndarray) -> np.ndarray:
+    """M of (9) exactly as printed (m = 4)."""
+    l1, l2, l3, l4 = (float(v) for v in lam)
+    return np.array(
+        [
+            [0.0, l3 - l4, l4 - l2, l2 - l3],
+            [l4 - l3, 0.0, l1 - l4, l3 - l1],
+            [l2 - l4, l4 - l1, 0.0, l1 - l2],
+            [l3 - l2, l1 - l3, l2 - l1, 0.0],
+        ]
+    )
+
+
+def gamma_reference(xi: np.ndarray, lam: np.ndarray, ell: float) -> np.ndarray:
+    """gamma(xi) of (8)-(9) literally (numpy, one xi, any units): the 3-vector x_hat.
+
+    For m = 4 it uses the printed M; for m > 4 ``|M xi|^2 = det(L^T L)``. Reference for
+    tests and docs; the kernel evaluates the same map on xi/|xi| (see module docstring)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    lam = np.asarray(lam, dtype=np.float64)
+    if not np.any(xi):
+        return np.zeros(3)  # gamma_0
+    L = np.column_stack([lam, np.ones_like(lam), -xi])  # noqa: N806 (paper's name)
+    if lam.size == 4:
+        m_xi2 = float(np.sum((paper_m_matrix(lam) @ xi) ** 2))
+    else:
+        m_xi2 = float(np.linalg.det(L.T @ L))
+    mu = max(ell * float(xi @ xi) - 2.0 * m_xi2, 0.0)  # (9)
+    phi = L.T @ L + mu * np.eye(3)  # Phi(xi)
+    return np.linalg.solve(phi, L.T @ (lam**2 * xi))  # (8): Phi^-1 L^T F^2 xi
+
+
+def parameters_from_x(x: np.ndarray) -> tuple[float, float, float]:
+    """(amplitude, omega, theta) from x = (x1, x2, x3) of (4): A sin(theta) = x1,
+    A omega cos(theta) = -x2."""
+    x1, x2, x3 = (float(v) for v in x)
+    w = math.sqrt(x3)
+    return math.sqrt(x1 * x1 + x2 * x2 / x3), w, math.atan2(x1 * w, -x2)
+
+
+# ---- parameters ---------------------------------------------------------------------------
+
+
+class KklParams(EstimatorParams):
+    f_min_hz: float = Field(45.0, gt=0, description="Lower end of the frequency range (Hz), eq. (11)")
+    f_max_hz: float = Field(65.0, gt=0, description="Upper end of the frequency range (Hz), eq. (11)")
+    lambda_factors: list[float] = Field(
+        list(PAPER_LAMBDA_FACTORS),
+        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); "
+        "m >= 4, distinct, > 0. Default: the paper's (1, 2, 3, 4) rad/s for 3 rad/s",
+    )
+    settle_time_constants: float = Field(
+        6.0, gt=0, description="converged only after this many 1/lambda_min since start or silence"
+    )
+    silence_ratio: float = Field(
+        1e-3, gt=0, lt=1, description="xi counts as zero below this fraction of its recent peak"
+    )
+    max_fit_residual: float = Field(
+        0.05, gt=0, description="converged only while |L x - F^2 xi| / |F^2 xi| is at most this"
+    )
+
+    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError(f"expected a finite value, got {v}")
+        return v
+
+    @field_validator("lambda_factors")
+    @classmethod
+    def _factors(cls, v: list[float]) -> list[float]:
+        return validate_lambda_factors(v, 4)
+
+    @model_validator(mode="after")
+    def _range(self) -> KklParams:
+        if not self.f_min_hz < self.f_max_hz:
+            raise ValueError(
+                f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}"
+            )
+        return self
+
+
+def check_nyquist(name: str, f_max_hz: float, sample_rate_hz: float) -> None:
+    nyq = 0.5 * sample_rate_hz
+    if not f_max_hz < nyq:
+        raise ParameterError(
+            f"{name}: f_max_hz: expected < Nyquist = {nyq:g} Hz (sample rate {sample_rate_hz:g} Hz), "
+            f"got {f_max_hz:g}"
+        )
+
+
+# ---- kernel -------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
+    """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
+
+    ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
+    hold coefficients of (12) (physical units). ``state`` packs xi_1..xi_m, then y_prev,
+    have_prev, y_pred, pred_valid, n_warm, env. ``consts`` packs Ts, omega_ref, l (in units
+    of omega_ref^2), silence_ratio, env_decay, n_settle, max_fit_residual. ``out`` columns:
+    frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
+    manifold_margin, fit_residual. Pure: inputs are not modified.
+    """
+    m = lam.shape[0]
+    Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
+    silence_ratio, env_decay, n_settle, max_fit = consts[3], consts[4], consts[5], consts[6]
+    xi = state[:m].copy()
+    y_prev, have_prev = state[m], state[m + 1]
+    y_pred, pred_valid = state[m + 2], state[m + 3]
+    n_warm, env = state[m + 4], state[m + 5]
+    # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
+    s_ll = 0.0
+    s_l = 0.0
+    for i in range(m):
+        s_ll += lam[i] * lam[i]
+        s_l += lam[i]
+    s_11 = float(m)
+    n = y.shape[0]
+    rows = 1 if last_only else n
+    out = np.empty((rows, 5))
+    ext = np.empty((rows, 2))
+    sse = 0.0
+    for k in range(n):
+        yk = y[k]
+        # (12), exact for y linear between samples
+        if have_prev != 0.0:
+            for i in range(m):
+                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
+                xi[i] = v if abs(v) > 1e-250 else 0.0
+        have_prev = 1.0
+        y_prev = yk
+        e = yk - y_pred if pred_valid != 0.0 else yk
+        sse += e * e
+        # sums over the filters
+        s2 = 0.0
+        p0 = 0.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        q2 = 0.0
+        for i in range(m):
+            v = xi[i]
+            l2v = lam[i] * lam[i] * v
+            s2 += v * v
+            p0 += v
+            p1 += lam[i] * v
+            p2 += l2v
+            p3 += lam[i] * l2v
+            q2 += l2v * v
+        s = math.sqrt(s2)
+        env = max(s, env * env_decay)
+        freq = np.nan
+        amp = np.nan
+        phase = np.nan
+        offset = np.nan
+        conv = 0.0
+        margin = np.nan
+        fit = np.nan
+        pred_valid = 0.0
+        if s <= 1e-150 or s < silence_ratio * env:
+            n_warm = 0.0  # "xi near 0": undefined, and the settle time starts again
+        else:
+            if n_warm < n_settle:
+                n_warm += 1.0
+            inv = 1.0 / s
+            # L^T L and L^T F^2 xi for the unit vector xi/|xi| (8)
+            g00 = s_ll
+            g01 = s_l
+            g02 = -p1 * inv
+            g11 = s_11
+            g12 = -p0 * inv
+            g22 = 1.0
+            r0 = p3 * inv
+            r1 = p2 * inv
+            r2 = -q2 * inv * inv
+            # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
+            det = (
+                g00 * (g11 * g22 - g12 * g12)
+                - g01 * (g01 * g22 - g12 * g02)
+                + g02 * (g01 * g12 - g11 * g02)
+            )
+            mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
+            margin = 2.0 * det / ell
+            # Phi = L^T L + mu I (8), solved by Cholesky
+            a00 = g00 + mu
+            a11 = g11 + mu
+            a22 = g22 + mu
+            c00 = math.sqrt(a00)
+            c10 = g01 / c00
+            c20 = g02 / c00
+            d11 = a11 - c10 * c10
+            if d11 > 0.0:
+                c11 = math.sqrt(d11)
+                c21 = (g12 - c20 * c10) / c11
+                d22 = a22 - c20 * c20 - c21 * c21
+            else:
+                c11 = 0.0
+                c21 = 0.0
+                d22 = 0.0
+            if d22 > 1e-300:
+                c22 = math.sqrt(d22)
+                u0 = r0 / c00
+                u1 = (r1 - c10 * u0) / c11
+                u2 = (r2 - c20 * u0 - c21 * u1) / c22
+                z2 = u2 / c22
+                z1 = (u1 - c21 * z2) / c11
+                z0 = (u0 - c10 * z1 - c20 * z2) / c00
+                # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
+                wts = w_ref * math.sqrt(z2) * Ts if z2 > 0.0 else 0.0
+                if z2 > 0.0 and wts < math.pi:
+                    sq = math.sqrt(z2)
+                    # relative least-squares residual |L z - F^2 xi| / |F^2 xi|
+                    rr = 0.0
+                    ff = 0.0
+                    for i in range(m):
+                        xn = xi[i] * inv
+                        t = lam[i] * lam[i] * xn
+                        d = lam[i] * z0 + z1 - xn * z2 - t
+                        rr += d * d
+                        ff += t * t
+                    fit = math.sqrt(rr / ff)
+                    half = 0.5 * wts
+                    sinc = math.sin(half) / half if half > 1e-8 else 1.0
+                    amp = w_ref * s * math.sqrt(z0 * z0 + z1 * z1 / z2) / (sinc * sinc)
+                    freq = w_ref * sq / (2.0 * math.pi)
+                    phase = math.atan2(z0 * sq, -z1)  # x1 = A sin(theta), x2 = -A w cos(theta)
+                    if phase <= -math.pi:
+                        phase = math.pi
+                    offset = 0.0
+                    if n_warm >= n_settle and mu == 0.0 and fit <= max_fit:
+                        conv = 1.0
+                    y_pred = amp * math.sin(phase + wts)
+                    pred_valid = 1.0
+        if last_only and k != n - 1:
+            continue
+        j = 0 if last_only else k
+        out[j, 0] = freq
+        out[j, 1] = amp
+        out[j, 2] = phase
+        out[j, 3] = offset
+        out[j, 4] = conv
+        ext[j, 0] = margin
+        ext[j, 1] = fit
+    new_state = np.empty(m + 6)
+    new_state[:m] = xi
+    new_state[m] = y_prev
+    new_state[m + 1] = have_prev
+    new_state[m + 2] = y_pred
+    new_state[m + 3] = pred_valid
+    new_state[m + 4] = n_warm
+    new_state[m + 5] = env
+    return out, ext, sse, new_state
+
+
+# ---- estimator ----------------------------------------------------------------------------
+
+
+@register
+class Kkl(Estimator):
+    """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
+
+    name = "kkl"
+    Params = KklParams
+    summary = (
+        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
+        "first-order filters and the static inverse map gamma (paper 003)"
+    )
+    paper = "003_29096b058aca5228.txt"
+    example_sample_rate_hz = 5000.0
+    example_params = {"f_min_hz": 45.0, "f_max_hz": 65.0}
+    example_frequency_hz = 50.0
+
+    @classmethod
+    def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
+        """The paper's model has no offset: a 50 Hz sine of amplitude 1 plus 1 % noise."""
+        rng = np.random.default_rng(seed)
+        t = np.arange(n) / cls.example_sample_rate_hz
+        return np.sin(2 * np.pi * cls.example_frequency_hz * t + 0.3) + 0.01 * rng.standard_normal(n)
+
+    def _check_params(self) -> None:
+        check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
+
+    def _setup(self) -> None:
+        p = self.params
+        ts = 1.0 / self.sample_rate_hz
+        self.omega_ref = 2.0 * math.pi * math.sqrt(p.f_min_hz * p.f_max_hz)
+        self.lam_n = np.asarray(p.lambda_factors, dtype=np.float64)  # lambda~ (units of omega_ref)
+        self.lambdas = self.lam_n * self.omega_ref  # rad/s
+        x3_lo = (p.f_min_hz / math.sqrt(p.f_min_hz * p.f_max_hz)) ** 2
+        x3_hi = (p.f_max_hz / math.sqrt(p.f_min_hz * p.f_max_hz)) ** 2
+        self.ell, self.ell_x3 = kkl_ell(self.lam_n, x3_lo, x3_hi)  # (10), units of omega_ref^2
+        if not (self.ell > 0.0 and math.isfinite(self.ell)):
+            raise ParameterError(f"{self.name}: l of (10): expected > 0, got {self.ell} (degenerate design)")
+        self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
+        lam_min = float(self.lambdas.min())
+        n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
+        env_decay = math.exp(-lam_min * ts / ENV_SLOWDOWN)
+        self._consts = np.array(
+            [ts, self.omega_ref, self.ell, p.silence_ratio, env_decay, float(n_settle), p.max_fit_residual]
+        )
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        return {"xi_state": np.zeros(self.lam_n.size + 6)}
+
+    def _run(self, samples, state, last_only):
+        out, ext, sse, new = kkl_kernel(
+            samples, state["xi_state"], self.lam_n, self._fa, self._fb0, self._fb1, self._consts, last_only
+        )
+        extras = {"manifold_margin": ext[:, 0], "fit_residual": ext[:, 1]}
+        return track_from_columns(out, sse, samples.shape[0], extras), {"xi_state": new}

@@ -1,0 +1,344 @@
+"""The data path: source -> channel -> estimator -> sinks.
+
+A source (the Zenoh intake in the daemon, or an MCAP file in replay) calls
+:meth:`Pipeline.process` with each raw input in arrival order. The pipeline records the
+raw input, decodes and checks it against its channel, runs the channel's estimator and
+hands one Estimate per accepted block to the sinks (Zenoh publisher, MCAP recorder,
+replay comparator). A rejected input produces one ErrorReport instead; an estimator never
+sees a bad sample and its state is untouched by a rejected block.
+
+Everything here is deterministic given the inputs, their order and the config: that is
+what makes replay bit-exact. Wall-clock values (latency) stay out of the messages that
+replay compares.
+
+Gap policy (``on_gap``): on a sequence gap the block is accepted and the next Estimate
+carries ``gap = true`` and ``gap_blocks``; with ``coast`` (default) the estimator keeps
+its state and simply continues (its phase is then off by the missing samples until it
+re-converges); with ``reset`` it is reset first and the Estimate says ``reset = true``.
+A sample-rate change on a channel is rejected (``sample_rate_change``): an estimator's
+discretisation depends on the rate, so a new rate needs a new channel name.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+
+from sinewatch.errors import InputError, ParameterError, SinewatchError
+from sinewatch.estimators import get as get_estimator
+from sinewatch.estimators.base import Estimator, Track
+from sinewatch.schemas.codec import Block, decode_block, dumps, finite_or_none
+from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
+from sinewatch.schemas.messages import FORMAT_VERSION
+
+log = logging.getLogger("sinewatch.pipeline")
+
+
+class Sink(Protocol):
+    """Where the pipeline's outputs go. ``log_time_ns`` is the input's receive time."""
+
+    def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None: ...
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    def close(self) -> None: ...
+
+
+class NullSink:
+    """A sink that ignores everything; subclass and override what you need."""
+
+    def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        pass
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        pass
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        pass
+
+    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass
+class Channel:
+    """Everything the pipeline knows about one channel."""
+
+    name: str
+    key: str
+    estimator: Estimator
+    sample_rate_hz: float
+    last_seq: int | None = None
+    blocks: int = 0
+    samples: int = 0
+    gaps: int = 0
+    errors: int = 0
+    last_latency_ns: int | None = None
+    converged: bool = False
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "key": self.key,
+            "sample_rate_hz": self.sample_rate_hz,
+            "last_seq": self.last_seq,
+            "blocks": self.blocks,
+            "samples": self.samples,
+            "gaps": self.gaps,
+            "errors": self.errors,
+            "converged": self.converged,
+            "estimator": self.estimator.get_state(),
+        }
+
+
+@dataclass
+class PipelineCounters:
+    inputs: int = 0
+    estimates: int = 0
+    errors: int = 0
+    by_kind: Counter = field(default_factory=Counter)
+
+
+class Pipeline:
+    def __init__(
+        self,
+        config: SinewatchConfig,
+        sinks: list[Sink],
+        *,
+        rules: list[EstimatorRule] | None = None,
+    ) -> None:
+        self.config = config
+        self.sinks = sinks
+        self.rules = list(rules if rules is not None else config.rules)
+        self._rule_exprs = [zenoh.KeyExpr(r.match) for r in self.rules]
+        self.channels: dict[str, Channel] = {}
+        self.counters = PipelineCounters()
+        self._error_counts: Counter = Counter()  # (key, kind) -> count, for ErrorReport.count
+        self._rule_cache: dict[str, EstimatorRule | None] = {}
+
+    # ---- the one entry point ---------------------------------------------------------------
+    def process(self, key: str, payload: bytes, encoding: str, log_time_ns: int, received_ns: int | None = None) -> None:
+        """Take one raw input through the pipeline. Never raises for bad input."""
+        self.counters.inputs += 1
+        for sink in self.sinks:
+            sink.on_input(key, payload, encoding, log_time_ns)
+        channel: Channel | None = None
+        block: Block | None = None
+        try:
+            block = self._decode(payload, encoding)
+            channel = self._channel_for(key, block)
+            gap_blocks = self._check_sequence(channel, block)
+            reset = gap_blocks > 0 and self.config.on_gap == "reset"
+            if reset:
+                channel.estimator.reset()
+            track = channel.estimator.update(block.samples, last_only=True)
+        except InputError as exc:
+            self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
+            return
+        except SinewatchError as exc:  # e.g. parameters that do not fit this channel's rate
+            self._reject(key, block, channel, "estimator_error", str(exc), log_time_ns)
+            return
+        self._accept(channel, block, gap_blocks, reset)
+        payload_out = self._estimate_payload(channel, block, track, gap_blocks, reset)
+        out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        for sink in self.sinks:
+            sink.on_estimate(out_key, payload_out, log_time_ns)
+        self.counters.estimates += 1
+        if received_ns is not None:
+            channel.last_latency_ns = time.monotonic_ns() - received_ns
+
+    # ---- steps -----------------------------------------------------------------------------
+    def _decode(self, payload: bytes, encoding: str) -> Block:
+        limits = self.config.limits
+        if len(payload) > limits.max_payload_bytes:
+            raise InputError(
+                f"payload: expected at most {limits.max_payload_bytes} bytes, got {len(payload)}",
+                kind="oversized_block",
+            )
+        block = decode_block(payload, encoding)
+        if block.n_samples == 0:
+            raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
+        if block.n_samples > limits.max_block_samples:
+            raise InputError(
+                f"samples: expected at most {limits.max_block_samples} per block, got {block.n_samples}",
+                kind="oversized_block",
+            )
+        return block
+
+    def _channel_for(self, key: str, block: Block) -> Channel:
+        ch = self.channels.get(block.channel)
+        if ch is not None:
+            if ch.key != key:
+                raise InputError(
+                    f"channel {block.channel!r}: expected on key {ch.key!r}, got {key!r}",
+                    kind="channel_key_mismatch",
+                )
+            if block.sample_rate_hz != ch.sample_rate_hz:
+                raise InputError(
+                    f"sample_rate_hz: expected {ch.sample_rate_hz} (this channel's rate), got {block.sample_rate_hz}",
+                    kind="sample_rate_change",
+                )
+            return ch
+        if len(self.channels) >= self.config.limits.max_channels:
+            raise InputError(
+                f"channels: expected at most {self.config.limits.max_channels}, got one more ({block.channel!r})",
+                kind="channel_limit",
+            )
+        rule = self._rule_for(key)
+        if rule is None:
+            raise InputError(f"key {key!r}: no rule matches it", kind="no_rule")
+        try:
+            estimator = get_estimator(rule.estimator)(block.sample_rate_hz, rule.params)
+        except ParameterError as exc:
+            raise InputError(
+                f"{rule.estimator} at {block.sample_rate_hz} Hz: {exc}", kind="estimator_error"
+            ) from None
+        ch = Channel(block.channel, key, estimator, block.sample_rate_hz)
+        self.channels[block.channel] = ch
+        log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
+        return ch
+
+    def _rule_for(self, key: str) -> EstimatorRule | None:
+        if key not in self._rule_cache:
+            ke = zenoh.KeyExpr(key)
+            self._rule_cache[key] = next(
+                (r for r, expr in zip(self.rules, self._rule_exprs) if expr.includes(ke)), None
+            )
+        return self._rule_cache[key]
+
+    @staticmethod
+    def _check_sequence(ch: Channel, block: Block) -> int:
+        """Blocks missing before this one (0 if contiguous); raise for duplicates and
+        blocks from the past."""
+        if ch.last_seq is None or block.seq == ch.last_seq + 1:
+            return 0
+        if block.seq == ch.last_seq:
+            raise InputError(f"seq: expected {ch.last_seq + 1}, got {block.seq} again", kind="duplicate")
+        if block.seq < ch.last_seq:
+            raise InputError(
+                f"seq: expected {ch.last_seq + 1}, got {block.seq} (older than the last accepted)",
+                kind="out_of_order",
+            )
+        return block.seq - ch.last_seq - 1
+
+    def _accept(self, ch: Channel, block: Block, gap_blocks: int, reset: bool) -> None:
+        ch.last_seq = block.seq
+        ch.blocks += 1
+        ch.samples += block.n_samples
+        if gap_blocks:
+            ch.gaps += 1
+            log.warning("channel %s: %d block(s) missing before seq %d%s", ch.name, gap_blocks,
+                        block.seq, " (estimator reset)" if reset else "")
+
+    def _estimate_payload(self, ch: Channel, block: Block, track: Track, gap_blocks: int, reset: bool) -> bytes:
+        converged = bool(track.converged[-1])
+        ch.converged = converged
+        n = block.n_samples
+        msg = {
+            "format_version": FORMAT_VERSION,
+            "channel": ch.name,
+            "seq": block.seq,
+            "timestamp_ns": block.t0_ns + int(round((n - 1) * 1e9 / block.sample_rate_hz)),
+            "n_samples": n,
+            "estimator": ch.estimator.name,
+            "frequency_hz": [finite_or_none(v) for v in track.frequency_hz[-1]],
+            "amplitude": [finite_or_none(v) for v in track.amplitude[-1]],
+            "phase_rad": [finite_or_none(v) for v in track.phase_rad[-1]],
+            "offset": finite_or_none(track.offset[-1]),
+            "diagnostics": {
+                "converged": converged,
+                "residual_rms": finite_or_none(track.residual_rms),
+                "gap": gap_blocks > 0,
+                "gap_blocks": gap_blocks,
+                "reset": reset,
+                "extras": {k: _last_value(v) for k, v in track.extras.items()},
+            },
+        }
+        return dumps(msg)
+
+    def _reject(self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int) -> None:
+        self.counters.errors += 1
+        self.counters.by_kind[kind] += 1
+        self._error_counts[(key, kind)] += 1
+        if ch is not None:
+            ch.errors += 1
+        channel_name = block.channel if block is not None else None
+        report = {
+            "format_version": FORMAT_VERSION,
+            "key": key,
+            "channel": channel_name,
+            "seq": block.seq if block is not None else None,
+            "kind": kind,
+            "message": message,
+            "count": self._error_counts[(key, kind)],
+        }
+        log.warning("rejected input on %s (%s): %s", key, kind, message)
+        out_key = f"{self.config.keys.errors_prefix}/{channel_name or '_unknown'}"
+        payload = dumps(report)
+        for sink in self.sinks:
+            sink.on_error(out_key, payload, log_time_ns)
+
+    # ---- introspection ---------------------------------------------------------------------
+    def report_error(self, key: str, kind: str, message: str, log_time_ns: int) -> None:
+        """An error found outside the pipeline (e.g. the intake queue dropped an input)."""
+        self._reject(key, None, None, kind, message, log_time_ns)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The state of every channel, enough to resume bit-exactly (written at rotation)."""
+        return {
+            "format_version": 1,
+            "channels": [ch.snapshot() for ch in self.channels.values()],
+            "error_counts": [[k, kind, n] for (k, kind), n in self._error_counts.items()],
+        }
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        for item in snapshot["channels"]:
+            est = get_estimator(item["estimator"]["estimator"]).from_state(item["estimator"])
+            ch = Channel(item["name"], item["key"], est, float(item["sample_rate_hz"]))
+            for attr in ("last_seq", "blocks", "samples", "gaps", "errors", "converged"):
+                setattr(ch, attr, item[attr])
+            self.channels[ch.name] = ch
+        for key, kind, n in snapshot.get("error_counts", []):
+            self._error_counts[(key, kind)] = n
+
+    def channel_status(self) -> list[dict[str, Any]]:
+        return [
+            {
+                "channel": ch.name,
+                "key": ch.key,
+                "estimator": ch.estimator.name,
+                "sample_rate_hz": ch.sample_rate_hz,
+                "blocks": ch.blocks,
+                "samples": ch.samples,
+                "errors": ch.errors,
+                "gaps": ch.gaps,
+                "last_seq": ch.last_seq,
+                "last_latency_us": None if ch.last_latency_ns is None else ch.last_latency_ns / 1e3,
+                "converged": ch.converged,
+            }
+            for ch in self.channels.values()
+        ]
+
+
+def _last_value(arr: np.ndarray) -> float | None | list[float | None]:
+    last = arr[-1]
+    if np.ndim(last) == 0:
+        return finite_or_none(last)
+    return [finite_or_none(v) for v in np.ravel(last)]
+
+
+def sanitize_log_time(previous: int, now: int) -> int:
+    """Strictly increasing log times, even if the clock stalls or steps back."""
+    return now if now > previous else previous + 1
+
+
+__all__ = ["Channel", "NullSink", "Pipeline", "Sink", "sanitize_log_time"]

@@ -1,0 +1,214 @@
+"""MCAP recorder: a pipeline sink that writes inputs and outputs to MCAP files.
+
+Layout of a recording:
+
+* one MCAP channel per Zenoh key (and message encoding), its metadata saying the role
+  (``input``, ``estimate``, ``error``, ``status``) and the Zenoh encoding;
+* inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
+  the same code; JSON messages with their JSON Schema embedded (``jsonschema``), so
+  Foxglove can plot estimates;
+* a ``sinewatch`` metadata record at the start of each file: the effective config, the
+  sinewatch version, the file's index in its run;
+* from the second file of a run on, a ``sinewatch.snapshot`` attachment: the state of
+  every channel and estimator at the rotation point, so each file replays on its own;
+* chunked and compressed, rotated by size or duration, and flushed on a timer
+  (``Writer.flush`` closes the open chunk) so that a crash loses at most one interval:
+  ``sinewatch replay`` recovers the complete chunks of an unfinished file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.writer import CompressionType, Writer
+
+from sinewatch import __version__
+from sinewatch.schemas.codec import (
+    BLOCK_BINARY_ENCODING,
+    ERROR_JSON_ENCODING,
+    ESTIMATE_JSON_ENCODING,
+    STATUS_JSON_ENCODING,
+    __doc__ as CODEC_DOC,
+)
+from sinewatch.schemas.config import RecordingSection, SinewatchConfig
+from sinewatch.schemas.messages import MESSAGE_MODELS
+
+log = logging.getLogger("sinewatch.recorder")
+
+METADATA_NAME = "sinewatch"
+SNAPSHOT_NAME = "sinewatch.snapshot"
+BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
+BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
+
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
+    """(MCAP message encoding, schema name) for a payload with this Zenoh encoding."""
+    if zenoh_encoding.startswith("application/x-sinewatch-block") or payload[:4] == b"SWSB":
+        return BINARY_MESSAGE_ENCODING, "sinewatch.SampleBlock.binary"
+    return "json", "sinewatch.SampleBlock"
+
+
+class McapRecorder:
+    """Pipeline sink writing MCAP; also records Status through :meth:`on_status`."""
+
+    def __init__(
+        self,
+        config: SinewatchConfig,
+        *,
+        snapshot: Callable[[], dict[str, Any]] | None = None,
+        path: Path | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.section: RecordingSection = config.recording
+        self._snapshot = snapshot
+        self._fixed_path = path  # one explicit file, never rotated (replay --out)
+        self._clock = clock
+        self._run_stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+        self.index = 0
+        self.paths: list[Path] = []
+        self._file: BinaryIO | None = None
+        self._writer: Writer | None = None
+        self._opened_at = 0.0
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._sequence: dict[int, int] = {}
+        self.messages_written = 0
+
+    # ---- file lifecycle --------------------------------------------------------------------
+    @property
+    def path(self) -> Path | None:
+        return self.paths[-1] if self.paths else None
+
+    def _next_path(self) -> Path:
+        if self._fixed_path is not None:
+            return self._fixed_path
+        directory = Path(self.section.directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        return directory / f"{self.config.daemon_id}-{self._run_stamp}-{self.index:04d}.mcap"
+
+    def open(self) -> Path:
+        path = self._next_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(path, "wb")  # noqa: SIM115 (closed in close())
+        self._writer = Writer(
+            self._file,
+            chunk_size=self.section.chunk_size_bytes,
+            compression=_COMPRESSION[self.section.compression],
+        )
+        self._writer.start(profile="", library=f"sinewatch {__version__}")
+        self._schemas.clear()
+        self._channels.clear()
+        self._sequence.clear()
+        self._opened_at = self._clock()
+        self.paths.append(path)
+        self._writer.add_metadata(
+            METADATA_NAME,
+            {
+                "format_version": "1",
+                "sinewatch_version": __version__,
+                "file_index": str(self.index),
+                "config": json.dumps(self.config.model_dump(mode="json")),
+            },
+        )
+        if self.index > 0 and self._snapshot is not None:
+            now = time.time_ns()
+            self._writer.add_attachment(
+                now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode()
+            )
+        log.info("recording to %s", path)
+        return path
+
+    def close(self) -> None:
+        """Finish the file: write the summary and the footer."""
+        if self._writer is not None:
+            self._writer.finish()
+            self._file.close()
+            log.info("recording finished: %s (%d messages)", self.path, self.messages_written)
+        self._writer = None
+        self._file = None
+
+    def flush(self) -> None:
+        """Close the open chunk and push it to the OS; called on a timer."""
+        if self._writer is not None:
+            self._writer.flush()
+
+    def _maybe_rotate(self) -> None:
+        if self._fixed_path is not None or self._file is None:
+            return
+        sec = self.section
+        too_big = sec.rotate_bytes is not None and self._file.tell() >= sec.rotate_bytes
+        too_old = sec.rotate_seconds is not None and self._clock() - self._opened_at >= sec.rotate_seconds
+        if too_big or too_old:
+            self.close()
+            self.index += 1
+            self.open()
+
+    # ---- schemas and channels --------------------------------------------------------------
+    def _schema_id(self, name: str) -> int:
+        sid = self._schemas.get(name)
+        if sid is None:
+            if name == "sinewatch.SampleBlock.binary":
+                sid = self._writer.register_schema(name, BINARY_SCHEMA_ENCODING, CODEC_DOC.encode())
+            else:
+                model = MESSAGE_MODELS[name.removeprefix("sinewatch.")]
+                schema = json.dumps(model.model_json_schema()).encode()
+                sid = self._writer.register_schema(name, "jsonschema", schema)
+            self._schemas[name] = sid
+        return sid
+
+    def _channel_id(self, topic: str, message_encoding: str, schema: str, role: str, zenoh_encoding: str) -> int:
+        key = (topic, message_encoding)
+        cid = self._channels.get(key)
+        if cid is None:
+            cid = self._writer.register_channel(
+                topic,
+                message_encoding,
+                self._schema_id(schema),
+                {"role": role, "zenoh_encoding": zenoh_encoding},
+            )
+            self._channels[key] = cid
+        return cid
+
+    def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
+        seq = self._sequence.get(cid, 0)
+        self._sequence[cid] = seq + 1
+        self._writer.add_message(cid, log_time_ns, payload, time.time_ns(), sequence=seq)
+        self.messages_written += 1
+
+    # ---- the sink --------------------------------------------------------------------------
+    def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        if self._writer is None:
+            self.open()
+        self._maybe_rotate()  # at an input: snapshots fall on block boundaries
+        if not self.section.inputs:
+            return
+        msg_enc, schema = mcap_encodings(encoding, payload)
+        self._write(self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns)
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self.section.estimates:
+            cid = self._channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING)
+            self._write(cid, payload, log_time_ns)
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self._writer is None:
+            self.open()
+        if self.section.errors:
+            cid = self._channel_id(key, "json", "sinewatch.ErrorReport", "error", ERROR_JSON_ENCODING)
+            self._write(cid, payload, log_time_ns)
+
+    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self._writer is not None and self.section.status:
+            cid = self._channel_id(key, "json", "sinewatch.Status", "status", STATUS_JSON_ENCODING)
+            self._write(cid, payload, log_time_ns)
+
+
+__all__ = ["METADATA_NAME", "SNAPSHOT_NAME", "McapRecorder", "BLOCK_BINARY_ENCODING"]

@@ -1,0 +1,244 @@
+"""Replay: the daemon's pipeline fed from an MCAP recording instead of Zenoh.
+
+``replay(paths)`` reads the recorded inputs in file order, runs them through a fresh
+:class:`~sinewatch.pipeline.Pipeline` built from the config recorded in the file (and
+the channel snapshot, for a file that starts after a rotation) and checks that every
+recorded estimate is reproduced byte for byte. With ``rules`` it re-runs another
+estimator or other parameters instead, and ``out`` writes a new recording, so two
+algorithms can be compared on the same data.
+
+The reader is a single streaming pass (``mcap.stream_reader``), so a file whose writer
+was killed (no summary, no footer) still replays: every complete chunk is used and the
+result says the file was incomplete.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import defaultdict, deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
+from mcap.stream_reader import StreamReader
+
+from sinewatch.errors import SinewatchError
+from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
+from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
+
+log = logging.getLogger("sinewatch.replay")
+
+
+class ReplayError(SinewatchError, ValueError):
+    """The file cannot be replayed (not a sinewatch recording, no inputs, ...)."""
+
+
+@dataclass
+class RecordedMessage:
+    role: str
+    topic: str
+    zenoh_encoding: str
+    payload: bytes
+    log_time_ns: int
+
+
+@dataclass
+class Mismatch:
+    topic: str
+    index: int  # position among this topic's estimates
+    recorded: bytes | None
+    produced: bytes | None
+
+    def describe(self) -> str:
+        if self.recorded is None:
+            return f"{self.topic} #{self.index}: produced an estimate the recording does not have"
+        if self.produced is None:
+            return f"{self.topic} #{self.index}: recorded estimate was not reproduced"
+        return f"{self.topic} #{self.index}: " + ", ".join(diff_fields(self.recorded, self.produced))
+
+
+@dataclass
+class ReplayResult:
+    paths: list[Path]
+    inputs: int = 0
+    recorded_estimates: int = 0
+    produced_estimates: int = 0
+    matched: int = 0
+    recorded_errors: int = 0
+    produced_errors: int = 0
+    mismatches: list[Mismatch] = field(default_factory=list)
+    incomplete_files: list[Path] = field(default_factory=list)
+    compared: bool = True
+    uncompared_tail: int = 0  # estimates past the end of an incomplete recording
+    final: dict[str, dict[str, tuple[bytes | None, bytes | None]]] = field(default_factory=dict)
+    out_paths: list[Path] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        if not self.compared:
+            return True
+        return not self.mismatches and self.matched == self.recorded_estimates
+
+
+def diff_fields(a: bytes, b: bytes) -> list[str]:
+    """Field-level differences between two Estimate JSON payloads."""
+    try:
+        x, y = json.loads(a), json.loads(b)
+    except ValueError:
+        return ["payloads differ and are not JSON"]
+    out = []
+    for k in sorted(set(x) | set(y)):
+        if k == "diagnostics" and isinstance(x.get(k), dict) and isinstance(y.get(k), dict):
+            for d in sorted(set(x[k]) | set(y[k])):
+                if x[k].get(d) != y[k].get(d):
+                    out.append(f"diagnostics.{d}: recorded {x[k].get(d)!r} != replayed {y[k].get(d)!r}")
+        elif x.get(k) != y.get(k):
+            out.append(f"{k}: recorded {x.get(k)!r} != replayed {y.get(k)!r}")
+    return out or ["byte-level difference only (formatting)"]
+
+
+def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
+    """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
+    order; ("incomplete", reason) last if the file ends early."""
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as f:
+        reader = StreamReader(f, validate_crcs=True)
+        try:
+            for n, record in enumerate(reader.records):
+                if isinstance(record, DataEnd):
+                    break  # the summary repeats schemas and channels: nothing new there
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    ch = channels[record.channel_id]
+                    yield "message", RecordedMessage(
+                        ch.metadata.get("role", ""),
+                        ch.topic,
+                        ch.metadata.get("zenoh_encoding", ""),
+                        record.data,
+                        record.log_time,
+                    )
+                elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                    yield "metadata", dict(record.metadata)
+                elif isinstance(record, Attachment) and record.name == SNAPSHOT_NAME:
+                    yield "snapshot", json.loads(record.data)
+                if on_progress is not None and n % 512 == 0:
+                    on_progress(f.tell())
+        except (McapError, EOFError, ValueError, KeyError) as exc:
+            yield "incomplete", f"{type(exc).__name__}: {exc}"
+        if on_progress is not None:
+            on_progress(f.tell())
+
+
+class _Comparator(NullSink):
+    """Collects what the replayed pipeline produces, per topic, in order."""
+
+    def __init__(self) -> None:
+        self.estimates: dict[str, deque[bytes]] = defaultdict(deque)
+        self.produced = 0
+        self.errors = 0
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self.estimates[key].append(payload)
+        self.produced += 1
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self.errors += 1
+
+
+def replay(
+    paths: list[Path],
+    *,
+    rules: list[EstimatorRule] | None = None,
+    out: Path | None = None,
+    on_progress: Callable[[Path, int], None] | None = None,
+    max_mismatches: int = 1000,
+) -> ReplayResult:
+    """Replay recordings (one run's files, in order); see the module docstring."""
+    result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
+    pipeline: Pipeline | None = None
+    recorder: McapRecorder | None = None
+    comparator = _Comparator()
+    pending_snapshot: dict | None = None
+    config: SinewatchConfig | None = None
+    for file_no, path in enumerate(paths):
+        progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
+        for kind, item in read_recording(path, progress):
+            if kind == "metadata":
+                if config is None:
+                    config = SinewatchConfig.model_validate(json.loads(item["config"]))
+            elif kind == "snapshot":
+                if file_no == 0:
+                    pending_snapshot = item
+            elif kind == "incomplete":
+                log.warning("%s ends early (%s): replayed its complete chunks", path, item)
+                result.r.incomplete_files.append(path)
+            elif kind == "message":
+                if pipeline is None:
+                    if config is None:
+                        raise ReplayError(f"{path}: no sinewatch metadata before the first message; "
+                                          "expected a file written by sinewatch")
+                    sinks: list = [comparator]
+                    if out is not None:
+                        rec_config = config if rules is None else config.model_copy(update={"rules": rules})
+                        recorder = McapRecorder(rec_config, path=out)
+                        sinks.append(recorder)
+                    pipeline = Pipeline(config, sinks, rules=rules)
+                    if pending_snapshot is not None:
+                        pipeline.restore(pending_snapshot)
+                result.message(item, pipeline, comparator)
+    if recorder is not None:
+        recorder.close()
+        result.r.out_paths = list(recorder.paths)
+    if pipeline is None:
+        raise ReplayError(f"{', '.join(map(str, paths))}: no recorded messages to replay")
+    if result.r.inputs == 0:
+        raise ReplayError("the recording has no inputs (recording.inputs was off?): nothing to replay")
+    result.finish(comparator)
+    return result.r
+
+
+class ResultBuilder:
+    def __init__(self, paths: list[Path], *, compare: bool, max_mismatches: int) -> None:
+        self.r = ReplayResult(paths=list(paths), compared=compare)
+        self.max_mismatches = max_mismatches
+        self.counts: dict[str, int] = defaultdict(int)
+
+    def message(self, m: RecordedMessage, pipeline: Pipeline, comparator: _Comparator) -> None:
+        r = self.r
+        if m.role == "input":
+            r.inputs += 1
+            pipeline.process(m.topic, m.payload, m.zenoh_encoding, m.log_time_ns)
+        elif m.role == "estimate":
+            r.recorded_estimates += 1
+            produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
+            index = self.counts[m.topic]
+            self.counts[m.topic] += 1
+            r.final[m.topic] = (m.payload, produced)
+            if not r.compared:
+                return
+            if produced == m.payload:
+                r.matched += 1
+            elif len(r.mismatches) < self.max_mismatches:
+                r.mismatches.append(Mismatch(m.topic, index, m.payload, produced))
+        elif m.role == "error":
+            r.recorded_errors += 1
+
+    def finish(self, comparator: _Comparator) -> None:
+        r = self.r
+        r.produced_errors = comparator.errors
+        r.produced_estimates = comparator.produced
+        for topic, extra in comparator.estimates.items():  # produced, never recorded
+            if r.incomplete_files:  # their records were cut off with the file's tail
+                r.uncompared_tail += len(extra)
+                continue
+            for payload in extra:
+                r.final[topic] = (r.final.get(topic, (None, None))[0], payload)
+                if r.compared and len(r.mismatches) < self.max_mismatches:
+                    r.mismatches.append(Mismatch(topic, self.counts[topic], None, payload))
+                self.counts[topic] += 1

@@ -1,0 +1,56 @@
+"""Opening Zenoh sessions from the config, with safe defaults.
+
+Zenoh's own defaults are wide open (a peer listens on every interface and scouts by
+multicast); sinewatch always writes the endpoints and the scouting switch explicitly.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from typing import Any
+
+import zenoh
+
+from sinewatch.errors import ConfigError
+from sinewatch.schemas.config import ZenohSection
+
+
+def zenoh_config(section: ZenohSection) -> zenoh.Config:
+    conf = zenoh.Config()
+    _insert(conf, "mode", section.mode)
+    _insert(conf, "listen/endpoints", section.listen)
+    _insert(conf, "connect/endpoints", section.connect)
+    _insert(conf, "scouting/multicast/enabled", section.multicast_scouting)
+    if section.shared_memory is not None:
+        _insert(conf, "transport/shared_memory/enabled", section.shared_memory)
+    for path, value in section.raw.items():
+        _insert(conf, path, value)
+    return conf
+
+
+def _insert(conf: zenoh.Config, path: str, value: Any) -> None:
+    try:
+        conf.insert_json5(path, json.dumps(value))
+    except Exception as exc:  # zenoh raises its own ZError with the reason
+        raise ConfigError(f"zenoh config {path} = {value!r}: {exc}") from None
+
+
+def open_session(section: ZenohSection) -> zenoh.Session:
+    try:
+        return zenoh.open(zenoh_config(section))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"could not open the Zenoh session ({section.mode}, listen={section.listen}, "
+                          f"connect={section.connect}): {exc}") from None
+
+
+def client_section(connect: list[str]) -> ZenohSection:
+    """A client session that listens nowhere and connects to ``connect``."""
+    return ZenohSection(mode="client", listen=[], connect=connect)
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and the demo)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
