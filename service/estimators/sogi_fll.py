@@ -1,0 +1,279 @@
+"""``sogi-fll``: second-order generalized integrator with a frequency-locked loop and a
+DC-offset integrator, for one biased sinusoid (the power-electronics favourite).
+
+No paper file: paper 004 (``shared/papers/004_880a59a5c07ec15b.txt``, Section I) names
+this family as the usual way PLL/ANF methods are "augmented ... towards a second-order
+generalized integrator-based orthogonal signal generator (OSG-SOGI)" to cope with a dc
+offset. The structure and the FLL normalisation follow
+
+* [R] P. Rodriguez, A. Luna, I. Candela, R. Mujal, R. Teodorescu, F. Blaabjerg,
+  "Multiresonant frequency-locked loop for grid synchronization of power converters
+  under distorted grid conditions", IEEE Trans. Ind. Electron. 58(1), 127-138, 2011
+  (SOGI-QSG, FLL, gain normalisation);
+* the DC-offset rejection is the usual extra integrator on the SOGI error (the
+  "SOGI with DC loop", cf. Karimi-Ghartemani et al., IEEE Trans. Power Electron. 27(1),
+  2012, paper 004's reference [9]).
+
+Continuous-time model (omega' is the estimated angular frequency)::
+
+    e_v        = v - v' - d                                        (1) error
+    dv'/dt     = omega' (k e_v - qv')                              (2) SOGI
+    dqv'/dt    = omega' v'                                         (3) quadrature
+    dd/dt      = k_dc omega' e_v                                   (4) DC integrator
+    domega'/dt = -Gamma k omega' e_v qv' / (v'^2 + qv'^2)          (5) normalised FLL [R]
+
+Derivation of the normalisation (5), rebuilt and checked numerically: with
+``s = j omega`` the transfer functions are ``E = s (s^2 + omega'^2) / D(s)`` and
+``Q = qv'/v = k omega'^2 s / D(s)`` with ``D(s) = s^3 + (k + k_dc) omega' s^2 + omega'^2 s +
+k_dc omega'^3``. Near lock ``D(j omega') = -k omega'^3`` (as for the plain SOGI), so the
+mean of ``e_v qv'`` is ``V^2 (omega' - omega) / (k omega')`` for an input of amplitude V at
+omega, and (5) becomes ``domega'/dt = -Gamma (omega' - omega)``: a first-order loop with
+time constant ``1/Gamma`` whatever the amplitude, frequency or sample rate. ``D`` is
+Hurwitz for k, k_dc > 0 (Routh: ``(k + k_dc) * 1 > k_dc``); the default ``k_dc = 0.25``
+is near the fastest-settling choice for ``k = sqrt(2)`` (poles at ``omega' (-0.81,
+-0.43 +- 0.36 j)``; the optimum 0.22 gives a slowest pole at -0.53 omega'). The offset
+output d has zero steady-state error for a constant offset (integral action), and
+``E(0) = Q(0) = 0`` so the offset does not leak into the FLL error.
+
+Discretisation, sample period h, per sample n (given omega' from sample n-1):
+
+* (T) the linear part (1)-(4) by the trapezoidal rule (Tustin) with frequency
+  pre-warping: the matrix ``omega' M`` (M below) is replaced by ``omega_c M`` with
+  ``omega_c = (2/h) tan(omega' h / 2)``, so that the discrete SOGI's notch and its 90 deg
+  quadrature lie exactly at omega' (at z = exp(j omega' h) the trapezoidal integrator
+  ``(h/2)(z+1)/(z-1)`` equals ``1/(j omega_c)``, so ``qv'/v' = omega_c/(j omega_c) = -j``
+  and |qv'| = |v'| exactly). With ``x = (v', qv', d)``, ``a = tan(omega' h / 2)``::
+
+      M = [[-k, -1, -k], [1, 0, 0], [-k_dc, 0, -k_dc]],   b = (k, 0, k_dc)
+      (I - a M) x[n] = (I + a M) x[n-1] + a b (v[n] + v[n-1])          (T)
+
+  solved in closed form (row 2 gives qv', row 3 gives d, row 1 gives v'). Tustin is
+  A-stable: no step-size limit on the SOGI at any omega' h < pi. Forward Euler would
+  neither be stable at high omega' h nor put the resonance at omega'.
+* (F) the FLL (5) in the warped domain: near lock the mean of ``e_v qv'`` is
+  ``V^2 (omega_c - Omega) / (k omega_c)`` and ``d omega_c / d omega' = 1 + a^2``, so the
+  FLL rate ``u[n] = -Gamma k (sin(omega' h)/h) e_v[n] qv'[n] / max(v'^2 + qv'^2, A_min^2)``
+  (``omega_c / (1 + a^2) = sin(omega' h) / h``) keeps the loop's linearised rate at Gamma;
+  integrated by the trapezoidal rule ``omega'[n] = omega'[n-1] + (h/2)(u[n] + u[n-1])``,
+  then clamped to the frequency range. The FLL uses omega'[n-1] in step n: the one-
+  sample loop delay of any explicit loop, negligible for ``Gamma h << 1`` (checked:
+  ``Gamma <= 0.05 fs``).
+* below ``min_amplitude`` the FLL holds (``u = 0``): a decaying SOGI transient would
+  otherwise steer the frequency with an O(1) normalised error.
+
+Outputs (``y = offset + A sin(phase)``): with ``v' = A sin(theta)``, ``qv' = -A cos(theta)``::
+
+    amplitude = hypot(v', qv'),  phase = atan2(v', -qv'),  frequency = omega'/(2 pi),
+    offset = d.
+
+Frequency and phase are NaN while ``amplitude <= min_amplitude``. The Track residual is
+the one-step prediction error ``v[n] - (d + v' cos(omega' h) - qv' sin(omega' h))`` from
+the state before sample n. ``converged`` requires amplitude > min_amplitude, a smoothed
+relative error ``rel = sqrt(LPF(e_v^2 / A^2)) < max_relative_error`` and the FLL's own
+prediction of the frequency still to go, ``|LPF(u)| / Gamma`` (a first-order loop moves
+``Gamma`` times its remaining error per second), below ``frequency_tolerance_hz``; the
+low-pass filters have a time constant of ``convergence_cycles`` nominal cycles and the
+relative error starts at 1, so a fresh estimator is not converged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from pydantic import Field
+
+from sinewatch.errors import ParameterError
+from sinewatch.estimators import register
+from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+
+
+class SogiFllParams(EstimatorParams):
+    nominal_frequency_hz: float = Field(
+        50.0, gt=0, allow_inf_nan=False, description="Initial FLL frequency (Hz)"
+    )
+    k: float = Field(
+        math.sqrt(2.0), gt=0, allow_inf_nan=False,
+        description="SOGI damping gain (dimensionless; sqrt(2) is the usual choice)",
+    )
+    k_dc: float = Field(
+        0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'"
+    )
+    gamma: float = Field(
+        50.0, gt=0, allow_inf_nan=False,
+        description="Normalised FLL gain Gamma (1/s): frequency error decays as exp(-Gamma t)",
+    )
+    min_frequency_hz: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="FLL lower clamp (default 0.5 x nominal)"
+    )
+    max_frequency_hz: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
+    )
+    min_amplitude: float = Field(
+        1e-6, ge=0, allow_inf_nan=False,
+        description="Below this amplitude the FLL holds and frequency/phase are NaN",
+    )
+    max_relative_error: float = Field(
+        0.2, gt=0, allow_inf_nan=False,
+        description="converged requires the smoothed RMS SOGI error below this x amplitude",
+    )
+    frequency_tolerance_hz: float = Field(
+        0.1, gt=0, allow_inf_nan=False,
+        description="converged requires the FLL's predicted remaining frequency error below this",
+    )
+    convergence_cycles: float = Field(
+        1.0, gt=0, allow_inf_nan=False,
+        description="Time constant of the convergence low-pass filters, in nominal cycles",
+    )
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def sogi_fll_kernel(v, state, consts, last_only):
+    """Run the SOGI-FLL over block ``v`` from ``state``; return
+    ``(out, extras, sse, new_state)``.
+
+    ``state`` = (v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u));
+    ``consts`` = (h, k, k_dc, Gamma, omega_min, omega_max, min_amplitude,
+    max_relative_error, frequency_tolerance_hz, alpha of the convergence filters).
+    ``out`` columns: frequency_hz, amplitude, phase_rad, offset, converged (0/1);
+    ``extras`` columns: relative_error_rms, frequency_rate_hz_per_s. Pure.
+    """
+    vp, qv, d, w, v_prev, u_prev, ms, lu = (
+        state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7]
+    )
+    h, k, kd, gam = consts[0], consts[1], consts[2], consts[3]
+    w_min, w_max, a_min = consts[4], consts[5], consts[6]
+    rel_max, f_tol, alpha = consts[7], consts[8], consts[9]
+    a_min2 = a_min * a_min
+    gam2k_h = 2.0 * gam * k / h
+    n = v.shape[0]
+    out = np.empty((1 if last_only else n, 5))
+    ext = np.empty((1 if last_only else n, 2))
+    sse = 0.0
+    for j in range(n):
+        vn = v[j]
+        # (T) trapezoidal step with pre-warping, a = tan(omega' h / 2); one tan and the
+        # half-angle identities instead of sin and cos (shorter loop-carried chain)
+        a = math.tan(0.5 * w * h)
+        a2 = a * a
+        inv1a2 = 1.0 / (1.0 + a2)
+        sn = 2.0 * a * inv1a2  # sin(omega' h)
+        cs = (1.0 - a2) * inv1a2  # cos(omega' h)
+        # one-step prediction from the state before v[n]
+        e_pred = vn - (d + vp * cs - qv * sn)
+        sse += e_pred * e_pred
+        usum = vn + v_prev
+        r0 = vp + a * (k * (usum - vp - d) - qv)  # (I + aM) x[n-1] + a b (v[n] + v[n-1])
+        r1 = qv + a * vp
+        r2 = d + a * kd * (usum - vp - d)
+        akd1 = 1.0 + a * kd
+        g = 1.0 / akd1
+        # row 1 with rows 2-3 substituted, multiplied through by (1 + a k_dc)
+        vp = (akd1 * (r0 - a * r1) - a * k * r2) / (akd1 * (1.0 + a * k + a2) - a2 * k * kd)
+        qv = r1 + a * vp
+        d = g * (r2 - a * kd * vp)
+        ev = vn - vp - d  # (1)
+        amp2 = vp * vp + qv * qv
+        # (F) normalised FLL, trapezoidal integration, held below min_amplitude;
+        # -Gamma k (sin(omega' h)/h) e qv / A^2 with sin(omega' h) = 2a / (1 + a^2)
+        if amp2 > a_min2:
+            u = -gam2k_h * a * ev * qv / ((1.0 + a2) * amp2)
+        else:
+            u = 0.0
+            if amp2 < 1e-200:  # silence: flush what decays to subnormals (slow arithmetic)
+                if amp2 < 1e-300:
+                    vp = 0.0
+                    qv = 0.0
+                    amp2 = 0.0
+                if abs(d) < 1e-150:
+                    d = 0.0
+                if abs(lu) < 1e-150:
+                    lu = 0.0
+                ms = 1.0  # no signal: the relative error restarts as on a fresh estimator
+        w = w + 0.5 * h * (u + u_prev)
+        if w < w_min:
+            w = w_min
+        elif w > w_max:
+            w = w_max
+        u_prev = u
+        v_prev = vn
+        # convergence filters
+        ms += alpha * (ev * ev / max(amp2, a_min2, 1e-300) - ms)
+        lu += alpha * (u - lu)
+        if last_only and j != n - 1:
+            continue
+        row = 0 if last_only else j
+        amp = math.sqrt(amp2)
+        out[row, 1] = amp
+        out[row, 3] = d
+        rel = math.sqrt(ms)
+        ext[row, 0] = rel
+        ext[row, 1] = lu / (2.0 * math.pi)
+        if amp > a_min:
+            out[row, 0] = w / (2.0 * math.pi)
+            out[row, 2] = math.atan2(vp, -qv)
+            ok = rel < rel_max and abs(lu) / (2.0 * math.pi * gam) < f_tol
+            out[row, 4] = 1.0 if ok else 0.0
+        else:
+            out[row, 0] = np.nan
+            out[row, 2] = np.nan
+            out[row, 4] = 0.0
+    new_state = np.array([vp, qv, d, w, v_prev, u_prev, ms, lu])
+    return out, ext, sse, new_state
+
+
+@register
+class SogiFll(Estimator):
+    """SOGI-FLL with DC-offset integrator, Tustin-discretised (see module docstring)."""
+
+    name = "sogi-fll"
+    Params = SogiFllParams
+    summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
+    paper = None
+    example_sample_rate_hz = 5000.0
+    example_frequency_hz = 50.0
+    example_params = {"nominal_frequency_hz": 50.0}
+
+    def _check_params(self) -> None:
+        p = self.params
+        fs = self.sample_rate_hz
+        nyq = 0.5 * fs
+        if p.nominal_frequency_hz >= nyq:
+            raise ParameterError(
+                f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}"
+            )
+        f_lo = 0.5 * p.nominal_frequency_hz if p.min_frequency_hz is None else p.min_frequency_hz
+        f_hi = 1.5 * p.nominal_frequency_hz if p.max_frequency_hz is None else p.max_frequency_hz
+        if f_hi >= nyq:
+            raise ParameterError(f"max_frequency_hz: expected < Nyquist = {nyq} Hz, got {f_hi}")
+        if not f_lo < f_hi:
+            raise ParameterError(f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}")
+        if not f_lo <= p.nominal_frequency_hz <= f_hi:
+            raise ParameterError(
+                f"nominal_frequency_hz: expected within [{f_lo}, {f_hi}] Hz, got {p.nominal_frequency_hz}"
+            )
+        if p.gamma > 0.05 * fs:
+            raise ParameterError(
+                f"gamma: expected <= 0.05 x sample rate = {0.05 * fs:g} 1/s (discrete FLL), got {p.gamma}"
+            )
+        self._f_range = (f_lo, f_hi)
+
+    def _setup(self) -> None:
+        p = self.params
+        h = 1.0 / self.sample_rate_hz
+        f_lo, f_hi = self._f_range
+        alpha = -math.expm1(-h * p.nominal_frequency_hz / p.convergence_cycles)
+        self._consts = np.array(
+            [h, p.k, p.k_dc, p.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
+             p.min_amplitude, p.max_relative_error, p.frequency_tolerance_hz, alpha]
+        )  # fmt: skip
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        w0 = 2.0 * math.pi * self.params.nominal_frequency_hz
+        return {"x": np.array([0.0, 0.0, 0.0, w0, 0.0, 0.0, 1.0, 0.0])}
+
+    def _run(self, samples, state, last_only):
+        out, ext, sse, x = sogi_fll_kernel(samples, state["x"], self._consts, last_only)
+        extras = {"relative_error_rms": ext[:, 0], "frequency_rate_hz_per_s": ext[:, 1]}
+        return track_from_columns(out, sse, samples.shape[0], extras), {"x": x}
