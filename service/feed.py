@@ -26,6 +26,7 @@ class FeedChannel:
     scenario: Scenario
     stream: ScenarioStream
     blocks: int = 0
+    last_seq: int = -1
     last_truth: Truth | None = None
     faults_injected: dict[str, int] = field(default_factory=dict)
 
@@ -83,6 +84,7 @@ class Feed:
             samples = np.array(samples, copy=True)
             samples.flat[len(samples) // 2] = np.nan
         block = self.publisher.block(ch.channel, samples, fs)
+        ch.last_seq = block.seq
         if fault:
             ch.faults_injected[fault] = ch.faults_injected.get(fault, 0) + 1
         if fault == "drop":

@@ -145,7 +145,7 @@ def foh_coefficients(lam: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray
     g0 = -np.expm1(-x) / lam  # integral of exp(-lam (Ts - tau)) over [0, Ts]
     # b1 = Ts * (x - 1 + e^-x) / x^2 ; series (1/2 - x/6 + x^2/24 - x^3/120 + x^4/720) below 1e-2
     small = x < 1e-2
-    xs = np.where(small, x, 1.0)
+    xs = np.where(small, 1.0, x)
     closed = (x + np.expm1(-x)) / (xs * xs)
     series = 0.5 - x / 6.0 + x**2 / 24.0 - x**3 / 120.0 + x**4 / 720.0
     b1 = ts * np.where(small, series, closed)
@@ -382,98 +382,99 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
             q2 += l2v * v
         s = math.sqrt(s2)
         env = max(s, env * env_decay)
-        freq = np.nan
-        amp = np.nan
-        phase = np.nan
-        offset = np.nan
-        conv = 0.0
-        margin = np.nan
-        fit = np.nan
         pred_valid = 0.0
+        defined = False
+        mu = 0.0
+        det = 0.0
+        a_sin = 0.0
+        a_cos = 0.0
+        z0 = 0.0
+        z1 = 0.0
+        z2 = 0.0
+        wts = 0.0
+        inv = 0.0
         if s <= 1e-150 or s < silence_ratio * env:
             n_warm = 0.0  # "xi near 0": undefined, and the settle time starts again
         else:
             if n_warm < n_settle:
                 n_warm += 1.0
             inv = 1.0 / s
-            # L^T L and L^T F^2 xi for the unit vector xi/|xi| (8)
-            g00 = s_ll
-            g01 = s_l
-            g02 = -p1 * inv
-            g11 = s_11
-            g12 = -p0 * inv
-            g22 = 1.0
+            # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
+            # r = L^T F^2 xi, for the unit vector xi/|xi| (8)
+            b02 = -p1 * inv
+            b12 = -p0 * inv
             r0 = p3 * inv
             r1 = p2 * inv
             r2 = -q2 * inv * inv
             # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
             det = (
-                g00 * (g11 * g22 - g12 * g12)
-                - g01 * (g01 * g22 - g12 * g02)
-                + g02 * (g01 * g12 - g11 * g02)
+                s_ll * (s_11 - b12 * b12)
+                - s_l * (s_l - b12 * b02)
+                + b02 * (s_l * b12 - s_11 * b02)
             )
             mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
-            margin = 2.0 * det / ell
-            # Phi = L^T L + mu I (8), solved by Cholesky
-            a00 = g00 + mu
-            a11 = g11 + mu
-            a22 = g22 + mu
-            c00 = math.sqrt(a00)
-            c10 = g01 / c00
-            c20 = g02 / c00
-            d11 = a11 - c10 * c10
-            if d11 > 0.0:
-                c11 = math.sqrt(d11)
-                c21 = (g12 - c20 * c10) / c11
-                d22 = a22 - c20 * c20 - c21 * c21
-            else:
-                c11 = 0.0
-                c21 = 0.0
-                d22 = 0.0
-            if d22 > 1e-300:
-                c22 = math.sqrt(d22)
-                u0 = r0 / c00
-                u1 = (r1 - c10 * u0) / c11
-                u2 = (r2 - c20 * u0 - c21 * u1) / c22
-                z2 = u2 / c22
-                z1 = (u1 - c21 * z2) / c11
-                z0 = (u0 - c10 * z1 - c20 * z2) / c00
+            # Phi = L^T L + mu I, solved with its adjugate (8)
+            a = s_ll + mu
+            d = s_11 + mu
+            f = 1.0 + mu
+            k00 = d * f - b12 * b12
+            k01 = b02 * b12 - s_l * f
+            k02 = s_l * b12 - d * b02
+            k11 = a * f - b02 * b02
+            k12 = s_l * b02 - a * b12
+            k22 = a * d - s_l * s_l
+            det_phi = a * k00 + s_l * k01 + b02 * k02
+            if det_phi > 1e-300:
+                idet = 1.0 / det_phi
+                z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
+                z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
+                z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
                 # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
-                wts = w_ref * math.sqrt(z2) * Ts if z2 > 0.0 else 0.0
-                if z2 > 0.0 and wts < math.pi:
+                if z2 > 0.0:
                     sq = math.sqrt(z2)
-                    # relative least-squares residual |L z - F^2 xi| / |F^2 xi|
-                    rr = 0.0
-                    ff = 0.0
-                    for i in range(m):
-                        xn = xi[i] * inv
-                        t = lam[i] * lam[i] * xn
-                        d = lam[i] * z0 + z1 - xn * z2 - t
-                        rr += d * d
-                        ff += t * t
-                    fit = math.sqrt(rr / ff)
-                    half = 0.5 * wts
-                    sinc = math.sin(half) / half if half > 1e-8 else 1.0
-                    amp = w_ref * s * math.sqrt(z0 * z0 + z1 * z1 / z2) / (sinc * sinc)
-                    freq = w_ref * sq / (2.0 * math.pi)
-                    phase = math.atan2(z0 * sq, -z1)  # x1 = A sin(theta), x2 = -A w cos(theta)
-                    if phase <= -math.pi:
-                        phase = math.pi
-                    offset = 0.0
-                    if n_warm >= n_settle and mu == 0.0 and fit <= max_fit:
-                        conv = 1.0
-                    y_pred = amp * math.sin(phase + wts)
-                    pred_valid = 1.0
+                    wts = w_ref * sq * Ts  # omega Ts
+                    if wts < math.pi:  # below Nyquist
+                        defined = True
+                        half = 0.5 * wts
+                        sh = math.sin(half)
+                        ch = math.sqrt(max(1.0 - sh * sh, 0.0))
+                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
+                        a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
+                        # y(k+1) predicted: A sin(theta + w Ts)
+                        y_pred = a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * ch)
+                        pred_valid = 1.0
         if last_only and k != n - 1:
             continue
         j = 0 if last_only else k
-        out[j, 0] = freq
-        out[j, 1] = amp
-        out[j, 2] = phase
-        out[j, 3] = offset
-        out[j, 4] = conv
-        ext[j, 0] = margin
-        ext[j, 1] = fit
+        if defined:
+            # relative least-squares residual |L z - F^2 xi| / |F^2 xi| (zero on T(O))
+            rr = 0.0
+            ff = 0.0
+            for i in range(m):
+                xn = xi[i] * inv
+                t = lam[i] * lam[i] * xn
+                res = lam[i] * z0 + z1 - xn * z2 - t
+                rr += res * res
+                ff += t * t
+            fit = math.sqrt(rr / ff)
+            phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
+            out[j, 0] = wts / (2.0 * math.pi * Ts)  # omega = omega_ref sqrt(x3~)
+            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
+            out[j, 2] = phase if phase > -math.pi else math.pi
+            out[j, 3] = 0.0
+            ok = n_warm >= n_settle and mu == 0.0 and fit <= max_fit
+            out[j, 4] = 1.0 if ok else 0.0
+            ext[j, 0] = 2.0 * det / ell
+            ext[j, 1] = fit
+        else:
+            out[j, 0] = np.nan
+            out[j, 1] = np.nan
+            out[j, 2] = np.nan
+            out[j, 3] = np.nan
+            out[j, 4] = 0.0
+            ext[j, 0] = np.nan
+            ext[j, 1] = np.nan
     new_state = np.empty(m + 6)
     new_state[:m] = xi
     new_state[m] = y_prev

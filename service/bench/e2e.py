@@ -1,0 +1,192 @@
+"""``sinewatch bench e2e``: the daemon, fed through real Zenoh on loopback, recording on.
+
+The daemon runs as its own process (``sinewatch serve``) with a peer session on a free
+loopback port and recording to a temporary directory. This process publishes
+``channels`` channels at ``rate`` Hz in ``block``-sample blocks, paced in real time with
+the channels staggered evenly over a block period (as independent sensors would be), and
+subscribes to the estimates. Latency is block-to-estimate: from just before ``put`` of a
+block to the arrival of its estimate (CLOCK_MONOTONIC is system-wide, so both ends use
+the same clock). Reported: offered and sustained samples/s, estimates missing, the
+daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from sinewatch.clients import BlockPublisher, JsonSubscription, connect
+from sinewatch.zenoh_session import free_loopback_port
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class LatencyProbe:
+    """Estimate subscriber that matches each estimate to its block's publish time."""
+
+    def __init__(self, session, key: str) -> None:
+        self.sent_at: dict[tuple[str, int], int] = {}
+        self.latencies_ns: list[int] = []
+        self.received = 0
+        self.unmatched = 0
+        self.last = threading.Event()
+        self.expected = None
+        self._sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample) -> None:
+        now = time.monotonic_ns()
+        msg = json.loads(sample.payload.to_bytes())
+        t = self.sent_at.pop((msg["channel"], msg["seq"]), None)
+        self.received += 1
+        if t is None:
+            self.unmatched += 1
+        else:
+            self.latencies_ns.append(now - t)
+        if self.expected is not None and self.received >= self.expected:
+            self.last.set()
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def run(args: argparse.Namespace) -> int:
+    console = Console()
+    port = free_loopback_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory(prefix="sinewatch-bench-") as tmp:
+        config = {
+            "daemon_id": "bench",
+            "zenoh": {"listen": [endpoint]},
+            "rules": [{"match": "sinewatch/in/**", "estimator": args.estimator, "params": _params(args)}],
+            "recording": {"directory": str(Path(tmp) / "rec")},
+            "status_interval_s": 1.0,
+        }
+        cfg_path = Path(tmp) / "bench.json"
+        cfg_path.write_text(json.dumps(config))
+        daemon = subprocess.Popen([sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_path)],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            result = _drive(args, endpoint, daemon, console)
+        finally:
+            if daemon.poll() is None:
+                daemon.send_signal(signal.SIGINT)
+                try:
+                    daemon.wait(60)
+                except subprocess.TimeoutExpired:
+                    daemon.kill()
+        files = sorted((Path(tmp) / "rec").glob("*.mcap"))
+        result["recorded_bytes"] = sum(f.stat().st_size for f in files)
+        result["daemon_exit_code"] = daemon.returncode
+    _print(console, result)
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    ok = result["missing_estimates"] == 0 and result["daemon_dropped"] == 0
+    return 0 if ok else 1
+
+
+def _params(args: argparse.Namespace) -> dict:
+    if args.estimator == "ges-kalman":
+        from sinewatch.scenarios.demo import KALMAN_10K
+
+        return KALMAN_10K
+    return {}
+
+
+def _drive(args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen, console: Console) -> dict:
+    fs, block, n_ch = args.rate, args.block, args.channels
+    period = block / fs
+    rounds = max(1, int(args.duration / period))
+    with connect([endpoint]) as session:
+        status = JsonSubscription(session, "sinewatch/status/**")
+        if status.get(timeout=30.0) is None:
+            raise RuntimeError("the daemon did not come up within 30 s: "
+                               + daemon.stderr.read1(4096).decode(errors="replace") if daemon.poll() else "")
+        probe = LatencyProbe(session, "sinewatch/est/**")
+        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
+        channels = [f"bench/{i:04d}" for i in range(n_ch)]
+        pub.wait_for_subscriber(channels[0], 10.0)
+        # One second of signal per channel, periodic (50 Hz + noise), read with wrap-around.
+        t = np.arange(int(fs)) / fs
+        rng = np.random.default_rng(0)
+        base = [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size)
+                for _ in range(n_ch)]
+        waiter = threading.Event()
+        console.print(f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
+                      f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * period:.1f} s ...")
+        cpu0 = _cpu_seconds(daemon.pid)
+        start = time.monotonic()
+        late = 0
+        for r in range(rounds):
+            pos = (r * block) % int(fs)
+            idx = (pos + np.arange(block)) % int(fs)
+            for c, name in enumerate(channels):
+                due = start + (r + c / n_ch) * period
+                delay = due - time.monotonic()
+                if delay > 0:
+                    waiter.wait(delay)
+                elif delay < -period:
+                    late += 1
+                blk = pub.block(name, base[c][idx], fs)
+                payload = pub.encode(blk)
+                probe.sent_at[(name, blk.seq)] = time.monotonic_ns()
+                pub.publish_raw(name, payload)
+        feed_s = time.monotonic() - start
+        sent = rounds * n_ch
+        probe.expected = sent
+        probe.last.wait(30.0)
+        drain_s = time.monotonic() - start
+        cpu = _cpu_seconds(daemon.pid) - cpu0
+        last_status = None
+        while (msg := status.get(timeout=1.5)) is not None:
+            last_status = msg
+        probe.close()
+        status.close()
+        pub.close()
+    lat = np.array(probe.latencies_ns) / 1e6
+    return {
+        "channels": n_ch,
+        "sample_rate_hz": fs,
+        "block": block,
+        "duration_s": round(feed_s, 2),
+        "offered_samples_per_s": n_ch * fs,
+        "sustained_samples_per_s": probe.received * block / drain_s,
+        "blocks_sent": sent,
+        "estimates_received": probe.received,
+        "missing_estimates": sent - probe.received,
+        "publisher_fell_behind_blocks": late,
+        "daemon_dropped": (last_status or {}).get("dropped", -1),
+        "daemon_errors": (last_status or {}).get("errors", -1),
+        "daemon_backpressure_waits": (last_status or {}).get("backpressure_waits", -1),
+        "latency_ms_p50": float(np.percentile(lat, 50)) if lat.size else None,
+        "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
+        "latency_ms_max": float(lat.max()) if lat.size else None,
+        "daemon_cpu_fraction_of_one_core": cpu / feed_s,
+    }
+
+
+def _print(console: Console, r: dict) -> None:
+    console.print(
+        f"sustained {r['sustained_samples_per_s'] / 1e6:.3f} M samples/s "
+        f"(offered {r['offered_samples_per_s'] / 1e6:.3f} M, ratio {r['sustained_samples_per_s'] / r['offered_samples_per_s']:.3f}) "
+        f"over {r['duration_s']} s; estimates {r['estimates_received']}/{r['blocks_sent']} "
+        f"(missing {r['missing_estimates']}), daemon drops {r['daemon_dropped']}, errors {r['daemon_errors']}"
+    )
+    console.print(
+        f"block-to-estimate latency: p50 {r['latency_ms_p50']:.2f} ms, p99 {r['latency_ms_p99']:.2f} ms, "
+        f"max {r['latency_ms_max']:.2f} ms; daemon CPU {100 * r['daemon_cpu_fraction_of_one_core']:.0f} % of one core; "
+        f"recorded {r['recorded_bytes'] / 1e6:.1f} MB"
+    )

@@ -1,0 +1,289 @@
+"""The ``sinewatch`` command line.
+
+    sinewatch demo                      the whole path on loopback, with a live table
+    sinewatch serve --config FILE       run the daemon
+    sinewatch config show [--config F]  print the effective configuration
+    sinewatch schemas export DIR        write the JSON Schemas
+    sinewatch estimators                list estimators and their parameters
+    sinewatch feed [...]                publish simulated sample blocks
+    sinewatch tail [KEYEXPR]            print estimates as they arrive
+    sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
+    sinewatch bench kernels|e2e|accuracy|scenarios
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from sinewatch import __version__
+from sinewatch.errors import SinewatchError
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING - 10 * verbose
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def parse_param(text: str) -> tuple[str, Any]:
+    """``k=v`` with v parsed as JSON when it parses (numbers, lists, true), else a string."""
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    key, raw = text.split("=", 1)
+    try:
+        return key, json.loads(raw)
+    except ValueError:
+        return key, raw
+
+
+# ---- commands --------------------------------------------------------------------------------
+def cmd_demo(args: argparse.Namespace) -> int:
+    from sinewatch.demo import main
+
+    names = args.scenarios.split(",") if args.scenarios else None
+    return main(names, args.duration, Path(args.record_dir), not args.no_record)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from sinewatch.config import load_config
+    from sinewatch.daemon import serve
+
+    config = load_config(args.config)
+    logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
+    return serve(config)
+
+
+def cmd_config_show(args: argparse.Namespace) -> int:
+    from sinewatch.config import config_to_json, load_config
+
+    print(config_to_json(load_config(args.config)))
+    return 0
+
+
+def cmd_schemas_export(args: argparse.Namespace) -> int:
+    from sinewatch.schemas.export import export_schemas
+
+    for path in export_schemas(Path(args.dir)):
+        print(path)
+    return 0
+
+
+def cmd_estimators(args: argparse.Namespace) -> int:
+    from sinewatch.estimators import available, get
+
+    for name, params in available().items():
+        cls = get(name)
+        print(f"{name}: {cls.summary}" + (f"  [paper {cls.paper}]" if cls.paper else ""))
+        for field, info in params.model_fields.items():
+            default = info.default if info.default_factory is None else info.default_factory()
+            print(f"    {field} = {default!r}  {info.description or ''}")
+    return 0
+
+
+def cmd_feed(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.feed import Feed, make_channels
+    from sinewatch.scenarios.demo import DEMO_CHANNELS
+
+    names = args.scenario or DEMO_CHANNELS
+    overrides = {"sample_rate_hz": args.rate} if args.rate else {}
+    channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
+    console = Console(stderr=True)
+    with connect(args.connect) as session:
+        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
+        if not pub.wait_for_subscriber(channels[0].channel, args.wait):
+            console.print(f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
+                          f"(is the daemon running and reachable at {args.connect}?)[/red]")
+            return 2
+        feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
+        t0 = time.monotonic()
+        try:
+            sent = feed.run(args.duration)
+        except KeyboardInterrupt:
+            sent = pub.published
+        dt = time.monotonic() - t0
+        pub.close()
+    n_samples = sum(c.blocks for c in channels) * args.block
+    console.print(f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
+                  f"({n_samples / max(dt, 1e-9):,.0f} samples/s)")
+    return 0
+
+
+def cmd_tail(args: argparse.Namespace) -> int:
+    from sinewatch.clients import JsonSubscription, connect
+
+    shown = 0
+    with connect(args.connect) as session, JsonSubscription(session, args.keyexpr) as sub:
+        try:
+            for msg in sub.iter(timeout=args.timeout):
+                msg.pop("_key", None) if args.json else None
+                print(json.dumps(msg) if args.json else format_estimate(msg), flush=True)
+                shown += 1
+                if args.count and shown >= args.count:
+                    break
+        except KeyboardInterrupt:
+            pass
+    return 0 if shown or not args.count else 1
+
+
+def format_estimate(msg: dict[str, Any]) -> str:
+    if "frequency_hz" not in msg:  # errors and status: show as JSON
+        return json.dumps({k: v for k, v in msg.items() if k != "_key"})
+
+    def f(values: list, spec: str) -> str:
+        return ",".join("nan" if v is None else format(v, spec) for v in values)
+
+    d = msg["diagnostics"]
+    flags = "".join(
+        (" converged" if d["converged"] else " -", " GAP" if d["gap"] else "", " RESET" if d["reset"] else "")
+    )
+    off = "nan" if msg["offset"] is None else f"{msg['offset']:.4f}"
+    return (f"{msg['timestamp_ns'] / 1e9:.4f} {msg['channel']} #{msg['seq']} {msg['estimator']} "
+            f"f={f(msg['frequency_hz'], '.4f')}Hz A={f(msg['amplitude'], '.4f')} "
+            f"phi={f(msg['phase_rad'], '.3f')} off={off}{flags}")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from sinewatch.replay_cli import run_replay
+
+    return run_replay(args)
+
+
+def cmd_bench_kernels(args: argparse.Namespace) -> int:
+    from sinewatch.bench.kernels import run
+
+    return run(args)
+
+
+def cmd_bench_e2e(args: argparse.Namespace) -> int:
+    from sinewatch.bench.e2e import run
+
+    return run(args)
+
+
+# ---- parser ----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from sinewatch.clients.session import DEFAULT_CONNECT
+
+    p = argparse.ArgumentParser(prog="sinewatch", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p.add_argument("--version", action="version", version=f"sinewatch {__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    d = sub.add_parser("demo", help="run daemon + simulated feed on loopback with a live table")
+    d.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
+    d.add_argument("--scenarios", help="comma-separated scenario names (default: the 8 demo channels)")
+    d.add_argument("--record-dir", default="sinewatch-runs", help="where the MCAP file goes")
+    d.add_argument("--no-record", action="store_true", help="do not record")
+    d.set_defaults(fn=cmd_demo)
+
+    s = sub.add_parser("serve", help="run the daemon until SIGINT/SIGTERM")
+    s.add_argument("--config", help="TOML or JSON config file (default: $SINEWATCH_CONFIG or built-in defaults)")
+    s.set_defaults(fn=cmd_serve)
+
+    c = sub.add_parser("config", help="configuration")
+    csub = c.add_subparsers(dest="config_command", required=True, metavar="SUBCOMMAND")
+    cs = csub.add_parser("show", help="print the effective configuration (file + environment)")
+    cs.add_argument("--config", help="TOML or JSON config file")
+    cs.set_defaults(fn=cmd_config_show)
+
+    sc = sub.add_parser("schemas", help="JSON Schemas of the wire format and the config")
+    scsub = sc.add_subparsers(dest="schemas_command", required=True, metavar="SUBCOMMAND")
+    se = scsub.add_parser("export", help="write the JSON Schemas to DIR")
+    se.add_argument("dir")
+    se.set_defaults(fn=cmd_schemas_export)
+
+    e = sub.add_parser("estimators", help="list registered estimators and their parameters")
+    e.set_defaults(fn=cmd_estimators)
+
+    f = sub.add_parser("feed", help="publish simulated sample blocks to a daemon")
+    f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    f.add_argument("--scenario", action="append", help="scenario name (repeatable; default: the demo channels); "
+                                                       "see `sinewatch bench scenarios`")
+    f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
+    f.add_argument("--rate", type=float, help="sample rate override, Hz")
+    f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
+    f.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
+    f.add_argument("--fast", action="store_true", help="as fast as possible instead of real time")
+    f.add_argument("--encoding", choices=["binary", "json"], default="binary")
+    f.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="binary sample type")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--prefix", default="sim", help="channel name prefix (default sim)")
+    f.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
+    f.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the daemon")
+    f.set_defaults(fn=cmd_feed)
+
+    t = sub.add_parser("tail", help="print estimates (or any sinewatch JSON messages) as they arrive")
+    t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
+    t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    t.add_argument("--count", type=int, default=0, help="exit after N messages")
+    t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
+    t.add_argument("--json", action="store_true", help="print raw JSON lines")
+    t.set_defaults(fn=cmd_tail)
+
+    r = sub.add_parser("replay", help="replay recordings through fresh estimators")
+    r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")
+    r.add_argument("--estimator", help="re-run with this estimator instead of checking the recording")
+    r.add_argument("--param", action="append", type=parse_param, default=[], metavar="KEY=VALUE",
+                   help="estimator parameter (repeatable; value parsed as JSON when it parses)")
+    r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
+    r.add_argument("--out", type=Path, help="write a new recording")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(fn=cmd_replay)
+
+    b = sub.add_parser("bench", help="benchmarks (ratios against baselines measured in the same run)")
+    bsub = b.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
+    bk = bsub.add_parser("kernels", help="samples/s per core per estimator vs a numpy FFT baseline")
+    bk.add_argument("--estimators", help="comma-separated names (default all)")
+    bk.add_argument("--block", type=int, action="append", help="block size (repeatable; default 1024 and 4096)")
+    bk.add_argument("--seconds", type=float, default=0.5, help="time per measurement (default 0.5)")
+    bk.add_argument("--json", type=Path, help="also write results as JSON")
+    bk.set_defaults(fn=cmd_bench_kernels)
+    be = bsub.add_parser("e2e", help="daemon fed through Zenoh on loopback, recording on")
+    be.add_argument("--channels", type=int, default=200)
+    be.add_argument("--rate", type=float, default=10_000.0, help="per-channel sample rate, Hz")
+    be.add_argument("--block", type=int, default=1024)
+    be.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    be.add_argument("--estimator", default="ges-kalman")
+    be.add_argument("--json", type=Path, help="also write results as JSON")
+    be.set_defaults(fn=cmd_bench_e2e)
+    try:
+        from sinewatch.bench import accuracy
+    except ImportError:
+        accuracy = None
+    if accuracy is not None:
+        ba = bsub.add_parser("accuracy", help="seeded Monte Carlo of every estimator on every scenario vs the CRLB")
+        accuracy.add_accuracy_arguments(ba)
+        ba.set_defaults(fn=accuracy.run_accuracy)
+        bs = bsub.add_parser("scenarios", help="list the scenario library")
+        accuracy.add_scenarios_arguments(bs)
+        bs.set_defaults(fn=accuracy.run_scenarios)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose)
+    if getattr(args, "connect", "absent") is None:
+        from sinewatch.clients.session import DEFAULT_CONNECT
+
+        args.connect = list(DEFAULT_CONNECT)
+    try:
+        return int(args.fn(args) or 0)
+    except SinewatchError as exc:
+        print(f"sinewatch: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,202 @@
+"""``sinewatch demo``: the whole path on one machine, nothing else to start.
+
+The daemon runs on an embedded Zenoh peer listening on a free loopback port; a simulated
+feed (eight 10 kHz channels by default) publishes to it through a second Zenoh session in
+real time; a third session subscribes to the estimates and shows them beside the truth.
+At the end the daemon drains, finishes its MCAP file, and the demo prints the file's path,
+a per-channel summary and the command that replays it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import sys
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
+from sinewatch.daemon import Daemon
+from sinewatch.feed import Feed, FeedChannel, make_channels
+from sinewatch.scenarios.demo import DEMO_CHANNELS
+from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig, ZenohSection
+from sinewatch.zenoh_session import free_loopback_port
+
+PREFIX = "demo"
+
+
+@dataclass
+class ChannelView:
+    feed: FeedChannel
+    truth_by_seq: dict[int, Any] = field(default_factory=dict)
+    order: deque = field(default_factory=lambda: deque(maxlen=512))
+    last: dict[str, Any] | None = None
+    truth: Any = None
+    estimates: int = 0
+
+
+def demo_config(names: list[str], port: int, record_dir: Path, record: bool) -> SinewatchConfig:
+    rules = []
+    for name in names:
+        sc_channel = make_channels([name], prefix=PREFIX)[0]
+        rules.append(
+            EstimatorRule(
+                match=f"sinewatch/in/{sc_channel.channel}",
+                estimator=sc_channel.scenario.suggested_estimator,
+                params=sc_channel.scenario.suggested_params,
+            )
+        )
+    return SinewatchConfig(
+        daemon_id="sinewatch-demo",
+        zenoh=ZenohSection(listen=[f"tcp/127.0.0.1:{port}"]),
+        rules=rules,
+        recording=RecordingSection(enabled=record, directory=record_dir),
+    )
+
+
+def _fmt(x: float | None, spec: str = ".3f") -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
+
+
+def _phase_err_deg(est: float | None, true: float) -> float | None:
+    if est is None:
+        return None
+    return math.degrees(math.remainder(est - true, 2 * math.pi))
+
+
+def _short(channel: str) -> str:
+    return channel.removeprefix(f"{PREFIX}/").removeprefix("demo-")
+
+
+def render(views: list[ChannelView], title: str) -> Table:
+    t = Table(title=title, title_justify="left")
+    for col in ("channel", "estimator", "f est Hz", "f true", "A est", "A true", "offset", "off true",
+                "phase err°", "conv", "est.", "bad in"):
+        t.add_column(col, justify="left" if col in ("channel", "estimator") else "right")
+    for v in views:
+        e = v.last
+        tr = v.truth
+        if e is None or tr is None:
+            t.add_row(_short(v.feed.channel), "", *(["-"] * 8), "0", "0")
+            continue
+        t.add_row(
+            _short(v.feed.channel),
+            e["estimator"],
+            _fmt(e["frequency_hz"][0]),
+            _fmt(float(tr.frequency_hz[0, 0])),
+            _fmt(e["amplitude"][0]),
+            _fmt(float(tr.amplitude[0, 0])),
+            _fmt(e["offset"]),
+            _fmt(float(tr.offset[0])),
+            _fmt(_phase_err_deg(e["phase_rad"][0], float(tr.phase_rad[0, 0])), ".2f"),
+            "yes" if e["diagnostics"]["converged"] else "no",
+            str(v.estimates),
+            str(sum(v.feed.faults_injected.get(k, 0) for k in ("nan", "duplicate"))),
+        )
+    return t
+
+
+async def run_demo(
+    names: list[str] | None = None,
+    duration_s: float = 10.0,
+    record_dir: Path = Path("sinewatch-runs"),
+    record: bool = True,
+    console: Console | None = None,
+    block_size: int = 1000,
+) -> int:
+    console = console or Console()
+    names = names or DEMO_CHANNELS
+    port = free_loopback_port()
+    config = demo_config(names, port, record_dir, record)
+    daemon = Daemon(config)
+    daemon_task = asyncio.create_task(daemon.run())
+    await daemon.ready.wait()
+
+    session = connect([f"tcp/127.0.0.1:{port}"])
+    estimates = subscribe_estimates(session)
+    publisher = BlockPublisher(session)
+    channels = make_channels(names, prefix=PREFIX)
+    views = {c.channel: ChannelView(c) for c in channels}
+    for c in channels:
+        publisher.wait_for_subscriber(c.channel, 10.0)
+
+    def remember_truth(ch: FeedChannel) -> None:
+        v = views[ch.channel]
+        v.truth_by_seq[ch.last_seq] = ch.last_truth
+        v.order.append(ch.last_seq)
+        if len(v.truth_by_seq) > v.order.maxlen - 1:
+            v.truth_by_seq.pop(v.order[0], None)
+
+    feed = Feed(publisher, channels, block_size=block_size, realtime=True)
+    feed_done = threading.Event()
+
+    def feed_thread() -> None:
+        try:
+            feed.run(duration_s, on_block=remember_truth)
+        finally:
+            feed_done.set()
+
+    threading.Thread(target=feed_thread, name="sinewatch-demo-feed", daemon=True).start()
+    ordered = [views[c.channel] for c in channels]
+
+    def absorb() -> None:
+        while (msg := estimates.get(timeout=0)) is not None:
+            v = views.get(msg["channel"])
+            if v is None:
+                continue
+            v.last = msg
+            v.estimates += 1
+            v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
+
+    title = f"sinewatch demo: {len(channels)} channels, {duration_s:g} s (Ctrl-C stops early)"
+    with Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live:
+        while not feed_done.is_set() and not daemon.should_exit.is_set():
+            await asyncio.sleep(0.25)  # the display's refresh period
+            absorb()
+            live.update(render(ordered, title))
+        feed.stop.set()
+        await asyncio.to_thread(feed_done.wait)
+        daemon.should_exit.set()
+        code = await daemon_task
+        absorb()
+        live.update(render(ordered, title + " (finished)"))
+    estimates.close()
+    publisher.close()
+    session.close()
+    _summary(console, daemon, ordered)
+    return code
+
+
+def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None:
+    c = daemon.pipeline.counters
+    console.print(
+        f"\n[bold]Summary[/bold]: {c.inputs} blocks in, {c.estimates} estimates out, {c.errors} rejected "
+        f"({', '.join(f'{k} {n}' for k, n in sorted(c.by_kind.items())) or 'none'})"
+    )
+    for v in views:
+        e, tr = v.last, v.truth
+        if e is None or tr is None or e["frequency_hz"][0] is None:
+            console.print(f"  {v.feed.channel}: no converged estimate")
+            continue
+        console.print(
+            f"  {_short(v.feed.channel):18s} |f err| {abs(e['frequency_hz'][0] - tr.frequency_hz[0, 0]):.4f} Hz"
+            f"   |A err| {abs(e['amplitude'][0] - tr.amplitude[0, 0]):.4f}"
+            + (f"   faults injected: {v.feed.faults_injected}" if v.feed.faults_injected else "")
+        )
+    for path in daemon.recording_paths:
+        console.print(f"\nMCAP recording: [bold]{path}[/bold]")
+        console.print(f"Replay it bit for bit:  sinewatch replay {path}")
+
+
+def main(names: list[str] | None, duration_s: float, record_dir: Path, record: bool) -> int:
+    console = Console(file=sys.stdout)
+    if not console.is_terminal:  # piped or CI: do not squeeze the table into 80 columns
+        console = Console(file=sys.stdout, width=130)
+    return asyncio.run(run_demo(names, duration_s, record_dir, record, console))
