@@ -92,9 +92,14 @@ class BlockPublisher:
         self.publish_raw(channel, self.encode(block))
         return block
 
-    def publish_raw(self, channel: str, payload: bytes) -> None:
-        """Send a payload as is (tests use it for hostile input)."""
-        self._publisher(channel).put(payload)
+    def publish_raw(self, channel: str, payload: bytes, encoding: str | None = None) -> None:
+        """Send a payload as is, optionally with another Zenoh encoding than the
+        publisher's (tests use it for hostile input)."""
+        pub = self._publisher(channel)
+        if encoding is None:
+            pub.put(payload)
+        else:
+            pub.put(payload, encoding=zenoh.Encoding(encoding))
         self.published += 1
 
     def close(self) -> None:

@@ -1,0 +1,231 @@
+"""The daemon end to end: real Zenoh sessions on 127.0.0.1, real MCAP files, replay."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import struct
+import threading
+
+import numpy as np
+from conftest import endpoint, make_config
+from mcap.reader import make_reader
+
+from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
+from sinewatch.daemon import Daemon
+from sinewatch.feed import Feed, make_channels
+from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.replay import replay
+from sinewatch.schemas.codec import Block, encode_block_binary, encode_block_json
+from sinewatch.schemas.config import LimitsSection
+from sinewatch.schemas.messages import Estimate, ErrorReport
+
+TIMEOUT = 20.0  # generous guard for a loaded 2-core machine; waits end on arrival
+
+
+async def _with_daemon(config, client, *, signals=False):
+    """Run the daemon, run ``client(endpoint)`` in a thread, stop the daemon; return
+    (client's result, daemon, exit code)."""
+    daemon = Daemon(config, install_signal_handlers=signals)
+    task = asyncio.create_task(daemon.run())
+    await daemon.ready.wait()
+    try:
+        result = await asyncio.to_thread(client, endpoint(config))
+    finally:
+        daemon.should_exit.set()
+        code = await task
+    return result, daemon, code
+
+
+def _collect(sub, n):
+    out = []
+    while len(out) < n and (msg := sub.get(timeout=TIMEOUT)) is not None:
+        out.append(msg)
+    return out
+
+
+def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
+    config = make_config(tmp_path)
+    names = ["demo-biased", "demo-ramp", "demo-faulty-sensor"]
+
+    def client(ep):
+        with connect([ep]) as s:
+            est, err = subscribe_estimates(s), subscribe_errors(s)
+            pub = BlockPublisher(s, dtype="float64")
+            channels = make_channels(names, prefix="it", duration_s=3.0)
+            assert all(pub.wait_for_subscriber(c.channel, TIMEOUT) for c in channels)
+            sent = Feed(pub, channels, block_size=500, realtime=False).run(3.0)
+            faults = {k: sum(c.faults_injected.get(k, 0) for c in channels) for k in ("drop", "nan", "duplicate")}
+            n_errors = faults["nan"] + faults["duplicate"]
+            return _collect(est, sent - n_errors), _collect(err, n_errors), sent, faults, channels
+
+    (estimates, errors, sent, faults, channels), daemon, code = asyncio.run(_with_daemon(config, client))
+    assert code == 0
+    assert faults["drop"] > 0 and faults["nan"] > 0 and faults["duplicate"] > 0  # the faulty channel did its job
+    # one estimate per accepted block, in order per channel, valid against the schema
+    assert len(estimates) == sent - faults["nan"] - faults["duplicate"]
+    per_channel = {}
+    for e in estimates:
+        Estimate.model_validate({k: v for k, v in e.items() if k != "_key"})
+        per_channel.setdefault(e["channel"], []).append(e["seq"])
+    for seqs in per_channel.values():
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    assert sorted(e["kind"] for e in errors) == sorted(["non_finite"] * faults["nan"] + ["duplicate"] * faults["duplicate"])
+    for e in errors:
+        ErrorReport.model_validate({k: v for k, v in e.items() if k != "_key"})
+    gaps = [e for e in estimates if e["diagnostics"]["gap"]]
+    assert gaps and all(e["channel"] == "it/demo-faulty-sensor" for e in gaps)
+    # converged to the truth (biased: 120 Hz, A = 2, offset 0.5)
+    last = [e for e in estimates if e["channel"] == "it/demo-biased"][-1]
+    assert abs(last["frequency_hz"][0] - 120.0) < 0.1 and abs(last["offset"] - 0.5) < 0.02
+
+    # the MCAP file: finished (has a summary), inputs and estimates on their own channels
+    [path] = daemon.recording_paths
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        roles = {}
+        for ch in summary.channels.values():
+            count = summary.statistics.channel_message_counts.get(ch.id, 0)
+            roles.setdefault(ch.metadata["role"], 0)
+            roles[ch.metadata["role"]] += count
+        schemas = {s.name: s.encoding for s in summary.schemas.values()}
+    assert roles["input"] == sent and roles["estimate"] == len(estimates) and roles["error"] == len(errors)
+    assert schemas["sinewatch.Estimate"] == "jsonschema"
+    assert schemas["sinewatch.SampleBlock.binary"] == "sinewatch-block-layout"
+
+    result = replay([path])
+    assert result.ok and result.matched == len(estimates) and result.inputs == sent
+
+
+def _good_blocks(n, block=500, fs=10_000.0):
+    sc = make_channels(["demo-biased"], prefix="h")[0]
+    return [Block("h/a", i, 1_000_000_000 + i * 50_000_000, fs, sc.stream.read(block)[0]) for i in range(n)]
+
+
+def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
+    limits = LimitsSection(max_block_samples=2000)
+    config = make_config(tmp_path, limits=limits)
+    good = _good_blocks(12)
+    b = encode_block_binary
+    bad_version_bin = bytearray(b(good[4]))
+    bad_version_bin[4] = 9
+    nan_block = Block("h/a", 5, 0, 10_000.0, np.array([0.1, np.nan, 0.2]))
+    json_enc = "application/json;sinewatch/SampleBlock@1"
+    hostile = [  # (key suffix, payload, expected kind); JSON ones go out with the JSON encoding
+        ("h/a", b"\x00\x01garbage", "decode_error"),
+        ("h/a", json.dumps({"format_version": 2, "channel": "h/a"}).encode(), "unsupported_version"),
+        ("h/a", bytes(bad_version_bin), "unsupported_version"),
+        ("h/a", b(good[5])[:-7], "decode_error"),
+        ("h/a", b(nan_block), "non_finite"),
+        ("h/a", encode_block_json(Block("h/a", 5, 0, 10_000.0, np.array([0.1, float("inf")]))), "non_finite"),
+        ("h/a", b(Block("h/a", 5, 0, 10_000.0, np.zeros(0))), "empty_block"),
+        ("h/a", b(Block("h/a", 5, 0, 10_000.0, np.zeros(3000))), "oversized_block"),
+        ("h/a", b(Block("h/a", 5, 0, 20_000.0, np.zeros(100))), "sample_rate_change"),
+        ("h/a", b(good[4]), "duplicate"),
+        ("h/a", b(good[2]), "out_of_order"),
+        ("other", b(good[5]), "channel_key_mismatch"),
+        ("h/a", b(Block("h/a", 5, 0, 10_000.0, np.zeros((10, 3)))), "shape_mismatch"),
+    ]
+    accepted = good[:5] + good[5:10] + [good[11]]  # seq 10 never sent: a gap before 11
+
+    def client(ep):
+        with connect([ep]) as s:
+            est, err = subscribe_estimates(s), subscribe_errors(s)
+            pub = BlockPublisher(s)
+            for key in ("h/a", "other"):
+                assert pub.wait_for_subscriber(key, TIMEOUT)
+            for blk in good[:5]:
+                pub.publish_raw("h/a", b(blk))
+            for key, payload, _ in hostile:
+                pub.publish_raw(key, payload, json_enc if payload[:1] == b"{" else None)
+            for blk in good[5:10] + [good[11]]:
+                pub.publish_raw("h/a", b(blk))
+            return _collect(est, len(accepted)), _collect(err, len(hostile))
+
+    (estimates, errors), daemon, code = asyncio.run(_with_daemon(config, client))
+    assert code == 0
+    assert [e["kind"] for e in errors] == [kind for _, _, kind in hostile]
+    assert all(e["message"] for e in errors)
+    assert errors[0]["_key"] == "sinewatch/err/_unknown" and errors[4]["_key"] == "sinewatch/err/h/a"
+    assert [e["seq"] for e in estimates] == [blk.seq for blk in accepted]
+    assert estimates[-1]["diagnostics"]["gap"] and estimates[-1]["diagnostics"]["gap_blocks"] == 1
+    assert not any(e["diagnostics"]["gap"] for e in estimates[:-1])
+
+    # The estimator saw exactly the good blocks: a clean pipeline fed only those agrees bit for bit.
+    class Keep(NullSink):
+        def __init__(self):
+            self.out = []
+
+        def on_estimate(self, key, payload, log_time_ns):
+            self.out.append(json.loads(payload))
+
+    keep = Keep()
+    clean = Pipeline(config, [keep])
+    for blk in accepted:
+        clean.process("sinewatch/in/h/a", b(blk), "application/x-sinewatch-block;v=1", 0)
+    assert [{k: v for k, v in e.items() if k != "_key"} for e in estimates] == keep.out
+    assert daemon.pipeline.counters.errors == len(hostile)
+
+
+def test_sigint_stops_intake_drains_and_finishes_the_recording(tmp_path):
+    config = make_config(tmp_path)
+    blocks = _good_blocks(40)
+    done = threading.Event()
+
+    def client(ep):
+        with connect([ep]) as s:
+            est = subscribe_estimates(s)
+            pub = BlockPublisher(s)
+            assert pub.wait_for_subscriber("h/a", TIMEOUT)
+            for blk in blocks[:20]:
+                pub.publish_raw("h/a", encode_block_binary(blk))
+            got = _collect(est, 20)
+            signal.raise_signal(signal.SIGINT)  # handled by the daemon's event loop
+            done.set()
+            return got
+
+    async def main():
+        daemon = Daemon(config, install_signal_handlers=True)
+        task = asyncio.create_task(daemon.run())
+        await daemon.ready.wait()
+        got = await asyncio.to_thread(client, endpoint(config))
+        code = await asyncio.wait_for(task, TIMEOUT)
+        return got, daemon, code
+
+    got, daemon, code = asyncio.run(main())
+    assert done.is_set() and code == 0 and len(got) == 20
+    assert daemon.should_exit.is_set() and not daemon.force_exit.is_set()
+    [path] = daemon.recording_paths
+    with open(path, "rb") as f:
+        assert make_reader(f).get_summary() is not None  # finished: summary and footer written
+    assert replay([path]).ok
+
+
+def test_second_sigint_forces_exit_and_still_finishes_the_file(tmp_path):
+    config = make_config(tmp_path)
+
+    async def main():
+        daemon = Daemon(config, install_signal_handlers=True)
+        task = asyncio.create_task(daemon.run())
+        await daemon.ready.wait()
+        signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)
+        return daemon, await asyncio.wait_for(task, TIMEOUT)
+
+    daemon, code = asyncio.run(main())
+    assert code == 130 and daemon.force_exit.is_set()
+    [path] = daemon.recording_paths
+    with open(path, "rb") as f:
+        assert make_reader(f).get_summary() is not None
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers removed
+
+
+def test_binary_header_layout_is_as_documented():
+    blk = Block("a/b", 7, -5, 1000.0, np.array([1.0, -2.0], dtype=np.float32), "V")
+    raw = encode_block_binary(blk, "float32")
+    assert raw[:40] == struct.pack("<4sBBBBQqdIHH", b"SWSB", 1, 1, 1, 0, 7, -5, 1000.0, 2, 3, 1)
+    assert raw[40:44] == b"a/bV"
+    np.testing.assert_array_equal(np.frombuffer(raw, "<f4", offset=44), [1.0, -2.0])
