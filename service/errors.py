@@ -15,7 +15,7 @@ class ParameterError(SinewatchError, ValueError):
     """An estimator or configuration parameter is out of its valid range."""
 
 
-class UnknownEstimatorError(SinewatchError, KeyError):
+class UnknownEstimatorError(SinewatchError, KeyError, ValueError):
     """No estimator is registered under the requested name."""
 
     def __str__(self) -> str:  # KeyError would repr() the message

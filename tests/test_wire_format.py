@@ -1,0 +1,88 @@
+"""Codec and schemas: bytes on the wire, both encodings, versioning, exported schemas."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sinewatch.errors import DecodeError, UnsupportedVersionError
+from sinewatch.schemas.codec import (
+    BLOCK_BINARY_ENCODING,
+    BLOCK_JSON_ENCODING,
+    Block,
+    decode_block,
+    encode_block_binary,
+    encode_block_json,
+)
+from sinewatch.schemas.export import all_schemas
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("columns", [1, 3])
+def test_binary_round_trip(dtype, columns):
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((257, columns) if columns > 1 else 257).astype(dtype)
+    blk = Block("feeder1/phase-a", 2**63 + 5, -(2**62), 12_345.5, x, "V")
+    out = decode_block(encode_block_binary(blk, dtype), BLOCK_BINARY_ENCODING)
+    assert (out.channel, out.seq, out.t0_ns, out.sample_rate_hz, out.unit) == (
+        "feeder1/phase-a", 2**63 + 5, -(2**62), 12_345.5, "V")
+    assert out.samples.dtype == np.dtype(dtype) and out.samples.shape == x.shape
+    np.testing.assert_array_equal(out.samples, x)
+
+
+def test_json_round_trip_and_sniffing():
+    x = np.array([[0.5, 1.0], [-0.25, 2.0]])
+    blk = Block("a", 3, 10, 1000.0, x)
+    payload = encode_block_json(blk)
+    for enc in (BLOCK_JSON_ENCODING, "zenoh/bytes", ""):
+        out = decode_block(payload, enc)
+        np.testing.assert_array_equal(out.samples, x)
+    assert decode_block(encode_block_binary(Block("a", 0, 0, 1.0, np.ones(2))), "zenoh/bytes").n_samples == 2
+
+
+def test_a_c_gateway_can_write_the_json_by_hand():
+    payload = b'{"channel":"gw/1","seq":0,"t0_ns":0,"sample_rate_hz":50.0,"samples":[1,2,3]}'
+    out = decode_block(payload, "application/json")
+    assert out.samples.tolist() == [1.0, 2.0, 3.0] and out.channel == "gw/1"
+
+
+@pytest.mark.parametrize(
+    "payload, encoding, error, match",
+    [
+        (b"SWSB\x02" + bytes(35), BLOCK_BINARY_ENCODING, UnsupportedVersionError, "expected 1, got 2"),
+        (b"x" * 50, "application/x-sinewatch-block;v=2", UnsupportedVersionError, "got 2"),
+        (b'{"format_version": 7}', BLOCK_JSON_ENCODING, UnsupportedVersionError, "got 7"),
+        (b"{not json", BLOCK_JSON_ENCODING, DecodeError, "not valid JSON"),
+        (b'{"channel":"bad channel!","seq":0,"t0_ns":0,"sample_rate_hz":1,"samples":[1]}', "", DecodeError, "channel"),
+        (b'{"channel":"a","seq":-1,"t0_ns":0,"sample_rate_hz":1,"samples":[1]}', "", DecodeError, "seq"),
+        (b'{"channel":"a","seq":0,"t0_ns":0,"sample_rate_hz":0,"samples":[1]}', "", DecodeError, "sample_rate"),
+        (b'{"channel":"a","seq":0,"t0_ns":0,"sample_rate_hz":1,"samples":[1],"extra":1}', "", DecodeError, "extra"),
+        (b"\x89PNG....", "image/png", DecodeError, "encoding"),
+    ],
+)
+def test_bad_payloads_raise_typed_errors(payload, encoding, error, match):
+    with pytest.raises(error, match=match) as info:
+        decode_block(payload, encoding)
+    assert isinstance(info.value, ValueError)
+
+
+def test_binary_length_and_dtype_are_checked():
+    raw = bytearray(encode_block_binary(Block("a", 0, 0, 1.0, np.ones(4))))
+    with pytest.raises(DecodeError, match="length"):
+        decode_block(bytes(raw) + b"\0", BLOCK_BINARY_ENCODING)
+    raw[5] = 7
+    with pytest.raises(DecodeError, match="dtype"):
+        decode_block(bytes(raw), BLOCK_BINARY_ENCODING)
+
+
+def test_committed_json_schemas_are_up_to_date():
+    # `make schemas` regenerates schemas/json from the models; a stale copy fails here.
+    for rel, schema in all_schemas().items():
+        path = REPO / "schemas" / "json" / rel
+        assert path.exists(), f"{path} missing: run `make schemas`"
+        assert json.loads(path.read_text()) == schema, f"{path} is stale: run `make schemas`"
