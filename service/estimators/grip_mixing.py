@@ -140,6 +140,7 @@ from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
 _THEOREM1_TOL = 1e-6  # |1 - e^{-lambda T}| below this: lambda sits on +-j 2 pi k / T
 _PBH_TOL = 1e-7  # relative smallest singular value of [lambda I - A; C] below this: unobservable
+_MAX_Z_GROWTH = 20.0  # z may grow by e^20 between resets: (8) then cancels to ~1e-8 relative
 _MAX_EXP_NORM = 1e10  # ||e^{-AT}|| above this: C (I - e^{-AT}) loses every significant digit
 
 
@@ -315,10 +316,10 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
         f = np.array(p.frequencies_hz if p.frequencies_hz is not None else DEFAULT_FREQUENCIES_HZ, float)
         if f.size == 0 or not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(f >= fs / 2):
             raise ParameterError(
-                f"frequencies_hz: expected at least one value in (0, fs/2 = {fs / 2:g}) Hz, got {list(f)}"
+                f"frequencies_hz: expected at least one value in (0, fs/2 = {fs / 2:g}) Hz, got {f.tolist()}"
             )
         if np.unique(f).size != f.size:
-            raise ParameterError(f"frequencies_hz: expected distinct values, got {list(f)}")
+            raise ParameterError(f"frequencies_hz: expected distinct values, got {f.tolist()}")
         f = np.sort(f)
         K = f.size
         n = 2 * K
@@ -417,6 +418,13 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
     # ---- staggered resets of z and the convergence schedule --------------------------------------
     max_off = int(tap_o.max())
     reset_half = max(max_off, math.ceil(p.z_reset_periods * max_off / 2))
+    growth = max(0.0, float(np.max(np.linalg.eigvals(A).real))) * 2 * reset_half / fs
+    if B.shape[1] > 0 and growth > _MAX_Z_GROWTH:
+        raise ParameterError(
+            f"z_reset_periods: expected the internal states of Sec. III-B to grow by at most "
+            f"e^{_MAX_Z_GROWTH:g} between resets, got e^{growth:.3g} (max Re lambda x reset interval); "
+            f"lower z_reset_periods (minimum 2) or shorten T"
+        )
     window = int(round(delay))
     settle = math.ceil(math.log(1.0 / p.convergence_tolerance) / float(np.min(-poles.real)) * fs)
     warm = max_off + settle + window
@@ -445,16 +453,26 @@ def _modes(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 @njit(cache=True, nogil=True, error_model="numpy")
 def grip_mixing_kernel(
     block, x_hat0, u_prev0, z0, z_buf0, y_buf0, u_buf0, d_buf0, d_sum0, count0,
-    Ad, Bd0, Bd1, Cr, Cbar, CE, Dr, Ld, tap_h, tap_o, window, reset_half, warm, Wre, Wim, modal_ok,
-    last_only,
+    Ad, Bd0, Bd1, rows4, Dr, tap_h, tap_o, ints, Wre, Wim, last_only,
 ):  # fmt: skip
     """Run the sampled observer (7) over ``block`` (N, 1 + m): column 0 = y, then u.
 
     State in: xhat, previous u, the two internal states z (2, n) of Sec. III-B, the delay
     lines of z (2, Lb, n), y (Lb,), u (Lb, m) and dhat (Lb,), the running sum of dhat over
-    the last ``window`` samples and the sample count. Returns (amplitude, phase, offset,
-    converged, x_hat, d_hat, sse, and the new state arrays); the inputs are not modified.
+    the last ``window`` samples and the sample count. Constants: Ad, Bd0, Bd1 (FOH model),
+    rows4 = [C; C (I - e^{-AT}); C e^{-AT}; Ld] (4, n), D (m,), the delay taps (weights,
+    offsets), ints = [window, reset_half, warm, modal_ok] and the modal rows Wre, Wim (K, n).
+    Returns (amplitude, phase, offset, converged, x_hat, d_hat, sse, and the new state
+    arrays); the inputs are not modified.
     """
+    Cr = rows4[0]
+    Cbar = rows4[1]
+    CE = rows4[2]
+    Ld = rows4[3]
+    window = ints[0]
+    reset_half = ints[1]
+    warm = ints[2]
+    modal_ok = ints[3] != 0
     N = block.shape[0]
     n = Ad.shape[0]
     m = Bd0.shape[1]
@@ -480,10 +498,19 @@ def grip_mixing_kernel(
     d_out = np.empty(rows)
     xp = np.empty(n)
     zn = np.empty(n)
+    rd = np.empty(nt, dtype=np.int64)  # ring positions of the taps of the delay T
     sse = 0.0
+    pos = k % Lb  # ring position of sample k; kept by increments below (no modulo per sample)
+    kw = k % window  # phase of k in the mean-of-dhat window
+    kp = k % P  # phase of k in the reset interval of z
     for i in range(N):
         y = block[i, 0]
-        pos = k % Lb
+        for j in range(nt):
+            q = pos - tap_o[j]
+            rd[j] = q + Lb if q < 0 else q
+        qw = pos - window
+        if qw < 0:
+            qw += Lb
         # (5a) sampled exactly (FOH): xhat^-_k = Ad xhat_{k-1} + Bd0 u_{k-1} + Bd1 u_k
         if k == 0:
             for a in range(n):
@@ -500,7 +527,7 @@ def grip_mixing_kernel(
         yb[pos] = y
         yd = 0.0
         for j in range(nt):
-            yd += tap_h[j] * yb[(k + Lb - tap_o[j]) % Lb]
+            yd += tap_h[j] * yb[rd[j]]
         Du = 0.0
         for b in range(m):
             Du += Dr[b] * block[i, 1 + b]
@@ -509,10 +536,13 @@ def grip_mixing_kernel(
         if m > 0:
             for b in range(m):
                 ub[pos, b] = block[i, 1 + b]
-            r0 = (k // P) * P  # last reset of copy 0
-            r1 = ((k - reset_half) // P) * P + reset_half if k >= reset_half else 0
+            age0 = kp  # samples since the last reset of copy 0 (resets at k = 0, P, 2P, ...)
+            if k < reset_half:
+                age1 = k  # copy 1 resets at k = 0, H, H + P, ...
+            else:
+                age1 = kp - reset_half if kp >= reset_half else kp - reset_half + P
             for c in range(2):
-                if k == (r0 if c == 0 else r1):
+                if (age0 if c == 0 else age1) == 0:
                     for a in range(n):
                         z[c, a] = 0.0  # reset: (8) holds again one period later
                 else:
@@ -527,16 +557,16 @@ def grip_mixing_kernel(
                         z[c, a] = zn[a]
                 for a in range(n):
                     zb[c, pos, a] = z[c, a]
-            sel = 0 if r0 <= r1 else 1  # the copy reset longer ago
+            sel = 0 if age0 >= age1 else 1  # the copy reset longer ago
             for a in range(n):
                 zda = 0.0
                 for j in range(nt):
-                    zda += tap_h[j] * zb[sel, (k + Lb - tap_o[j]) % Lb, a]
+                    zda += tap_h[j] * zb[sel, rd[j], a]
                 udel += Cr[a] * zda - CE[a] * z[sel, a]
             for b in range(m):
                 uda = 0.0
                 for j in range(nt):
-                    uda += tap_h[j] * ub[(k + Lb - tap_o[j]) % Lb, b]
+                    uda += tap_h[j] * ub[rd[j], b]
                 udel += Dr[b] * uda
         # innovation of (7): ybar - C (I - e^{-AT}) xhat^- - D u + u_Delta_d
         eps = y - yd - Du + udel
@@ -554,19 +584,29 @@ def grip_mixing_kernel(
         dhat = y - cx - Du
         dpred = 0.0
         for j in range(nt):
-            dpred += tap_h[j] * db[(k + Lb - tap_o[j]) % Lb]
+            dpred += tap_h[j] * db[rd[j]]
         e = y - cxp - Du - dpred
         sse += e * e
         # mean of dhat over the last period (exact re-sum once per window: no drift)
-        dsum += dhat - db[(k + Lb - window) % Lb]
+        dsum += dhat - db[qw]
         db[pos] = dhat
-        if (k + 1) % window == 0:
+        kw += 1
+        if kw == window:
+            kw = 0
             dsum = 0.0
+            q = pos
             for j in range(window):
-                dsum += db[(k + Lb - j) % Lb]
+                dsum += db[q]
+                q = q - 1 if q > 0 else Lb - 1
         for b in range(m):
             up[b] = block[i, 1 + b]
         k += 1
+        pos += 1
+        if pos == Lb:
+            pos = 0
+        kp += 1
+        if kp == P:
+            kp = 0
         if last_only and i != N - 1:
             continue
         r = 0 if last_only else i
@@ -581,7 +621,7 @@ def grip_mixing_kernel(
                 qre += Wre[c, a] * x[a]
                 qim += Wim[c, a] * x[a]
             if modal_ok:
-                amp[r, c] = math.hypot(qre, qim)
+                amp[r, c] = math.sqrt(qre * qre + qim * qim)
                 ph = math.atan2(qre, -qim)  # q = a e^{j(phase - pi/2)}
                 phase[r, c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
                 rest -= qre
@@ -632,8 +672,9 @@ class GripMixing(Estimator):
         g = self._design
         self._consts = (
             np.ascontiguousarray(g.Ad), np.ascontiguousarray(g.Bd0), np.ascontiguousarray(g.Bd1),
-            g.C.copy(), g.Cbar.copy(), g.C @ g.E, g.D.copy(), g.Ld.copy(), g.tap_h, g.tap_o,
-            g.window, g.reset_half, g.warm, g.Wre, g.Wim, g.modal_ok,
+            np.vstack([g.C, g.Cbar, g.C @ g.E, g.Ld]), g.D.copy(), g.tap_h, g.tap_o,
+            np.array([g.window, g.reset_half, g.warm, int(g.modal_ok)], dtype=np.int64),
+            np.ascontiguousarray(g.Wre), np.ascontiguousarray(g.Wim),
         )  # fmt: skip
         self._freq_row = g.frequencies_hz if g.modal_ok else np.full(1, np.nan)
 
