@@ -96,7 +96,7 @@ def cmd_feed(args: argparse.Namespace) -> int:
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
     console = Console(stderr=True)
-    with connect(args.connect) as session:
+    with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
         if not pub.wait_for_subscriber(channels[0].channel, args.wait):
             console.print(f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
@@ -120,10 +120,11 @@ def cmd_tail(args: argparse.Namespace) -> int:
     from sinewatch.clients import JsonSubscription, connect
 
     shown = 0
-    with connect(args.connect) as session, JsonSubscription(session, args.keyexpr) as sub:
+    with connect(args.connect, timeout_s=args.wait) as session, JsonSubscription(session, args.keyexpr) as sub:
         try:
             for msg in sub.iter(timeout=args.timeout):
-                msg.pop("_key", None) if args.json else None
+                if args.json:
+                    msg.pop("_key", None)
                 print(json.dumps(msg) if args.json else format_estimate(msg), flush=True)
                 shown += 1
                 if args.count and shown >= args.count:
@@ -227,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--count", type=int, default=0, help="exit after N messages")
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")
+    t.add_argument("--wait", type=float, default=10.0, help="seconds to keep trying to connect")
     t.set_defaults(fn=cmd_tail)
 
     r = sub.add_parser("replay", help="replay recordings through fresh estimators")
