@@ -117,6 +117,7 @@ PAPER_LAMBDA_FACTORS = (1.0 / 3.0, 2.0 / 3.0, 1.0, 4.0 / 3.0)
 ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
 FLUSH = 1e-250  # xi entries below this are set to 0 (no denormals in long silences)
 ENV_SLOWDOWN = 10.0  # the peak envelope decays at lambda_min / ENV_SLOWDOWN
+CONVERGED_RANGE_FACTOR = 1.25  # converged needs f in [f_min / 1.25, 1.25 f_max]
 
 
 # ---- design helpers (Python, run once at construction) ------------------------------------
@@ -290,7 +291,14 @@ class KklParams(EstimatorParams):
         0.05, gt=0, description="converged only while |L x - F^2 xi| / |F^2 xi| is at most this"
     )
 
-    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual")
+    max_prediction_error: float = Field(
+        0.3,
+        gt=0,
+        description="converged only while the running RMS of the one-step prediction error "
+        "is at most this fraction of the running RMS of y",
+    )
+
+    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
     @classmethod
     def _finite(cls, v: float) -> float:
         if not math.isfinite(v):
@@ -329,18 +337,25 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
 
     ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
     hold coefficients of (12) (physical units). ``state`` packs xi_1..xi_m, then y_prev,
-    have_prev, y_pred, pred_valid, n_warm, env. ``consts`` packs Ts, omega_ref, l (in units
-    of omega_ref^2), silence_ratio, env_decay, n_settle, max_fit_residual. ``out`` columns:
-    frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
-    manifold_margin, fit_residual. Pure: inputs are not modified.
+    have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg. ``consts`` packs Ts,
+    omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay, n_settle,
+    max_fit_residual, max_prediction_error, avg_gain, and the omega Ts bounds of the
+    converged range. ``out`` columns: frequency_hz,
+    amplitude, phase_rad, offset, converged; ``extras`` columns: manifold_margin,
+    fit_residual, prediction_error. Pure: the inputs are not modified.
     """
     m = lam.shape[0]
     Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
-    silence_ratio, env_decay, n_settle, max_fit = consts[3], consts[4], consts[5], consts[6]
+    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
+    max_fit2 = consts[6] * consts[6]
+    max_pred2 = consts[7] * consts[7]
+    avg_gain = consts[8]
+    wts_lo, wts_hi = consts[9], consts[10]  # omega Ts bounds for converged
     xi = state[:m].copy()
     y_prev, have_prev = state[m], state[m + 1]
     y_pred, pred_valid = state[m + 2], state[m + 3]
-    n_warm, env = state[m + 4], state[m + 5]
+    n_good, env = state[m + 4], state[m + 5]
+    e2_avg, y2_avg = state[m + 6], state[m + 7]
     # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
     s_ll = 0.0
     s_l = 0.0
@@ -351,7 +366,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
     n = y.shape[0]
     rows = 1 if last_only else n
     out = np.empty((rows, 5))
-    ext = np.empty((rows, 2))
+    ext = np.empty((rows, 3))
     sse = 0.0
     for k in range(n):
         yk = y[k]
@@ -362,8 +377,11 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
                 xi[i] = v if abs(v) > 1e-250 else 0.0
         have_prev = 1.0
         y_prev = yk
+        # one-step prediction error and its running mean square, against that of y
         e = yk - y_pred if pred_valid != 0.0 else yk
         sse += e * e
+        e2_avg += avg_gain * (e * e - e2_avg)
+        y2_avg += avg_gain * (yk * yk - y2_avg)
         # sums over the filters
         s2 = 0.0
         p0 = 0.0
@@ -384,20 +402,15 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
         env = max(s, env * env_decay)
         pred_valid = 0.0
         defined = False
+        good = False
         mu = 0.0
         det = 0.0
         a_sin = 0.0
         a_cos = 0.0
-        z0 = 0.0
-        z1 = 0.0
-        z2 = 0.0
         wts = 0.0
-        inv = 0.0
-        if s <= 1e-150 or s < silence_ratio * env:
-            n_warm = 0.0  # "xi near 0": undefined, and the settle time starts again
-        else:
-            if n_warm < n_settle:
-                n_warm += 1.0
+        rr = 0.0
+        ff = 1.0
+        if s > 1e-150 and s >= silence_ratio * env:  # else "xi near 0": undefined
             inv = 1.0 / s
             # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
             # r = L^T F^2 xi, for the unit vector xi/|xi| (8)
@@ -426,10 +439,10 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
             det_phi = a * k00 + s_l * k01 + b02 * k02
             if det_phi > 1e-300:
                 idet = 1.0 / det_phi
+                # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
                 z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
                 z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
                 z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
-                # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
                 if z2 > 0.0:
                     sq = math.sqrt(z2)
                     wts = w_ref * sq * Ts  # omega Ts
@@ -444,29 +457,35 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
                         # y(k+1) predicted: A sin(theta + w Ts)
                         y_pred = a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * ch)
                         pred_valid = 1.0
+                        # least-squares residual of (13), zero on T(O)
+                        ff = 0.0
+                        for i in range(m):
+                            xn = xi[i] * inv
+                            t = lam[i] * lam[i] * xn
+                            res = lam[i] * z0 + z1 - xn * z2 - t
+                            rr += res * res
+                            ff += t * t
+                        good = (
+                            mu == 0.0
+                            and rr <= max_fit2 * ff
+                            and e2_avg <= max_pred2 * y2_avg
+                            and wts_lo <= wts <= wts_hi
+                        )
+        # converged after n_settle consecutive good samples
+        n_good = min(n_good + 1.0, n_settle) if good else 0.0
         if last_only and k != n - 1:
             continue
         j = 0 if last_only else k
+        ext[j, 2] = math.sqrt(e2_avg / y2_avg) if y2_avg > 0.0 else np.nan
         if defined:
-            # relative least-squares residual |L z - F^2 xi| / |F^2 xi| (zero on T(O))
-            rr = 0.0
-            ff = 0.0
-            for i in range(m):
-                xn = xi[i] * inv
-                t = lam[i] * lam[i] * xn
-                res = lam[i] * z0 + z1 - xn * z2 - t
-                rr += res * res
-                ff += t * t
-            fit = math.sqrt(rr / ff)
             phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
             out[j, 0] = wts / (2.0 * math.pi * Ts)  # omega = omega_ref sqrt(x3~)
             out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
             out[j, 2] = phase if phase > -math.pi else math.pi
             out[j, 3] = 0.0
-            ok = n_warm >= n_settle and mu == 0.0 and fit <= max_fit
-            out[j, 4] = 1.0 if ok else 0.0
+            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
             ext[j, 0] = 2.0 * det / ell
-            ext[j, 1] = fit
+            ext[j, 1] = math.sqrt(rr / ff)
         else:
             out[j, 0] = np.nan
             out[j, 1] = np.nan
@@ -475,14 +494,16 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
             out[j, 4] = 0.0
             ext[j, 0] = np.nan
             ext[j, 1] = np.nan
-    new_state = np.empty(m + 6)
+    new_state = np.empty(m + 8)
     new_state[:m] = xi
     new_state[m] = y_prev
     new_state[m + 1] = have_prev
     new_state[m + 2] = y_pred
     new_state[m + 3] = pred_valid
-    new_state[m + 4] = n_warm
+    new_state[m + 4] = n_good
     new_state[m + 5] = env
+    new_state[m + 6] = e2_avg
+    new_state[m + 7] = y2_avg
     return out, ext, sse, new_state
 
 
@@ -529,16 +550,33 @@ class Kkl(Estimator):
         lam_min = float(self.lambdas.min())
         n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
         env_decay = math.exp(-lam_min * ts / ENV_SLOWDOWN)
+        avg_gain = -math.expm1(-lam_min * ts)  # running means over ~1/lambda_min
         self._consts = np.array(
-            [ts, self.omega_ref, self.ell, p.silence_ratio, env_decay, float(n_settle), p.max_fit_residual]
+            [
+                ts,
+                self.omega_ref,
+                self.ell,
+                p.silence_ratio,
+                env_decay,
+                float(n_settle),
+                p.max_fit_residual,
+                p.max_prediction_error,
+                avg_gain,
+                2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
+                2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
+            ]
         )
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        return {"xi_state": np.zeros(self.lam_n.size + 6)}
+        return {"xi_state": np.zeros(self.lam_n.size + 8)}
 
     def _run(self, samples, state, last_only):
         out, ext, sse, new = kkl_kernel(
             samples, state["xi_state"], self.lam_n, self._fa, self._fb0, self._fb1, self._consts, last_only
         )
-        extras = {"manifold_margin": ext[:, 0], "fit_residual": ext[:, 1]}
+        extras = {
+            "manifold_margin": ext[:, 0],
+            "fit_residual": ext[:, 1],
+            "prediction_error": ext[:, 2],
+        }
         return track_from_columns(out, sse, samples.shape[0], extras), {"xi_state": new}

@@ -1,0 +1,412 @@
+"""``kkl-biased``: the KKL observer of paper 003 extended to a sinusoid with a constant offset.
+
+Paper: ``shared/papers/003_29096b058aca5228.txt`` (Praly, Marconi, Isidori). The paper's
+signal has no offset; this module is an **extension** built the same way (its Sections
+III-IV), not something the paper shows. :mod:`sinewatch.estimators.kkl` holds the
+unbiased observer and the design helpers used here.
+
+Model: the oscillator (4) augmented with a constant state x4 (the offset)::
+
+    x1' = -x2,  x2' = x3 x1,  x3' = 0,  x4' = 0,   y = x1 + x4
+
+Filters as in (12), m >= 5 (one more unknown than in the paper, so one more filter)::
+
+    xi_i' = -lambda_i xi_i + y
+
+Their steady state (the analogue of (6), same derivation as Section IV)::
+
+    T_i(x) = (lambda_i x1 + x2) / (lambda_i^2 + x3) + x4 / lambda_i
+
+Inverse. With ``eta_i = lambda_i xi_i``, T reads
+``eta_i (lambda_i^2 + x3) = lambda_i^2 (x1 + x4) + lambda_i x2 + x3 x4``, which the
+bilinear term x3 x4 makes nonlinear; splitting ``eta = eta_bar 1 + eta_c`` (mean and
+centred part) gives the linear system, analogue of (13)::
+
+    L_c(eta_c) z = F^2 eta_c,   L_c = (lambda^2  lambda  1  -eta_c)   (m x 4)
+    z = (x1 + x4 - eta_bar,  x2,  x3 (x4 - eta_bar),  x3)
+
+from which ``x3 = z4``, ``x4 = eta_bar + z3 / z4``, ``x1 = z1 - z3 / z4``, ``x2 = z2``.
+As in (8)-(9) it is solved in the regularised least-squares sense::
+
+    gamma_b(eta) = (L_c^T L_c + mu_b I)^-1 L_c^T F^2 eta_c
+    mu_b = max{ l_b |eta_c|^2 - 2 det(L_c^T L_c), 0 }
+    l_b  = inf_{x in O_r, x1^2 + x2^2 != 0} det(L_c^T L_c) / |eta_c|^2  at eta = T(x)
+
+``det(L_c^T L_c)`` (the Gram determinant, the analogue of |M xi|^2) and ``|eta_c|`` do not
+depend on the offset x4 (it only adds a multiple of 1 to eta), so l_b > 0 and mu_b = 0
+on T(O_r) for any offset. l_b is computed at construction like l of (10).
+
+Everything else (frequency range in Hz and lambdas scaled with it, evaluation on the
+unit vector eta_c/|eta_c| in time units of 1/omega_ref, exact first-order-hold
+discretisation of the filters with the sinc^2 amplitude correction, the converged rule,
+the residual and the extras) is as in :mod:`sinewatch.estimators.kkl`. The FOH keeps a
+constant exactly (sinc(0) = 1), so the offset needs no correction. Differences:
+
+* "zero" is judged on the centred part eta_c (no oscillation): below 1e-150, below
+  1e-9 |eta_bar| (rounding of a constant input), or below ``silence_ratio`` of its
+  recent peak. Then frequency, amplitude and phase are NaN and converged is False; the
+  offset is still reported as eta_bar (exact for a constant input) once the filters
+  have run for the settle time, NaN before.
+* The relative prediction error compares with the running variance of y (not its mean
+  square).
+* Default lambda factors (1/3, 2/3, 1, 4/3, 5/3): the paper's (1, 2, 3, 4) plus one.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from pydantic import Field, field_validator, model_validator
+
+from sinewatch.errors import ParameterError
+from sinewatch.estimators import register
+from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.kkl import (
+    CONVERGED_RANGE_FACTOR,
+    ENV_SLOWDOWN,
+    PAPER_LAMBDA_FACTORS,
+    check_nyquist,
+    ell_eq10,
+    foh_coefficients,
+    validate_lambda_factors,
+)
+
+BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
+
+
+def biased_image_columns(lam: np.ndarray):
+    """x3 -> B(x3) with eta - x4 1 = B(x3) (x1, x2) (lambda in units of omega_ref)."""
+
+    def cols(x3: np.ndarray) -> np.ndarray:
+        d = lam[None, :] ** 2 + x3[:, None]
+        return np.stack([lam[None, :] ** 2 / d, lam[None, :] / d], axis=-1)
+
+    return cols
+
+
+def biased_ell(lam: np.ndarray, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+    """l_b for filters ``lam`` and x3 in [x3_lo, x3_hi] (same time unit)."""
+    m = lam.size
+    basis = np.column_stack([lam**2, lam, np.ones(m)])
+    centre = np.eye(m) - np.full((m, m), 1.0 / m)  # |eta_c|^2 = eta^T centre eta
+    return ell_eq10(basis, biased_image_columns(lam), x3_lo, x3_hi, norm_weight=centre)
+
+
+def gamma_biased_reference(xi: np.ndarray, lam: np.ndarray, ell_b: float) -> np.ndarray:
+    """gamma_b literally (numpy, one xi, lambda and xi in one time unit): (x1, x2, x3, x4)."""
+    eta = np.asarray(lam, dtype=np.float64) * np.asarray(xi, dtype=np.float64)
+    eta_bar = float(eta.mean())
+    eta_c = eta - eta_bar
+    lc = np.column_stack([lam**2, lam, np.ones_like(lam), -eta_c])
+    g = lc.T @ lc
+    mu = max(ell_b * float(eta_c @ eta_c) - 2.0 * float(np.linalg.det(g)), 0.0)
+    z = np.linalg.solve(g + mu * np.eye(4), lc.T @ (lam**2 * eta_c))
+    x4 = eta_bar + z[2] / z[3]
+    return np.array([z[0] - z[2] / z[3], z[1], z[3], x4])
+
+
+class KklBiasedParams(EstimatorParams):
+    f_min_hz: float = Field(45.0, gt=0, description="Lower end of the frequency range (Hz)")
+    f_max_hz: float = Field(65.0, gt=0, description="Upper end of the frequency range (Hz)")
+    lambda_factors: list[float] = Field(
+        list(BIASED_LAMBDA_FACTORS),
+        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); "
+        "m >= 5, distinct, > 0",
+    )
+    settle_time_constants: float = Field(
+        6.0, gt=0, description="converged only after this many 1/lambda_min of good samples"
+    )
+    silence_ratio: float = Field(
+        1e-3, gt=0, lt=1, description="the oscillation counts as zero below this fraction of its recent peak"
+    )
+    max_fit_residual: float = Field(
+        0.05, gt=0, description="converged only while |L_c z - F^2 eta_c| / |F^2 eta_c| is at most this"
+    )
+    max_prediction_error: float = Field(
+        0.3,
+        gt=0,
+        description="converged only while the running RMS of the one-step prediction error "
+        "is at most this fraction of the running standard deviation of y",
+    )
+
+    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError(f"expected a finite value, got {v}")
+        return v
+
+    @field_validator("lambda_factors")
+    @classmethod
+    def _factors(cls, v: list[float]) -> list[float]:
+        return validate_lambda_factors(v, 5)
+
+    @model_validator(mode="after")
+    def _range(self) -> KklBiasedParams:
+        if not self.f_min_hz < self.f_max_hz:
+            raise ValueError(
+                f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}"
+            )
+        return self
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, last_only):
+    """Run the biased observer over ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
+
+    ``lam`` = lambda~ (units of omega_ref), ``lam_phys`` = lambda (rad/s); ``fa, fb0, fb1``
+    the exact first-order-hold coefficients; ``kv`` (3 x 3, columns) and ``kk`` (3,) the
+    eigenvectors and eigenvalues of C^T C, C = (lambda~^2 lambda~ 1), used to solve the
+    4 x 4 system by its Schur complement for any mu. ``state`` packs xi_1..xi_m, then
+    y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run.
+    ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay, n_settle,
+    max_fit_residual, max_prediction_error, avg_gain, omega Ts bounds of the converged
+    range. Pure: the inputs are not modified.
+    """
+    m = lam.shape[0]
+    Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
+    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
+    max_fit2 = consts[6] * consts[6]
+    max_pred2 = consts[7] * consts[7]
+    avg_gain = consts[8]
+    wts_lo, wts_hi = consts[9], consts[10]
+    xi = state[:m].copy()
+    y_prev, have_prev = state[m], state[m + 1]
+    y_pred, pred_valid = state[m + 2], state[m + 3]
+    n_good, env = state[m + 4], state[m + 5]
+    e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
+    det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
+    inv_m = 1.0 / m
+    n = y.shape[0]
+    rows = 1 if last_only else n
+    out = np.empty((rows, 5))
+    ext = np.empty((rows, 3))
+    sse = 0.0
+    for k in range(n):
+        yk = y[k]
+        # filters (12), exact for y linear between samples
+        if have_prev != 0.0:
+            for i in range(m):
+                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
+                xi[i] = v if abs(v) > 1e-250 else 0.0
+            if n_run < n_settle:
+                n_run += 1.0
+        have_prev = 1.0
+        y_prev = yk
+        # one-step prediction error; running mean and variance of y
+        e = yk - y_pred if pred_valid != 0.0 else yk
+        sse += e * e
+        e2_avg += avg_gain * (e * e - e2_avg)
+        y_avg += avg_gain * (yk - y_avg)
+        dy = yk - y_avg
+        yv_avg += avg_gain * (dy * dy - yv_avg)
+        # eta = lambda xi, its mean and centred part
+        eta_bar = 0.0
+        for i in range(m):
+            eta_bar += lam_phys[i] * xi[i]
+        eta_bar *= inv_m
+        s2 = 0.0
+        a1 = 0.0  # sum lambda~ eta_c
+        a2 = 0.0  # sum lambda~^2 eta_c
+        a3 = 0.0  # sum lambda~^3 eta_c
+        a4 = 0.0  # sum lambda~^4 eta_c
+        q2 = 0.0  # sum lambda~^2 eta_c^2
+        for i in range(m):
+            c = lam_phys[i] * xi[i] - eta_bar
+            l2c = lam[i] * lam[i] * c
+            s2 += c * c
+            a1 += lam[i] * c
+            a2 += l2c
+            a3 += lam[i] * l2c
+            a4 += lam[i] * lam[i] * l2c
+            q2 += l2c * c
+        s = math.sqrt(s2)
+        env = max(s, env * env_decay)
+        pred_valid = 0.0
+        defined = False
+        good = False
+        offset = np.nan
+        det = 0.0
+        a_sin = 0.0
+        a_cos = 0.0
+        wts = 0.0
+        rr = 0.0
+        ff = 1.0
+        if n_run >= n_settle:
+            offset = eta_bar  # exact for a constant input; replaced below when defined
+            y_pred = eta_bar
+            pred_valid = 1.0
+        if s > 1e-150 + 1e-9 * abs(eta_bar) and s >= silence_ratio * env:
+            inv = 1.0 / s
+            # unit eta_c: L_c^T L_c = [[C^T C, c], [c^T, 1]], c = -(a2, a1, 0) / s,
+            # r = L_c^T F^2 eta_c = ((a4, a3, a2) / s, -q2 / s^2)
+            c0 = -a2 * inv
+            c1 = -a1 * inv
+            r0 = a4 * inv
+            r1 = a3 * inv
+            r2 = a2 * inv
+            r3 = -q2 * inv * inv
+            # into the eigenbasis of C^T C (c has no third entry: sum eta_c = 0)
+            ch0 = kv[0, 0] * c0 + kv[1, 0] * c1
+            ch1 = kv[0, 1] * c0 + kv[1, 1] * c1
+            ch2 = kv[0, 2] * c0 + kv[1, 2] * c1
+            rh0 = kv[0, 0] * r0 + kv[1, 0] * r1 + kv[2, 0] * r2
+            rh1 = kv[0, 1] * r0 + kv[1, 1] * r1 + kv[2, 1] * r2
+            rh2 = kv[0, 2] * r0 + kv[1, 2] * r1 + kv[2, 2] * r2
+            # Gram determinant det(L_c^T L_c) = det(C^T C) (1 - c^T (C^T C)^-1 c)
+            det = det_k0 * (1.0 - ch0 * ch0 / kk[0] - ch1 * ch1 / kk[1] - ch2 * ch2 / kk[2])
+            mu = max(ell - 2.0 * det, 0.0)
+            i0 = 1.0 / (kk[0] + mu)
+            i1 = 1.0 / (kk[1] + mu)
+            i2 = 1.0 / (kk[2] + mu)
+            schur = 1.0 + mu - (ch0 * ch0 * i0 + ch1 * ch1 * i1 + ch2 * ch2 * i2)
+            if schur > 1e-300:
+                z3 = (r3 - (ch0 * rh0 * i0 + ch1 * rh1 * i1 + ch2 * rh2 * i2)) / schur
+                w0 = (rh0 - ch0 * z3) * i0
+                w1 = (rh1 - ch1 * z3) * i1
+                w2 = (rh2 - ch2 * z3) * i2
+                z0 = kv[0, 0] * w0 + kv[0, 1] * w1 + kv[0, 2] * w2
+                z1 = kv[1, 0] * w0 + kv[1, 1] * w1 + kv[1, 2] * w2
+                z2 = kv[2, 0] * w0 + kv[2, 1] * w1 + kv[2, 2] * w2
+                # z = ((x1 + x4 - eta_bar) / s, (x2 / omega_ref) / s, x3~ (x4 - eta_bar) / s, x3~)
+                if z3 > 0.0:
+                    sq = math.sqrt(z3)
+                    wts = w_ref * sq * Ts  # omega Ts
+                    if wts < math.pi:
+                        defined = True
+                        dx4 = z2 / z3
+                        offset = eta_bar + s * dx4  # x4
+                        half = 0.5 * wts
+                        sh = math.sin(half)
+                        chh = math.sqrt(max(1.0 - sh * sh, 0.0))
+                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        a_sin = s * (z0 - dx4) * g  # A sin(theta) = x1
+                        a_cos = -s * z1 * g / sq  # A cos(theta) = -x2 / omega
+                        y_pred = offset + a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * chh)
+                        pred_valid = 1.0
+                        ff = 0.0
+                        for i in range(m):
+                            cn = (lam_phys[i] * xi[i] - eta_bar) * inv
+                            t = lam[i] * lam[i] * cn
+                            res = lam[i] * lam[i] * z0 + lam[i] * z1 + z2 - cn * z3 - t
+                            rr += res * res
+                            ff += t * t
+                        good = (
+                            mu == 0.0
+                            and n_run >= n_settle
+                            and rr <= max_fit2 * ff
+                            and e2_avg <= max_pred2 * yv_avg
+                            and wts_lo <= wts <= wts_hi
+                        )
+        n_good = min(n_good + 1.0, n_settle) if good else 0.0
+        if last_only and k != n - 1:
+            continue
+        j = 0 if last_only else k
+        ext[j, 2] = math.sqrt(e2_avg / yv_avg) if yv_avg > 0.0 else np.nan
+        out[j, 3] = offset
+        if defined:
+            phase = math.atan2(a_sin, a_cos)
+            out[j, 0] = wts / (2.0 * math.pi * Ts)
+            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
+            out[j, 2] = phase if phase > -math.pi else math.pi
+            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
+            ext[j, 0] = 2.0 * det / ell
+            ext[j, 1] = math.sqrt(rr / ff)
+        else:
+            out[j, 0] = np.nan
+            out[j, 1] = np.nan
+            out[j, 2] = np.nan
+            out[j, 4] = 0.0
+            ext[j, 0] = np.nan
+            ext[j, 1] = np.nan
+    new_state = np.empty(m + 10)
+    new_state[:m] = xi
+    new_state[m] = y_prev
+    new_state[m + 1] = have_prev
+    new_state[m + 2] = y_pred
+    new_state[m + 3] = pred_valid
+    new_state[m + 4] = n_good
+    new_state[m + 5] = env
+    new_state[m + 6] = e2_avg
+    new_state[m + 7] = y_avg
+    new_state[m + 8] = yv_avg
+    new_state[m + 9] = n_run
+    return out, ext, sse, new_state
+
+
+@register
+class KklBiased(Estimator):
+    """Extension of paper 003's observer to a biased sinusoid (module docstring)."""
+
+    name = "kkl-biased"
+    Params = KklBiasedParams
+    summary = (
+        "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
+        "and a static inverse map (extension of paper 003)"
+    )
+    paper = "003_29096b058aca5228.txt"
+    example_sample_rate_hz = 5000.0
+    example_params = {"f_min_hz": 45.0, "f_max_hz": 65.0}
+    example_frequency_hz = 50.0  # the default example signal: 0.5 + sin(2 pi 50 t + 0.3) + noise
+
+    def _check_params(self) -> None:
+        check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
+
+    def _setup(self) -> None:
+        p = self.params
+        ts = 1.0 / self.sample_rate_hz
+        f_ref = math.sqrt(p.f_min_hz * p.f_max_hz)
+        self.omega_ref = 2.0 * math.pi * f_ref
+        self.lam_n = np.asarray(p.lambda_factors, dtype=np.float64)
+        self.lambdas = self.lam_n * self.omega_ref
+        self.ell, self.ell_x3 = biased_ell(self.lam_n, (p.f_min_hz / f_ref) ** 2, (p.f_max_hz / f_ref) ** 2)
+        if not (self.ell > 0.0 and math.isfinite(self.ell)):
+            raise ParameterError(f"{self.name}: l_b: expected > 0, got {self.ell} (degenerate design)")
+        basis = np.column_stack([self.lam_n**2, self.lam_n, np.ones_like(self.lam_n)])
+        kk, kv = np.linalg.eigh(basis.T @ basis)
+        self._kk = np.ascontiguousarray(kk)
+        self._kv = np.ascontiguousarray(kv)
+        self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
+        lam_min = float(self.lambdas.min())
+        n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
+        self._consts = np.array(
+            [
+                ts,
+                self.omega_ref,
+                self.ell,
+                p.silence_ratio,
+                math.exp(-lam_min * ts / ENV_SLOWDOWN),
+                float(n_settle),
+                p.max_fit_residual,
+                p.max_prediction_error,
+                -math.expm1(-lam_min * ts),
+                2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
+                2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
+            ]
+        )
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        return {"xi_state": np.zeros(self.lam_n.size + 10)}
+
+    def _run(self, samples, state, last_only):
+        out, ext, sse, new = kkl_biased_kernel(
+            samples,
+            state["xi_state"],
+            self.lam_n,
+            self.lambdas,
+            self._fa,
+            self._fb0,
+            self._fb1,
+            self._kv,
+            self._kk,
+            self._consts,
+            last_only,
+        )
+        extras = {
+            "manifold_margin": ext[:, 0],
+            "fit_residual": ext[:, 1],
+            "prediction_error": ext[:, 2],
+        }
+        return track_from_columns(out, sse, samples.shape[0], extras), {"xi_state": new}
