@@ -264,8 +264,10 @@ def gamma_reference(xi: np.ndarray, lam: np.ndarray, ell: float) -> np.ndarray:
 
 def parameters_from_x(x: np.ndarray) -> tuple[float, float, float]:
     """(amplitude, omega, theta) from x = (x1, x2, x3) of (4): A sin(theta) = x1,
-    A omega cos(theta) = -x2."""
+    A omega cos(theta) = -x2. NaNs while x3 <= 0."""
     x1, x2, x3 = (float(v) for v in x)
+    if not x3 > 0.0:
+        return math.nan, math.nan, math.nan
     w = math.sqrt(x3)
     return math.sqrt(x1 * x1 + x2 * x2 / x3), w, math.atan2(x1 * w, -x2)
 
