@@ -267,6 +267,23 @@ def test_grip_demo_scenario_with_its_suggested_estimator():
     assert scenarios.get("grip-demo", sample_rate_hz=4410.0).suggested_params["fractional_delay"] is True
 
 
+def test_params_for_picks_a_well_conditioned_mixing_period():
+    cls = get(NAME)
+    hints = {"nominal_frequency_hz": (50.0, 150.0, 250.0), "n_inputs": 1}
+    p = cls.params_for(10_000.0, hints)
+    # |sin(pi f T)| = 1 for every line at T = 0.09 s (f T = 4.5, 13.5, 22.5): best conditioning
+    assert p["period_s"] == pytest.approx(0.09) and p["frequencies_hz"] == [50.0, 150.0, 250.0]
+    t = np.arange(10_000) / 10_000.0
+    tr = create(NAME, 10_000.0, **p).update(0.2 + np.sin(2 * np.pi * 50 * t) + 0.1 * np.sin(2 * np.pi * 250 * t))
+    assert tr.converged[-1] and tr.amplitude[-1] == pytest.approx([1.0, 0.0, 0.1], abs=1e-6)
+    with pytest.raises(ParameterError):
+        cls.params_for(1000.0, {"nominal_frequency_hz": (600.0,), "n_inputs": 1})
+    assert cls.params_for(100.0, {"nominal_frequency_hz": (0.16,), "n_inputs": 2}) == {}
+    # the Section V scenario's own parameters override harmonics ones in a merge
+    merged = {**cls.example_params, **scenarios.get("grip-section-v").suggested_params}
+    assert create(NAME, FS_V, **merged).n_inputs == 2
+
+
 # ---- known input travelling with the samples ----------------------------------------------------
 
 

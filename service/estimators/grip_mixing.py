@@ -665,6 +665,30 @@ class GripMixing(Estimator):
         dist = 0.4 * np.sin(2 * np.pi * 20 * t) + 0.3 * np.sin(2 * np.pi * 60 * t + 0.5)
         return 0.5 + lines + dist + 0.01 * rng.standard_normal(n)
 
+    @classmethod
+    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+        """Parameters for a scenario described by ``hints`` (the accuracy bench's hook).
+
+        One input column: the ``harmonics`` preset at the scenario's nominal frequencies, with
+        a period T (whole samples, at most 0.1 s) chosen to maximise min_k |sin(pi f_k T)|,
+        i.e. the conditioning of I - e^{-AT} (Theorem 1), the longest of the near-best (the
+        offset is a mean over T). Such a scenario has no periodic disturbance; T is only the
+        mixing delay. Known inputs: nothing here, the scenario's
+        suggested plant decides.
+        """
+        if int(hints.get("n_inputs", 1)) > 1:
+            return {}
+        f = np.asarray(hints["nominal_frequency_hz"], dtype=np.float64)
+        if f.size == 0 or np.any(f <= 0) or np.any(f >= sample_rate_hz / 2) or np.unique(f).size != f.size:
+            raise ParameterError(
+                f"nominal_frequency_hz: expected distinct values in (0, fs/2), got {f.tolist()}"
+            )
+        m = np.arange(2, max(3, int(0.1 * sample_rate_hz) + 1))
+        score = np.min(np.abs(np.sin(np.pi * np.outer(m / sample_rate_hz, f))), axis=1)
+        best = int(m[np.flatnonzero(score >= score.max() - 1e-3)[-1]])  # longest: offset = mean over T
+        return {"preset": "harmonics", "frequencies_hz": f.tolist(), "period_s": best / sample_rate_hz,
+                "fractional_delay": False}
+
     def _check_params(self) -> None:
         self._design = design(self.params, self.sample_rate_hz)
 

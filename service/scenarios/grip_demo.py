@@ -37,6 +37,7 @@ SECTION_V_PLANT = {
     "B": [[0.0], [1.0]],
     "C": [[1.0, 0.0]],
     "poles": [-1.0, -2.0],
+    "frequencies_hz": None,  # explicit: a merge over harmonics-preset parameters must drop them
 }
 
 
