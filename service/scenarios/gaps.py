@@ -31,7 +31,7 @@ def _gap(name: str, summary: str, *, dropout=None, skip=None, t_resume: float, d
         [Component(F0, phi0=0.3)],
         BenchInfo(
             nominal_frequency_hz=(F0,),
-            frequency_range_hz=(5.0, 250.0),
+            frequency_range_hz=(25.0, 100.0),
             steady_windows=((1.0, 2.0), (duration - 1.0, duration)),
             events=(Event(t_resume, "resume"),),
         ),

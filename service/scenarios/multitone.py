@@ -29,7 +29,7 @@ def _multi(name: str, summary: str, tones: list[tuple[float, float, float]], off
         comps,
         BenchInfo(
             nominal_frequency_hz=tuple(0.9 * f if i % 2 == 0 else 1.1 * f for i, (f, _, _) in enumerate(tones)),
-            frequency_range_hz=(5.0, 250.0),
+            frequency_range_hz=(10.0, 250.0),
             steady_windows=((5.0, 10.0),),
         ),
         offset=offset,

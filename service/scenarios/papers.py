@@ -74,8 +74,8 @@ def paper000_chirp(**kw: Any) -> Composite:
         "paper 000 IV-B: linear chirp f(t) = t Hz (1 Hz/s) + offset 1 at 1 kHz, noise std 0.01",
         [Component(0.0, rocof=1.0)],
         BenchInfo(
-            nominal_frequency_hz=(0.0,),
-            frequency_range_hz=(0.0, 499.0),
+            nominal_frequency_hz=(100.0,),  # mid-sweep: the estimators that need one
+            frequency_range_hz=(1.0, 499.0),
             steady_windows=((20.0, 200.0),),
             tolerance_hz=1.0,
             reference={
@@ -160,13 +160,16 @@ def _paper003(w_h: float, **kw: Any) -> Composite:
         [Component(_hz(3.0), a0=2.0)],
         BenchInfo(
             nominal_frequency_hz=(_hz(3.0),),
-            frequency_range_hz=(_hz(1.0), _hz(6.0)),
+            # sqrt(f_min f_max) = 3 rad/s: with kkl's default lambda factors this gives the
+            # paper's lambda = 1, 2, 3, 4 rad/s
+            frequency_range_hz=(_hz(1.0), _hz(9.0)),
             steady_windows=((30.0, 60.0),),
             reference=_P003[w_h],
         ),
         disturbances=[Component(_hz(w_h), a0=0.2)],
         tags=("paper", "paper003", "harmonic"),
-        **{"sample_rate_hz": 1000.0, "duration_s": 60.0, "noise_std": 0.0, **kw},
+        **{"sample_rate_hz": 1000.0, "duration_s": 60.0, "noise_std": 0.0, "suggested_estimator": "kkl",
+           "suggested_params": {"f_min_hz": _hz(1.0), "f_max_hz": _hz(9.0)}, **kw},
     )
 
 
@@ -186,6 +189,25 @@ def paper003_h1000(**kw: Any) -> Composite:
 
 
 _FS004 = 1.0 / 3e-4  # Ts = 3e-4 s, Section V-A
+# The paper's tunings for adaptive-multisine (paper units, rad/s: omega_unit_rad_s = 1).
+# Example 1 and 3 (no bias: 2n = 4 poles); omega_max is not given: 10 rad/s bounds the signals.
+_GAINS_EX1 = {"n_sinusoids": 2, "bias": False, "a": [0.0, -0.5], "poles": [-2.0, -0.7, -0.5, -0.2],
+              "filter_poles": [-5.0], "filter_gains": [4.5], "mu": 6.0, "rho": 0.2, "mu_a": 0.15,
+              "omega0": [3.0, 4.0], "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+# Example 2 (bias: 2n + 1 = 5 poles); initial frequencies not given: Example 1's.
+_GAINS_EX2 = {"n_sinusoids": 2, "bias": True, "a": [-2.0, -1.0], "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
+              "filter_poles": [-6.0], "filter_gains": [6.0], "mu": 70.0, "rho": 0.3, "mu_a": 0.1,
+              "delta_high": 3e-4, "delta_low": 3e-5, "omega0": [3.0, 4.0], "omega_max": 10.0,
+              "omega_unit_rad_s": 1.0}
+# Section V-B experiment (no bias); initial frequencies not given.
+_GAINS_EXP = {"n_sinusoids": 2, "bias": False, "a": [0.0, -1.0], "poles": [-0.7, -0.4, -0.5, -1.0],
+              "filter_poles": [-2.0], "filter_gains": [1.0], "mu": 20.0, "rho": 1.0, "mu_a": 0.2,
+              "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+
+
+def _p004(gains: dict[str, Any], kw: dict[str, Any], fs: float = _FS004) -> dict[str, Any]:
+    return {"sample_rate_hz": fs, "noise_std": 0.0, "suggested_estimator": "adaptive-multisine",
+            "suggested_params": dict(gains), **kw}
 
 
 @register("paper004-ex1")
@@ -201,7 +223,7 @@ def paper004_ex1(**kw: Any) -> Composite:
             reference={"frequencies": "all methods converge in a noise-free scenario (Fig. 3)"},
         ),
         tags=("paper", "paper004", "multitone"),
-        **{"sample_rate_hz": _FS004, "duration_s": 100.0, "noise_std": 0.0, **kw},
+        **_p004(_GAINS_EX1, {"duration_s": 100.0, **kw}),
     )
 
 
@@ -219,7 +241,7 @@ def paper004_ex1_noisy(**kw: Any) -> Composite:
         ),
         uniform_noise=0.25,
         tags=("paper", "paper004", "multitone"),
-        **{"sample_rate_hz": _FS004, "duration_s": 100.0, "noise_std": 0.0, **kw},
+        **_p004(_GAINS_EX1, {"duration_s": 100.0, **kw}),
     )
 
 
@@ -239,7 +261,7 @@ def paper004_ex2(**kw: Any) -> Composite:
         offset=1.0,
         uniform_noise=0.25,
         tags=("paper", "paper004", "multitone", "step"),
-        **{"sample_rate_hz": _FS004, "duration_s": 240.0, "noise_std": 0.0, **kw},
+        **_p004(_GAINS_EX2, {"duration_s": 240.0, **kw}),
     )
 
 
@@ -260,7 +282,7 @@ def paper004_ex3(**kw: Any) -> Composite:
         ),
         uniform_noise=0.25,
         tags=("paper", "paper004", "multitone", "step"),
-        **{"sample_rate_hz": _FS004, "duration_s": 140.0, "noise_std": 0.0, **kw},
+        **_p004(_GAINS_EX1, {"duration_s": 140.0, **kw}),
     )
 
 
@@ -277,5 +299,5 @@ def paper004_experiment(**kw: Any) -> Composite:
             reference={"frequencies": "gathered with great accuracy (Figs. 13-14)"},
         ),
         tags=("paper", "paper004", "multitone"),
-        **{"sample_rate_hz": 10_000.0, "duration_s": 30.0, "noise_std": 0.05, **kw},
+        **_p004(_GAINS_EXP, {"duration_s": 30.0, "noise_std": 0.05, **kw}, fs=10_000.0),
     )
