@@ -197,7 +197,9 @@ def test_signal_that_stops_and_resumes():
     assert conv[int(1.0 * fs) : int(2 * fs)].all()
     # the filters decay; within 0.1 s of the stop the estimate is NaN and stays so
     assert np.isnan(freq[int(2.1 * fs) : int(4 * fs)]).all()
-    assert not conv[int(2.01 * fs) : int(4 * fs)].any()  # measured: False 2.6 ms after the stop, NaN from 11.6 ms
+    # the jump detector drops converged at once (measured: at the first zero sample; the
+    # estimate is NaN from 11.6 ms on)
+    assert not conv[int(2.001 * fs) : int(4 * fs)].any()
     # resumes: converged again after the settle time (6 / lambda_min = 53 ms) plus the
     # prediction-error check; measured 88 ms
     back = np.flatnonzero(conv[int(4 * fs) :])[0] / fs

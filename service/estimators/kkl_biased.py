@@ -66,6 +66,8 @@ from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_col
 from sinewatch.estimators.kkl import (
     CONVERGED_RANGE_FACTOR,
     ENV_SLOWDOWN,
+    JUMP_FLOOR,
+    JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
     check_nyquist,
     ell_eq10,
@@ -160,10 +162,11 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
     the exact first-order-hold coefficients; ``kv`` (3 x 3, columns) and ``kk`` (3,) the
     eigenvectors and eigenvalues of C^T C, C = (lambda~^2 lambda~ 1), used to solve the
     4 x 4 system by its Schur complement for any mu. ``state`` packs xi_1..xi_m, then
-    y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run.
-    ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay, n_settle,
-    max_fit_residual, max_prediction_error, avg_gain, omega Ts bounds of the converged
-    range. Pure: the inputs are not modified.
+    y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run,
+    e2_fast, e2_slow. ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay,
+    n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
+    converged range, and the gains of the jump detector's fast and slow means. Pure: the
+    inputs are not modified.
     """
     m = lam.shape[0]
     Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
@@ -177,6 +180,8 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
     y_pred, pred_valid = state[m + 2], state[m + 3]
     n_good, env = state[m + 4], state[m + 5]
     e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
+    e2_fast, e2_slow = state[m + 10], state[m + 11]
+    fast_gain, slow_gain = consts[11], consts[12]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
     inv_m = 1.0 / m
     n = y.shape[0]
@@ -202,6 +207,11 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
         y_avg += avg_gain * (yk - y_avg)
         dy = yk - y_avg
         yv_avg += avg_gain * (dy * dy - yv_avg)
+        # jump detector: the error's short-term mean square against its long-term level
+        jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
+        e2_fast += fast_gain * (e * e - e2_fast)
+        e2_slow += slow_gain * (e * e - e2_slow)
+        jump = jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
         # eta = lambda xi, its mean and centred part
         eta_bar = 0.0
         for i in range(m):
@@ -298,6 +308,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
                             and n_run >= n_settle
                             and rr <= max_fit2 * ff
                             and e2_avg <= max_pred2 * yv_avg
+                            and not jump
                             and wts_lo <= wts <= wts_hi
                         )
         n_good = min(n_good + 1.0, n_settle) if good else 0.0
@@ -321,7 +332,9 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
             out[j, 4] = 0.0
             ext[j, 0] = np.nan
             ext[j, 1] = np.nan
-    new_state = np.empty(m + 10)
+    new_state = np.empty(m + 12)
+    new_state[m + 10] = e2_fast
+    new_state[m + 11] = e2_slow
     new_state[:m] = xi
     new_state[m] = y_prev
     new_state[m + 1] = have_prev
@@ -384,11 +397,13 @@ class KklBiased(Estimator):
                 -math.expm1(-lam_min * ts),
                 2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
                 2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
+                -math.expm1(-self.omega_ref * ts),  # fast mean: time constant 1/omega_ref
+                -math.expm1(-lam_min * ts / ENV_SLOWDOWN),  # slow mean: 10/lambda_min
             ]
         )
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        return {"xi_state": np.zeros(self.lam_n.size + 10)}
+        return {"xi_state": np.zeros(self.lam_n.size + 12)}
 
     def _run(self, samples, state, last_only):
         out, ext, sse, new = kkl_biased_kernel(
