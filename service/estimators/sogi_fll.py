@@ -156,7 +156,7 @@ def sogi_fll_kernel(v, state, consts, last_only):
     min_amplitude, max_relative_error, frequency_tolerance_hz, alpha of the error
     filter, alpha of each of the two u filter stages).
     ``out`` columns: frequency_hz, amplitude, phase_rad, offset, converged (0/1);
-    ``extras`` columns: relative_error_rms, frequency_rate_hz_per_s. Pure.
+    ``extras`` columns: relative_error_rms, rocof_hz_per_s. Pure.
     """
     vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa = (
         state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7], state[8],
@@ -305,5 +305,5 @@ class SogiFll(Estimator):
 
     def _run(self, samples, state, last_only):
         out, ext, sse, x = sogi_fll_kernel(samples, state["x"], self._consts, last_only)
-        extras = {"relative_error_rms": ext[:, 0], "frequency_rate_hz_per_s": ext[:, 1]}
+        extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
         return track_from_columns(out, sse, samples.shape[0], extras), {"x": x}
