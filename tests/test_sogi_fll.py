@@ -105,6 +105,25 @@ def test_frequency_step_follows_the_designed_first_order_rate(fs, gamma, df):
     assert conv[int(0.25 * fs) :].all()
 
 
+@pytest.mark.parametrize("nominal, fs", [(1.0, 5.0), (5.0, 100.0), (400.0, 40_000.0)])
+def test_default_dynamics_scale_with_the_nominal_frequency(nominal, fs):
+    # Default Gamma = nominal (1/s per Hz): a time constant of one nominal cycle, so the
+    # same step in per-unit settles in the same number of cycles at any nominal frequency,
+    # down to 5 samples per cycle. Measured t63 * nominal: 1.00, 1.00, 0.97.
+    df = 0.02 * nominal
+    t_step = 30.0 / nominal
+    sc = SumOfTones("s", "s", [Tone(nominal, 1.0, 0.3, t_step=t_step, f_step_to=nominal + df)],
+                    offset=0.5, sample_rate_hz=fs, duration_s=45.0 / nominal)  # fmt: skip
+    x, _ = sc.generate()
+    tr = create("sogi-fll", fs, nominal_frequency_hz=nominal).update(x)
+    after = np.arange(x.size) >= round(t_step * fs)
+    frac = (tr.frequency_hz[after, 0] - nominal) / df
+    t63 = np.flatnonzero(frac >= 1.0 - math.exp(-1.0))[0] / fs
+    assert t63 * nominal == pytest.approx(1.0, rel=0.1)
+    assert abs(frac[-1] - 1.0) < 1e-4 and frac.max() < 1.01
+    assert tr.converged[-round(5 * fs / nominal) :].all()
+
+
 def test_amplitude_step():
     fs = 5000.0
     x, truth = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, a_step_factor=0.5)], seconds=1.5).generate()
@@ -231,7 +250,8 @@ def test_below_min_amplitude_frequency_and_phase_are_nan():
         (100.0, {"nominal_frequency_hz": 40.0}, "max_frequency_hz: expected < Nyquist"),
         (1000.0, {"min_frequency_hz": 55.0}, "nominal_frequency_hz: expected within"),
         (1000.0, {"min_frequency_hz": 60.0, "max_frequency_hz": 55.0}, "min_frequency_hz: expected <"),
-        (1000.0, {"gamma": 100.0}, "gamma: expected <= 0.05 x sample rate"),
+        (1000.0, {"gamma": 250.0}, "gamma: expected <= k omega_nominal / 2"),
+        (100.0, {"nominal_frequency_hz": 10.0, "gamma": 30.0}, "gamma: expected <= 0.25 x sample rate"),
         (1000.0, {"gamma": 0.0}, "gamma"),
         (1000.0, {"k": -1.0}, "k"),
         (1000.0, {"k_dc": 0.0}, "k_dc"),

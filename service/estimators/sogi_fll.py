@@ -57,10 +57,14 @@ Discretisation, sample period h, per sample n (given omega' from sample n-1):
   keeps the loop's linearised rate at Gamma; integrated by the trapezoidal rule
   ``omega'[n] = omega'[n-1] + (h/2)(u[n] + u[n-1])``, then clamped to the frequency
   range. The FLL uses omega'[n-1] in step n: the one-sample loop delay of any explicit
-  loop, negligible for ``Gamma h << 1`` (validated: ``Gamma <= 0.05 fs``). The first-
-  order picture holds while Gamma stays well below the SOGI's own bandwidth (~k omega/2):
-  measured at 50 Hz, t63 = 1/Gamma within 5 % for Gamma = 20 and 50 at 1 and 20 kHz,
-  while Gamma = 100 overshoots by 20 %.
+  loop, small for ``Gamma h << 1`` (validated: ``Gamma h <= 0.25``; measured t63 =
+  1/Gamma within 3 % at 5 samples per cycle with Gamma h = 0.2). The first-order picture
+  holds while Gamma stays below the SOGI's own bandwidth ``k omega / 2``; everything
+  scales with the nominal frequency, so with ``g = Gamma / f_nominal`` (Gamma in 1/s,
+  f in Hz) measured: g <= 1 first order (t63 = 1/Gamma within 5 % at 1-50 Hz, 4 Hz-50 kHz
+  sampling), g = 2 overshoots 20 %, g = 4 by 41 %, g = 6 diverges. Hence the default
+  ``Gamma = f_nominal`` (a time constant of one nominal cycle; Rodriguez et al. use 46 at
+  50 Hz) and the limit ``Gamma <= k omega_nominal / 2`` (4.4 f_nominal at k = sqrt 2).
 * (N) amplitude memory (a sinewatch addition to [R]): the denominator ``A^2`` of (5) is
   replaced by ``max(A^2, P/2)`` with ``P`` = A^2 low-passed over
   ``fll_amplitude_memory_cycles`` nominal cycles. Locked, ``P = A^2`` and (5) is [R]'s
@@ -113,9 +117,11 @@ class SogiFllParams(EstimatorParams):
     k_dc: float = Field(
         0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'"
     )
-    gamma: float = Field(
-        50.0, gt=0, allow_inf_nan=False,
-        description="Normalised FLL gain Gamma (1/s): frequency error decays as exp(-Gamma t)",
+    gamma: float | None = Field(
+        None, gt=0, allow_inf_nan=False,
+        description="Normalised FLL gain Gamma (1/s): the frequency error decays as exp(-Gamma t). "
+        "Default: the nominal frequency's value in Hz (a time constant of one nominal cycle, "
+        "50 1/s at 50 Hz); at most k pi nominal (the SOGI's bandwidth)",
     )
     fll_amplitude_memory_cycles: float = Field(
         2.0, ge=0, allow_inf_nan=False,
@@ -136,9 +142,10 @@ class SogiFllParams(EstimatorParams):
         0.2, gt=0, allow_inf_nan=False,
         description="converged requires the smoothed RMS SOGI error below this x amplitude",
     )
-    frequency_tolerance_hz: float = Field(
-        0.1, gt=0, allow_inf_nan=False,
-        description="converged requires the FLL's predicted remaining frequency error below this",
+    frequency_tolerance_hz: float | None = Field(
+        None, gt=0, allow_inf_nan=False,
+        description="converged requires the FLL's predicted remaining frequency error below this "
+        "(default 0.002 x nominal: 0.1 Hz at 50 Hz)",
     )
     convergence_cycles: float = Field(
         1.0, gt=0, allow_inf_nan=False,
@@ -279,11 +286,22 @@ class SogiFll(Estimator):
             raise ParameterError(
                 f"nominal_frequency_hz: expected within [{f_lo}, {f_hi}] Hz, got {p.nominal_frequency_hz}"
             )
-        if p.gamma > 0.05 * fs:
+        gamma = p.nominal_frequency_hz if p.gamma is None else p.gamma
+        g_max = p.k * math.pi * p.nominal_frequency_hz  # k omega_nom / 2
+        if gamma > g_max:
             raise ParameterError(
-                f"gamma: expected <= 0.05 x sample rate = {0.05 * fs:g} 1/s (discrete FLL), got {p.gamma}"
+                f"gamma: expected <= k omega_nominal / 2 = {g_max:g} 1/s (the SOGI's bandwidth; "
+                f"the FLL diverges beyond), got {gamma}"
+            )
+        if gamma > 0.25 * fs:
+            raise ParameterError(
+                f"gamma: expected <= 0.25 x sample rate = {0.25 * fs:g} 1/s (discrete FLL), got {gamma}"
             )
         self._f_range = (f_lo, f_hi)
+        self.gamma = gamma
+        self.frequency_tolerance_hz = (
+            0.002 * p.nominal_frequency_hz if p.frequency_tolerance_hz is None else p.frequency_tolerance_hz
+        )
 
     def _setup(self) -> None:
         p = self.params
@@ -295,8 +313,8 @@ class SogiFll(Estimator):
         mem = p.fll_amplitude_memory_cycles
         beta = 1.0 if mem == 0 else -math.expm1(-h * p.nominal_frequency_hz / mem)  # (N)
         self._consts = np.array(
-            [h, p.k, p.k_dc, p.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
-             p.min_amplitude, p.max_relative_error, p.frequency_tolerance_hz, alpha, alpha2, beta]
+            [h, p.k, p.k_dc, self.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
+             p.min_amplitude, p.max_relative_error, self.frequency_tolerance_hz, alpha, alpha2, beta]
         )  # fmt: skip
 
     def _initial_state(self) -> dict[str, np.ndarray]:
