@@ -78,7 +78,8 @@ def test_same_design_serves_3_rad_s_and_50_hz():
     t50 = np.arange(int(40.0 / scale * 50_000)) / 50_000
     y50 = 2.0 * np.sin(w50 * t50) + 0.2 * np.sin(10.0 * scale * t50)
     tr3 = create("kkl", 1000.0, **SECTION_V).update(y3)
-    tr50 = create("kkl", 50_000.0, f_min_hz=SECTION_V["f_min_hz"] * scale, f_max_hz=SECTION_V["f_max_hz"] * scale).update(y50)
+    range50 = dict(f_min_hz=SECTION_V["f_min_hz"] * scale, f_max_hz=SECTION_V["f_max_hz"] * scale)
+    tr50 = create("kkl", 50_000.0, **range50).update(y50)
     rel3 = tr3.frequency_hz[t3 >= 20.0, 0] / (3.0 / (2 * math.pi))
     rel50 = tr50.frequency_hz[t50 >= 20.0 / scale, 0] / 50.0
     assert rel50.std() == pytest.approx(rel3.std(), rel=0.02)  # measured: 0.03866 both
@@ -115,7 +116,8 @@ def test_m_matrix_is_the_gram_determinant():
     for _ in range(5):
         xi = rng.standard_normal(4)
         L = np.column_stack([PAPER_LAMBDA, np.ones(4), -xi])  # noqa: N806
-        assert np.sum((paper_m_matrix(PAPER_LAMBDA) @ xi) ** 2) == pytest.approx(np.linalg.det(L.T @ L), rel=1e-10)
+        m_xi2 = np.sum((paper_m_matrix(PAPER_LAMBDA) @ xi) ** 2)
+        assert m_xi2 == pytest.approx(np.linalg.det(L.T @ L), rel=1e-10)
 
 
 def _kernel_on(est, xi: np.ndarray):
@@ -123,7 +125,8 @@ def _kernel_on(est, xi: np.ndarray):
     state = est._initial_state()["xi_state"]
     state[: xi.size] = xi
     state[-4] = est._consts[5]  # n_good: already settled, so converged reflects mu and fit only
-    out, ext, _, _ = kkl_kernel(np.zeros(1), state, est.lam_n, est._fa, est._fb0, est._fb1, est._consts, False)
+    args = (est.lam_n, est._fa, est._fb0, est._fb1, est._consts)
+    out, ext, _, _ = kkl_kernel(np.zeros(1), state, *args, False)
     return out[0], ext[0]
 
 

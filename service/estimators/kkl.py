@@ -301,7 +301,7 @@ class KklParams(EstimatorParams):
         "m >= 4, distinct, > 0. Default: the paper's (1, 2, 3, 4) rad/s for 3 rad/s",
     )
     settle_time_constants: float = Field(
-        6.0, gt=0, description="converged only after this many 1/lambda_min since start or silence"
+        6.0, gt=0, description="converged only after this many 1/lambda_min of consecutive good samples"
     )
     silence_ratio: float = Field(
         1e-3, gt=0, lt=1, description="xi counts as zero below this fraction of its recent peak"
@@ -309,7 +309,6 @@ class KklParams(EstimatorParams):
     max_fit_residual: float = Field(
         0.05, gt=0, description="converged only while |L x - F^2 xi| / |F^2 xi| is at most this"
     )
-
     max_prediction_error: float = Field(
         0.3,
         gt=0,
@@ -317,7 +316,9 @@ class KklParams(EstimatorParams):
         "is at most this fraction of the running RMS of y",
     )
 
-    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
+    @field_validator(
+        "f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error"
+    )
     @classmethod
     def _finite(cls, v: float) -> float:
         if not math.isfinite(v):
@@ -395,7 +396,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
         if have_prev != 0.0:
             for i in range(m):
                 v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > 1e-250 else 0.0
+                xi[i] = v if abs(v) > FLUSH else 0.0
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error and its running mean square, against that of y
@@ -436,7 +437,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
         wts = 0.0
         rr = 0.0
         ff = 1.0
-        if s > 1e-150 and s >= silence_ratio * env:  # else "xi near 0": undefined
+        if s > ABS_FLOOR and s >= silence_ratio * env:  # else "xi near 0": undefined
             inv = 1.0 / s
             # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
             # r = L^T F^2 xi, for the unit vector xi/|xi| (8)

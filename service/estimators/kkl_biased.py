@@ -64,8 +64,10 @@ from sinewatch.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
 from sinewatch.estimators.kkl import (
+    ABS_FLOOR,
     CONVERGED_RANGE_FACTOR,
     ENV_SLOWDOWN,
+    FLUSH,
     JUMP_FLOOR,
     JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
@@ -76,6 +78,7 @@ from sinewatch.estimators.kkl import (
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
+DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
 
 
 def biased_image_columns(lam: np.ndarray):
@@ -133,7 +136,9 @@ class KklBiasedParams(EstimatorParams):
         "is at most this fraction of the running standard deviation of y",
     )
 
-    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
+    @field_validator(
+        "f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error"
+    )
     @classmethod
     def _finite(cls, v: float) -> float:
         if not math.isfinite(v):
@@ -183,6 +188,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
     e2_fast, e2_slow = state[m + 10], state[m + 11]
     fast_gain, slow_gain = consts[11], consts[12]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
+    ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
     n = y.shape[0]
     rows = 1 if last_only else n
@@ -195,7 +201,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
         if have_prev != 0.0:
             for i in range(m):
                 v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > 1e-250 else 0.0
+                xi[i] = v if abs(v) > FLUSH else 0.0
             if n_run < n_settle:
                 n_run += 1.0
         have_prev = 1.0
@@ -248,7 +254,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
             offset = eta_bar  # exact for a constant input; replaced below when defined
             y_pred = eta_bar
             pred_valid = 1.0
-        if s > 1e-150 + 1e-9 * abs(eta_bar) and s >= silence_ratio * env:
+        if s > ABS_FLOOR + DC_FLOOR * abs(eta_bar) and s >= silence_ratio * env:
             inv = 1.0 / s
             # unit eta_c: L_c^T L_c = [[C^T C, c], [c^T, 1]], c = -(a2, a1, 0) / s,
             # r = L_c^T F^2 eta_c = ((a4, a3, a2) / s, -q2 / s^2)
@@ -266,11 +272,14 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
             rh1 = kv[0, 1] * r0 + kv[1, 1] * r1 + kv[2, 1] * r2
             rh2 = kv[0, 2] * r0 + kv[1, 2] * r1 + kv[2, 2] * r2
             # Gram determinant det(L_c^T L_c) = det(C^T C) (1 - c^T (C^T C)^-1 c)
-            det = det_k0 * (1.0 - ch0 * ch0 / kk[0] - ch1 * ch1 / kk[1] - ch2 * ch2 / kk[2])
+            det = det_k0 * (1.0 - ch0 * ch0 * ik0 - ch1 * ch1 * ik1 - ch2 * ch2 * ik2)
             mu = max(ell - 2.0 * det, 0.0)
-            i0 = 1.0 / (kk[0] + mu)
-            i1 = 1.0 / (kk[1] + mu)
-            i2 = 1.0 / (kk[2] + mu)
+            if mu == 0.0:
+                i0, i1, i2 = ik0, ik1, ik2
+            else:
+                i0 = 1.0 / (kk[0] + mu)
+                i1 = 1.0 / (kk[1] + mu)
+                i2 = 1.0 / (kk[2] + mu)
             schur = 1.0 + mu - (ch0 * ch0 * i0 + ch1 * ch1 * i1 + ch2 * ch2 * i2)
             if schur > 1e-300:
                 z3 = (r3 - (ch0 * rh0 * i0 + ch1 * rh1 * i1 + ch2 * rh2 * i2)) / schur
