@@ -256,9 +256,22 @@ class Daemon:
             fn()
 
     # ---- lifecycle ------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Load (or compile) every configured estimator's kernels now, so that a
+        channel's first block does not wait ~0.3-0.8 s for numba."""
+        from sinewatch.estimators import get
+
+        for name in sorted({rule.estimator for rule in self.config.rules}):
+            cls = get(name)
+            est = cls.example()
+            signal_ = cls.example_signal(64)
+            est.update(signal_)
+            est.update(signal_, last_only=True)
+
     def start(self) -> None:
         """Open the session and sinks and start intake (call from the event loop)."""
         cfg = self.config
+        self.warm_up()
         self.session = open_session(cfg.zenoh)
         sinks = [ZenohPublisherSink(self.session)]
         if cfg.recording.enabled:

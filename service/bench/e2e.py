@@ -4,9 +4,9 @@ The daemon runs as its own process (``sinewatch serve``) with a peer session on 
 loopback port and recording to a temporary directory. This process publishes
 ``channels`` channels at ``rate`` Hz in ``block``-sample blocks, paced in real time with
 the channels staggered evenly over a block period (as independent sensors would be), and
-subscribes to the estimates. Latency is block-to-estimate: from just before ``put`` of a
-block to the arrival of its estimate (CLOCK_MONOTONIC is system-wide, so both ends use
-the same clock). Reported: offered and sustained samples/s, estimates missing, the
+subscribes to the estimates. Latency is block-to-estimate: the feeder (its own process) stamps
+each block so that its last sample's time is its publish time on CLOCK_MONOTONIC, which
+is system-wide, and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
 daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU use.
 """
 
@@ -36,31 +36,68 @@ def _cpu_seconds(pid: int) -> float:
 
 
 class LatencyProbe:
-    """Estimate subscriber that matches each estimate to its block's publish time."""
+    """Estimate subscriber: latency = arrival - the estimate's timestamp, which the bench
+    feeder sets to the block's publish time (CLOCK_MONOTONIC, system-wide on Linux)."""
 
     def __init__(self, session, key: str) -> None:
-        self.sent_at: dict[tuple[str, int], int] = {}
         self.latencies_ns: list[int] = []
         self.received = 0
-        self.unmatched = 0
-        self.last = threading.Event()
-        self.expected = None
+        self.done = threading.Event()
+        self.expected: int | None = None
         self._sub = session.declare_subscriber(key, self._on)
 
     def _on(self, sample) -> None:
         now = time.monotonic_ns()
         msg = json.loads(sample.payload.to_bytes())
-        t = self.sent_at.pop((msg["channel"], msg["seq"]), None)
+        self.latencies_ns.append(now - msg["timestamp_ns"])
         self.received += 1
-        if t is None:
-            self.unmatched += 1
-        else:
-            self.latencies_ns.append(now - t)
         if self.expected is not None and self.received >= self.expected:
-            self.last.set()
+            self.done.set()
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+def feeder_main(argv: list[str] | None = None) -> int:
+    """The bench's publisher, run as its own process so that publishing and measuring do
+    not share a GIL: real-time pacing, channels staggered over a block period, and each
+    block stamped so that its last sample's time is its publish time (monotonic clock)."""
+    p = argparse.ArgumentParser()
+    p.add_argument("endpoint")
+    p.add_argument("--channels", type=int)
+    p.add_argument("--rate", type=float)
+    p.add_argument("--block", type=int)
+    p.add_argument("--rounds", type=int)
+    a = p.parse_args(argv)
+    fs, block, n_ch = a.rate, a.block, a.channels
+    period = block / fs
+    span_ns = int(round((block - 1) * 1e9 / fs))
+    t = np.arange(int(fs)) / fs
+    rng = np.random.default_rng(0)
+    base = [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size)
+            for _ in range(n_ch)]
+    waiter = threading.Event()
+    late = 0
+    with connect([a.endpoint]) as session:
+        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
+        channels = [f"bench/{i:04d}" for i in range(n_ch)]
+        if not pub.wait_for_subscriber(channels[0], 30.0):
+            return 2
+        start = time.monotonic()
+        for r in range(a.rounds):
+            idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
+            for c, name in enumerate(channels):
+                delay = start + (r + c / n_ch) * period - time.monotonic()
+                if delay > 0:
+                    waiter.wait(delay)
+                elif delay < -period:
+                    late += 1
+                blk = pub.block(name, base[c][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
+                pub.publish_raw(name, pub.encode(blk))
+        elapsed = time.monotonic() - start
+        pub.close()
+    print(json.dumps({"elapsed_s": elapsed, "late_blocks": late}), flush=True)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,73 +145,55 @@ def _params(args: argparse.Namespace) -> dict:
 
 def _drive(args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen, console: Console) -> dict:
     fs, block, n_ch = args.rate, args.block, args.channels
-    period = block / fs
-    rounds = max(1, int(args.duration / period))
-    with connect([endpoint]) as session:
+    rounds = max(1, int(args.duration * fs / block))
+    with connect([endpoint], timeout_s=30.0) as session:
         status = JsonSubscription(session, "sinewatch/status/**")
-        if status.get(timeout=30.0) is None:
-            raise RuntimeError("the daemon did not come up within 30 s: "
-                               + daemon.stderr.read1(4096).decode(errors="replace") if daemon.poll() else "")
+        if status.get(timeout=60.0) is None:
+            raise RuntimeError("the daemon did not come up within 60 s")
         probe = LatencyProbe(session, "sinewatch/est/**")
-        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
-        channels = [f"bench/{i:04d}" for i in range(n_ch)]
-        pub.wait_for_subscriber(channels[0], 10.0)
-        # One second of signal per channel, periodic (50 Hz + noise), read with wrap-around.
-        t = np.arange(int(fs)) / fs
-        rng = np.random.default_rng(0)
-        base = [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size)
-                for _ in range(n_ch)]
-        waiter = threading.Event()
+        probe.expected = rounds * n_ch
         console.print(f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
-                      f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * period:.1f} s ...")
+                      f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ...")
         cpu0 = _cpu_seconds(daemon.pid)
-        start = time.monotonic()
-        late = 0
-        for r in range(rounds):
-            pos = (r * block) % int(fs)
-            idx = (pos + np.arange(block)) % int(fs)
-            for c, name in enumerate(channels):
-                due = start + (r + c / n_ch) * period
-                delay = due - time.monotonic()
-                if delay > 0:
-                    waiter.wait(delay)
-                elif delay < -period:
-                    late += 1
-                blk = pub.block(name, base[c][idx], fs)
-                payload = pub.encode(blk)
-                probe.sent_at[(name, blk.seq)] = time.monotonic_ns()
-                pub.publish_raw(name, payload)
-        feed_s = time.monotonic() - start
-        sent = rounds * n_ch
-        probe.expected = sent
-        probe.last.wait(30.0)
-        drain_s = time.monotonic() - start
+        t0 = time.monotonic()
+        feeder = subprocess.run(
+            [sys.executable, "-c", "import sys; from sinewatch.bench.e2e import feeder_main; "
+             "sys.exit(feeder_main(sys.argv[1:]))", endpoint, "--channels", str(n_ch), "--rate", str(fs),
+             "--block", str(block), "--rounds", str(rounds)],
+            capture_output=True, text=True,
+        )
+        if feeder.returncode != 0:
+            raise RuntimeError(f"bench feeder failed: {feeder.stderr[-2000:]}")
+        fed = json.loads(feeder.stdout.strip().splitlines()[-1])
+        probe.done.wait(30.0)
+        drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
-        last_status = None
-        while (msg := status.get(timeout=1.5)) is not None:
-            last_status = msg
+        # The daemon publishes Status every second: drop the backlog, then take a fresh one.
+        while status.get(timeout=0) is not None:
+            pass
+        last_status = status.get(timeout=5.0) or {}
         probe.close()
         status.close()
-        pub.close()
     lat = np.array(probe.latencies_ns) / 1e6
+    sent = rounds * n_ch
     return {
         "channels": n_ch,
         "sample_rate_hz": fs,
         "block": block,
-        "duration_s": round(feed_s, 2),
+        "duration_s": round(fed["elapsed_s"], 2),
         "offered_samples_per_s": n_ch * fs,
-        "sustained_samples_per_s": probe.received * block / drain_s,
+        "sustained_samples_per_s": probe.received * block / fed["elapsed_s"],
         "blocks_sent": sent,
         "estimates_received": probe.received,
         "missing_estimates": sent - probe.received,
-        "publisher_fell_behind_blocks": late,
-        "daemon_dropped": (last_status or {}).get("dropped", -1),
-        "daemon_errors": (last_status or {}).get("errors", -1),
-        "daemon_backpressure_waits": (last_status or {}).get("backpressure_waits", -1),
+        "feeder_late_blocks": fed["late_blocks"],
+        "daemon_dropped": last_status.get("dropped", -1),
+        "daemon_errors": last_status.get("errors", -1),
+        "daemon_backpressure_waits": last_status.get("backpressure_waits", -1),
         "latency_ms_p50": float(np.percentile(lat, 50)) if lat.size else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_ms_max": float(lat.max()) if lat.size else None,
-        "daemon_cpu_fraction_of_one_core": cpu / feed_s,
+        "daemon_cpu_fraction_of_one_core": cpu / drained_s,
     }
 
 
