@@ -146,7 +146,8 @@ _MAX_EXP_NORM = 1e10  # ||e^{-AT}|| above this: C (I - e^{-AT}) loses every sign
 
 class GripMixingParams(EstimatorParams):
     preset: Literal["harmonics", "plant"] = Field(
-        "harmonics", description="'harmonics': oscillator bank at frequencies_hz; 'plant': matrices A, B, C, D"
+        "harmonics",
+        description="'harmonics': oscillator bank at frequencies_hz; 'plant': matrices A, B, C, D",
     )
     period_s: float = Field(0.05, gt=0, description="Known period T of the output disturbance, seconds")
     fractional_delay: bool = Field(
@@ -312,7 +313,9 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
     if p.preset == "harmonics":
         for key in ("A", "B", "C", "D"):
             if getattr(p, key) is not None:
-                raise ParameterError(f"{key}: expected no matrix with preset 'harmonics', got {getattr(p, key)}")
+                raise ParameterError(
+                    f"{key}: expected no matrix with preset 'harmonics', got {getattr(p, key)}"
+                )
         f = np.array(p.frequencies_hz if p.frequencies_hz is not None else DEFAULT_FREQUENCIES_HZ, float)
         if f.size == 0 or not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(f >= fs / 2):
             raise ParameterError(
@@ -742,7 +745,8 @@ class GripMixing(Estimator):
         block = samples if samples.ndim == 2 else samples.reshape(-1, 1)
         (amp, phase, offset, conv, x_out, d_out, sse, x, up, z_new, zb_new, yb, ub, db, d_sum, count) = (
             grip_mixing_kernel(
-                block, state["x_hat"], state["u_prev"], state["z"], state["z_buf"], state["y_buf"], state["u_buf"],
+                block, state["x_hat"], state["u_prev"], state["z"], state["z_buf"], state["y_buf"],
+                state["u_buf"],
                 state["d_buf"], state["d_sum"], state["count"], *self._consts, last_only,
             )
         )  # fmt: skip
