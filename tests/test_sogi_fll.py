@@ -131,18 +131,19 @@ def test_amplitude_step():
     after = slice(int(fs), None)
     da = np.abs(tr.amplitude[after, 0] - 0.5)
     df = np.abs(tr.frequency_hz[after, 0] - 50.0)
-    # measured: A within 1 % (5e-3) after 54 ms; the FLL is kicked by up to 2.14 Hz (the
-    # normalised error sees the amplitude transient) and is back within 0.01 Hz after 0.106 s
+    # measured: A within 1 % (5e-3) after 45 ms; the FLL is kicked by up to 2.57 Hz (the
+    # normalised error sees the amplitude transient) and is back within 0.01 Hz after 82 ms
     assert (np.flatnonzero(da > 5e-3)[-1] + 1) / fs < 0.06
     assert df.max() < 3.0
-    assert (np.flatnonzero(df > 0.01)[-1] + 1) / fs < 0.13
+    assert (np.flatnonzero(df > 0.01)[-1] + 1) / fs < 0.1
     assert not tr.converged[after][np.argmax(df)]  # the kick is flagged
 
 
 @pytest.mark.parametrize("memory, max_kick_hz", [(2.0, 11.0), (0.0, 25.0)])
 def test_amplitude_memory_bounds_the_kick_of_a_deep_sag(memory, max_kick_hz):
-    # A 90 % sag: [R]'s plain normalisation (memory 0) drives the FLL into its 25 Hz
-    # clamp (0.5 x nominal); the amplitude memory (N) bounds the kick (measured 9.2 Hz).
+    # A 90 % sag: [R]'s plain normalisation (memory 0, the default) drives the FLL into
+    # its 25 Hz clamp (0.5 x nominal); the amplitude memory (N) bounds the kick
+    # (measured 9.2 Hz) but recovers later (measured within 0.01 Hz after 251 ms vs 171 ms).
     fs = 5000.0
     x, _ = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, a_step_factor=0.1)], seconds=1.6).generate()
     tr = create("sogi-fll", fs, fll_amplitude_memory_cycles=memory).update(x)
@@ -162,10 +163,10 @@ def test_offset_step_is_rejected_by_the_dc_integrator():
     tr = create("sogi-fll", fs).update(x)
     after = slice(int(fs), None)
     db = np.abs(tr.offset[after] - 1.0)
-    # measured: within 1e-2 after 50 ms, within 1e-3 after 88 ms; zero steady-state error
+    # measured: within 1e-2 after 43 ms, within 1e-3 after 68 ms; zero steady-state error
     # (integral action); the FLL transient peaks at 7.6 Hz (flagged) and dies out
-    assert (np.flatnonzero(db > 1e-2)[-1] + 1) / fs < 0.06
-    assert (np.flatnonzero(db > 1e-3)[-1] + 1) / fs < 0.1
+    assert (np.flatnonzero(db > 1e-2)[-1] + 1) / fs < 0.05
+    assert (np.flatnonzero(db > 1e-3)[-1] + 1) / fs < 0.08
     df = np.abs(tr.frequency_hz[after, 0] - 50.0)
     assert not tr.converged[after][np.argmax(df)]
     assert db[-1] < 1e-9 and abs(tr.frequency_hz[-1, 0] - 50.0) < 1e-6
@@ -226,12 +227,13 @@ def test_silence_then_resume_keeps_state_finite():
     assert np.all(np.isfinite(tr.amplitude)) and np.all(np.isfinite(tr.offset))
     state = decode_array(est.get_state()["state"]["x"])
     assert np.all(np.isfinite(state))
-    # the loss kicks the FLL (measured: held at 29.5 Hz), inside its range, then it holds
+    # the loss kicks the FLL into its clamp (measured: 25 Hz, the default 0.5 x nominal;
+    # 29.5 Hz with fll_amplitude_memory_cycles = 2), then it holds
     assert 2 * np.pi * 25.0 <= state[3] <= 2 * np.pi * 75.0
     assert np.all((state == 0) | (np.abs(state) > 1e-300))  # no subnormals left (slow arithmetic)
     tr = est.update(x)
     first_for_good = np.flatnonzero(~tr.converged)[-1] + 1
-    assert first_for_good < 0.25 * fs  # measured 0.154 s
+    assert first_for_good < 0.25 * fs  # measured 0.151 s
     assert tr.frequency_hz[-1, 0] == pytest.approx(52.0, abs=1e-9)
 
 

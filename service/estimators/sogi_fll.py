@@ -65,15 +65,16 @@ Discretisation, sample period h, per sample n (given omega' from sample n-1):
   sampling), g = 2 overshoots 20 %, g = 4 by 41 %, g = 6 diverges. Hence the default
   ``Gamma = f_nominal`` (a time constant of one nominal cycle; Rodriguez et al. use 46 at
   50 Hz) and the limit ``Gamma <= k omega_nominal / 2`` (4.4 f_nominal at k = sqrt 2).
-* (N) amplitude memory (a sinewatch addition to [R]): the denominator ``A^2`` of (5) is
-  replaced by ``max(A^2, P/2)`` with ``P`` = A^2 low-passed over
+* (N) optional amplitude memory (a sinewatch addition to [R], off by default): the
+  denominator ``A^2`` of (5) becomes ``max(A^2, P/2)`` with ``P`` = A^2 low-passed over
   ``fll_amplitude_memory_cycles`` nominal cycles. Locked, ``P = A^2`` and (5) is [R]'s
   exactly (harmonic or noise ripple on A^2 stays well inside the factor 2, so it adds
-  no bias: measured -1.9e-4 Hz with a 5 % third harmonic, as without (N)). When the
-  signal collapses, the SOGI's decaying transient has an O(1) normalised error that
-  drives [R]'s FLL into its clamp within ~20 ms; the memory bounds that kick
-  (measured, 50 Hz, 5 kHz: a 90 % sag kicks 9.2 Hz instead of hitting the 25 Hz clamp;
-  a total loss of sine and offset 12 Hz instead of the clamp). 0 disables (N).
+  no bias: measured -1.9e-4 Hz with a 5 % third harmonic either way). When the signal
+  collapses, the SOGI's decaying transient has an O(1) normalised error that drives [R]'s
+  FLL into its clamp within ~20 ms; with 2 cycles of memory a 90 % sag kicks the
+  frequency 9.2 Hz instead of hitting the 25 Hz clamp, but the reduced gain then slows
+  the recovery (back within 0.01 Hz after 251 ms instead of 171 ms; offset steps 129
+  instead of 96 ms), so it is off by default (docs/estimators/sogi-fll.md has the table).
 * below ``min_amplitude`` the FLL holds (``u = 0``).
 
 Outputs (``y = offset + A sin(phase)``): with ``v' = A sin(theta)``, ``qv' = -A cos(theta)``::
@@ -124,9 +125,10 @@ class SogiFllParams(EstimatorParams):
         "50 1/s at 50 Hz); at most k pi nominal (the SOGI's bandwidth)",
     )
     fll_amplitude_memory_cycles: float = Field(
-        2.0, ge=0, allow_inf_nan=False,
-        description="FLL normalised by max(A^2, P), P = A^2 low-passed over this many nominal "
-        "cycles, so a vanishing signal does not steer the frequency; 0 = plain A^2 (Rodriguez)",
+        0.0, ge=0, allow_inf_nan=False,
+        description="FLL normalised by max(A^2, P/2), P = A^2 low-passed over this many nominal "
+        "cycles: bounds the frequency kick of a deep sag or signal loss, at the cost of a "
+        "slower recovery; 0 (default) = plain A^2 (Rodriguez)",
     )
     min_frequency_hz: float | None = Field(
         None, gt=0, allow_inf_nan=False, description="FLL lower clamp (default 0.5 x nominal)"
