@@ -92,6 +92,10 @@ low-pass filters have a time constant of ``convergence_cycles`` nominal cycles (
 filter as two cascaded first-order stages of half that each: same delay, but the FLL's
 ripple at twice the frequency, which harmonics cause, is attenuated 40 dB/decade) and the
 relative error starts at 1, so a fresh estimator is not converged.
+
+Extras (per sample): ``relative_error_rms`` (the ``rel`` above) and ``rocof_hz_per_s``
+(``LPF(u) / (2 pi)``, the FLL's smoothed frequency rate: on a frequency ramp of R Hz/s the
+frequency lags by R / Gamma and this reads R).
 """
 
 from __future__ import annotations
