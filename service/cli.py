@@ -86,16 +86,15 @@ def cmd_estimators(args: argparse.Namespace) -> int:
 
 
 def cmd_feed(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.console import make_console
     from sinewatch.feed import Feed, make_channels
     from sinewatch.scenarios.demo import DEMO_CHANNELS
 
     names = args.scenario or DEMO_CHANNELS
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
-    console = Console(stderr=True)
+    console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
         if not pub.wait_for_subscriber(channels[0].channel, args.wait):

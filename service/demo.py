@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import sys
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
+from sinewatch.console import make_console
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, FeedChannel, make_channels
@@ -196,7 +196,5 @@ def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None
 
 
 def main(names: list[str] | None, duration_s: float, record_dir: Path, record: bool) -> int:
-    console = Console(file=sys.stdout)
-    if not console.is_terminal:  # piped or CI: do not squeeze the table into 80 columns
-        console = Console(file=sys.stdout, width=130)
+    console = make_console()
     return asyncio.run(run_demo(names, duration_s, record_dir, record, console))

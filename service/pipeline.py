@@ -209,6 +209,8 @@ class Pipeline:
 
     def _rule_for(self, key: str) -> EstimatorRule | None:
         if key not in self._rule_cache:
+            if len(self._rule_cache) > 4 * self.config.limits.max_channels:
+                self._rule_cache.clear()  # bounded: hostile senders may invent keys
             ke = zenoh.KeyExpr(key)
             self._rule_cache[key] = next(
                 (r for r, expr in zip(self.rules, self._rule_exprs) if expr.includes(ke)), None

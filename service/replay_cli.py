@@ -7,6 +7,8 @@ import json
 import logging
 
 from rich.console import Console
+
+from sinewatch.console import make_console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -15,7 +17,7 @@ from sinewatch.schemas.config import EstimatorRule
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    console = Console()
+    console = make_console()
     rules = None
     if args.estimator:
         rules = [EstimatorRule(match=args.match, estimator=args.estimator, params=dict(args.param))]

@@ -229,3 +229,66 @@ def test_binary_header_layout_is_as_documented():
     assert raw[:40] == struct.pack("<4sBBBBQqdIHH", b"SWSB", 1, 1, 1, 0, 7, -5, 1000.0, 2, 3, 1)
     assert raw[40:44] == b"a/bV"
     np.testing.assert_array_equal(np.frombuffer(raw, "<f4", offset=44), [1.0, -2.0])
+
+
+def test_status_reports_counters_and_validates(tmp_path):
+    config = make_config(tmp_path)
+    blocks = _good_blocks(10)
+
+    def client(ep):
+        from sinewatch.clients import subscribe_status
+
+        with connect([ep]) as s:
+            est, status = subscribe_estimates(s), subscribe_status(s)
+            pub = BlockPublisher(s)
+            assert pub.wait_for_subscriber("h/a", TIMEOUT)
+            for blk in blocks:
+                pub.publish_raw("h/a", encode_block_binary(blk))
+            pub.publish_raw("h/a", b"junk")
+            assert len(_collect(est, 10)) == 10
+            while (msg := status.get(timeout=TIMEOUT)) is not None:  # the next status after the inputs
+                if msg["blocks_processed"] == 11:
+                    return msg
+            return None
+
+    (msg, daemon, code) = asyncio.run(_with_daemon(config, client))
+    from sinewatch.schemas.messages import Status
+
+    st = Status.model_validate({k: v for k, v in msg.items() if k != "_key"})
+    assert st.errors == 1 and st.dropped == 0 and st.recording.endswith(".mcap")
+    [ch] = st.channels
+    assert (ch.channel, ch.blocks, ch.samples, ch.last_seq, ch.estimator) == ("h/a", 10, 5000, 9, "ges-kalman")
+    assert ch.last_latency_us is not None and ch.last_latency_us > 0
+
+
+def test_drop_policy_counts_every_dropped_input(tmp_path):
+    # A tiny queue with the drop policy: whatever is dropped is reported, nothing vanishes.
+    config = make_config(tmp_path, limits=LimitsSection(queue_capacity=1, queue_policy="drop", intake_batch=1))
+    blocks = [Block("d/a", i, 0, 10_000.0, np.sin(np.arange(2000) * 0.03)) for i in range(300)]
+
+    def client(ep):
+        from sinewatch.clients import JsonSubscription
+
+        with connect([ep]) as s, JsonSubscription(s, "sinewatch/**") as everything:
+            pub = BlockPublisher(s)
+            assert pub.wait_for_subscriber("d/a", TIMEOUT)
+            for blk in blocks:
+                pub.publish_raw("d/a", encode_block_binary(blk))
+            out_est, out_err = [], []
+            while len(out_est) + len(out_err) < len(blocks) and (m := everything.get(timeout=TIMEOUT)):
+                if m["_key"].startswith("sinewatch/est/"):
+                    out_est.append(m)
+                elif m["_key"].startswith("sinewatch/err/"):
+                    out_err.append(m)
+            return out_est, out_err
+
+    (estimates, errors), daemon, code = asyncio.run(_with_daemon(config, client))
+    dropped = daemon.intake.counters.dropped
+    assert len(estimates) + dropped == len(blocks)
+    assert [e["kind"] for e in errors] == ["queue_overflow"] * dropped
+    assert sum(e["diagnostics"]["gap_blocks"] for e in estimates) == dropped - _tail_drops(estimates, len(blocks))
+
+
+def _tail_drops(estimates, n):
+    """Dropped blocks after the last estimate are not gaps (nothing came after them)."""
+    return n - 1 - max(e["seq"] for e in estimates)

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
+from sinewatch.console import make_console
+
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.zenoh_session import free_loopback_port
 
@@ -101,7 +103,7 @@ def feeder_main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = Console()
+    console = make_console()
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="sinewatch-bench-") as tmp:

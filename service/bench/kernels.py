@@ -17,7 +17,8 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from rich.console import Console
+
+from sinewatch.console import make_console
 from rich.table import Table
 
 from sinewatch.estimators import available, get
@@ -81,7 +82,7 @@ def estimator_rates(name: str, block: int, seconds: float) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = Console()
+    console = make_console()
     names = args.estimators.split(",") if args.estimators else list(available())
     blocks = args.block or [1024, 4096]
     baseline = fft_baseline(args.seconds)
