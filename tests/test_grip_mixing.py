@@ -22,7 +22,8 @@ import scipy.signal
 from sinewatch import scenarios
 from sinewatch.errors import InputError, ParameterError
 from sinewatch.estimators import create, get
-from sinewatch.estimators.base import concat_tracks
+from sinewatch.estimators.base import concat_tracks, decode_array
+from sinewatch.estimators.grip_mixing import state_layout
 from sinewatch.scenarios.base import wrap_phase
 from sinewatch.scenarios.grip_demo import SECTION_V_PLANT
 
@@ -157,10 +158,10 @@ def test_unstable_plant_with_staggered_resets_stays_exact_and_finite():
     tr = est.update(np.column_stack([x + d, np.sin(t)]))
     err = np.abs(tr.extras["x_hat"][:, 0] - x)
     assert err[t > 30].max() < 5e-4  # every sample, including those right after each reset
-    state = est.get_state()["state"]
-    from sinewatch.estimators.base import decode_array
-
-    z = decode_array(state["z"])
+    flat = decode_array(est.get_state()["state"]["state"])
+    parts = state_layout(1, 1, 101, 101)  # n = m = 1, delay lines of T + 1 = 101 samples
+    assert flat.size == sum(int(np.prod(s)) for s in parts.values())
+    z = flat[2:4]  # after x_hat (1) and u_prev (1)
     assert np.all(np.isfinite(z)) and np.abs(z).max() < np.exp(a * 4 * 2.0) * 10  # reset every 4 T
     # no oscillatory mode: sinusoid outputs undefined, never converged, offset still defined
     assert np.isnan(tr.frequency_hz).all() and np.isnan(tr.amplitude).all()

@@ -454,51 +454,70 @@ def _modes(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def grip_mixing_kernel(
-    block, x_hat0, u_prev0, z0, z_buf0, y_buf0, u_buf0, d_buf0, d_sum0, count0,
-    Ad, Bd0, Bd1, rows4, Dr, tap_h, tap_o, ints, Wre, Wim, last_only,
-):  # fmt: skip
+def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     """Run the sampled observer (7) over ``block`` (N, 1 + m): column 0 = y, then u.
 
-    State in: xhat, previous u, the two internal states z (2, n) of Sec. III-B, the delay
-    lines of z (2, Lb, n), y (Lb,), u (Lb, m) and dhat (Lb,), the running sum of dhat over
-    the last ``window`` samples and the sample count. Constants: Ad, Bd0, Bd1 (FOH model),
-    rows4 = [C; C (I - e^{-AT}); C e^{-AT}; Ld] (4, n), D (m,), the delay taps (weights,
-    offsets), ints = [window, reset_half, warm, modal_ok] and the modal rows Wre, Wim (K, n).
-    Returns (amplitude, phase, offset, converged, x_hat, d_hat, sse, and the new state
-    arrays); the inputs are not modified.
+    ``state`` (flat, see :func:`state_layout`) holds xhat, the previous u, the two internal
+    states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n), y (Lb,), u (Lb, m) and
+    dhat (Lb,), and the running sum of dhat over the last ``window`` samples; ``count0`` the
+    sample count. ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
+    Ld, D, the tap weights and the modal rows Wre, Wim (K, n); ``iconst`` packs n, m, K,
+    the number of taps, Lb, Lz, window, reset_half, warm, modal_ok and the tap offsets.
+    Returns ``(out, sse, new_state, new_count)`` with ``out`` one row per sample (or the
+    last) and columns amplitude (K), phase (K), offset, converged (0/1), dhat, xhat (n).
+    Pure: the inputs are not modified.
     """
-    Cr = rows4[0]
-    Cbar = rows4[1]
-    CE = rows4[2]
-    Ld = rows4[3]
-    window = ints[0]
-    reset_half = ints[1]
-    warm = ints[2]
-    modal_ok = ints[3] != 0
-    N = block.shape[0]
-    n = Ad.shape[0]
-    m = Bd0.shape[1]
-    K = Wre.shape[0]
-    Lb = y_buf0.shape[0]
-    nt = tap_h.shape[0]
-    P = 2 * reset_half  # reset interval of each z copy
-    x = x_hat0.copy()
-    up = u_prev0.copy()
-    z = z0.copy()
-    zb = z_buf0.copy()
-    yb = y_buf0.copy()
-    ub = u_buf0.copy()
-    db = d_buf0.copy()
-    dsum = d_sum0[0]
+    n = iconst[0]
+    m = iconst[1]
+    K = iconst[2]
+    nt = iconst[3]
+    Lb = iconst[4]
+    Lz = iconst[5]
+    window = iconst[6]
+    reset_half = iconst[7]
+    warm = iconst[8]
+    modal_ok = iconst[9] != 0
+    tap_o = iconst[10 : 10 + nt]
+    o = 0
+    Ad = fconst[o : o + n * n].reshape((n, n))
+    o += n * n
+    Bd0 = fconst[o : o + n * m].reshape((n, m))
+    o += n * m
+    Bd1 = fconst[o : o + n * m].reshape((n, m))
+    o += n * m
+    Cr = fconst[o : o + n]
+    Cbar = fconst[o + n : o + 2 * n]
+    CE = fconst[o + 2 * n : o + 3 * n]
+    Ld = fconst[o + 3 * n : o + 4 * n]
+    o += 4 * n
+    Dr = fconst[o : o + m]
+    o += m
+    tap_h = fconst[o : o + nt]
+    o += nt
+    Wre = fconst[o : o + K * n].reshape((K, n))
+    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
+    new_state = state.copy()  # the views below write into the copy only
+    o = 0
+    x = new_state[o : o + n]
+    o += n
+    up = new_state[o : o + m]
+    o += m
+    z = new_state[o : o + 2 * n].reshape((2, n))
+    o += 2 * n
+    zb = new_state[o : o + 2 * Lz * n].reshape((2, Lz, n))
+    o += 2 * Lz * n
+    yb = new_state[o : o + Lb]
+    o += Lb
+    ub = new_state[o : o + Lb * m].reshape((Lb, m))
+    o += Lb * m
+    db = new_state[o : o + Lb]
+    o += Lb
+    dsum = new_state[o]
     k = count0[0]
+    N = block.shape[0]
+    P = 2 * reset_half  # reset interval of each z copy
     rows = 1 if last_only else N
-    amp = np.empty((rows, K))
-    phase = np.empty((rows, K))
-    offset = np.empty(rows)
-    conv = np.zeros(rows, dtype=np.bool_)
-    x_out = np.empty((rows, n))
-    d_out = np.empty(rows)
+    out = np.empty((rows, 2 * K + 3 + n))
     xp = np.empty(n)
     zn = np.empty(n)
     rd = np.empty(nt, dtype=np.int64)  # ring positions of the taps of the delay T
@@ -613,9 +632,6 @@ def grip_mixing_kernel(
         if last_only and i != N - 1:
             continue
         r = 0 if last_only else i
-        for a in range(n):
-            x_out[r, a] = x[a]
-        d_out[r] = dhat
         rest = cx + Du + dsum / window
         for c in range(K):
             qre = 0.0
@@ -624,20 +640,28 @@ def grip_mixing_kernel(
                 qre += Wre[c, a] * x[a]
                 qim += Wim[c, a] * x[a]
             if modal_ok:
-                amp[r, c] = math.sqrt(qre * qre + qim * qim)
+                out[r, c] = math.sqrt(qre * qre + qim * qim)
                 ph = math.atan2(qre, -qim)  # q = a e^{j(phase - pi/2)}
-                phase[r, c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
+                out[r, K + c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
                 rest -= qre
             else:
-                amp[r, c] = np.nan
-                phase[r, c] = np.nan
-        offset[r] = rest
-        conv[r] = modal_ok and k - 1 >= warm
+                out[r, c] = np.nan
+                out[r, K + c] = np.nan
+        out[r, 2 * K] = rest
+        out[r, 2 * K + 1] = 1.0 if modal_ok and k - 1 >= warm else 0.0
+        out[r, 2 * K + 2] = dhat
+        for a in range(n):
+            out[r, 2 * K + 3 + a] = x[a]
+    new_state[o] = dsum
     count = np.empty(1, dtype=np.int64)
     count[0] = k
-    d_sum = np.empty(1)
-    d_sum[0] = dsum
-    return amp, phase, offset, conv, x_out, d_out, sse, x, up, z, zb, yb, ub, db, d_sum, count
+    return out, sse, new_state, count
+
+
+def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]:
+    """Shapes of the parts of the flat kernel state, in order (documentation and tests)."""
+    return {"x_hat": (n,), "u_prev": (m,), "z": (2, n), "z_buf": (2, lz, n), "y_buf": (lb,),
+            "u_buf": (lb, m), "d_buf": (lb,), "d_sum": (1,)}  # fmt: skip
 
 
 @register
@@ -697,11 +721,17 @@ class GripMixing(Estimator):
 
     def _setup(self) -> None:
         g = self._design
-        self._consts = (
-            np.ascontiguousarray(g.Ad), np.ascontiguousarray(g.Bd0), np.ascontiguousarray(g.Bd1),
-            np.vstack([g.C, g.Cbar, g.C @ g.E, g.Ld]), g.D.copy(), g.tap_h, g.tap_o,
-            np.array([g.window, g.reset_half, g.warm, int(g.modal_ok)], dtype=np.int64),
-            np.ascontiguousarray(g.Wre), np.ascontiguousarray(g.Wim),
+        n, m = g.B.shape
+        self._lb = int(g.tap_o.max()) + 1  # delay lines: the longest tap must still be there
+        self._lz = self._lb if m > 0 else 0  # no input: z and its delay line are never used
+        self._fconst = np.concatenate([
+            g.Ad.ravel(), g.Bd0.ravel(), g.Bd1.ravel(), g.C, g.Cbar, g.C @ g.E, g.Ld, g.D, g.tap_h,
+            g.Wre.ravel(), g.Wim.ravel(),
+        ])  # fmt: skip
+        self._iconst = np.array(
+            [n, m, g.Wre.shape[0], g.tap_h.size, self._lb, self._lz, g.window, g.reset_half, g.warm,
+             int(g.modal_ok), *g.tap_o],
+            dtype=np.int64,
         )  # fmt: skip
         self._freq_row = g.frequencies_hz if g.modal_ok else np.full(1, np.nan)
 
@@ -724,51 +754,27 @@ class GripMixing(Estimator):
         return 1 + int(self._design.B.shape[1])
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        g = self._design
-        n, m = g.B.shape
-        lb = int(g.tap_o.max()) + 1
-        nz = lb if m > 0 else 0  # no input: z and its delay line are never used
-        x0 = np.zeros(n) if self.params.x0 is None else np.asarray(self.params.x0, dtype=np.float64)
-        return {
-            "x_hat": x0.copy(),
-            "u_prev": np.zeros(m),
-            "z": np.zeros((2, n)),
-            "z_buf": np.zeros((2, nz, n)),
-            "y_buf": np.zeros(lb),
-            "u_buf": np.zeros((lb, m)),
-            "d_buf": np.zeros(lb),
-            "d_sum": np.zeros(1),
-            "count": np.zeros(1, dtype=np.int64),
-        }
+        n, m = self._design.B.shape
+        parts = state_layout(n, m, self._lz, self._lb)
+        flat = np.zeros(sum(int(np.prod(shape)) for shape in parts.values()))
+        if self.params.x0 is not None:
+            flat[:n] = self.params.x0  # xhat(t0); every delay line starts at 0 (Sec. III-A)
+        return {"state": flat, "count": np.zeros(1, dtype=np.int64)}
 
     def _run(self, samples, state, last_only):
         block = samples if samples.ndim == 2 else samples.reshape(-1, 1)
-        (amp, phase, offset, conv, x_out, d_out, sse, x, up, z_new, zb_new, yb, ub, db, d_sum, count) = (
-            grip_mixing_kernel(
-                block, state["x_hat"], state["u_prev"], state["z"], state["z_buf"], state["y_buf"],
-                state["u_buf"],
-                state["d_buf"], state["d_sum"], state["count"], *self._consts, last_only,
-            )
-        )  # fmt: skip
-        rows = offset.shape[0]
-        track = Track(
-            frequency_hz=np.tile(self._freq_row, (rows, 1)),
-            amplitude=amp,
-            phase_rad=phase,
-            offset=offset,
-            converged=conv,
-            residual_rms=math.sqrt(sse / block.shape[0]),
-            extras={"x_hat": x_out, "d_hat": d_out},
+        out, sse, flat, count = grip_mixing_kernel(
+            block, state["state"], state["count"], self._fconst, self._iconst, last_only
         )
-        new_state = {
-            "x_hat": x,
-            "u_prev": up,
-            "z": z_new,
-            "z_buf": zb_new,
-            "y_buf": yb,
-            "u_buf": ub,
-            "d_buf": db,
-            "d_sum": d_sum,
-            "count": count,
-        }
-        return track, new_state
+        K = self._iconst[2]  # noqa: N806
+        n = self._iconst[0]
+        track = Track(
+            frequency_hz=np.tile(self._freq_row, (out.shape[0], 1)),
+            amplitude=out[:, :K],
+            phase_rad=out[:, K : 2 * K],
+            offset=out[:, 2 * K],
+            converged=out[:, 2 * K + 1] != 0.0,
+            residual_rms=math.sqrt(sse / block.shape[0]),
+            extras={"x_hat": out[:, 2 * K + 3 : 2 * K + 3 + n], "d_hat": out[:, 2 * K + 2]},
+        )
+        return track, {"state": flat, "count": count}
