@@ -119,6 +119,10 @@ Presets
   spectrum of A shifted left, -|Re lambda_i| - decay_rate + j Im lambda_i. With m = columns of
   B > 0, the known input travels with the samples: the block is (N, 1 + m), column 0 = y,
   columns 1..m = u (``n_inputs`` = 1 + m). Without B the block is (N,).
+
+``GripMixing.params_for`` (the accuracy bench's hook) configures the ``harmonics`` preset for
+a scenario's nominal frequencies with a mixing period T (whole samples, <= 0.1 s) that
+maximises min_k |sin(pi f_k T)|, the conditioning of I - e^{-AT}.
 """
 
 from __future__ import annotations
