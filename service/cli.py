@@ -120,6 +120,7 @@ def cmd_tail(args: argparse.Namespace) -> int:
 
     shown = 0
     with connect(args.connect, timeout_s=args.wait) as session, JsonSubscription(session, args.keyexpr) as sub:
+        print(f"tail: subscribed to {args.keyexpr}", file=sys.stderr, flush=True)
         try:
             for msg in sub.iter(timeout=args.timeout):
                 if args.json:

@@ -22,8 +22,10 @@ def test_serve_feed_tail_replay(tmp_path):
     cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
     serve = subprocess.Popen(sinewatch("serve", "--config", str(cfg_file)), stderr=subprocess.PIPE, text=True)
     try:
-        tail = subprocess.Popen(sinewatch("tail", "--connect", ep, "--count", "10", "--json", "--timeout", "60"),
-                                stdout=subprocess.PIPE, text=True)
+        tail = subprocess.Popen(sinewatch("tail", "--connect", ep, "--count", "10", "--json", "--timeout", "60",
+                                          "--wait", "60"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert tail.stderr.readline().startswith("tail: subscribed to")  # before anything is fed
         feed = subprocess.run(
             sinewatch("feed", "--connect", ep, "--scenario", "demo-biased", "--channels", "2", "--duration", "2",
                       "--block", "1000", "--fast", "--wait", "60"),
