@@ -1,0 +1,1129 @@
+"""``differential-rls``: differential signal model + recursive (extended) least squares for
+the frequency, its rate of change (ROCOF), phase and amplitude of one sinusoid.
+
+Paper: ``shared/papers/001_da74636665cf246d.txt``, "Differential signal model and sampling
+techniques for recursive (extended) least-squares estimation of frequency, frequency
+derivatives, phase and amplitude". Most equations are missing from the extraction; those
+used here were rebuilt from the text (and the reading notes in shared/papers/README.md)
+and each is checked numerically in ``tests/test_differential_rls.py``.
+
+Rebuilt equations
+-----------------
+Measurements, eqs. (1)-(2): in-phase and quadrature components relative to a reference
+oscillator, taken at t_k = t_{k-1} + dt_k, written as one complex sample::
+
+    y(k) = A sin(w t_k + phi) + n_i(k),  z(k) = A cos(w t_k + phi) + n_q(k)
+    c(k) = z(k) + j y(k) = A e^{j(w t_k + phi)} + n(k),   n = n_q + j n_i      (1)-(2)
+
+(w = omega_d, the offset between the signal and the reference.) Taylor expansion around
+t_{k-1}, eq. (3): ``sin(w t_{k-1} + phi + w dt_k) = sum_m (w dt_k)^m / m! sin(w t_{k-1} + phi
++ m pi/2)``, and the same for cos, give the differential model, eqs. (4)-(7)::
+
+    v(k) = c(k) - c(k-1) = (e^{j w dt_k} - 1) c(k-1) + xi(k)                      (4)
+    xi(k) = n(k) - e^{j w dt_k} n(k-1)                                           (5)
+    v(k) = x(k)' theta + xi(k) + O((w dt_k)^{n+1} / (n+1)!)                      (6)
+    theta = (w, w^2, ..., w^n),  x_m(k) = (j dt_k)^m / m! c(k-1)                 (7)
+
+i.e. two real equations per sample, in-phase ``y(k)-y(k-1) = dt z w - dt^2/2 y w^2 - dt^3/6
+z w^3 + ...`` and quadrature ``z(k)-z(k-1) = -dt y w - dt^2/2 z w^2 + dt^3/6 y w^3 + ...``
+(y, z at k-1). With dt_k constant the columns of w and w^3 (and of w^2 and w^4) are
+proportional: the information matrix has rank 2 (Section 4). Nonuniform cyclic sampling
+(Section 5) cycles dt_k through ceil(n/2) distinct values (here dt (1 - j s), j = 0, 1, ...,
+s = ``cycle_spacing``, the paper's T, 0.9 T, 0.8 T).
+
+Frequency derivative, eqs. (24)-(25): with ``w(t) = w0 + lam0 t`` the phase increment is
+``alpha_k = w0 dt_k + lam0 g_k``, ``g_k = (t_k^2 - t_{k-1}^2) / 2``, and ``c(k) = e^{j alpha_k}
+c(k-1) + ...``, so::
+
+    v(k) = sum_{m=1..n} (j alpha_k)^m / m! c(k-1) + xi(k)
+         = sum_{a+b=m<=n} [j^m C(m,b)/m! dt_k^a g_k^b c(k-1)] w0^a lam0^b + xi(k)  (25)
+
+theta holds every monomial ``w0^a lam0^b`` (n = 2: w0, lam0, w0^2, w0 lam0, lam0^2: the
+paper's "(w dt)^3 and higher negligible"). Times are counted from a time origin that is
+moved to the present at every re-centring (below).
+
+Least squares with exponential data weighting lam, eq. (8), in recursive form (12)::
+
+    P(k) = [P(k-1) - P x x' P / (lam + x' P x)] / lam,  theta^(k) = theta^(k-1) + P(k) x e(k)
+
+(each complex sample is two real updates; lam applied once per sample).
+
+Extended least squares, eqs. (11)-(13). The coloured noise is a moving average of n,
+``xi(k) = D(k, z^-1) n(k)`` with ``D = 1 - e^{j w dt_k} z^-1`` (11) (as 2x2 real:
+D11 = D22 = 1 - cos(w dt) z^-1, D12 = -D21 = -sin(w dt) z^-1). With E^_k = 1 + sum_p r_p
+theta^_p (the estimated ``e^{j w dt_k}``, normalised to |E^| = 1)::
+
+    v_bar(k) = v(k) + (E^_k - r1) n^(k-1),   e(k) = v_bar(k) - x(k)' theta^(k-1)     (12)
+    n^(k) = v(k) + rho E^_k n^(k-1) - x(k)' theta^(k)                               (13)
+
+r1 = 0 is the paper's white-noise case (v_bar = v + E^ n^). r1 = lag-1 correlation of the
+(oversampled, hence coloured) noise removes only the part of xi correlated with the
+regressor c(k-1), as the paper's Section 5 does ("the remaining measurements are only used
+for the estimate of the n(k-1) term ... so as to eliminate it"); with the demodulator's
+low-pass r1 is computed from its impulse response. rho < 1 is the paper's passivity
+artifice (an independent noise added for estimating n^ turns, by spectral factorisation,
+the unit-circle root of D into rho): (13) is then ``n^ = c - s^``, ``s^(k) = E^ [rho s^(k-1) +
+(1 - rho) c(k-1)]``. The first ``ls_start`` samples are plain least squares (Section 3).
+
+Oversampling, eq. (14): ideal low-pass noise of bandwidth B_N has ``R(tau) = sigma^2
+sin(2 pi B_N tau) / (2 pi B_N tau)``; at dt = T_sN / M (T_sN = 1 / (2 B_N)),
+``E[(n(k) - n(k-1))^2] = 2 sigma^2 (1 - sinc(1/M))``: 0.033 sigma^2 at M = 10 as the paper
+says; at M = 5 it is 0.129 sigma^2 (the paper's 0.065 is 1 - sinc(1/5), without the 2).
+
+Error covariance, eq. (19): ``Cov(theta~) = sigma^2 P``; with weighting, sigma^2 P / (1 + lam).
+The reported ``frequency_std_hz`` is that, with sigma^2 the weighted a-priori error power.
+
+Phase and amplitude, eqs. (21)-(23): referred to the end of the data, ``c(j) =
+e^{-j w (t_k - t_j)} a(k) + n(j)`` with ``a(k) = A e^{j phi(t_k)} = q + j p`` (21)-(22),
+estimated by exponentially weighted least squares with w replaced by w^; recursively
+``a^(k) = e^{j alpha^_k} a^(k-1) + (c(k) - e^{j alpha^_k} a^(k-1)) / S(k)``,
+``S(k) = lam_a S(k-1) + 1``; then ``A^ = |a^| = sqrt(p^2 + q^2)``, ``phi^ = atan2(p, q)`` (23).
+
+Re-centring (Sections 7 and 10: "a periodic adjustment of the reference oscillator
+frequency by the estimate", so that the truncation error of (6) vanishes): every
+``recenter_every`` decimated samples, once converged, the reference moves by
+``dw = w^(t_k)`` (and its ramp by ``dl = lam0^``) and the time origin to t_k. theta is
+re-expressed exactly: ``w' = w + lam0 Delta - dw``, ``lam0' = lam0 - dl`` make every monomial
+``w'^a lam0'^b`` an affine function of the old ones, ``theta' = T theta + b0``, ``P' = T P T'``.
+
+Real input (this module's front end)
+------------------------------------
+A real channel ``x = B + A sin(psi + phi_d)`` is mixed with the reference oscillator
+(phase psi, frequency w_ref, ramp lam_ref), ``m = 2j (x - B^) e^{-j psi}``, and low-passed
+(4th-order Butterworth, bandwidth B_N = ``bandwidth_hz`` = Omega_d / 2 pi), so that
+``LPF(m) = A e^{j phi_d} = c``; B^ is the same low-pass applied to x. c is decimated every
+``round(fs / (2 B_N M))`` input samples (M = ``oversampling``, Section 5), cycled as above
+when n > 2. When the reference is re-centred, the low-pass state is moved to the new
+frequency (the steady state of a DF2T biquad for ``X z^n`` is ``z1 = (H - b0) X z``,
+``z2 = (b2 - a2 H) X``), so that the filter output continues as if the reference had always
+been there. Outputs are compensated for the low-pass response H at the estimated offset
+and held between decimated samples with the phase advanced at the estimated frequency:
+at every input sample ``frequency = (w_ref + w^ + lam0^ s) / 2 pi``, ``phase = psi + arg(a^ / H)
++ w^ s + lam0^ s^2 / 2`` (s = time since the last decimated sample), ``rocof_hz_per_s =
+(lam_ref + lam0^) / 2 pi`` (NaN without ``rocof_model``).
+
+Internally times are in units of T0 (the longest decimated interval) and every equation
+is divided by the RMS amplitude of c, so that P is scale-free. Safeguards (not in the
+paper): no forgetting while c carries no information (zero input), a restart after a 20 dB
+jump in power (a signal that resumes), theta^ reset if it leaves |w dt| < pi or goes
+non-finite. ``converged`` = at least 2p updates, ``frequency_std_hz < convergence_rel_std *
+bandwidth_hz`` and |offset| within the bandwidth.
+
+Deviations: the block-Hankel fast solution (9)-(10) is not needed by the recursive form;
+the subsequence algorithm (15)-(18) is replaced by the r1-weighted whitening above.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from pydantic import Field, field_validator
+from scipy import signal as _sig
+
+from sinewatch.errors import ParameterError
+from sinewatch.estimators import register
+from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+
+TWO_PI = 2.0 * math.pi
+
+# ---- layout of the state vectors (module constants are compile-time constants in numba) ----
+# core: the baseband estimator (shared by the real-input kernel and the I/Q kernel)
+C_PREV_RE, C_PREV_IM = 0, 1  # c(k-1)
+NH_RE, NH_IM = 2, 3  # white-noise estimate n^(k-1), eq. (13)
+A_RE, A_IM = 4, 5  # complex amplitude a^(k) = A e^{j phi(t_k)}, eqs. (21)-(23)
+S_A = 6  # sum of the phase-stage weights
+PW, PW_N = 7, 8  # exponentially weighted power of c (normaliser)
+SIG2, SIG2_N = 9, 10  # exponentially weighted a-priori error power (normalised units)
+TAU = 11  # time since the time origin of the derivative model, in units of T0
+COUNT = 12  # decimated steps taken
+SINCE_REBASE = 13  # decimated steps since the last re-centring / time rebase
+HAS_PREV = 14  # c(k-1) exists
+HOLD = 15  # decimated samples still to skip after a restart (the low-pass is settling)
+CORE_SIZE = 16
+
+# consts (float64), shared by both kernels
+K_FS, K_T0, K_LAM, K_LAM_A, K_RHO, K_LS_START, K_P0, K_TRACE_MAX = 0, 1, 2, 3, 4, 5, 6, 7
+K_W_NOM, K_W_RANGE, K_MIN_AMP, K_CONV_STD, K_W_BB_MAX = 8, 9, 10, 11, 12
+K_REBASE_EVERY, K_ELS, K_DERIV, K_RECENTER, K_WARM, K_R1, K_HOLD = 13, 14, 15, 16, 17, 18, 19
+N_CONSTS = 20
+
+# front end (real-input kernel)
+F_PSI, F_WREF, F_LREF, F_B = 0, 1, 2, 3  # reference phase (rad), frequency (rad/s), ramp (rad/s^2), offset
+F_ZI = 4  # 3 channels x 2 biquads x 2 delays = 12 values: offset, in-phase-mix re, im
+F_SNAP_W, F_SNAP_L, F_SNAP_PH, F_SNAP_A = 16, 17, 18, 19  # snapshot at the last decimated step
+F_SNAP_VALID, F_SNAP_CONV, F_SNAP_STD, F_SINCE = 20, 21, 22, 23
+F_LO_RE, F_LO_IM, F_LS_RE, F_LS_IM = 24, 25, 26, 27  # e^{j psi} and its per-sample step
+F_BB_RE, F_BB_IM, F_BS_RE, F_BS_IM = 28, 29, 30, 31  # predicted baseband phasor and its step
+FE_SIZE = 32
+
+
+def monomial_table(n: int, derivative: bool) -> np.ndarray:
+    """Rows (m, b, C(m, b) / m!) of the parameter vector: theta_p = w^(m-b) lam^b."""
+    rows = [(1, 0, 1.0)]
+    if derivative:
+        rows.append((1, 1, 1.0))
+    for m in range(2, n + 1):
+        for b in range(0, (m if derivative else 0) + 1):
+            rows.append((m, b, math.comb(m, b) / math.factorial(m)))
+    return np.array(rows, dtype=np.float64)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def regressor_coefficients(u, g, tab, rr, ri):
+    """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
+
+    Eq. (7) (and (25) with the derivative): r_p = j^m C(m, b) / m! * u^(m-b) * g^b.
+    """
+    for q in range(tab.shape[0]):
+        m = int(tab[q, 0])
+        b = int(tab[q, 1])
+        mag = tab[q, 2] * u ** (m - b) * g**b
+        mm = m & 3
+        if mm == 0:
+            rr[q] = mag
+            ri[q] = 0.0
+        elif mm == 1:
+            rr[q] = 0.0
+            ri[q] = mag
+        elif mm == 2:
+            rr[q] = -mag
+            ri[q] = 0.0
+        else:
+            rr[q] = 0.0
+            ri[q] = -mag
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rls_scalar(P, theta, x, y, f, px):
+    """One scalar RLS update with forgetting f (eq. 12): P <- (P - P x x' P / (f + x' P x)) / f."""
+    p = theta.shape[0]
+    den = f
+    e = y
+    for a in range(p):
+        s = 0.0
+        for b in range(p):
+            s += P[a, b] * x[b]
+        px[a] = s
+        den += x[a] * s
+        e -= x[a] * theta[a]
+    if not (den > 0.0):
+        return
+    ge = e / den
+    inv_f = 1.0 / f
+    for a in range(p):
+        theta[a] += px[a] * ge
+        pa = px[a] / den
+        for b in range(a, p):
+            v = (P[a, b] - pa * px[b]) * inv_f
+            P[a, b] = v
+            P[b, a] = v
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
+    """One decimated step of the baseband estimator on c(k) = cr + j ci, dt_k = u T0.
+
+    Differential model (4)-(7)/(25), extended least squares (12)-(13), phase/amplitude
+    stage (21)-(23). Updates core, theta, P in place (the kernels pass copies).
+    ``wk`` is scratch (5, p).
+    """
+    p = theta.shape[0]
+    c2 = cr * cr + ci * ci
+    restart = core[PW_N] > 0.0 and c2 > 100.0 * core[PW] / core[PW_N]
+    if restart:
+        # the signal (re)appears 20 dB above the mean power (a signal that stopped and
+        # resumes): skip the low-pass rise, then start afresh, keeping theta^ as the prior
+        core[HOLD] = consts[K_HOLD]
+    if core[HAS_PREV] == 0.0 or restart or core[HOLD] > 0.0:
+        if core[HOLD] > 0.0:
+            core[HOLD] -= 1.0
+        core[C_PREV_RE] = cr
+        core[C_PREV_IM] = ci
+        core[A_RE] = cr
+        core[A_IM] = ci
+        core[S_A] = 1.0
+        core[NH_RE] = 0.0
+        core[NH_IM] = 0.0
+        core[PW] = c2
+        core[PW_N] = 1.0
+        core[SIG2] = 0.0
+        core[SIG2_N] = 0.0
+        core[COUNT] = 0.0
+        core[HAS_PREV] = 1.0
+        p0 = consts[K_P0]
+        for q in range(p):
+            for r in range(p):
+                P[q, r] = p0 if q == r else 0.0
+        return
+    lam = consts[K_LAM]
+    rho = consts[K_RHO]
+    deriv = consts[K_DERIV] != 0.0
+    tau = core[TAU]
+    g = u * (tau + 0.5 * u) if deriv else 0.0  # (tau_k^2 - tau_{k-1}^2) / 2, eq. (25)
+    rr = wk[0]
+    ri = wk[1]
+    regressor_coefficients(u, g, tab, rr, ri)
+    # E^_k = 1 + sum r_p theta^_p(k-1): the estimated one-step rotation e^{j w dt}, eqs. (4), (11)
+    er = 1.0
+    ei = 0.0
+    for q in range(p):
+        er += rr[q] * theta[q]
+        ei += ri[q] * theta[q]
+    cpr = core[C_PREV_RE]
+    cpi = core[C_PREV_IM]
+    vr = cr - cpr  # v(k) = c(k) - c(k-1), eq. (4)
+    vi = ci - cpi
+    nr = core[NH_RE]
+    ni = core[NH_IM]
+    # E^ normalised to |E^| = 1 (it estimates e^{j w dt}): keeps the recursion (13) stable
+    emag = math.hypot(er, ei)
+    if emag > 0.0 and math.isfinite(emag):
+        eur = er / emag
+        eui = ei / emag
+    else:
+        eur = 1.0
+        eui = 0.0
+    # rho E^ n^(k-1): the damped noise recursion of eq. (13)
+    tr_ = rho * (eur * nr - eui * ni)
+    ti_ = rho * (eur * ni + eui * nr)
+    # (E^ - r1) n^(k-1): the part of xi(k) = n(k) - E n(k-1) (eq. 11) correlated with the
+    # regressor c(k-1); r1 = lag-1 correlation of n (0: white noise, the paper's eq. 12)
+    r1 = consts[K_R1]
+    use_els = consts[K_ELS] != 0.0 and core[COUNT] >= consts[K_LS_START]
+    if use_els:
+        vbr = vr + (eur - r1) * nr - eui * ni  # modified measurement, eq. (12)
+        vbi = vi + (eur - r1) * ni + eui * nr
+    else:
+        vbr = vr
+        vbi = vi
+    pw = lam * core[PW] + (cpr * cpr + cpi * cpi)
+    pwn = lam * core[PW_N] + 1.0
+    core[PW] = pw
+    core[PW_N] = pwn
+    # normaliser: mean power, and never below |c(k-1)|^2 so that no equation weighs more
+    # than a steady one (|x| <= |r|)
+    m2 = max(pw / pwn, cpr * cpr + cpi * cpi)
+    if m2 > 1e-300 and math.isfinite(m2):
+        sc = 1.0 / math.sqrt(m2)  # equations divided by the RMS amplitude: scale-free P
+        xr = wk[2]
+        xi = wk[3]
+        for q in range(p):
+            xr[q] = (rr[q] * cpr - ri[q] * cpi) * sc  # x(k): regressor of eq. (6)-(7)
+            xi[q] = (rr[q] * cpi + ri[q] * cpr) * sc
+        yr = vbr * sc
+        yi = vbi * sc
+        e0r = yr
+        e0i = yi
+        for q in range(p):
+            e0r -= xr[q] * theta[q]
+            e0i -= xi[q] * theta[q]
+        core[SIG2] = lam * core[SIG2] + 0.5 * (e0r * e0r + e0i * e0i)
+        core[SIG2_N] = lam * core[SIG2_N] + 1.0
+        tr = 0.0
+        for q in range(p):
+            tr += P[q, q]
+        # forget only while the regressor carries information (|c(k-1)|^2 / mean power)
+        # and P is sane: P stays finite on zero input and on a signal that stops
+        excited = (cpr * cpr + cpi * cpi) > 1e-4 * m2
+        f = lam if (excited and tr < consts[K_TRACE_MAX]) else 1.0
+        _rls_scalar(P, theta, xr, yr, f, wk[4])
+        _rls_scalar(P, theta, xi, yi, 1.0, wk[4])
+        # never let the state go non-finite or the estimate leave the decimated band
+        # (|w dt| < pi): restart the parameter estimate
+        ok = abs(theta[0]) < math.pi
+        for q in range(p):
+            if not math.isfinite(theta[q]):
+                ok = False
+            for r in range(p):
+                if not math.isfinite(P[q, r]):
+                    ok = False
+        if not ok:
+            p0 = consts[K_P0]
+            for q in range(p):
+                theta[q] = 0.0
+                for r in range(p):
+                    P[q, r] = p0 if q == r else 0.0
+            core[SIG2] = 0.0
+            core[SIG2_N] = 0.0
+            core[NH_RE] = 0.0
+            core[NH_IM] = 0.0
+            tr_ = 0.0
+            ti_ = 0.0
+    # n^(k) = v(k) + rho E^ n^(k-1) - x(k)' theta^(k): noise estimate, eq. (13) damped by rho,
+    # i.e. n^(k) = c(k) - s^(k) with s^(k) = E^ [rho s^(k-1) + (1 - rho) c(k-1)]
+    e1r = 0.0
+    e1i = 0.0
+    for q in range(p):
+        e1r += rr[q] * theta[q]
+        e1i += ri[q] * theta[q]
+    core[NH_RE] = vr + tr_ - (e1r * cpr - e1i * cpi)
+    core[NH_IM] = vi + ti_ - (e1r * cpi + e1i * cpr)
+    # phase / amplitude stage, eqs. (21)-(23): exponentially weighted LS of a = A e^{j phi(t_k)},
+    # past samples rotated to t_k by the estimated phase increment alpha^ = w^ u + lam^ g
+    alpha = theta[0] * u + (theta[1] * g if deriv else 0.0)
+    car = math.cos(alpha)
+    sar = math.sin(alpha)
+    ar = core[A_RE]
+    ai = core[A_IM]
+    par = car * ar - sar * ai
+    pai = car * ai + sar * ar
+    sa = consts[K_LAM_A] * core[S_A] + 1.0
+    core[S_A] = sa
+    core[A_RE] = par + (cr - par) / sa
+    core[A_IM] = pai + (ci - pai) / sa
+    core[TAU] = tau + u
+    core[COUNT] += 1.0
+    core[SINCE_REBASE] += 1.0
+    core[C_PREV_RE] = cr
+    core[C_PREV_IM] = ci
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def core_status(core, theta, P, consts):
+    """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, converged)."""
+    deriv = consts[K_DERIV] != 0.0
+    tau = core[TAU]
+    w = theta[0] + (theta[1] * tau if deriv else 0.0)
+    lam_bb = theta[1] if deriv else 0.0
+    pww = P[0, 0]
+    if deriv:
+        pww += 2.0 * tau * P[0, 1] + tau * tau * P[1, 1]
+    s2 = core[SIG2] / core[SIG2_N] if core[SIG2_N] > 0.0 else math.inf
+    var = s2 * max(pww, 0.0) / (1.0 + consts[K_LAM])  # Cov = sigma^2 P / (1 + lam), cf. eq. (19)
+    std = math.sqrt(var)
+    amp = math.hypot(core[A_RE], core[A_IM])
+    valid = core[COUNT] >= 2.0 and math.isfinite(w) and amp > 0.0
+    conv = (
+        valid
+        and core[COUNT] >= max(2.0 * theta.shape[0], 4.0)
+        and std < consts[K_CONV_STD]
+        and abs(w) <= consts[K_W_BB_MAX]
+    )
+    return w, lam_bb, std, valid, conv
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def transform_scratch(tab):
+    """Index table idx[a, b] of w^a lam^b and scratch arrays for :func:`recenter_transform`."""
+    p = tab.shape[0]
+    nmax = 0
+    for q in range(p):
+        nmax = max(nmax, int(tab[q, 0]))
+    idx = -np.ones((nmax + 1, nmax + 1), dtype=np.int64)
+    for q in range(p):
+        idx[int(tab[q, 0]) - int(tab[q, 1]), int(tab[q, 1])] = q
+    T = np.zeros((p, p))
+    b0 = np.zeros(p)
+    poly = np.zeros((nmax + 1, nmax + 1))
+    tmp = np.zeros((nmax + 1, nmax + 1))
+    work = np.zeros((p, p + 1))
+    return idx, T, b0, poly, tmp, work
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, poly, tmp, work):
+    """Re-express theta (monomials w^a lam^b) after moving the time origin by ``delta``
+    (T0 units) and the reference by ``dw`` (rad/T0) and ``dl`` (rad/T0^2):
+
+        w' = w + lam delta - dw,  lam' = lam - dl
+        theta'_q = (w')^a (lam')^b = b0_q + sum_r T_qr theta_r   (exact polynomial identity)
+        P' = T P T'
+
+    ``idx[a, b]`` is the index of w^a lam^b; T, b0, poly, tmp, work are scratch.
+    """
+    p = theta.shape[0]
+    nmax = idx.shape[0] - 1
+    T[:, :] = 0.0
+    b0[:] = 0.0
+    for q in range(p):
+        m = int(tab[q, 0])
+        bq = int(tab[q, 1])
+        aq = m - bq
+        poly[:, :] = 0.0
+        poly[0, 0] = 1.0
+        for _ in range(aq):  # times (w + delta lam - dw)
+            tmp[:, :] = 0.0
+            for c in range(nmax + 1):
+                for d in range(nmax + 1 - c):
+                    v = poly[c, d]
+                    if v == 0.0:
+                        continue
+                    tmp[c, d] -= dw * v
+                    if c + d < nmax:
+                        tmp[c + 1, d] += v
+                        tmp[c, d + 1] += delta * v
+            poly[:, :] = tmp
+        for _ in range(bq):  # times (lam - dl)
+            tmp[:, :] = 0.0
+            for c in range(nmax + 1):
+                for d in range(nmax + 1 - c):
+                    v = poly[c, d]
+                    if v == 0.0:
+                        continue
+                    tmp[c, d] -= dl * v
+                    if c + d < nmax:
+                        tmp[c, d + 1] += v
+            poly[:, :] = tmp
+        for c in range(nmax + 1):
+            for d in range(nmax + 1 - c):
+                v = poly[c, d]
+                if v == 0.0:
+                    continue
+                if c == 0 and d == 0:
+                    b0[q] += v
+                else:
+                    r = idx[c, d]
+                    if r >= 0:
+                        T[q, r] += v
+    for q in range(p):  # theta <- b0 + T theta
+        acc = b0[q]
+        for r in range(p):
+            acc += T[q, r] * theta[r]
+        work[q, 0] = acc
+    for q in range(p):
+        theta[q] = work[q, 0]
+    for q in range(p):  # work = T P
+        for r in range(p):
+            acc = 0.0
+            for t in range(p):
+                acc += T[q, t] * P[t, r]
+            work[q, 1 + r] = acc
+    for q in range(p):  # P <- (T P) T'
+        for r in range(q, p):
+            acc = 0.0
+            for t in range(p):
+                acc += work[q, 1 + t] * T[r, t]
+            P[q, r] = acc
+            P[r, q] = acc
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _biquads_steady(x, sos, zi, off):
+    """Delays of the biquad cascade in steady state for a constant input x."""
+    y = x
+    for s in range(2):
+        b0 = sos[s, 0]
+        b1 = sos[s, 1]
+        b2 = sos[s, 2]
+        a1 = sos[s, 4]
+        a2 = sos[s, 5]
+        out = y * (b0 + b1 + b2) / (1.0 + a1 + a2)
+        zi[off + 2 * s + 1] = b2 * y - a2 * out
+        zi[off + 2 * s] = out - b0 * y
+        y = out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _biquads(x, sos, zi, off):
+    """Two cascaded DF2T biquads on one channel; zi[off:off+4] are the delays."""
+    y = x
+    for s in range(2):
+        b0 = sos[s, 0]
+        b1 = sos[s, 1]
+        b2 = sos[s, 2]
+        a1 = sos[s, 4]
+        a2 = sos[s, 5]
+        z1 = zi[off + 2 * s]
+        z2 = zi[off + 2 * s + 1]
+        out = b0 * y + z1
+        zi[off + 2 * s] = b1 * y - a1 * out + z2
+        zi[off + 2 * s + 1] = b2 * y - a2 * out
+        y = out
+    return y
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work):
+    """Move the time origin to t_k and the reference by (dw, dl); see recenter_transform."""
+    deriv = consts[K_DERIV] != 0.0
+    delta = core[TAU] if deriv else 0.0
+    if delta != 0.0 or dw != 0.0 or dl != 0.0:
+        recenter_transform(theta, P, tab, idx, delta, dw, dl if deriv else 0.0, T, b0, poly, tmp, work)
+    core[TAU] = 0.0
+    core[SINCE_REBASE] = 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _wrap(ph):
+    while ph > math.pi:
+        ph -= TWO_PI
+    while ph <= -math.pi:
+        ph += TWO_PI
+    return ph
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
+    """The paper's own setting: in-phase/quadrature samples c(k) = z(k) + j y(k) taken at
+    intervals dt_k = u_k T0. Re-centring rotates c by a digital reference (psi2, w2, l2).
+    Returns per step (w^ rad/T0, lam^ rad/T0^2, A^, phi^, std, converged) and the state."""
+    core = core_in.copy()
+    theta = theta_in.copy()
+    P = P_in.copy()
+    ref = ref_in.copy()
+    p = theta.shape[0]
+    wk = np.zeros((5, p))
+    idx, T, b0, poly, tmp, work = transform_scratch(tab)
+    n = cre.shape[0]
+    out = np.empty((n, 6))
+    recenter = consts[K_RECENTER] != 0.0
+    for k in range(n):
+        if k > 0:  # advance the digital reference over dt_k
+            uk = u[k]
+            ref[0] += ref[1] * uk + 0.5 * ref[2] * uk * uk
+            ref[1] += ref[2] * uk
+            ref[0] = math.pi - ((math.pi - ref[0]) % TWO_PI)
+        c0 = math.cos(ref[0])
+        s0 = math.sin(ref[0])
+        cr = cre[k] * c0 + cim[k] * s0  # c e^{-j psi2}
+        ci = cim[k] * c0 - cre[k] * s0
+        core_step(cr, ci, u[k], core, theta, P, tab, consts, wk)
+        w, lb, std, valid, conv = core_status(core, theta, P, consts)
+        if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+            dw = w if (recenter and conv) else 0.0
+            dl = lb if (recenter and conv) else 0.0
+            rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
+            ref[1] += dw
+            ref[2] += dl
+            w, lb, std, valid, conv = core_status(core, theta, P, consts)
+        out[k, 0] = w + ref[1] if valid else np.nan
+        out[k, 1] = lb + ref[2] if valid else np.nan
+        out[k, 2] = math.hypot(core[A_RE], core[A_IM]) if valid else np.nan
+        out[k, 3] = _wrap(math.atan2(core[A_IM], core[A_RE]) + ref[0]) if valid else np.nan
+        out[k, 4] = std
+        out[k, 5] = 1.0 if conv else 0.0
+    return out, core, theta, P, ref
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cis_small(a):
+    """e^{j a} for a tiny angle (a chirp's per-sample step change), to 1e-22 relative."""
+    a2 = a * a
+    return complex(1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _stage_response(sos, s, zc):
+    """H_s(z) of biquad s at z = zc (complex)."""
+    zi1 = 1.0 / zc
+    zi2 = zi1 * zi1
+    return (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def lowpass_response(sos, om):
+    """H(e^{j om}) of the biquad cascade, om in rad per input sample."""
+    zc = complex(math.cos(om), math.sin(om))
+    return _stage_response(sos, 0, zc) * _stage_response(sos, 1, zc)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _lowpass_retune(sos, fe, X, om_old, om_new):
+    """Move the tonal part of the demodulator's low-pass state from baseband frequency
+    om_old to om_new (rad/sample), for a tone of phasor X at the current sample: the steady
+    state of a DF2T biquad driven by X z^n is z1 = (H - b0) X z, z2 = (b2 - a2 H) X before
+    the next sample. Used when the reference oscillator is re-centred, so that the low-pass
+    output continues as if the reference had always been at the new frequency."""
+    zo = complex(math.cos(om_old), math.sin(om_old))
+    zn = complex(math.cos(om_new), math.sin(om_new))
+    xo = X
+    xn = X
+    for s in range(2):
+        ho = _stage_response(sos, s, zo)
+        hn = _stage_response(sos, s, zn)
+        d1 = (hn - sos[s, 0]) * xn * zn - (ho - sos[s, 0]) * xo * zo
+        d2 = (sos[s, 2] - sos[s, 5] * hn) * xn - (sos[s, 2] - sos[s, 5] * ho) * xo
+        fe[F_ZI + 4 + 2 * s] += d1.real
+        fe[F_ZI + 8 + 2 * s] += d1.imag
+        fe[F_ZI + 4 + 2 * s + 1] += d2.real
+        fe[F_ZI + 8 + 2 * s + 1] += d2.imag
+        xo = ho * xo
+        xn = hn * xn
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab, cyc, consts, last_only):
+    """Real input -> quadrature demodulation against the reference oscillator -> low-pass
+    (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
+    -> :func:`core_step` at every decimated sample; outputs at every input sample.
+
+    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
+    """
+    fe = fe_in.copy()
+    core = core_in.copy()
+    theta = theta_in.copy()
+    P = P_in.copy()
+    ist = ist_in.copy()
+    p = theta.shape[0]
+    wk = np.zeros((5, p))
+    idx, T, b0, poly, tmp, work = transform_scratch(tab)
+    n = x.shape[0]
+    nout = 1 if last_only else n
+    out = np.empty((nout, 5))
+    ext = np.empty((nout, 3))
+    fs = consts[K_FS]
+    inv_fs = 1.0 / fs
+    T0 = consts[K_T0]  # noqa: N806
+    w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
+    w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
+    recenter = consts[K_RECENTER] != 0.0
+    warm = consts[K_WARM]
+    ncyc = cyc.shape[0]
+    d0 = T0 * fs
+    sse = 0.0
+    psi = fe[F_PSI]
+    wref = fe[F_WREF]
+    lref = fe[F_LREF]
+    lo = complex(fe[F_LO_RE], fe[F_LO_IM])  # e^{j psi}
+    ls = complex(fe[F_LS_RE], fe[F_LS_IM])  # its per-sample step
+    bb = complex(fe[F_BB_RE], fe[F_BB_IM])  # e^{j phi_bb} predicted for this sample
+    bs = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    for i in range(n):
+        xi = x[i]
+        if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
+            _biquads_steady(xi, sos, fe, F_ZI)
+        if ist[2] < warm:
+            ist[2] += 1
+        # ---- one-step prediction of x(i) from the estimate so far (for residual_rms)
+        snap_valid = fe[F_SNAP_VALID] != 0.0
+        if snap_valid:
+            pred = fe[F_B] + fe[F_SNAP_A] * (lo * bb).imag
+        else:
+            pred = fe[F_B]
+        e = xi - pred
+        sse += e * e
+        # ---- offset: the same low-pass on x itself
+        bh = _biquads(xi, sos, fe, F_ZI)
+        fe[F_B] = bh
+        # ---- quadrature demodulation: m = 2j (x - B^) e^{-j psi}, so that LPF(m) = A e^{j phi_d}
+        # for x = B + A sin(psi + phi_d) (c = z + j y of eqs. 1-2)
+        d2 = 2.0 * (xi - bh)
+        cr = _biquads(d2 * lo.imag, sos, fe, F_ZI + 4)
+        ci = _biquads(d2 * lo.real, sos, fe, F_ZI + 8)
+        # ---- decimation with the cyclic intervals (nonuniform cyclic sampling, Section 5)
+        ist[0] += 1
+        stepped = False
+        if ist[0] >= cyc[ist[1]] and ist[2] >= warm:  # the core starts once the low-pass settled
+            stepped = True
+            u = cyc[ist[1]] / d0
+            ist[0] = 0
+            ist[1] = (ist[1] + 1) % ncyc
+            core_step(cr, ci, u, core, theta, P, tab, consts, wk)
+            w, lb, std, val, conv = core_status(core, theta, P, consts)
+            if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+                dw = 0.0
+                dl = 0.0
+                if recenter and conv:
+                    # periodic re-centring of the reference oscillator on the estimate (frequency
+                    # and, with the derivative model, its ramp), clamped to the tracking range
+                    wnew = wref + w / T0
+                    lnew = lref + lb / (T0 * T0)
+                    if wnew > w_hi:
+                        wnew = w_hi
+                        lnew = 0.0
+                    elif wnew < w_lo:
+                        wnew = w_lo
+                        lnew = 0.0
+                    dw = (wnew - wref) * T0
+                    dl = (lnew - lref) * T0 * T0
+                    if dw != 0.0:
+                        om_old = w / d0
+                        om_new = (w - dw) / d0
+                        h_old = lowpass_response(sos, om_old)
+                        h_new = lowpass_response(sos, om_new)
+                        a_now = complex(core[A_RE], core[A_IM])
+                        _lowpass_retune(sos, fe, a_now / h_old, om_old, om_new)
+                        g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
+                        cp = complex(core[C_PREV_RE], core[C_PREV_IM]) * g
+                        core[C_PREV_RE] = cp.real
+                        core[C_PREV_IM] = cp.imag
+                        a_now = a_now * g
+                        core[A_RE] = a_now.real
+                        core[A_IM] = a_now.imag
+                        nh = complex(core[NH_RE], core[NH_IM]) * g
+                        core[NH_RE] = nh.real
+                        core[NH_IM] = nh.imag
+                    wref = wnew
+                    lref = lnew
+                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
+                w, lb, std, val, conv = core_status(core, theta, P, consts)
+            # snapshot, compensated for the low-pass response at the estimated baseband frequency
+            h = lowpass_response(sos, w / d0)
+            habs = abs(h)
+            amp = math.hypot(core[A_RE], core[A_IM]) / habs
+            val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
+            wb_s = w / T0
+            lb_s = lb / (T0 * T0)
+            ph0 = math.atan2(core[A_IM], core[A_RE]) - math.atan2(h.imag, h.real)
+            fe[F_SNAP_W] = wb_s
+            fe[F_SNAP_L] = lb_s
+            fe[F_SNAP_PH] = ph0
+            fe[F_SNAP_A] = amp
+            fe[F_SNAP_VALID] = 1.0 if val else 0.0
+            fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
+            fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
+            fe[F_SINCE] = 0.0
+            bb = complex(math.cos(ph0), math.sin(ph0))
+            a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
+            bs = complex(math.cos(a_), math.sin(a_))
+        else:
+            fe[F_SINCE] += 1.0
+        ts = fe[F_SINCE] * inv_fs
+        # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
+        if not last_only or i == n - 1:
+            j = 0 if last_only else i
+            if fe[F_SNAP_VALID] != 0.0:
+                wbb = fe[F_SNAP_W]
+                lbb = fe[F_SNAP_L]
+                out[j, 0] = (wref + wbb + lbb * ts) / TWO_PI
+                out[j, 1] = fe[F_SNAP_A]
+                out[j, 2] = _wrap(psi + fe[F_SNAP_PH] + (wbb + 0.5 * lbb * ts) * ts)
+                out[j, 3] = fe[F_B]
+                out[j, 4] = fe[F_SNAP_CONV]
+                ext[j, 0] = (lref + lbb) / TWO_PI
+                ext[j, 1] = fe[F_SNAP_STD] if fe[F_SNAP_STD] >= 0.0 else np.nan
+            else:
+                out[j, 0] = np.nan
+                out[j, 1] = np.nan
+                out[j, 2] = np.nan
+                out[j, 3] = fe[F_B]
+                out[j, 4] = 0.0
+                ext[j, 0] = np.nan
+                ext[j, 1] = np.nan
+            ext[j, 2] = wref / TWO_PI
+        # ---- advance the baseband prediction rotator by one sample
+        bb = bb * bs
+        if fe[F_SNAP_L] != 0.0:
+            a_ = fe[F_SNAP_L] * inv_fs * inv_fs
+            bs = bs * _cis_small(a_)
+        # ---- advance the reference oscillator (linear frequency ramp, exact phase integral)
+        psi = _wrap(psi + (wref + 0.5 * lref * inv_fs) * inv_fs)
+        wref += lref * inv_fs
+        clamped = False
+        if wref > w_hi:
+            wref = w_hi
+            lref = 0.0
+            clamped = True
+        elif wref < w_lo:
+            wref = w_lo
+            lref = 0.0
+            clamped = True
+        if stepped or clamped:  # re-synchronise the rotator on psi (exact, once per decimated step)
+            lo = complex(math.cos(psi), math.sin(psi))
+            a_ = (wref + 0.5 * lref * inv_fs) * inv_fs
+            ls = complex(math.cos(a_), math.sin(a_))
+        else:
+            lo = lo * ls
+        if lref != 0.0:
+            ls = ls * _cis_small(lref * inv_fs * inv_fs)
+    fe[F_PSI] = psi
+    fe[F_WREF] = wref
+    fe[F_LREF] = lref
+    fe[F_LO_RE] = lo.real
+    fe[F_LO_IM] = lo.imag
+    fe[F_LS_RE] = ls.real
+    fe[F_LS_IM] = ls.imag
+    fe[F_BB_RE] = bb.real
+    fe[F_BB_IM] = bb.imag
+    fe[F_BS_RE] = bs.real
+    fe[F_BS_IM] = bs.imag
+    return out, ext, sse, fe, core, theta, P, ist
+
+
+def baseband_estimate(
+    c: np.ndarray,
+    dt: np.ndarray,
+    *,
+    n_terms: int = 2,
+    rocof_model: bool = False,
+    forgetting_factor: float = 0.98,
+    phase_forgetting_factor: float | None = None,
+    els: bool = True,
+    els_damping: float = 0.9,
+    noise_correlation: float = 0.0,
+    ls_start: int = 20,
+    p0: float = 1e4,
+    recenter_every: int = 0,
+    convergence_std_rad_s: float = 0.01,
+) -> dict[str, np.ndarray]:
+    """The paper's own setting (Section 10): complex in-phase/quadrature samples
+    ``c(k) = z(k) + j y(k)`` taken at intervals ``dt[k]`` (s; dt[0] is ignored), run through
+    the same core as the estimator. Re-centring (``recenter_every > 0``) rotates c by a
+    digital reference. Returns per-sample arrays: ``frequency_rad_s``, ``rocof_rad_s2``,
+    ``amplitude``, ``phase_rad``, ``frequency_std_rad_s``, ``converged``."""
+    c = np.ascontiguousarray(c, dtype=np.complex128)
+    dt = np.asarray(dt, dtype=np.float64)
+    T0 = float(dt[1:].max()) if dt.size > 1 else 1.0  # noqa: N806
+    u = np.ascontiguousarray(dt / T0)
+    tab = monomial_table(n_terms, rocof_model)
+    p = tab.shape[0]
+    k = np.zeros(N_CONSTS)
+    k[K_FS] = 1.0 / T0
+    k[K_T0] = T0
+    k[K_LAM] = forgetting_factor
+    k[K_LAM_A] = forgetting_factor if phase_forgetting_factor is None else phase_forgetting_factor
+    k[K_RHO] = els_damping
+    k[K_LS_START] = ls_start
+    k[K_P0] = p0
+    k[K_TRACE_MAX] = 1e8 * p0 * p
+    k[K_CONV_STD] = convergence_std_rad_s * T0
+    k[K_W_BB_MAX] = math.pi
+    k[K_REBASE_EVERY] = recenter_every if recenter_every > 0 else 16
+    k[K_ELS] = 1.0 if els else 0.0
+    k[K_DERIV] = 1.0 if rocof_model else 0.0
+    k[K_RECENTER] = 1.0 if recenter_every > 0 else 0.0
+    k[K_R1] = noise_correlation
+    out, *_ = iq_kernel(
+        np.ascontiguousarray(c.real), np.ascontiguousarray(c.imag), u,
+        np.zeros(CORE_SIZE), np.zeros(p), np.eye(p) * p0, np.zeros(3), tab, k,
+    )  # fmt: skip
+    return {
+        "frequency_rad_s": out[:, 0] / T0,
+        "rocof_rad_s2": out[:, 1] / (T0 * T0),
+        "amplitude": out[:, 2],
+        "phase_rad": out[:, 3],
+        "frequency_std_rad_s": out[:, 4] / T0,
+        "converged": out[:, 5] != 0.0,
+    }
+
+
+class DifferentialRlsParams(EstimatorParams):
+    nominal_frequency_hz: float = Field(
+        50.0, description="Initial frequency of the reference oscillator (the demodulation carrier), Hz"
+    )
+    bandwidth_hz: float = Field(
+        5.0,
+        description="Low-pass bandwidth B_N after demodulation = the largest frequency offset "
+        "from the reference handled at once (Omega_d / 2 pi), Hz",
+    )
+    oversampling: float = Field(
+        10.0,
+        description="M = T_sN / dt: decimated samples per Nyquist interval T_sN = 1 / (2 B_N) "
+        "(Section 5); the decimation factor is round(fs / (2 B_N M))",
+    )
+    n_terms: int = Field(2, description="n: terms of the Taylor expansion of e^{j w dt} (eqs. 3-7)")
+    rocof_model: bool = Field(
+        True, description="Estimate the frequency derivative (eqs. 24-25) and ramp the reference with it"
+    )
+    forgetting_factor: float = Field(0.98, description="Exponential data weighting lambda, 0 < lambda <= 1")
+    phase_forgetting_factor: float | None = Field(
+        None, description="Weighting of the phase/amplitude stage (eqs. 21-23); default: forgetting_factor"
+    )
+    els: bool = Field(True, description="Extended least squares whitening of the coloured noise (eqs. 11-13)")
+    els_damping: float = Field(
+        0.9, description="rho in [0, 1): whitening filter 1 - rho E z^-1 (the paper's passivity artifice)"
+    )
+    ls_start: int = Field(20, description="Decimated samples of plain least squares before ELS starts")
+    cycle_spacing: float = Field(
+        0.1, description="Nonuniform cyclic sampling: dt_j = dt (1 - j spacing), j < ceil(n/2), when n > 2"
+    )
+    recenter_every: int = Field(
+        10, description="Re-centre the reference on the estimate every this many decimated samples (0: never)"
+    )
+    tracking_range_hz: float | None = Field(
+        None, description="How far the reference may move from nominal, Hz; default: bandwidth_hz"
+    )
+    p0: float = Field(1e4, description="Initial covariance P(0) = p0 I (amplitude-normalised units)")
+    convergence_rel_std: float = Field(
+        0.01, description="converged once the frequency standard deviation < this * bandwidth_hz"
+    )
+    min_amplitude: float = Field(1e-6, description="Below this amplitude the estimate is undefined (NaN)")
+
+    @field_validator("nominal_frequency_hz", "bandwidth_hz", "p0", "convergence_rel_std")
+    @classmethod
+    def _positive(cls, v: float) -> float:
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"expected a finite value > 0, got {v}")
+        return v
+
+    @field_validator("oversampling")
+    @classmethod
+    def _m(cls, v: float) -> float:
+        if not (math.isfinite(v) and v >= 1.0):
+            raise ValueError(f"expected oversampling M >= 1, got {v}")
+        return v
+
+    @field_validator("n_terms")
+    @classmethod
+    def _n(cls, v: int) -> int:
+        if not 1 <= v <= 6:
+            raise ValueError(f"expected 1 <= n_terms <= 6, got {v}")
+        return v
+
+    @field_validator("forgetting_factor", "phase_forgetting_factor")
+    @classmethod
+    def _lam(cls, v: float | None) -> float | None:
+        if v is not None and not (0.0 < v <= 1.0):
+            raise ValueError(f"expected 0 < forgetting factor <= 1, got {v}")
+        return v
+
+    @field_validator("els_damping")
+    @classmethod
+    def _rho(cls, v: float) -> float:
+        if not (0.0 <= v < 1.0):
+            raise ValueError(f"expected 0 <= els_damping < 1, got {v}")
+        return v
+
+    @field_validator("cycle_spacing")
+    @classmethod
+    def _sp(cls, v: float) -> float:
+        if not (0.0 < v < 1.0):
+            raise ValueError(f"expected 0 < cycle_spacing < 1, got {v}")
+        return v
+
+    @field_validator("ls_start", "recenter_every")
+    @classmethod
+    def _nonneg(cls, v: int) -> int:
+        if v < 0:
+            raise ValueError(f"expected an integer >= 0, got {v}")
+        return v
+
+    @field_validator("tracking_range_hz", "min_amplitude")
+    @classmethod
+    def _nonneg_f(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"expected a finite value >= 0, got {v}")
+        return v
+
+
+def settling_samples(sos: np.ndarray, fs: float, bandwidth_hz: float, tol: float = 1e-2) -> int:
+    """Input samples after which the low-pass impulse response has shed all but ``tol`` of
+    its absolute area (the start-up transient of the demodulator)."""
+    n = int(math.ceil(40.0 * fs / bandwidth_hz)) + 8
+    imp = np.zeros(n)
+    imp[0] = 1.0
+    h = np.abs(_sig.sosfilt(sos, imp))
+    tail = np.cumsum(h[::-1])[::-1]
+    return int(np.argmax(tail < tol * tail[0]))
+
+
+def lowpass_noise_correlation(sos: np.ndarray, fs: float, bandwidth_hz: float, lag: int) -> float:
+    """Correlation coefficient of white noise after the low-pass at ``lag`` input samples,
+    sum h(i) h(i + lag) / sum h(i)^2: the r1 of the decimated noise (cf. eq. 14)."""
+    n = int(math.ceil(40.0 * fs / bandwidth_hz)) + lag + 8
+    imp = np.zeros(n)
+    imp[0] = 1.0
+    h = _sig.sosfilt(sos, imp)
+    return float(np.dot(h[:-lag], h[lag:]) / np.dot(h, h)) if lag < n else 0.0
+
+
+def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: int, spacing: float) -> list[int]:
+    """Input samples between decimated samples, cycled: D0, D0 - s, ... (ceil(n/2) values when n > 2)."""
+    d0 = int(round(fs / (2.0 * bandwidth_hz * oversampling)))
+    if d0 < 1:
+        raise ParameterError(
+            f"oversampling: expected 2 * bandwidth_hz * oversampling <= sample_rate_hz "
+            f"(decimation factor >= 1), got 2 * {bandwidth_hz} * {oversampling} > {fs}"
+        )
+    if n <= 2:
+        return [d0]
+    step = max(1, int(round(spacing * d0)))
+    pattern = [d0 - j * step for j in range((n + 1) // 2)]
+    if pattern[-1] < 1:
+        raise ParameterError(
+            f"n_terms: expected ceil(n/2) = {len(pattern)} distinct sampling intervals "
+            f"(nonuniform cyclic sampling), got a decimation factor of only {d0} input samples: "
+            "raise the sample rate or lower oversampling"
+        )
+    return pattern
+
+
+@register
+class DifferentialRls(Estimator):
+    """Differential signal model + recursive extended least squares (paper 001)."""
+
+    name = "differential-rls"
+    Params = DifferentialRlsParams
+    summary = "Differential signal model + recursive extended least squares, with ROCOF (paper 001)"
+    paper = "001_da74636665cf246d.txt"
+    example_sample_rate_hz = 1000.0
+    example_frequency_hz = 50.3
+    example_params = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
+
+    def _check_params(self) -> None:
+        p = self.params
+        fs = self.sample_rate_hz
+        rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
+        top = p.nominal_frequency_hz + rng + p.bandwidth_hz
+        if top >= fs / 2:
+            raise ParameterError(
+                f"nominal_frequency_hz: expected nominal + tracking range + bandwidth below Nyquist "
+                f"({fs / 2} Hz), got {p.nominal_frequency_hz} + {rng} + {p.bandwidth_hz} = {top}"
+            )
+        if p.nominal_frequency_hz - rng - p.bandwidth_hz <= 0:
+            raise ParameterError(
+                f"bandwidth_hz: expected nominal - tracking range - bandwidth > 0, got "
+                f"{p.nominal_frequency_hz} - {rng} - {p.bandwidth_hz}"
+            )
+        if p.rocof_model and p.n_terms > 4:
+            raise ParameterError(f"n_terms: expected <= 4 with rocof_model (n(n+3)/2 parameters), got {p.n_terms}")
+        decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing)
+
+    def _setup(self) -> None:
+        p = self.params
+        fs = self.sample_rate_hz
+        self._cyc = np.array(
+            decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing), dtype=np.int64
+        )
+        d0 = float(self._cyc[0])
+        T0 = d0 / fs  # noqa: N806
+        self._tab = monomial_table(p.n_terms, p.rocof_model)
+        n_par = self._tab.shape[0]
+        self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
+        rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
+        c = np.zeros(N_CONSTS)
+        c[K_FS] = fs
+        c[K_T0] = T0
+        c[K_LAM] = p.forgetting_factor
+        c[K_LAM_A] = p.forgetting_factor if p.phase_forgetting_factor is None else p.phase_forgetting_factor
+        c[K_RHO] = p.els_damping
+        c[K_LS_START] = p.ls_start
+        c[K_P0] = p.p0
+        c[K_TRACE_MAX] = 1e8 * p.p0 * n_par
+        c[K_W_NOM] = TWO_PI * p.nominal_frequency_hz
+        c[K_W_RANGE] = TWO_PI * rng
+        c[K_MIN_AMP] = p.min_amplitude
+        c[K_CONV_STD] = p.convergence_rel_std * p.bandwidth_hz * TWO_PI * T0
+        c[K_W_BB_MAX] = TWO_PI * p.bandwidth_hz * T0
+        c[K_REBASE_EVERY] = p.recenter_every if p.recenter_every > 0 else 16
+        c[K_ELS] = 1.0 if p.els else 0.0
+        c[K_DERIV] = 1.0 if p.rocof_model else 0.0
+        c[K_RECENTER] = 1.0 if p.recenter_every > 0 else 0.0
+        c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
+        c[K_R1] = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
+        c[K_HOLD] = math.ceil(c[K_WARM] / d0)
+        self._consts = c
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        n_par = self._tab.shape[0]
+        fe = np.zeros(FE_SIZE)
+        w = TWO_PI * self.params.nominal_frequency_hz
+        fe[F_WREF] = w
+        fe[F_LO_RE] = 1.0
+        fe[F_LS_RE] = math.cos(w / self.sample_rate_hz)
+        fe[F_LS_IM] = math.sin(w / self.sample_rate_hz)
+        fe[F_BB_RE] = 1.0
+        fe[F_BS_RE] = 1.0
+        return {
+            "fe": fe,
+            "core": np.zeros(CORE_SIZE),
+            "theta": np.zeros(n_par),
+            "P": np.eye(n_par) * self.params.p0,
+            "ist": np.zeros(3, dtype=np.int64),
+        }
+
+    def _run(self, samples, state, last_only):
+        out, ext, sse, fe, core, theta, P, ist = differential_rls_kernel(  # noqa: N806
+            samples, state["fe"], state["core"], state["theta"], state["P"], state["ist"],
+            self._sos, self._tab, self._cyc, self._consts, last_only,
+        )  # fmt: skip
+        rocof = ext[:, 0] if self.params.rocof_model else np.full(ext.shape[0], np.nan)
+        extras = {
+            "rocof_hz_per_s": rocof,
+            "frequency_std_hz": ext[:, 1],
+            "reference_frequency_hz": ext[:, 2],
+        }
+        track = track_from_columns(out, sse, samples.shape[0], extras)
+        return track, {"fe": fe, "core": core, "theta": theta, "P": P, "ist": ist}
