@@ -196,7 +196,7 @@ def test_gaps():
     sc = scenarios.get("gap-skip-105ms", noise_std=0.0)
     y, tr = sc.generate(0)
     i = int(2.0 * sc.sample_rate_hz)
-    expect = 0.2 + np.sin(2 * np.pi * 50 * (2.0 + 0.105) + 0.3)
+    expect = 0.2 + np.sin(2 * np.pi * 50.3 * (2.0 + 0.105) + 0.3)
     assert y[i] == pytest.approx(expect)
 
 

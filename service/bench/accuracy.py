@@ -697,7 +697,7 @@ class _Progress:
 
 def _fmt(x: Any, unit: str = "", digits: int = 2) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
-        return "-" if x is None or math.isnan(x) else "inf"
+        return "-" if x is None or math.isnan(x) else ("inf" if x > 0 else "-inf")
     if x == 0:
         return f"0{unit}"
     ax = abs(x)
@@ -864,7 +864,7 @@ def write_plots(out: Path, results: list[dict[str, Any]]) -> list[Path]:
                 ax.semilogy(x, ys, "o-", label=e)
         ax.set_xlabel("SNR (dB)")
         ax.set_ylabel("frequency RMSE (Hz)")
-        ax.set_title("Stationary 50 Hz tone at 1 kHz, steady window 1-2 s")
+        ax.set_title("Stationary 50.5 Hz tone at 1 kHz (nominal 50 Hz), steady window 1-2 s")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
         p = plots / "snr_sweep.png"
