@@ -17,7 +17,7 @@ FS = 1000.0
 
 
 def tone(f, seconds, fs=FS, a=1.0, b=0.5, phi=0.3, noise=0.0, seed=0):
-    t = np.arange(int(round(seconds * fs))) / fs
+    t = np.arange(round(seconds * fs)) / fs
     rng = np.random.default_rng(seed)
     return t, b + a * np.sin(2 * np.pi * f * t + phi) + noise * rng.standard_normal(t.size)
 
@@ -49,7 +49,7 @@ def crlb_real_tone(n, fs, f, a, b, phases, sigma):
 def test_stationary_noisy_tone_against_crlb(interp, max_ratio):
     # Non-overlapping windows (hop = N) give independent estimates of one 50.3 Hz tone.
     n, m, sigma, f0, a, b = 80, 600, 0.05, 50.3, 1.0, 0.5
-    t, x = tone(f0, n * m / FS, a=a, b=b, noise=sigma, seed=1)
+    _t, x = tone(f0, n * m / FS, a=a, b=b, noise=sigma, seed=1)
     tr = create("ipdft", FS, window_samples=n, hop_samples=n, interpolation=interp).update(x)
     rows = np.arange(n - 1, n * m, n)  # the hop rows: one estimate per window
     f, amp, off = tr.frequency_hz[rows, 0], tr.amplitude[rows, 0], tr.offset[rows]
@@ -72,7 +72,7 @@ def test_stationary_noisy_tone_against_crlb(interp, max_ratio):
 
 
 def test_three_point_has_lower_variance_than_two_point():
-    t, x = tone(50.3, 48.0, noise=0.05, seed=3)
+    _t, x = tone(50.3, 48.0, noise=0.05, seed=3)
     var = {}
     for interp in ("3-point", "2-point"):
         tr = create("ipdft", FS, window_cycles=4, hop_samples=80, interpolation=interp).update(x)
@@ -108,7 +108,7 @@ def test_off_nominal_noise_free_accuracy(interp, max_f, max_a, max_b, max_phase)
 
 def test_sixty_hz_nominal_at_other_sample_rate():
     fs = 7680.0  # 128 samples per 60 Hz cycle
-    t, x = tone(59.2, 0.5, fs=fs, a=2.0, b=-0.3, phi=1.0)
+    _t, x = tone(59.2, 0.5, fs=fs, a=2.0, b=-0.3, phi=1.0)
     tr = create("ipdft", fs, nominal_frequency_hz=60.0, window_cycles=6).update(x)
     # measured errors: 1.3e-4 Hz, 1.8e-6, 4.2e-6
     assert tr.frequency_hz[-1, 0] == pytest.approx(59.2, abs=1e-3)
@@ -186,7 +186,7 @@ def test_large_offset_and_short_window():
     errs = []
     for f in np.linspace(45, 55, 11):
         for phi in (0.0, 1.0, 2.0, 3.0):
-            t, x = tone(f, 0.1, phi=phi)
+            _t, x = tone(f, 0.1, phi=phi)
             errs.append(create("ipdft", FS, window_cycles=2).update(x, last_only=True).frequency_hz[0, 0] - f)
     assert np.max(np.abs(errs)) < 1.0
 
@@ -200,7 +200,7 @@ def test_undefined_until_the_first_window_and_on_silence():
     est.reset()
     tr = est.update(np.zeros(200))  # full windows with no spectral peak
     assert np.isnan(tr.frequency_hz).all() and np.isnan(tr.phase_rad).all() and not tr.converged.any()
-    t, x = tone(49.0, 0.5)
+    _t, x = tone(49.0, 0.5)
     tr = est.update(x)  # resumes
     assert tr.converged[-1] and tr.frequency_hz[-1, 0] == pytest.approx(49.0, abs=5e-3)
 

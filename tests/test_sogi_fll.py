@@ -91,7 +91,7 @@ def test_frequency_step_follows_the_designed_first_order_rate(fs, gamma, df):
     # The normalisation (5)/(F) makes the linearised FLL d omega'/dt = -Gamma (omega' - omega):
     # 63 % of a step in 1/Gamma, independent of the step, the sample rate and the amplitude.
     # Measured t63: 0.0490-0.0510 s (Gamma 20), 0.0195-0.0210 s (Gamma 50); no overshoot.
-    x, truth = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, f_step_to=50.0 + df)], seconds=1.5).generate()
+    x, _truth = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, f_step_to=50.0 + df)], seconds=1.5).generate()
     tr = create("sogi-fll", fs, gamma=gamma).update(x)
     after = slice(int(fs), None)
     frac = (tr.frequency_hz[after, 0] - 50.0) / df
@@ -126,7 +126,7 @@ def test_default_dynamics_scale_with_the_nominal_frequency(nominal, fs):
 
 def test_amplitude_step():
     fs = 5000.0
-    x, truth = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, a_step_factor=0.5)], seconds=1.5).generate()
+    x, _truth = scenario(fs, [Tone(50.0, 1.0, 0.3, t_step=1.0, a_step_factor=0.5)], seconds=1.5).generate()
     tr = create("sogi-fll", fs).update(x)
     after = slice(int(fs), None)
     da = np.abs(tr.amplitude[after, 0] - 0.5)
@@ -179,7 +179,7 @@ def test_noise_matches_the_linear_noise_gain():
     # sigma * sqrt((sum h_v'^2 + sum h_qv'^2) / 2) for A (dA = sin th dv' - cos th dqv',
     # averaged over th). Predicted 8.86e-4 / 2.09e-3; measured 9.79e-4 / 2.19e-3.
     fs, f, sigma = 5000.0, 50.3, 0.01
-    x, truth = scenario(fs, [Tone(f, 1.0, 0.3)], seconds=20.0, noise=sigma).generate(seed=4)
+    x, _truth = scenario(fs, [Tone(f, 1.0, 0.3)], seconds=20.0, noise=sigma).generate(seed=4)
     tr = create("sogi-fll", fs).update(x)
     tail = slice(int(fs), None)
     impulse = np.zeros(4000)

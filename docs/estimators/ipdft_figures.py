@@ -58,7 +58,7 @@ def crlb_table():
     sigma, f0, m = 0.05, 50.3, 600
     for n in (80, 160):
         for interp in ("3-point", "2-point"):
-            t, x = tone(f0, n * m, noise=sigma, seed=1)
+            _t, x = tone(f0, n * m, noise=sigma, seed=1)
             tr = create("ipdft", FS, window_samples=n, hop_samples=n, interpolation=interp).update(x)
             rows = np.arange(n - 1, n * m, n)
             f, amp, off = tr.frequency_hz[rows, 0], tr.amplitude[rows, 0], tr.offset[rows]
@@ -94,7 +94,7 @@ def timing_table():
     for fs, params in ((1000.0, {}), (5000.0, {}), (10_000.0, {}), (10_000.0, {"hop_samples": 20}),
                        (10_000.0, {"min_frequency_hz": 20.0, "max_frequency_hz": 2000.0})):
         est = create("ipdft", fs, **params)
-        t, x = tone(50.3, 1024 * 40, fs=fs, noise=0.01)
+        _t, x = tone(50.3, 1024 * 40, fs=fs, noise=0.01)
         est.update(x[:-1024])
         block = np.ascontiguousarray(x[-1024:])
         res = []

@@ -346,7 +346,7 @@ class InterpolatedDft(Estimator):
                 )
         else:
             cycles = DEFAULT_WINDOW_CYCLES if p.window_cycles is None else p.window_cycles
-            n = int(math.ceil(cycles * samples_per_cycle - 1e-9))
+            n = math.ceil(cycles * samples_per_cycle - 1e-9)
         if n > MAX_WINDOW_SAMPLES:
             raise ParameterError(f"window: expected <= {MAX_WINDOW_SAMPLES} samples, got {n}")
         hop = max(1, n // 4) if p.hop_samples is None else p.hop_samples
@@ -361,8 +361,8 @@ class InterpolatedDft(Estimator):
                 f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}"
             )
         bin_hz = fs / n
-        k_lo = max(2, int(math.ceil(f_lo / bin_hz - 0.5)))  # bins whose centre is nearest the band
-        k_hi = min(n // 2 - 1, int(math.floor(f_hi / bin_hz + 0.5)))
+        k_lo = max(2, math.ceil(f_lo / bin_hz - 0.5))  # bins whose centre is nearest the band
+        k_hi = min(n // 2 - 1, math.floor(f_hi / bin_hz + 0.5))
         if k_lo > k_hi:
             raise ParameterError(
                 f"search band: expected at least one DFT bin between bin 2 ({2 * bin_hz:g} Hz) and "
