@@ -20,8 +20,9 @@ Every ``hop`` samples, once the ring buffer holds a full window of N samples
 (M)  offset-lobe cancellation: ``mu = sum w_n x_n / sum w_n`` and ``u_n = x_n - mu``.
      A constant only reaches Hann bins 0 and +-1; subtracting the Hann-weighted mean
      zeroes bin 0 and removes the offset from bin 1 (only the tone's own small bin-0
-     leakage remains there). Bins >= 2 are unchanged. Without (M) a 2-cycle window on a
-     biased tone is off by up to 10 Hz at 50 Hz; with it, 0.8 Hz (measured, see docs).
+     leakage remains there). Bins >= 2 are unchanged. Measured on 2-cycle windows of
+     0.5 + sin(2 pi f t + phi), f in 45-55 Hz, fs = 1 kHz (numpy replica of (M)-(I3)):
+     worst frequency error 9.4 Hz without (M), 0.84 Hz with it.
 (D)  ``X_k = sum_n w_n u_n exp(-j 2 pi k n / N)`` for the bins of the search band
      ``k_lo..k_hi`` and one bin either side; ``k_lo >= 2`` (bins 0-1 are the offset's
      Hann lobe). Twiddles come from one table of N cosines/sines indexed by ``k n mod N``.
