@@ -103,53 +103,77 @@ from sinewatch.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 
-# ---- constants index (float consts vector) --------------------------------------------------
-_C_H, _C_MU, _C_RHO2, _C_MUA, _C_DHI, _C_DLO, _C_TBAR = 0, 1, 2, 3, 4, 5, 6
-_C_AMPU, _C_OMU, _C_MINA, _C_FADE, _C_CALPHA, _C_CTOL, _C_CTIME, _C_ZMAX = 7, 8, 9, 10, 11, 12, 13, 14
-_N_CONSTS = 15
+# The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
+# With bias: Example 2 (its initial frequencies are not given; (3.5, 2.5) is ours); without:
+# Example 1 (initial frequencies 3 and 4 rad/s as in the paper). Units: rad/s with
+# omega_unit_rad_s = 1.
+PAPER_DESIGN = {
+    True: {
+        "a": [-2.0, -1.0], "poles": [-0.6, -0.5, -0.3, -1.0, -10.0], "filter_poles": [-6.0],
+        "filter_gains": [6.0], "mu": 70.0, "rho": 0.3, "mu_a": 0.1, "omega0": [3.5, 2.5],
+    },
+    False: {
+        "a": [0.0, -0.5], "poles": [-2.0, -0.7, -0.5, -0.2], "filter_poles": [-5.0],
+        "filter_gains": [4.5], "mu": 6.0, "rho": 0.2, "mu_a": 0.15, "omega0": [3.0, 4.0],
+    },
+}
+_DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
 
 
 class AdaptiveMultisineParams(EstimatorParams):
-    """Rates are in units of ``omega_unit_rad_s`` (see the module docstring)."""
+    """Rates are in units of ``omega_unit_rad_s``, amplitudes in ``amplitude_unit`` (see the
+    module docstring). Left unset, the design (a .. omega0) is the paper's tuning for n = 2
+    (Example 2 with bias, Example 1 without); other n need an explicit design."""
 
     n_sinusoids: int = Field(2, ge=1, le=8, description="n, the number of sinusoids modelled")
-    bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean")
+    bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean signal")
     omega_unit_rad_s: float = Field(
         1.0, gt=0, allow_inf_nan=False,
-        description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = paper units",
+        description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = the paper's units",
     )
     amplitude_unit: float = Field(
         1.0, gt=0, allow_inf_nan=False, description="Signal value that counts as 1 (the input is divided by it)"
     )
-    a: list[float] | None = Field(
-        None, description="a_i of (4), distinct (non-zero with bias); default -0.5 i / s^2 of the defaults"
-    )
+    a: list[float] | None = Field(None, description="a_i of (4): distinct, and non-zero with bias")
     poles: list[float] | None = Field(
-        None, description="2n (+1 with bias) distinct negative poles of F_x - L_x C_x"
+        None, description="2n (+1 with bias) distinct negative real poles of F_x - L_x C_x (16)"
     )
-    filter_poles: list[float] | None = Field(None, description="n-1 distinct negative poles of F_f (12)")
-    filter_gains: list[float] | None = Field(None, description="n-1 non-zero entries of B_f (12)")
-    mu: float = Field(2.0, gt=0, allow_inf_nan=False, description="Frequency adaptation gain mu (22)")
-    rho: float = Field(2.0, gt=0, allow_inf_nan=False, description="Regularisation rho (23)")
-    mu_a: float = Field(0.15, gt=0, allow_inf_nan=False, description="Amplitude adaptation gain mu_A (11)")
-    delta_low: float = Field(3e-5, allow_inf_nan=False, description="Lower switching threshold (25)")
-    delta_high: float = Field(3e-4, allow_inf_nan=False, description="Upper switching threshold (25)")
-    omega0: list[float] | None = Field(None, description="Initial frequencies omegah_i(0) > 0")
+    filter_poles: list[float] | None = Field(None, description="n-1 distinct negative poles of F_f (diagonal), (12)")
+    filter_gains: list[float] | None = Field(None, description="n-1 non-zero entries of B_f, (12)")
+    mu: float | None = Field(None, gt=0, allow_inf_nan=False, description="Frequency adaptation gain mu, (22)")
+    rho: float | None = Field(None, gt=0, allow_inf_nan=False, description="Regularisation rho, (23)")
+    mu_a: float | None = Field(None, gt=0, allow_inf_nan=False, description="Amplitude adaptation gain mu_A, (11)")
+    omega0: list[float] | None = Field(None, description="Initial frequencies omegah_i(0), in (0, omega_max)")
+    delta_low: float = Field(3e-5, allow_inf_nan=False, description="Lower switching threshold of (25)")
+    delta_high: float = Field(3e-4, allow_inf_nan=False, description="Upper switching threshold of (25)")
     omega_max: float = Field(
-        4.0, gt=0, allow_inf_nan=False, description="Frequency bound omega_bar (Assumption 1) -> theta_bar"
+        10.0, gt=0, allow_inf_nan=False, description="Frequency bound omega_bar (Assumption 1); sets theta_bar"
+    )
+    omega_ranges: list[tuple[float, float]] | None = Field(
+        None, description="Optional per-component frequency clips [lo, hi] (Remark 3.1)"
+    )
+    adaptation_delay: float | None = Field(
+        None, ge=0, allow_inf_nan=False,
+        description="Settling dwell (scaled time) after start-up, total dis-excitation or loss of signal "
+        "before thetah adapts; default 2 / |slowest observer pole|",
+    )
+    level_time: float = Field(
+        2.0, gt=0, allow_inf_nan=False, description="Time constant (scaled) of the signal-level gate"
     )
     min_amplitude: float = Field(
-        0.01, ge=0, allow_inf_nan=False, description="Amplitude (in amplitude_unit) below which a component is faded"
+        0.01, ge=0, allow_inf_nan=False,
+        description="Amplitude (in amplitude_unit) below which a component is faded and the signal absent",
     )
     fade_ratio: float = Field(
         0.02, ge=0, lt=1, allow_inf_nan=False,
-        description="A component is faded below this fraction of the largest amplitude",
+        description="A component is also faded below this fraction of the largest amplitude",
     )
     convergence_time: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="Smoothing time of the convergence test (scaled time)"
+        10.0, gt=0, allow_inf_nan=False, description="Smoothing time (scaled) of the convergence test"
     )
     convergence_tol: float = Field(
-        0.02, gt=0, allow_inf_nan=False, description="Allowed relative frequency drift over convergence_time"
+        0.02, gt=0, lt=1, allow_inf_nan=False,
+        description="converged once the smoothed |omegah - smoothed omegah| is below this fraction of omegah",
     )
 
     @model_validator(mode="after")
@@ -160,6 +184,12 @@ class AdaptiveMultisineParams(EstimatorParams):
                 f"expected 0 < delta_low < delta_high < 1, got delta_low={self.delta_low}, "
                 f"delta_high={self.delta_high}"
             )
+        if n != 2:
+            missing = [k for k in ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
+                       if getattr(self, k) is None]
+            if missing:
+                raise ValueError(f"expected an explicit design for n_sinusoids={n} (the paper tunes n = 2), "
+                                 f"got no {', '.join(missing)}")
 
         def _finite_list(name: str, v: list[float] | None, length: int) -> None:
             if v is None:
@@ -174,11 +204,6 @@ class AdaptiveMultisineParams(EstimatorParams):
         _finite_list("filter_poles", self.filter_poles, n - 1)
         _finite_list("filter_gains", self.filter_gains, n - 1)
         _finite_list("omega0", self.omega0, n)
-        if self.a is not None:
-            if len(set(self.a)) != n:
-                raise ValueError(f"a: expected distinct values (observability), got {self.a}")
-            if self.bias and any(v == 0 for v in self.a):
-                raise ValueError(f"a: expected non-zero values with bias=True (observability), got {self.a}")
         for name, v in (("poles", self.poles), ("filter_poles", self.filter_poles)):
             if v is not None:
                 if any(p >= 0 for p in v):
@@ -187,230 +212,326 @@ class AdaptiveMultisineParams(EstimatorParams):
                     raise ValueError(f"{name}: expected distinct values, got {v}")
         if self.filter_gains is not None and any(b == 0 for b in self.filter_gains):
             raise ValueError(f"filter_gains: expected non-zero values (controllability), got {self.filter_gains}")
-        if self.omega0 is not None and not all(0 < w < self.omega_max for w in self.omega0):
-            raise ValueError(f"omega0: expected values in (0, omega_max={self.omega_max}), got {self.omega0}")
+        if self.omega_ranges is not None:
+            if len(self.omega_ranges) != n:
+                raise ValueError(f"omega_ranges: expected {n} [lo, hi] pairs, got {len(self.omega_ranges)}")
+            for lo, hi in self.omega_ranges:
+                if not (0 <= lo < hi <= self.omega_max):
+                    raise ValueError(
+                        f"omega_ranges: expected 0 <= lo < hi <= omega_max={self.omega_max}, got [{lo}, {hi}]"
+                    )
         return self
 
-
-def default_design(n: int, bias: bool) -> dict[str, list[float]]:
-    """Defaults for the per-component lists (scaled units, signal frequencies ~0.5-2).
-
-    They are the paper's Example 1 gains for n = 2 (a, poles, F_f, B_f) rescaled by s = 3.5
-    (its tones at 2 and 5 rad/s become 0.57 and 1.43), extended to other n and to the bias.
-    """
-    s = 3.5
-    a = [-0.5 * (i + 1) / s**2 for i in range(n)]
-    m = 2 * n + int(bias)
-    poles = list(-np.geomspace(0.2, 2.0, m) / s)
-    filter_poles = [-(4.0 + k + 1) / s for k in range(n - 1)]
-    filter_gains = [0.9 * (4.0 + k + 1) / s for k in range(n - 1)]
-    omega0 = list(np.linspace(0.75, 1.25, n)) if n > 1 else [1.0]
-    return {"a": a, "poles": poles, "filter_poles": filter_poles, "filter_gains": filter_gains, "omega0": omega0}
+    def design(self) -> dict[str, list[float]]:
+        """The effective a, poles, filter poles and gains, mu, rho, mu_a and omega0."""
+        base = PAPER_DESIGN[self.bias]
+        out = {}
+        for k in _DESIGN_KEYS:
+            v = getattr(self, k)
+            out[k] = (list(v) if isinstance(v, list) else v) if v is not None else base[k]
+        return out
 
 
-# ---- kernel helpers ---------------------------------------------------------------------------
+# ---- packed constants -------------------------------------------------------------------------
+# Numba charges ~15 ns per array argument of a call (reference counting), so the kernel's
+# helpers take four packed arrays instead of twenty: ``ci`` (int64) = n, nx, nf, nz, sub-steps,
+# bias; ``cf`` (float64) = the scalars below,
+# then a (n), L (nz, its first column), F_f (nf), B_f (nf), theta0 (n), and the bounds
+# of thetah from omega_ranges, theta_lo (n) and theta_hi (n);
+# ``work`` (float64) = C_z Xi, R, R^-1, R^-1 Phi_Xi R^-T, W (n*n each, row-major), lambda, e,
+# g, q, psi_eff (n each).
+_C_H, _C_MU, _C_RHO2, _C_MUA, _C_DHI, _C_DLO, _C_TBAR = 0, 1, 2, 3, 4, 5, 6
+_C_AMPU, _C_OMU, _C_MINA, _C_FADE, _C_CALPHA, _C_CTOL, _C_DELAY, _C_ZMAX = 7, 8, 9, 10, 11, 12, 13, 14
+_C_LALPHA, _C_RINGP = 15, 16
+_N_CONSTS = 17
+_RING = 4  # snapshots of thetah kept for the roll-back on loss of signal
+_I_N, _I_NX, _I_NF, _I_NZ, _I_MSUB, _I_BIAS = 0, 1, 2, 3, 4, 5
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _sym_eig(S, n, lam, W):
-    """Cyclic Jacobi on the symmetric n x n ``S`` (destroyed): eigenvalues ``lam`` sorted in
-    decreasing order, orthonormal eigenvectors in the columns of ``W``."""
+def _sym_eig(work, n):
+    """Cyclic Jacobi on the symmetric n x n matrix S held in ``work`` (destroyed): eigenvalues
+    into lambda, sorted in decreasing order, orthonormal eigenvectors into the columns of W."""
+    nn = n * n
+    wS = 3 * nn  # noqa: N806
+    wW = 4 * nn  # noqa: N806
+    wl = 5 * nn
     for i in range(n):
         for j in range(n):
-            W[i, j] = 1.0 if i == j else 0.0
+            work[wW + i * n + j] = 1.0 if i == j else 0.0
     for _sweep in range(30):
         off = 0.0
         tot = 0.0
         for i in range(n):
-            tot += S[i, i] * S[i, i]
+            tot += work[wS + i * n + i] ** 2
             for j in range(i + 1, n):
-                off += S[i, j] * S[i, j]
+                off += work[wS + i * n + j] ** 2
         if off <= 1e-30 * tot or off == 0.0:
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
-                apq = S[p, q]
+                apq = work[wS + p * n + q]
                 if apq == 0.0:
                     continue
-                theta = (S[q, q] - S[p, p]) / (2.0 * apq)
+                theta = (work[wS + q * n + q] - work[wS + p * n + p]) / (2.0 * apq)
                 t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
                 c = 1.0 / math.sqrt(t * t + 1.0)
                 s = t * c
                 for k in range(n):  # S <- S J (columns p, q)
-                    skp = S[k, p]
-                    skq = S[k, q]
-                    S[k, p] = c * skp - s * skq
-                    S[k, q] = s * skp + c * skq
+                    skp = work[wS + k * n + p]
+                    skq = work[wS + k * n + q]
+                    work[wS + k * n + p] = c * skp - s * skq
+                    work[wS + k * n + q] = s * skp + c * skq
                 for k in range(n):  # S <- J^T S (rows p, q)
-                    spk = S[p, k]
-                    sqk = S[q, k]
-                    S[p, k] = c * spk - s * sqk
-                    S[q, k] = s * spk + c * sqk
-                for k in range(n):
-                    wkp = W[k, p]
-                    wkq = W[k, q]
-                    W[k, p] = c * wkp - s * wkq
-                    W[k, q] = s * wkp + c * wkq
+                    spk = work[wS + p * n + k]
+                    sqk = work[wS + q * n + k]
+                    work[wS + p * n + k] = c * spk - s * sqk
+                    work[wS + q * n + k] = s * spk + c * sqk
+                for k in range(n):  # W <- W J
+                    wkp = work[wW + k * n + p]
+                    wkq = work[wW + k * n + q]
+                    work[wW + k * n + p] = c * wkp - s * wkq
+                    work[wW + k * n + q] = s * wkp + c * wkq
     for i in range(n):
-        lam[i] = S[i, i]
+        work[wl + i] = work[wS + i * n + i]
     for i in range(n):  # selection sort, decreasing
         best = i
         for j in range(i + 1, n):
-            if lam[j] > lam[best]:
+            if work[wl + j] > work[wl + best]:
                 best = j
         if best != i:
-            tmp = lam[i]
-            lam[i] = lam[best]
-            lam[best] = tmp
+            tmp = work[wl + i]
+            work[wl + i] = work[wl + best]
+            work[wl + best] = tmp
             for k in range(n):
-                tmp = W[k, i]
-                W[k, i] = W[k, best]
-                W[k, best] = tmp
+                tmp = work[wW + k * n + i]
+                work[wW + k * n + i] = work[wW + k * n + best]
+                work[wW + k * n + best] = tmp
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _excitation(s, oxi, n, nz, nx, cx, rho2, CX, R, Rinv, S, W, lam):
-    """Generalised eigen-decomposition of (Phi_Xi, M) of (23): fills ``CX = C_z Xi`` (n x n),
-    the Cholesky factor ``R`` of ``M``, its inverse, ``W`` and ``lam`` (decreasing)."""
+def _chol(s, work, cf, ci):
+    """C_z Xi, and the Cholesky factor R (lower) of M = Xi^T Xi + rho^2 I of (23) and R^-1."""
+    n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
+    rho2 = cf[_C_RHO2]
+    oxi = nf + nz
+    nn = n * n
+    wR = nn  # noqa: N806
+    wRi = 2 * nn  # noqa: N806
+    wS = 3 * nn  # noqa: N806
     for i in range(n):
-        acc = 0.0
-        for r in cx:  # row 0 of C_z Xi: C_x xi_i
-            acc += s[oxi + i * nz + r]
-        CX[0, i] = acc
+        base = oxi + i * nz
+        acc = s[base + nx - 1] if nx > 2 * n else 0.0  # row 0 of C_z Xi: C_x xi_i
+        for r in range(n):
+            acc += s[base + 2 * r]
+        work[i] = acc
         for j in range(1, n):  # the filter rows: yf part of xi_i
-            CX[j, i] = s[oxi + i * nz + nx + j - 1]
-    # M = Xi^T Xi + rho^2 I, Cholesky M = R R^T (R lower)
-    for i in range(n):
+            work[j * n + i] = s[base + nx + j - 1]
+    for i in range(n):  # M = Xi^T Xi + rho^2 I (lower triangle, into S)
         for j in range(i + 1):
-            acc = 0.0
+            acc = rho2 if i == j else 0.0
+            bi = oxi + i * nz
+            bj = oxi + j * nz
             for r in range(nz):
-                acc += s[oxi + i * nz + r] * s[oxi + j * nz + r]
-            if i == j:
-                acc += rho2
-            S[i, j] = acc
-    for j in range(n):
-        d = S[j, j]
+                acc += s[bi + r] * s[bj + r]
+            work[wS + i * n + j] = acc
+    for j in range(n):  # Cholesky M = R R^T
+        d = work[wS + j * n + j]
         for k in range(j):
-            d -= R[j, k] * R[j, k]
-        d = math.sqrt(d) if d > 0.0 else math.sqrt(rho2)
-        R[j, j] = d
+            d -= work[wR + j * n + k] ** 2
+        d = math.sqrt(d) if d > rho2 else math.sqrt(rho2)  # M >= rho^2 I: guards rounding only
+        work[wR + j * n + j] = d
         for i in range(j + 1, n):
-            acc = S[i, j]
+            acc = work[wS + i * n + j]
             for k in range(j):
-                acc -= R[i, k] * R[j, k]
-            R[i, j] = acc / d
+                acc -= work[wR + i * n + k] * work[wR + j * n + k]
+            work[wR + i * n + j] = acc / d
         for i in range(j):
-            R[i, j] = 0.0
-    for j in range(n):  # Rinv (lower)
+            work[wR + i * n + j] = 0.0
+    for j in range(n):  # R^-1 (lower)
         for i in range(n):
-            Rinv[i, j] = 0.0
-        Rinv[j, j] = 1.0 / R[j, j]
+            work[wRi + i * n + j] = 0.0
+        work[wRi + j * n + j] = 1.0 / work[wR + j * n + j]
         for i in range(j + 1, n):
             acc = 0.0
             for k in range(j, i):
-                acc -= R[i, k] * Rinv[k, j]
-            Rinv[i, j] = acc / R[i, i]
-    # S = Rinv Phi_Xi Rinv^T = (CX Rinv^T)^T (CX Rinv^T)
-    for i in range(n):
+                acc -= work[wR + i * n + k] * work[wRi + k * n + j]
+            work[wRi + i * n + j] = acc / work[wR + i * n + i]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _eig(work, n):
+    """After :func:`_chol`: S = R^-1 Phi_Xi R^-T = (C_z Xi R^-T)^T (C_z Xi R^-T), then its
+    eigen-decomposition W, lambda (decreasing): Phi_Xi v = lambda M v with v = R^-T w, so
+    lambda are the eigenvalues of Phi_Psi (23)."""
+    nn = n * n
+    wRi = 2 * nn  # noqa: N806
+    wS = 3 * nn  # noqa: N806
+    for i in range(n):  # S = (C_z Xi R^-T)^T (C_z Xi R^-T)
         for j in range(i + 1):
             acc = 0.0
             for r in range(n):
                 bi = 0.0
                 bj = 0.0
                 for k in range(i + 1):
-                    bi += CX[r, k] * Rinv[i, k]
+                    bi += work[r * n + k] * work[wRi + i * n + k]
                 for k in range(j + 1):
-                    bj += CX[r, k] * Rinv[j, k]
+                    bj += work[r * n + k] * work[wRi + j * n + k]
                 acc += bi * bj
-            S[i, j] = acc
-            S[j, i] = acc
-    _sym_eig(S, n, lam, W)
+            work[wS + i * n + j] = acc
+            work[wS + j * n + i] = acc
+    _sym_eig(work, n)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _deriv(s, yin, psi, ds, dims, cx, a, AL, Lx, Ff, Bf, consts, CX, R, Rinv, S, W, lam, ev, g, q):
-    """Right-hand side of (12), (16), (17), (19)-(22), (11) at state ``s`` and input ``yin``."""
-    n, nx, nf, nz = dims[0], dims[1], dims[2], dims[3]
+def _excitation(s, work, cf, ci):
+    """Generalised eigen-decomposition of (Phi_Xi, M), (23)."""
+    _chol(s, work, cf, ci)
+    _eig(work, ci[_I_N])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
+    """One classical RK4 step of length ``hs`` of (12), (16), (17), (19)-(22) and (11) on the
+    integrated part of ``s`` (updated in place), the measurement going linearly from ``ya`` to
+    ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``:
+    ``work`` already holds the decomposition of ``s``. One function with the right-hand side
+    written out, because every call of a compiled helper costs ~15 ns per array argument."""
+    n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
+    mu, mu_a, tbar = cf[_C_MU], cf[_C_MUA], cf[_C_TBAR]
+    oa_c = _N_CONSTS
+    oL = oa_c + n  # noqa: N806
+    oFf = oL + nz  # noqa: N806
+    oBf = oFf + nf  # noqa: N806
+    olo = oBf + nf + n  # theta_lo, then theta_hi
     oz = nf
     oxi = oz + nz
     oth = oxi + nz * n
     oa = oth + n
-    mu, rho2, mu_a, tbar = consts[_C_MU], consts[_C_RHO2], consts[_C_MUA], consts[_C_TBAR]
-    # (12) measured-output filter
-    for j in range(nf):
-        ds[j] = Ff[j] * s[j] + Bf[j] * yin
-    # output error C_z zh - eta_hat (n-vector)
-    acc = 0.0
-    for r in cx:
-        acc += s[oz + r]
-    ev[0] = acc - yin
-    for j in range(1, n):
-        ev[j] = s[oz + nx + j - 1] - s[j - 1]
-    # (23)-(25): generalised eigen-decomposition, then (22) as V Psi V^T Xi^T C_z^T e
-    _excitation(s, oxi, n, nz, nx, cx, rho2, CX, R, Rinv, S, W, lam)
-    for i in range(n):  # g = (C_z Xi)^T e
-        acc = 0.0
-        for r in range(n):
-            acc += CX[r, i] * ev[r]
-        g[i] = acc
-    for i in range(n):  # q = Rinv g
-        acc = 0.0
-        for k in range(i + 1):
-            acc += Rinv[i, k] * g[k]
-        q[i] = acc
-    for i in range(n):  # p = Psi W^T q  (stored in g)
-        acc = 0.0
-        for k in range(n):
-            acc += W[k, i] * q[k]
-        g[i] = acc * psi[i]
-    for i in range(n):  # q = W p
-        acc = 0.0
-        for k in range(n):
-            acc += W[i, k] * g[k]
-        q[i] = acc
-    tt = 0.0
-    tu = 0.0
-    for i in range(n):  # thetah'_unc = -mu Rinv^T q  (22)
-        acc = 0.0
-        for k in range(i, n):
-            acc += Rinv[k, i] * q[k]
-        ds[oth + i] = -mu * acc
-        tt += s[oth + i] * s[oth + i]
-        tu += s[oth + i] * ds[oth + i]
-    if tt >= tbar * tbar and tu > 0.0:  # projection (19)-(21)
+    ns = oa + n
+    nn = n * n
+    wRi = 2 * nn  # noqa: N806
+    wW = 4 * nn  # noqa: N806
+    wev = 5 * nn + n
+    wg = wev + n
+    wq = wg + n
+    wps = wq + n
+    n_on = 0
+    for i in range(n):
+        if work[wps + i] != 0.0:
+            n_on += 1
+    for r in range(ns):
+        x[r] = s[r]
+    for st in range(4):
+        d = st * ns  # this stage's derivative: K[d : d + ns]
+        yin = ya if st == 0 else (yb if st == 3 else 0.5 * (ya + yb))
+        # (12) measured-output filter
+        for j in range(nf):
+            K[d + j] = cf[oFf + j] * x[j] + cf[oBf + j] * yin
+        # output error e = C_z zh - eta_hat
+        cz = x[oz + nx - 1] if nx > 2 * n else 0.0  # C_x zh: positions and bias
         for i in range(n):
-            ds[oth + i] -= s[oth + i] * tu / (tbar * tbar)
-    # (16): zh' = A_L zh + L_x y + G_z(zh) thetah + Xi thetah'
-    for r in range(nz):
-        acc = Lx[r] * yin
-        for c in range(nz):
-            acc += AL[r, c] * s[oz + c]
+            cz += x[oz + 2 * i]
+        work[wev] = cz - yin
+        for j in range(1, n):
+            work[wev + j] = x[oz + nx + j - 1] - x[j - 1]
+        # (22) as -mu V Psi V^T Xi^T C_z^T e; V V^T = M^-1, so with every psi_i = 1 it is
+        # -mu M^-1 Xi^T C_z^T e (33) and needs no eigen-decomposition; with none it is 0
         for i in range(n):
-            acc += s[oxi + i * nz + r] * ds[oth + i]
-        ds[oz + r] = acc
-    for i in range(n):
-        ds[oz + 2 * i + 1] -= s[oz + 2 * i] * s[oth + i]  # G_z_i(zh) = -x_{2i-1} e_{2i}
-    # (17): xi_i' = A_L xi_i + G_z_i(zh)
-    for i in range(n):
-        base = oxi + i * nz
-        for r in range(nz):
-            acc = 0.0
-            for c in range(nz):
-                acc += AL[r, c] * s[base + c]
-            ds[base + r] = acc
-        ds[base + 2 * i + 1] -= s[oz + 2 * i]
-    # (11): amplitude adaptation, held at 0 from below
-    for i in range(n):
-        om2 = s[oth + i] - a[i]  # (8)
-        x1 = s[oz + 2 * i]
-        x2 = s[oz + 2 * i + 1]
-        if om2 > 0.0:
-            w = math.sqrt(om2)
-            inst = om2 * x1 * x1 + x2 * x2
-            d = -mu_a * w * (w * s[oa + i] - math.sqrt(inst if inst > 0.0 else 0.0))
-        else:
-            d = 0.0
-        if s[oa + i] <= 0.0 and d < 0.0:
-            d = 0.0
-        ds[oa + i] = d
+            K[d + oth + i] = 0.0
+        if n_on > 0:
+            if st > 0 or not fresh:
+                _chol(x, work, cf, ci)
+                if n_on < n:
+                    _eig(work, n)
+            for i in range(n):  # g = (C_z Xi)^T e
+                acc = 0.0
+                for r in range(n):
+                    acc += work[r * n + i] * work[wev + r]
+                work[wg + i] = acc
+            for i in range(n):  # q = R^-1 g
+                acc = 0.0
+                for kk in range(i + 1):
+                    acc += work[wRi + i * n + kk] * work[wg + kk]
+                work[wq + i] = acc
+            if n_on < n:
+                for i in range(n):  # p = Psi W^T q  (into g)
+                    acc = 0.0
+                    for kk in range(n):
+                        acc += work[wW + kk * n + i] * work[wq + kk]
+                    work[wg + i] = acc * work[wps + i]
+                for i in range(n):  # q = W p
+                    acc = 0.0
+                    for kk in range(n):
+                        acc += work[wW + i * n + kk] * work[wg + kk]
+                    work[wq + i] = acc
+            tt = 0.0
+            tu = 0.0
+            for i in range(n):  # thetah'_unc = -mu R^-T q
+                acc = 0.0
+                for kk in range(i, n):
+                    acc += work[wRi + kk * n + i] * work[wq + kk]
+                K[d + oth + i] = -mu * acc
+                tt += x[oth + i] * x[oth + i]
+                tu += x[oth + i] * K[d + oth + i]
+            if tt >= tbar * tbar and tu > 0.0:  # projection (19)-(21)
+                for i in range(n):
+                    K[d + oth + i] -= x[oth + i] * tu / (tbar * tbar)
+            for i in range(n):  # frequency clips of Remark 3.1 (inactive without omega_ranges)
+                if (x[oth + i] <= cf[olo + i] and K[d + oth + i] < 0.0) or (
+                    x[oth + i] >= cf[olo + n + i] and K[d + oth + i] > 0.0
+                ):
+                    K[d + oth + i] = 0.0
+        # (16) zh' = A_L zh + L y + G_z(zh) thetah + Xi thetah' and (17) xi_i' = A_L xi_i +
+        # G_z_i(zh), with A_L = F_z - L C_z applied by structure: blockdiag(J_i, 0) - L_x C_x
+        # on the oscillator rows, B_f C_x + F_f on the filter rows; G_z_i(zh) = -x_{2i-1} e_{2i}
+        for v in range(n + 1):
+            src = oz if v == 0 else oxi + (v - 1) * nz
+            c = x[src + nx - 1] if nx > 2 * n else 0.0  # C_x applied to this vector
+            for i in range(n):
+                c += x[src + 2 * i]
+            for i in range(n):
+                K[d + src + 2 * i] = x[src + 2 * i + 1] - cf[oL + 2 * i] * c
+                K[d + src + 2 * i + 1] = cf[oa_c + i] * x[src + 2 * i] - cf[oL + 2 * i + 1] * c
+            if nx > 2 * n:
+                K[d + src + nx - 1] = -cf[oL + nx - 1] * c
+            for j in range(nf):
+                K[d + src + nx + j] = cf[oBf + j] * c + cf[oFf + j] * x[src + nx + j]
+            if v == 0:
+                for r in range(nx):
+                    acc = cf[oL + r] * yin
+                    for i in range(n):
+                        acc += x[oxi + i * nz + r] * K[d + oth + i]
+                    K[d + oz + r] += acc
+                for r in range(nx, nz):
+                    acc = 0.0
+                    for i in range(n):
+                        acc += x[oxi + i * nz + r] * K[d + oth + i]
+                    K[d + oz + r] += acc
+                for i in range(n):
+                    K[d + oz + 2 * i + 1] -= x[oz + 2 * i] * x[oth + i]
+            else:
+                K[d + src + 2 * (v - 1) + 1] -= x[oz + 2 * (v - 1)]
+        # (11): amplitude adaptation, held at 0 from below
+        for i in range(n):
+            om2 = x[oth + i] - cf[oa_c + i]  # (8)
+            x1 = x[oz + 2 * i]
+            x2 = x[oz + 2 * i + 1]
+            da = 0.0
+            if om2 > 0.0:
+                w = math.sqrt(om2)
+                inst = om2 * x1 * x1 + x2 * x2
+                da = -mu_a * w * (w * x[oa + i] - math.sqrt(inst if inst > 0.0 else 0.0))
+            if x[oa + i] <= 0.0 and da < 0.0:
+                da = 0.0
+            K[d + oa + i] = da
+        # next stage's point
+        if st < 3:
+            f = hs if st == 2 else 0.5 * hs
+            for r in range(ns):
+                x[r] = s[r] + f * K[d + r]
+    for r in range(ns):
+        s[r] += hs / 6.0 * (K[r] + 2.0 * K[ns + r] + 2.0 * K[2 * ns + r] + K[3 * ns + r])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -435,83 +556,96 @@ def _sinc2(x):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def adaptive_multisine_kernel(y, state, dims, cx, a, AL, Lx, Ff, Bf, theta0, consts, last_only):
+def adaptive_multisine_kernel(y, state, cf, ci, last_only):
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``dims`` = (n, nx, nf, nz, substeps, bias); ``cx`` the z-indices summed by C_x; ``a`` the
-    a_i; ``AL`` = F_z - L C_z; ``Lx`` the first column of L (length nz); ``Ff``, ``Bf`` the
-    diagonal filter (12); ``theta0`` the initial thetah (used by the reset guard); ``consts``
-    see the ``_C_*`` indices. State layout: yf (nf) | zh (nz) | Xi (nz*n, column xi_i
-    contiguous) | thetah (n) | Ah (n) | psi (n) | drift (n) | omega_prev (n) | y_prev | y_pred |
-    started. ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
-    ``extras`` columns: lambda (n), psi (n), faded (n), reset. Pure: inputs are not modified.
+    ``cf``/``ci``: packed constants (see above). State layout: yf (nf) | zh (nz) | Xi (nz*n,
+    xi_i contiguous) | thetah (n) | Ah (n) | psi (n) | smoothed |deviation| of omegah (n) |
+    smoothed omegah (n) | y_prev | y_pred | started | settling clock. ``out`` columns:
+    frequency_hz (n), amplitude (n), phase (n), offset, converged; ``extras`` columns: lambda
+    (n), psi (n), faded (n), reset. One row per sample, or only the last with ``last_only``.
+    Pure: the inputs are not modified.
     """
-    n, nx, nf, nz, m_sub, bias = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5]
-    h = consts[_C_H]
-    amp_u = consts[_C_AMPU]
-    om_u = consts[_C_OMU]
-    d_hi, d_lo, tbar = consts[_C_DHI], consts[_C_DLO], consts[_C_TBAR]
-    min_a, fade, c_alpha, c_tol, c_time = (
-        consts[_C_MINA], consts[_C_FADE], consts[_C_CALPHA], consts[_C_CTOL], consts[_C_CTIME],
-    )
-    zmax = consts[_C_ZMAX]
-    rho2 = consts[_C_RHO2]
+    n, nx, nf, nz, m_sub, bias = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ], ci[_I_MSUB], ci[_I_BIAS]
+    h = cf[_C_H]
+    amp_u = cf[_C_AMPU]
+    om_u = cf[_C_OMU]
+    d_hi, d_lo, tbar = cf[_C_DHI], cf[_C_DLO], cf[_C_TBAR]
+    min_a, fade, c_alpha, c_tol = cf[_C_MINA], cf[_C_FADE], cf[_C_CALPHA], cf[_C_CTOL]
+    zmax = cf[_C_ZMAX]
+    delay = cf[_C_DELAY]
+    oa_c = _N_CONSTS
+    oth0 = oa_c + n + nz + 2 * nf
+    olo = oth0 + n  # theta_lo, then theta_hi
+    l_alpha = cf[_C_LALPHA]
     oz = nf
     oxi = oz + nz
     oth = oxi + nz * n
     oa = oth + n
     ops = oa + n
-    odr = ops + n
-    owp = odr + n
-    oyp = owp + n
-    ns = oxi + nz * n + 2 * n  # integrated part
+    odv = ops + n
+    owb = odv + n
+    oyp = owb + n
+    orng = oyp + 9  # ring of _RING snapshots of thetah
+    ring_p = cf[_C_RINGP]
+    ns = oa + n  # the integrated part
+    nn = n * n
+    wl = 5 * nn
+    wps = wl + 4 * n
     s = state.copy()
-    k1 = np.empty(ns)
-    k2 = np.empty(ns)
-    k3 = np.empty(ns)
-    k4 = np.empty(ns)
+    kbuf = np.empty(4 * ns)
     tmp = np.empty(ns)
-    psi = np.empty(n)
-    CX = np.empty((n, n))
-    R = np.zeros((n, n))
-    Rinv = np.zeros((n, n))
-    S = np.empty((n, n))
-    W = np.empty((n, n))
-    lam = np.empty(n)
-    ev = np.empty(n)
-    g = np.empty(n)
-    q = np.empty(n)
+    work = np.zeros(5 * nn + 5 * n)
     nrow = 1 if last_only else y.shape[0]
     out = np.empty((nrow, 3 * n + 2))
-    ext = np.empty((nrow, 3 * n + 1))
+    ext = np.empty((nrow, 3 * n + 2))
     hs = h / m_sub
     sse = 0.0
-    nyield = y.shape[0]
-    for k in range(nyield):
+    fresh = False  # work holds the decomposition of s
+    nsamp = y.shape[0]
+    for k in range(nsamp):
         yk = y[k] / amp_u
         e = yk - s[oyp + 1]  # one-step prediction error
         sse += e * e
         reset = False
+        # signal-level gate: smoothed mean and AC power of the input; the signal is absent
+        # below min_amplitude, or when its power falls under a quarter of the model's
+        s[oyp + 4] += l_alpha * (yk - s[oyp + 4])
+        dev = yk - s[oyp + 4]
+        s[oyp + 5] += l_alpha * (dev * dev - s[oyp + 5])
+        pmod = 0.0
+        for i in range(n):
+            pmod += 0.5 * s[oa + i] * s[oa + i]
+        present = 2.0 * s[oyp + 5] >= min_a * min_a and s[oyp + 5] >= 0.25 * pmod
+        if s[oyp + 6] != 0.0 and not present:
+            # loss of signal: the adaptation ran on the observer's free response while the
+            # level gate was catching up; roll thetah back to the oldest snapshot
+            slot = int(s[oyp + 8])
+            for i in range(n):
+                s[oth + i] = s[orng + slot * n + i]
+        s[oyp + 6] = 1.0 if present else 0.0
+        # snapshots of thetah every ring_p samples while the signal is present
+        if present:
+            s[oyp + 7] += 1.0
+            if s[oyp + 7] >= ring_p:
+                s[oyp + 7] = 0.0
+                slot = int(s[oyp + 8])
+                for i in range(n):
+                    s[orng + slot * n + i] = s[oth + i]
+                s[oyp + 8] = float((slot + 1) % _RING)
+        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + 5]) + abs(s[oyp + 4]))
         if s[oyp + 2] != 0.0:
             y0 = s[oyp]
+            # Algorithm 1: psi(k-1) acts over (t_{k-1}, t_k]; the settling dwell holds the
+            # adaptation off until some psi_i has been on for adaptation_delay with a signal
+            warm = s[oyp + 3] >= delay and present
             for i in range(n):
-                psi[i] = s[ops + i]
+                work[wps + i] = s[ops + i] if warm else 0.0
             for j in range(m_sub):
-                ua = y0 + (yk - y0) * (j / m_sub)
-                um = y0 + (yk - y0) * ((j + 0.5) / m_sub)
+                ua = y0 + (yk - y0) * (j / m_sub)  # first-order hold between samples
                 ub = y0 + (yk - y0) * ((j + 1.0) / m_sub)
-                _deriv(s, ua, psi, k1, dims, cx, a, AL, Lx, Ff, Bf, consts, CX, R, Rinv, S, W, lam, ev, g, q)
-                for r in range(ns):
-                    tmp[r] = s[r] + 0.5 * hs * k1[r]
-                _deriv(tmp, um, psi, k2, dims, cx, a, AL, Lx, Ff, Bf, consts, CX, R, Rinv, S, W, lam, ev, g, q)
-                for r in range(ns):
-                    tmp[r] = s[r] + 0.5 * hs * k2[r]
-                _deriv(tmp, um, psi, k3, dims, cx, a, AL, Lx, Ff, Bf, consts, CX, R, Rinv, S, W, lam, ev, g, q)
-                for r in range(ns):
-                    tmp[r] = s[r] + hs * k3[r]
-                _deriv(tmp, ub, psi, k4, dims, cx, a, AL, Lx, Ff, Bf, consts, CX, R, Rinv, S, W, lam, ev, g, q)
-                for r in range(ns):
-                    s[r] += hs / 6.0 * (k1[r] + 2.0 * k2[r] + 2.0 * k3[r] + k4[r])
+                _rk4_substep(s, tmp, kbuf, work, cf, ci, ua, ub, hs, fresh)
+                fresh = False
                 # projection: radial clip to |thetah| <= theta_bar (19); Ah >= 0 (11)
                 tt = 0.0
                 for i in range(n):
@@ -520,76 +654,78 @@ def adaptive_multisine_kernel(y, state, dims, cx, a, AL, Lx, Ff, Bf, theta0, con
                     sc = tbar / math.sqrt(tt)
                     for i in range(n):
                         s[oth + i] *= sc
+                for i in range(n):  # Remark 3.1 clips
+                    s[oth + i] = min(max(s[oth + i], cf[olo + i]), cf[olo + n + i])
                 for i in range(n):
                     if s[oa + i] < 0.0:
                         s[oa + i] = 0.0
-                # guard: the state stays finite and bounded
+                # guard: the state stays finite and commensurate with the input; otherwise
+                # (a frozen observer can be unstable far from the true frequencies) restart
+                # the observer and roll thetah back to the oldest snapshot
                 bad = False
                 for r in range(ns):
-                    if not abs(s[r]) <= zmax:  # also catches NaN
+                    if not abs(s[r]) <= zlim:  # also catches NaN
                         bad = True
                 if bad:
                     reset = True
-                    for r in range(oth):
+                    slot = int(s[oyp + 8])
+                    for r in range(ns):
                         s[r] = 0.0
-                    tt = 0.0
                     for i in range(n):
-                        if not math.isfinite(s[oth + i]):
-                            tt = math.nan
-                    for i in range(n):
-                        if not math.isfinite(tt):
-                            s[oth + i] = theta0[i]
-                        s[oa + i] = 0.0
-                        psi[i] = 0.0
-                # (25): hysteretic switching on the excitation at the end of the sub-step
-                _excitation(s, oxi, n, nz, nx, cx, rho2, CX, R, Rinv, S, W, lam)
-                for i in range(n):
-                    if lam[i] >= d_hi:
-                        psi[i] = 1.0
-                    elif lam[i] < d_lo:
-                        psi[i] = 0.0
+                        th = s[orng + slot * n + i]
+                        s[oth + i] = th if abs(th) <= tbar else cf[oth0 + i]
+                        s[ops + i] = 0.0
+                        work[wps + i] = 0.0
+                    s[oyp + 3] = 0.0
+            # (23)-(25) at t_k: excitation levels and hysteretic switching
+            _excitation(s, work, cf, ci)
+            fresh = True
+            any_on = False
             for i in range(n):
-                s[ops + i] = psi[i]
+                if work[wl + i] >= d_hi:
+                    s[ops + i] = 1.0
+                elif work[wl + i] < d_lo:
+                    s[ops + i] = 0.0
+                if s[ops + i] != 0.0:
+                    any_on = True
+            # total dis-excitation or loss of signal re-arms the settling dwell
+            s[oyp + 3] = min(s[oyp + 3] + h, delay) if any_on and present else 0.0
         else:
             s[oyp + 2] = 1.0
-            _excitation(s, oxi, n, nz, nx, cx, rho2, CX, R, Rinv, S, W, lam)
+            _excitation(s, work, cf, ci)
+            fresh = True
         s[oyp] = yk
-        # ---- outputs at t_k: (8), (10), (11); drift smoothing; prediction of the next sample
+        # ---- outputs at t_k: (8), (10), (11); convergence statistics; next-sample prediction
         amax = 0.0
         for i in range(n):
-            om2 = s[oth + i] - a[i]
+            om2 = s[oth + i] - cf[oa_c + i]
             corr = 1.0 / _sinc2(0.5 * h * math.sqrt(om2)) if om2 > 0.0 else 1.0
             v = s[oa + i] * corr
             if v > amax:
                 amax = v
         thr = min_a if min_a > fade * amax else fade * amax
         ypred = s[oz + nx - 1] if bias else 0.0
-        all_ok = True
+        all_ok = s[oyp + 3] >= delay  # adapting: past start-up, excited, with a signal
         j = 0 if last_only else k
-        write = (not last_only) or k == nyield - 1
+        write = (not last_only) or k == nsamp - 1
         for i in range(n):
-            om2 = s[oth + i] - a[i]
+            om2 = s[oth + i] - cf[oa_c + i]
             x1 = s[oz + 2 * i]
             x2 = s[oz + 2 * i + 1]
             cc, ss = _osc_step(om2, h)
+            w = math.nan
+            corr = 1.0
             if om2 > 0.0:
                 w = math.sqrt(om2)
                 corr = 1.0 / _sinc2(0.5 * h * w)
-                d = abs(w - s[owp + i]) / h
-                s[odr + i] += c_alpha * (d - s[odr + i])
-                s[owp + i] = w
+                s[owb + i] += c_alpha * (w - s[owb + i])
+                s[odv + i] += c_alpha * (abs(w - s[owb + i]) - s[odv + i])
             else:
-                w = math.nan
-                corr = 1.0
                 all_ok = False
             ypred += corr * (cc * x1 + ss * x2)
             amp = s[oa + i] * corr
             faded = not amp >= thr or amp <= 0.0
-            if faded:
-                all_ok = False
-            if not (s[odr + i] * c_time <= c_tol * w):
-                all_ok = False
-            if s[ops + i] == 0.0:
+            if faded or not (s[odv + i] <= c_tol * w):
                 all_ok = False
             if write:
                 if om2 > 0.0 and not faded:
@@ -600,15 +736,19 @@ def adaptive_multisine_kernel(y, state, dims, cx, a, AL, Lx, Ff, Bf, theta0, con
                     out[j, i] = math.nan
                     out[j, 2 * n + i] = math.nan
                 out[j, n + i] = amp * amp_u if om2 > 0.0 else math.nan
+                ext[j, i] = work[wl + i]
                 ext[j, n + i] = s[ops + i]
                 ext[j, 2 * n + i] = 1.0 if faded else 0.0
         s[oyp + 1] = ypred
+        for i in range(n):  # two components on one frequency are not a converged estimate
+            for i2 in range(i + 1, n):
+                if not abs(s[owb + i] - s[owb + i2]) > c_tol * max(s[owb + i], s[owb + i2]):
+                    all_ok = False
         if write:
             out[j, 3 * n] = s[oz + nx - 1] * amp_u if bias else 0.0
             out[j, 3 * n + 1] = 1.0 if all_ok else 0.0
-            for i in range(n):
-                ext[j, i] = lam[i]
-            ext[j, 3 * n] = 1.0 if reset else 0.0
+            ext[j, 3 * n] = 1.0 if present else 0.0
+            ext[j, 3 * n + 1] = 1.0 if reset else 0.0
     return out, ext, sse * amp_u * amp_u, s
 
 
@@ -618,23 +758,26 @@ class AdaptiveMultisine(Estimator):
 
     name = "adaptive-multisine"
     Params = AdaptiveMultisineParams
-    summary = "Adaptive observer for n biased sinusoids with SVD excitation switching (paper 004)"
+    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (paper 004)"
     paper = "004_880a59a5c07ec15b.txt"
-    example_sample_rate_hz = 1000.0
-    example_frequency_hz = 10.0
-    example_params = {"n_sinusoids": 2, "omega_unit_rad_s": 2 * math.pi * 10.0}
+    # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its
+    # gains, played 5 times faster in paper time: one paper rad/s is 2 pi 5 rad/s here, so the
+    # tones are at 15 and 10 Hz.
+    example_sample_rate_hz = 750.0
+    example_frequency_hz = 15.0
+    example_params = {"omega_unit_rad_s": 2 * math.pi * 5.0, "convergence_time": 5.0}
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
-        """Two tones at 0.7 and 1.3 times the 10 Hz nominal frequency, offset 0.5, 1 % noise."""
+        """1 + 4 sin(2 pi 15 t) + 3 sin(2 pi 10 t + 0.5) + uniform noise in [-0.25, 0.25]
+        (Example 2 of the paper before its t = 120 s, five times faster)."""
         rng = np.random.default_rng(seed)
         t = np.arange(n) / cls.example_sample_rate_hz
-        f0 = cls.example_frequency_hz
         return (
-            0.5
-            + np.sin(2 * np.pi * 0.7 * f0 * t + 0.3)
-            + 0.6 * np.sin(2 * np.pi * 1.3 * f0 * t + 1.1)
-            + 0.01 * rng.standard_normal(n)
+            1.0
+            + 4.0 * np.sin(2 * np.pi * 15.0 * t)
+            + 3.0 * np.sin(2 * np.pi * 10.0 * t + 0.5)
+            + rng.uniform(-0.25, 0.25, n)
         )
 
     @property
@@ -642,27 +785,23 @@ class AdaptiveMultisine(Estimator):
         return self.params.n_sinusoids
 
     # ---- derived design --------------------------------------------------------------------
-    def _design(self) -> dict[str, list[float]]:
-        p = self.params
-        d = default_design(p.n_sinusoids, p.bias)
-        for key in d:
-            v = getattr(p, key)
-            if v is not None:
-                d[key] = list(v)
-        return d
-
     def _theta_bar(self, a: list[float]) -> float:
+        """Radius of the ball Theta* of Assumption 1: |theta*_i| <= max(|a_i|, |a_i + omega_bar^2|)."""
         wb2 = self.params.omega_max**2
         return float(np.sqrt(sum(max(abs(ai), abs(ai + wb2)) ** 2 for ai in a)))
 
     def _check_params(self) -> None:
         p = self.params
-        d = self._design()
+        d = p.design()
         a = d["a"]
         if len(set(a)) != len(a) or (p.bias and any(v == 0 for v in a)):
-            raise ParameterError(f"a: expected distinct (and, with bias, non-zero) values, got {a}")
+            raise ParameterError(
+                f"a: expected distinct values, non-zero with bias (observability of (F_x, C_x)), got {a}"
+            )
         if not all(0 < w < p.omega_max for w in d["omega0"]):
             raise ParameterError(f"omega0: expected values in (0, omega_max={p.omega_max}), got {d['omega0']}")
+        if p.omega_ranges is not None and not all(lo <= w <= hi for w, (lo, hi) in zip(d["omega0"], p.omega_ranges)):
+            raise ParameterError(f"omega0: expected values inside omega_ranges {p.omega_ranges}, got {d['omega0']}")
         tbar = self._theta_bar(a)
         w_ball = math.sqrt(tbar - min(a))
         nyq = math.pi * self.sample_rate_hz
@@ -677,11 +816,12 @@ class AdaptiveMultisine(Estimator):
         p = self.params
         n = p.n_sinusoids
         bias = p.bias
-        d = self._design()
+        d = p.design()
         a = np.asarray(d["a"], dtype=np.float64)
         nx = 2 * n + int(bias)
         nf = n - 1
         nz = nx + nf
+        # (3): F_x = blockdiag(J_i, 0), J_i = [[0, 1], [a_i, 0]]; C_x = [c_1 .. c_n 1], c_i = [1 0]
         Fx = np.zeros((nx, nx))  # noqa: N806 (paper's names)
         Cx = np.zeros(nx)  # noqa: N806
         for i in range(n):
@@ -690,6 +830,7 @@ class AdaptiveMultisine(Estimator):
             Cx[2 * i] = 1.0
         if bias:
             Cx[nx - 1] = 1.0
+        # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation)
         poles = np.asarray(d["poles"], dtype=np.float64)
         try:
             res = place_poles(Fx.T, Cx[:, None], poles)
@@ -701,7 +842,7 @@ class AdaptiveMultisine(Estimator):
             raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} (placed {list(got)})")
         Ff = np.asarray(d["filter_poles"], dtype=np.float64)  # noqa: N806
         Bf = np.asarray(d["filter_gains"], dtype=np.float64)  # noqa: N806
-        AL = np.zeros((nz, nz))  # noqa: N806  A_L = F_z - L C_z
+        AL = np.zeros((nz, nz))  # noqa: N806  A_L = F_z - L C_z, (15)-(16)
         AL[:nx, :nx] = Fx - np.outer(Lx, Cx)
         AL[nx:, :nx] = np.outer(Bf, Cx)
         AL[nx:, nx:] = np.diag(Ff)
@@ -709,22 +850,29 @@ class AdaptiveMultisine(Estimator):
         Lfull[:nx] = Lx
         tbar = self._theta_bar(list(a))
         w_ball = math.sqrt(tbar - float(a.min()))
-        h = p.omega_unit_rad_s / self.sample_rate_hz
-        rate = max(
-            float(np.max(np.abs(np.linalg.eigvals(AL)))), p.mu, p.mu_a * w_ball**2, float(np.max(np.abs(Ff), initial=0.0))
-        )
-        m_sub = max(1, math.ceil(h * w_ball / 0.25), math.ceil(h * rate / 0.5))
-        if m_sub > 512:
+        h = p.omega_unit_rad_s / self.sample_rate_hz  # sample period in scaled time
+        # RK4 sub-steps: accuracy on the modelled band (phase error ~ (h w)^5 / 120 per step),
+        # stability (|h lambda| < 2.78) over all the projection admits and over the linear rates
+        rate = max(float(np.max(np.abs(np.linalg.eigvals(AL)))), d["mu"], d["mu_a"] * w_ball**2)
+        m_sub = max(1, math.ceil(h * p.omega_max / 0.25), math.ceil(h * w_ball / 2.0), math.ceil(h * rate / 1.0))
+        if m_sub > 256:
             raise ParameterError(
-                f"sample_rate_hz: expected at most 512 RK4 sub-steps per sample, got {m_sub} "
-                f"(raise the sample rate or lower mu, the poles or omega_max)"
+                f"sample_rate_hz: expected at most 256 RK4 sub-steps per sample, got {m_sub} "
+                f"(raise the sample rate, or lower mu, the poles or omega_max)"
             )
         theta0 = a + np.asarray(d["omega0"], dtype=np.float64) ** 2  # (4)
+        if p.omega_ranges is None:  # inactive bounds: the ball keeps |theta| <= theta_bar
+            th_lo = np.full(n, -2.0 * tbar)
+            th_hi = np.full(n, 2.0 * tbar)
+        else:  # Remark 3.1: omega_i in [lo_i, hi_i]  <=>  theta_i in [a_i + lo_i^2, a_i + hi_i^2]
+            th_lo = a + np.array([lo * lo for lo, _ in p.omega_ranges])
+            th_hi = a + np.array([hi * hi for _, hi in p.omega_ranges])
+        delay = p.adaptation_delay if p.adaptation_delay is not None else 2.0 / float(np.min(np.abs(poles)))
         consts = np.zeros(_N_CONSTS)
         consts[_C_H] = h
-        consts[_C_MU] = p.mu
-        consts[_C_RHO2] = p.rho**2
-        consts[_C_MUA] = p.mu_a
+        consts[_C_MU] = d["mu"]
+        consts[_C_RHO2] = d["rho"] ** 2
+        consts[_C_MUA] = d["mu_a"]
         consts[_C_DHI] = p.delta_high
         consts[_C_DLO] = p.delta_low
         consts[_C_TBAR] = tbar
@@ -734,33 +882,29 @@ class AdaptiveMultisine(Estimator):
         consts[_C_FADE] = p.fade_ratio
         consts[_C_CALPHA] = -math.expm1(-h / p.convergence_time)
         consts[_C_CTOL] = p.convergence_tol
-        consts[_C_CTIME] = p.convergence_time
-        consts[_C_ZMAX] = 1e12
-        self._dims = np.array([n, nx, nf, nz, m_sub, int(bias)], dtype=np.int64)
-        self._cx = np.flatnonzero(Cx).astype(np.int64)
-        self._a = a
-        self._AL = np.ascontiguousarray(AL)
-        self._Lx = Lfull
-        self._Ff = np.ascontiguousarray(Ff)
-        self._Bf = np.ascontiguousarray(Bf)
-        self._theta0 = theta0
-        self._consts = consts
-        self.L_x = Lx  # exposed for tests and docs
+        consts[_C_DELAY] = delay
+        consts[_C_ZMAX] = 1e6  # relative to 1 + the input's level
+        consts[_C_LALPHA] = -math.expm1(-h / p.level_time)
+        consts[_C_RINGP] = max(1, round(p.level_time / h))
+        self._ci = np.array([n, nx, nf, nz, m_sub, int(bias)], dtype=np.int64)
+        self._cf = np.concatenate([consts, a, Lfull, Ff, Bf, theta0, th_lo, th_hi])
+        self._nf, self._nz, self._theta0 = nf, nz, theta0
+        # exposed for tests and docs
+        self.L_x = Lx
         self.theta_bar = tbar
         self.substeps = m_sub
+        self.settling_time = float(delay)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        n, nf, nz = self.params.n_sinusoids, int(self._dims[2]), int(self._dims[3])
-        s = np.zeros(nf + nz + nz * n + 5 * n + 3)
+        n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
+        s = np.zeros(nf + nz + nz * n + 5 * n + 9 + _RING * n)
         oth = nf + nz + nz * n
         s[oth : oth + n] = self._theta0
+        s[s.size - _RING * n :] = np.tile(self._theta0, _RING)
         return {"s": s}
 
     def _run(self, samples, state, last_only):
-        out, ext, sse, s = adaptive_multisine_kernel(
-            samples, state["s"], self._dims, self._cx, self._a, self._AL, self._Lx, self._Ff, self._Bf,
-            self._theta0, self._consts, last_only,
-        )
+        out, ext, sse, s = adaptive_multisine_kernel(samples, state["s"], self._cf, self._ci, last_only)
         n = self.params.n_sinusoids
         track = Track(
             frequency_hz=out[:, 0:n],
@@ -773,7 +917,8 @@ class AdaptiveMultisine(Estimator):
                 "excitation_level": ext[:, 0:n],
                 "adaptation_enabled": ext[:, n : 2 * n] != 0.0,
                 "component_faded": ext[:, 2 * n : 3 * n] != 0.0,
-                "observer_reset": ext[:, 3 * n] != 0.0,
+                "signal_present": ext[:, 3 * n] != 0.0,
+                "observer_reset": ext[:, 3 * n + 1] != 0.0,
             },
         )
         return track, {"s": s}
