@@ -141,7 +141,9 @@ COUNT = 12  # decimated steps taken
 SINCE_REBASE = 13  # decimated steps since the last re-centring / time rebase
 HAS_PREV = 14  # c(k-1) exists
 HOLD = 15  # decimated samples still to skip after a restart (the low-pass is settling)
-CORE_SIZE = 16
+ABSENT = 16  # 1 while the signal is 60 dB below its mean power (it stopped)
+CONFIDENT = 17  # 1 while the estimate is confident (enables ELS and re-centring)
+CORE_SIZE = 18
 
 # consts (float64), shared by both kernels
 K_FS, K_T0, K_LAM, K_LAM_A, K_RHO, K_LS_START, K_P0, K_TRACE_MAX = 0, 1, 2, 3, 4, 5, 6, 7
@@ -179,7 +181,11 @@ def regressor_coefficients(u, g, tab, rr, ri):
     for q in range(tab.shape[0]):
         m = int(tab[q, 0])
         b = int(tab[q, 1])
-        mag = tab[q, 2] * u ** (m - b) * g**b
+        mag = tab[q, 2]
+        for _ in range(m - b):  # integer powers by products (pow() is slow)
+            mag *= u
+        for _ in range(b):
+            mag *= g
         mm = m & 3
         if mm == 0:
             rr[q] = mag
@@ -230,12 +236,24 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     ``wk`` is scratch (5, p).
     """
     p = theta.shape[0]
+    lam = consts[K_LAM]
     c2 = cr * cr + ci * ci
-    restart = core[PW_N] > 0.0 and c2 > 100.0 * core[PW] / core[PW_N]
+    mean2 = core[PW] / core[PW_N] if core[PW_N] > 0.0 else 0.0
+    if c2 < 1e-6 * mean2:
+        # the signal stopped (60 dB below its mean power): nothing to learn; the outputs are
+        # undefined until it comes back
+        core[ABSENT] = 1.0
+        core[PW] = lam * core[PW] + c2
+        core[PW_N] = lam * core[PW_N] + 1.0
+        core[C_PREV_RE] = cr
+        core[C_PREV_IM] = ci
+        return
+    restart = core[ABSENT] != 0.0 or (core[PW_N] > 0.0 and c2 > 100.0 * mean2)
     if restart:
-        # the signal (re)appears 20 dB above the mean power (a signal that stopped and
-        # resumes): skip the low-pass rise, then start afresh, keeping theta^ as the prior
+        # the signal comes back (or jumps 20 dB above its mean power): skip the low-pass
+        # rise, then start afresh from there, keeping theta^ as the prior
         core[HOLD] = consts[K_HOLD]
+        core[ABSENT] = 0.0
     if core[HAS_PREV] == 0.0 or restart or core[HOLD] > 0.0:
         if core[HOLD] > 0.0:
             core[HOLD] -= 1.0
@@ -257,7 +275,6 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
             for r in range(p):
                 P[q, r] = p0 if q == r else 0.0
         return
-    lam = consts[K_LAM]
     rho = consts[K_RHO]
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
@@ -291,7 +308,9 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     # (E^ - r1) n^(k-1): the part of xi(k) = n(k) - E n(k-1) (eq. 11) correlated with the
     # regressor c(k-1); r1 = lag-1 correlation of n (0: white noise, the paper's eq. 12)
     r1 = consts[K_R1]
-    use_els = consts[K_ELS] != 0.0 and core[COUNT] >= consts[K_LS_START]
+    # ELS after a plain least-squares start, and only while that estimate is confident: the
+    # whitening feeds the residual back, which runs away on a model that does not fit yet
+    use_els = consts[K_ELS] != 0.0 and core[COUNT] >= consts[K_LS_START] and core[CONFIDENT] != 0.0
     if use_els:
         vbr = vr + (eur - r1) * nr - eui * ni  # modified measurement, eq. (12)
         vbi = vi + (eur - r1) * ni + eui * nr
@@ -319,8 +338,11 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
         for q in range(p):
             e0r -= xr[q] * theta[q]
             e0i -= xi[q] * theta[q]
-        core[SIG2] = lam * core[SIG2] + 0.5 * (e0r * e0r + e0i * e0i)
-        core[SIG2_N] = lam * core[SIG2_N] + 1.0
+        # a-priori error power, weighted with lam^4 (4x shorter memory than theta^): the
+        # noise level for eq. (19), quick to forget a transient (a step, a restart)
+        lam_s = lam * lam * lam * lam
+        core[SIG2] = lam_s * core[SIG2] + 0.5 * (e0r * e0r + e0i * e0i)
+        core[SIG2_N] = lam_s * core[SIG2_N] + 1.0
         tr = 0.0
         for q in range(p):
             tr += P[q, q]
@@ -382,7 +404,10 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def core_status(core, theta, P, consts):
-    """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, converged)."""
+    """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged).
+
+    confident: enough updates and std < the threshold (allows re-centring and ELS; recorded
+    in core[CONFIDENT]); converged: confident and the offset within the low-pass band."""
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
     w = theta[0] + (theta[1] * tau if deriv else 0.0)
@@ -394,14 +419,11 @@ def core_status(core, theta, P, consts):
     var = s2 * max(pww, 0.0) / (1.0 + consts[K_LAM])  # Cov = sigma^2 P / (1 + lam), cf. eq. (19)
     std = math.sqrt(var)
     amp = math.hypot(core[A_RE], core[A_IM])
-    valid = core[COUNT] >= 2.0 and math.isfinite(w) and amp > 0.0
-    conv = (
-        valid
-        and core[COUNT] >= max(2.0 * theta.shape[0], 4.0)
-        and std < consts[K_CONV_STD]
-        and abs(w) <= consts[K_W_BB_MAX]
-    )
-    return w, lam_bb, std, valid, conv
+    valid = core[COUNT] >= 2.0 and math.isfinite(w) and amp > 0.0 and core[ABSENT] == 0.0
+    confident = valid and core[COUNT] >= max(2.0 * theta.shape[0], 4.0) and std < consts[K_CONV_STD]
+    core[CONFIDENT] = 1.0 if confident else 0.0
+    conv = confident and abs(w) <= consts[K_W_BB_MAX]
+    return w, lam_bb, std, valid, confident, conv
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -580,14 +602,14 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
         cr = cre[k] * c0 + cim[k] * s0  # c e^{-j psi2}
         ci = cim[k] * c0 - cre[k] * s0
         core_step(cr, ci, u[k], core, theta, P, tab, consts, wk)
-        w, lb, std, valid, conv = core_status(core, theta, P, consts)
+        w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
         if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
-            dw = w if (recenter and conv) else 0.0
-            dl = lb if (recenter and conv) else 0.0
+            dw = w if (recenter and confident) else 0.0
+            dl = lb if (recenter and confident) else 0.0
             rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
             ref[1] += dw
             ref[2] += dl
-            w, lb, std, valid, conv = core_status(core, theta, P, consts)
+            w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
         out[k, 0] = w + ref[1] if valid else np.nan
         out[k, 1] = lb + ref[2] if valid else np.nan
         out[k, 2] = math.hypot(core[A_RE], core[A_IM]) if valid else np.nan
@@ -711,11 +733,11 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
             ist[0] = 0
             ist[1] = (ist[1] + 1) % ncyc
             core_step(cr, ci, u, core, theta, P, tab, consts, wk)
-            w, lb, std, val, conv = core_status(core, theta, P, consts)
+            w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
             if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
                 dw = 0.0
                 dl = 0.0
-                if recenter and conv:
+                if recenter and confident:
                     # periodic re-centring of the reference oscillator on the estimate (frequency
                     # and, with the derivative model, its ramp), clamped to the tracking range
                     wnew = wref + w / T0
@@ -748,15 +770,16 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
                     wref = wnew
                     lref = lnew
                 rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
-                w, lb, std, val, conv = core_status(core, theta, P, consts)
+                w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
             # snapshot, compensated for the low-pass response at the estimated baseband frequency
             h = lowpass_response(sos, w / d0)
-            habs = abs(h)
-            amp = math.hypot(core[A_RE], core[A_IM]) / habs
+            ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
+            habs2 = h.real * h.real + h.imag * h.imag
+            amp = abs(ah) / habs2  # |a^ / H|
             val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
             wb_s = w / T0
             lb_s = lb / (T0 * T0)
-            ph0 = math.atan2(core[A_IM], core[A_RE]) - math.atan2(h.imag, h.real)
+            ph0 = math.atan2(ah.imag, ah.real)  # arg(a^ / H)
             fe[F_SNAP_W] = wb_s
             fe[F_SNAP_L] = lb_s
             fe[F_SNAP_PH] = ph0
@@ -765,7 +788,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
             fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
             fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
             fe[F_SINCE] = 0.0
-            bb = complex(math.cos(ph0), math.sin(ph0))
+            bb = ah / abs(ah) if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
             a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
             bs = complex(math.cos(a_), math.sin(a_))
         else:
@@ -908,8 +931,8 @@ class DifferentialRlsParams(EstimatorParams):
         True, description="Estimate the frequency derivative (eqs. 24-25) and ramp the reference with it"
     )
     forgetting_factor: float = Field(0.98, description="Exponential data weighting lambda, 0 < lambda <= 1")
-    phase_forgetting_factor: float | None = Field(
-        None, description="Weighting of the phase/amplitude stage (eqs. 21-23); default: forgetting_factor"
+    phase_forgetting_factor: float = Field(
+        0.9, description="Exponential weighting of the phase/amplitude stage (eqs. 21-23), 0 < lambda_a <= 1"
     )
     els: bool = Field(True, description="Extended least squares whitening of the coloured noise (eqs. 11-13)")
     els_damping: float = Field(
@@ -954,8 +977,8 @@ class DifferentialRlsParams(EstimatorParams):
 
     @field_validator("forgetting_factor", "phase_forgetting_factor")
     @classmethod
-    def _lam(cls, v: float | None) -> float | None:
-        if v is not None and not (0.0 < v <= 1.0):
+    def _lam(cls, v: float) -> float:
+        if not (0.0 < v <= 1.0):
             raise ValueError(f"expected 0 < forgetting factor <= 1, got {v}")
         return v
 
@@ -1077,7 +1100,7 @@ class DifferentialRls(Estimator):
         c[K_FS] = fs
         c[K_T0] = T0
         c[K_LAM] = p.forgetting_factor
-        c[K_LAM_A] = p.forgetting_factor if p.phase_forgetting_factor is None else p.phase_forgetting_factor
+        c[K_LAM_A] = p.phase_forgetting_factor
         c[K_RHO] = p.els_damping
         c[K_LS_START] = p.ls_start
         c[K_P0] = p.p0
