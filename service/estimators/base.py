@@ -56,7 +56,9 @@ class Track:
     offset: np.ndarray  # (N,) float64
     converged: np.ndarray  # (N,) bool
     residual_rms: float  # RMS of the one-step prediction error over the block
-    extras: dict[str, np.ndarray] = field(default_factory=dict)  # per-sample (N,) or (N, m)
+    # Per-sample diagnostics, (N,) or (N, m). By convention "rocof_hz_per_s" ((N,) or
+    # (N, K)) when the estimator tracks the rate of change of frequency.
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_samples(self) -> int:
