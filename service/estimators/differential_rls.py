@@ -142,7 +142,7 @@ SINCE_REBASE = 13  # decimated steps since the last re-centring / time rebase
 HAS_PREV = 14  # c(k-1) exists
 HOLD = 15  # decimated samples still to skip after a restart (the low-pass is settling)
 ABSENT = 16  # 1 while the signal is 60 dB below its mean power (it stopped)
-CONFIDENT = 17  # 1 while the estimate is confident (enables ELS and re-centring)
+INBAND = 17  # 1 while the estimate is valid and within the low-pass band (enables ELS)
 CORE_SIZE = 18
 
 # consts (float64), shared by both kernels
@@ -237,14 +237,16 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     """
     p = theta.shape[0]
     lam = consts[K_LAM]
+    lam4 = lam * lam * lam * lam
     c2 = cr * cr + ci * ci
     mean2 = core[PW] / core[PW_N] if core[PW_N] > 0.0 else 0.0
-    if c2 < 1e-6 * mean2:
-        # the signal stopped (60 dB below its mean power): nothing to learn; the outputs are
-        # undefined until it comes back
+    if c2 < (1e-4 if core[ABSENT] != 0.0 else 1e-6) * mean2:
+        # the signal stopped (60 dB below its mean power; it is back once 40 dB below the
+        # decaying mean, a hysteresis against the low-pass ringing): nothing to learn, the
+        # outputs are undefined until it comes back
         core[ABSENT] = 1.0
-        core[PW] = lam * core[PW] + c2
-        core[PW_N] = lam * core[PW_N] + 1.0
+        core[PW] = lam4 * core[PW] + c2
+        core[PW_N] = lam4 * core[PW_N] + 1.0
         core[C_PREV_RE] = cr
         core[C_PREV_IM] = ci
         return
@@ -308,22 +310,23 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     # (E^ - r1) n^(k-1): the part of xi(k) = n(k) - E n(k-1) (eq. 11) correlated with the
     # regressor c(k-1); r1 = lag-1 correlation of n (0: white noise, the paper's eq. 12)
     r1 = consts[K_R1]
-    # ELS after a plain least-squares start, and only while that estimate is confident: the
-    # whitening feeds the residual back, which runs away on a model that does not fit yet
-    use_els = consts[K_ELS] != 0.0 and core[COUNT] >= consts[K_LS_START] and core[CONFIDENT] != 0.0
+    # ELS after a plain least-squares start, and only while that estimate lies in the band:
+    # the whitening feeds the residual back, which ran away on an offset beyond the low-pass
+    # (where the truncation error of (6), not noise, dominates the residual)
+    use_els = consts[K_ELS] != 0.0 and core[COUNT] >= consts[K_LS_START] and core[INBAND] != 0.0
     if use_els:
         vbr = vr + (eur - r1) * nr - eui * ni  # modified measurement, eq. (12)
         vbi = vi + (eur - r1) * ni + eui * nr
     else:
         vbr = vr
         vbi = vi
-    pw = lam * core[PW] + (cpr * cpr + cpi * cpi)
-    pwn = lam * core[PW_N] + 1.0
-    core[PW] = pw
-    core[PW_N] = pwn
-    # normaliser: mean power, and never below |c(k-1)|^2 so that no equation weighs more
-    # than a steady one (|x| <= |r|)
-    m2 = max(pw / pwn, cpr * cpr + cpi * cpi)
+    # normaliser: the mean power of c before c(k-1) (so that the weight does not depend on
+    # the noise in this equation), never below |c(k-1)|^2 / 4 so that no equation (a rising
+    # signal) weighs more than 4 steady ones (|x| <= 2 |r|)
+    cp2 = cpr * cpr + cpi * cpi
+    m2 = max(core[PW] / core[PW_N], 0.25 * cp2) if core[PW_N] > 0.0 else cp2
+    core[PW] = lam4 * core[PW] + cp2  # mean power, lam^4: follows amplitude steps
+    core[PW_N] = lam4 * core[PW_N] + 1.0
     if m2 > 1e-300 and math.isfinite(m2):
         sc = 1.0 / math.sqrt(m2)  # equations divided by the RMS amplitude: scale-free P
         xr = wk[2]
@@ -340,15 +343,14 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
             e0i -= xi[q] * theta[q]
         # a-priori error power, weighted with lam^4 (4x shorter memory than theta^): the
         # noise level for eq. (19), quick to forget a transient (a step, a restart)
-        lam_s = lam * lam * lam * lam
-        core[SIG2] = lam_s * core[SIG2] + 0.5 * (e0r * e0r + e0i * e0i)
-        core[SIG2_N] = lam_s * core[SIG2_N] + 1.0
+        core[SIG2] = lam4 * core[SIG2] + 0.5 * (e0r * e0r + e0i * e0i)
+        core[SIG2_N] = lam4 * core[SIG2_N] + 1.0
         tr = 0.0
         for q in range(p):
             tr += P[q, q]
         # forget only while the regressor carries information (|c(k-1)|^2 / mean power)
         # and P is sane: P stays finite on zero input and on a signal that stops
-        excited = (cpr * cpr + cpi * cpi) > 1e-4 * m2
+        excited = cp2 > 1e-4 * m2
         f = lam if (excited and tr < consts[K_TRACE_MAX]) else 1.0
         _rls_scalar(P, theta, xr, yr, f, wk[4])
         _rls_scalar(P, theta, xi, yi, 1.0, wk[4])
@@ -406,8 +408,9 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
 def core_status(core, theta, P, consts):
     """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged).
 
-    confident: enough updates and std < the threshold (allows re-centring and ELS; recorded
-    in core[CONFIDENT]); converged: confident and the offset within the low-pass band."""
+    confident: enough updates and std < the threshold (allows re-centring); converged:
+    confident and the offset within the low-pass band (valid and in band is recorded in
+    core[INBAND]: it allows ELS)."""
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
     w = theta[0] + (theta[1] * tau if deriv else 0.0)
@@ -421,8 +424,9 @@ def core_status(core, theta, P, consts):
     amp = math.hypot(core[A_RE], core[A_IM])
     valid = core[COUNT] >= 2.0 and math.isfinite(w) and amp > 0.0 and core[ABSENT] == 0.0
     confident = valid and core[COUNT] >= max(2.0 * theta.shape[0], 4.0) and std < consts[K_CONV_STD]
-    core[CONFIDENT] = 1.0 if confident else 0.0
-    conv = confident and abs(w) <= consts[K_W_BB_MAX]
+    inband = abs(w) <= consts[K_W_BB_MAX]
+    core[INBAND] = 1.0 if (valid and inband) else 0.0
+    conv = confident and inband
     return w, lam_bb, std, valid, confident, conv
 
 
