@@ -241,6 +241,29 @@ def test_harmonics_equals_the_same_plant_given_as_matrices():
     np.testing.assert_array_equal(b.converged, a.converged)
 
 
+def test_estimates_do_not_depend_on_the_state_basis():
+    # The same two-line bank in the basis x' = S x: A' = S A S^-1, C' = C S^-1. Ad is then
+    # dense (the kernel's generic product, not the 2 x 2-block one) and the modal read-out
+    # uses non-trivial eigenvectors; amplitude, phase and offset must not change.
+    fs = 4000.0
+    t, y, *_ = harmonics_signal(fs, 0.5, 0.01)
+    A = np.zeros((4, 4))  # noqa: N806
+    for i, f in enumerate([50.0, 150.0]):
+        w = 2 * np.pi * f
+        A[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = [[0, w], [-w, 0]]
+    S = np.eye(4) + 0.3 * np.random.default_rng(1).standard_normal((4, 4))  # noqa: N806
+    Si = np.linalg.inv(S)  # noqa: N806
+    ref = create(NAME, fs, frequencies_hz=[50.0, 150.0], period_s=0.05).update(y)
+    est = create(NAME, fs, preset="plant", A=(S @ A @ Si).tolist(), C=(np.array([1.0, 0, 1, 0]) @ Si).tolist(),
+                 period_s=0.05)
+    assert not est._iconst[-1]  # the dense path
+    tr = est.update(y)
+    np.testing.assert_allclose(tr.amplitude, ref.amplitude, atol=1e-8)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (tr.phase_rad - ref.phase_rad))), 0.0, atol=1e-7)
+    np.testing.assert_allclose(tr.offset, ref.offset, atol=1e-8)
+    np.testing.assert_allclose(tr.extras["x_hat"], ref.extras["x_hat"] @ S.T, atol=1e-8)
+
+
 def test_fractional_period_needs_the_option_and_then_cancels():
     fs = 4100.0  # T fs = 205.0 - 1e-3 samples
     T = 1 / 20.0001  # noqa: N806

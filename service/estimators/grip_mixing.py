@@ -465,10 +465,13 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n), y (Lb,), u (Lb, m) and
     dhat (Lb,), and the running sum of dhat over the last ``window`` samples; ``count0`` the
     sample count. ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
-    Ld, D, the tap weights and the modal rows Wre, Wim (K, n); ``iconst`` packs n, m, K,
-    the number of taps, Lb, Lz, window, reset_half, warm, modal_ok and the tap offsets.
+    Ld, D, the tap weights, the modal rows Wre, Wim (K, n) and the mode frequencies (K);
+    ``iconst`` packs n, m, K,
+    the number of taps, Lb, Lz, window, reset_half, warm, modal_ok, the tap offsets and
+    whether Ad is a bank of 2 x 2 blocks.
     Returns ``(out, sse, new_state, new_count)`` with ``out`` one row per sample (or the
-    last) and columns amplitude (K), phase (K), offset, converged (0/1), dhat, xhat (n).
+    last) and columns frequency (K), amplitude (K), phase (K), offset, converged (0/1),
+    dhat, xhat (n).
     Pure: the inputs are not modified.
     """
     n = iconst[0]
@@ -482,6 +485,7 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     warm = iconst[8]
     modal_ok = iconst[9] != 0
     tap_o = iconst[10 : 10 + nt]
+    pairs = iconst[10 + nt] != 0  # Ad block-diagonal with 2 x 2 blocks (oscillator banks)
     o = 0
     Ad = fconst[o : o + n * n].reshape((n, n))
     o += n * n
@@ -500,6 +504,7 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     o += nt
     Wre = fconst[o : o + K * n].reshape((K, n))
     Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
+    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]  # model frequencies, Hz (NaN: no modes)
     new_state = state.copy()  # the views below write into the copy only
     o = 0
     x = new_state[o : o + n]
@@ -521,7 +526,7 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     N = block.shape[0]
     P = 2 * reset_half  # reset interval of each z copy
     rows = 1 if last_only else N
-    out = np.empty((rows, 2 * K + 3 + n))
+    out = np.empty((rows, 3 * K + 3 + n))
     xp = np.empty(n)
     zn = np.empty(n)
     rd = np.empty(nt, dtype=np.int64)  # ring positions of the taps of the delay T
@@ -541,6 +546,16 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
         if k == 0:
             for a in range(n):
                 xp[a] = x[a]
+        elif pairs:  # the same product, skipping the zeros of a bank of 2 x 2 blocks
+            for a in range(0, n, 2):
+                x0 = x[a]
+                x1 = x[a + 1]
+                xp[a] = Ad[a, a] * x0 + Ad[a, a + 1] * x1
+                xp[a + 1] = Ad[a + 1, a] * x0 + Ad[a + 1, a + 1] * x1
+            if m > 0:
+                for a in range(n):
+                    for b in range(m):
+                        xp[a] += Bd0[a, b] * up[b] + Bd1[a, b] * block[i, 1 + b]
         else:
             for a in range(n):
                 s = 0.0
@@ -643,23 +658,33 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
             for a in range(n):
                 qre += Wre[c, a] * x[a]
                 qim += Wim[c, a] * x[a]
+            out[r, c] = freq[c]
             if modal_ok:
-                out[r, c] = math.sqrt(qre * qre + qim * qim)
+                out[r, K + c] = math.sqrt(qre * qre + qim * qim)
                 ph = math.atan2(qre, -qim)  # q = a e^{j(phase - pi/2)}
-                out[r, K + c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
+                out[r, 2 * K + c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
                 rest -= qre
             else:
-                out[r, c] = np.nan
                 out[r, K + c] = np.nan
-        out[r, 2 * K] = rest
-        out[r, 2 * K + 1] = 1.0 if modal_ok and k - 1 >= warm else 0.0
-        out[r, 2 * K + 2] = dhat
+                out[r, 2 * K + c] = np.nan
+        out[r, 3 * K] = rest
+        out[r, 3 * K + 1] = 1.0 if modal_ok and k - 1 >= warm else 0.0
+        out[r, 3 * K + 2] = dhat
         for a in range(n):
-            out[r, 2 * K + 3 + a] = x[a]
+            out[r, 3 * K + 3 + a] = x[a]
     new_state[o] = dsum
     count = np.empty(1, dtype=np.int64)
     count[0] = k
     return out, sse, new_state, count
+
+
+def _pairs(Ad: np.ndarray) -> bool:  # noqa: N803
+    """True if Ad is block-diagonal with 2 x 2 blocks (the kernel then skips the zeros)."""
+    n = Ad.shape[0]
+    if n % 2:
+        return False
+    mask = np.kron(np.eye(n // 2), np.ones((2, 2))) == 0
+    return not np.any(Ad[mask])
 
 
 def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]:
@@ -730,14 +755,14 @@ class GripMixing(Estimator):
         self._lz = self._lb if m > 0 else 0  # no input: z and its delay line are never used
         self._fconst = np.concatenate([
             g.Ad.ravel(), g.Bd0.ravel(), g.Bd1.ravel(), g.C, g.Cbar, g.C @ g.E, g.Ld, g.D, g.tap_h,
-            g.Wre.ravel(), g.Wim.ravel(),
+            g.Wre.ravel(), g.Wim.ravel(), g.frequencies_hz if g.modal_ok else np.full(1, np.nan),
         ])  # fmt: skip
+        self._n, self._K = n, int(g.Wre.shape[0])
         self._iconst = np.array(
             [n, m, g.Wre.shape[0], g.tap_h.size, self._lb, self._lz, g.window, g.reset_half, g.warm,
-             int(g.modal_ok), *g.tap_o],
+             int(g.modal_ok), *g.tap_o, int(_pairs(g.Ad))],
             dtype=np.int64,
         )  # fmt: skip
-        self._freq_row = g.frequencies_hz if g.modal_ok else np.full(1, np.nan)
 
     # ---- design read-outs (for docs and tests) ----------------------------------------------
     @property
@@ -770,15 +795,14 @@ class GripMixing(Estimator):
         out, sse, flat, count = grip_mixing_kernel(
             block, state["state"], state["count"], self._fconst, self._iconst, last_only
         )
-        K = self._iconst[2]  # noqa: N806
-        n = self._iconst[0]
+        K, n = self._K, self._n  # noqa: N806
         track = Track(
-            frequency_hz=np.tile(self._freq_row, (out.shape[0], 1)),
-            amplitude=out[:, :K],
-            phase_rad=out[:, K : 2 * K],
-            offset=out[:, 2 * K],
-            converged=out[:, 2 * K + 1] != 0.0,
+            frequency_hz=out[:, :K],
+            amplitude=out[:, K : 2 * K],
+            phase_rad=out[:, 2 * K : 3 * K],
+            offset=out[:, 3 * K],
+            converged=out[:, 3 * K + 1] != 0.0,
             residual_rms=math.sqrt(sse / block.shape[0]),
-            extras={"x_hat": out[:, 2 * K + 3 : 2 * K + 3 + n], "d_hat": out[:, 2 * K + 2]},
+            extras={"x_hat": out[:, 3 * K + 3 : 3 * K + 3 + n], "d_hat": out[:, 3 * K + 2]},
         )
         return track, {"state": flat, "count": count}
