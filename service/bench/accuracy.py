@@ -885,14 +885,13 @@ def write_plots(out: Path, results: list[dict[str, Any]]) -> list[Path]:
             if phasor:
                 ax.semilogy(t, np.maximum(np.asarray(tr["tve_pct"]), 1e-6), lw=0.8, label=r["estimator"])
             else:
-                err = np.asarray(tr["frequency_hz"]) - np.asarray(tr["true_frequency_hz"])
-                ax.plot(t, np.abs(err).max(axis=1), lw=0.8, label=r["estimator"])
+                err = np.asarray(tr["frequency_hz"], dtype=float) - np.asarray(tr["true_frequency_hz"])
+                ax.semilogy(t, np.maximum(np.abs(err).max(axis=1), 1e-9), lw=0.8, label=r["estimator"])
         if phasor:
-            ax.set_ylabel("TVE (%)")
+            ax.set_ylabel("TVE (%), floor 1e-6")
             ax.axhline(1.0, color="k", ls=":", lw=0.8)
         else:
-            ax.set_yscale("log")
-            ax.set_ylabel("|frequency error| (Hz), worst component")
+            ax.set_ylabel("|frequency error| (Hz), worst component, floor 1e-9")
         ax.set_xlabel("time (s)")
         ax.set_title(f"{s} (first trial)")
         ax.grid(True, which="both", alpha=0.3)
