@@ -637,7 +637,8 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
         s[oyp + 5] += l_alpha * (dev * dev - s[oyp + 5])
         s[oyp + 9] += 0.1 * l_alpha * (dev * dev - s[oyp + 9])
         present = 2.0 * s[oyp + 5] >= min_a * min_a and s[oyp + 5] >= cf[_C_LRATIO] * s[oyp + 9]
-        if s[oyp + 6] != 0.0 and not present:
+        lost = s[oyp + 6] != 0.0 and not present
+        if lost:
             # loss of signal: the adaptation ran on the observer's free response while the
             # level gate was catching up; roll thetah back to the oldest snapshot
             slot = int(s[oyp + 8])
@@ -720,8 +721,14 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                     s[ops + i] = 0.0
                 if s[ops + i] != 0.0:
                     any_on = True
-            # total dis-excitation or loss of signal re-arms the settling dwell
-            s[oyp + 3] = min(s[oyp + 3] + h, delay) if any_on and present else 0.0
+            # total dis-excitation re-arms the settling dwell; a loss of signal re-arms it twice
+            # as long (thetah is known good then, the observer restarts from its free response)
+            if not present:
+                s[oyp + 3] = -delay if (lost or s[oyp + 3] < 0.0) else 0.0
+            elif any_on:
+                s[oyp + 3] = min(s[oyp + 3] + h, delay)
+            else:
+                s[oyp + 3] = min(s[oyp + 3], 0.0)
         else:
             s[oyp + 2] = 1.0
             _excitation(s, work, cf, ci)
