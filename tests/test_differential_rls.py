@@ -85,7 +85,7 @@ def test_coloured_noise_eqs_5_and_11():
     s = np.exp(1j * (w * dt * k + 0.4))
     n = 0.3 * (rng.standard_normal(200) + 1j * rng.standard_normal(200))
     c = s + n
-    E = np.exp(1j * w * dt)  # noqa: N806
+    E = np.exp(1j * w * dt)
     xi = (c[1:] - c[:-1]) - (E - 1) * c[:-1]
     np.testing.assert_allclose(xi, n[1:] - E * n[:-1], atol=1e-13)
 
@@ -96,7 +96,7 @@ def test_uniform_sampling_has_rank_2_and_cyclic_sampling_full_rank():
     rng = np.random.default_rng(3)
 
     def info(n, dts):
-        M = np.zeros((n, n))  # noqa: N806
+        M = np.zeros((n, n))
         for k in range(60):
             c = np.exp(1j * rng.uniform(-np.pi, np.pi))
             x = coefficients(n, False, dts[k % len(dts)]) * c
@@ -120,8 +120,7 @@ def test_frequency_derivative_model_eqs_24_25(n):
         w0, lam0 = rng.uniform(-1, 1), rng.uniform(-0.2, 0.2)
         t0, dt = rng.uniform(0, 2), rng.uniform(0.05, 0.3)
         t1 = t0 + dt
-        phase = lambda t: w0 * t + 0.5 * lam0 * t * t + 0.3  # noqa: E731
-        alpha = phase(t1) - phase(t0)
+        alpha = (w0 * t1 + 0.5 * lam0 * t1 * t1) - (w0 * t0 + 0.5 * lam0 * t0 * t0)
         g = (t1**2 - t0**2) / 2
         assert alpha == pytest.approx(w0 * dt + lam0 * g, abs=1e-14)
         tab = monomial_table(n, True)
@@ -135,27 +134,27 @@ def test_recentring_re_expresses_theta_exactly(n, deriv):
     # w' = w + lam Delta - dw, lam' = lam - dl: theta' = T theta + b0 holds for the true monomials
     rng = np.random.default_rng(5)
     tab = monomial_table(n, deriv)
-    idx, T, b0, poly, tmp, work = transform_scratch(tab)  # noqa: N806
+    idx, T, b0, work = transform_scratch(tab)
     for _ in range(10):
         w, lam = rng.uniform(-0.5, 0.5), (rng.uniform(-0.1, 0.1) if deriv else 0.0)
         delta = rng.uniform(0, 20) if deriv else 0.0
         dw, dl = rng.uniform(-0.3, 0.3), (rng.uniform(-0.05, 0.05) if deriv else 0.0)
         theta = monomials(tab, w, lam)
-        P = np.eye(tab.shape[0]) + 0.1 * np.ones((tab.shape[0], tab.shape[0]))  # noqa: N806
-        recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, poly, tmp, work)
+        P = np.eye(tab.shape[0]) + 0.1 * np.ones((tab.shape[0], tab.shape[0]))
+        recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work)
         np.testing.assert_allclose(theta, monomials(tab, w + lam * delta - dw, lam - dl), atol=1e-12)
         np.testing.assert_allclose(P, T @ (np.eye(len(theta)) + 0.1) @ T.T, rtol=1e-12)
         np.testing.assert_array_equal(P, P.T)
 
 
 @pytest.mark.parametrize("M, paper", [(10, 0.033), (5, 0.065)])
-def test_oversampled_differential_noise_eq_14(M, paper):  # noqa: N803
+def test_oversampled_differential_noise_eq_14(M, paper):
     # Ideal low-pass noise sampled at T_sN / M: E[(n(k) - n(k-1))^2] = 2 sigma^2 (1 - sinc(1/M)).
     # Paper: .033 sigma^2 for M = 10 (matches: 0.0327) and .065 sigma^2 for M = 5, which is
     # 1 - sinc(1/5) = 0.0645 without the factor 2 (measured here: 0.129).
     theory = 2.0 * (1.0 - np.sinc(1.0 / M))
     rng = np.random.default_rng(6)
-    N = 2**18  # noqa: N806
+    N = 2**18
     spec = np.fft.fft(rng.standard_normal(N))
     f = np.fft.fftfreq(N)  # cycles per sample; band edge B_N = 1/(2M)
     n = np.fft.ifft(np.where(np.abs(f) < 0.5 / M, spec, 0.0)).real
@@ -188,7 +187,7 @@ def test_lowpass_retune_makes_the_reference_change_seamless():
     sos = np.ascontiguousarray(butter(4, 5.0, fs=FS, output="sos"))
     om1, om2 = 2 * np.pi * 1.3 / FS, 2 * np.pi * 0.2 / FS
     fe = np.zeros(32)
-    X = 0.8 * np.exp(0.4j)  # noqa: N806
+    X = 0.8 * np.exp(0.4j)
     for i in range(5000):  # settle on X e^{j om1 i}
         m = X * np.exp(1j * om1 * i)
         _biquads(m.real, sos, fe, 8)
@@ -214,7 +213,7 @@ def fig1(k: int, **kw):
     dt = cyclic_dt(k, FIG1_DT)
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
-    opts = dict(n_terms=4, forgetting_factor=0.995, els=False, p0=1e4)  # lam = 0.995 as in Section 10
+    opts = {"n_terms": 4, "forgetting_factor": 0.995, "els": False, "p0": 1e4}  # lam = 0.995 as in Section 10
     opts.update(kw)
     return t, baseband_estimate(c, dt, **opts)
 
@@ -241,13 +240,13 @@ def test_fig1_faster_than_exponential_then_exponential():
     _, r = fig1(3000)
     _, ref = fig1(3000, p0=1e12)
     d = np.abs(r["frequency_rad_s"] - ref["frequency_rad_s"])
-    slope = lambda a, b: np.log(d[b] / d[a]) / (b - a)  # noqa: E731
+    slope = lambda a, b: np.log(d[b] / d[a]) / (b - a)
     ln_lam = np.log(0.995)
     assert slope(2, 8) < 20 * ln_lam  # measured -0.23 per sample (46 x ln lam)
     assert slope(1024, 2048) == pytest.approx(ln_lam, rel=0.05)  # measured -0.0050
 
 
-def _band_limited(k: int, M: int, var: float, seed: int) -> np.ndarray:  # noqa: N803
+def _band_limited(k: int, M: int, var: float, seed: int) -> np.ndarray:
     """Complex noise, variance ``var`` per component, band-limited to 1/M of the Nyquist band
     (ideal low-pass, eq. 14): the paper's oversampled I/Q noise."""
     rng = np.random.default_rng(seed)
@@ -265,12 +264,12 @@ def test_fig2_noisy_case_els_removes_the_bias():
     # Plain LS is biased towards 0 by sigma_c^2 / (A^2 + sigma_c^2) = 23 % (measured -24 %);
     # ELS (rho = 0.9, r1 = sinc(1/5)) brings it to -3.3 % of which -1.6 % is the n = 2
     # truncation (the noise-free error), and lowers the RMS (0.038 -> 0.022 rad/s).
-    M, k = 5, 6000  # noqa: N806
-    T0 = (np.pi / 2.0) / M  # noqa: N806
+    M, k = 5, 6000
+    T0 = (np.pi / 2.0) / M
     dt = cyclic_dt(k, [T0])
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
-    opts = dict(n_terms=2, forgetting_factor=0.995, p0=1e4)
+    opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     free = baseband_estimate(c, dt, els=False, **opts)["frequency_rad_s"]
     trunc = free[-1] - W
     assert -0.02 < trunc < -0.012  # measured -0.0164
@@ -296,7 +295,7 @@ def test_els_whitens_white_noise():
     k, dt0 = 4000, 0.2
     dt = cyclic_dt(k, [dt0])
     t = np.cumsum(dt)
-    opts = dict(n_terms=2, forgetting_factor=0.995, p0=1e4)
+    opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     floor = -((W * dt0) ** 2) / 6
     bias_ls, bias_els = [], []
     for seed in range(4):
@@ -320,7 +319,7 @@ def test_fig3_tracking_and_the_derivative_model():
     k = 3333
     dt = cyclic_dt(k, FIG1_DT)
     t = np.cumsum(dt)
-    w_of_t = lambda x: W * (1 + 0.5 * np.sin(0.01 * W * x))  # noqa: E731
+    w_of_t = lambda x: W * (1 + 0.5 * np.sin(0.01 * W * x))
     phase = 0.3 + W * t - 50.0 * W * (np.cos(0.01 * W * t) - 1.0) / W  # integral of w(t)
     c = np.exp(1j * phase)
     sel = t > 200

@@ -167,7 +167,7 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     if derivative:
         rows.append((1, 1, 1.0))
     for m in range(2, n + 1):
-        for b in range(0, (m if derivative else 0) + 1):
+        for b in range((m if derivative else 0) + 1):
             rows.append((m, b, math.comb(m, b) / math.factorial(m)))
     return np.array(rows, dtype=np.float64)
 
@@ -228,12 +228,12 @@ def _rls_scalar(P, theta, x, y, f, px):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
+def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
     """One decimated step of the baseband estimator on c(k) = cr + j ci, dt_k = u T0.
 
     Differential model (4)-(7)/(25), extended least squares (12)-(13), phase/amplitude
     stage (21)-(23). Updates core, theta, P in place (the kernels pass copies).
-    ``wk`` is scratch (5, p).
+    rr, ri, xr, xi, px are scratch vectors of length p.
     """
     p = theta.shape[0]
     lam = consts[K_LAM]
@@ -281,8 +281,6 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
     g = u * (tau + 0.5 * u) if deriv else 0.0  # (tau_k^2 - tau_{k-1}^2) / 2, eq. (25)
-    rr = wk[0]
-    ri = wk[1]
     regressor_coefficients(u, g, tab, rr, ri)
     # E^_k = 1 + sum r_p theta^_p(k-1): the estimated one-step rotation e^{j w dt}, eqs. (4), (11)
     er = 1.0
@@ -329,8 +327,6 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
     core[PW_N] = lam4 * core[PW_N] + 1.0
     if m2 > 1e-300 and math.isfinite(m2):
         sc = 1.0 / math.sqrt(m2)  # equations divided by the RMS amplitude: scale-free P
-        xr = wk[2]
-        xi = wk[3]
         for q in range(p):
             xr[q] = (rr[q] * cpr - ri[q] * cpi) * sc  # x(k): regressor of eq. (6)-(7)
             xi[q] = (rr[q] * cpi + ri[q] * cpr) * sc
@@ -352,18 +348,16 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, wk):
         # and P is sane: P stays finite on zero input and on a signal that stops
         excited = cp2 > 1e-4 * m2
         f = lam if (excited and tr < consts[K_TRACE_MAX]) else 1.0
-        _rls_scalar(P, theta, xr, yr, f, wk[4])
-        _rls_scalar(P, theta, xi, yi, 1.0, wk[4])
+        _rls_scalar(P, theta, xr, yr, f, px)
+        _rls_scalar(P, theta, xi, yi, 1.0, px)
         # never let the state go non-finite or the estimate leave the decimated band
         # (|w dt| < pi): restart the parameter estimate
-        ok = abs(theta[0]) < math.pi
+        acc = 0.0
         for q in range(p):
-            if not math.isfinite(theta[q]):
-                ok = False
+            acc += theta[q]
             for r in range(p):
-                if not math.isfinite(P[q, r]):
-                    ok = False
-        if not ok:
+                acc += P[q, r]
+        if not (abs(theta[0]) < math.pi and math.isfinite(acc)):
             p0 = consts[K_P0]
             for q in range(p):
                 theta[q] = 0.0
@@ -432,7 +426,8 @@ def core_status(core, theta, P, consts):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def transform_scratch(tab):
-    """Index table idx[a, b] of w^a lam^b and scratch arrays for :func:`recenter_transform`."""
+    """Index table idx[a, b] of w^a lam^b and scratch arrays (T, b0, work) for
+    :func:`recenter_transform`."""
     p = tab.shape[0]
     nmax = 0
     for q in range(p):
@@ -440,16 +435,19 @@ def transform_scratch(tab):
     idx = -np.ones((nmax + 1, nmax + 1), dtype=np.int64)
     for q in range(p):
         idx[int(tab[q, 0]) - int(tab[q, 1]), int(tab[q, 1])] = q
-    T = np.zeros((p, p))
-    b0 = np.zeros(p)
-    poly = np.zeros((nmax + 1, nmax + 1))
-    tmp = np.zeros((nmax + 1, nmax + 1))
-    work = np.zeros((p, p + 1))
-    return idx, T, b0, poly, tmp, work
+    return idx, np.zeros((p, p)), np.zeros(p), np.zeros((p, p + 1))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, poly, tmp, work):
+def _ipow(x, k):
+    r = 1.0
+    for _ in range(k):
+        r *= x
+    return r
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work):
     """Re-express theta (monomials w^a lam^b) after moving the time origin by ``delta``
     (T0 units) and the reference by ``dw`` (rad/T0) and ``dl`` (rad/T0^2):
 
@@ -457,52 +455,42 @@ def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, poly, tmp, work
         theta'_q = (w')^a (lam')^b = b0_q + sum_r T_qr theta_r   (exact polynomial identity)
         P' = T P T'
 
-    ``idx[a, b]`` is the index of w^a lam^b; T, b0, poly, tmp, work are scratch.
+    by the multinomial expansion (w + delta lam - dw)^a (lam - dl)^b = sum a!/(i! j! l!)
+    C(b, s) delta^j (-dw)^l (-dl)^(b-s) w^i lam^(j+s), i + j + l = a. ``idx[a, b]`` is the
+    index of w^a lam^b; T, b0, work are scratch.
     """
     p = theta.shape[0]
     nmax = idx.shape[0] - 1
-    T[:, :] = 0.0
-    b0[:] = 0.0
+    fact = np.empty(nmax + 1)
+    fact[0] = 1.0
+    for k in range(1, nmax + 1):
+        fact[k] = fact[k - 1] * k
+    for q in range(p):
+        b0[q] = 0.0
+        for r in range(p):
+            T[q, r] = 0.0
     for q in range(p):
         m = int(tab[q, 0])
         bq = int(tab[q, 1])
         aq = m - bq
-        poly[:, :] = 0.0
-        poly[0, 0] = 1.0
-        for _ in range(aq):  # times (w + delta lam - dw)
-            tmp[:, :] = 0.0
-            for c in range(nmax + 1):
-                for d in range(nmax + 1 - c):
-                    v = poly[c, d]
-                    if v == 0.0:
-                        continue
-                    tmp[c, d] -= dw * v
-                    if c + d < nmax:
-                        tmp[c + 1, d] += v
-                        tmp[c, d + 1] += delta * v
-            poly[:, :] = tmp
-        for _ in range(bq):  # times (lam - dl)
-            tmp[:, :] = 0.0
-            for c in range(nmax + 1):
-                for d in range(nmax + 1 - c):
-                    v = poly[c, d]
-                    if v == 0.0:
-                        continue
-                    tmp[c, d] -= dl * v
-                    if c + d < nmax:
-                        tmp[c, d + 1] += v
-            poly[:, :] = tmp
-        for c in range(nmax + 1):
-            for d in range(nmax + 1 - c):
-                v = poly[c, d]
-                if v == 0.0:
+        for j in range(aq + 1):
+            for ll in range(aq - j + 1):
+                i = aq - j - ll
+                ca = fact[aq] / (fact[i] * fact[j] * fact[ll]) * _ipow(delta, j) * _ipow(-dw, ll)
+                if ca == 0.0:
                     continue
-                if c == 0 and d == 0:
-                    b0[q] += v
-                else:
-                    r = idx[c, d]
-                    if r >= 0:
-                        T[q, r] += v
+                for s_ in range(bq + 1):
+                    cb = fact[bq] / (fact[s_] * fact[bq - s_]) * _ipow(-dl, bq - s_)
+                    v = ca * cb
+                    if v == 0.0:
+                        continue
+                    d = j + s_
+                    if i == 0 and d == 0:
+                        b0[q] += v
+                    else:
+                        r = idx[i, d]
+                        if r >= 0:
+                            T[q, r] += v
     for q in range(p):  # theta <- b0 + T theta
         acc = b0[q]
         for r in range(p):
@@ -541,6 +529,13 @@ def _biquads_steady(x, sos, zi, off):
         y = out
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bq(x, b0, b1, b2, a1, a2, z1, z2):
+    """One DF2T biquad step: (y, z1', z2')."""
+    y = b0 * x + z1
+    return y, b1 * x - a1 * y + z2, b2 * x - a2 * y
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _biquads(x, sos, zi, off):
     """Two cascaded DF2T biquads on one channel; zi[off:off+4] are the delays."""
@@ -561,12 +556,12 @@ def _biquads(x, sos, zi, off):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work):
+def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work):
     """Move the time origin to t_k and the reference by (dw, dl); see recenter_transform."""
     deriv = consts[K_DERIV] != 0.0
     delta = core[TAU] if deriv else 0.0
     if delta != 0.0 or dw != 0.0 or dl != 0.0:
-        recenter_transform(theta, P, tab, idx, delta, dw, dl if deriv else 0.0, T, b0, poly, tmp, work)
+        recenter_transform(theta, P, tab, idx, delta, dw, dl if deriv else 0.0, T, b0, work)
     core[TAU] = 0.0
     core[SINCE_REBASE] = 0.0
 
@@ -590,8 +585,8 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
     P = P_in.copy()
     ref = ref_in.copy()
     p = theta.shape[0]
-    wk = np.zeros((5, p))
-    idx, T, b0, poly, tmp, work = transform_scratch(tab)
+    rr, ri, xr, xi, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
+    idx, T, b0, work = transform_scratch(tab)
     n = cre.shape[0]
     out = np.empty((n, 6))
     recenter = consts[K_RECENTER] != 0.0
@@ -605,12 +600,12 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
         s0 = math.sin(ref[0])
         cr = cre[k] * c0 + cim[k] * s0  # c e^{-j psi2}
         ci = cim[k] * c0 - cre[k] * s0
-        core_step(cr, ci, u[k], core, theta, P, tab, consts, wk)
+        core_step(cr, ci, u[k], core, theta, P, tab, consts, rr, ri, xr, xi, px)
         w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
         if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
             dw = w if (recenter and confident) else 0.0
             dl = lb if (recenter and confident) else 0.0
-            rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
+            rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
             ref[1] += dw
             ref[2] += dl
             w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
@@ -683,15 +678,15 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
     P = P_in.copy()
     ist = ist_in.copy()
     p = theta.shape[0]
-    wk = np.zeros((5, p))
-    idx, T, b0, poly, tmp, work = transform_scratch(tab)
+    rr, ri, xr_, xi_, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
+    idx, T, b0, work = transform_scratch(tab)
     n = x.shape[0]
     nout = 1 if last_only else n
     out = np.empty((nout, 5))
     ext = np.empty((nout, 3))
     fs = consts[K_FS]
     inv_fs = 1.0 / fs
-    T0 = consts[K_T0]  # noqa: N806
+    T0 = consts[K_T0]
     w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
     w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
     recenter = consts[K_RECENTER] != 0.0
@@ -706,10 +701,16 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
     ls = complex(fe[F_LS_RE], fe[F_LS_IM])  # its per-sample step
     bb = complex(fe[F_BB_RE], fe[F_BB_IM])  # e^{j phi_bb} predicted for this sample
     bs = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
+        _biquads_steady(x[0], sos, fe, F_ZI)
+    # the low-pass coefficients and the 12 delays of its three channels live in registers
+    s0b0, s0b1, s0b2, s0a1, s0a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
+    s1b0, s1b1, s1b2, s1a1, s1a2 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
+    o1, o2, o3, o4 = fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3]
+    r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
+    q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
     for i in range(n):
         xi = x[i]
-        if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
-            _biquads_steady(xi, sos, fe, F_ZI)
         if ist[2] < warm:
             ist[2] += 1
         # ---- one-step prediction of x(i) from the estimate so far (for residual_rms)
@@ -721,13 +722,16 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
         e = xi - pred
         sse += e * e
         # ---- offset: the same low-pass on x itself
-        bh = _biquads(xi, sos, fe, F_ZI)
+        y1, o1, o2 = _bq(xi, s0b0, s0b1, s0b2, s0a1, s0a2, o1, o2)
+        bh, o3, o4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, o3, o4)
         fe[F_B] = bh
         # ---- quadrature demodulation: m = 2j (x - B^) e^{-j psi}, so that LPF(m) = A e^{j phi_d}
         # for x = B + A sin(psi + phi_d) (c = z + j y of eqs. 1-2)
         d2 = 2.0 * (xi - bh)
-        cr = _biquads(d2 * lo.imag, sos, fe, F_ZI + 4)
-        ci = _biquads(d2 * lo.real, sos, fe, F_ZI + 8)
+        y1, r1, r2 = _bq(d2 * lo.imag, s0b0, s0b1, s0b2, s0a1, s0a2, r1, r2)
+        cr, r3, r4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, r3, r4)
+        y1, q1, q2 = _bq(d2 * lo.real, s0b0, s0b1, s0b2, s0a1, s0a2, q1, q2)
+        ci, q3, q4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, q3, q4)
         # ---- decimation with the cyclic intervals (nonuniform cyclic sampling, Section 5)
         ist[0] += 1
         stepped = False
@@ -736,7 +740,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
             u = cyc[ist[1]] / d0
             ist[0] = 0
             ist[1] = (ist[1] + 1) % ncyc
-            core_step(cr, ci, u, core, theta, P, tab, consts, wk)
+            core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
             w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
             if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
                 dw = 0.0
@@ -760,7 +764,11 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
                         h_old = lowpass_response(sos, om_old)
                         h_new = lowpass_response(sos, om_new)
                         a_now = complex(core[A_RE], core[A_IM])
+                        fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
+                        fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
                         _lowpass_retune(sos, fe, a_now / h_old, om_old, om_new)
+                        r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
+                        q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
                         g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
                         cp = complex(core[C_PREV_RE], core[C_PREV_IM]) * g
                         core[C_PREV_RE] = cp.real
@@ -773,7 +781,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
                         core[NH_IM] = nh.imag
                     wref = wnew
                     lref = lnew
-                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, poly, tmp, work)
+                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
                 w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
             # snapshot, compensated for the low-pass response at the estimated baseband frequency
             h = lowpass_response(sos, w / d0)
@@ -845,6 +853,9 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
             lo = lo * ls
         if lref != 0.0:
             ls = ls * _cis_small(lref * inv_fs * inv_fs)
+    fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3] = o1, o2, o3, o4
+    fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
+    fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
     fe[F_PSI] = psi
     fe[F_WREF] = wref
     fe[F_LREF] = lref
@@ -882,7 +893,7 @@ def baseband_estimate(
     ``amplitude``, ``phase_rad``, ``frequency_std_rad_s``, ``converged``."""
     c = np.ascontiguousarray(c, dtype=np.complex128)
     dt = np.asarray(dt, dtype=np.float64)
-    T0 = float(dt[1:].max()) if dt.size > 1 else 1.0  # noqa: N806
+    T0 = float(dt[1:].max()) if dt.size > 1 else 1.0
     u = np.ascontiguousarray(dt / T0)
     tab = monomial_table(n_terms, rocof_model)
     p = tab.shape[0]
@@ -1018,7 +1029,7 @@ class DifferentialRlsParams(EstimatorParams):
 def settling_samples(sos: np.ndarray, fs: float, bandwidth_hz: float, tol: float = 1e-2) -> int:
     """Input samples after which the low-pass impulse response has shed all but ``tol`` of
     its absolute area (the start-up transient of the demodulator)."""
-    n = int(math.ceil(40.0 * fs / bandwidth_hz)) + 8
+    n = math.ceil(40.0 * fs / bandwidth_hz) + 8
     imp = np.zeros(n)
     imp[0] = 1.0
     h = np.abs(_sig.sosfilt(sos, imp))
@@ -1029,7 +1040,7 @@ def settling_samples(sos: np.ndarray, fs: float, bandwidth_hz: float, tol: float
 def lowpass_noise_correlation(sos: np.ndarray, fs: float, bandwidth_hz: float, lag: int) -> float:
     """Correlation coefficient of white noise after the low-pass at ``lag`` input samples,
     sum h(i) h(i + lag) / sum h(i)^2: the r1 of the decimated noise (cf. eq. 14)."""
-    n = int(math.ceil(40.0 * fs / bandwidth_hz)) + lag + 8
+    n = math.ceil(40.0 * fs / bandwidth_hz) + lag + 8
     imp = np.zeros(n)
     imp[0] = 1.0
     h = _sig.sosfilt(sos, imp)
@@ -1038,7 +1049,7 @@ def lowpass_noise_correlation(sos: np.ndarray, fs: float, bandwidth_hz: float, l
 
 def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: int, spacing: float) -> list[int]:
     """Input samples between decimated samples, cycled: D0, D0 - s, ... (ceil(n/2) values when n > 2)."""
-    d0 = int(round(fs / (2.0 * bandwidth_hz * oversampling)))
+    d0 = round(fs / (2.0 * bandwidth_hz * oversampling))
     if d0 < 1:
         raise ParameterError(
             f"oversampling: expected 2 * bandwidth_hz * oversampling <= sample_rate_hz "
@@ -1046,7 +1057,7 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
         )
     if n <= 2:
         return [d0]
-    step = max(1, int(round(spacing * d0)))
+    step = max(1, round(spacing * d0))
     pattern = [d0 - j * step for j in range((n + 1) // 2)]
     if pattern[-1] < 1:
         raise ParameterError(
@@ -1095,7 +1106,7 @@ class DifferentialRls(Estimator):
             decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing), dtype=np.int64
         )
         d0 = float(self._cyc[0])
-        T0 = d0 / fs  # noqa: N806
+        T0 = d0 / fs
         self._tab = monomial_table(p.n_terms, p.rocof_model)
         n_par = self._tab.shape[0]
         self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
@@ -1142,7 +1153,7 @@ class DifferentialRls(Estimator):
         }
 
     def _run(self, samples, state, last_only):
-        out, ext, sse, fe, core, theta, P, ist = differential_rls_kernel(  # noqa: N806
+        out, ext, sse, fe, core, theta, P, ist = differential_rls_kernel(
             samples, state["fe"], state["core"], state["theta"], state["P"], state["ist"],
             self._sos, self._tab, self._cyc, self._consts, last_only,
         )  # fmt: skip
