@@ -25,19 +25,45 @@ FS_PAPER = 1.0 / 3e-4  # Section V-A: forward Euler with Ts = 3e-4 s
 
 # The paper's gains (rad/s units, omega_unit_rad_s = 1).
 EX1 = {  # Examples 1 and 3: no bias, 2n = 4 poles; initial frequencies 3 and 4 rad/s (paper)
-    "n_sinusoids": 2, "bias": False, "a": [0.0, -0.5], "poles": [-2.0, -0.7, -0.5, -0.2],
-    "filter_poles": [-5.0], "filter_gains": [4.5], "mu": 6.0, "rho": 0.2, "mu_a": 0.15,
-    "omega0": [3.0, 4.0], "omega_max": 10.0,
+    "n_sinusoids": 2,
+    "bias": False,
+    "a": [0.0, -0.5],
+    "poles": [-2.0, -0.7, -0.5, -0.2],
+    "filter_poles": [-5.0],
+    "filter_gains": [4.5],
+    "mu": 6.0,
+    "rho": 0.2,
+    "mu_a": 0.15,
+    "omega0": [3.0, 4.0],
+    "omega_max": 10.0,
 }
 EX2 = {  # Example 2: bias, 2n + 1 = 5 poles; initial frequencies not given: 3.5 and 2.5 (ours)
-    "n_sinusoids": 2, "bias": True, "a": [-2.0, -1.0], "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
-    "filter_poles": [-6.0], "filter_gains": [6.0], "mu": 70.0, "rho": 0.3, "mu_a": 0.1,
-    "delta_high": 3e-4, "delta_low": 3e-5, "omega0": [3.5, 2.5], "omega_max": 10.0,
+    "n_sinusoids": 2,
+    "bias": True,
+    "a": [-2.0, -1.0],
+    "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
+    "filter_poles": [-6.0],
+    "filter_gains": [6.0],
+    "mu": 70.0,
+    "rho": 0.3,
+    "mu_a": 0.1,
+    "delta_high": 3e-4,
+    "delta_low": 3e-5,
+    "omega0": [3.5, 2.5],
+    "omega_max": 10.0,
 }
 EXP = {  # Section V-B experiment at 10 kHz; initial frequencies not given: 6 and 4 (ours)
-    "n_sinusoids": 2, "bias": False, "a": [0.0, -1.0], "poles": [-0.7, -0.4, -0.5, -1.0],
-    "filter_poles": [-2.0], "filter_gains": [1.0], "mu": 20.0, "rho": 1.0, "mu_a": 0.2,
-    "omega0": [6.0, 4.0], "omega_max": 10.0,
+    "n_sinusoids": 2,
+    "bias": False,
+    "a": [0.0, -1.0],
+    "poles": [-0.7, -0.4, -0.5, -1.0],
+    "filter_poles": [-2.0],
+    "filter_gains": [1.0],
+    "mu": 20.0,
+    "rho": 1.0,
+    "mu_a": 0.2,
+    "omega0": [6.0, 4.0],
+    "omega_max": 10.0,
 }
 
 
@@ -55,7 +81,7 @@ def settle_time(t, w, target, rel_tol, t0=0.0) -> float:
 
 
 def run(params, fs, seconds, signal, seed=1):
-    t = np.arange(int(round(seconds * fs))) / fs
+    t = np.arange(round(seconds * fs)) / fs
     y = signal(t, np.random.default_rng(seed))
     return t, create(NAME, fs, **params).update(y)
 
@@ -70,8 +96,15 @@ def test_rebuilt_model_sign_generates_the_sinusoids():
         theta = a[i] + w[i] ** 2  # (4)
         F[2 * i, 2 * i + 1] = 1.0
         F[2 * i + 1, 2 * i] = a[i] - theta  # J_i plus F_i theta_i, F_i's entry is -1
-    x0 = np.array([amp[0] * math.sin(phi[0]), amp[0] * w[0] * math.cos(phi[0]),
-                   amp[1] * math.sin(phi[1]), amp[1] * w[1] * math.cos(phi[1]), a0])
+    x0 = np.array(
+        [
+            amp[0] * math.sin(phi[0]),
+            amp[0] * w[0] * math.cos(phi[0]),
+            amp[1] * math.sin(phi[1]),
+            amp[1] * w[1] * math.cos(phi[1]),
+            a0,
+        ]
+    )
     for t in (0.7, 5.3):
         x = expm(F * t) @ x0
         for i in range(2):
@@ -119,7 +152,7 @@ def _algorithm1_forward_euler(y_of_t, seconds, ts, p):
     AL = Fz - L @ Cz
     z, Xi, yf = np.zeros(nz), np.zeros((nz, n)), np.zeros(nf)
     th, amp, psi = a + np.asarray(p["omega0"]) ** 2, np.zeros(n), np.zeros(n)
-    for k in range(int(round(seconds / ts))):
+    for k in range(round(seconds / ts)):
         yk = y_of_t(k * ts)
         eta = np.concatenate([[yk], yf])
         e, CX = Cz @ z - eta, Cz @ Xi
@@ -144,7 +177,7 @@ def test_discretisation_agrees_with_forward_euler_algorithm_1():
     # 4e-4 rad/s), and at 50 Hz within 4e-3 rad/s (the hold's interpolation).
     p = {**EX1, "omega0": [2.5, 4.5]}
     seconds = 8.0
-    sig = lambda t: math.sin(2 * t) + math.sin(5 * t)  # noqa: E731
+    sig = lambda t: math.sin(2 * t) + math.sin(5 * t)
     w1, a1 = _algorithm1_forward_euler(sig, seconds, 1e-3, p)
     w2, a2 = _algorithm1_forward_euler(sig, seconds, 5e-4, p)
     w_ref, a_ref = 2 * w2 - w1, 2 * a2 - a1
@@ -174,8 +207,10 @@ def test_section_v_example_1_noise_free():
     assert tr.converged[t >= 75.0].all()
     # (10): the reconstructed signal y_hat = sum A_i sin(phi_i) follows y (Fig. 6)
     assert np.max(np.abs(tr.reconstruct()[ss] - (np.sin(2 * t) + np.sin(5 * t))[ss])) < 5e-3
-    print(f"\nEX1: settle 1% {[settle_time(t, w[:, i], v, 0.01) for i, v in enumerate((2, 5))]} s, "
-          f"ss error {w[ss].mean(axis=0) - (2, 5)} rad/s, amplitudes {tr.amplitude[ss].mean(axis=0)}")
+    print(
+        f"\nEX1: settle 1% {[settle_time(t, w[:, i], v, 0.01) for i, v in enumerate((2, 5))]} s, "
+        f"ss error {w[ss].mean(axis=0) - (2, 5)} rad/s, amplitudes {tr.amplitude[ss].mean(axis=0)}"
+    )
 
 
 def test_section_v_example_1_uniform_noise():
@@ -183,8 +218,7 @@ def test_section_v_example_1_uniform_noise():
     # better noise immunity" and a "smoother" amplitude than [22]. Measured over 60-100 s:
     # frequency bias 1e-5 / 2.3e-4 rad/s, std 2.2e-3 / 1.3e-3 rad/s (0.11 % / 0.03 %);
     # amplitudes 1.000 +- 0.002.
-    t, tr = run(EX1, FS_PAPER, 100.0,
-                lambda t, r: np.sin(2 * t) + np.sin(5 * t) + r.uniform(-0.25, 0.25, t.size))
+    t, tr = run(EX1, FS_PAPER, 100.0, lambda t, r: np.sin(2 * t) + np.sin(5 * t) + r.uniform(-0.25, 0.25, t.size))
     w = omega(tr)
     ss = t >= 60.0
     np.testing.assert_allclose(w[ss].mean(axis=0), [2.0, 5.0], atol=2e-3)
@@ -193,8 +227,10 @@ def test_section_v_example_1_uniform_noise():
     assert np.all(tr.amplitude[ss].std(axis=0) < 0.005)
     for i, target in enumerate((2.0, 5.0)):
         assert settle_time(t, w[:, i], target, 0.01) < 55.0
-    print(f"\nEX1 noisy: ss bias {w[ss].mean(axis=0) - (2, 5)}, std {w[ss].std(axis=0)} rad/s, "
-          f"amplitude std {tr.amplitude[ss].std(axis=0)}")
+    print(
+        f"\nEX1 noisy: ss bias {w[ss].mean(axis=0) - (2, 5)}, std {w[ss].std(axis=0)} rad/s, "
+        f"amplitude std {tr.amplitude[ss].std(axis=0)}"
+    )
 
 
 def test_section_v_example_2_bias_and_overparametrisation():
@@ -235,9 +271,11 @@ def test_section_v_example_2_bias_and_overparametrisation():
     assert psi[pre, 1].mean() > 0.1 and not psi[post, 1].any()
     assert lam[post, 1].mean() < 0.1 * lam[pre, 1].mean()
     assert np.all(lam >= -1e-12) and np.all(lam < 1.0)
-    print(f"\nEX2: pre errors {w[pre].mean(axis=0) - (3, 2)}, A {amp[pre].mean(axis=0)}, offset "
-          f"{tr.offset[pre].mean():.4f}; faded flag at {fade_flag:.1f} s; psi_2 on {psi[pre, 1].mean():.2f} "
-          f"-> {psi[post, 1].mean():.2f}; lambda {lam[pre].mean(axis=0)} -> {lam[post].mean(axis=0)}")
+    print(
+        f"\nEX2: pre errors {w[pre].mean(axis=0) - (3, 2)}, A {amp[pre].mean(axis=0)}, offset "
+        f"{tr.offset[pre].mean():.4f}; faded flag at {fade_flag:.1f} s; psi_2 on {psi[pre, 1].mean():.2f} "
+        f"-> {psi[post, 1].mean():.2f}; lambda {lam[pre].mean(axis=0)} -> {lam[post].mean(axis=0)}"
+    )
 
 
 def test_section_v_example_3_frequency_steps():
@@ -266,7 +304,9 @@ def test_section_v_experiment_at_10_khz():
     # and initial estimates not given: Gaussian std 0.05 and (6, 4) here. Measured: within
     # 1 % after 53.1 s and 51.1 s; over 80-100 s errors -5e-4 / 3.9e-3 rad/s, amplitudes
     # 3.998 / 1.997.
-    t, tr = run(EXP, 10_000.0, 100.0, lambda t, r: 4 * np.sin(7 * t) + 2 * np.sin(5 * t) + 0.05 * r.standard_normal(t.size))
+    t, tr = run(
+        EXP, 10_000.0, 100.0, lambda t, r: 4 * np.sin(7 * t) + 2 * np.sin(5 * t) + 0.05 * r.standard_normal(t.size)
+    )
     w = omega(tr)
     ss = t >= 80.0
     for i, target in enumerate((7.0, 5.0)):
@@ -369,12 +409,28 @@ def test_three_sinusoids_with_an_explicit_design():
     # Beyond the paper (it tunes n = 2 only): n = 3 with bias, a_i = -omega0_i^2 (so the
     # frozen observer at the initial guess has the placed poles), started 10 % off. Measured
     # at 400 s: errors 3e-4, 7e-3 and -1e-3 rad/s.
-    p = {"n_sinusoids": 3, "bias": True, "a": [-1.1025, -4.41, -9.61],
-         "poles": [-1.0, -1.2, -1.4, -1.6, -1.8, -2.0, -5.0], "filter_poles": [-5.0, -6.0],
-         "filter_gains": [5.0, 6.0], "mu": 5.0, "rho": 0.3, "mu_a": 0.1, "omega0": [1.1, 2.2, 3.2],
-         "omega_max": 6.0}
-    t, tr = run(p, 50.0, 400.0, lambda t, r: 0.5 + 2 * np.sin(t) + 1.5 * np.sin(2 * t + 0.4)
-                + np.sin(3 * t + 1.0) + r.uniform(-0.1, 0.1, t.size), seed=0)
+    p = {
+        "n_sinusoids": 3,
+        "bias": True,
+        "a": [-1.1025, -4.41, -9.61],
+        "poles": [-1.0, -1.2, -1.4, -1.6, -1.8, -2.0, -5.0],
+        "filter_poles": [-5.0, -6.0],
+        "filter_gains": [5.0, 6.0],
+        "mu": 5.0,
+        "rho": 0.3,
+        "mu_a": 0.1,
+        "omega0": [1.1, 2.2, 3.2],
+        "omega_max": 6.0,
+    }
+    t, tr = run(
+        p,
+        50.0,
+        400.0,
+        lambda t, r: (
+            0.5 + 2 * np.sin(t) + 1.5 * np.sin(2 * t + 0.4) + np.sin(3 * t + 1.0) + r.uniform(-0.1, 0.1, t.size)
+        ),
+        seed=0,
+    )
     assert tr.frequency_hz.shape == (t.size, 3) and get(NAME)(50.0, p).n_components == 3
     late = t >= 380
     np.testing.assert_allclose(omega(tr)[late].mean(axis=0), [1.0, 2.0, 3.0], rtol=0.01)
@@ -407,8 +463,13 @@ def test_output_conventions_and_extras():
     x = cls.example_signal(2400)
     tr = est.update(x)
     assert est.n_components == 2 and tr.frequency_hz.shape == (2400, 2)
-    assert set(tr.extras) == {"excitation_level", "adaptation_enabled", "component_faded",
-                              "signal_present", "observer_reset"}
+    assert set(tr.extras) == {
+        "excitation_level",
+        "adaptation_enabled",
+        "component_faded",
+        "signal_present",
+        "observer_reset",
+    }
     for key in ("excitation_level", "adaptation_enabled", "component_faded"):
         assert tr.extras[key].shape == (2400, 2)
     c = tr.converged
@@ -423,7 +484,7 @@ def test_output_conventions_and_extras():
 def test_multisine_demo_scenario():
     sc = scenarios.get("multisine-demo")
     assert sc.suggested_estimator == NAME
-    x, truth = sc.generate(seed=1)
+    x, _truth = sc.generate(seed=1)
     est = create(NAME, sc.sample_rate_hz, **sc.suggested_params)
     tr = est.update(x)
     t = np.arange(x.size) / sc.sample_rate_hz

@@ -2,7 +2,7 @@
 
 Paper: ``shared/papers/004_880a59a5c07ec15b.txt``, Chen, Pin, Ng, Hui, Parisini, "An
 adaptive observer-based robust estimator of multi-sinusoidal signals". Algorithm 1 is the
-reference; the departures from it are listed at the end of this docstring.
+reference; the departures from it are numbered D1-D8 below.
 
 Signal (1)-(2): ``y(t) = A0 + sum_i A_i sin(phi_i(t)) + d(t)``, ``phi_i' = omega_i``.
 
@@ -14,18 +14,20 @@ Biased multi-oscillator (3)-(7), ``x in R^(2n+1)`` (``R^(2n)`` with ``bias=False
     theta*_i = a_i + Omega_i,  Omega_i = omega_i^2                                   (4)
 
 so that ``x_{2i-1} = A_i sin(phi_i)``, ``x_{2i} = A_i omega_i cos(phi_i)`` and
-``x_{2n+1} = A0``. *Rebuilt:* the extraction prints ``G_x_i = +x_{2i-1} e_{2i}``; with
-(4) and the -1 entry of F_i that gives ``x_{2i}' = (2 a_i + Omega_i) x_{2i-1}``, not an
-oscillator, so the sign is ``-`` (checked numerically in the tests: the model (3) with the
-minus sign reproduces ``sin``/``cos`` exactly).
+``x_{2n+1} = A0``. *Rebuilt:* the extraction prints ``G_x_i = +x_{2i-1} e_{2i}``; with (4)
+and the -1 entry of F_i that gives ``x_{2i}' = (2 a_i + Omega_i) x_{2i-1}``, not an
+oscillator, so the sign is ``-`` (the tests check that (3) with it generates the sinusoids
+and that (9)-(10) recover A_i and phi_i). With bias the a_i must be non-zero and distinct
+(else (F_x, C_x) is unobservable), without it distinct (Example 1 uses a_1 = 0).
 
 Output filter (12): ``yf' = F_f yf + B_f y`` with ``n_f = n - 1`` states (``F_f`` diagonal
 with the ``filter_poles``, ``B_f`` the ``filter_gains``). Augmented state (15):
 ``z = [x; yf]``, ``n_z = 2n + 1 + n_f``, ``F_z = [[F_x, 0], [B_f C_x, F_f]]``,
 ``C_z = blockdiag(C_x, I_{n-1})``, output ``eta = [y; yf]``, ``G_z = [G_x; 0]``.
 
-Estimator, with ``L = [[L_x, 0], [0, 0]]`` and ``L_x`` by pole placement of
-``F_x - L_x C_x`` on ``poles`` (``scipy.signal.place_poles``), ``A_L = F_z - L C_z``::
+Estimator, with ``L = [[L_x, 0], [0, 0]]``, ``L_x`` by pole placement of ``F_x - L_x C_x``
+on ``poles`` (``scipy.signal.place_poles``, Algorithm 1's initialisation) and
+``A_L = F_z - L C_z``::
 
     zh'  = A_L zh + L eta + G_z(zh) thetah + Xi thetah'                              (16)
     xi_i' = A_L xi_i + G_z_i(zh),   Xi = [xi_1 ... xi_n]                        (17)-(18)
@@ -36,63 +38,98 @@ Estimator, with ``L = [[L_x, 0], [0, 0]]`` and ``L_x`` by pole placement of
     phih_i = angle(x_{2i} + j omegah_i x_{2i-1})                                     (10)
     A0h = x_{2n+1}
 
-Excitation, (23)-(25): ``M = Xi^T Xi + rho^2 I``, ``Phi_Xi = Xi^T C_z^T C_z Xi``,
-``Phi_Psi = M^-1 Phi_Xi``; its eigenvalues ``lambda_i`` lie in ``[0, 1)`` (``|C_z| = 1``)
-and ``psi_i`` switches on at ``lambda_i >= delta_high``, off at ``lambda_i < delta_low``,
-and holds in between (25). ``lambda`` is sorted in decreasing order, so ``psi_1`` belongs to
-the best-excited direction (the paper does not say how it orders them).
+theta_bar (the radius of Theta*, Assumption 1) comes from ``omega_max``:
+``|theta*_i| <= max(|a_i|, |a_i + omega_max^2|)``. Excitation, (23)-(25):
+``M = Xi^T Xi + rho^2 I``, ``Phi_Xi = Xi^T C_z^T C_z Xi``, ``Phi_Psi = M^-1 Phi_Xi``; its
+eigenvalues ``lambda_i`` lie in ``[0, 1)`` (``|C_z| = 1``), and ``psi_i`` switches on at
+``lambda_i >= delta_high``, off below ``delta_low`` and holds in between (25), evaluated at
+each sample from the state there and held over the next sample interval (Algorithm 1,
+steps 7-14). ``lambda`` is sorted in decreasing order, so ``psi_1`` belongs to the
+best-excited direction (the paper does not say how it orders them).
 
-Unconstrained law (22), as implemented (*departure 1*)::
+D1, the unconstrained law (22) as implemented::
 
     thetah'_unc = -mu V Psi V^T Xi^T C_z^T (C_z zh - eta)
 
-where ``V`` holds the generalised eigenvectors ``Phi_Xi v = lambda M v`` normalised by
+with ``V`` the generalised eigenvectors ``Phi_Xi v = lambda M v`` normalised by
 ``V^T M V = I`` (Cholesky ``M = R R^T``, Jacobi on ``R^-1 Phi_Xi R^-T``), so
 ``Phi_Psi = V Lambda V^-1`` and ``V V^T = M^-1``. Why: ``Phi_Psi`` is the product of two
 symmetric matrices and is not symmetric, so the paper's ``U_Psi S_Psi U_Psi^T`` (23) and the
-pairing of the i-th eigenvalue of ``Phi_Psi`` with the i-th one of ``Phi_Xi`` (24) are only
-defined when ``Xi^T Xi`` and ``Phi_Xi`` commute. Under that assumption the paper itself reduces
-(22) to ``-mu M^-1 Psi Xi^T C_z^T (...)`` (33), which is exactly what the form above gives
-when every ``psi_i = 1`` (``V V^T = M^-1``). With partial excitation it freezes exactly the
-under-excited generalised eigen-directions (the over-parametrisation case of Example 2), and
-in the coordinates ``u = V^T M theta~`` each excited direction decays at the rate
-``mu lambda_i >= mu delta_low``, the rate the proof of Theorem 4.1 uses.
+pairing of the i-th eigenvalue of ``Phi_Psi`` with the i-th of ``Phi_Xi`` (24) are only
+defined when ``Xi^T Xi`` and ``Phi_Xi`` commute; taken literally (SVD of ``Phi_Psi``, our
+forward-Euler prototype, without D4) the law drove Example 1 to ``Omegah < 0`` within 10 s. Under the commuting assumption the paper itself
+reduces (22) to ``-mu M^-1 Psi Xi^T C_z^T (...)`` (33), which is what the form above gives
+when every ``psi_i = 1``. With partial excitation it freezes exactly the under-excited
+generalised eigen-directions, and in the coordinates ``u = V^T M theta~`` each excited
+direction decays at ``mu lambda_i >= mu delta_low``, the rate the proof of Theorem 4.1 uses.
+With all ``psi_i`` equal the kernel skips the eigen-decomposition (Cholesky only).
 
-Discretisation (*departure 2*; the paper uses forward Euler at Ts = 0.3 ms and 0.1 ms):
-time is scaled, ``tau = omega_unit_rad_s * t``, and every rate-like parameter (a_i, poles,
-filter poles and gains, mu, rho, omega0, omega_max) is given in these units, so
-``omega_unit_rad_s = 1`` runs the paper's rad/s examples with the paper's gains and
-``omega_unit_rad_s = 2 pi f0`` gives them relative to a nominal frequency f0 (the equations
-are covariant: a -> a/s^2, poles, F_f, B_f, mu -> /s, rho -> rho s^2, mu_A unchanged). The
-input is divided by ``amplitude_unit`` (rho and the excitation thresholds are in signal
-units). Between two samples the measurement is interpolated linearly (first-order hold, no
-delay) and the whole state is integrated with classical RK4 in ``m`` equal sub-steps, ``m``
-chosen once so that ``h omega_ball <= 0.25`` and ``h * rate <= 0.5`` for the fastest linear
-rate (observer and filter poles, mu, mu_A omega_ball^2). The switching signals are updated
-once per sub-step (held during the RK4 stages), the projection is the continuous (21) inside
-the stages followed by a radial clip, and ``Ah >= 0`` is clipped likewise. The RK4 phase error
-biases the frequency by ~(h omega)^4/120 relative (< 4e-6 at the bound above).
-The linear interpolation scales a tone's amplitude by ``sinc^2(omega h / 2)`` (without phase
-shift); the reported amplitude is divided by that factor (*departure 3*).
+D2, discretisation (the paper: forward Euler at Ts = 0.3 ms and 0.1 ms). Time is scaled,
+``tau = omega_unit_rad_s t``, and every rate-like parameter (a_i, poles, filter poles and
+gains, mu, rho, omega0, omega_max, the times) is in these units: ``omega_unit_rad_s = 1`` runs
+the paper's rad/s examples with the paper's gains, ``2 pi f0`` gives the same design relative
+to f0 (the equations are covariant: a -> a/s^2; poles, F_f, B_f, mu -> /s; rho -> rho s^2;
+mu_A unchanged). The input is divided by ``amplitude_unit`` (rho and the excitation levels
+are in signal units: Xi scales with the amplitude). Between samples the measurement is
+interpolated linearly (first-order hold, no delay) and the whole state is integrated with
+classical RK4 in ``m`` equal sub-steps per sample, ``m`` fixed in ``_setup`` so that
+``h omega_max <= 0.25`` (RK4 phase error ~(h omega)^5/120 per step: frequency bias
+< 4e-6 relative), ``h omega_ball <= 2`` (stability for any frequency the projection admits)
+and ``h rate <= 1`` (observer and filter poles, mu, mu_A omega_ball^2). The projection is
+the continuous (21) inside the stages, followed by a radial clip; ``Ah >= 0`` likewise.
+Checked against an independent forward-Euler Algorithm 1 (tests): Richardson-extrapolated
+Euler and RK4 at 1 kHz agree within 4e-4 rad/s after 8 s of Example 1.
 
-Outputs and flags (*departure 4*, beyond Algorithm 1): a component whose amplitude estimate
-falls below ``max(min_amplitude, fade_ratio * max_j A_j)`` is reported as faded (extras
-``component_faded``): its frequency and phase are NaN, its amplitude is the (small)
-estimate. A component with ``Omegah_i <= 0`` (no real frequency, (8)) is NaN throughout.
-``converged`` requires every component present with a real frequency, every ``psi_i = 1``,
-and a smoothed frequency drift ``tau_c |d omegah_i / d tau| <= convergence_tol * omegah_i``
-(exponential smoothing over ``convergence_time``). Extras per sample: ``excitation_level``
-(lambda_i of (25), (N, n)), ``adaptation_enabled`` (psi_i, (N, n)), ``component_faded``
-((N, n)) and ``observer_reset`` ((N,)): if the state ever becomes non-finite or absurdly large
-(a guard, never seen in the paper's examples), the observer restarts from zero with the last
-finite parameter estimate. The residual is the one-step prediction of the sample from the
-previous estimates (x propagated by the oscillator at Omegah_i over one sample, with the
-amplitude correction).
+D3: the first-order hold scales a tone's amplitude by ``sinc^2(omega h / 2)`` (no phase
+shift); the reported amplitude is divided by it (5 % at 8 samples per period).
+
+D4, the settling dwell (``adaptation_delay``, default 2 / |slowest pole|): thetah adapts
+only once some psi_i has been on that long, and a total dis-excitation re-arms it. The
+observer starts from zero, and its start-up transient is output error that the law reads as
+parameter error: without the dwell, Example 1 from the paper's (3, 4) leaves omegah_2
+hovering near 3 rad/s for 150 s (it never reaches 5), and Example 2 started at the true
+frequencies is thrown 25 % off within 15 s (and diverged before the guard D7 existed).
+
+D5, the signal-level gate (``level_time``, ``level_ratio``, ``min_amplitude``): smoothed AC
+power of the input over ``level_time`` and over ten times as long; the signal is absent when
+the short-term power is below ``min_amplitude^2 / 2`` or below ``level_ratio`` times the
+long-term one. While absent nothing adapts; at the loss thetah rolls back to a snapshot
+taken 3-4 ``level_time`` earlier (the gate needs ~1.4 ``level_time`` to close, during which
+the law ran on the observer's free response), and the dwell counts from ``-delay`` (twice as
+long: the restarted observer's slow modes otherwise kick thetah by several per cent).
+Without the gate, 100 s of silence in Example 2 drags both frequencies to ~0.01 rad/s.
+
+D6, minimum separation (``min_separation``, 0.05 of the higher frequency): two components on
+one line form an unobservable pair (their states can cancel in C_x) that no output error
+damps; the law's motion that would close a gap below the minimum is removed and the gap is
+restored after each step. ``omega_ranges`` are the per-component clips of Remark 3.1.
+
+D7, a guard: if the state leaves ``1e4 (1 + level of the input)`` (a frozen observer with
+thetah far from the truth can be unstable: with Example 2's L_x it is stable only for
+omegah_1 - omegah_2 in about [0, 1.3] rad/s) the observer restarts from zero with thetah
+rolled back, and ``observer_reset`` is raised for that sample.
+
+D8, outputs beyond Algorithm 1: a component whose corrected amplitude falls below
+``max(min_amplitude, fade_ratio max_j A_j)`` is faded (extras ``component_faded``): frequency
+and phase NaN, amplitude the small estimate; ``Omegah_i <= 0`` (no real frequency, (8)) is
+NaN throughout. ``converged`` needs every component present with a real frequency, the dwell
+passed with a signal, the components apart by more than ``convergence_tol``, and the
+smoothed ``|omegah_i - smoothed omegah_i|`` (over ``convergence_time``) below
+``convergence_tol omegah_i``. Extras per sample: ``excitation_level`` (lambda_i, (N, n)),
+``adaptation_enabled`` (psi_i, (N, n)), ``component_faded`` ((N, n)), ``signal_present``
+and ``observer_reset`` ((N,)). The residual is the one-step prediction of each sample from
+the previous estimates (x propagated by the oscillator at Omegah_i over one sample, with
+the amplitude correction).
+
+Defaults: the paper's tuning for n = 2 (Example 2 with bias, Example 1 without), in the
+paper's units; other n need an explicit design. Example 2's initial frequencies are not
+given: (3.5, 2.5) is ours, inside the band where its frozen observer is stable.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
@@ -109,12 +146,24 @@ from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 # omega_unit_rad_s = 1.
 PAPER_DESIGN = {
     True: {
-        "a": [-2.0, -1.0], "poles": [-0.6, -0.5, -0.3, -1.0, -10.0], "filter_poles": [-6.0],
-        "filter_gains": [6.0], "mu": 70.0, "rho": 0.3, "mu_a": 0.1, "omega0": [3.5, 2.5],
+        "a": [-2.0, -1.0],
+        "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
+        "filter_poles": [-6.0],
+        "filter_gains": [6.0],
+        "mu": 70.0,
+        "rho": 0.3,
+        "mu_a": 0.1,
+        "omega0": [3.5, 2.5],
     },
     False: {
-        "a": [0.0, -0.5], "poles": [-2.0, -0.7, -0.5, -0.2], "filter_poles": [-5.0],
-        "filter_gains": [4.5], "mu": 6.0, "rho": 0.2, "mu_a": 0.15, "omega0": [3.0, 4.0],
+        "a": [0.0, -0.5],
+        "poles": [-2.0, -0.7, -0.5, -0.2],
+        "filter_poles": [-5.0],
+        "filter_gains": [4.5],
+        "mu": 6.0,
+        "rho": 0.2,
+        "mu_a": 0.15,
+        "omega0": [3.0, 4.0],
     },
 }
 _DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
@@ -128,7 +177,9 @@ class AdaptiveMultisineParams(EstimatorParams):
     n_sinusoids: int = Field(2, ge=1, le=8, description="n, the number of sinusoids modelled")
     bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean signal")
     omega_unit_rad_s: float = Field(
-        1.0, gt=0, allow_inf_nan=False,
+        1.0,
+        gt=0,
+        allow_inf_nan=False,
         description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = the paper's units",
     )
     amplitude_unit: float = Field(
@@ -153,7 +204,9 @@ class AdaptiveMultisineParams(EstimatorParams):
         None, description="Optional per-component frequency clips [lo, hi] (Remark 3.1)"
     )
     adaptation_delay: float | None = Field(
-        None, ge=0, allow_inf_nan=False,
+        None,
+        ge=0,
+        allow_inf_nan=False,
         description="Settling dwell (scaled time) after start-up, total dis-excitation or loss of signal "
         "before thetah adapts; default 2 / |slowest observer pole|",
     )
@@ -161,27 +214,41 @@ class AdaptiveMultisineParams(EstimatorParams):
         2.0, gt=0, allow_inf_nan=False, description="Time constant (scaled) of the signal-level gate"
     )
     level_ratio: float = Field(
-        0.25, ge=0, lt=1, allow_inf_nan=False,
+        0.25,
+        ge=0,
+        lt=1,
+        allow_inf_nan=False,
         description="The signal counts as lost when its AC power (over level_time) falls below this "
         "fraction of its power over 10 level_time",
     )
     min_separation: float = Field(
-        0.05, ge=0, lt=1, allow_inf_nan=False,
+        0.05,
+        ge=0,
+        lt=1,
+        allow_inf_nan=False,
         description="Components are kept at least this fraction of the higher frequency apart (0: off)",
     )
     min_amplitude: float = Field(
-        0.01, ge=0, allow_inf_nan=False,
+        0.01,
+        ge=0,
+        allow_inf_nan=False,
         description="Amplitude (in amplitude_unit) below which a component is faded and the signal absent",
     )
     fade_ratio: float = Field(
-        0.02, ge=0, lt=1, allow_inf_nan=False,
+        0.02,
+        ge=0,
+        lt=1,
+        allow_inf_nan=False,
         description="A component is also faded below this fraction of the largest amplitude",
     )
     convergence_time: float = Field(
         10.0, gt=0, allow_inf_nan=False, description="Smoothing time (scaled) of the convergence test"
     )
     convergence_tol: float = Field(
-        0.02, gt=0, lt=1, allow_inf_nan=False,
+        0.02,
+        gt=0,
+        lt=1,
+        allow_inf_nan=False,
         description="converged once the smoothed |omegah - smoothed omegah| is below this fraction of omegah",
     )
 
@@ -190,15 +257,19 @@ class AdaptiveMultisineParams(EstimatorParams):
         n = self.n_sinusoids
         if not 0 < self.delta_low < self.delta_high < 1:
             raise ValueError(
-                f"expected 0 < delta_low < delta_high < 1, got delta_low={self.delta_low}, "
-                f"delta_high={self.delta_high}"
+                f"expected 0 < delta_low < delta_high < 1, got delta_low={self.delta_low}, delta_high={self.delta_high}"
             )
         if n != 2:
-            missing = [k for k in ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
-                       if getattr(self, k) is None]
+            missing = [
+                k
+                for k in ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
+                if getattr(self, k) is None
+            ]
             if missing:
-                raise ValueError(f"expected an explicit design for n_sinusoids={n} (the paper tunes n = 2), "
-                                 f"got no {', '.join(missing)}")
+                raise ValueError(
+                    f"expected an explicit design for n_sinusoids={n} (the paper tunes n = 2), "
+                    f"got no {', '.join(missing)}"
+                )
 
         def _finite_list(name: str, v: list[float] | None, length: int) -> None:
             if v is None:
@@ -262,8 +333,8 @@ def _sym_eig(work, n):
     """Cyclic Jacobi on the symmetric n x n matrix S held in ``work`` (destroyed): eigenvalues
     into lambda, sorted in decreasing order, orthonormal eigenvectors into the columns of W."""
     nn = n * n
-    wS = 3 * nn  # noqa: N806
-    wW = 4 * nn  # noqa: N806
+    wS = 3 * nn
+    wW = 4 * nn
     wl = 5 * nn
     for i in range(n):
         for j in range(n):
@@ -325,9 +396,9 @@ def _chol(s, work, cf, ci):
     rho2 = cf[_C_RHO2]
     oxi = nf + nz
     nn = n * n
-    wR = nn  # noqa: N806
-    wRi = 2 * nn  # noqa: N806
-    wS = 3 * nn  # noqa: N806
+    wR = nn
+    wRi = 2 * nn
+    wS = 3 * nn
     for i in range(n):
         base = oxi + i * nz
         acc = s[base + nx - 1] if nx > 2 * n else 0.0  # row 0 of C_z Xi: C_x xi_i
@@ -374,8 +445,8 @@ def _eig(work, n):
     eigen-decomposition W, lambda (decreasing): Phi_Xi v = lambda M v with v = R^-T w, so
     lambda are the eigenvalues of Phi_Psi (23)."""
     nn = n * n
-    wRi = 2 * nn  # noqa: N806
-    wS = 3 * nn  # noqa: N806
+    wRi = 2 * nn
+    wS = 3 * nn
     for i in range(n):  # S = (C_z Xi R^-T)^T (C_z Xi R^-T)
         for j in range(i + 1):
             acc = 0.0
@@ -409,9 +480,9 @@ def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
     n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
     mu, mu_a, tbar, sep = cf[_C_MU], cf[_C_MUA], cf[_C_TBAR], cf[_C_SEP]
     oa_c = _N_CONSTS
-    oL = oa_c + n  # noqa: N806
-    oFf = oL + nz  # noqa: N806
-    oBf = oFf + nf  # noqa: N806
+    oL = oa_c + n
+    oFf = oL + nz
+    oBf = oFf + nf
     olo = oBf + nf + n  # theta_lo, then theta_hi
     oz = nf
     oxi = oz + nz
@@ -419,8 +490,8 @@ def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
     oa = oth + n
     ns = oa + n
     nn = n * n
-    wRi = 2 * nn  # noqa: N806
-    wW = 4 * nn  # noqa: N806
+    wRi = 2 * nn
+    wW = 4 * nn
     wev = 5 * nn + n
     wg = wev + n
     wq = wg + n
@@ -541,7 +612,7 @@ def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
             if om2 > 0.0:
                 w = math.sqrt(om2)
                 inst = om2 * x1 * x1 + x2 * x2
-                da = -mu_a * w * (w * x[oa + i] - math.sqrt(inst if inst > 0.0 else 0.0))
+                da = -mu_a * w * (w * x[oa + i] - math.sqrt(max(0.0, inst)))
             if x[oa + i] <= 0.0 and da < 0.0:
                 da = 0.0
             K[d + oa + i] = da
@@ -690,8 +761,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                                 s[oth + i] = cf[oa_c + i] + (mid + sg * half) ** 2
                                 s[oth + i2] = cf[oa_c + i2] + (mid - sg * half) ** 2
                 for i in range(n):
-                    if s[oa + i] < 0.0:
-                        s[oa + i] = 0.0
+                    s[oa + i] = max(s[oa + i], 0.0)
                 # guard: the state stays finite and commensurate with the input; otherwise
                 # (a frozen observer can be unstable far from the true frequencies) restart
                 # the observer and roll thetah back to the oldest snapshot
@@ -740,9 +810,8 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
             om2 = s[oth + i] - cf[oa_c + i]
             corr = 1.0 / _sinc2(0.5 * h * math.sqrt(om2)) if om2 > 0.0 else 1.0
             v = s[oa + i] * corr
-            if v > amax:
-                amax = v
-        thr = min_a if min_a > fade * amax else fade * amax
+            amax = max(amax, v)
+        thr = max(fade * amax, min_a)
         ypred = s[oz + nx - 1] if bias else 0.0
         all_ok = s[oyp + 3] >= delay  # adapting: past start-up, excited, with a signal
         j = 0 if last_only else k
@@ -804,7 +873,7 @@ class AdaptiveMultisine(Estimator):
     # 10 Hz; the noise bound is 0.1 (see the multisine-demo scenario on noise density).
     example_sample_rate_hz = 750.0
     example_frequency_hz = 15.0
-    example_params = {"omega_unit_rad_s": 2 * math.pi * 5.0, "convergence_time": 5.0}
+    example_params: ClassVar[dict[str, Any]] = {"omega_unit_rad_s": 2 * math.pi * 5.0, "convergence_time": 5.0}
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
@@ -840,8 +909,11 @@ class AdaptiveMultisine(Estimator):
         if not all(0 < w < p.omega_max for w in d["omega0"]):
             raise ParameterError(f"omega0: expected values in (0, omega_max={p.omega_max}), got {d['omega0']}")
         w0 = d["omega0"]
-        if any(abs(w0[i] - w0[j]) < p.min_separation * max(w0[i], w0[j])
-               for i in range(len(w0)) for j in range(i + 1, len(w0))):
+        if any(
+            abs(w0[i] - w0[j]) < p.min_separation * max(w0[i], w0[j])
+            for i in range(len(w0))
+            for j in range(i + 1, len(w0))
+        ):
             raise ParameterError(
                 f"omega0: expected values at least min_separation={p.min_separation} (relative) apart, got {w0}"
             )
@@ -867,8 +939,8 @@ class AdaptiveMultisine(Estimator):
         nf = n - 1
         nz = nx + nf
         # (3): F_x = blockdiag(J_i, 0), J_i = [[0, 1], [a_i, 0]]; C_x = [c_1 .. c_n 1], c_i = [1 0]
-        Fx = np.zeros((nx, nx))  # noqa: N806 (paper's names)
-        Cx = np.zeros(nx)  # noqa: N806
+        Fx = np.zeros((nx, nx))
+        Cx = np.zeros(nx)
         for i in range(n):
             Fx[2 * i, 2 * i + 1] = 1.0
             Fx[2 * i + 1, 2 * i] = a[i]
@@ -881,17 +953,17 @@ class AdaptiveMultisine(Estimator):
             res = place_poles(Fx.T, Cx[:, None], poles)
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} ({exc})") from exc
-        Lx = res.gain_matrix.T[:, 0]  # noqa: N806
+        Lx = res.gain_matrix.T[:, 0]
         got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
         if not np.allclose(got, np.sort(poles), rtol=1e-6, atol=1e-9):
             raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} (placed {list(got)})")
-        Ff = np.asarray(d["filter_poles"], dtype=np.float64)  # noqa: N806
-        Bf = np.asarray(d["filter_gains"], dtype=np.float64)  # noqa: N806
-        AL = np.zeros((nz, nz))  # noqa: N806  A_L = F_z - L C_z, (15)-(16)
+        Ff = np.asarray(d["filter_poles"], dtype=np.float64)
+        Bf = np.asarray(d["filter_gains"], dtype=np.float64)
+        AL = np.zeros((nz, nz))
         AL[:nx, :nx] = Fx - np.outer(Lx, Cx)
         AL[nx:, :nx] = np.outer(Bf, Cx)
         AL[nx:, nx:] = np.diag(Ff)
-        Lfull = np.zeros(nz)  # noqa: N806
+        Lfull = np.zeros(nz)
         Lfull[:nx] = Lx
         tbar = self._theta_bar(list(a))
         w_ball = math.sqrt(tbar - float(a.min()))
