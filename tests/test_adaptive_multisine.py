@@ -282,7 +282,7 @@ def test_section_v_example_3_frequency_steps():
     # Paper (Fig. 10): w1: 2 -> 3 rad/s and w2: 5 -> 4.5 rad/s at t = 70 s with d uniform in
     # [-0.25, 0.25]; the estimator "succeeded in tracking sudden changes of frequency in a
     # noisy environment". (Read as frequency steps with continuous phase.) Measured: within
-    # 1 % 49.0 s and 43.7 s after the step; over 110-140 s errors -2e-4 / -1e-2 rad/s.
+    # 1 % 49.0 s and 43.7 s after the step; over 120-140 s errors -1.2e-3 / 4.3e-3 rad/s.
     def y(t, r):
         p1 = np.where(t < 70, 2 * t, 140 + 3 * (t - 70))
         p2 = np.where(t < 70, 5 * t, 350 + 4.5 * (t - 70))
