@@ -471,8 +471,8 @@ def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace:
         cr = {}
         for p in PARAMS:
             mse = out_metrics[p]["mse"][0]
-            cr[p] = {"crlb_std": math.sqrt(bound[p]),
-                     "over_crlb_db": 10.0 * math.log10(mse / bound[p]) if mse > 0 else -math.inf}
+            db = math.nan if not mse >= 0 else (10.0 * math.log10(mse / bound[p]) if mse > 0 else -math.inf)
+            cr[p] = {"crlb_std": math.sqrt(bound[p]), "over_crlb_db": db}
         mse_w = out_metrics["frequency_hz"]["mse"][0] * (TWO_PI / fs) ** 2
         a = bound["amplitude_true"]
         if mse_w > 0:
@@ -712,7 +712,15 @@ def _cell(rec: dict[str, Any] | None, kind: str) -> str:
     if rec["status"] != "ok":
         return "n/a" if rec["status"] == "n/a" else "error"
     m = rec["metrics"]
+    defined = m.get("defined_pct", 100.0)
+    if not defined > 0:
+        return "no estimate"
     f_rmse = max(m["frequency_hz"]["rmse"])
+    note = f"; defined {defined:.0f} %" if defined < 99.5 else ""
+    return _cell_body(m, kind, f_rmse) + note
+
+
+def _cell_body(m: dict[str, Any], kind: str, f_rmse: float) -> str:
     if kind == "crlb":
         cr = m.get("crlb", {}).get("frequency_hz", {})
         db, teq = cr.get("over_crlb_db"), cr.get("equivalent_window_s")
@@ -781,6 +789,8 @@ def render_markdown(results: list[dict[str, Any]], command: str, meta: dict[str,
         f"{meta['trials']} Monte Carlo trials per noisy scenario (1 for noise-free ones), seeds "
         f"{meta['seed']}..{meta['seed'] + meta['trials'] - 1}; sinewatch {meta.get('version', '?')}, "
         f"{meta.get('date', '')}; {meta.get('elapsed_s', 0):.0f} s on {meta.get('machine', '?')}.",
+        "n/a: the estimator does not apply (reasons at the end); \"defined N %\": the estimator left "
+        "the rest of the steady window undefined (NaN); \"-\": never (a time) or undefined.",
         "",
     ]
     for title, what, key in FAMILIES:
@@ -997,6 +1007,8 @@ def _command_line(args: argparse.Namespace) -> str:
         parts += ["--seed", str(args.seed)]
     if args.quick:
         parts.append("--quick")
+    if getattr(args, "update_docs", None):
+        parts += ["--update-docs", str(args.update_docs)]
     return " ".join(shlex.quote(p) for p in parts)
 
 
