@@ -215,14 +215,15 @@ def least_squares_fit(
     if n < 4:
         raise ValueError(f"y: expected at least 4 samples, got {n}")
     m = np.arange(n, dtype=np.float64) - 0.5 * (n - 1)
-    nfft = zero_pad * (1 << int(math.ceil(math.log2(n))))
+    nfft = zero_pad * (1 << math.ceil(math.log2(n)))
     spec = np.abs(np.fft.rfft(y - y.mean(), nfft))
     spec[0] = 0.0
     k = int(np.argmax(spec))
     bin_w = 2.0 * math.pi / nfft
     lo, hi = max((k - 1) * bin_w, 1e-9), min((k + 1) * bin_w, math.pi - 1e-9)
-    res = minimize_scalar(lambda w: _linear_fit(y, m, w)[1], bounds=(lo, hi), method="bounded",
-                          options={"xatol": 1e-12})
+    res = minimize_scalar(
+        lambda w: _linear_fit(y, m, w)[1], bounds=(lo, hi), method="bounded", options={"xatol": 1e-12}
+    )
     w = float(res.x)
     coef, _ = _linear_fit(y, m, w)
     # coef: a sin(wm) + b cos(wm) + B = A sin(wm + phi_c), A cos(phi_c) = a, A sin(phi_c) = b

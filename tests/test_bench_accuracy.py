@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -59,7 +60,8 @@ def test_rmse_follows_the_noise_level():
     ratio = r40["metrics"]["frequency_hz"]["rmse"][0] / r60["metrics"]["frequency_hz"]["rmse"][0]
     assert ratio == pytest.approx(10.0, rel=0.15)
     assert r40["metrics"]["crlb"]["frequency_hz"]["over_crlb_db"] == pytest.approx(
-        r60["metrics"]["crlb"]["frequency_hz"]["over_crlb_db"], abs=1.0)
+        r60["metrics"]["crlb"]["frequency_hz"]["over_crlb_db"], abs=1.0
+    )
 
 
 def test_c37_steady_state_and_off_nominal_pass_for_ges_kalman():
@@ -140,7 +142,7 @@ class _Params(EstimatorParams):
 class _Fake:
     name = "fake"
     Params = _Params
-    example_params = {"gain": 2.0}
+    example_params: ClassVar[dict[str, float]] = {"gain": 2.0}
 
 
 def test_generic_mapping_and_hook_precedence():
@@ -188,7 +190,11 @@ def test_metric_helpers():
 def test_select_scenarios_by_name_glob_and_tag():
     assert select_scenarios(["tone-snr-40db"]) == ["tone-snr-40db"]
     assert set(select_scenarios(["c37-50hz-step-*"])) == {
-        "c37-50hz-step-amp-p10", "c37-50hz-step-amp-m10", "c37-50hz-step-phase-p10", "c37-50hz-step-phase-m10"}
+        "c37-50hz-step-amp-p10",
+        "c37-50hz-step-amp-m10",
+        "c37-50hz-step-phase-p10",
+        "c37-50hz-step-phase-m10",
+    }
     gaps = select_scenarios(["gap"])
     assert gaps == select_scenarios(["tag:gap"])
     assert {"gap-dropout-200ms", "gap-dropout-5s", "gap-skip-105ms"} <= set(gaps) and "tone-snr-40db" not in gaps
@@ -208,9 +214,25 @@ def test_run_accuracy_writes_markdown_json_and_plots(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     docs = tmp_path / "accuracy-doc.md"
     docs.write_text("# title\n\nhand-written\n")
-    args = _parse(["--estimators", "ges-kalman", "--scenarios", "tone-snr-40db", "c37-50hz-steady",
-                   "multitone-2-separated", "--trials", "2", "--out", str(tmp_path / "out"), "--jobs", "1",
-                   "--update-docs", str(docs)], add_accuracy_arguments)
+    args = _parse(
+        [
+            "--estimators",
+            "ges-kalman",
+            "--scenarios",
+            "tone-snr-40db",
+            "c37-50hz-steady",
+            "multitone-2-separated",
+            "--trials",
+            "2",
+            "--out",
+            str(tmp_path / "out"),
+            "--jobs",
+            "1",
+            "--update-docs",
+            str(docs),
+        ],
+        add_accuracy_arguments,
+    )
     assert run_accuracy(args) == 0
     out = tmp_path / "out"
     data = json.loads((out / "accuracy.json").read_text())

@@ -101,10 +101,12 @@ def _monte_carlo(trials: int, n: int, snr_db: float, seed: int):
     sigma = a / math.sqrt(2 * 10 ** (snr_db / 10))
     k = np.arange(n)
     true_last = np.angle(np.exp(1j * (2 * np.pi * f / FS * (n - 1) + phi)))
-    est = np.array([
-        least_squares_fit(b0 + a * np.sin(2 * np.pi * f / FS * k + phi) + sigma * rng.standard_normal(n), FS)
-        for _ in range(trials)
-    ])
+    est = np.array(
+        [
+            least_squares_fit(b0 + a * np.sin(2 * np.pi * f / FS * k + phi) + sigma * rng.standard_normal(n), FS)
+            for _ in range(trials)
+        ]
+    )
     err = {
         "frequency_hz": est[:, 0] - f,
         "amplitude": est[:, 1] - a,

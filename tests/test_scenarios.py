@@ -18,22 +18,50 @@ LIBRARY = [n for n in scenarios.names() if isinstance(scenarios.get(n), Composit
 def test_library_is_registered_with_tags():
     names = set(scenarios.names())
     expected = {
-        "paper000-tone", "paper000-chirp", "paper001-tone", "paper001-tone-noisy", "paper001-fm",
-        "paper003-harmonic-10", "paper003-harmonic-100", "paper003-harmonic-1000",
-        "paper004-ex1", "paper004-ex1-noisy", "paper004-ex2", "paper004-ex3", "paper004-experiment",
-        "tone-snr-00db", "tone-snr-60db", "tone-nobias-snr-40db",
-        "c37-50hz-steady", "c37-60hz-off-m5", "c37-50hz-harmonic-50", "c37-60hz-oob-low",
-        "c37-50hz-ramp-down", "c37-60hz-am-5hz", "c37-50hz-pm-2hz", "c37-50hz-step-amp-m10",
-        "c37-60hz-step-phase-p10", "c37-50hz-dc-offset", "c37-60hz-dc-decay",
-        "gap-dropout-200ms", "gap-dropout-5s", "gap-skip-105ms",
-        "multitone-2-separated", "multitone-2-close", "multitone-2-weak", "multitone-3",
+        "paper000-tone",
+        "paper000-chirp",
+        "paper001-tone",
+        "paper001-tone-noisy",
+        "paper001-fm",
+        "paper003-harmonic-10",
+        "paper003-harmonic-100",
+        "paper003-harmonic-1000",
+        "paper004-ex1",
+        "paper004-ex1-noisy",
+        "paper004-ex2",
+        "paper004-ex3",
+        "paper004-experiment",
+        "tone-snr-00db",
+        "tone-snr-60db",
+        "tone-nobias-snr-40db",
+        "c37-50hz-steady",
+        "c37-60hz-off-m5",
+        "c37-50hz-harmonic-50",
+        "c37-60hz-oob-low",
+        "c37-50hz-ramp-down",
+        "c37-60hz-am-5hz",
+        "c37-50hz-pm-2hz",
+        "c37-50hz-step-amp-m10",
+        "c37-60hz-step-phase-p10",
+        "c37-50hz-dc-offset",
+        "c37-60hz-dc-decay",
+        "gap-dropout-200ms",
+        "gap-dropout-5s",
+        "gap-skip-105ms",
+        "multitone-2-separated",
+        "multitone-2-close",
+        "multitone-2-weak",
+        "multitone-3",
     }
     assert expected <= names and expected <= set(LIBRARY)
     for name in LIBRARY:
         sc = scenarios.get(name)
         assert sc.name == name and sc.summary and sc.tags, name
-    assert all("c37.118" in scenarios.get(n).tags and "phasor" in scenarios.get(n).tags
-               for n in LIBRARY if n.startswith("c37-"))
+    assert all(
+        "c37.118" in scenarios.get(n).tags and "phasor" in scenarios.get(n).tags
+        for n in LIBRARY
+        if n.startswith("c37-")
+    )
     assert {"snr", "paper", "gap", "multitone", "quick"} <= {t for n in LIBRARY for t in scenarios.get(n).tags}
 
 
@@ -50,8 +78,7 @@ def test_truth_is_consistent_with_the_samples(name):
     # samples = offset + sum A sin(phase) + the disturbances the truth leaves out
     model = truth.offset + np.sum(truth.amplitude * np.sin(truth.phase_rad), axis=1)
     t = np.arange(n) / sc.sample_rate_hz
-    dist = sum((d.evaluate(sc._time(t))[1] * np.sin(d.evaluate(sc._time(t))[2]) for d in sc.disturbances),
-               np.zeros(n))
+    dist = sum((d.evaluate(sc._time(t))[1] * np.sin(d.evaluate(sc._time(t))[2]) for d in sc.disturbances), np.zeros(n))
     if sc.dropout is not None:
         dist = np.where((t >= sc.dropout[0]) & (t < sc.dropout[1]), 0.0, dist)
     np.testing.assert_allclose(y, model + dist, atol=1e-9)
@@ -77,7 +104,7 @@ def test_truth_is_consistent_with_the_samples(name):
 def test_streaming_in_blocks_equals_one_read_with_gaussian_and_uniform_noise():
     for name in ("tone-snr-20db", "paper004-ex1-noisy"):
         sc = scenarios.get(name, duration_s=0.5)
-        whole, truth = sc.generate(3)
+        whole, _ = sc.generate(3)
         s = sc.stream(3)
         parts = [s.read(m)[0] for m in (1, 17, 400, sc.n_samples - 418)]
         np.testing.assert_array_equal(np.concatenate(parts), whole)
@@ -89,7 +116,8 @@ def test_snr_definition():
         assert 10 * math.log10(1.0 / (2 * sc.noise_std**2)) == pytest.approx(snr)
         y, truth = sc.generate(0)
         assert np.std(y - truth.offset - truth.amplitude[:, 0] * np.sin(truth.phase_rad[:, 0])) == pytest.approx(
-            sc.noise_std, rel=0.05)
+            sc.noise_std, rel=0.05
+        )
 
 
 def test_paper000_signals():
@@ -145,7 +173,7 @@ def _spectrum_peak(y: np.ndarray, fs: float, f: float) -> float:
     n = y.size
     win = np.hanning(n)
     spec = np.abs(np.fft.rfft(y * win)) * 2 / win.sum()
-    return float(spec[int(round(f * n / fs))])
+    return float(spec[round(f * n / fs)])
 
 
 def test_c37_harmonic_and_interference_levels():

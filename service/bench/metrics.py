@@ -104,7 +104,7 @@ def rocof_from_frequency(f: np.ndarray, sample_rate_hz: float, interval_samples:
 
 def reporting_indices(n: int, sample_rate_hz: float, reporting_rate_hz: float, mask: np.ndarray) -> np.ndarray:
     """Sample indices nearest the reporting instants k / Fs that fall inside ``mask``."""
-    k = np.arange(int(math.floor((n - 1) / sample_rate_hz * reporting_rate_hz)) + 1)
+    k = np.arange(math.floor((n - 1) / sample_rate_hz * reporting_rate_hz) + 1)
     idx = np.unique(np.clip(np.rint(k * sample_rate_hz / reporting_rate_hz).astype(np.int64), 0, n - 1))
     return idx[mask[idx]]
 

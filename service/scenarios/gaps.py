@@ -25,8 +25,17 @@ F0 = 50.3
 NOMINAL_HZ = 50.0
 
 
-def _gap(name: str, summary: str, *, dropout=None, skip=None, t_resume: float, duration: float,
-         quick: bool = False, **kw: Any) -> Composite:
+def _gap(
+    name: str,
+    summary: str,
+    *,
+    dropout=None,
+    skip=None,
+    t_resume: float,
+    duration: float,
+    quick: bool = False,
+    **kw: Any,
+) -> Composite:
     return Composite(
         name,
         summary,
@@ -47,17 +56,36 @@ def _gap(name: str, summary: str, *, dropout=None, skip=None, t_resume: float, d
 
 @register("gap-dropout-200ms")
 def dropout_200ms(**kw: Any) -> Composite:
-    return _gap("gap-dropout-200ms", "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 0.2 s from t = 2 s",
-                dropout=(2.0, 2.2), t_resume=2.2, duration=5.0, quick=True, **kw)
+    return _gap(
+        "gap-dropout-200ms",
+        "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 0.2 s from t = 2 s",
+        dropout=(2.0, 2.2),
+        t_resume=2.2,
+        duration=5.0,
+        quick=True,
+        **kw,
+    )
 
 
 @register("gap-dropout-5s")
 def dropout_5s(**kw: Any) -> Composite:
-    return _gap("gap-dropout-5s", "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 5 s from t = 2 s",
-                dropout=(2.0, 7.0), t_resume=7.0, duration=10.0, **kw)
+    return _gap(
+        "gap-dropout-5s",
+        "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 5 s from t = 2 s",
+        dropout=(2.0, 7.0),
+        t_resume=7.0,
+        duration=10.0,
+        **kw,
+    )
 
 
 @register("gap-skip-105ms")
 def skip_105ms(**kw: Any) -> Composite:
-    return _gap("gap-skip-105ms", "50.3 Hz at 1 kHz, 40 dB SNR; 105 ms of samples lost at t = 2 s",
-                skip=(2.0, 0.105), t_resume=2.0, duration=5.0, **kw)
+    return _gap(
+        "gap-skip-105ms",
+        "50.3 Hz at 1 kHz, 40 dB SNR; 105 ms of samples lost at t = 2 s",
+        skip=(2.0, 0.105),
+        t_resume=2.0,
+        duration=5.0,
+        **kw,
+    )

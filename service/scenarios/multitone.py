@@ -20,8 +20,9 @@ from sinewatch.scenarios import register
 from sinewatch.scenarios._library import BenchInfo, Component, Composite, snr_noise_std
 
 
-def _multi(name: str, summary: str, tones: list[tuple[float, float, float]], offset: float,
-           quick: bool = False, **kw: Any) -> Composite:
+def _multi(
+    name: str, summary: str, tones: list[tuple[float, float, float]], offset: float, quick: bool = False, **kw: Any
+) -> Composite:
     comps = [Component(f, a0=a, phi0=p) for f, a, p in tones]
     return Composite(
         name,
@@ -40,23 +41,44 @@ def _multi(name: str, summary: str, tones: list[tuple[float, float, float]], off
 
 @register("multitone-2-separated")
 def two_separated(**kw: Any) -> Composite:
-    return _multi("multitone-2-separated", "50 Hz (A 1) + 120 Hz (A 0.5) + 0.2 at 1 kHz, 40 dB SNR",
-                  [(50.0, 1.0, 0.3), (120.0, 0.5, 1.2)], 0.2, quick=True, **kw)
+    return _multi(
+        "multitone-2-separated",
+        "50 Hz (A 1) + 120 Hz (A 0.5) + 0.2 at 1 kHz, 40 dB SNR",
+        [(50.0, 1.0, 0.3), (120.0, 0.5, 1.2)],
+        0.2,
+        quick=True,
+        **kw,
+    )
 
 
 @register("multitone-2-close")
 def two_close(**kw: Any) -> Composite:
-    return _multi("multitone-2-close", "50 Hz + 55 Hz (A 1 each) at 1 kHz, 40 dB SNR",
-                  [(50.0, 1.0, 0.3), (55.0, 1.0, 2.0)], 0.0, **kw)
+    return _multi(
+        "multitone-2-close",
+        "50 Hz + 55 Hz (A 1 each) at 1 kHz, 40 dB SNR",
+        [(50.0, 1.0, 0.3), (55.0, 1.0, 2.0)],
+        0.0,
+        **kw,
+    )
 
 
 @register("multitone-2-weak")
 def two_weak(**kw: Any) -> Composite:
-    return _multi("multitone-2-weak", "50 Hz (A 1) + 80 Hz (A 0.05) at 1 kHz, 40 dB SNR",
-                  [(50.0, 1.0, 0.3), (80.0, 0.05, 0.9)], 0.0, **kw)
+    return _multi(
+        "multitone-2-weak",
+        "50 Hz (A 1) + 80 Hz (A 0.05) at 1 kHz, 40 dB SNR",
+        [(50.0, 1.0, 0.3), (80.0, 0.05, 0.9)],
+        0.0,
+        **kw,
+    )
 
 
 @register("multitone-3")
 def three(**kw: Any) -> Composite:
-    return _multi("multitone-3", "50 + 110 + 170 Hz (A 1, 0.5, 0.3) + 0.2 at 1 kHz, 40 dB SNR",
-                  [(50.0, 1.0, 0.3), (110.0, 0.5, 1.2), (170.0, 0.3, -0.7)], 0.2, **kw)
+    return _multi(
+        "multitone-3",
+        "50 + 110 + 170 Hz (A 1, 0.5, 0.3) + 0.2 at 1 kHz, 40 dB SNR",
+        [(50.0, 1.0, 0.3), (110.0, 0.5, 1.2), (170.0, 0.3, -0.7)],
+        0.2,
+        **kw,
+    )

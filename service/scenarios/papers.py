@@ -64,8 +64,13 @@ def paper000_tone(**kw: Any) -> Composite:
         ),
         offset=1.0,
         tags=("paper", "paper000", "stationary", "quick"),
-        **{"sample_rate_hz": 1000.0, "duration_s": 10.0, "noise_std": 0.01,
-           "suggested_params": {"q": 1e-6, "r": 1e-2}, **kw},
+        **{
+            "sample_rate_hz": 1000.0,
+            "duration_s": 10.0,
+            "noise_std": 0.01,
+            "suggested_params": {"q": 1e-6, "r": 1e-2},
+            **kw,
+        },
     )
 
 
@@ -87,8 +92,13 @@ def paper000_chirp(**kw: Any) -> Composite:
         ),
         offset=1.0,
         tags=("paper", "paper000", "ramp", "tracking"),
-        **{"sample_rate_hz": 1000.0, "duration_s": 200.0, "noise_std": 0.01,
-           "suggested_params": {"q": 1e-6, "r": 1e-2}, **kw},
+        **{
+            "sample_rate_hz": 1000.0,
+            "duration_s": 200.0,
+            "noise_std": 0.01,
+            "suggested_params": {"q": 1e-6, "r": 1e-2},
+            **kw,
+        },
     )
 
 
@@ -145,12 +155,19 @@ def paper001_fm(**kw: Any) -> Composite:
 
 
 _P003 = {  # Section V, Figs. 1-6: steady-state mean / std of the estimates
-    10.0: {"amplitude_mean": 1.9999, "amplitude_std": 0.0947,
-           "frequency_rad_s_mean": 2.9956, "frequency_rad_s_std": 0.1164},
-    100.0: {"amplitude_mean": 2.0, "amplitude_std": 0.0108,
-            "frequency_rad_s_mean": 3.0, "frequency_rad_s_std": 0.0142},
-    1000.0: {"amplitude_mean": 2.0, "amplitude_std": 0.0011,
-             "frequency_rad_s_mean": 3.0, "frequency_rad_s_std": 0.0014},
+    10.0: {
+        "amplitude_mean": 1.9999,
+        "amplitude_std": 0.0947,
+        "frequency_rad_s_mean": 2.9956,
+        "frequency_rad_s_std": 0.1164,
+    },
+    100.0: {"amplitude_mean": 2.0, "amplitude_std": 0.0108, "frequency_rad_s_mean": 3.0, "frequency_rad_s_std": 0.0142},
+    1000.0: {
+        "amplitude_mean": 2.0,
+        "amplitude_std": 0.0011,
+        "frequency_rad_s_mean": 3.0,
+        "frequency_rad_s_std": 0.0014,
+    },
 }
 
 
@@ -170,8 +187,14 @@ def _paper003(w_h: float, **kw: Any) -> Composite:
         ),
         disturbances=[Component(_hz(w_h), a0=0.2)],
         tags=("paper", "paper003", "harmonic"),
-        **{"sample_rate_hz": 1000.0, "duration_s": 60.0, "noise_std": 0.0, "suggested_estimator": "kkl",
-           "suggested_params": {"f_min_hz": _hz(1.0), "f_max_hz": _hz(9.0)}, **kw},
+        **{
+            "sample_rate_hz": 1000.0,
+            "duration_s": 60.0,
+            "noise_std": 0.0,
+            "suggested_estimator": "kkl",
+            "suggested_params": {"f_min_hz": _hz(1.0), "f_max_hz": _hz(9.0)},
+            **kw,
+        },
     )
 
 
@@ -193,23 +216,61 @@ def paper003_h1000(**kw: Any) -> Composite:
 _FS004 = 1.0 / 3e-4  # Ts = 3e-4 s, Section V-A
 # The paper's tunings for adaptive-multisine (paper units, rad/s: omega_unit_rad_s = 1).
 # Example 1 and 3 (no bias: 2n = 4 poles); omega_max is not given: 10 rad/s bounds the signals.
-_GAINS_EX1 = {"n_sinusoids": 2, "bias": False, "a": [0.0, -0.5], "poles": [-2.0, -0.7, -0.5, -0.2],
-              "filter_poles": [-5.0], "filter_gains": [4.5], "mu": 6.0, "rho": 0.2, "mu_a": 0.15,
-              "omega0": [3.0, 4.0], "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+_GAINS_EX1 = {
+    "n_sinusoids": 2,
+    "bias": False,
+    "a": [0.0, -0.5],
+    "poles": [-2.0, -0.7, -0.5, -0.2],
+    "filter_poles": [-5.0],
+    "filter_gains": [4.5],
+    "mu": 6.0,
+    "rho": 0.2,
+    "mu_a": 0.15,
+    "omega0": [3.0, 4.0],
+    "omega_max": 10.0,
+    "omega_unit_rad_s": 1.0,
+}
 # Example 2 (bias: 2n + 1 = 5 poles); initial frequencies not given: Example 1's.
-_GAINS_EX2 = {"n_sinusoids": 2, "bias": True, "a": [-2.0, -1.0], "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
-              "filter_poles": [-6.0], "filter_gains": [6.0], "mu": 70.0, "rho": 0.3, "mu_a": 0.1,
-              "delta_high": 3e-4, "delta_low": 3e-5, "omega0": [3.0, 4.0], "omega_max": 10.0,
-              "omega_unit_rad_s": 1.0}
+_GAINS_EX2 = {
+    "n_sinusoids": 2,
+    "bias": True,
+    "a": [-2.0, -1.0],
+    "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
+    "filter_poles": [-6.0],
+    "filter_gains": [6.0],
+    "mu": 70.0,
+    "rho": 0.3,
+    "mu_a": 0.1,
+    "delta_high": 3e-4,
+    "delta_low": 3e-5,
+    "omega0": [3.0, 4.0],
+    "omega_max": 10.0,
+    "omega_unit_rad_s": 1.0,
+}
 # Section V-B experiment (no bias); initial frequencies not given.
-_GAINS_EXP = {"n_sinusoids": 2, "bias": False, "a": [0.0, -1.0], "poles": [-0.7, -0.4, -0.5, -1.0],
-              "filter_poles": [-2.0], "filter_gains": [1.0], "mu": 20.0, "rho": 1.0, "mu_a": 0.2,
-              "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+_GAINS_EXP = {
+    "n_sinusoids": 2,
+    "bias": False,
+    "a": [0.0, -1.0],
+    "poles": [-0.7, -0.4, -0.5, -1.0],
+    "filter_poles": [-2.0],
+    "filter_gains": [1.0],
+    "mu": 20.0,
+    "rho": 1.0,
+    "mu_a": 0.2,
+    "omega_max": 10.0,
+    "omega_unit_rad_s": 1.0,
+}
 
 
 def _p004(gains: dict[str, Any], kw: dict[str, Any], fs: float = _FS004) -> dict[str, Any]:
-    return {"sample_rate_hz": fs, "noise_std": 0.0, "suggested_estimator": "adaptive-multisine",
-            "suggested_params": dict(gains), **kw}
+    return {
+        "sample_rate_hz": fs,
+        "noise_std": 0.0,
+        "suggested_estimator": "adaptive-multisine",
+        "suggested_params": dict(gains),
+        **kw,
+    }
 
 
 @register("paper004-ex1")
@@ -272,14 +333,15 @@ def paper004_ex3(**kw: Any) -> Composite:
     return Composite(
         "paper004-ex3",
         "paper 004 Example 3: frequency steps 2 -> 3 and 5 -> 4.5 rad/s at 70 s, uniform noise +-0.25",
-        [Component(_hz(2.0), t_step=70.0, f_step_to=_hz(3.0)),
-         Component(_hz(5.0), t_step=70.0, f_step_to=_hz(4.5))],
+        [Component(_hz(2.0), t_step=70.0, f_step_to=_hz(3.0)), Component(_hz(5.0), t_step=70.0, f_step_to=_hz(4.5))],
         BenchInfo(
             nominal_frequency_hz=(_hz(3.0), _hz(4.0)),
             frequency_range_hz=(_hz(0.5), _hz(10.0)),
             steady_windows=((35.0, 70.0), (105.0, 140.0)),
-            events=(Event(70.0, "frequency_hz", _hz(1.0), component=0),
-                    Event(70.0, "frequency_hz", _hz(-0.5), component=1)),
+            events=(
+                Event(70.0, "frequency_hz", _hz(1.0), component=0),
+                Event(70.0, "frequency_hz", _hz(-0.5), component=1),
+            ),
             reference={"frequencies": "tracks the sudden changes in a noisy environment (Fig. 10)"},
         ),
         uniform_noise=0.25,

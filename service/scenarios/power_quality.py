@@ -54,14 +54,29 @@ LIMITS = {
 }
 
 
-def _c37(name: str, f0: float, summary: str, comp: Component, kind: str, *,
-         duration: float = 2.0, windows: tuple[tuple[float, float], ...] = ((1.0, 2.0),),
-         events: tuple[Event, ...] = (), extra_tags: tuple[str, ...] = (),
-         disturbances: list[Component] | None = None, limits: dict[str, float] | None = None,
-         composite_kw: dict[str, Any] | None = None, overrides: dict[str, Any] | None = None) -> Composite:
+def _c37(
+    name: str,
+    f0: float,
+    summary: str,
+    comp: Component,
+    kind: str,
+    *,
+    duration: float = 2.0,
+    windows: tuple[tuple[float, float], ...] = ((1.0, 2.0),),
+    events: tuple[Event, ...] = (),
+    extra_tags: tuple[str, ...] = (),
+    disturbances: list[Component] | None = None,
+    limits: dict[str, float] | None = None,
+    composite_kw: dict[str, Any] | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> Composite:
     full = f"c37-{int(f0)}hz-{name}"
-    kw = {"sample_rate_hz": SAMPLE_RATE_HZ, "duration_s": duration, "noise_std": 0.0,
-          "suggested_params": {"q": [1e-10, 1e-10, 1e-14, 1e-14], "r": 1e-4}}
+    kw = {
+        "sample_rate_hz": SAMPLE_RATE_HZ,
+        "duration_s": duration,
+        "noise_std": 0.0,
+        "suggested_params": {"q": [1e-10, 1e-10, 1e-14, 1e-14], "r": 1e-4},
+    }
     kw.update(overrides or {})
     return Composite(
         full,
@@ -85,8 +100,15 @@ def _c37(name: str, f0: float, summary: str, comp: Component, kind: str, *,
 def _steady(f0: float, df: float, name: str, quick: bool = False):
     def factory(**kw: Any) -> Composite:
         label = "nominal frequency" if df == 0 else f"off-nominal {df:+g} Hz"
-        return _c37(name, f0, label, Component(f0 + df, phi0=0.4), "steady",
-                    extra_tags=("quick",) if quick else (), overrides=kw)
+        return _c37(
+            name,
+            f0,
+            label,
+            Component(f0 + df, phi0=0.4),
+            "steady",
+            extra_tags=("quick",) if quick else (),
+            overrides=kw,
+        )
 
     return factory
 
@@ -95,9 +117,16 @@ def _harmonic(f0: float, h_default: int):
     def factory(harmonic: int = h_default, **kw: Any) -> Composite:
         if not 2 <= harmonic <= 50:
             raise ValueError(f"harmonic: expected 2..50, got {harmonic}")
-        return _c37(f"harmonic-{harmonic}", f0, f"10 % harmonic {harmonic}", Component(f0, phi0=0.4),
-                    "harmonic", disturbances=[Component(harmonic * f0, a0=0.1, phi0=1.0)],
-                    extra_tags=("quick",) if (harmonic == 3 and f0 == 50.0) else (), overrides=kw)
+        return _c37(
+            f"harmonic-{harmonic}",
+            f0,
+            f"10 % harmonic {harmonic}",
+            Component(f0, phi0=0.4),
+            "harmonic",
+            disturbances=[Component(harmonic * f0, a0=0.1, phi0=1.0)],
+            extra_tags=("quick",) if (harmonic == 3 and f0 == 50.0) else (),
+            overrides=kw,
+        )
 
     return factory
 
@@ -106,9 +135,15 @@ def _oob(f0: float, high: bool):
     fi = 1.5 * f0 + 1.0 if high else 0.5 * f0 - 1.0
 
     def factory(**kw: Any) -> Composite:
-        return _c37("oob-high" if high else "oob-low", f0, f"10 % interference at {fi:g} Hz",
-                    Component(f0, phi0=0.4), "oob",
-                    disturbances=[Component(fi, a0=0.1, phi0=0.2)], overrides=kw)
+        return _c37(
+            "oob-high" if high else "oob-low",
+            f0,
+            f"10 % interference at {fi:g} Hz",
+            Component(f0, phi0=0.4),
+            "oob",
+            disturbances=[Component(fi, a0=0.1, phi0=0.2)],
+            overrides=kw,
+        )
 
     return factory
 
@@ -118,10 +153,17 @@ def _ramp(f0: float, up: bool):
     fs_report = f0
 
     def factory(**kw: Any) -> Composite:
-        return _c37("ramp-up" if up else "ramp-down", f0, f"frequency ramp {sign:+g} Hz/s over +-5 Hz",
-                    Component(f0 - sign * 5.0, rocof=sign * 1.0, ramp_start=1.0, ramp_stop=11.0),
-                    "ramp", duration=12.0, windows=((1.0 + 7.0 / fs_report, 11.0),),
-                    extra_tags=("tracking", "quick") if (up and f0 == 50.0) else ("tracking",), overrides=kw)
+        return _c37(
+            "ramp-up" if up else "ramp-down",
+            f0,
+            f"frequency ramp {sign:+g} Hz/s over +-5 Hz",
+            Component(f0 - sign * 5.0, rocof=sign * 1.0, ramp_start=1.0, ramp_stop=11.0),
+            "ramp",
+            duration=12.0,
+            windows=((1.0 + 7.0 / fs_report, 11.0),),
+            extra_tags=("tracking", "quick") if (up and f0 == 50.0) else ("tracking",),
+            overrides=kw,
+        )
 
     return factory
 
@@ -134,8 +176,17 @@ def _modulation(f0: float, kind: str, fm: float):
         else:
             comp = Component(f0, phi0=0.4, pm_depth_rad=0.1, pm_hz=fm)
             label = f"phase modulation 0.1 rad at {fm:g} Hz"
-        return _c37(f"{kind}-{int(fm)}hz", f0, label, comp, "modulation", duration=3.0,
-                    windows=((1.0, 3.0),), extra_tags=("tracking",), overrides=kw)
+        return _c37(
+            f"{kind}-{int(fm)}hz",
+            f0,
+            label,
+            comp,
+            "modulation",
+            duration=3.0,
+            windows=((1.0, 3.0),),
+            extra_tags=("tracking",),
+            overrides=kw,
+        )
 
     return factory
 
@@ -151,10 +202,19 @@ def _step(f0: float, quantity: str, sign: float):
             comp = Component(f0, phi0=0.4, t_step=T_STEP, phase_step_rad=math.radians(10.0 * sign))
             event = Event(T_STEP, "phase_rad", math.radians(10.0 * sign))
             label, name = f"phase step {10 * sign:+g} degrees", f"step-phase-{'p' if sign > 0 else 'm'}10"
-        return _c37(name, f0, label, comp, "step", duration=3.0,
-                    windows=((1.0, T_STEP), (T_STEP + 1.0, 3.0)), events=(event,),
-                    limits=limits, overrides=kw,
-                    extra_tags=("quick",) if (f0 == 50.0 and quantity == "phase_rad" and sign > 0) else ())
+        return _c37(
+            name,
+            f0,
+            label,
+            comp,
+            "step",
+            duration=3.0,
+            windows=((1.0, T_STEP), (T_STEP + 1.0, 3.0)),
+            events=(event,),
+            limits=limits,
+            overrides=kw,
+            extra_tags=("quick",) if (f0 == 50.0 and quantity == "phase_rad" and sign > 0) else (),
+        )
 
     return factory
 
@@ -162,13 +222,29 @@ def _step(f0: float, quantity: str, sign: float):
 def _dc(f0: float, decay: bool):
     def factory(**kw: Any) -> Composite:
         if decay:
-            return _c37("dc-decay", f0, "decaying DC offset 0.5 exp(-(t - 1.5)/0.05)", Component(f0, phi0=0.4),
-                        "steady", duration=3.0, windows=((1.0, T_STEP), (2.0, 3.0)),
-                        events=(Event(T_STEP, "offset", 0.5),), extra_tags=("dc",),
-                        composite_kw={"offset_decay": 0.5, "offset_tau": 0.05, "offset_decay_start": T_STEP},
-                        overrides=kw)
-        return _c37("dc-offset", f0, "10 % DC offset", Component(f0, phi0=0.4), "steady",
-                    extra_tags=("dc",), composite_kw={"offset": 0.1}, overrides=kw)
+            return _c37(
+                "dc-decay",
+                f0,
+                "decaying DC offset 0.5 exp(-(t - 1.5)/0.05)",
+                Component(f0, phi0=0.4),
+                "steady",
+                duration=3.0,
+                windows=((1.0, T_STEP), (2.0, 3.0)),
+                events=(Event(T_STEP, "offset", 0.5),),
+                extra_tags=("dc",),
+                composite_kw={"offset_decay": 0.5, "offset_tau": 0.05, "offset_decay_start": T_STEP},
+                overrides=kw,
+            )
+        return _c37(
+            "dc-offset",
+            f0,
+            "10 % DC offset",
+            Component(f0, phi0=0.4),
+            "steady",
+            extra_tags=("dc",),
+            composite_kw={"offset": 0.1},
+            overrides=kw,
+        )
 
     return factory
 
