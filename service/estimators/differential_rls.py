@@ -400,7 +400,8 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def core_status(core, theta, P, consts):
-    """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged).
+    """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged,
+    lam_bb if significant else 0).
 
     confident: enough updates and std < the threshold (allows re-centring); converged:
     confident and the offset within the low-pass band (valid and in band is recorded in
@@ -421,7 +422,10 @@ def core_status(core, theta, P, consts):
     inband = abs(w) <= consts[K_W_BB_MAX]
     core[INBAND] = 1.0 if (valid and inband) else 0.0
     conv = confident and inband
-    return w, lam_bb, std, valid, confident, conv
+    # the ramp is handed to the reference only once it stands out of its own noise (3 sigma):
+    # an early, noisy lam^ moved the reference needlessly during acquisition
+    lam_sig = lam_bb if (deriv and lam_bb * lam_bb > 9.0 * s2 * max(P[1, 1], 0.0) / (1.0 + consts[K_LAM])) else 0.0
+    return w, lam_bb, std, valid, confident, conv, lam_sig
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -601,14 +605,14 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
         cr = cre[k] * c0 + cim[k] * s0  # c e^{-j psi2}
         ci = cim[k] * c0 - cre[k] * s0
         core_step(cr, ci, u[k], core, theta, P, tab, consts, rr, ri, xr, xi, px)
-        w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
+        w, lb, std, valid, confident, conv, lsig = core_status(core, theta, P, consts)
         if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
             dw = w if (recenter and confident) else 0.0
-            dl = lb if (recenter and confident) else 0.0
+            dl = lsig if (recenter and confident) else 0.0
             rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
             ref[1] += dw
             ref[2] += dl
-            w, lb, std, valid, confident, conv = core_status(core, theta, P, consts)
+            w, lb, std, valid, confident, conv, lsig = core_status(core, theta, P, consts)
         out[k, 0] = w + ref[1] if valid else np.nan
         out[k, 1] = lb + ref[2] if valid else np.nan
         out[k, 2] = math.hypot(core[A_RE], core[A_IM]) if valid else np.nan
@@ -741,7 +745,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
             ist[0] = 0
             ist[1] = (ist[1] + 1) % ncyc
             core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
-            w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
+            w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
             if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
                 dw = 0.0
                 dl = 0.0
@@ -749,7 +753,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
                     # periodic re-centring of the reference oscillator on the estimate (frequency
                     # and, with the derivative model, its ramp), clamped to the tracking range
                     wnew = wref + w / T0
-                    lnew = lref + lb / (T0 * T0)
+                    lnew = lref + lsig / (T0 * T0)
                     if wnew > w_hi:
                         wnew = w_hi
                         lnew = 0.0
@@ -782,7 +786,7 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
                     wref = wnew
                     lref = lnew
                 rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
-                w, lb, std, val, confident, conv = core_status(core, theta, P, consts)
+                w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
             # snapshot, compensated for the low-pass response at the estimated baseband frequency
             h = lowpass_response(sos, w / d0)
             ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
@@ -1079,6 +1083,24 @@ class DifferentialRls(Estimator):
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.3
     example_params = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
+
+    @classmethod
+    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+        """Parameters for a bench scenario (``sinewatch bench accuracy``): reference at the
+        nominal frequency, low-pass bandwidth 10 % of it, tracking range covering the
+        scenario's frequency range as far as the demodulator allows, M <= 10."""
+        nom = tuple(hints["nominal_frequency_hz"])
+        if len(nom) != 1 or hints.get("n_inputs", 1) != 1:
+            raise ParameterError(f"expected one component on one input, got {len(nom)} components")
+        f0 = float(nom[0])
+        lo, hi = hints["frequency_range_hz"]
+        bw = 0.1 * f0
+        rng = min(max(f0 - float(lo), float(hi) - f0, bw), f0 - 2.0 * bw, 0.45 * sample_rate_hz - f0 - bw)
+        m = min(10.0, sample_rate_hz / (2.0 * bw))
+        if rng < 0.0 or m < 1.0:
+            raise ParameterError(f"expected room for the demodulator below Nyquist, got f0 = {f0} Hz "
+                                 f"at {sample_rate_hz} Hz")  # fmt: skip
+        return {"nominal_frequency_hz": f0, "bandwidth_hz": bw, "tracking_range_hz": rng, "oversampling": m}
 
     def _check_params(self) -> None:
         p = self.params
