@@ -169,3 +169,19 @@ def test_zero_input_keeps_state_finite(name):
     # and it still works afterwards on a real signal
     tr = est.update(signal(name))
     assert tr.converged[-N // 4 :].any()
+
+
+def test_params_for_hook_yields_valid_params(name):
+    cls = get(name)
+    if "params_for" not in cls.__dict__:
+        pytest.skip("no params_for hook")
+    f0 = cls.example_frequency_hz
+    hints = {"scenario": "conformance", "sample_rate_hz": cls.example_sample_rate_hz,
+             "nominal_frequency_hz": (f0,), "frequency_range_hz": (0.5 * f0, 2 * f0),
+             "n_components": 1, "n_inputs": 1, "noise_std": 0.01, "amplitude": (1.0,),
+             "offset": 0.5, "reporting_rate_hz": None, "tags": ()}
+    try:
+        params = cls.params_for(cls.example_sample_rate_hz, hints)
+    except ParameterError:
+        pytest.skip("does not apply to a single tone")
+    cls(cls.example_sample_rate_hz, {**cls.example_params, **params})

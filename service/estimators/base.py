@@ -135,6 +135,13 @@ class Estimator(ABC):
     example_params: ClassVar[dict[str, Any]] = {}
     example_frequency_hz: ClassVar[float] = 50.0
 
+    # Optional hook for the accuracy bench (sinewatch.bench.accuracy.estimator_params):
+    #   @classmethod
+    #   def params_for(cls, sample_rate_hz: float, hints: dict) -> dict
+    # hints: scenario, sample_rate_hz, nominal_frequency_hz (one per component),
+    # frequency_range_hz, n_components, n_inputs, noise_std, amplitude, offset,
+    # reporting_rate_hz, tags. Raise ParameterError when the estimator does not apply.
+
     @classmethod
     def example(cls) -> Estimator:
         """An instance built from the example configuration."""

@@ -174,7 +174,12 @@ class Tone:
 
 
 class SumOfTones(Scenario):
-    """offset + sum of :class:`Tone` components + noise; the generic scenario."""
+    """offset + sum of :class:`Tone` components + disturbances + noise; the generic scenario.
+
+    ``tones`` are the components an estimator should report (they make up the truth);
+    ``disturbances`` (harmonics, ripple, interference) are added to the signal but are
+    not part of the truth, so a one-component estimator is scored on the fundamental.
+    """
 
     def __init__(
         self,
@@ -183,6 +188,7 @@ class SumOfTones(Scenario):
         tones: list[Tone],
         offset: float = 0.0,
         tags: tuple[str, ...] = (),
+        disturbances: list[Tone] | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
@@ -190,6 +196,7 @@ class SumOfTones(Scenario):
         self.summary = summary
         self.tags = tags
         self.tones = list(tones)
+        self.disturbances = list(disturbances or [])
         self.offset = float(offset)
 
     def clean(self, t: np.ndarray) -> tuple[np.ndarray, Truth]:
@@ -199,12 +206,16 @@ class SumOfTones(Scenario):
         phase = np.stack([c[2] for c in cols], axis=1)
         rocof = np.stack([c[3] for c in cols], axis=1)
         y = self.offset + np.sum(amp * np.sin(phase), axis=1)
+        for d in self.disturbances:
+            _, d_amp, d_phase, _ = d.evaluate(t)
+            y = y + d_amp * np.sin(d_phase)
         truth = Truth(freq, amp, wrap_phase(phase), np.full(t.shape, self.offset), rocof)
         return y, truth
 
     def describe(self) -> dict[str, Any]:
         d = super().describe()
         d["tones"] = [tone.__dict__ for tone in self.tones]
+        d["disturbances"] = [tone.__dict__ for tone in self.disturbances]
         d["offset"] = self.offset
         return d
 

@@ -24,17 +24,17 @@ DEMO_CHANNELS = [
 
 
 def _demo(name: str, summary: str, tones: list[Tone], offset: float = 0.0, noise_std: float = 0.01,
-          params: dict | None = None, **overrides) -> SumOfTones:
+          params: dict | None = None, disturbances: list[Tone] | None = None, **overrides) -> SumOfTones:
     kw = dict(sample_rate_hz=10_000.0, duration_s=10.0, noise_std=noise_std,
               suggested_estimator="ges-kalman", suggested_params=params or KALMAN_10K)
     kw.update(overrides)
-    return SumOfTones(name, summary, tones, offset=offset, tags=("demo",), **kw)
+    return SumOfTones(name, summary, tones, offset=offset, tags=("demo",), disturbances=disturbances, **kw)
 
 
 @register("demo-mains-harmonics")
 def mains_harmonics(**kw):
     return _demo("demo-mains-harmonics", "50 Hz with 5 % 3rd and 3 % 5th harmonics",
-                 [Tone(50.0, 1.0), Tone(150.0, 0.05, 0.4), Tone(250.0, 0.03, 1.1)], **kw)
+                 [Tone(50.0, 1.0)], disturbances=[Tone(150.0, 0.05, 0.4), Tone(250.0, 0.03, 1.1)], **kw)
 
 
 @register("demo-ramp")

@@ -243,7 +243,7 @@ _GAINS_EX2 = {
     "mu_a": 0.1,
     "delta_high": 3e-4,
     "delta_low": 3e-5,
-    "omega0": [3.0, 4.0],
+    "omega0": [3.5, 2.5],  # (3, 4) is outside the basin of these gains (measured)
     "omega_max": 10.0,
     "omega_unit_rad_s": 1.0,
 }
@@ -258,6 +258,7 @@ _GAINS_EXP = {
     "mu": 20.0,
     "rho": 1.0,
     "mu_a": 0.2,
+    "omega0": [6.0, 4.0],  # not given; (3, 4) did not converge within 30 s (measured)
     "omega_max": 10.0,
     "omega_unit_rad_s": 1.0,
 }
@@ -359,9 +360,9 @@ def paper004_experiment(**kw: Any) -> Composite:
         BenchInfo(
             nominal_frequency_hz=(_hz(6.0), _hz(4.0)),
             frequency_range_hz=(_hz(0.5), _hz(14.0)),
-            steady_windows=((15.0, 30.0),),
+            steady_windows=((70.0, 100.0),),  # converged within 1 % after 53 s (measured)
             reference={"frequencies": "gathered with great accuracy (Figs. 13-14)"},
         ),
         tags=("paper", "paper004", "multitone"),
-        **_p004(_GAINS_EXP, {"duration_s": 30.0, "noise_std": 0.05, **kw}, fs=10_000.0),
+        **_p004(_GAINS_EXP, {"duration_s": 100.0, "noise_std": 0.05, **kw}, fs=10_000.0),
     )
