@@ -14,7 +14,6 @@ import numpy as np
 
 from sinewatch.estimators import create, get
 from sinewatch.estimators.differential_rls import baseband_estimate, differential_rls_kernel
-from sinewatch.estimators.ges_kalman import ges_kalman_kernel
 from sinewatch.scenarios import get as get_scenario
 
 W = 1.0
@@ -191,38 +190,35 @@ def real_input():
 
 
 def timing():
-    print("## Speed (this machine, now)\n")
+    print("## Speed (this machine, now; compare estimators with `sinewatch bench kernels`)\n")
     cls = get("differential-rls")
-    est = cls.example()
-    x = cls.example_signal(200_000, 1)
-    est.update(x[:5000])
-    blk = x[5000:6024].copy()
-    s = est._state
-    args = (s["fe"], s["core"], s["theta"], s["P"], s["ist"], est._sos, est._tab, est._cyc, est._consts)
-    differential_rls_kernel(blk, *args, False)
-    reps = 3000
-    best = []
-    for _ in range(5):
-        t1 = time.perf_counter()
-        for _ in range(reps):
-            differential_rls_kernel(blk, *args, False)
-        best.append((time.perf_counter() - t1) / reps / blk.size * 1e9)
-    t1 = time.perf_counter()
-    for _ in range(reps):
-        est.update(blk)
-    upd = (time.perf_counter() - t1) / reps / blk.size * 1e9
-    g = get("ges-kalman").example()
-    gx = get("ges-kalman").example_signal(1024)
-    ges_kalman_kernel(gx, g._state["xP"], g._consts, False)
-    gb = []
-    for _ in range(5):
-        t1 = time.perf_counter()
-        for _ in range(reps):
-            ges_kalman_kernel(gx, g._state["xP"], g._consts, False)
-        gb.append((time.perf_counter() - t1) / reps / gx.size * 1e9)
-    print(f"1024-sample block, example configuration (fs 1 kHz, decimation 10, p = 5): kernel "
-          f"{min(best):.1f} ns/sample (best of 5), update() {upd:.1f} ns/sample; ges-kalman kernel "
-          f"{min(gb):.1f} ns/sample in the same run\n")  # fmt: skip
+    for label, fs, extra in (("example: fs 1 kHz, decimation 10, p = 5", 1000.0, {}),
+                             ("fs 10 kHz, decimation 100, p = 5", 10_000.0, {}),
+                             ("fs 1 kHz, n_terms 4, no ROCOF (p = 4, cyclic 20/18)", 1000.0,
+                              {"n_terms": 4, "rocof_model": False, "oversampling": 5.0}),
+                             ("fs 1 kHz, n_terms 4 with ROCOF (p = 14, cyclic 20/18)", 1000.0,
+                              {"n_terms": 4, "oversampling": 5.0})):  # fmt: skip
+        est = cls(fs, {**P50, **extra})
+        t = np.arange(20_000) / fs
+        x = 0.5 + np.sin(2 * np.pi * 50.3 * t + 0.3) + 0.01 * np.random.default_rng(1).standard_normal(t.size)
+        est.update(x[:10_000])
+        blk = np.ascontiguousarray(x[10_000:11_024])
+        s = est._state
+        args = (s["fe"], s["core"], s["theta"], s["P"], s["ist"], est._sos, est._tab, est._cyc, est._consts)
+        differential_rls_kernel(blk, *args, False)
+        reps = 2000
+        best = []
+        for last_only in (False, True):
+            runs = []
+            for _ in range(5):
+                t1 = time.perf_counter()
+                for _ in range(reps):
+                    differential_rls_kernel(blk, *args, last_only)
+                runs.append((time.perf_counter() - t1) / reps / blk.size * 1e9)
+            best.append(min(runs))
+        print(f"- {label}: {best[0]:.1f} ns/sample full track, {best[1]:.1f} ns/sample last_only "
+              f"(kernel, 1024-sample block, best of 5)")  # fmt: skip
+    print()
 
 
 if __name__ == "__main__":

@@ -81,8 +81,9 @@ estimated by exponentially weighted least squares with w replaced by w^; recursi
 
 Re-centring (Sections 7 and 10: "a periodic adjustment of the reference oscillator
 frequency by the estimate", so that the truncation error of (6) vanishes): every
-``recenter_every`` decimated samples, once converged, the reference moves by
-``dw = w^(t_k)`` (and its ramp by ``dl = lam0^``) and the time origin to t_k. theta is
+``recenter_every`` decimated samples, once confident (std below the threshold), the
+reference moves by ``dw = w^(t_k)`` (and its ramp by ``dl = lam0^`` when lam0^ stands 3 sigma
+out of its noise) and the time origin to t_k. theta is
 re-expressed exactly: ``w' = w + lam0 Delta - dw``, ``lam0' = lam0 - dl`` make every monomial
 ``w'^a lam0'^b`` an affine function of the old ones, ``theta' = T theta + b0``, ``P' = T P T'``.
 
@@ -103,14 +104,22 @@ at every input sample ``frequency = (w_ref + w^ + lam0^ s) / 2 pi``, ``phase = p
 (lam_ref + lam0^) / 2 pi`` (NaN without ``rocof_model``).
 
 Internally times are in units of T0 (the longest decimated interval) and every equation
-is divided by the RMS amplitude of c, so that P is scale-free. Safeguards (not in the
-paper): no forgetting while c carries no information (zero input), a restart after a 20 dB
-jump in power (a signal that resumes), theta^ reset if it leaves |w dt| < pi or goes
-non-finite. ``converged`` = at least 2p updates, ``frequency_std_hz < convergence_rel_std *
-bandwidth_hz`` and |offset| within the bandwidth.
+is divided by the RMS amplitude of c (weighted with lam^4, taken before c(k-1) so that the
+weight is independent of the equation's own noise, and never below |c(k-1)| / 2), so that P
+is scale-free. Safeguards (not in the paper): no forgetting while c carries no information
+(zero input); a signal 60 dB below its mean power is absent (NaN, no learning; back at 40 dB,
+hysteresis against the low-pass ringing); when it comes back, or jumps 20 dB, the core waits
+for the low-pass to settle and restarts with theta^ as prior; theta^ is reset if it leaves
+|w dt| < pi or goes non-finite; ELS runs only while the offset estimate is within the
+band (beyond it the residual is truncation error and the whitening feedback ran away).
+sigma^2 for eq. (19) is the a-priori error power weighted with lam^4, so that a transient
+is forgotten 4x faster than theta. ``converged`` = at least 2p updates,
+``frequency_std_hz < convergence_rel_std * bandwidth_hz`` and |offset| within the bandwidth.
 
 Deviations: the block-Hankel fast solution (9)-(10) is not needed by the recursive form;
-the subsequence algorithm (15)-(18) is replaced by the r1-weighted whitening above.
+the subsequence algorithm (15)-(18) is replaced by the r1-weighted whitening above; the
+frequency smoother of Section 10 is replaced by re-centring. docs/estimators/differential-rls.md
+has the measured figures beside the paper's.
 """
 
 from __future__ import annotations
