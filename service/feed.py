@@ -54,10 +54,12 @@ class Feed:
 
     def run(self, duration_s: float, on_block: Callable[[FeedChannel], None] | None = None) -> int:
         """Publish until ``duration_s`` of signal is sent (or ``stop`` is set); return the
-        number of blocks published."""
+        number of blocks published. ``block_size`` counts samples at the first channel's
+        rate; a channel at another rate gets blocks of the same duration."""
         if not self.channels:
             return 0
         fs = self.channels[0].scenario.sample_rate_hz
+        self._sizes = {id(ch): max(1, round(self.block_size * ch.scenario.sample_rate_hz / fs)) for ch in self.channels}
         rounds = int(round(duration_s * fs / self.block_size))
         start = time.monotonic()
         sent = 0
@@ -75,7 +77,7 @@ class Feed:
         return sent
 
     def _publish(self, ch: FeedChannel) -> int:
-        samples, truth = ch.stream.read(self.block_size)
+        samples, truth = ch.stream.read(self._sizes[id(ch)])
         ch.last_truth = truth.last()
         fault = ch.scenario.faults.action(ch.blocks)
         ch.blocks += 1
