@@ -168,13 +168,10 @@ class Daemon:
         self._queued = 0
         self._started = time.monotonic()
         self._last_log_time = 0
-        self._sigint_count = 0
-        self.exit_code = 0
 
     # ---- signals -------------------------------------------------------------------------------
     def handle_signal(self, sig: int) -> None:
         if sig == signal.SIGINT and self.should_exit.is_set():
-            self._sigint_count += 1
             log.warning("second SIGINT: forcing exit (MCAP file is still finished)")
             self.force_exit.set()
             return
