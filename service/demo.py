@@ -109,7 +109,7 @@ async def run_demo(
     record_dir: Path = Path("sinewatch-runs"),
     record: bool = True,
     console: Console | None = None,
-    block_size: int = 1000,
+    block_s: float = 0.1,
 ) -> int:
     console = console or Console()
     names = names or DEMO_CHANNELS
@@ -134,6 +134,8 @@ async def run_demo(
         if len(v.truth_by_seq) > v.order.maxlen - 1:
             v.truth_by_seq.pop(v.order[0], None)
 
+    # Blocks of 0.1 s: 1000 samples at 10 kHz, 10 at the 100 Hz of paper 002's example.
+    block_size = max(1, round(block_s * channels[0].scenario.sample_rate_hz))
     feed = Feed(publisher, channels, block_size=block_size, realtime=True)
     feed_done = threading.Event()
 

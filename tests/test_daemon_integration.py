@@ -9,6 +9,7 @@ import struct
 import threading
 
 import numpy as np
+import pytest
 from conftest import endpoint, make_config
 from mcap.reader import make_reader
 
@@ -170,7 +171,8 @@ def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
     assert daemon.pipeline.counters.errors == len(hostile)
 
 
-def test_sigint_stops_intake_drains_and_finishes_the_recording(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_stops_intake_drains_and_finishes_the_recording(tmp_path, sig):
     config = make_config(tmp_path)
     blocks = _good_blocks(40)
     done = threading.Event()
@@ -183,7 +185,7 @@ def test_sigint_stops_intake_drains_and_finishes_the_recording(tmp_path):
             for blk in blocks[:20]:
                 pub.publish_raw("h/a", encode_block_binary(blk))
             got = _collect(est, 20)
-            signal.raise_signal(signal.SIGINT)  # handled by the daemon's event loop
+            signal.raise_signal(sig)  # handled by the daemon's event loop
             done.set()
             return got
 
