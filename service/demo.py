@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
+import shutil
+import sys
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -194,7 +197,15 @@ def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None
         )
     for path in daemon.recording_paths:
         console.print(f"\nMCAP recording: [bold]{path}[/bold]")
-        console.print(f"Replay it bit for bit:  sinewatch replay {path}")
+        console.print(f"Replay it bit for bit:  {_cli_name()} replay {path}")
+
+
+def _cli_name() -> str:
+    """How the user can call the CLI from here: `sinewatch` if it is on PATH, else the
+    path of the script that is running (e.g. .venv/bin/sinewatch after `make demo`)."""
+    if shutil.which("sinewatch") or not sys.argv[0].endswith("sinewatch"):
+        return "sinewatch"
+    return os.path.relpath(sys.argv[0])
 
 
 def main(names: list[str] | None, duration_s: float, record_dir: Path, record: bool) -> int:
