@@ -117,6 +117,7 @@ Outputs and flags, per sample:
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -124,7 +125,7 @@ from pydantic import Field, field_validator, model_validator
 
 from sinewatch.errors import ParameterError
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
 #: of the reference angular frequency.
@@ -294,6 +295,9 @@ def parameters_from_x(x: np.ndarray) -> tuple[float, float, float]:
 
 
 class KklParams(EstimatorParams):
+    #: the least number of filters m (``kkl-biased`` overrides it: one more unknown)
+    min_filters: ClassVar[int] = 4
+
     f_min_hz: float = Field(45.0, gt=0, description="Lower end of the frequency range (Hz), eq. (11)")
     f_max_hz: float = Field(65.0, gt=0, description="Upper end of the frequency range (Hz), eq. (11)")
     lambda_factors: list[float] = Field(
@@ -329,7 +333,7 @@ class KklParams(EstimatorParams):
     @field_validator("lambda_factors")
     @classmethod
     def _factors(cls, v: list[float]) -> list[float]:
-        return validate_lambda_factors(v, 4)
+        return validate_lambda_factors(v, cls.min_filters)
 
     @model_validator(mode="after")
     def _range(self) -> KklParams:
@@ -347,6 +351,53 @@ def check_nyquist(name: str, f_max_hz: float, sample_rate_hz: float) -> None:
             f"{name}: f_max_hz: expected < Nyquist = {nyq:g} Hz (sample rate {sample_rate_hz:g} Hz), "
             f"got {f_max_hz:g}"
         )
+
+
+# ---- design shared with kkl-biased (Python, run once at construction) ---------------------
+
+
+def reference_scaling(p: KklParams) -> tuple[float, np.ndarray, np.ndarray, float, float]:
+    """``(omega_ref, lambda~, lambda, x3~_lo, x3~_hi)``: omega_ref = 2 pi sqrt(f_min f_max),
+    the filter poles in units of omega_ref and in rad/s, and the x3 range of (11) in units
+    of omega_ref^2 (module docstring, design choices)."""
+    f_ref = math.sqrt(p.f_min_hz * p.f_max_hz)
+    omega_ref = 2.0 * math.pi * f_ref
+    lam_n = np.asarray(p.lambda_factors, dtype=np.float64)
+    return omega_ref, lam_n, lam_n * omega_ref, (p.f_min_hz / f_ref) ** 2, (p.f_max_hz / f_ref) ** 2
+
+
+def observer_consts(p: KklParams, ts: float, omega_ref: float, ell: float, lam_min: float) -> np.ndarray:
+    """The ``consts`` array of :func:`kkl_kernel` (and of the ``kkl-biased`` kernel, which
+    packs the same 13 constants): Ts, omega_ref, l, silence_ratio, env_decay, n_settle,
+    max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the converged
+    range and the jump detector's gains. ``lam_min`` in rad/s."""
+    n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
+    return np.array(
+        [
+            ts,
+            omega_ref,
+            ell,
+            p.silence_ratio,
+            math.exp(-lam_min * ts / ENV_SLOWDOWN),  # env_decay
+            float(n_settle),
+            p.max_fit_residual,
+            p.max_prediction_error,
+            -math.expm1(-lam_min * ts),  # avg_gain: running means over ~1/lambda_min
+            2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
+            2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
+            -math.expm1(-omega_ref * ts),  # fast mean: time constant 1/omega_ref
+            -math.expm1(-lam_min * ts / ENV_SLOWDOWN),  # slow mean: 10/lambda_min
+        ]
+    )
+
+
+#: the kernels' ``extras`` columns, in order (module docstring, "extras")
+EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
+
+
+def observer_track(out: np.ndarray, ext: np.ndarray, sse: float, n: int) -> Track:
+    """The Track of a kernel's ``(out, extras, sse)`` over ``n`` samples."""
+    return track_from_columns(out, sse, n, {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
 
 
 # ---- kernel -------------------------------------------------------------------------------
@@ -567,38 +618,14 @@ class Kkl(Estimator):
         check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
 
     def _setup(self) -> None:
-        p = self.params
         ts = 1.0 / self.sample_rate_hz
-        self.omega_ref = 2.0 * math.pi * math.sqrt(p.f_min_hz * p.f_max_hz)
-        self.lam_n = np.asarray(p.lambda_factors, dtype=np.float64)  # lambda~ (units of omega_ref)
-        self.lambdas = self.lam_n * self.omega_ref  # rad/s
-        x3_lo = (p.f_min_hz / math.sqrt(p.f_min_hz * p.f_max_hz)) ** 2
-        x3_hi = (p.f_max_hz / math.sqrt(p.f_min_hz * p.f_max_hz)) ** 2
+        # lambda~ (units of omega_ref), lambda (rad/s), x3~ range of (11)
+        self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
         self.ell, self.ell_x3 = kkl_ell(self.lam_n, x3_lo, x3_hi)  # (10), units of omega_ref^2
         if not (self.ell > 0.0 and math.isfinite(self.ell)):
             raise ParameterError(f"{self.name}: l of (10): expected > 0, got {self.ell} (degenerate design)")
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
-        lam_min = float(self.lambdas.min())
-        n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
-        env_decay = math.exp(-lam_min * ts / ENV_SLOWDOWN)
-        avg_gain = -math.expm1(-lam_min * ts)  # running means over ~1/lambda_min
-        self._consts = np.array(
-            [
-                ts,
-                self.omega_ref,
-                self.ell,
-                p.silence_ratio,
-                env_decay,
-                float(n_settle),
-                p.max_fit_residual,
-                p.max_prediction_error,
-                avg_gain,
-                2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
-                2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
-                -math.expm1(-self.omega_ref * ts),  # fast mean: time constant 1/omega_ref
-                -math.expm1(-lam_min * ts / ENV_SLOWDOWN),  # slow mean: 10/lambda_min
-            ]
-        )
+        self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
@@ -607,9 +634,4 @@ class Kkl(Estimator):
         out, ext, sse, new = kkl_kernel(
             samples, state["xi_state"], self.lam_n, self._fa, self._fb0, self._fb1, self._consts, last_only
         )
-        extras = {
-            "manifold_margin": ext[:, 0],
-            "fit_residual": ext[:, 1],
-            "prediction_error": ext[:, 2],
-        }
-        return track_from_columns(out, sse, samples.shape[0], extras), {"xi_state": new}
+        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}

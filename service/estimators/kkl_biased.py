@@ -55,26 +55,28 @@ constant exactly (sinc(0) = 1), so the offset needs no correction. Differences:
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field
 
 from sinewatch.errors import ParameterError
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
-    CONVERGED_RANGE_FACTOR,
-    ENV_SLOWDOWN,
     FLUSH,
     JUMP_FLOOR,
     JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
+    KklParams,
     check_nyquist,
     ell_eq10,
     foh_coefficients,
-    validate_lambda_factors,
+    observer_consts,
+    observer_track,
+    reference_scaling,
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
@@ -112,16 +114,18 @@ def gamma_biased_reference(xi: np.ndarray, lam: np.ndarray, ell_b: float) -> np.
     return np.array([z[0] - z[2] / z[3], z[1], z[3], x4])
 
 
-class KklBiasedParams(EstimatorParams):
-    f_min_hz: float = Field(45.0, gt=0, description="Lower end of the frequency range (Hz)")
-    f_max_hz: float = Field(65.0, gt=0, description="Upper end of the frequency range (Hz)")
+class KklBiasedParams(KklParams):
+    # The parameters of ``kkl`` (same names, defaults and checks) with one more filter:
+    # m >= 5 and the default lambda factors BIASED_LAMBDA_FACTORS. The other fields are
+    # redeclared only where they act on eta_c and the variance of y instead of xi and y.
+    # (A comment, not a docstring: a docstring would become the JSON Schema's description.)
+
+    min_filters: ClassVar[int] = 5
+
     lambda_factors: list[float] = Field(
         list(BIASED_LAMBDA_FACTORS),
         description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); "
         "m >= 5, distinct, > 0",
-    )
-    settle_time_constants: float = Field(
-        6.0, gt=0, description="converged only after this many 1/lambda_min of good samples"
     )
     silence_ratio: float = Field(
         1e-3, gt=0, lt=1, description="the oscillation counts as zero below this fraction of its recent peak"
@@ -135,28 +139,6 @@ class KklBiasedParams(EstimatorParams):
         description="converged only while the running RMS of the one-step prediction error "
         "is at most this fraction of the running standard deviation of y",
     )
-
-    @field_validator(
-        "f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error"
-    )
-    @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError(f"expected a finite value, got {v}")
-        return v
-
-    @field_validator("lambda_factors")
-    @classmethod
-    def _factors(cls, v: list[float]) -> list[float]:
-        return validate_lambda_factors(v, 5)
-
-    @model_validator(mode="after")
-    def _range(self) -> KklBiasedParams:
-        if not self.f_min_hz < self.f_max_hz:
-            raise ValueError(
-                f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}"
-            )
-        return self
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -377,13 +359,9 @@ class KklBiased(Estimator):
         check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
 
     def _setup(self) -> None:
-        p = self.params
         ts = 1.0 / self.sample_rate_hz
-        f_ref = math.sqrt(p.f_min_hz * p.f_max_hz)
-        self.omega_ref = 2.0 * math.pi * f_ref
-        self.lam_n = np.asarray(p.lambda_factors, dtype=np.float64)
-        self.lambdas = self.lam_n * self.omega_ref
-        self.ell, self.ell_x3 = biased_ell(self.lam_n, (p.f_min_hz / f_ref) ** 2, (p.f_max_hz / f_ref) ** 2)
+        self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
+        self.ell, self.ell_x3 = biased_ell(self.lam_n, x3_lo, x3_hi)
         if not (self.ell > 0.0 and math.isfinite(self.ell)):
             raise ParameterError(f"{self.name}: l_b: expected > 0, got {self.ell} (degenerate design)")
         basis = np.column_stack([self.lam_n**2, self.lam_n, np.ones_like(self.lam_n)])
@@ -391,25 +369,7 @@ class KklBiased(Estimator):
         self._kk = np.ascontiguousarray(kk)
         self._kv = np.ascontiguousarray(kv)
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
-        lam_min = float(self.lambdas.min())
-        n_settle = math.ceil(p.settle_time_constants / (lam_min * ts))
-        self._consts = np.array(
-            [
-                ts,
-                self.omega_ref,
-                self.ell,
-                p.silence_ratio,
-                math.exp(-lam_min * ts / ENV_SLOWDOWN),
-                float(n_settle),
-                p.max_fit_residual,
-                p.max_prediction_error,
-                -math.expm1(-lam_min * ts),
-                2.0 * math.pi * p.f_min_hz * ts / CONVERGED_RANGE_FACTOR,
-                2.0 * math.pi * p.f_max_hz * ts * CONVERGED_RANGE_FACTOR,
-                -math.expm1(-self.omega_ref * ts),  # fast mean: time constant 1/omega_ref
-                -math.expm1(-lam_min * ts / ENV_SLOWDOWN),  # slow mean: 10/lambda_min
-            ]
-        )
+        self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         return {"xi_state": np.zeros(self.lam_n.size + 12)}
@@ -428,9 +388,4 @@ class KklBiased(Estimator):
             self._consts,
             last_only,
         )
-        extras = {
-            "manifold_margin": ext[:, 0],
-            "fit_residual": ext[:, 1],
-            "prediction_error": ext[:, 2],
-        }
-        return track_from_columns(out, sse, samples.shape[0], extras), {"xi_state": new}
+        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}
