@@ -551,20 +551,12 @@ def _bq(x, b0, b1, b2, a1, a2, z1, z2):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _biquads(x, sos, zi, off):
-    """Two cascaded DF2T biquads on one channel; zi[off:off+4] are the delays."""
+    """Two cascaded DF2T biquads (:func:`_bq`) on one channel; zi[off:off+4] are the delays.
+    The kernel runs the same steps on register copies of the delays."""
     y = x
     for s in range(2):
-        b0 = sos[s, 0]
-        b1 = sos[s, 1]
-        b2 = sos[s, 2]
-        a1 = sos[s, 4]
-        a2 = sos[s, 5]
-        z1 = zi[off + 2 * s]
-        z2 = zi[off + 2 * s + 1]
-        out = b0 * y + z1
-        zi[off + 2 * s] = b1 * y - a1 * out + z2
-        zi[off + 2 * s + 1] = b2 * y - a2 * out
-        y = out
+        j = off + 2 * s
+        y, zi[j], zi[j + 1] = _bq(y, sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5], zi[j], zi[j + 1])
     return y
 
 
