@@ -129,7 +129,7 @@ given: (3.5, 2.5) is ours, inside the band where its frozen observer is stable.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from numba import njit
@@ -167,6 +167,9 @@ PAPER_DESIGN = {
     },
 }
 _DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
+
+#: A finite fraction in [0, 1) (the ratios and thresholds below; 0 switches a test off).
+_Fraction = Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)]
 
 
 class AdaptiveMultisineParams(EstimatorParams):
@@ -213,19 +216,13 @@ class AdaptiveMultisineParams(EstimatorParams):
     level_time: float = Field(
         2.0, gt=0, allow_inf_nan=False, description="Time constant (scaled) of the signal-level gate"
     )
-    level_ratio: float = Field(
+    level_ratio: _Fraction = Field(
         0.25,
-        ge=0,
-        lt=1,
-        allow_inf_nan=False,
         description="The signal counts as lost when its AC power (over level_time) falls below this "
         "fraction of its power over 10 level_time",
     )
-    min_separation: float = Field(
+    min_separation: _Fraction = Field(
         0.05,
-        ge=0,
-        lt=1,
-        allow_inf_nan=False,
         description="Components are kept at least this fraction of the higher frequency apart (0: off)",
     )
     min_amplitude: float = Field(
@@ -234,11 +231,8 @@ class AdaptiveMultisineParams(EstimatorParams):
         allow_inf_nan=False,
         description="Amplitude (in amplitude_unit) below which a component is faded and the signal absent",
     )
-    fade_ratio: float = Field(
+    fade_ratio: _Fraction = Field(
         0.02,
-        ge=0,
-        lt=1,
-        allow_inf_nan=False,
         description="A component is also faded below this fraction of the largest amplitude",
     )
     convergence_time: float = Field(
@@ -260,11 +254,7 @@ class AdaptiveMultisineParams(EstimatorParams):
                 f"expected 0 < delta_low < delta_high < 1, got delta_low={self.delta_low}, delta_high={self.delta_high}"
             )
         if n != 2:
-            missing = [
-                k
-                for k in ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
-                if getattr(self, k) is None
-            ]
+            missing = [k for k in _DESIGN_KEYS if getattr(self, k) is None]
             if missing:
                 raise ValueError(
                     f"expected an explicit design for n_sinusoids={n} (the paper tunes n = 2), "
