@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN  # the paper's Section V gains
 from sinewatch.scenarios import register
 from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
 
@@ -216,34 +217,15 @@ def paper003_h1000(**kw: Any) -> Composite:
 _FS004 = 1.0 / 3e-4  # Ts = 3e-4 s, Section V-A
 # The paper's tunings for adaptive-multisine (paper units, rad/s: omega_unit_rad_s = 1).
 # Example 1 and 3 (no bias: 2n = 4 poles); omega_max is not given: 10 rad/s bounds the signals.
-_GAINS_EX1 = {
-    "n_sinusoids": 2,
-    "bias": False,
-    "a": [0.0, -0.5],
-    "poles": [-2.0, -0.7, -0.5, -0.2],
-    "filter_poles": [-5.0],
-    "filter_gains": [4.5],
-    "mu": 6.0,
-    "rho": 0.2,
-    "mu_a": 0.15,
-    "omega0": [3.0, 4.0],
-    "omega_max": 10.0,
-    "omega_unit_rad_s": 1.0,
-}
-# Example 2 (bias: 2n + 1 = 5 poles); initial frequencies not given: Example 1's.
+_GAINS_EX1 = {"n_sinusoids": 2, "bias": False, **PAPER_DESIGN[False], "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+# Example 2 (bias: 2n + 1 = 5 poles); initial frequencies not given: (3.5, 2.5), because
+# (3, 4) is outside the basin of these gains (measured).
 _GAINS_EX2 = {
     "n_sinusoids": 2,
     "bias": True,
-    "a": [-2.0, -1.0],
-    "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
-    "filter_poles": [-6.0],
-    "filter_gains": [6.0],
-    "mu": 70.0,
-    "rho": 0.3,
-    "mu_a": 0.1,
+    **PAPER_DESIGN[True],
     "delta_high": 3e-4,
     "delta_low": 3e-5,
-    "omega0": [3.5, 2.5],  # (3, 4) is outside the basin of these gains (measured)
     "omega_max": 10.0,
     "omega_unit_rad_s": 1.0,
 }
