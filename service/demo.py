@@ -10,6 +10,8 @@ a per-channel summary and the command that replays it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import math
 import os
 import shutil
@@ -22,6 +24,7 @@ from typing import Any
 
 from rich.console import Console
 from rich.live import Live
+from rich.logging import RichHandler
 from rich.table import Table
 
 from sinewatch.console import make_console
@@ -161,7 +164,8 @@ async def run_demo(
             v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
 
     title = f"sinewatch demo: {len(channels)} channels, {duration_s:g} s (Ctrl-C stops early)"
-    with Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live:
+    with Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live, \
+            _logs_through(console):
         while not feed_done.is_set() and not daemon.should_exit.is_set():
             await asyncio.sleep(0.25)  # the display's refresh period
             absorb()
@@ -177,6 +181,23 @@ async def run_demo(
     session.close()
     _summary(console, daemon, ordered)
     return code
+
+
+@contextlib.contextmanager
+def _logs_through(console: Console):
+    """Route sinewatch's log lines (rejected inputs, gaps) through the live display's
+    console, so they print above the table instead of tearing it."""
+    logger = logging.getLogger("sinewatch")
+    handler = RichHandler(console=console, show_path=False, show_time=False, markup=False)
+    handler.setLevel(logging.WARNING)
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None:

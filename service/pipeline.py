@@ -283,7 +283,10 @@ class Pipeline:
             "message": message,
             "count": self._error_counts[(key, kind)],
         }
-        log.warning("rejected input on %s (%s): %s", key, kind, message)
+        n = self._error_counts[(key, kind)]
+        if n <= 5 or _is_power_of_ten(n):  # a hostile flood must not flood the log too
+            log.warning("rejected input on %s (%s): %s%s", key, kind, message,
+                        f" [{n} so far on this key; further ones logged at powers of ten]" if n >= 5 else "")
         out_key = f"{self.config.keys.errors_prefix}/{channel_name or '_unknown'}"
         payload = dumps(report)
         for sink in self.sinks:
@@ -329,6 +332,12 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+def _is_power_of_ten(n: int) -> bool:
+    while n >= 10 and n % 10 == 0:
+        n //= 10
+    return n == 1
 
 
 def _last_value(arr: np.ndarray) -> float | None | list[float | None]:
