@@ -28,12 +28,12 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from sinewatch import __version__
+from sinewatch.schemas import codec
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     ERROR_JSON_ENCODING,
     ESTIMATE_JSON_ENCODING,
     STATUS_JSON_ENCODING,
-    __doc__ as CODEC_DOC,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
 from sinewatch.schemas.messages import MESSAGE_MODELS
@@ -156,7 +156,8 @@ class McapRecorder:
         sid = self._schemas.get(name)
         if sid is None:
             if name == "sinewatch.SampleBlock.binary":
-                sid = self._writer.register_schema(name, BINARY_SCHEMA_ENCODING, CODEC_DOC.encode())
+                # the byte layout, as documented in the codec, travels with the data
+                sid = self._writer.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
             else:
                 model = MESSAGE_MODELS[name.removeprefix("sinewatch.")]
                 schema = json.dumps(model.model_json_schema()).encode()
