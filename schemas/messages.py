@@ -52,6 +52,9 @@ class Diagnostics(_Message):
     residual_rms: float | None = Field(description="RMS one-step prediction error over the block")
     gap: bool = Field(False, description="Samples were missing before this block (sequence gap)")
     gap_blocks: int = Field(0, ge=0, description="How many blocks were missing before this one")
+    restart: bool = Field(
+        False, description="The sender restarted its sequence numbers (seq went back, time went forward)"
+    )
     reset: bool = Field(False, description="The estimator was reset before this block")
     extras: dict[str, float | None | list[float | None]] = Field(
         default_factory=dict, description="Estimator-specific diagnostics at the last sample"

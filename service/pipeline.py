@@ -78,6 +78,7 @@ class Channel:
     estimator: Estimator
     sample_rate_hz: float
     last_seq: int | None = None
+    next_t0_ns: int | None = None  # where the next contiguous block would start
     blocks: int = 0
     samples: int = 0
     gaps: int = 0
@@ -91,6 +92,7 @@ class Channel:
             "key": self.key,
             "sample_rate_hz": self.sample_rate_hz,
             "last_seq": self.last_seq,
+            "next_t0_ns": self.next_t0_ns,
             "blocks": self.blocks,
             "samples": self.samples,
             "gaps": self.gaps,
@@ -136,8 +138,8 @@ class Pipeline:
         try:
             block = self._decode(payload, encoding)
             channel = self._channel_for(key, block)
-            gap_blocks = self._check_sequence(channel, block)
-            reset = gap_blocks > 0 and self.config.on_gap == "reset"
+            gap_blocks, restart = self._check_sequence(channel, block)
+            reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
             if reset:
                 channel.estimator.reset()
             track = channel.estimator.update(block.samples, last_only=True)
@@ -147,8 +149,8 @@ class Pipeline:
         except SinewatchError as exc:  # e.g. parameters that do not fit this channel's rate
             self._reject(key, block, channel, "estimator_error", str(exc), log_time_ns)
             return
-        self._accept(channel, block, gap_blocks, reset)
-        payload_out = self._estimate_payload(channel, block, track, gap_blocks, reset)
+        self._accept(channel, block, gap_blocks, restart, reset)
+        payload_out = self._estimate_payload(channel, block, track, gap_blocks, restart, reset)
         out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
         for sink in self.sinks:
             sink.on_estimate(out_key, payload_out, log_time_ns)
@@ -218,30 +220,37 @@ class Pipeline:
         return self._rule_cache[key]
 
     @staticmethod
-    def _check_sequence(ch: Channel, block: Block) -> int:
-        """Blocks missing before this one (0 if contiguous); raise for duplicates and
-        blocks from the past."""
+    def _check_sequence(ch: Channel, block: Block) -> tuple[int, bool]:
+        """(blocks missing before this one, sender restarted); raise for duplicates and
+        blocks from the past. A sequence number that goes back while the block's time
+        goes forward is a sender that restarted its count: accepted, flagged."""
         if ch.last_seq is None or block.seq == ch.last_seq + 1:
-            return 0
+            return 0, False
+        if block.seq <= ch.last_seq and ch.next_t0_ns is not None and block.t0_ns >= ch.next_t0_ns:
+            return 0, True
         if block.seq == ch.last_seq:
             raise InputError(f"seq: expected {ch.last_seq + 1}, got {block.seq} again", kind="duplicate")
         if block.seq < ch.last_seq:
             raise InputError(
-                f"seq: expected {ch.last_seq + 1}, got {block.seq} (older than the last accepted)",
+                f"seq: expected {ch.last_seq + 1}, got {block.seq} (older than the last accepted, "
+                "and its t0_ns is not later either)",
                 kind="out_of_order",
             )
-        return block.seq - ch.last_seq - 1
+        return block.seq - ch.last_seq - 1, False
 
-    def _accept(self, ch: Channel, block: Block, gap_blocks: int, reset: bool) -> None:
+    def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
         ch.last_seq = block.seq
+        ch.next_t0_ns = block.t0_ns + int(round(block.n_samples * 1e9 / block.sample_rate_hz))
         ch.blocks += 1
         ch.samples += block.n_samples
-        if gap_blocks:
+        if gap_blocks or restart:
             ch.gaps += 1
-            log.warning("channel %s: %d block(s) missing before seq %d%s", ch.name, gap_blocks,
-                        block.seq, " (estimator reset)" if reset else "")
+            what = "sender restarted its sequence at" if restart else f"{gap_blocks} block(s) missing before"
+            log.warning("channel %s: %s seq %d%s", ch.name, what, block.seq, " (estimator reset)" if reset else "")
 
-    def _estimate_payload(self, ch: Channel, block: Block, track: Track, gap_blocks: int, reset: bool) -> bytes:
+    def _estimate_payload(
+        self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool
+    ) -> bytes:
         converged = bool(track.converged[-1])
         ch.converged = converged
         n = block.n_samples
@@ -259,8 +268,9 @@ class Pipeline:
             "diagnostics": {
                 "converged": converged,
                 "residual_rms": finite_or_none(track.residual_rms),
-                "gap": gap_blocks > 0,
+                "gap": gap_blocks > 0 or restart,
                 "gap_blocks": gap_blocks,
+                "restart": restart,
                 "reset": reset,
                 "extras": {k: _last_value(v) for k, v in track.extras.items()},
             },
@@ -309,7 +319,7 @@ class Pipeline:
         for item in snapshot["channels"]:
             est = get_estimator(item["estimator"]["estimator"]).from_state(item["estimator"])
             ch = Channel(item["name"], item["key"], est, float(item["sample_rate_hz"]))
-            for attr in ("last_seq", "blocks", "samples", "gaps", "errors", "converged"):
+            for attr in ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged"):
                 setattr(ch, attr, item[attr])
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):

@@ -29,3 +29,39 @@ def test_a_flood_of_bad_input_is_counted_in_full_but_logged_sparingly(tmp_path, 
     logged = [r for r in caplog.records if "rejected input" in r.getMessage()]
     assert len(logged) == 5 + 3  # the first five, then the 10th, 100th and 1000th
     assert "[1000 so far on this key" in logged[-1].getMessage()
+
+
+class Keep(NullSink):
+    def __init__(self):
+        self.estimates, self.errors = [], []
+
+    def on_estimate(self, key, payload, log_time_ns):
+        self.estimates.append(json.loads(payload))
+
+    def on_error(self, key, payload, log_time_ns):
+        self.errors.append(json.loads(payload))
+
+
+def _send(pipeline, seq, t0_ns, n=100, fs=10_000.0):
+    import numpy as np
+
+    from sinewatch.schemas.codec import Block, encode_block_binary
+
+    x = np.sin(2 * np.pi * 50 * (t0_ns / 1e9 + np.arange(n) / fs))
+    pipeline.process("sinewatch/in/r", encode_block_binary(Block("r", seq, t0_ns, fs, x)), "", t0_ns)
+
+
+def test_a_sender_that_restarts_its_count_is_accepted_and_flagged(tmp_path):
+    sink = Keep()
+    pipeline = Pipeline(make_config(tmp_path), [sink])
+    step = 10_000_000  # 100 samples at 10 kHz
+    for seq in range(5):
+        _send(pipeline, seq, seq * step)
+    _send(pipeline, 3, 3 * step)  # seq back, time back: a replayed old block
+    _send(pipeline, 0, 9 * step)  # seq back to 0, time forward: the gateway restarted
+    _send(pipeline, 1, 10 * step)
+    assert [e["kind"] for e in sink.errors] == ["out_of_order"]
+    d = [e["diagnostics"] for e in sink.estimates]
+    assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4, 0, 1]
+    assert [x["restart"] for x in d] == [False] * 5 + [True, False]
+    assert d[5]["gap"] and d[5]["gap_blocks"] == 0 and not d[6]["gap"]
