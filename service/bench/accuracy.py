@@ -63,6 +63,7 @@ import numpy as np
 from sinewatch import crlb as crlb_mod
 from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
+from sinewatch.console import make_console
 from sinewatch.bench import metrics as M
 from sinewatch.errors import ParameterError, SinewatchError
 from sinewatch.estimators.base import Estimator
@@ -1146,7 +1147,6 @@ def run_scenarios(args: argparse.Namespace) -> int:
     if getattr(args, "json", False):
         print(json.dumps(rows, indent=1))
         return 0
-    from rich.console import Console
     from rich.table import Table
 
     table = Table(title=f"{len(rows)} scenarios")
@@ -1161,5 +1161,5 @@ def run_scenarios(args: argparse.Namespace) -> int:
             str(r["components"]),
             r["summary"],
         )
-    Console().print(table)
+    make_console().print(table)
     return 0
