@@ -126,7 +126,19 @@ def encode_block_json(block: Block) -> bytes:
 
 def decode_block(payload: bytes, encoding: str = "") -> Block:
     """Decode a SampleBlock from either encoding; raise DecodeError (or its subclass
-    UnsupportedVersionError) with a reason when the payload is not a valid block."""
+    UnsupportedVersionError) with a reason when the payload is not a valid block.
+
+    Any payload from any peer ends here: nothing but an InputError ever leaves this
+    function, so one hostile or buggy sender cannot stop a daemon's intake."""
+    try:
+        return _decode_any(payload, encoding)
+    except InputError:
+        raise
+    except Exception as exc:  # the boundary of untrusted input: a decoder gap is a rejection
+        raise DecodeError(f"block: not decodable ({type(exc).__name__}: {str(exc)[:200]})") from exc
+
+
+def _decode_any(payload: bytes, encoding: str) -> Block:
     if encoding.startswith("application/x-sinewatch-block"):
         return _decode_binary(payload, encoding)
     if encoding.startswith("application/json") or encoding.startswith("text/json"):
@@ -183,7 +195,7 @@ def _decode_binary(payload: bytes, encoding: str) -> Block:
 def _decode_json(payload: bytes) -> Block:
     try:
         raw = json.loads(payload)
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:  # RecursionError: nesting too deep
         raise DecodeError(f"JSON block: not valid JSON ({exc})") from None
     if not isinstance(raw, dict):
         raise DecodeError(f"JSON block: expected an object, got {type(raw).__name__}")
@@ -196,23 +208,24 @@ def _decode_json(payload: bytes) -> Block:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"][:2])
         raise DecodeError(f"JSON block: {where}: {first['msg']}") from None
-    if msg.columns == 1:
-        samples = np.asarray(msg.samples, dtype=np.float64)
-        if samples.ndim == 2 and samples.shape[1] == 1:
-            samples = samples[:, 0]
-    else:
-        try:
-            samples = np.asarray(msg.samples, dtype=np.float64)
-        except ValueError:
-            raise DecodeError("JSON block samples: expected rows of equal length") from None
-    want_ndim = 1 if msg.columns == 1 else 2
-    if samples.size and (samples.ndim != want_ndim or (want_ndim == 2 and samples.shape[1] != msg.columns)):
-        raise DecodeError(
-            f"JSON block samples: expected {msg.columns} column(s), got shape {samples.shape}"
-        )
-    if samples.size == 0:
-        samples = samples.reshape((0,) if msg.columns == 1 else (0, msg.columns))
+    samples = _json_samples(msg.samples, msg.columns)
     return Block(msg.channel, msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, msg.unit)
+
+
+def _json_samples(rows: list[float] | list[list[float]], columns: int) -> np.ndarray:
+    """(N,) for one column, (N, columns) otherwise; a single column may also come as
+    one-element rows. Ragged or wrongly sized rows are a DecodeError."""
+    nested = bool(rows) and isinstance(rows[0], list)  # the model admits all lists or no list
+    widths = {len(r) for r in rows} if nested else {1 if rows else columns}  # type: ignore[arg-type]
+    if len(widths) != 1:
+        raise DecodeError(f"JSON block samples: expected rows of equal length, got lengths {sorted(widths)[:5]}")
+    width = widths.pop()
+    if width != columns:
+        raise DecodeError(f"JSON block samples: expected {columns} column(s), got rows of {width}")
+    samples = np.asarray(rows, dtype=np.float64)
+    if columns == 1:
+        return samples.reshape(-1)
+    return samples.reshape(-1, columns)
 
 
 def _encoding_version(encoding: str) -> int | None:

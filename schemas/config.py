@@ -114,3 +114,6 @@ class SinewatchConfig(_Section):
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
     status_interval_s: float = Field(1.0, gt=0)
+    sink_retry_s: float = Field(
+        1.0, gt=0, description="After an output fails (disk full, session closed), retry it this often; estimation goes on"
+    )

@@ -95,6 +95,9 @@ class ErrorKind(str, Enum):
     estimator_error = "estimator_error"
     queue_overflow = "queue_overflow"
     channel_limit = "channel_limit"
+    estimator_fault = "estimator_fault"
+    sink_error = "sink_error"
+    internal_error = "internal_error"
 
 
 class ErrorReport(_Message):
@@ -123,6 +126,18 @@ class ChannelStatus(_Message):
     converged: bool
 
 
+class SinkStatus(_Message):
+    """Health of one output (Zenoh publisher, MCAP recorder). A failed sink never stops
+    estimation: its outputs are skipped (and counted) until it recovers."""
+
+    name: str
+    ok: bool = Field(description="The sink's last call succeeded")
+    failures: int = Field(description="Calls that raised, since start")
+    skipped: int = Field(description="Outputs not delivered to this sink while it was failed")
+    recoveries: int = Field(description="Times the sink was reopened after a failure")
+    last_error: str | None = Field(description="The last failure, as 'ExceptionType: message'")
+
+
 class Status(_Message):
     """Periodic daemon status."""
 
@@ -134,8 +149,10 @@ class Status(_Message):
     dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
     backpressure_waits: int = Field(description="Times the intake waited for queue space")
     errors: int
+    errors_by_kind: dict[str, int] = Field(default_factory=dict, description="Rejected inputs and faults per ErrorReport kind")
     queue_depth: int
     recording: str | None = Field(description="Current MCAP file, if recording")
+    sinks: list[SinkStatus] = Field(default_factory=list, description="Health of each output")
     channels: list[ChannelStatus]
 
 

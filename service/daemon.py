@@ -48,6 +48,8 @@ HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 class ZenohPublisherSink(NullSink):
     """Publishes estimates and errors (BLOCK: not dropped) and status (DROP)."""
 
+    sink_name = "zenoh"
+
     def __init__(self, session: zenoh.Session) -> None:
         self._session = session
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -69,6 +71,10 @@ class ZenohPublisherSink(NullSink):
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._publisher(key, STATUS_JSON_ENCODING, zenoh.CongestionControl.DROP).put(payload)
+
+    def recover(self) -> None:
+        """Declare the publishers afresh on the next put (after a session fault)."""
+        self._publishers.clear()
 
     def close(self) -> None:
         for pub in self._publishers.values():
@@ -209,7 +215,10 @@ class Daemon:
             batch = await self._queue.get()
             if batch is None:
                 return
-            self._process(batch)
+            try:
+                self._process(batch)
+            except Exception:  # the pipeline isolates faults; this is the last line of defence
+                log.exception("batch of %d inputs not fully processed", len(batch))
 
     def _process(self, batch: list[Item]) -> None:
         try:
@@ -235,8 +244,10 @@ class Daemon:
                 "dropped": c.dropped,
                 "backpressure_waits": c.backpressure_waits,
                 "errors": p.counters.errors,
+                "errors_by_kind": dict(sorted(p.counters.by_kind.items())),
                 "queue_depth": self._queued,
                 "recording": str(self.recorder.path) if self.recorder and self.recorder.path else None,
+                "sinks": p.sink_status(),
                 "channels": p.channel_status(),
             }
         )
@@ -250,7 +261,10 @@ class Daemon:
     async def _every(self, seconds: float, fn) -> None:
         while True:
             await asyncio.sleep(seconds)
-            fn()
+            try:
+                fn()
+            except Exception:  # a failed tick must not end the timer
+                log.exception("periodic %s failed", getattr(fn, "__name__", fn))
 
     # ---- lifecycle ------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -273,9 +287,9 @@ class Daemon:
         sinks = [ZenohPublisherSink(self.session)]
         if cfg.recording.enabled:
             self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
-            self.recorder.open()
             sinks.append(self.recorder)
         self.pipeline = Pipeline(cfg, sinks)
+        self.pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
         self.intake = Intake(self, asyncio.get_running_loop())
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
@@ -291,7 +305,7 @@ class Daemon:
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             if self.recorder is not None:
                 periodic.append(
-                    asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.recorder.flush))
+                    asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
                 )
             self.ready.set()
             try:
@@ -314,8 +328,7 @@ class Daemon:
 
     def _close(self) -> None:
         if self.pipeline is not None:
-            for sink in self.pipeline.sinks:
-                sink.close()
+            self.pipeline.close_sinks()
         if self.session is not None:
             self.session.close()
 

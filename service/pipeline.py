@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -67,6 +68,110 @@ class NullSink:
 
     def close(self) -> None:
         pass
+
+
+class GuardedSink:
+    """A sink whose failures are caught, counted and reported, never raised into the
+    pipeline: a full disk or a closed Zenoh session must not stop estimation.
+
+    After a failure the sink is skipped (each output it misses is counted) for
+    ``retry_s``; the next *input* after that reopens it (its ``recover()``, if it has
+    one) and tries again. Recovery waits for an input so that a recorder restarts on a
+    block boundary, where its state snapshot is exact.
+    """
+
+    def __init__(
+        self,
+        sink: Sink,
+        name: str,
+        on_failure: Callable[[str, str], None],
+        *,
+        retry_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.sink = sink
+        self.name = name
+        self._on_failure = on_failure
+        self._retry_s = retry_s
+        self._clock = clock
+        self.ok = True
+        self.failures = 0
+        self.skipped = 0
+        self.recoveries = 0
+        self.last_error: str | None = None
+        self._retry_at = 0.0
+
+    def _call(self, method: str, *args: Any) -> None:
+        if not self.ok:
+            if method != "on_input" or self._clock() < self._retry_at or not self._recover():
+                self.skipped += 1
+                return
+        try:
+            getattr(self.sink, method)(*args)
+        except Exception as exc:  # a sink's fault is the sink's: isolate it, report it
+            self._fail(f"{method}", exc)
+
+    def _recover(self) -> bool:
+        recover = getattr(self.sink, "recover", None)
+        try:
+            if recover is not None:
+                recover()
+        except Exception as exc:
+            self._fail("recover", exc)
+            return False
+        self.ok = True
+        self.recoveries += 1
+        log.warning("sink %s: resumed after %d skipped output(s)", self.name, self.skipped)
+        return True
+
+    def _fail(self, where: str, exc: Exception) -> None:
+        self.failures += 1
+        self.last_error = f"{type(exc).__name__}: {exc}"
+        first = self.ok
+        self.ok = False
+        self._retry_at = self._clock() + self._retry_s
+        if first:  # one report per outage, not one per skipped output
+            log.error("sink %s failed in %s (%s); estimation goes on, retrying every %g s",
+                      self.name, where, self.last_error, self._retry_s)
+            self._on_failure(self.name, f"{self.name} failed in {where}: {self.last_error}")
+
+    def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        self._call("on_input", key, payload, encoding, log_time_ns)
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._call("on_estimate", key, payload, log_time_ns)
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._call("on_error", key, payload, log_time_ns)
+
+    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._call("on_status", key, payload, log_time_ns)
+
+    def open(self) -> None:
+        if hasattr(self.sink, "open"):
+            self._call("open")
+
+    def flush(self) -> None:
+        if self.ok and hasattr(self.sink, "flush"):
+            self._call("flush")
+
+    def close(self) -> None:
+        try:
+            self.sink.close()
+        except Exception as exc:
+            self.failures += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            log.error("sink %s failed to close: %s", self.name, self.last_error)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "ok": self.ok,
+            "failures": self.failures,
+            "skipped": self.skipped,
+            "recoveries": self.recoveries,
+            "last_error": self.last_error,
+        }
 
 
 @dataclass
@@ -119,7 +224,15 @@ class Pipeline:
         rules: list[EstimatorRule] | None = None,
     ) -> None:
         self.config = config
-        self.sinks = sinks
+        self.sinks = [
+            GuardedSink(
+                sink,
+                getattr(sink, "sink_name", type(sink).__name__),
+                self._report_sink_failure,
+                retry_s=config.sink_retry_s,
+            )
+            for sink in sinks
+        ]
         self.rules = list(rules if rules is not None else config.rules)
         self._rule_exprs = [zenoh.KeyExpr(r.match) for r in self.rules]
         self.channels: dict[str, Channel] = {}
@@ -135,28 +248,51 @@ class Pipeline:
             sink.on_input(key, payload, encoding, log_time_ns)
         channel: Channel | None = None
         block: Block | None = None
+        stage = "decode"
         try:
             block = self._decode(payload, encoding)
+            stage = "channel"
             channel = self._channel_for(key, block)
             gap_blocks, restart = self._check_sequence(channel, block)
             reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+            stage = "estimator"
             if reset:
                 channel.estimator.reset()
             track = channel.estimator.update(block.samples, last_only=True)
+            stage = "estimate"
+            self._accept(channel, block, gap_blocks, restart, reset)
+            payload_out = self._estimate_payload(channel, block, track, gap_blocks, restart, reset)
         except InputError as exc:
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
             return
         except SinewatchError as exc:  # e.g. parameters that do not fit this channel's rate
             self._reject(key, block, channel, "estimator_error", str(exc), log_time_ns)
             return
-        self._accept(channel, block, gap_blocks, restart, reset)
-        payload_out = self._estimate_payload(channel, block, track, gap_blocks, restart, reset)
+        except Exception as exc:  # a bug in one channel's path must not stop the others
+            self._fault(key, block, channel, stage, exc, log_time_ns)
+            return
         out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
         for sink in self.sinks:
             sink.on_estimate(out_key, payload_out, log_time_ns)
         self.counters.estimates += 1
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
+
+    def _fault(
+        self, key: str, block: Block | None, channel: Channel | None, stage: str, exc: Exception, log_time_ns: int
+    ) -> None:
+        """An unexpected exception while processing one input. The estimator's state is
+        untouched (kernels return a new state, assigned only on success), so the channel
+        goes on with its next block; the input is reported like a rejected one."""
+        kind = "estimator_fault" if stage == "estimator" else "internal_error"
+        if self._error_counts[(key, kind)] < 5:  # the traceback, for the first few only
+            log.error("unexpected %s in %s stage on %s", type(exc).__name__, stage, key, exc_info=exc)
+        message = f"{stage}: unexpected {type(exc).__name__}: {str(exc)[:300]}"
+        self._reject(key, block, channel, kind, message, log_time_ns)
+
+    def _report_sink_failure(self, sink_name: str, message: str) -> None:
+        """A sink failed: tell the other sinks (the failed one is skipping by now)."""
+        self._reject(f"sink/{sink_name}", None, None, "sink_error", message, time.time_ns())
 
     # ---- steps -----------------------------------------------------------------------------
     def _decode(self, payload: bytes, encoding: str) -> Block:
@@ -307,6 +443,21 @@ class Pipeline:
         """An error found outside the pipeline (e.g. the intake queue dropped an input)."""
         self._reject(key, None, None, kind, message, log_time_ns)
 
+    def sink_status(self) -> list[dict[str, Any]]:
+        return [sink.status() for sink in self.sinks]
+
+    def open_sinks(self) -> None:
+        for sink in self.sinks:
+            sink.open()
+
+    def flush_sinks(self) -> None:
+        for sink in self.sinks:
+            sink.flush()
+
+    def close_sinks(self) -> None:
+        for sink in self.sinks:
+            sink.close()
+
     def snapshot(self) -> dict[str, Any]:
         """The state of every channel, enough to resume bit-exactly (written at rotation)."""
         return {
@@ -362,4 +513,4 @@ def sanitize_log_time(previous: int, now: int) -> int:
     return now if now > previous else previous + 1
 
 
-__all__ = ["Channel", "NullSink", "Pipeline", "Sink", "sanitize_log_time"]
+__all__ = ["Channel", "GuardedSink", "NullSink", "Pipeline", "Sink", "sanitize_log_time"]

@@ -58,6 +58,8 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
 class McapRecorder:
     """Pipeline sink writing MCAP; also records Status through :meth:`on_status`."""
 
+    sink_name = "mcap"
+
     def __init__(
         self,
         config: SinewatchConfig,
@@ -135,10 +137,37 @@ class McapRecorder:
         self._writer = None
         self._file = None
 
+    def recover(self) -> None:
+        """After a failed write (a full disk): give up the broken file and start the next
+        one, which carries a snapshot of every channel so it replays on its own. Raises,
+        and leaves no new file behind, while the disk still refuses."""
+        self._abandon()
+        self.index += 1
+        path = self.open()
+        try:
+            self._writer.flush()
+            self._file.flush()
+        except OSError:
+            self._abandon()
+            self.paths.remove(path)
+            path.unlink(missing_ok=True)
+            raise
+
+    def _abandon(self) -> None:
+        """Drop the open file without finishing it (its complete chunks stay readable)."""
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError as exc:  # the buffered tail is lost: that is the failure being handled
+                log.warning("recording %s abandoned: %s", self.path, exc)
+        self._writer = None
+        self._file = None
+
     def flush(self) -> None:
         """Close the open chunk and push it to the OS; called on a timer."""
         if self._writer is not None:
             self._writer.flush()
+            self._file.flush()
 
     def _maybe_rotate(self) -> None:
         if self._fixed_path is not None or self._file is None:
