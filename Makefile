@@ -36,9 +36,9 @@ bench-e2e: $(STAMP)
 bench-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy
 
-# Regenerate the committed JSON Schemas in schemas/json/ from the pydantic models.
+# Regenerate the committed JSON Schemas in schemas/sinewatch/schemas/json/ from the pydantic models.
 schemas: $(STAMP)
-	$(BIN)/sinewatch schemas export schemas/json
+	$(BIN)/sinewatch schemas export schemas/sinewatch/schemas/json
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info sinewatch-runs bench-results

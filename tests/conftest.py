@@ -14,7 +14,7 @@ from sinewatch.schemas.config import (
     SinewatchConfig,
     ZenohSection,
 )
-from sinewatch.zenoh_session import free_loopback_port
+from sinewatch.clients.session import free_loopback_port
 
 
 def make_config(tmp_path: Path, **overrides) -> SinewatchConfig:

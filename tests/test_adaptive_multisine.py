@@ -16,7 +16,7 @@ from scipy.linalg import eigh, expm
 from scipy.signal import place_poles
 
 from sinewatch import scenarios
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create, get
 from sinewatch.estimators.base import decode_array
 

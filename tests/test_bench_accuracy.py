@@ -24,7 +24,7 @@ from sinewatch.bench.accuracy import (
     select_scenarios,
 )
 from sinewatch.bench.metrics import match_components, overshoot_pct, settle_time, tve, wrap
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators.base import EstimatorParams
 
 

@@ -7,9 +7,9 @@ import json
 import pytest
 
 from sinewatch.cli import main
-from sinewatch.config import load_config
-from sinewatch.errors import ConfigError
-from sinewatch.zenoh_session import zenoh_config
+from sinewatch.schemas.config import load_config
+from sinewatch.schemas.errors import ConfigError
+from sinewatch.clients.session import zenoh_config
 
 
 def test_defaults_are_safe_and_work_out_of_the_box():

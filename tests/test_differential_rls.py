@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.base import decode_array
 from sinewatch.estimators.differential_rls import (

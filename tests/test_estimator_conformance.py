@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from sinewatch.errors import InputError, InputTypeError, ParameterError, SinewatchError
+from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError, SinewatchError
 from sinewatch.estimators import available, create, get
 from sinewatch.estimators.base import Track, concat_tracks
 

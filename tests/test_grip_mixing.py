@@ -20,7 +20,7 @@ import pytest
 import scipy.signal
 
 from sinewatch import scenarios
-from sinewatch.errors import InputError, ParameterError
+from sinewatch.schemas.errors import InputError, ParameterError
 from sinewatch.estimators import create, get
 from sinewatch.estimators.base import concat_tracks, decode_array
 from sinewatch.estimators.grip_mixing import state_layout

@@ -14,7 +14,7 @@ import pytest
 from scipy.integrate import quad
 
 from sinewatch import scenarios
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.kkl import (
     foh_coefficients,

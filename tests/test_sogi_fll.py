@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.base import decode_array
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sinewatch.errors import DecodeError, UnsupportedVersionError
+from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,
@@ -81,8 +81,8 @@ def test_binary_length_and_dtype_are_checked():
 
 
 def test_committed_json_schemas_are_up_to_date():
-    # `make schemas` regenerates schemas/json from the models; a stale copy fails here.
+    # `make schemas` regenerates schemas/sinewatch/schemas/json from the models; a stale copy fails here.
     for rel, schema in all_schemas().items():
-        path = REPO / "schemas" / "json" / rel
+        path = REPO / "schemas" / "sinewatch" / "schemas" / "json" / rel
         assert path.exists(), f"{path} missing: run `make schemas`"
         assert json.loads(path.read_text()) == schema, f"{path} is stale: run `make schemas`"

@@ -1,7 +1,8 @@
-"""Opening Zenoh sessions from the config, with safe defaults.
+"""Zenoh sessions from the config, with safe defaults; a client session to a daemon.
 
 Zenoh's own defaults are wide open (a peer listens on every interface and scouts by
 multicast); sinewatch always writes the endpoints and the scouting switch explicitly.
+The daemon opens its session here too, so both ends share one way of configuring Zenoh.
 """
 
 from __future__ import annotations
@@ -12,8 +13,23 @@ from typing import Any
 
 import zenoh
 
-from sinewatch.errors import ConfigError
-from sinewatch.schemas.config import ZenohSection
+from sinewatch.schemas.errors import ConfigError
+from sinewatch.schemas.config import DEFAULT_ENDPOINT, ZenohSection
+
+DEFAULT_CONNECT = [DEFAULT_ENDPOINT]
+
+
+def connect(endpoints: list[str] | None = None, *, timeout_s: float = 10.0, mode: str = "client") -> zenoh.Session:
+    """A Zenoh session that connects to ``endpoints`` (the daemon's default endpoint if
+    None), listens nowhere and does not scout. Zenoh keeps retrying for ``timeout_s``
+    seconds, so a client may start before the daemon. Close it, or use ``with``."""
+    section = ZenohSection(
+        mode=mode,
+        listen=[],
+        connect=endpoints or DEFAULT_CONNECT,
+        raw={"connect/timeout_ms": int(timeout_s * 1000)},
+    )
+    return open_session(section)
 
 
 def zenoh_config(section: ZenohSection) -> zenoh.Config:

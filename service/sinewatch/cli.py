@@ -21,8 +21,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sinewatch import __version__
-from sinewatch.errors import SinewatchError
+from sinewatch.schemas import __version__
+from sinewatch.schemas.errors import SinewatchError
 
 
 def _setup_logging(verbose: int) -> None:
@@ -50,7 +50,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from sinewatch.config import load_config
+    from sinewatch.schemas.config import load_config
     from sinewatch.daemon import serve
 
     config = load_config(args.config)
@@ -59,7 +59,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
-    from sinewatch.config import config_to_json, load_config
+    from sinewatch.schemas.config import config_to_json, load_config
 
     print(config_to_json(load_config(args.config)))
     return 0

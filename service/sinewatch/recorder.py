@@ -27,7 +27,7 @@ from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
-from sinewatch import __version__
+from sinewatch.schemas import __version__
 from sinewatch.schemas import codec
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,

@@ -12,7 +12,7 @@ import pkgutil
 from collections.abc import Callable
 from typing import Any
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.scenarios.base import FaultPlan, Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
 
 __all__ = [

@@ -61,7 +61,7 @@ import numpy as np
 from numba import njit
 from pydantic import Field
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator
 from sinewatch.estimators.kkl import (

@@ -26,7 +26,7 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.errors import SinewatchError
+from sinewatch.schemas.errors import SinewatchError
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig

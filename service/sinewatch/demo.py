@@ -33,7 +33,7 @@ from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, FeedChannel, make_channels
 from sinewatch.scenarios.demo import DEMO_CHANNELS
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig, ZenohSection
-from sinewatch.zenoh_session import free_loopback_port
+from sinewatch.clients.session import free_loopback_port
 
 PREFIX = "demo"
 

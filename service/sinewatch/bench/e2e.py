@@ -29,7 +29,7 @@ from rich.console import Console
 from sinewatch.console import make_console
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
-from sinewatch.zenoh_session import free_loopback_port
+from sinewatch.clients.session import free_loopback_port
 
 
 def _cpu_seconds(pid: int) -> float:

@@ -38,7 +38,7 @@ from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, dumps
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import FORMAT_VERSION
-from sinewatch.zenoh_session import open_session
+from sinewatch.clients.session import open_session
 
 log = logging.getLogger("sinewatch.daemon")
 

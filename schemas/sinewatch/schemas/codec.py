@@ -4,7 +4,7 @@ Every message announces its encoding in its Zenoh Encoding:
 
 =========================================  =============================================
 ``application/x-sinewatch-block;v=1``      SampleBlock, compact binary (layout below)
-``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/json/SampleBlock.json)
+``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/sinewatch/schemas/json/SampleBlock.json)
 ``application/json;sinewatch/Estimate@1``      Estimate, JSON
 ``application/json;sinewatch/ErrorReport@1``   ErrorReport, JSON
 ``application/json;sinewatch/Status@1``        Status, JSON
@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from sinewatch.errors import DecodeError, InputError, UnsupportedVersionError
+from sinewatch.schemas.errors import DecodeError, InputError, UnsupportedVersionError
 from sinewatch.schemas.messages import CHANNEL_PATTERN, FORMAT_VERSION, SampleBlock
 
 BLOCK_BINARY_ENCODING = "application/x-sinewatch-block;v=1"

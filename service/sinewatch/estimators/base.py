@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from sinewatch.errors import InputError, InputTypeError, ParameterError
+from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 STATE_FORMAT_VERSION = 1
 

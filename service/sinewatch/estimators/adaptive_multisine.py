@@ -136,7 +136,7 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy.signal import place_poles
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 

@@ -65,7 +65,7 @@ from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
 from sinewatch.console import make_console
 from sinewatch.bench import metrics as M
-from sinewatch.errors import ParameterError, SinewatchError
+from sinewatch.schemas.errors import ParameterError, SinewatchError
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
 

@@ -81,7 +81,7 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
 

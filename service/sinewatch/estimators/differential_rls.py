@@ -131,7 +131,7 @@ from numba import njit
 from pydantic import Field, field_validator
 from scipy import signal as _sig
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
 

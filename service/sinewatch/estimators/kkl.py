@@ -123,7 +123,7 @@ import numpy as np
 from numba import njit
 from pydantic import Field, field_validator, model_validator
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 

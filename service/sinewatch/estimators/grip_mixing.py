@@ -137,7 +137,7 @@ import scipy.signal
 from numba import njit
 from pydantic import Field
 
-from sinewatch.errors import ParameterError
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 

@@ -1,6 +1,6 @@
 """Wire-format messages (format version 1), as pydantic v2 models.
 
-These models are the contract: the JSON Schemas in ``schemas/json/`` are exported from
+These models are the contract: the JSON Schemas in ``schemas/sinewatch/schemas/json/`` are exported from
 them (``sinewatch schemas export DIR``), MCAP recordings embed them, and the codec in
 :mod:`sinewatch.schemas.codec` produces and checks exactly these shapes.
 

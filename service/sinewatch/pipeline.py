@@ -31,7 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
-from sinewatch.errors import InputError, ParameterError, SinewatchError
+from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track
 from sinewatch.schemas.codec import Block, decode_block, dumps, finite_or_none

@@ -12,7 +12,7 @@ import importlib
 import pkgutil
 from typing import Any
 
-from sinewatch.errors import UnknownEstimatorError
+from sinewatch.schemas.errors import UnknownEstimatorError
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 
 __all__ = ["Estimator", "EstimatorParams", "Track", "available", "create", "get", "register"]
