@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from sinewatch.clients.session import free_loopback_port
 from sinewatch.scenarios.demo import KALMAN_10K
 from sinewatch.schemas.config import (
     EstimatorRule,
@@ -14,7 +15,6 @@ from sinewatch.schemas.config import (
     SinewatchConfig,
     ZenohSection,
 )
-from sinewatch.clients.session import free_loopback_port
 
 
 def make_config(tmp_path: Path, **overrides) -> SinewatchConfig:

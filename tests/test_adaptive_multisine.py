@@ -16,9 +16,9 @@ from scipy.linalg import eigh, expm
 from scipy.signal import place_poles
 
 from sinewatch import scenarios
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create, get
 from sinewatch.estimators.base import decode_array
+from sinewatch.schemas.errors import ParameterError
 
 NAME = "adaptive-multisine"
 FS_PAPER = 1.0 / 3e-4  # Section V-A: forward Euler with Ts = 3e-4 s

@@ -24,8 +24,8 @@ from sinewatch.bench.accuracy import (
     select_scenarios,
 )
 from sinewatch.bench.metrics import match_components, overshoot_pct, settle_time, tve, wrap
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators.base import EstimatorParams
+from sinewatch.schemas.errors import ParameterError
 
 
 def test_ges_kalman_on_a_40_db_tone_against_the_crlb():

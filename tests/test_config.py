@@ -7,9 +7,9 @@ import json
 import pytest
 
 from sinewatch.cli import main
+from sinewatch.clients.session import zenoh_config
 from sinewatch.schemas.config import load_config
 from sinewatch.schemas.errors import ConfigError
-from sinewatch.clients.session import zenoh_config
 
 
 def test_defaults_are_safe_and_work_out_of_the_box():
@@ -22,10 +22,15 @@ def test_defaults_are_safe_and_work_out_of_the_box():
 
 def test_file_then_environment(tmp_path):
     f = tmp_path / "c.toml"
-    f.write_text('daemon_id = "feeder"\n[zenoh]\nmode = "client"\nlisten = []\nconnect = ["tcp/127.0.0.1:7447"]\n'
-                 '[[rules]]\nmatch = "sinewatch/in/pq/**"\nestimator = "ges-kalman"\nparams = { r = 0.001 }\n')
-    env = {"SINEWATCH__RECORDING__DIRECTORY": "/data/runs", "SINEWATCH__LIMITS__QUEUE_CAPACITY": "128",
-           "SINEWATCH__ZENOH__RAW": '{"transport/link/tx/lease": 5000}'}
+    f.write_text(
+        'daemon_id = "feeder"\n[zenoh]\nmode = "client"\nlisten = []\nconnect = ["tcp/127.0.0.1:7447"]\n'
+        '[[rules]]\nmatch = "sinewatch/in/pq/**"\nestimator = "ges-kalman"\nparams = { r = 0.001 }\n'
+    )
+    env = {
+        "SINEWATCH__RECORDING__DIRECTORY": "/data/runs",
+        "SINEWATCH__LIMITS__QUEUE_CAPACITY": "128",
+        "SINEWATCH__ZENOH__RAW": '{"transport/link/tx/lease": 5000}',
+    }
     cfg = load_config(f, env)
     assert cfg.daemon_id == "feeder" and cfg.zenoh.mode == "client"
     assert cfg.rules[0].params == {"r": 0.001}

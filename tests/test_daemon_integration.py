@@ -20,7 +20,7 @@ from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary, encode_block_json
 from sinewatch.schemas.config import LimitsSection
-from sinewatch.schemas.messages import Estimate, ErrorReport
+from sinewatch.schemas.messages import ErrorReport, Estimate
 
 TIMEOUT = 20.0  # generous guard for a loaded 2-core machine; waits end on arrival
 
@@ -61,7 +61,7 @@ def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
             n_errors = faults["nan"] + faults["duplicate"]
             return _collect(est, sent - n_errors), _collect(err, n_errors), sent, faults, channels
 
-    (estimates, errors, sent, faults, channels), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors, sent, faults, _channels), daemon, code = asyncio.run(_with_daemon(config, client))
     assert code == 0
     assert faults["drop"] > 0 and faults["nan"] > 0 and faults["duplicate"] > 0  # the faulty channel did its job
     # one estimate per accepted block, in order per channel, valid against the schema
@@ -72,7 +72,9 @@ def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
         per_channel.setdefault(e["channel"], []).append(e["seq"])
     for seqs in per_channel.values():
         assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
-    assert sorted(e["kind"] for e in errors) == sorted(["non_finite"] * faults["nan"] + ["duplicate"] * faults["duplicate"])
+    assert sorted(e["kind"] for e in errors) == sorted(
+        ["non_finite"] * faults["nan"] + ["duplicate"] * faults["duplicate"]
+    )
     for e in errors:
         ErrorReport.model_validate({k: v for k, v in e.items() if k != "_key"})
     gaps = [e for e in estimates if e["diagnostics"]["gap"]]
@@ -142,7 +144,7 @@ def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
                 pub.publish_raw("h/a", b(blk))
             for key, payload, _ in hostile:
                 pub.publish_raw(key, payload, json_enc if payload[:1] == b"{" else None)
-            for blk in good[5:10] + [good[11]]:
+            for blk in [*good[5:10], good[11]]:
                 pub.publish_raw("h/a", b(blk))
             return _collect(est, len(accepted)), _collect(err, len(hostile))
 
@@ -253,7 +255,7 @@ def test_status_reports_counters_and_validates(tmp_path):
                     return msg
             return None
 
-    (msg, daemon, code) = asyncio.run(_with_daemon(config, client))
+    (msg, _daemon, _code) = asyncio.run(_with_daemon(config, client))
     from sinewatch.schemas.messages import Status
 
     st = Status.model_validate({k: v for k, v in msg.items() if k != "_key"})
@@ -284,7 +286,7 @@ def test_drop_policy_counts_every_dropped_input(tmp_path):
                     out_err.append(m)
             return out_est, out_err
 
-    (estimates, errors), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors), daemon, _code = asyncio.run(_with_daemon(config, client))
     dropped = daemon.intake.counters.dropped
     assert len(estimates) + dropped == len(blocks)
     assert [e["kind"] for e in errors] == ["queue_overflow"] * dropped

@@ -14,8 +14,9 @@ from sinewatch.replay import replay
 def test_demo_runs_end_to_end_and_its_recording_replays(tmp_path):
     out = io.StringIO()
     console = Console(file=out, width=160, force_terminal=False)
-    code = asyncio.run(run_demo(["demo-biased", "kkl-demo", "rocof-demo"], duration_s=1.5,
-                                record_dir=tmp_path, console=console))
+    code = asyncio.run(
+        run_demo(["demo-biased", "kkl-demo", "rocof-demo"], duration_s=1.5, record_dir=tmp_path, console=console)
+    )
     text = out.getvalue()
     assert code == 0
     assert "Summary: 45 blocks in, 45 estimates out, 0 rejected" in text

@@ -14,7 +14,6 @@ import math
 import numpy as np
 import pytest
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.base import decode_array
 from sinewatch.estimators.differential_rls import (
@@ -28,6 +27,7 @@ from sinewatch.estimators.differential_rls import (
     transform_scratch,
 )
 from sinewatch.scenarios import get as get_scenario
+from sinewatch.schemas.errors import ParameterError
 
 NAME = "differential-rls"
 FS = 1000.0
@@ -73,8 +73,8 @@ def test_differential_model_eqs_4_to_7(n):
     # the in-phase / quadrature rows written out in the docstring (n = 4)
     w, dt, y0, z0 = 0.7, 0.3, 0.2, -0.9
     r = coefficients(4, False, dt) * (z0 + 1j * y0)
-    assert np.allclose(r.imag, [dt * z0, -dt**2 / 2 * y0, -dt**3 / 6 * z0, dt**4 / 24 * y0])
-    assert np.allclose(r.real, [-dt * y0, -dt**2 / 2 * z0, dt**3 / 6 * y0, dt**4 / 24 * z0])
+    assert np.allclose(r.imag, [dt * z0, -(dt**2) / 2 * y0, -(dt**3) / 6 * z0, dt**4 / 24 * y0])
+    assert np.allclose(r.real, [-dt * y0, -(dt**2) / 2 * z0, dt**3 / 6 * y0, dt**4 / 24 * z0])
 
 
 def test_coloured_noise_eqs_5_and_11():

@@ -12,9 +12,9 @@ import json
 import numpy as np
 import pytest
 
-from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError, SinewatchError
 from sinewatch.estimators import available, create, get
 from sinewatch.estimators.base import Track, concat_tracks
+from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError, SinewatchError
 
 NAMES = sorted(available())
 N = 2400  # divisible by the block sizes below
@@ -176,10 +176,19 @@ def test_params_for_hook_yields_valid_params(name):
     if "params_for" not in cls.__dict__:
         pytest.skip("no params_for hook")
     f0 = cls.example_frequency_hz
-    hints = {"scenario": "conformance", "sample_rate_hz": cls.example_sample_rate_hz,
-             "nominal_frequency_hz": (f0,), "frequency_range_hz": (0.5 * f0, 2 * f0),
-             "n_components": 1, "n_inputs": 1, "noise_std": 0.01, "amplitude": (1.0,),
-             "offset": 0.5, "reporting_rate_hz": None, "tags": ()}
+    hints = {
+        "scenario": "conformance",
+        "sample_rate_hz": cls.example_sample_rate_hz,
+        "nominal_frequency_hz": (f0,),
+        "frequency_range_hz": (0.5 * f0, 2 * f0),
+        "n_components": 1,
+        "n_inputs": 1,
+        "noise_std": 0.01,
+        "amplitude": (1.0,),
+        "offset": 0.5,
+        "reporting_rate_hz": None,
+        "tags": (),
+    }
     try:
         params = cls.params_for(cls.example_sample_rate_hz, hints)
     except ParameterError:

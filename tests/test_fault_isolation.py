@@ -38,7 +38,9 @@ def _blocks(channel: str, n: int, start_seq: int = 0, block: int = 500, fs: floa
     stream = make_channels(["demo-biased"], prefix="f")[0].stream
     samples = [stream.read(block)[0] for _ in range(start_seq + n)][start_seq:]
     dt_ns = int(block * 1e9 / fs)
-    return [Block(channel, start_seq + i, 1_000_000_000 + (start_seq + i) * dt_ns, fs, s) for i, s in enumerate(samples)]
+    return [
+        Block(channel, start_seq + i, 1_000_000_000 + (start_seq + i) * dt_ns, fs, s) for i, s in enumerate(samples)
+    ]
 
 
 def _json_block(**fields) -> bytes:
@@ -129,7 +131,7 @@ def test_malformed_blocks_are_rejected_and_every_channel_goes_on(tmp_path):
             st = _status_where(status, lambda m: m["blocks_processed"] == 16 + len(bad))
             return estimates, errors, st
 
-    (estimates, errors, st), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors, st), _daemon, code = asyncio.run(_with_daemon(config, client))
     assert code == 0
     assert len(errors) == len(bad)
     for e in errors:
@@ -270,7 +272,7 @@ def test_a_full_disk_keeps_estimating_reports_it_and_resumes_recording(tmp_path)
         mcap_back = SinkStatus.model_validate(_mcap(recovered))
         assert mcap_back.ok and mcap_back.skipped > 0
         # The file written after the outage is finished and replays on its own, bit for bit.
-        first, resumed = daemon.recording_paths
+        _first, resumed = daemon.recording_paths
         with open(resumed, "rb") as f:
             assert make_reader(f).get_summary() is not None
         result = replay([resumed])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
+from sinewatch.schemas.errors import ParameterError
 
 FS = 1000.0  # Section IV: fs = 1 kHz
 NOISE = 0.01  # zero-mean Gaussian, std 1e-2
@@ -22,7 +22,7 @@ def constant_tone(seconds: float, seed: int = 2026):
 
 def test_constant_tone_converges_within_one_period():
     # Paper: "the filter converges very quickly, in less than 0.01 s" (one period).
-    t, y = constant_tone(1.0)
+    _t, y = constant_tone(1.0)
     tr = create("ges-kalman", FS, **PAPER).update(y)
     err = np.abs(tr.frequency_hz[:, 0] - 100.0)
     first_within_1hz_for_good = np.flatnonzero(err >= 1.0).max() + 1

@@ -20,12 +20,12 @@ import pytest
 import scipy.signal
 
 from sinewatch import scenarios
-from sinewatch.schemas.errors import InputError, ParameterError
 from sinewatch.estimators import create, get
 from sinewatch.estimators.base import concat_tracks, decode_array
 from sinewatch.estimators.grip_mixing import state_layout
 from sinewatch.scenarios.base import wrap_phase
 from sinewatch.scenarios.grip_demo import SECTION_V_PLANT
+from sinewatch.schemas.errors import InputError, ParameterError
 
 NAME = "grip-mixing"
 FS_V = 100.0  # Section V is continuous-time; sampled at 100 Hz here (T = 450 samples)
@@ -54,7 +54,7 @@ def window_max(t, err, a, b):
 @pytest.mark.parametrize("period, paper_abs", [(4.5, (1.90, 0.71)), (4.0, (1.73, 0.19))])
 def test_section_v_gain_matches_paper(period, paper_abs):
     est = create(NAME, FS_V, **{**SECTION_V_PLANT, "period_s": period})
-    L = est.gain_L  # noqa: N806 (paper's name)
+    L = est.gain_L
     # Paper: L ~ (1.90, 0.71)^T for T = 4.5 s, (1.73, 0.19)^T for T = 4 s; the extraction drops
     # minus signs. Measured: (1.9037, -0.7110) and (1.7288, -0.1865).
     assert np.abs(L) == pytest.approx(paper_abs, abs=0.005)
@@ -62,14 +62,14 @@ def test_section_v_gain_matches_paper(period, paper_abs):
     g = est.design
     assert np.sort(np.linalg.eigvals(g.A - np.outer(L, g.Cbar)).real) == pytest.approx([-2.0, -1.0])
     # the sampled gain has the mapped poles and tends to L Ts
-    G = (np.eye(2) - np.outer(g.Ld, g.Cbar)) @ g.Ad  # noqa: N806
+    G = (np.eye(2) - np.outer(g.Ld, g.Cbar)) @ g.Ad
     assert np.sort(np.abs(np.linalg.eigvals(G))) == pytest.approx(np.exp(np.array([-2.0, -1.0]) / FS_V))
     fine = create(NAME, 1000.0, **{**SECTION_V_PLANT, "period_s": period})
     assert fine.design.Ld * 1000.0 == pytest.approx(L, rel=3e-3)  # measured 0.15 % at 1 kHz
 
 
 def test_section_v_converges_with_the_placed_poles():
-    t, x, d, tr, est, _ = section_v()
+    t, x, d, tr, _est, _ = section_v()
     err = tr.extras["x_hat"] - x
     # Fig. 1(b): estimates reach the states. Measured max |x - xhat|: 0.017 on [10, 15) s,
     # 1.1e-4 on [15, 20) s, 3.8e-6 on [20, 40) s (FOH sampling of the continuous u sets the floor).
@@ -86,9 +86,9 @@ def test_section_v_converges_with_the_placed_poles():
 
 def test_section_v_beats_the_standard_observer():
     # Sec. II, eq. (3): the standard observer (2) with the same poles on (A, C) is driven by d.
-    t, x, d, tr, est, block = section_v()
-    A, B, C = est.design.A, est.design.B, est.design.C[None, :]  # noqa: N806
-    L = scipy.signal.place_poles(A.T, C.T, [-1.0, -2.0]).gain_matrix.T  # noqa: N806
+    t, x, _d, tr, est, block = section_v()
+    A, B, C = est.design.A, est.design.B, est.design.C[None, :]
+    L = scipy.signal.place_poles(A.T, C.T, [-1.0, -2.0]).gain_matrix.T
     sys = scipy.signal.StateSpace(A - L @ C, np.hstack([B, L]), np.eye(2), np.zeros((2, 2)))
     _, xs, _ = scipy.signal.lsim(sys, block[:, ::-1], t)  # inputs (u, y)
     standard = window_max(t, xs - x, 20, 40)
@@ -101,7 +101,7 @@ def test_section_v_band_limited_noise_keeps_the_error_small():
     # Fig. 2(b): with band-limited white noise the estimates stay close to the states.
     # Noise: std 0.1 held for 0.1 s (Simulink's band-limited white noise; level not given).
     # Measured RMS |x - xhat| over [20, 100) s: (0.031, 0.023), max (0.106, 0.059).
-    t, x, d, tr, est, _ = section_v(noise=0.1, seconds=100.0)
+    t, x, _d, tr, _est, _ = section_v(noise=0.1, seconds=100.0)
     s = t >= 20
     rms = np.sqrt(np.mean((tr.extras["x_hat"][s] - x[s]) ** 2, axis=0))
     assert np.all(rms < 0.06) and np.all(rms > 0.01)
@@ -111,7 +111,7 @@ def test_section_v_wrong_period_error_stays_bounded():
     # Fig. 2(c): T = 4 s in the observer (true 4.5 s) + the noise: disturbed but bounded,
     # "the observer cannot be destabilized". Measured max |x - xhat| (x1) over [50, 100),
     # [100, 200), [200, 400) s: 0.677, 0.669, 0.663; noise-free 0.618 in every window.
-    t, x, d, tr, est, _ = section_v(period_s=4.0, noise=0.1, seconds=400.0)
+    t, x, _d, tr, _est, _ = section_v(period_s=4.0, noise=0.1, seconds=400.0)
     err = tr.extras["x_hat"] - x
     early, late = window_max(t, err, 50, 200), window_max(t, err, 200, 400)
     assert late < 1.0 and late < 1.1 * early
@@ -190,7 +190,7 @@ def harmonics_signal(fs, seconds, noise, seed=5):
 
 def test_harmonics_noise_free_is_exact():
     # The sampled design has no bias on sampled data: errors decay at 20 1/s to rounding.
-    t, y, states, d, amps, phis, freqs = harmonics_signal(4000.0, 2.0, 0.0)
+    t, y, _states, d, amps, phis, freqs = harmonics_signal(4000.0, 2.0, 0.0)
     tr = create(NAME, 4000.0, period_s=0.05).update(y)  # default lines 50, 150, 250 Hz
     s = t >= 1.0  # measured: amplitude 3.8e-9, offset 8.3e-10, dhat 4.2e-9
     assert np.abs(tr.amplitude[s] - amps).max() < 1e-7
@@ -206,11 +206,11 @@ def test_harmonics_noise_matches_the_error_recursion():
     # Its impulse response gives the stationary std of each state error; measured / predicted:
     # 1.00, 1.00, 1.03, 1.03, 1.03, 1.03 (seed 5, 19 s).
     fs, sigma = 4000.0, 0.01
-    t, y, states, d, *_ = harmonics_signal(fs, 20.0, sigma)
+    t, y, states, _d, *_ = harmonics_signal(fs, 20.0, sigma)
     est = create(NAME, fs, period_s=0.05)
     g = est.design
-    G = (np.eye(6) - np.outer(g.Ld, g.Cbar)) @ g.Ad  # noqa: N806
-    M, J = 200, 6000  # noqa: N806
+    G = (np.eye(6) - np.outer(g.Ld, g.Cbar)) @ g.Ad
+    M, J = 200, 6000
     h = np.empty((J, 6))
     v = -g.Ld
     for j in range(J):
@@ -226,9 +226,9 @@ def test_harmonics_noise_matches_the_error_recursion():
 def test_harmonics_equals_the_same_plant_given_as_matrices():
     # The preset is the plant path with block rotations; the generic modal read-out agrees.
     fs = 4000.0
-    t, y, *_ = harmonics_signal(fs, 0.5, 0.01)
+    _t, y, *_ = harmonics_signal(fs, 0.5, 0.01)
     freqs = [50.0, 150.0]
-    A = np.zeros((4, 4))  # noqa: N806
+    A = np.zeros((4, 4))
     for i, f in enumerate(freqs):
         w = 2 * np.pi * f
         A[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = [[0, w], [-w, 0]]
@@ -246,16 +246,17 @@ def test_estimates_do_not_depend_on_the_state_basis():
     # dense (the kernel's generic product, not the 2 x 2-block one) and the modal read-out
     # uses non-trivial eigenvectors; amplitude, phase and offset must not change.
     fs = 4000.0
-    t, y, *_ = harmonics_signal(fs, 0.5, 0.01)
-    A = np.zeros((4, 4))  # noqa: N806
+    _t, y, *_ = harmonics_signal(fs, 0.5, 0.01)
+    A = np.zeros((4, 4))
     for i, f in enumerate([50.0, 150.0]):
         w = 2 * np.pi * f
         A[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = [[0, w], [-w, 0]]
-    S = np.eye(4) + 0.3 * np.random.default_rng(1).standard_normal((4, 4))  # noqa: N806
-    Si = np.linalg.inv(S)  # noqa: N806
+    S = np.eye(4) + 0.3 * np.random.default_rng(1).standard_normal((4, 4))
+    Si = np.linalg.inv(S)
     ref = create(NAME, fs, frequencies_hz=[50.0, 150.0], period_s=0.05).update(y)
-    est = create(NAME, fs, preset="plant", A=(S @ A @ Si).tolist(), C=(np.array([1.0, 0, 1, 0]) @ Si).tolist(),
-                 period_s=0.05)
+    est = create(
+        NAME, fs, preset="plant", A=(S @ A @ Si).tolist(), C=(np.array([1.0, 0, 1, 0]) @ Si).tolist(), period_s=0.05
+    )
     assert not est._iconst[-1]  # the dense path
     tr = est.update(y)
     np.testing.assert_allclose(tr.amplitude, ref.amplitude, atol=1e-8)
@@ -266,7 +267,7 @@ def test_estimates_do_not_depend_on_the_state_basis():
 
 def test_fractional_period_needs_the_option_and_then_cancels():
     fs = 4100.0  # T fs = 205.0 - 1e-3 samples
-    T = 1 / 20.0001  # noqa: N806
+    T = 1 / 20.0001
     t = np.arange(int(3 * fs)) / fs
     d = 0.5 + 0.4 * np.sin(2 * np.pi * t / T) + 0.2 * np.sin(6 * np.pi * t / T + 1.0)
     lines = np.sin(2 * np.pi * 50 * t + 0.3) + 0.2 * np.sin(2 * np.pi * 150 * t - 1)
@@ -382,7 +383,7 @@ def test_zero_input_then_signal_and_undefined_phase_stays_finite():
     est = create(NAME, 4000.0, period_s=0.05)
     tr = est.update(np.zeros(50_000))
     assert np.all(tr.amplitude == 0.0) and np.all(np.isfinite(tr.phase_rad))
-    t, y, *_ = harmonics_signal(4000.0, 1.5, 0.01)
+    _t, y, *_ = harmonics_signal(4000.0, 1.5, 0.01)
     tr = est.update(y)  # an LTI observer: same convergence as from a fresh start
     assert np.abs(tr.amplitude[-1] - [1.0, 0.2, 0.1]).max() < 5e-3
 
@@ -392,20 +393,20 @@ def test_zero_input_then_signal_and_undefined_phase_stays_finite():
 
 def report() -> None:  # pragma: no cover - run by hand, see the module docstring
     for period in (4.5, 4.0):
-        L = create(NAME, FS_V, **{**SECTION_V_PLANT, "period_s": period}).gain_L  # noqa: N806
+        L = create(NAME, FS_V, **{**SECTION_V_PLANT, "period_s": period}).gain_L
         print(f"T = {period} s: L = ({L[0]:.4f}, {L[1]:.4f})")
-    t, x, d, tr, est, _ = section_v()
+    t, x, _d, tr, _est, _ = section_v()
     err = tr.extras["x_hat"] - x
     for a, b in ((0, 4.5), (4.5, 10), (10, 15), (15, 20), (20, 40)):
         s = (t >= a) & (t < b)
         print(f"noise-free, max |x - xhat| on [{a}, {b}) s: {np.abs(err[s]).max(axis=0)}")
     print(f"first converged sample: {tr.converged.argmax() / FS_V:.2f} s")
-    t, x, d, tr, est, _ = section_v(noise=0.1, seconds=100.0)
+    t, x, _d, tr, _est, _ = section_v(noise=0.1, seconds=100.0)
     s = t >= 20
     e = tr.extras["x_hat"][s] - x[s]
     print(f"band-limited noise 0.1: RMS {np.sqrt(np.mean(e**2, axis=0))}, max {np.abs(e).max(axis=0)}")
     for noise in (0.1, 0.0):
-        t, x, d, tr, est, _ = section_v(period_s=4.0, noise=noise, seconds=400.0)
+        t, x, _d, tr, _est, _ = section_v(period_s=4.0, noise=noise, seconds=400.0)
         err = tr.extras["x_hat"] - x
         for a, b in ((50, 100), (100, 200), (200, 400)):
             s = (t >= a) & (t < b)

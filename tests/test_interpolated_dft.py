@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
+from sinewatch.schemas.errors import ParameterError
 
 FS = 1000.0
 
@@ -35,9 +35,7 @@ def crlb_real_tone(n, fs, f, a, b, phases, sigma):
     inv = []
     for ph in phases:
         arg = 2 * np.pi * f * k / fs + ph
-        jac = np.stack(
-            [np.sin(arg), a * np.cos(arg) * 2 * np.pi * k / fs, a * np.cos(arg), np.ones(n)], axis=1
-        )
+        jac = np.stack([np.sin(arg), a * np.cos(arg) * 2 * np.pi * k / fs, a * np.cos(arg), np.ones(n)], axis=1)
         inv.append(np.linalg.inv(jac.T @ jac / sigma**2))
     bound = np.mean(inv, axis=0)
     asym = 24 * sigma**2 * fs**2 / ((2 * np.pi) ** 2 * a**2 * n * (n * n - 1))
@@ -177,7 +175,7 @@ def test_amplitude_step():
 
 def test_large_offset_and_short_window():
     # A large offset lives in bins 0 and 1 only, outside the search band.
-    t, x = tone(51.7, 1.0, a=1.0, b=20.0)
+    _, x = tone(51.7, 1.0, a=1.0, b=20.0)
     tr = create("ipdft", FS, window_cycles=4).update(x)
     assert tr.offset[-1] == pytest.approx(20.0, abs=1e-3)  # measured error 1.5e-5
     assert tr.frequency_hz[-1, 0] == pytest.approx(51.7, abs=5e-3)  # measured 1.1e-3
@@ -193,7 +191,7 @@ def test_large_offset_and_short_window():
 
 def test_undefined_until_the_first_window_and_on_silence():
     est = create("ipdft", FS, window_cycles=4)
-    t, x = tone(49.0, 0.079)  # 79 samples: one short of a window
+    _, x = tone(49.0, 0.079)  # 79 samples: one short of a window
     tr = est.update(x)
     assert np.isnan(tr.frequency_hz).all() and not tr.converged.any()
     assert np.isnan(tr.residual_rms)  # no estimate yet, so no one-step prediction

@@ -14,7 +14,6 @@ import pytest
 from scipy.integrate import quad
 
 from sinewatch import scenarios
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.kkl import (
     foh_coefficients,
@@ -25,6 +24,7 @@ from sinewatch.estimators.kkl import (
     parameters_from_x,
 )
 from sinewatch.estimators.kkl_biased import gamma_biased_reference
+from sinewatch.schemas.errors import ParameterError
 
 PAPER_LAMBDA = np.array([1.0, 2.0, 3.0, 4.0])  # Section V: lambda_1..4 = 1, 2, 3, 4
 # Range whose geometric centre is 3 rad/s: the default factors then give lambda = 1, 2, 3, 4
@@ -115,7 +115,7 @@ def test_m_matrix_is_the_gram_determinant():
     rng = np.random.default_rng(3)
     for _ in range(5):
         xi = rng.standard_normal(4)
-        L = np.column_stack([PAPER_LAMBDA, np.ones(4), -xi])  # noqa: N806
+        L = np.column_stack([PAPER_LAMBDA, np.ones(4), -xi])
         m_xi2 = np.sum((paper_m_matrix(PAPER_LAMBDA) @ xi) ** 2)
         assert m_xi2 == pytest.approx(np.linalg.det(L.T @ L), rel=1e-10)
 
@@ -135,7 +135,7 @@ def test_kernel_gamma_equals_the_reference_map_where_mu_is_zero():
     rng = np.random.default_rng(11)
     ell_phys = est.ell * est.omega_ref**2  # l in rad^2/s^2
     for _ in range(20):
-        A, w, th = rng.uniform(0.1, 10), rng.uniform(1.0, 9.0), rng.uniform(-np.pi, np.pi)  # noqa: N806
+        A, w, th = rng.uniform(0.1, 10), rng.uniform(1.0, 9.0), rng.uniform(-np.pi, np.pi)
         x = np.array([A * np.sin(th), -A * w * np.cos(th), w * w])
         xi = (PAPER_LAMBDA * x[0] + x[1]) / (PAPER_LAMBDA**2 + x[2])
         xi = xi * (1 + 0.001 * rng.standard_normal(4))  # off T(O): least squares, mu still 0
@@ -154,8 +154,10 @@ def test_foh_coefficients_are_the_exact_integrals():
     for lam, ts in [(1.0, 1e-4), (113.0, 2e-4), (450.0, 1e-3), (3.0, 0.5)]:
         a, b0, b1 = (float(v[0]) for v in foh_coefficients(np.array([lam]), ts))
         # xi(Ts) = e^{-lam Ts} xi(0) + int_0^Ts e^{-lam (Ts - tau)} u(tau) dtau, u linear
-        i0 = quad(lambda tau: math.exp(-lam * (ts - tau)) * (1 - tau / ts), 0, ts, epsabs=0, epsrel=1e-13)[0]
-        i1 = quad(lambda tau: math.exp(-lam * (ts - tau)) * tau / ts, 0, ts, epsabs=0, epsrel=1e-13)[0]
+        i0 = quad(
+            lambda tau, lam=lam, ts=ts: math.exp(-lam * (ts - tau)) * (1 - tau / ts), 0, ts, epsabs=0, epsrel=1e-13
+        )[0]
+        i1 = quad(lambda tau, lam=lam, ts=ts: math.exp(-lam * (ts - tau)) * tau / ts, 0, ts, epsabs=0, epsrel=1e-13)[0]
         assert a == pytest.approx(math.exp(-lam * ts), rel=1e-15)
         assert b0 == pytest.approx(i0, rel=1e-10)
         assert b1 == pytest.approx(i1, rel=1e-10)
@@ -312,7 +314,7 @@ def test_biased_kernel_matches_its_reference_map():
     t = np.arange(3000) / 5000.0
     tr = est.update(0.3 + np.sin(2 * np.pi * 50.0 * t + 1.0))
     xi = est._state["xi_state"][:5]
-    x1, x2, x3, x4 = gamma_biased_reference(xi, est.lambdas, est.ell * est.omega_ref**2)
+    _x1, _x2, x3, x4 = gamma_biased_reference(xi, est.lambdas, est.ell * est.omega_ref**2)
     assert math.sqrt(x3) / (2 * math.pi) == pytest.approx(50.0, abs=1e-4)
     assert x4 == pytest.approx(tr.offset[-1], abs=1e-6)
     assert x4 == pytest.approx(0.3, abs=1e-6)

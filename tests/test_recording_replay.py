@@ -103,20 +103,35 @@ def test_replay_reports_a_changed_estimate_and_exits_non_zero(tmp_path, capsys):
 def test_replay_with_another_estimator_writes_a_new_recording(tmp_path, capsys):
     [path], _ = record_run(tmp_path, n_blocks=40)
     out = tmp_path / "alt.mcap"
-    code = main(["replay", str(path), "--no-progress", "--estimator", "ges-kalman", "--param", "r=0.5",
-                 "--param", "q=[1e-10,1e-10,1e-14,1e-14]", "--out", str(out)])
+    code = main(
+        [
+            "replay",
+            str(path),
+            "--no-progress",
+            "--estimator",
+            "ges-kalman",
+            "--param",
+            "r=0.5",
+            "--param",
+            "q=[1e-10,1e-10,1e-14,1e-14]",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
     text = capsys.readouterr().out
     assert "recorded vs re-run" in text and str(out) in text
     again = replay([out])  # the new file is itself a faithful recording
     assert again.ok and again.recorded_estimates == 79
-    rec = json.loads(make_reader(open(out, "rb")).get_summary() and
-                     next(m for m in make_reader(open(out, "rb")).iter_metadata()).metadata["config"])
+    rec = json.loads(
+        make_reader(open(out, "rb")).get_summary()
+        and next(m for m in make_reader(open(out, "rb")).iter_metadata()).metadata["config"]
+    )
     assert rec["rules"][0]["params"]["r"] == 0.5
 
 
 def test_gap_policy_reset_is_recorded_and_replayed(tmp_path):
-    [path], pipeline = record_run(tmp_path, n_blocks=40, on_gap="reset")
+    [path], _pipeline = record_run(tmp_path, n_blocks=40, on_gap="reset")
     estimates = []
     with open(path, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages():

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import create
 from sinewatch.estimators.base import decode_array
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
+from sinewatch.schemas.errors import ParameterError
 
 K = math.sqrt(2.0)
 K_DC = 0.25

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,
@@ -17,6 +16,7 @@ from sinewatch.schemas.codec import (
     encode_block_binary,
     encode_block_json,
 )
+from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.export import all_schemas
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,7 +30,12 @@ def test_binary_round_trip(dtype, columns):
     blk = Block("feeder1/phase-a", 2**63 + 5, -(2**62), 12_345.5, x, "V")
     out = decode_block(encode_block_binary(blk, dtype), BLOCK_BINARY_ENCODING)
     assert (out.channel, out.seq, out.t0_ns, out.sample_rate_hz, out.unit) == (
-        "feeder1/phase-a", 2**63 + 5, -(2**62), 12_345.5, "V")
+        "feeder1/phase-a",
+        2**63 + 5,
+        -(2**62),
+        12_345.5,
+        "V",
+    )
     assert out.samples.dtype == np.dtype(dtype) and out.samples.shape == x.shape
     np.testing.assert_array_equal(out.samples, x)
 

@@ -135,7 +135,9 @@ def real_input():
     print("## Real input, 1 kHz, nominal 50 Hz, bandwidth 5 Hz (defaults otherwise)\n")
     n = 20_000
     t = np.arange(n) / FS
-    print("| signal | first converged (s) | f error mean (Hz) | f std (Hz) | phase std (rad) | amplitude std | offset std |")
+    print(
+        "| signal | first converged (s) | f error mean (Hz) | f std (Hz) | phase std (rad) | amplitude std | offset std |"
+    )
     print("|---|---|---|---|---|---|---|")
     for noise in (0.01, 0.1):
         x = 0.5 + np.sin(2 * np.pi * 50.3 * t + 0.3) + noise * np.random.default_rng(0).standard_normal(n)
@@ -160,7 +162,11 @@ def real_input():
         re = tr.extras["rocof_hz_per_s"][ss] - truth.rocof_hz_per_s[ss, 0]
         fe = np.abs(tr.frequency_hz[ss, 0] - truth.frequency_hz[ss, 0]).max()
         pe = np.abs(np.angle(np.exp(1j * (tr.phase_rad[ss, 0] - truth.phase_rad[ss, 0])))).max()
-        rs = f"{np.nanmean(re):+.1e} +- {np.nanstd(re):.1e} | {np.nanmax(np.abs(re)):.1e}" if np.isfinite(re).any() else "n/a | n/a"
+        rs = (
+            f"{np.nanmean(re):+.1e} +- {np.nanstd(re):.1e} | {np.nanmax(np.abs(re)):.1e}"
+            if np.isfinite(re).any()
+            else "n/a | n/a"
+        )
         print(f"| {label} | {rs} | {fe:.1e} | {pe:.1e} |")
     print()
     x = np.sin(2 * np.pi * 54.5 * t[:10_000])
@@ -186,7 +192,9 @@ def real_input():
     tr = create("differential-rls", FS, **P50).update(xr)
     gone = np.argmax(np.isnan(tr.frequency_hz[5000:, 0])) / FS
     back = 8.0 + np.argmax(tr.converged[8000:]) / FS
-    print(f"signal stopped at 5 s: outputs NaN from {5 + gone:.2f} s; resumed at 8 s: converged again at {back:.2f} s\n")
+    print(
+        f"signal stopped at 5 s: outputs NaN from {5 + gone:.2f} s; resumed at 8 s: converged again at {back:.2f} s\n"
+    )
 
 
 def timing():

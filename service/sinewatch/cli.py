@@ -1,14 +1,14 @@
 """The ``sinewatch`` command line.
 
-    sinewatch demo                      the whole path on loopback, with a live table
-    sinewatch serve --config FILE       run the daemon
-    sinewatch config show [--config F]  print the effective configuration
-    sinewatch schemas export DIR        write the JSON Schemas
-    sinewatch estimators                list estimators and their parameters
-    sinewatch feed [...]                publish simulated sample blocks
-    sinewatch tail [KEYEXPR]            print estimates as they arrive
-    sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
-    sinewatch bench kernels|e2e|accuracy|scenarios
+sinewatch demo                      the whole path on loopback, with a live table
+sinewatch serve --config FILE       run the daemon
+sinewatch config show [--config F]  print the effective configuration
+sinewatch schemas export DIR        write the JSON Schemas
+sinewatch estimators                list estimators and their parameters
+sinewatch feed [...]                publish simulated sample blocks
+sinewatch tail [KEYEXPR]            print estimates as they arrive
+sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
+sinewatch bench kernels|e2e|accuracy|scenarios
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from sinewatch.schemas.config import load_config
     from sinewatch.daemon import serve
+    from sinewatch.schemas.config import load_config
 
     config = load_config(args.config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
@@ -98,8 +98,10 @@ def cmd_feed(args: argparse.Namespace) -> int:
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
         if not pub.wait_for_subscriber(channels[0].channel, args.wait):
-            console.print(f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
-                          f"(is the daemon running and reachable at {args.connect}?)[/red]")
+            console.print(
+                f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
+                f"(is the daemon running and reachable at {args.connect}?)[/red]"
+            )
             return 2
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
         t0 = time.monotonic()
@@ -110,8 +112,10 @@ def cmd_feed(args: argparse.Namespace) -> int:
         dt = time.monotonic() - t0
         pub.close()
     n_samples = sum(c.blocks for c in channels) * args.block
-    console.print(f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
-                  f"({n_samples / max(dt, 1e-9):,.0f} samples/s)")
+    console.print(
+        f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
+        f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
+    )
     return 0
 
 
@@ -146,9 +150,11 @@ def format_estimate(msg: dict[str, Any]) -> str:
         (" converged" if d["converged"] else " -", " GAP" if d["gap"] else "", " RESET" if d["reset"] else "")
     )
     off = "nan" if msg["offset"] is None else f"{msg['offset']:.4f}"
-    return (f"{msg['timestamp_ns'] / 1e9:.4f} {msg['channel']} #{msg['seq']} {msg['estimator']} "
-            f"f={f(msg['frequency_hz'], '.4f')}Hz A={f(msg['amplitude'], '.4f')} "
-            f"phi={f(msg['phase_rad'], '.3f')} off={off}{flags}")
+    return (
+        f"{msg['timestamp_ns'] / 1e9:.4f} {msg['channel']} #{msg['seq']} {msg['estimator']} "
+        f"f={f(msg['frequency_hz'], '.4f')}Hz A={f(msg['amplitude'], '.4f')} "
+        f"phi={f(msg['phase_rad'], '.3f')} off={off}{flags}"
+    )
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -173,8 +179,12 @@ def cmd_bench_e2e(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from sinewatch.clients.session import DEFAULT_CONNECT
 
-    p = argparse.ArgumentParser(prog="sinewatch", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    p = argparse.ArgumentParser(
+        prog="sinewatch",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
     p.add_argument("--version", action="version", version=f"sinewatch {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -207,8 +217,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("feed", help="publish simulated sample blocks to a daemon")
     f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
-    f.add_argument("--scenario", action="append", help="scenario name (repeatable; default: the demo channels); "
-                                                       "see `sinewatch bench scenarios`")
+    f.add_argument(
+        "--scenario",
+        action="append",
+        help="scenario name (repeatable; default: the demo channels); see `sinewatch bench scenarios`",
+    )
     f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
     f.add_argument("--rate", type=float, help="sample rate override, Hz")
     f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
@@ -234,8 +247,14 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("replay", help="replay recordings through fresh estimators")
     r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")
     r.add_argument("--estimator", help="re-run with this estimator instead of checking the recording")
-    r.add_argument("--param", action="append", type=parse_param, default=[], metavar="KEY=VALUE",
-                   help="estimator parameter (repeatable; value parsed as JSON when it parses)")
+    r.add_argument(
+        "--param",
+        action="append",
+        type=parse_param,
+        default=[],
+        metavar="KEY=VALUE",
+        help="estimator parameter (repeatable; value parsed as JSON when it parses)",
+    )
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
     r.add_argument("--no-progress", action="store_true")

@@ -33,12 +33,12 @@ from pathlib import Path
 
 import zenoh
 
+from sinewatch.clients.session import open_session
 from sinewatch.pipeline import NullSink, Pipeline, sanitize_log_time
 from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, dumps
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import FORMAT_VERSION
-from sinewatch.clients.session import open_session
 
 log = logging.getLogger("sinewatch.daemon")
 
@@ -57,9 +57,7 @@ class ZenohPublisherSink(NullSink):
     def _publisher(self, key: str, encoding: str, congestion: zenoh.CongestionControl) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self._session.declare_publisher(
-                key, encoding=zenoh.Encoding(encoding), congestion_control=congestion
-            )
+            pub = self._session.declare_publisher(key, encoding=zenoh.Encoding(encoding), congestion_control=congestion)
             self._publishers[key] = pub
         return pub
 
@@ -293,8 +291,12 @@ class Daemon:
         self.intake = Intake(self, asyncio.get_running_loop())
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
-            cfg.daemon_id, cfg.zenoh.mode, cfg.zenoh.listen, cfg.zenoh.connect,
-            cfg.keys.input, cfg.keys.estimates_prefix,
+            cfg.daemon_id,
+            cfg.zenoh.mode,
+            cfg.zenoh.listen,
+            cfg.zenoh.connect,
+            cfg.keys.input,
+            cfg.keys.estimates_prefix,
         )
 
     async def run(self) -> int:
@@ -323,8 +325,13 @@ class Daemon:
         await consumer
         self.publish_status()
         c = self.pipeline.counters
-        log.info("%s: %d inputs, %d estimates, %d errors",
-                 "forced exit" if self.force_exit.is_set() else "drained", c.inputs, c.estimates, c.errors)
+        log.info(
+            "%s: %d inputs, %d estimates, %d errors",
+            "forced exit" if self.force_exit.is_set() else "drained",
+            c.inputs,
+            c.estimates,
+            c.errors,
+        )
 
     def _close(self) -> None:
         if self.pipeline is not None:

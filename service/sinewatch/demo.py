@@ -27,13 +27,13 @@ from rich.live import Live
 from rich.logging import RichHandler
 from rich.table import Table
 
-from sinewatch.console import make_console
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
+from sinewatch.clients.session import free_loopback_port
+from sinewatch.console import make_console
 from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, FeedChannel, make_channels
 from sinewatch.scenarios.demo import DEMO_CHANNELS
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig, ZenohSection
-from sinewatch.clients.session import free_loopback_port
 
 PREFIX = "demo"
 
@@ -83,8 +83,20 @@ def _short(channel: str) -> str:
 
 def render(views: list[ChannelView], title: str) -> Table:
     t = Table(title=title, title_justify="left")
-    for col in ("channel", "estimator", "f est Hz", "f true", "A est", "A true", "offset", "off true",
-                "phase err°", "conv", "est.", "bad in"):
+    for col in (
+        "channel",
+        "estimator",
+        "f est Hz",
+        "f true",
+        "A est",
+        "A true",
+        "offset",
+        "off true",
+        "phase err°",
+        "conv",
+        "est.",
+        "bad in",
+    ):
         t.add_column(col, justify="left" if col in ("channel", "estimator") else "right")
     for v in views:
         e = v.last
@@ -164,8 +176,10 @@ async def run_demo(
             v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
 
     title = f"sinewatch demo: {len(channels)} channels, {duration_s:g} s (Ctrl-C stops early)"
-    with Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live, \
-            _logs_through(console):
+    with (
+        Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live,
+        _logs_through(console),
+    ):
         while not feed_done.is_set() and not daemon.should_exit.is_set():
             await asyncio.sleep(0.25)  # the display's refresh period
             absorb()

@@ -31,8 +31,9 @@ class FeedChannel:
     faults_injected: dict[str, int] = field(default_factory=dict)
 
 
-def make_channels(names: list[str], copies: int = 1, seed: int = 0, prefix: str = "sim",
-                  **overrides) -> list[FeedChannel]:
+def make_channels(
+    names: list[str], copies: int = 1, seed: int = 0, prefix: str = "sim", **overrides
+) -> list[FeedChannel]:
     """One channel per scenario name (``copies`` of each, with different seeds)."""
     out = []
     for i, name in enumerate(names):
@@ -44,8 +45,9 @@ def make_channels(names: list[str], copies: int = 1, seed: int = 0, prefix: str 
 
 
 class Feed:
-    def __init__(self, publisher: BlockPublisher, channels: list[FeedChannel], *, block_size: int = 1000,
-                 realtime: bool = True) -> None:
+    def __init__(
+        self, publisher: BlockPublisher, channels: list[FeedChannel], *, block_size: int = 1000, realtime: bool = True
+    ) -> None:
         self.publisher = publisher
         self.channels = channels
         self.block_size = block_size
@@ -60,7 +62,7 @@ class Feed:
             return 0
         fs = self.channels[0].scenario.sample_rate_hz
         self._sizes = {id(ch): max(1, round(self.block_size * ch.scenario.sample_rate_hz / fs)) for ch in self.channels}
-        rounds = int(round(duration_s * fs / self.block_size))
+        rounds = round(duration_s * fs / self.block_size)
         start = time.monotonic()
         sent = 0
         for r in range(rounds):

@@ -31,11 +31,11 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
-from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track
 from sinewatch.schemas.codec import Block, decode_block, dumps, finite_or_none
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
+from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
 from sinewatch.schemas.messages import FORMAT_VERSION
 
 log = logging.getLogger("sinewatch.pipeline")
@@ -102,13 +102,12 @@ class GuardedSink:
         self._retry_at = 0.0
 
     def _call(self, method: str, *args: Any) -> None:
-        if not self.ok:
-            if method != "on_input" or self._clock() < self._retry_at or not self._recover():
-                self.skipped += 1
-                return
+        if not self.ok and (method != "on_input" or self._clock() < self._retry_at or not self._recover()):
+            self.skipped += 1
+            return
         try:
             getattr(self.sink, method)(*args)
-        except Exception as exc:  # a sink's fault is the sink's: isolate it, report it
+        except Exception as exc:  # noqa: BLE001 (a sink's fault is the sink's: isolate it, report it)
             self._fail(f"{method}", exc)
 
     def _recover(self) -> bool:
@@ -116,7 +115,7 @@ class GuardedSink:
         try:
             if recover is not None:
                 recover()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 (still failing: stay failed, retry later)
             self._fail("recover", exc)
             return False
         self.ok = True
@@ -131,8 +130,13 @@ class GuardedSink:
         self.ok = False
         self._retry_at = self._clock() + self._retry_s
         if first:  # one report per outage, not one per skipped output
-            log.error("sink %s failed in %s (%s); estimation goes on, retrying every %g s",
-                      self.name, where, self.last_error, self._retry_s)
+            log.error(
+                "sink %s failed in %s (%s); estimation goes on, retrying every %g s",
+                self.name,
+                where,
+                self.last_error,
+                self._retry_s,
+            )
             self._on_failure(self.name, f"{self.name} failed in {where}: {self.last_error}")
 
     def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
@@ -158,7 +162,7 @@ class GuardedSink:
     def close(self) -> None:
         try:
             self.sink.close()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 (closing at shutdown: report, close the others)
             self.failures += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
             log.error("sink %s failed to close: %s", self.name, self.last_error)
@@ -241,7 +245,9 @@ class Pipeline:
         self._rule_cache: dict[str, EstimatorRule | None] = {}
 
     # ---- the one entry point ---------------------------------------------------------------
-    def process(self, key: str, payload: bytes, encoding: str, log_time_ns: int, received_ns: int | None = None) -> None:
+    def process(
+        self, key: str, payload: bytes, encoding: str, log_time_ns: int, received_ns: int | None = None
+    ) -> None:
         """Take one raw input through the pipeline. Never raises for bad input."""
         self.counters.inputs += 1
         for sink in self.sinks:
@@ -268,7 +274,7 @@ class Pipeline:
         except SinewatchError as exc:  # e.g. parameters that do not fit this channel's rate
             self._reject(key, block, channel, "estimator_error", str(exc), log_time_ns)
             return
-        except Exception as exc:  # a bug in one channel's path must not stop the others
+        except Exception as exc:  # noqa: BLE001 (a bug in one channel's path must not stop the others)
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
         out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
@@ -337,9 +343,7 @@ class Pipeline:
         try:
             estimator = get_estimator(rule.estimator)(block.sample_rate_hz, rule.params)
         except ParameterError as exc:
-            raise InputError(
-                f"{rule.estimator} at {block.sample_rate_hz} Hz: {exc}", kind="estimator_error"
-            ) from None
+            raise InputError(f"{rule.estimator} at {block.sample_rate_hz} Hz: {exc}", kind="estimator_error") from None
         ch = Channel(block.channel, key, estimator, block.sample_rate_hz)
         self.channels[block.channel] = ch
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
@@ -351,7 +355,7 @@ class Pipeline:
                 self._rule_cache.clear()  # bounded: hostile senders may invent keys
             ke = zenoh.KeyExpr(key)
             self._rule_cache[key] = next(
-                (r for r, expr in zip(self.rules, self._rule_exprs) if expr.includes(ke)), None
+                (r for r, expr in zip(self.rules, self._rule_exprs, strict=True) if expr.includes(ke)), None
             )
         return self._rule_cache[key]
 
@@ -376,7 +380,7 @@ class Pipeline:
 
     def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
         ch.last_seq = block.seq
-        ch.next_t0_ns = block.t0_ns + int(round(block.n_samples * 1e9 / block.sample_rate_hz))
+        ch.next_t0_ns = block.t0_ns + round(block.n_samples * 1e9 / block.sample_rate_hz)
         ch.blocks += 1
         ch.samples += block.n_samples
         if gap_blocks or restart:
@@ -394,7 +398,7 @@ class Pipeline:
             "format_version": FORMAT_VERSION,
             "channel": ch.name,
             "seq": block.seq,
-            "timestamp_ns": block.t0_ns + int(round((n - 1) * 1e9 / block.sample_rate_hz)),
+            "timestamp_ns": block.t0_ns + round((n - 1) * 1e9 / block.sample_rate_hz),
             "n_samples": n,
             "estimator": ch.estimator.name,
             "frequency_hz": [finite_or_none(v) for v in track.frequency_hz[-1]],
@@ -413,7 +417,9 @@ class Pipeline:
         }
         return dumps(msg)
 
-    def _reject(self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int) -> None:
+    def _reject(
+        self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int
+    ) -> None:
         self.counters.errors += 1
         self.counters.by_kind[kind] += 1
         self._error_counts[(key, kind)] += 1
@@ -431,8 +437,13 @@ class Pipeline:
         }
         n = self._error_counts[(key, kind)]
         if n <= 5 or _is_power_of_ten(n):  # a hostile flood must not flood the log too
-            log.warning("rejected input on %s (%s): %s%s", key, kind, message,
-                        f" [{n} so far on this key; further ones logged at powers of ten]" if n >= 5 else "")
+            log.warning(
+                "rejected input on %s (%s): %s%s",
+                key,
+                kind,
+                message,
+                f" [{n} so far on this key; further ones logged at powers of ten]" if n >= 5 else "",
+            )
         out_key = f"{self.config.keys.errors_prefix}/{channel_name or '_unknown'}"
         payload = dumps(report)
         for sink in self.sinks:
@@ -501,7 +512,7 @@ def _is_power_of_ten(n: int) -> bool:
     return n == 1
 
 
-def _last_value(arr: np.ndarray) -> float | None | list[float | None]:
+def _last_value(arr: np.ndarray) -> float | list[float | None] | None:
     last = arr[-1]
     if np.ndim(last) == 0:
         return finite_or_none(last)

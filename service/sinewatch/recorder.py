@@ -27,8 +27,7 @@ from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
-from sinewatch.schemas import __version__
-from sinewatch.schemas import codec
+from sinewatch.schemas import __version__, codec
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     ERROR_JSON_ENCODING,
@@ -99,7 +98,7 @@ class McapRecorder:
     def open(self) -> Path:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(path, "wb")  # noqa: SIM115 (closed in close())
+        self._file = open(path, "wb")
         self._writer = Writer(
             self._file,
             chunk_size=self.section.chunk_size_bytes,
@@ -241,4 +240,4 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["METADATA_NAME", "SNAPSHOT_NAME", "McapRecorder", "BLOCK_BINARY_ENCODING"]
+__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "McapRecorder"]

@@ -26,10 +26,10 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.schemas.errors import SinewatchError
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
+from sinewatch.schemas.errors import SinewatchError
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -116,12 +116,15 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
                     channels[record.id] = record
                 elif isinstance(record, Message):
                     ch = channels[record.channel_id]
-                    yield "message", RecordedMessage(
-                        ch.metadata.get("role", ""),
-                        ch.topic,
-                        ch.metadata.get("zenoh_encoding", ""),
-                        record.data,
-                        record.log_time,
+                    yield (
+                        "message",
+                        RecordedMessage(
+                            ch.metadata.get("role", ""),
+                            ch.topic,
+                            ch.metadata.get("zenoh_encoding", ""),
+                            record.data,
+                            record.log_time,
+                        ),
                     )
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     yield "metadata", dict(record.metadata)
@@ -181,8 +184,10 @@ def replay(
             elif kind == "message":
                 if pipeline is None:
                     if config is None:
-                        raise ReplayError(f"{path}: no sinewatch metadata before the first message; "
-                                          "expected a file written by sinewatch")
+                        raise ReplayError(
+                            f"{path}: no sinewatch metadata before the first message; "
+                            "expected a file written by sinewatch"
+                        )
                     sinks: list = [comparator]
                     if out is not None:
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})

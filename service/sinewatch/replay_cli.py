@@ -7,11 +7,10 @@ import json
 import logging
 
 from rich.console import Console
-
-from sinewatch.console import make_console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from sinewatch.console import make_console
 from sinewatch.replay import ReplayResult, replay
 from sinewatch.schemas.config import EstimatorRule
 
@@ -27,12 +26,21 @@ def run_replay(args: argparse.Namespace) -> int:
     # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.
     logging.getLogger("sinewatch.pipeline").setLevel(logging.ERROR)
     total = sum(p.stat().st_size for p in args.paths)
-    done_before = {p: sum(q.stat().st_size for q in args.paths[: i]) for i, p in enumerate(args.paths)}
-    with Progress(TextColumn("replaying"), BarColumn(), DownloadColumn(), TimeRemainingColumn(),
-                  console=console, disable=args.no_progress, transient=True) as progress:
+    done_before = {p: sum(q.stat().st_size for q in args.paths[:i]) for i, p in enumerate(args.paths)}
+    with Progress(
+        TextColumn("replaying"),
+        BarColumn(),
+        DownloadColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=args.no_progress,
+        transient=True,
+    ) as progress:
         task = progress.add_task("replay", total=total)
         result = replay(
-            args.paths, rules=rules, out=args.out,
+            args.paths,
+            rules=rules,
+            out=args.out,
             on_progress=lambda path, pos: progress.update(task, completed=done_before[path] + pos),
         )
     report(console, result)
@@ -42,14 +50,18 @@ def run_replay(args: argparse.Namespace) -> int:
 def report(console: Console, r: ReplayResult) -> None:
     for path in r.incomplete_files:
         console.print(f"[yellow]{path} was not finished (writer killed?): its complete chunks were replayed[/yellow]")
-    console.print(f"{r.inputs} inputs replayed; {r.produced_estimates} estimates produced, "
-                  f"{r.recorded_estimates} recorded; errors: {r.produced_errors} produced, {r.recorded_errors} recorded")
+    console.print(
+        f"{r.inputs} inputs replayed; {r.produced_estimates} estimates produced, "
+        f"{r.recorded_estimates} recorded; errors: {r.produced_errors} produced, {r.recorded_errors} recorded"
+    )
     if r.compared:
         if r.ok:
             console.print(f"[green]OK: all {r.matched} recorded estimates reproduced bit for bit[/green]")
         else:
-            console.print(f"[red]MISMATCH: {r.matched} of {r.recorded_estimates} estimates reproduced; "
-                          f"{len(r.mismatches)} differ[/red]")
+            console.print(
+                f"[red]MISMATCH: {r.matched} of {r.recorded_estimates} estimates reproduced; "
+                f"{len(r.mismatches)} differ[/red]"
+            )
             by_topic: dict[str, int] = {}
             for m in r.mismatches:
                 by_topic[m.topic] = by_topic.get(m.topic, 0) + 1
@@ -77,5 +89,7 @@ def _brief(payload: bytes | None) -> str:
     def f(v):
         return "nan" if v is None else f"{v:.4f}"
 
-    return (f"{m['estimator']} f={','.join(map(f, m['frequency_hz']))} A={','.join(map(f, m['amplitude']))} "
-            f"off={f(m['offset'])} conv={m['diagnostics']['converged']}")
+    return (
+        f"{m['estimator']} f={','.join(map(f, m['frequency_hz']))} A={','.join(map(f, m['amplitude']))} "
+        f"off={f(m['offset'])} conv={m['diagnostics']['converged']}"
+    )

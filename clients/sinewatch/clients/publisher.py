@@ -72,14 +72,22 @@ class BlockPublisher:
         finally:
             listener.undeclare()
 
-    def block(self, channel: str, samples: np.ndarray, sample_rate_hz: float, *, seq: int | None = None,
-              t0_ns: int | None = None, unit: str | None = None) -> Block:
+    def block(
+        self,
+        channel: str,
+        samples: np.ndarray,
+        sample_rate_hz: float,
+        *,
+        seq: int | None = None,
+        t0_ns: int | None = None,
+        unit: str | None = None,
+    ) -> Block:
         """The Block that ``publish`` would send (advances the channel's seq and time)."""
         seq = self._next_seq.get(channel, 0) if seq is None else seq
         t0 = self._next_t0.get(channel, self._start_ns) if t0_ns is None else t0_ns
         samples = np.asarray(samples)
         self._next_seq[channel] = seq + 1
-        self._next_t0[channel] = t0 + int(round(samples.shape[0] * 1e9 / sample_rate_hz))
+        self._next_t0[channel] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
         return Block(channel, seq, t0, float(sample_rate_hz), samples, unit)
 
     def encode(self, block: Block) -> bytes:

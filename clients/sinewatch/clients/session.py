@@ -13,8 +13,8 @@ from typing import Any
 
 import zenoh
 
-from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.config import DEFAULT_ENDPOINT, ZenohSection
+from sinewatch.schemas.errors import ConfigError
 
 DEFAULT_CONNECT = [DEFAULT_ENDPOINT]
 
@@ -48,7 +48,7 @@ def zenoh_config(section: ZenohSection) -> zenoh.Config:
 def _insert(conf: zenoh.Config, path: str, value: Any) -> None:
     try:
         conf.insert_json5(path, json.dumps(value))
-    except Exception as exc:  # zenoh raises its own ZError with the reason
+    except Exception as exc:  # noqa: BLE001 (zenoh raises ZError or a plain exception, with the reason)
         raise ConfigError(f"zenoh config {path} = {value!r}: {exc}") from None
 
 
@@ -56,8 +56,10 @@ def open_session(section: ZenohSection) -> zenoh.Session:
     try:
         return zenoh.open(zenoh_config(section))
     except zenoh.ZError as exc:
-        raise ConfigError(f"could not open the Zenoh session ({section.mode}, listen={section.listen}, "
-                          f"connect={section.connect}): {exc}") from None
+        raise ConfigError(
+            f"could not open the Zenoh session ({section.mode}, listen={section.listen}, "
+            f"connect={section.connect}): {exc}"
+        ) from None
 
 
 def client_section(connect: list[str]) -> ZenohSection:

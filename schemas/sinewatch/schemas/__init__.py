@@ -22,7 +22,6 @@ except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0.0.0"
 
 __all__ = [
-    "__version__",
     "FORMAT_VERSION",
     "MESSAGE_MODELS",
     "ErrorKind",
@@ -30,4 +29,5 @@ __all__ = [
     "Estimate",
     "SampleBlock",
     "Status",
+    "__version__",
 ]

@@ -141,7 +141,7 @@ def decode_block(payload: bytes, encoding: str = "") -> Block:
 def _decode_any(payload: bytes, encoding: str) -> Block:
     if encoding.startswith("application/x-sinewatch-block"):
         return _decode_binary(payload, encoding)
-    if encoding.startswith("application/json") or encoding.startswith("text/json"):
+    if encoding.startswith(("application/json", "text/json")):
         return _decode_json(payload)
     if payload[:4] == MAGIC:
         return _decode_binary(payload, encoding)
@@ -156,9 +156,7 @@ def _decode_any(payload: bytes, encoding: str) -> Block:
 def _decode_binary(payload: bytes, encoding: str) -> Block:
     version = _encoding_version(encoding)
     if version is not None and version != FORMAT_VERSION:
-        raise UnsupportedVersionError(
-            f"format version: expected {FORMAT_VERSION}, got {version} (from the encoding)"
-        )
+        raise UnsupportedVersionError(f"format version: expected {FORMAT_VERSION}, got {version} (from the encoding)")
     if len(payload) < HEADER.size:
         raise DecodeError(f"binary block: expected at least {HEADER.size} bytes, got {len(payload)}")
     magic, ver, dcode, columns, _flags, seq, t0, fs, n, clen, ulen = HEADER.unpack_from(payload)
@@ -235,9 +233,7 @@ def _encoding_version(encoding: str) -> int | None:
 
 def _check_channel(channel: str) -> None:
     if not channel or len(channel) > 256 or not _CHANNEL_RE.match(channel):
-        raise DecodeError(
-            f"channel: expected 1-256 chars of [A-Za-z0-9_.-] separated by '/', got {channel!r}"
-        )
+        raise DecodeError(f"channel: expected 1-256 chars of [A-Za-z0-9_.-] separated by '/', got {channel!r}")
 
 
 # ---- JSON messages out ----------------------------------------------------------------------

@@ -94,7 +94,9 @@ class RecordingSection(_Section):
     chunk_size_bytes: int = Field(1 << 20, ge=1024)
     rotate_bytes: int | None = Field(1 << 30, ge=1 << 16, description="Start a new file past this size")
     rotate_seconds: float | None = Field(3600.0, gt=0, description="Start a new file after this long")
-    flush_interval_s: float = Field(1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much")
+    flush_interval_s: float = Field(
+        1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much"
+    )
     inputs: bool = True
     estimates: bool = True
     errors: bool = True
@@ -128,7 +130,9 @@ class SinewatchConfig(_Section):
     limits: LimitsSection = Field(default_factory=LimitsSection)
     status_interval_s: float = Field(1.0, gt=0)
     sink_retry_s: float = Field(
-        1.0, gt=0, description="After an output fails (disk full, session closed), retry it this often; estimation goes on"
+        1.0,
+        gt=0,
+        description="After an output fails (disk full, session closed), retry it this often; estimation goes on",
     )
 
 

@@ -56,7 +56,7 @@ class Diagnostics(_Message):
         False, description="The sender restarted its sequence numbers (seq went back, time went forward)"
     )
     reset: bool = Field(False, description="The estimator was reset before this block")
-    extras: dict[str, float | None | list[float | None]] = Field(
+    extras: dict[str, float | list[float | None] | None] = Field(
         default_factory=dict, description="Estimator-specific diagnostics at the last sample"
     )
 
@@ -149,7 +149,9 @@ class Status(_Message):
     dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
     backpressure_waits: int = Field(description="Times the intake waited for queue space")
     errors: int
-    errors_by_kind: dict[str, int] = Field(default_factory=dict, description="Rejected inputs and faults per ErrorReport kind")
+    errors_by_kind: dict[str, int] = Field(
+        default_factory=dict, description="Rejected inputs and faults per ErrorReport kind"
+    )
     queue_depth: int
     recording: str | None = Field(description="Current MCAP file, if recording")
     sinks: list[SinkStatus] = Field(default_factory=list, description="Health of each output")

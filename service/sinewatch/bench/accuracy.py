@@ -63,11 +63,11 @@ import numpy as np
 from sinewatch import crlb as crlb_mod
 from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
-from sinewatch.console import make_console
 from sinewatch.bench import metrics as M
-from sinewatch.schemas.errors import ParameterError, SinewatchError
+from sinewatch.console import make_console
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
+from sinewatch.schemas.errors import ParameterError, SinewatchError
 
 TWO_PI = 2.0 * math.pi
 PARAMS = ("frequency_hz", "amplitude", "phase_rad", "offset")
@@ -334,7 +334,7 @@ def _crlb_window(name: str) -> dict[str, float] | None:
     idx = np.flatnonzero(mask)
     pick = idx[np.linspace(0, idx.size - 1, 12).round().astype(int)]
     _, truth = sc.generate(0)
-    acc = {p: 0.0 for p in PARAMS}
+    acc = dict.fromkeys(PARAMS, 0.0)
     for i in pick:
         n = int(i) + 1
         f, a, ph = truth.frequency_hz[i, 0], truth.amplitude[i, 0], truth.phase_rad[i, 0]

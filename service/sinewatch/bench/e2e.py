@@ -26,10 +26,9 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from sinewatch.console import make_console
-
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
+from sinewatch.console import make_console
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -73,11 +72,12 @@ def feeder_main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     fs, block, n_ch = a.rate, a.block, a.channels
     period = block / fs
-    span_ns = int(round((block - 1) * 1e9 / fs))
+    span_ns = round((block - 1) * 1e9 / fs)
     t = np.arange(int(fs)) / fs
     rng = np.random.default_rng(0)
-    base = [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size)
-            for _ in range(n_ch)]
+    base = [
+        np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size) for _ in range(n_ch)
+    ]
     waiter = threading.Event()
     late = 0
     with connect([a.endpoint]) as session:
@@ -116,8 +116,11 @@ def run(args: argparse.Namespace) -> int:
         }
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(config))
-        daemon = subprocess.Popen([sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_path)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_path)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
         try:
             result = _drive(args, endpoint, daemon, console)
         finally:
@@ -154,15 +157,30 @@ def _drive(args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen, co
             raise RuntimeError("the daemon did not come up within 60 s")
         probe = LatencyProbe(session, "sinewatch/est/**")
         probe.expected = rounds * n_ch
-        console.print(f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
-                      f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ...")
+        console.print(
+            f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
+            f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
+        )
         cpu0 = _cpu_seconds(daemon.pid)
         t0 = time.monotonic()
         feeder = subprocess.run(
-            [sys.executable, "-c", "import sys; from sinewatch.bench.e2e import feeder_main; "
-             "sys.exit(feeder_main(sys.argv[1:]))", endpoint, "--channels", str(n_ch), "--rate", str(fs),
-             "--block", str(block), "--rounds", str(rounds)],
-            capture_output=True, text=True,
+            [
+                sys.executable,
+                "-c",
+                "import sys; from sinewatch.bench.e2e import feeder_main; sys.exit(feeder_main(sys.argv[1:]))",
+                endpoint,
+                "--channels",
+                str(n_ch),
+                "--rate",
+                str(fs),
+                "--block",
+                str(block),
+                "--rounds",
+                str(rounds),
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
         )
         if feeder.returncode != 0:
             raise RuntimeError(f"bench feeder failed: {feeder.stderr[-2000:]}")

@@ -24,10 +24,9 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-
-from sinewatch.console import make_console
 from rich.table import Table
 
+from sinewatch.console import make_console
 from sinewatch.estimators import available, get
 
 FFT_SIZE = 1024
@@ -116,25 +115,43 @@ def run(args: argparse.Namespace) -> int:
     blocks = args.block or [1024, 4096]
     batch = fft_batch_baseline(args.seconds)
     stream = {block: fft_stream_baseline(block, args.seconds) for block in blocks}
-    console.print(f"FFT baselines (numpy, {FFT_SIZE}-point Hann rfft, hop {FFT_HOP}): batch "
-                  f"{batch / 1e6:.1f} M samples/s ({1e9 / batch:.1f} ns/sample); streaming, same blocks: "
-                  + ", ".join(f"{b}: {r / 1e6:.1f} M ({1e9 / r:.1f} ns/sample)" for b, r in stream.items()))
-    results = {"fft_batch_samples_per_s": batch, "fft_stream_samples_per_s": {str(b): r for b, r in stream.items()},
-               "estimators": {}}
+    console.print(
+        f"FFT baselines (numpy, {FFT_SIZE}-point Hann rfft, hop {FFT_HOP}): batch "
+        f"{batch / 1e6:.1f} M samples/s ({1e9 / batch:.1f} ns/sample); streaming, same blocks: "
+        + ", ".join(f"{b}: {r / 1e6:.1f} M ({1e9 / r:.1f} ns/sample)" for b, r in stream.items())
+    )
+    results = {
+        "fft_batch_samples_per_s": batch,
+        "fft_stream_samples_per_s": {str(b): r for b, r in stream.items()},
+        "estimators": {},
+    }
     table = Table(title="samples/s per core; ratio = estimator / streaming FFT on the same blocks, same run")
-    for col in ("estimator", "block", "1 ch, 1 est/block", "ratio", "vs batch", "64 ch, 1 est/block", "ratio",
-                "1 ch, per-sample track", "ns/sample"):
+    for col in (
+        "estimator",
+        "block",
+        "1 ch, 1 est/block",
+        "ratio",
+        "vs batch",
+        "64 ch, 1 est/block",
+        "ratio",
+        "1 ch, per-sample track",
+        "ns/sample",
+    ):
         table.add_column(col, justify="left" if col == "estimator" else "right")
     for name in names:
         for block in blocks:
             r = estimator_rates(name, block, args.seconds)
             results["estimators"].setdefault(name, {})[str(block)] = r
             table.add_row(
-                name, str(block),
-                f"{r['1ch_per_block'] / 1e6:.1f} M", f"{r['1ch_per_block'] / stream[block]:.2f}",
+                name,
+                str(block),
+                f"{r['1ch_per_block'] / 1e6:.1f} M",
+                f"{r['1ch_per_block'] / stream[block]:.2f}",
                 f"{r['1ch_per_block'] / batch:.2f}",
-                f"{r['64ch_per_block'] / 1e6:.1f} M", f"{r['64ch_per_block'] / stream[block]:.2f}",
-                f"{r['1ch_per_sample'] / 1e6:.1f} M", f"{1e9 / r['1ch_per_block']:.1f}",
+                f"{r['64ch_per_block'] / 1e6:.1f} M",
+                f"{r['64ch_per_block'] / stream[block]:.2f}",
+                f"{r['1ch_per_sample'] / 1e6:.1f} M",
+                f"{1e9 / r['1ch_per_block']:.1f}",
             )
     console.print(table)
     if args.json:

@@ -12,8 +12,8 @@ import importlib
 import pkgutil
 from typing import Any
 
-from sinewatch.schemas.errors import UnknownEstimatorError
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.schemas.errors import UnknownEstimatorError
 
 __all__ = ["Estimator", "EstimatorParams", "Track", "available", "create", "get", "register"]
 
@@ -51,9 +51,7 @@ def get(name: str) -> type[Estimator]:
     try:
         return _REGISTRY[name]
     except KeyError:
-        raise UnknownEstimatorError(
-            f"estimator: expected one of {sorted(_REGISTRY)}, got {name!r}"
-        ) from None
+        raise UnknownEstimatorError(f"estimator: expected one of {sorted(_REGISTRY)}, got {name!r}") from None
 
 
 def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator:

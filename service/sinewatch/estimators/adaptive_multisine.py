@@ -136,9 +136,9 @@ from numba import njit
 from pydantic import Field, model_validator
 from scipy.signal import place_poles
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.schemas.errors import ParameterError
 
 # The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
 # With bias: Example 2 (its initial frequencies are not given; (3.5, 2.5) is ours); without:
@@ -907,7 +907,9 @@ class AdaptiveMultisine(Estimator):
             raise ParameterError(
                 f"omega0: expected values at least min_separation={p.min_separation} (relative) apart, got {w0}"
             )
-        if p.omega_ranges is not None and not all(lo <= w <= hi for w, (lo, hi) in zip(d["omega0"], p.omega_ranges)):
+        if p.omega_ranges is not None and not all(
+            lo <= w <= hi for w, (lo, hi) in zip(d["omega0"], p.omega_ranges, strict=True)
+        ):
             raise ParameterError(f"omega0: expected values inside omega_ranges {p.omega_ranges}, got {d['omega0']}")
         tbar = self._theta_bar(a)
         w_ball = math.sqrt(tbar - min(a))

@@ -162,9 +162,7 @@ class Estimator(ABC):
         **kwargs: Any,
     ) -> None:
         if isinstance(sample_rate_hz, bool) or not isinstance(sample_rate_hz, (int, float)):
-            raise InputTypeError(
-                f"sample_rate_hz: expected a number, got {type(sample_rate_hz).__name__}"
-            )
+            raise InputTypeError(f"sample_rate_hz: expected a number, got {type(sample_rate_hz).__name__}")
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
         self.sample_rate_hz = float(sample_rate_hz)
@@ -235,17 +233,13 @@ class Estimator(ABC):
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
         if snapshot.get("format_version") != STATE_FORMAT_VERSION:
             raise ParameterError(
-                f"state format_version: expected {STATE_FORMAT_VERSION}, "
-                f"got {snapshot.get('format_version')!r}"
+                f"state format_version: expected {STATE_FORMAT_VERSION}, got {snapshot.get('format_version')!r}"
             )
         if snapshot.get("estimator") != self.name:
-            raise ParameterError(
-                f"state estimator: expected {self.name!r}, got {snapshot.get('estimator')!r}"
-            )
+            raise ParameterError(f"state estimator: expected {self.name!r}, got {snapshot.get('estimator')!r}")
         if float(snapshot.get("sample_rate_hz", -1)) != self.sample_rate_hz:
             raise ParameterError(
-                f"state sample_rate_hz: expected {self.sample_rate_hz}, "
-                f"got {snapshot.get('sample_rate_hz')}"
+                f"state sample_rate_hz: expected {self.sample_rate_hz}, got {snapshot.get('sample_rate_hz')}"
             )
         if self.Params.model_validate(snapshot.get("params", {})) != self.params:
             raise ParameterError("state params differ from this estimator's parameters")
@@ -255,9 +249,7 @@ class Estimator(ABC):
             raise ParameterError(f"state keys: expected {sorted(fresh)}, got {sorted(arrays)}")
         for k, v in arrays.items():
             if v.shape != fresh[k].shape or v.dtype != fresh[k].dtype:
-                raise ParameterError(
-                    f"state {k!r}: expected {fresh[k].dtype}{fresh[k].shape}, got {v.dtype}{v.shape}"
-                )
+                raise ParameterError(f"state {k!r}: expected {fresh[k].dtype}{fresh[k].shape}, got {v.dtype}{v.shape}")
         self._state = arrays
 
     @classmethod
@@ -283,9 +275,7 @@ class Estimator(ABC):
             if isinstance(samples, (list, tuple)):
                 samples = np.asarray(samples)
             else:
-                raise InputTypeError(
-                    f"samples: expected a numpy array, got {type(samples).__name__}"
-                )
+                raise InputTypeError(f"samples: expected a numpy array, got {type(samples).__name__}")
         if samples.dtype.kind not in "fiu":
             raise InputTypeError(f"samples: expected a real numeric dtype, got {samples.dtype}")
         want = self.n_inputs
@@ -294,9 +284,7 @@ class Estimator(ABC):
         if want == 1 and samples.ndim != 1:
             raise InputError(f"samples: expected shape (N,), got {samples.shape}", kind="shape_mismatch")
         if want > 1 and (samples.ndim != 2 or samples.shape[1] != want):
-            raise InputError(
-                f"samples: expected shape (N, {want}), got {samples.shape}", kind="shape_mismatch"
-            )
+            raise InputError(f"samples: expected shape (N, {want}), got {samples.shape}", kind="shape_mismatch")
         if samples.shape[0] == 0:
             raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
         # Kernels never write to their input, so a float64 C-contiguous block is used as is.

@@ -125,15 +125,16 @@ has the measured figures beside the paper's.
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
 from pydantic import Field, field_validator
 from scipy import signal as _sig
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.schemas.errors import ParameterError
 
 TWO_PI = 2.0 * math.pi
 
@@ -1083,7 +1084,7 @@ class DifferentialRls(Estimator):
     paper = "001_da74636665cf246d.txt"
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.3
-    example_params = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
+    example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:

@@ -65,9 +65,7 @@ class GesKalmanParams(EstimatorParams):
     r: float = Field(1e-2, gt=0, description="Measurement noise variance R")
     x0: list[float] = Field([0.0, 0.0, 0.0, 0.0], description="Initial state x1..x4")
     p0: float = Field(1.0, gt=0, description="Initial covariance P0 = p0 I")
-    convergence_rel_std: float = Field(
-        0.1, gt=0, description="converged once std(x3) < convergence_rel_std * |x3|"
-    )
+    convergence_rel_std: float = Field(0.1, gt=0, description="converged once std(x3) < convergence_rel_std * |x3|")
 
     @field_validator("q")
     @classmethod
@@ -102,7 +100,7 @@ def ges_kalman_kernel(y, state, consts, last_only):
     p11, p12, p13 = state[9], state[10], state[11]
     p22, p23, p33 = state[14], state[15], state[19]
     q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]
-    R, Ts, rel_std = consts[4], consts[5], consts[6]  # noqa: N806 (paper's names)
+    R, Ts, rel_std = consts[4], consts[5], consts[6]
     n = y.shape[0]
     out = np.empty((1 if last_only else n, 5))
     sse = 0.0
@@ -128,7 +126,7 @@ def ges_kalman_kernel(y, state, consts, last_only):
         # update with y(k+1) = C x(k+1): scalar innovation and gain K = P C^T / (C P C^T + R)
         e = s - xp1
         sse += e * e
-        inv_S = 1.0 / (n00 + R)  # noqa: N806
+        inv_S = 1.0 / (n00 + R)
         k0 = n00 * inv_S
         k1 = n01 * inv_S
         k2 = n02 * inv_S
@@ -154,7 +152,7 @@ def ges_kalman_kernel(y, state, consts, last_only):
         if -4.0 < x3 < 0.0:  # (20)
             sh = math.sqrt(-0.25 * x3)  # sin(w Ts/2), from (4)
             ch = math.sqrt(1.0 + 0.25 * x3)  # cos(w Ts/2)
-            B = -x4 / x3  # Section III-E  # noqa: N806
+            B = -x4 / x3  # Section III-E
             a_sin = x1 - B  # A sin(theta_k)
             a_cos = (x2 / (2.0 * sh) + a_sin * sh) / ch  # A cos(theta_k), derived above
             out[j, 0] = math.asin(sh) / (math.pi * Ts)  # eq. (21), w/(2 pi)
@@ -195,9 +193,9 @@ class GesKalman(Estimator):
         self._consts = np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std])
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        P0 = np.eye(4) * self.params.p0  # noqa: N806
+        P0 = np.eye(4) * self.params.p0
         return {"xP": np.concatenate([np.asarray(self.params.x0, dtype=np.float64), P0.ravel()])}
 
     def _run(self, samples, state, last_only):
-        out, sse, xP = ges_kalman_kernel(samples, state["xP"], self._consts, last_only)  # noqa: N806
+        out, sse, xP = ges_kalman_kernel(samples, state["xP"], self._consts, last_only)
         return track_from_columns(out, sse, samples.shape[0]), {"xP": xP}

@@ -129,7 +129,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import scipy.linalg
@@ -137,9 +137,9 @@ import scipy.signal
 from numba import njit
 from pydantic import Field
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
 _THEOREM1_TOL = 1e-6  # |1 - e^{-lambda T}| below this: lambda sits on +-j 2 pi k / T
@@ -160,9 +160,7 @@ class GripMixingParams(EstimatorParams):
     frequencies_hz: list[float] | None = Field(
         None, description="harmonics preset: oscillator frequencies (default 50, 150, 250 Hz)"
     )
-    decay_rate: float = Field(
-        20.0, gt=0, description="Default poles: each mode's observer decays at this rate, 1/s"
-    )
+    decay_rate: float = Field(20.0, gt=0, description="Default poles: each mode's observer decays at this rate, 1/s")
     A: list[list[float]] | None = Field(None, description="plant preset: n x n system matrix")
     B: list[list[float]] | None = Field(None, description="plant preset: n x m input matrix (omit: no input)")
     C: list[list[float]] | list[float] | None = Field(None, description="plant preset: 1 x n output matrix")
@@ -238,8 +236,7 @@ def check_theorem1(A: np.ndarray, C: np.ndarray, T: float) -> None:
         smin = np.linalg.svd(pbh, compute_uv=False)[-1]
         if smin < _PBH_TOL * scale:
             raise ParameterError(
-                f"A, C: expected an observable pair (C, A) (Theorem 1), got eigenvalue {_fmt(lam)} "
-                f"unobservable from C"
+                f"A, C: expected an observable pair (C, A) (Theorem 1), got eigenvalue {_fmt(lam)} unobservable from C"
             )
         k = lam.imag * T / (2.0 * np.pi)
         if abs(1.0 - np.exp(-lam * T)) < _THEOREM1_TOL:
@@ -297,7 +294,7 @@ def _foh(A: np.ndarray, B: np.ndarray, Ts: float) -> tuple[np.ndarray, np.ndarra
 def _delay_taps(delay: float) -> tuple[np.ndarray, np.ndarray]:
     """Weights and offsets reading a delay line at ``delay`` samples (1 tap if whole)."""
     if delay == round(delay):
-        return np.ones(1), np.array([int(round(delay))], dtype=np.int64)
+        return np.ones(1), np.array([round(delay)], dtype=np.int64)
     base = math.floor(delay) - 1
     d = delay - base  # in [1, 2): cubic Lagrange on taps base .. base + 3
     h = np.ones(4)
@@ -317,9 +314,7 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
     if p.preset == "harmonics":
         for key in ("A", "B", "C", "D"):
             if getattr(p, key) is not None:
-                raise ParameterError(
-                    f"{key}: expected no matrix with preset 'harmonics', got {getattr(p, key)}"
-                )
+                raise ParameterError(f"{key}: expected no matrix with preset 'harmonics', got {getattr(p, key)}")
         f = np.array(p.frequencies_hz if p.frequencies_hz is not None else DEFAULT_FREQUENCIES_HZ, float)
         if f.size == 0 or not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(f >= fs / 2):
             raise ParameterError(
@@ -432,7 +427,7 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
             f"e^{_MAX_Z_GROWTH:g} between resets, got e^{growth:.3g} (max Re lambda x reset interval); "
             f"lower z_reset_periods (minimum 2) or shorten T"
         )
-    window = int(round(delay))
+    window = round(delay)
     settle = math.ceil(math.log(1.0 / p.convergence_tolerance) / float(np.min(-poles.real)) * fs)
     warm = max_off + settle + window
     return GripDesign(
@@ -636,7 +631,7 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
             kw = 0
             dsum = 0.0
             q = pos
-            for j in range(window):
+            for _ in range(window):
                 dsum += db[q]
                 q = q - 1 if q > 0 else Lb - 1
         for b in range(m):
@@ -678,7 +673,7 @@ def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
     return out, sse, new_state, count
 
 
-def _pairs(Ad: np.ndarray) -> bool:  # noqa: N803
+def _pairs(Ad: np.ndarray) -> bool:
     """True if Ad is block-diagonal with 2 x 2 blocks (the kernel then skips the zeros)."""
     n = Ad.shape[0]
     if n % 2:
@@ -706,7 +701,11 @@ class GripMixing(Estimator):
     paper = "002_e8388582f5542671.txt"
     example_sample_rate_hz = 4000.0
     example_frequency_hz = 50.0
-    example_params = {"preset": "harmonics", "frequencies_hz": [50.0, 150.0, 250.0], "period_s": 0.05}
+    example_params: ClassVar[dict[str, Any]] = {
+        "preset": "harmonics",
+        "frequencies_hz": [50.0, 150.0, 250.0],
+        "period_s": 0.05,
+    }
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
@@ -736,14 +735,16 @@ class GripMixing(Estimator):
             return {}
         f = np.asarray(hints["nominal_frequency_hz"], dtype=np.float64)
         if f.size == 0 or np.any(f <= 0) or np.any(f >= sample_rate_hz / 2) or np.unique(f).size != f.size:
-            raise ParameterError(
-                f"nominal_frequency_hz: expected distinct values in (0, fs/2), got {f.tolist()}"
-            )
+            raise ParameterError(f"nominal_frequency_hz: expected distinct values in (0, fs/2), got {f.tolist()}")
         m = np.arange(2, max(3, int(0.1 * sample_rate_hz) + 1))
         score = np.min(np.abs(np.sin(np.pi * np.outer(m / sample_rate_hz, f))), axis=1)
         best = int(m[np.flatnonzero(score >= score.max() - 1e-3)[-1]])  # longest: offset = mean over T
-        return {"preset": "harmonics", "frequencies_hz": f.tolist(), "period_s": best / sample_rate_hz,
-                "fractional_delay": False}
+        return {
+            "preset": "harmonics",
+            "frequencies_hz": f.tolist(),
+            "period_s": best / sample_rate_hz,
+            "fractional_delay": False,
+        }
 
     def _check_params(self) -> None:
         self._design = design(self.params, self.sample_rate_hz)
@@ -795,7 +796,7 @@ class GripMixing(Estimator):
         out, sse, flat, count = grip_mixing_kernel(
             block, state["state"], state["count"], self._fconst, self._iconst, last_only
         )
-        K, n = self._K, self._n  # noqa: N806
+        K, n = self._K, self._n
         track = Track(
             frequency_hz=out[:, :K],
             amplitude=out[:, K : 2 * K],

@@ -75,15 +75,15 @@ wide band on a long window (bins ~ N/2) costs O(N^2) per hop; the docs give the 
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0
 MAX_WINDOW_SAMPLES = 1 << 22
@@ -91,11 +91,15 @@ MAX_WINDOW_SAMPLES = 1 << 22
 
 class IpdftParams(EstimatorParams):
     nominal_frequency_hz: float = Field(
-        50.0, gt=0, allow_inf_nan=False,
+        50.0,
+        gt=0,
+        allow_inf_nan=False,
         description="Nominal frequency (Hz): sets the window in cycles and the default search band",
     )
     window_cycles: float | None = Field(
-        None, ge=2, allow_inf_nan=False,
+        None,
+        ge=2,
+        allow_inf_nan=False,
         description="Window length in cycles of the nominal frequency (default 4 when "
         "window_samples is not given either); rounded up to whole samples",
     )
@@ -106,11 +110,15 @@ class IpdftParams(EstimatorParams):
         None, ge=1, description="Samples between estimates (default: a quarter of the window); <= window"
     )
     min_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False,
+        None,
+        gt=0,
+        allow_inf_nan=False,
         description="Lower edge of the peak search band (default 0.5 x nominal; never below DFT bin 2)",
     )
     max_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False,
+        None,
+        gt=0,
+        allow_inf_nan=False,
         description="Upper edge of the peak search band (default 1.5 x nominal; below Nyquist)",
     )
     interpolation: Literal["3-point", "2-point"] = Field(
@@ -120,7 +128,9 @@ class IpdftParams(EstimatorParams):
         0.0, ge=0, allow_inf_nan=False, description="converged requires amplitude > min_amplitude"
     )
     max_relative_residual: float = Field(
-        0.2, gt=0, allow_inf_nan=False,
+        0.2,
+        gt=0,
+        allow_inf_nan=False,
         description="converged requires the window's LS fit residual RMS <= this x amplitude",
     )
 
@@ -149,7 +159,7 @@ def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_poi
     """Estimate from the chronological window ``xw`` into ``est`` =
     (defined, f_cycles_per_sample, A, theta_end, B, r). ``mags`` (bins,) and ``wu`` (N,)
     are scratch."""
-    N = xw.shape[0]  # noqa: N806
+    N = xw.shape[0]
     # (M) Hann-weighted mean
     acc = 0.0
     for n in range(N):
@@ -251,12 +261,12 @@ def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconst
     amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
     row. Pure: the inputs are not modified.
     """
-    N = buf.shape[0]  # noqa: N806
+    N = buf.shape[0]
     hop, k_lo, k_hi, three_point = iconsts[0], iconsts[1], iconsts[2], iconsts[3] != 0
     fs, min_amp, max_rel, hann_sum = fconsts[0], fconsts[1], fconsts[2], fconsts[3]
     b = buf.copy()
     pos, fill, since, held, defined, m = istate[0], istate[1], istate[2], istate[3], istate[4], istate[5]
-    fcy, A, th, B, r, conv = fstate[0], fstate[1], fstate[2], fstate[3], fstate[4], fstate[5]  # noqa: N806
+    fcy, A, th, B, r, conv = fstate[0], fstate[1], fstate[2], fstate[3], fstate[4], fstate[5]
     n_in = x.shape[0]
     out = np.empty((1 if last_only else n_in, 5))
     resid = np.empty(1 if last_only else n_in)
@@ -290,11 +300,11 @@ def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconst
             m = 0
             if est[0] != 0.0:
                 defined = 1
-                fcy, A, th, B, r = est[1], est[2], est[3], est[4], est[5]  # noqa: N806
+                fcy, A, th, B, r = est[1], est[2], est[3], est[4], est[5]
                 conv = 1.0 if (A > min_amp and r <= max_rel * A) else 0.0
             else:
                 defined = 0
-                fcy = A = th = B = r = conv = 0.0  # noqa: N806 (finite placeholders)
+                fcy = A = th = B = r = conv = 0.0
         if last_only and j != n_in - 1:
             continue
         row = 0 if last_only else j
@@ -327,23 +337,20 @@ class InterpolatedDft(Estimator):
     paper = None
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.0
-    example_params = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
+    example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
 
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
         nyq = 0.5 * fs
         if p.nominal_frequency_hz >= nyq:
-            raise ParameterError(
-                f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}"
-            )
+            raise ParameterError(f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}")
         samples_per_cycle = fs / p.nominal_frequency_hz
         if p.window_samples is not None:
             n = p.window_samples
             if n < 2.0 * samples_per_cycle - 1e-9:
                 raise ParameterError(
-                    f"window_samples: expected >= 2 nominal cycles = {2.0 * samples_per_cycle:g} "
-                    f"samples, got {n}"
+                    f"window_samples: expected >= 2 nominal cycles = {2.0 * samples_per_cycle:g} samples, got {n}"
                 )
         else:
             cycles = DEFAULT_WINDOW_CYCLES if p.window_cycles is None else p.window_cycles
@@ -358,9 +365,7 @@ class InterpolatedDft(Estimator):
         if p.max_frequency_hz is not None and f_hi >= nyq:
             raise ParameterError(f"max_frequency_hz: expected < Nyquist = {nyq} Hz, got {f_hi}")
         if f_lo >= f_hi:
-            raise ParameterError(
-                f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}"
-            )
+            raise ParameterError(f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}")
         bin_hz = fs / n
         k_lo = max(2, math.ceil(f_lo / bin_hz - 0.5))  # bins whose centre is nearest the band
         k_hi = min(n // 2 - 1, math.floor(f_hi / bin_hz + 0.5))

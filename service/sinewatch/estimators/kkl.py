@@ -116,16 +116,17 @@ Outputs and flags, per sample:
 
 from __future__ import annotations
 
+import itertools
 import math
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
 from pydantic import Field, field_validator, model_validator
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
+from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
 #: of the reference angular frequency.
@@ -149,7 +150,7 @@ def validate_lambda_factors(v: list[float], m_min: int) -> list[float]:
     if not all(math.isfinite(x) and x > 0 for x in v):
         raise ValueError(f"expected finite values > 0, got {v}")
     s = sorted(v)
-    gaps = [b - a for a, b in zip(s, s[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(s)]
     if min(gaps) <= 1e-6 * s[-1]:
         raise ValueError(f"expected mutually distinct values (relative gap > 1e-6), got {v}")
     return v
@@ -271,7 +272,7 @@ def gamma_reference(xi: np.ndarray, lam: np.ndarray, ell: float) -> np.ndarray:
     lam = np.asarray(lam, dtype=np.float64)
     if not np.any(xi):
         return np.zeros(3)  # gamma_0
-    L = np.column_stack([lam, np.ones_like(lam), -xi])  # noqa: N806 (paper's name)
+    L = np.column_stack([lam, np.ones_like(lam), -xi])
     if lam.size == 4:
         m_xi2 = float(np.sum((paper_m_matrix(lam) @ xi) ** 2))
     else:
@@ -321,9 +322,7 @@ class KklParams(EstimatorParams):
         "is at most this fraction of the running RMS of y",
     )
 
-    @field_validator(
-        "f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error"
-    )
+    @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
     @classmethod
     def _finite(cls, v: float) -> float:
         if not math.isfinite(v):
@@ -338,9 +337,7 @@ class KklParams(EstimatorParams):
     @model_validator(mode="after")
     def _range(self) -> KklParams:
         if not self.f_min_hz < self.f_max_hz:
-            raise ValueError(
-                f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}"
-            )
+            raise ValueError(f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}")
         return self
 
 
@@ -348,8 +345,7 @@ def check_nyquist(name: str, f_max_hz: float, sample_rate_hz: float) -> None:
     nyq = 0.5 * sample_rate_hz
     if not f_max_hz < nyq:
         raise ParameterError(
-            f"{name}: f_max_hz: expected < Nyquist = {nyq:g} Hz (sample rate {sample_rate_hz:g} Hz), "
-            f"got {f_max_hz:g}"
+            f"{name}: f_max_hz: expected < Nyquist = {nyq:g} Hz (sample rate {sample_rate_hz:g} Hz), got {f_max_hz:g}"
         )
 
 
@@ -417,7 +413,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
+    Ts, w_ref, ell = consts[0], consts[1], consts[2]
     silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
     max_fit2 = consts[6] * consts[6]
     max_pred2 = consts[7] * consts[7]
@@ -499,11 +495,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
             r1 = p2 * inv
             r2 = -q2 * inv * inv
             # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
-            det = (
-                s_ll * (s_11 - b12 * b12)
-                - s_l * (s_l - b12 * b02)
-                + b02 * (s_l * b12 - s_11 * b02)
-            )
+            det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
             mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
             # Phi = L^T L + mu I, solved with its adjugate (8)
             a = s_ll + mu
@@ -604,7 +596,7 @@ class Kkl(Estimator):
     )
     paper = "003_29096b058aca5228.txt"
     example_sample_rate_hz = 5000.0
-    example_params = {"f_min_hz": 45.0, "f_max_hz": 65.0}
+    example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
     example_frequency_hz = 50.0
 
     @classmethod

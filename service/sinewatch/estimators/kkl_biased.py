@@ -55,13 +55,12 @@ constant exactly (sinc(0) = 1), so the offset needs no correction. Differences:
 from __future__ import annotations
 
 import math
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
 from pydantic import Field
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator
 from sinewatch.estimators.kkl import (
@@ -78,6 +77,7 @@ from sinewatch.estimators.kkl import (
     observer_track,
     reference_scaling,
 )
+from sinewatch.schemas.errors import ParameterError
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
 DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
@@ -124,8 +124,7 @@ class KklBiasedParams(KklParams):
 
     lambda_factors: list[float] = Field(
         list(BIASED_LAMBDA_FACTORS),
-        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); "
-        "m >= 5, distinct, > 0",
+        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); m >= 5, distinct, > 0",
     )
     silence_ratio: float = Field(
         1e-3, gt=0, lt=1, description="the oscillation counts as zero below this fraction of its recent peak"
@@ -156,7 +155,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
     inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]  # noqa: N806
+    Ts, w_ref, ell = consts[0], consts[1], consts[2]
     silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
     max_fit2 = consts[6] * consts[6]
     max_pred2 = consts[7] * consts[7]
@@ -352,7 +351,7 @@ class KklBiased(Estimator):
     )
     paper = "003_29096b058aca5228.txt"
     example_sample_rate_hz = 5000.0
-    example_params = {"f_min_hz": 45.0, "f_max_hz": 65.0}
+    example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
     example_frequency_hz = 50.0  # the default example signal: 0.5 + sin(2 pi 50 t + 0.3) + noise
 
     def _check_params(self) -> None:

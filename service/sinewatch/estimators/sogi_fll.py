@@ -101,35 +101,38 @@ frequency lags by R / Gamma and this reads R).
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
 from pydantic import Field
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.schemas.errors import ParameterError
 
 
 class SogiFllParams(EstimatorParams):
-    nominal_frequency_hz: float = Field(
-        50.0, gt=0, allow_inf_nan=False, description="Initial FLL frequency (Hz)"
-    )
+    nominal_frequency_hz: float = Field(50.0, gt=0, allow_inf_nan=False, description="Initial FLL frequency (Hz)")
     k: float = Field(
-        math.sqrt(2.0), gt=0, allow_inf_nan=False,
+        math.sqrt(2.0),
+        gt=0,
+        allow_inf_nan=False,
         description="SOGI damping gain (dimensionless; sqrt(2) is the usual choice)",
     )
-    k_dc: float = Field(
-        0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'"
-    )
+    k_dc: float = Field(0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'")
     gamma: float | None = Field(
-        None, gt=0, allow_inf_nan=False,
+        None,
+        gt=0,
+        allow_inf_nan=False,
         description="Normalised FLL gain Gamma (1/s): the frequency error decays as exp(-Gamma t). "
         "Default: the nominal frequency's value in Hz (a time constant of one nominal cycle, "
         "50 1/s at 50 Hz); at most k pi nominal (the SOGI's bandwidth)",
     )
     fll_amplitude_memory_cycles: float = Field(
-        0.0, ge=0, allow_inf_nan=False,
+        0.0,
+        ge=0,
+        allow_inf_nan=False,
         description="FLL normalised by max(A^2, P/2), P = A^2 low-passed over this many nominal "
         "cycles: bounds the frequency kick of a deep sag or signal loss, at the cost of a "
         "slower recovery; 0 (default) = plain A^2 (Rodriguez)",
@@ -141,20 +144,28 @@ class SogiFllParams(EstimatorParams):
         None, gt=0, allow_inf_nan=False, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
     )
     min_amplitude: float = Field(
-        1e-6, ge=0, allow_inf_nan=False,
+        1e-6,
+        ge=0,
+        allow_inf_nan=False,
         description="Below this amplitude the FLL holds and frequency/phase are NaN",
     )
     max_relative_error: float = Field(
-        0.2, gt=0, allow_inf_nan=False,
+        0.2,
+        gt=0,
+        allow_inf_nan=False,
         description="converged requires the smoothed RMS SOGI error below this x amplitude",
     )
     frequency_tolerance_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False,
+        None,
+        gt=0,
+        allow_inf_nan=False,
         description="converged requires the FLL's predicted remaining frequency error below this "
         "(default 0.002 x nominal: 0.1 Hz at 50 Hz)",
     )
     convergence_cycles: float = Field(
-        1.0, gt=0, allow_inf_nan=False,
+        1.0,
+        gt=0,
+        allow_inf_nan=False,
         description="Time constant of the convergence low-pass filters, in nominal cycles",
     )
 
@@ -272,16 +283,14 @@ class SogiFll(Estimator):
     paper = None
     example_sample_rate_hz = 5000.0
     example_frequency_hz = 50.0
-    example_params = {"nominal_frequency_hz": 50.0}
+    example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0}
 
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
         nyq = 0.5 * fs
         if p.nominal_frequency_hz >= nyq:
-            raise ParameterError(
-                f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}"
-            )
+            raise ParameterError(f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}")
         f_lo = 0.5 * p.nominal_frequency_hz if p.min_frequency_hz is None else p.min_frequency_hz
         f_hi = 1.5 * p.nominal_frequency_hz if p.max_frequency_hz is None else p.max_frequency_hz
         if f_hi >= nyq:

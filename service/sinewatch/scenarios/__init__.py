@@ -12,8 +12,8 @@ import pkgutil
 from collections.abc import Callable
 from typing import Any
 
-from sinewatch.schemas.errors import ParameterError
 from sinewatch.scenarios.base import FaultPlan, Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
+from sinewatch.schemas.errors import ParameterError
 
 __all__ = [
     "FaultPlan",

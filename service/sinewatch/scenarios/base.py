@@ -86,7 +86,7 @@ class Scenario(ABC):
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.duration_s * self.sample_rate_hz))
+        return round(self.duration_s * self.sample_rate_hz)
 
     @property
     def n_inputs(self) -> int:

@@ -159,7 +159,7 @@ class _HeldNoiseStream(ScenarioStream):
     def __init__(self, scenario: GripSectionV, seed: int) -> None:
         super().__init__(scenario, seed)
         self._nrng = np.random.default_rng([seed, 0x002])
-        self._hold = max(1, int(round(scenario.noise_hold_s * scenario.sample_rate_hz)))
+        self._hold = max(1, round(scenario.noise_hold_s * scenario.sample_rate_hz))
         self._last_index = -1
         self._last_value = 0.0
 

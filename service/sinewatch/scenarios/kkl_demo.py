@@ -35,7 +35,9 @@ def _kkl_scenario(name: str, summary: str, offset: float, estimator: str, **over
         suggested_params=dict(KKL_MAINS_PARAMS),
     )
     kw.update(overrides)
-    return SumOfTones(name, summary, list(_TONES), offset=offset, tags=("demo", "kkl"), disturbances=list(_RIPPLE), **kw)
+    return SumOfTones(
+        name, summary, list(_TONES), offset=offset, tags=("demo", "kkl"), disturbances=list(_RIPPLE), **kw
+    )
 
 
 @register("kkl-demo")
