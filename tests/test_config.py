@@ -8,6 +8,7 @@ import pytest
 
 from sinewatch.cli import main
 from sinewatch.clients.session import zenoh_config
+from sinewatch.estimators import check_rules
 from sinewatch.schemas.config import load_config
 from sinewatch.schemas.errors import ConfigError
 
@@ -42,8 +43,6 @@ def test_file_then_environment(tmp_path):
     "text, match",
     [
         ("[zenoh]\nmod = 'peer'\n", "zenoh.mod: unknown key"),
-        ("[[rules]]\nestimator = 'no-such'\n", "no-such"),
-        ("[[rules]]\nestimator = 'ges-kalman'\nparams = { qq = 1 }\n", "qq"),
         ("[zenoh]\nlisten = ['localhost']\n", "PROTO/ADDRESS"),
         ("on_gap = 'panic'\n", "on_gap"),
     ],
@@ -53,6 +52,28 @@ def test_bad_config_is_a_clear_error(tmp_path, text, match):
     f.write_text(text)
     with pytest.raises(ConfigError, match=match):
         load_config(f, {})
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("[[rules]]\nestimator = 'no-such'\n", r"rules\[0\].*no-such"),
+        (
+            "[[rules]]\nestimator = 'ges-kalman'\nparams = { qq = 1 }\n",
+            r"rules\[0\].*ges-kalman params.qq: unknown key",
+        ),
+        ("[[rules]]\nestimator = 'ges-kalman'\nparams = { r = -1 }\n", r"params.r"),
+    ],
+)
+def test_bad_estimator_rules_are_clear_errors_from_check_and_serve(tmp_path, text, match, capsys):
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    config = load_config(f, {})  # the structure is fine: printing it needs no estimator
+    with pytest.raises(ConfigError, match=match):
+        check_rules(config.rules)
+    assert main(["config", "check", "--config", str(f)]) == 2
+    assert "invalid estimator rules" in capsys.readouterr().err
+    assert main(["serve", "--config", str(f)]) == 2  # refused before any session is opened
 
 
 def test_unknown_environment_key_is_rejected():

@@ -51,9 +51,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from sinewatch.daemon import serve
+    from sinewatch.estimators import check_rules
     from sinewatch.schemas.config import load_config
 
     config = load_config(args.config)
+    check_rules(config.rules)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
     return serve(config)
 
@@ -65,10 +67,21 @@ def cmd_config_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_config_check(args: argparse.Namespace) -> int:
+    from sinewatch.estimators import check_rules
+    from sinewatch.schemas.config import load_config
+
+    config = load_config(args.config)
+    check_rules(config.rules)
+    print(f"ok: {len(config.rules)} rule(s), every estimator and parameter valid")
+    return 0
+
+
 def cmd_schemas_export(args: argparse.Namespace) -> int:
+    from sinewatch.estimators import available
     from sinewatch.schemas.export import export_schemas
 
-    for path in export_schemas(Path(args.dir)):
+    for path in export_schemas(Path(args.dir), available()):
         print(path)
     return 0
 
@@ -205,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     cs = csub.add_parser("show", help="print the effective configuration (file + environment)")
     cs.add_argument("--config", help="TOML or JSON config file")
     cs.set_defaults(fn=cmd_config_show)
+    cc = csub.add_parser("check", help="also check each rule's estimator parameters (imports the estimators)")
+    cc.add_argument("--config", help="TOML or JSON config file")
+    cc.set_defaults(fn=cmd_config_check)
 
     sc = sub.add_parser("schemas", help="JSON Schemas of the wire format and the config")
     scsub = sc.add_subparsers(dest="schemas_command", required=True, metavar="SUBCOMMAND")

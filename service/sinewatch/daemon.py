@@ -268,8 +268,9 @@ class Daemon:
     def warm_up(self) -> None:
         """Load (or compile) every configured estimator's kernels now, so that a
         channel's first block does not wait ~0.3-0.8 s for numba."""
-        from sinewatch.estimators import get
+        from sinewatch.estimators import check_rules, get
 
+        check_rules(self.config.rules)
         for name in sorted({rule.estimator for rule in self.config.rules}):
             cls = get(name)
             est = cls.example()

@@ -13,9 +13,12 @@ import pkgutil
 from typing import Any
 
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
-from sinewatch.schemas.errors import UnknownEstimatorError
+from pydantic import ValidationError
 
-__all__ = ["Estimator", "EstimatorParams", "Track", "available", "create", "get", "register"]
+from sinewatch.schemas.config import EstimatorRule
+from sinewatch.schemas.errors import ConfigError, UnknownEstimatorError
+
+__all__ = ["Estimator", "EstimatorParams", "Track", "available", "check_rules", "create", "get", "register"]
 
 _REGISTRY: dict[str, type[Estimator]] = {}
 _LOADED = False
@@ -57,3 +60,21 @@ def get(name: str) -> type[Estimator]:
 def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator:
     """Build the estimator registered as ``name`` for a channel sampled at ``sample_rate_hz``."""
     return get(name)(sample_rate_hz, params)
+
+
+def check_rules(rules: list[EstimatorRule]) -> None:
+    """Check every rule's estimator name and parameters against the estimator's own model;
+    raise ConfigError naming the rule and what was expected."""
+    problems = []
+    for i, rule in enumerate(rules):
+        try:
+            get(rule.estimator).Params.model_validate(rule.params)
+        except UnknownEstimatorError as exc:
+            problems.append(f"  rules[{i}] ({rule.match}): {exc}")
+        except ValidationError as exc:
+            for err in exc.errors():
+                where = ".".join(str(p) for p in err["loc"]) or "(params)"
+                what = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+                problems.append(f"  rules[{i}] ({rule.match}) {rule.estimator} params.{where}: {what}")
+    if problems:
+        raise ConfigError("invalid estimator rules:\n" + "\n".join(problems))
