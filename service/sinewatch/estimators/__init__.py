@@ -12,9 +12,9 @@ import importlib
 import pkgutil
 from typing import Any
 
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 from pydantic import ValidationError
 
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ConfigError, UnknownEstimatorError
 
