@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test test-slow bench bench-kernels bench-e2e bench-accuracy schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy schemas clean
 
 install: $(STAMP)
 
@@ -20,6 +20,15 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+# Lint, format, import contracts and types, from the three source roots (no install needed
+# for the static tools to resolve sinewatch.*; the venv only provides the tools).
+SRC_ROOTS := schemas:clients:service
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	PYTHONPATH=$(SRC_ROOTS) $(BIN)/lint-imports
+	$(BIN)/mypy
 
 # Long soak and Monte Carlo runs, skipped by `make test`.
 test-slow: $(STAMP)
