@@ -36,9 +36,9 @@ import zenoh
 from sinewatch.clients.session import open_session
 from sinewatch.pipeline import NullSink, Pipeline, sanitize_log_time
 from sinewatch.recorder import McapRecorder
-from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, dumps
+from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, encode_status
 from sinewatch.schemas.config import SinewatchConfig
-from sinewatch.schemas.messages import FORMAT_VERSION
+from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 
 log = logging.getLogger("sinewatch.daemon")
 
@@ -232,23 +232,21 @@ class Daemon:
     def status_payload(self) -> bytes:
         c = self.intake.counters if self.intake else IntakeCounters()
         p = self.pipeline
-        return dumps(
-            {
-                "format_version": FORMAT_VERSION,
-                "daemon_id": self.config.daemon_id,
-                "uptime_s": round(time.monotonic() - self._started, 3),
-                "blocks_received": c.received,
-                "blocks_processed": p.counters.inputs,
-                "dropped": c.dropped,
-                "backpressure_waits": c.backpressure_waits,
-                "errors": p.counters.errors,
-                "errors_by_kind": dict(sorted(p.counters.by_kind.items())),
-                "queue_depth": self._queued,
-                "recording": str(self.recorder.path) if self.recorder and self.recorder.path else None,
-                "sinks": p.sink_status(),
-                "channels": p.channel_status(),
-            }
+        status = Status(
+            daemon_id=self.config.daemon_id,
+            uptime_s=round(time.monotonic() - self._started, 3),
+            blocks_received=c.received,
+            blocks_processed=p.counters.inputs,
+            dropped=c.dropped,
+            backpressure_waits=c.backpressure_waits,
+            errors=p.counters.errors,
+            errors_by_kind=dict(sorted(p.counters.by_kind.items())),
+            queue_depth=self._queued,
+            recording=str(self.recorder.path) if self.recorder and self.recorder.path else None,
+            sinks=[SinkStatus(**s) for s in p.sink_status()],
+            channels=[ChannelStatus(**c) for c in p.channel_status()],
         )
+        return encode_status(status)
 
     def publish_status(self) -> None:
         key = f"{self.config.keys.status_key}/{self.config.daemon_id}"

@@ -35,7 +35,7 @@ from sinewatch.schemas.codec import (
     STATUS_JSON_ENCODING,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
-from sinewatch.schemas.messages import MESSAGE_MODELS
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 
 log = logging.getLogger("sinewatch.recorder")
 
@@ -114,6 +114,7 @@ class McapRecorder:
             METADATA_NAME,
             {
                 "format_version": "1",
+                "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),

@@ -30,6 +30,7 @@ from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -169,12 +170,16 @@ def replay(
     comparator = _Comparator()
     pending_snapshot: dict | None = None
     config: SinewatchConfig | None = None
+    estimate_version = ESTIMATE_FORMAT_VERSION
     for file_no, path in enumerate(paths):
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
         for kind, item in read_recording(path, progress):
             if kind == "metadata":
                 if config is None:
                     config = SinewatchConfig.model_validate(json.loads(item["config"]))
+                    # check in the recording's own format (files of earlier builds have no key: 1)
+                    if rules is None:
+                        estimate_version = int(item.get("estimate_format_version", "1"))
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
@@ -193,7 +198,7 @@ def replay(
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
                         recorder = McapRecorder(rec_config, path=out)
                         sinks.append(recorder)
-                    pipeline = Pipeline(config, sinks, rules=rules)
+                    pipeline = Pipeline(config, sinks, rules=rules, estimate_version=estimate_version)
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)
