@@ -190,7 +190,7 @@ def cmd_bench_e2e(args: argparse.Namespace) -> int:
 
 # ---- parser ----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    from sinewatch.clients.session import DEFAULT_CONNECT
+    from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
 
     p = argparse.ArgumentParser(
         prog="sinewatch",
@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(fn=cmd_estimators)
 
     f = sub.add_parser("feed", help="publish simulated sample blocks to a daemon")
-    f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     f.add_argument(
         "--scenario",
         action="append",
@@ -253,7 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("tail", help="print estimates (or any sinewatch JSON messages) as they arrive")
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
-    t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     t.add_argument("--count", type=int, default=0, help="exit after N messages")
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")

@@ -34,50 +34,16 @@ from pathlib import Path
 import zenoh
 
 from sinewatch.clients.session import open_session
-from sinewatch.pipeline import NullSink, Pipeline, sanitize_log_time
+from sinewatch.pipeline import Pipeline, sanitize_log_time
+from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
-from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, encode_status
+from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 
 log = logging.getLogger("sinewatch.daemon")
 
 HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-class ZenohPublisherSink(NullSink):
-    """Publishes estimates and errors (BLOCK: not dropped) and status (DROP)."""
-
-    sink_name = "zenoh"
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self._session = session
-        self._publishers: dict[str, zenoh.Publisher] = {}
-
-    def _publisher(self, key: str, encoding: str, congestion: zenoh.CongestionControl) -> zenoh.Publisher:
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._session.declare_publisher(key, encoding=zenoh.Encoding(encoding), congestion_control=congestion)
-            self._publishers[key] = pub
-        return pub
-
-    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, ESTIMATE_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
-
-    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, ERROR_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
-
-    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, STATUS_JSON_ENCODING, zenoh.CongestionControl.DROP).put(payload)
-
-    def recover(self) -> None:
-        """Declare the publishers afresh on the next put (after a session fault)."""
-        self._publishers.clear()
-
-    def close(self) -> None:
-        for pub in self._publishers.values():
-            pub.undeclare()
-        self._publishers.clear()
 
 
 @dataclass
