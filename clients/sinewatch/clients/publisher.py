@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -66,9 +67,15 @@ class BlockPublisher:
         """Block until something (the daemon) subscribes to this channel's key."""
         pub = self._publisher(channel)
         matched = threading.Event()
-        listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = pub.declare_matching_listener(on_status)
         try:
-            return pub.matching_status.matching or matched.wait(timeout)
+            # zenoh 1.10 returns a MatchingStatus here, though its stub says bool
+            return bool(pub.matching_status.matching) or matched.wait(timeout)  # type: ignore[attr-defined]
         finally:
             listener.undeclare()
 
@@ -95,7 +102,7 @@ class BlockPublisher:
             return encode_block_binary(block, self.dtype)
         return encode_block_json(block)
 
-    def publish(self, channel: str, samples: np.ndarray, sample_rate_hz: float, **kw) -> Block:
+    def publish(self, channel: str, samples: np.ndarray, sample_rate_hz: float, **kw: Any) -> Block:
         block = self.block(channel, samples, sample_rate_hz, **kw)
         self.publish_raw(channel, self.encode(block))
         return block
