@@ -28,10 +28,13 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 TWO_PI = 2.0 * math.pi
+PARAMS = ("frequency_hz", "amplitude", "phase_rad", "offset")
 
 
 def wrap(x: np.ndarray) -> np.ndarray:
@@ -166,3 +169,105 @@ class Moments:
             "mse": mse.tolist(),
             "defined_pct": defined.tolist(),
         }
+
+
+def median_never_late(xs: Sequence[float]) -> float:
+    """Median of times with "never" (NaN) counted as infinitely late; NaN if that is the
+    median."""
+    a = np.asarray(xs, dtype=float)
+    if a.size == 0:
+        return math.nan
+    med = float(np.median(np.where(np.isnan(a), np.inf, a)))
+    return med if math.isfinite(med) else math.nan
+
+
+def against_crlb(m: dict[str, Any], bound: dict[str, float], sample_rate_hz: float, noise_std: float) -> dict[str, Any]:
+    """Each parameter's pooled MSE (``m[p]["mse"][0]``) against its CRLB variance
+    (``bound[p]``): the bound's standard deviation and the excess in dB; for the frequency
+    also the equivalent window, the record length over which an efficient estimator
+    reaches the same MSE: ``var(w) = 24 sigma^2 / (A^2 N^3)`` (w in rad/sample) solved for
+    N, in seconds."""
+    cr: dict[str, Any] = {}
+    for p in PARAMS:
+        mse = m[p]["mse"][0]
+        db = math.nan if not mse >= 0 else (10.0 * math.log10(mse / bound[p]) if mse > 0 else -math.inf)
+        cr[p] = {"crlb_std": math.sqrt(bound[p]), "over_crlb_db": db}
+    fs = sample_rate_hz
+    mse_w = m["frequency_hz"]["mse"][0] * (TWO_PI / fs) ** 2
+    a = bound["amplitude_true"]
+    if mse_w > 0:
+        cr["frequency_hz"]["equivalent_window_s"] = (24.0 * noise_std**2 / (a * a * mse_w)) ** (1 / 3) / fs
+    return cr
+
+
+class C37Accumulator:
+    """TVE, FE and RFE at the reporting instants, pooled over trials, and their summary
+    against the C37.118.1 limits."""
+
+    def __init__(self) -> None:
+        self.tve: list[np.ndarray] = []
+        self.fe: list[np.ndarray] = []
+        self.rfe: list[np.ndarray] = []
+        self.instants = 0
+        self.undefined = 0
+        self.rocof_source: str | None = None
+
+    def add(
+        self,
+        i: np.ndarray,
+        amp: np.ndarray,
+        phase: np.ndarray,
+        true_amp: np.ndarray,
+        true_phase: np.ndarray,
+        freq_err: np.ndarray,
+        rocof: np.ndarray,
+        true_rocof: np.ndarray,
+        rocof_source: str,
+    ) -> None:
+        """One trial: per-sample tracks of one component, read at sample indices ``i``."""
+        tv = tve(amp[i], phase[i], true_amp[i], true_phase[i]) * 100.0
+        fe = np.abs(freq_err[i])
+        rfe = np.abs(rocof[i] - true_rocof[i])
+        self.instants += i.size
+        self.undefined += int((~np.isfinite(tv) | ~np.isfinite(fe)).sum())
+        self.tve.append(tv)
+        self.fe.append(fe)
+        self.rfe.append(rfe)
+        self.rocof_source = rocof_source
+
+    def summary(self, limits: dict[str, float], events: list[dict[str, Any]]) -> dict[str, Any]:
+        """Worst and mean TVE, worst FE and RFE, and pass/fail against ``limits`` (the step
+        ``events`` bring their TVE response time and overshoot)."""
+        tv = np.concatenate(self.tve)
+        fe = np.concatenate(self.fe)
+        rfe = np.concatenate(self.rfe)
+
+        def mx(a: np.ndarray) -> float:
+            return float(np.max(np.where(np.isfinite(a), a, np.inf))) if a.size else math.nan
+
+        out: dict[str, Any] = {
+            "tve_max_pct": mx(tv),
+            "tve_mean_pct": float(np.nanmean(tv)) if np.isfinite(tv).any() else math.nan,
+            "fe_max_hz": mx(fe),
+            "rfe_max_hz_per_s": mx(rfe),
+            "rocof_source": self.rocof_source,
+            "reporting_instants": self.instants,
+            "undefined_instants": self.undefined,
+            "limits": dict(limits),
+        }
+        failed = []
+        for key, val in (
+            ("tve_pct", out["tve_max_pct"]),
+            ("fe_hz", out["fe_max_hz"]),
+            ("rfe_hz_per_s", out["rfe_max_hz_per_s"]),
+        ):
+            if key in limits and not val <= limits[key]:
+                failed.append(key)
+        for ev in events:
+            if "response_time_s" in limits and not ev.get("tve_response_time_s", math.nan) <= limits["response_time_s"]:
+                failed.append("response_time_s")
+            if "overshoot_pct" in limits and not ev.get("overshoot_pct", math.nan) <= limits["overshoot_pct"]:
+                failed.append("overshoot_pct")
+        out["failed"] = sorted(set(failed))
+        out["pass"] = not failed
+        return out

@@ -1,8 +1,14 @@
-"""Scenario library: named signals with per-sample truth.
+"""Scenario library: named signals with per-sample truth, the one description of each
+scenario that ``sinewatch feed``, ``sinewatch demo``, the accuracy bench and the tests read.
 
 ``get(name, **overrides)`` builds a scenario; ``names()`` lists them; ``register`` adds a
-factory. Every module of this package (other than ``base``) is imported once and
-registers its scenarios, so a family of scenarios is one module.
+factory. Every module of this package (other than ``base`` and the private ``_library``)
+is imported once and registers its scenarios, so a family of scenarios is one module.
+
+A scenario is a :class:`Composite` of :class:`Component` sinusoids (``_library``) or, for
+a signal that is not a sum of sinusoids, a :class:`Scenario` subclass of its own (paper
+002's plant, ``grip_demo``). ``Tone`` and ``SumOfTones`` are other names of
+:class:`Component` and :class:`Composite`, for code that reads better with them.
 """
 
 from __future__ import annotations
@@ -12,10 +18,18 @@ import pkgutil
 from collections.abc import Callable
 from typing import Any
 
-from sinewatch.scenarios.base import FaultPlan, Scenario, ScenarioStream, SumOfTones, Tone, Truth, wrap_phase
+from sinewatch.scenarios._library import Component, Composite, snr_noise_std
+from sinewatch.scenarios.base import BenchInfo, Event, FaultPlan, Scenario, ScenarioStream, Truth, wrap_phase
 from sinewatch.schemas.errors import ParameterError
 
+Tone = Component
+SumOfTones = Composite
+
 __all__ = [
+    "BenchInfo",
+    "Component",
+    "Composite",
+    "Event",
     "FaultPlan",
     "Scenario",
     "ScenarioStream",
@@ -25,6 +39,7 @@ __all__ = [
     "get",
     "names",
     "register",
+    "snr_noise_std",
     "wrap_phase",
 ]
 

@@ -27,8 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
+from sinewatch.scenarios import BenchInfo, Component, Composite, Event, register
 
 # Example 2's tuning is the estimator's default design (bias, n = 2); the time unit maps
 # one paper rad/s to 2 pi 5 rad/s. min_amplitude sits above the noise (|d| <= 0.25) so that

@@ -18,8 +18,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, Composite, Event, register, snr_noise_std
 
 F0 = 50.3
 NOMINAL_HZ = 50.0

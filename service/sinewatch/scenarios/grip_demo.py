@@ -24,9 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite
-from sinewatch.scenarios.base import Scenario, ScenarioStream, Truth, wrap_phase
+from sinewatch.scenarios import BenchInfo, Component, Composite, Scenario, ScenarioStream, Truth, register, wrap_phase
 
 GRIP_DEMO_PERIOD_S = 0.05
 GRIP_DEMO_PARAMS = {"preset": "harmonics", "frequencies_hz": [50.0, 150.0, 250.0], "period_s": 0.05}

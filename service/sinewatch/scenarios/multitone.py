@@ -16,8 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, Composite, register, snr_noise_std
 
 
 def _multi(

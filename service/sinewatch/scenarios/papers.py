@@ -37,8 +37,7 @@ import math
 from typing import Any
 
 from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN  # the paper's Section V gains
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
+from sinewatch.scenarios import BenchInfo, Component, Composite, Event, register
 
 TWO_PI = 2.0 * math.pi
 

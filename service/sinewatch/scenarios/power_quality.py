@@ -36,8 +36,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
+from sinewatch.scenarios import BenchInfo, Component, Composite, Event, register
 
 SAMPLE_RATE_HZ = 10_000.0
 HARMONICS = (2, 3, 5, 7, 11, 13, 25, 50)

@@ -19,8 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, Composite, register, snr_noise_std
 
 SNR_DB = (0, 10, 20, 30, 40, 50, 60)
 FREQUENCY_HZ = 50.5
