@@ -236,3 +236,22 @@ def test_multitone_nominal_frequencies_are_off_by_ten_percent():
 def test_component_rejects_step_with_modulation():
     with pytest.raises(ValueError):
         Component(50.0, rocof=1.0, t_step=1.0, f_step_to=51.0)
+
+
+def test_deploy_rules_serve_each_demo_scenario_with_its_suggested_estimator():
+    # deploy/estimators-demo.toml serves `sinewatch feed --scenario NAME`: its rules must
+    # say what the scenario library says (as `sinewatch demo` reads it)
+    from pathlib import Path
+
+    from sinewatch.schemas.config import load_config
+
+    config = load_config(Path(__file__).parents[1] / "deploy" / "estimators-demo.toml")
+    *rules, catch_all = config.rules
+    assert catch_all.match == "sinewatch/in/**"
+    served = {}
+    for rule in rules:
+        name = rule.match.removeprefix("sinewatch/in/sim/").removesuffix("/**")
+        sc = scenarios.get(name)
+        assert (rule.estimator, rule.params) == (sc.suggested_estimator, sc.suggested_params), name
+        served[name] = rule.estimator
+    assert set(served) == {n for n in scenarios.names() if "demo" in scenarios.get(n).tags}

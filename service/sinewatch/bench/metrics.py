@@ -39,7 +39,8 @@ PARAMS = ("frequency_hz", "amplitude", "phase_rad", "offset")
 
 def wrap(x: np.ndarray) -> np.ndarray:
     """Radians to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - x, TWO_PI)
+    out: np.ndarray = np.pi - np.mod(np.pi - x, TWO_PI)
+    return out
 
 
 def window_mask(t: np.ndarray, windows: list[tuple[float, float]] | tuple[tuple[float, float], ...]) -> np.ndarray:
@@ -93,7 +94,8 @@ def tve(est_amp: np.ndarray, est_phase: np.ndarray, true_amp: np.ndarray, true_p
     dx = est_amp * np.cos(est_phase) - true_amp * np.cos(true_phase)
     dy = est_amp * np.sin(est_phase) - true_amp * np.sin(true_phase)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.hypot(dx, dy) / true_amp
+        out: np.ndarray = np.hypot(dx, dy) / true_amp
+    return out
 
 
 def rocof_from_frequency(f: np.ndarray, sample_rate_hz: float, interval_samples: int) -> np.ndarray:
@@ -109,7 +111,8 @@ def reporting_indices(n: int, sample_rate_hz: float, reporting_rate_hz: float, m
     """Sample indices nearest the reporting instants k / Fs that fall inside ``mask``."""
     k = np.arange(math.floor((n - 1) / sample_rate_hz * reporting_rate_hz) + 1)
     idx = np.unique(np.clip(np.rint(k * sample_rate_hz / reporting_rate_hz).astype(np.int64), 0, n - 1))
-    return idx[mask[idx]]
+    out: np.ndarray = idx[mask[idx]]
+    return out
 
 
 def exceedance_span(t: np.ndarray, above: np.ndarray, start: float, stop: float) -> float:

@@ -175,7 +175,7 @@ class _Trials:
             self.moments[p].add(err[p][steady], valid[p][steady])
         # convergence: every present component within 1 % (+ tolerance) of its true frequency
         tol = 0.01 * np.abs(truth.frequency_hz) + prof.tolerance_hz
-        ok_f = np.where(present, np.abs(err["frequency_hz"]) <= tol, True).all(axis=1)
+        ok_f = np.asarray(np.where(present, np.abs(err["frequency_hz"]) <= tol, True).all(axis=1))
         self.conv_times.append(M.settle_time(t, ok_f, 0.0, first_window_end, latest=first_window_start))
         self.flag_times.append(M.settle_time(t, tr.converged, 0.0, first_window_end, latest=first_window_start))
         for j, ev in enumerate(prof.events):

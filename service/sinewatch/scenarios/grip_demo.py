@@ -47,7 +47,7 @@ def grip_demo(**kw: Any) -> Composite:
     delay = GRIP_DEMO_PERIOD_S * fs
     if abs(delay - round(delay)) > 1e-9 * delay:
         params["fractional_delay"] = True  # T is not a whole number of samples at this rate
-    base = {
+    base: dict[str, Any] = {
         "sample_rate_hz": 10_000.0,
         "duration_s": 10.0,
         "noise_std": 0.01,
@@ -93,7 +93,7 @@ class GripSectionV(Scenario):
         noise_hold_s: float = 0.1,
         **kw: Any,
     ) -> None:
-        base = {
+        base: dict[str, Any] = {
             "sample_rate_hz": 100.0,
             "duration_s": 40.0,
             "noise_std": 0.0,
@@ -110,6 +110,10 @@ class GripSectionV(Scenario):
     @property
     def n_inputs(self) -> int:
         return 2
+
+    @property
+    def noise_free(self) -> bool:
+        return super().noise_free and self.bandlimited_noise_std == 0.0
 
     def truth_states(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x(t) (N, 2), u(t) and d(t), in closed form."""
@@ -138,16 +142,6 @@ class GripSectionV(Scenario):
 
     def stream(self, seed: int = 0) -> ScenarioStream:
         return _HeldNoiseStream(self, seed)
-
-    def describe(self) -> dict[str, Any]:
-        d = super().describe()
-        d.update(
-            disturbance_period_s=self.period,
-            x0=list(self.x0),
-            bandlimited_noise_std=self.bandlimited_noise_std,
-            noise_hold_s=self.noise_hold_s,
-        )
-        return d
 
 
 class _HeldNoiseStream(ScenarioStream):

@@ -17,6 +17,7 @@ the frequency, amplitude and phase bounds do not depend on whether it is).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from sinewatch.scenarios import BenchInfo, Component, Composite, register, snr_noise_std
@@ -50,7 +51,7 @@ def _tone(snr_db: int, offset: float = OFFSET, **kw: Any) -> Composite:
     )
 
 
-def _make(snr_db: int, offset: float):
+def _make(snr_db: int, offset: float) -> Callable[..., Composite]:
     def factory(**kw: Any) -> Composite:
         return _tone(snr_db, offset, **kw)
 
