@@ -13,6 +13,7 @@ a signal that is not a sum of sinusoids, a :class:`Scenario` subclass of its own
 
 from __future__ import annotations
 
+import copy
 import importlib
 import pkgutil
 from collections.abc import Callable
@@ -36,6 +37,7 @@ __all__ = [
     "SumOfTones",
     "Tone",
     "Truth",
+    "declare",
     "get",
     "names",
     "register",
@@ -57,6 +59,28 @@ def register(name: str) -> Callable[[Callable[..., Scenario]], Callable[..., Sce
         return factory
 
     return deco
+
+
+def declare(
+    name: str,
+    summary: str,
+    components: list[Component],
+    bench: BenchInfo | None = None,
+    *,
+    defaults: dict[str, Any],
+    **composite: Any,
+) -> None:
+    """Register scenario ``name``: a :class:`Composite` of ``components`` (``composite``:
+    its other fixed arguments: disturbances, offset, tags, ...) with the sampling, noise and
+    suggested estimator of ``defaults`` (``sample_rate_hz``, ``duration_s``,
+    ``noise_std``, ``suggested_estimator``, ``suggested_params``), which the overrides
+    given to :func:`get` replace."""
+
+    def factory(**overrides: Any) -> Composite:
+        return Composite(name, summary, components, bench, **composite, **{**copy.deepcopy(defaults), **overrides})
+
+    factory.__name__ = name.replace("-", "_")
+    register(name)(factory)
 
 
 def _load_all() -> None:

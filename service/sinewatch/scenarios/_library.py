@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.scenarios.base import BenchInfo, Scenario, ScenarioStream, Truth, wrap_phase
+from sinewatch.scenarios.base import BenchInfo, FaultPlan, Scenario, ScenarioStream, Truth, wrap_phase
 
 TWO_PI = 2.0 * math.pi
 
@@ -118,7 +118,7 @@ class Composite(Scenario):
     (noise continues). ``skip=(t0, seconds)``: the stream loses ``seconds`` of signal at
     ``t0`` (samples after it are those of time ``t + seconds``). ``uniform_noise``: the
     half-width of additive uniform noise (paper 004's bounded disturbance) instead of
-    Gaussian ``noise_std``.
+    Gaussian ``noise_std``. ``faults``: the transport faults a feed injects.
     """
 
     def __init__(
@@ -139,9 +139,12 @@ class Composite(Scenario):
         skip: tuple[float, float] | None = None,
         uniform_noise: float = 0.0,
         tags: tuple[str, ...] = (),
+        faults: FaultPlan | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        if faults is not None:
+            self.faults = faults
         self.name = name
         self.summary = summary
         self.tags = tuple(tags)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sinewatch.scenarios import Component, Composite, FaultPlan, register
+from sinewatch.scenarios import Component, FaultPlan, declare
 
 # ges-kalman tuned for 10 kHz: x3 = -4 sin^2(w Ts/2) is ~1e-3 here, so its random walk
 # must be far smaller than the paper's 1e-6 (tuned at 1 kHz); R matches the noise.
@@ -32,24 +32,23 @@ def _channel(
     disturbances: list[Component] | None = None,
     faults: FaultPlan | None = None,
 ) -> None:
-    """Register demo channel ``name`` (10 kHz, 10 s; overrides go to :class:`Composite`)."""
-
-    def factory(**overrides: Any) -> Composite:
-        kw: dict[str, Any] = {
+    """Register demo channel ``name`` (10 kHz, 10 s)."""
+    declare(
+        name,
+        summary,
+        tones,
+        offset=offset,
+        tags=("demo",),
+        disturbances=disturbances,
+        faults=faults,
+        defaults={
             "sample_rate_hz": 10_000.0,
             "duration_s": 10.0,
             "noise_std": noise_std,
             "suggested_estimator": estimator,
             "suggested_params": params or KALMAN_10K,
-        }
-        kw.update(overrides)  # may name another estimator
-        sc = Composite(name, summary, tones, offset=offset, tags=("demo",), disturbances=disturbances, **kw)
-        if faults is not None:
-            sc.faults = faults
-        return sc
-
-    factory.__name__ = name.replace("-", "_")
-    register(name)(factory)
+        },
+    )
     DEMO_CHANNELS.append(name)
 
 
