@@ -13,7 +13,16 @@ import pytest
 from sinewatch.bench import startup
 from sinewatch.bench.args import add_startup_arguments
 
-HEAVY = ("numba", "scipy", "matplotlib", "mcap", "sinewatch.estimators", "sinewatch.scenarios", "sinewatch.crlb")
+HEAVY = (
+    "numba",
+    "scipy",
+    "matplotlib",
+    "mcap",
+    "zenoh",
+    "sinewatch.estimators",
+    "sinewatch.scenarios",
+    "sinewatch.crlb",
+)
 
 
 def test_building_the_cli_parser_imports_no_bench_and_no_maths():

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -104,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
             verdict,
         )
     console.print(table)
+    if os.environ.get("PYTHONDONTWRITEBYTECODE"):
+        console.print("PYTHONDONTWRITEBYTECODE is set: sinewatch's own modules are compiled on every start")
     if args.json:
         args.json.write_text(json.dumps({"runs": args.runs, "results": [asdict(tm) for tm in timings]}, indent=2))
     return 0
