@@ -1,4 +1,5 @@
-"""Scenarios for ``grip-mixing`` (paper 002, ``002_e8388582f5542671.txt``).
+"""Scenarios for ``grip-mixing`` (paper 002: H. F. Grip, "Observer design in the presence of
+periodic output disturbances by mixing of past and present output data").
 
 * ``grip-demo``: mains lines at 50, 150 and 250 Hz (amplitudes 1, 0.2, 0.1) + offset 0.3 + a
   periodic disturbance of period T = 0.05 s (a 1200 rpm machine: 20, 40, 60, 100 and 140 Hz)

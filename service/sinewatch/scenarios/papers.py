@@ -4,25 +4,28 @@ Each keeps the paper's signal, noise and (where given) sampling; what the paper 
 open is chosen here and said so in the summary. ``bench.reference`` records what the paper
 reported, so that docs/accuracy.md can set the measured figure beside it.
 
-* paper 000 (``000_95b503d2538da780.txt``, Section IV): ``s(t) = sin(2 pi 100 t) + 1``,
+* paper 000 ("A globally exponentially stable (GES) discrete-time observer for the
+  parameters of a biased sinusoid", Section IV): ``s(t) = sin(2 pi 100 t) + 1``,
   fs = 1 kHz, Gaussian noise std 0.01; and the chirp ``f(t) = t`` Hz (1 Hz/s), same noise.
   Duration not stated: 10 s for the tone, 200 s for the chirp (the paper quotes the error
   at t = 180 s).
-* paper 001 (``001_da74636665cf246d.txt``, Section 10): w = 1 rad/s, A = 1, noise-free
-  (Fig. 1) and at 10 log10(A^2 / 2 sigma^2) = 5.2 dB (Fig. 2, sigma^2 = 0.15); tracking of
-  ``w(t) = w0 [1 + 0.5 sin(0.01 w0 t)]`` (Fig. 3, noise not stated: none here). The
-  paper gives no sample rate (results are per "samples/cycle"): 10 Hz here, 63 samples
-  per cycle.
-* paper 003 (``003_29096b058aca5228.txt``, Section V): ``2 sin(3 t)`` plus a 10 %
-  harmonic ``0.2 sin(W t)``, W = 10, 100, 1000 rad/s; no random noise. Continuous-time in
-  the paper; sampled at 1 kHz here (the 1000 rad/s component is 159 Hz). Duration not
-  stated: 60 s.
-* paper 004 (``004_880a59a5c07ec15b.txt``, Section V-A), Ts = 3e-4 s: Example 1
-  ``sin 2t + sin 5t`` noise-free and with uniform noise in [-0.25, 0.25]; Example 2
-  ``4 sin 3t + A2(t) sin 2t + 1 + d(t)``, A2 = 3 until t = 120 s then 0; Example 3
-  ``sin w1(t) t + sin w2(t) t + d(t)`` with w1: 2 -> 3 rad/s and w2: 5 -> 4.5 rad/s at
-  t = 70 s (read as frequency steps with continuous phase); the experiment (Section V-B)
-  ``4 sin 7t + 2 sin 5t`` at 10 kHz with "additive random noise" of unstated level
+* paper 001 ("Differential signal model and sampling techniques for recursive (extended)
+  least-squares estimation of frequency, frequency derivatives, phase and amplitude",
+  Section 10): w = 1 rad/s, A = 1, noise-free (Fig. 1) and at 10 log10(A^2 / 2 sigma^2)
+  = 5.2 dB (Fig. 2, sigma^2 = 0.15); tracking of ``w(t) = w0 [1 + 0.5 sin(0.01 w0 t)]``
+  (Fig. 3, noise not stated: none here). The paper gives no sample rate (results are per
+  "samples/cycle"): 10 Hz here, 63 samples per cycle.
+* paper 003 (L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic
+  oscillator", Section V): ``2 sin(3 t)`` plus a 10 % harmonic ``0.2 sin(W t)``,
+  W = 10, 100, 1000 rad/s; no random noise. Continuous-time in the paper; sampled at
+  1 kHz here (the 1000 rad/s component is 159 Hz). Duration not stated: 60 s.
+* paper 004 (B. Chen, G. Pin, W. N. Ng, S. Y. Hui, T. Parisini, "An adaptive
+  observer-based robust estimator of multi-sinusoidal signals", Section V-A),
+  Ts = 3e-4 s: Example 1 ``sin 2t + sin 5t`` noise-free and with uniform noise in
+  [-0.25, 0.25]; Example 2 ``4 sin 3t + A2(t) sin 2t + 1 + d(t)``, A2 = 3 until
+  t = 120 s then 0; Example 3 ``sin w1(t) t + sin w2(t) t + d(t)`` with w1: 2 -> 3 rad/s
+  and w2: 5 -> 4.5 rad/s at t = 70 s (read as frequency steps with continuous phase); the
+  experiment (Section V-B) ``4 sin 7t + 2 sin 5t`` at 10 kHz with "additive random noise" of unstated level
   (Gaussian std 0.05 here). Durations not stated: 100 s, 240 s, 140 s, 30 s.
 * The nominal frequency handed to the estimators that take one is 10 % below the truth
   for the stationary signals (the papers' own estimators need none).
