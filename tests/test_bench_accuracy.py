@@ -259,3 +259,23 @@ def test_run_scenarios_lists_the_library(capsys):
     assert {"c37-50hz-steady", "c37-60hz-dc-decay"} <= {r["name"] for r in rows}
     assert bench_scenarios.run(_parse(["paper"], add_scenarios_arguments)) == 0
     assert "paper004-ex2" in capsys.readouterr().out
+
+
+def test_c37_rocof_comes_from_the_estimator_when_it_publishes_one(monkeypatch):
+    # sogi-fll publishes its ROCOF as an extra; an estimator that reports it in the track's
+    # own field (Estimate v2) must be scored the same way, not by differencing
+    r = evaluate("sogi-fll", "c37-50hz-ramp-up")
+    c = r["metrics"]["c37"]
+    assert c["rocof_source"] == "extras"
+    base = estimators.get("sogi-fll")
+
+    class FieldRocof(base):  # the same estimator, ROCOF moved from extras to the field
+        def update(self, samples, *, last_only=False):
+            tr = super().update(samples, last_only=last_only)
+            tr.rocof_hz_per_s = tr.extras.pop("rocof_hz_per_s")[:, None]
+            return tr
+
+    monkeypatch.setattr(runner.est_registry, "get", lambda name: FieldRocof)
+    moved = evaluate("sogi-fll", "c37-50hz-ramp-up")["metrics"]["c37"]
+    assert moved["rocof_source"] == "track"
+    assert moved["rfe_max_hz_per_s"] == c["rfe_max_hz_per_s"] and moved["tve_max_pct"] == c["tve_max_pct"]

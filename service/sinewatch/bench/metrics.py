@@ -18,9 +18,9 @@ Definitions (the accuracy bench and docs/accuracy.md use exactly these):
 * C37.118.1 quantities, at the reporting instants k / Fs inside the steady windows:
   total vector error ``TVE = |Ah e^{j phih} - A e^{j phi}| / A`` (the synchrophasor is
   A/sqrt(2) e^{j phi} in any common reference, which cancels), frequency error
-  ``FE = |fh - f|`` and ROCOF error ``RFE = |rh - r|``; ``rh`` is the estimator's extra
-  ``rocof_hz_per_s`` when it publishes one, else the difference of its frequency track over
-  one reporting interval. The C37 response time is the time between the TVE first leaving
+  ``FE = |fh - f|`` and ROCOF error ``RFE = |rh - r|``; ``rh`` is the estimator's own
+  ``rocof_hz_per_s`` (the track's field, or else its extra of that name) when it publishes
+  one, else the difference of its frequency track over one reporting interval. The C37 response time is the time between the TVE first leaving
   and last re-entering its limit around a step.
 """
 

@@ -182,7 +182,10 @@ class _Trials:
             self._add_event(j, ev, err, ok_f, ea, ep, truth)
         if prof.reporting_rate_hz is not None and self.rep_idx is not None and self.rep_idx.size:
             # C37.118.1 quantities at the reporting instants, of the first component
-            if "rocof_hz_per_s" in tr.extras:
+            if tr.rocof_hz_per_s is not None:  # the estimator's own ROCOF, (N, K)
+                r = np.asarray(tr.rocof_hz_per_s)[:, perm[0]]
+                source = "track"
+            elif "rocof_hz_per_s" in tr.extras:
                 r = np.asarray(tr.extras["rocof_hz_per_s"])
                 r = r[:, perm[0]] if r.ndim == 2 else r
                 source = "extras"
