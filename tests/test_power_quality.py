@@ -54,7 +54,9 @@ def analyse(name: str, **overrides):
 
 # ---- harmonics: IEC 61000-4-7 class I ----------------------------------------------------------
 
-HARMONIC_FAMILIES = [f"pq-harmonics-{f}hz-{lvl}{off}" for f in (50, 60) for lvl in ("all", "low") for off in ("", "-m5", "-p5")]
+HARMONIC_FAMILIES = [
+    f"pq-harmonics-{f}hz-{lvl}{off}" for f in (50, 60) for lvl in ("all", "low") for off in ("", "-m5", "-p5")
+]
 
 
 @pytest.mark.parametrize("name", HARMONIC_FAMILIES)
@@ -183,7 +185,7 @@ def test_unbalance_within_class_a(name):
 
 
 def test_three_phase_report_and_group_values():
-    sc, windows = analyse("pq-unbalance-50hz-u2-2pct")
+    _, windows = analyse("pq-unbalance-50hz-u2-2pct")
     w = windows[-1]
     z = w.fundamental_phasor
     rep = three_phase_report("feeder1", ["feeder1/va", "feeder1/vb", "feeder1/vc"], w.end_ns, z, w.frequency_hz)
@@ -397,7 +399,7 @@ def test_analyser_to_aggregates_across_a_tick():
 
 
 def test_harmonics_report_round_trip_and_schemas():
-    sc, windows = analyse("pq-harmonics-60hz-all-m5")
+    _, windows = analyse("pq-harmonics-60hz-all-m5")
     rep = harmonics_report(windows[-1], "feeder1/va", 0, 60.0)
     assert rep.n_cycles == 12 and len(rep.harmonic_rms) == 51 and len(rep.interharmonic_centred_subgroup_rms) == 51
     raw = encode_pq(rep)

@@ -61,7 +61,9 @@ def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
         return np.where(d > 0.0, np.abs(num) / np.where(d > 0.0, d, 1.0), np.nan)
 
 
-def symmetrical_components(va: np.ndarray | complex, vb: np.ndarray | complex, vc: np.ndarray | complex) -> SequenceComponents:
+def symmetrical_components(
+    va: np.ndarray | complex, vb: np.ndarray | complex, vc: np.ndarray | complex
+) -> SequenceComponents:
     """(F1)-(F3) for phasors (scalars or arrays of one shape)."""
     a, b, c = (np.asarray(v, dtype=np.complex128) for v in (va, vb, vc))
     return SequenceComponents(
