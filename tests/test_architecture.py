@@ -50,18 +50,14 @@ def test_a_forbidden_import_breaks_a_contract(tmp_path):
 
 def _modules_loaded_by(code: str) -> set[str]:
     probe = code + "\nimport sys\nprint('\\n'.join(sorted(sys.modules)))"
-    out = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, env={**os.environ}
-    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, env={**os.environ})
     return set(out.stdout.split())
 
 
 def test_validating_a_config_loads_no_estimator_and_no_numba(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text('[[rules]]\nmatch = "sinewatch/in/**"\nestimator = "ipdft"\nparams = { window_cycles = 4 }\n')
-    loaded = _modules_loaded_by(
-        f"from sinewatch.schemas.config import load_config; load_config({str(cfg)!r}, {{}})"
-    )
+    loaded = _modules_loaded_by(f"from sinewatch.schemas.config import load_config; load_config({str(cfg)!r}, {{}})")
     assert "numba" not in loaded and "scipy" not in loaded and "zenoh" not in loaded
     assert not any(m.startswith("sinewatch.estimators") for m in loaded)
 

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import zenoh
+import zenoh.ext
 
 from sinewatch.clients.session import open_session
 from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
@@ -53,6 +54,7 @@ class IntakeCounters:
     received: int = 0
     dropped: int = 0
     backpressure_waits: int = 0
+    unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
 
 
 # (key, payload, encoding, received monotonic ns)
@@ -71,9 +73,22 @@ class Intake:
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
-        self._subscriber = daemon.session.declare_subscriber(
-            cfg.keys.input, zenoh.handlers.FifoChannel(max(64, self._batch * 2))
-        )
+        fifo = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        self._miss_listener = None
+        if cfg.zenoh.recovery:
+            # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
+            # from the publishers' caches; what is past their history is reported here.
+            self._subscriber = zenoh.ext.declare_advanced_subscriber(
+                daemon.session,
+                cfg.keys.input,
+                fifo,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True,
+            )
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+        else:
+            self._subscriber = daemon.session.declare_subscriber(cfg.keys.input, fifo)
         self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
         self._closed = threading.Event()
         self._thread.start()
@@ -96,6 +111,12 @@ class Intake:
             pass  # channel closed by stop(): intake is over
         finally:
             self._closed.set()
+
+    def _on_miss(self, miss: zenoh.ext.Miss) -> None:
+        """On a Zenoh thread: blocks lost for good (the pipeline flags the gap when the
+        next block of that channel arrives); counted here, logged."""
+        self.counters.unrecovered += miss.nb
+        log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
 
     @staticmethod
     def _take(sample: zenoh.Sample) -> Item:
@@ -121,6 +142,8 @@ class Intake:
 
     async def stop(self) -> None:
         """Stop intake: no new inputs; everything already received is handed over."""
+        if self._miss_listener is not None:
+            self._miss_listener.undeclare()
         self._subscriber.undeclare()
         await asyncio.get_running_loop().run_in_executor(None, self._closed.wait)
 
@@ -220,6 +243,7 @@ class Daemon:
             blocks_processed=p.counters.inputs,
             dropped=c.dropped,
             backpressure_waits=c.backpressure_waits,
+            unrecovered=c.unrecovered,
             errors=p.counters.errors,
             errors_by_kind=dict(sorted(p.counters.by_kind.items())),
             queue_depth=self._queued,

@@ -169,6 +169,9 @@ class Status(_Message):
     blocks_processed: int
     dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
     backpressure_waits: int = Field(description="Times the intake waited for queue space")
+    unrecovered: int = Field(
+        0, description="Blocks Zenoh reported missed and not recoverable from the publishers' caches"
+    )
     errors: int
     errors_by_kind: dict[str, int] = Field(
         default_factory=dict, description="Rejected inputs and faults per ErrorReport kind"
