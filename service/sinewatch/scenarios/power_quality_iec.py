@@ -78,9 +78,9 @@ class PqScenario(Scenario):
         kwargs.setdefault("sample_rate_hz", SAMPLE_RATE_HZ)
         kwargs.setdefault("duration_s", 2.0)
         super().__init__(**kwargs)
-        self.name = name  # type: ignore[misc]  # the instance attribute shadows the ClassVar on purpose
-        self.summary = summary  # type: ignore[misc]
-        self.tags = tags  # type: ignore[misc]
+        self.name = name  # the instance attribute shadows the ClassVar on purpose
+        self.summary = summary
+        self.tags = tags
         self.frequency_hz = float(frequency_hz)
         self.nominal_frequency_hz = float(nominal_frequency_hz)
         self.harmonic_rms = np.atleast_2d(np.asarray(harmonic_rms, dtype=np.float64))
