@@ -132,12 +132,11 @@ import math
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 from scipy.signal import place_poles
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 # The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
@@ -316,10 +315,15 @@ _C_LALPHA, _C_RINGP, _C_LRATIO, _C_SEP = 15, 16, 17, 18
 _N_CONSTS = 19
 _RING = 4  # snapshots of thetah kept for the roll-back on loss of signal
 _I_N, _I_NX, _I_NF, _I_NZ, _I_MSUB, _I_BIAS = 0, 1, 2, 3, 4, 5
+# the scalars of the state, after the per-component statistics (see AdaptiveMultisine._initial_state)
+_Y_PREV, _Y_PRED, _STARTED, _CLOCK = 0, 1, 2, 3  # y(k-1), its prediction, started, settling clock
+_LVL_MEAN, _LVL_POW, _PRESENT = 4, 5, 6  # signal-level gate: mean, AC power, signal present
+_RING_COUNT, _RING_SLOT, _LVL_POW_LONG = 7, 8, 9  # samples since the last snapshot, next slot, AC power (10x slower)
+_N_SCALARS = 10
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _sym_eig(work, n):
+@kernel
+def _sym_eig(work: np.ndarray, n: int) -> None:
     """Cyclic Jacobi on the symmetric n x n matrix S held in ``work`` (destroyed): eigenvalues
     into lambda, sorted in decreasing order, orthonormal eigenvectors into the columns of W."""
     nn = n * n
@@ -379,8 +383,8 @@ def _sym_eig(work, n):
                 work[wW + k * n + best] = tmp
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _chol(s, work, cf, ci):
+@kernel
+def _chol(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
     """C_z Xi, and the Cholesky factor R (lower) of M = Xi^T Xi + rho^2 I of (23) and R^-1."""
     n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
     rho2 = cf[_C_RHO2]
@@ -429,8 +433,8 @@ def _chol(s, work, cf, ci):
             work[wRi + i * n + j] = acc / work[wR + i * n + i]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _eig(work, n):
+@kernel
+def _eig(work: np.ndarray, n: int) -> None:
     """After :func:`_chol`: S = R^-1 Phi_Xi R^-T = (C_z Xi R^-T)^T (C_z Xi R^-T), then its
     eigen-decomposition W, lambda (decreasing): Phi_Xi v = lambda M v with v = R^-T w, so
     lambda are the eigenvalues of Phi_Psi (23)."""
@@ -453,15 +457,26 @@ def _eig(work, n):
     _sym_eig(work, n)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _excitation(s, work, cf, ci):
+@kernel
+def _excitation(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
     """Generalised eigen-decomposition of (Phi_Xi, M), (23)."""
     _chol(s, work, cf, ci)
     _eig(work, ci[_I_N])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
+@kernel
+def _rk4_substep(
+    s: np.ndarray,
+    x: np.ndarray,
+    K: np.ndarray,
+    work: np.ndarray,
+    cf: np.ndarray,
+    ci: np.ndarray,
+    ya: float,
+    yb: float,
+    hs: float,
+    fresh: bool,
+) -> None:
     """One classical RK4 step of length ``hs`` of (12), (16), (17), (19)-(22) and (11) on the
     integrated part of ``s`` (updated in place), the measurement going linearly from ``ya`` to
     ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``:
@@ -615,8 +630,8 @@ def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
         s[r] += hs / 6.0 * (K[r] + 2.0 * K[ns + r] + 2.0 * K[2 * ns + r] + K[3 * ns + r])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _osc_step(om2, h):
+@kernel
+def _osc_step(om2: float, h: float) -> tuple[float, float]:
     """(C, S) with x(h) = C x(0) + S x'(0) for x'' = -om2 x."""
     if om2 > 0.0:
         w = math.sqrt(om2)
@@ -627,8 +642,8 @@ def _osc_step(om2, h):
     return 1.0, h
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _sinc2(x):
+@kernel
+def _sinc2(x: float) -> float:
     """sinc^2(x) = (sin x / x)^2, the amplitude factor of linear interpolation at x = w h / 2."""
     if abs(x) < 1e-4:
         return 1.0 - x * x / 3.0
@@ -636,13 +651,14 @@ def _sinc2(x):
     return v * v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def adaptive_multisine_kernel(y, state, cf, ci, last_only):
+@kernel
+def adaptive_multisine_kernel(
+    y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``cf``/``ci``: packed constants (see above). State layout: yf (nf) | zh (nz) | Xi (nz*n,
-    xi_i contiguous) | thetah (n) | Ah (n) | psi (n) | smoothed |deviation| of omegah (n) |
-    smoothed omegah (n) | y_prev | y_pred | started | settling clock. ``out`` columns:
+    ``cf``/``ci``: packed constants (see above). ``state`` is the ``s`` array (layout:
+    :meth:`AdaptiveMultisine._initial_state`). ``out`` columns:
     frequency_hz (n), amplitude (n), phase (n), offset, converged; ``extras`` columns: lambda
     (n), psi (n), faded (n), reset. One row per sample, or only the last with ``last_only``.
     Pure: the inputs are not modified.
@@ -668,7 +684,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
     odv = ops + n
     owb = odv + n
     oyp = owb + n
-    orng = oyp + 10  # ring of _RING snapshots of thetah
+    orng = oyp + _N_SCALARS  # ring of _RING snapshots of thetah
     ring_p = cf[_C_RINGP]
     ns = oa + n  # the integrated part
     nn = n * n
@@ -687,40 +703,40 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
     nsamp = y.shape[0]
     for k in range(nsamp):
         yk = y[k] / amp_u
-        e = yk - s[oyp + 1]  # one-step prediction error
+        e = yk - s[oyp + _Y_PRED]  # one-step prediction error
         sse += e * e
         reset = False
         # signal-level gate: smoothed mean and AC power of the input over level_time and over
         # ten times as long; the signal is absent below min_amplitude, or when the short-term
         # power falls under level_ratio times the long-term one (the signal stopped)
-        s[oyp + 4] += l_alpha * (yk - s[oyp + 4])
-        dev = yk - s[oyp + 4]
-        s[oyp + 5] += l_alpha * (dev * dev - s[oyp + 5])
-        s[oyp + 9] += 0.1 * l_alpha * (dev * dev - s[oyp + 9])
-        present = 2.0 * s[oyp + 5] >= min_a * min_a and s[oyp + 5] >= cf[_C_LRATIO] * s[oyp + 9]
-        lost = s[oyp + 6] != 0.0 and not present
+        s[oyp + _LVL_MEAN] += l_alpha * (yk - s[oyp + _LVL_MEAN])
+        dev = yk - s[oyp + _LVL_MEAN]
+        s[oyp + _LVL_POW] += l_alpha * (dev * dev - s[oyp + _LVL_POW])
+        s[oyp + _LVL_POW_LONG] += 0.1 * l_alpha * (dev * dev - s[oyp + _LVL_POW_LONG])
+        present = 2.0 * s[oyp + _LVL_POW] >= min_a * min_a and s[oyp + _LVL_POW] >= cf[_C_LRATIO] * s[oyp + _LVL_POW_LONG]
+        lost = s[oyp + _PRESENT] != 0.0 and not present
         if lost:
             # loss of signal: the adaptation ran on the observer's free response while the
             # level gate was catching up; roll thetah back to the oldest snapshot
-            slot = int(s[oyp + 8])
+            slot = int(s[oyp + _RING_SLOT])
             for i in range(n):
                 s[oth + i] = s[orng + slot * n + i]
-        s[oyp + 6] = 1.0 if present else 0.0
+        s[oyp + _PRESENT] = 1.0 if present else 0.0
         # snapshots of thetah every ring_p samples while the signal is present
         if present:
-            s[oyp + 7] += 1.0
-            if s[oyp + 7] >= ring_p:
-                s[oyp + 7] = 0.0
-                slot = int(s[oyp + 8])
+            s[oyp + _RING_COUNT] += 1.0
+            if s[oyp + _RING_COUNT] >= ring_p:
+                s[oyp + _RING_COUNT] = 0.0
+                slot = int(s[oyp + _RING_SLOT])
                 for i in range(n):
                     s[orng + slot * n + i] = s[oth + i]
-                s[oyp + 8] = float((slot + 1) % _RING)
-        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + 5]) + abs(s[oyp + 4]))
-        if s[oyp + 2] != 0.0:
-            y0 = s[oyp]
+                s[oyp + _RING_SLOT] = float((slot + 1) % _RING)
+        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + _LVL_POW]) + abs(s[oyp + _LVL_MEAN]))
+        if s[oyp + _STARTED] != 0.0:
+            y0 = s[oyp + _Y_PREV]
             # Algorithm 1: psi(k-1) acts over (t_{k-1}, t_k]; the settling dwell holds the
             # adaptation off until some psi_i has been on for adaptation_delay with a signal
-            warm = s[oyp + 3] >= delay and present
+            warm = s[oyp + _CLOCK] >= delay and present
             for i in range(n):
                 work[wps + i] = s[ops + i] if warm else 0.0
             for j in range(m_sub):
@@ -761,7 +777,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                         bad = True
                 if bad:
                     reset = True
-                    slot = int(s[oyp + 8])
+                    slot = int(s[oyp + _RING_SLOT])
                     for r in range(ns):
                         s[r] = 0.0
                     for i in range(n):
@@ -769,7 +785,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                         s[oth + i] = th if abs(th) <= tbar else cf[oth0 + i]
                         s[ops + i] = 0.0
                         work[wps + i] = 0.0
-                    s[oyp + 3] = 0.0
+                    s[oyp + _CLOCK] = 0.0
             # (23)-(25) at t_k: excitation levels and hysteretic switching
             _excitation(s, work, cf, ci)
             fresh = True
@@ -784,16 +800,16 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
             # total dis-excitation re-arms the settling dwell; a loss of signal re-arms it twice
             # as long (thetah is known good then, the observer restarts from its free response)
             if not present:
-                s[oyp + 3] = -delay if (lost or s[oyp + 3] < 0.0) else 0.0
+                s[oyp + _CLOCK] = -delay if (lost or s[oyp + _CLOCK] < 0.0) else 0.0
             elif any_on:
-                s[oyp + 3] = min(s[oyp + 3] + h, delay)
+                s[oyp + _CLOCK] = min(s[oyp + _CLOCK] + h, delay)
             else:
-                s[oyp + 3] = min(s[oyp + 3], 0.0)
+                s[oyp + _CLOCK] = min(s[oyp + _CLOCK], 0.0)
         else:
-            s[oyp + 2] = 1.0
+            s[oyp + _STARTED] = 1.0
             _excitation(s, work, cf, ci)
             fresh = True
-        s[oyp] = yk
+        s[oyp + _Y_PREV] = yk
         # ---- outputs at t_k: (8), (10), (11); convergence statistics; next-sample prediction
         amax = 0.0
         for i in range(n):
@@ -803,7 +819,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
             amax = max(amax, v)
         thr = max(fade * amax, min_a)
         ypred = s[oz + nx - 1] if bias else 0.0
-        all_ok = s[oyp + 3] >= delay  # adapting: past start-up, excited, with a signal
+        all_ok = s[oyp + _CLOCK] >= delay  # adapting: past start-up, excited, with a signal
         j = 0 if last_only else k
         write = (not last_only) or k == nsamp - 1
         for i in range(n):
@@ -837,7 +853,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                 ext[j, i] = work[wl + i]
                 ext[j, n + i] = s[ops + i]
                 ext[j, 2 * n + i] = 1.0 if faded else 0.0
-        s[oyp + 1] = ypred
+        s[oyp + _Y_PRED] = ypred
         for i in range(n):  # two components on one frequency are not a converged estimate
             for i2 in range(i + 1, n):
                 if not abs(s[owb + i] - s[owb + i2]) > c_tol * max(s[owb + i], s[owb + i2]):
@@ -856,6 +872,8 @@ class AdaptiveMultisine(Estimator):
 
     name = "adaptive-multisine"
     Params = AdaptiveMultisineParams
+    params: AdaptiveMultisineParams
+    _kernel = staticmethod(adaptive_multisine_kernel)
     summary = "Adaptive observer for n biased sinusoids with excitation-based switching (paper 004)"
     paper = "004_880a59a5c07ec15b.txt"
     # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its
@@ -999,6 +1017,7 @@ class AdaptiveMultisine(Estimator):
         consts[_C_SEP] = p.min_separation
         self._ci = np.array([n, nx, nf, nz, m_sub, int(bias)], dtype=np.int64)
         self._cf = np.concatenate([consts, a, Lfull, Ff, Bf, theta0, th_lo, th_hi])
+        self._constants = (self._cf, self._ci)
         self._nf, self._nz, self._theta0 = nf, nz, theta0
         # exposed for tests and docs
         self.L_x = Lx
@@ -1007,23 +1026,27 @@ class AdaptiveMultisine(Estimator):
         self.settling_time = float(delay)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``s``: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n), the
+        part RK4 integrates, then psi (n) | smoothed |deviation| of omegah (n) | smoothed
+        omegah (n) | the _N_SCALARS scalars named _Y_PREV .. _LVL_POW_LONG | a ring of
+        _RING snapshots of thetah (n each), for the roll-back on loss of signal (D5)."""
         n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
-        s = np.zeros(nf + nz + nz * n + 5 * n + 10 + _RING * n)
+        s = np.zeros(nf + nz + nz * n + 5 * n + _N_SCALARS + _RING * n)
         oth = nf + nz + nz * n
         s[oth : oth + n] = self._theta0
         s[s.size - _RING * n :] = np.tile(self._theta0, _RING)
         return {"s": s}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, s = adaptive_multisine_kernel(samples, state["s"], self._cf, self._ci, last_only)
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         n = self.params.n_sinusoids
-        track = Track(
+        return Track(
             frequency_hz=out[:, 0:n],
             amplitude=out[:, n : 2 * n],
             phase_rad=out[:, 2 * n : 3 * n],
             offset=out[:, 3 * n],
             converged=out[:, 3 * n + 1] != 0.0,
-            residual_rms=math.sqrt(sse / samples.shape[0]),
+            residual_rms=math.sqrt(sse / block.shape[0]),
             extras={
                 "excitation_level": ext[:, 0:n],
                 "adaptation_enabled": ext[:, n : 2 * n] != 0.0,
@@ -1032,4 +1055,3 @@ class AdaptiveMultisine(Estimator):
                 "observer_reset": ext[:, 3 * n + 1] != 0.0,
             },
         )
-        return track, {"s": s}

@@ -128,12 +128,11 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator
 from scipy import signal as _sig
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 from sinewatch.schemas.errors import ParameterError
 
 TWO_PI = 2.0 * math.pi
@@ -182,8 +181,8 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def regressor_coefficients(u, g, tab, rr, ri):
+@kernel
+def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, ri: np.ndarray) -> None:
     """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
 
     Eq. (7) (and (25) with the derivative): r_p = j^m C(m, b) / m! * u^(m-b) * g^b.
@@ -211,8 +210,8 @@ def regressor_coefficients(u, g, tab, rr, ri):
             ri[q] = -mag
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _rls_scalar(P, theta, x, y, f, px):
+@kernel
+def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: float, px: np.ndarray) -> None:
     """One scalar RLS update with forgetting f (eq. 12): P <- (P - P x x' P / (f + x' P x)) / f."""
     p = theta.shape[0]
     den = f
@@ -237,8 +236,22 @@ def _rls_scalar(P, theta, x, y, f, px):
             P[b, a] = v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
+@kernel
+def core_step(
+    cr: float,
+    ci: float,
+    u: float,
+    core: np.ndarray,
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+    rr: np.ndarray,
+    ri: np.ndarray,
+    xr: np.ndarray,
+    xi: np.ndarray,
+    px: np.ndarray,
+) -> None:
     """One decimated step of the baseband estimator on c(k) = cr + j ci, dt_k = u T0.
 
     Differential model (4)-(7)/(25), extended least squares (12)-(13), phase/amplitude
@@ -408,8 +421,10 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
     core[C_PREV_IM] = ci
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def core_status(core, theta, P, consts):
+@kernel
+def core_status(
+    core: np.ndarray, theta: np.ndarray, P: np.ndarray, consts: np.ndarray
+) -> tuple[float, float, float, bool, bool, bool, float]:
     """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged,
     lam_bb if significant else 0).
 
@@ -438,8 +453,8 @@ def core_status(core, theta, P, consts):
     return w, lam_bb, std, valid, confident, conv, lam_sig
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def transform_scratch(tab):
+@kernel
+def transform_scratch(tab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Index table idx[a, b] of w^a lam^b and scratch arrays (T, b0, work) for
     :func:`recenter_transform`."""
     p = tab.shape[0]
@@ -452,16 +467,27 @@ def transform_scratch(tab):
     return idx, np.zeros((p, p)), np.zeros(p), np.zeros((p, p + 1))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _ipow(x, k):
+@kernel
+def _ipow(x: float, k: int) -> float:
     r = 1.0
     for _ in range(k):
         r *= x
     return r
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work):
+@kernel
+def recenter_transform(
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    idx: np.ndarray,
+    delta: float,
+    dw: float,
+    dl: float,
+    T: np.ndarray,
+    b0: np.ndarray,
+    work: np.ndarray,
+) -> None:
     """Re-express theta (monomials w^a lam^b) after moving the time origin by ``delta``
     (T0 units) and the reference by ``dw`` (rad/T0) and ``dl`` (rad/T0^2):
 
@@ -527,8 +553,8 @@ def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work):
             P[r, q] = acc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _biquads_steady(x, sos, zi, off):
+@kernel
+def _biquads_steady(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> None:
     """Delays of the biquad cascade in steady state for a constant input x."""
     y = x
     for s in range(2):
@@ -543,15 +569,17 @@ def _biquads_steady(x, sos, zi, off):
         y = out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _bq(x, b0, b1, b2, a1, a2, z1, z2):
+@kernel(inline="always")
+def _bq(
+    x: float, b0: float, b1: float, b2: float, a1: float, a2: float, z1: float, z2: float
+) -> tuple[float, float, float]:
     """One DF2T biquad step: (y, z1', z2')."""
     y = b0 * x + z1
     return y, b1 * x - a1 * y + z2, b2 * x - a2 * y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _biquads(x, sos, zi, off):
+@kernel
+def _biquads(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> float:
     """Two cascaded DF2T biquads (:func:`_bq`) on one channel; zi[off:off+4] are the delays.
     The kernel runs the same steps on register copies of the delays."""
     y = x
@@ -561,8 +589,20 @@ def _biquads(x, sos, zi, off):
     return y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work):
+@kernel
+def rebase(
+    core: np.ndarray,
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+    dw: float,
+    dl: float,
+    idx: np.ndarray,
+    T: np.ndarray,
+    b0: np.ndarray,
+    work: np.ndarray,
+) -> None:
     """Move the time origin to t_k and the reference by (dw, dl); see recenter_transform."""
     deriv = consts[K_DERIV] != 0.0
     delta = core[TAU] if deriv else 0.0
@@ -572,8 +612,8 @@ def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work):
     core[SINCE_REBASE] = 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(ph):
+@kernel
+def _wrap(ph: float) -> float:
     while ph > math.pi:
         ph -= TWO_PI
     while ph <= -math.pi:
@@ -581,8 +621,18 @@ def _wrap(ph):
     return ph
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
+@kernel
+def iq_kernel(
+    cre: np.ndarray,
+    cim: np.ndarray,
+    u: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ref_in: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The paper's own setting: in-phase/quadrature samples c(k) = z(k) + j y(k) taken at
     intervals dt_k = u_k T0. Re-centring rotates c by a digital reference (psi2, w2, l2).
     Returns per step (w^ rad/T0, lam^ rad/T0^2, A^, phi^, std, converged) and the state."""
@@ -624,30 +674,30 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
     return out, core, theta, P, ref
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _cis_small(a):
+@kernel
+def _cis_small(a: float) -> complex:
     """e^{j a} for a tiny angle (a chirp's per-sample step change), to 1e-22 relative."""
     a2 = a * a
     return complex(1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _stage_response(sos, s, zc):
+@kernel
+def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     """H_s(z) of biquad s at z = zc (complex)."""
     zi1 = 1.0 / zc
     zi2 = zi1 * zi1
     return (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def lowpass_response(sos, om):
+@kernel
+def lowpass_response(sos: np.ndarray, om: float) -> complex:
     """H(e^{j om}) of the biquad cascade, om in rad per input sample."""
     zc = complex(math.cos(om), math.sin(om))
     return _stage_response(sos, 0, zc) * _stage_response(sos, 1, zc)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _lowpass_retune(sos, fe, X, om_old, om_new):
+@kernel
+def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, om_new: float) -> None:
     """Move the tonal part of the demodulator's low-pass state from baseband frequency
     om_old to om_new (rad/sample), for a tone of phasor X at the current sample: the steady
     state of a DF2T biquad driven by X z^n is z1 = (H - b0) X z, z2 = (b2 - a2 H) X before
@@ -670,8 +720,20 @@ def _lowpass_retune(sos, fe, X, om_old, om_new):
         xn = hn * xn
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab, cyc, consts, last_only):
+@kernel
+def differential_rls_kernel(
+    x: np.ndarray,
+    fe_in: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ist_in: np.ndarray,
+    sos: np.ndarray,
+    tab: np.ndarray,
+    cyc: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Real input -> quadrature demodulation against the reference oscillator -> low-pass
     (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
     -> :func:`core_step` at every decimated sample; outputs at every input sample.
@@ -1080,6 +1142,8 @@ class DifferentialRls(Estimator):
 
     name = "differential-rls"
     Params = DifferentialRlsParams
+    params: DifferentialRlsParams
+    _kernel = staticmethod(differential_rls_kernel)
     summary = "Differential signal model + recursive extended least squares, with ROCOF (paper 001)"
     paper = "001_da74636665cf246d.txt"
     example_sample_rate_hz = 1000.0
@@ -1157,8 +1221,16 @@ class DifferentialRls(Estimator):
         c[K_R1] = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
         c[K_HOLD] = math.ceil(c[K_WARM] / d0)
         self._consts = c
+        self._constants = (self._sos, self._tab, self._cyc, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``fe`` (FE_SIZE,): the real-input front end, slots named F_* (reference phase,
+        frequency and ramp, offset, the low-pass delays, the snapshot at the last decimated
+        step, the rotators); ``core`` (CORE_SIZE,): the baseband estimator, slots named
+        by the constants above (c(k-1), n^, a^, the weighted powers, counters, flags);
+        ``theta`` (p,): the parameter estimate (monomials w^a lam^b, :func:`monomial_table`);
+        ``P`` (p, p): its covariance; ``ist`` (3,) int64: input samples since the last decimated one, position in the
+        decimation cycle, samples seen while the low-pass warms up."""
         n_par = self._tab.shape[0]
         fe = np.zeros(FE_SIZE)
         w = TWO_PI * self.params.nominal_frequency_hz
@@ -1176,16 +1248,12 @@ class DifferentialRls(Estimator):
             "ist": np.zeros(3, dtype=np.int64),
         }
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, fe, core, theta, P, ist = differential_rls_kernel(
-            samples, state["fe"], state["core"], state["theta"], state["P"], state["ist"],
-            self._sos, self._tab, self._cyc, self._consts, last_only,
-        )  # fmt: skip
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         rocof = ext[:, 0] if self.params.rocof_model else np.full(ext.shape[0], np.nan)
         extras = {
             "rocof_hz_per_s": rocof,
             "frequency_std_hz": ext[:, 1],
             "reference_frequency_hz": ext[:, 2],
         }
-        track = track_from_columns(out, sse, samples.shape[0], extras)
-        return track, {"fe": fe, "core": core, "theta": theta, "P": P, "ist": ist}
+        return track_from_columns(out, sse, block.shape[0], extras)

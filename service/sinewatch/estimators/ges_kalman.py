@@ -50,12 +50,13 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 
 
 class GesKalmanParams(EstimatorParams):
@@ -85,12 +86,14 @@ class GesKalmanParams(EstimatorParams):
         return v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def ges_kalman_kernel(y, state, consts, last_only):
+@kernel
+def ges_kalman_kernel(
+    y: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, float, np.ndarray]:
     """Run the filter over block ``y`` from ``state`` and return ``(out, sse, new_state)``.
 
-    ``state`` packs x1..x4 then the 16 entries of P (row-major); ``consts`` packs
-    q1..q4, R, Ts and convergence_rel_std. ``out`` has one row per sample (or one row,
+    ``state`` is the ``xP`` array (layout: :meth:`GesKalman._initial_state`); ``consts``
+    packs q1..q4, R, Ts and convergence_rel_std. ``out`` has one row per sample (or one row,
     the last sample, when ``last_only``) with columns frequency_hz, amplitude, phase_rad,
     offset, converged (0/1). ``sse`` is the sum of squared innovations. Pure: the
     inputs are not modified.
@@ -182,6 +185,8 @@ class GesKalman(Estimator):
 
     name = "ges-kalman"
     Params = GesKalmanParams
+    params: GesKalmanParams
+    _kernel = staticmethod(ges_kalman_kernel)
     summary = "GES Kalman observer for one biased sinusoid (paper 000)"
     paper = "000_95b503d2538da780.txt"
     example_sample_rate_hz = 1000.0
@@ -190,12 +195,14 @@ class GesKalman(Estimator):
     def _setup(self) -> None:
         p = self.params
         q = p.q if isinstance(p.q, list) else [p.q] * 4
-        self._consts = np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std])
+        self._constants = (np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std]),)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xP`` (20,): the state estimate x1..x4, then the 16 entries of its covariance P
+        (row-major)."""
         P0 = np.eye(4) * self.params.p0
         return {"xP": np.concatenate([np.asarray(self.params.x0, dtype=np.float64), P0.ravel()])}
 
-    def _run(self, samples, state, last_only):
-        out, sse, xP = ges_kalman_kernel(samples, state["xP"], self._consts, last_only)
-        return track_from_columns(out, sse, samples.shape[0]), {"xP": xP}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, sse = outputs
+        return track_from_columns(out, sse, block.shape[0])

@@ -134,11 +134,10 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import scipy.linalg
 import scipy.signal
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
@@ -452,14 +451,19 @@ def _modes(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array([lam[i].imag / (2 * np.pi) for i in idx]), W.real.copy(), W.imag.copy(), True
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
+@kernel
+def grip_mixing_kernel(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """Run the sampled observer (7) over ``block`` (N, 1 + m): column 0 = y, then u.
 
-    ``state`` (flat, see :func:`state_layout`) holds xhat, the previous u, the two internal
-    states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n), y (Lb,), u (Lb, m) and
-    dhat (Lb,), and the running sum of dhat over the last ``window`` samples; ``count0`` the
-    sample count. ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
+    ``state`` and ``count0`` are the ``state`` and ``count`` arrays (layout:
+    :meth:`GripMixing._initial_state`). ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
     Ld, D, the tap weights, the modal rows Wre, Wim (K, n) and the mode frequencies (K);
     ``iconst`` packs n, m, K,
     the number of taps, Lb, Lz, window, reset_half, warm, modal_ok, the tap offsets and
@@ -694,6 +698,8 @@ class GripMixing(Estimator):
 
     name = "grip-mixing"
     Params = GripMixingParams
+    params: GripMixingParams
+    _kernel = staticmethod(grip_mixing_kernel)
     summary = (
         "LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; "
         "preset 'harmonics' tracks known-frequency lines (paper 002)"
@@ -764,6 +770,7 @@ class GripMixing(Estimator):
              int(g.modal_ok), *g.tap_o, int(_pairs(g.Ad))],
             dtype=np.int64,
         )  # fmt: skip
+        self._constants = (self._fconst, self._iconst)
 
     # ---- design read-outs (for docs and tests) ----------------------------------------------
     @property
@@ -784,6 +791,10 @@ class GripMixing(Estimator):
         return 1 + int(self._design.B.shape[1])
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``state``: flat, the parts of :func:`state_layout` in order: xhat, the previous
+        u, the two internal states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n),
+        y (Lb,), u (Lb, m) and dhat (Lb,), and the running sum of dhat over the last
+        ``window`` samples; ``count`` (1,) int64: the sample count."""
         n, m = self._design.B.shape
         parts = state_layout(n, m, self._lz, self._lb)
         flat = np.zeros(sum(int(np.prod(shape)) for shape in parts.values()))
@@ -791,13 +802,13 @@ class GripMixing(Estimator):
             flat[:n] = self.params.x0  # xhat(t0); every delay line starts at 0 (Sec. III-A)
         return {"state": flat, "count": np.zeros(1, dtype=np.int64)}
 
-    def _run(self, samples, state, last_only):
-        block = samples if samples.ndim == 2 else samples.reshape(-1, 1)
-        out, sse, flat, count = grip_mixing_kernel(
-            block, state["state"], state["count"], self._fconst, self._iconst, last_only
-        )
+    def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
+        return samples if samples.ndim == 2 else samples.reshape(-1, 1)
+
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, sse = outputs
         K, n = self._K, self._n
-        track = Track(
+        return Track(
             frequency_hz=out[:, :K],
             amplitude=out[:, K : 2 * K],
             phase_rad=out[:, 2 * K : 3 * K],
@@ -806,4 +817,3 @@ class GripMixing(Estimator):
             residual_rms=math.sqrt(sse / block.shape[0]),
             extras={"x_hat": out[:, 3 * K + 3 : 3 * K + 3 + n], "d_hat": out[:, 3 * K + 2]},
         )
-        return track, {"state": flat, "count": count}

@@ -78,11 +78,10 @@ import math
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0
@@ -144,8 +143,8 @@ class IpdftParams(EstimatorParams):
         return self
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p):
+@kernel
+def _wrap(p: float) -> float:
     """Radians to (-pi, pi]."""
     y = math.pi - p
     r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
@@ -154,8 +153,20 @@ def _wrap(p):
     return math.pi - r
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, mags, wu, est):
+@kernel
+def _window_estimate(
+    xw: np.ndarray,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    mags: np.ndarray,
+    wu: np.ndarray,
+    est: np.ndarray,
+) -> None:
     """Estimate from the chronological window ``xw`` into ``est`` =
     (defined, f_cycles_per_sample, A, theta_end, B, r). ``mags`` (bins,) and ``wu`` (N,)
     are scratch."""
@@ -248,15 +259,24 @@ def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_poi
     est[5] = math.sqrt(sse / N)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconsts, last_only):
+@kernel
+def ipdft_kernel(
+    x: np.ndarray,
+    buf: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    hann: np.ndarray,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray]:
     """Run the sliding interpolated DFT over block ``x``; return
     ``(out, resid, sse, n_pred, new_buf, new_istate, new_fstate)``.
 
-    ``buf`` is the ring buffer (N,); ``istate`` = (write position, fill, samples since
-    the last hop, estimate held, estimate defined, samples since the held estimate);
-    ``fstate`` = (frequency in cycles/sample, A, theta_end, B, fit residual r, converged);
-    ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
+    ``buf``, ``istate`` and ``fstate`` are the ``buffer``, ``counters`` and ``estimate``
+    arrays (layout: :meth:`InterpolatedDft._initial_state`); ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
     max_relative_residual, sum of the Hann window). ``out`` columns are frequency_hz,
     amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
     row. Pure: the inputs are not modified.
@@ -333,6 +353,8 @@ class InterpolatedDft(Estimator):
 
     name = "ipdft"
     Params = IpdftParams
+    params: IpdftParams
+    _kernel = staticmethod(ipdft_kernel)
     summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
     paper = None
     example_sample_rate_hz = 1000.0
@@ -384,25 +406,23 @@ class InterpolatedDft(Estimator):
         self._cos = np.cos(2.0 * np.pi * idx / n)
         self._sin = np.sin(2.0 * np.pi * idx / n)
         three = 1 if self.params.interpolation == "3-point" else 0
-        self._iconsts = np.array([self.hop_samples, self.k_lo, self.k_hi, three], dtype=np.int64)
+        iconsts = np.array([self.hop_samples, self.k_lo, self.k_hi, three], dtype=np.int64)
         p = self.params
-        self._fconsts = np.array(
-            [self.sample_rate_hz, p.min_amplitude, p.max_relative_residual, float(np.sum(self._hann))]
-        )
+        fconsts = np.array([self.sample_rate_hz, p.min_amplitude, p.max_relative_residual, float(np.sum(self._hann))])
+        self._constants = (self._hann, self._cos, self._sin, iconsts, fconsts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``buffer`` (N,): the ring buffer of the last N samples; ``counters`` (6,) int64:
+        write position, fill, samples since the last hop (starts at hop: estimate as soon
+        as full), estimate held, estimate defined, samples since the held estimate;
+        ``estimate`` (6,): frequency in cycles/sample, A, theta_end, B, fit residual r,
+        converged (0/1)."""
         return {
             "buffer": np.zeros(self.window_samples),
-            # write position, fill, since hop (starts at hop: estimate as soon as full),
-            # estimate held, estimate defined, samples since the held estimate
             "counters": np.array([0, 0, self.hop_samples, 0, 0, 0], dtype=np.int64),
             "estimate": np.zeros(6),
         }
 
-    def _run(self, samples, state, last_only):
-        out, resid, sse, n_pred, buf, ist, fst = ipdft_kernel(
-            samples, state["buffer"], state["counters"], state["estimate"],
-            self._hann, self._cos, self._sin, self._iconsts, self._fconsts, last_only,
-        )  # fmt: skip
-        track = track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})
-        return track, {"buffer": buf, "counters": ist, "estimate": fst}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, resid, sse, n_pred = outputs
+        return track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})

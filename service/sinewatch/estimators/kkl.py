@@ -121,11 +121,10 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -391,22 +390,31 @@ def observer_consts(p: KklParams, ts: float, omega_ref: float, ell: float, lam_m
 EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
 
 
-def observer_track(out: np.ndarray, ext: np.ndarray, sse: float, n: int) -> Track:
-    """The Track of a kernel's ``(out, extras, sse)`` over ``n`` samples."""
-    return track_from_columns(out, sse, n, {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
+def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+    """The Track of a kernel's outputs ``(out, extras, sse)`` over ``block``."""
+    out, ext, sse = outputs
+    return track_from_columns(out, sse, block.shape[0], {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
 
 
 # ---- kernel -------------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
+@kernel
+def kkl_kernel(
+    y: np.ndarray,
+    state: np.ndarray,
+    lam: np.ndarray,
+    fa: np.ndarray,
+    fb0: np.ndarray,
+    fb1: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
-    hold coefficients of (12) (physical units). ``state`` packs xi_1..xi_m, then y_prev,
-    have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow.
-    ``consts`` packs Ts, omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay,
+    hold coefficients of (12) (physical units). ``state`` is the ``xi_state`` array
+    (layout: :meth:`Kkl._initial_state`). ``consts`` packs Ts, omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay,
     n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
     converged range, and the gains of the jump detector's fast and slow means. ``out``
     columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
@@ -590,6 +598,8 @@ class Kkl(Estimator):
 
     name = "kkl"
     Params = KklParams
+    params: KklParams
+    _kernel = staticmethod(kkl_kernel)
     summary = (
         "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
         "first-order filters and the static inverse map gamma (paper 003)"
@@ -618,12 +628,12 @@ class Kkl(Estimator):
             raise ParameterError(f"{self.name}: l of (10): expected > 0, got {self.ell} (degenerate design)")
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
         self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
+        self._constants = (self.lam_n, self._fa, self._fb0, self._fb1, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
+        have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, new = kkl_kernel(
-            samples, state["xi_state"], self.lam_n, self._fa, self._fb0, self._fb1, self._consts, last_only
-        )
-        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        return observer_track(outputs, block)

@@ -58,11 +58,10 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator
+from sinewatch.estimators.base import Estimator, Track, kernel
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
     FLUSH,
@@ -140,16 +139,27 @@ class KklBiasedParams(KklParams):
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, last_only):
+@kernel
+def kkl_biased_kernel(
+    y: np.ndarray,
+    state: np.ndarray,
+    lam: np.ndarray,
+    lam_phys: np.ndarray,
+    fa: np.ndarray,
+    fb0: np.ndarray,
+    fb1: np.ndarray,
+    kv: np.ndarray,
+    kk: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the biased observer over ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` = lambda~ (units of omega_ref), ``lam_phys`` = lambda (rad/s); ``fa, fb0, fb1``
     the exact first-order-hold coefficients; ``kv`` (3 x 3, columns) and ``kk`` (3,) the
     eigenvectors and eigenvalues of C^T C, C = (lambda~^2 lambda~ 1), used to solve the
-    4 x 4 system by its Schur complement for any mu. ``state`` packs xi_1..xi_m, then
-    y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run,
-    e2_fast, e2_slow. ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay,
+    4 x 4 system by its Schur complement for any mu. ``state`` is the ``xi_state`` array
+    (layout: :meth:`KklBiased._initial_state`). ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay,
     n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
     converged range, and the gains of the jump detector's fast and slow means. Pure: the
     inputs are not modified.
@@ -345,6 +355,8 @@ class KklBiased(Estimator):
 
     name = "kkl-biased"
     Params = KklBiasedParams
+    params: KklBiasedParams
+    _kernel = staticmethod(kkl_biased_kernel)
     summary = (
         "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
         "and a static inverse map (extension of paper 003)"
@@ -369,22 +381,14 @@ class KklBiased(Estimator):
         self._kv = np.ascontiguousarray(kv)
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
         self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
+        self._constants = (
+            self.lam_n, self.lambdas, self._fa, self._fb0, self._fb1, self._kv, self._kk, self._consts,
+        )  # fmt: skip
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xi_state`` (m + 12,): the filter states xi_1..xi_m, then y_prev, have_prev,
+        y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 12)}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, new = kkl_biased_kernel(
-            samples,
-            state["xi_state"],
-            self.lam_n,
-            self.lambdas,
-            self._fa,
-            self._fb0,
-            self._fb1,
-            self._kv,
-            self._kk,
-            self._consts,
-            last_only,
-        )
-        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        return observer_track(outputs, block)

@@ -104,11 +104,10 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 from sinewatch.schemas.errors import ParameterError
 
 
@@ -170,15 +169,17 @@ class SogiFllParams(EstimatorParams):
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def sogi_fll_kernel(v, state, consts, last_only):
+@kernel
+def sogi_fll_kernel(
+    v: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the SOGI-FLL over block ``v`` from ``state``; return
     ``(out, extras, sse, new_state)``.
 
-    ``state`` = (v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1,
-    LPF(u) stage 2); ``consts`` = (h, k, k_dc, Gamma, omega_min, omega_max,
-    min_amplitude, max_relative_error, frequency_tolerance_hz, alpha of the error
-    filter, alpha of each of the two u filter stages).
+    ``state`` is the ``x`` array (layout: :meth:`SogiFll._initial_state`); ``consts`` =
+    (h, k, k_dc, Gamma, omega_min, omega_max, min_amplitude, max_relative_error,
+    frequency_tolerance_hz, alpha of the error filter, alpha of each of the two u filter
+    stages, beta of the amplitude memory (N)).
     ``out`` columns: frequency_hz, amplitude, phase_rad, offset, converged (0/1);
     ``extras`` columns: relative_error_rms, rocof_hz_per_s. Pure.
     """
@@ -279,6 +280,8 @@ class SogiFll(Estimator):
 
     name = "sogi-fll"
     Params = SogiFllParams
+    params: SogiFllParams
+    _kernel = staticmethod(sogi_fll_kernel)
     summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
     paper = None
     example_sample_rate_hz = 5000.0
@@ -327,16 +330,20 @@ class SogiFll(Estimator):
         alpha2 = -math.expm1(-2.0 * h / tau)  # u filter: two stages of tau/2 each
         mem = p.fll_amplitude_memory_cycles
         beta = 1.0 if mem == 0 else -math.expm1(-h * p.nominal_frequency_hz / mem)  # (N)
-        self._consts = np.array(
-            [h, p.k, p.k_dc, self.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
-             p.min_amplitude, p.max_relative_error, self.frequency_tolerance_hz, alpha, alpha2, beta]
+        self._constants = (
+            np.array(
+                [h, p.k, p.k_dc, self.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
+                 p.min_amplitude, p.max_relative_error, self.frequency_tolerance_hz, alpha, alpha2, beta]
+            ),
         )  # fmt: skip
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``x`` (10,): v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1,
+        LPF(u) stage 2, P = LPF(A^2) (the amplitude memory of (N))."""
         w0 = 2.0 * math.pi * self.params.nominal_frequency_hz
         return {"x": np.array([0.0, 0.0, 0.0, w0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, x = sogi_fll_kernel(samples, state["x"], self._consts, last_only)
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
-        return track_from_columns(out, sse, samples.shape[0], extras), {"x": x}
+        return track_from_columns(out, sse, block.shape[0], extras)
