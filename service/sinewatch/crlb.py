@@ -126,7 +126,8 @@ def fisher_information(
     psi = w * m + phase_centre_rad
     c, s = np.cos(psi), np.sin(psi)
     g = np.stack([amplitude * m * c, s, amplitude * c, np.ones(n)])  # (4, n)
-    return (g @ g.T) / noise_std**2
+    fim: np.ndarray = (g @ g.T) / noise_std**2
+    return fim
 
 
 def _inverse(fim: np.ndarray) -> np.ndarray:

@@ -291,10 +291,11 @@ class AdaptiveMultisineParams(EstimatorParams):
                     )
         return self
 
-    def design(self) -> dict[str, list[float]]:
-        """The effective a, poles, filter poles and gains, mu, rho, mu_a and omega0."""
+    def design(self) -> dict[str, Any]:
+        """The effective a, poles, filter poles and gains (lists), mu, rho, mu_a (floats) and
+        omega0 (list)."""
         base = PAPER_DESIGN[self.bias]
-        out = {}
+        out: dict[str, Any] = {}
         for k in _DESIGN_KEYS:
             v = getattr(self, k)
             out[k] = (list(v) if isinstance(v, list) else v) if v is not None else base[k]
@@ -713,7 +714,9 @@ def adaptive_multisine_kernel(
         dev = yk - s[oyp + _LVL_MEAN]
         s[oyp + _LVL_POW] += l_alpha * (dev * dev - s[oyp + _LVL_POW])
         s[oyp + _LVL_POW_LONG] += 0.1 * l_alpha * (dev * dev - s[oyp + _LVL_POW_LONG])
-        present = 2.0 * s[oyp + _LVL_POW] >= min_a * min_a and s[oyp + _LVL_POW] >= cf[_C_LRATIO] * s[oyp + _LVL_POW_LONG]
+        present = (
+            2.0 * s[oyp + _LVL_POW] >= min_a * min_a and s[oyp + _LVL_POW] >= cf[_C_LRATIO] * s[oyp + _LVL_POW_LONG]
+        )
         lost = s[oyp + _PRESENT] != 0.0 and not present
         if lost:
             # loss of signal: the adaptation ran on the observer's free response while the

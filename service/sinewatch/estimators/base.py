@@ -167,7 +167,8 @@ class Track:
 
     def reconstruct(self) -> np.ndarray:
         """The modelled signal offset + sum_k A_k sin(phase_k), per row."""
-        return self.offset + np.sum(self.amplitude * np.sin(self.phase_rad), axis=1)
+        y: np.ndarray = self.offset + np.sum(self.amplitude * np.sin(self.phase_rad), axis=1)
+        return y
 
 
 def concat_tracks(tracks: list[Track]) -> Track:

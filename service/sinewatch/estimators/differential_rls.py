@@ -686,7 +686,8 @@ def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     """H_s(z) of biquad s at z = zc (complex)."""
     zi1 = 1.0 / zc
     zi2 = zi1 * zi1
-    return (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
+    h: complex = (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
+    return h
 
 
 @kernel
@@ -1151,7 +1152,7 @@ class DifferentialRls(Estimator):
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 
     @classmethod
-    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+    def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
         """Parameters for a bench scenario (``sinewatch bench accuracy``): reference at the
         nominal frequency, low-pass bandwidth 10 % of it, tracking range covering the
         scenario's frequency range as far as the demodulator allows, M <= 10."""

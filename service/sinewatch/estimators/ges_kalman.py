@@ -49,7 +49,6 @@ While ``x3_hat`` lies outside (-4, 0) every output is NaN and ``converged`` is F
 from __future__ import annotations
 
 import math
-
 from typing import Any
 
 import numpy as np

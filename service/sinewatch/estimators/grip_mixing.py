@@ -204,7 +204,7 @@ class GripDesign:
     modal_ok: bool
 
 
-def _matrix(name: str, value, rows: int | None, cols: int | None) -> np.ndarray:
+def _matrix(name: str, value: object, rows: int | None, cols: int | None) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except ValueError:
@@ -229,7 +229,7 @@ def check_theorem1(A: np.ndarray, C: np.ndarray, T: float) -> None:
     """Theorem 1: raise ParameterError naming the eigenvalue that breaks observability of
     (C (I - e^{-AT}), A)."""
     n = A.shape[0]
-    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(C))
+    scale = max(1.0, float(np.linalg.norm(A, 2)), float(np.linalg.norm(C)))
     for lam in np.linalg.eigvals(A):
         pbh = np.vstack([lam * np.eye(n) - A, C.reshape(1, n).astype(complex)])
         smin = np.linalg.svd(pbh, compute_uv=False)[-1]
@@ -264,7 +264,7 @@ def _place(Amat: np.ndarray, c: np.ndarray, poles: np.ndarray, what: str) -> np.
     return l_gain
 
 
-def _parse_poles(poles, n: int) -> np.ndarray:
+def _parse_poles(poles: list[float | tuple[float, float]], n: int) -> np.ndarray:
     p = np.array([complex(v[0], v[1]) if isinstance(v, (tuple, list)) else complex(v) for v in poles])
     if p.size != n:
         raise ParameterError(f"poles: expected {n} poles (one per state), got {p.size}")
@@ -409,7 +409,7 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
     # sampled-data pair (Ad, Cbar Ad): a repeated e^{lambda Ts} (aliasing) is caught by the PBH test
     for mu in np.linalg.eigvals(Ad):
         pbh = np.vstack([mu * np.eye(n) - Ad, (Cbar @ Ad).reshape(1, n).astype(complex)])
-        if np.linalg.svd(pbh, compute_uv=False)[-1] < _PBH_TOL * max(1.0, np.linalg.norm(Cbar)):
+        if np.linalg.svd(pbh, compute_uv=False)[-1] < _PBH_TOL * max(1.0, float(np.linalg.norm(Cbar))):
             raise ParameterError(
                 f"A: expected a sampled pair that stays observable at fs = {fs:g} Hz, got eigenvalue "
                 f"e^(lambda Ts) = {_fmt(mu)} shared by two modes (aliasing)"
@@ -727,7 +727,7 @@ class GripMixing(Estimator):
         return 0.5 + lines + dist + 0.01 * rng.standard_normal(n)
 
     @classmethod
-    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+    def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
         """Parameters for a scenario described by ``hints`` (the accuracy bench's hook).
 
         One input column: the ``harmonics`` preset at the scenario's nominal frequencies, with

@@ -179,8 +179,8 @@ def _window_estimate(
     for n in range(N):  # windowed, offset-cancelled samples w_n u_n (into scratch)
         wu[n] = hann[n] * (xw[n] - mu)
     # (D) the bins k_lo-1 .. k_hi+1
-    for b in range(k_hi - k_lo + 3):
-        k = k_lo - 1 + b
+    for bi in range(k_hi - k_lo + 3):
+        k = k_lo - 1 + bi
         re = 0.0
         im = 0.0
         idx = 0
@@ -191,12 +191,12 @@ def _window_estimate(
             idx += k
             if idx >= N:
                 idx -= N
-        mags[b] = math.hypot(re, im)
+        mags[bi] = math.hypot(re, im)
     # (P) peak in the band
     bp = 1
-    for b in range(2, k_hi - k_lo + 2):
-        if mags[b] > mags[bp]:
-            bp = b
+    for bb in range(2, k_hi - k_lo + 2):
+        if mags[bb] > mags[bp]:
+            bp = bb
     xm, x0, xp = mags[bp - 1], mags[bp], mags[bp + 1]
     if not (x0 > 0.0) or not math.isfinite(x0):
         est[0] = 0.0

@@ -118,6 +118,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -178,7 +179,8 @@ def gram_weight(columns: np.ndarray) -> np.ndarray:
     c = np.asarray(columns, dtype=np.float64)
     g = c.T @ c
     p_perp = np.eye(c.shape[0]) - c @ np.linalg.solve(g, c.T)
-    return np.linalg.det(g) * p_perp
+    q: np.ndarray = np.linalg.det(g) * p_perp
+    return q
 
 
 def min_generalised_ratio(b: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -191,12 +193,13 @@ def min_generalised_ratio(b: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.nda
     qc = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] ** 2
     disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
     # smaller root, in the form that does not cancel: 2 qc / (qb + disc)
-    return 2.0 * qc / (qb + disc)
+    ratio: np.ndarray = 2.0 * qc / (qb + disc)
+    return ratio
 
 
 def ell_eq10(
     basis: np.ndarray,
-    image_columns,
+    image_columns: Callable[[np.ndarray], np.ndarray],
     x3_lo: float,
     x3_hi: float,
     norm_weight: np.ndarray | None = None,
@@ -233,7 +236,7 @@ def ell_eq10(
     return best, best_x3
 
 
-def kkl_image_columns(lam: np.ndarray):
+def kkl_image_columns(lam: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """x3 -> B(x3) (..., m, 2) with T(x) = B(x3) (x1, x2), eq. (6)."""
 
     def cols(x3: np.ndarray) -> np.ndarray:

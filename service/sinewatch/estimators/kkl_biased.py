@@ -55,6 +55,7 @@ constant exactly (sinc(0) = 1), so the offset needs no correction. Differences:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -82,7 +83,7 @@ BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
 DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
 
 
-def biased_image_columns(lam: np.ndarray):
+def biased_image_columns(lam: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """x3 -> B(x3) with eta - x4 1 = B(x3) (x1, x2) (lambda in units of omega_ref)."""
 
     def cols(x3: np.ndarray) -> np.ndarray:
