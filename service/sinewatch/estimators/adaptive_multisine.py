@@ -870,13 +870,10 @@ def adaptive_multisine_kernel(
 
 
 @register
-class AdaptiveMultisine(Estimator):
+class AdaptiveMultisine(Estimator[AdaptiveMultisineParams], kernel=adaptive_multisine_kernel):
     """Adaptive observer with excitation-based switching for n biased sinusoids (paper 004)."""
 
     name = "adaptive-multisine"
-    Params = AdaptiveMultisineParams
-    params: AdaptiveMultisineParams
-    _kernel = staticmethod(adaptive_multisine_kernel)
     summary = "Adaptive observer for n biased sinusoids with excitation-based switching (paper 004)"
     paper = "004_880a59a5c07ec15b.txt"
     # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its

@@ -60,8 +60,8 @@ them) or a layout function. A short example, an exponentially weighted mean::
             ...  # write row k (or row 0 when last_only and k is the last sample)
         return out, sse, new
 
-    class Ewma(Estimator):
-        _kernel = staticmethod(ewma_kernel)
+    class Ewma(Estimator[EwmaParams], kernel=ewma_kernel):
+        name = "ewma"
 
         def _setup(self) -> None:
             self._constants = (0.01,)
@@ -82,11 +82,12 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal, ParamSpec, TypeVar, cast, overload
+from typing import Any, ClassVar, Generic, Literal, ParamSpec, cast, get_args, get_origin, overload
 
 import numba
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
+from typing_extensions import TypeVar  # a TypeVar with a default (PEP 696); pydantic requires it
 
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
@@ -125,6 +126,10 @@ class EstimatorParams(BaseModel):
     """Base of every estimator's parameter model: frozen, unknown keys rejected."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# The parameter model of an Estimator subclass; a bare ``Estimator`` means any estimator.
+ParamsT = TypeVar("ParamsT", bound=EstimatorParams, default=EstimatorParams)
 
 
 @dataclass(slots=True)
@@ -204,21 +209,33 @@ def decode_array(d: Mapping[str, Any]) -> np.ndarray:
     return out
 
 
-class Estimator(ABC):
-    """Base class of all estimators. Subclasses set ``name``, ``Params`` and ``_kernel``
-    (the compiled kernel, as ``staticmethod(fn)``), set ``_constants`` in :meth:`_setup`
-    and implement :meth:`_initial_state` and :meth:`_track` (module docstring, "Kernel
-    state convention"); optionally :meth:`_check_params` (for checks that need the sample
-    rate), :meth:`_kernel_input` and ``n_components`` / ``n_inputs``. A subclass narrows
-    ``params`` to its own model with a class-level annotation (``params: MyParams``).
+class Estimator(ABC, Generic[ParamsT]):
+    """Base class of all estimators, declared as
+    ``class MyEstimator(Estimator[MyParams], kernel=my_kernel)``: the parameter model
+    (``Params``, and the type of ``params``) and the compiled kernel are named once, on
+    that line. Subclasses set ``name``, set ``_constants`` in :meth:`_setup` and implement
+    :meth:`_initial_state` and :meth:`_track` (module docstring, "Kernel state
+    convention"); optionally :meth:`_check_params` (for checks that need the sample rate),
+    :meth:`_kernel_input` and ``n_components`` / ``n_inputs``.
     """
 
     name: ClassVar[str]
     Params: ClassVar[type[EstimatorParams]]
+    params: ParamsT
     summary: ClassVar[str] = ""
     paper: ClassVar[str | None] = None  # the paper implemented: authors, title, year
     _kernel: ClassVar[Callable[..., tuple[Any, ...]]]
     _constants: tuple[Any, ...] = ()  # the kernel's read-only arguments after the state
+
+    def __init_subclass__(cls, /, kernel: Callable[..., tuple[Any, ...]] | None = None, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if kernel is not None:
+            setattr(cls, "_kernel", staticmethod(kernel))  # noqa: B010 (a ClassVar, set once)
+        for base in cls.__dict__.get("__orig_bases__", ()):
+            if get_origin(base) is Estimator:
+                (model,) = get_args(base)
+                if isinstance(model, type) and issubclass(model, EstimatorParams):
+                    cls.Params = model
 
     # A working configuration, used by the conformance suite, the kernel benchmark and
     # the docs: the sample rate, parameters, and a test signal (see example_signal).
@@ -234,7 +251,7 @@ class Estimator(ABC):
     # reporting_rate_hz, tags. Raise ParameterError when the estimator does not apply.
 
     @classmethod
-    def example(cls) -> Estimator:
+    def example(cls) -> Estimator[Any]:
         """An instance built from the example configuration."""
         return cls(cls.example_sample_rate_hz, dict(cls.example_params))
 
@@ -257,7 +274,7 @@ class Estimator(ABC):
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
         self.sample_rate_hz = float(sample_rate_hz)
-        self.params = self._validate_params(params, kwargs)
+        self.params = cast(ParamsT, self._validate_params(params, kwargs))
         self._check_params()
         self._setup()
         self._state: dict[str, np.ndarray] = self._initial_state()
@@ -359,7 +376,7 @@ class Estimator(ABC):
         self._state = {k: arrays[k] for k in fresh}  # the kernel's argument order
 
     @classmethod
-    def from_state(cls, snapshot: Mapping[str, Any]) -> Estimator:
+    def from_state(cls, snapshot: Mapping[str, Any]) -> Estimator[Any]:
         est = cls(float(snapshot["sample_rate_hz"]), snapshot.get("params", {}))
         est.set_state(snapshot)
         return est

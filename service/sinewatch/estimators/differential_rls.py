@@ -1138,13 +1138,10 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 
 @register
-class DifferentialRls(Estimator):
+class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel):
     """Differential signal model + recursive extended least squares (paper 001)."""
 
     name = "differential-rls"
-    Params = DifferentialRlsParams
-    params: DifferentialRlsParams
-    _kernel = staticmethod(differential_rls_kernel)
     summary = "Differential signal model + recursive extended least squares, with ROCOF (paper 001)"
     paper = "001_da74636665cf246d.txt"
     example_sample_rate_hz = 1000.0

@@ -179,13 +179,10 @@ def ges_kalman_kernel(
 
 
 @register
-class GesKalman(Estimator):
+class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
     """Kalman filter on the 4-state LTV model of paper 000 (see module docstring)."""
 
     name = "ges-kalman"
-    Params = GesKalmanParams
-    params: GesKalmanParams
-    _kernel = staticmethod(ges_kalman_kernel)
     summary = "GES Kalman observer for one biased sinusoid (paper 000)"
     paper = "000_95b503d2538da780.txt"
     example_sample_rate_hz = 1000.0

@@ -693,13 +693,10 @@ def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]
 
 
 @register
-class GripMixing(Estimator):
+class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
     """Grip's mixing observer on y(t) - y(t - T) (paper 002, see module docstring)."""
 
     name = "grip-mixing"
-    Params = GripMixingParams
-    params: GripMixingParams
-    _kernel = staticmethod(grip_mixing_kernel)
     summary = (
         "LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; "
         "preset 'harmonics' tracks known-frequency lines (paper 002)"

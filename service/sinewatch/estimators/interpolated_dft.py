@@ -348,13 +348,10 @@ def ipdft_kernel(
 
 
 @register
-class InterpolatedDft(Estimator):
+class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
     """Sliding Hann-window interpolated DFT + LS fit (see module docstring)."""
 
     name = "ipdft"
-    Params = IpdftParams
-    params: IpdftParams
-    _kernel = staticmethod(ipdft_kernel)
     summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
     paper = None
     example_sample_rate_hz = 1000.0

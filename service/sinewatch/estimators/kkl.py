@@ -596,13 +596,10 @@ def kkl_kernel(
 
 
 @register
-class Kkl(Estimator):
+class Kkl(Estimator[KklParams], kernel=kkl_kernel):
     """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
 
     name = "kkl"
-    Params = KklParams
-    params: KklParams
-    _kernel = staticmethod(kkl_kernel)
     summary = (
         "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
         "first-order filters and the static inverse map gamma (paper 003)"

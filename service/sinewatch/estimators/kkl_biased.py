@@ -351,13 +351,10 @@ def kkl_biased_kernel(
 
 
 @register
-class KklBiased(Estimator):
+class KklBiased(Estimator[KklBiasedParams], kernel=kkl_biased_kernel):
     """Extension of paper 003's observer to a biased sinusoid (module docstring)."""
 
     name = "kkl-biased"
-    Params = KklBiasedParams
-    params: KklBiasedParams
-    _kernel = staticmethod(kkl_biased_kernel)
     summary = (
         "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
         "and a static inverse map (extension of paper 003)"

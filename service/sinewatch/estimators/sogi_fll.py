@@ -275,13 +275,10 @@ def sogi_fll_kernel(
 
 
 @register
-class SogiFll(Estimator):
+class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
     """SOGI-FLL with DC-offset integrator, Tustin-discretised (see module docstring)."""
 
     name = "sogi-fll"
-    Params = SogiFllParams
-    params: SogiFllParams
-    _kernel = staticmethod(sogi_fll_kernel)
     summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
     paper = None
     example_sample_rate_hz = 5000.0
