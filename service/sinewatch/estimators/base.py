@@ -232,7 +232,8 @@ class Estimator(ABC, Generic[ParamsT]):
         if kernel is not None:
             setattr(cls, "_kernel", staticmethod(kernel))  # noqa: B010 (a ClassVar, set once)
         for base in cls.__dict__.get("__orig_bases__", ()):
-            if get_origin(base) is Estimator:
+            origin = get_origin(base)
+            if isinstance(origin, type) and issubclass(origin, Estimator):
                 (model,) = get_args(base)
                 if isinstance(model, type) and issubclass(model, EstimatorParams):
                     cls.Params = model
@@ -434,6 +435,17 @@ def _short(exc: ValidationError) -> str:
         loc = ".".join(str(p) for p in err["loc"]) or "(root)"
         parts.append(f"{loc}: {err['msg']}")
     return "; ".join(parts)
+
+
+@kernel(inline="always")
+def undefined_row(out: np.ndarray, j: int) -> None:
+    """Row ``j`` of a one-component kernel's output columns (frequency_hz, amplitude,
+    phase_rad, offset, converged) as undefined: NaN estimates, not converged."""
+    out[j, 0] = np.nan
+    out[j, 1] = np.nan
+    out[j, 2] = np.nan
+    out[j, 3] = np.nan
+    out[j, 4] = 0.0
 
 
 def empty_outputs(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

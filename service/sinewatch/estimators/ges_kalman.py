@@ -55,7 +55,14 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    Track,
+    kernel,
+    track_from_columns,
+    undefined_row,
+)
 
 
 class GesKalmanParams(EstimatorParams):
@@ -163,11 +170,7 @@ def ges_kalman_kernel(
             out[j, 3] = B
             out[j, 4] = 1.0 if math.sqrt(max(p22, 0.0)) < rel_std * -x3 else 0.0
         else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 3] = np.nan
-            out[j, 4] = 0.0
+            undefined_row(out, j)
     new_state = np.array(
         [x1, x2, x3, x4,
          p00, p01, p02, p03,

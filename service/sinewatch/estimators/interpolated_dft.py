@@ -81,7 +81,14 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    Track,
+    kernel,
+    track_from_columns,
+    undefined_row,
+)
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0
@@ -336,11 +343,7 @@ def ipdft_kernel(
             out[row, 4] = conv
             resid[row] = r
         else:
-            out[row, 0] = np.nan
-            out[row, 1] = np.nan
-            out[row, 2] = np.nan
-            out[row, 3] = np.nan
-            out[row, 4] = 0.0
+            undefined_row(out, row)
             resid[row] = np.nan
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])

@@ -119,13 +119,20 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    Track,
+    kernel,
+    track_from_columns,
+    undefined_row,
+)
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -341,6 +348,9 @@ class KklParams(EstimatorParams):
         if not self.f_min_hz < self.f_max_hz:
             raise ValueError(f"expected f_min_hz < f_max_hz, got f_min_hz={self.f_min_hz}, f_max_hz={self.f_max_hz}")
         return self
+
+
+_KP = TypeVar("_KP", bound=KklParams)
 
 
 def check_nyquist(name: str, f_max_hz: float, sample_rate_hz: float) -> None:
@@ -570,51 +580,33 @@ def kkl_kernel(
             ext[j, 0] = 2.0 * det / ell
             ext[j, 1] = math.sqrt(rr / ff)
         else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 3] = np.nan
-            out[j, 4] = 0.0
+            undefined_row(out, j)
             ext[j, 0] = np.nan
             ext[j, 1] = np.nan
     new_state = np.empty(m + 10)
-    new_state[m + 8] = e2_fast
-    new_state[m + 9] = e2_slow
     new_state[:m] = xi
-    new_state[m] = y_prev
-    new_state[m + 1] = have_prev
-    new_state[m + 2] = y_pred
-    new_state[m + 3] = pred_valid
-    new_state[m + 4] = n_good
-    new_state[m + 5] = env
-    new_state[m + 6] = e2_avg
-    new_state[m + 7] = y2_avg
+    new_state[m:] = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, new_state
 
 
 # ---- estimator ----------------------------------------------------------------------------
 
 
-@register
-class Kkl(Estimator[KklParams], kernel=kkl_kernel):
-    """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
+class FilterBankObserver(Estimator[_KP]):
+    """What ``kkl`` and ``kkl-biased`` share: the design from the frequency range (module
+    docstring, design choices), the Nyquist check, the example and the Track. A subclass
+    gives the constant l of its inverse map (:meth:`_ell`) and the kernel."""
 
-    name = "kkl"
-    summary = (
-        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
-        "first-order filters and the static inverse map gamma (paper 003)"
-    )
-    paper = "003_29096b058aca5228.txt"
+    #: what the constant l is called in the error for a degenerate design
+    ell_label: ClassVar[str] = "l of (10)"
     example_sample_rate_hz = 5000.0
     example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
     example_frequency_hz = 50.0
 
-    @classmethod
-    def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
-        """The paper's model has no offset: a 50 Hz sine of amplitude 1 plus 1 % noise."""
-        rng = np.random.default_rng(seed)
-        t = np.arange(n) / cls.example_sample_rate_hz
-        return np.sin(2 * np.pi * cls.example_frequency_hz * t + 0.3) + 0.01 * rng.standard_normal(n)
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        """(l, the x3 where its infimum is reached) for filters ``self.lam_n`` and x3 in
+        [x3_lo, x3_hi], in units of omega_ref."""
+        raise NotImplementedError
 
     def _check_params(self) -> None:
         check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
@@ -623,17 +615,42 @@ class Kkl(Estimator[KklParams], kernel=kkl_kernel):
         ts = 1.0 / self.sample_rate_hz
         # lambda~ (units of omega_ref), lambda (rad/s), x3~ range of (11)
         self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
-        self.ell, self.ell_x3 = kkl_ell(self.lam_n, x3_lo, x3_hi)  # (10), units of omega_ref^2
+        self.ell, self.ell_x3 = self._ell(x3_lo, x3_hi)  # (10), units of omega_ref^2
         if not (self.ell > 0.0 and math.isfinite(self.ell)):
-            raise ParameterError(f"{self.name}: l of (10): expected > 0, got {self.ell} (degenerate design)")
+            raise ParameterError(f"{self.name}: {self.ell_label}: expected > 0, got {self.ell} (degenerate design)")
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
         self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
+
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        return observer_track(outputs, block)
+
+
+@register
+class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel):
+    """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
+
+    name = "kkl"
+    summary = (
+        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
+        "first-order filters and the static inverse map gamma (paper 003)"
+    )
+    paper = "003_29096b058aca5228.txt"
+
+    @classmethod
+    def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
+        """The paper's model has no offset: a 50 Hz sine of amplitude 1 plus 1 % noise."""
+        rng = np.random.default_rng(seed)
+        t = np.arange(n) / cls.example_sample_rate_hz
+        return np.sin(2 * np.pi * cls.example_frequency_hz * t + 0.3) + 0.01 * rng.standard_normal(n)
+
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        return kkl_ell(self.lam_n, x3_lo, x3_hi)
+
+    def _setup(self) -> None:
+        super()._setup()
         self._constants = (self.lam_n, self._fa, self._fb0, self._fb1, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
         have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
-
-    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
-        return observer_track(outputs, block)

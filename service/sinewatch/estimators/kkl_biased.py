@@ -56,28 +56,23 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, Track, kernel
+from sinewatch.estimators.base import kernel, undefined_row
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
     FLUSH,
     JUMP_FLOOR,
     JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
+    FilterBankObserver,
     KklParams,
-    check_nyquist,
     ell_eq10,
-    foh_coefficients,
-    observer_consts,
-    observer_track,
-    reference_scaling,
 )
-from sinewatch.schemas.errors import ParameterError
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
 DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
@@ -317,7 +312,6 @@ def kkl_biased_kernel(
             continue
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / yv_avg) if yv_avg > 0.0 else np.nan
-        out[j, 3] = offset
         if defined:
             phase = math.atan2(a_sin, a_cos)
             out[j, 0] = wts / (2.0 * math.pi * Ts)
@@ -327,31 +321,20 @@ def kkl_biased_kernel(
             ext[j, 0] = 2.0 * det / ell
             ext[j, 1] = math.sqrt(rr / ff)
         else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 4] = 0.0
+            undefined_row(out, j)
             ext[j, 0] = np.nan
             ext[j, 1] = np.nan
+        out[j, 3] = offset  # reported even while the oscillation is undefined
     new_state = np.empty(m + 12)
-    new_state[m + 10] = e2_fast
-    new_state[m + 11] = e2_slow
     new_state[:m] = xi
-    new_state[m] = y_prev
-    new_state[m + 1] = have_prev
-    new_state[m + 2] = y_pred
-    new_state[m + 3] = pred_valid
-    new_state[m + 4] = n_good
-    new_state[m + 5] = env
-    new_state[m + 6] = e2_avg
-    new_state[m + 7] = y_avg
-    new_state[m + 8] = yv_avg
-    new_state[m + 9] = n_run
+    new_state[m:] = np.array(
+        [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
+    )
     return out, ext, sse, new_state
 
 
 @register
-class KklBiased(Estimator[KklBiasedParams], kernel=kkl_biased_kernel):
+class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel):
     """Extension of paper 003's observer to a biased sinusoid (module docstring)."""
 
     name = "kkl-biased"
@@ -360,25 +343,18 @@ class KklBiased(Estimator[KklBiasedParams], kernel=kkl_biased_kernel):
         "and a static inverse map (extension of paper 003)"
     )
     paper = "003_29096b058aca5228.txt"
-    example_sample_rate_hz = 5000.0
-    example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
-    example_frequency_hz = 50.0  # the default example signal: 0.5 + sin(2 pi 50 t + 0.3) + noise
+    ell_label = "l_b"
+    # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
-    def _check_params(self) -> None:
-        check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        return biased_ell(self.lam_n, x3_lo, x3_hi)
 
     def _setup(self) -> None:
-        ts = 1.0 / self.sample_rate_hz
-        self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
-        self.ell, self.ell_x3 = biased_ell(self.lam_n, x3_lo, x3_hi)
-        if not (self.ell > 0.0 and math.isfinite(self.ell)):
-            raise ParameterError(f"{self.name}: l_b: expected > 0, got {self.ell} (degenerate design)")
+        super()._setup()
         basis = np.column_stack([self.lam_n**2, self.lam_n, np.ones_like(self.lam_n)])
         kk, kv = np.linalg.eigh(basis.T @ basis)
         self._kk = np.ascontiguousarray(kk)
         self._kv = np.ascontiguousarray(kv)
-        self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
-        self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
         self._constants = (
             self.lam_n, self.lambdas, self._fa, self._fb0, self._fb1, self._kv, self._kk, self._consts,
         )  # fmt: skip
@@ -387,6 +363,3 @@ class KklBiased(Estimator[KklBiasedParams], kernel=kkl_biased_kernel):
         """``xi_state`` (m + 12,): the filter states xi_1..xi_m, then y_prev, have_prev,
         y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 12)}
-
-    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
-        return observer_track(outputs, block)
