@@ -49,6 +49,7 @@ tests use it to check the bound by Monte Carlo.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -91,12 +92,7 @@ class Bound:
         return math.sqrt(self.offset)
 
     def as_dict(self) -> dict[str, float]:
-        return {
-            "frequency_hz": self.frequency_hz,
-            "amplitude": self.amplitude,
-            "phase_rad": self.phase_rad,
-            "offset": self.offset,
-        }
+        return dataclasses.asdict(self)
 
 
 def _check(n: int, amplitude: float, noise_std: float, sample_rate_hz: float) -> None:

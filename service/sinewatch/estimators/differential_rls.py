@@ -468,6 +468,22 @@ def transform_scratch(tab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 @kernel
+def working_core(
+    core_in: np.ndarray, theta_in: np.ndarray, P_in: np.ndarray, tab: np.ndarray
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+]:  # fmt: skip
+    """Copies of the baseband estimator's state (core, theta, P: a kernel never writes its
+    inputs), the scratch vectors of :func:`core_step` (rr, ri, xr, xi, px) and those of
+    :func:`recenter_transform` (idx, T, b0, work)."""
+    p = theta_in.shape[0]
+    rr, ri, xr, xi, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
+    idx, T, b0, work = transform_scratch(tab)
+    return core_in.copy(), theta_in.copy(), P_in.copy(), rr, ri, xr, xi, px, idx, T, b0, work
+
+
+@kernel
 def _ipow(x: float, k: int) -> float:
     r = 1.0
     for _ in range(k):
@@ -636,13 +652,8 @@ def iq_kernel(
     """The paper's own setting: in-phase/quadrature samples c(k) = z(k) + j y(k) taken at
     intervals dt_k = u_k T0. Re-centring rotates c by a digital reference (psi2, w2, l2).
     Returns per step (w^ rad/T0, lam^ rad/T0^2, A^, phi^, std, converged) and the state."""
-    core = core_in.copy()
-    theta = theta_in.copy()
-    P = P_in.copy()
+    core, theta, P, rr, ri, xr, xi, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     ref = ref_in.copy()
-    p = theta.shape[0]
-    rr, ri, xr, xi, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
-    idx, T, b0, work = transform_scratch(tab)
     n = cre.shape[0]
     out = np.empty((n, 6))
     recenter = consts[K_RECENTER] != 0.0
@@ -742,13 +753,8 @@ def differential_rls_kernel(
     Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
     """
     fe = fe_in.copy()
-    core = core_in.copy()
-    theta = theta_in.copy()
-    P = P_in.copy()
+    core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     ist = ist_in.copy()
-    p = theta.shape[0]
-    rr, ri, xr_, xi_, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
-    idx, T, b0, work = transform_scratch(tab)
     n = x.shape[0]
     nout = 1 if last_only else n
     out = np.empty((nout, 5))
@@ -994,6 +1000,27 @@ def baseband_estimate(
         "frequency_std_rad_s": out[:, 4] / T0,
         "converged": out[:, 5] != 0.0,
     }
+
+
+def cyclic_intervals(k: int, values: list[float]) -> np.ndarray:
+    """``k`` sampling intervals cycling through ``values`` (nonuniform cyclic sampling,
+    Section 5), for :func:`baseband_estimate`; the first is 0 (no interval before it)."""
+    dt = np.array([values[i % len(values)] for i in range(k)])
+    dt[0] = 0.0
+    return dt
+
+
+def band_limited_iq_noise(k: int, m: float, var: float, seed: int) -> np.ndarray:
+    """``k`` samples of complex noise, variance ``var`` per component, band-limited to 1/m
+    of the Nyquist band (ideal low-pass, eq. 14): the paper's oversampled I/Q noise."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(k)
+    out = []
+    for _ in range(2):
+        x = np.fft.ifft(np.where(np.abs(f) < 0.5 / m, np.fft.fft(rng.standard_normal(k)), 0.0)).real
+        out.append(x * np.sqrt(var) / x.std())
+    noise: np.ndarray = out[0] + 1j * out[1]
+    return noise
 
 
 class DifferentialRlsParams(EstimatorParams):
