@@ -55,14 +55,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import (
-    Estimator,
-    EstimatorParams,
-    Track,
-    kernel,
-    track_from_columns,
-    undefined_row,
-)
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 
 
 class GesKalmanParams(EstimatorParams):

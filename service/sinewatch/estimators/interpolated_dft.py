@@ -81,14 +81,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import (
-    Estimator,
-    EstimatorParams,
-    Track,
-    kernel,
-    track_from_columns,
-    undefined_row,
-)
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0

@@ -125,14 +125,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import (
-    Estimator,
-    EstimatorParams,
-    Track,
-    kernel,
-    track_from_columns,
-    undefined_row,
-)
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -409,6 +402,83 @@ def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
     return track_from_columns(out, sse, block.shape[0], {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
 
 
+# ---- kernel pieces shared with kkl-biased (inlined: the same arithmetic in both) -----------
+
+
+@kernel(inline="always")
+def observer_constants(
+    consts: np.ndarray,
+) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float, float]:
+    """The 13 constants of :func:`observer_consts`, unpacked: Ts, omega_ref, l,
+    silence_ratio, env_decay, n_settle, max_fit_residual^2, max_prediction_error^2,
+    avg_gain, the omega Ts bounds of the converged range, the jump detector's gains."""
+    return (
+        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6] * consts[6],
+        consts[7] * consts[7], consts[8], consts[9], consts[10], consts[11], consts[12],
+    )  # fmt: skip
+
+
+@kernel(inline="always")
+def filter_step(xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, y_prev: float, yk: float) -> None:
+    """(12) over one sample, exact for y linear between samples (in place); entries below
+    FLUSH become 0 (no denormals in a long silence)."""
+    for i in range(xi.shape[0]):
+        v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
+        xi[i] = v if abs(v) > FLUSH else 0.0
+
+
+@kernel(inline="always")
+def jump_detector(
+    e2: float, e2_fast: float, e2_slow: float, fast_gain: float, slow_gain: float, level: float
+) -> tuple[bool, float, float]:
+    """The squared prediction error's short-term mean against its long-term level, before
+    and after this sample: (jump, new e2_fast, new e2_slow)."""
+    jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level
+    e2_fast += fast_gain * (e2 - e2_fast)
+    e2_slow += slow_gain * (e2 - e2_slow)
+    return jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level, e2_fast, e2_slow
+
+
+@kernel(inline="always")
+def half_step(wts: float) -> tuple[float, float, float]:
+    """sin and cos of omega Ts / 2, and 1 / sinc^2(omega Ts / 2), the first-order hold's
+    amplitude correction."""
+    half = 0.5 * wts
+    sh = math.sin(half)
+    ch = math.sqrt(max(1.0 - sh * sh, 0.0))
+    return sh, ch, (half / sh) ** 2 if half > 1e-8 else 1.0
+
+
+@kernel(inline="always")
+def write_row(
+    out: np.ndarray,
+    ext: np.ndarray,
+    j: int,
+    defined: bool,
+    frequency_hz: float,
+    a_sin: float,
+    a_cos: float,
+    offset: float,
+    converged: bool,
+    margin: float,
+    fit: float,
+) -> None:
+    """Row ``j`` of the outputs and of the first two extras (module docstring, outputs)."""
+    if defined:
+        phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
+        out[j, 0] = frequency_hz
+        out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
+        out[j, 2] = phase if phase > -math.pi else math.pi
+        out[j, 4] = 1.0 if converged else 0.0
+        ext[j, 0] = margin
+        ext[j, 1] = fit
+    else:
+        undefined_row(out, j)
+        ext[j, 0] = np.nan
+        ext[j, 1] = np.nan
+    out[j, 3] = offset
+
+
 # ---- kernel -------------------------------------------------------------------------------
 
 
@@ -434,19 +504,15 @@ def kkl_kernel(
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]
-    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
-    max_fit2 = consts[6] * consts[6]
-    max_pred2 = consts[7] * consts[7]
-    avg_gain = consts[8]
-    wts_lo, wts_hi = consts[9], consts[10]  # omega Ts bounds for converged
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
     xi = state[:m].copy()
-    y_prev, have_prev = state[m], state[m + 1]
+    y_prev, have_prev = float(state[m]), state[m + 1]
     y_pred, pred_valid = state[m + 2], state[m + 3]
     n_good, env = state[m + 4], state[m + 5]
     e2_avg, y2_avg = state[m + 6], state[m + 7]
     e2_fast, e2_slow = state[m + 8], state[m + 9]
-    fast_gain, slow_gain = consts[11], consts[12]
     # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
     s_ll = 0.0
     s_l = 0.0
@@ -461,22 +527,15 @@ def kkl_kernel(
     sse = 0.0
     for k in range(n):
         yk = y[k]
-        # (12), exact for y linear between samples
         if have_prev != 0.0:
-            for i in range(m):
-                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > FLUSH else 0.0
+            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error and its running mean square, against that of y
         e = yk - y_pred if pred_valid != 0.0 else yk
         sse += e * e
         e2_avg += avg_gain * (e * e - e2_avg)
-        # jump detector: the error's short-term mean square against its long-term level
-        jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * y2_avg
-        e2_fast += fast_gain * (e * e - e2_fast)
-        e2_slow += slow_gain * (e * e - e2_slow)
-        jump = jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * y2_avg
+        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
         y2_avg += avg_gain * (yk * yk - y2_avg)
         # sums over the filters
         s2 = 0.0
@@ -540,10 +599,7 @@ def kkl_kernel(
                     wts = w_ref * sq * Ts  # omega Ts
                     if wts < math.pi:  # below Nyquist
                         defined = True
-                        half = 0.5 * wts
-                        sh = math.sin(half)
-                        ch = math.sqrt(max(1.0 - sh * sh, 0.0))
-                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        sh, ch, g = half_step(wts)
                         a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
                         a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
                         # y(k+1) predicted: A sin(theta + w Ts)
@@ -570,19 +626,9 @@ def kkl_kernel(
             continue
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / y2_avg) if y2_avg > 0.0 else np.nan
-        if defined:
-            phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
-            out[j, 0] = wts / (2.0 * math.pi * Ts)  # omega = omega_ref sqrt(x3~)
-            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
-            out[j, 2] = phase if phase > -math.pi else math.pi
-            out[j, 3] = 0.0
-            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
-            ext[j, 0] = 2.0 * det / ell
-            ext[j, 1] = math.sqrt(rr / ff)
-        else:
-            undefined_row(out, j)
-            ext[j, 0] = np.nan
-            ext[j, 1] = np.nan
+        # omega = omega_ref sqrt(x3~); the model has no offset: 0 whenever defined
+        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, 0.0 if defined else np.nan,
+                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
     new_state = np.empty(m + 10)
     new_state[:m] = xi
     new_state[m:] = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])

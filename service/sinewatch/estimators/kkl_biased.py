@@ -62,16 +62,18 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import kernel, undefined_row
+from sinewatch.estimators.base import kernel
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
-    FLUSH,
-    JUMP_FLOOR,
-    JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
     FilterBankObserver,
     KklParams,
     ell_eq10,
+    filter_step,
+    half_step,
+    jump_detector,
+    observer_constants,
+    write_row,
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
@@ -161,19 +163,15 @@ def kkl_biased_kernel(
     inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]
-    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
-    max_fit2 = consts[6] * consts[6]
-    max_pred2 = consts[7] * consts[7]
-    avg_gain = consts[8]
-    wts_lo, wts_hi = consts[9], consts[10]
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
     xi = state[:m].copy()
-    y_prev, have_prev = state[m], state[m + 1]
+    y_prev, have_prev = float(state[m]), state[m + 1]
     y_pred, pred_valid = state[m + 2], state[m + 3]
     n_good, env = state[m + 4], state[m + 5]
     e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
     e2_fast, e2_slow = state[m + 10], state[m + 11]
-    fast_gain, slow_gain = consts[11], consts[12]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
     ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
@@ -184,11 +182,8 @@ def kkl_biased_kernel(
     sse = 0.0
     for k in range(n):
         yk = y[k]
-        # filters (12), exact for y linear between samples
         if have_prev != 0.0:
-            for i in range(m):
-                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > FLUSH else 0.0
+            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
             if n_run < n_settle:
                 n_run += 1.0
         have_prev = 1.0
@@ -200,11 +195,7 @@ def kkl_biased_kernel(
         y_avg += avg_gain * (yk - y_avg)
         dy = yk - y_avg
         yv_avg += avg_gain * (dy * dy - yv_avg)
-        # jump detector: the error's short-term mean square against its long-term level
-        jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
-        e2_fast += fast_gain * (e * e - e2_fast)
-        e2_slow += slow_gain * (e * e - e2_slow)
-        jump = jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
+        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, yv_avg)
         # eta = lambda xi, its mean and centred part
         eta_bar = 0.0
         for i in range(m):
@@ -284,10 +275,7 @@ def kkl_biased_kernel(
                         defined = True
                         dx4 = z2 / z3
                         offset = eta_bar + s * dx4  # x4
-                        half = 0.5 * wts
-                        sh = math.sin(half)
-                        chh = math.sqrt(max(1.0 - sh * sh, 0.0))
-                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        sh, chh, g = half_step(wts)
                         a_sin = s * (z0 - dx4) * g  # A sin(theta) = x1
                         a_cos = -s * z1 * g / sq  # A cos(theta) = -x2 / omega
                         y_pred = offset + a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * chh)
@@ -312,19 +300,9 @@ def kkl_biased_kernel(
             continue
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / yv_avg) if yv_avg > 0.0 else np.nan
-        if defined:
-            phase = math.atan2(a_sin, a_cos)
-            out[j, 0] = wts / (2.0 * math.pi * Ts)
-            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
-            out[j, 2] = phase if phase > -math.pi else math.pi
-            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
-            ext[j, 0] = 2.0 * det / ell
-            ext[j, 1] = math.sqrt(rr / ff)
-        else:
-            undefined_row(out, j)
-            ext[j, 0] = np.nan
-            ext[j, 1] = np.nan
-        out[j, 3] = offset  # reported even while the oscillation is undefined
+        # the offset is reported even while the oscillation is undefined
+        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
+                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
     new_state = np.empty(m + 12)
     new_state[:m] = xi
     new_state[m:] = np.array(
