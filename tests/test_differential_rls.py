@@ -1,4 +1,6 @@
-"""differential-rls against paper 001 (``shared/papers/001_da74636665cf246d.txt``).
+"""differential-rls against its paper, "Differential signal model and sampling techniques for
+recursive (extended) least-squares estimation of frequency, frequency derivatives, phase and
+amplitude".
 
 Three groups: the rebuilt equations checked as identities; Section 10 reproduced in the
 paper's own setting (in-phase/quadrature samples, w = 1 rad/s) through the same core; the

@@ -1,8 +1,8 @@
 """``adaptive-multisine``: adaptive observer for n biased sinusoids with excitation switching.
 
-Paper: ``shared/papers/004_880a59a5c07ec15b.txt``, Chen, Pin, Ng, Hui, Parisini, "An
-adaptive observer-based robust estimator of multi-sinusoidal signals". Algorithm 1 is the
-reference; the departures from it are numbered D1-D8 below.
+Paper: B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based
+robust estimator of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6),
+1618-1631, 2018. Algorithm 1 is the reference; the departures from it are numbered D1-D8 below.
 
 Signal (1)-(2): ``y(t) = A0 + sum_i A_i sin(phi_i(t)) + d(t)``, ``phi_i' = omega_i``.
 
@@ -871,11 +871,14 @@ def adaptive_multisine_kernel(
 
 @register
 class AdaptiveMultisine(Estimator[AdaptiveMultisineParams], kernel=adaptive_multisine_kernel):
-    """Adaptive observer with excitation-based switching for n biased sinusoids (paper 004)."""
+    """Adaptive observer with excitation-based switching for n biased sinusoids (Chen et al. 2018)."""
 
     name = "adaptive-multisine"
-    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (paper 004)"
-    paper = "004_880a59a5c07ec15b.txt"
+    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (Chen et al. 2018)"
+    paper = (
+        'B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based robust estimator '
+        'of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6), 2018'
+    )
     # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its
     # gains, time compressed: one paper rad/s is 2 pi 5 rad/s here, so the tones are at 15 and
     # 10 Hz; the noise bound is 0.1 (see the multisine-demo scenario on noise density).

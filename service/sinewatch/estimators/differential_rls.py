@@ -1,11 +1,11 @@
 """``differential-rls``: differential signal model + recursive (extended) least squares for
 the frequency, its rate of change (ROCOF), phase and amplitude of one sinusoid.
 
-Paper: ``shared/papers/001_da74636665cf246d.txt``, "Differential signal model and sampling
-techniques for recursive (extended) least-squares estimation of frequency, frequency
-derivatives, phase and amplitude". Most equations are missing from the extraction; those
-used here were rebuilt from the text (and the reading notes in shared/papers/README.md)
-and each is checked numerically in ``tests/test_differential_rls.py``.
+Paper: "Differential signal model and sampling techniques for recursive (extended)
+least-squares estimation of frequency, frequency derivatives, phase and amplitude" (the
+authors and the year are not recorded here: the copy this was built from does not print
+them). Most equations are missing from that copy; those used here were rebuilt from the
+text and each is checked numerically in ``tests/test_differential_rls.py``.
 
 Rebuilt equations
 -----------------
@@ -1166,11 +1166,14 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 @register
 class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel):
-    """Differential signal model + recursive extended least squares (paper 001)."""
+    """Differential signal model + recursive extended least squares (module docstring)."""
 
     name = "differential-rls"
-    summary = "Differential signal model + recursive extended least squares, with ROCOF (paper 001)"
-    paper = "001_da74636665cf246d.txt"
+    summary = "Differential signal model + recursive extended least squares, with ROCOF"
+    paper = (
+        '"Differential signal model and sampling techniques for recursive (extended) least-squares '
+        'estimation of frequency, frequency derivatives, phase and amplitude"'
+    )
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.3
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}

@@ -1,7 +1,8 @@
 """``ges-kalman``: GES discrete-time Kalman observer for a biased sinusoid.
 
-Paper: ``shared/papers/000_95b503d2538da780.txt``, "A globally exponentially stable (GES)
-discrete-time observer for the parameters of a biased sinusoid".
+Paper: "A globally exponentially stable (GES) discrete-time observer for the parameters of
+a biased sinusoid" (the authors and the year are not recorded here: the copy this was built
+from does not print them).
 
 Signal (eq. 1): ``y(k) = s(t_k) = A sin(w t_k + phi) + B``, sampled every ``Ts``.
 
@@ -176,11 +177,11 @@ def ges_kalman_kernel(
 
 @register
 class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
-    """Kalman filter on the 4-state LTV model of paper 000 (see module docstring)."""
+    """Kalman filter on the 4-state LTV model of the GES observer paper (module docstring)."""
 
     name = "ges-kalman"
-    summary = "GES Kalman observer for one biased sinusoid (paper 000)"
-    paper = "000_95b503d2538da780.txt"
+    summary = "GES Kalman observer for one biased sinusoid"
+    paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 100.0  # the paper's Section IV
 

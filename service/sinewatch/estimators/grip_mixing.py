@@ -1,10 +1,11 @@
 """``grip-mixing``: LTI observer on the redefined output y(t) - y(t - T) (periodic output disturbance).
 
-Paper: ``shared/papers/002_e8388582f5542671.txt``, H. F. Grip, "Observer design in the presence
-of periodic output disturbances by mixing of past and present output data".
+Paper: H. F. Grip, "Observer design in the presence of periodic output disturbances by
+mixing of past and present output data" (the year is not recorded here: the copy this was
+built from does not print it).
 
-The extraction drops minus signs (reading notes); every equation below was rebuilt from the
-surrounding text and checked numerically (``tests/test_grip_mixing.py``).
+That copy drops minus signs; every equation below was rebuilt from the surrounding text and
+checked numerically (``tests/test_grip_mixing.py``).
 
 Plant and disturbance (1)::
 
@@ -694,14 +695,14 @@ def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]
 
 @register
 class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
-    """Grip's mixing observer on y(t) - y(t - T) (paper 002, see module docstring)."""
+    """Grip's mixing observer on y(t) - y(t - T) (module docstring)."""
 
     name = "grip-mixing"
     summary = (
         "LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; "
-        "preset 'harmonics' tracks known-frequency lines (paper 002)"
+        "preset 'harmonics' tracks known-frequency lines"
     )
-    paper = "002_e8388582f5542671.txt"
+    paper = 'H. F. Grip, "Observer design in the presence of periodic output disturbances by mixing of past and present output data"'
     example_sample_rate_hz = 4000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {

@@ -1,7 +1,8 @@
 """``ipdft``: sliding-window interpolated DFT with a least-squares fit; the FFT baseline.
 
-No paper file: this is the classical block method the papers in ``shared/papers`` compare
-against (paper 004, Section I: "the Fast Fourier Transform (FFT) is preferred for its
+None of the papers sinewatch implements describes it: it is the classical block method they
+compare against (Chen, Pin, Ng, Hui, Parisini, "An adaptive observer-based robust estimator
+of multi-sinusoidal signals", IEEE Trans. Automatic Control, 2018, Section I: "the Fast Fourier Transform (FFT) is preferred for its
 efficiency in stationary conditions ... the accuracy drops in the case of time-varying
 frequencies"). References for the equations below:
 

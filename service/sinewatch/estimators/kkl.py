@@ -1,7 +1,8 @@
 """``kkl``: nonlinear Luenberger (Kazantzis-Kravaris-Luenberger) observer of a sinusoid.
 
-Paper: ``shared/papers/003_29096b058aca5228.txt``, Praly, Marconi, Isidori, "A new observer
-for an unknown harmonic oscillator".
+Paper: L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator"
+(the year is not recorded here: the copy this was built from does not print it; its most
+recent reference is from 2005).
 
 Model (4): the signal is the output of the uncertain oscillator::
 
@@ -673,14 +674,14 @@ class FilterBankObserver(Estimator[_KP]):
 
 @register
 class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel):
-    """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
+    """m first-order filters and the static inverse gamma of Praly et al. (module docstring)."""
 
     name = "kkl"
     summary = (
         "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
-        "first-order filters and the static inverse map gamma (paper 003)"
+        "first-order filters and the static inverse map gamma (Praly, Marconi, Isidori)"
     )
-    paper = "003_29096b058aca5228.txt"
+    paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator"'
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:

@@ -1,6 +1,7 @@
-"""``kkl-biased``: the KKL observer of paper 003 extended to a sinusoid with a constant offset.
+"""``kkl-biased``: the KKL observer of Praly et al. extended to a sinusoid with a constant offset.
 
-Paper: ``shared/papers/003_29096b058aca5228.txt`` (Praly, Marconi, Isidori). The paper's
+Paper: L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic
+oscillator" (as :mod:`sinewatch.estimators.kkl`). The paper's
 signal has no offset; this module is an **extension** built the same way (its Sections
 III-IV), not something the paper shows. :mod:`sinewatch.estimators.kkl` holds the
 unbiased observer and the design helpers used here.
@@ -313,14 +314,14 @@ def kkl_biased_kernel(
 
 @register
 class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel):
-    """Extension of paper 003's observer to a biased sinusoid (module docstring)."""
+    """Extension of Praly et al.'s observer to a biased sinusoid (module docstring)."""
 
     name = "kkl-biased"
     summary = (
         "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
-        "and a static inverse map (extension of paper 003)"
+        "and a static inverse map (extension of Praly, Marconi, Isidori)"
     )
-    paper = "003_29096b058aca5228.txt"
+    paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator" (extended)'
     ell_label = "l_b"
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 

@@ -1,8 +1,9 @@
 """``sogi-fll``: second-order generalized integrator with a frequency-locked loop and a
 DC-offset integrator, for one biased sinusoid (the power-electronics favourite).
 
-No paper file: paper 004 (``shared/papers/004_880a59a5c07ec15b.txt``, Section I) names
-this family as the usual way PLL/ANF methods are "augmented ... towards a second-order
+None of the papers sinewatch implements describes it: Chen, Pin, Ng, Hui, Parisini, "An
+adaptive observer-based robust estimator of multi-sinusoidal signals" (IEEE Trans.
+Automatic Control, 2018), Section I, names this family as the usual way PLL/ANF methods are "augmented ... towards a second-order
 generalized integrator-based orthogonal signal generator (OSG-SOGI)" to cope with a dc
 offset. The structure and the FLL normalisation follow
 
@@ -12,7 +13,7 @@ offset. The structure and the FLL normalisation follow
   (SOGI-QSG, FLL, gain normalisation);
 * the DC-offset rejection is the usual extra integrator on the SOGI error (the
   "SOGI with DC loop", cf. Karimi-Ghartemani et al., IEEE Trans. Power Electron. 27(1),
-  2012, paper 004's reference [9]).
+  2012, reference [9] of Chen et al.).
 
 Continuous-time model (omega' is the estimated angular frequency)::
 
