@@ -220,7 +220,7 @@ def concat_tracks(tracks: list[Track]) -> Track:
 
 
 def _concat_optional(parts: list[np.ndarray | None]) -> np.ndarray | None:
-    return None if parts[0] is None else np.concatenate(parts)
+    return None if parts[0] is None else np.concatenate(cast(list[np.ndarray], parts))
 
 
 def encode_array(a: np.ndarray) -> dict[str, Any]:
