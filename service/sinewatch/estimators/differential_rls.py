@@ -945,6 +945,45 @@ def differential_rls_kernel(
     return out, ext, sse, fe, core, theta, P, ist
 
 
+def core_constants(
+    *,
+    fs: float,
+    T0: float,
+    lam: float,
+    lam_a: float,
+    rho: float,
+    ls_start: int,
+    p0: float,
+    n_par: int,
+    conv_std: float,
+    w_bb_max: float,
+    recenter_every: int,
+    els: bool,
+    derivative: bool,
+    r1: float,
+) -> np.ndarray:
+    """The ``consts`` array (slots K_*) with the baseband estimator's entries filled in;
+    the real-input front end adds its own (K_W_NOM, K_W_RANGE, K_MIN_AMP, K_WARM, K_HOLD).
+    ``conv_std`` and ``w_bb_max`` in rad per T0."""
+    k = np.zeros(N_CONSTS)
+    k[K_FS] = fs
+    k[K_T0] = T0
+    k[K_LAM] = lam
+    k[K_LAM_A] = lam_a
+    k[K_RHO] = rho
+    k[K_LS_START] = ls_start
+    k[K_P0] = p0
+    k[K_TRACE_MAX] = 1e8 * p0 * n_par
+    k[K_CONV_STD] = conv_std
+    k[K_W_BB_MAX] = w_bb_max
+    k[K_REBASE_EVERY] = recenter_every if recenter_every > 0 else 16
+    k[K_ELS] = 1.0 if els else 0.0
+    k[K_DERIV] = 1.0 if derivative else 0.0
+    k[K_RECENTER] = 1.0 if recenter_every > 0 else 0.0
+    k[K_R1] = r1
+    return k
+
+
 def baseband_estimate(
     c: np.ndarray,
     dt: np.ndarray,
@@ -972,22 +1011,22 @@ def baseband_estimate(
     u = np.ascontiguousarray(dt / T0)
     tab = monomial_table(n_terms, rocof_model)
     p = tab.shape[0]
-    k = np.zeros(N_CONSTS)
-    k[K_FS] = 1.0 / T0
-    k[K_T0] = T0
-    k[K_LAM] = forgetting_factor
-    k[K_LAM_A] = forgetting_factor if phase_forgetting_factor is None else phase_forgetting_factor
-    k[K_RHO] = els_damping
-    k[K_LS_START] = ls_start
-    k[K_P0] = p0
-    k[K_TRACE_MAX] = 1e8 * p0 * p
-    k[K_CONV_STD] = convergence_std_rad_s * T0
-    k[K_W_BB_MAX] = math.pi
-    k[K_REBASE_EVERY] = recenter_every if recenter_every > 0 else 16
-    k[K_ELS] = 1.0 if els else 0.0
-    k[K_DERIV] = 1.0 if rocof_model else 0.0
-    k[K_RECENTER] = 1.0 if recenter_every > 0 else 0.0
-    k[K_R1] = noise_correlation
+    k = core_constants(
+        fs=1.0 / T0,
+        T0=T0,
+        lam=forgetting_factor,
+        lam_a=forgetting_factor if phase_forgetting_factor is None else phase_forgetting_factor,
+        rho=els_damping,
+        ls_start=ls_start,
+        p0=p0,
+        n_par=p,
+        conv_std=convergence_std_rad_s * T0,
+        w_bb_max=math.pi,
+        recenter_every=recenter_every,
+        els=els,
+        derivative=rocof_model,
+        r1=noise_correlation,
+    )
     out, *_ = iq_kernel(
         np.ascontiguousarray(c.real), np.ascontiguousarray(c.imag), u,
         np.zeros(CORE_SIZE), np.zeros(p), np.eye(p) * p0, np.zeros(3), tab, k,
@@ -1227,26 +1266,26 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         n_par = self._tab.shape[0]
         self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
-        c = np.zeros(N_CONSTS)
-        c[K_FS] = fs
-        c[K_T0] = T0
-        c[K_LAM] = p.forgetting_factor
-        c[K_LAM_A] = p.phase_forgetting_factor
-        c[K_RHO] = p.els_damping
-        c[K_LS_START] = p.ls_start
-        c[K_P0] = p.p0
-        c[K_TRACE_MAX] = 1e8 * p.p0 * n_par
+        c = core_constants(
+            fs=fs,
+            T0=T0,
+            lam=p.forgetting_factor,
+            lam_a=p.phase_forgetting_factor,
+            rho=p.els_damping,
+            ls_start=p.ls_start,
+            p0=p.p0,
+            n_par=n_par,
+            conv_std=p.convergence_rel_std * p.bandwidth_hz * TWO_PI * T0,
+            w_bb_max=TWO_PI * p.bandwidth_hz * T0,
+            recenter_every=p.recenter_every,
+            els=p.els,
+            derivative=p.rocof_model,
+            r1=lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0])),
+        )
         c[K_W_NOM] = TWO_PI * p.nominal_frequency_hz
         c[K_W_RANGE] = TWO_PI * rng
         c[K_MIN_AMP] = p.min_amplitude
-        c[K_CONV_STD] = p.convergence_rel_std * p.bandwidth_hz * TWO_PI * T0
-        c[K_W_BB_MAX] = TWO_PI * p.bandwidth_hz * T0
-        c[K_REBASE_EVERY] = p.recenter_every if p.recenter_every > 0 else 16
-        c[K_ELS] = 1.0 if p.els else 0.0
-        c[K_DERIV] = 1.0 if p.rocof_model else 0.0
-        c[K_RECENTER] = 1.0 if p.recenter_every > 0 else 0.0
         c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
-        c[K_R1] = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
         c[K_HOLD] = math.ceil(c[K_WARM] / d0)
         self._consts = c
         self._constants = (self._sos, self._tab, self._cyc, self._consts)
