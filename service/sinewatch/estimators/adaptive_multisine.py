@@ -136,7 +136,7 @@ from pydantic import Field, model_validator
 from scipy.signal import place_poles
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel
+from sinewatch.estimators.base import Estimator, EstimatorParams, NonNegativeFinite, PositiveFinite, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 # The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
@@ -178,14 +178,12 @@ class AdaptiveMultisineParams(EstimatorParams):
 
     n_sinusoids: int = Field(2, ge=1, le=8, description="n, the number of sinusoids modelled")
     bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean signal")
-    omega_unit_rad_s: float = Field(
+    omega_unit_rad_s: PositiveFinite = Field(
         1.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = the paper's units",
     )
-    amplitude_unit: float = Field(
-        1.0, gt=0, allow_inf_nan=False, description="Signal value that counts as 1 (the input is divided by it)"
+    amplitude_unit: PositiveFinite = Field(
+        1.0, description="Signal value that counts as 1 (the input is divided by it)"
     )
     a: list[float] | None = Field(None, description="a_i of (4): distinct, and non-zero with bias")
     poles: list[float] | None = Field(
@@ -193,28 +191,22 @@ class AdaptiveMultisineParams(EstimatorParams):
     )
     filter_poles: list[float] | None = Field(None, description="n-1 distinct negative poles of F_f (diagonal), (12)")
     filter_gains: list[float] | None = Field(None, description="n-1 non-zero entries of B_f, (12)")
-    mu: float | None = Field(None, gt=0, allow_inf_nan=False, description="Frequency adaptation gain mu, (22)")
-    rho: float | None = Field(None, gt=0, allow_inf_nan=False, description="Regularisation rho, (23)")
-    mu_a: float | None = Field(None, gt=0, allow_inf_nan=False, description="Amplitude adaptation gain mu_A, (11)")
+    mu: PositiveFinite | None = Field(None, description="Frequency adaptation gain mu, (22)")
+    rho: PositiveFinite | None = Field(None, description="Regularisation rho, (23)")
+    mu_a: PositiveFinite | None = Field(None, description="Amplitude adaptation gain mu_A, (11)")
     omega0: list[float] | None = Field(None, description="Initial frequencies omegah_i(0), in (0, omega_max)")
     delta_low: float = Field(3e-5, allow_inf_nan=False, description="Lower switching threshold of (25)")
     delta_high: float = Field(3e-4, allow_inf_nan=False, description="Upper switching threshold of (25)")
-    omega_max: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="Frequency bound omega_bar (Assumption 1); sets theta_bar"
-    )
+    omega_max: PositiveFinite = Field(10.0, description="Frequency bound omega_bar (Assumption 1); sets theta_bar")
     omega_ranges: list[tuple[float, float]] | None = Field(
         None, description="Optional per-component frequency clips [lo, hi] (Remark 3.1)"
     )
-    adaptation_delay: float | None = Field(
+    adaptation_delay: NonNegativeFinite | None = Field(
         None,
-        ge=0,
-        allow_inf_nan=False,
         description="Settling dwell (scaled time) after start-up, total dis-excitation or loss of signal "
         "before thetah adapts; default 2 / |slowest observer pole|",
     )
-    level_time: float = Field(
-        2.0, gt=0, allow_inf_nan=False, description="Time constant (scaled) of the signal-level gate"
-    )
+    level_time: PositiveFinite = Field(2.0, description="Time constant (scaled) of the signal-level gate")
     level_ratio: _Fraction = Field(
         0.25,
         description="The signal counts as lost when its AC power (over level_time) falls below this "
@@ -224,19 +216,15 @@ class AdaptiveMultisineParams(EstimatorParams):
         0.05,
         description="Components are kept at least this fraction of the higher frequency apart (0: off)",
     )
-    min_amplitude: float = Field(
+    min_amplitude: NonNegativeFinite = Field(
         0.01,
-        ge=0,
-        allow_inf_nan=False,
         description="Amplitude (in amplitude_unit) below which a component is faded and the signal absent",
     )
     fade_ratio: _Fraction = Field(
         0.02,
         description="A component is also faded below this fraction of the largest amplitude",
     )
-    convergence_time: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="Smoothing time (scaled) of the convergence test"
-    )
+    convergence_time: PositiveFinite = Field(10.0, description="Smoothing time (scaled) of the convergence test")
     convergence_tol: float = Field(
         0.02,
         gt=0,

@@ -82,11 +82,11 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Generic, Literal, ParamSpec, cast, get_args, get_origin, overload
+from typing import Annotated, Any, ClassVar, Generic, Literal, ParamSpec, cast, get_args, get_origin, overload
 
 import numba
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from typing_extensions import TypeVar  # a TypeVar with a default (PEP 696); pydantic requires it
 
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
@@ -127,6 +127,11 @@ class EstimatorParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+
+#: Field types for parameter models: a finite number > 0, or >= 0, as in
+#: ``gain: PositiveFinite = Field(1.0, description="...")``.
+PositiveFinite = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFinite = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 # The parameter model of an Estimator subclass; a bare ``Estimator`` means any estimator.
 ParamsT = TypeVar("ParamsT", bound=EstimatorParams, default=EstimatorParams)

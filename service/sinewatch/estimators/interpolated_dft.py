@@ -82,7 +82,16 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    NonNegativeFinite,
+    PositiveFinite,
+    Track,
+    kernel,
+    track_from_columns,
+    undefined_row,
+)
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0
@@ -90,10 +99,8 @@ MAX_WINDOW_SAMPLES = 1 << 22
 
 
 class IpdftParams(EstimatorParams):
-    nominal_frequency_hz: float = Field(
+    nominal_frequency_hz: PositiveFinite = Field(
         50.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Nominal frequency (Hz): sets the window in cycles and the default search band",
     )
     window_cycles: float | None = Field(
@@ -109,28 +116,20 @@ class IpdftParams(EstimatorParams):
     hop_samples: int | None = Field(
         None, ge=1, description="Samples between estimates (default: a quarter of the window); <= window"
     )
-    min_frequency_hz: float | None = Field(
+    min_frequency_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Lower edge of the peak search band (default 0.5 x nominal; never below DFT bin 2)",
     )
-    max_frequency_hz: float | None = Field(
+    max_frequency_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Upper edge of the peak search band (default 1.5 x nominal; below Nyquist)",
     )
     interpolation: Literal["3-point", "2-point"] = Field(
         "3-point", description="Hann interpolation: 3-point (Agrez 2002) or 2-point (Grandke 1983)"
     )
-    min_amplitude: float = Field(
-        0.0, ge=0, allow_inf_nan=False, description="converged requires amplitude > min_amplitude"
-    )
-    max_relative_residual: float = Field(
+    min_amplitude: NonNegativeFinite = Field(0.0, description="converged requires amplitude > min_amplitude")
+    max_relative_residual: PositiveFinite = Field(
         0.2,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the window's LS fit residual RMS <= this x amplitude",
     )
 

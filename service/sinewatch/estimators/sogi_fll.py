@@ -108,64 +108,56 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    NonNegativeFinite,
+    PositiveFinite,
+    Track,
+    kernel,
+    track_from_columns,
+)
 from sinewatch.schemas.errors import ParameterError
 
 
 class SogiFllParams(EstimatorParams):
-    nominal_frequency_hz: float = Field(50.0, gt=0, allow_inf_nan=False, description="Initial FLL frequency (Hz)")
-    k: float = Field(
+    nominal_frequency_hz: PositiveFinite = Field(50.0, description="Initial FLL frequency (Hz)")
+    k: PositiveFinite = Field(
         math.sqrt(2.0),
-        gt=0,
-        allow_inf_nan=False,
         description="SOGI damping gain (dimensionless; sqrt(2) is the usual choice)",
     )
-    k_dc: float = Field(0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'")
-    gamma: float | None = Field(
+    k_dc: PositiveFinite = Field(0.25, description="DC-offset integrator gain, relative to omega'")
+    gamma: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Normalised FLL gain Gamma (1/s): the frequency error decays as exp(-Gamma t). "
         "Default: the nominal frequency's value in Hz (a time constant of one nominal cycle, "
         "50 1/s at 50 Hz); at most k pi nominal (the SOGI's bandwidth)",
     )
-    fll_amplitude_memory_cycles: float = Field(
+    fll_amplitude_memory_cycles: NonNegativeFinite = Field(
         0.0,
-        ge=0,
-        allow_inf_nan=False,
         description="FLL normalised by max(A^2, P/2), P = A^2 low-passed over this many nominal "
         "cycles: bounds the frequency kick of a deep sag or signal loss, at the cost of a "
         "slower recovery; 0 (default) = plain A^2 (Rodriguez)",
     )
-    min_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False, description="FLL lower clamp (default 0.5 x nominal)"
+    min_frequency_hz: PositiveFinite | None = Field(None, description="FLL lower clamp (default 0.5 x nominal)")
+    max_frequency_hz: PositiveFinite | None = Field(
+        None, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
     )
-    max_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
-    )
-    min_amplitude: float = Field(
+    min_amplitude: NonNegativeFinite = Field(
         1e-6,
-        ge=0,
-        allow_inf_nan=False,
         description="Below this amplitude the FLL holds and frequency/phase are NaN",
     )
-    max_relative_error: float = Field(
+    max_relative_error: PositiveFinite = Field(
         0.2,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the smoothed RMS SOGI error below this x amplitude",
     )
-    frequency_tolerance_hz: float | None = Field(
+    frequency_tolerance_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the FLL's predicted remaining frequency error below this "
         "(default 0.002 x nominal: 0.1 Hz at 50 Hz)",
     )
-    convergence_cycles: float = Field(
+    convergence_cycles: PositiveFinite = Field(
         1.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Time constant of the convergence low-pass filters, in nominal cycles",
     )
 
