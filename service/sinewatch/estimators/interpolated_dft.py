@@ -349,7 +349,6 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
 
     name = "ipdft"
     summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
-    paper = None
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}

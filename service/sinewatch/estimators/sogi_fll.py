@@ -273,7 +273,6 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
 
     name = "sogi-fll"
     summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
-    paper = None
     example_sample_rate_hz = 5000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0}
