@@ -371,10 +371,9 @@ class Estimator(ABC, Generic[ParamsT]):
         never empty) from ``state`` (which is not modified) and return the track and the
         new state: the one call described in the module docstring."""
         block = self._kernel_input(samples)
-        result = type(self)._kernel(block, *state.values(), *self._constants, last_only)
-        n_outputs = len(result) - len(state)
-        new_state = dict(zip(state, result[n_outputs:], strict=True))
-        return self._track(result[:n_outputs], block), new_state
+        result = self._kernel(block, *state.values(), *self._constants, last_only)
+        n_outputs = len(result) - len(state)  # so the zip below pairs every state array
+        return self._track(result[:n_outputs], block), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
     def reset(self) -> None:
         """Return to the state of a freshly constructed estimator."""
