@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import ValidationError
 
@@ -20,11 +20,14 @@ from sinewatch.schemas.errors import ConfigError, UnknownEstimatorError
 
 __all__ = ["Estimator", "EstimatorParams", "Track", "available", "check_rules", "create", "get", "register"]
 
-_REGISTRY: dict[str, type[Estimator]] = {}
+_REGISTRY: dict[str, type[Estimator[Any]]] = {}
 _LOADED = False
 
 
-def register(cls: type[Estimator]) -> type[Estimator]:
+_E = TypeVar("_E", bound=type[Estimator[Any]])
+
+
+def register(cls: _E) -> _E:
     """Class decorator: make an estimator available by its ``name``."""
     name = cls.name
     if name in _REGISTRY and _REGISTRY[name] is not cls:
@@ -49,7 +52,7 @@ def available() -> dict[str, type[EstimatorParams]]:
     return {name: _REGISTRY[name].Params for name in sorted(_REGISTRY)}
 
 
-def get(name: str) -> type[Estimator]:
+def get(name: str) -> type[Estimator[Any]]:
     _load_all()
     try:
         return _REGISTRY[name]
@@ -57,7 +60,7 @@ def get(name: str) -> type[Estimator]:
         raise UnknownEstimatorError(f"estimator: expected one of {sorted(_REGISTRY)}, got {name!r}") from None
 
 
-def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator:
+def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator[Any]:
     """Build the estimator registered as ``name`` for a channel sampled at ``sample_rate_hz``."""
     return get(name)(sample_rate_hz, params)
 
