@@ -178,8 +178,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 # ---- parser ----------------------------------------------------------------------------------
+_Subparsers = argparse._SubParsersAction  # the type of add_subparsers()' result
+
+
 def _config_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML or JSON config file (default: $SINEWATCH_CONFIG or built-in defaults)")
+
+
+def _command(
+    sub: _Subparsers[argparse.ArgumentParser], name: str, help: str, fn: Any, *, config: bool = False
+) -> argparse.ArgumentParser:
+    """Subcommand ``name`` running ``fn``; with ``config``, it takes ``--config``."""
+    c = sub.add_parser(name, help=help)
+    if config:
+        _config_argument(c)
+    c.set_defaults(fn=fn)
+    return c
+
+
+def _subcommands(
+    sub: _Subparsers[argparse.ArgumentParser], name: str, help: str, dest: str
+) -> _Subparsers[argparse.ArgumentParser]:
+    """A command ``name`` that only groups subcommands (``dest`` names the chosen one)."""
+    return sub.add_parser(name, help=help).add_subparsers(dest=dest, required=True, metavar="SUBCOMMAND")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -195,36 +216,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="run daemon + simulated feed on loopback with a live table")
+    d = _command(sub, "demo", "run daemon + simulated feed on loopback with a live table", cmd_demo)
     d.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
     d.add_argument("--scenarios", help="comma-separated scenario names (default: the 8 demo channels)")
     d.add_argument("--record-dir", default="sinewatch-runs", help="where the MCAP file goes")
     d.add_argument("--no-record", action="store_true", help="do not record")
-    d.set_defaults(fn=cmd_demo)
 
-    s = sub.add_parser("serve", help="run the daemon until SIGINT/SIGTERM")
-    _config_argument(s)
-    s.set_defaults(fn=cmd_serve)
+    _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
 
-    c = sub.add_parser("config", help="configuration")
-    csub = c.add_subparsers(dest="config_command", required=True, metavar="SUBCOMMAND")
-    cs = csub.add_parser("show", help="print the effective configuration (file + environment)")
-    _config_argument(cs)
-    cs.set_defaults(fn=cmd_config_show)
-    cc = csub.add_parser("check", help="also check each rule's estimator parameters (imports the estimators)")
-    _config_argument(cc)
-    cc.set_defaults(fn=cmd_config_check)
+    csub = _subcommands(sub, "config", "configuration", "config_command")
+    _command(csub, "show", "print the effective configuration (file + environment)", cmd_config_show, config=True)
+    _command(
+        csub,
+        "check",
+        "also check each rule's estimator parameters (imports the estimators)",
+        cmd_config_check,
+        config=True,
+    )
 
-    sc = sub.add_parser("schemas", help="JSON Schemas of the wire format and the config")
-    scsub = sc.add_subparsers(dest="schemas_command", required=True, metavar="SUBCOMMAND")
-    se = scsub.add_parser("export", help="write the JSON Schemas to DIR")
-    se.add_argument("dir")
-    se.set_defaults(fn=cmd_schemas_export)
+    scsub = _subcommands(sub, "schemas", "JSON Schemas of the wire format and the config", "schemas_command")
+    _command(scsub, "export", "write the JSON Schemas to DIR", cmd_schemas_export).add_argument("dir")
 
-    e = sub.add_parser("estimators", help="list registered estimators and their parameters")
-    e.set_defaults(fn=cmd_estimators)
+    _command(sub, "estimators", "list registered estimators and their parameters", cmd_estimators)
 
-    f = sub.add_parser("feed", help="publish simulated sample blocks to a daemon")
+    f = _command(sub, "feed", "publish simulated sample blocks to a daemon", cmd_feed)
     f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     f.add_argument(
         "--scenario",
@@ -242,18 +257,16 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--prefix", default="sim", help="channel name prefix (default sim)")
     f.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
     f.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the daemon")
-    f.set_defaults(fn=cmd_feed)
 
-    t = sub.add_parser("tail", help="print estimates (or any sinewatch JSON messages) as they arrive")
+    t = _command(sub, "tail", "print estimates (or any sinewatch JSON messages) as they arrive", cmd_tail)
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
     t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     t.add_argument("--count", type=int, default=0, help="exit after N messages")
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")
     t.add_argument("--wait", type=float, default=10.0, help="seconds to keep trying to connect")
-    t.set_defaults(fn=cmd_tail)
 
-    r = sub.add_parser("replay", help="replay recordings through fresh estimators")
+    r = _command(sub, "replay", "replay recordings through fresh estimators", cmd_replay)
     r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")
     r.add_argument("--estimator", help="re-run with this estimator instead of checking the recording")
     r.add_argument(
@@ -267,7 +280,6 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
     r.add_argument("--no-progress", action="store_true")
-    r.set_defaults(fn=cmd_replay)
 
     add_bench_parser(sub)
     return p

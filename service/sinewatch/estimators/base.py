@@ -454,6 +454,17 @@ class Estimator(ABC, Generic[ParamsT]):
         return x
 
 
+def checked_sample_rate(sample_rate_hz: object) -> float:
+    """``sample_rate_hz`` as a float, checked as :class:`Estimator` checks it (a number, not a
+    bool, finite and > 0), for the analysers that are not estimators but take the same
+    argument (``sinewatch.power_quality.harmonics``)."""
+    if isinstance(sample_rate_hz, bool) or not isinstance(sample_rate_hz, (int, float)):
+        raise InputTypeError(f"sample_rate_hz: expected a number, got {type(sample_rate_hz).__name__}")
+    if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
+        raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
+    return float(sample_rate_hz)
+
+
 @kernel(error_model="python")
 def _all_finite(x: np.ndarray) -> bool:
     # One compiled pass instead of np.isfinite(x).all(): the numpy version costs ~1 us

@@ -99,7 +99,7 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from sinewatch.estimators.base import decode_array, encode_array
+from sinewatch.estimators.base import checked_sample_rate, decode_array, encode_array
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 STATE_FORMAT_VERSION = 1
@@ -480,11 +480,7 @@ class HarmonicAnalyser:
         params: HarmonicParams | Mapping[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
-        if isinstance(sample_rate_hz, bool) or not isinstance(sample_rate_hz, (int, float)):
-            raise InputTypeError(f"sample_rate_hz: expected a number, got {type(sample_rate_hz).__name__}")
-        if not math.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
-            raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
-        self.sample_rate_hz = float(sample_rate_hz)
+        self.sample_rate_hz = checked_sample_rate(sample_rate_hz)
         if isinstance(params, HarmonicParams) and not kwargs:
             self.params = params
         else:
