@@ -194,15 +194,8 @@ def harmonics_family(
     rms[0, 1] = 1.0
     rms[0, 2:] = rng.uniform(low, high, MAX_ORDER - 1)
     ph = rng.uniform(-np.pi, np.pi, (1, MAX_ORDER + 1))
-    return PqScenario(
-        kw.pop("name", f"pq-harmonics-{int(f0)}hz"),
-        f"harmonics 2..50 at {100 * low:g}-{100 * high:g} %" + (f", f {df_pct:+g} %" if df_pct else ""),
-        f0 * (1.0 + df_pct / 100.0),
-        f0,
-        rms,
-        ph,
-        tags=("power-quality", "iec61000-4-7", "harmonics", f"{int(f0)}hz"),
-        **kw,
+    return _one_phase(
+        f"pq-harmonics-{int(f0)}hz", f"harmonics 2..50 at {100 * low:g}-{100 * high:g} %", f0, df_pct, rms, ph, kw
     )
 
 
@@ -215,9 +208,20 @@ def single_harmonic(
     ph = np.zeros((1, MAX_ORDER + 1))
     rms[0, 1], ph[0, 1] = 1.0, 0.4
     rms[0, harmonic], ph[0, harmonic] = level, 1.0
+    return _one_phase(
+        f"pq-harmonic-{int(f0)}hz-single", f"harmonic {harmonic} at {100 * level:g} %", f0, df_pct, rms, ph, kw
+    )
+
+
+def _one_phase(
+    name: str, what: str, f0: float, df_pct: float, rms: np.ndarray, ph: np.ndarray, kw: dict[str, Any]
+) -> PqScenario:
+    """The one-phase harmonic scenario with RMS ``rms`` and phases ``ph`` per order, at
+    ``df_pct`` % off the nominal ``f0``; ``name`` unless ``kw`` names it, ``what`` for the
+    summary."""
     return PqScenario(
-        kw.pop("name", f"pq-harmonic-{int(f0)}hz-single"),
-        f"harmonic {harmonic} at {100 * level:g} %" + (f", f {df_pct:+g} %" if df_pct else ""),
+        kw.pop("name", name),
+        what + (f", f {df_pct:+g} %" if df_pct else ""),
         f0 * (1.0 + df_pct / 100.0),
         f0,
         rms,
