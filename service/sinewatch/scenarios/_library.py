@@ -248,3 +248,17 @@ class _CompositeStream(ScenarioStream):
 def snr_noise_std(amplitude: float, snr_db: float) -> float:
     """Noise standard deviation giving SNR = A^2 / (2 sigma^2) = snr_db."""
     return amplitude / math.sqrt(2.0 * 10.0 ** (snr_db / 10.0))
+
+
+def served_by(
+    estimator: str, params: dict[str, Any], sample_rate_hz: float, duration_s: float, noise_std: float = 0.0
+) -> dict[str, Any]:
+    """The ``defaults`` of a declared scenario (:func:`sinewatch.scenarios.declare`): its
+    sampling, duration and noise, and the estimator (with a copy of ``params``) suggested for it."""
+    return {
+        "sample_rate_hz": sample_rate_hz,
+        "duration_s": duration_s,
+        "noise_std": noise_std,
+        "suggested_estimator": estimator,
+        "suggested_params": dict(params),
+    }

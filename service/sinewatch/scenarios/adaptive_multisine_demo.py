@@ -28,6 +28,7 @@ import math
 from typing import Any
 
 from sinewatch.scenarios import BenchInfo, Component, Event, declare
+from sinewatch.scenarios._library import served_by
 
 # Example 2's tuning is the estimator's default design (bias, n = 2); the time unit maps
 # one paper rad/s to 2 pi 5 rad/s. min_amplitude sits above the noise (|d| <= 0.25) so that
@@ -54,11 +55,5 @@ declare(
     uniform_noise=0.1,
     dropout=(12.0, 16.0),
     tags=("demo", "multitone", "paper004"),
-    defaults={
-        "sample_rate_hz": 1000.0,
-        "duration_s": 44.0,
-        "noise_std": 0.0,
-        "suggested_estimator": "adaptive-multisine",
-        "suggested_params": MULTISINE_DEMO_PARAMS,
-    },
+    defaults=served_by("adaptive-multisine", MULTISINE_DEMO_PARAMS, 1000.0, 44.0),
 )

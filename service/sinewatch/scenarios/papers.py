@@ -41,6 +41,7 @@ from typing import Any
 
 from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN  # the paper's Section V gains
 from sinewatch.scenarios import BenchInfo, Component, Event, declare
+from sinewatch.scenarios._library import served_by
 
 TWO_PI = 2.0 * math.pi
 
@@ -51,89 +52,115 @@ def _hz(rad_per_s: float) -> float:
 
 # Section IV: fs = 1 kHz, noise std 0.01; ges-kalman with the paper's Q and R
 _P000: dict[str, Any] = {"sample_rate_hz": 1000.0, "noise_std": 0.01, "suggested_params": {"q": 1e-6, "r": 1e-2}}
-declare(
+
+
+def _paper000(
+    name: str, summary: str, component: Component, bench: dict[str, Any], tags: tuple[str, ...], duration_s: float
+) -> None:
+    """A paper-000 signal: offset 1, 1 kHz, the paper's noise and Kalman tuning; ``bench``
+    completes the BenchInfo over the full band 1-499 Hz."""
+    declare(
+        name,
+        summary,
+        [component],
+        BenchInfo(frequency_range_hz=(1.0, 499.0), **bench),
+        offset=1.0,
+        tags=("paper", "paper000", *tags),
+        defaults={**_P000, "duration_s": duration_s},
+    )
+
+
+_paper000(
     "paper000-tone",
     "paper 000 IV-A: sin(2 pi 100 t) + 1 at 1 kHz, noise std 0.01",
-    [Component(100.0)],
-    BenchInfo(
-        nominal_frequency_hz=(90.0,),
-        frequency_range_hz=(1.0, 499.0),
-        steady_windows=((1.0, 10.0),),
-        reference={
+    Component(100.0),
+    {
+        "nominal_frequency_hz": (90.0,),
+        "steady_windows": ((1.0, 10.0),),
+        "reference": {
             "convergence_time_s": "< 0.01 (Fig. 1)",
             "frequency_error_hz": "0.2 most of the time (Fig. 2)",
             "offset_error": "< 0.05 most of the time (Fig. 4)",
         },
-    ),
-    offset=1.0,
-    tags=("paper", "paper000", "stationary", "quick"),
-    defaults={**_P000, "duration_s": 10.0},
+    },
+    ("stationary", "quick"),
+    10.0,
 )
-
-
-declare(
+_paper000(
     "paper000-chirp",
     "paper 000 IV-B: linear chirp f(t) = t Hz (1 Hz/s) + offset 1 at 1 kHz, noise std 0.01",
-    [Component(0.0, rocof=1.0)],
-    BenchInfo(
-        nominal_frequency_hz=(100.0,),  # mid-sweep: the estimators that need one
-        frequency_range_hz=(1.0, 499.0),
-        steady_windows=((20.0, 200.0),),
-        tolerance_hz=1.0,
-        reference={
+    Component(0.0, rocof=1.0),
+    {
+        "nominal_frequency_hz": (100.0,),  # mid-sweep: the estimators that need one
+        "steady_windows": ((20.0, 200.0),),
+        "tolerance_hz": 1.0,
+        "reference": {
             "frequency_error_hz": "about 1 at t = 180 s (Fig. 6)",
             "offset_error": "< 0.01 most of the time (Fig. 8)",
         },
-    ),
-    offset=1.0,
-    tags=("paper", "paper000", "ramp", "tracking"),
-    defaults={**_P000, "duration_s": 200.0},
-)
-
-
-declare(
-    "paper001-tone",
-    "paper 001 Fig. 1: w = 1 rad/s, A = 1, noise-free, sampled at 10 Hz (rate assumed)",
-    [Component(_hz(1.0))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(0.9),),
-        frequency_range_hz=(_hz(0.2), _hz(5.0)),
-        steady_windows=((50.0, 100.0),),
-        reference={"frequency_error": "within a few percent in a fraction of a period (Fig. 1)"},
-    ),
-    tags=("paper", "paper001", "stationary"),
-    defaults={"sample_rate_hz": 10.0, "duration_s": 100.0, "noise_std": 0.0},
-)
-
-
-declare(
-    "paper001-tone-noisy",
-    "paper 001 Fig. 2: w = 1 rad/s, A = 1, SNR 5.2 dB (sigma^2 = 0.15), 10 Hz sampling (assumed)",
-    [Component(_hz(1.0))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(0.9),),
-        frequency_range_hz=(_hz(0.2), _hz(5.0)),
-        steady_windows=((50.0, 100.0),),
-        reference={"frequency_error": "close to the optimum in the first 10 samples (Fig. 2)"},
-    ),
-    tags=("paper", "paper001", "stationary", "snr"),
-    defaults={"sample_rate_hz": 10.0, "duration_s": 100.0, "noise_std": math.sqrt(0.15)},
+    },
+    ("ramp", "tracking"),
+    200.0,
 )
 
 
 _W0 = 1.0  # paper 001's w0, rad/s
-declare(
+
+
+def _paper001(
+    name: str,
+    summary: str,
+    component: Component,
+    steady: tuple[float, float],
+    reference: str,
+    tags: tuple[str, ...],
+    duration_s: float,
+    noise_std: float = 0.0,
+) -> None:
+    """A paper-001 signal around w0 = 1 rad/s, sampled at 10 Hz (assumed), nominal 0.9 w0,
+    band 0.2-5 rad/s; ``reference`` is what the paper says of the frequency error."""
+    declare(
+        name,
+        summary,
+        [component],
+        BenchInfo(
+            nominal_frequency_hz=(_hz(0.9 * _W0),),
+            frequency_range_hz=(_hz(0.2), _hz(5.0)),
+            steady_windows=(steady,),
+            reference={"frequency_error": reference},
+        ),
+        tags=("paper", "paper001", *tags),
+        defaults={"sample_rate_hz": 10.0, "duration_s": duration_s, "noise_std": noise_std},
+    )
+
+
+_paper001(
+    "paper001-tone",
+    "paper 001 Fig. 1: w = 1 rad/s, A = 1, noise-free, sampled at 10 Hz (rate assumed)",
+    Component(_hz(_W0)),
+    (50.0, 100.0),
+    "within a few percent in a fraction of a period (Fig. 1)",
+    ("stationary",),
+    100.0,
+)
+_paper001(
+    "paper001-tone-noisy",
+    "paper 001 Fig. 2: w = 1 rad/s, A = 1, SNR 5.2 dB (sigma^2 = 0.15), 10 Hz sampling (assumed)",
+    Component(_hz(_W0)),
+    (50.0, 100.0),
+    "close to the optimum in the first 10 samples (Fig. 2)",
+    ("stationary", "snr"),
+    100.0,
+    noise_std=math.sqrt(0.15),
+)
+_paper001(
     "paper001-fm",
     "paper 001 Fig. 3: w(t) = w0 [1 + 0.5 sin(0.01 w0 t)], w0 = 1 rad/s, noise-free, 10 Hz",
-    [Component(_hz(_W0), fm_depth=0.5, fm_hz=_hz(0.01 * _W0))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(0.9 * _W0),),
-        frequency_range_hz=(_hz(0.2), _hz(5.0)),
-        steady_windows=((100.0, 1300.0),),
-        reference={"frequency_error": "the estimate follows closely the true frequency (Fig. 3)"},
-    ),
-    tags=("paper", "paper001", "tracking", "modulation"),
-    defaults={"sample_rate_hz": 10.0, "duration_s": 1300.0, "noise_std": 0.0},
+    Component(_hz(_W0), fm_depth=0.5, fm_hz=_hz(0.01 * _W0)),
+    (100.0, 1300.0),
+    "the estimate follows closely the true frequency (Fig. 3)",
+    ("tracking", "modulation"),
+    1300.0,
 )
 
 
@@ -169,13 +196,7 @@ for _w_h in (10.0, 100.0, 1000.0):
         ),
         disturbances=[Component(_hz(_w_h), a0=0.2)],
         tags=("paper", "paper003", "harmonic"),
-        defaults={
-            "sample_rate_hz": 1000.0,
-            "duration_s": 60.0,
-            "noise_std": 0.0,
-            "suggested_estimator": "kkl",
-            "suggested_params": {"f_min_hz": _hz(1.0), "f_max_hz": _hz(9.0)},
-        },
+        defaults=served_by("kkl", {"f_min_hz": _hz(1.0), "f_max_hz": _hz(9.0)}, 1000.0, 60.0),
     )
 
 
@@ -211,96 +232,101 @@ _GAINS_EXP = {
 }
 
 
-def _p004(gains: dict[str, Any], kw: dict[str, Any], fs: float = _FS004) -> dict[str, Any]:
-    """Example settings: Ts = 0.3 ms, noise-free unless said, served by adaptive-multisine."""
-    return {
-        "sample_rate_hz": fs,
-        "noise_std": 0.0,
-        "suggested_estimator": "adaptive-multisine",
-        "suggested_params": dict(gains),
-        **kw,
-    }
+def _paper004(
+    name: str,
+    summary: str,
+    components: list[Component],
+    bench: dict[str, Any],
+    gains: dict[str, Any],
+    duration_s: float,
+    tags: tuple[str, ...] = (),
+    *,
+    initial: tuple[float, float] = (3.0, 4.0),
+    band: tuple[float, float] = (0.5, 10.0),
+    fs: float = _FS004,
+    noise_std: float = 0.0,
+    **composite: Any,
+) -> None:
+    """An example of Section V served by adaptive-multisine with ``gains``: Ts = 0.3 ms
+    unless ``fs`` says, noise-free unless said; the nominal frequencies are the initial
+    guesses ``initial`` and the band ``band`` (rad/s); ``bench`` completes the BenchInfo."""
+    declare(
+        name,
+        summary,
+        components,
+        BenchInfo(
+            nominal_frequency_hz=(_hz(initial[0]), _hz(initial[1])),
+            frequency_range_hz=(_hz(band[0]), _hz(band[1])),
+            **bench,
+        ),
+        tags=("paper", "paper004", "multitone", *tags),
+        defaults=served_by("adaptive-multisine", gains, fs, duration_s, noise_std),
+        **composite,
+    )
 
 
-declare(
-    "paper004-ex1",
-    "paper 004 Example 1: sin 2t + sin 5t, noise-free, Ts = 0.3 ms",
-    [Component(_hz(2.0)), Component(_hz(5.0))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(3.0), _hz(4.0)),  # the paper's initial guesses
-        frequency_range_hz=(_hz(0.5), _hz(10.0)),
-        steady_windows=((50.0, 100.0),),
-        reference={"frequencies": "all methods converge in a noise-free scenario (Fig. 3)"},
+for _suffix, _signal, _fig, _noise in (  # Example 1 with and without its noise
+    ("", "sin 2t + sin 5t, noise-free", "all methods converge in a noise-free scenario (Fig. 3)", 0.0),
+    (
+        "-noisy",
+        "sin 2t + sin 5t + uniform noise in [-0.25, 0.25]",
+        "better noise immunity than [30], [32] (Fig. 4)",
+        0.25,
     ),
-    tags=("paper", "paper004", "multitone"),
-    defaults=_p004(_GAINS_EX1, {"duration_s": 100.0}),
-)
-
-
-declare(
-    "paper004-ex1-noisy",
-    "paper 004 Example 1: sin 2t + sin 5t + uniform noise in [-0.25, 0.25], Ts = 0.3 ms",
-    [Component(_hz(2.0)), Component(_hz(5.0))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(3.0), _hz(4.0)),
-        frequency_range_hz=(_hz(0.5), _hz(10.0)),
-        steady_windows=((50.0, 100.0),),
-        reference={"frequencies": "better noise immunity than [30], [32] (Fig. 4)"},
-    ),
-    uniform_noise=0.25,
-    tags=("paper", "paper004", "multitone"),
-    defaults=_p004(_GAINS_EX1, {"duration_s": 100.0}),
-)
-
-
-declare(
+):
+    _paper004(
+        f"paper004-ex1{_suffix}",
+        f"paper 004 Example 1: {_signal}, Ts = 0.3 ms",
+        [Component(_hz(2.0)), Component(_hz(5.0))],
+        {"steady_windows": ((50.0, 100.0),), "reference": {"frequencies": _fig}},  # nominal: the initial guesses
+        _GAINS_EX1,
+        100.0,
+        uniform_noise=_noise,
+    )
+_paper004(
     "paper004-ex2",
     "paper 004 Example 2: 4 sin 3t + A2 sin 2t + 1, A2 = 3 -> 0 at 120 s, uniform noise +-0.25",
     [Component(_hz(3.0), a0=4.0), Component(_hz(2.0), a0=3.0, t_step=120.0, a_step_factor=0.0)],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(3.0), _hz(4.0)),
-        frequency_range_hz=(_hz(0.5), _hz(10.0)),
-        steady_windows=((60.0, 120.0), (180.0, 240.0)),
-        events=(Event(120.0, "amplitude", -3.0, component=1),),
-        reference={"after_120_s": "the vanished component's amplitude estimate fades to 0 (Fig. 9)"},
-    ),
+    {
+        "steady_windows": ((60.0, 120.0), (180.0, 240.0)),
+        "events": (Event(120.0, "amplitude", -3.0, component=1),),
+        "reference": {"after_120_s": "the vanished component's amplitude estimate fades to 0 (Fig. 9)"},
+    },
+    _GAINS_EX2,
+    240.0,
+    ("step",),
     offset=1.0,
     uniform_noise=0.25,
-    tags=("paper", "paper004", "multitone", "step"),
-    defaults=_p004(_GAINS_EX2, {"duration_s": 240.0}),
 )
-
-
-declare(
+_paper004(
     "paper004-ex3",
     "paper 004 Example 3: frequency steps 2 -> 3 and 5 -> 4.5 rad/s at 70 s, uniform noise +-0.25",
     [Component(_hz(2.0), t_step=70.0, f_step_to=_hz(3.0)), Component(_hz(5.0), t_step=70.0, f_step_to=_hz(4.5))],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(3.0), _hz(4.0)),
-        frequency_range_hz=(_hz(0.5), _hz(10.0)),
-        steady_windows=((35.0, 70.0), (105.0, 140.0)),
-        events=(
+    {
+        "steady_windows": ((35.0, 70.0), (105.0, 140.0)),
+        "events": (
             Event(70.0, "frequency_hz", _hz(1.0), component=0),
             Event(70.0, "frequency_hz", _hz(-0.5), component=1),
         ),
-        reference={"frequencies": "tracks the sudden changes in a noisy environment (Fig. 10)"},
-    ),
+        "reference": {"frequencies": "tracks the sudden changes in a noisy environment (Fig. 10)"},
+    },
+    _GAINS_EX1,
+    140.0,
+    ("step",),
     uniform_noise=0.25,
-    tags=("paper", "paper004", "multitone", "step"),
-    defaults=_p004(_GAINS_EX1, {"duration_s": 140.0}),
 )
-
-
-declare(
+_paper004(
     "paper004-experiment",
     "paper 004 V-B: 4 sin 7t + 2 sin 5t at 10 kHz, Gaussian noise std 0.05 (level assumed)",
     [Component(_hz(7.0), a0=4.0), Component(_hz(5.0), a0=2.0)],
-    BenchInfo(
-        nominal_frequency_hz=(_hz(6.0), _hz(4.0)),
-        frequency_range_hz=(_hz(0.5), _hz(14.0)),
-        steady_windows=((70.0, 100.0),),  # converged within 1 % after 53 s (measured)
-        reference={"frequencies": "gathered with great accuracy (Figs. 13-14)"},
-    ),
-    tags=("paper", "paper004", "multitone"),
-    defaults=_p004(_GAINS_EXP, {"duration_s": 100.0, "noise_std": 0.05}, fs=10_000.0),
+    {
+        "steady_windows": ((70.0, 100.0),),  # converged within 1 % after 53 s (measured)
+        "reference": {"frequencies": "gathered with great accuracy (Figs. 13-14)"},
+    },
+    _GAINS_EXP,
+    100.0,
+    initial=(6.0, 4.0),
+    band=(0.5, 14.0),
+    fs=10_000.0,
+    noise_std=0.05,
 )
