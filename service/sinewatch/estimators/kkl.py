@@ -298,32 +298,50 @@ def parameters_from_x(x: np.ndarray) -> tuple[float, float, float]:
 # ---- parameters ---------------------------------------------------------------------------
 
 
+def lambda_factors_field(default: tuple[float, ...], description: str) -> Any:
+    """The ``lambda_factors`` field: ``default`` and what the description adds after the
+    definition of the factors."""
+    return Field(
+        list(default),
+        description=f"Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); {description}",
+    )
+
+
+def silence_ratio_field(what: str) -> Any:
+    """The ``silence_ratio`` field; ``what`` is the quantity that counts as zero."""
+    return Field(1e-3, gt=0, lt=1, description=f"{what} counts as zero below this fraction of its recent peak")
+
+
+def max_fit_residual_field(residual: str) -> Any:
+    """The ``max_fit_residual`` field; ``residual`` is the relative residual of the inverse map."""
+    return Field(0.05, gt=0, description=f"converged only while {residual} is at most this")
+
+
+def max_prediction_error_field(level: str) -> Any:
+    """The ``max_prediction_error`` field; ``level`` is the running level of y it compares with."""
+    return Field(
+        0.3,
+        gt=0,
+        description="converged only while the running RMS of the one-step prediction error "
+        f"is at most this fraction of the running {level} of y",
+    )
+
+
 class KklParams(EstimatorParams):
     #: the least number of filters m (``kkl-biased`` overrides it: one more unknown)
     min_filters: ClassVar[int] = 4
 
     f_min_hz: float = Field(45.0, gt=0, description="Lower end of the frequency range (Hz), eq. (11)")
     f_max_hz: float = Field(65.0, gt=0, description="Upper end of the frequency range (Hz), eq. (11)")
-    lambda_factors: list[float] = Field(
-        list(PAPER_LAMBDA_FACTORS),
-        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); "
-        "m >= 4, distinct, > 0. Default: the paper's (1, 2, 3, 4) rad/s for 3 rad/s",
+    lambda_factors: list[float] = lambda_factors_field(
+        PAPER_LAMBDA_FACTORS, "m >= 4, distinct, > 0. Default: the paper's (1, 2, 3, 4) rad/s for 3 rad/s"
     )
     settle_time_constants: float = Field(
         6.0, gt=0, description="converged only after this many 1/lambda_min of consecutive good samples"
     )
-    silence_ratio: float = Field(
-        1e-3, gt=0, lt=1, description="xi counts as zero below this fraction of its recent peak"
-    )
-    max_fit_residual: float = Field(
-        0.05, gt=0, description="converged only while |L x - F^2 xi| / |F^2 xi| is at most this"
-    )
-    max_prediction_error: float = Field(
-        0.3,
-        gt=0,
-        description="converged only while the running RMS of the one-step prediction error "
-        "is at most this fraction of the running RMS of y",
-    )
+    silence_ratio: float = silence_ratio_field("xi")
+    max_fit_residual: float = max_fit_residual_field("|L x - F^2 xi| / |F^2 xi|")
+    max_prediction_error: float = max_prediction_error_field("RMS")
 
     @field_validator("f_min_hz", "f_max_hz", "settle_time_constants", "max_fit_residual", "max_prediction_error")
     @classmethod

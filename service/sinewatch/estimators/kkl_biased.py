@@ -60,7 +60,6 @@ from collections.abc import Callable
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field
 
 from sinewatch.estimators import register
 from sinewatch.estimators.base import kernel
@@ -73,7 +72,11 @@ from sinewatch.estimators.kkl import (
     filter_step,
     half_step,
     jump_detector,
+    lambda_factors_field,
+    max_fit_residual_field,
+    max_prediction_error_field,
     observer_constants,
+    silence_ratio_field,
     write_row,
 )
 
@@ -120,22 +123,10 @@ class KklBiasedParams(KklParams):
 
     min_filters: ClassVar[int] = 5
 
-    lambda_factors: list[float] = Field(
-        list(BIASED_LAMBDA_FACTORS),
-        description="Filter poles lambda_i as multiples of omega_ref = 2 pi sqrt(f_min f_max); m >= 5, distinct, > 0",
-    )
-    silence_ratio: float = Field(
-        1e-3, gt=0, lt=1, description="the oscillation counts as zero below this fraction of its recent peak"
-    )
-    max_fit_residual: float = Field(
-        0.05, gt=0, description="converged only while |L_c z - F^2 eta_c| / |F^2 eta_c| is at most this"
-    )
-    max_prediction_error: float = Field(
-        0.3,
-        gt=0,
-        description="converged only while the running RMS of the one-step prediction error "
-        "is at most this fraction of the running standard deviation of y",
-    )
+    lambda_factors: list[float] = lambda_factors_field(BIASED_LAMBDA_FACTORS, "m >= 5, distinct, > 0")
+    silence_ratio: float = silence_ratio_field("the oscillation")
+    max_fit_residual: float = max_fit_residual_field("|L_c z - F^2 eta_c| / |F^2 eta_c|")
+    max_prediction_error: float = max_prediction_error_field("standard deviation")
 
 
 @kernel
