@@ -438,6 +438,77 @@ def observer_constants(
 
 
 @kernel(inline="always")
+def observer_head(
+    state: np.ndarray, m: int, n: int, last_only: bool
+) -> tuple[np.ndarray, float, float, float, float, float, float, np.ndarray, np.ndarray]:
+    """The state entries both kernels start with (a copy of xi_1..xi_m, then y_prev,
+    have_prev, y_pred, pred_valid, n_good, env) and the ``out`` and ``extras`` arrays of a
+    block of ``n`` samples."""
+    rows = 1 if last_only else n
+    return (
+        state[:m].copy(), float(state[m]), state[m + 1], state[m + 2], state[m + 3], state[m + 4], state[m + 5],
+        np.empty((rows, 5)), np.empty((rows, 3)),
+    )  # fmt: skip
+
+
+@kernel(inline="always")
+def prediction_error(
+    yk: float, y_pred: float, pred_valid: float, sse: float, e2_avg: float, avg_gain: float
+) -> tuple[float, float, float]:
+    """The squared one-step prediction error of sample ``yk`` (against 0 while there is no
+    prediction), the block's sum of squares and the running mean square, updated."""
+    e = yk - y_pred if pred_valid != 0.0 else yk
+    e2 = e * e
+    return e2, sse + e2, e2_avg + avg_gain * (e2 - e2_avg)
+
+
+@kernel(inline="always")
+def undefined_sample() -> tuple[bool, bool, float, float, float, float, float, float]:
+    """defined, good, det, A sin(theta), A cos(theta), omega Ts, and the squared fit residual
+    and its reference |F^2 xi|^2, for a sample where the estimate is undefined (until the
+    inverse map says otherwise)."""
+    return False, False, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0
+
+
+@kernel(inline="always")
+def consistent(
+    mu: float, rr: float, ff: float, max_fit2: float, e2_avg: float, max_pred2: float, level: float,
+    jump: bool, wts: float, wts_lo: float, wts_hi: float,
+) -> bool:  # fmt: skip
+    """ "Good" (module docstring, converged): mu = 0, the relative fit residual and the
+    running prediction error (against ``level``, the running mean square or variance of y)
+    within bounds, no jump, and omega Ts inside the converged range."""
+    return mu == 0.0 and rr <= max_fit2 * ff and e2_avg <= max_pred2 * level and not jump and wts_lo <= wts <= wts_hi
+
+
+@kernel(inline="always")
+def record_sample(
+    out: np.ndarray, ext: np.ndarray, k: int, n: int, last_only: bool, good: bool, n_good: float,
+    n_settle: float, defined: bool, frequency_hz: float, a_sin: float, a_cos: float, offset: float,
+    margin: float, fit: float, e2_avg: float, level: float,
+) -> float:  # fmt: skip
+    """Count ``good`` samples (converged after n_settle in a row) and write sample ``k``'s
+    row unless only the last is wanted; the prediction error is relative to ``level``.
+    Returns the new count."""
+    n_good = min(n_good + 1.0, n_settle) if good else 0.0
+    if not last_only or k == n - 1:
+        j = 0 if last_only else k
+        ext[j, 2] = math.sqrt(e2_avg / level) if level > 0.0 else np.nan
+        write_row(out, ext, j, defined, frequency_hz, a_sin, a_cos, offset, good and n_good >= n_settle, margin, fit)
+    return n_good
+
+
+@kernel(inline="always")
+def packed_state(xi: np.ndarray, tail: np.ndarray) -> np.ndarray:
+    """The new state array: xi, then the kernel's scalars ``tail``."""
+    m = xi.shape[0]
+    new_state = np.empty(m + tail.shape[0])
+    new_state[:m] = xi
+    new_state[m:] = tail
+    return new_state
+
+
+@kernel(inline="always")
 def filter_step(xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, y_prev: float, yk: float) -> None:
     """(12) over one sample, exact for y linear between samples (in place); entries below
     FLUSH become 0 (no denormals in a long silence)."""
@@ -522,14 +593,11 @@ def kkl_kernel(
     columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
-    m = lam.shape[0]
     Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
         observer_constants(consts)
     )  # fmt: skip
-    xi = state[:m].copy()
-    y_prev, have_prev = float(state[m]), state[m + 1]
-    y_pred, pred_valid = state[m + 2], state[m + 3]
-    n_good, env = state[m + 4], state[m + 5]
+    m, n = lam.shape[0], y.shape[0]
+    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
     e2_avg, y2_avg = state[m + 6], state[m + 7]
     e2_fast, e2_slow = state[m + 8], state[m + 9]
     # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
@@ -539,10 +607,6 @@ def kkl_kernel(
         s_ll += lam[i] * lam[i]
         s_l += lam[i]
     s_11 = float(m)
-    n = y.shape[0]
-    rows = 1 if last_only else n
-    out = np.empty((rows, 5))
-    ext = np.empty((rows, 3))
     sse = 0.0
     for k in range(n):
         yk = y[k]
@@ -551,10 +615,8 @@ def kkl_kernel(
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error and its running mean square, against that of y
-        e = yk - y_pred if pred_valid != 0.0 else yk
-        sse += e * e
-        e2_avg += avg_gain * (e * e - e2_avg)
-        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
+        e2, sse, e2_avg = prediction_error(yk, y_pred, pred_valid, sse, e2_avg, avg_gain)
+        jump, e2_fast, e2_slow = jump_detector(e2, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
         y2_avg += avg_gain * (yk * yk - y2_avg)
         # sums over the filters
         s2 = 0.0
@@ -575,15 +637,8 @@ def kkl_kernel(
         s = math.sqrt(s2)
         env = max(s, env * env_decay)
         pred_valid = 0.0
-        defined = False
-        good = False
+        defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()
         mu = 0.0
-        det = 0.0
-        a_sin = 0.0
-        a_cos = 0.0
-        wts = 0.0
-        rr = 0.0
-        ff = 1.0
         if s > ABS_FLOOR and s >= silence_ratio * env:  # else "xi near 0": undefined
             inv = 1.0 / s
             # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
@@ -632,26 +687,14 @@ def kkl_kernel(
                             res = lam[i] * z0 + z1 - xn * z2 - t
                             rr += res * res
                             ff += t * t
-                        good = (
-                            mu == 0.0
-                            and rr <= max_fit2 * ff
-                            and e2_avg <= max_pred2 * y2_avg
-                            and not jump
-                            and wts_lo <= wts <= wts_hi
-                        )
-        # converged after n_settle consecutive good samples
-        n_good = min(n_good + 1.0, n_settle) if good else 0.0
-        if last_only and k != n - 1:
-            continue
-        j = 0 if last_only else k
-        ext[j, 2] = math.sqrt(e2_avg / y2_avg) if y2_avg > 0.0 else np.nan
-        # omega = omega_ref sqrt(x3~); the model has no offset: 0 whenever defined
-        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, 0.0 if defined else np.nan,
-                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
-    new_state = np.empty(m + 10)
-    new_state[:m] = xi
-    new_state[m:] = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
-    return out, ext, sse, new_state
+                        good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
+        # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
+        # model has no offset: 0 whenever defined
+        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts / (2.0 * math.pi * Ts),
+                               a_sin, a_cos, 0.0 if defined else np.nan, 2.0 * det / ell, math.sqrt(rr / ff), e2_avg,
+                               y2_avg)  # fmt: skip
+    tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
+    return out, ext, sse, packed_state(xi, tail)
 
 
 # ---- estimator ----------------------------------------------------------------------------

@@ -68,6 +68,7 @@ from sinewatch.estimators.kkl import (
     PAPER_LAMBDA_FACTORS,
     FilterBankObserver,
     KklParams,
+    consistent,
     ell_eq10,
     filter_step,
     half_step,
@@ -76,8 +77,12 @@ from sinewatch.estimators.kkl import (
     max_fit_residual_field,
     max_prediction_error_field,
     observer_constants,
+    observer_head,
+    packed_state,
+    prediction_error,
+    record_sample,
     silence_ratio_field,
-    write_row,
+    undefined_sample,
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
@@ -154,23 +159,16 @@ def kkl_biased_kernel(
     converged range, and the gains of the jump detector's fast and slow means. Pure: the
     inputs are not modified.
     """
-    m = lam.shape[0]
     Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
         observer_constants(consts)
     )  # fmt: skip
-    xi = state[:m].copy()
-    y_prev, have_prev = float(state[m]), state[m + 1]
-    y_pred, pred_valid = state[m + 2], state[m + 3]
-    n_good, env = state[m + 4], state[m + 5]
+    m, n = lam.shape[0], y.shape[0]
+    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
     e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
     e2_fast, e2_slow = state[m + 10], state[m + 11]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
     ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
-    n = y.shape[0]
-    rows = 1 if last_only else n
-    out = np.empty((rows, 5))
-    ext = np.empty((rows, 3))
     sse = 0.0
     for k in range(n):
         yk = y[k]
@@ -181,13 +179,11 @@ def kkl_biased_kernel(
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error; running mean and variance of y
-        e = yk - y_pred if pred_valid != 0.0 else yk
-        sse += e * e
-        e2_avg += avg_gain * (e * e - e2_avg)
+        e2, sse, e2_avg = prediction_error(yk, y_pred, pred_valid, sse, e2_avg, avg_gain)
         y_avg += avg_gain * (yk - y_avg)
         dy = yk - y_avg
         yv_avg += avg_gain * (dy * dy - yv_avg)
-        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, yv_avg)
+        jump, e2_fast, e2_slow = jump_detector(e2, e2_fast, e2_slow, fast_gain, slow_gain, yv_avg)
         # eta = lambda xi, its mean and centred part
         eta_bar = 0.0
         for i in range(m):
@@ -211,15 +207,8 @@ def kkl_biased_kernel(
         s = math.sqrt(s2)
         env = max(s, env * env_decay)
         pred_valid = 0.0
-        defined = False
-        good = False
+        defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()
         offset = np.nan
-        det = 0.0
-        a_sin = 0.0
-        a_cos = 0.0
-        wts = 0.0
-        rr = 0.0
-        ff = 1.0
         if n_run >= n_settle:
             offset = eta_bar  # exact for a constant input; replaced below when defined
             y_pred = eta_bar
@@ -279,28 +268,16 @@ def kkl_biased_kernel(
                             res = lam[i] * lam[i] * z0 + lam[i] * z1 + z2 - cn * z3 - t
                             rr += res * res
                             ff += t * t
-                        good = (
-                            mu == 0.0
-                            and n_run >= n_settle
-                            and rr <= max_fit2 * ff
-                            and e2_avg <= max_pred2 * yv_avg
-                            and not jump
-                            and wts_lo <= wts <= wts_hi
+                        good = n_run >= n_settle and consistent(
+                            mu, rr, ff, max_fit2, e2_avg, max_pred2, yv_avg, jump, wts, wts_lo, wts_hi
                         )
-        n_good = min(n_good + 1.0, n_settle) if good else 0.0
-        if last_only and k != n - 1:
-            continue
-        j = 0 if last_only else k
-        ext[j, 2] = math.sqrt(e2_avg / yv_avg) if yv_avg > 0.0 else np.nan
         # the offset is reported even while the oscillation is undefined
-        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
-                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
-    new_state = np.empty(m + 12)
-    new_state[:m] = xi
-    new_state[m:] = np.array(
+        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts / (2.0 * math.pi * Ts),
+                               a_sin, a_cos, offset, 2.0 * det / ell, math.sqrt(rr / ff), e2_avg, yv_avg)  # fmt: skip
+    tail = np.array(
         [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
     )
-    return out, ext, sse, new_state
+    return out, ext, sse, packed_state(xi, tail)
 
 
 @register
