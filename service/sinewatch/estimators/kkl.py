@@ -484,17 +484,19 @@ def consistent(
 @kernel(inline="always")
 def record_sample(
     out: np.ndarray, ext: np.ndarray, k: int, n: int, last_only: bool, good: bool, n_good: float,
-    n_settle: float, defined: bool, frequency_hz: float, a_sin: float, a_cos: float, offset: float,
-    margin: float, fit: float, e2_avg: float, level: float,
+    n_settle: float, defined: bool, wts: float, Ts: float, a_sin: float, a_cos: float, offset: float,
+    det: float, ell: float, rr: float, ff: float, e2_avg: float, level: float,
 ) -> float:  # fmt: skip
     """Count ``good`` samples (converged after n_settle in a row) and write sample ``k``'s
-    row unless only the last is wanted; the prediction error is relative to ``level``.
-    Returns the new count."""
+    row unless only the last is wanted: frequency from omega Ts, the margin 2 det / l, the
+    relative fit residual, and the prediction error relative to ``level``. Returns the new
+    count."""
     n_good = min(n_good + 1.0, n_settle) if good else 0.0
     if not last_only or k == n - 1:
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / level) if level > 0.0 else np.nan
-        write_row(out, ext, j, defined, frequency_hz, a_sin, a_cos, offset, good and n_good >= n_settle, margin, fit)
+        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
+                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
     return n_good
 
 
@@ -690,9 +692,8 @@ def kkl_kernel(
                         good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
         # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
         # model has no offset: 0 whenever defined
-        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts / (2.0 * math.pi * Ts),
-                               a_sin, a_cos, 0.0 if defined else np.nan, 2.0 * det / ell, math.sqrt(rr / ff), e2_avg,
-                               y2_avg)  # fmt: skip
+        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
+                               0.0 if defined else np.nan, det, ell, rr, ff, e2_avg, y2_avg)  # fmt: skip
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
 

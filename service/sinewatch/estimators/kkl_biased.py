@@ -272,8 +272,8 @@ def kkl_biased_kernel(
                             mu, rr, ff, max_fit2, e2_avg, max_pred2, yv_avg, jump, wts, wts_lo, wts_hi
                         )
         # the offset is reported even while the oscillation is undefined
-        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts / (2.0 * math.pi * Ts),
-                               a_sin, a_cos, offset, 2.0 * det / ell, math.sqrt(rr / ff), e2_avg, yv_avg)  # fmt: skip
+        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
+                               offset, det, ell, rr, ff, e2_avg, yv_avg)  # fmt: skip
     tail = np.array(
         [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
     )
