@@ -31,6 +31,7 @@ from sinewatch.estimators.differential_rls import (
     transform_scratch,
 )
 from sinewatch.scenarios import get as get_scenario
+from sinewatch.scenarios.papers import paper001_baseband
 from sinewatch.schemas.errors import ParameterError
 
 NAME = "differential-rls"
@@ -208,9 +209,7 @@ FIG1_DT = [0.6, 0.54]  # about 10.5 samples per cycle, cyclic T, 0.9 T (Section 
 
 
 def fig1(k: int, **kw):
-    dt = cyclic_intervals(k, FIG1_DT)
-    t = np.cumsum(dt)
-    c = np.exp(1j * (W * t + 0.3))
+    dt, t, c = paper001_baseband(k, FIG1_DT, W)
     opts = {"n_terms": 4, "forgetting_factor": 0.995, "els": False, "p0": 1e4}  # lam = 0.995 as in Section 10
     opts.update(kw)
     return t, baseband_estimate(c, dt, **opts)
@@ -252,9 +251,7 @@ def test_fig2_noisy_case_els_removes_the_bias():
     # truncation (the noise-free error), and lowers the RMS (0.037 -> 0.020 rad/s); 8 seeds.
     M, k = 5, 6000
     T0 = (np.pi / 2.0) / M
-    dt = cyclic_intervals(k, [T0])
-    t = np.cumsum(dt)
-    c = np.exp(1j * (W * t + 0.3))
+    dt, _, c = paper001_baseband(k, [T0], W)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     free = baseband_estimate(c, dt, els=False, **opts)["frequency_rad_s"]
     trunc = free[-1] - W
@@ -279,15 +276,14 @@ def test_els_whitens_white_noise():
     # dt = 0.2 s. Plain LS is biased by -sigma_c^2 / (A^2 + sigma_c^2) = -23 % (plus the
     # -0.67 % truncation); measured -24.0 % over 4 seeds. ELS: -0.73 %, the truncation floor.
     k, dt0 = 4000, 0.2
-    dt = cyclic_intervals(k, [dt0])
-    t = np.cumsum(dt)
+    dt, _, tone = paper001_baseband(k, [dt0], W)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     floor = -((W * dt0) ** 2) / 6
     bias_ls, bias_els = [], []
     for seed in range(4):
         rng = np.random.default_rng(seed)
         noise = np.sqrt(0.15) * (rng.standard_normal(k) + 1j * rng.standard_normal(k))
-        c = np.exp(1j * (W * t + 0.3)) + noise
+        c = tone + noise
         ls = baseband_estimate(c, dt, els=False, **opts)["frequency_rad_s"][500:]
         els = baseband_estimate(c, dt, els=True, els_damping=0.9, **opts)
         bias_ls.append(ls.mean() - W)

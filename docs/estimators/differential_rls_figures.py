@@ -20,6 +20,7 @@ from sinewatch.estimators.differential_rls import (
     differential_rls_kernel,
 )
 from sinewatch.scenarios import get as get_scenario
+from sinewatch.scenarios.papers import paper001_baseband
 
 W = 1.0
 FS = 1000.0
@@ -29,9 +30,7 @@ P50 = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 def fig1():
     print("## Fig. 1: noise-free, w = 1 rad/s, n = 4, dt = 0.6 / 0.54 s cyclic, lam = 0.995, LS\n")
     k = 3000
-    dt = cyclic_intervals(k, [0.6, 0.54])
-    t = np.cumsum(dt)
-    c = np.exp(1j * (W * t + 0.3))
+    dt, t, c = paper001_baseband(k, [0.6, 0.54], W)
     opts = {"n_terms": 4, "forgetting_factor": 0.995, "els": False, "p0": 1e4}
     r = baseband_estimate(c, dt, **opts)
     ref = baseband_estimate(c, dt, **{**opts, "p0": 1e12})
@@ -52,9 +51,7 @@ def fig2():
     print("## Fig. 2: 5.2 dB (sigma^2 = .15 per component), M = 5, n = 2, dt = T_sN / 5 = 0.314 s\n")
     m, k = 5, 6000
     t0 = (np.pi / 2) / m
-    dt = cyclic_intervals(k, [t0])
-    t = np.cumsum(dt)
-    c = np.exp(1j * (W * t + 0.3))
+    dt, _, c = paper001_baseband(k, [t0], W)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     free = baseband_estimate(c, dt, els=False, **opts)["frequency_rad_s"]
     rows = {"LS": {"els": False}, "ELS rho=0.9, r1=sinc(1/5)": {"els": True, "els_damping": 0.9,
@@ -81,8 +78,7 @@ def fig2():
 def white():
     print("## White I/Q noise (the model of eq. 11), sigma^2 = .15, n = 2, dt = 0.2 s, 4 seeds\n")
     k, dt0 = 4000, 0.2
-    dt = cyclic_intervals(k, [dt0])
-    t = np.cumsum(dt)
+    dt, _, tone = paper001_baseband(k, [dt0], W)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     print("| algorithm | bias (rad/s) | RMS (rad/s) |")
     print("|---|---|---|")
@@ -91,7 +87,7 @@ def white():
         b, r = [], []
         for seed in range(4):
             rng = np.random.default_rng(seed)
-            c = np.exp(1j * (W * t + 0.3)) + np.sqrt(0.15) * (rng.standard_normal(k) + 1j * rng.standard_normal(k))
+            c = tone + np.sqrt(0.15) * (rng.standard_normal(k) + 1j * rng.standard_normal(k))
             f = baseband_estimate(c, dt, **opts, **kw)["frequency_rad_s"][500:]
             b.append(f.mean() - W)
             r.append(f.std())

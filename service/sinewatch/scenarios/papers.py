@@ -39,7 +39,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
 from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN  # the paper's Section V gains
+from sinewatch.estimators.differential_rls import cyclic_intervals
 from sinewatch.scenarios import BenchInfo, Component, Event, declare
 from sinewatch.scenarios._library import served_by
 
@@ -132,6 +135,19 @@ def _paper001(
         tags=("paper", "paper001", *tags),
         defaults={"sample_rate_hz": 10.0, "duration_s": duration_s, "noise_std": noise_std},
     )
+
+
+def paper001_baseband(
+    k: int, intervals: list[float], w: float = _W0, phase: float = 0.3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Paper 001's own setting (Section 10), complex baseband rather than a sampled real
+    signal, hence no scenario: ``k`` sampling intervals cycling through ``intervals``
+    (nonuniform cyclic sampling; dt[0] = 0), the sample times and the noise-free in-phase /
+    quadrature samples ``c = exp(j (w t + phase))``, for
+    :func:`sinewatch.estimators.differential_rls.baseband_estimate`."""
+    dt = cyclic_intervals(k, intervals)
+    t = np.cumsum(dt)
+    return dt, t, np.exp(1j * (w * t + phase))
 
 
 _paper001(
