@@ -482,18 +482,36 @@ def _next_peak(resid, nu, k, iconsts, cos_tab, sin_tab, re, im):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _residual(xw, nu, k, n_lin0, coef, out):
+    """The fit's residual into ``out``; returns its sum of squares (exact, unlike the
+    normal-equation value, whose round-off would decide the order of a noise-free fit)."""
     N = xw.shape[0]
     c = 0.5 * (N - 1)
+    s = np.empty(k)
+    co = np.empty(k)
+    cw = np.empty(k)
+    sw = np.empty(k)
+    for j in range(k):
+        cw[j] = math.cos(nu[j] / c)
+        sw[j] = math.sin(nu[j] / c)
+    r2 = 0.0
     for n in range(N):
         m = n - c
-        u = m / c
+        if (n & 255) == 0:
+            for j in range(k):
+                s[j] = math.sin(nu[j] / c * m)
+                co[j] = math.cos(nu[j] / c * m)
         v = coef[0]
         if n_lin0 == 2:
-            v += coef[1] * u
+            v += coef[1] * (m / c)
         for j in range(k):
-            arg = nu[j] * u
-            v += coef[n_lin0 + 2 * j] * math.sin(arg) + coef[n_lin0 + 2 * j + 1] * math.cos(arg)
-        out[n] = xw[n] - v
+            v += coef[n_lin0 + 2 * j] * s[j] + coef[n_lin0 + 2 * j + 1] * co[j]
+            sn = s[j] * cw[j] + co[j] * sw[j]
+            co[j] = co[j] * cw[j] - s[j] * sw[j]
+            s[j] = sn
+        e = xw[n] - v
+        out[n] = e
+        r2 += e * e
+    return r2
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -510,23 +528,30 @@ def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
     re = np.empty(nfft)
     im = np.empty(nfft)
     resid = np.empty(N)
+    p_top = n_lin0 + 2 * k_top
+    q_top = p_top + k_top
+    # every order's fit, kept for the choice (5)
     nus = np.zeros((k_top + 1, max(k_top, 1)))
+    coefs = np.zeros((k_top + 1, p_top))
+    covs = np.zeros((k_top + 1, q_top, q_top))
     r2s = np.full(k_top + 1, math.inf)
     convs = np.zeros(k_top + 1, dtype=np.bool_)
-    # k = 0: offset (and trend) only
-    coef0 = np.zeros(n_lin0)
-    cov0 = np.zeros((n_lin0, n_lin0))
-    nu_empty = np.zeros(0)
-    ok, cv, r2, _nu = _fit(xw, nu_empty, 0, n_lin0, 1, nu_max, coef0, cov0)
     xx = 0.0
     for n in range(N):
         xx += xw[n] * xw[n]
     floor = max(N * (1e-7) ** 2 * (xx / N), 1e-300)
-    r2s[0] = max(r2, floor) if ok else math.inf
-    convs[0] = ok
-    k_done = 0
+    # k = 0: offset (and trend) only
+    coef = np.zeros(n_lin0)
+    cov = np.zeros((n_lin0, n_lin0))
+    nu = np.zeros(0)
+    ok, cv, r2, nu = _fit(xw, nu, 0, n_lin0, 1, nu_max, coef, cov)
+    k_done = -1
     if ok:
-        _residual(xw, nu_empty, 0, n_lin0, coef0, resid)
+        r2s[0] = _residual(xw, nu, 0, n_lin0, coef, resid)
+        convs[0] = True
+        coefs[0, :n_lin0] = coef
+        covs[0, :n_lin0, :n_lin0] = cov
+        k_done = 0
         for k in range(k_top):
             nu_start = np.empty(k + 1)
             for j in range(k):
@@ -535,8 +560,9 @@ def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
             if cand < 0.0:
                 break
             nu_start[k] = cand
-            coef = np.zeros(n_lin0 + 2 * (k + 1))
-            cov = np.zeros((n_lin0 + 3 * (k + 1), n_lin0 + 3 * (k + 1)))
+            p = n_lin0 + 2 * (k + 1)
+            coef = np.zeros(p)
+            cov = np.zeros((p + k + 1, p + k + 1))
             ok, cv, r2, nu = _fit(xw, nu_start, k + 1, n_lin0, max_iter, nu_max, coef, cov)
             if not ok:
                 break
@@ -548,14 +574,20 @@ def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
                         merged = True
             if merged:
                 break
-            for j in range(k + 1):
-                nus[k + 1, j] = nu[j]
-            r2s[k + 1] = max(r2, floor)
+            nus[k + 1, : k + 1] = nu
+            coefs[k + 1, :p] = coef
+            covs[k + 1, : p + k + 1, : p + k + 1] = cov
+            r2s[k + 1] = _residual(xw, nu, k + 1, n_lin0, coef, resid)
             convs[k + 1] = cv
             k_done = k + 1
-            if k + 1 < k_top:
-                _residual(xw, nu, k + 1, n_lin0, coef, resid)
-    # order
+    for i in range(tones.shape[0]):
+        for f in range(tones.shape[1]):
+            tones[i, f] = 0.0
+    for f in range(glob.shape[0]):
+        glob[f] = 0.0
+    if k_done < 0:
+        return
+    # order (5)
     if k_fixed > 0:
         kk = k_done
     else:
@@ -563,28 +595,19 @@ def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
         best = math.inf
         lnN = math.log(N)
         for k in range(k_done + 1):
-            ll = 0.5 * N * math.log(r2s[k] / N)
+            ll = 0.5 * N * math.log(max(r2s[k], floor) / N)
             p_lin = n_lin0 + 2 * k
             crit = ll + (p_lin + k) if use_aic else ll + (0.5 * p_lin + 1.5 * k) * lnN
             if crit < best:
                 best = crit
                 kk = k
-    # the chosen fit, again (one pass from its converged frequencies), and (6)-(7)
     p = n_lin0 + 2 * kk
     q = p + kk
-    coef = np.zeros(p)
-    cov = np.zeros((q, q))
-    nu = np.empty(kk)
-    for j in range(kk):
-        nu[j] = nus[kk, j]
-    ok, cv, r2, nu = _fit(xw, nu, kk, n_lin0, max_iter, nu_max, coef, cov)
-    for i in range(tones.shape[0]):
-        for f in range(tones.shape[1]):
-            tones[i, f] = 0.0
-    for f in range(glob.shape[0]):
-        glob[f] = 0.0
-    if not ok:
-        return
+    nu = nus[kk, :kk].copy()
+    coef = coefs[kk, :p].copy()
+    cov = covs[kk, :q, :q].copy()
+    r2 = r2s[kk]
+    cv = convs[kk]
     sigma2 = r2 / max(N - q, 1)
     order = np.argsort(nu)
     a_max = 0.0
