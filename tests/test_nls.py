@@ -3,19 +3,19 @@ Cramer-Rao bound (``sinewatch.crlb``), its reported standard deviations against 
 they describe, and its choice of the number of tones on the multitone scenarios and on the
 multi-sine examples of Chen, Pin, Ng, Hui and Parisini (paper 004).
 
-Monte Carlo trials are seeded; each trial is one window of fresh noise, random phases and
-frequencies jittered by up to half a DFT bin, and one estimate at the window's last sample.
+Monte Carlo trials (``sinewatch.bench.crlb_window``, which also prints the table) are
+seeded; each trial is one window of fresh noise, random phases and frequencies jittered by
+up to half a DFT bin, and one estimate at the window's last sample.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
 
 from sinewatch import crlb
 from sinewatch import scenarios as sc_registry
+from sinewatch.bench import crlb_window
 from sinewatch.estimators import create
 from sinewatch.schemas.errors import ParameterError
 
@@ -27,64 +27,27 @@ def _wrap(p: np.ndarray) -> np.ndarray:
     return np.pi - np.mod(np.pi - p, 2.0 * np.pi)
 
 
-def monte_carlo(
-    n: int,
-    freqs: list[float],
-    amps: list[float],
-    snr_db: float,
-    trials: int,
-    seed: int,
-    offset: float = 0.5,
-) -> dict[str, np.ndarray]:
-    """Per tone and parameter: 10 log10(MSE / mean CRLB) and the sd of error / reported sd.
-    SNR is that of the first tone, A^2 / (2 sigma^2)."""
-    rng = np.random.default_rng(seed)
-    k = len(freqs)
-    sigma = amps[0] / math.sqrt(2.0 * 10.0 ** (snr_db / 10.0))
-    t = np.arange(n) / FS
-    err = np.zeros((trials, k, 4))
-    sd = np.zeros((trials, k, 4))
-    bound = np.zeros((trials, k, 4))
-    bin_hz = FS / n
-    for i in range(trials):
-        f = np.array(freqs) + rng.uniform(-0.5, 0.5, k) * bin_hz
-        ph0 = rng.uniform(-np.pi, np.pi, k)
-        x = offset + np.sum(np.array(amps)[:, None] * np.sin(2 * np.pi * f[:, None] * t + ph0[:, None]), axis=0)
-        x = x + sigma * rng.standard_normal(n)
-        est = create(
-            "nls", FS, n_components=k, min_frequency_hz=20.0, window_samples=n, hop_samples=n, zero_pad=4
-        )
-        tr = est.update(x, last_only=True)
-        assert tr.converged[0]
-        ph_end = _wrap(2 * np.pi * f * t[-1] + ph0)
-        if k == 1:  # the one-tone bound as the module states it, and the K-tone one otherwise
-            b1 = crlb.crlb(n, f[0], amps[0], ph_end[0], sigma, FS)
-            bounds = [b1]
-        else:
-            bounds = crlb.crlb_tones(n, list(f), list(amps), list(ph_end), sigma, FS)
-        for j in range(k):
-            e = [
-                tr.frequency_hz[0, j] - f[j],
-                tr.amplitude[0, j] - amps[j],
-                _wrap(np.array(tr.phase_rad[0, j] - ph_end[j])),
-                tr.offset[0] - offset,
-            ]
-            err[i, j] = e
-            sd[i, j] = [tr.std.frequency_hz[0, j], tr.std.amplitude[0, j], tr.std.phase_rad[0, j], tr.std.offset[0]]
-            b = bounds[j]
-            bound[i, j] = [b.frequency_hz, b.amplitude, b.phase_rad, b.offset]
-    return {
-        "db": 10.0 * np.log10(np.mean(err**2, axis=0) / np.mean(bound, axis=0)),  # (k, 4)
-        "calibration": np.std(err / sd, axis=0),  # (k, 4)
-    }
-
-
 def _check(res: dict[str, np.ndarray], max_db: float, what: str) -> None:
     db, cal = res["db"], res["calibration"]
+    assert float(res["converged"]) == 1.0, f"{what}: converged in {float(res['converged']):.0%} of trials"
     for j in range(db.shape[0]):
         for p, name in enumerate((*PARAMS, "offset")):
             assert abs(db[j, p]) <= max_db, f"{what} tone {j} {name}: {db[j, p]:+.2f} dB from the CRLB"
             assert 0.9 <= cal[j, p] <= 1.1, f"{what} tone {j} {name}: sd(error / reported sd) = {cal[j, p]:.3f}"
+
+
+def test_crlb_tones_of_one_tone_is_crlb():
+    one = crlb.crlb(300, 50.3, 1.2, 0.7, 0.1, FS)
+    (k1,) = crlb.crlb_tones(300, [50.3], [1.2], [0.7], 0.1, FS)
+    for q in ("frequency_hz", "amplitude", "phase_rad", "offset"):
+        assert getattr(k1, q) == pytest.approx(getattr(one, q), rel=1e-10)
+    # a second tone two bins away costs the first a little, never nothing
+    two = crlb.crlb_tones(300, [50.3, 50.3 + 2 * FS / 300], [1.2, 1.0], [0.7, 0.1], 0.1, FS)
+    assert two[0].frequency_hz > one.frequency_hz
+
+
+def monte_carlo(n: int, freqs: list[float], amps: list[float], snr_db: float, trials: int, seed: int):
+    return crlb_window.monte_carlo("nls", crlb_window.Case(n, tuple(freqs), tuple(amps), snr_db), trials, seed)
 
 
 # ---- at the bound -------------------------------------------------------------------------------
@@ -188,9 +151,7 @@ def _check_order(name: str, windows: list[tuple[float, float]], freq_tol_hz: flo
         assert np.all(np.isnan(tr.frequency_hz[sel][:, k:]))
 
 
-@pytest.mark.parametrize(
-    "name", ["multitone-2-separated", "multitone-2-close", "multitone-2-weak", "multitone-3"]
-)
+@pytest.mark.parametrize("name", ["multitone-2-separated", "multitone-2-close", "multitone-2-weak", "multitone-3"])
 def test_k_unknown_finds_the_tones_of_the_multitone_scenarios(name):
     # 4 cycles of 10 Hz: 400 samples; the close pair (5 Hz) is two DFT bins apart
     _check_order(name, [(5.0, 10.0)], 0.05, min_frequency_hz=10.0, max_frequency_hz=250.0, window_cycles=4.0)

@@ -241,11 +241,11 @@ def _fft_inplace(re, im, cos_tab, sin_tab, tstride):
             for k in range(start, start + half):
                 wr = cos_tab[t]
                 wi = -sin_tab[t]
-                l = k + half
-                xr = re[l] * wr - im[l] * wi
-                xi = re[l] * wi + im[l] * wr
-                re[l] = re[k] - xr
-                im[l] = im[k] - xi
+                h = k + half
+                xr = re[h] * wr - im[h] * wi
+                xi = re[h] * wi + im[h] * wr
+                re[h] = re[k] - xr
+                im[h] = im[k] - xi
                 re[k] += xr
                 im[k] += xi
                 t += step
@@ -452,14 +452,14 @@ def _gn_step(G, gy, xx, k, n_lin0, coef, JtJ, cov, zlin):
             JtJ[i, p + j] = v
             JtJ[p + j, i] = v
         rhs[p + j] = aj * gy[cj] - bj * gy[sj]
-        for l in range(j, k):
-            al = coef[n_lin0 + 2 * l]
-            bl = coef[n_lin0 + 2 * l + 1]
-            sl = e0 + 2 * l
+        for i2 in range(j, k):
+            al = coef[n_lin0 + 2 * i2]
+            bl = coef[n_lin0 + 2 * i2 + 1]
+            sl = e0 + 2 * i2
             cl = sl + 1
             v = aj * al * G[cj, cl] - aj * bl * G[cj, sl] - bj * al * G[sj, cl] + bj * bl * G[sj, sl]
-            JtJ[p + j, p + l] = v
-            JtJ[p + l, p + j] = v
+            JtJ[p + j, p + i2] = v
+            JtJ[p + i2, p + j] = v
     if not _chol_inverse(JtJ, q, cov):
         return False, r2, delta
     for j in range(k):
