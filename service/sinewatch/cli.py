@@ -93,7 +93,7 @@ def cmd_estimators(args: argparse.Namespace) -> int:
         cls = get(name)
         print(f"{name}: {cls.summary}" + (f"  [paper {cls.paper}]" if cls.paper else ""))
         for field, info in params.model_fields.items():
-            default = info.default if info.default_factory is None else info.default_factory()
+            default = info.get_default(call_default_factory=True)
             print(f"    {field} = {default!r}  {info.description or ''}")
     return 0
 
@@ -155,7 +155,7 @@ def format_estimate(msg: dict[str, Any]) -> str:
     if "frequency_hz" not in msg:  # errors and status: show as JSON
         return json.dumps({k: v for k, v in msg.items() if k != "_key"})
 
-    def f(values: list, spec: str) -> str:
+    def f(values: list[float | None], spec: str) -> str:
         return ",".join("nan" if v is None else format(v, spec) for v in values)
 
     d = msg["diagnostics"]

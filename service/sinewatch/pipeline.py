@@ -223,7 +223,7 @@ class PipelineCounters:
     inputs: int = 0
     estimates: int = 0
     errors: int = 0
-    by_kind: Counter = field(default_factory=Counter)
+    by_kind: Counter[str] = field(default_factory=Counter)
 
 
 class Pipeline:
@@ -250,7 +250,7 @@ class Pipeline:
         self._rule_exprs = [zenoh.KeyExpr(r.match) for r in self.rules]
         self.channels: dict[str, Channel] = {}
         self.counters = PipelineCounters()
-        self._error_counts: Counter = Counter()  # (key, kind) -> count, for ErrorReport.count
+        self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
 
     # ---- the one entry point ---------------------------------------------------------------

@@ -26,7 +26,7 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
@@ -76,7 +76,7 @@ class ReplayResult:
     incomplete_files: list[Path] = field(default_factory=list)
     compared: bool = True
     uncompared_tail: int = 0  # estimates past the end of an incomplete recording
-    final: dict[str, dict[str, tuple[bytes | None, bytes | None]]] = field(default_factory=dict)
+    final: dict[str, tuple[bytes | None, bytes | None]] = field(default_factory=dict)
     out_paths: list[Path] = field(default_factory=list)
 
     @property
@@ -168,7 +168,7 @@ def replay(
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None
     comparator = _Comparator()
-    pending_snapshot: dict | None = None
+    pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
     estimate_version = ESTIMATE_FORMAT_VERSION
     for file_no, path in enumerate(paths):
@@ -193,7 +193,7 @@ def replay(
                             f"{path}: no sinewatch metadata before the first message; "
                             "expected a file written by sinewatch"
                         )
-                    sinks: list = [comparator]
+                    sinks: list[Sink] = [comparator]
                     if out is not None:
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
                         recorder = McapRecorder(rec_config, path=out)

@@ -68,7 +68,7 @@ STATUS_JSON_ENCODING = "application/json;sinewatch/Status@1"
 
 MAGIC = b"SWSB"
 HEADER = struct.Struct("<4sBBBBQqdIHH")
-_DTYPE_CODES = {1: np.dtype("<f4"), 2: np.dtype("<f8")}
+_DTYPE_CODES: dict[int, np.dtype[np.floating[Any]]] = {1: np.dtype("<f4"), 2: np.dtype("<f8")}
 _CODE_OF_DTYPE = {"float32": 1, "float64": 2}
 _CHANNEL_RE = re.compile(CHANNEL_PATTERN)
 
@@ -260,7 +260,7 @@ def dumps(msg: dict[str, Any]) -> bytes:
 def encode_estimate(estimate: Estimate, version: int = ESTIMATE_FORMAT_VERSION) -> bytes:
     """The Estimate's JSON bytes in wire-format ``version`` (2, or 1 for replaying
     recordings of earlier builds: the same bytes those builds wrote)."""
-    msg = estimate.model_dump(mode="python", exclude=Estimate.V2_FIELDS if version == 1 else None)
+    msg = estimate.model_dump(mode="python", exclude=set(Estimate.V2_FIELDS) if version == 1 else None)
     msg["format_version"] = version
     return dumps(msg)
 

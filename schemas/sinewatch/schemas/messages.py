@@ -37,7 +37,7 @@ class SampleBlock(_Message):
     the measured signal, the others the inputs, see ``columns``).
     """
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     channel: str = Field(pattern=CHANNEL_PATTERN, max_length=256, description="Channel name")
     seq: int = Field(ge=0, lt=2**64, description="Sequence number of the block on its channel")
     t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
@@ -82,7 +82,7 @@ class Estimate(_Message):
     builds wrote: replay renders estimates in the version of the recording it checks.
     """
 
-    format_version: Literal[1, 2] = ESTIMATE_FORMAT_VERSION
+    format_version: Literal[1, 2] = 2
     channel: str
     seq: int = Field(description="Sequence number of the input block")
     timestamp_ns: int = Field(description="Time of the block's last sample, ns since the epoch")
@@ -124,7 +124,7 @@ class ErrorKind(str, Enum):
 class ErrorReport(_Message):
     """Why an input was rejected (or data was lost). One per rejected input."""
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     key: str = Field(description="Zenoh key the input arrived on")
     channel: str | None = Field(description="Channel, when the payload could be decoded that far")
     seq: int | None = None
@@ -162,13 +162,16 @@ class SinkStatus(_Message):
 class Status(_Message):
     """Periodic daemon status."""
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     daemon_id: str
     uptime_s: float
     blocks_received: int
     blocks_processed: int
     dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
     backpressure_waits: int = Field(description="Times the intake waited for queue space")
+    unrecovered: int = Field(
+        0, description="Blocks Zenoh reported missed and not recoverable from the publishers' caches"
+    )
     errors: int
     errors_by_kind: dict[str, int] = Field(
         default_factory=dict, description="Rejected inputs and faults per ErrorReport kind"
