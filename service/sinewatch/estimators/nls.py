@@ -100,7 +100,7 @@ covariances), so the outputs do not depend on how the stream is cut into blocks.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 from numba import njit
@@ -110,6 +110,7 @@ from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, TrackStd
 from sinewatch.schemas.errors import ParameterError
 
+Arr = np.ndarray  # numba ignores annotations; these are for the type checker
 MAX_WINDOW_SAMPLES = 1 << 20
 MAX_TONES = 8
 # per tone in the held estimate: w (rad/sample), A, phi (last sample), var_w, var_A,
@@ -176,7 +177,7 @@ class NlsParams(EstimatorParams):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _chol_inverse(a, n, inv):
+def _chol_inverse(a: Arr, n: int, inv: Arr) -> bool:
     """Inverse of the symmetric positive-definite leading n x n block of ``a`` into ``inv``,
     by Cholesky after a symmetric diagonal (Jacobi) scaling. Returns False when the
     scaled matrix is not numerically positive definite."""
@@ -218,7 +219,7 @@ def _chol_inverse(a, n, inv):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fft_inplace(re, im, cos_tab, sin_tab, tstride):
+def _fft_inplace(re: Arr, im: Arr, cos_tab: Arr, sin_tab: Arr, tstride: int) -> None:
     """Radix-2 decimation-in-time FFT (forward, exp(-j)) of length n = re.size, a power of
     2; ``cos_tab[j tstride]``/``sin_tab[j tstride]`` hold cos/sin(2 pi j / n), j < n/2."""
     n = re.shape[0]
@@ -253,7 +254,7 @@ def _fft_inplace(re, im, cos_tab, sin_tab, tstride):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p):
+def _wrap(p: float) -> float:
     """Radians to (-pi, pi]."""
     y = math.pi - p
     r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
@@ -266,7 +267,7 @@ def _wrap(p):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _gram_one(xw, nu0, n_lin0, G, gy):
+def _gram_one(xw: Arr, nu0: float, n_lin0: int, G: Arr, gy: Arr) -> float:
     """:func:`_gram` for one tone, its sums in registers (the common case). Samples are
     taken in pairs ``m, -m`` (the time index is centred): sin and u are odd, cos even, so
     the odd sums (of sin, u cos, sin cos, u sin^2, u^2 sin cos, u, ...) are exactly zero
@@ -356,7 +357,7 @@ def _gram_one(xw, nu0, n_lin0, G, gy):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _gram(xw, nu, k, n_lin0, G, gy):
+def _gram(xw: Arr, nu: Arr, k: int, n_lin0: int, G: Arr, gy: Arr) -> float:
     """One pass over the window: the Gram matrix G of the columns
     ``[1, (u), sin(nu_j u), cos(nu_j u) (j < k), u sin(nu_j u), u cos(nu_j u) (j < k)]``
     and ``gy`` = columns^T x; returns x^T x. Sines by rotation, re-seeded every 256
@@ -414,7 +415,9 @@ def _gram(xw, nu, k, n_lin0, G, gy):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _gn_step(G, gy, xx, k, n_lin0, coef, JtJ, cov, zlin):
+def _gn_step(
+    G: Arr, gy: Arr, xx: float, k: int, n_lin0: int, coef: Arr, JtJ: Arr, cov: Arr, zlin: Arr
+) -> tuple[bool, float, Arr]:
     """From the pass at nu: the linear solution ``coef`` (2), r2, the joint matrix
     ``J^T J`` of (3), its inverse ``cov`` and the linear part ``zlin`` of the joint
     solution; returns (ok, r2, delta as an array)."""
@@ -476,7 +479,9 @@ def _gn_step(G, gy, xx, k, n_lin0, coef, JtJ, cov, zlin):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fit(xw, nu0, k, n_lin0, max_iter, nu_max, coef, cov):
+def _fit(
+    xw: Arr, nu0: Arr, k: int, n_lin0: int, max_iter: int, nu_max: float, coef: Arr, cov: Arr
+) -> tuple[bool, bool, float, Arr]:
     """Gauss-Newton (3) with backtracking from ``nu0``. Returns (ok, converged, r2, nu);
     ``coef`` and ``cov`` (the inverse of J^T J) are those at the returned nu."""
     N = xw.shape[0]
@@ -549,7 +554,7 @@ def _fit(xw, nu0, k, n_lin0, max_iter, nu_max, coef, cov):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _rbin(re, im, k, cos_tab, sin_tab):
+def _rbin(re: Arr, im: Arr, k: int, cos_tab: Arr, sin_tab: Arr) -> tuple[float, float]:
     """Bin k (0..M) of the 2M-point DFT of a real sequence r from the M-point FFT Z of
     ``z_n = r_2n + j r_2n+1``: ``X_k = E_k + exp(-j pi k / M) O_k``, ``E_k = (Z_k +
     conj Z_{M-k}) / 2``, ``O_k = -j (Z_k - conj Z_{M-k}) / 2``."""
@@ -570,7 +575,9 @@ def _rbin(re, im, k, cos_tab, sin_tab):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _next_peak(resid, mean, nu, k, iconsts, cos_tab, sin_tab, re, im):
+def _next_peak(
+    resid: Arr, mean: float, nu: Arr, k: int, iconsts: Arr, cos_tab: Arr, sin_tab: Arr, re: Arr, im: Arr
+) -> float:
     """Coarse start (4) of tone k+1 from the residual ``resid - mean``: nu of the periodogram peak in the
     band, at least 0.7 bins from the k tones found; -1 if none. The periodogram is a real
     FFT (a half-length complex one, :func:`_rbin`). Between bins: Candan's form of
@@ -625,11 +632,11 @@ def _next_peak(resid, mean, nu, k, iconsts, cos_tab, sin_tab, re, im):
         d = 0.5
     if d < -0.5:
         d = -0.5
-    return 2.0 * math.pi * (best + d) / nfft * c
+    return float(2.0 * math.pi * (best + d) / nfft * c)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _residual(xw, nu, k, n_lin0, coef, out):
+def _residual(xw: Arr, nu: Arr, k: int, n_lin0: int, coef: Arr, out: Arr) -> float:
     """The fit's residual into ``out``; returns its sum of squares (exact, unlike the
     normal-equation value, whose round-off would decide the order of a noise-free fit)."""
     N = xw.shape[0]
@@ -663,7 +670,7 @@ def _residual(xw, nu, k, n_lin0, coef, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
+def _window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab: Arr, tones: Arr, glob: Arr) -> None:
     """Fit (2)-(7) on the chronological window ``xw``; write the held estimate into
     ``tones`` (k_cols, 7) and ``glob`` (8,)."""
     N = xw.shape[0]
@@ -833,7 +840,18 @@ def _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def nls_kernel(x, buf, istate, tones_in, glob_in, iconsts, fconsts, cos_tab, sin_tab, last_only):
+def nls_kernel(
+    x: Arr,
+    buf: Arr,
+    istate: Arr,
+    tones_in: Arr,
+    glob_in: Arr,
+    iconsts: Arr,
+    fconsts: Arr,
+    cos_tab: Arr,
+    sin_tab: Arr,
+    last_only: bool,
+) -> tuple[Arr, Arr, float, int, Arr, Arr, Arr, Arr]:
     """Run the sliding fit over block ``x``; return ``(out_k, out_g, sse, n_pred, buf,
     istate, tones, glob)``: ``out_k`` (6, rows, k_cols) = frequency_hz, amplitude,
     phase_rad and their standard deviations; ``out_g`` (5, rows) = offset, its standard
@@ -955,8 +973,12 @@ class Nls(Estimator):
         "zero_pad": 1,
     }
 
+    @property
+    def _p(self) -> NlsParams:
+        return cast(NlsParams, self.params)
+
     def _check_params(self) -> None:
-        p = self.params
+        p = self._p
         fs = self.sample_rate_hz
         nyq = 0.5 * fs
         if p.min_frequency_hz >= nyq:
@@ -994,7 +1016,7 @@ class Nls(Estimator):
         self._band = (lo, hi)
 
     def _setup(self) -> None:
-        p = self.params
+        p = self._p
         j = np.arange(self.nfft // 2)
         self._cos = np.cos(2.0 * np.pi * j / self.nfft)
         self._sin = np.sin(2.0 * np.pi * j / self.nfft)
@@ -1026,7 +1048,9 @@ class Nls(Estimator):
             "fit": np.zeros(_GLOBAL_FIELDS),
         }
 
-    def _run(self, samples, state, last_only):
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
         out_k, out_g, sse, n_pred, buf, ist, tones, glob = nls_kernel(
             samples, state["buffer"], state["counters"], state["tones"], state["fit"],
             self._iconsts, self._fconsts, self._cos, self._sin, last_only,
