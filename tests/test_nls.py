@@ -233,3 +233,41 @@ def test_trend_follows_a_drifting_offset():
 def test_bad_parameters_are_rejected(params, match):
     with pytest.raises(ParameterError, match=match):
         create("nls", FS, **params)
+
+
+def test_warm_start_ends_where_the_periodogram_start_does():
+    """On a steady stream the warm start (previous window's frequencies) and the periodogram
+    start reach the same least-squares minimum: same estimates to far below their sd."""
+    rng = np.random.default_rng(11)
+    t = np.arange(20 * 512) / FS
+    x = (
+        0.5
+        + np.sin(2 * np.pi * 50.7 * t + 0.3)
+        + 0.4 * np.sin(2 * np.pi * 91.0 * t)
+        + 0.05 * rng.standard_normal(t.size)
+    )
+    common = {"n_components": 2, "min_frequency_hz": 20.0, "window_samples": 512, "hop_samples": 512}
+    warm = create("nls", FS, **common).update(x)
+    cold = create("nls", FS, warm_start=False, **common).update(x)
+    assert warm.converged[-1] and cold.converged[-1]
+    for q in ("frequency_hz", "amplitude", "phase_rad"):
+        diff = np.abs(getattr(warm, q) - getattr(cold, q))[511:]
+        sd = getattr(warm.std, q)[511:]
+        assert np.max(diff / sd) < 0.01, q
+    # and the warm path was taken: another start leaves round-off-level differences
+    assert np.any(warm.frequency_hz[511:] != cold.frequency_hz[511:])
+
+
+def test_warm_start_follows_a_frequency_jump():
+    """A tone that jumps by 30 Hz leaves the warm fit with a large residual: the window is
+    refitted from the periodogram and the new frequency is found in the first window after
+    the jump."""
+    rng = np.random.default_rng(12)
+    n = 256
+    t = np.arange(12 * n) / FS
+    f = np.where(t < 6 * n / FS, 50.0, 80.0)
+    x = np.sin(2 * np.pi * np.cumsum(f) / FS) + 0.01 * rng.standard_normal(t.size)
+    tr = create("nls", FS, min_frequency_hz=20.0, window_samples=n, hop_samples=n).update(x)
+    after = 7 * n - 1  # the first window entirely after the jump
+    assert abs(tr.frequency_hz[after, 0] - 80.0) < 5 * tr.std.frequency_hz[after, 0]
+    assert tr.converged[after]
