@@ -271,3 +271,24 @@ def test_warm_start_follows_a_frequency_jump():
     after = 7 * n - 1  # the first window entirely after the jump
     assert abs(tr.frequency_hz[after, 0] - 80.0) < 5 * tr.std.frequency_hz[after, 0]
     assert tr.converged[after]
+
+
+def test_accuracy_bench_reports_own_window_crlb_and_calibration():
+    """``sinewatch bench accuracy`` records, for a windowed estimator, the dB over its own
+    window's bound and, for one that reports sd, the calibration; none for the others."""
+    from sinewatch.bench.report import render_markdown
+    from sinewatch.bench.runner import evaluate
+
+    rec = evaluate("nls", "tone-snr-40db", trials=4, seed=0)
+    m = rec["metrics"]
+    own = m["crlb_own_window"]
+    assert own["window_samples"] > 0
+    for q in ("frequency_hz", "amplitude", "phase_rad", "offset"):
+        assert abs(own[q]["over_crlb_db"]) < 1.5, q
+        assert 0.8 < m["calibration"][q] < 1.25, q
+        # the record-length bound is far tighter than the window's: the first is much larger
+        assert m["crlb"][q]["over_crlb_db"] > own[q]["over_crlb_db"] + 3.0, q
+    other = evaluate("ges-kalman", "tone-snr-40db", trials=1, seed=0)["metrics"]
+    assert "calibration" not in other and "crlb_own_window" not in other
+    md = render_markdown([rec], "cmd", {"trials": 4, "seed": 0})
+    assert "own window" in md and "### Calibration of the reported standard deviations" in md
