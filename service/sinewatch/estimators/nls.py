@@ -107,7 +107,7 @@ covariances), so the outputs do not depend on how the stream is cut into blocks.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Literal, cast
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numba import njit
@@ -990,13 +990,15 @@ def nls_kernel(
 
 
 @register
-class Nls(Estimator):
+class Nls(Estimator[NlsParams], kernel=nls_kernel):
     """Windowed maximum-likelihood fit of K tones by variable projection (module docstring)."""
 
     name = "nls"
-    Params = NlsParams
     summary = "Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"
-    paper = None
+    paper = (
+        'G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares '
+        'problems whose variables separate", 1973 (variable projection)'
+    )
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.0
     # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
@@ -1007,12 +1009,8 @@ class Nls(Estimator):
         "zero_pad": 1,
     }
 
-    @property
-    def _p(self) -> NlsParams:
-        return cast(NlsParams, self.params)
-
     def _check_params(self) -> None:
-        p = self._p
+        p = self.params
         fs = self.sample_rate_hz
         nyq = 0.5 * fs
         if p.min_frequency_hz >= nyq:
@@ -1050,7 +1048,7 @@ class Nls(Estimator):
         self._band = (lo, hi)
 
     def _setup(self) -> None:
-        p = self._p
+        p = self.params
         j = np.arange(self.nfft // 2)
         self._cos = np.cos(2.0 * np.pi * j / self.nfft)
         self._sin = np.sin(2.0 * np.pi * j / self.nfft)
@@ -1069,28 +1067,31 @@ class Nls(Estimator):
             dtype=np.int64,
         )
         self._fconsts = np.array([self.sample_rate_hz, p.max_relative_residual])
+        self._constants = (self._iconsts, self._fconsts, self._cos, self._sin)
 
     @property
     def n_components(self) -> int:
         return int(self.k_cols)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``buffer`` (N,): the ring buffer of the window; ``counters`` (5,) int64: write
+        position, fill, samples since the last hop (starts at hop: fit as soon as full),
+        estimate held (0/1), samples since the held estimate; ``tones`` (K, 11): per tone
+        w (rad/sample), A, phase at the window's last sample, var w, var A, var phase,
+        cov(w, phase), sin and cos of the phase m samples on, cos w, sin w; ``fit`` (8,):
+        offset at the last sample, its slope per sample, var offset, var slope,
+        cov(offset, slope), fit residual RMS, converged (0/1), number of tones + 0.5
+        (0: nothing held)."""
         return {
             "buffer": np.zeros(self.window_samples),
-            # write position, fill, since hop (starts at hop), held, samples since held
             "counters": np.array([0, 0, self.hop_samples, 0, 0], dtype=np.int64),
             "tones": np.zeros((self.k_cols, _TONE_FIELDS)),
             "fit": np.zeros(_GLOBAL_FIELDS),
         }
 
-    def _run(
-        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
-    ) -> tuple[Track, dict[str, np.ndarray]]:
-        out_k, out_g, sse, n_pred, buf, ist, tones, glob = nls_kernel(
-            samples, state["buffer"], state["counters"], state["tones"], state["fit"],
-            self._iconsts, self._fconsts, self._cos, self._sin, last_only,
-        )  # fmt: skip
-        track = Track(
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out_k, out_g, sse, n_pred = outputs
+        return Track(
             frequency_hz=out_k[0],
             amplitude=out_k[1],
             phase_rad=out_k[2],
@@ -1100,7 +1101,6 @@ class Nls(Estimator):
             extras={"n_tones": out_g[3], "fit_residual_rms": out_g[4]},
             std=TrackStd(frequency_hz=out_k[3], amplitude=out_k[4], phase_rad=out_k[5], offset=out_g[1]),
         )
-        return track, {"buffer": buf, "counters": ist, "tones": tones, "fit": glob}
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
