@@ -18,7 +18,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sinewatch demo
 
-test: $(STAMP)
+# What CI runs: lint, format, import contracts and types first (seconds), then the tests.
+test: $(STAMP) lint
 	$(BIN)/python -m pytest
 
 # Lint, format, import contracts and types, from the three source roots (no install needed

@@ -49,6 +49,7 @@ tests use it to check the bound by Monte Carlo.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -74,29 +75,13 @@ class Bound:
     phase_rad: float
     offset: float
 
-    @property
-    def frequency_hz_std(self) -> float:
-        return math.sqrt(self.frequency_hz)
-
-    @property
-    def amplitude_std(self) -> float:
-        return math.sqrt(self.amplitude)
-
-    @property
-    def phase_rad_std(self) -> float:
-        return math.sqrt(self.phase_rad)
-
-    @property
-    def offset_std(self) -> float:
-        return math.sqrt(self.offset)
+    frequency_hz_std = property(lambda self: math.sqrt(self.frequency_hz), doc="sqrt of the frequency bound, Hz")
+    amplitude_std = property(lambda self: math.sqrt(self.amplitude), doc="sqrt of the amplitude bound")
+    phase_rad_std = property(lambda self: math.sqrt(self.phase_rad), doc="sqrt of the phase bound, rad")
+    offset_std = property(lambda self: math.sqrt(self.offset), doc="sqrt of the offset bound")
 
     def as_dict(self) -> dict[str, float]:
-        return {
-            "frequency_hz": self.frequency_hz,
-            "amplitude": self.amplitude,
-            "phase_rad": self.phase_rad,
-            "offset": self.offset,
-        }
+        return dataclasses.asdict(self)
 
 
 def _check(n: int, amplitude: float, noise_std: float, sample_rate_hz: float) -> None:
@@ -126,7 +111,8 @@ def fisher_information(
     psi = w * m + phase_centre_rad
     c, s = np.cos(psi), np.sin(psi)
     g = np.stack([amplitude * m * c, s, amplitude * c, np.ones(n)])  # (4, n)
-    return (g @ g.T) / noise_std**2
+    fim: np.ndarray = (g @ g.T) / noise_std**2
+    return fim
 
 
 def _inverse(fim: np.ndarray) -> np.ndarray:
