@@ -19,11 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from conftest import TIMEOUT, FakeClock, make_config, run_daemon
 
 from sinewatch.clients import BlockPublisher, connect
-from sinewatch.feed import Feed, make_channels
+from sinewatch.feed import make_channels
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.power_quality.limits import LIMITS, class_i_limit
 from sinewatch.recorder import McapRecorder
@@ -150,7 +149,9 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     by_key: dict[str, list[bytes]] = {}
     for key, encoding, payload in received:
         kind = json.loads(payload).keys()
-        model = "HarmonicsReport" if "harmonic_rms" in kind else "ThreePhaseReport" if "group" in kind else "PqAggregate"
+        model = (
+            "HarmonicsReport" if "harmonic_rms" in kind else "ThreePhaseReport" if "group" in kind else "PqAggregate"
+        )
         assert encoding == json_encoding(model)
         MODELS[model].model_validate_json(payload)  # valid against its schema
         by_key.setdefault(key, []).append(payload)
@@ -186,11 +187,15 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     result = replay([path])
     assert result.ok and result.inputs == 180 and result.matched == 180
     n_kind = {k: sum(kind == k for kind, _, _ in expected) for k in MODELS}
-    assert result.recorded_other == result.matched_other == {
-        "harmonics": n_kind["HarmonicsReport"],
-        "three_phase": n_kind["ThreePhaseReport"],
-        "pq_aggregate": n_kind["PqAggregate"],
-    }
+    assert (
+        result.recorded_other
+        == result.matched_other
+        == {
+            "harmonics": n_kind["HarmonicsReport"],
+            "three_phase": n_kind["ThreePhaseReport"],
+            "pq_aggregate": n_kind["PqAggregate"],
+        }
+    )
 
 
 def test_replay_catches_a_changed_pq_output(tmp_path):
@@ -325,16 +330,27 @@ def test_feed_serve_tail_processes_with_the_deploy_config(tmp_path):
     )
     try:
         tail = subprocess.Popen(
-            sinewatch("tail", "sinewatch/pq/**", "--connect", ep, "--count", "40", "--json", "--timeout", "60")
-            + ["--wait", "60"],
+            [
+                *sinewatch("tail", "sinewatch/pq/**", "--connect", ep, "--count", "40", "--json", "--timeout", "60"),
+                "--wait",
+                "60",
+            ],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
         assert tail.stderr.readline().startswith("tail: subscribed to")
         feed = subprocess.run(
-            sinewatch("feed", "--connect", ep, "--scenario", "pq-unbalance-50hz-u2-2pct-harmonics")
-            + ["--duration", "2", "--block", "1000", "--fast", "--wait", "60"],
+            [
+                *sinewatch("feed", "--connect", ep, "--scenario", "pq-unbalance-50hz-u2-2pct-harmonics"),
+                "--duration",
+                "2",
+                "--block",
+                "1000",
+                "--fast",
+                "--wait",
+                "60",
+            ],
             capture_output=True,
             text=True,
             timeout=120,

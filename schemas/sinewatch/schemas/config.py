@@ -137,7 +137,9 @@ class PowerQualitySection(_Section):
         for g in v:
             for ch in g.phases:
                 if ch in seen:
-                    raise ValueError(f"groups: expected each channel in one group, got {ch!r} in {seen[ch]!r} and {g.name!r}")
+                    raise ValueError(
+                        f"groups: expected each channel in one group, got {ch!r} in {seen[ch]!r} and {g.name!r}"
+                    )
                 seen[ch] = g.name
         return v
 
