@@ -380,3 +380,24 @@ def test_feed_serve_tail_processes_with_the_deploy_config(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert "all 60 recorded estimates reproduced bit for bit" in r.stdout
     assert "all other recorded outputs (" in r.stdout and "three_phase)" in r.stdout
+
+
+def test_tail_prints_each_pq_message_on_one_line(tmp_path):
+    """`sinewatch tail 'sinewatch/pq/**'` without --json: one readable line per message."""
+    from sinewatch.cli import format_estimate
+
+    rounds, names = phase_blocks(40)
+    out = Outputs()
+    pipeline = Pipeline(pq_config(tmp_path, names), [out])
+    for blocks in rounds:
+        for b in blocks:
+            pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    lines = {kind: format_estimate(json.loads(p)) for kind, _, p in out.out}
+    assert set(lines) == set(MODELS)
+    assert f"{names[2]} harmonics f=47.5000Hz" in lines["HarmonicsReport"] and " h5=" in lines["HarmonicsReport"]
+    assert "feeder1 three-phase f=47.5000Hz V1=1.0000 u2=2.000% u0=1.000%" in lines["ThreePhaseReport"]
+    aggregates = [format_estimate(json.loads(p)) for kind, _, p in out.out if kind == "PqAggregate"]
+    # at the tick: the 150/180-cycle interval in progress (overlap 2), then the 10-min one
+    assert f"{names[0]} 150/180-cycle n=10 (incomplete) frequency_hz=47.5000" in aggregates[0]
+    assert "thd=6.2" in aggregates[0]
+    assert f"600.0000 {names[0]} 10-min n=10 (incomplete) frequency_hz=47.5000" in aggregates[1]
