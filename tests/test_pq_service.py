@@ -401,3 +401,71 @@ def test_tail_prints_each_pq_message_on_one_line(tmp_path):
     assert f"{names[0]} 150/180-cycle n=10 (incomplete) frequency_hz=47.5000" in aggregates[0]
     assert "thd=6.2" in aggregates[0]
     assert f"600.0000 {names[0]} 10-min n=10 (incomplete) frequency_hz=47.5000" in aggregates[1]
+
+
+@pytest.mark.parametrize(
+    "scenario", ["pq-unbalance-60hz-u2-2pct-harmonics-m5", "pq-unbalance-50hz-u2-0.5pct-p5", "pq-harmonics-60hz-all-p5"]
+)
+def test_stage_accuracy_at_60_hz_and_off_nominal(tmp_path, scenario):
+    """Through the pipeline's stage (what the daemon runs, as the live test shows byte for
+    byte): 12-cycle windows at 60 Hz, +-5 % off nominal, u2 from 0.5 %, all 49 harmonics."""
+    sc = get_pq(scenario)
+    truth = sc.pq_truth
+    f0 = int(truth.nominal_frequency_hz)
+    channels = make_channels([scenario], prefix="acc")
+    names = [c.channel for c in channels]
+    config = make_config(
+        tmp_path,
+        rules=[
+            EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params={**IPDFT_50, "nominal_frequency_hz": f0})
+        ],
+        power_quality=PowerQualitySection(
+            harmonics=[HarmonicsRule(match="sinewatch/in/**", nominal_frequency_hz=f0)],
+            groups=[ThreePhaseGroup(name="g", phases=names)] if len(names) == 3 else [],
+        ),
+    )
+    out = Outputs()
+    pipeline = Pipeline(config, [out])
+    for i in range(30):
+        for c in channels:
+            b = Block(c.channel, i, T0_NS + i * 100_000_000, 10_000.0, c.stream.read(BLOCK)[0])
+            pipeline.process(f"sinewatch/in/{c.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    msgs = [(kind, json.loads(p)) for kind, _, p in out.out]
+    groups = [m for kind, m in msgs if kind == "ThreePhaseReport" and m["timestamp_ns"] >= T0_NS + 300_000_000]
+    assert bool(groups) == (len(names) == 3)
+    for g in groups:
+        assert abs(g["u2"] - truth.u2) <= LIMITS["u2_absolute"] and g["missing"] == []
+    for p, name in enumerate(names):
+        reports = [m for kind, m in msgs if kind == "HarmonicsReport" and m["channel"] == name]
+        assert len(reports) >= 10 and all(r["n_cycles"] == (10 if f0 == 50 else 12) for r in reports)
+        lim = class_i_limit(truth.harmonic_rms[p], truth.harmonic_rms[p, 1])
+        for r in reports:
+            err = np.abs(np.array(r["harmonic_rms"][1:], dtype=float) - truth.harmonic_rms[p, 1:])
+            assert np.all(err <= lim[1:])
+
+
+def test_harmonics_at_a_rate_too_low_are_refused_once_and_estimation_goes_on(tmp_path):
+    class Keep(Outputs):
+        def __init__(self) -> None:
+            super().__init__()
+            self.errors: list[dict] = []
+            self.estimates = 0
+
+        def on_error(self, key, payload, log_time_ns):
+            self.errors.append(json.loads(payload))
+
+        def on_estimate(self, key, payload, log_time_ns):
+            self.estimates += 1
+
+    config = pq_config(tmp_path, ["x/a", "x/b", "x/c"])
+    keep = Keep()
+    pipeline = Pipeline(config, [keep])
+    t = np.arange(500) / 5_000.0
+    for i in range(5):  # 5 kHz: the 50th harmonic of 57.5 Hz is beyond 0.4 fs
+        x = np.sin(2 * np.pi * 50.0 * (t + i * 0.1))
+        b = Block("slow", i, T0_NS + i * 100_000_000, 5_000.0, x)
+        pipeline.process("sinewatch/in/slow", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    assert keep.estimates == 5 and keep.out == []
+    [err] = keep.errors
+    assert err["kind"] == "estimator_error" and err["channel"] == "slow" and err["seq"] == 0
+    assert "harmonics off for channel 'slow'" in err["message"] and "7331.25" in err["message"]

@@ -316,13 +316,15 @@ class Pipeline:
         outputs go to the sinks' ``on_output``. A fault there is reported like any other and
         leaves the estimate (already out) and the stage's state untouched."""
         try:
-            outputs = self.pq.on_block(key, channel.name, block, track, reset)
+            outputs, problem = self.pq.on_block(key, channel.name, block, track, reset)
         except Exception as exc:  # noqa: BLE001 (the stage's fault must not stop the channel)
             self._fault(key, block, channel, "power_quality", exc, log_time_ns)
             return
         for kind, out_key, payload in outputs:
             for sink in self.sinks:
                 sink.on_output(kind, out_key, payload, log_time_ns)
+        if problem is not None:
+            self._reject(key, block, channel, "estimator_error", problem, log_time_ns)
 
     def _fault(
         self, key: str, block: Block | None, channel: Channel | None, stage: str, exc: Exception, log_time_ns: int

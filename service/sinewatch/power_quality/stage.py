@@ -54,6 +54,7 @@ from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
 from sinewatch.power_quality.reports import channel_window_values, harmonics_report, three_phase_report
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import HarmonicsRule, SinewatchConfig, ThreePhaseGroup
+from sinewatch.schemas.errors import ParameterError
 from sinewatch.schemas.power_quality import encode_pq
 
 Output = tuple[str, str, bytes]  # (message name, key, payload)
@@ -119,15 +120,23 @@ class PqStage:
         return bool(self.section.harmonics or self.section.groups)
 
     # ---- the hook ----------------------------------------------------------------------------
-    def on_block(self, key: str, channel: str, block: Block, track: Track, reset: bool) -> list[Output]:
-        """The messages one accepted block completes (its Estimate is ``track``'s last row)."""
+    def on_block(
+        self, key: str, channel: str, block: Block, track: Track, reset: bool
+    ) -> tuple[list[Output], str | None]:
+        """The messages one accepted block completes (its Estimate is ``track``'s last row),
+        and a problem to report, if any: harmonics asked for on a channel whose sample rate
+        cannot carry them (said once; that channel then goes without harmonics)."""
         out: list[Output] = []
         if channel in self._phase_of:
             out.extend(self._group_values(channel, block, track))
-        hc = self._harmonics_for(key, channel, block.sample_rate_hz)
+        try:
+            hc = self._harmonics_for(key, channel, block.sample_rate_hz)
+        except ParameterError as exc:
+            self.harmonics[channel] = None
+            return out, f"harmonics off for channel {channel!r}: {exc}"
         if hc is not None:
             out.extend(self._harmonic_windows(channel, hc, block, reset))
-        return out
+        return out, None
 
     # ---- harmonics ---------------------------------------------------------------------------
     def _harmonics_for(self, key: str, channel: str, sample_rate_hz: float) -> _HarmonicsChannel | None:
