@@ -54,7 +54,7 @@ def pq_config(tmp_path: Path, phases: list[str], **overrides) -> SinewatchConfig
         rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params=IPDFT_50)],
         power_quality=PowerQualitySection(
             harmonics=[HarmonicsRule(match="sinewatch/in/**", nominal_frequency_hz=50)],
-            groups=[ThreePhaseGroup(name="feeder1", phases=phases, max_skew_s=0.25)],
+            groups=[ThreePhaseGroup(name="feeder1", phases=phases, max_skew_s=0.25, aggregate_nominal_frequency_hz=50)],
         ),
         **overrides,
     )
@@ -161,6 +161,7 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     assert by_key == ref_by_key
     assert set(by_key) == {
         "sinewatch/pq/group/feeder1",
+        "sinewatch/pq/agg/feeder1",
         *(f"sinewatch/pq/harmonics/{n}" for n in names),
         *(f"sinewatch/pq/agg/{n}" for n in names),
     }
@@ -171,16 +172,23 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     short = [a for a in aggs if a["interval"] == "150/180-cycle"]
     ten_min = [a for a in aggs if a["interval"] == "10-min"]
     # the tick at 600 s closes a 10-min interval (incomplete: the stream started at 598 s) and
-    # the 150/180-cycle one in progress (overlap 2); after it, 15-window intervals complete
-    assert {a["timestamp_ns"] for a in ten_min} == {600_000_000_000} and len(ten_min) == 3
+    # the 150/180-cycle one in progress (overlap 2); after it, 15-window intervals complete;
+    # per phase and for the group
+    assert {a["timestamp_ns"] for a in ten_min} == {600_000_000_000} and len(ten_min) == 4
     assert all(not a["complete"] for a in ten_min)
     complete = [a for a in short if a["complete"]]
-    assert len(complete) == 3 and all(a["n_windows"] == 15 and a["start_ns"] >= 600_000_000_000 for a in complete)
+    assert {a["source"] for a in complete} == {*names, "feeder1"}
+    assert all(a["n_windows"] == 15 and a["start_ns"] >= 600_000_000_000 for a in complete)
     truth = get_pq(SCENARIO).pq_truth
-    for a in complete:  # aggregated frequency (cycles / duration) and THD (RMS of the window values)
+    for a in complete:  # aggregated frequency (cycles / duration), THD and u2 (RMS of the window values)
         assert abs(a["values"]["frequency_hz"] - truth.frequency_hz) <= LIMITS["frequency_hz"]
-        p = names.index(a["source"])
-        assert abs(a["values"]["thd"] - truth.thd[p]) <= LIMITS["harmonic_relative"] * truth.thd[p]
+        if a["source"] == "feeder1":
+            assert abs(a["values"]["u2"] - truth.u2) <= LIMITS["u2_absolute"]
+            assert abs(a["values"]["u0"] - truth.u0) <= LIMITS["u2_absolute"]
+            assert abs(a["values"]["positive_rms"] - abs(truth.sequence_rms[1])) <= 1e-3 * abs(truth.sequence_rms[1])
+        else:
+            p = names.index(a["source"])
+            assert abs(a["values"]["thd"] - truth.thd[p]) <= LIMITS["harmonic_relative"] * truth.thd[p]
 
     # recorded with a role and a JSON Schema per kind; the recording replays bit for bit
     [path] = daemon.recording_paths

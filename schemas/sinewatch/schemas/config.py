@@ -110,6 +110,12 @@ class ThreePhaseGroup(_Section):
     max_skew_s: float = Field(
         0.5, gt=0, allow_inf_nan=False, description="How far (data time) a phase may lag before it counts as missing"
     )
+    aggregate_nominal_frequency_hz: Literal[50, 60] | None = Field(
+        None,
+        description="When set: the three phases' samples are also analysed on one IEC 61000-4-7 10/12-cycle "
+        "window grid (synchronised to phase a) and u2, u0, the sequence magnitudes and the frequency are "
+        "aggregated over 150/180 cycles and 10 min (IEC 61000-4-30), on PQ_PREFIX/agg/<name>",
+    )
 
     @field_validator("phases")
     @classmethod

@@ -7,8 +7,8 @@ three ways, interleaved ``R`` times, best of the repeats:
 
 * ``baseline``: the estimator alone (the rule of ``deploy/power-quality.toml``);
 * ``+group``: and the three-phase group;
-* ``+harmonics``: and harmonics with aggregates on every channel and the group (the
-  whole of ``deploy/power-quality.toml``).
+* ``+harmonics``: and harmonics with aggregates on every channel and the group with its
+  own window analysis and aggregates (the whole of ``deploy/power-quality.toml``).
 
 It prints one JSON line per configuration: microseconds per block (decode, estimator,
 stage, encoding of every message included) and the ratio to the baseline measured in the
@@ -40,12 +40,14 @@ RULE = EstimatorRule(
 
 def configs(phases: list[str]) -> dict[str, SinewatchConfig]:
     group = ThreePhaseGroup(name="feeder1", phases=phases)
+    aggregated = ThreePhaseGroup(name="feeder1", phases=phases, aggregate_nominal_frequency_hz=50)
     harmonics = HarmonicsRule(match="sinewatch/in/**", nominal_frequency_hz=50)
     return {
         "baseline": SinewatchConfig(rules=[RULE]),
         "+group": SinewatchConfig(rules=[RULE], power_quality=PowerQualitySection(groups=[group])),
+        "+group-aggregates": SinewatchConfig(rules=[RULE], power_quality=PowerQualitySection(groups=[aggregated])),
         "+harmonics": SinewatchConfig(
-            rules=[RULE], power_quality=PowerQualitySection(harmonics=[harmonics], groups=[group])
+            rules=[RULE], power_quality=PowerQualitySection(harmonics=[harmonics], groups=[aggregated])
         ),
     }
 

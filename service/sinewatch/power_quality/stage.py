@@ -10,7 +10,11 @@ published a block's Estimate; the stage returns the messages that block complete
 * ``PREFIX/harmonics/<channel>``: one HarmonicsReport per 10/12-cycle window of a channel
   whose input key matches a ``power_quality.harmonics`` rule (first match wins);
 * ``PREFIX/agg/<channel>``: the PqAggregates (150/180-cycle, 10-min) of those windows
-  (``aggregate = true``, the default);
+  (``aggregate = true``, the default): true and fundamental RMS, frequency, THD/THDG/THDS,
+  harmonic and interharmonic subgroups;
+* ``PREFIX/agg/<group>``: with ``aggregate_nominal_frequency_hz`` set on a group, the
+  PqAggregates of the group's own 10/12-cycle windows: u2, u0, sequence magnitudes,
+  frequency;
 * ``PREFIX/group/<group>``: one ThreePhaseReport per estimate timestamp of a
   ``power_quality.groups`` entry.
 
@@ -32,6 +36,15 @@ newest timestamp is more than ``max_skew_s`` past it: the others are then ``miss
 (null phasor, null sequence values). An estimate for a timestamp already reported is
 dropped (counted in ``late``). The report's frequency is the mean of the present phases'.
 
+Group aggregates (IEC 61000-4-30 asks for unbalance aggregated from 10/12-cycle values, not
+from block-rate estimates): with ``aggregate_nominal_frequency_hz``, the three blocks of each
+complete timestamp (same ``t0_ns``, rate and length) are stacked into one three-column block
+for a three-channel :class:`HarmonicAnalyser` whose windows are synchronised to phase a;
+each window's symmetrical components (:func:`group_window_values`) go to the group's
+:class:`Aggregator`. A timestamp with a phase missing is not fed: the analyser sees the
+time jump, restarts its window stream and the aggregator closes the interval in progress
+as incomplete.
+
 Everything depends only on the inputs' data (``t0_ns``, samples, arrival order), never on
 the wall clock, so a replay reproduces the bytes; :meth:`snapshot`/:meth:`restore` carry
 the whole state across a recording's rotation. Aggregates still open when the stream
@@ -51,7 +64,12 @@ import numpy as np
 from sinewatch.estimators.base import Track, decode_array, encode_array
 from sinewatch.power_quality.aggregation import Aggregator, _Accumulator
 from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
-from sinewatch.power_quality.reports import channel_window_values, harmonics_report, three_phase_report
+from sinewatch.power_quality.reports import (
+    channel_window_values,
+    group_window_values,
+    harmonics_report,
+    three_phase_report,
+)
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import HarmonicsRule, SinewatchConfig, ThreePhaseGroup
 from sinewatch.schemas.errors import ParameterError
@@ -70,25 +88,40 @@ class _HarmonicsChannel:
     aggregator: Aggregator | None
 
 
+@dataclass(frozen=True)
+class _PhaseValue:
+    """One phase's contribution to a group timestamp: its estimate's fundamental, and (for
+    the group's own window analysis) its block."""
+
+    phasor: complex  # RMS, sine convention, at the timestamp
+    frequency_hz: float
+    t0_ns: int = 0
+    sample_rate_hz: float = 0.0
+    samples: np.ndarray | None = None  # column 0 of the block, float64
+
+
+Slot = list[_PhaseValue | None]
+
+
 @dataclass
 class _Group:
     config: ThreePhaseGroup
     skew_ns: int
-    pending: dict[int, list[tuple[complex, float] | None]] = field(default_factory=dict)
+    pending: dict[int, Slot] = field(default_factory=dict)
     newest_ns: int | None = None
     last_emitted_ns: int | None = None
     late: int = 0
+    analyser: HarmonicAnalyser | None = None  # 3 columns, when the group is aggregated
+    aggregator: Aggregator | None = None
 
-    def add(
-        self, phase: int, timestamp_ns: int, phasor: complex, frequency_hz: float
-    ) -> list[tuple[int, list[tuple[complex, float] | None]]]:
+    def add(self, phase: int, timestamp_ns: int, value: _PhaseValue) -> list[tuple[int, Slot]]:
         """Take one phase's value; return the timestamps now ready with their values, oldest
         first (complete ones, and incomplete ones that waited more than the skew bound)."""
         if self.last_emitted_ns is not None and timestamp_ns <= self.last_emitted_ns:
             self.late += 1
             return []
         slot = self.pending.setdefault(timestamp_ns, [None, None, None])
-        slot[phase] = (phasor, frequency_hz)
+        slot[phase] = value
         newest = timestamp_ns if self.newest_ns is None else max(self.newest_ns, timestamp_ns)
         self.newest_ns = newest
         ready = []
@@ -112,7 +145,7 @@ class PqStage:
         self.harmonics: dict[str, _HarmonicsChannel | None] = {}  # by channel; None: no rule matched
         self.groups = {g.name: _Group(g, round(g.max_skew_s * 1e9)) for g in self.section.groups}
         self._phase_of = {ch: (g.name, i) for g in self.section.groups for i, ch in enumerate(g.phases)}
-        if self.section.harmonics:
+        if self.section.harmonics or any(g.aggregate_nominal_frequency_hz for g in self.section.groups):
             warm_up()
 
     @property
@@ -173,15 +206,50 @@ class PqStage:
         timestamp_ns = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)  # the Estimate's
         amplitude = float(track.amplitude[-1, 0])
         phasor = complex(amplitude / math.sqrt(2.0) * np.exp(1j * float(track.phase_rad[-1, 0])))
+        frequency = float(track.frequency_hz[-1, 0])
+        if group.config.aggregate_nominal_frequency_hz is None:
+            value = _PhaseValue(phasor, frequency)
+        else:
+            x = block.samples if block.samples.ndim == 1 else block.samples[:, 0]
+            value = _PhaseValue(phasor, frequency, block.t0_ns, block.sample_rate_hz, np.array(x, dtype=np.float64))
         out: list[Output] = []
-        for ts, slot in group.add(phase, timestamp_ns, phasor, float(track.frequency_hz[-1, 0])):
+        for ts, slot in group.add(phase, timestamp_ns, value):
             out.append(self._group_report(group, ts, slot))
+            out.extend(self._group_windows(group, slot))
         return out
 
-    def _group_report(self, group: _Group, timestamp_ns: int, slot: list[tuple[complex, float] | None]) -> Output:
+    def _group_windows(self, group: _Group, slot: Slot) -> list[Output]:
+        """Feed a complete slot's three blocks, as one (n, 3) block, to the group's window
+        analysis; its aggregates (u2, u0, sequence magnitudes, frequency) come out. A slot
+        with a phase missing is not fed: the analyser sees the time jump and restarts."""
+        nominal = group.config.aggregate_nominal_frequency_hz
+        values = [v for v in slot if v is not None and v.samples is not None]
+        if nominal is None or len(values) != 3:
+            return []
+        first = values[0]
+        assert first.samples is not None
+        if any(
+            v.t0_ns != first.t0_ns or v.sample_rate_hz != first.sample_rate_hz or v.samples.shape != first.samples.shape
+            for v in values
+            if v.samples is not None
+        ):
+            return []  # same end, different blocks: not one grid
+        if group.analyser is None:
+            group.analyser = HarmonicAnalyser(first.sample_rate_hz, _group_params(nominal))
+            group.aggregator = Aggregator(group.config.name)
+        x = np.column_stack([v.samples for v in values if v.samples is not None])
+        out: list[Output] = []
+        key = f"{self.prefix}/agg/{group.config.name}"
+        assert group.aggregator is not None
+        for window in group.analyser.update(x, first.t0_ns):
+            for agg in group.aggregator.add(group_window_values(window)):
+                out.append(("PqAggregate", key, encode_pq(agg)))
+        return out
+
+    def _group_report(self, group: _Group, timestamp_ns: int, slot: Slot) -> Output:
         phases = group.config.phases
-        phasors = [complex(math.nan, math.nan) if v is None else v[0] for v in slot]
-        freqs = [v[1] for v in slot if v is not None and math.isfinite(v[1])]
+        phasors = [complex(math.nan, math.nan) if v is None else v.phasor for v in slot]
+        freqs = [v.frequency_hz for v in slot if v is not None and math.isfinite(v.frequency_hz)]
         frequency = math.fsum(freqs) / len(freqs) if freqs else math.nan
         missing = [ch for ch, v in zip(phases, slot, strict=True) if v is None]
         report = three_phase_report(group.config.name, phases, timestamp_ns, phasors, frequency, missing)
@@ -203,13 +271,12 @@ class PqStage:
             },
             "groups": {
                 name: {
-                    "pending": [
-                        [ts, [None if v is None else [v[0].real, v[0].imag, v[1]] for v in slot]]
-                        for ts, slot in g.pending.items()
-                    ],
+                    "pending": [[ts, [_value_state(v) for v in slot]] for ts, slot in g.pending.items()],
                     "newest_ns": g.newest_ns,
                     "last_emitted_ns": g.last_emitted_ns,
                     "late": g.late,
+                    "analyser": None if g.analyser is None else g.analyser.get_state(),
+                    "aggregator": None if g.aggregator is None else _aggregator_state(g.aggregator),
                 }
                 for name, g in self.groups.items()
             },
@@ -231,13 +298,44 @@ class PqStage:
             g = self.groups.get(name)
             if g is None:
                 continue
-            g.pending = {
-                int(ts): [None if v is None else (complex(v[0], v[1]), float(v[2])) for v in slot]
-                for ts, slot in item["pending"]
-            }
+            g.pending = {int(ts): [_value_from_state(v) for v in slot] for ts, slot in item["pending"]}
             g.newest_ns = item["newest_ns"]
             g.last_emitted_ns = item["last_emitted_ns"]
             g.late = item["late"]
+            nominal = g.config.aggregate_nominal_frequency_hz
+            if item.get("analyser") is not None and nominal is not None:
+                g.analyser = HarmonicAnalyser(float(item["analyser"]["sample_rate_hz"]), _group_params(nominal))
+                g.analyser.set_state(item["analyser"])
+                g.aggregator = Aggregator(name)
+                _set_aggregator_state(g.aggregator, item["aggregator"])
+
+
+def _group_params(nominal: int) -> HarmonicParams:
+    return HarmonicParams(nominal_frequency_hz=float(nominal), n_channels=3, reference_channel=0)
+
+
+def _value_state(v: _PhaseValue | None) -> dict[str, Any] | None:
+    if v is None:
+        return None
+    return {
+        "phasor": [v.phasor.real, v.phasor.imag],
+        "frequency_hz": v.frequency_hz,
+        "t0_ns": v.t0_ns,
+        "sample_rate_hz": v.sample_rate_hz,
+        "samples": None if v.samples is None else encode_array(v.samples),
+    }
+
+
+def _value_from_state(d: dict[str, Any] | None) -> _PhaseValue | None:
+    if d is None:
+        return None
+    return _PhaseValue(
+        complex(d["phasor"][0], d["phasor"][1]),
+        float(d["frequency_hz"]),
+        int(d["t0_ns"]),
+        float(d["sample_rate_hz"]),
+        None if d["samples"] is None else decode_array(d["samples"]),
+    )
 
 
 _warm = False
