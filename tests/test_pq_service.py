@@ -234,6 +234,21 @@ def test_replay_catches_a_changed_pq_output(tmp_path):
     assert "converged: recorded False != replayed True" in m.describe()
 
 
+def test_a_recording_without_pq_messages_replays(tmp_path):
+    """recording.power_quality = false: the messages are published, not recorded; replay
+    compares the estimates and does not count the unrecorded messages as mismatches."""
+    rounds, names = phase_blocks(12)
+    config = pq_config(tmp_path, names, recording=RecordingSection(directory=tmp_path / "rec", power_quality=False))
+    recorder = McapRecorder(config)
+    pipeline = Pipeline(config, [recorder])
+    for i, blocks in enumerate(rounds):
+        for b in blocks:
+            pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, i + 1)
+    recorder.close()
+    result = replay(recorder.paths)
+    assert result.ok and result.matched == 36 and result.recorded_other == {} and result.produced_other == {}
+
+
 def test_a_phase_that_stops_is_reported_missing_after_the_skew_bound(tmp_path):
     rounds, names = phase_blocks(20)
     config = pq_config(tmp_path, names)  # max_skew_s = 0.25: 2.5 blocks of 0.1 s

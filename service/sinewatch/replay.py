@@ -164,6 +164,7 @@ class _Comparator(NullSink):
         self.produced = 0
         self.produced_other: dict[str, int] = defaultdict(int)
         self.errors = 0
+        self.other_outputs = True  # False: the recording has none (recording.power_quality off)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self.estimates[key].append(payload)
@@ -171,6 +172,8 @@ class _Comparator(NullSink):
         self.produced += 1
 
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        if not self.other_outputs:
+            return
         role = PQ_ROLES.get(kind, kind)
         self.estimates[key].append(payload)
         self.roles[key] = role
@@ -218,6 +221,7 @@ def replay(
                             f"{path}: no sinewatch metadata before the first message; "
                             "expected a file written by sinewatch"
                         )
+                    comparator.other_outputs = config.recording.power_quality
                     sinks: list[Sink] = [comparator]
                     if out is not None:
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
