@@ -159,10 +159,13 @@ def running_daemon(
         }
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(config))
+        # The daemon's log goes to a file: a pipe nobody reads fills up (64 KiB) and then
+        # blocks the daemon's first log line after it, which once looked like a daemon stall.
+        log_file = open(Path(tmp) / "daemon.log", "wb")
         daemon = subprocess.Popen(
             [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_path)],
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            stderr=log_file,
         )
         try:
             yield endpoint, daemon, rec
@@ -173,6 +176,7 @@ def running_daemon(
                     daemon.wait(60)
                 except subprocess.TimeoutExpired:
                     daemon.kill()
+            log_file.close()
             rec.recorded_bytes = sum(f.stat().st_size for f in (Path(tmp) / "rec").glob("*.mcap"))
 
 
