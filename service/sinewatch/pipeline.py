@@ -5,7 +5,10 @@ A source (the Zenoh intake in the daemon, or an MCAP file in replay) calls
 raw input, decodes and checks it against its channel, runs the channel's estimator and
 hands one Estimate per accepted block to the sinks (Zenoh publisher, MCAP recorder,
 replay comparator). A rejected input produces one ErrorReport instead; an estimator never
-sees a bad sample and its state is untouched by a rejected block.
+sees a bad sample and its state is untouched by a rejected block. When configured
+(``[power_quality]``), the power-quality stage (:mod:`sinewatch.power_quality.stage`)
+then takes the accepted block and its estimate, and its messages (harmonics, aggregates,
+three-phase groups) go to the sinks' ``on_output``.
 
 Everything here is deterministic given the inputs, their order and the config: that is
 what makes replay bit-exact. Wall-clock values (latency) stay out of the messages that
@@ -33,6 +36,7 @@ import zenoh
 
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
+from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
@@ -55,6 +59,9 @@ class Sink(Protocol):
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        """Any other output message; ``kind`` is its message name (e.g. ``HarmonicsReport``)."""
+
     def close(self) -> None: ...
 
 
@@ -71,6 +78,9 @@ class NullSink:
         pass
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        pass
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
         pass
 
     def close(self) -> None:
@@ -157,6 +167,9 @@ class GuardedSink:
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._call("on_status", key, payload, log_time_ns)
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._call("on_output", kind, key, payload, log_time_ns)
 
     def open(self) -> None:
         if hasattr(self.sink, "open"):
@@ -252,6 +265,7 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
+        self.pq = PqStage(config, _key_matches)  # power quality (harmonics, groups, aggregates): off unless configured
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(
@@ -290,8 +304,27 @@ class Pipeline:
         for sink in self.sinks:
             sink.on_estimate(out_key, payload_out, log_time_ns)
         self.counters.estimates += 1
+        if self.pq.enabled:
+            self._power_quality(key, channel, block, track, reset, log_time_ns)
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
+
+    def _power_quality(
+        self, key: str, channel: Channel, block: Block, track: Track, reset: bool, log_time_ns: int
+    ) -> None:
+        """The power-quality stage (:mod:`sinewatch.pq_stage`) on an accepted block; its
+        outputs go to the sinks' ``on_output``. A fault there is reported like any other and
+        leaves the estimate (already out) and the stage's state untouched."""
+        try:
+            outputs, problem = self.pq.on_block(key, channel.name, block, track, reset)
+        except Exception as exc:  # noqa: BLE001 (the stage's fault must not stop the channel)
+            self._fault(key, block, channel, "power_quality", exc, log_time_ns)
+            return
+        for kind, out_key, payload in outputs:
+            for sink in self.sinks:
+                sink.on_output(kind, out_key, payload, log_time_ns)
+        if problem is not None:
+            self._reject(key, block, channel, "estimator_error", problem, log_time_ns)
 
     def _fault(
         self, key: str, block: Block | None, channel: Channel | None, stage: str, exc: Exception, log_time_ns: int
@@ -428,11 +461,21 @@ class Pipeline:
         return encode_estimate(estimate, self.estimate_version)
 
     def _reject(
-        self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int
+        self,
+        key: str,
+        block: Block | None,
+        ch: Channel | None,
+        kind: str,
+        message: str,
+        log_time_ns: int,
+        *,
+        count: int = 1,
     ) -> None:
-        self.counters.errors += 1
-        self.counters.by_kind[kind] += 1
-        self._error_counts[(key, kind)] += 1
+        """One ErrorReport for ``count`` rejected inputs (more than one only for inputs the
+        intake dropped in one go)."""
+        self.counters.errors += count
+        self.counters.by_kind[kind] += count
+        self._error_counts[(key, kind)] += count
         if ch is not None:
             ch.errors += 1
         channel_name = block.channel if block is not None else None
@@ -459,9 +502,9 @@ class Pipeline:
             sink.on_error(out_key, payload, log_time_ns)
 
     # ---- introspection ---------------------------------------------------------------------
-    def report_error(self, key: str, kind: str, message: str, log_time_ns: int) -> None:
-        """An error found outside the pipeline (e.g. the intake queue dropped an input)."""
-        self._reject(key, None, None, kind, message, log_time_ns)
+    def report_error(self, key: str, kind: str, message: str, log_time_ns: int, *, count: int = 1) -> None:
+        """An error found outside the pipeline (e.g. the intake queue dropped ``count`` inputs)."""
+        self._reject(key, None, None, kind, message, log_time_ns, count=count)
 
     def sink_status(self) -> list[dict[str, Any]]:
         return [sink.status() for sink in self.sinks]
@@ -484,6 +527,7 @@ class Pipeline:
             "format_version": 1,
             "channels": [ch.snapshot() for ch in self.channels.values()],
             "error_counts": [[k, kind, n] for (k, kind), n in self._error_counts.items()],
+            **({"power_quality": self.pq.snapshot()} if self.pq.enabled else {}),
         }
 
     def restore(self, snapshot: dict[str, Any]) -> None:
@@ -495,6 +539,8 @@ class Pipeline:
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):
             self._error_counts[(key, kind)] = n
+        if "power_quality" in snapshot:
+            self.pq.restore(snapshot["power_quality"])
 
     def channel_status(self) -> list[dict[str, Any]]:
         return [
@@ -513,6 +559,10 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+def _key_matches(expr: str, key: str) -> bool:
+    return bool(zenoh.KeyExpr(expr).includes(zenoh.KeyExpr(key)))
 
 
 def _is_power_of_ten(n: int) -> bool:
