@@ -10,47 +10,23 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import endpoint, make_config
+from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
 from mcap.reader import make_reader
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
 from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, make_channels
-from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary, encode_block_json
 from sinewatch.schemas.config import LimitsSection
 from sinewatch.schemas.messages import ErrorReport, Estimate
-
-TIMEOUT = 20.0  # generous guard for a loaded 2-core machine; waits end on arrival
-
-
-async def _with_daemon(config, client, *, signals=False):
-    """Run the daemon, run ``client(endpoint)`` in a thread, stop the daemon; return
-    (client's result, daemon, exit code)."""
-    daemon = Daemon(config, install_signal_handlers=signals)
-    task = asyncio.create_task(daemon.run())
-    await daemon.ready.wait()
-    try:
-        result = await asyncio.to_thread(client, endpoint(config))
-    finally:
-        daemon.should_exit.set()
-        code = await task
-    return result, daemon, code
-
-
-def _collect(sub, n):
-    out = []
-    while len(out) < n and (msg := sub.get(timeout=TIMEOUT)) is not None:
-        out.append(msg)
-    return out
 
 
 def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
     config = make_config(tmp_path)
     names = ["demo-biased", "demo-ramp", "demo-faulty-sensor"]
 
-    def client(ep):
+    def client(_daemon, ep):
         with connect([ep]) as s:
             est, err = subscribe_estimates(s), subscribe_errors(s)
             pub = BlockPublisher(s, dtype="float64")
@@ -59,9 +35,9 @@ def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
             sent = Feed(pub, channels, block_size=500, realtime=False).run(3.0)
             faults = {k: sum(c.faults_injected.get(k, 0) for c in channels) for k in ("drop", "nan", "duplicate")}
             n_errors = faults["nan"] + faults["duplicate"]
-            return _collect(est, sent - n_errors), _collect(err, n_errors), sent, faults, channels
+            return take(est, sent - n_errors), take(err, n_errors), sent, faults, channels
 
-    (estimates, errors, sent, faults, _channels), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors, sent, faults, _channels), daemon, code = run_daemon(config, client)
     assert code == 0
     assert faults["drop"] > 0 and faults["nan"] > 0 and faults["duplicate"] > 0  # the faulty channel did its job
     # one estimate per accepted block, in order per channel, valid against the schema
@@ -134,7 +110,7 @@ def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
     ]
     accepted = good[:5] + good[5:10] + [good[11]]  # seq 10 never sent: a gap before 11
 
-    def client(ep):
+    def client(_daemon, ep):
         with connect([ep]) as s:
             est, err = subscribe_estimates(s), subscribe_errors(s)
             pub = BlockPublisher(s)
@@ -146,9 +122,9 @@ def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
                 pub.publish_raw(key, payload, json_enc if payload[:1] == b"{" else None)
             for blk in [*good[5:10], good[11]]:
                 pub.publish_raw("h/a", b(blk))
-            return _collect(est, len(accepted)), _collect(err, len(hostile))
+            return take(est, len(accepted)), take(err, len(hostile))
 
-    (estimates, errors), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors), daemon, code = run_daemon(config, client)
     assert code == 0
     assert [e["kind"] for e in errors] == [kind for _, _, kind in hostile]
     assert all(e["message"] for e in errors)
@@ -158,18 +134,9 @@ def test_hostile_inputs_are_reported_and_never_reach_the_estimator(tmp_path):
     assert not any(e["diagnostics"]["gap"] for e in estimates[:-1])
 
     # The estimator saw exactly the good blocks: a clean pipeline fed only those agrees bit for bit.
-    class Keep(NullSink):
-        def __init__(self):
-            self.out = []
-
-        def on_estimate(self, key, payload, log_time_ns):
-            self.out.append(json.loads(payload))
-
-    keep = Keep()
-    clean = Pipeline(config, [keep])
-    for blk in accepted:
-        clean.process("sinewatch/in/h/a", b(blk), "application/x-sinewatch-block;v=1", 0)
-    assert [{k: v for k, v in e.items() if k != "_key"} for e in estimates] == keep.out
+    assert [{k: v for k, v in e.items() if k != "_key"} for e in estimates] == clean_estimates(
+        config, "sinewatch/in/h/a", accepted
+    )
     assert daemon.pipeline.counters.errors == len(hostile)
 
 
@@ -179,27 +146,19 @@ def test_signal_stops_intake_drains_and_finishes_the_recording(tmp_path, sig):
     blocks = _good_blocks(40)
     done = threading.Event()
 
-    def client(ep):
+    def client(_daemon, ep):
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             pub = BlockPublisher(s)
             assert pub.wait_for_subscriber("h/a", TIMEOUT)
             for blk in blocks[:20]:
                 pub.publish_raw("h/a", encode_block_binary(blk))
-            got = _collect(est, 20)
+            got = take(est, 20)
             signal.raise_signal(sig)  # handled by the daemon's event loop
             done.set()
             return got
 
-    async def main():
-        daemon = Daemon(config, install_signal_handlers=True)
-        task = asyncio.create_task(daemon.run())
-        await daemon.ready.wait()
-        got = await asyncio.to_thread(client, endpoint(config))
-        code = await asyncio.wait_for(task, TIMEOUT)
-        return got, daemon, code
-
-    got, daemon, code = asyncio.run(main())
+    got, daemon, code = run_daemon(config, client, signals=True)  # the signal, not the runner, stops it
     assert done.is_set() and code == 0 and len(got) == 20
     assert daemon.should_exit.is_set() and not daemon.force_exit.is_set()
     [path] = daemon.recording_paths
@@ -239,7 +198,7 @@ def test_status_reports_counters_and_validates(tmp_path):
     config = make_config(tmp_path)
     blocks = _good_blocks(10)
 
-    def client(ep):
+    def client(_daemon, ep):
         from sinewatch.clients import subscribe_status
 
         with connect([ep]) as s:
@@ -249,13 +208,13 @@ def test_status_reports_counters_and_validates(tmp_path):
             for blk in blocks:
                 pub.publish_raw("h/a", encode_block_binary(blk))
             pub.publish_raw("h/a", b"junk")
-            assert len(_collect(est, 10)) == 10
+            assert len(take(est, 10)) == 10
             while (msg := status.get(timeout=TIMEOUT)) is not None:  # the next status after the inputs
                 if msg["blocks_processed"] == 11:
                     return msg
             return None
 
-    (msg, _daemon, _code) = asyncio.run(_with_daemon(config, client))
+    (msg, _daemon, _code) = run_daemon(config, client)
     from sinewatch.schemas.messages import Status
 
     st = Status.model_validate({k: v for k, v in msg.items() if k != "_key"})
@@ -270,7 +229,7 @@ def test_drop_policy_counts_every_dropped_input(tmp_path):
     config = make_config(tmp_path, limits=LimitsSection(queue_capacity=1, queue_policy="drop", intake_batch=1))
     blocks = [Block("d/a", i, 0, 10_000.0, np.sin(np.arange(2000) * 0.03)) for i in range(300)]
 
-    def client(ep):
+    def client(_daemon, ep):
         from sinewatch.clients import JsonSubscription
 
         with connect([ep]) as s, JsonSubscription(s, "sinewatch/**") as everything:
@@ -286,7 +245,7 @@ def test_drop_policy_counts_every_dropped_input(tmp_path):
                     out_err.append(m)
             return out_est, out_err
 
-    (estimates, errors), daemon, _code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors), daemon, _code = run_daemon(config, client)
     dropped = daemon.intake.counters.dropped
     assert len(estimates) + dropped == len(blocks)
     assert [e["kind"] for e in errors] == ["queue_overflow"] * dropped

@@ -4,13 +4,10 @@ replayed bit for bit."""
 
 from __future__ import annotations
 
-import asyncio
-
 import pytest
-from conftest import endpoint, make_config
+from conftest import make_config, run_daemon
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.daemon import Daemon
 from sinewatch.estimators import available, get
 from sinewatch.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary
@@ -27,7 +24,7 @@ def test_served_recorded_and_replayed(tmp_path, name):
     x = cls.example_signal(4000, seed=5)
     blocks = [Block("x/one", i, i * 10**9, fs, x[i * 400 : (i + 1) * 400]) for i in range(10)]
 
-    def client(ep):
+    def client(_daemon, ep):
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             pub = BlockPublisher(s)
@@ -36,15 +33,7 @@ def test_served_recorded_and_replayed(tmp_path, name):
                 pub.publish_raw("x/one", encode_block_binary(blk, "float64"))
             return [est.get(timeout=20) for _ in blocks]
 
-    async def main():
-        daemon = Daemon(config, install_signal_handlers=False)
-        task = asyncio.create_task(daemon.run())
-        await daemon.ready.wait()
-        got = await asyncio.to_thread(client, endpoint(config))
-        daemon.should_exit.set()
-        return got, daemon, await task
-
-    got, daemon, code = asyncio.run(main())
+    got, daemon, code = run_daemon(config, client)
     assert code == 0 and all(m is not None for m in got)
     assert [m["seq"] for m in got] == list(range(10))
     for m in got:

@@ -8,7 +8,6 @@ bit for bit).
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import os
@@ -18,19 +17,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import endpoint, make_config
+from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
 from mcap.reader import make_reader
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_errors, subscribe_estimates
-from sinewatch.daemon import Daemon
 from sinewatch.feed import make_channels
-from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import replay
-from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
+from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 from sinewatch.schemas.messages import ErrorReport, SinkStatus, Status
 
-TIMEOUT = 20.0
 JSON_ENC = "application/json;sinewatch/SampleBlock@1"
 
 
@@ -62,44 +58,8 @@ def _malformed_payloads() -> list[bytes]:
     return payloads
 
 
-async def _with_daemon(config, client):
-    daemon = Daemon(config, install_signal_handlers=False)
-    task = asyncio.create_task(daemon.run())
-    await daemon.ready.wait()
-    try:
-        result = await asyncio.to_thread(client, daemon, endpoint(config))
-    finally:
-        daemon.should_exit.set()
-        code = await task
-    return result, daemon, code
-
-
-def _take(sub, n):
-    out = []
-    while len(out) < n and (msg := sub.get(timeout=TIMEOUT)) is not None:
-        out.append(msg)
-    return out
-
-
 def _strip(msg):
     return {k: v for k, v in msg.items() if k != "_key"}
-
-
-def _clean_estimates(config, channel_key: str, blocks: list[Block]) -> list[dict]:
-    """What a pipeline that never saw the faults says for the same good blocks."""
-
-    class Keep(NullSink):
-        def __init__(self):
-            self.out = []
-
-        def on_estimate(self, key, payload, log_time_ns):
-            self.out.append(json.loads(payload))
-
-    keep = Keep()
-    clean = Pipeline(config, [keep])
-    for blk in blocks:
-        clean.process(channel_key, encode_block_binary(blk), BLOCK_BINARY_ENCODING, 0)
-    return keep.out
 
 
 def _status_where(status_sub, predicate) -> dict | None:
@@ -127,11 +87,11 @@ def test_malformed_blocks_are_rejected_and_every_channel_goes_on(tmp_path):
             for i in range(4, 8):
                 pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
                 pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
-            estimates, errors = _take(est, 16), _take(err, len(bad))
+            estimates, errors = take(est, 16), take(err, len(bad))
             st = _status_where(status, lambda m: m["blocks_processed"] == 16 + len(bad))
             return estimates, errors, st
 
-    (estimates, errors, st), _daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors, st), _daemon, code = run_daemon(config, client)
     assert code == 0
     assert len(errors) == len(bad)
     for e in errors:
@@ -141,8 +101,8 @@ def test_malformed_blocks_are_rejected_and_every_channel_goes_on(tmp_path):
     by_channel = {"f/a": [], "f/b": []}
     for e in estimates:
         by_channel[e["channel"]].append(_strip(e))
-    assert by_channel["f/a"] == _clean_estimates(config, "sinewatch/in/f/a", a_blocks)
-    assert by_channel["f/b"] == _clean_estimates(config, "sinewatch/in/f/b", b_blocks)
+    assert by_channel["f/a"] == clean_estimates(config, "sinewatch/in/f/a", a_blocks)
+    assert by_channel["f/b"] == clean_estimates(config, "sinewatch/in/f/b", b_blocks)
     status = Status.model_validate(_strip(st))
     assert status.errors == len(bad)
     assert sum(status.errors_by_kind.values()) == len(bad)
@@ -162,7 +122,7 @@ def test_an_estimator_that_raises_is_isolated_to_its_channel_and_keeps_its_state
             for i in range(3):
                 pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
                 pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
-            first = _take(est, 6)
+            first = take(est, 6)
             # A fault inside f/a's estimator (a kernel bug, say) on one particular block.
             estimator = daemon.pipeline.channels["f/a"].estimator
             run = estimator._run
@@ -177,9 +137,9 @@ def test_an_estimator_that_raises_is_isolated_to_its_channel_and_keeps_its_state
             for i in range(3, 6):
                 pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
                 pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
-            return first + _take(est, 6), _take(err, 1)
+            return first + take(est, 6), take(err, 1)
 
-    (estimates, errors), daemon, code = asyncio.run(_with_daemon(config, client))
+    (estimates, errors), daemon, code = run_daemon(config, client)
     assert code == 0
     [fault] = errors
     assert fault["kind"] == "estimator_fault" and fault["channel"] == "f/a" and fault["seq"] == 3
@@ -188,8 +148,8 @@ def test_an_estimator_that_raises_is_isolated_to_its_channel_and_keeps_its_state
     b = [_strip(e) for e in estimates if e["channel"] == "f/b"]
     # seq 3 was consumed by the fault, so the next good block (also seq 3) is accepted,
     # and the estimator continues from exactly the state it had before the fault
-    assert a == _clean_estimates(config, "sinewatch/in/f/a", a_blocks)
-    assert b == _clean_estimates(config, "sinewatch/in/f/b", b_blocks)
+    assert a == clean_estimates(config, "sinewatch/in/f/a", a_blocks)
+    assert b == clean_estimates(config, "sinewatch/in/f/b", b_blocks)
     assert daemon.pipeline.counters.by_kind["estimator_fault"] == 1
 
 
@@ -239,7 +199,7 @@ def test_a_full_disk_keeps_estimating_reports_it_and_resumes_recording(tmp_path)
                     for blk in blocks[sent : sent + n]:
                         pub.publish_raw("f/a", encode_block_binary(blk))
                     sent += n
-                    return _take(est, n)
+                    return take(est, n)
 
                 def send_until(predicate):
                     """Blocks in fives, each followed by the next Status, until it says so."""
@@ -255,14 +215,14 @@ def test_a_full_disk_keeps_estimating_reports_it_and_resumes_recording(tmp_path)
                 filler = _fill(disk)
                 more, failed = send_until(lambda sink: not sink["ok"])
                 out += more
-                report = _take(err, 1)
+                report = take(err, 1)
                 out += send(20)  # estimation and publishing do not need the disk
                 filler.unlink()  # space comes back
                 more, recovered = send_until(lambda sink: sink["recoveries"] == 1 and sink["ok"])
                 out += more + send(10)
                 return out, report, failed, recovered, sent
 
-        (estimates, report, failed, recovered, sent), daemon, code = asyncio.run(_with_daemon(config, client))
+        (estimates, report, failed, recovered, sent), daemon, code = run_daemon(config, client)
         assert code == 0
         assert [e["seq"] for e in estimates] == list(range(sent))  # not one estimate lost
         [rep] = report

@@ -3,66 +3,13 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
-from conftest import make_config
+from conftest import record_run
 from mcap.reader import make_reader
 
 from sinewatch.cli import main
-from sinewatch.feed import make_channels
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import McapRecorder
 from sinewatch.replay import replay
-from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
-from sinewatch.schemas.config import RecordingSection
-
-
-class FakeClock:
-    """Recorder clock advanced by the test, so duration-based rotation is deterministic."""
-
-    def __init__(self):
-        self.now = 0.0
-
-    def __call__(self):
-        return self.now
-
-
-def record_run(tmp_path: Path, n_blocks=60, rotate_seconds=None, tamper_at=None, on_gap="coast", flush_every=None):
-    config = make_config(
-        tmp_path,
-        on_gap=on_gap,
-        recording=RecordingSection(directory=tmp_path / "rec", rotate_seconds=rotate_seconds, rotate_bytes=None),
-    )
-    clock = FakeClock()
-    recorder = McapRecorder(config, snapshot=lambda: pipeline.snapshot(), clock=clock)
-    if tamper_at is not None:
-        original = recorder.on_estimate
-        count = {"n": 0}
-
-        def tampered(key, payload, log_time_ns):
-            count["n"] += 1
-            if count["n"] == tamper_at:
-                payload = payload.replace(b'"converged":true', b'"converged":false')
-            original(key, payload, log_time_ns)
-
-        recorder.on_estimate = tampered
-    pipeline = Pipeline(config, [recorder])
-    streams = make_channels(["demo-biased", "demo-ramp"], prefix="rr")
-    t = 1_000
-    for i in range(n_blocks):
-        for ch in streams:
-            if ch.channel == "rr/demo-ramp" and i == 30:
-                continue  # a gap
-            x, _ = ch.stream.read(400)
-            blk = Block(ch.channel, i, i * 40_000_000, 10_000.0, x)
-            t += 1
-            pipeline.process(f"sinewatch/in/{ch.channel}", encode_block_binary(blk), BLOCK_BINARY_ENCODING, t)
-        clock.now += 0.04
-        if flush_every and i % flush_every == 0:
-            recorder.flush()  # what the daemon's flush timer does
-    recorder.close()
-    return recorder.paths, pipeline
 
 
 def test_rotation_writes_self_contained_files(tmp_path):

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import asyncio
 import resource
 
 import pytest
-from conftest import endpoint, make_config
+from conftest import make_config, run_daemon
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, make_channels
 from sinewatch.replay import replay
 from sinewatch.scenarios.demo import DEMO_CHANNELS
@@ -21,7 +19,7 @@ def test_two_minutes_of_eight_channels_lose_nothing_and_replay(tmp_path):
     seconds = 120.0
     config = make_config(tmp_path, recording=RecordingSection(directory=tmp_path / "rec", rotate_seconds=45.0))
 
-    def client(ep):
+    def client(_daemon, ep):
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             pub = BlockPublisher(s)
@@ -36,15 +34,7 @@ def test_two_minutes_of_eight_channels_lose_nothing_and_replay(tmp_path):
                 got += 1
             return sent, rejected, got, rss_before
 
-    async def main():
-        daemon = Daemon(config, install_signal_handlers=False)
-        task = asyncio.create_task(daemon.run())
-        await daemon.ready.wait()
-        out = await asyncio.to_thread(client, endpoint(config))
-        daemon.should_exit.set()
-        return out, daemon, await task
-
-    (sent, rejected, got, rss_before), daemon, code = asyncio.run(main())
+    (sent, rejected, got, rss_before), daemon, code = run_daemon(config, client)
     assert code == 0 and got == sent - rejected
     rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     assert rss_after - rss_before < 100_000  # KiB: no growth with time beyond buffers

@@ -12,13 +12,16 @@ from sinewatch.estimators import available
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,
+    ESTIMATE_JSON_ENCODING,
     Block,
     decode_block,
     encode_block_binary,
     encode_block_json,
+    encode_estimate,
 )
 from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.export import all_schemas
+from sinewatch.schemas.messages import Diagnostics, Estimate, Uncertainty
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -92,3 +95,39 @@ def test_committed_json_schemas_are_up_to_date():
         path = REPO / "schemas" / "sinewatch" / "schemas" / "json" / rel
         assert path.exists(), f"{path} missing: run `make schemas`"
         assert json.loads(path.read_text()) == schema, f"{path} is stale: run `make schemas`"
+
+
+def _estimate(**over):
+    fields = dict(
+        channel="a/b",
+        seq=3,
+        timestamp_ns=1_700_000_000_000_000_000,
+        n_samples=10,
+        estimator="x",
+        frequency_hz=[50.0],
+        amplitude=[1.0],
+        phase_rad=[0.25],
+        offset=None,
+        diagnostics=Diagnostics(converged=True, residual_rms=0.01, extras={"k": 1.5}),
+    )
+    fields.update(over)
+    return Estimate(**fields)
+
+
+def test_estimate_v2_carries_rocof_and_uncertainty_and_v1_is_the_earlier_bytes():
+    est = _estimate(
+        rocof_hz_per_s=[0.5],
+        std=Uncertainty(frequency_hz=[0.001], amplitude=[None], phase_rad=[0.01], offset=None),
+    )
+    v2 = json.loads(encode_estimate(est))
+    assert v2["format_version"] == 2 and v2["rocof_hz_per_s"] == [0.5] and v2["std"]["frequency_hz"] == [0.001]
+    assert Estimate.model_validate(v2) == est
+    # Version 1 is what earlier builds wrote: the same keys in the same order, nothing more.
+    v1 = encode_estimate(est, version=1)
+    assert v1 == (
+        b'{"format_version":1,"channel":"a/b","seq":3,"timestamp_ns":1700000000000000000,"n_samples":10,'
+        b'"estimator":"x","frequency_hz":[50.0],"amplitude":[1.0],"phase_rad":[0.25],"offset":null,'
+        b'"diagnostics":{"converged":true,"residual_rms":0.01,"gap":false,"gap_blocks":0,"restart":false,'
+        b'"reset":false,"extras":{"k":1.5}}}'
+    )
+    assert ESTIMATE_JSON_ENCODING.endswith("@2")

@@ -93,7 +93,7 @@ def cmd_estimators(args: argparse.Namespace) -> int:
         cls = get(name)
         print(f"{name}: {cls.summary}" + (f"  [paper {cls.paper}]" if cls.paper else ""))
         for field, info in params.model_fields.items():
-            default = info.default if info.default_factory is None else info.default_factory()
+            default = info.get_default(call_default_factory=True)
             print(f"    {field} = {default!r}  {info.description or ''}")
     return 0
 
@@ -155,7 +155,7 @@ def format_estimate(msg: dict[str, Any]) -> str:
     if "frequency_hz" not in msg:  # errors and status: show as JSON
         return json.dumps({k: v for k, v in msg.items() if k != "_key"})
 
-    def f(values: list, spec: str) -> str:
+    def f(values: list[float | None], spec: str) -> str:
         return ",".join("nan" if v is None else format(v, spec) for v in values)
 
     d = msg["diagnostics"]
@@ -190,7 +190,7 @@ def cmd_bench_e2e(args: argparse.Namespace) -> int:
 
 # ---- parser ----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    from sinewatch.clients.session import DEFAULT_CONNECT
+    from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
 
     p = argparse.ArgumentParser(
         prog="sinewatch",
@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(fn=cmd_estimators)
 
     f = sub.add_parser("feed", help="publish simulated sample blocks to a daemon")
-    f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    f.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     f.add_argument(
         "--scenario",
         action="append",
@@ -253,7 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("tail", help="print estimates (or any sinewatch JSON messages) as they arrive")
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
-    t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_CONNECT[0]})")
+    t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     t.add_argument("--count", type=int, default=0, help="exit after N messages")
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")

@@ -28,56 +28,25 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import zenoh
+import zenoh.ext
 
 from sinewatch.clients.session import open_session
-from sinewatch.pipeline import NullSink, Pipeline, sanitize_log_time
+from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
+from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
-from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING, dumps
+from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
-from sinewatch.schemas.messages import FORMAT_VERSION
+from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 
 log = logging.getLogger("sinewatch.daemon")
 
 HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-class ZenohPublisherSink(NullSink):
-    """Publishes estimates and errors (BLOCK: not dropped) and status (DROP)."""
-
-    sink_name = "zenoh"
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self._session = session
-        self._publishers: dict[str, zenoh.Publisher] = {}
-
-    def _publisher(self, key: str, encoding: str, congestion: zenoh.CongestionControl) -> zenoh.Publisher:
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._session.declare_publisher(key, encoding=zenoh.Encoding(encoding), congestion_control=congestion)
-            self._publishers[key] = pub
-        return pub
-
-    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, ESTIMATE_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
-
-    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, ERROR_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
-
-    def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._publisher(key, STATUS_JSON_ENCODING, zenoh.CongestionControl.DROP).put(payload)
-
-    def recover(self) -> None:
-        """Declare the publishers afresh on the next put (after a session fault)."""
-        self._publishers.clear()
-
-    def close(self) -> None:
-        for pub in self._publishers.values():
-            pub.undeclare()
-        self._publishers.clear()
 
 
 @dataclass
@@ -85,6 +54,7 @@ class IntakeCounters:
     received: int = 0
     dropped: int = 0
     backpressure_waits: int = 0
+    unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
 
 
 # (key, payload, encoding, received monotonic ns)
@@ -103,9 +73,22 @@ class Intake:
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
-        self._subscriber = daemon.session.declare_subscriber(
-            cfg.keys.input, zenoh.handlers.FifoChannel(max(64, self._batch * 2))
-        )
+        fifo = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        self._miss_listener = None
+        if cfg.zenoh.recovery:
+            # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
+            # from the publishers' caches; what is past their history is reported here.
+            self._subscriber = zenoh.ext.declare_advanced_subscriber(
+                daemon.session,
+                cfg.keys.input,
+                fifo,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True,
+            )
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+        else:
+            self._subscriber = daemon.session.declare_subscriber(cfg.keys.input, fifo)
         self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
         self._closed = threading.Event()
         self._thread.start()
@@ -128,6 +111,12 @@ class Intake:
             pass  # channel closed by stop(): intake is over
         finally:
             self._closed.set()
+
+    def _on_miss(self, miss: zenoh.ext.Miss) -> None:
+        """On a Zenoh thread: blocks lost for good (the pipeline flags the gap when the
+        next block of that channel arrives); counted here, logged."""
+        self.counters.unrecovered += miss.nb
+        log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
 
     @staticmethod
     def _take(sample: zenoh.Sample) -> Item:
@@ -153,6 +142,8 @@ class Intake:
 
     async def stop(self) -> None:
         """Stop intake: no new inputs; everything already received is handed over."""
+        if self._miss_listener is not None:
+            self._miss_listener.undeclare()
         self._subscriber.undeclare()
         await asyncio.get_running_loop().run_in_executor(None, self._closed.wait)
 
@@ -164,14 +155,27 @@ class Daemon:
         self.should_exit = asyncio.Event()
         self.force_exit = threading.Event()
         self.ready = asyncio.Event()
-        self.session: zenoh.Session | None = None
-        self.pipeline: Pipeline | None = None
+        self._session: zenoh.Session | None = None
+        self._pipeline: Pipeline | None = None
         self.recorder: McapRecorder | None = None
-        self.intake: Intake | None = None
+        self._intake: Intake | None = None
         self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
         self._queued = 0
         self._started = time.monotonic()
         self._last_log_time = 0
+
+    # ---- what start() creates ------------------------------------------------------------------
+    @property
+    def session(self) -> zenoh.Session:
+        return _started(self._session, "session")
+
+    @property
+    def pipeline(self) -> Pipeline:
+        return _started(self._pipeline, "pipeline")
+
+    @property
+    def intake(self) -> Intake:
+        return _started(self._intake, "intake")
 
     # ---- signals -------------------------------------------------------------------------------
     def handle_signal(self, sig: int) -> None:
@@ -183,7 +187,7 @@ class Daemon:
         self.should_exit.set()
 
     @contextlib.contextmanager
-    def _signals(self):
+    def _signals(self) -> Iterator[None]:
         loop = asyncio.get_running_loop()
         if not self.install_signal_handlers or threading.current_thread() is not threading.main_thread():
             yield
@@ -230,25 +234,24 @@ class Daemon:
 
     # ---- periodic tasks -------------------------------------------------------------------------
     def status_payload(self) -> bytes:
-        c = self.intake.counters if self.intake else IntakeCounters()
+        c = self._intake.counters if self._intake else IntakeCounters()
         p = self.pipeline
-        return dumps(
-            {
-                "format_version": FORMAT_VERSION,
-                "daemon_id": self.config.daemon_id,
-                "uptime_s": round(time.monotonic() - self._started, 3),
-                "blocks_received": c.received,
-                "blocks_processed": p.counters.inputs,
-                "dropped": c.dropped,
-                "backpressure_waits": c.backpressure_waits,
-                "errors": p.counters.errors,
-                "errors_by_kind": dict(sorted(p.counters.by_kind.items())),
-                "queue_depth": self._queued,
-                "recording": str(self.recorder.path) if self.recorder and self.recorder.path else None,
-                "sinks": p.sink_status(),
-                "channels": p.channel_status(),
-            }
+        status = Status(
+            daemon_id=self.config.daemon_id,
+            uptime_s=round(time.monotonic() - self._started, 3),
+            blocks_received=c.received,
+            blocks_processed=p.counters.inputs,
+            dropped=c.dropped,
+            backpressure_waits=c.backpressure_waits,
+            unrecovered=c.unrecovered,
+            errors=p.counters.errors,
+            errors_by_kind=dict(sorted(p.counters.by_kind.items())),
+            queue_depth=self._queued,
+            recording=str(self.recorder.path) if self.recorder and self.recorder.path else None,
+            sinks=[SinkStatus(**s) for s in p.sink_status()],
+            channels=[ChannelStatus(**c) for c in p.channel_status()],
         )
+        return encode_status(status)
 
     def publish_status(self) -> None:
         key = f"{self.config.keys.status_key}/{self.config.daemon_id}"
@@ -256,7 +259,7 @@ class Daemon:
         for sink in self.pipeline.sinks:
             sink.on_status(key, payload, self._log_time())
 
-    async def _every(self, seconds: float, fn) -> None:
+    async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
             await asyncio.sleep(seconds)
             try:
@@ -282,14 +285,14 @@ class Daemon:
         """Open the session and sinks and start intake (call from the event loop)."""
         cfg = self.config
         self.warm_up()
-        self.session = open_session(cfg.zenoh)
-        sinks = [ZenohPublisherSink(self.session)]
+        self._session = open_session(cfg.zenoh)
+        sinks: list[Sink] = [ZenohPublisherSink(self._session)]
         if cfg.recording.enabled:
             self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
             sinks.append(self.recorder)
-        self.pipeline = Pipeline(cfg, sinks)
-        self.pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
-        self.intake = Intake(self, asyncio.get_running_loop())
+        self._pipeline = Pipeline(cfg, sinks)
+        self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
+        self._intake = Intake(self, asyncio.get_running_loop())
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
             cfg.daemon_id,
@@ -318,7 +321,7 @@ class Daemon:
                 self._close()
         return 130 if self.force_exit.is_set() else 0
 
-    async def _shutdown(self, consumer: asyncio.Task, periodic: list[asyncio.Task]) -> None:
+    async def _shutdown(self, consumer: asyncio.Task[None], periodic: list[asyncio.Task[None]]) -> None:
         for task in periodic:
             task.cancel()
         await self.intake.stop()  # no new inputs; the pump has handed over all it had
@@ -335,14 +338,23 @@ class Daemon:
         )
 
     def _close(self) -> None:
-        if self.pipeline is not None:
-            self.pipeline.close_sinks()
-        if self.session is not None:
-            self.session.close()
+        if self._pipeline is not None:
+            self._pipeline.close_sinks()
+        if self._session is not None:
+            self._session.close()
 
     @property
     def recording_paths(self) -> list[Path]:
         return list(self.recorder.paths) if self.recorder else []
+
+
+_T = TypeVar("_T")
+
+
+def _started(value: _T | None, what: str) -> _T:
+    if value is None:
+        raise RuntimeError(f"daemon {what}: expected a started daemon (call start() or run() first)")
+    return value
 
 
 def serve(config: SinewatchConfig) -> int:

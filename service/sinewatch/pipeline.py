@@ -32,11 +32,18 @@ import numpy as np
 import zenoh
 
 from sinewatch.estimators import get as get_estimator
-from sinewatch.estimators.base import Estimator, Track
-from sinewatch.schemas.codec import Block, decode_block, dumps, finite_or_none
+from sinewatch.estimators.base import Estimator, Track, TrackStd
+from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
-from sinewatch.schemas.messages import FORMAT_VERSION
+from sinewatch.schemas.messages import (
+    ESTIMATE_FORMAT_VERSION,
+    Diagnostics,
+    ErrorKind,
+    ErrorReport,
+    Estimate,
+    Uncertainty,
+)
 
 log = logging.getLogger("sinewatch.pipeline")
 
@@ -216,7 +223,7 @@ class PipelineCounters:
     inputs: int = 0
     estimates: int = 0
     errors: int = 0
-    by_kind: Counter = field(default_factory=Counter)
+    by_kind: Counter[str] = field(default_factory=Counter)
 
 
 class Pipeline:
@@ -226,8 +233,10 @@ class Pipeline:
         sinks: list[Sink],
         *,
         rules: list[EstimatorRule] | None = None,
+        estimate_version: int = ESTIMATE_FORMAT_VERSION,
     ) -> None:
         self.config = config
+        self.estimate_version = estimate_version  # 1 to reproduce recordings of earlier builds
         self.sinks = [
             GuardedSink(
                 sink,
@@ -241,7 +250,7 @@ class Pipeline:
         self._rule_exprs = [zenoh.KeyExpr(r.match) for r in self.rules]
         self.channels: dict[str, Channel] = {}
         self.counters = PipelineCounters()
-        self._error_counts: Counter = Counter()  # (key, kind) -> count, for ErrorReport.count
+        self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
 
     # ---- the one entry point ---------------------------------------------------------------
@@ -394,28 +403,29 @@ class Pipeline:
         converged = bool(track.converged[-1])
         ch.converged = converged
         n = block.n_samples
-        msg = {
-            "format_version": FORMAT_VERSION,
-            "channel": ch.name,
-            "seq": block.seq,
-            "timestamp_ns": block.t0_ns + round((n - 1) * 1e9 / block.sample_rate_hz),
-            "n_samples": n,
-            "estimator": ch.estimator.name,
-            "frequency_hz": [finite_or_none(v) for v in track.frequency_hz[-1]],
-            "amplitude": [finite_or_none(v) for v in track.amplitude[-1]],
-            "phase_rad": [finite_or_none(v) for v in track.phase_rad[-1]],
-            "offset": finite_or_none(track.offset[-1]),
-            "diagnostics": {
-                "converged": converged,
-                "residual_rms": finite_or_none(track.residual_rms),
-                "gap": gap_blocks > 0 or restart,
-                "gap_blocks": gap_blocks,
-                "restart": restart,
-                "reset": reset,
-                "extras": {k: _last_value(v) for k, v in track.extras.items()},
-            },
-        }
-        return dumps(msg)
+        estimate = Estimate(
+            channel=ch.name,
+            seq=block.seq,
+            timestamp_ns=block.t0_ns + round((n - 1) * 1e9 / block.sample_rate_hz),
+            n_samples=n,
+            estimator=ch.estimator.name,
+            frequency_hz=_finite_list(track.frequency_hz[-1]),
+            amplitude=_finite_list(track.amplitude[-1]),
+            phase_rad=_finite_list(track.phase_rad[-1]),
+            offset=finite_or_none(track.offset[-1]),
+            rocof_hz_per_s=None if track.rocof_hz_per_s is None else _finite_list(track.rocof_hz_per_s[-1]),
+            std=None if track.std is None else _uncertainty(track.std),
+            diagnostics=Diagnostics(
+                converged=converged,
+                residual_rms=finite_or_none(track.residual_rms),
+                gap=gap_blocks > 0 or restart,
+                gap_blocks=gap_blocks,
+                restart=restart,
+                reset=reset,
+                extras={k: _last_value(v) for k, v in track.extras.items()},
+            ),
+        )
+        return encode_estimate(estimate, self.estimate_version)
 
     def _reject(
         self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int
@@ -426,15 +436,14 @@ class Pipeline:
         if ch is not None:
             ch.errors += 1
         channel_name = block.channel if block is not None else None
-        report = {
-            "format_version": FORMAT_VERSION,
-            "key": key,
-            "channel": channel_name,
-            "seq": block.seq if block is not None else None,
-            "kind": kind,
-            "message": message,
-            "count": self._error_counts[(key, kind)],
-        }
+        report = ErrorReport(
+            key=key,
+            channel=channel_name,
+            seq=block.seq if block is not None else None,
+            kind=ErrorKind(kind),
+            message=message,
+            count=self._error_counts[(key, kind)],
+        )
         n = self._error_counts[(key, kind)]
         if n <= 5 or _is_power_of_ten(n):  # a hostile flood must not flood the log too
             log.warning(
@@ -445,7 +454,7 @@ class Pipeline:
                 f" [{n} so far on this key; further ones logged at powers of ten]" if n >= 5 else "",
             )
         out_key = f"{self.config.keys.errors_prefix}/{channel_name or '_unknown'}"
-        payload = dumps(report)
+        payload = encode_error(report)
         for sink in self.sinks:
             sink.on_error(out_key, payload, log_time_ns)
 
@@ -510,6 +519,19 @@ def _is_power_of_ten(n: int) -> bool:
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1
+
+
+def _finite_list(row: np.ndarray) -> list[float | None]:
+    return [finite_or_none(v) for v in row]
+
+
+def _uncertainty(std: TrackStd) -> Uncertainty:
+    return Uncertainty(
+        frequency_hz=_finite_list(std.frequency_hz[-1]),
+        amplitude=_finite_list(std.amplitude[-1]),
+        phase_rad=_finite_list(std.phase_rad[-1]),
+        offset=finite_or_none(std.offset[-1]),
+    )
 
 
 def _last_value(arr: np.ndarray) -> float | list[float | None] | None:

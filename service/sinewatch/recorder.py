@@ -35,7 +35,7 @@ from sinewatch.schemas.codec import (
     STATUS_JSON_ENCODING,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
-from sinewatch.schemas.messages import MESSAGE_MODELS
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 
 log = logging.getLogger("sinewatch.recorder")
 
@@ -83,6 +83,18 @@ class McapRecorder:
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
 
+    @property
+    def _w(self) -> Writer:
+        if self._writer is None:
+            raise RuntimeError("recorder: no open file (call open() first)")
+        return self._writer
+
+    @property
+    def _f(self) -> BinaryIO:
+        if self._file is None:
+            raise RuntimeError("recorder: no open file (call open() first)")
+        return self._file
+
     # ---- file lifecycle --------------------------------------------------------------------
     @property
     def path(self) -> Path | None:
@@ -104,16 +116,17 @@ class McapRecorder:
             chunk_size=self.section.chunk_size_bytes,
             compression=_COMPRESSION[self.section.compression],
         )
-        self._writer.start(profile="", library=f"sinewatch {__version__}")
+        self._w.start(profile="", library=f"sinewatch {__version__}")
         self._schemas.clear()
         self._channels.clear()
         self._sequence.clear()
         self._opened_at = self._clock()
         self.paths.append(path)
-        self._writer.add_metadata(
+        self._w.add_metadata(
             METADATA_NAME,
             {
                 "format_version": "1",
+                "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),
@@ -121,17 +134,15 @@ class McapRecorder:
         )
         if self.index > 0 and self._snapshot is not None:
             now = time.time_ns()
-            self._writer.add_attachment(
-                now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode()
-            )
+            self._w.add_attachment(now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode())
         log.info("recording to %s", path)
         return path
 
     def close(self) -> None:
         """Finish the file: write the summary and the footer."""
         if self._writer is not None:
-            self._writer.finish()
-            self._file.close()
+            self._w.finish()
+            self._f.close()
             log.info("recording finished: %s (%d messages)", self.path, self.messages_written)
         self._writer = None
         self._file = None
@@ -144,8 +155,8 @@ class McapRecorder:
         self.index += 1
         path = self.open()
         try:
-            self._writer.flush()
-            self._file.flush()
+            self._w.flush()
+            self._f.flush()
         except OSError:
             self._abandon()
             self.paths.remove(path)
@@ -156,7 +167,7 @@ class McapRecorder:
         """Drop the open file without finishing it (its complete chunks stay readable)."""
         if self._file is not None:
             try:
-                self._file.close()
+                self._f.close()
             except OSError as exc:  # the buffered tail is lost: that is the failure being handled
                 log.warning("recording %s abandoned: %s", self.path, exc)
         self._writer = None
@@ -165,14 +176,14 @@ class McapRecorder:
     def flush(self) -> None:
         """Close the open chunk and push it to the OS; called on a timer."""
         if self._writer is not None:
-            self._writer.flush()
-            self._file.flush()
+            self._w.flush()
+            self._f.flush()
 
     def _maybe_rotate(self) -> None:
         if self._fixed_path is not None or self._file is None:
             return
         sec = self.section
-        too_big = sec.rotate_bytes is not None and self._file.tell() >= sec.rotate_bytes
+        too_big = sec.rotate_bytes is not None and self._f.tell() >= sec.rotate_bytes
         too_old = sec.rotate_seconds is not None and self._clock() - self._opened_at >= sec.rotate_seconds
         if too_big or too_old:
             self.close()
@@ -185,11 +196,11 @@ class McapRecorder:
         if sid is None:
             if name == "sinewatch.SampleBlock.binary":
                 # the byte layout, as documented in the codec, travels with the data
-                sid = self._writer.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
+                sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
             else:
                 model = MESSAGE_MODELS[name.removeprefix("sinewatch.")]
                 schema = json.dumps(model.model_json_schema()).encode()
-                sid = self._writer.register_schema(name, "jsonschema", schema)
+                sid = self._w.register_schema(name, "jsonschema", schema)
             self._schemas[name] = sid
         return sid
 
@@ -197,7 +208,7 @@ class McapRecorder:
         key = (topic, message_encoding)
         cid = self._channels.get(key)
         if cid is None:
-            cid = self._writer.register_channel(
+            cid = self._w.register_channel(
                 topic,
                 message_encoding,
                 self._schema_id(schema),
@@ -209,7 +220,7 @@ class McapRecorder:
     def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
         seq = self._sequence.get(cid, 0)
         self._sequence[cid] = seq + 1
-        self._writer.add_message(cid, log_time_ns, payload, time.time_ns(), sequence=seq)
+        self._w.add_message(cid, log_time_ns, payload, time.time_ns(), sequence=seq)
         self.messages_written += 1
 
     # ---- the sink --------------------------------------------------------------------------

@@ -26,10 +26,11 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -75,7 +76,7 @@ class ReplayResult:
     incomplete_files: list[Path] = field(default_factory=list)
     compared: bool = True
     uncompared_tail: int = 0  # estimates past the end of an incomplete recording
-    final: dict[str, dict[str, tuple[bytes | None, bytes | None]]] = field(default_factory=dict)
+    final: dict[str, tuple[bytes | None, bytes | None]] = field(default_factory=dict)
     out_paths: list[Path] = field(default_factory=list)
 
     @property
@@ -167,14 +168,18 @@ def replay(
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None
     comparator = _Comparator()
-    pending_snapshot: dict | None = None
+    pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
+    estimate_version = ESTIMATE_FORMAT_VERSION
     for file_no, path in enumerate(paths):
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
         for kind, item in read_recording(path, progress):
             if kind == "metadata":
                 if config is None:
                     config = SinewatchConfig.model_validate(json.loads(item["config"]))
+                    # check in the recording's own format (files of earlier builds have no key: 1)
+                    if rules is None:
+                        estimate_version = int(item.get("estimate_format_version", "1"))
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
@@ -188,12 +193,12 @@ def replay(
                             f"{path}: no sinewatch metadata before the first message; "
                             "expected a file written by sinewatch"
                         )
-                    sinks: list = [comparator]
+                    sinks: list[Sink] = [comparator]
                     if out is not None:
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
                         recorder = McapRecorder(rec_config, path=out)
                         sinks.append(recorder)
-                    pipeline = Pipeline(config, sinks, rules=rules)
+                    pipeline = Pipeline(config, sinks, rules=rules, estimate_version=estimate_version)
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)

@@ -86,7 +86,7 @@ def _brief(payload: bytes | None) -> str:
         return "-"
     m = json.loads(payload)
 
-    def f(v):
+    def f(v: float | None) -> str:
         return "nan" if v is None else f"{v:.4f}"
 
     return (

@@ -7,6 +7,7 @@ here, so a gateway, a client or ``sinewatch config show`` can load it in millise
 from importlib.metadata import PackageNotFoundError, version
 
 from sinewatch.schemas.messages import (
+    ESTIMATE_FORMAT_VERSION,
     FORMAT_VERSION,
     MESSAGE_MODELS,
     ErrorKind,
@@ -22,6 +23,7 @@ except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0.0.0"
 
 __all__ = [
+    "ESTIMATE_FORMAT_VERSION",
     "FORMAT_VERSION",
     "MESSAGE_MODELS",
     "ErrorKind",

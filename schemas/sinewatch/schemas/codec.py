@@ -5,7 +5,7 @@ Every message announces its encoding in its Zenoh Encoding:
 =========================================  =============================================
 ``application/x-sinewatch-block;v=1``      SampleBlock, compact binary (layout below)
 ``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/sinewatch/schemas/json/SampleBlock.json)
-``application/json;sinewatch/Estimate@1``      Estimate, JSON
+``application/json;sinewatch/Estimate@2``      Estimate, JSON (``@1`` in recordings of earlier builds)
 ``application/json;sinewatch/ErrorReport@1``   ErrorReport, JSON
 ``application/json;sinewatch/Status@1``        Status, JSON
 =========================================  =============================================
@@ -49,17 +49,26 @@ import numpy as np
 from pydantic import ValidationError
 
 from sinewatch.schemas.errors import DecodeError, InputError, UnsupportedVersionError
-from sinewatch.schemas.messages import CHANNEL_PATTERN, FORMAT_VERSION, SampleBlock
+from sinewatch.schemas.messages import (
+    CHANNEL_PATTERN,
+    ESTIMATE_FORMAT_VERSION,
+    FORMAT_VERSION,
+    ErrorReport,
+    Estimate,
+    SampleBlock,
+    Status,
+)
 
 BLOCK_BINARY_ENCODING = "application/x-sinewatch-block;v=1"
 BLOCK_JSON_ENCODING = "application/json;sinewatch/SampleBlock@1"
-ESTIMATE_JSON_ENCODING = "application/json;sinewatch/Estimate@1"
+ESTIMATE_JSON_ENCODING = "application/json;sinewatch/Estimate@2"
+ESTIMATE_V1_JSON_ENCODING = "application/json;sinewatch/Estimate@1"
 ERROR_JSON_ENCODING = "application/json;sinewatch/ErrorReport@1"
 STATUS_JSON_ENCODING = "application/json;sinewatch/Status@1"
 
 MAGIC = b"SWSB"
 HEADER = struct.Struct("<4sBBBBQqdIHH")
-_DTYPE_CODES = {1: np.dtype("<f4"), 2: np.dtype("<f8")}
+_DTYPE_CODES: dict[int, np.dtype[np.floating[Any]]] = {1: np.dtype("<f4"), 2: np.dtype("<f8")}
 _CODE_OF_DTYPE = {"float32": 1, "float64": 2}
 _CHANNEL_RE = re.compile(CHANNEL_PATTERN)
 
@@ -246,3 +255,19 @@ def finite_or_none(x: float) -> float | None:
 def dumps(msg: dict[str, Any]) -> bytes:
     """Compact, deterministic JSON (key order as built, shortest round-trip floats)."""
     return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+
+
+def encode_estimate(estimate: Estimate, version: int = ESTIMATE_FORMAT_VERSION) -> bytes:
+    """The Estimate's JSON bytes in wire-format ``version`` (2, or 1 for replaying
+    recordings of earlier builds: the same bytes those builds wrote)."""
+    msg = estimate.model_dump(mode="python", exclude=set(Estimate.V2_FIELDS) if version == 1 else None)
+    msg["format_version"] = version
+    return dumps(msg)
+
+
+def encode_error(report: ErrorReport) -> bytes:
+    return dumps(report.model_dump(mode="json"))
+
+
+def encode_status(status: Status) -> bytes:
+    return dumps(status.model_dump(mode="json"))

@@ -42,6 +42,11 @@ class ZenohSection(_Section):
     connect: list[str] = Field(default_factory=list, description="Endpoints to connect to (routers or peers)")
     multicast_scouting: bool = Field(False, description="Zenoh multicast scouting (off unless asked for)")
     shared_memory: bool | None = Field(None, description="Zenoh shared memory transport (None: Zenoh's default)")
+    recovery: bool = Field(
+        True,
+        description="Subscribe with Zenoh's sample recovery: blocks missed (e.g. while a router restarts) are "
+        "fetched again from the publishers' caches (BlockPublisher keeps its last 1024 per channel)",
+    )
     raw: dict[str, Any] = Field(
         default_factory=dict,
         description="Passthrough of raw Zenoh config keys (JSON5 paths), e.g. {'transport/link/tx/lease': 5000}",

@@ -10,11 +10,12 @@ JSON has no NaN: an undefined estimate is ``null``.
 from __future__ import annotations
 
 from enum import Enum
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # SampleBlock, ErrorReport, Status
+ESTIMATE_FORMAT_VERSION = 2  # Estimate: 2 added rocof_hz_per_s and std (see Estimate)
 
 CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 
@@ -36,7 +37,7 @@ class SampleBlock(_Message):
     the measured signal, the others the inputs, see ``columns``).
     """
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     channel: str = Field(pattern=CHANNEL_PATTERN, max_length=256, description="Channel name")
     seq: int = Field(ge=0, lt=2**64, description="Sequence number of the block on its channel")
     t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
@@ -61,13 +62,27 @@ class Diagnostics(_Message):
     )
 
 
+class Uncertainty(_Message):
+    """One standard deviation of each reported parameter, per component; null where the
+    estimator cannot say (no sound derivation, or not yet converged)."""
+
+    frequency_hz: list[float | None]
+    amplitude: list[float | None]
+    phase_rad: list[float | None]
+    offset: float | None
+
+
 class Estimate(_Message):
     """The estimate at the last sample of one input block.
 
     y = offset + sum_k amplitude[k] * sin(phase_rad[k]); phase at ``timestamp_ns``.
+
+    Version 2 added ``rocof_hz_per_s`` and ``std``. A version-1 Estimate is this message
+    without those two fields and with ``format_version`` 1, byte for byte what earlier
+    builds wrote: replay renders estimates in the version of the recording it checks.
     """
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1, 2] = 2
     channel: str
     seq: int = Field(description="Sequence number of the input block")
     timestamp_ns: int = Field(description="Time of the block's last sample, ns since the epoch")
@@ -77,7 +92,13 @@ class Estimate(_Message):
     amplitude: list[float | None]
     phase_rad: list[float | None]
     offset: float | None
+    rocof_hz_per_s: list[float | None] | None = Field(
+        None, description="Rate of change of frequency per component, Hz/s; null when the estimator does not track it"
+    )
+    std: Uncertainty | None = Field(None, description="Standard deviations of the estimates; null when unknown")
     diagnostics: Diagnostics
+
+    V2_FIELDS: ClassVar[frozenset[str]] = frozenset({"rocof_hz_per_s", "std"})
 
 
 class ErrorKind(str, Enum):
@@ -103,7 +124,7 @@ class ErrorKind(str, Enum):
 class ErrorReport(_Message):
     """Why an input was rejected (or data was lost). One per rejected input."""
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     key: str = Field(description="Zenoh key the input arrived on")
     channel: str | None = Field(description="Channel, when the payload could be decoded that far")
     seq: int | None = None
@@ -141,13 +162,16 @@ class SinkStatus(_Message):
 class Status(_Message):
     """Periodic daemon status."""
 
-    format_version: Literal[1] = FORMAT_VERSION
+    format_version: Literal[1] = 1
     daemon_id: str
     uptime_s: float
     blocks_received: int
     blocks_processed: int
     dropped: int = Field(description="Inputs dropped by the intake queue (drop policy only)")
     backpressure_waits: int = Field(description="Times the intake waited for queue space")
+    unrecovered: int = Field(
+        0, description="Blocks Zenoh reported missed and not recoverable from the publishers' caches"
+    )
     errors: int
     errors_by_kind: dict[str, int] = Field(
         default_factory=dict, description="Rejected inputs and faults per ErrorReport kind"
@@ -163,4 +187,11 @@ MESSAGE_MODELS: dict[str, type[BaseModel]] = {
     "Estimate": Estimate,
     "ErrorReport": ErrorReport,
     "Status": Status,
+}
+
+MESSAGE_VERSIONS: dict[str, int] = {
+    "SampleBlock": FORMAT_VERSION,
+    "Estimate": ESTIMATE_FORMAT_VERSION,
+    "ErrorReport": FORMAT_VERSION,
+    "Status": FORMAT_VERSION,
 }

@@ -43,6 +43,19 @@ class EstimatorParams(BaseModel):
 
 
 @dataclass(slots=True)
+class TrackStd:
+    """One standard deviation of each reported parameter, per sample (NaN: cannot say)."""
+
+    frequency_hz: np.ndarray  # (N, K) float64
+    amplitude: np.ndarray  # (N, K) float64
+    phase_rad: np.ndarray  # (N, K) float64
+    offset: np.ndarray  # (N,) float64
+
+    def rows(self, index: slice) -> TrackStd:
+        return TrackStd(self.frequency_hz[index], self.amplitude[index], self.phase_rad[index], self.offset[index])
+
+
+@dataclass(slots=True)
 class Track:
     """What one ``update`` returns.
 
@@ -59,6 +72,9 @@ class Track:
     # Per-sample diagnostics, (N,) or (N, m). By convention "rocof_hz_per_s" ((N,) or
     # (N, K)) when the estimator tracks the rate of change of frequency.
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    # First-class optional outputs (None: the estimator does not provide them).
+    rocof_hz_per_s: np.ndarray | None = None  # (N, K) float64, rate of change of frequency
+    std: TrackStd | None = None  # standard deviations of frequency, amplitude, phase, offset
 
     @property
     def n_samples(self) -> int:
@@ -78,6 +94,8 @@ class Track:
             converged=self.converged[-1:],
             residual_rms=self.residual_rms,
             extras={k: v[-1:] for k, v in self.extras.items()},
+            rocof_hz_per_s=None if self.rocof_hz_per_s is None else self.rocof_hz_per_s[-1:],
+            std=None if self.std is None else self.std.rows(slice(-1, None)),
         )
 
     def reconstruct(self) -> np.ndarray:
@@ -98,7 +116,20 @@ def concat_tracks(tracks: list[Track]) -> Track:
         converged=np.concatenate([t.converged for t in tracks]),
         residual_rms=total,
         extras={k: np.concatenate([t.extras[k] for t in tracks]) for k in tracks[0].extras},
+        rocof_hz_per_s=_concat_optional([t.rocof_hz_per_s for t in tracks]),
+        std=None
+        if tracks[0].std is None
+        else TrackStd(
+            *(
+                np.concatenate([getattr(t.std, f) for t in tracks])
+                for f in ("frequency_hz", "amplitude", "phase_rad", "offset")
+            )
+        ),
     )
+
+
+def _concat_optional(parts: list[np.ndarray | None]) -> np.ndarray | None:
+    return None if parts[0] is None else np.concatenate(parts)
 
 
 def encode_array(a: np.ndarray) -> dict[str, Any]:
