@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from sinewatch.estimators import get as get_estimator
+from sinewatch.estimators.base import GridReports, concat_tracks
 from sinewatch.scenarios.c37118 import FAMILIES, LIMIT_NOTES, STEP_THRESHOLDS, TestSignal, generate, limits
 
 T0_NS = 1_700_000_000 * 1_000_000_000  # a whole second: grid and nominal cosine aligned
@@ -76,16 +77,21 @@ def run_signal(
     emit: list[float] = []
     for i in range(0, n, step):
         t0_ns = T0_NS + round(i * 1e9 / test.sample_rate_hz)
-        est.update_at(x[i : i + step], t0_ns, last_only=True)
-        rep = est.last_reports
+        rep = est.update(x[i : i + step], last_only=True, t0_ns=t0_ns).reports
+        if rep is None:
+            raise ValueError(f"{estimator}: expected an estimator that reports on a time grid")
         parts.append(rep)
         emit.extend([(i + min(step, n - i) - 1) / test.sample_rate_hz] * rep.n_reports)
-    reports = type(parts[0]).concat(parts)
+    reports = GridReports(
+        np.concatenate([p.index for p in parts]), parts[0].reporting_rate_hz, concat_tracks([p.track for p in parts])
+    )
     times = reports.times_s(T0_NS)
+    tr = reports.track
+    rocof = tr.rocof_hz_per_s[:, 0] if tr.rocof_hz_per_s is not None else np.full(times.shape, np.nan)
     fields = {
-        "phasor": reports.magnitude * np.exp(1j * reports.angle_rad),
-        "frequency_hz": reports.frequency_hz,
-        "rocof_hz_per_s": reports.rocof_hz_per_s,
+        "phasor": tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"]),
+        "frequency_hz": tr.frequency_hz[:, 0],
+        "rocof_hz_per_s": rocof,
     }
     return times, fields, emit
 
@@ -108,7 +114,9 @@ def _worst(values: np.ndarray) -> float:
     return float(np.max(values))
 
 
-def score_steady(family: str, f0: int, fs_report: int, tests: list[TestSignal], est: str, params: dict) -> list[Row]:
+def score_steady(
+    family: str, f0: int, fs_report: int, tests: list[TestSignal], est: str, params: dict[str, Any]
+) -> list[Row]:
     lim = limits(family, f0, fs_report)
     worst: dict[str, tuple[float, str]] = {}
     for test in tests:
@@ -128,7 +136,7 @@ def score_steady(family: str, f0: int, fs_report: int, tests: list[TestSignal], 
     return rows
 
 
-def step_response(tests: list[TestSignal], est: str, params: dict) -> dict[str, float]:
+def step_response(tests: list[TestSignal], est: str, params: dict[str, Any]) -> dict[str, float]:
     """Equivalent-time-sampled step metrics over the runs of one step direction."""
     rel, tve, fe, rfe, val = [], [], [], [], []
     kind = tests[0].step_kind
@@ -175,7 +183,9 @@ def step_response(tests: list[TestSignal], est: str, params: dict) -> dict[str, 
     return out
 
 
-def score_step(family: str, f0: int, fs_report: int, tests: list[TestSignal], est: str, params: dict) -> list[Row]:
+def score_step(
+    family: str, f0: int, fs_report: int, tests: list[TestSignal], est: str, params: dict[str, Any]
+) -> list[Row]:
     lim = limits(family, f0, fs_report)
     rows = []
     by_sign: dict[str, list[TestSignal]] = {}
@@ -192,7 +202,7 @@ def score_step(family: str, f0: int, fs_report: int, tests: list[TestSignal], es
     return rows
 
 
-def measure_latency(f0: int, fs_report: int, est: str, params: dict, settle_s: float) -> Row:
+def measure_latency(f0: int, fs_report: int, est: str, params: dict[str, Any], settle_s: float) -> Row:
     test = next(generate("steady-frequency", f0, fs_report, full=False, settle_s=settle_s))
     test = TestSignal(**{**asdict(test), "duration_s": settle_s + 3.0 / fs_report})
     times, _, emit = run_signal(test, est, params, block=1)

@@ -95,7 +95,7 @@ from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, GridReports, Track
 from sinewatch.schemas.errors import ParameterError
 
 # [N] four-term window, continuous first derivative (-93 dB sidelobes)
@@ -221,8 +221,9 @@ def _bank_response(kernels: np.ndarray, m: np.ndarray, d: int, fs: float, nu: np
 def _cic2(nu: np.ndarray, d: int, fs: float) -> np.ndarray:
     num = np.sin(np.pi * nu * d / fs)
     den = d * np.sin(np.pi * nu / fs)
-    r = np.divide(num, den, out=np.ones_like(nu), where=np.abs(den) > 1e-300)
-    return r * r
+    r: np.ndarray = np.divide(num, den, out=np.ones_like(nu), where=np.abs(den) > 1e-300)
+    r2: np.ndarray = r * r
+    return r2
 
 
 @functools.lru_cache(maxsize=32)
@@ -283,7 +284,8 @@ def gain(d: Design, nu: float | np.ndarray) -> np.ndarray:
     nu = np.atleast_1d(np.asarray(nu, dtype=np.float64))
     w0 = _w_transform(np.zeros(1), d.window_s, None if math.isnan(d.cutoff_hz) else d.cutoff_hz)[0]
     cut = None if math.isnan(d.cutoff_hz) else d.cutoff_hz
-    return _w_transform(nu, d.window_s, cut) / w0 * _cic2(nu, d.decimation, d.fs)
+    g: np.ndarray = _w_transform(nu, d.window_s, cut) / w0 * _cic2(nu, d.decimation, d.fs)
+    return g
 
 
 # --------------------------------------------------------------------------------------
@@ -301,7 +303,7 @@ N_FSTATE = 16
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p):
+def _wrap(p: float) -> float:
     y = math.pi - p
     r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
     if r >= 2.0 * math.pi:
@@ -310,11 +312,11 @@ def _wrap(p):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _interp(table, x0, step, x):
+def _interp(table: np.ndarray, x0: float, step: float, x: float) -> Any:
     """Cubic (4-point Lagrange) interpolation of a table sampled at x0 + i step; clamped."""
     u = (x - x0) / step
     n = table.shape[0]
-    i = int(math.floor(u))
+    i = math.floor(u)
     if i < 1:
         i = 1
     if i > n - 3:
@@ -334,11 +336,22 @@ def _interp(table, x0, step, x):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _report(ring, dcring, start, kern, osc, n_r, fconsts, gp, gi3, out):
+def _report(
+    ring: np.ndarray,
+    dcring: np.ndarray,
+    start: int,
+    kern: np.ndarray,
+    osc: np.ndarray,
+    n_r: int,
+    fconsts: np.ndarray,
+    gp: np.ndarray,
+    gi3: np.ndarray,
+    out: np.ndarray,
+) -> None:
     """(K)-(E) from the M decimated samples ring[start:start+M] (oldest first): fills
     out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame)."""
     M = kern.shape[1]
-    f0, fs, nu_p0, nu_i0, step = fconsts[0], fconsts[1], fconsts[2], fconsts[3], fconsts[4]
+    f0, nu_p0, nu_i0, step = fconsts[0], fconsts[2], fconsts[3], fconsts[4]
     # taps run m = m_lo .. m_lo + M - 1 over c_{q - m}: newest sample first
     p0r = p0i = p1r = p1i = p2r = p2i = b = 0.0
     last = start + M - 1
@@ -392,7 +405,20 @@ def _report(ring, dcring, start, kern, osc, n_r, fconsts, gp, gi3, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def pmu_kernel(x, ring, dcring, istate, fstate, kernels, osc, iconsts, fconsts, g_pass, g_image, last_only):
+def pmu_kernel(
+    x: np.ndarray,
+    ring: np.ndarray,
+    dcring: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    kernels: np.ndarray,
+    osc: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    g_pass: np.ndarray,
+    g_image: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 8), sse,
     n_pred, new_ring, new_dcring, new_istate, new_fstate).
 
@@ -461,7 +487,7 @@ def pmu_kernel(x, ring, dcring, istate, fstate, kernels, osc, iconsts, fconsts, 
             # reports whose newest tap is c_j (or that can never be made)
             while True:
                 u = delta0 + (k_next - k0) * spr
-                n_r = int(math.floor(u + 0.5))
+                n_r = math.floor(u + 0.5)
                 q = n_r // D
                 newest = q - m_lo
                 oldest = newest - M + 1
@@ -544,55 +570,6 @@ def pmu_kernel(x, ring, dcring, istate, fstate, kernels, osc, iconsts, fconsts, 
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2
 
 
-@dataclass(slots=True)
-class GridReports:
-    """Reports at the grid times ``index / reporting_rate_hz`` seconds since the epoch."""
-
-    index: np.ndarray  # (R,) int64
-    reporting_rate_hz: int
-    frequency_hz: np.ndarray  # (R,)
-    rocof_hz_per_s: np.ndarray  # (R,)
-    magnitude: np.ndarray  # (R,) RMS
-    angle_rad: np.ndarray  # (R,) synchrophasor angle, referred to the nominal cosine
-    amplitude: np.ndarray  # (R,) peak (sqrt 2 magnitude)
-    phase_rad: np.ndarray  # (R,) sine-convention instantaneous phase at the report time
-    offset: np.ndarray  # (R,)
-
-    @property
-    def n_reports(self) -> int:
-        return int(self.index.shape[0])
-
-    def timestamps_ns(self) -> list[int]:
-        """Exact report times, ns since the epoch (rounded half up from k 1e9 / Fs)."""
-        fs = self.reporting_rate_hz
-        return [(int(k) * 1_000_000_000 * 2 + fs) // (2 * fs) for k in self.index]
-
-    def times_s(self, t_origin_ns: int = 0) -> np.ndarray:
-        """Report times in seconds relative to ``t_origin_ns`` (exact to float rounding)."""
-        fs = self.reporting_rate_hz
-        return np.array([((int(k) * 1_000_000_000 - t_origin_ns * fs) / fs) * 1e-9 for k in self.index])
-
-    @staticmethod
-    def concat(parts: list[GridReports]) -> GridReports:
-        first = parts[0]
-        return GridReports(
-            index=np.concatenate([p.index for p in parts]),
-            reporting_rate_hz=first.reporting_rate_hz,
-            **{
-                name: np.concatenate([getattr(p, name) for p in parts])
-                for name in (
-                    "frequency_hz",
-                    "rocof_hz_per_s",
-                    "magnitude",
-                    "angle_rad",
-                    "amplitude",
-                    "phase_rad",
-                    "offset",
-                )
-            },
-        )
-
-
 @register
 class Pmu(Estimator):
     """Synchrophasor estimator on the reporting grid (see module docstring)."""
@@ -608,8 +585,13 @@ class Pmu(Estimator):
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
 
+    @property
+    def _p(self) -> PmuParams:
+        assert isinstance(self.params, PmuParams)
+        return self.params
+
     def _check_params(self) -> None:
-        p = self.params
+        p = self._p
         f0 = int(p.nominal_frequency_hz)
         rate = f0 if p.reporting_rate_hz is None else int(p.reporting_rate_hz)
         allowed = (M_CLASS_RATES if p.performance_class == "M" else P_CLASS_RATES)[f0]
@@ -633,7 +615,7 @@ class Pmu(Estimator):
                 d.nu_image0,
                 TABLE_STEP_HZ,
                 d.fs / d.reporting_rate,
-                self.params.min_amplitude,
+                self._p.min_amplitude,
             ]
         )
 
@@ -661,14 +643,13 @@ class Pmu(Estimator):
     def _initial_state(self) -> dict[str, np.ndarray]:
         return self._anchor_state(0)
 
-    def expected_t0_ns(self) -> int:
-        """Where the next block would start if the stream is contiguous (ns since the epoch)."""
-        a = int(self._state["anchor_ns"][0])
-        n = int(self._state["counters"][0])
-        return a + round(n * 1e9 / self.sample_rate_hz)
+    def _expected_t0_ns(self, st: dict[str, np.ndarray]) -> int:
+        """Where the next block starts if the stream is contiguous (ns since the epoch)."""
+        return int(st["anchor_ns"][0]) + round(int(st["counters"][0]) * 1e9 / self.sample_rate_hz)
 
-    def _state_for_block(self, t0_ns: int | None) -> dict[str, np.ndarray]:
-        st = self._state
+    def _state_for_block(self, st: dict[str, np.ndarray], t0_ns: int | None) -> dict[str, np.ndarray]:
+        """The state to run the block from: ``st``, or a fresh one anchored at ``t0_ns`` on
+        the first timed block and after a gap in time."""
         if t0_ns is None:
             return st
         t0_ns = int(t0_ns)
@@ -679,29 +660,28 @@ class Pmu(Estimator):
             s["anchor_ns"][1] = 1
             return s
         half_sample_ns = 0.5e9 / self.sample_rate_hz
-        if abs(t0_ns - self.expected_t0_ns()) > half_sample_ns:  # a gap in time: restart on the grid
+        if abs(t0_ns - self._expected_t0_ns(st)) > half_sample_ns:  # a gap in time: restart on the grid
             s = self._anchor_state(t0_ns)
             s["anchor_ns"][1] = 1
             return s
         return st
 
-    # ---- the entry points -----------------------------------------------------------------
-    def update_at(self, samples: np.ndarray, t0_ns: int | None, *, last_only: bool = False) -> Track:
-        """``update`` for a block whose first sample is at ``t0_ns`` (ns since the epoch):
-        reports land on the absolute grid. Returns the Track; the reports of this block
-        are ``self.last_reports``."""
-        x = self._as_block(samples)
-        state = self._state_for_block(t0_ns)
-        track, new_state = self._run(x, state, last_only)
-        self._state = new_state
-        return track
+    # ---- the kernel ----------------------------------------------------------------------
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        return self._run_timed(samples, state, last_only, None)
 
-    def _run(self, samples, state, last_only):
+    def _run_timed(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
+    ) -> tuple[Track, dict[str, np.ndarray]]:
         d = self.design
+        state = self._state_for_block(state, t0_ns)
         out, reps, sse, n_pred, rg, dr, ist, fst = pmu_kernel(
             samples, state["ring"], state["dc_ring"], state["counters"], state["values"],
             d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.g_image, last_only,
         )  # fmt: skip
+        rocof = out[:, 5:6]
         track = Track(
             frequency_hz=out[:, 0:1],
             amplitude=out[:, 1:2],
@@ -709,18 +689,21 @@ class Pmu(Estimator):
             offset=out[:, 3],
             converged=out[:, 4] != 0.0,
             residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
-            extras={"rocof_hz_per_s": out[:, 5]},
-        )
-        self.last_reports = GridReports(
-            index=reps[:, 0].astype(np.int64),
-            reporting_rate_hz=self.reporting_rate,
-            frequency_hz=reps[:, 1],
-            rocof_hz_per_s=reps[:, 2],
-            magnitude=reps[:, 3],
-            angle_rad=reps[:, 4],
-            amplitude=reps[:, 5],
-            phase_rad=reps[:, 6],
-            offset=reps[:, 7],
+            rocof_hz_per_s=rocof,
+            reports=GridReports(
+                index=reps[:, 0].astype(np.int64),
+                reporting_rate_hz=self.reporting_rate,
+                track=Track(
+                    frequency_hz=reps[:, 1:2],
+                    amplitude=reps[:, 5:6],
+                    phase_rad=reps[:, 6:7],
+                    offset=reps[:, 7],
+                    converged=reps[:, 3] > self._p.min_amplitude,
+                    residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
+                    extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
+                    rocof_hz_per_s=reps[:, 2:3],
+                ),
+            ),
         )
         new_state = {
             "ring": rg,

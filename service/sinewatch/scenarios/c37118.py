@@ -145,7 +145,7 @@ def _steady(f0: int, fs_report: int, f: float, mag: float, settle: float, dur: f
 
 def _with_interferer(
     f0: int, fs_report: int, f_in: float, f_i: float, amp: float, settle: float, dur: float, family: str
-):
+) -> TestSignal:
     phi0, phi_i = 0.3, 1.1
 
     def signal(t: np.ndarray) -> np.ndarray:
@@ -197,7 +197,8 @@ def _ramp(f0: int, fs_report: int, rate: float, settle: float) -> TestSignal:
 
     def signal(t: np.ndarray) -> np.ndarray:
         ph, _, _ = dphase(t)
-        return np.cos(2.0 * np.pi * f0 * t + ph)
+        y: np.ndarray = np.cos(2.0 * np.pi * f0 * t + ph)
+        return y
 
     def truth(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ph, f, rocof = dphase(t)
@@ -261,7 +262,9 @@ FAMILIES = (
 )
 
 
-def generate(family: str, f0: int, fs_report: int, *, full: bool, settle_s: float, n_offsets: int = 10) -> Iterator:
+def generate(
+    family: str, f0: int, fs_report: int, *, full: bool, settle_s: float, n_offsets: int = 10
+) -> Iterator[TestSignal]:
     """The test conditions of one family. ``full`` sweeps what the standard sweeps (1 Hz /
     0.1 Hz / every harmonic); otherwise a representative subset, always including the
     extremes (range edges, passband edges, the highest harmonic and modulation)."""
