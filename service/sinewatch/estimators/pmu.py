@@ -54,7 +54,13 @@ decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutof
      ``G(nu_i) Xi (1, j 2 pi nu_i, (j 2 pi nu_i)^2)`` to ``(p, p', p'')``; subtract, re-estimate,
      three times (each pass multiplies the residual image by about ``|G(nu_i)| < 1e-3``).
 (E)  estimates at the computing sample: ``nu = Im(p'/p) / 2 pi`` [S eq. (4)],
-     ``X = p / G(nu)``, ``ROCOF = Im(p''/p - (p'/p)^2) / 2 pi`` (= d nu / dt, [S eq. (5)]).
+     ``X = p / G(nu)``, ``ROCOF = Im(p''/p - (p'/p)^2) / 2 pi - b(nu)`` (= d nu / dt, [S eq. (5)]).
+(B)  ``b(nu)``: what the ROCOF of (E) reads on a steady tone. (K') holds up to the aliases
+     of the sampled kernels, ``fd W(nu +- fd) e^{+-j 2 pi rho D / fs ...}``: tiny for w, but
+     w'' multiplies them by ``(2 pi fd)^2``; they cancel on the symmetric phases (rho = 0,
+     D/2) only. Measured before (B): up to 0.015 Hz/s at 52.3 Hz (rho = 1, Fs = 50). The
+     responses of all three kernels per rho (and the image tables of (I)) are computed from
+     the sampled kernels themselves, exactly, at design time.
 (R)  report time: the computing sample is the input sample nearest the grid time ``t_r``;
      ``X(t_r) = X e^{j 2 pi nu tau}``, ``f(t_r) = f + ROCOF tau`` (``|tau| <= 1 / 2 fs``).
      Absolute reference: ``phi = arg X - 2 pi f0 t_anchor`` (mod 2 pi, from integer ns).
@@ -142,6 +148,7 @@ class Design:
     kernels: np.ndarray  # (D, 3, M) w, w', w'' per input-sample phase, over fd W(0)
     m_lo: int  # tap m runs m_lo..m_lo + M - 1; c index = q - m
     g_pass: np.ndarray  # (D, T) complex: kernel 0's response on nu_pass0 + i * TABLE_STEP_HZ
+    rocof_bias: np.ndarray  # (D, T): the ROCOF (E) reads on a steady tone (kernel aliasing, (B))
     nu_pass0: float
     g_image: np.ndarray  # (D, 3, T) complex: the three kernels' responses on nu_image0 + i * step
     nu_image0: float
@@ -260,7 +267,10 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     span = 0.5 * reporting_rate + 1.0
     nu_pass = np.arange(-span, span + TABLE_STEP_HZ / 2, TABLE_STEP_HZ)
     nu_img = -2.0 * f0 + nu_pass
-    g_pass = _bank_response(kernels[:, :1], m, d, fs, nu_pass)[:, 0]
+    bank = _bank_response(kernels, m, d, fs, nu_pass)
+    g_pass = np.ascontiguousarray(bank[:, 0])
+    r1 = bank[:, 1] / bank[:, 0]
+    rocof_bias = np.ascontiguousarray(((bank[:, 2] / bank[:, 0] - r1 * r1).imag / (2.0 * np.pi)).astype(np.float64))
     g_img = _bank_response(kernels, m, d, fs, nu_img)
     return Design(
         fs=fs,
@@ -273,6 +283,7 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         kernels=np.ascontiguousarray(kernels),
         m_lo=m_lo,
         g_pass=g_pass,
+        rocof_bias=rocof_bias,
         nu_pass0=float(nu_pass[0]),
         g_image=g_img,
         nu_image0=float(nu_img[0]),
@@ -345,6 +356,7 @@ def _report(
     n_r: int,
     fconsts: np.ndarray,
     gp: np.ndarray,
+    bias: np.ndarray,
     gi3: np.ndarray,
     out: np.ndarray,
 ) -> None:
@@ -395,7 +407,7 @@ def _report(
     r1 = q1 / q0
     nu = r1.imag / (2.0 * math.pi)  # (E)
     x = q0 / _interp(gp, nu_p0, step, nu)
-    rocof = (q2 / q0 - r1 * r1).imag / (2.0 * math.pi)
+    rocof = (q2 / q0 - r1 * r1).imag / (2.0 * math.pi) - _interp(bias, nu_p0, step, nu)  # (B)
     out[0] = nu
     out[1] = x.real
     out[2] = x.imag
@@ -416,6 +428,7 @@ def pmu_kernel(
     iconsts: np.ndarray,
     fconsts: np.ndarray,
     g_pass: np.ndarray,
+    rocof_bias: np.ndarray,
     g_image: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -497,7 +510,19 @@ def pmu_kernel(
                     k_next += 1
                     continue
                 ph_r = n_r - q * D
-                _report(rg, dr, (oldest % L), kernels[ph_r], osc, n_r, fconsts, g_pass[ph_r], g_image[ph_r], est)
+                _report(
+                    rg,
+                    dr,
+                    oldest % L,
+                    kernels[ph_r],
+                    osc,
+                    n_r,
+                    fconsts,
+                    g_pass[ph_r],
+                    rocof_bias[ph_r],
+                    g_image[ph_r],
+                    est,
+                )
                 held = 1
                 tau = (u - n_r) / fs
                 if est[5] != 0.0:
@@ -679,7 +704,7 @@ class Pmu(Estimator):
         state = self._state_for_block(state, t0_ns)
         out, reps, sse, n_pred, rg, dr, ist, fst = pmu_kernel(
             samples, state["ring"], state["dc_ring"], state["counters"], state["values"],
-            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.g_image, last_only,
+            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.rocof_bias, d.g_image, last_only,
         )  # fmt: skip
         rocof = out[:, 5:6]
         track = Track(
