@@ -460,6 +460,9 @@ def pmu_kernel(
     est = np.zeros(6)
     P = osc.shape[0]
     inv_d2 = 1.0 / (D * D)
+    s2 = math.sqrt(2.0) * inv_d2
+    ph = n % P  # oscillator phase and decimation phase of sample n, then counted
+    rho = n % D
     sse = 0.0
     n_pred = 0
     cstep = 1.0
@@ -474,18 +477,16 @@ def pmu_kernel(
             sse += e * e
             n_pred += 1
         # (D) demodulate and accumulate the triangle
-        ph = n % P
-        zr = xi * osc[ph, 0] * math.sqrt(2.0)
-        zi = -xi * osc[ph, 1] * math.sqrt(2.0)
-        rho = n - (n // D) * D
-        wc = (D - rho) * inv_d2
-        wn = rho * inv_d2
+        zr = xi * osc[ph, 0] * s2
+        zi = -xi * osc[ph, 1] * s2
+        wc = float(D - rho)
+        wn = float(rho)
         acr += wc * zr
         aci += wc * zi
-        dcc += wc * xi
+        dcc += wc * inv_d2 * xi
         anr += wn * zr
         ani += wn * zi
-        dcn += wn * xi
+        dcn += wn * inv_d2 * xi
         made = False
         if rho == D - 1:  # c_j complete
             slot = j % L
@@ -589,6 +590,12 @@ def pmu_kernel(
             sth = sth * cstep + cth * sstep
             cth = c2
         n += 1
+        ph += 1
+        if ph == P:
+            ph = 0
+        rho += 1
+        if rho == D:
+            rho = 0
         _ = made
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
@@ -723,7 +730,7 @@ class Pmu(Estimator):
                     amplitude=reps[:, 5:6],
                     phase_rad=reps[:, 6:7],
                     offset=reps[:, 7],
-                    converged=reps[:, 3] > self._p.min_amplitude,
+                    converged=reps[:, 3] > self._fconsts[6],
                     residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
                     extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
                     rocof_hz_per_s=reps[:, 2:3],
