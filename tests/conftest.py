@@ -49,7 +49,8 @@ def make_config(tmp_path: Path, **overrides) -> SinewatchConfig:
 
 
 def endpoint(config: SinewatchConfig) -> str:
-    return config.zenoh.listen[0]
+    """Where a client reaches the daemon: its listen endpoint, or the router it connects to."""
+    return (config.zenoh.listen or config.zenoh.connect)[0]
 
 
 @pytest.fixture

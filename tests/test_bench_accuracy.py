@@ -12,18 +12,13 @@ import numpy as np
 import pytest
 
 from sinewatch import crlb, estimators, scenarios
-from sinewatch.bench import accuracy
-from sinewatch.bench.accuracy import (
-    add_accuracy_arguments,
-    add_scenarios_arguments,
-    estimator_params,
-    evaluate,
-    generic_params,
-    run_accuracy,
-    run_scenarios,
-    select_scenarios,
-)
+from sinewatch.bench import accuracy, report, runner
+from sinewatch.bench import scenarios as bench_scenarios
+from sinewatch.bench.args import add_accuracy_arguments, add_scenarios_arguments
 from sinewatch.bench.metrics import match_components, overshoot_pct, settle_time, tve, wrap
+from sinewatch.bench.params import NotApplicable, estimator_params, generic_params
+from sinewatch.bench.runner import evaluate
+from sinewatch.bench.scenarios import scenario_hints, select_scenarios
 from sinewatch.estimators.base import EstimatorParams
 from sinewatch.schemas.errors import ParameterError
 
@@ -125,7 +120,7 @@ def test_not_applicable_pairs_are_reported_with_a_reason(monkeypatch):
     def bad(cls, sc, prof=None):
         return {"r": -1.0}, "test"
 
-    monkeypatch.setattr(accuracy, "estimator_params", bad)
+    monkeypatch.setattr(runner, "estimator_params", bad)
     r = evaluate("ges-kalman", "tone-snr-40db")
     assert r["status"] == "n/a" and "ParameterError" in r["reason"]
 
@@ -147,7 +142,7 @@ class _Fake:
 
 def test_generic_mapping_and_hook_precedence():
     sc = scenarios.get("c37-60hz-steady")
-    got = generic_params(_Fake, accuracy.scenario_hints(sc))
+    got = generic_params(_Fake, scenario_hints(sc))
     # required range fields get the scenario's range; optional (None) ones are left alone
     assert got == {"nominal_frequency_hz": 60.0, "f_min_hz": 50.0, "f_max_hz": 70.0, "n_components": 1}
     params, source = estimator_params(_Fake, sc)
@@ -164,7 +159,7 @@ def test_generic_mapping_and_hook_precedence():
 
     params, source = estimator_params(Hooked, sc)
     assert params["gain"] == 3.0 and source == "example+generic+params_for"
-    with pytest.raises(accuracy.NotApplicable, match="expected 60 Hz"):
+    with pytest.raises(NotApplicable, match="expected 60 Hz"):
         estimator_params(Hooked, scenarios.get("c37-50hz-steady"))
 
 
@@ -233,7 +228,7 @@ def test_run_accuracy_writes_markdown_json_and_plots(tmp_path, capsys):
         ],
         add_accuracy_arguments,
     )
-    assert run_accuracy(args) == 0
+    assert accuracy.run(args) == 0
     out = tmp_path / "out"
     data = json.loads((out / "accuracy.json").read_text())
     assert data["meta"]["trials"] == 2
@@ -245,22 +240,42 @@ def test_run_accuracy_writes_markdown_json_and_plots(tmp_path, capsys):
     assert "| `c37-50hz-steady` | TVE" in md and "pass" in md and "n/a" in md
     assert (out / "plots" / "c37-50hz-steady.png").stat().st_size > 1000
     text = docs.read_text()
-    assert text.startswith("# title\n\nhand-written\n") and accuracy.DOCS_BEGIN in text and "TVE" in text
-    accuracy.update_docs(docs, "replaced")
-    assert "TVE" not in docs.read_text() and docs.read_text().count(accuracy.DOCS_BEGIN) == 1
+    assert text.startswith("# title\n\nhand-written\n") and report.DOCS_BEGIN in text and "TVE" in text
+    report.update_docs(docs, "replaced")
+    assert "TVE" not in docs.read_text() and docs.read_text().count(report.DOCS_BEGIN) == 1
     assert "1 n/a" in capsys.readouterr().out
 
 
 def test_run_accuracy_rejects_unknown_names(tmp_path, capsys):
     args = _parse(["--scenarios", "nope", "--out", str(tmp_path)], add_accuracy_arguments)
-    assert run_accuracy(args) == 2
+    assert accuracy.run(args) == 2
     assert "nope" in capsys.readouterr().err
 
 
 def test_run_scenarios_lists_the_library(capsys):
-    assert run_scenarios(_parse(["--json", "c37.118"], add_scenarios_arguments)) == 0
+    assert bench_scenarios.run(_parse(["--json", "c37.118"], add_scenarios_arguments)) == 0
     rows = json.loads(capsys.readouterr().out)
     assert len(rows) >= 54 and all("phasor" in r["tags"] for r in rows)
     assert {"c37-50hz-steady", "c37-60hz-dc-decay"} <= {r["name"] for r in rows}
-    assert run_scenarios(_parse(["paper"], add_scenarios_arguments)) == 0
+    assert bench_scenarios.run(_parse(["paper"], add_scenarios_arguments)) == 0
     assert "paper004-ex2" in capsys.readouterr().out
+
+
+def test_c37_rocof_comes_from_the_estimator_when_it_publishes_one(monkeypatch):
+    # sogi-fll publishes its ROCOF as an extra; an estimator that reports it in the track's
+    # own field (Estimate v2) must be scored the same way, not by differencing
+    r = evaluate("sogi-fll", "c37-50hz-ramp-up")
+    c = r["metrics"]["c37"]
+    assert c["rocof_source"] == "extras"
+    base = estimators.get("sogi-fll")
+
+    class FieldRocof(base):  # the same estimator, ROCOF moved from extras to the field
+        def update(self, samples, *, last_only=False):
+            tr = super().update(samples, last_only=last_only)
+            tr.rocof_hz_per_s = tr.extras.pop("rocof_hz_per_s")[:, None]
+            return tr
+
+    monkeypatch.setattr(runner.est_registry, "get", lambda name: FieldRocof)
+    moved = evaluate("sogi-fll", "c37-50hz-ramp-up")["metrics"]["c37"]
+    assert moved["rocof_source"] == "track"
+    assert moved["rfe_max_hz_per_s"] == c["rfe_max_hz_per_s"] and moved["tve_max_pct"] == c["tve_max_pct"]

@@ -1,6 +1,8 @@
-"""The bench scenario library: registration, truth consistent with the samples (phase is
-the integral of frequency, frequency the integral of ROCOF), the papers' signals, the
-C37.118.1-style tests, gaps and noise levels."""
+"""The scenario library (what the bench, the feed, the demo and the tests read):
+registration, truth consistent with the samples (phase is the integral of frequency,
+frequency the integral of ROCOF), the papers' signals, the C37.118.1-style tests, gaps and
+noise levels, the bench metadata derived for the demo feeds, and the deploy rules that
+serve the demo scenarios."""
 
 from __future__ import annotations
 
@@ -236,3 +238,40 @@ def test_multitone_nominal_frequencies_are_off_by_ten_percent():
 def test_component_rejects_step_with_modulation():
     with pytest.raises(ValueError):
         Component(50.0, rocof=1.0, t_step=1.0, f_step_to=51.0)
+
+
+def test_deploy_rules_serve_each_demo_scenario_with_its_suggested_estimator():
+    # deploy/estimators-demo.toml serves `sinewatch feed --scenario NAME`: its rules must
+    # say what the scenario library says (as `sinewatch demo` reads it)
+    from pathlib import Path
+
+    from sinewatch.schemas.config import load_config
+
+    config = load_config(Path(__file__).parents[1] / "deploy" / "estimators-demo.toml")
+    *rules, catch_all = config.rules
+    assert catch_all.match == "sinewatch/in/**"
+    served = {}
+    for rule in rules:
+        name = rule.match.removeprefix("sinewatch/in/sim/").removesuffix("/**")
+        sc = scenarios.get(name)
+        assert (rule.estimator, rule.params) == (sc.suggested_estimator, sc.suggested_params), name
+        served[name] = rule.estimator
+    assert set(served) == {n for n in scenarios.names() if "demo" in scenarios.get(n).tags}
+
+
+def test_bench_metadata_is_derived_from_the_truth_for_the_demo_feeds():
+    # declared by the library's scenarios; for a feed that declares none, read off its truth
+    # at t = 0: the true frequencies as nominal, half the lowest to twice the highest (at
+    # most 0.45 fs) as range, the second half as steady window, and no CRLB comparison
+    ramp = scenarios.get("demo-ramp", duration_s=4.0)
+    info = ramp.bench
+    assert info.nominal_frequency_hz == (48.0,) and info.frequency_range_hz == (24.0, 96.0)
+    assert info.steady_windows == ((2.0, 4.0),) and info.events == () and not info.crlb
+    sc = scenarios.get("grip-section-v")  # a Scenario of its own, not a Composite
+    assert sc.bench.nominal_frequency_hz == pytest.approx((1 / (2 * math.pi),))
+    assert sc.bench.frequency_range_hz[1] == pytest.approx(2 / (2 * math.pi))
+    declared = scenarios.get("tone-snr-40db")
+    assert declared.bench.nominal_frequency_hz == (50.0,) and declared.bench.crlb and declared.is_stationary
+    # what `sinewatch bench scenarios` lists is the scenario's own description
+    row = scenarios.get("multitone-3").describe()
+    assert row["components"] == 3 and row["nominal_frequency_hz"] == pytest.approx([45.0, 121.0, 153.0])

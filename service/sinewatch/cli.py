@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sinewatch.bench.args import add_bench_parser
 from sinewatch.schemas import __version__
 from sinewatch.schemas.errors import SinewatchError
 
@@ -176,18 +177,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return run_replay(args)
 
 
-def cmd_bench_kernels(args: argparse.Namespace) -> int:
-    from sinewatch.bench.kernels import run
-
-    return run(args)
-
-
-def cmd_bench_e2e(args: argparse.Namespace) -> int:
-    from sinewatch.bench.e2e import run
-
-    return run(args)
-
-
 # ---- parser ----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
@@ -276,33 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(fn=cmd_replay)
 
-    b = sub.add_parser("bench", help="benchmarks (ratios against baselines measured in the same run)")
-    bsub = b.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
-    bk = bsub.add_parser("kernels", help="samples/s per core per estimator vs a numpy FFT baseline")
-    bk.add_argument("--estimators", help="comma-separated names (default all)")
-    bk.add_argument("--block", type=int, action="append", help="block size (repeatable; default 1024 and 4096)")
-    bk.add_argument("--seconds", type=float, default=0.5, help="time per measurement (default 0.5)")
-    bk.add_argument("--json", type=Path, help="also write results as JSON")
-    bk.set_defaults(fn=cmd_bench_kernels)
-    be = bsub.add_parser("e2e", help="daemon fed through Zenoh on loopback, recording on")
-    be.add_argument("--channels", type=int, default=200)
-    be.add_argument("--rate", type=float, default=10_000.0, help="per-channel sample rate, Hz")
-    be.add_argument("--block", type=int, default=1024)
-    be.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
-    be.add_argument("--estimator", default="ges-kalman")
-    be.add_argument("--json", type=Path, help="also write results as JSON")
-    be.set_defaults(fn=cmd_bench_e2e)
-    try:
-        from sinewatch.bench import accuracy
-    except ImportError:
-        accuracy = None
-    if accuracy is not None:
-        ba = bsub.add_parser("accuracy", help="seeded Monte Carlo of every estimator on every scenario vs the CRLB")
-        accuracy.add_accuracy_arguments(ba)
-        ba.set_defaults(fn=accuracy.run_accuracy)
-        bs = bsub.add_parser("scenarios", help="list the scenario library")
-        accuracy.add_scenarios_arguments(bs)
-        bs.set_defaults(fn=accuracy.run_scenarios)
+    add_bench_parser(sub)
     return p
 
 

@@ -18,6 +18,7 @@ import shutil
 import sys
 import threading
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,38 +32,31 @@ from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
 from sinewatch.console import make_console
 from sinewatch.daemon import Daemon
-from sinewatch.feed import Feed, FeedChannel, make_channels
+from sinewatch.feed import Feed, FeedChannel, make_channels, rules_for
 from sinewatch.scenarios.demo import DEMO_CHANNELS
-from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig, ZenohSection
+from sinewatch.schemas.config import RecordingSection, SinewatchConfig, ZenohSection
 
 PREFIX = "demo"
+TRUTHS_KEPT = 512  # per channel: the truth of the last blocks sent, for the estimates still in flight
 
 
 @dataclass
 class ChannelView:
     feed: FeedChannel
     truth_by_seq: dict[int, Any] = field(default_factory=dict)
-    order: deque = field(default_factory=lambda: deque(maxlen=512))
+    order: deque[int] = field(default_factory=lambda: deque(maxlen=TRUTHS_KEPT))
     last: dict[str, Any] | None = None
     truth: Any = None
     estimates: int = 0
 
 
-def demo_config(names: list[str], port: int, record_dir: Path, record: bool) -> SinewatchConfig:
-    rules = []
-    for name in names:
-        sc_channel = make_channels([name], prefix=PREFIX)[0]
-        rules.append(
-            EstimatorRule(
-                match=f"sinewatch/in/{sc_channel.channel}",
-                estimator=sc_channel.scenario.suggested_estimator,
-                params=sc_channel.scenario.suggested_params,
-            )
-        )
+def demo_config(channels: list[FeedChannel], port: int, record_dir: Path, record: bool) -> SinewatchConfig:
+    """The daemon's config: a loopback listener, and each channel served by the estimator
+    its scenario suggests."""
     return SinewatchConfig(
         daemon_id="sinewatch-demo",
         zenoh=ZenohSection(listen=[f"tcp/127.0.0.1:{port}"]),
-        rules=rules,
+        rules=rules_for(channels),
         recording=RecordingSection(enabled=record, directory=record_dir),
     )
 
@@ -130,17 +124,15 @@ async def run_demo(
     block_s: float = 0.1,
 ) -> int:
     console = console or Console()
-    names = names or DEMO_CHANNELS
+    channels = make_channels(names or DEMO_CHANNELS, prefix=PREFIX)
     port = free_loopback_port()
-    config = demo_config(names, port, record_dir, record)
-    daemon = Daemon(config)
+    daemon = Daemon(demo_config(channels, port, record_dir, record))
     daemon_task = asyncio.create_task(daemon.run())
     await daemon.ready.wait()
 
     session = connect([f"tcp/127.0.0.1:{port}"])
     estimates = subscribe_estimates(session)
     publisher = BlockPublisher(session)
-    channels = make_channels(names, prefix=PREFIX)
     views = {c.channel: ChannelView(c) for c in channels}
     for c in channels:
         publisher.wait_for_subscriber(c.channel, 10.0)
@@ -149,7 +141,7 @@ async def run_demo(
         v = views[ch.channel]
         v.truth_by_seq[ch.last_seq] = ch.last_truth
         v.order.append(ch.last_seq)
-        if len(v.truth_by_seq) > v.order.maxlen - 1:
+        if len(v.truth_by_seq) > TRUTHS_KEPT - 1:
             v.truth_by_seq.pop(v.order[0], None)
 
     # Blocks of 0.1 s: 1000 samples at 10 kHz, 10 at the 100 Hz of paper 002's example.
@@ -192,13 +184,13 @@ async def run_demo(
         live.update(render(ordered, title + " (finished)"))
     estimates.close()
     publisher.close()
-    session.close()
+    session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it untyped
     _summary(console, daemon, ordered)
     return code
 
 
 @contextlib.contextmanager
-def _logs_through(console: Console):
+def _logs_through(console: Console) -> Iterator[None]:
     """Route sinewatch's log lines (rejected inputs, gaps) through the live display's
     console, so they print above the table instead of tearing it."""
     logger = logging.getLogger("sinewatch")
@@ -215,6 +207,7 @@ def _logs_through(console: Console):
 
 
 def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None:
+    assert daemon.pipeline is not None  # the daemon ran
     c = daemon.pipeline.counters
     console.print(
         f"\n[bold]Summary[/bold]: {c.inputs} blocks in, {c.estimates} estimates out, {c.errors} rejected "

@@ -1,7 +1,9 @@
 """The simulated feed: scenarios streamed as SampleBlocks through the client library.
 
 Used by ``sinewatch feed``, ``sinewatch demo`` and ``sinewatch bench e2e``. Each channel
-reads its own seeded scenario stream, so a feed is reproducible. Real-time pacing waits
+reads its own seeded stream of a scenario from the library (:mod:`sinewatch.scenarios`,
+the one description of the signal, its truth, its transport faults and the estimator it
+was written for), so a feed is reproducible. Real-time pacing waits
 on an Event until each block's due time (no busy loop); ``realtime=False`` publishes as
 fast as the transport accepts (BLOCK congestion control makes that the daemon's pace).
 """
@@ -12,12 +14,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from sinewatch import scenarios
 from sinewatch.clients.publisher import BlockPublisher
-from sinewatch.scenarios.base import Scenario, ScenarioStream, Truth
+from sinewatch.scenarios import Scenario, ScenarioStream, Truth
+from sinewatch.schemas.config import EstimatorRule
 
 
 @dataclass
@@ -32,16 +36,29 @@ class FeedChannel:
 
 
 def make_channels(
-    names: list[str], copies: int = 1, seed: int = 0, prefix: str = "sim", **overrides
+    names: list[str], copies: int = 1, seed: int = 0, prefix: str = "sim", **overrides: Any
 ) -> list[FeedChannel]:
     """One channel per scenario name (``copies`` of each, with different seeds)."""
-    out = []
+    out: list[FeedChannel] = []
     for i, name in enumerate(names):
         for c in range(copies):
             sc = scenarios.get(name, **overrides)
             channel = f"{prefix}/{name}" if copies == 1 else f"{prefix}/{name}/{c}"
             out.append(FeedChannel(channel, sc, sc.stream(seed + 1000 * i + c)))
     return out
+
+
+def rules_for(channels: list[FeedChannel], key_prefix: str = "sinewatch/in") -> list[EstimatorRule]:
+    """Daemon rules that serve each channel with the estimator its scenario was written
+    for (``suggested_estimator`` with ``suggested_params``)."""
+    return [
+        EstimatorRule(
+            match=f"{key_prefix}/{ch.channel}",
+            estimator=ch.scenario.suggested_estimator,
+            params=ch.scenario.suggested_params,
+        )
+        for ch in channels
+    ]
 
 
 class Feed:

@@ -22,6 +22,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rich.console import Console
@@ -40,14 +41,14 @@ class LatencyProbe:
     """Estimate subscriber: latency = arrival - the estimate's timestamp, which the bench
     feeder sets to the block's publish time (CLOCK_MONOTONIC, system-wide on Linux)."""
 
-    def __init__(self, session, key: str) -> None:
+    def __init__(self, session: Any, key: str) -> None:
         self.latencies_ns: list[int] = []
         self.received = 0
         self.done = threading.Event()
         self.expected: int | None = None
         self._sub = session.declare_subscriber(key, self._on)
 
-    def _on(self, sample) -> None:
+    def _on(self, sample: Any) -> None:
         now = time.monotonic_ns()
         msg = json.loads(sample.payload.to_bytes())
         self.latencies_ns.append(now - msg["timestamp_ns"])
@@ -140,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if ok else 1
 
 
-def _params(args: argparse.Namespace) -> dict:
+def _params(args: argparse.Namespace) -> dict[str, Any]:
     if args.estimator == "ges-kalman":
         from sinewatch.scenarios.demo import KALMAN_10K
 
@@ -148,7 +149,9 @@ def _params(args: argparse.Namespace) -> dict:
     return {}
 
 
-def _drive(args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen, console: Console) -> dict:
+def _drive(
+    args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen[bytes], console: Console
+) -> dict[str, Any]:
     fs, block, n_ch = args.rate, args.block, args.channels
     rounds = max(1, int(args.duration * fs / block))
     with connect([endpoint], timeout_s=30.0) as session:
@@ -217,7 +220,7 @@ def _drive(args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen, co
     }
 
 
-def _print(console: Console, r: dict) -> None:
+def _print(console: Console, r: dict[str, Any]) -> None:
     console.print(
         f"sustained {r['sustained_samples_per_s'] / 1e6:.3f} M samples/s "
         f"(offered {r['offered_samples_per_s'] / 1e6:.3f} M, ratio {r['sustained_samples_per_s'] / r['offered_samples_per_s']:.3f}) "

@@ -22,12 +22,14 @@ import json
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from rich.table import Table
 
 from sinewatch.console import make_console
 from sinewatch.estimators import available, get
+from sinewatch.estimators.base import Estimator
 
 FFT_SIZE = 1024
 FFT_HOP = 256
@@ -59,7 +61,7 @@ def fft_batch_baseline(seconds: float) -> float:
     def run() -> int:
         np.multiply(frames, window, out=buf)
         np.fft.rfft(buf, axis=1)
-        return frames.shape[0] * FFT_HOP  # new samples consumed
+        return int(frames.shape[0]) * FFT_HOP  # new samples consumed
 
     return _rate(run, seconds)
 
@@ -71,16 +73,18 @@ def fft_stream_baseline(block: int, seconds: float) -> float:
     blocks = [x[i * block : (i + 1) * block] for i in range(n_blocks)]
     window = np.hanning(FFT_SIZE)
     keep = FFT_SIZE - FFT_HOP
-    state = {"tail": np.zeros(keep), "i": 0}
+    tail = np.zeros(keep)
+    i = 0
     buf = np.empty(((keep + block - FFT_SIZE) // FFT_HOP + 1, FFT_SIZE))
 
     def run() -> int:
-        seg = np.concatenate((state["tail"], blocks[state["i"] % n_blocks]))
-        state["i"] += 1
+        nonlocal tail, i
+        seg = np.concatenate((tail, blocks[i % n_blocks]))
+        i += 1
         frames = np.lib.stride_tricks.sliding_window_view(seg, FFT_SIZE)[::FFT_HOP]
         np.multiply(frames, window, out=buf[: frames.shape[0]])
         np.fft.rfft(buf[: frames.shape[0]], axis=1)
-        state["tail"] = seg[-keep:]
+        tail = seg[-keep:]
         return block
 
     return _rate(run, seconds)
@@ -97,7 +101,7 @@ def estimator_rates(name: str, block: int, seconds: float) -> dict[str, float]:
         for last_only in (True, False):
             state = {"i": 0}
 
-            def run(ests=ests, last_only=last_only, state=state) -> int:
+            def run(ests: list[Estimator] = ests, last_only: bool = last_only, state: dict[str, int] = state) -> int:
                 b = blocks[state["i"] % n_blocks]
                 state["i"] += 1
                 for est in ests:
@@ -120,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         f"{batch / 1e6:.1f} M samples/s ({1e9 / batch:.1f} ns/sample); streaming, same blocks: "
         + ", ".join(f"{b}: {r / 1e6:.1f} M ({1e9 / r:.1f} ns/sample)" for b, r in stream.items())
     )
-    results = {
+    results: dict[str, Any] = {
         "fft_batch_samples_per_s": batch,
         "fft_stream_samples_per_s": {str(b): r for b, r in stream.items()},
         "estimators": {},

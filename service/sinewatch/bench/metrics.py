@@ -18,9 +18,9 @@ Definitions (the accuracy bench and docs/accuracy.md use exactly these):
 * C37.118.1 quantities, at the reporting instants k / Fs inside the steady windows:
   total vector error ``TVE = |Ah e^{j phih} - A e^{j phi}| / A`` (the synchrophasor is
   A/sqrt(2) e^{j phi} in any common reference, which cancels), frequency error
-  ``FE = |fh - f|`` and ROCOF error ``RFE = |rh - r|``; ``rh`` is the estimator's extra
-  ``rocof_hz_per_s`` when it publishes one, else the difference of its frequency track over
-  one reporting interval. The C37 response time is the time between the TVE first leaving
+  ``FE = |fh - f|`` and ROCOF error ``RFE = |rh - r|``; ``rh`` is the estimator's own
+  ``rocof_hz_per_s`` (the track's field, or else its extra of that name) when it publishes
+  one, else the difference of its frequency track over one reporting interval. The C37 response time is the time between the TVE first leaving
   and last re-entering its limit around a step.
 """
 
@@ -28,15 +28,19 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 TWO_PI = 2.0 * math.pi
+PARAMS = ("frequency_hz", "amplitude", "phase_rad", "offset")
 
 
 def wrap(x: np.ndarray) -> np.ndarray:
     """Radians to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - x, TWO_PI)
+    out: np.ndarray = np.pi - np.mod(np.pi - x, TWO_PI)
+    return out
 
 
 def window_mask(t: np.ndarray, windows: list[tuple[float, float]] | tuple[tuple[float, float], ...]) -> np.ndarray:
@@ -90,7 +94,8 @@ def tve(est_amp: np.ndarray, est_phase: np.ndarray, true_amp: np.ndarray, true_p
     dx = est_amp * np.cos(est_phase) - true_amp * np.cos(true_phase)
     dy = est_amp * np.sin(est_phase) - true_amp * np.sin(true_phase)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.hypot(dx, dy) / true_amp
+        out: np.ndarray = np.hypot(dx, dy) / true_amp
+    return out
 
 
 def rocof_from_frequency(f: np.ndarray, sample_rate_hz: float, interval_samples: int) -> np.ndarray:
@@ -106,7 +111,8 @@ def reporting_indices(n: int, sample_rate_hz: float, reporting_rate_hz: float, m
     """Sample indices nearest the reporting instants k / Fs that fall inside ``mask``."""
     k = np.arange(math.floor((n - 1) / sample_rate_hz * reporting_rate_hz) + 1)
     idx = np.unique(np.clip(np.rint(k * sample_rate_hz / reporting_rate_hz).astype(np.int64), 0, n - 1))
-    return idx[mask[idx]]
+    out: np.ndarray = idx[mask[idx]]
+    return out
 
 
 def exceedance_span(t: np.ndarray, above: np.ndarray, start: float, stop: float) -> float:
@@ -166,3 +172,105 @@ class Moments:
             "mse": mse.tolist(),
             "defined_pct": defined.tolist(),
         }
+
+
+def median_never_late(xs: Sequence[float]) -> float:
+    """Median of times with "never" (NaN) counted as infinitely late; NaN if that is the
+    median."""
+    a = np.asarray(xs, dtype=float)
+    if a.size == 0:
+        return math.nan
+    med = float(np.median(np.where(np.isnan(a), np.inf, a)))
+    return med if math.isfinite(med) else math.nan
+
+
+def against_crlb(m: dict[str, Any], bound: dict[str, float], sample_rate_hz: float, noise_std: float) -> dict[str, Any]:
+    """Each parameter's pooled MSE (``m[p]["mse"][0]``) against its CRLB variance
+    (``bound[p]``): the bound's standard deviation and the excess in dB; for the frequency
+    also the equivalent window, the record length over which an efficient estimator
+    reaches the same MSE: ``var(w) = 24 sigma^2 / (A^2 N^3)`` (w in rad/sample) solved for
+    N, in seconds."""
+    cr: dict[str, Any] = {}
+    for p in PARAMS:
+        mse = m[p]["mse"][0]
+        db = math.nan if not mse >= 0 else (10.0 * math.log10(mse / bound[p]) if mse > 0 else -math.inf)
+        cr[p] = {"crlb_std": math.sqrt(bound[p]), "over_crlb_db": db}
+    fs = sample_rate_hz
+    mse_w = m["frequency_hz"]["mse"][0] * (TWO_PI / fs) ** 2
+    a = bound["amplitude_true"]
+    if mse_w > 0:
+        cr["frequency_hz"]["equivalent_window_s"] = (24.0 * noise_std**2 / (a * a * mse_w)) ** (1 / 3) / fs
+    return cr
+
+
+class C37Accumulator:
+    """TVE, FE and RFE at the reporting instants, pooled over trials, and their summary
+    against the C37.118.1 limits."""
+
+    def __init__(self) -> None:
+        self.tve: list[np.ndarray] = []
+        self.fe: list[np.ndarray] = []
+        self.rfe: list[np.ndarray] = []
+        self.instants = 0
+        self.undefined = 0
+        self.rocof_source: str | None = None
+
+    def add(
+        self,
+        i: np.ndarray,
+        amp: np.ndarray,
+        phase: np.ndarray,
+        true_amp: np.ndarray,
+        true_phase: np.ndarray,
+        freq_err: np.ndarray,
+        rocof: np.ndarray,
+        true_rocof: np.ndarray,
+        rocof_source: str,
+    ) -> None:
+        """One trial: per-sample tracks of one component, read at sample indices ``i``."""
+        tv = tve(amp[i], phase[i], true_amp[i], true_phase[i]) * 100.0
+        fe = np.abs(freq_err[i])
+        rfe = np.abs(rocof[i] - true_rocof[i])
+        self.instants += i.size
+        self.undefined += int((~np.isfinite(tv) | ~np.isfinite(fe)).sum())
+        self.tve.append(tv)
+        self.fe.append(fe)
+        self.rfe.append(rfe)
+        self.rocof_source = rocof_source
+
+    def summary(self, limits: dict[str, float], events: list[dict[str, Any]]) -> dict[str, Any]:
+        """Worst and mean TVE, worst FE and RFE, and pass/fail against ``limits`` (the step
+        ``events`` bring their TVE response time and overshoot)."""
+        tv = np.concatenate(self.tve)
+        fe = np.concatenate(self.fe)
+        rfe = np.concatenate(self.rfe)
+
+        def mx(a: np.ndarray) -> float:
+            return float(np.max(np.where(np.isfinite(a), a, np.inf))) if a.size else math.nan
+
+        out: dict[str, Any] = {
+            "tve_max_pct": mx(tv),
+            "tve_mean_pct": float(np.nanmean(tv)) if np.isfinite(tv).any() else math.nan,
+            "fe_max_hz": mx(fe),
+            "rfe_max_hz_per_s": mx(rfe),
+            "rocof_source": self.rocof_source,
+            "reporting_instants": self.instants,
+            "undefined_instants": self.undefined,
+            "limits": dict(limits),
+        }
+        failed = []
+        for key, val in (
+            ("tve_pct", out["tve_max_pct"]),
+            ("fe_hz", out["fe_max_hz"]),
+            ("rfe_hz_per_s", out["rfe_max_hz_per_s"]),
+        ):
+            if key in limits and not val <= limits[key]:
+                failed.append(key)
+        for ev in events:
+            if "response_time_s" in limits and not ev.get("tve_response_time_s", math.nan) <= limits["response_time_s"]:
+                failed.append("response_time_s")
+            if "overshoot_pct" in limits and not ev.get("overshoot_pct", math.nan) <= limits["overshoot_pct"]:
+                failed.append("overshoot_pct")
+        out["failed"] = sorted(set(failed))
+        out["pass"] = not failed
+        return out

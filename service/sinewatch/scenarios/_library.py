@@ -1,15 +1,16 @@
-"""Building blocks of the bench scenario library (not a scenario module itself: the
-registry skips modules whose name starts with ``_``).
+"""The signal every registered scenario but one is made of (not a scenario module itself:
+the registry skips modules whose name starts with ``_``).
 
-:class:`Component` is one sinusoid described analytically, with everything the
+:class:`Component` is one sinusoid described analytically, with everything the demo,
 power-quality and paper scenarios need: linear frequency ramps over a time window,
 sinusoidal frequency modulation (paper 001), C37.118.1-style amplitude and phase
 modulation, and steps of amplitude, phase and frequency. :class:`Composite` sums
 components that are estimated (they make the truth) and disturbances that are not
 (harmonics, interference), plus a possibly time-varying offset, data gaps and noise
 (Gaussian or uniform), and carries the metadata the accuracy bench needs
-(:class:`BenchInfo`: nominal frequencies, steady-state windows, events, reporting rate,
-the limits to judge against).
+(:class:`~sinewatch.scenarios.base.BenchInfo`: nominal frequencies, steady-state
+windows, events, reporting rate, the limits to judge against; derived from the truth when
+a scenario does not declare them, as the demo feeds do).
 
 Truth convention (scenarios/base.py): ``y = offset + sum_k amplitude_k sin(phase_k)``.
 While a component's amplitude is zero (a dropout, a component that vanishes) its truth
@@ -20,12 +21,12 @@ and phase errors there.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from sinewatch.scenarios.base import Scenario, ScenarioStream, Truth, wrap_phase
+from sinewatch.scenarios.base import BenchInfo, FaultPlan, Scenario, ScenarioStream, Truth, wrap_phase
 
 TWO_PI = 2.0 * math.pi
 
@@ -108,42 +109,6 @@ class Component:
         return freq, amp, phase, rocof
 
 
-@dataclass(frozen=True)
-class Event:
-    """Something the bench measures a response to: a step of ``quantity`` ("amplitude",
-    "phase_rad", "frequency_hz", "offset") of ``size`` on ``component`` at ``time_s``, or
-    the end of a data gap (``quantity="resume"``)."""
-
-    time_s: float
-    quantity: str
-    size: float = 0.0
-    component: int = 0
-
-
-@dataclass(frozen=True)
-class BenchInfo:
-    """What the accuracy bench needs to judge a scenario (explicit, not guessed).
-
-    ``nominal_frequency_hz`` has one entry per truth component (what an estimator may be
-    told in advance); ``frequency_range_hz`` the range it may assume; metrics of the
-    steady state (bias, RMSE, C37 quantities) are taken over ``steady_windows``;
-    ``tolerance_hz`` is added to the 1 % relative band used for convergence times;
-    ``reporting_rate_hz`` (phasor scenarios) sets the reporting instants and the
-    differentiation interval for ROCOF; ``limits`` are the pass/fail thresholds
-    (keys ``tve_pct``, ``fe_hz``, ``rfe_hz_per_s``, ``response_time_s``, ``overshoot_pct``);
-    ``reference`` holds what the source paper reported, for the docs.
-    """
-
-    nominal_frequency_hz: tuple[float, ...]
-    frequency_range_hz: tuple[float, float]
-    steady_windows: tuple[tuple[float, float], ...]
-    events: tuple[Event, ...] = ()
-    tolerance_hz: float = 0.0
-    reporting_rate_hz: float | None = None
-    limits: dict[str, float] = field(default_factory=dict)
-    reference: dict[str, Any] = field(default_factory=dict)
-
-
 class Composite(Scenario):
     """Estimated components + disturbances + offset + gaps + noise (see module docstring).
 
@@ -153,7 +118,7 @@ class Composite(Scenario):
     (noise continues). ``skip=(t0, seconds)``: the stream loses ``seconds`` of signal at
     ``t0`` (samples after it are those of time ``t + seconds``). ``uniform_noise``: the
     half-width of additive uniform noise (paper 004's bounded disturbance) instead of
-    Gaussian ``noise_std``.
+    Gaussian ``noise_std``. ``faults``: the transport faults a feed injects.
     """
 
     def __init__(
@@ -161,7 +126,7 @@ class Composite(Scenario):
         name: str,
         summary: str,
         components: list[Component],
-        bench: BenchInfo,
+        bench: BenchInfo | None = None,
         *,
         disturbances: list[Component] | None = None,
         offset: float = 0.0,
@@ -174,15 +139,18 @@ class Composite(Scenario):
         skip: tuple[float, float] | None = None,
         uniform_noise: float = 0.0,
         tags: tuple[str, ...] = (),
+        faults: FaultPlan | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        if faults is not None:
+            self.faults = faults
         self.name = name
         self.summary = summary
         self.tags = tuple(tags)
         self.components = list(components)
         self.disturbances = list(disturbances or [])
-        self.bench = bench
+        self._bench = bench
         self.offset = float(offset)
         self.offset_step_to = offset_step_to
         self.offset_t_step = float(offset_t_step)
@@ -192,7 +160,7 @@ class Composite(Scenario):
         self.dropout = dropout
         self.skip = skip
         self.uniform_noise = float(uniform_noise)
-        if len(bench.nominal_frequency_hz) != len(self.components):
+        if bench is not None and len(bench.nominal_frequency_hz) != len(self.components):
             raise ValueError(
                 f"{name}: expected one nominal frequency per component ({len(self.components)}), "
                 f"got {len(bench.nominal_frequency_hz)}"
@@ -259,17 +227,6 @@ class Composite(Scenario):
 
     def stream(self, seed: int = 0) -> ScenarioStream:
         return _CompositeStream(self, seed)
-
-    def describe(self) -> dict[str, Any]:
-        d = super().describe()
-        d["components"] = [c.__dict__ for c in self.components]
-        if self.disturbances:
-            d["disturbances"] = [c.__dict__ for c in self.disturbances]
-        d["offset"] = self.offset
-        if self.uniform_noise:
-            d["uniform_noise"] = self.uniform_noise
-        d["nominal_frequency_hz"] = list(self.bench.nominal_frequency_hz)
-        return d
 
 
 class _CompositeStream(ScenarioStream):

@@ -27,8 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
+from sinewatch.scenarios import BenchInfo, Component, Event, declare
 
 # Example 2's tuning is the estimator's default design (bias, n = 2); the time unit maps
 # one paper rad/s to 2 pi 5 rad/s. min_amplitude sits above the noise (|d| <= 0.25) so that
@@ -40,30 +39,26 @@ MULTISINE_DEMO_PARAMS: dict[str, Any] = {
 }
 
 
-@register("multisine-demo")
-def multisine_demo(**kw: Any) -> Composite:
-    base: dict[str, Any] = {
+declare(
+    "multisine-demo",
+    "paper 004 Example 2 sped up: 15 Hz + 10 Hz + offset 1, drop-out 12-16 s, 10 Hz vanishes at 28 s",
+    [Component(15.0, a0=4.0), Component(10.0, a0=3.0, phi0=0.5, t_step=28.0, a_step_factor=0.0)],
+    BenchInfo(
+        nominal_frequency_hz=(17.5, 12.5),  # the default initial estimates, 3.5 and 2.5 paper rad/s
+        frequency_range_hz=(0.5, 50.0),
+        steady_windows=((6.0, 12.0), (20.0, 28.0), (36.0, 44.0)),
+        events=(Event(16.0, "resume"), Event(28.0, "amplitude", -3.0, component=1)),
+        reference={"after_28_s": "the vanished component's amplitude fades to 0 (paper Fig. 9)"},
+    ),
+    offset=1.0,
+    uniform_noise=0.1,
+    dropout=(12.0, 16.0),
+    tags=("demo", "multitone", "paper004"),
+    defaults={
         "sample_rate_hz": 1000.0,
         "duration_s": 44.0,
         "noise_std": 0.0,
         "suggested_estimator": "adaptive-multisine",
-        "suggested_params": dict(MULTISINE_DEMO_PARAMS),
-    }
-    base.update(kw)
-    return Composite(
-        "multisine-demo",
-        "paper 004 Example 2 sped up: 15 Hz + 10 Hz + offset 1, drop-out 12-16 s, 10 Hz vanishes at 28 s",
-        [Component(15.0, a0=4.0), Component(10.0, a0=3.0, phi0=0.5, t_step=28.0, a_step_factor=0.0)],
-        BenchInfo(
-            nominal_frequency_hz=(17.5, 12.5),  # the default initial estimates, 3.5 and 2.5 paper rad/s
-            frequency_range_hz=(0.5, 50.0),
-            steady_windows=((6.0, 12.0), (20.0, 28.0), (36.0, 44.0)),
-            events=(Event(16.0, "resume"), Event(28.0, "amplitude", -3.0, component=1)),
-            reference={"after_28_s": "the vanished component's amplitude fades to 0 (paper Fig. 9)"},
-        ),
-        offset=1.0,
-        uniform_noise=0.1,
-        dropout=(12.0, 16.0),
-        tags=("demo", "multitone", "paper004"),
-        **base,
-    )
+        "suggested_params": MULTISINE_DEMO_PARAMS,
+    },
+)

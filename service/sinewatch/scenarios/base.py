@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
@@ -62,13 +62,60 @@ class FaultPlan:
         return None
 
 
-class Scenario(ABC):
-    """A named test signal. Subclasses implement :meth:`clean`."""
+@dataclass(frozen=True)
+class Event:
+    """Something the accuracy bench measures a response to: a step of ``quantity``
+    ("amplitude", "phase_rad", "frequency_hz", "offset") of ``size`` on ``component`` at
+    ``time_s``, or the end of a data gap (``quantity="resume"``)."""
 
-    name: ClassVar[str] = ""
-    summary: ClassVar[str] = ""
-    tags: ClassVar[tuple[str, ...]] = ()
+    time_s: float
+    quantity: str
+    size: float = 0.0
+    component: int = 0
+
+
+@dataclass(frozen=True)
+class BenchInfo:
+    """What the accuracy bench needs to judge a scenario (explicit, not guessed).
+
+    ``nominal_frequency_hz`` has one entry per truth component (what an estimator may be
+    told in advance); ``frequency_range_hz`` the range it may assume; metrics of the
+    steady state (bias, RMSE, C37 quantities) are taken over ``steady_windows``;
+    ``tolerance_hz`` is added to the 1 % relative band used for convergence times;
+    ``reporting_rate_hz`` (phasor scenarios) sets the reporting instants and the
+    differentiation interval for ROCOF; ``limits`` are the pass/fail thresholds
+    (keys ``tve_pct``, ``fe_hz``, ``rfe_hz_per_s``, ``response_time_s``, ``overshoot_pct``);
+    ``reference`` holds what the source paper reported, for the docs; ``crlb``: the bench
+    compares the estimates with the Cramer-Rao bound when the signal allows it (one
+    stationary tone in white Gaussian noise, :attr:`Scenario.is_stationary`).
+    """
+
+    nominal_frequency_hz: tuple[float, ...]
+    frequency_range_hz: tuple[float, float]
+    steady_windows: tuple[tuple[float, float], ...]
+    events: tuple[Event, ...] = ()
+    tolerance_hz: float = 0.0
+    reporting_rate_hz: float | None = None
+    limits: dict[str, float] = field(default_factory=dict)
+    reference: dict[str, Any] = field(default_factory=dict)
+    crlb: bool = True
+
+
+class Scenario(ABC):
+    """A named test signal. Subclasses implement :meth:`clean`.
+
+    The one description of a scenario that ``sinewatch feed``, ``sinewatch demo``, the
+    accuracy bench and the tests read: the signal and its truth (:meth:`clean`, streamed by
+    :meth:`stream`), the transport faults a feed injects (``faults``), the estimator it
+    was written for (``suggested_estimator``/``suggested_params``: the demo's rules, the
+    bench's tuning for that estimator) and the bench's yardsticks (:attr:`bench`).
+    """
+
+    name: str = ""
+    summary: str = ""
+    tags: tuple[str, ...] = ()
     faults: FaultPlan = FaultPlan()
+    _bench: BenchInfo | None = None
 
     def __init__(
         self,
@@ -93,6 +140,38 @@ class Scenario(ABC):
         """Columns per sample: 1, or more when known inputs travel with the signal."""
         return 1
 
+    @property
+    def noise_free(self) -> bool:
+        """No random noise: every seed gives the same samples."""
+        return self.noise_std == 0.0
+
+    @property
+    def is_stationary(self) -> bool:
+        """One steady tone (with a constant offset) in white Gaussian noise, nothing else:
+        the Cramer-Rao bound applies. Scenarios say so themselves; by default, no."""
+        return False
+
+    @property
+    def bench(self) -> BenchInfo:
+        """The accuracy bench's yardsticks: declared by the scenario, or else derived from
+        its truth at t = 0 (nominal frequencies the true ones, range half the lowest to
+        twice the highest (at most 0.45 fs), steady window the second half, no events, no
+        comparison with the CRLB)."""
+        if self._bench is None:
+            self._bench = self._derived_bench()
+        return self._bench
+
+    def _derived_bench(self) -> BenchInfo:
+        _, truth = self.generate(0, n=1)
+        f0 = tuple(float(f) for f in truth.frequency_hz[0])
+        dur = self.n_samples / self.sample_rate_hz
+        return BenchInfo(
+            nominal_frequency_hz=f0,
+            frequency_range_hz=(0.5 * min(f0), min(2.0 * max(f0), 0.45 * self.sample_rate_hz)),
+            steady_windows=((0.5 * dur, dur),),
+            crlb=False,
+        )
+
     @abstractmethod
     def clean(self, t: np.ndarray) -> tuple[np.ndarray, Truth]:
         """Noiseless samples at times ``t`` (s) and the truth there."""
@@ -105,13 +184,16 @@ class Scenario(ABC):
         return self.stream(seed).read(self.n_samples if n is None else n)
 
     def describe(self) -> dict[str, Any]:
+        """The scenario in one plain dict (``sinewatch bench scenarios --json``)."""
         return {
             "name": self.name,
-            "summary": self.summary,
             "tags": list(self.tags),
             "sample_rate_hz": self.sample_rate_hz,
             "duration_s": self.duration_s,
+            "components": len(self.bench.nominal_frequency_hz),
+            "nominal_frequency_hz": list(self.bench.nominal_frequency_hz),
             "noise_std": self.noise_std,
+            "summary": self.summary,
         }
 
 
@@ -136,95 +218,3 @@ class ScenarioStream:
                 samples = samples + noise
         self.position += n
         return samples, truth
-
-
-@dataclass(frozen=True)
-class Tone:
-    """One sinusoidal component, described analytically.
-
-    Frequency: ``f0 + rocof * t``, then ``f_step_to`` from ``t_step`` on (the phase stays
-    continuous). Amplitude ``a0``, multiplied by ``a_step_factor`` from ``t_step``. Phase
-    ``phi0`` plus ``phase_step_rad`` from ``t_step``. ``t_step = inf`` disables steps.
-    """
-
-    f0: float
-    a0: float = 1.0
-    phi0: float = 0.0
-    rocof: float = 0.0
-    t_step: float = float("inf")
-    f_step_to: float | None = None
-    a_step_factor: float = 1.0
-    phase_step_rad: float = 0.0
-
-    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Instantaneous (frequency Hz, amplitude, unwrapped phase rad, rocof Hz/s) at t."""
-        after = t >= self.t_step
-        freq = self.f0 + self.rocof * t
-        cycles = self.f0 * t + 0.5 * self.rocof * t * t
-        rocof = np.full_like(t, self.rocof)
-        if self.f_step_to is not None and np.isfinite(self.t_step):
-            ts = self.t_step
-            cycles_at_step = self.f0 * ts + 0.5 * self.rocof * ts * ts
-            freq = np.where(after, self.f_step_to, freq)
-            cycles = np.where(after, cycles_at_step + self.f_step_to * (t - ts), cycles)
-            rocof = np.where(after, 0.0, rocof)
-        amp = np.where(after, self.a0 * self.a_step_factor, self.a0)
-        phase = 2.0 * np.pi * cycles + self.phi0 + np.where(after, self.phase_step_rad, 0.0)
-        return freq, amp, phase, rocof
-
-
-class SumOfTones(Scenario):
-    """offset + sum of :class:`Tone` components + disturbances + noise; the generic scenario.
-
-    ``tones`` are the components an estimator should report (they make up the truth);
-    ``disturbances`` (harmonics, ripple, interference) are added to the signal but are
-    not part of the truth, so a one-component estimator is scored on the fundamental.
-    """
-
-    def __init__(
-        self,
-        name: str,
-        summary: str,
-        tones: list[Tone],
-        offset: float = 0.0,
-        tags: tuple[str, ...] = (),
-        disturbances: list[Tone] | None = None,
-        **kwargs: Any,
-    ) -> None:
-        super().__init__(**kwargs)
-        self.name = name  # instance attribute shadows the ClassVar on purpose
-        self.summary = summary
-        self.tags = tags
-        self.tones = list(tones)
-        self.disturbances = list(disturbances or [])
-        self.offset = float(offset)
-
-    def clean(self, t: np.ndarray) -> tuple[np.ndarray, Truth]:
-        cols = [tone.evaluate(t) for tone in self.tones]
-        freq = np.stack([c[0] for c in cols], axis=1)
-        amp = np.stack([c[1] for c in cols], axis=1)
-        phase = np.stack([c[2] for c in cols], axis=1)
-        rocof = np.stack([c[3] for c in cols], axis=1)
-        y = self.offset + np.sum(amp * np.sin(phase), axis=1)
-        for d in self.disturbances:
-            _, d_amp, d_phase, _ = d.evaluate(t)
-            y = y + d_amp * np.sin(d_phase)
-        truth = Truth(freq, amp, wrap_phase(phase), np.full(t.shape, self.offset), rocof)
-        return y, truth
-
-    def describe(self) -> dict[str, Any]:
-        d = super().describe()
-        d["tones"] = [tone.__dict__ for tone in self.tones]
-        d["disturbances"] = [tone.__dict__ for tone in self.disturbances]
-        d["offset"] = self.offset
-        return d
-
-
-@dataclass
-class ScenarioSpec:
-    """A registry entry: a factory that builds the scenario with optional overrides."""
-
-    name: str
-    factory: Any
-    summary: str = ""
-    tags: tuple[str, ...] = field(default_factory=tuple)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sinewatch.scenarios import SumOfTones, Tone, register
+from sinewatch.scenarios import Component, Composite, register
 
 ROCOF_DEMO_PARAMS: dict[str, Any] = {
     "nominal_frequency_hz": 50.0,
@@ -22,7 +22,7 @@ ROCOF_DEMO_PARAMS: dict[str, Any] = {
 
 
 @register("rocof-demo")
-def rocof_demo(**overrides: Any) -> SumOfTones:
+def rocof_demo(**overrides: Any) -> Composite:
     kw: dict[str, Any] = {
         "sample_rate_hz": 10_000.0,
         "duration_s": 5.0,
@@ -33,10 +33,10 @@ def rocof_demo(**overrides: Any) -> SumOfTones:
     rocof = float(overrides.pop("rocof_hz_per_s", 1.0))
     f0 = float(overrides.pop("f0_hz", 50.0))
     kw.update(overrides)
-    return SumOfTones(
+    return Composite(
         "rocof-demo",
         f"{f0:g} Hz ramping at {rocof:g} Hz/s, noise std {kw['noise_std']:g} (differential-rls, paper 001)",
-        [Tone(f0=f0, a0=1.0, phi0=0.2, rocof=rocof)],
+        [Component(f0=f0, a0=1.0, phi0=0.2, rocof=rocof)],
         offset=0.0,
         tags=("demo", "ramp", "rocof", "paper001"),
         **kw,

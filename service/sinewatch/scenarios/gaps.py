@@ -16,10 +16,7 @@ The bench measures the reacquisition time from the end of the gap (event "resume
 
 from __future__ import annotations
 
-from typing import Any
-
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, Event, declare, snr_noise_std
 
 F0 = 50.3
 NOMINAL_HZ = 50.0
@@ -29,14 +26,13 @@ def _gap(
     name: str,
     summary: str,
     *,
-    dropout=None,
-    skip=None,
+    dropout: tuple[float, float] | None = None,
+    skip: tuple[float, float] | None = None,
     t_resume: float,
     duration: float,
     quick: bool = False,
-    **kw: Any,
-) -> Composite:
-    return Composite(
+) -> None:
+    declare(
         name,
         summary,
         [Component(F0, phi0=0.3)],
@@ -50,42 +46,29 @@ def _gap(
         dropout=dropout,
         skip=skip,
         tags=("gap",) + (("quick",) if quick else ()),
-        **{"sample_rate_hz": 1000.0, "duration_s": duration, "noise_std": snr_noise_std(1.0, 40.0), **kw},
+        defaults={"sample_rate_hz": 1000.0, "duration_s": duration, "noise_std": snr_noise_std(1.0, 40.0)},
     )
 
 
-@register("gap-dropout-200ms")
-def dropout_200ms(**kw: Any) -> Composite:
-    return _gap(
-        "gap-dropout-200ms",
-        "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 0.2 s from t = 2 s",
-        dropout=(2.0, 2.2),
-        t_resume=2.2,
-        duration=5.0,
-        quick=True,
-        **kw,
-    )
-
-
-@register("gap-dropout-5s")
-def dropout_5s(**kw: Any) -> Composite:
-    return _gap(
-        "gap-dropout-5s",
-        "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 5 s from t = 2 s",
-        dropout=(2.0, 7.0),
-        t_resume=7.0,
-        duration=10.0,
-        **kw,
-    )
-
-
-@register("gap-skip-105ms")
-def skip_105ms(**kw: Any) -> Composite:
-    return _gap(
-        "gap-skip-105ms",
-        "50.3 Hz at 1 kHz, 40 dB SNR; 105 ms of samples lost at t = 2 s",
-        skip=(2.0, 0.105),
-        t_resume=2.0,
-        duration=5.0,
-        **kw,
-    )
+_gap(
+    "gap-dropout-200ms",
+    "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 0.2 s from t = 2 s",
+    dropout=(2.0, 2.2),
+    t_resume=2.2,
+    duration=5.0,
+    quick=True,
+)
+_gap(
+    "gap-dropout-5s",
+    "50.3 Hz at 1 kHz, 40 dB SNR; reads zero for 5 s from t = 2 s",
+    dropout=(2.0, 7.0),
+    t_resume=7.0,
+    duration=10.0,
+)
+_gap(
+    "gap-skip-105ms",
+    "50.3 Hz at 1 kHz, 40 dB SNR; 105 ms of samples lost at t = 2 s",
+    skip=(2.0, 0.105),
+    t_resume=2.0,
+    duration=5.0,
+)

@@ -1,4 +1,5 @@
-"""Scenarios for ``grip-mixing`` (paper 002, ``002_e8388582f5542671.txt``).
+"""Scenarios for ``grip-mixing`` (paper 002: H. F. Grip, "Observer design in the presence of
+periodic output disturbances by mixing of past and present output data").
 
 * ``grip-demo``: mains lines at 50, 150 and 250 Hz (amplitudes 1, 0.2, 0.1) + offset 0.3 + a
   periodic disturbance of period T = 0.05 s (a 1200 rpm machine: 20, 40, 60, 100 and 140 Hz)
@@ -24,9 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite
-from sinewatch.scenarios.base import Scenario, ScenarioStream, Truth, wrap_phase
+from sinewatch.scenarios import BenchInfo, Component, Composite, Scenario, ScenarioStream, Truth, register, wrap_phase
 
 GRIP_DEMO_PERIOD_S = 0.05
 GRIP_DEMO_PARAMS = {"preset": "harmonics", "frequencies_hz": [50.0, 150.0, 250.0], "period_s": 0.05}
@@ -49,7 +48,7 @@ def grip_demo(**kw: Any) -> Composite:
     delay = GRIP_DEMO_PERIOD_S * fs
     if abs(delay - round(delay)) > 1e-9 * delay:
         params["fractional_delay"] = True  # T is not a whole number of samples at this rate
-    base = {
+    base: dict[str, Any] = {
         "sample_rate_hz": 10_000.0,
         "duration_s": 10.0,
         "noise_std": 0.01,
@@ -95,7 +94,7 @@ class GripSectionV(Scenario):
         noise_hold_s: float = 0.1,
         **kw: Any,
     ) -> None:
-        base = {
+        base: dict[str, Any] = {
             "sample_rate_hz": 100.0,
             "duration_s": 40.0,
             "noise_std": 0.0,
@@ -112,6 +111,10 @@ class GripSectionV(Scenario):
     @property
     def n_inputs(self) -> int:
         return 2
+
+    @property
+    def noise_free(self) -> bool:
+        return super().noise_free and self.bandlimited_noise_std == 0.0
 
     def truth_states(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x(t) (N, 2), u(t) and d(t), in closed form."""
@@ -140,16 +143,6 @@ class GripSectionV(Scenario):
 
     def stream(self, seed: int = 0) -> ScenarioStream:
         return _HeldNoiseStream(self, seed)
-
-    def describe(self) -> dict[str, Any]:
-        d = super().describe()
-        d.update(
-            disturbance_period_s=self.period,
-            x0=list(self.x0),
-            bandlimited_noise_std=self.bandlimited_noise_std,
-            noise_hold_s=self.noise_hold_s,
-        )
-        return d
 
 
 class _HeldNoiseStream(ScenarioStream):

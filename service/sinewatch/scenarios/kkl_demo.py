@@ -15,48 +15,30 @@ amplitude error std 0.0016 (0.0012); converged drops 7 ms (4.4 ms) after the ste
 
 from __future__ import annotations
 
-from typing import Any
-
-from sinewatch.scenarios import register
-from sinewatch.scenarios.base import SumOfTones, Tone
+from sinewatch.scenarios import Component, declare
 
 KKL_MAINS_PARAMS = {"f_min_hz": 45.0, "f_max_hz": 65.0}
 
-_TONES = [Tone(50.0, 1.0, 0.3, t_step=5.0, f_step_to=51.0, a_step_factor=0.8)]
-_RIPPLE = [Tone(2500.0, 0.05, 0.0)]  # switching ripple, 1.7 decades above the filters (not truth)
+_TONES = [Component(50.0, 1.0, 0.3, t_step=5.0, f_step_to=51.0, a_step_factor=0.8)]
+_RIPPLE = [Component(2500.0, 0.05, 0.0)]  # switching ripple, 1.7 decades above the filters (not truth)
 
 
-def _kkl_scenario(name: str, summary: str, offset: float, estimator: str, **overrides: Any) -> SumOfTones:
-    kw: dict[str, Any] = dict(
-        sample_rate_hz=10_000.0,
-        duration_s=10.0,
-        noise_std=0.002,
-        suggested_estimator=estimator,
-        suggested_params=dict(KKL_MAINS_PARAMS),
-    )
-    kw.update(overrides)
-    return SumOfTones(
-        name, summary, list(_TONES), offset=offset, tags=("demo", "kkl"), disturbances=list(_RIPPLE), **kw
-    )
-
-
-@register("kkl-demo")
-def kkl_demo(**overrides: Any) -> SumOfTones:
-    return _kkl_scenario(
-        "kkl-demo",
-        "50 Hz + 5 % ripple at 2.5 kHz, steps to 51 Hz / 80 % at t = 5 s (kkl, 45-65 Hz)",
-        0.0,
-        "kkl",
-        **overrides,
-    )
-
-
-@register("kkl-biased-demo")
-def kkl_biased_demo(**overrides: Any) -> SumOfTones:
-    return _kkl_scenario(
-        "kkl-biased-demo",
-        "kkl-demo with an offset of 0.5 (kkl-biased, 45-65 Hz)",
-        0.5,
-        "kkl-biased",
-        **overrides,
+for _name, _summary, _offset, _estimator in (
+    ("kkl-demo", "50 Hz + 5 % ripple at 2.5 kHz, steps to 51 Hz / 80 % at t = 5 s (kkl, 45-65 Hz)", 0.0, "kkl"),
+    ("kkl-biased-demo", "kkl-demo with an offset of 0.5 (kkl-biased, 45-65 Hz)", 0.5, "kkl-biased"),
+):
+    declare(
+        _name,
+        _summary,
+        _TONES,
+        offset=_offset,
+        tags=("demo", "kkl"),
+        disturbances=_RIPPLE,
+        defaults={
+            "sample_rate_hz": 10_000.0,
+            "duration_s": 10.0,
+            "noise_std": 0.002,
+            "suggested_estimator": _estimator,
+            "suggested_params": KKL_MAINS_PARAMS,
+        },
     )

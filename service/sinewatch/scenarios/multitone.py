@@ -14,20 +14,16 @@ The nominal frequencies handed to the estimators are 10 % off the true ones.
 
 from __future__ import annotations
 
-from typing import Any
-
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, declare, snr_noise_std
 
 
 def _multi(
-    name: str, summary: str, tones: list[tuple[float, float, float]], offset: float, quick: bool = False, **kw: Any
-) -> Composite:
-    comps = [Component(f, a0=a, phi0=p) for f, a, p in tones]
-    return Composite(
+    name: str, summary: str, tones: list[tuple[float, float, float]], offset: float, quick: bool = False
+) -> None:
+    declare(
         name,
         summary,
-        comps,
+        [Component(f, a0=a, phi0=p) for f, a, p in tones],
         BenchInfo(
             nominal_frequency_hz=tuple(0.9 * f if i % 2 == 0 else 1.1 * f for i, (f, _, _) in enumerate(tones)),
             frequency_range_hz=(10.0, 250.0),
@@ -35,50 +31,24 @@ def _multi(
         ),
         offset=offset,
         tags=("multitone",) + (("quick",) if quick else ()),
-        **{"sample_rate_hz": 1000.0, "duration_s": 10.0, "noise_std": snr_noise_std(1.0, 40.0), **kw},
+        defaults={"sample_rate_hz": 1000.0, "duration_s": 10.0, "noise_std": snr_noise_std(1.0, 40.0)},
     )
 
 
-@register("multitone-2-separated")
-def two_separated(**kw: Any) -> Composite:
-    return _multi(
-        "multitone-2-separated",
-        "50 Hz (A 1) + 120 Hz (A 0.5) + 0.2 at 1 kHz, 40 dB SNR",
-        [(50.0, 1.0, 0.3), (120.0, 0.5, 1.2)],
-        0.2,
-        quick=True,
-        **kw,
-    )
-
-
-@register("multitone-2-close")
-def two_close(**kw: Any) -> Composite:
-    return _multi(
-        "multitone-2-close",
-        "50 Hz + 55 Hz (A 1 each) at 1 kHz, 40 dB SNR",
-        [(50.0, 1.0, 0.3), (55.0, 1.0, 2.0)],
-        0.0,
-        **kw,
-    )
-
-
-@register("multitone-2-weak")
-def two_weak(**kw: Any) -> Composite:
-    return _multi(
-        "multitone-2-weak",
-        "50 Hz (A 1) + 80 Hz (A 0.05) at 1 kHz, 40 dB SNR",
-        [(50.0, 1.0, 0.3), (80.0, 0.05, 0.9)],
-        0.0,
-        **kw,
-    )
-
-
-@register("multitone-3")
-def three(**kw: Any) -> Composite:
-    return _multi(
-        "multitone-3",
-        "50 + 110 + 170 Hz (A 1, 0.5, 0.3) + 0.2 at 1 kHz, 40 dB SNR",
-        [(50.0, 1.0, 0.3), (110.0, 0.5, 1.2), (170.0, 0.3, -0.7)],
-        0.2,
-        **kw,
-    )
+_multi(
+    "multitone-2-separated",
+    "50 Hz (A 1) + 120 Hz (A 0.5) + 0.2 at 1 kHz, 40 dB SNR",
+    [(50.0, 1.0, 0.3), (120.0, 0.5, 1.2)],
+    0.2,
+    quick=True,
+)
+_multi("multitone-2-close", "50 Hz + 55 Hz (A 1 each) at 1 kHz, 40 dB SNR", [(50.0, 1.0, 0.3), (55.0, 1.0, 2.0)], 0.0)
+_multi(
+    "multitone-2-weak", "50 Hz (A 1) + 80 Hz (A 0.05) at 1 kHz, 40 dB SNR", [(50.0, 1.0, 0.3), (80.0, 0.05, 0.9)], 0.0
+)
+_multi(
+    "multitone-3",
+    "50 + 110 + 170 Hz (A 1, 0.5, 0.3) + 0.2 at 1 kHz, 40 dB SNR",
+    [(50.0, 1.0, 0.3), (110.0, 0.5, 1.2), (170.0, 0.3, -0.7)],
+    0.2,
+)

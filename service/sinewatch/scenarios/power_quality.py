@@ -34,10 +34,10 @@ quoting compliance: this is a model of the test suite, not a certified one.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, Event
+from sinewatch.scenarios import BenchInfo, Component, Composite, Event, register
 
 SAMPLE_RATE_HZ = 10_000.0
 HARMONICS = (2, 3, 5, 7, 11, 13, 25, 50)
@@ -71,7 +71,7 @@ def _c37(
     overrides: dict[str, Any] | None = None,
 ) -> Composite:
     full = f"c37-{int(f0)}hz-{name}"
-    kw = {
+    kw: dict[str, Any] = {
         "sample_rate_hz": SAMPLE_RATE_HZ,
         "duration_s": duration,
         "noise_std": 0.0,
@@ -97,7 +97,7 @@ def _c37(
     )
 
 
-def _steady(f0: float, df: float, name: str, quick: bool = False):
+def _steady(f0: float, df: float, name: str, quick: bool = False) -> Callable[..., Composite]:
     def factory(**kw: Any) -> Composite:
         label = "nominal frequency" if df == 0 else f"off-nominal {df:+g} Hz"
         return _c37(
@@ -113,7 +113,7 @@ def _steady(f0: float, df: float, name: str, quick: bool = False):
     return factory
 
 
-def _harmonic(f0: float, h_default: int):
+def _harmonic(f0: float, h_default: int) -> Callable[..., Composite]:
     def factory(harmonic: int = h_default, **kw: Any) -> Composite:
         if not 2 <= harmonic <= 50:
             raise ValueError(f"harmonic: expected 2..50, got {harmonic}")
@@ -131,7 +131,7 @@ def _harmonic(f0: float, h_default: int):
     return factory
 
 
-def _oob(f0: float, high: bool):
+def _oob(f0: float, high: bool) -> Callable[..., Composite]:
     fi = 1.5 * f0 + 1.0 if high else 0.5 * f0 - 1.0
 
     def factory(**kw: Any) -> Composite:
@@ -148,7 +148,7 @@ def _oob(f0: float, high: bool):
     return factory
 
 
-def _ramp(f0: float, up: bool):
+def _ramp(f0: float, up: bool) -> Callable[..., Composite]:
     sign = 1.0 if up else -1.0
     fs_report = f0
 
@@ -168,7 +168,7 @@ def _ramp(f0: float, up: bool):
     return factory
 
 
-def _modulation(f0: float, kind: str, fm: float):
+def _modulation(f0: float, kind: str, fm: float) -> Callable[..., Composite]:
     def factory(**kw: Any) -> Composite:
         if kind == "am":
             comp = Component(f0, phi0=0.4, am_depth=0.1, am_hz=fm)
@@ -191,7 +191,7 @@ def _modulation(f0: float, kind: str, fm: float):
     return factory
 
 
-def _step(f0: float, quantity: str, sign: float):
+def _step(f0: float, quantity: str, sign: float) -> Callable[..., Composite]:
     def factory(**kw: Any) -> Composite:
         limits = dict(LIMITS["step"], response_time_s=7.0 / f0)
         if quantity == "amplitude":
@@ -219,7 +219,7 @@ def _step(f0: float, quantity: str, sign: float):
     return factory
 
 
-def _dc(f0: float, decay: bool):
+def _dc(f0: float, decay: bool) -> Callable[..., Composite]:
     def factory(**kw: Any) -> Composite:
         if decay:
             return _c37(

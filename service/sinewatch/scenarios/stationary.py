@@ -17,10 +17,7 @@ the frequency, amplitude and phase bounds do not depend on whether it is).
 
 from __future__ import annotations
 
-from typing import Any
-
-from sinewatch.scenarios import register
-from sinewatch.scenarios._library import BenchInfo, Component, Composite, snr_noise_std
+from sinewatch.scenarios import BenchInfo, Component, declare, snr_noise_std
 
 SNR_DB = (0, 10, 20, 30, 40, 50, 60)
 FREQUENCY_HZ = 50.5
@@ -33,11 +30,9 @@ PHASE = 0.3
 NOBIAS_SNR_DB = (0, 20, 40, 60)
 
 
-def _tone(snr_db: int, offset: float = OFFSET, **kw: Any) -> Composite:
-    tags = ("stationary", "snr") + (("quick",) if snr_db in (20, 40) and offset else ())
-    name = f"tone-snr-{snr_db:02d}db" if offset else f"tone-nobias-snr-{snr_db:02d}db"
-    return Composite(
-        name,
+def _tone(snr_db: int, offset: float) -> None:
+    declare(
+        f"tone-snr-{snr_db:02d}db" if offset else f"tone-nobias-snr-{snr_db:02d}db",
         f"{offset:g} + sin(2 pi 50.5 t + 0.3) at 1 kHz, 2 s, white Gaussian noise at SNR {snr_db} dB",
         [Component(FREQUENCY_HZ, a0=AMPLITUDE, phi0=PHASE)],
         BenchInfo(
@@ -46,20 +41,12 @@ def _tone(snr_db: int, offset: float = OFFSET, **kw: Any) -> Composite:
             steady_windows=((1.0, 2.0),),
         ),
         offset=offset,
-        tags=tags,
-        **{"sample_rate_hz": 1000.0, "duration_s": 2.0, "noise_std": snr_noise_std(AMPLITUDE, snr_db), **kw},
+        tags=("stationary", "snr") + (("quick",) if snr_db in (20, 40) and offset else ()),
+        defaults={"sample_rate_hz": 1000.0, "duration_s": 2.0, "noise_std": snr_noise_std(AMPLITUDE, snr_db)},
     )
 
 
-def _make(snr_db: int, offset: float):
-    def factory(**kw: Any) -> Composite:
-        return _tone(snr_db, offset, **kw)
-
-    factory.__name__ = f"tone_snr_{snr_db:02d}db" if offset else f"tone_nobias_snr_{snr_db:02d}db"
-    return factory
-
-
 for _snr in SNR_DB:
-    register(f"tone-snr-{_snr:02d}db")(_make(_snr, OFFSET))
+    _tone(_snr, OFFSET)
 for _snr in NOBIAS_SNR_DB:
-    register(f"tone-nobias-snr-{_snr:02d}db")(_make(_snr, 0.0))
+    _tone(_snr, 0.0)

@@ -1,0 +1,120 @@
+"""The ``sinewatch bench ...`` command line: every bench's arguments, and nothing heavy.
+
+This module imports only the standard library, so that building the CLI parser (which
+every ``sinewatch`` command does, ``sinewatch config show`` included) costs nothing; a
+bench's own module (numpy, numba, scipy, the estimators, Zenoh) is imported when that bench
+runs. Each bench module exposes ``run(args) -> exit code``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+DEFAULT_TRIALS = 10  # Monte Carlo trials per noisy scenario (sinewatch bench accuracy)
+QUICK_TRIALS = 3  # the same with --quick
+STARTUP_RUNS = 15  # runs per command (sinewatch bench startup)
+
+
+def _runner(module: str) -> Callable[[argparse.Namespace], int]:
+    """``run(args)`` of ``sinewatch.bench.<module>``, imported when the bench runs."""
+
+    def run(args: argparse.Namespace) -> int:
+        fn: Callable[[argparse.Namespace], int] = importlib.import_module(f"sinewatch.bench.{module}").run
+        return fn(args)
+
+    run.__name__ = f"run_{module}"
+    return run
+
+
+def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
+    """Add ``bench`` and its subcommands to ``sub`` (the CLI's subparsers action)."""
+    b: argparse.ArgumentParser = sub.add_parser(
+        "bench", help="benchmarks (ratios against baselines measured in the same run)"
+    )
+    bsub = b.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
+    benches: tuple[tuple[str, str, Callable[[argparse.ArgumentParser], None]], ...] = (
+        ("kernels", "samples/s per core per estimator vs a numpy FFT baseline", add_kernels_arguments),
+        ("e2e", "daemon fed through Zenoh on loopback, recording on", add_e2e_arguments),
+        ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
+        ("scenarios", "list the scenario library", add_scenarios_arguments),
+        ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
+    )
+    for name, help_text, add_arguments in benches:
+        p = bsub.add_parser(name, help=help_text)
+        add_arguments(p)
+        p.set_defaults(fn=_runner(name))
+    return b
+
+
+def add_kernels_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--estimators", help="comma-separated names (default all)")
+    parser.add_argument("--block", type=int, action="append", help="block size (repeatable; default 1024 and 4096)")
+    parser.add_argument("--seconds", type=float, default=0.5, help="time per measurement (default 0.5)")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
+def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--channels", type=int, default=200)
+    parser.add_argument("--rate", type=float, default=10_000.0, help="per-channel sample rate, Hz")
+    parser.add_argument("--block", type=int, default=1024)
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    parser.add_argument("--estimator", default="ges-kalman")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
+def add_accuracy_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--estimators", nargs="+", metavar="NAME", help="estimator names or globs (default: every registered estimator)"
+    )
+    parser.add_argument(
+        "--scenarios",
+        nargs="+",
+        metavar="NAME",
+        help="scenario names, globs (c37-50hz-*) or tags (c37.118, paper, snr, gap, "
+        "multitone, phasor; or tag:NAME); default: all (with --quick: tag quick)",
+    )
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help=f"Monte Carlo trials per noisy scenario (default {DEFAULT_TRIALS}, {QUICK_TRIALS} with --quick)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="first seed (trial i uses seed + i)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("bench-results/accuracy"),
+        help="output directory for accuracy.md, accuracy.json and plots/",
+    )
+    parser.add_argument("--quick", action="store_true", help="the quick subset and fewer trials")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=min(2, os.cpu_count() or 1),
+        help="worker processes (default: 2 or the core count if smaller)",
+    )
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument(
+        "--update-docs",
+        type=Path,
+        metavar="FILE",
+        help="also replace the results block of FILE (e.g. docs/accuracy.md)",
+    )
+
+
+def add_scenarios_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("patterns", nargs="*", metavar="NAME", help="names, globs or tags to list (default: all)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+
+def add_startup_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--runs", type=int, default=STARTUP_RUNS, help=f"runs of each command (default {STARTUP_RUNS})")
+    parser.add_argument(
+        "--config", type=Path, help="config file for `sinewatch config show` (default: built-in defaults)"
+    )
+    parser.add_argument("--json", type=Path, help="also write results as JSON")

@@ -1,0 +1,155 @@
+"""The parameters of an estimator for a scenario, in the accuracy bench.
+
+:func:`estimator_params` merges, later entries winning:
+
+1. the estimator's ``example_params``;
+2. a generic mapping by field name (:func:`generic_params`): nominal-frequency fields
+   (``nominal_frequency_hz``, ``f0_hz``, ...) get the scenario's nominal frequency (a list
+   field gets one per component), required range fields (``f_min_hz``/``f_max_hz``,
+   ``min_frequency_hz``/``max_frequency_hz`` when their default is not None) the
+   scenario's frequency range, component-count fields (``n_components``, ``n_sinusoids``,
+   ...) the number of truth components, ``omega_unit_rad_s`` 2 pi times the mean nominal
+   frequency;
+3. the estimator's own hook, when it has one: ``params_for(sample_rate_hz, hints) ->
+   dict`` (classmethod; ``hints`` as built by
+   :func:`sinewatch.bench.scenarios.scenario_hints`; raising ParameterError means "does
+   not apply"), else an adapter from :data:`ADAPTERS`;
+4. the scenario's ``suggested_params`` when its ``suggested_estimator`` is this estimator
+   (the papers' own tunings).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from sinewatch.bench.scenarios import Profile, profile, scenario_hints
+from sinewatch.estimators.base import Estimator
+from sinewatch.scenarios import Scenario
+from sinewatch.schemas.errors import ParameterError
+
+TWO_PI = 2.0 * math.pi
+
+
+class NotApplicable(Exception):
+    """This estimator does not apply to this scenario (the message says why)."""
+
+
+NOMINAL_HZ_FIELDS = (
+    "nominal_frequency_hz",
+    "nominal_hz",
+    "f_nominal_hz",
+    "f0_hz",
+    "initial_frequency_hz",
+    "frequency_hz",
+    "center_frequency_hz",
+    "centre_frequency_hz",
+    "reference_frequency_hz",
+    "initial_frequencies_hz",
+    "nominal_frequencies_hz",
+    "frequencies_hz",
+)
+RANGE_LO_FIELDS = ("f_min_hz", "min_frequency_hz", "frequency_min_hz")
+RANGE_HI_FIELDS = ("f_max_hz", "max_frequency_hz", "frequency_max_hz")
+COUNT_FIELDS = ("n_components", "n_sinusoids", "n_tones", "num_components")
+TIME_UNIT_FIELDS = ("omega_unit_rad_s",)
+
+
+def _is_list_field(fld: Any) -> bool:
+    return "list" in str(fld.annotation).lower() or "tuple" in str(fld.annotation).lower()
+
+
+def generic_params(cls: type[Estimator], hints: dict[str, Any]) -> dict[str, Any]:
+    """Step 2 of :func:`estimator_params`: the mapping by field name."""
+    fields = cls.Params.model_fields
+    nom = tuple(hints["nominal_frequency_hz"])
+    k = len(nom)
+    fmean = float(np.mean(nom)) if k else 0.0
+    lo, hi = hints["frequency_range_hz"]
+    out: dict[str, Any] = {}
+    for name, fld in fields.items():
+        if name in NOMINAL_HZ_FIELDS:
+            out[name] = list(nom) if _is_list_field(fld) else (nom[0] if k == 1 else fmean)
+        elif name in RANGE_LO_FIELDS and fld.default is not None:
+            out[name] = float(lo)
+        elif name in RANGE_HI_FIELDS and fld.default is not None:
+            out[name] = float(hi)
+        elif name in COUNT_FIELDS:
+            out[name] = k
+        elif name in TIME_UNIT_FIELDS and fmean > 0:
+            out[name] = TWO_PI * fmean
+    return out
+
+
+def _ges_kalman_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
+    """ges-kalman: the paper tunes Q = 1e-6 I for w Ts = 0.2 pi (100 Hz at 1 kHz). The
+    states scale as x2 ~ A (w Ts) and x3, x4 ~ (w Ts)^2, so the random walks are scaled by
+    (w Ts / 0.2 pi)^2 and ^4 to keep the same relative agility at other rates; R stays the
+    paper's 1e-2 unless the noise is larger."""
+    f = max(hints["nominal_frequency_hz"][0], 1e-9)
+    rel = (TWO_PI * f / fs) / (0.2 * math.pi)
+    q = 1e-6
+    r = max(1e-2, float(hints.get("noise_std") or 0.0) ** 2)
+    return {"q": [q * rel**2, q * rel**2, q * rel**4, q * rel**4], "r": r}
+
+
+def _adaptive_multisine_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
+    """adaptive-multisine: one sinusoid per component, every rate relative to the mean
+    nominal frequency (as its own example does); its default design otherwise."""
+    nom = hints["nominal_frequency_hz"]
+    fmean = float(np.mean(nom))
+    # its frequency bound (default 4 units) must stay below Nyquist: the projection ball
+    # admits up to ~ n^(1/4) omega_max
+    nyquist_units = 0.5 * fs / fmean
+    return {
+        "n_sinusoids": len(nom),
+        "omega_unit_rad_s": TWO_PI * fmean,
+        "omega_max": min(4.0, 0.8 * nyquist_units / len(nom) ** 0.25),
+    }
+
+
+# Used for an estimator that has no ``params_for`` classmethod of its own.
+ADAPTERS: dict[str, Callable[[float, dict[str, Any]], dict[str, Any]]] = {
+    "ges-kalman": _ges_kalman_params,
+    "adaptive-multisine": _adaptive_multisine_params,
+}
+
+
+def _is_base_hook(hook: Any) -> bool:
+    """True for the Estimator base class's own params_for (should base.py ever declare a
+    default one): that is "no hook", so the bench adapter still applies."""
+    base = getattr(Estimator, "params_for", None)
+    return base is not None and getattr(hook, "__func__", hook) is getattr(base, "__func__", base)
+
+
+def estimator_params(cls: type[Estimator], sc: Scenario, prof: Profile | None = None) -> tuple[dict[str, Any], str]:
+    """Parameters of estimator class ``cls`` for scenario ``sc`` and where they came from
+    (see the module docstring). Raises :class:`NotApplicable`."""
+    prof = prof or profile(sc)
+    hints = scenario_hints(sc, prof)
+    params: dict[str, Any] = dict(cls.example_params)
+    sources = ["example"]
+    generic = generic_params(cls, hints)
+    if generic:
+        params.update(generic)
+        sources.append("generic")
+    hook = getattr(cls, "params_for", None)
+    if callable(hook) and not _is_base_hook(hook):
+        try:
+            own = hook(sc.sample_rate_hz, hints)
+        except ParameterError as exc:
+            raise NotApplicable(str(exc)) from exc
+        if own is None:
+            raise NotApplicable(f"{cls.name}.params_for declined")
+        params.update(own)
+        sources.append("params_for")
+    elif cls.name in ADAPTERS:
+        params.update(ADAPTERS[cls.name](sc.sample_rate_hz, hints))
+        sources.append("bench adapter")
+    if getattr(sc, "suggested_estimator", None) == cls.name and sc.suggested_params:
+        params.update(sc.suggested_params)
+        sources.append("scenario")
+    return params, "+".join(sources)
