@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from sinewatch.bench.pmu_compliance import Row, run_suite, step_response
+from sinewatch.bench.compliance import Row, run_suite, step_response
 from sinewatch.estimators import create
 from sinewatch.estimators.base import GridReports, concat_tracks
 from sinewatch.scenarios.c37118 import generate, limits

@@ -212,6 +212,9 @@ class Estimator(ABC):
     Params: ClassVar[type[EstimatorParams]]
     summary: ClassVar[str] = ""
     paper: ClassVar[str | None] = None  # file name under shared/papers, for docs
+    # True for estimators that report on a time grid (Track.reports, from update(...,
+    # t0_ns=...)) rather than once per block
+    reports_on_grid: ClassVar[bool] = False
 
     # A working configuration, used by the conformance suite, the kernel benchmark and
     # the docs: the sample rate, parameters, and a test signal (see example_signal).

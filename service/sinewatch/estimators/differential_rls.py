@@ -1188,4 +1188,6 @@ class DifferentialRls(Estimator):
             "reference_frequency_hz": ext[:, 2],
         }
         track = track_from_columns(out, sse, samples.shape[0], extras)
+        if self.params.rocof_model:  # first class too (Estimate v2), the extra kept
+            track.rocof_hz_per_s = rocof[:, None]
         return track, {"fe": fe, "core": core, "theta": theta, "P": P, "ist": ist}

@@ -71,7 +71,7 @@ pass the modulation band ``min(Fs/5, 5 Hz)`` with ``G >= 0.8`` and stop ``|nu| >
 below -60 dB, within the latency ``5 / Fs``, i.e. ``T <= 10 / Fs``). At the lower
 reporting rates (Fs < f0) the same latency-bounded transition is too narrow for the
 out-of-band FE limit (0.01 Hz): those designs are best-effort and the compliance bench
-(``sinewatch.pmu_compliance``) shows by how much they miss. P class uses a short
+(``sinewatch bench compliance``) shows by how much they miss. P class uses a short
 three-cycle taper without the sinc (latency 2/Fs).
 
 Time: reports are on the grid ``k / Fs`` since the epoch. The block's absolute start time
@@ -608,6 +608,7 @@ class Pmu(Estimator):
 
     name = "pmu"
     Params = PmuParams
+    reports_on_grid = True
     summary = (
         "C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the "
         "reporting grid: demodulation + derivative filter bank + image cancellation (M or P class)"

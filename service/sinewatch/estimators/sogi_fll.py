@@ -339,4 +339,6 @@ class SogiFll(Estimator):
     def _run(self, samples, state, last_only):
         out, ext, sse, x = sogi_fll_kernel(samples, state["x"], self._consts, last_only)
         extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
-        return track_from_columns(out, sse, samples.shape[0], extras), {"x": x}
+        track = track_from_columns(out, sse, samples.shape[0], extras)
+        track.rocof_hz_per_s = ext[:, 1:2]  # first class too (Estimate v2), the extra kept
+        return track, {"x": x}

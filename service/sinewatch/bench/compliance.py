@@ -267,20 +267,37 @@ def run(args: argparse.Namespace) -> int:
     return 0 if n_fail == 0 else 1
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--estimator", default="pmu")
-    p.add_argument(
-        "--rates",
-        default="50/50,60/60",
-        help="comma-separated f0/Fs pairs (M-class rates: 50/10,50/25,50/50,60/10,...,60/60)",
-    )
-    p.add_argument("--full", action="store_true", help="the full sweeps of the standard (slower)")
-    p.add_argument("--json", type=__import__("pathlib").Path, help="write the rows as JSON")
+def markdown_section(estimators: list[str], *, full: bool = False) -> str:
+    """The compliance tables of the grid-reporting estimators among ``estimators``, at
+    Fs = f0 (50 and 60 Hz), for ``sinewatch bench accuracy --scenarios c37.118``."""
+    names = [e for e in estimators if _reports_on_grid(e)]
+    if not names:
+        return ""
+    parts = [
+        "## C37.118.1 M-class compliance of the estimators that report on a time grid",
+        "",
+        "Scored on the reports at their timestamps (`sinewatch bench compliance` runs this alone; "
+        f"{'full sweeps' if full else 'representative subset, --full for the sweeps'}). {LIMIT_NOTES}",
+        "",
+    ]
+    for name in names:
+        rows: list[Row] = []
+        for f0 in (50, 60):
+            params = {"nominal_frequency_hz": f0, "reporting_rate_hz": f0}
+            rows.extend(run_suite(f0, f0, estimator=name, params=params, full=full))
+        parts += [f"### {name}", "", format_rows(rows), ""]
+    return "\n".join(parts)
+
+
+def _reports_on_grid(name: str) -> bool:
+    return get_estimator(name).reports_on_grid
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sinewatch.bench.pmu_compliance", description=__doc__)
-    add_arguments(p)
+    from sinewatch.bench.args import add_compliance_arguments
+
+    p = argparse.ArgumentParser(prog="sinewatch bench compliance", description=__doc__)
+    add_compliance_arguments(p)
     return run(p.parse_args(argv))
 
 
