@@ -16,16 +16,20 @@ the negative-frequency image. References:
   centre) that (D) and (K) follow.
 * [T] J. A. de la O Serna, "Dynamic Phasor Estimates for Power System Oscillations",
   IEEE Trans. Instrum. Meas. 56(5), 1648-1657, 2007: the phasor and its first two
-  derivatives estimated by a bank of three FIR filters (his eq. (9)-(12), the
-  Taylor-Fourier filters); here the bank is the kernel and its exact derivatives (K').
+  derivatives estimated by a bank of three FIR filters (the Taylor-Fourier filters, from
+  a second-order Taylor model of the phasor over the window); here the bank is one
+  kernel and its exact time derivatives (K'), and the Taylor model gives (C).
 * [R] P. Romano, M. Paolone, "Enhanced Interpolated-DFT for Synchrophasor Estimation in
   FPGAs: Theory, Implementation, and Validation of a PMU Prototype", IEEE Trans.
   Instrum. Meas. 63(12), 2824-2836, 2014: iterative compensation of the spectral
-  interference of the negative-frequency image (their Section III-B, eq. (13)-(16)),
-  applied here to the filter-bank outputs (I).
+  interference of the negative-frequency image (the e-IpDFT), applied here to the
+  filter-bank outputs (I).
 * [N] A. H. Nuttall, "Some Windows with Very Good Sidelobe Behavior", IEEE Trans.
   Acoust., Speech, Signal Process. 29(1), 84-91, 1981: the four-term window with a
-  continuous first derivative (his Fig. 12 / Table II, -93 dB), used as the taper (K).
+  continuous first derivative (-93 dB sidelobes), used as the taper (K).
+
+The papers' own equation numbers are not quoted: they were not at hand to check, so the
+equations below carry this module's labels (D)..(R), each derived in place.
 
 Symbols: ``fs`` sample rate, ``f0`` nominal frequency, ``Fs`` reporting rate, ``D``
 decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutoff (Hz),
@@ -42,7 +46,7 @@ decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutof
 (K)  kernel: ``w(t) = sinc(2 fc t) v(t / T)`` on ``|t| <= T/2``, ``v(u) = a0 + a1 cos 2 pi u +
      a2 cos 4 pi u + a3 cos 6 pi u`` [N]; unit gain: ``p(t) = sum_j w(t - t_j) c_j / (fd W(0))``
      with ``W`` the Fourier transform of w. For a tone ``c_j = e^{j 2 pi nu t_j}`` (Poisson
-     summation, the aliases ``W(nu +- fd)`` below -180 dB): ``p(t) = G(nu) e^{j 2 pi nu t}``
+     summation, up to the aliases ``W(nu +- fd)``, see (B)): ``p(t) = G(nu) e^{j 2 pi nu t}``
      with ``G(nu) = A(nu) W(nu) / W(0)``.
 (K') derivatives: ``p'(t) = sum_j w'(t - t_j) c_j / (fd W(0))`` and ``p''`` likewise with w'',
      so for a tone ``p' = (j 2 pi nu) p`` and ``p'' = (j 2 pi nu)^2 p`` exactly, whatever
@@ -51,31 +55,42 @@ decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutof
      input sample costs three complex dot products of ``T fd`` taps.
 (I)  image cancellation [R]: with ``X1 = p / G(nu)`` and ``nu = Im(p' / p) / 2 pi``, the
      image ``Xi = conj(X1) e^{-j 4 pi f0 t}`` at ``nu_i = -(2 f0 + nu)`` contributes
-     ``G(nu_i) Xi (1, j 2 pi nu_i, (j 2 pi nu_i)^2)`` to ``(p, p', p'')``; subtract, re-estimate,
-     three times (each pass multiplies the residual image by about ``|G(nu_i)| < 1e-3``).
+     ``(H0(nu_i), H1(nu_i), H2(nu_i)) Xi`` to ``(p, p', p'')``, H_k the exact responses of the
+     sampled kernels (tabulated per rho; in exact arithmetic ``H_k = (j 2 pi nu_i)^k G``, but
+     deep in the stopband the aliases of (B) dominate); subtract, re-estimate, three times
+     (each pass multiplies the residual image by about ``|G(nu_i)| < 1e-3``).
 (E)  estimates at the computing sample: ``nu = Im(p'/p) / 2 pi`` [S eq. (4)],
-     ``X = p / G(nu)``, ``ROCOF = Im(p''/p - (p'/p)^2) / 2 pi - b(nu)`` (= d nu / dt, [S eq. (5)]).
-(B)  ``b(nu)``: what the ROCOF of (E) reads on a steady tone. (K') holds up to the aliases
-     of the sampled kernels, ``fd W(nu +- fd) e^{+-j 2 pi rho D / fs ...}``: tiny for w, but
+     ``ROCOF = Im(a2) / 2 pi`` with ``a2 = p''/p - (p'/p)^2 - b(nu)`` (= d nu / dt, [S eq. (5)]),
+     ``X`` by (C).
+(B)  ``b(nu)``: what ``p''/p - (p'/p)^2`` reads on a steady tone (zero in exact
+     arithmetic). (K') holds up to the aliases of the sampled kernels, ``fd W(nu +- fd) e^{+-j 2 pi rho D / fs ...}``: tiny for w, but
      w'' multiplies them by ``(2 pi fd)^2``; they cancel on the symmetric phases (rho = 0,
      D/2) only. Measured before (B): up to 0.015 Hz/s at 52.3 Hz (rho = 1, Fs = 50). The
      responses of all three kernels per rho (and the image tables of (I)) are computed from
      the sampled kernels themselves, exactly, at design time.
+(C)  second order [T, eq. (9)-(10): the phasor's Taylor terms]: with ``a2 = d^2 log X / dt^2``
+     (its imaginary part is 2 pi ROCOF, its real part the curvature of log |X|), a phasor
+     ``X(t - tau) ~ X e^{-a1 tau + a2 tau^2 / 2}`` reads ``p ~ X (G(nu) + a2 / 2 G2(nu))``
+     with ``G2`` the response of ``t^2 w(t)``, so ``X = p / (G + a2 G2 / 2)`` with
+     ``a2 = p''/p - (p'/p)^2 - b(nu)``. This is what recovers the measurement bandwidth
+     (modulation) and ramps that the lowpass alone attenuates, and what lets the lowpass
+     be narrow enough for the out-of-band test. Measured with ``sinewatch bench compliance
+     --full``: 10 % AM at 5 Hz, Fs = 50: TVE 2.0 % with the first-order form
+     ``G(nu)`` alone, 0.24 % with (C); the +-1 Hz/s ramp at Fs = 10: 1.25 % -> 0.04 %.
 (R)  report time: the computing sample is the input sample nearest the grid time ``t_r``;
      ``X(t_r) = X e^{j 2 pi nu tau}``, ``f(t_r) = f + ROCOF tau`` (``|tau| <= 1 / 2 fs``).
      Absolute reference: ``phi = arg X - 2 pi f0 t_anchor`` (mod 2 pi, from integer ns).
 
-Kernel choice per (class, f0, Fs): ``T`` and ``fc`` (table ``DESIGNS``) were chosen so that
-the M-class limits of [S] hold with margin at the reporting rate Fs = f0 (the lowpass must
-pass the modulation band ``min(Fs/5, 5 Hz)`` with ``G >= 0.8`` and stop ``|nu| >= Fs/2``
-below -60 dB, within the latency ``5 / Fs``, i.e. ``T <= 10 / Fs``). At the lower
-reporting rates (Fs < f0) the same latency-bounded transition is too narrow for the
-out-of-band FE limit (0.01 Hz): those designs are best-effort and the compliance bench
-(``sinewatch bench compliance``) shows by how much they miss. P class uses a short
-three-cycle taper without the sinc (latency 2/Fs).
+Kernel choice per (class, f0, Fs): ``T = 9 / Fs`` (latency ``4.5 / Fs + 2 D / fs``, under the
+M-class ``5 / Fs``) and ``fc`` a fraction of ``Fs / 2``: 0.26 (50 Hz) and 0.22 (60 Hz) at
+Fs = f0, 0.375 below. The fractions were searched with the compliance bench (``sinewatch
+bench compliance``, the smallest limit/worst ratio over every M-class row): a wider
+passband helps modulation (TVE, FE), a narrower one the out-of-band FE; the figures are in
+docs/pmu.md. P class uses a short three-cycle taper without the sinc (P-class latency
+``2 / Fs``; not validated against the P-class limits by the bench, which models M class).
 
 Time: reports are on the grid ``k / Fs`` since the epoch. The block's absolute start time
-(``t0_ns``, see :meth:`Pmu.update`) anchors the sample count; without it the stream is
+(``update(samples, t0_ns=...)``) anchors the sample count; without it the stream is
 taken to start at t = 0. A block whose start time disagrees with the count by more than
 half a sample (a gap in time) re-anchors the estimator: it restarts (its reports resume
 after one kernel length). Every report is computed once the kernel's last tap has
@@ -84,9 +99,9 @@ arrived: the latency is ``T / 2 + 2 D / fs``.
 Per-sample outputs (the Track rows) hold the latest report, the phase advanced at its
 frequency (``y = offset + A sin(phase)``, A = sqrt 2 |X|); ``offset`` is the kernel's DC
 output on the raw samples. ``residual_rms`` is the one-step prediction error of that
-held model. The reports themselves (``Track.reports``) carry the synchrophasor in
-``extras`` (``synchrophasor_magnitude``, ``synchrophasor_angle_rad``) and the ROCOF in
-``extras["rocof_hz_per_s"]``.
+held model. The reports themselves (``Track.reports``, a GridReports) carry the same
+fields at the report times, the ROCOF in ``rocof_hz_per_s`` and the synchrophasor in
+``extras`` (``synchrophasor_magnitude``, RMS, and ``synchrophasor_angle_rad``).
 """
 
 from __future__ import annotations
@@ -110,11 +125,10 @@ NUTTALL = (0.355768, 0.487396, 0.144232, 0.012604)
 M_CLASS_RATES = {50: (10, 25, 50), 60: (10, 12, 15, 20, 30, 60)}
 P_CLASS_RATES = {50: (10, 25, 50, 100), 60: (10, 12, 15, 20, 30, 60, 120)}
 
-# (class, Fs / f0 ratio bucket) -> (T in reporting periods or nominal cycles, fc as a
-# fraction of Fs/2). M class: T = 9 / Fs (latency 4.5 / Fs + 2 ms < 5 / Fs).
+# M class: T = 9 / Fs (latency 4.5 / Fs + 2 ms < 5 / Fs); fc as a fraction of Fs / 2.
 M_WINDOW_REPORTS = 9.0
-M_CUTOFF_FRACTION = {50: 0.30, 60: 0.25}  # at Fs = f0; see docs/pmu.md for the search
-M_CUTOFF_LOW_RATE = 0.60  # Fs < f0: best effort (measurement bandwidth first)
+M_CUTOFF_FRACTION = {50: 0.26, 60: 0.22}  # at Fs = f0 (docs/pmu.md: the search)
+M_CUTOFF_LOW_RATE = 0.375  # Fs < f0
 P_WINDOW_CYCLES = 3.0
 
 TABLE_STEP_HZ = 0.04
@@ -148,7 +162,8 @@ class Design:
     kernels: np.ndarray  # (D, 3, M) w, w', w'' per input-sample phase, over fd W(0)
     m_lo: int  # tap m runs m_lo..m_lo + M - 1; c index = q - m
     g_pass: np.ndarray  # (D, T) complex: kernel 0's response on nu_pass0 + i * TABLE_STEP_HZ
-    rocof_bias: np.ndarray  # (D, T): the ROCOF (E) reads on a steady tone (kernel aliasing, (B))
+    a2_bias: np.ndarray  # (D, T) complex: what a2 of (E) reads on a steady tone (kernel aliasing, (B))
+    g_chirp: np.ndarray  # (D, T) complex: kernel 0's response to t^2 e^{j 2 pi nu t} (C)
     nu_pass0: float
     g_image: np.ndarray  # (D, 3, T) complex: the three kernels' responses on nu_image0 + i * step
     nu_image0: float
@@ -268,9 +283,11 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     nu_pass = np.arange(-span, span + TABLE_STEP_HZ / 2, TABLE_STEP_HZ)
     nu_img = -2.0 * f0 + nu_pass
     bank = _bank_response(kernels, m, d, fs, nu_pass)
+    t2 = np.stack([((m * d + rho) / fs) ** 2 for rho in range(d)])  # t_m^2 per phase
+    g_chirp = np.ascontiguousarray(_bank_response(kernels[:, :1] * t2[:, None, :], m, d, fs, nu_pass)[:, 0])
     g_pass = np.ascontiguousarray(bank[:, 0])
     r1 = bank[:, 1] / bank[:, 0]
-    rocof_bias = np.ascontiguousarray(((bank[:, 2] / bank[:, 0] - r1 * r1).imag / (2.0 * np.pi)).astype(np.float64))
+    a2_bias = np.ascontiguousarray(bank[:, 2] / bank[:, 0] - r1 * r1)
     g_img = _bank_response(kernels, m, d, fs, nu_img)
     return Design(
         fs=fs,
@@ -283,7 +300,8 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         kernels=np.ascontiguousarray(kernels),
         m_lo=m_lo,
         g_pass=g_pass,
-        rocof_bias=rocof_bias,
+        a2_bias=a2_bias,
+        g_chirp=g_chirp,
         nu_pass0=float(nu_pass[0]),
         g_image=g_img,
         nu_image0=float(nu_img[0]),
@@ -357,6 +375,7 @@ def _report(
     fconsts: np.ndarray,
     gp: np.ndarray,
     bias: np.ndarray,
+    gc: np.ndarray,
     gi3: np.ndarray,
     out: np.ndarray,
 ) -> None:
@@ -406,8 +425,9 @@ def _report(
             return
     r1 = q1 / q0
     nu = r1.imag / (2.0 * math.pi)  # (E)
-    x = q0 / _interp(gp, nu_p0, step, nu)
-    rocof = (q2 / q0 - r1 * r1).imag / (2.0 * math.pi) - _interp(bias, nu_p0, step, nu)  # (B)
+    a2 = q2 / q0 - r1 * r1 - _interp(bias, nu_p0, step, nu)  # (B): d^2 log X / dt^2
+    rocof = a2.imag / (2.0 * math.pi)
+    x = q0 / (_interp(gp, nu_p0, step, nu) + 0.5 * a2 * _interp(gc, nu_p0, step, nu))  # (C)
     out[0] = nu
     out[1] = x.real
     out[2] = x.imag
@@ -428,7 +448,8 @@ def pmu_kernel(
     iconsts: np.ndarray,
     fconsts: np.ndarray,
     g_pass: np.ndarray,
-    rocof_bias: np.ndarray,
+    a2_bias: np.ndarray,
+    g_chirp: np.ndarray,
     g_image: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -520,7 +541,8 @@ def pmu_kernel(
                     n_r,
                     fconsts,
                     g_pass[ph_r],
-                    rocof_bias[ph_r],
+                    a2_bias[ph_r],
+                    g_chirp[ph_r],
                     g_image[ph_r],
                     est,
                 )
@@ -712,7 +734,7 @@ class Pmu(Estimator):
         state = self._state_for_block(state, t0_ns)
         out, reps, sse, n_pred, rg, dr, ist, fst = pmu_kernel(
             samples, state["ring"], state["dc_ring"], state["counters"], state["values"],
-            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.rocof_bias, d.g_image, last_only,
+            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image, last_only,
         )  # fmt: skip
         rocof = out[:, 5:6]
         track = Track(
