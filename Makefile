@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup schemas clean
 
 install: $(STAMP)
 
@@ -18,7 +18,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sinewatch demo
 
-test: $(STAMP)
+# What CI runs: lint, format, import contracts and types first (seconds), then the tests.
+test: $(STAMP) lint
 	$(BIN)/python -m pytest
 
 # Lint, format, import contracts and types, from the three source roots (no install needed
@@ -44,6 +45,9 @@ bench-e2e: $(STAMP)
 
 bench-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy
+
+bench-startup: $(STAMP)
+	$(BIN)/sinewatch bench startup --runs 21 --json bench-results/startup.json
 
 # Regenerate the committed JSON Schemas in schemas/sinewatch/schemas/json/ from the pydantic models.
 schemas: $(STAMP)

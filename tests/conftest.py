@@ -62,7 +62,11 @@ def run_daemon(
     config: SinewatchConfig, client: Callable[[Daemon, str], R], *, signals: bool = False
 ) -> tuple[R, Daemon, int]:
     """Start a daemon, run ``client(daemon, endpoint)`` in a thread, stop the daemon (as
-    SIGINT would) and return (the client's result, the daemon, its exit code)."""
+    SIGINT would) and return (the client's result, the daemon, its exit code).
+
+    With ``signals=True`` the daemon installs its signal handlers and the client is the one
+    that stops it (by raising SIGINT or SIGTERM): setting ``should_exit`` here as well would
+    race the handler and turn the client's one SIGINT into a "second" one."""
 
     async def main() -> tuple[R, Daemon, int]:
         daemon = Daemon(config, install_signal_handlers=signals)
@@ -70,9 +74,13 @@ def run_daemon(
         await daemon.ready.wait()
         try:
             result = await asyncio.to_thread(client, daemon, endpoint(config))
-        finally:
+        except BaseException:
             daemon.should_exit.set()
-            code = await task
+            await task
+            raise
+        if not signals:
+            daemon.should_exit.set()
+        code = await asyncio.wait_for(task, TIMEOUT)
         return result, daemon, code
 
     return asyncio.run(main())

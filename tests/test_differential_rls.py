@@ -1,4 +1,6 @@
-"""differential-rls against paper 001 (``shared/papers/001_da74636665cf246d.txt``).
+"""differential-rls against its paper, "Differential signal model and sampling techniques for
+recursive (extended) least-squares estimation of frequency, frequency derivatives, phase and
+amplitude".
 
 Three groups: the rebuilt equations checked as identities; Section 10 reproduced in the
 paper's own setting (in-phase/quadrature samples, w = 1 rad/s) through the same core; the
@@ -19,7 +21,9 @@ from sinewatch.estimators.base import decode_array
 from sinewatch.estimators.differential_rls import (
     _biquads,
     _lowpass_retune,
+    band_limited_iq_noise,
     baseband_estimate,
+    cyclic_intervals,
     lowpass_response,
     monomial_table,
     recenter_transform,
@@ -43,12 +47,6 @@ def coefficients(n: int, deriv: bool, u: float, g: float = 0.0) -> np.ndarray:
 
 def monomials(tab: np.ndarray, w: float, lam: float) -> np.ndarray:
     return np.array([w ** (m - b) * lam**b for m, b, _ in tab])
-
-
-def cyclic_dt(k: int, values: list[float]) -> np.ndarray:
-    dt = np.array([values[i % len(values)] for i in range(k)])
-    dt[0] = 0.0
-    return dt
 
 
 def final_state_is_finite(est) -> bool:
@@ -169,7 +167,7 @@ def test_oversampled_differential_noise_eq_14(M, paper):
 def test_phase_amplitude_stage_eqs_21_to_23():
     # noise-free tone at the known frequency: A^ = |a^| and phi^(t_k) = arg a^ (eq. 23) at the
     # end of the data, not at t = 0
-    dt = cyclic_dt(400, [0.1])
+    dt = cyclic_intervals(400, [0.1])
     t = np.cumsum(dt)
     c = 1.7 * np.exp(1j * (0.9 * t + 2.5))
     r = baseband_estimate(c, dt, n_terms=2, els=False, phase_forgetting_factor=0.9)
@@ -210,7 +208,7 @@ FIG1_DT = [0.6, 0.54]  # about 10.5 samples per cycle, cyclic T, 0.9 T (Section 
 
 
 def fig1(k: int, **kw):
-    dt = cyclic_dt(k, FIG1_DT)
+    dt = cyclic_intervals(k, FIG1_DT)
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
     opts = {"n_terms": 4, "forgetting_factor": 0.995, "els": False, "p0": 1e4}  # lam = 0.995 as in Section 10
@@ -246,18 +244,6 @@ def test_fig1_faster_than_exponential_then_exponential():
     assert slope(1024, 2048) == pytest.approx(ln_lam, rel=0.05)  # measured -0.0050
 
 
-def _band_limited(k: int, M: int, var: float, seed: int) -> np.ndarray:
-    """Complex noise, variance ``var`` per component, band-limited to 1/M of the Nyquist band
-    (ideal low-pass, eq. 14): the paper's oversampled I/Q noise."""
-    rng = np.random.default_rng(seed)
-    f = np.fft.fftfreq(k)
-    out = []
-    for _ in range(2):
-        x = np.fft.ifft(np.where(np.abs(f) < 0.5 / M, np.fft.fft(rng.standard_normal(k)), 0.0)).real
-        out.append(x * np.sqrt(var) / x.std())
-    return out[0] + 1j * out[1]
-
-
 def test_fig2_noisy_case_els_removes_the_bias():
     # Paper Fig. 2: sigma^2 = .15 per component, 10 log10(A^2 / 2 sigma^2) = 5.2 dB, M = 5.
     # Here n = 2 with dt = T_sN / 5 for a bound Omega_d = 2 rad/s (T_sN = pi/2 s), lam = 0.995.
@@ -266,7 +252,7 @@ def test_fig2_noisy_case_els_removes_the_bias():
     # truncation (the noise-free error), and lowers the RMS (0.037 -> 0.020 rad/s); 8 seeds.
     M, k = 5, 6000
     T0 = (np.pi / 2.0) / M
-    dt = cyclic_dt(k, [T0])
+    dt = cyclic_intervals(k, [T0])
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
@@ -275,7 +261,7 @@ def test_fig2_noisy_case_els_removes_the_bias():
     assert -0.02 < trunc < -0.012  # measured -0.0164
     bias_ls, bias_els, rms_ls, rms_els = [], [], [], []
     for seed in range(3):
-        cn = c + _band_limited(k, M, 0.15, seed)
+        cn = c + band_limited_iq_noise(k, M, 0.15, seed)
         ls = baseband_estimate(cn, dt, els=False, **opts)["frequency_rad_s"][1000:]
         els = baseband_estimate(cn, dt, els=True, els_damping=0.9, noise_correlation=np.sinc(1 / M), **opts)
         els = els["frequency_rad_s"][1000:]
@@ -293,7 +279,7 @@ def test_els_whitens_white_noise():
     # dt = 0.2 s. Plain LS is biased by -sigma_c^2 / (A^2 + sigma_c^2) = -23 % (plus the
     # -0.67 % truncation); measured -24.0 % over 4 seeds. ELS: -0.73 %, the truncation floor.
     k, dt0 = 4000, 0.2
-    dt = cyclic_dt(k, [dt0])
+    dt = cyclic_intervals(k, [dt0])
     t = np.cumsum(dt)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     floor = -((W * dt0) ** 2) / 6
@@ -317,7 +303,7 @@ def test_fig3_tracking_and_the_derivative_model():
     # given), n = 4, Fig. 1's sampling, noise-free. Measured max |error| (t > 200 s):
     # 0.040 rad/s without the derivative, 0.0016 with it; ROCOF RMS error 3.8e-4 rad/s^2.
     k = 3333
-    dt = cyclic_dt(k, FIG1_DT)
+    dt = cyclic_intervals(k, FIG1_DT)
     t = np.cumsum(dt)
     w_of_t = lambda x: W * (1 + 0.5 * np.sin(0.01 * W * x))
     phase = 0.3 + W * t - 50.0 * W * (np.cos(0.01 * W * t) - 1.0) / W  # integral of w(t)

@@ -13,7 +13,12 @@ import time
 import numpy as np
 
 from sinewatch.estimators import create, get
-from sinewatch.estimators.differential_rls import baseband_estimate, differential_rls_kernel
+from sinewatch.estimators.differential_rls import (
+    band_limited_iq_noise,
+    baseband_estimate,
+    cyclic_intervals,
+    differential_rls_kernel,
+)
 from sinewatch.scenarios import get as get_scenario
 
 W = 1.0
@@ -21,26 +26,10 @@ FS = 1000.0
 P50 = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 
 
-def cyclic_dt(k, values):
-    dt = np.array([values[i % len(values)] for i in range(k)])
-    dt[0] = 0.0
-    return dt
-
-
-def band_limited(k, m, var, seed):
-    rng = np.random.default_rng(seed)
-    f = np.fft.fftfreq(k)
-    out = []
-    for _ in range(2):
-        x = np.fft.ifft(np.where(np.abs(f) < 0.5 / m, np.fft.fft(rng.standard_normal(k)), 0.0)).real
-        out.append(x * np.sqrt(var) / x.std())
-    return out[0] + 1j * out[1]
-
-
 def fig1():
     print("## Fig. 1: noise-free, w = 1 rad/s, n = 4, dt = 0.6 / 0.54 s cyclic, lam = 0.995, LS\n")
     k = 3000
-    dt = cyclic_dt(k, [0.6, 0.54])
+    dt = cyclic_intervals(k, [0.6, 0.54])
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
     opts = {"n_terms": 4, "forgetting_factor": 0.995, "els": False, "p0": 1e4}
@@ -63,7 +52,7 @@ def fig2():
     print("## Fig. 2: 5.2 dB (sigma^2 = .15 per component), M = 5, n = 2, dt = T_sN / 5 = 0.314 s\n")
     m, k = 5, 6000
     t0 = (np.pi / 2) / m
-    dt = cyclic_dt(k, [t0])
+    dt = cyclic_intervals(k, [t0])
     t = np.cumsum(dt)
     c = np.exp(1j * (W * t + 0.3))
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
@@ -74,7 +63,7 @@ def fig2():
     print(f"noise-free (truncation of n = 2 at w dt = 0.31): {free[-1] - W:+.4f} rad/s\n")
     print("| algorithm | bias (rad/s) | RMS (rad/s) | RMS error, samples 2-11 |")
     print("|---|---|---|---|")
-    noisy = [c + band_limited(k, m, 0.15, s) for s in range(8)]
+    noisy = [c + band_limited_iq_noise(k, m, 0.15, s) for s in range(8)]
     for name, kw in rows.items():
         b, r, e10 = [], [], []
         for cn in noisy:
@@ -84,7 +73,7 @@ def fig2():
             e10.append(f[2:12] - W)
         print(f"| {name} | {np.mean(b):+.4f} | {np.mean(r):.4f} | {np.sqrt(np.mean(np.square(e10))):.3f} |")
     print(f"\nnoise-free error, samples 2-11: {np.abs(free[2:12] - W).mean():.4f} rad/s")
-    dn = np.diff(band_limited(2**18, 10, 1.0, 99).real)
+    dn = np.diff(band_limited_iq_noise(2**18, 10, 1.0, 99).real)
     print(f"eq. (14): E[dn^2]/sigma^2 = 2 (1 - sinc(1/M)): M=10 {2 * (1 - np.sinc(0.1)):.4f} "
           f"(simulated {np.mean(dn**2):.4f}), M=5 {2 * (1 - np.sinc(0.2)):.4f}\n")  # fmt: skip
 
@@ -92,7 +81,7 @@ def fig2():
 def white():
     print("## White I/Q noise (the model of eq. 11), sigma^2 = .15, n = 2, dt = 0.2 s, 4 seeds\n")
     k, dt0 = 4000, 0.2
-    dt = cyclic_dt(k, [dt0])
+    dt = cyclic_intervals(k, [dt0])
     t = np.cumsum(dt)
     opts = {"n_terms": 2, "forgetting_factor": 0.995, "p0": 1e4}
     print("| algorithm | bias (rad/s) | RMS (rad/s) |")
@@ -113,7 +102,7 @@ def white():
 def fig3():
     print("## Fig. 3: w(t) = w0 [1 + 0.5 sin(0.01 w0 t)], n = 4, Fig. 1 sampling, noise-free, t > 200 s\n")
     k = 3333
-    dt = cyclic_dt(k, [0.6, 0.54])
+    dt = cyclic_intervals(k, [0.6, 0.54])
     t = np.cumsum(dt)
     c = np.exp(1j * (0.3 + W * t - 50.0 * (np.cos(0.01 * W * t) - 1.0)))
     wt = W * (1 + 0.5 * np.sin(0.01 * W * t))
@@ -211,8 +200,7 @@ def timing():
         x = 0.5 + np.sin(2 * np.pi * 50.3 * t + 0.3) + 0.01 * np.random.default_rng(1).standard_normal(t.size)
         est.update(x[:10_000])
         blk = np.ascontiguousarray(x[10_000:11_024])
-        s = est._state
-        args = (s["fe"], s["core"], s["theta"], s["P"], s["ist"], est._sos, est._tab, est._cyc, est._consts)
+        args = (*est._state.values(), *est._constants)  # the kernel convention (estimators/base.py)
         differential_rls_kernel(blk, *args, False)
         reps = 2000
         best = []

@@ -6,9 +6,8 @@ its load.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
+from _timing import ns_per_sample  # docs/estimators/_timing.py: these scripts run from this folder
 
 from sinewatch.estimators import create
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
@@ -115,16 +114,7 @@ def timing_table():
         _t, x = tone(50.3, 1024 * 40, fs=fs, noise=0.01)
         est.update(x[:-1024])
         block = np.ascontiguousarray(x[-1024:])
-        res = []
-        for last_only in (False, True):
-            est.update(block, last_only=last_only)
-            reps, best = 200, np.inf
-            for _ in range(5):
-                t0 = time.perf_counter()
-                for _ in range(reps):
-                    est.update(block, last_only=last_only)
-                best = min(best, (time.perf_counter() - t0) / reps / 1024 * 1e9)
-            res.append(best)
+        res = ns_per_sample(est, block, reps=200)
         label = f"fs {fs:g} Hz" + ("".join(f", {k}={v}" for k, v in params.items()))
         print(
             f"| {label} | {est.window_samples} | {est.hop_samples} | {est.k_hi - est.k_lo + 3} | "

@@ -7,10 +7,10 @@ its load.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import scipy.signal
+from _timing import ns_per_sample  # docs/estimators/_timing.py: these scripts run from this folder
 
 from sinewatch.estimators import create
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
@@ -149,15 +149,7 @@ def timing_table():
         x, _ = scen(fs, [Tone(50.3, 1.0, 0.3)], seconds=1024 * 20 / fs, noise=0.01).generate()
         est.update(x[:-1024])
         block = np.ascontiguousarray(x[-1024:])
-        res = []
-        for last_only in (False, True):
-            reps, best = 500, np.inf
-            for _ in range(5):
-                t0 = time.perf_counter()
-                for _ in range(reps):
-                    est.update(block, last_only=last_only)
-                best = min(best, (time.perf_counter() - t0) / reps / 1024 * 1e9)
-            res.append(best)
+        res = ns_per_sample(est, block, reps=500)
         print(f"| {fs:g} | {res[0]:.0f} | {res[1]:.0f} |")
 
 

@@ -49,6 +49,7 @@ tests use it to check the bound by Monte Carlo.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -91,12 +92,7 @@ class Bound:
         return math.sqrt(self.offset)
 
     def as_dict(self) -> dict[str, float]:
-        return {
-            "frequency_hz": self.frequency_hz,
-            "amplitude": self.amplitude,
-            "phase_rad": self.phase_rad,
-            "offset": self.offset,
-        }
+        return dataclasses.asdict(self)
 
 
 def _check(n: int, amplitude: float, noise_std: float, sample_rate_hz: float) -> None:
@@ -126,7 +122,8 @@ def fisher_information(
     psi = w * m + phase_centre_rad
     c, s = np.cos(psi), np.sin(psi)
     g = np.stack([amplitude * m * c, s, amplitude * c, np.ones(n)])  # (4, n)
-    return (g @ g.T) / noise_std**2
+    fim: np.ndarray = (g @ g.T) / noise_std**2
+    return fim
 
 
 def _inverse(fim: np.ndarray) -> np.ndarray:

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -73,8 +73,9 @@ class Intake:
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
-        fifo = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
         self._miss_listener = None
+        self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
             # from the publishers' caches; what is past their history is reported here.

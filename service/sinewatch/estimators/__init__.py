@@ -8,56 +8,37 @@ package (other than ``base``) is imported once and registers its class with
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import ValidationError
 
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.registry import Registry
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ConfigError, UnknownEstimatorError
 
 __all__ = ["Estimator", "EstimatorParams", "Track", "available", "check_rules", "create", "get", "register"]
 
-_REGISTRY: dict[str, type[Estimator]] = {}
-_LOADED = False
+_E = TypeVar("_E", bound=type[Estimator[Any]])
+_REGISTRY: Registry[type[Estimator[Any]]] = Registry("estimator", __name__, __path__, UnknownEstimatorError)
 
 
-def register(cls: type[Estimator]) -> type[Estimator]:
+def register(cls: _E) -> _E:
     """Class decorator: make an estimator available by its ``name``."""
-    name = cls.name
-    if name in _REGISTRY and _REGISTRY[name] is not cls:
-        raise ValueError(f"estimator name {name!r} registered twice")
-    _REGISTRY[name] = cls
+    _REGISTRY.add(cls.name, cls)
     return cls
-
-
-def _load_all() -> None:
-    global _LOADED
-    if _LOADED:
-        return
-    for mod in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if mod.name != "base" and not mod.name.startswith("_"):
-            importlib.import_module(f"{__name__}.{mod.name}")
-    _LOADED = True
 
 
 def available() -> dict[str, type[EstimatorParams]]:
     """Registered estimator names, sorted, with their parameter models."""
-    _load_all()
-    return {name: _REGISTRY[name].Params for name in sorted(_REGISTRY)}
+    return {name: _REGISTRY.get(name).Params for name in _REGISTRY.names()}
 
 
-def get(name: str) -> type[Estimator]:
-    _load_all()
-    try:
-        return _REGISTRY[name]
-    except KeyError:
-        raise UnknownEstimatorError(f"estimator: expected one of {sorted(_REGISTRY)}, got {name!r}") from None
+def get(name: str) -> type[Estimator[Any]]:
+    return _REGISTRY.get(name)
 
 
-def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator:
+def create(name: str, sample_rate_hz: float, **params: Any) -> Estimator[Any]:
     """Build the estimator registered as ``name`` for a channel sampled at ``sample_rate_hz``."""
     return get(name)(sample_rate_hz, params)
 

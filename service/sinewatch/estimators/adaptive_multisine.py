@@ -1,8 +1,8 @@
 """``adaptive-multisine``: adaptive observer for n biased sinusoids with excitation switching.
 
-Paper: ``shared/papers/004_880a59a5c07ec15b.txt``, Chen, Pin, Ng, Hui, Parisini, "An
-adaptive observer-based robust estimator of multi-sinusoidal signals". Algorithm 1 is the
-reference; the departures from it are numbered D1-D8 below.
+Paper: B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based
+robust estimator of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6),
+1618-1631, 2018. Algorithm 1 is the reference; the departures from it are numbered D1-D8 below.
 
 Signal (1)-(2): ``y(t) = A0 + sum_i A_i sin(phi_i(t)) + d(t)``, ``phi_i' = omega_i``.
 
@@ -132,12 +132,11 @@ import math
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 from scipy.signal import place_poles
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, NonNegativeFinite, PositiveFinite, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 # The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
@@ -179,14 +178,12 @@ class AdaptiveMultisineParams(EstimatorParams):
 
     n_sinusoids: int = Field(2, ge=1, le=8, description="n, the number of sinusoids modelled")
     bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean signal")
-    omega_unit_rad_s: float = Field(
+    omega_unit_rad_s: PositiveFinite = Field(
         1.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = the paper's units",
     )
-    amplitude_unit: float = Field(
-        1.0, gt=0, allow_inf_nan=False, description="Signal value that counts as 1 (the input is divided by it)"
+    amplitude_unit: PositiveFinite = Field(
+        1.0, description="Signal value that counts as 1 (the input is divided by it)"
     )
     a: list[float] | None = Field(None, description="a_i of (4): distinct, and non-zero with bias")
     poles: list[float] | None = Field(
@@ -194,28 +191,22 @@ class AdaptiveMultisineParams(EstimatorParams):
     )
     filter_poles: list[float] | None = Field(None, description="n-1 distinct negative poles of F_f (diagonal), (12)")
     filter_gains: list[float] | None = Field(None, description="n-1 non-zero entries of B_f, (12)")
-    mu: float | None = Field(None, gt=0, allow_inf_nan=False, description="Frequency adaptation gain mu, (22)")
-    rho: float | None = Field(None, gt=0, allow_inf_nan=False, description="Regularisation rho, (23)")
-    mu_a: float | None = Field(None, gt=0, allow_inf_nan=False, description="Amplitude adaptation gain mu_A, (11)")
+    mu: PositiveFinite | None = Field(None, description="Frequency adaptation gain mu, (22)")
+    rho: PositiveFinite | None = Field(None, description="Regularisation rho, (23)")
+    mu_a: PositiveFinite | None = Field(None, description="Amplitude adaptation gain mu_A, (11)")
     omega0: list[float] | None = Field(None, description="Initial frequencies omegah_i(0), in (0, omega_max)")
     delta_low: float = Field(3e-5, allow_inf_nan=False, description="Lower switching threshold of (25)")
     delta_high: float = Field(3e-4, allow_inf_nan=False, description="Upper switching threshold of (25)")
-    omega_max: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="Frequency bound omega_bar (Assumption 1); sets theta_bar"
-    )
+    omega_max: PositiveFinite = Field(10.0, description="Frequency bound omega_bar (Assumption 1); sets theta_bar")
     omega_ranges: list[tuple[float, float]] | None = Field(
         None, description="Optional per-component frequency clips [lo, hi] (Remark 3.1)"
     )
-    adaptation_delay: float | None = Field(
+    adaptation_delay: NonNegativeFinite | None = Field(
         None,
-        ge=0,
-        allow_inf_nan=False,
         description="Settling dwell (scaled time) after start-up, total dis-excitation or loss of signal "
         "before thetah adapts; default 2 / |slowest observer pole|",
     )
-    level_time: float = Field(
-        2.0, gt=0, allow_inf_nan=False, description="Time constant (scaled) of the signal-level gate"
-    )
+    level_time: PositiveFinite = Field(2.0, description="Time constant (scaled) of the signal-level gate")
     level_ratio: _Fraction = Field(
         0.25,
         description="The signal counts as lost when its AC power (over level_time) falls below this "
@@ -225,19 +216,15 @@ class AdaptiveMultisineParams(EstimatorParams):
         0.05,
         description="Components are kept at least this fraction of the higher frequency apart (0: off)",
     )
-    min_amplitude: float = Field(
+    min_amplitude: NonNegativeFinite = Field(
         0.01,
-        ge=0,
-        allow_inf_nan=False,
         description="Amplitude (in amplitude_unit) below which a component is faded and the signal absent",
     )
     fade_ratio: _Fraction = Field(
         0.02,
         description="A component is also faded below this fraction of the largest amplitude",
     )
-    convergence_time: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="Smoothing time (scaled) of the convergence test"
-    )
+    convergence_time: PositiveFinite = Field(10.0, description="Smoothing time (scaled) of the convergence test")
     convergence_tol: float = Field(
         0.02,
         gt=0,
@@ -292,10 +279,11 @@ class AdaptiveMultisineParams(EstimatorParams):
                     )
         return self
 
-    def design(self) -> dict[str, list[float]]:
-        """The effective a, poles, filter poles and gains, mu, rho, mu_a and omega0."""
+    def design(self) -> dict[str, Any]:
+        """The effective a, poles, filter poles and gains (lists), mu, rho, mu_a (floats) and
+        omega0 (list)."""
         base = PAPER_DESIGN[self.bias]
-        out = {}
+        out: dict[str, Any] = {}
         for k in _DESIGN_KEYS:
             v = getattr(self, k)
             out[k] = (list(v) if isinstance(v, list) else v) if v is not None else base[k]
@@ -316,10 +304,15 @@ _C_LALPHA, _C_RINGP, _C_LRATIO, _C_SEP = 15, 16, 17, 18
 _N_CONSTS = 19
 _RING = 4  # snapshots of thetah kept for the roll-back on loss of signal
 _I_N, _I_NX, _I_NF, _I_NZ, _I_MSUB, _I_BIAS = 0, 1, 2, 3, 4, 5
+# the scalars of the state, after the per-component statistics (see AdaptiveMultisine._initial_state)
+_Y_PREV, _Y_PRED, _STARTED, _CLOCK = 0, 1, 2, 3  # y(k-1), its prediction, started, settling clock
+_LVL_MEAN, _LVL_POW, _PRESENT = 4, 5, 6  # signal-level gate: mean, AC power, signal present
+_RING_COUNT, _RING_SLOT, _LVL_POW_LONG = 7, 8, 9  # samples since the last snapshot, next slot, AC power (10x slower)
+_N_SCALARS = 10
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _sym_eig(work, n):
+@kernel
+def _sym_eig(work: np.ndarray, n: int) -> None:
     """Cyclic Jacobi on the symmetric n x n matrix S held in ``work`` (destroyed): eigenvalues
     into lambda, sorted in decreasing order, orthonormal eigenvectors into the columns of W."""
     nn = n * n
@@ -379,8 +372,8 @@ def _sym_eig(work, n):
                 work[wW + k * n + best] = tmp
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _chol(s, work, cf, ci):
+@kernel
+def _chol(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
     """C_z Xi, and the Cholesky factor R (lower) of M = Xi^T Xi + rho^2 I of (23) and R^-1."""
     n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
     rho2 = cf[_C_RHO2]
@@ -429,8 +422,8 @@ def _chol(s, work, cf, ci):
             work[wRi + i * n + j] = acc / work[wR + i * n + i]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _eig(work, n):
+@kernel
+def _eig(work: np.ndarray, n: int) -> None:
     """After :func:`_chol`: S = R^-1 Phi_Xi R^-T = (C_z Xi R^-T)^T (C_z Xi R^-T), then its
     eigen-decomposition W, lambda (decreasing): Phi_Xi v = lambda M v with v = R^-T w, so
     lambda are the eigenvalues of Phi_Psi (23)."""
@@ -453,15 +446,26 @@ def _eig(work, n):
     _sym_eig(work, n)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _excitation(s, work, cf, ci):
+@kernel
+def _excitation(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
     """Generalised eigen-decomposition of (Phi_Xi, M), (23)."""
     _chol(s, work, cf, ci)
     _eig(work, ci[_I_N])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
+@kernel
+def _rk4_substep(
+    s: np.ndarray,
+    x: np.ndarray,
+    K: np.ndarray,
+    work: np.ndarray,
+    cf: np.ndarray,
+    ci: np.ndarray,
+    ya: float,
+    yb: float,
+    hs: float,
+    fresh: bool,
+) -> None:
     """One classical RK4 step of length ``hs`` of (12), (16), (17), (19)-(22) and (11) on the
     integrated part of ``s`` (updated in place), the measurement going linearly from ``ya`` to
     ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``:
@@ -615,8 +619,8 @@ def _rk4_substep(s, x, K, work, cf, ci, ya, yb, hs, fresh):
         s[r] += hs / 6.0 * (K[r] + 2.0 * K[ns + r] + 2.0 * K[2 * ns + r] + K[3 * ns + r])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _osc_step(om2, h):
+@kernel
+def _osc_step(om2: float, h: float) -> tuple[float, float]:
     """(C, S) with x(h) = C x(0) + S x'(0) for x'' = -om2 x."""
     if om2 > 0.0:
         w = math.sqrt(om2)
@@ -627,8 +631,8 @@ def _osc_step(om2, h):
     return 1.0, h
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _sinc2(x):
+@kernel
+def _sinc2(x: float) -> float:
     """sinc^2(x) = (sin x / x)^2, the amplitude factor of linear interpolation at x = w h / 2."""
     if abs(x) < 1e-4:
         return 1.0 - x * x / 3.0
@@ -636,13 +640,14 @@ def _sinc2(x):
     return v * v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def adaptive_multisine_kernel(y, state, cf, ci, last_only):
+@kernel
+def adaptive_multisine_kernel(
+    y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``cf``/``ci``: packed constants (see above). State layout: yf (nf) | zh (nz) | Xi (nz*n,
-    xi_i contiguous) | thetah (n) | Ah (n) | psi (n) | smoothed |deviation| of omegah (n) |
-    smoothed omegah (n) | y_prev | y_pred | started | settling clock. ``out`` columns:
+    ``cf``/``ci``: packed constants (see above). ``state`` is the ``s`` array (layout:
+    :meth:`AdaptiveMultisine._initial_state`). ``out`` columns:
     frequency_hz (n), amplitude (n), phase (n), offset, converged; ``extras`` columns: lambda
     (n), psi (n), faded (n), reset. One row per sample, or only the last with ``last_only``.
     Pure: the inputs are not modified.
@@ -668,7 +673,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
     odv = ops + n
     owb = odv + n
     oyp = owb + n
-    orng = oyp + 10  # ring of _RING snapshots of thetah
+    orng = oyp + _N_SCALARS  # ring of _RING snapshots of thetah
     ring_p = cf[_C_RINGP]
     ns = oa + n  # the integrated part
     nn = n * n
@@ -687,40 +692,42 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
     nsamp = y.shape[0]
     for k in range(nsamp):
         yk = y[k] / amp_u
-        e = yk - s[oyp + 1]  # one-step prediction error
+        e = yk - s[oyp + _Y_PRED]  # one-step prediction error
         sse += e * e
         reset = False
         # signal-level gate: smoothed mean and AC power of the input over level_time and over
         # ten times as long; the signal is absent below min_amplitude, or when the short-term
         # power falls under level_ratio times the long-term one (the signal stopped)
-        s[oyp + 4] += l_alpha * (yk - s[oyp + 4])
-        dev = yk - s[oyp + 4]
-        s[oyp + 5] += l_alpha * (dev * dev - s[oyp + 5])
-        s[oyp + 9] += 0.1 * l_alpha * (dev * dev - s[oyp + 9])
-        present = 2.0 * s[oyp + 5] >= min_a * min_a and s[oyp + 5] >= cf[_C_LRATIO] * s[oyp + 9]
-        lost = s[oyp + 6] != 0.0 and not present
+        s[oyp + _LVL_MEAN] += l_alpha * (yk - s[oyp + _LVL_MEAN])
+        dev = yk - s[oyp + _LVL_MEAN]
+        s[oyp + _LVL_POW] += l_alpha * (dev * dev - s[oyp + _LVL_POW])
+        s[oyp + _LVL_POW_LONG] += 0.1 * l_alpha * (dev * dev - s[oyp + _LVL_POW_LONG])
+        present = (
+            2.0 * s[oyp + _LVL_POW] >= min_a * min_a and s[oyp + _LVL_POW] >= cf[_C_LRATIO] * s[oyp + _LVL_POW_LONG]
+        )
+        lost = s[oyp + _PRESENT] != 0.0 and not present
         if lost:
             # loss of signal: the adaptation ran on the observer's free response while the
             # level gate was catching up; roll thetah back to the oldest snapshot
-            slot = int(s[oyp + 8])
+            slot = int(s[oyp + _RING_SLOT])
             for i in range(n):
                 s[oth + i] = s[orng + slot * n + i]
-        s[oyp + 6] = 1.0 if present else 0.0
+        s[oyp + _PRESENT] = 1.0 if present else 0.0
         # snapshots of thetah every ring_p samples while the signal is present
         if present:
-            s[oyp + 7] += 1.0
-            if s[oyp + 7] >= ring_p:
-                s[oyp + 7] = 0.0
-                slot = int(s[oyp + 8])
+            s[oyp + _RING_COUNT] += 1.0
+            if s[oyp + _RING_COUNT] >= ring_p:
+                s[oyp + _RING_COUNT] = 0.0
+                slot = int(s[oyp + _RING_SLOT])
                 for i in range(n):
                     s[orng + slot * n + i] = s[oth + i]
-                s[oyp + 8] = float((slot + 1) % _RING)
-        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + 5]) + abs(s[oyp + 4]))
-        if s[oyp + 2] != 0.0:
-            y0 = s[oyp]
+                s[oyp + _RING_SLOT] = float((slot + 1) % _RING)
+        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + _LVL_POW]) + abs(s[oyp + _LVL_MEAN]))
+        if s[oyp + _STARTED] != 0.0:
+            y0 = s[oyp + _Y_PREV]
             # Algorithm 1: psi(k-1) acts over (t_{k-1}, t_k]; the settling dwell holds the
             # adaptation off until some psi_i has been on for adaptation_delay with a signal
-            warm = s[oyp + 3] >= delay and present
+            warm = s[oyp + _CLOCK] >= delay and present
             for i in range(n):
                 work[wps + i] = s[ops + i] if warm else 0.0
             for j in range(m_sub):
@@ -761,7 +768,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                         bad = True
                 if bad:
                     reset = True
-                    slot = int(s[oyp + 8])
+                    slot = int(s[oyp + _RING_SLOT])
                     for r in range(ns):
                         s[r] = 0.0
                     for i in range(n):
@@ -769,7 +776,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                         s[oth + i] = th if abs(th) <= tbar else cf[oth0 + i]
                         s[ops + i] = 0.0
                         work[wps + i] = 0.0
-                    s[oyp + 3] = 0.0
+                    s[oyp + _CLOCK] = 0.0
             # (23)-(25) at t_k: excitation levels and hysteretic switching
             _excitation(s, work, cf, ci)
             fresh = True
@@ -784,16 +791,16 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
             # total dis-excitation re-arms the settling dwell; a loss of signal re-arms it twice
             # as long (thetah is known good then, the observer restarts from its free response)
             if not present:
-                s[oyp + 3] = -delay if (lost or s[oyp + 3] < 0.0) else 0.0
+                s[oyp + _CLOCK] = -delay if (lost or s[oyp + _CLOCK] < 0.0) else 0.0
             elif any_on:
-                s[oyp + 3] = min(s[oyp + 3] + h, delay)
+                s[oyp + _CLOCK] = min(s[oyp + _CLOCK] + h, delay)
             else:
-                s[oyp + 3] = min(s[oyp + 3], 0.0)
+                s[oyp + _CLOCK] = min(s[oyp + _CLOCK], 0.0)
         else:
-            s[oyp + 2] = 1.0
+            s[oyp + _STARTED] = 1.0
             _excitation(s, work, cf, ci)
             fresh = True
-        s[oyp] = yk
+        s[oyp + _Y_PREV] = yk
         # ---- outputs at t_k: (8), (10), (11); convergence statistics; next-sample prediction
         amax = 0.0
         for i in range(n):
@@ -803,7 +810,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
             amax = max(amax, v)
         thr = max(fade * amax, min_a)
         ypred = s[oz + nx - 1] if bias else 0.0
-        all_ok = s[oyp + 3] >= delay  # adapting: past start-up, excited, with a signal
+        all_ok = s[oyp + _CLOCK] >= delay  # adapting: past start-up, excited, with a signal
         j = 0 if last_only else k
         write = (not last_only) or k == nsamp - 1
         for i in range(n):
@@ -837,7 +844,7 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
                 ext[j, i] = work[wl + i]
                 ext[j, n + i] = s[ops + i]
                 ext[j, 2 * n + i] = 1.0 if faded else 0.0
-        s[oyp + 1] = ypred
+        s[oyp + _Y_PRED] = ypred
         for i in range(n):  # two components on one frequency are not a converged estimate
             for i2 in range(i + 1, n):
                 if not abs(s[owb + i] - s[owb + i2]) > c_tol * max(s[owb + i], s[owb + i2]):
@@ -851,13 +858,15 @@ def adaptive_multisine_kernel(y, state, cf, ci, last_only):
 
 
 @register
-class AdaptiveMultisine(Estimator):
-    """Adaptive observer with excitation-based switching for n biased sinusoids (paper 004)."""
+class AdaptiveMultisine(Estimator[AdaptiveMultisineParams], kernel=adaptive_multisine_kernel):
+    """Adaptive observer with excitation-based switching for n biased sinusoids (Chen et al. 2018)."""
 
     name = "adaptive-multisine"
-    Params = AdaptiveMultisineParams
-    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (paper 004)"
-    paper = "004_880a59a5c07ec15b.txt"
+    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (Chen et al. 2018)"
+    paper = (
+        'B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based robust estimator '
+        'of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6), 2018'
+    )
     # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its
     # gains, time compressed: one paper rad/s is 2 pi 5 rad/s here, so the tones are at 15 and
     # 10 Hz; the noise bound is 0.1 (see the multisine-demo scenario on noise density).
@@ -999,6 +1008,7 @@ class AdaptiveMultisine(Estimator):
         consts[_C_SEP] = p.min_separation
         self._ci = np.array([n, nx, nf, nz, m_sub, int(bias)], dtype=np.int64)
         self._cf = np.concatenate([consts, a, Lfull, Ff, Bf, theta0, th_lo, th_hi])
+        self._constants = (self._cf, self._ci)
         self._nf, self._nz, self._theta0 = nf, nz, theta0
         # exposed for tests and docs
         self.L_x = Lx
@@ -1007,23 +1017,27 @@ class AdaptiveMultisine(Estimator):
         self.settling_time = float(delay)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``s``: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n), the
+        part RK4 integrates, then psi (n) | smoothed |deviation| of omegah (n) | smoothed
+        omegah (n) | the _N_SCALARS scalars named _Y_PREV .. _LVL_POW_LONG | a ring of
+        _RING snapshots of thetah (n each), for the roll-back on loss of signal (D5)."""
         n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
-        s = np.zeros(nf + nz + nz * n + 5 * n + 10 + _RING * n)
+        s = np.zeros(nf + nz + nz * n + 5 * n + _N_SCALARS + _RING * n)
         oth = nf + nz + nz * n
         s[oth : oth + n] = self._theta0
         s[s.size - _RING * n :] = np.tile(self._theta0, _RING)
         return {"s": s}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, s = adaptive_multisine_kernel(samples, state["s"], self._cf, self._ci, last_only)
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         n = self.params.n_sinusoids
-        track = Track(
+        return Track(
             frequency_hz=out[:, 0:n],
             amplitude=out[:, n : 2 * n],
             phase_rad=out[:, 2 * n : 3 * n],
             offset=out[:, 3 * n],
             converged=out[:, 3 * n + 1] != 0.0,
-            residual_rms=math.sqrt(sse / samples.shape[0]),
+            residual_rms=math.sqrt(sse / block.shape[0]),
             extras={
                 "excitation_level": ext[:, 0:n],
                 "adaptation_enabled": ext[:, n : 2 * n] != 0.0,
@@ -1032,4 +1046,3 @@ class AdaptiveMultisine(Estimator):
                 "observer_reset": ext[:, 3 * n + 1] != 0.0,
             },
         )
-        return track, {"s": s}

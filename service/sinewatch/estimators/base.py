@@ -2,9 +2,10 @@
 
 An estimator is two layers, kept apart on purpose:
 
-* a pure compiled kernel (numba ``@njit(cache=True)``) that takes a block of samples and
-  the state arrays and returns the outputs and the new state, like
-  ``scipy.signal.sosfilt``'s ``zi``/``zf``; no Python work per sample;
+* a pure compiled kernel (numba, through the :func:`kernel` decorator below: ``njit`` with
+  ``cache=True``) that takes a block of samples and the state arrays and returns the
+  outputs and the new state, like ``scipy.signal.sosfilt``'s ``zi``/``zf``; no Python work
+  per sample;
 * a thin class (subclass of :class:`Estimator`) that validates its parameters with a
   pydantic model (unknown keys rejected), keeps them verbatim, owns the state and exposes
   ``update(samples)``, ``reset()``, ``get_state()`` and ``set_state()``.
@@ -16,6 +17,62 @@ Output convention: the signal is modelled as ``y = offset + sum_k amplitude_k *
 sin(phase_k)``, with ``phase_k`` the instantaneous phase at each sample (radians,
 wrapped to (-pi, pi]) and ``frequency_k`` in Hz. Undefined estimates are NaN with
 ``converged = False``; an estimator never raises per sample.
+
+Kernel state convention (every kernel follows it; :meth:`Estimator._run` makes the call)
+---------------------------------------------------------------------------------------
+The state is a dict of named numpy arrays (float64, or int64 for counters), built by the
+class's ``_initial_state()``; those names are the keys of ``get_state()["state"]``. The
+dict's key order is the order in which the kernel takes the arrays and returns them::
+
+    *outputs, *new_state = kernel(block, *state.values(), *constants, last_only)
+
+* ``block``: the samples, float64 and C-contiguous, (N,) or (N, n_inputs), never empty
+  (``_kernel_input`` may reshape it, e.g. to (N, 1));
+* ``state.values()``: one argument per state array, in key order; read, never written;
+* ``constants``: the class's ``_constants`` tuple (arrays and numbers derived once from
+  the parameters in ``_setup``); read only;
+* ``last_only``: run every sample but write only the last row of the per-sample outputs;
+* the kernel returns its outputs first (per-sample columns, extras, the sum of squared
+  one-step errors, ...: whatever the class's ``_track`` turns into a :class:`Track`),
+  then one freshly allocated array per state array, in the same order, with the same
+  shapes and dtypes.
+
+Where one state array packs several quantities, its layout (which slot or slice holds
+what) is written once, in the docstring of the class's ``_initial_state``; the kernel
+either unpacks it once into named locals at the top and packs them back in the same
+order at the end, or names the slots with module-level integer constants (numba folds
+them) or a layout function. A short example, an exponentially weighted mean::
+
+    _MEAN, _COUNT = 0, 1  # slots of "avg"
+
+    @kernel
+    def ewma_kernel(
+        x: np.ndarray, avg: np.ndarray, alpha: float, last_only: bool
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        new = avg.copy()
+        out = np.empty((1 if last_only else x.shape[0], 5))
+        sse = 0.0
+        for k in range(x.shape[0]):
+            e = x[k] - new[_MEAN]
+            sse += e * e
+            new[_MEAN] += alpha * e
+            new[_COUNT] += 1.0
+            ...  # write row k (or row 0 when last_only and k is the last sample)
+        return out, sse, new
+
+    class Ewma(Estimator[EwmaParams], kernel=ewma_kernel):
+        name = "ewma"
+
+        def _setup(self) -> None:
+            self._constants = (0.01,)
+
+        def _initial_state(self) -> dict[str, np.ndarray]:
+            '''``avg`` (2,): the running mean, then the number of samples seen.'''
+            return {"avg": np.zeros(2)}
+
+        def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+            out, sse = outputs
+            return track_from_columns(out, sse, block.shape[0])
 """
 
 from __future__ import annotations
@@ -23,23 +80,61 @@ from __future__ import annotations
 import base64
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar, Generic, Literal, ParamSpec, cast, get_args, get_origin, overload
 
+import numba
 import numpy as np
-from numba import njit
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from typing_extensions import TypeVar  # a TypeVar with a default (PEP 696); pydantic requires it
 
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 STATE_FORMAT_VERSION = 1
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+@overload
+def kernel(fn: Callable[_P, _R], /) -> Callable[_P, _R]: ...
+@overload
+def kernel(
+    *, inline: Literal["never", "always"] = "never", error_model: Literal["numpy", "python"] = "numpy"
+) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]: ...
+def kernel(
+    fn: Callable[_P, _R] | None = None,
+    /,
+    *,
+    inline: Literal["never", "always"] = "never",
+    error_model: Literal["numpy", "python"] = "numpy",
+) -> Callable[_P, _R] | Callable[[Callable[_P, _R]], Callable[_P, _R]]:
+    """Compile a kernel or a helper it calls: ``numba.njit(cache=True, nogil=True,
+    error_model=...)``, typed as the plain Python function it wraps (numba has no type
+    stubs), so that the annotations of a kernel are what callers and mypy see.
+    ``@kernel`` or ``@kernel(inline="always", error_model="python")``."""
+
+    def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
+        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline)(f)
+        return cast(Callable[_P, _R], compiled)
+
+    return wrap if fn is None else wrap(fn)
 
 
 class EstimatorParams(BaseModel):
     """Base of every estimator's parameter model: frozen, unknown keys rejected."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+#: Field types for parameter models: a finite number > 0, or >= 0, as in
+#: ``gain: PositiveFinite = Field(1.0, description="...")``.
+PositiveFinite = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFinite = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+# The parameter model of an Estimator subclass; a bare ``Estimator`` means any estimator.
+ParamsT = TypeVar("ParamsT", bound=EstimatorParams, default=EstimatorParams)
 
 
 @dataclass(slots=True)
@@ -118,7 +213,8 @@ class Track:
 
     def reconstruct(self) -> np.ndarray:
         """The modelled signal offset + sum_k A_k sin(phase_k), per row."""
-        return self.offset + np.sum(self.amplitude * np.sin(self.phase_rad), axis=1)
+        y: np.ndarray = self.offset + np.sum(self.amplitude * np.sin(self.phase_rad), axis=1)
+        return y
 
 
 def concat_tracks(tracks: list[Track]) -> Track:
@@ -182,7 +278,7 @@ def _concat_reports(parts: list[GridReports | None]) -> GridReports | None:
 
 
 def _concat_optional(parts: list[np.ndarray | None]) -> np.ndarray | None:
-    return None if parts[0] is None else np.concatenate(parts)
+    return None if parts[0] is None else np.concatenate(cast(list[np.ndarray], parts))
 
 
 def encode_array(a: np.ndarray) -> dict[str, Any]:
@@ -198,23 +294,41 @@ def encode_array(a: np.ndarray) -> dict[str, Any]:
 
 def decode_array(d: Mapping[str, Any]) -> np.ndarray:
     raw = base64.b64decode(d["b64"])
-    return np.frombuffer(raw, dtype=np.dtype(d["dtype"])).reshape(d["shape"]).copy()
+    out: np.ndarray = np.frombuffer(raw, dtype=np.dtype(d["dtype"])).reshape(d["shape"]).copy()
+    return out
 
 
-class Estimator(ABC):
-    """Base class of all estimators. Subclasses set ``name``, ``Params`` and implement
-    :meth:`_initial_state` and :meth:`_run`; optionally :meth:`_check_params` (for checks
-    that need the sample rate), :meth:`_setup` (derived constants, computed once) and
-    ``n_components`` / ``n_inputs``.
+class Estimator(ABC, Generic[ParamsT]):
+    """Base class of all estimators, declared as
+    ``class MyEstimator(Estimator[MyParams], kernel=my_kernel)``: the parameter model
+    (``Params``, and the type of ``params``) and the compiled kernel are named once, on
+    that line. Subclasses set ``name``, set ``_constants`` in :meth:`_setup` and implement
+    :meth:`_initial_state` and :meth:`_track` (module docstring, "Kernel state
+    convention"); optionally :meth:`_check_params` (for checks that need the sample rate),
+    :meth:`_kernel_input` and ``n_components`` / ``n_inputs``.
     """
 
     name: ClassVar[str]
     Params: ClassVar[type[EstimatorParams]]
+    params: ParamsT
     summary: ClassVar[str] = ""
-    paper: ClassVar[str | None] = None  # file name under shared/papers, for docs
+    paper: ClassVar[str | None] = None  # the paper implemented: authors, title, year
     # True for estimators that report on a time grid (Track.reports, from update(...,
     # t0_ns=...)) rather than once per block
     reports_on_grid: ClassVar[bool] = False
+    _kernel: ClassVar[Callable[..., tuple[Any, ...]]]
+    _constants: tuple[Any, ...] = ()  # the kernel's read-only arguments after the state
+
+    def __init_subclass__(cls, /, kernel: Callable[..., tuple[Any, ...]] | None = None, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if kernel is not None:
+            setattr(cls, "_kernel", staticmethod(kernel))  # noqa: B010 (a ClassVar, set once)
+        for base in cls.__dict__.get("__orig_bases__", ()):
+            origin = get_origin(base)
+            if isinstance(origin, type) and issubclass(origin, Estimator):
+                (model,) = get_args(base)
+                if isinstance(model, type) and issubclass(model, EstimatorParams):
+                    cls.Params = model
 
     # A working configuration, used by the conformance suite, the kernel benchmark and
     # the docs: the sample rate, parameters, and a test signal (see example_signal).
@@ -230,7 +344,7 @@ class Estimator(ABC):
     # reporting_rate_hz, tags. Raise ParameterError when the estimator does not apply.
 
     @classmethod
-    def example(cls) -> Estimator:
+    def example(cls) -> Estimator[Any]:
         """An instance built from the example configuration."""
         return cls(cls.example_sample_rate_hz, dict(cls.example_params))
 
@@ -253,7 +367,7 @@ class Estimator(ABC):
         if not np.isfinite(sample_rate_hz) or sample_rate_hz <= 0:
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
         self.sample_rate_hz = float(sample_rate_hz)
-        self.params = self._validate_params(params, kwargs)
+        self.params = cast(ParamsT, self._validate_params(params, kwargs))
         self._check_params()
         self._setup()
         self._state: dict[str, np.ndarray] = self._initial_state()
@@ -279,7 +393,8 @@ class Estimator(ABC):
         """Checks that need the sample rate (Nyquist and the like). Raise ParameterError."""
 
     def _setup(self) -> None:
-        """Compute constants derived from the parameters (gains, discretisations)."""
+        """Compute constants derived from the parameters (gains, discretisations) and set
+        ``self._constants``, the kernel's arguments after the state arrays."""
 
     @property
     def n_components(self) -> int:
@@ -293,15 +408,28 @@ class Estimator(ABC):
     # ---- state --------------------------------------------------------------------------
     @abstractmethod
     def _initial_state(self) -> dict[str, np.ndarray]:
-        """Fresh state arrays (float64/int64/bool numpy arrays)."""
+        """Fresh state arrays (float64/int64 numpy arrays), in the kernel's argument order;
+        the docstring of an override documents the layout of each array."""
 
     @abstractmethod
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        """The Track of one kernel call from its outputs (everything it returns before the
+        new state arrays) and the block it ran on."""
+
+    def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
+        """The block as the kernel takes it (default: as validated)."""
+        return samples
+
     def _run(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
     ) -> tuple[Track, dict[str, np.ndarray]]:
         """Run the kernel over ``samples`` (float64, C-contiguous, (N,) or (N, n_inputs),
-        never empty) from ``state`` (which must not be modified) and return the track and
-        the new state."""
+        never empty) from ``state`` (which is not modified) and return the track and the
+        new state: the one call described in the module docstring."""
+        block = self._kernel_input(samples)
+        result = self._kernel(block, *state.values(), *self._constants, last_only)
+        n_outputs = len(result) - len(state)  # so the zip below pairs every state array
+        return self._track(result[:n_outputs], block), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
     def _run_timed(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
@@ -345,10 +473,10 @@ class Estimator(ABC):
         for k, v in arrays.items():
             if v.shape != fresh[k].shape or v.dtype != fresh[k].dtype:
                 raise ParameterError(f"state {k!r}: expected {fresh[k].dtype}{fresh[k].shape}, got {v.dtype}{v.shape}")
-        self._state = arrays
+        self._state = {k: arrays[k] for k in fresh}  # the kernel's argument order
 
     @classmethod
-    def from_state(cls, snapshot: Mapping[str, Any]) -> Estimator:
+    def from_state(cls, snapshot: Mapping[str, Any]) -> Estimator[Any]:
         est = cls(float(snapshot["sample_rate_hz"]), snapshot.get("params", {}))
         est.set_state(snapshot)
         return est
@@ -392,7 +520,7 @@ class Estimator(ABC):
         return x
 
 
-@njit(cache=True, nogil=True)
+@kernel(error_model="python")
 def _all_finite(x: np.ndarray) -> bool:
     # One compiled pass instead of np.isfinite(x).all(): the numpy version costs ~1 us
     # of ufunc overhead per block, which shows at high block rates.
@@ -408,6 +536,17 @@ def _short(exc: ValidationError) -> str:
         loc = ".".join(str(p) for p in err["loc"]) or "(root)"
         parts.append(f"{loc}: {err['msg']}")
     return "; ".join(parts)
+
+
+@kernel(inline="always")
+def undefined_row(out: np.ndarray, j: int) -> None:
+    """Row ``j`` of a one-component kernel's output columns (frequency_hz, amplitude,
+    phase_rad, offset, converged) as undefined: NaN estimates, not converged."""
+    out[j, 0] = np.nan
+    out[j, 1] = np.nan
+    out[j, 2] = np.nan
+    out[j, 3] = np.nan
+    out[j, 4] = 0.0
 
 
 def empty_outputs(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -1,11 +1,11 @@
 """``differential-rls``: differential signal model + recursive (extended) least squares for
 the frequency, its rate of change (ROCOF), phase and amplitude of one sinusoid.
 
-Paper: ``shared/papers/001_da74636665cf246d.txt``, "Differential signal model and sampling
-techniques for recursive (extended) least-squares estimation of frequency, frequency
-derivatives, phase and amplitude". Most equations are missing from the extraction; those
-used here were rebuilt from the text (and the reading notes in shared/papers/README.md)
-and each is checked numerically in ``tests/test_differential_rls.py``.
+Paper: "Differential signal model and sampling techniques for recursive (extended)
+least-squares estimation of frequency, frequency derivatives, phase and amplitude" (the
+authors and the year are not recorded here: the copy this was built from does not print
+them). Most equations are missing from that copy; those used here were rebuilt from the
+text and each is checked numerically in ``tests/test_differential_rls.py``.
 
 Rebuilt equations
 -----------------
@@ -128,12 +128,11 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator
 from scipy import signal as _sig
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
 from sinewatch.schemas.errors import ParameterError
 
 TWO_PI = 2.0 * math.pi
@@ -182,8 +181,8 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def regressor_coefficients(u, g, tab, rr, ri):
+@kernel
+def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, ri: np.ndarray) -> None:
     """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
 
     Eq. (7) (and (25) with the derivative): r_p = j^m C(m, b) / m! * u^(m-b) * g^b.
@@ -211,8 +210,8 @@ def regressor_coefficients(u, g, tab, rr, ri):
             ri[q] = -mag
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _rls_scalar(P, theta, x, y, f, px):
+@kernel
+def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: float, px: np.ndarray) -> None:
     """One scalar RLS update with forgetting f (eq. 12): P <- (P - P x x' P / (f + x' P x)) / f."""
     p = theta.shape[0]
     den = f
@@ -237,8 +236,22 @@ def _rls_scalar(P, theta, x, y, f, px):
             P[b, a] = v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
+@kernel
+def core_step(
+    cr: float,
+    ci: float,
+    u: float,
+    core: np.ndarray,
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+    rr: np.ndarray,
+    ri: np.ndarray,
+    xr: np.ndarray,
+    xi: np.ndarray,
+    px: np.ndarray,
+) -> None:
     """One decimated step of the baseband estimator on c(k) = cr + j ci, dt_k = u T0.
 
     Differential model (4)-(7)/(25), extended least squares (12)-(13), phase/amplitude
@@ -408,8 +421,10 @@ def core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr, xi, px):
     core[C_PREV_IM] = ci
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def core_status(core, theta, P, consts):
+@kernel
+def core_status(
+    core: np.ndarray, theta: np.ndarray, P: np.ndarray, consts: np.ndarray
+) -> tuple[float, float, float, bool, bool, bool, float]:
     """(w_bb rad/T0, lam_bb rad/T0^2, std of w_bb rad/T0, valid, confident, converged,
     lam_bb if significant else 0).
 
@@ -438,8 +453,8 @@ def core_status(core, theta, P, consts):
     return w, lam_bb, std, valid, confident, conv, lam_sig
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def transform_scratch(tab):
+@kernel
+def transform_scratch(tab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Index table idx[a, b] of w^a lam^b and scratch arrays (T, b0, work) for
     :func:`recenter_transform`."""
     p = tab.shape[0]
@@ -452,16 +467,43 @@ def transform_scratch(tab):
     return idx, np.zeros((p, p)), np.zeros(p), np.zeros((p, p + 1))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _ipow(x, k):
+@kernel
+def working_core(
+    core_in: np.ndarray, theta_in: np.ndarray, P_in: np.ndarray, tab: np.ndarray
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+]:  # fmt: skip
+    """Copies of the baseband estimator's state (core, theta, P: a kernel never writes its
+    inputs), the scratch vectors of :func:`core_step` (rr, ri, xr, xi, px) and those of
+    :func:`recenter_transform` (idx, T, b0, work)."""
+    p = theta_in.shape[0]
+    rr, ri, xr, xi, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
+    idx, T, b0, work = transform_scratch(tab)
+    return core_in.copy(), theta_in.copy(), P_in.copy(), rr, ri, xr, xi, px, idx, T, b0, work
+
+
+@kernel
+def _ipow(x: float, k: int) -> float:
     r = 1.0
     for _ in range(k):
         r *= x
     return r
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work):
+@kernel
+def recenter_transform(
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    idx: np.ndarray,
+    delta: float,
+    dw: float,
+    dl: float,
+    T: np.ndarray,
+    b0: np.ndarray,
+    work: np.ndarray,
+) -> None:
     """Re-express theta (monomials w^a lam^b) after moving the time origin by ``delta``
     (T0 units) and the reference by ``dw`` (rad/T0) and ``dl`` (rad/T0^2):
 
@@ -527,8 +569,8 @@ def recenter_transform(theta, P, tab, idx, delta, dw, dl, T, b0, work):
             P[r, q] = acc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _biquads_steady(x, sos, zi, off):
+@kernel
+def _biquads_steady(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> None:
     """Delays of the biquad cascade in steady state for a constant input x."""
     y = x
     for s in range(2):
@@ -543,15 +585,17 @@ def _biquads_steady(x, sos, zi, off):
         y = out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _bq(x, b0, b1, b2, a1, a2, z1, z2):
+@kernel(inline="always")
+def _bq(
+    x: float, b0: float, b1: float, b2: float, a1: float, a2: float, z1: float, z2: float
+) -> tuple[float, float, float]:
     """One DF2T biquad step: (y, z1', z2')."""
     y = b0 * x + z1
     return y, b1 * x - a1 * y + z2, b2 * x - a2 * y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _biquads(x, sos, zi, off):
+@kernel
+def _biquads(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> float:
     """Two cascaded DF2T biquads (:func:`_bq`) on one channel; zi[off:off+4] are the delays.
     The kernel runs the same steps on register copies of the delays."""
     y = x
@@ -561,8 +605,20 @@ def _biquads(x, sos, zi, off):
     return y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work):
+@kernel
+def rebase(
+    core: np.ndarray,
+    theta: np.ndarray,
+    P: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+    dw: float,
+    dl: float,
+    idx: np.ndarray,
+    T: np.ndarray,
+    b0: np.ndarray,
+    work: np.ndarray,
+) -> None:
     """Move the time origin to t_k and the reference by (dw, dl); see recenter_transform."""
     deriv = consts[K_DERIV] != 0.0
     delta = core[TAU] if deriv else 0.0
@@ -572,8 +628,8 @@ def rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work):
     core[SINCE_REBASE] = 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(ph):
+@kernel
+def _wrap(ph: float) -> float:
     while ph > math.pi:
         ph -= TWO_PI
     while ph <= -math.pi:
@@ -581,18 +637,23 @@ def _wrap(ph):
     return ph
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
+@kernel
+def iq_kernel(
+    cre: np.ndarray,
+    cim: np.ndarray,
+    u: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ref_in: np.ndarray,
+    tab: np.ndarray,
+    consts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The paper's own setting: in-phase/quadrature samples c(k) = z(k) + j y(k) taken at
     intervals dt_k = u_k T0. Re-centring rotates c by a digital reference (psi2, w2, l2).
     Returns per step (w^ rad/T0, lam^ rad/T0^2, A^, phi^, std, converged) and the state."""
-    core = core_in.copy()
-    theta = theta_in.copy()
-    P = P_in.copy()
+    core, theta, P, rr, ri, xr, xi, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     ref = ref_in.copy()
-    p = theta.shape[0]
-    rr, ri, xr, xi, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
-    idx, T, b0, work = transform_scratch(tab)
     n = cre.shape[0]
     out = np.empty((n, 6))
     recenter = consts[K_RECENTER] != 0.0
@@ -624,30 +685,31 @@ def iq_kernel(cre, cim, u, core_in, theta_in, P_in, ref_in, tab, consts):
     return out, core, theta, P, ref
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _cis_small(a):
+@kernel
+def _cis_small(a: float) -> complex:
     """e^{j a} for a tiny angle (a chirp's per-sample step change), to 1e-22 relative."""
     a2 = a * a
     return complex(1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _stage_response(sos, s, zc):
+@kernel
+def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     """H_s(z) of biquad s at z = zc (complex)."""
     zi1 = 1.0 / zc
     zi2 = zi1 * zi1
-    return (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
+    h: complex = (sos[s, 0] + sos[s, 1] * zi1 + sos[s, 2] * zi2) / (1.0 + sos[s, 4] * zi1 + sos[s, 5] * zi2)
+    return h
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def lowpass_response(sos, om):
+@kernel
+def lowpass_response(sos: np.ndarray, om: float) -> complex:
     """H(e^{j om}) of the biquad cascade, om in rad per input sample."""
     zc = complex(math.cos(om), math.sin(om))
     return _stage_response(sos, 0, zc) * _stage_response(sos, 1, zc)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _lowpass_retune(sos, fe, X, om_old, om_new):
+@kernel
+def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, om_new: float) -> None:
     """Move the tonal part of the demodulator's low-pass state from baseband frequency
     om_old to om_new (rad/sample), for a tone of phasor X at the current sample: the steady
     state of a DF2T biquad driven by X z^n is z1 = (H - b0) X z, z2 = (b2 - a2 H) X before
@@ -670,8 +732,20 @@ def _lowpass_retune(sos, fe, X, om_old, om_new):
         xn = hn * xn
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab, cyc, consts, last_only):
+@kernel
+def differential_rls_kernel(
+    x: np.ndarray,
+    fe_in: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ist_in: np.ndarray,
+    sos: np.ndarray,
+    tab: np.ndarray,
+    cyc: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Real input -> quadrature demodulation against the reference oscillator -> low-pass
     (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
     -> :func:`core_step` at every decimated sample; outputs at every input sample.
@@ -679,13 +753,8 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
     Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
     """
     fe = fe_in.copy()
-    core = core_in.copy()
-    theta = theta_in.copy()
-    P = P_in.copy()
+    core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     ist = ist_in.copy()
-    p = theta.shape[0]
-    rr, ri, xr_, xi_, px = np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p), np.zeros(p)
-    idx, T, b0, work = transform_scratch(tab)
     n = x.shape[0]
     nout = 1 if last_only else n
     out = np.empty((nout, 5))
@@ -876,6 +945,45 @@ def differential_rls_kernel(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab,
     return out, ext, sse, fe, core, theta, P, ist
 
 
+def core_constants(
+    *,
+    fs: float,
+    T0: float,
+    lam: float,
+    lam_a: float,
+    rho: float,
+    ls_start: int,
+    p0: float,
+    n_par: int,
+    conv_std: float,
+    w_bb_max: float,
+    recenter_every: int,
+    els: bool,
+    derivative: bool,
+    r1: float,
+) -> np.ndarray:
+    """The ``consts`` array (slots K_*) with the baseband estimator's entries filled in;
+    the real-input front end adds its own (K_W_NOM, K_W_RANGE, K_MIN_AMP, K_WARM, K_HOLD).
+    ``conv_std`` and ``w_bb_max`` in rad per T0."""
+    k = np.zeros(N_CONSTS)
+    k[K_FS] = fs
+    k[K_T0] = T0
+    k[K_LAM] = lam
+    k[K_LAM_A] = lam_a
+    k[K_RHO] = rho
+    k[K_LS_START] = ls_start
+    k[K_P0] = p0
+    k[K_TRACE_MAX] = 1e8 * p0 * n_par
+    k[K_CONV_STD] = conv_std
+    k[K_W_BB_MAX] = w_bb_max
+    k[K_REBASE_EVERY] = recenter_every if recenter_every > 0 else 16
+    k[K_ELS] = 1.0 if els else 0.0
+    k[K_DERIV] = 1.0 if derivative else 0.0
+    k[K_RECENTER] = 1.0 if recenter_every > 0 else 0.0
+    k[K_R1] = r1
+    return k
+
+
 def baseband_estimate(
     c: np.ndarray,
     dt: np.ndarray,
@@ -903,22 +1011,22 @@ def baseband_estimate(
     u = np.ascontiguousarray(dt / T0)
     tab = monomial_table(n_terms, rocof_model)
     p = tab.shape[0]
-    k = np.zeros(N_CONSTS)
-    k[K_FS] = 1.0 / T0
-    k[K_T0] = T0
-    k[K_LAM] = forgetting_factor
-    k[K_LAM_A] = forgetting_factor if phase_forgetting_factor is None else phase_forgetting_factor
-    k[K_RHO] = els_damping
-    k[K_LS_START] = ls_start
-    k[K_P0] = p0
-    k[K_TRACE_MAX] = 1e8 * p0 * p
-    k[K_CONV_STD] = convergence_std_rad_s * T0
-    k[K_W_BB_MAX] = math.pi
-    k[K_REBASE_EVERY] = recenter_every if recenter_every > 0 else 16
-    k[K_ELS] = 1.0 if els else 0.0
-    k[K_DERIV] = 1.0 if rocof_model else 0.0
-    k[K_RECENTER] = 1.0 if recenter_every > 0 else 0.0
-    k[K_R1] = noise_correlation
+    k = core_constants(
+        fs=1.0 / T0,
+        T0=T0,
+        lam=forgetting_factor,
+        lam_a=forgetting_factor if phase_forgetting_factor is None else phase_forgetting_factor,
+        rho=els_damping,
+        ls_start=ls_start,
+        p0=p0,
+        n_par=p,
+        conv_std=convergence_std_rad_s * T0,
+        w_bb_max=math.pi,
+        recenter_every=recenter_every,
+        els=els,
+        derivative=rocof_model,
+        r1=noise_correlation,
+    )
     out, *_ = iq_kernel(
         np.ascontiguousarray(c.real), np.ascontiguousarray(c.imag), u,
         np.zeros(CORE_SIZE), np.zeros(p), np.eye(p) * p0, np.zeros(3), tab, k,
@@ -931,6 +1039,27 @@ def baseband_estimate(
         "frequency_std_rad_s": out[:, 4] / T0,
         "converged": out[:, 5] != 0.0,
     }
+
+
+def cyclic_intervals(k: int, values: list[float]) -> np.ndarray:
+    """``k`` sampling intervals cycling through ``values`` (nonuniform cyclic sampling,
+    Section 5), for :func:`baseband_estimate`; the first is 0 (no interval before it)."""
+    dt = np.array([values[i % len(values)] for i in range(k)])
+    dt[0] = 0.0
+    return dt
+
+
+def band_limited_iq_noise(k: int, m: float, var: float, seed: int) -> np.ndarray:
+    """``k`` samples of complex noise, variance ``var`` per component, band-limited to 1/m
+    of the Nyquist band (ideal low-pass, eq. 14): the paper's oversampled I/Q noise."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(k)
+    out = []
+    for _ in range(2):
+        x = np.fft.ifft(np.where(np.abs(f) < 0.5 / m, np.fft.fft(rng.standard_normal(k)), 0.0)).real
+        out.append(x * np.sqrt(var) / x.std())
+    noise: np.ndarray = out[0] + 1j * out[1]
+    return noise
 
 
 class DifferentialRlsParams(EstimatorParams):
@@ -1075,19 +1204,21 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 
 @register
-class DifferentialRls(Estimator):
-    """Differential signal model + recursive extended least squares (paper 001)."""
+class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel):
+    """Differential signal model + recursive extended least squares (module docstring)."""
 
     name = "differential-rls"
-    Params = DifferentialRlsParams
-    summary = "Differential signal model + recursive extended least squares, with ROCOF (paper 001)"
-    paper = "001_da74636665cf246d.txt"
+    summary = "Differential signal model + recursive extended least squares, with ROCOF"
+    paper = (
+        '"Differential signal model and sampling techniques for recursive (extended) least-squares '
+        'estimation of frequency, frequency derivatives, phase and amplitude"'
+    )
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.3
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 
     @classmethod
-    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+    def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
         """Parameters for a bench scenario (``sinewatch bench accuracy``): reference at the
         nominal frequency, low-pass bandwidth 10 % of it, tracking range covering the
         scenario's frequency range as far as the demodulator allows, M <= 10."""
@@ -1135,30 +1266,38 @@ class DifferentialRls(Estimator):
         n_par = self._tab.shape[0]
         self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
-        c = np.zeros(N_CONSTS)
-        c[K_FS] = fs
-        c[K_T0] = T0
-        c[K_LAM] = p.forgetting_factor
-        c[K_LAM_A] = p.phase_forgetting_factor
-        c[K_RHO] = p.els_damping
-        c[K_LS_START] = p.ls_start
-        c[K_P0] = p.p0
-        c[K_TRACE_MAX] = 1e8 * p.p0 * n_par
+        c = core_constants(
+            fs=fs,
+            T0=T0,
+            lam=p.forgetting_factor,
+            lam_a=p.phase_forgetting_factor,
+            rho=p.els_damping,
+            ls_start=p.ls_start,
+            p0=p.p0,
+            n_par=n_par,
+            conv_std=p.convergence_rel_std * p.bandwidth_hz * TWO_PI * T0,
+            w_bb_max=TWO_PI * p.bandwidth_hz * T0,
+            recenter_every=p.recenter_every,
+            els=p.els,
+            derivative=p.rocof_model,
+            r1=lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0])),
+        )
         c[K_W_NOM] = TWO_PI * p.nominal_frequency_hz
         c[K_W_RANGE] = TWO_PI * rng
         c[K_MIN_AMP] = p.min_amplitude
-        c[K_CONV_STD] = p.convergence_rel_std * p.bandwidth_hz * TWO_PI * T0
-        c[K_W_BB_MAX] = TWO_PI * p.bandwidth_hz * T0
-        c[K_REBASE_EVERY] = p.recenter_every if p.recenter_every > 0 else 16
-        c[K_ELS] = 1.0 if p.els else 0.0
-        c[K_DERIV] = 1.0 if p.rocof_model else 0.0
-        c[K_RECENTER] = 1.0 if p.recenter_every > 0 else 0.0
         c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
-        c[K_R1] = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
         c[K_HOLD] = math.ceil(c[K_WARM] / d0)
         self._consts = c
+        self._constants = (self._sos, self._tab, self._cyc, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``fe`` (FE_SIZE,): the real-input front end, slots named F_* (reference phase,
+        frequency and ramp, offset, the low-pass delays, the snapshot at the last decimated
+        step, the rotators); ``core`` (CORE_SIZE,): the baseband estimator, slots named
+        by the constants above (c(k-1), n^, a^, the weighted powers, counters, flags);
+        ``theta`` (p,): the parameter estimate (monomials w^a lam^b, :func:`monomial_table`);
+        ``P`` (p, p): its covariance; ``ist`` (3,) int64: input samples since the last decimated one, position in the
+        decimation cycle, samples seen while the low-pass warms up."""
         n_par = self._tab.shape[0]
         fe = np.zeros(FE_SIZE)
         w = TWO_PI * self.params.nominal_frequency_hz
@@ -1176,18 +1315,15 @@ class DifferentialRls(Estimator):
             "ist": np.zeros(3, dtype=np.int64),
         }
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, fe, core, theta, P, ist = differential_rls_kernel(
-            samples, state["fe"], state["core"], state["theta"], state["P"], state["ist"],
-            self._sos, self._tab, self._cyc, self._consts, last_only,
-        )  # fmt: skip
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         rocof = ext[:, 0] if self.params.rocof_model else np.full(ext.shape[0], np.nan)
         extras = {
             "rocof_hz_per_s": rocof,
             "frequency_std_hz": ext[:, 1],
             "reference_frequency_hz": ext[:, 2],
         }
-        track = track_from_columns(out, sse, samples.shape[0], extras)
+        track = track_from_columns(out, sse, block.shape[0], extras)
         if self.params.rocof_model:  # first class too (Estimate v2), the extra kept
             track.rocof_hz_per_s = rocof[:, None]
-        return track, {"fe": fe, "core": core, "theta": theta, "P": P, "ist": ist}
+        return track

@@ -1,7 +1,8 @@
 """``ges-kalman``: GES discrete-time Kalman observer for a biased sinusoid.
 
-Paper: ``shared/papers/000_95b503d2538da780.txt``, "A globally exponentially stable (GES)
-discrete-time observer for the parameters of a biased sinusoid".
+Paper: "A globally exponentially stable (GES) discrete-time observer for the parameters of
+a biased sinusoid" (the authors and the year are not recorded here: the copy this was built
+from does not print them).
 
 Signal (eq. 1): ``y(k) = s(t_k) = A sin(w t_k + phi) + B``, sampled every ``Ts``.
 
@@ -49,13 +50,13 @@ While ``x3_hat`` lies outside (-4, 0) every output is NaN and ``converged`` is F
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 
 
 class GesKalmanParams(EstimatorParams):
@@ -85,12 +86,14 @@ class GesKalmanParams(EstimatorParams):
         return v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def ges_kalman_kernel(y, state, consts, last_only):
+@kernel
+def ges_kalman_kernel(
+    y: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, float, np.ndarray]:
     """Run the filter over block ``y`` from ``state`` and return ``(out, sse, new_state)``.
 
-    ``state`` packs x1..x4 then the 16 entries of P (row-major); ``consts`` packs
-    q1..q4, R, Ts and convergence_rel_std. ``out`` has one row per sample (or one row,
+    ``state`` is the ``xP`` array (layout: :meth:`GesKalman._initial_state`); ``consts``
+    packs q1..q4, R, Ts and convergence_rel_std. ``out`` has one row per sample (or one row,
     the last sample, when ``last_only``) with columns frequency_hz, amplitude, phase_rad,
     offset, converged (0/1). ``sse`` is the sum of squared innovations. Pure: the
     inputs are not modified.
@@ -161,11 +164,7 @@ def ges_kalman_kernel(y, state, consts, last_only):
             out[j, 3] = B
             out[j, 4] = 1.0 if math.sqrt(max(p22, 0.0)) < rel_std * -x3 else 0.0
         else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 3] = np.nan
-            out[j, 4] = 0.0
+            undefined_row(out, j)
     new_state = np.array(
         [x1, x2, x3, x4,
          p00, p01, p02, p03,
@@ -177,25 +176,26 @@ def ges_kalman_kernel(y, state, consts, last_only):
 
 
 @register
-class GesKalman(Estimator):
-    """Kalman filter on the 4-state LTV model of paper 000 (see module docstring)."""
+class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
+    """Kalman filter on the 4-state LTV model of the GES observer paper (module docstring)."""
 
     name = "ges-kalman"
-    Params = GesKalmanParams
-    summary = "GES Kalman observer for one biased sinusoid (paper 000)"
-    paper = "000_95b503d2538da780.txt"
+    summary = "GES Kalman observer for one biased sinusoid"
+    paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 100.0  # the paper's Section IV
 
     def _setup(self) -> None:
         p = self.params
         q = p.q if isinstance(p.q, list) else [p.q] * 4
-        self._consts = np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std])
+        self._constants = (np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std]),)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xP`` (20,): the state estimate x1..x4, then the 16 entries of its covariance P
+        (row-major)."""
         P0 = np.eye(4) * self.params.p0
         return {"xP": np.concatenate([np.asarray(self.params.x0, dtype=np.float64), P0.ravel()])}
 
-    def _run(self, samples, state, last_only):
-        out, sse, xP = ges_kalman_kernel(samples, state["xP"], self._consts, last_only)
-        return track_from_columns(out, sse, samples.shape[0]), {"xP": xP}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, sse = outputs
+        return track_from_columns(out, sse, block.shape[0])

@@ -1,10 +1,11 @@
 """``grip-mixing``: LTI observer on the redefined output y(t) - y(t - T) (periodic output disturbance).
 
-Paper: ``shared/papers/002_e8388582f5542671.txt``, H. F. Grip, "Observer design in the presence
-of periodic output disturbances by mixing of past and present output data".
+Paper: H. F. Grip, "Observer design in the presence of periodic output disturbances by
+mixing of past and present output data" (the year is not recorded here: the copy this was
+built from does not print it).
 
-The extraction drops minus signs (reading notes); every equation below was rebuilt from the
-surrounding text and checked numerically (``tests/test_grip_mixing.py``).
+That copy drops minus signs; every equation below was rebuilt from the surrounding text and
+checked numerically (``tests/test_grip_mixing.py``).
 
 Plant and disturbance (1)::
 
@@ -134,11 +135,10 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import scipy.linalg
 import scipy.signal
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
@@ -205,7 +205,7 @@ class GripDesign:
     modal_ok: bool
 
 
-def _matrix(name: str, value, rows: int | None, cols: int | None) -> np.ndarray:
+def _matrix(name: str, value: object, rows: int | None, cols: int | None) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except ValueError:
@@ -230,7 +230,7 @@ def check_theorem1(A: np.ndarray, C: np.ndarray, T: float) -> None:
     """Theorem 1: raise ParameterError naming the eigenvalue that breaks observability of
     (C (I - e^{-AT}), A)."""
     n = A.shape[0]
-    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(C))
+    scale = max(1.0, float(np.linalg.norm(A, 2)), float(np.linalg.norm(C)))
     for lam in np.linalg.eigvals(A):
         pbh = np.vstack([lam * np.eye(n) - A, C.reshape(1, n).astype(complex)])
         smin = np.linalg.svd(pbh, compute_uv=False)[-1]
@@ -265,7 +265,7 @@ def _place(Amat: np.ndarray, c: np.ndarray, poles: np.ndarray, what: str) -> np.
     return l_gain
 
 
-def _parse_poles(poles, n: int) -> np.ndarray:
+def _parse_poles(poles: list[float | tuple[float, float]], n: int) -> np.ndarray:
     p = np.array([complex(v[0], v[1]) if isinstance(v, (tuple, list)) else complex(v) for v in poles])
     if p.size != n:
         raise ParameterError(f"poles: expected {n} poles (one per state), got {p.size}")
@@ -410,7 +410,7 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
     # sampled-data pair (Ad, Cbar Ad): a repeated e^{lambda Ts} (aliasing) is caught by the PBH test
     for mu in np.linalg.eigvals(Ad):
         pbh = np.vstack([mu * np.eye(n) - Ad, (Cbar @ Ad).reshape(1, n).astype(complex)])
-        if np.linalg.svd(pbh, compute_uv=False)[-1] < _PBH_TOL * max(1.0, np.linalg.norm(Cbar)):
+        if np.linalg.svd(pbh, compute_uv=False)[-1] < _PBH_TOL * max(1.0, float(np.linalg.norm(Cbar))):
             raise ParameterError(
                 f"A: expected a sampled pair that stays observable at fs = {fs:g} Hz, got eigenvalue "
                 f"e^(lambda Ts) = {_fmt(mu)} shared by two modes (aliasing)"
@@ -452,14 +452,19 @@ def _modes(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array([lam[i].imag / (2 * np.pi) for i in idx]), W.real.copy(), W.imag.copy(), True
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def grip_mixing_kernel(block, state, count0, fconst, iconst, last_only):
+@kernel
+def grip_mixing_kernel(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """Run the sampled observer (7) over ``block`` (N, 1 + m): column 0 = y, then u.
 
-    ``state`` (flat, see :func:`state_layout`) holds xhat, the previous u, the two internal
-    states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n), y (Lb,), u (Lb, m) and
-    dhat (Lb,), and the running sum of dhat over the last ``window`` samples; ``count0`` the
-    sample count. ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
+    ``state`` and ``count0`` are the ``state`` and ``count`` arrays (layout:
+    :meth:`GripMixing._initial_state`). ``fconst`` packs Ad, Bd0, Bd1 (FOH model), C, C (I - e^{-AT}), C e^{-AT},
     Ld, D, the tap weights, the modal rows Wre, Wim (K, n) and the mode frequencies (K);
     ``iconst`` packs n, m, K,
     the number of taps, Lb, Lz, window, reset_half, warm, modal_ok, the tap offsets and
@@ -689,16 +694,15 @@ def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]
 
 
 @register
-class GripMixing(Estimator):
-    """Grip's mixing observer on y(t) - y(t - T) (paper 002, see module docstring)."""
+class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
+    """Grip's mixing observer on y(t) - y(t - T) (module docstring)."""
 
     name = "grip-mixing"
-    Params = GripMixingParams
     summary = (
         "LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; "
-        "preset 'harmonics' tracks known-frequency lines (paper 002)"
+        "preset 'harmonics' tracks known-frequency lines"
     )
-    paper = "002_e8388582f5542671.txt"
+    paper = 'H. F. Grip, "Observer design in the presence of periodic output disturbances by mixing of past and present output data"'
     example_sample_rate_hz = 4000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {
@@ -721,7 +725,7 @@ class GripMixing(Estimator):
         return 0.5 + lines + dist + 0.01 * rng.standard_normal(n)
 
     @classmethod
-    def params_for(cls, sample_rate_hz: float, hints: dict) -> dict:
+    def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
         """Parameters for a scenario described by ``hints`` (the accuracy bench's hook).
 
         One input column: the ``harmonics`` preset at the scenario's nominal frequencies, with
@@ -764,6 +768,7 @@ class GripMixing(Estimator):
              int(g.modal_ok), *g.tap_o, int(_pairs(g.Ad))],
             dtype=np.int64,
         )  # fmt: skip
+        self._constants = (self._fconst, self._iconst)
 
     # ---- design read-outs (for docs and tests) ----------------------------------------------
     @property
@@ -784,6 +789,10 @@ class GripMixing(Estimator):
         return 1 + int(self._design.B.shape[1])
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``state``: flat, the parts of :func:`state_layout` in order: xhat, the previous
+        u, the two internal states z (2, n) of Sec. III-B, the delay lines of z (2, Lz, n),
+        y (Lb,), u (Lb, m) and dhat (Lb,), and the running sum of dhat over the last
+        ``window`` samples; ``count`` (1,) int64: the sample count."""
         n, m = self._design.B.shape
         parts = state_layout(n, m, self._lz, self._lb)
         flat = np.zeros(sum(int(np.prod(shape)) for shape in parts.values()))
@@ -791,13 +800,13 @@ class GripMixing(Estimator):
             flat[:n] = self.params.x0  # xhat(t0); every delay line starts at 0 (Sec. III-A)
         return {"state": flat, "count": np.zeros(1, dtype=np.int64)}
 
-    def _run(self, samples, state, last_only):
-        block = samples if samples.ndim == 2 else samples.reshape(-1, 1)
-        out, sse, flat, count = grip_mixing_kernel(
-            block, state["state"], state["count"], self._fconst, self._iconst, last_only
-        )
+    def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
+        return samples if samples.ndim == 2 else samples.reshape(-1, 1)
+
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, sse = outputs
         K, n = self._K, self._n
-        track = Track(
+        return Track(
             frequency_hz=out[:, :K],
             amplitude=out[:, K : 2 * K],
             phase_rad=out[:, 2 * K : 3 * K],
@@ -806,4 +815,3 @@ class GripMixing(Estimator):
             residual_rms=math.sqrt(sse / block.shape[0]),
             extras={"x_hat": out[:, 3 * K + 3 : 3 * K + 3 + n], "d_hat": out[:, 3 * K + 2]},
         )
-        return track, {"state": flat, "count": count}

@@ -1,7 +1,8 @@
 """``ipdft``: sliding-window interpolated DFT with a least-squares fit; the FFT baseline.
 
-No paper file: this is the classical block method the papers in ``shared/papers`` compare
-against (paper 004, Section I: "the Fast Fourier Transform (FFT) is preferred for its
+None of the papers sinewatch implements describes it: it is the classical block method they
+compare against (Chen, Pin, Ng, Hui, Parisini, "An adaptive observer-based robust estimator
+of multi-sinusoidal signals", IEEE Trans. Automatic Control, 2018, Section I: "the Fast Fourier Transform (FFT) is preferred for its
 efficiency in stationary conditions ... the accuracy drops in the case of time-varying
 frequencies"). References for the equations below:
 
@@ -78,11 +79,19 @@ import math
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    NonNegativeFinite,
+    PositiveFinite,
+    Track,
+    kernel,
+    track_from_columns,
+    undefined_row,
+)
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_WINDOW_CYCLES = 4.0
@@ -90,10 +99,8 @@ MAX_WINDOW_SAMPLES = 1 << 22
 
 
 class IpdftParams(EstimatorParams):
-    nominal_frequency_hz: float = Field(
+    nominal_frequency_hz: PositiveFinite = Field(
         50.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Nominal frequency (Hz): sets the window in cycles and the default search band",
     )
     window_cycles: float | None = Field(
@@ -109,28 +116,20 @@ class IpdftParams(EstimatorParams):
     hop_samples: int | None = Field(
         None, ge=1, description="Samples between estimates (default: a quarter of the window); <= window"
     )
-    min_frequency_hz: float | None = Field(
+    min_frequency_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Lower edge of the peak search band (default 0.5 x nominal; never below DFT bin 2)",
     )
-    max_frequency_hz: float | None = Field(
+    max_frequency_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Upper edge of the peak search band (default 1.5 x nominal; below Nyquist)",
     )
     interpolation: Literal["3-point", "2-point"] = Field(
         "3-point", description="Hann interpolation: 3-point (Agrez 2002) or 2-point (Grandke 1983)"
     )
-    min_amplitude: float = Field(
-        0.0, ge=0, allow_inf_nan=False, description="converged requires amplitude > min_amplitude"
-    )
-    max_relative_residual: float = Field(
+    min_amplitude: NonNegativeFinite = Field(0.0, description="converged requires amplitude > min_amplitude")
+    max_relative_residual: PositiveFinite = Field(
         0.2,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the window's LS fit residual RMS <= this x amplitude",
     )
 
@@ -144,8 +143,8 @@ class IpdftParams(EstimatorParams):
         return self
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p):
+@kernel
+def _wrap(p: float) -> float:
     """Radians to (-pi, pi]."""
     y = math.pi - p
     r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
@@ -154,8 +153,20 @@ def _wrap(p):
     return math.pi - r
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, mags, wu, est):
+@kernel
+def _window_estimate(
+    xw: np.ndarray,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    mags: np.ndarray,
+    wu: np.ndarray,
+    est: np.ndarray,
+) -> None:
     """Estimate from the chronological window ``xw`` into ``est`` =
     (defined, f_cycles_per_sample, A, theta_end, B, r). ``mags`` (bins,) and ``wu`` (N,)
     are scratch."""
@@ -168,8 +179,8 @@ def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_poi
     for n in range(N):  # windowed, offset-cancelled samples w_n u_n (into scratch)
         wu[n] = hann[n] * (xw[n] - mu)
     # (D) the bins k_lo-1 .. k_hi+1
-    for b in range(k_hi - k_lo + 3):
-        k = k_lo - 1 + b
+    for bi in range(k_hi - k_lo + 3):
+        k = k_lo - 1 + bi
         re = 0.0
         im = 0.0
         idx = 0
@@ -180,12 +191,12 @@ def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_poi
             idx += k
             if idx >= N:
                 idx -= N
-        mags[b] = math.hypot(re, im)
+        mags[bi] = math.hypot(re, im)
     # (P) peak in the band
     bp = 1
-    for b in range(2, k_hi - k_lo + 2):
-        if mags[b] > mags[bp]:
-            bp = b
+    for bb in range(2, k_hi - k_lo + 2):
+        if mags[bb] > mags[bp]:
+            bp = bb
     xm, x0, xp = mags[bp - 1], mags[bp], mags[bp + 1]
     if not (x0 > 0.0) or not math.isfinite(x0):
         est[0] = 0.0
@@ -248,15 +259,24 @@ def _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_poi
     est[5] = math.sqrt(sse / N)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconsts, last_only):
+@kernel
+def ipdft_kernel(
+    x: np.ndarray,
+    buf: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    hann: np.ndarray,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray]:
     """Run the sliding interpolated DFT over block ``x``; return
     ``(out, resid, sse, n_pred, new_buf, new_istate, new_fstate)``.
 
-    ``buf`` is the ring buffer (N,); ``istate`` = (write position, fill, samples since
-    the last hop, estimate held, estimate defined, samples since the held estimate);
-    ``fstate`` = (frequency in cycles/sample, A, theta_end, B, fit residual r, converged);
-    ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
+    ``buf``, ``istate`` and ``fstate`` are the ``buffer``, ``counters`` and ``estimate``
+    arrays (layout: :meth:`InterpolatedDft._initial_state`); ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
     max_relative_residual, sum of the Hann window). ``out`` columns are frequency_hz,
     amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
     row. Pure: the inputs are not modified.
@@ -316,11 +336,7 @@ def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconst
             out[row, 4] = conv
             resid[row] = r
         else:
-            out[row, 0] = np.nan
-            out[row, 1] = np.nan
-            out[row, 2] = np.nan
-            out[row, 3] = np.nan
-            out[row, 4] = 0.0
+            undefined_row(out, row)
             resid[row] = np.nan
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])
@@ -328,13 +344,11 @@ def ipdft_kernel(x, buf, istate, fstate, hann, cos_tab, sin_tab, iconsts, fconst
 
 
 @register
-class InterpolatedDft(Estimator):
+class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
     """Sliding Hann-window interpolated DFT + LS fit (see module docstring)."""
 
     name = "ipdft"
-    Params = IpdftParams
     summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
-    paper = None
     example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
@@ -384,25 +398,23 @@ class InterpolatedDft(Estimator):
         self._cos = np.cos(2.0 * np.pi * idx / n)
         self._sin = np.sin(2.0 * np.pi * idx / n)
         three = 1 if self.params.interpolation == "3-point" else 0
-        self._iconsts = np.array([self.hop_samples, self.k_lo, self.k_hi, three], dtype=np.int64)
+        iconsts = np.array([self.hop_samples, self.k_lo, self.k_hi, three], dtype=np.int64)
         p = self.params
-        self._fconsts = np.array(
-            [self.sample_rate_hz, p.min_amplitude, p.max_relative_residual, float(np.sum(self._hann))]
-        )
+        fconsts = np.array([self.sample_rate_hz, p.min_amplitude, p.max_relative_residual, float(np.sum(self._hann))])
+        self._constants = (self._hann, self._cos, self._sin, iconsts, fconsts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``buffer`` (N,): the ring buffer of the last N samples; ``counters`` (6,) int64:
+        write position, fill, samples since the last hop (starts at hop: estimate as soon
+        as full), estimate held, estimate defined, samples since the held estimate;
+        ``estimate`` (6,): frequency in cycles/sample, A, theta_end, B, fit residual r,
+        converged (0/1)."""
         return {
             "buffer": np.zeros(self.window_samples),
-            # write position, fill, since hop (starts at hop: estimate as soon as full),
-            # estimate held, estimate defined, samples since the held estimate
             "counters": np.array([0, 0, self.hop_samples, 0, 0, 0], dtype=np.int64),
             "estimate": np.zeros(6),
         }
 
-    def _run(self, samples, state, last_only):
-        out, resid, sse, n_pred, buf, ist, fst = ipdft_kernel(
-            samples, state["buffer"], state["counters"], state["estimate"],
-            self._hann, self._cos, self._sin, self._iconsts, self._fconsts, last_only,
-        )  # fmt: skip
-        track = track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})
-        return track, {"buffer": buf, "counters": ist, "estimate": fst}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, resid, sse, n_pred = outputs
+        return track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})

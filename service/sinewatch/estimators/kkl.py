@@ -1,7 +1,8 @@
 """``kkl``: nonlinear Luenberger (Kazantzis-Kravaris-Luenberger) observer of a sinusoid.
 
-Paper: ``shared/papers/003_29096b058aca5228.txt``, Praly, Marconi, Isidori, "A new observer
-for an unknown harmonic oscillator".
+Paper: L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator"
+(the year is not recorded here: the copy this was built from does not print it; its most
+recent reference is from 2005).
 
 Model (4): the signal is the output of the uncertain oscillator::
 
@@ -118,14 +119,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -179,7 +180,8 @@ def gram_weight(columns: np.ndarray) -> np.ndarray:
     c = np.asarray(columns, dtype=np.float64)
     g = c.T @ c
     p_perp = np.eye(c.shape[0]) - c @ np.linalg.solve(g, c.T)
-    return np.linalg.det(g) * p_perp
+    q: np.ndarray = np.linalg.det(g) * p_perp
+    return q
 
 
 def min_generalised_ratio(b: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -192,12 +194,13 @@ def min_generalised_ratio(b: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.nda
     qc = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] ** 2
     disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
     # smaller root, in the form that does not cancel: 2 qc / (qb + disc)
-    return 2.0 * qc / (qb + disc)
+    ratio: np.ndarray = 2.0 * qc / (qb + disc)
+    return ratio
 
 
 def ell_eq10(
     basis: np.ndarray,
-    image_columns,
+    image_columns: Callable[[np.ndarray], np.ndarray],
     x3_lo: float,
     x3_hi: float,
     norm_weight: np.ndarray | None = None,
@@ -234,7 +237,7 @@ def ell_eq10(
     return best, best_x3
 
 
-def kkl_image_columns(lam: np.ndarray):
+def kkl_image_columns(lam: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """x3 -> B(x3) (..., m, 2) with T(x) = B(x3) (x1, x2), eq. (6)."""
 
     def cols(x3: np.ndarray) -> np.ndarray:
@@ -341,6 +344,9 @@ class KklParams(EstimatorParams):
         return self
 
 
+_KP = TypeVar("_KP", bound=KklParams)
+
+
 def check_nyquist(name: str, f_max_hz: float, sample_rate_hz: float) -> None:
     nyq = 0.5 * sample_rate_hz
     if not f_max_hz < nyq:
@@ -391,41 +397,123 @@ def observer_consts(p: KklParams, ts: float, omega_ref: float, ell: float, lam_m
 EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
 
 
-def observer_track(out: np.ndarray, ext: np.ndarray, sse: float, n: int) -> Track:
-    """The Track of a kernel's ``(out, extras, sse)`` over ``n`` samples."""
-    return track_from_columns(out, sse, n, {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
+def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+    """The Track of a kernel's outputs ``(out, extras, sse)`` over ``block``."""
+    out, ext, sse = outputs
+    return track_from_columns(out, sse, block.shape[0], {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
+
+
+# ---- kernel pieces shared with kkl-biased (inlined: the same arithmetic in both) -----------
+
+
+@kernel(inline="always")
+def observer_constants(
+    consts: np.ndarray,
+) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float, float]:
+    """The 13 constants of :func:`observer_consts`, unpacked: Ts, omega_ref, l,
+    silence_ratio, env_decay, n_settle, max_fit_residual^2, max_prediction_error^2,
+    avg_gain, the omega Ts bounds of the converged range, the jump detector's gains."""
+    return (
+        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6] * consts[6],
+        consts[7] * consts[7], consts[8], consts[9], consts[10], consts[11], consts[12],
+    )  # fmt: skip
+
+
+@kernel(inline="always")
+def filter_step(xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, y_prev: float, yk: float) -> None:
+    """(12) over one sample, exact for y linear between samples (in place); entries below
+    FLUSH become 0 (no denormals in a long silence)."""
+    for i in range(xi.shape[0]):
+        v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
+        xi[i] = v if abs(v) > FLUSH else 0.0
+
+
+@kernel(inline="always")
+def jump_detector(
+    e2: float, e2_fast: float, e2_slow: float, fast_gain: float, slow_gain: float, level: float
+) -> tuple[bool, float, float]:
+    """The squared prediction error's short-term mean against its long-term level, before
+    and after this sample: (jump, new e2_fast, new e2_slow)."""
+    jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level
+    e2_fast += fast_gain * (e2 - e2_fast)
+    e2_slow += slow_gain * (e2 - e2_slow)
+    return jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level, e2_fast, e2_slow
+
+
+@kernel(inline="always")
+def half_step(wts: float) -> tuple[float, float, float]:
+    """sin and cos of omega Ts / 2, and 1 / sinc^2(omega Ts / 2), the first-order hold's
+    amplitude correction."""
+    half = 0.5 * wts
+    sh = math.sin(half)
+    ch = math.sqrt(max(1.0 - sh * sh, 0.0))
+    return sh, ch, (half / sh) ** 2 if half > 1e-8 else 1.0
+
+
+@kernel(inline="always")
+def write_row(
+    out: np.ndarray,
+    ext: np.ndarray,
+    j: int,
+    defined: bool,
+    frequency_hz: float,
+    a_sin: float,
+    a_cos: float,
+    offset: float,
+    converged: bool,
+    margin: float,
+    fit: float,
+) -> None:
+    """Row ``j`` of the outputs and of the first two extras (module docstring, outputs)."""
+    if defined:
+        phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
+        out[j, 0] = frequency_hz
+        out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
+        out[j, 2] = phase if phase > -math.pi else math.pi
+        out[j, 4] = 1.0 if converged else 0.0
+        ext[j, 0] = margin
+        ext[j, 1] = fit
+    else:
+        undefined_row(out, j)
+        ext[j, 0] = np.nan
+        ext[j, 1] = np.nan
+    out[j, 3] = offset
 
 
 # ---- kernel -------------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
+@kernel
+def kkl_kernel(
+    y: np.ndarray,
+    state: np.ndarray,
+    lam: np.ndarray,
+    fa: np.ndarray,
+    fb0: np.ndarray,
+    fb1: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
-    hold coefficients of (12) (physical units). ``state`` packs xi_1..xi_m, then y_prev,
-    have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow.
-    ``consts`` packs Ts, omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay,
+    hold coefficients of (12) (physical units). ``state`` is the ``xi_state`` array
+    (layout: :meth:`Kkl._initial_state`). ``consts`` packs Ts, omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay,
     n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
     converged range, and the gains of the jump detector's fast and slow means. ``out``
     columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]
-    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
-    max_fit2 = consts[6] * consts[6]
-    max_pred2 = consts[7] * consts[7]
-    avg_gain = consts[8]
-    wts_lo, wts_hi = consts[9], consts[10]  # omega Ts bounds for converged
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
     xi = state[:m].copy()
-    y_prev, have_prev = state[m], state[m + 1]
+    y_prev, have_prev = float(state[m]), state[m + 1]
     y_pred, pred_valid = state[m + 2], state[m + 3]
     n_good, env = state[m + 4], state[m + 5]
     e2_avg, y2_avg = state[m + 6], state[m + 7]
     e2_fast, e2_slow = state[m + 8], state[m + 9]
-    fast_gain, slow_gain = consts[11], consts[12]
     # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
     s_ll = 0.0
     s_l = 0.0
@@ -440,22 +528,15 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
     sse = 0.0
     for k in range(n):
         yk = y[k]
-        # (12), exact for y linear between samples
         if have_prev != 0.0:
-            for i in range(m):
-                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > FLUSH else 0.0
+            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error and its running mean square, against that of y
         e = yk - y_pred if pred_valid != 0.0 else yk
         sse += e * e
         e2_avg += avg_gain * (e * e - e2_avg)
-        # jump detector: the error's short-term mean square against its long-term level
-        jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * y2_avg
-        e2_fast += fast_gain * (e * e - e2_fast)
-        e2_slow += slow_gain * (e * e - e2_slow)
-        jump = jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * y2_avg
+        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
         y2_avg += avg_gain * (yk * yk - y2_avg)
         # sums over the filters
         s2 = 0.0
@@ -519,10 +600,7 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
                     wts = w_ref * sq * Ts  # omega Ts
                     if wts < math.pi:  # below Nyquist
                         defined = True
-                        half = 0.5 * wts
-                        sh = math.sin(half)
-                        ch = math.sqrt(max(1.0 - sh * sh, 0.0))
-                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        sh, ch, g = half_step(wts)
                         a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
                         a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
                         # y(k+1) predicted: A sin(theta + w Ts)
@@ -549,62 +627,33 @@ def kkl_kernel(y, state, lam, fa, fb0, fb1, consts, last_only):
             continue
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / y2_avg) if y2_avg > 0.0 else np.nan
-        if defined:
-            phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
-            out[j, 0] = wts / (2.0 * math.pi * Ts)  # omega = omega_ref sqrt(x3~)
-            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
-            out[j, 2] = phase if phase > -math.pi else math.pi
-            out[j, 3] = 0.0
-            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
-            ext[j, 0] = 2.0 * det / ell
-            ext[j, 1] = math.sqrt(rr / ff)
-        else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 3] = np.nan
-            out[j, 4] = 0.0
-            ext[j, 0] = np.nan
-            ext[j, 1] = np.nan
+        # omega = omega_ref sqrt(x3~); the model has no offset: 0 whenever defined
+        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, 0.0 if defined else np.nan,
+                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
     new_state = np.empty(m + 10)
-    new_state[m + 8] = e2_fast
-    new_state[m + 9] = e2_slow
     new_state[:m] = xi
-    new_state[m] = y_prev
-    new_state[m + 1] = have_prev
-    new_state[m + 2] = y_pred
-    new_state[m + 3] = pred_valid
-    new_state[m + 4] = n_good
-    new_state[m + 5] = env
-    new_state[m + 6] = e2_avg
-    new_state[m + 7] = y2_avg
+    new_state[m:] = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, new_state
 
 
 # ---- estimator ----------------------------------------------------------------------------
 
 
-@register
-class Kkl(Estimator):
-    """m first-order filters and the static inverse gamma of paper 003 (module docstring)."""
+class FilterBankObserver(Estimator[_KP]):
+    """What ``kkl`` and ``kkl-biased`` share: the design from the frequency range (module
+    docstring, design choices), the Nyquist check, the example and the Track. A subclass
+    gives the constant l of its inverse map (:meth:`_ell`) and the kernel."""
 
-    name = "kkl"
-    Params = KklParams
-    summary = (
-        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
-        "first-order filters and the static inverse map gamma (paper 003)"
-    )
-    paper = "003_29096b058aca5228.txt"
+    #: what the constant l is called in the error for a degenerate design
+    ell_label: ClassVar[str] = "l of (10)"
     example_sample_rate_hz = 5000.0
     example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
     example_frequency_hz = 50.0
 
-    @classmethod
-    def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
-        """The paper's model has no offset: a 50 Hz sine of amplitude 1 plus 1 % noise."""
-        rng = np.random.default_rng(seed)
-        t = np.arange(n) / cls.example_sample_rate_hz
-        return np.sin(2 * np.pi * cls.example_frequency_hz * t + 0.3) + 0.01 * rng.standard_normal(n)
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        """(l, the x3 where its infimum is reached) for filters ``self.lam_n`` and x3 in
+        [x3_lo, x3_hi], in units of omega_ref."""
+        raise NotImplementedError
 
     def _check_params(self) -> None:
         check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
@@ -613,17 +662,42 @@ class Kkl(Estimator):
         ts = 1.0 / self.sample_rate_hz
         # lambda~ (units of omega_ref), lambda (rad/s), x3~ range of (11)
         self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
-        self.ell, self.ell_x3 = kkl_ell(self.lam_n, x3_lo, x3_hi)  # (10), units of omega_ref^2
+        self.ell, self.ell_x3 = self._ell(x3_lo, x3_hi)  # (10), units of omega_ref^2
         if not (self.ell > 0.0 and math.isfinite(self.ell)):
-            raise ParameterError(f"{self.name}: l of (10): expected > 0, got {self.ell} (degenerate design)")
+            raise ParameterError(f"{self.name}: {self.ell_label}: expected > 0, got {self.ell} (degenerate design)")
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
         self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
 
-    def _initial_state(self) -> dict[str, np.ndarray]:
-        return {"xi_state": np.zeros(self.lam_n.size + 10)}
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        return observer_track(outputs, block)
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, new = kkl_kernel(
-            samples, state["xi_state"], self.lam_n, self._fa, self._fb0, self._fb1, self._consts, last_only
-        )
-        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}
+
+@register
+class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel):
+    """m first-order filters and the static inverse gamma of Praly et al. (module docstring)."""
+
+    name = "kkl"
+    summary = (
+        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
+        "first-order filters and the static inverse map gamma (Praly, Marconi, Isidori)"
+    )
+    paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator"'
+
+    @classmethod
+    def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
+        """The paper's model has no offset: a 50 Hz sine of amplitude 1 plus 1 % noise."""
+        rng = np.random.default_rng(seed)
+        t = np.arange(n) / cls.example_sample_rate_hz
+        return np.sin(2 * np.pi * cls.example_frequency_hz * t + 0.3) + 0.01 * rng.standard_normal(n)
+
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        return kkl_ell(self.lam_n, x3_lo, x3_hi)
+
+    def _setup(self) -> None:
+        super()._setup()
+        self._constants = (self.lam_n, self._fa, self._fb0, self._fb1, self._consts)
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
+        have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
+        return {"xi_state": np.zeros(self.lam_n.size + 10)}

@@ -1,6 +1,7 @@
-"""``kkl-biased``: the KKL observer of paper 003 extended to a sinusoid with a constant offset.
+"""``kkl-biased``: the KKL observer of Praly et al. extended to a sinusoid with a constant offset.
 
-Paper: ``shared/papers/003_29096b058aca5228.txt`` (Praly, Marconi, Isidori). The paper's
+Paper: L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic
+oscillator" (as :mod:`sinewatch.estimators.kkl`). The paper's
 signal has no offset; this module is an **extension** built the same way (its Sections
 III-IV), not something the paper shows. :mod:`sinewatch.estimators.kkl` holds the
 unbiased observer and the design helpers used here.
@@ -55,35 +56,32 @@ constant exactly (sinc(0) = 1), so the offset needs no correction. Differences:
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator
+from sinewatch.estimators.base import kernel
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
-    FLUSH,
-    JUMP_FLOOR,
-    JUMP_RATIO,
     PAPER_LAMBDA_FACTORS,
+    FilterBankObserver,
     KklParams,
-    check_nyquist,
     ell_eq10,
-    foh_coefficients,
-    observer_consts,
-    observer_track,
-    reference_scaling,
+    filter_step,
+    half_step,
+    jump_detector,
+    observer_constants,
+    write_row,
 )
-from sinewatch.schemas.errors import ParameterError
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
 DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
 
 
-def biased_image_columns(lam: np.ndarray):
+def biased_image_columns(lam: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """x3 -> B(x3) with eta - x4 1 = B(x3) (x1, x2) (lambda in units of omega_ref)."""
 
     def cols(x3: np.ndarray) -> np.ndarray:
@@ -140,34 +138,41 @@ class KklBiasedParams(KklParams):
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, last_only):
+@kernel
+def kkl_biased_kernel(
+    y: np.ndarray,
+    state: np.ndarray,
+    lam: np.ndarray,
+    lam_phys: np.ndarray,
+    fa: np.ndarray,
+    fb0: np.ndarray,
+    fb1: np.ndarray,
+    kv: np.ndarray,
+    kk: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the biased observer over ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` = lambda~ (units of omega_ref), ``lam_phys`` = lambda (rad/s); ``fa, fb0, fb1``
     the exact first-order-hold coefficients; ``kv`` (3 x 3, columns) and ``kk`` (3,) the
     eigenvectors and eigenvalues of C^T C, C = (lambda~^2 lambda~ 1), used to solve the
-    4 x 4 system by its Schur complement for any mu. ``state`` packs xi_1..xi_m, then
-    y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run,
-    e2_fast, e2_slow. ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay,
+    4 x 4 system by its Schur complement for any mu. ``state`` is the ``xi_state`` array
+    (layout: :meth:`KklBiased._initial_state`). ``consts`` packs Ts, omega_ref, l_b, silence_ratio, env_decay,
     n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
     converged range, and the gains of the jump detector's fast and slow means. Pure: the
     inputs are not modified.
     """
     m = lam.shape[0]
-    Ts, w_ref, ell = consts[0], consts[1], consts[2]
-    silence_ratio, env_decay, n_settle = consts[3], consts[4], consts[5]
-    max_fit2 = consts[6] * consts[6]
-    max_pred2 = consts[7] * consts[7]
-    avg_gain = consts[8]
-    wts_lo, wts_hi = consts[9], consts[10]
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
     xi = state[:m].copy()
-    y_prev, have_prev = state[m], state[m + 1]
+    y_prev, have_prev = float(state[m]), state[m + 1]
     y_pred, pred_valid = state[m + 2], state[m + 3]
     n_good, env = state[m + 4], state[m + 5]
     e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
     e2_fast, e2_slow = state[m + 10], state[m + 11]
-    fast_gain, slow_gain = consts[11], consts[12]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
     ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
@@ -178,11 +183,8 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
     sse = 0.0
     for k in range(n):
         yk = y[k]
-        # filters (12), exact for y linear between samples
         if have_prev != 0.0:
-            for i in range(m):
-                v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-                xi[i] = v if abs(v) > FLUSH else 0.0
+            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
             if n_run < n_settle:
                 n_run += 1.0
         have_prev = 1.0
@@ -194,11 +196,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
         y_avg += avg_gain * (yk - y_avg)
         dy = yk - y_avg
         yv_avg += avg_gain * (dy * dy - yv_avg)
-        # jump detector: the error's short-term mean square against its long-term level
-        jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
-        e2_fast += fast_gain * (e * e - e2_fast)
-        e2_slow += slow_gain * (e * e - e2_slow)
-        jump = jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * yv_avg
+        jump, e2_fast, e2_slow = jump_detector(e * e, e2_fast, e2_slow, fast_gain, slow_gain, yv_avg)
         # eta = lambda xi, its mean and centred part
         eta_bar = 0.0
         for i in range(m):
@@ -278,10 +276,7 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
                         defined = True
                         dx4 = z2 / z3
                         offset = eta_bar + s * dx4  # x4
-                        half = 0.5 * wts
-                        sh = math.sin(half)
-                        chh = math.sqrt(max(1.0 - sh * sh, 0.0))
-                        g = (half / sh) ** 2 if half > 1e-8 else 1.0  # 1 / sinc^2(w Ts / 2)
+                        sh, chh, g = half_step(wts)
                         a_sin = s * (z0 - dx4) * g  # A sin(theta) = x1
                         a_cos = -s * z1 * g / sq  # A cos(theta) = -x2 / omega
                         y_pred = offset + a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * chh)
@@ -306,85 +301,44 @@ def kkl_biased_kernel(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, las
             continue
         j = 0 if last_only else k
         ext[j, 2] = math.sqrt(e2_avg / yv_avg) if yv_avg > 0.0 else np.nan
-        out[j, 3] = offset
-        if defined:
-            phase = math.atan2(a_sin, a_cos)
-            out[j, 0] = wts / (2.0 * math.pi * Ts)
-            out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
-            out[j, 2] = phase if phase > -math.pi else math.pi
-            out[j, 4] = 1.0 if (good and n_good >= n_settle) else 0.0
-            ext[j, 0] = 2.0 * det / ell
-            ext[j, 1] = math.sqrt(rr / ff)
-        else:
-            out[j, 0] = np.nan
-            out[j, 1] = np.nan
-            out[j, 2] = np.nan
-            out[j, 4] = 0.0
-            ext[j, 0] = np.nan
-            ext[j, 1] = np.nan
+        # the offset is reported even while the oscillation is undefined
+        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
+                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
     new_state = np.empty(m + 12)
-    new_state[m + 10] = e2_fast
-    new_state[m + 11] = e2_slow
     new_state[:m] = xi
-    new_state[m] = y_prev
-    new_state[m + 1] = have_prev
-    new_state[m + 2] = y_pred
-    new_state[m + 3] = pred_valid
-    new_state[m + 4] = n_good
-    new_state[m + 5] = env
-    new_state[m + 6] = e2_avg
-    new_state[m + 7] = y_avg
-    new_state[m + 8] = yv_avg
-    new_state[m + 9] = n_run
+    new_state[m:] = np.array(
+        [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
+    )
     return out, ext, sse, new_state
 
 
 @register
-class KklBiased(Estimator):
-    """Extension of paper 003's observer to a biased sinusoid (module docstring)."""
+class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel):
+    """Extension of Praly et al.'s observer to a biased sinusoid (module docstring)."""
 
     name = "kkl-biased"
-    Params = KklBiasedParams
     summary = (
         "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
-        "and a static inverse map (extension of paper 003)"
+        "and a static inverse map (extension of Praly, Marconi, Isidori)"
     )
-    paper = "003_29096b058aca5228.txt"
-    example_sample_rate_hz = 5000.0
-    example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
-    example_frequency_hz = 50.0  # the default example signal: 0.5 + sin(2 pi 50 t + 0.3) + noise
+    paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator" (extended)'
+    ell_label = "l_b"
+    # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
-    def _check_params(self) -> None:
-        check_nyquist(self.name, self.params.f_max_hz, self.sample_rate_hz)
+    def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
+        return biased_ell(self.lam_n, x3_lo, x3_hi)
 
     def _setup(self) -> None:
-        ts = 1.0 / self.sample_rate_hz
-        self.omega_ref, self.lam_n, self.lambdas, x3_lo, x3_hi = reference_scaling(self.params)
-        self.ell, self.ell_x3 = biased_ell(self.lam_n, x3_lo, x3_hi)
-        if not (self.ell > 0.0 and math.isfinite(self.ell)):
-            raise ParameterError(f"{self.name}: l_b: expected > 0, got {self.ell} (degenerate design)")
+        super()._setup()
         basis = np.column_stack([self.lam_n**2, self.lam_n, np.ones_like(self.lam_n)])
         kk, kv = np.linalg.eigh(basis.T @ basis)
         self._kk = np.ascontiguousarray(kk)
         self._kv = np.ascontiguousarray(kv)
-        self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
-        self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
+        self._constants = (
+            self.lam_n, self.lambdas, self._fa, self._fb0, self._fb1, self._kv, self._kk, self._consts,
+        )  # fmt: skip
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``xi_state`` (m + 12,): the filter states xi_1..xi_m, then y_prev, have_prev,
+        y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 12)}
-
-    def _run(self, samples, state, last_only):
-        out, ext, sse, new = kkl_biased_kernel(
-            samples,
-            state["xi_state"],
-            self.lam_n,
-            self.lambdas,
-            self._fa,
-            self._fb0,
-            self._fb1,
-            self._kv,
-            self._kk,
-            self._consts,
-            last_only,
-        )
-        return observer_track(out, ext, sse, samples.shape[0]), {"xi_state": new}

@@ -112,11 +112,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, GridReports, Track
+from sinewatch.estimators.base import Estimator, EstimatorParams, GridReports, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
 # [N] four-term window, continuous first derivative (-93 dB sidelobes)
@@ -331,7 +330,7 @@ N_ISTATE = 6
 N_FSTATE = 16
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _wrap(p: float) -> float:
     y = math.pi - p
     r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
@@ -340,7 +339,7 @@ def _wrap(p: float) -> float:
     return math.pi - r
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _interp(table: np.ndarray, x0: float, step: float, x: float) -> Any:
     """Cubic (4-point Lagrange) interpolation of a table sampled at x0 + i step; clamped."""
     u = (x - x0) / step
@@ -364,7 +363,7 @@ def _interp(table: np.ndarray, x0: float, step: float, x: float) -> Any:
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def _report(
     ring: np.ndarray,
     dcring: np.ndarray,
@@ -436,13 +435,14 @@ def _report(
     out[5] = 1.0 if (math.isfinite(nu) and math.isfinite(rocof) and math.isfinite(abs(x))) else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel
 def pmu_kernel(
     x: np.ndarray,
     ring: np.ndarray,
     dcring: np.ndarray,
     istate: np.ndarray,
     fstate: np.ndarray,
+    anchor: np.ndarray,
     kernels: np.ndarray,
     osc: np.ndarray,
     iconsts: np.ndarray,
@@ -452,9 +452,10 @@ def pmu_kernel(
     g_chirp: np.ndarray,
     g_image: np.ndarray,
     last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 8), sse,
-    n_pred, new_ring, new_dcring, new_istate, new_fstate).
+    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor) (``anchor``, the
+    time anchor the class keeps, passes through unchanged).
 
     ``ring`` (2L, 2) holds the decimated c_j twice (so any window is contiguous), dcring
     (2L,) the decimated raw samples; ``iconsts`` = (D, M, m_lo, L); ``fconsts`` = (f0, fs,
@@ -621,15 +622,14 @@ def pmu_kernel(
         _ = made
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
-    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2
+    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
 
 
 @register
-class Pmu(Estimator):
+class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
     """Synchrophasor estimator on the reporting grid (see module docstring)."""
 
     name = "pmu"
-    Params = PmuParams
     reports_on_grid = True
     summary = (
         "C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the "
@@ -640,13 +640,8 @@ class Pmu(Estimator):
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
 
-    @property
-    def _p(self) -> PmuParams:
-        assert isinstance(self.params, PmuParams)
-        return self.params
-
     def _check_params(self) -> None:
-        p = self._p
+        p = self.params
         f0 = int(p.nominal_frequency_hz)
         rate = f0 if p.reporting_rate_hz is None else int(p.reporting_rate_hz)
         allowed = (M_CLASS_RATES if p.performance_class == "M" else P_CLASS_RATES)[f0]
@@ -670,9 +665,12 @@ class Pmu(Estimator):
                 d.nu_image0,
                 TABLE_STEP_HZ,
                 d.fs / d.reporting_rate,
-                self._p.min_amplitude,
+                self.params.min_amplitude,
             ]
         )
+        self._constants = (
+            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image
+        )  # fmt: skip
 
     # ---- time anchor ----------------------------------------------------------------------
     def _anchor_state(self, anchor_ns: int) -> dict[str, np.ndarray]:
@@ -696,6 +694,12 @@ class Pmu(Estimator):
         }
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``ring`` (2L, 2): the decimated c_j (re, im), each written twice so that a window
+        is contiguous; ``dc_ring`` (2L,): the decimated raw samples; ``counters`` (6,) int64:
+        samples since the anchor, next decimated index, next grid index, first grid index
+        after the anchor, report held, report defined; ``values`` (16,): see ``N_FSTATE``;
+        ``anchor_ns`` (2,) int64: the anchor (ns since the epoch) and whether a block's
+        time set it (1) or it is the default t = 0 (0)."""
         return self._anchor_state(0)
 
     def _expected_t0_ns(self, st: dict[str, np.ndarray]) -> int:
@@ -722,29 +726,22 @@ class Pmu(Estimator):
         return st
 
     # ---- the kernel ----------------------------------------------------------------------
-    def _run(
-        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
-    ) -> tuple[Track, dict[str, np.ndarray]]:
-        return self._run_timed(samples, state, last_only, None)
-
     def _run_timed(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
     ) -> tuple[Track, dict[str, np.ndarray]]:
-        d = self.design
-        state = self._state_for_block(state, t0_ns)
-        out, reps, sse, n_pred, rg, dr, ist, fst = pmu_kernel(
-            samples, state["ring"], state["dc_ring"], state["counters"], state["values"],
-            d.kernels, d.osc, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image, last_only,
-        )  # fmt: skip
-        rocof = out[:, 5:6]
-        track = Track(
+        return self._run(samples, self._state_for_block(state, t0_ns), last_only)
+
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, reps, sse, n_pred = outputs
+        residual = math.sqrt(sse / n_pred) if n_pred else math.nan
+        return Track(
             frequency_hz=out[:, 0:1],
             amplitude=out[:, 1:2],
             phase_rad=out[:, 2:3],
             offset=out[:, 3],
             converged=out[:, 4] != 0.0,
-            residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
-            rocof_hz_per_s=rocof,
+            residual_rms=residual,
+            rocof_hz_per_s=out[:, 5:6],
             reports=GridReports(
                 index=reps[:, 0].astype(np.int64),
                 reporting_rate_hz=self.reporting_rate,
@@ -754,20 +751,12 @@ class Pmu(Estimator):
                     phase_rad=reps[:, 6:7],
                     offset=reps[:, 7],
                     converged=reps[:, 3] > self._fconsts[6],
-                    residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
+                    residual_rms=residual,
                     extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
                     rocof_hz_per_s=reps[:, 2:3],
                 ),
             ),
         )
-        new_state = {
-            "ring": rg,
-            "dc_ring": dr,
-            "counters": ist,
-            "values": fst,
-            "anchor_ns": state["anchor_ns"].copy(),
-        }
-        return track, new_state
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """``sogi-fll``: second-order generalized integrator with a frequency-locked loop and a
 DC-offset integrator, for one biased sinusoid (the power-electronics favourite).
 
-No paper file: paper 004 (``shared/papers/004_880a59a5c07ec15b.txt``, Section I) names
-this family as the usual way PLL/ANF methods are "augmented ... towards a second-order
+None of the papers sinewatch implements describes it: Chen, Pin, Ng, Hui, Parisini, "An
+adaptive observer-based robust estimator of multi-sinusoidal signals" (IEEE Trans.
+Automatic Control, 2018), Section I, names this family as the usual way PLL/ANF methods are "augmented ... towards a second-order
 generalized integrator-based orthogonal signal generator (OSG-SOGI)" to cope with a dc
 offset. The structure and the FLL normalisation follow
 
@@ -12,7 +13,7 @@ offset. The structure and the FLL normalisation follow
   (SOGI-QSG, FLL, gain normalisation);
 * the DC-offset rejection is the usual extra integrator on the SOGI error (the
   "SOGI with DC loop", cf. Karimi-Ghartemani et al., IEEE Trans. Power Electron. 27(1),
-  2012, paper 004's reference [9]).
+  2012, reference [9] of Chen et al.).
 
 Continuous-time model (omega' is the estimated angular frequency)::
 
@@ -104,81 +105,74 @@ import math
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, track_from_columns
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    NonNegativeFinite,
+    PositiveFinite,
+    Track,
+    kernel,
+    track_from_columns,
+)
 from sinewatch.schemas.errors import ParameterError
 
 
 class SogiFllParams(EstimatorParams):
-    nominal_frequency_hz: float = Field(50.0, gt=0, allow_inf_nan=False, description="Initial FLL frequency (Hz)")
-    k: float = Field(
+    nominal_frequency_hz: PositiveFinite = Field(50.0, description="Initial FLL frequency (Hz)")
+    k: PositiveFinite = Field(
         math.sqrt(2.0),
-        gt=0,
-        allow_inf_nan=False,
         description="SOGI damping gain (dimensionless; sqrt(2) is the usual choice)",
     )
-    k_dc: float = Field(0.25, gt=0, allow_inf_nan=False, description="DC-offset integrator gain, relative to omega'")
-    gamma: float | None = Field(
+    k_dc: PositiveFinite = Field(0.25, description="DC-offset integrator gain, relative to omega'")
+    gamma: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="Normalised FLL gain Gamma (1/s): the frequency error decays as exp(-Gamma t). "
         "Default: the nominal frequency's value in Hz (a time constant of one nominal cycle, "
         "50 1/s at 50 Hz); at most k pi nominal (the SOGI's bandwidth)",
     )
-    fll_amplitude_memory_cycles: float = Field(
+    fll_amplitude_memory_cycles: NonNegativeFinite = Field(
         0.0,
-        ge=0,
-        allow_inf_nan=False,
         description="FLL normalised by max(A^2, P/2), P = A^2 low-passed over this many nominal "
         "cycles: bounds the frequency kick of a deep sag or signal loss, at the cost of a "
         "slower recovery; 0 (default) = plain A^2 (Rodriguez)",
     )
-    min_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False, description="FLL lower clamp (default 0.5 x nominal)"
+    min_frequency_hz: PositiveFinite | None = Field(None, description="FLL lower clamp (default 0.5 x nominal)")
+    max_frequency_hz: PositiveFinite | None = Field(
+        None, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
     )
-    max_frequency_hz: float | None = Field(
-        None, gt=0, allow_inf_nan=False, description="FLL upper clamp (default 1.5 x nominal; < Nyquist)"
-    )
-    min_amplitude: float = Field(
+    min_amplitude: NonNegativeFinite = Field(
         1e-6,
-        ge=0,
-        allow_inf_nan=False,
         description="Below this amplitude the FLL holds and frequency/phase are NaN",
     )
-    max_relative_error: float = Field(
+    max_relative_error: PositiveFinite = Field(
         0.2,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the smoothed RMS SOGI error below this x amplitude",
     )
-    frequency_tolerance_hz: float | None = Field(
+    frequency_tolerance_hz: PositiveFinite | None = Field(
         None,
-        gt=0,
-        allow_inf_nan=False,
         description="converged requires the FLL's predicted remaining frequency error below this "
         "(default 0.002 x nominal: 0.1 Hz at 50 Hz)",
     )
-    convergence_cycles: float = Field(
+    convergence_cycles: PositiveFinite = Field(
         1.0,
-        gt=0,
-        allow_inf_nan=False,
         description="Time constant of the convergence low-pass filters, in nominal cycles",
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def sogi_fll_kernel(v, state, consts, last_only):
+@kernel
+def sogi_fll_kernel(
+    v: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the SOGI-FLL over block ``v`` from ``state``; return
     ``(out, extras, sse, new_state)``.
 
-    ``state`` = (v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1,
-    LPF(u) stage 2); ``consts`` = (h, k, k_dc, Gamma, omega_min, omega_max,
-    min_amplitude, max_relative_error, frequency_tolerance_hz, alpha of the error
-    filter, alpha of each of the two u filter stages).
+    ``state`` is the ``x`` array (layout: :meth:`SogiFll._initial_state`); ``consts`` =
+    (h, k, k_dc, Gamma, omega_min, omega_max, min_amplitude, max_relative_error,
+    frequency_tolerance_hz, alpha of the error filter, alpha of each of the two u filter
+    stages, beta of the amplitude memory (N)).
     ``out`` columns: frequency_hz, amplitude, phase_rad, offset, converged (0/1);
     ``extras`` columns: relative_error_rms, rocof_hz_per_s. Pure.
     """
@@ -274,13 +268,11 @@ def sogi_fll_kernel(v, state, consts, last_only):
 
 
 @register
-class SogiFll(Estimator):
+class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
     """SOGI-FLL with DC-offset integrator, Tustin-discretised (see module docstring)."""
 
     name = "sogi-fll"
-    Params = SogiFllParams
     summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
-    paper = None
     example_sample_rate_hz = 5000.0
     example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0}
@@ -327,18 +319,22 @@ class SogiFll(Estimator):
         alpha2 = -math.expm1(-2.0 * h / tau)  # u filter: two stages of tau/2 each
         mem = p.fll_amplitude_memory_cycles
         beta = 1.0 if mem == 0 else -math.expm1(-h * p.nominal_frequency_hz / mem)  # (N)
-        self._consts = np.array(
-            [h, p.k, p.k_dc, self.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
-             p.min_amplitude, p.max_relative_error, self.frequency_tolerance_hz, alpha, alpha2, beta]
+        self._constants = (
+            np.array(
+                [h, p.k, p.k_dc, self.gamma, 2 * math.pi * f_lo, 2 * math.pi * f_hi,
+                 p.min_amplitude, p.max_relative_error, self.frequency_tolerance_hz, alpha, alpha2, beta]
+            ),
         )  # fmt: skip
 
     def _initial_state(self) -> dict[str, np.ndarray]:
+        """``x`` (10,): v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1,
+        LPF(u) stage 2, P = LPF(A^2) (the amplitude memory of (N))."""
         w0 = 2.0 * math.pi * self.params.nominal_frequency_hz
         return {"x": np.array([0.0, 0.0, 0.0, w0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])}
 
-    def _run(self, samples, state, last_only):
-        out, ext, sse, x = sogi_fll_kernel(samples, state["x"], self._consts, last_only)
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, ext, sse = outputs
         extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
-        track = track_from_columns(out, sse, samples.shape[0], extras)
+        track = track_from_columns(out, sse, block.shape[0], extras)
         track.rocof_hz_per_s = ext[:, 1:2]  # first class too (Estimate v2), the extra kept
-        return track, {"x": x}
+        return track

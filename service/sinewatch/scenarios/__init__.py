@@ -14,11 +14,10 @@ a signal that is not a sum of sinusoids, a :class:`Scenario` subclass of its own
 from __future__ import annotations
 
 import copy
-import importlib
-import pkgutil
 from collections.abc import Callable
 from typing import Any
 
+from sinewatch.registry import Registry
 from sinewatch.scenarios._library import Component, Composite, snr_noise_std
 from sinewatch.scenarios.base import BenchInfo, Event, FaultPlan, Scenario, ScenarioStream, Truth, wrap_phase
 from sinewatch.schemas.errors import ParameterError
@@ -45,18 +44,14 @@ __all__ = [
     "wrap_phase",
 ]
 
-_FACTORIES: dict[str, Callable[..., Scenario]] = {}
-_LOADED = False
+_FACTORIES: Registry[Callable[..., Scenario]] = Registry("scenario", __name__, __path__, ParameterError)
 
 
 def register(name: str) -> Callable[[Callable[..., Scenario]], Callable[..., Scenario]]:
     """Decorator for a factory ``(**overrides) -> Scenario`` registered under ``name``."""
 
     def deco(factory: Callable[..., Scenario]) -> Callable[..., Scenario]:
-        if name in _FACTORIES and _FACTORIES[name] is not factory:
-            raise ValueError(f"scenario name {name!r} registered twice")
-        _FACTORIES[name] = factory
-        return factory
+        return _FACTORIES.add(name, factory)
 
     return deco
 
@@ -83,26 +78,10 @@ def declare(
     register(name)(factory)
 
 
-def _load_all() -> None:
-    global _LOADED
-    if _LOADED:
-        return
-    for mod in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if mod.name != "base" and not mod.name.startswith("_"):
-            importlib.import_module(f"{__name__}.{mod.name}")
-    _LOADED = True
-
-
 def names() -> list[str]:
-    _load_all()
-    return sorted(_FACTORIES)
+    return _FACTORIES.names()
 
 
 def get(name: str, **overrides: Any) -> Scenario:
     """Build scenario ``name``; overrides go to its factory (sample_rate_hz, duration_s, ...)."""
-    _load_all()
-    try:
-        factory = _FACTORIES[name]
-    except KeyError:
-        raise ParameterError(f"scenario: expected one of {sorted(_FACTORIES)}, got {name!r}") from None
-    return factory(**overrides)
+    return _FACTORIES.get(name)(**overrides)
