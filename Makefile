@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup soak schemas clean
 
 install: $(STAMP)
 
@@ -45,6 +45,11 @@ bench-e2e: $(STAMP)
 
 bench-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy
+
+# One hour at 1 M samples/s with recording rotation: RSS, fds and latency every minute.
+soak: $(STAMP)
+	mkdir -p bench-results
+	$(BIN)/sinewatch bench soak --json bench-results/soak.json --plot bench-results/soak-rss.png
 
 bench-startup: $(STAMP)
 	$(BIN)/sinewatch bench startup --runs 21 --json bench-results/startup.json

@@ -58,6 +58,13 @@ def _malformed_payloads() -> list[bytes]:
     return payloads
 
 
+def _publish_pairs(pub, a_blocks, b_blocks, indices):
+    """Blocks of channels f/a and f/b, alternately."""
+    for i in indices:
+        pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
+        pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
+
+
 def _strip(msg):
     return {k: v for k, v in msg.items() if k != "_key"}
 
@@ -79,14 +86,10 @@ def test_malformed_blocks_are_rejected_and_every_channel_goes_on(tmp_path):
             est, err = subscribe_estimates(s), subscribe_errors(s)
             pub = BlockPublisher(s)
             assert pub.wait_for_subscriber("f/a", TIMEOUT)
-            for i in range(4):
-                pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
-                pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
+            _publish_pairs(pub, a_blocks, b_blocks, range(4))
             for payload in bad:
                 pub.publish_raw("f/a", payload, JSON_ENC if payload[:1] == b"{" else None)
-            for i in range(4, 8):
-                pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
-                pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
+            _publish_pairs(pub, a_blocks, b_blocks, range(4, 8))
             estimates, errors = take(est, 16), take(err, len(bad))
             st = _status_where(status, lambda m: m["blocks_processed"] == 16 + len(bad))
             return estimates, errors, st
@@ -119,9 +122,7 @@ def test_an_estimator_that_raises_is_isolated_to_its_channel_and_keeps_its_state
             est, err = subscribe_estimates(s), subscribe_errors(s)
             pub = BlockPublisher(s)
             assert pub.wait_for_subscriber("f/a", TIMEOUT)
-            for i in range(3):
-                pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
-                pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
+            _publish_pairs(pub, a_blocks, b_blocks, range(3))
             first = take(est, 6)
             # A fault inside f/a's estimator (a kernel bug, say) on one particular block.
             estimator = daemon.pipeline.channels["f/a"].estimator
@@ -134,9 +135,7 @@ def test_an_estimator_that_raises_is_isolated_to_its_channel_and_keeps_its_state
 
             estimator._run = faulty_run
             pub.publish_raw("f/a", encode_block_binary(poison))
-            for i in range(3, 6):
-                pub.publish_raw("f/a", encode_block_binary(a_blocks[i]))
-                pub.publish_raw("f/b", encode_block_binary(b_blocks[i]))
+            _publish_pairs(pub, a_blocks, b_blocks, range(3, 6))
             return first + take(est, 6), take(err, 1)
 
     (estimates, errors), daemon, code = run_daemon(config, client)

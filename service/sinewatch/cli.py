@@ -178,6 +178,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 # ---- parser ----------------------------------------------------------------------------------
+def _config_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="TOML or JSON config file (default: $SINEWATCH_CONFIG or built-in defaults)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
 
@@ -199,16 +203,16 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(fn=cmd_demo)
 
     s = sub.add_parser("serve", help="run the daemon until SIGINT/SIGTERM")
-    s.add_argument("--config", help="TOML or JSON config file (default: $SINEWATCH_CONFIG or built-in defaults)")
+    _config_argument(s)
     s.set_defaults(fn=cmd_serve)
 
     c = sub.add_parser("config", help="configuration")
     csub = c.add_subparsers(dest="config_command", required=True, metavar="SUBCOMMAND")
     cs = csub.add_parser("show", help="print the effective configuration (file + environment)")
-    cs.add_argument("--config", help="TOML or JSON config file")
+    _config_argument(cs)
     cs.set_defaults(fn=cmd_config_show)
     cc = csub.add_parser("check", help="also check each rule's estimator parameters (imports the estimators)")
-    cc.add_argument("--config", help="TOML or JSON config file")
+    _config_argument(cc)
     cc.set_defaults(fn=cmd_config_check)
 
     sc = sub.add_parser("schemas", help="JSON Schemas of the wire format and the config")

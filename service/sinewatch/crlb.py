@@ -75,21 +75,10 @@ class Bound:
     phase_rad: float
     offset: float
 
-    @property
-    def frequency_hz_std(self) -> float:
-        return math.sqrt(self.frequency_hz)
-
-    @property
-    def amplitude_std(self) -> float:
-        return math.sqrt(self.amplitude)
-
-    @property
-    def phase_rad_std(self) -> float:
-        return math.sqrt(self.phase_rad)
-
-    @property
-    def offset_std(self) -> float:
-        return math.sqrt(self.offset)
+    frequency_hz_std = property(lambda self: math.sqrt(self.frequency_hz), doc="sqrt of the frequency bound, Hz")
+    amplitude_std = property(lambda self: math.sqrt(self.amplitude), doc="sqrt of the amplitude bound")
+    phase_rad_std = property(lambda self: math.sqrt(self.phase_rad), doc="sqrt of the phase bound, rad")
+    offset_std = property(lambda self: math.sqrt(self.offset), doc="sqrt of the offset bound")
 
     def as_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)

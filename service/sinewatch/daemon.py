@@ -28,6 +28,7 @@ import logging
 import signal
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,9 +106,12 @@ class Intake:
                     if more is None:
                         break
                     batch.append(self._take(more))
-                batch = [item for item in batch if self._admit(item)]
+                dropped: Counter[str] = Counter()
+                batch = [item for item in batch if self._admit(item, dropped)]
                 if batch:
                     self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+                if dropped:  # one report per key per batch: a flood of drops must not flood the loop
+                    self._loop.call_soon_threadsafe(self._daemon.report_drops, dropped)
         except zenoh.ZError:
             pass  # channel closed by stop(): intake is over
         finally:
@@ -123,13 +127,13 @@ class Intake:
     def _take(sample: zenoh.Sample) -> Item:
         return (str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
 
-    def _admit(self, item: Item) -> bool:
+    def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         self.counters.received += 1
         if self._room.acquire(blocking=False):
             return True
         if self._policy == "drop":
             self.counters.dropped += 1
-            self._loop.call_soon_threadsafe(self._daemon.report_drop, item[0])
+            dropped[item[0]] += 1
             return False
         self.counters.backpressure_waits += 1
         while not self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
@@ -206,8 +210,12 @@ class Daemon:
         self._queued += len(batch)
         self._queue.put_nowait(batch)
 
-    def report_drop(self, key: str) -> None:
-        self.pipeline.report_error(key, "queue_overflow", "intake queue full: input dropped", self._log_time())
+    def report_drops(self, dropped: Counter[str]) -> None:
+        """Inputs the intake dropped (drop policy), per key: one ErrorReport each, whose
+        ``count`` advances by the number dropped; the gap shows on the next estimate."""
+        for key, n in dropped.items():
+            message = f"intake queue full: {n} input(s) dropped"
+            self.pipeline.report_error(key, "queue_overflow", message, self._log_time(), count=n)
 
     def _log_time(self) -> int:
         self._last_log_time = sanitize_log_time(self._last_log_time, time.time_ns())

@@ -445,11 +445,21 @@ class Pipeline:
         return encode_estimate(estimate, self.estimate_version)
 
     def _reject(
-        self, key: str, block: Block | None, ch: Channel | None, kind: str, message: str, log_time_ns: int
+        self,
+        key: str,
+        block: Block | None,
+        ch: Channel | None,
+        kind: str,
+        message: str,
+        log_time_ns: int,
+        *,
+        count: int = 1,
     ) -> None:
-        self.counters.errors += 1
-        self.counters.by_kind[kind] += 1
-        self._error_counts[(key, kind)] += 1
+        """One ErrorReport for ``count`` rejected inputs (more than one only for inputs the
+        intake dropped in one go)."""
+        self.counters.errors += count
+        self.counters.by_kind[kind] += count
+        self._error_counts[(key, kind)] += count
         if ch is not None:
             ch.errors += 1
         channel_name = block.channel if block is not None else None
@@ -476,9 +486,9 @@ class Pipeline:
             sink.on_error(out_key, payload, log_time_ns)
 
     # ---- introspection ---------------------------------------------------------------------
-    def report_error(self, key: str, kind: str, message: str, log_time_ns: int) -> None:
-        """An error found outside the pipeline (e.g. the intake queue dropped an input)."""
-        self._reject(key, None, None, kind, message, log_time_ns)
+    def report_error(self, key: str, kind: str, message: str, log_time_ns: int, *, count: int = 1) -> None:
+        """An error found outside the pipeline (e.g. the intake queue dropped ``count`` inputs)."""
+        self._reject(key, None, None, kind, message, log_time_ns, count=count)
 
     def sink_status(self) -> list[dict[str, Any]]:
         return [sink.status() for sink in self.sinks]

@@ -40,6 +40,8 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     benches: tuple[tuple[str, str, Callable[[argparse.ArgumentParser], None]], ...] = (
         ("kernels", "samples/s per core per estimator vs a numpy FFT baseline", add_kernels_arguments),
         ("e2e", "daemon fed through Zenoh on loopback, recording on", add_e2e_arguments),
+        ("overload", "the daemon offered twice what it sustains, with each queue policy", add_overload_arguments),
+        ("soak", "hours of load with recording rotation: RSS, fds, latency every interval", add_soak_arguments),
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
@@ -65,7 +67,30 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block", type=int, default=1024)
     parser.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
     parser.add_argument("--estimator", default="ges-kalman")
+    parser.add_argument(
+        "--queue-policy", choices=["block", "drop"], default="block", help="the daemon's limits.queue_policy"
+    )
+    parser.add_argument("--queue-capacity", type=int, default=8192, help="the daemon's limits.queue_capacity")
     parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
+def add_soak_arguments(parser: argparse.ArgumentParser) -> None:
+    add_e2e_arguments(parser)
+    parser.set_defaults(channels=100, duration=3600.0)  # 100 ch x 10 kHz = 1 M samples/s for an hour
+    parser.add_argument("--interval", type=float, default=60.0, help="seconds between report lines (default 60)")
+    parser.add_argument("--rotate-seconds", type=float, default=300.0, help="a new recording this often (default 300)")
+    parser.add_argument("--plot", type=Path, help="write the RSS curve to this PNG (needs matplotlib)")
+
+
+def add_overload_arguments(parser: argparse.ArgumentParser) -> None:
+    add_e2e_arguments(parser)
+    parser.set_defaults(channels=600, duration=20.0, queue_capacity=1024)
+    parser.add_argument(
+        "--sustainable-channels",
+        type=int,
+        default=300,
+        help="channels the daemon sustains at this rate (bench e2e); the offer is --channels (default 600, twice)",
+    )
 
 
 def add_accuracy_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -21,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,13 @@ from rich.console import Console
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
 from sinewatch.console import make_console
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -44,6 +53,8 @@ class LatencyProbe:
     def __init__(self, session: Any, key: str) -> None:
         self.latencies_ns: list[int] = []
         self.received = 0
+        self.gaps = 0  # estimates that say blocks were missing before them
+        self.gap_blocks = 0
         self.done = threading.Event()
         self.expected: int | None = None
         self._sub = session.declare_subscriber(key, self._on)
@@ -53,6 +64,9 @@ class LatencyProbe:
         msg = json.loads(sample.payload.to_bytes())
         self.latencies_ns.append(now - msg["timestamp_ns"])
         self.received += 1
+        if msg["diagnostics"]["gap"]:
+            self.gaps += 1
+            self.gap_blocks += msg["diagnostics"]["gap_blocks"]
         if self.expected is not None and self.received >= self.expected:
             self.done.set()
 
@@ -105,14 +119,42 @@ def feeder_main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     console = make_console()
-    port = free_loopback_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    result = measure(args, console)
+    _print(console, result)
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    ok = result["missing_estimates"] == 0 and result["daemon_dropped"] == 0
+    return 0 if ok else 1
+
+
+def measure(args: argparse.Namespace, console: Console) -> dict[str, Any]:
+    """Run the daemon as its own process, feed it, and return the figures."""
+    with running_daemon(args) as (endpoint, daemon, tmp):
+        result = _drive(args, endpoint, daemon, console)
+    result["recorded_bytes"] = tmp.recorded_bytes
+    result["daemon_exit_code"] = daemon.returncode
+    return result
+
+
+class _Recording:
+    recorded_bytes = 0
+
+
+@contextlib.contextmanager
+def running_daemon(
+    args: argparse.Namespace, recording: dict[str, Any] | None = None
+) -> Iterator[tuple[str, subprocess.Popen[bytes], _Recording]]:
+    """``sinewatch serve`` as its own process on a free loopback port, recording to a
+    temporary directory; stopped with SIGINT (drain, finish the file) on exit."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    rec = _Recording()
     with tempfile.TemporaryDirectory(prefix="sinewatch-bench-") as tmp:
         config = {
             "daemon_id": "bench",
             "zenoh": {"listen": [endpoint]},
             "rules": [{"match": "sinewatch/in/**", "estimator": args.estimator, "params": _params(args)}],
-            "recording": {"directory": str(Path(tmp) / "rec")},
+            "recording": {"directory": str(Path(tmp) / "rec"), **(recording or {})},
+            "limits": {"queue_policy": args.queue_policy, "queue_capacity": args.queue_capacity},
             "status_interval_s": 1.0,
         }
         cfg_path = Path(tmp) / "bench.json"
@@ -123,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
             stderr=subprocess.PIPE,
         )
         try:
-            result = _drive(args, endpoint, daemon, console)
+            yield endpoint, daemon, rec
         finally:
             if daemon.poll() is None:
                 daemon.send_signal(signal.SIGINT)
@@ -131,14 +173,25 @@ def run(args: argparse.Namespace) -> int:
                     daemon.wait(60)
                 except subprocess.TimeoutExpired:
                     daemon.kill()
-        files = sorted((Path(tmp) / "rec").glob("*.mcap"))
-        result["recorded_bytes"] = sum(f.stat().st_size for f in files)
-        result["daemon_exit_code"] = daemon.returncode
-    _print(console, result)
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-    ok = result["missing_estimates"] == 0 and result["daemon_dropped"] == 0
-    return 0 if ok else 1
+            rec.recorded_bytes = sum(f.stat().st_size for f in (Path(tmp) / "rec").glob("*.mcap"))
+
+
+def feeder_command(endpoint: str, channels: int, rate: float, block: int, rounds: int) -> list[str]:
+    """The bench feeder (:func:`feeder_main`) as its own process."""
+    return [
+        sys.executable,
+        "-c",
+        "import sys; from sinewatch.bench.e2e import feeder_main; sys.exit(feeder_main(sys.argv[1:]))",
+        endpoint,
+        "--channels",
+        str(channels),
+        "--rate",
+        str(rate),
+        "--block",
+        str(block),
+        "--rounds",
+        str(rounds),
+    ]
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
@@ -165,25 +218,10 @@ def _drive(
             f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
         )
         cpu0 = _cpu_seconds(daemon.pid)
+        rss0 = _rss_mb(daemon.pid)
         t0 = time.monotonic()
         feeder = subprocess.run(
-            [
-                sys.executable,
-                "-c",
-                "import sys; from sinewatch.bench.e2e import feeder_main; sys.exit(feeder_main(sys.argv[1:]))",
-                endpoint,
-                "--channels",
-                str(n_ch),
-                "--rate",
-                str(fs),
-                "--block",
-                str(block),
-                "--rounds",
-                str(rounds),
-            ],
-            capture_output=True,
-            text=True,
-            check=False,
+            feeder_command(endpoint, n_ch, fs, block, rounds), capture_output=True, text=True, check=False
         )
         if feeder.returncode != 0:
             raise RuntimeError(f"bench feeder failed: {feeder.stderr[-2000:]}")
@@ -191,6 +229,7 @@ def _drive(
         probe.done.wait(30.0)
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
+        rss1 = _rss_mb(daemon.pid)
         # The daemon publishes Status every second: drop the backlog, then take a fresh one.
         while status.get(timeout=0) is not None:
             pass
@@ -217,6 +256,12 @@ def _drive(
         "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_ms_max": float(lat.max()) if lat.size else None,
         "daemon_cpu_fraction_of_one_core": cpu / drained_s,
+        "queue_policy": args.queue_policy,
+        "estimates_flagging_a_gap": probe.gaps,
+        "gap_blocks_flagged": probe.gap_blocks,
+        "daemon_rss_mb_start": rss0,
+        "daemon_rss_mb_end": rss1,
+        "drained_s": drained_s,
     }
 
 

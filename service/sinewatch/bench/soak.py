@@ -1,0 +1,106 @@
+"""``sinewatch bench soak`` (``make soak``): hours of load, with recording rotation, watched.
+
+The daemon runs as its own process (as in ``bench e2e``), fed in real time through Zenoh on
+loopback by the bench feeder, recording with a new file every ``--rotate-seconds``. Every
+``--interval`` seconds a line reports the daemon's RSS and open file descriptors and the
+block-to-estimate latency percentiles of that interval. At the end: RSS growth after
+warm-up (the first interval, when numba caches and buffers fill), which must stay under 5 %,
+and, with matplotlib installed, the RSS curve as a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sinewatch.bench.e2e import LatencyProbe, _rss_mb, feeder_command, running_daemon
+from sinewatch.clients import JsonSubscription, connect
+from sinewatch.console import make_console
+
+GROWTH_LIMIT = 0.05
+
+
+def run(args: argparse.Namespace) -> int:
+    console = make_console()
+    rounds = max(1, int(args.duration * args.rate / args.block))
+    samples: list[dict[str, Any]] = []
+    recording = {"rotate_seconds": args.rotate_seconds, "rotate_bytes": None}
+    with running_daemon(args, recording) as (endpoint, daemon, rec), connect([endpoint], timeout_s=30.0) as session:
+        with JsonSubscription(session, "sinewatch/status/**") as status:
+            if status.get(timeout=60.0) is None:
+                raise RuntimeError("the daemon did not come up within 60 s")
+        probe = LatencyProbe(session, "sinewatch/est/**")
+        console.print(
+            f"soak: {args.channels} ch x {args.rate:g} Hz ({args.channels * args.rate / 1e6:.2f} M samples/s) "
+            f"for {args.duration:g} s, a new recording every {args.rotate_seconds:g} s, a line every {args.interval:g} s"
+        )
+        feeder = subprocess.Popen(
+            feeder_command(endpoint, args.channels, args.rate, args.block, rounds), stdout=subprocess.PIPE, text=True
+        )
+        start, seen, tick = time.monotonic(), 0, threading.Event()
+        while feeder.poll() is None:
+            if tick.wait(args.interval):  # never set: the interval is the wait
+                break
+            window = np.array(probe.latencies_ns[seen:]) / 1e6
+            seen += window.size
+            sample = {
+                "t_s": round(time.monotonic() - start, 1),
+                "rss_mb": _rss_mb(daemon.pid),
+                "open_fds": len(os.listdir(f"/proc/{daemon.pid}/fd")),
+                "estimates": int(window.size),
+                "latency_ms_p50": float(np.percentile(window, 50)) if window.size else None,
+                "latency_ms_p99": float(np.percentile(window, 99)) if window.size else None,
+                "latency_ms_max": float(window.max()) if window.size else None,
+            }
+            samples.append(sample)
+            console.print(
+                f"t={sample['t_s']:7.1f} s  RSS {sample['rss_mb']:7.1f} MB  fds {sample['open_fds']:4d}  "
+                f"estimates {sample['estimates']:7d}  latency p50 {sample['latency_ms_p50'] or 0:.2f} "
+                f"p99 {sample['latency_ms_p99'] or 0:.2f} max {sample['latency_ms_max'] or 0:.2f} ms"
+            )
+        feeder.wait()
+        probe.close()
+    growth = _growth(samples)
+    result = {"samples": samples, "rss_growth_after_warmup": growth, "recorded_bytes": rec.recorded_bytes}
+    console.print(
+        f"RSS growth after warm-up: {100 * growth:.1f} % (limit {100 * GROWTH_LIMIT:.0f} %); "
+        f"recorded {rec.recorded_bytes / 1e9:.2f} GB"
+    )
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    if args.plot:
+        _plot(samples, args.plot)
+        console.print(f"RSS curve: {args.plot}")
+    return 0 if growth < GROWTH_LIMIT else 1
+
+
+def _growth(samples: list[dict[str, Any]]) -> float:
+    """Relative RSS growth from the end of the first interval (warm-up) to the last."""
+    if len(samples) < 2:
+        return 0.0
+    return float((samples[-1]["rss_mb"] - samples[0]["rss_mb"]) / samples[0]["rss_mb"])
+
+
+def _plot(samples: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = [s["t_s"] / 60 for s in samples]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    ax.plot(t, [s["rss_mb"] for s in samples], marker="o", ms=3)
+    ax.set_xlabel("minutes")
+    ax.set_ylabel("daemon RSS, MB")
+    ax.set_title("sinewatch bench soak: RSS under constant load")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
