@@ -168,3 +168,17 @@ def test_m_class_full_sweep_passes_at_every_rate(f0, rate):
     rows = run_suite(f0, rate, full=True)
     failed = [r for r in rows if r.passed is False]
     assert not failed, failed
+
+
+def test_accuracy_bench_scores_pmu_on_its_reports():
+    """``sinewatch bench accuracy --scenarios c37.118`` reads a grid estimator's reports at
+    their timestamps: a steady off-nominal tone is exact at the reporting instants, and a
+    phase step passes the bench's response-time and overshoot limits."""
+    from sinewatch.bench.runner import evaluate
+
+    steady = evaluate("pmu", "c37-50hz-off-p5")["metrics"]["c37"]
+    assert steady["tve_max_pct"] < 1e-3 and steady["fe_max_hz"] < 1e-4 and steady["undefined_instants"] == 0
+    step = evaluate("pmu", "c37-50hz-step-phase-p10")
+    assert step["metrics"]["c37"]["pass"], step["metrics"]["c37"]
+    (event,) = step["metrics"]["events"]
+    assert 0 < event["tve_response_time_s"] < 7 / 50 and event["overshoot_pct"] < 10

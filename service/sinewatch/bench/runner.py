@@ -140,34 +140,51 @@ def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace:
 
 def reports_on_rows(tr: Track, sample_rate_hz: float) -> Track:
     """The per-sample track of an estimator that reports on a time grid, rebuilt from its
-    reports by their timestamps (not by when they were computed, one latency later): each
-    sample holds the latest report at or before its time, the phase advanced at the
-    report's frequency; NaN and not converged before the first report. The reporting
-    instants of the C37 scoring then read the reports themselves."""
+    reports by their timestamps (not by when they were computed, one latency later).
+    Between reports k and k+1 every quantity is interpolated linearly, the phase as
+    ``phase_k + 2 pi fbar dt + d (dt / Dt)`` with ``fbar`` the mean of the two frequencies
+    and ``d`` what that leaves of the next report's phase (wrapped): exact for a steady
+    tone, and a step's change spread over one interval rather than extrapolated at a
+    transient frequency. After the last report: held, the phase advanced at its
+    frequency; before the first: NaN, not converged. The reporting instants of the C37
+    scoring then read the reports themselves."""
     assert tr.reports is not None
     grid = tr.reports
+    g = grid.track
     n = tr.n_samples
     t = np.arange(n) / sample_rate_hz
     tk = grid.times_s()
+    n_rep = tk.size
+    if n_rep == 0:
+        nan2 = np.full((n, 1), np.nan)
+        return Track(nan2, nan2.copy(), nan2.copy(), np.full(n, np.nan), np.zeros(n, dtype=bool), tr.residual_rms)
     k = np.searchsorted(tk, t + 0.5 / sample_rate_hz, side="right") - 1  # report at or before (to half a sample)
     have = k >= 0
-    kk = np.where(have, k, 0)
-    g = grid.track
-    nan2 = np.full((n, 1), np.nan)
+    k0 = np.clip(k, 0, n_rep - 1)
+    k1 = np.minimum(k0 + 1, n_rep - 1)
+    span = np.where(k1 > k0, tk[k1] - tk[k0], 1.0)
+    dt = t - tk[k0]
+    alpha = np.where(k1 > k0, np.clip(dt / span, 0.0, 1.0), 0.0)[:, None]
 
-    def hold(a: np.ndarray) -> np.ndarray:
-        return np.where(have.reshape((-1,) + (1,) * (a.ndim - 1)), a[kk], np.nan) if a.size else nan2
+    def lerp(a: np.ndarray) -> np.ndarray:
+        a2 = a if a.ndim == 2 else a[:, None]
+        out = a2[k0] + alpha * (a2[k1] - a2[k0])
+        out[~have] = np.nan
+        return out if a.ndim == 2 else out[:, 0]
 
-    f = hold(g.frequency_hz)
-    dt = (t - tk[kk])[:, None]
+    f0, f1 = g.frequency_hz[k0], g.frequency_hz[k1]
+    fbar = np.where(k1[:, None] > k0[:, None], 0.5 * (f0 + f1), f0)
+    d = M.wrap(g.phase_rad[k1] - g.phase_rad[k0] - 2.0 * np.pi * fbar * span[:, None])
+    phase = M.wrap(g.phase_rad[k0] + 2.0 * np.pi * fbar * dt[:, None] + d * alpha)
+    phase[~have] = np.nan
     return Track(
-        frequency_hz=f,
-        amplitude=hold(g.amplitude),
-        phase_rad=M.wrap(hold(g.phase_rad) + 2.0 * np.pi * f * dt),
-        offset=hold(g.offset[:, None])[:, 0],
-        converged=np.where(have, g.converged[kk], False) if g.converged.size else np.zeros(n, dtype=bool),
+        frequency_hz=lerp(g.frequency_hz),
+        amplitude=lerp(g.amplitude),
+        phase_rad=phase,
+        offset=lerp(g.offset),
+        converged=np.where(have, g.converged[k0], False),
         residual_rms=tr.residual_rms,
-        rocof_hz_per_s=None if g.rocof_hz_per_s is None else hold(g.rocof_hz_per_s),
+        rocof_hz_per_s=None if g.rocof_hz_per_s is None else lerp(g.rocof_hz_per_s),
     )
 
 
