@@ -168,7 +168,7 @@ def reports_on_rows(tr: Track, sample_rate_hz: float) -> Track:
 
     def lerp(a: np.ndarray) -> np.ndarray:
         a2 = a if a.ndim == 2 else a[:, None]
-        out = a2[k0] + alpha * (a2[k1] - a2[k0])
+        out: np.ndarray = a2[k0] + alpha * (a2[k1] - a2[k0])
         out[~have] = np.nan
         return out if a.ndim == 2 else out[:, 0]
 
