@@ -70,6 +70,22 @@ def test_off_nominal_tone_gives_the_exact_phasor_at_the_grid_times(f0, rate, f, 
     assert np.all(tr.converged)
 
 
+@pytest.mark.parametrize(("f0", "f"), [(50, 51.7), (60, 58.9)])
+def test_p_class_gives_the_exact_phasor_of_a_tone(f0, f):
+    """The P-class window (three cycles, image cancelled) on a pure off-nominal tone."""
+    est = create("pmu", FS, nominal_frequency_hz=f0, performance_class="P")
+    t = np.arange(int(2 * FS)) / FS
+    rep = est.update(np.cos(2 * np.pi * f * t + 0.4), t0_ns=0).reports
+    assert rep is not None and rep.n_reports > f0
+    tk = rep.times_s()
+    x_true = np.sqrt(0.5) * np.exp(1j * (2 * np.pi * (f - f0) * tk + 0.4))
+    tr = rep.track
+    x_est = tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"])
+    assert np.max(np.abs(x_est - x_true) / np.abs(x_true)) < 1e-5
+    assert np.max(np.abs(tr.frequency_hz[:, 0] - f)) < 1e-3
+    assert est.design.latency_s < 2.0 / f0  # the P-class latency limit at Fs = f0
+
+
 def test_reports_do_not_depend_on_the_blocks():
     """Bit for bit the same reports (and the same grid) for any cut of the stream."""
     rng = np.random.default_rng(3)

@@ -123,7 +123,8 @@ from sinewatch.schemas.errors import ParameterError
 NUTTALL = (0.355768, 0.487396, 0.144232, 0.012604)
 
 M_CLASS_RATES = {50: (10, 25, 50), 60: (10, 12, 15, 20, 30, 60)}
-P_CLASS_RATES = {50: (10, 25, 50, 100), 60: (10, 12, 15, 20, 30, 60, 120)}
+# P class: the same rates; 100/120 frames/s would need a window under 2 cycles (latency 2 / Fs)
+P_CLASS_RATES = M_CLASS_RATES
 
 # M class: T = 9 / Fs (latency 4.5 / Fs + 2 ms < 5 / Fs); fc as a fraction of Fs / 2.
 M_WINDOW_REPORTS = 9.0
@@ -140,7 +141,7 @@ class PmuParams(EstimatorParams):
     reporting_rate_hz: int | None = Field(
         None,
         description="Reports per second Fs (default f0). M class: 10, 25, 50 at 50 Hz; "
-        "10, 12, 15, 20, 30, 60 at 60 Hz; P class also 100 / 120",
+        "10, 12, 15, 20, 30, 60 at 60 Hz (the same for P class)",
     )
     performance_class: Literal["M", "P"] = Field("M", description="C37.118.1 performance class")
     min_amplitude: float = Field(
@@ -523,7 +524,6 @@ def pmu_kernel(
         ani += xi * weights[ph, 3]
         dcc += xi * weights[ph, 4]
         dcn += xi * weights[ph, 5]
-        made = False
         if rho == D - 1:  # c_j complete
             slot = j % L
             rg[slot, 0] = acr
@@ -604,7 +604,6 @@ def pmu_kernel(
                         for c in range(1, 8):
                             reps[n_rep, c] = np.nan
                         n_rep += 1
-                made = True
                 k_next += 1
             j += 1
         if not (last_only and i != n_in - 1):
@@ -633,7 +632,6 @@ def pmu_kernel(
         rho += 1
         if rho == D:
             rho = 0
-        _ = made
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
