@@ -60,6 +60,7 @@ __all__ = [
     "Bound",
     "crlb",
     "crlb_asymptotic",
+    "crlb_tones",
     "fisher_information",
     "least_squares_fit",
 ]
@@ -174,6 +175,59 @@ def crlb_asymptotic(
         phase_rad=var_phi,
         offset=s2 / n,
     )
+
+
+def crlb_tones(
+    n: int,
+    frequency_hz: list[float],
+    amplitude: list[float],
+    phase_rad: list[float],
+    noise_std: float,
+    sample_rate_hz: float = 1.0,
+    trend: bool = False,
+) -> list[Bound]:
+    """Exact bound for K tones plus an offset (and, with ``trend``, a linear trend) in
+    ``n`` samples: ``y[n] = B [+ D m] + sum_k A_k sin(w_k m + phi_k,c) + v[n]``.
+
+    Same construction as :func:`crlb` (centred time, Jacobi-scaled inverse) on the
+    3K + 1 (+ 1) parameters; one :class:`Bound` per tone, phases at the last sample, the
+    offset bound (at the last sample too) repeated in each. With K = 1 and no trend it
+    equals :func:`crlb`.
+    """
+    k = len(frequency_hz)
+    if not (len(amplitude) == len(phase_rad) == k) or k == 0:
+        raise ValueError(f"tones: expected equal, non-empty lists, got {k}, {len(amplitude)}, {len(phase_rad)}")
+    for a in amplitude:
+        _check(n, a, noise_std, sample_rate_hz)
+    d = 0.5 * (n - 1)  # last sample, from the centre
+    m = np.arange(n, dtype=np.float64) - d
+    cols = []
+    for f, a, ph in zip(frequency_hz, amplitude, phase_rad, strict=True):
+        w = 2.0 * math.pi * f / sample_rate_hz
+        psi = w * m + (ph - w * d)
+        cols += [a * m * np.cos(psi), np.sin(psi), a * np.cos(psi)]
+    cols.append(np.ones(n))
+    if trend:
+        cols.append(m / d)
+    g = np.stack(cols)
+    cov = _inverse((g @ g.T) / noise_std**2)
+    hz_per_rad = sample_rate_hz / (2.0 * math.pi)
+    off = 3 * k
+    var_b = cov[off, off] + (cov[off + 1, off + 1] + 2.0 * cov[off, off + 1] if trend else 0.0)
+    out = []
+    for j in range(k):
+        i = 3 * j
+        var_w = cov[i, i]
+        var_phi = cov[i + 2, i + 2] + d * d * var_w + 2.0 * d * cov[i, i + 2]
+        out.append(
+            Bound(
+                frequency_hz=float(var_w * hz_per_rad**2),
+                amplitude=float(cov[i + 1, i + 1]),
+                phase_rad=float(var_phi),
+                offset=float(var_b),
+            )
+        )
+    return out
 
 
 # ---- the maximum-likelihood estimator (reference for the Monte Carlo check) -------------

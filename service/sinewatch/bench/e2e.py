@@ -112,8 +112,11 @@ def feeder_main(argv: list[str] | None = None) -> int:
                 blk = pub.block(name, base[c][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
                 pub.publish_raw(name, pub.encode(blk))
         elapsed = time.monotonic() - start
+        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late}), flush=True)
+        # Stay connected until told: blocks still in this session's send queue would be lost
+        # with it, and counted against the daemon.
+        sys.stdin.read()
         pub.close()
-    print(json.dumps({"elapsed_s": elapsed, "late_blocks": late}), flush=True)
     return 0
 
 
@@ -159,10 +162,13 @@ def running_daemon(
         }
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(config))
+        # The daemon's log goes to a file: a pipe nobody reads fills up (64 KiB) and then
+        # blocks the daemon's first log line after it, which once looked like a daemon stall.
+        log_file = open(Path(tmp) / "daemon.log", "wb")
         daemon = subprocess.Popen(
             [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_path)],
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            stderr=log_file,
         )
         try:
             yield endpoint, daemon, rec
@@ -173,6 +179,7 @@ def running_daemon(
                     daemon.wait(60)
                 except subprocess.TimeoutExpired:
                     daemon.kill()
+            log_file.close()
             rec.recorded_bytes = sum(f.stat().st_size for f in (Path(tmp) / "rec").glob("*.mcap"))
 
 
@@ -220,13 +227,21 @@ def _drive(
         cpu0 = _cpu_seconds(daemon.pid)
         rss0 = _rss_mb(daemon.pid)
         t0 = time.monotonic()
-        feeder = subprocess.run(
-            feeder_command(endpoint, n_ch, fs, block, rounds), capture_output=True, text=True, check=False
+        feeder = subprocess.Popen(
+            feeder_command(endpoint, n_ch, fs, block, rounds),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
-        if feeder.returncode != 0:
-            raise RuntimeError(f"bench feeder failed: {feeder.stderr[-2000:]}")
-        fed = json.loads(feeder.stdout.strip().splitlines()[-1])
+        assert feeder.stdin is not None and feeder.stdout is not None
+        line = feeder.stdout.readline()
+        if not line:
+            raise RuntimeError(f"bench feeder failed: {feeder.communicate()[1][-2000:]}")
+        fed = json.loads(line)
         probe.done.wait(30.0)
+        feeder.stdin.close()  # everything published has had its chance to arrive
+        feeder.wait()
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
         rss1 = _rss_mb(daemon.pid)

@@ -55,7 +55,11 @@ def _cell_body(m: dict[str, Any], kind: str, f_rmse: float) -> str:
         cr = m.get("crlb", {}).get("frequency_hz", {})
         db, teq = cr.get("over_crlb_db"), cr.get("equivalent_window_s")
         sign = "+" if db is not None and db >= 0 else ""
-        return f"{_fmt(f_rmse, ' Hz')} ({sign}{_fmt(db, ' dB', 3)}; {_fmt(teq, ' s')})"
+        own = m.get("crlb_own_window", {}).get("frequency_hz", {}).get("over_crlb_db")
+        more = "" if own is None else f"; own window {'+' if own >= 0 else ''}{_fmt(own, ' dB', 3)}"
+        cal = m.get("calibration", {}).get("frequency_hz")
+        more += "" if cal is None else f"; cal {_fmt(cal, '', 3)}"
+        return f"{_fmt(f_rmse, ' Hz')} ({sign}{_fmt(db, ' dB', 3)}; {_fmt(teq, ' s')}{more})"
     if kind == "c37":
         c = m.get("c37")
         if c is None:
@@ -87,8 +91,10 @@ FAMILIES = (
         "Stationary tone against the Cramer-Rao bound",
         (
             "frequency RMSE over the steady window (in brackets: RMSE over the square root of the "
-            "CRLB for the samples seen, in dB, 0 dB being the physical limit; and the equivalent "
-            "window, the record length an efficient estimator needs for the same RMSE)"
+            "CRLB for the samples seen, in dB, 0 dB being the physical limit; the equivalent "
+            "window, the record length an efficient estimator needs for the same RMSE; for a "
+            "windowed estimator, the dB over the bound of its own window; for one that reports "
+            "standard deviations, its calibration: the sd of error / reported sd, 1 when right)"
         ),
         "crlb",
     ),
@@ -180,6 +186,7 @@ def render_markdown(results: list[dict[str, Any]], command: str, meta: dict[str,
                 cells.append(" / ".join(_fmt(cr[p]["over_crlb_db"], "", 3) for p in PARAMS))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
+    lines += _own_window_and_calibration(results, ests, scens, by, profiles)
     # not applicable / errors
     na = [r for r in results if r["status"] != "ok"]
     if na:
@@ -192,6 +199,53 @@ def render_markdown(results: list[dict[str, Any]], command: str, meta: dict[str,
             lines.append(f"- **{e}** {status} on {shown}: {reason}")
         lines.append("")
     return "\n".join(lines)
+
+
+def _own_window_and_calibration(
+    results: list[dict[str, Any]],
+    ests: list[str],
+    scens: list[str],
+    by: dict[tuple[str, str], dict[str, Any]],
+    profiles: dict[str, Any],
+) -> list[str]:
+    """Two tables: windowed estimators against their own window's CRLB (stationary tones),
+    and the calibration of reported standard deviations (every scenario)."""
+    lines: list[str] = []
+    for key, title, rows in (
+        (
+            "crlb_own_window",
+            "### Windowed estimators against the CRLB of their own window "
+            "(dB over the bound: frequency / amplitude / phase / offset)",
+            [s for s in scens if profiles[s].crlb],
+        ),
+        (
+            "calibration",
+            "### Calibration of the reported standard deviations: sd of error / reported sd "
+            "(frequency / amplitude / phase / offset; 1 when right)",
+            scens,
+        ),
+    ):
+        cols = [e for e in ests if any(key in (by.get((e, s)) or {}).get("metrics", {}) for s in rows)]
+        if not cols:
+            continue
+        lines += [title, "", "| scenario | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
+        for s in rows:
+            cells = [f"`{s}`"]
+            for e in cols:
+                m = (by.get((e, s)) or {}).get("metrics", {})
+                if key not in m:
+                    cells.append("")
+                elif key == "calibration":
+                    cells.append(" / ".join(_fmt(m[key][p], "", 3) for p in PARAMS))
+                else:
+                    cells.append(
+                        " / ".join(_fmt(m[key][p]["over_crlb_db"], "", 3) for p in PARAMS)
+                        + f" (N = {m[key]['window_samples']})"
+                    )
+            if any(cells[1:]):
+                lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
 
 
 def _finite_or_none(x: Any) -> Any:

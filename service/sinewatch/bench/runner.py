@@ -69,6 +69,34 @@ def crlb_window(name: str) -> dict[str, float] | None:
     return acc
 
 
+@functools.lru_cache(maxsize=256)
+def crlb_own_window(name: str, window_samples: int, hop_samples: int) -> dict[str, float] | None:
+    """Like :func:`crlb_window`, but the bound of an estimator's own window: N =
+    ``window_samples`` samples, the phase taken m = 0 .. hop - 1 samples past the window's
+    last one (an estimate held between hops), averaged over m. What a windowed estimator
+    can at best reach, however long the record."""
+    sc = sc_registry.get(name)
+    prof = profile(sc)
+    if not prof.crlb or window_samples < 4:
+        return None
+    fs = sc.sample_rate_hz
+    t = np.arange(prof.n_samples) / fs
+    idx = np.flatnonzero(M.window_mask(t, prof.steady_windows))
+    pick = idx[np.linspace(0, idx.size - 1, 12).round().astype(int)]
+    _, truth = sc.generate(0)
+    lags = np.unique(np.linspace(0, max(hop_samples - 1, 0), 8).round().astype(int))
+    acc = dict.fromkeys(PARAMS, 0.0)
+    n_terms = len(pick) * len(lags)
+    for i in pick:
+        f, a, ph = truth.frequency_hz[i, 0], truth.amplitude[i, 0], truth.phase_rad[i, 0]
+        for m in lags:
+            b = crlb_mod.crlb(window_samples, f, a, ph, prof.noise_std, fs, reference=window_samples - 1 + int(m))
+            for p in PARAMS:
+                acc[p] += getattr(b, p) / n_terms
+    acc["amplitude_true"] = float(truth.amplitude[pick[0], 0])
+    return acc
+
+
 def _na(est: str, scen: str, reason: str, status: str = "n/a") -> dict[str, Any]:
     return {"estimator": est, "scenario": scen, "status": status, "reason": reason}
 
@@ -131,7 +159,7 @@ def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace:
         "trials": n_trials,
         "n_samples": prof.n_samples,
         "ns_per_sample": elapsed / (n_trials * prof.n_samples) * 1e9,
-        "metrics": acc.metrics(crlb_window(scen_name)),
+        "metrics": acc.metrics(crlb_window(scen_name), _own_window_bound(est, scen_name)),
     }
     if trace is not None:
         record["_trace"] = trace
@@ -188,6 +216,16 @@ def reports_on_rows(tr: Track, sample_rate_hz: float) -> Track:
     )
 
 
+def _own_window_bound(est: Any, scen_name: str) -> dict[str, float] | None:
+    """The own-window bound of an estimator with a fixed window (``window_samples`` and
+    ``hop_samples`` attributes, as nls and ipdft have), else None."""
+    n, hop = getattr(est, "window_samples", None), getattr(est, "hop_samples", 1)
+    if not isinstance(n, int) or not isinstance(hop, int):
+        return None
+    bound = crlb_own_window(scen_name, n, hop)
+    return None if bound is None else {**bound, "window_samples": float(n)}
+
+
 class _Trials:
     """The errors of an estimator's tracks against the truth, accumulated over trials."""
 
@@ -197,6 +235,9 @@ class _Trials:
         self.t = np.arange(n) / fs
         self.steady = M.window_mask(self.t, prof.steady_windows)
         self.moments = {p: M.Moments(1 if p == "offset" else k) for p in PARAMS}
+        # error / reported sd, for estimators that report one (Track.std)
+        self.normalised = {p: M.Moments(1 if p == "offset" else k) for p in PARAMS}
+        self.has_std = False
         self.conv_times: list[float] = []
         self.flag_times: list[float] = []
         n_ev = len(prof.events)
@@ -231,6 +272,18 @@ class _Trials:
         }
         for p in PARAMS:
             self.moments[p].add(err[p][steady], valid[p][steady])
+        if tr.std is not None:
+            self.has_std = True
+            sd = {
+                "frequency_hz": tr.std.frequency_hz[:, perm],
+                "amplitude": tr.std.amplitude[:, perm],
+                "phase_rad": tr.std.phase_rad[:, perm],
+                "offset": tr.std.offset[:, None],
+            }
+            for p in PARAMS:
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    z = err[p][steady] / sd[p][steady]
+                self.normalised[p].add(z, valid[p][steady])
         # convergence: every present component within 1 % (+ tolerance) of its true frequency
         tol = 0.01 * np.abs(truth.frequency_hz) + prof.tolerance_hz
         ok_f = np.asarray(np.where(present, np.abs(err["frequency_hz"]) <= tol, True).all(axis=1))
@@ -292,11 +345,23 @@ class _Trials:
             start = ev.time_s - 1.0 / prof.reporting_rate_hz
             self.ev_tve_times[j].append(M.exceedance_span(t, above, start, stop))
 
-    def metrics(self, bound: dict[str, float] | None) -> dict[str, Any]:
+    def metrics(self, bound: dict[str, float] | None, own_bound: dict[str, float] | None = None) -> dict[str, Any]:
         """The metrics record (see :mod:`sinewatch.bench.metrics`); ``bound``: the CRLB
-        over the steady window, for a stationary tone."""
+        over the steady window, for a stationary tone; ``own_bound``: that of the
+        estimator's own window (:func:`crlb_own_window`)."""
         prof = self.prof
         out: dict[str, Any] = {p: self.moments[p].summary() for p in PARAMS}
+        if own_bound is not None:
+            out["crlb_own_window"] = M.against_crlb(out, own_bound, prof.sample_rate_hz, prof.noise_std)
+            out["crlb_own_window"]["window_samples"] = int(own_bound["window_samples"])
+        if self.has_std:  # sd of error / reported sd per parameter (worst component)
+            cal: dict[str, float] = {}
+            for p in PARAMS:
+                sm = self.normalised[p].summary()
+                sds = [math.sqrt(max(m2 - b * b, 0.0)) for m2, b in zip(sm["mse"], sm["bias"], strict=True)]
+                finite = [v for v in sds if math.isfinite(v)]
+                cal[p] = max(finite, key=lambda v: abs(math.log(v)) if v > 0 else math.inf) if finite else math.nan
+            out["calibration"] = cal
         out["defined_pct"] = float(np.nanmin(self.moments["frequency_hz"].summary()["defined_pct"]))
         out["convergence_time_s"] = M.median_never_late(self.conv_times)
         out["converged_trials"] = int(np.sum(np.isfinite(self.conv_times)))

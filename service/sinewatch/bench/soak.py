@@ -43,11 +43,23 @@ def run(args: argparse.Namespace) -> int:
             f"for {args.duration:g} s, a new recording every {args.rotate_seconds:g} s, a line every {args.interval:g} s"
         )
         feeder = subprocess.Popen(
-            feeder_command(endpoint, args.channels, args.rate, args.block, rounds), stdout=subprocess.PIPE, text=True
+            feeder_command(endpoint, args.channels, args.rate, args.block, rounds),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
         )
-        start, seen, tick = time.monotonic(), 0, threading.Event()
-        while feeder.poll() is None:
-            if tick.wait(args.interval):  # never set: the interval is the wait
+        assert feeder.stdin is not None and feeder.stdout is not None
+        fed = threading.Event()  # set once the feeder says it has published everything
+        out = feeder.stdout
+
+        def wait_for_feeder() -> None:
+            out.readline()
+            fed.set()
+
+        threading.Thread(target=wait_for_feeder, daemon=True).start()
+        start, seen = time.monotonic(), 0
+        while not fed.is_set():
+            if fed.wait(args.interval):
                 break
             window = np.array(probe.latencies_ns[seen:]) / 1e6
             seen += window.size
@@ -66,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
                 f"estimates {sample['estimates']:7d}  latency p50 {sample['latency_ms_p50'] or 0:.2f} "
                 f"p99 {sample['latency_ms_p99'] or 0:.2f} max {sample['latency_ms_max'] or 0:.2f} ms"
             )
+        feeder.stdin.close()
         feeder.wait()
         probe.close()
     growth = _growth(samples)
