@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup soak schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload soak schemas clean
 
 install: $(STAMP)
 
@@ -50,6 +50,17 @@ bench-accuracy: $(STAMP)
 soak: $(STAMP)
 	mkdir -p bench-results
 	$(BIN)/sinewatch bench soak --json bench-results/soak.json --plot bench-results/soak-rss.png
+
+# Windowed estimators (nls, ipdft) against their own window's exact CRLB, with calibration.
+bench-crlb: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.crlb_window --estimators nls,ipdft --trials 1000
+
+# The power-quality stage's cost per block against the estimator alone.
+bench-pq: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.pq_stage
+
+bench-overload: $(STAMP)
+	$(BIN)/sinewatch bench overload
 
 bench-startup: $(STAMP)
 	$(BIN)/sinewatch bench startup --runs 21 --json bench-results/startup.json

@@ -153,8 +153,8 @@ def cmd_tail(args: argparse.Namespace) -> int:
 
 
 def format_estimate(msg: dict[str, Any]) -> str:
-    if "frequency_hz" not in msg:  # errors and status: show as JSON
-        return json.dumps({k: v for k, v in msg.items() if k != "_key"})
+    if "diagnostics" not in msg:  # not an Estimate: power quality on one line, the rest as JSON
+        return format_power_quality(msg) or json.dumps({k: v for k, v in msg.items() if k != "_key"})
 
     def f(values: list[float | None], spec: str) -> str:
         return ",".join("nan" if v is None else format(v, spec) for v in values)
@@ -169,6 +169,43 @@ def format_estimate(msg: dict[str, Any]) -> str:
         f"f={f(msg['frequency_hz'], '.4f')}Hz A={f(msg['amplitude'], '.4f')} "
         f"phi={f(msg['phase_rad'], '.3f')} off={off}{flags}"
     )
+
+
+def format_power_quality(msg: dict[str, Any]) -> str | None:
+    """One line for a HarmonicsReport, ThreePhaseReport or PqAggregate (None for others)."""
+
+    def n(v: float | None, spec: str, scale: float = 1.0) -> str:
+        return "nan" if v is None else format(v * scale, spec)
+
+    if "harmonic_rms" in msg:
+        h = msg["harmonic_rms"]
+        low = " ".join(f"h{k}={n(h[k], '.4f')}" for k in (3, 5, 7) if k < len(h))
+        return (
+            f"{msg['timestamp_ns'] / 1e9:.4f} {msg['channel']} harmonics f={n(msg['frequency_hz'], '.4f')}Hz "
+            f"rms={n(msg['rms'], '.4f')} thd={n(msg['thd'], '.3f', 100)}% {low}"
+            + (" GAP" if msg["gap"] else "")
+            + ("" if msg["converged"] else " -")
+        )
+    if "group" in msg and "positive" in msg:
+        missing = f" missing={','.join(msg['missing'])}" if msg["missing"] else ""
+        return (
+            f"{msg['timestamp_ns'] / 1e9:.4f} {msg['group']} three-phase f={n(msg['frequency_hz'], '.4f')}Hz "
+            f"V1={n(msg['positive']['magnitude_rms'], '.4f')} u2={n(msg['u2'], '.3f', 100)}% "
+            f"u0={n(msg['u0'], '.3f', 100)}%{missing}"
+        )
+    if "interval" in msg and "source" in msg:
+        v = msg["values"]
+        pct = {"thd", "u2", "u0"}
+        shown = " ".join(
+            f"{k}={n(v[k], '.3f', 100)}%" if k in pct else f"{k}={n(v[k], '.4f')}"
+            for k in ("frequency_hz", "rms", "thd", "u2")
+            if k in v
+        )
+        return (
+            f"{msg['timestamp_ns'] / 1e9:.4f} {msg['source']} {msg['interval']} n={msg['n_windows']}"
+            f"{'' if msg['complete'] else ' (incomplete)'} {shown}"
+        )
+    return None
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

@@ -6,6 +6,12 @@ the one description of the signal, its truth, its transport faults and the estim
 was written for), so a feed is reproducible. Real-time pacing waits
 on an Event until each block's due time (no busy loop); ``realtime=False`` publishes as
 fast as the transport accepts (BLOCK congestion control makes that the daemon's pace).
+
+The power-quality scenarios (:mod:`sinewatch.scenarios.power_quality_iec`, e.g.
+``pq-unbalance-50hz-u2-2pct-harmonics``) are fed too: a three-phase one as three channels
+``PREFIX/NAME/a``, ``/b``, ``/c`` (``PREFIX/NAME/COPY/a`` with copies), cut from one
+seeded stream so the phases share their samples' times and block boundaries, as a
+three-phase group expects (``[[power_quality.groups]]``); a one-phase one as one channel.
 """
 
 from __future__ import annotations
@@ -14,21 +20,26 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from sinewatch import scenarios
 from sinewatch.clients.publisher import BlockPublisher
 from sinewatch.scenarios import Scenario, ScenarioStream, Truth
+from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
 from sinewatch.schemas.config import EstimatorRule
+
+
+class Readable(Protocol):
+    def read(self, n: int) -> tuple[np.ndarray, Truth]: ...
 
 
 @dataclass
 class FeedChannel:
     channel: str
     scenario: Scenario
-    stream: ScenarioStream
+    stream: Readable  # a ScenarioStream, or one phase of a multi-phase one
     blocks: int = 0
     last_seq: int = -1
     last_truth: Truth | None = None
@@ -40,12 +51,52 @@ def make_channels(
 ) -> list[FeedChannel]:
     """One channel per scenario name (``copies`` of each, with different seeds)."""
     out: list[FeedChannel] = []
+    pq = set(pq_names())
     for i, name in enumerate(names):
         for c in range(copies):
-            sc = scenarios.get(name, **overrides)
             channel = f"{prefix}/{name}" if copies == 1 else f"{prefix}/{name}/{c}"
+            if name in pq:
+                out.extend(_phase_channels(channel, get_pq(name, **overrides), seed + 1000 * i + c))
+                continue
+            sc = scenarios.get(name, **overrides)
             out.append(FeedChannel(channel, sc, sc.stream(seed + 1000 * i + c)))
     return out
+
+
+def _phase_channels(channel: str, sc: Scenario, seed: int) -> list[FeedChannel]:
+    """The phases of a multi-phase scenario as channels CHANNEL/a, /b, /c that read one
+    stream: the first phase to ask for a block reads it, the others take their column."""
+    shared = _SharedStream(sc.stream(seed))
+    n = int(getattr(sc, "n_phases", 1))
+    if n == 1:
+        return [FeedChannel(channel, sc, shared.stream)]
+    return [FeedChannel(f"{channel}/{'abcdefghijklmnop'[p]}", sc, _PhaseStream(shared, p)) for p in range(n)]
+
+
+class _SharedStream:
+    def __init__(self, stream: ScenarioStream) -> None:
+        self.stream = stream
+        self._block: tuple[np.ndarray, Truth] | None = None
+        self._taken: set[int] = set()
+
+    def read(self, phase: int, n: int) -> tuple[np.ndarray, Truth]:
+        if self._block is None or phase in self._taken or self._block[0].shape[0] != n:
+            self._block = self.stream.read(n)
+            self._taken = set()
+        self._taken.add(phase)
+        samples, truth = self._block
+        return samples[:, phase], truth
+
+
+class _PhaseStream:
+    """One column of a shared multi-phase stream (what FeedChannel.stream needs: ``read``)."""
+
+    def __init__(self, shared: _SharedStream, phase: int) -> None:
+        self._shared = shared
+        self._phase = phase
+
+    def read(self, n: int) -> tuple[np.ndarray, Truth]:
+        return self._shared.read(self._phase, n)
 
 
 def rules_for(channels: list[FeedChannel], key_prefix: str = "sinewatch/in") -> list[EstimatorRule]:

@@ -5,7 +5,10 @@ A source (the Zenoh intake in the daemon, or an MCAP file in replay) calls
 raw input, decodes and checks it against its channel, runs the channel's estimator and
 hands one Estimate per accepted block to the sinks (Zenoh publisher, MCAP recorder,
 replay comparator). A rejected input produces one ErrorReport instead; an estimator never
-sees a bad sample and its state is untouched by a rejected block.
+sees a bad sample and its state is untouched by a rejected block. When configured
+(``[power_quality]``), the power-quality stage (:mod:`sinewatch.power_quality.stage`)
+then takes the accepted block and its estimate, and its messages (harmonics, aggregates,
+three-phase groups) go to the sinks' ``on_output``.
 
 Everything here is deterministic given the inputs, their order and the config: that is
 what makes replay bit-exact. Wall-clock values (latency) stay out of the messages that
@@ -33,6 +36,7 @@ import zenoh
 
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
+from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
@@ -55,6 +59,9 @@ class Sink(Protocol):
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        """Any other output message; ``kind`` is its message name (e.g. ``HarmonicsReport``)."""
+
     def close(self) -> None: ...
 
 
@@ -71,6 +78,9 @@ class NullSink:
         pass
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        pass
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
         pass
 
     def close(self) -> None:
@@ -157,6 +167,9 @@ class GuardedSink:
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._call("on_status", key, payload, log_time_ns)
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        self._call("on_output", kind, key, payload, log_time_ns)
 
     def open(self) -> None:
         if hasattr(self.sink, "open"):
@@ -252,6 +265,7 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
+        self.pq = PqStage(config, _key_matches)  # power quality (harmonics, groups, aggregates): off unless configured
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(
@@ -291,8 +305,27 @@ class Pipeline:
             for sink in self.sinks:
                 sink.on_estimate(out_key, payload_out, log_time_ns)
         self.counters.estimates += len(payloads)
+        if self.pq.enabled:
+            self._power_quality(key, channel, block, track, reset, log_time_ns)
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
+
+    def _power_quality(
+        self, key: str, channel: Channel, block: Block, track: Track, reset: bool, log_time_ns: int
+    ) -> None:
+        """The power-quality stage (:mod:`sinewatch.pq_stage`) on an accepted block; its
+        outputs go to the sinks' ``on_output``. A fault there is reported like any other and
+        leaves the estimate (already out) and the stage's state untouched."""
+        try:
+            outputs, problem = self.pq.on_block(key, channel.name, block, track, reset)
+        except Exception as exc:  # noqa: BLE001 (the stage's fault must not stop the channel)
+            self._fault(key, block, channel, "power_quality", exc, log_time_ns)
+            return
+        for kind, out_key, payload in outputs:
+            for sink in self.sinks:
+                sink.on_output(kind, out_key, payload, log_time_ns)
+        if problem is not None:
+            self._reject(key, block, channel, "estimator_error", problem, log_time_ns)
 
     def _fault(
         self, key: str, block: Block | None, channel: Channel | None, stage: str, exc: Exception, log_time_ns: int
@@ -511,6 +544,7 @@ class Pipeline:
             "format_version": 1,
             "channels": [ch.snapshot() for ch in self.channels.values()],
             "error_counts": [[k, kind, n] for (k, kind), n in self._error_counts.items()],
+            **({"power_quality": self.pq.snapshot()} if self.pq.enabled else {}),
         }
 
     def restore(self, snapshot: dict[str, Any]) -> None:
@@ -522,6 +556,8 @@ class Pipeline:
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):
             self._error_counts[(key, kind)] = n
+        if "power_quality" in snapshot:
+            self.pq.restore(snapshot["power_quality"])
 
     def channel_status(self) -> list[dict[str, Any]]:
         return [
@@ -540,6 +576,10 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+def _key_matches(expr: str, key: str) -> bool:
+    return bool(zenoh.KeyExpr(expr).includes(zenoh.KeyExpr(key)))
 
 
 def _is_power_of_ten(n: int) -> bool:

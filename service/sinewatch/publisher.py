@@ -1,6 +1,7 @@
-"""The Zenoh publisher: a pipeline sink that puts estimates, errors and status on Zenoh.
+"""The Zenoh publisher: a pipeline sink that puts estimates, errors, status and the
+power-quality messages on Zenoh.
 
-Estimates and errors use ``CongestionControl.BLOCK`` (a slow subscriber slows the
+Estimates, errors and power-quality messages use ``CongestionControl.BLOCK`` (a slow subscriber slows the
 publisher rather than losing them); status uses ``DROP`` (the next one comes soon).
 Each message announces its encoding (:mod:`sinewatch.schemas.codec`).
 """
@@ -11,6 +12,7 @@ import zenoh
 
 from sinewatch.pipeline import NullSink
 from sinewatch.schemas.codec import ERROR_JSON_ENCODING, ESTIMATE_JSON_ENCODING, STATUS_JSON_ENCODING
+from sinewatch.schemas.power_quality import json_encoding
 
 
 class ZenohPublisherSink(NullSink):
@@ -37,6 +39,10 @@ class ZenohPublisherSink(NullSink):
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._publisher(key, STATUS_JSON_ENCODING, zenoh.CongestionControl.DROP).put(payload)
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        """Power-quality messages (HarmonicsReport, ThreePhaseReport, PqAggregate): BLOCK."""
+        self._publisher(key, json_encoding(kind), zenoh.CongestionControl.BLOCK).put(payload)
 
     def recover(self) -> None:
         """Declare the publishers afresh on the next put (after a session fault)."""

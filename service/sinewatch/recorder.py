@@ -3,7 +3,8 @@
 Layout of a recording:
 
 * one MCAP channel per Zenoh key (and message encoding), its metadata saying the role
-  (``input``, ``estimate``, ``error``, ``status``) and the Zenoh encoding;
+  (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
+  ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
 * inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
   the same code; JSON messages with their JSON Schema embedded (``jsonschema``), so
   Foxglove can plot estimates;
@@ -36,6 +37,7 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
+from sinewatch.schemas.power_quality import PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
 log = logging.getLogger("sinewatch.recorder")
 
@@ -198,7 +200,8 @@ class McapRecorder:
                 # the byte layout, as documented in the codec, travels with the data
                 sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
             else:
-                model = MESSAGE_MODELS[name.removeprefix("sinewatch.")]
+                short = name.removeprefix("sinewatch.")
+                model = MESSAGE_MODELS[short] if short in MESSAGE_MODELS else PQ_MESSAGE_MODELS[short]
                 schema = json.dumps(model.model_json_schema()).encode()
                 sid = self._w.register_schema(name, "jsonschema", schema)
             self._schemas[name] = sid
@@ -243,6 +246,12 @@ class McapRecorder:
             self.open()
         if self.section.errors:
             cid = self._channel_id(key, "json", "sinewatch.ErrorReport", "error", ERROR_JSON_ENCODING)
+            self._write(cid, payload, log_time_ns)
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        """A power-quality message (``kind``: its message name); role from ``PQ_ROLES``."""
+        if self.section.power_quality:
+            cid = self._channel_id(key, "json", f"sinewatch.{kind}", PQ_ROLES[kind], json_encoding(kind))
             self._write(cid, payload, log_time_ns)
 
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None:

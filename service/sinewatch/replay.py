@@ -3,7 +3,9 @@
 ``replay(paths)`` reads the recorded inputs in file order, runs them through a fresh
 :class:`~sinewatch.pipeline.Pipeline` built from the config recorded in the file (and
 the channel snapshot, for a file that starts after a rotation) and checks that every
-recorded estimate is reproduced byte for byte. With ``rules`` it re-runs another
+recorded output (every role but inputs, errors and status: estimates, and the
+power-quality harmonics, three_phase and pq_aggregate messages) is reproduced byte for
+byte, in order, per topic. With ``rules`` it re-runs another
 estimator or other parameters instead, and ``out`` writes a new recording, so two
 algorithms can be compared on the same data.
 
@@ -31,6 +33,7 @@ from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
+from sinewatch.schemas.power_quality import PQ_ROLES
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -48,18 +51,22 @@ class RecordedMessage:
     log_time_ns: int
 
 
+NOT_COMPARED_ROLES = frozenset({"input", "error", "status", ""})  # every other role is an output
+
+
 @dataclass
 class Mismatch:
     topic: str
-    index: int  # position among this topic's estimates
+    index: int  # position among this topic's outputs
     recorded: bytes | None
     produced: bytes | None
+    role: str = "estimate"
 
     def describe(self) -> str:
         if self.recorded is None:
-            return f"{self.topic} #{self.index}: produced an estimate the recording does not have"
+            return f"{self.topic} #{self.index}: produced {self.role} output the recording does not have"
         if self.produced is None:
-            return f"{self.topic} #{self.index}: recorded estimate was not reproduced"
+            return f"{self.topic} #{self.index}: recorded {self.role} output was not reproduced"
         return f"{self.topic} #{self.index}: " + ", ".join(diff_fields(self.recorded, self.produced))
 
 
@@ -76,14 +83,22 @@ class ReplayResult:
     incomplete_files: list[Path] = field(default_factory=list)
     compared: bool = True
     uncompared_tail: int = 0  # estimates past the end of an incomplete recording
-    final: dict[str, tuple[bytes | None, bytes | None]] = field(default_factory=dict)
+    final: dict[str, tuple[bytes | None, bytes | None]] = field(default_factory=dict)  # estimates only
     out_paths: list[Path] = field(default_factory=list)
+    # every output role but "estimate" (e.g. harmonics, three_phase, pq_aggregate): counts by role
+    recorded_other: dict[str, int] = field(default_factory=dict)
+    produced_other: dict[str, int] = field(default_factory=dict)
+    matched_other: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         if not self.compared:
             return True
-        return not self.mismatches and self.matched == self.recorded_estimates
+        return (
+            not self.mismatches
+            and self.matched == self.recorded_estimates
+            and all(self.matched_other.get(role, 0) == n for role, n in self.recorded_other.items())
+        )
 
 
 def diff_fields(a: bytes, b: bytes) -> list[str]:
@@ -140,16 +155,29 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
 
 
 class _Comparator(NullSink):
-    """Collects what the replayed pipeline produces, per topic, in order."""
+    """Collects what the replayed pipeline produces, per topic, in order: estimates and
+    every other output (``on_output``, by the role its message kind is recorded under)."""
 
     def __init__(self) -> None:
-        self.estimates: dict[str, deque[bytes]] = defaultdict(deque)
+        self.estimates: dict[str, deque[bytes]] = defaultdict(deque)  # every output topic
+        self.roles: dict[str, str] = {}  # topic -> role
         self.produced = 0
+        self.produced_other: dict[str, int] = defaultdict(int)
         self.errors = 0
+        self.other_outputs = True  # False: the recording has none (recording.power_quality off)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self.estimates[key].append(payload)
+        self.roles[key] = "estimate"
         self.produced += 1
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        if not self.other_outputs:
+            return
+        role = PQ_ROLES.get(kind, kind)
+        self.estimates[key].append(payload)
+        self.roles[key] = role
+        self.produced_other[role] += 1
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self.errors += 1
@@ -193,6 +221,7 @@ def replay(
                             f"{path}: no sinewatch metadata before the first message; "
                             "expected a file written by sinewatch"
                         )
+                    comparator.other_outputs = config.recording.power_quality
                     sinks: list[Sink] = [comparator]
                     if out is not None:
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
@@ -224,31 +253,42 @@ class ResultBuilder:
         if m.role == "input":
             r.inputs += 1
             pipeline.process(m.topic, m.payload, m.zenoh_encoding, m.log_time_ns)
-        elif m.role == "estimate":
-            r.recorded_estimates += 1
+        elif m.role == "error":
+            r.recorded_errors += 1
+        elif m.role not in NOT_COMPARED_ROLES:
+            estimate = m.role == "estimate"
+            if estimate:
+                r.recorded_estimates += 1
+            else:
+                r.recorded_other[m.role] = r.recorded_other.get(m.role, 0) + 1
             produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
             index = self.counts[m.topic]
             self.counts[m.topic] += 1
-            r.final[m.topic] = (m.payload, produced)
+            if estimate:
+                r.final[m.topic] = (m.payload, produced)
             if not r.compared:
                 return
             if produced == m.payload:
-                r.matched += 1
+                if estimate:
+                    r.matched += 1
+                else:
+                    r.matched_other[m.role] = r.matched_other.get(m.role, 0) + 1
             elif len(r.mismatches) < self.max_mismatches:
-                r.mismatches.append(Mismatch(m.topic, index, m.payload, produced))
-        elif m.role == "error":
-            r.recorded_errors += 1
+                r.mismatches.append(Mismatch(m.topic, index, m.payload, produced, m.role))
 
     def finish(self, comparator: _Comparator) -> None:
         r = self.r
         r.produced_errors = comparator.errors
         r.produced_estimates = comparator.produced
+        r.produced_other = dict(comparator.produced_other)
         for topic, extra in comparator.estimates.items():  # produced, never recorded
             if r.incomplete_files:  # their records were cut off with the file's tail
                 r.uncompared_tail += len(extra)
                 continue
+            role = comparator.roles.get(topic, "estimate")
             for payload in extra:
-                r.final[topic] = (r.final.get(topic, (None, None))[0], payload)
+                if role == "estimate":
+                    r.final[topic] = (r.final.get(topic, (None, None))[0], payload)
                 if r.compared and len(r.mismatches) < self.max_mismatches:
-                    r.mismatches.append(Mismatch(topic, self.counts[topic], None, payload))
+                    r.mismatches.append(Mismatch(topic, self.counts[topic], None, payload, role))
                 self.counts[topic] += 1

@@ -57,10 +57,16 @@ def report(console: Console, r: ReplayResult) -> None:
     if r.compared:
         if r.ok:
             console.print(f"[green]OK: all {r.matched} recorded estimates reproduced bit for bit[/green]")
+            if r.recorded_other:
+                others = ", ".join(f"{n} {role}" for role, n in sorted(r.recorded_other.items()))
+                console.print(f"[green]OK: all other recorded outputs ({others}) reproduced bit for bit[/green]")
         else:
             console.print(
-                f"[red]MISMATCH: {r.matched} of {r.recorded_estimates} estimates reproduced; "
-                f"{len(r.mismatches)} differ[/red]"
+                f"[red]MISMATCH: {r.matched} of {r.recorded_estimates} estimates reproduced"
+                + "".join(
+                    f", {r.matched_other.get(role, 0)} of {n} {role}" for role, n in sorted(r.recorded_other.items())
+                )
+                + f"; {len(r.mismatches)} differ[/red]"
             )
             by_topic: dict[str, int] = {}
             for m in r.mismatches:

@@ -68,6 +68,11 @@ class KeysSection(_Section):
     estimates_prefix: str = Field("sinewatch/est", description="Estimates go to PREFIX/<channel>")
     errors_prefix: str = Field("sinewatch/err", description="ErrorReports go to PREFIX/<channel or _unknown>")
     status_key: str = Field("sinewatch/status", description="Status messages go to KEY/<daemon_id>")
+    pq_prefix: str = Field(
+        "sinewatch/pq",
+        description="Power quality: HarmonicsReports go to PREFIX/harmonics/<channel>, PqAggregates to "
+        "PREFIX/agg/<channel>, ThreePhaseReports to PREFIX/group/<group>",
+    )
 
 
 class EstimatorRule(_Section):
@@ -83,6 +88,68 @@ class EstimatorRule(_Section):
     params: dict[str, Any] = Field(default_factory=dict, description="Estimator parameters")
 
 
+class HarmonicsRule(_Section):
+    """Channels whose input key matches ``match`` also get an IEC 61000-4-7 harmonic analyser
+    (one HarmonicsReport per 10/12-cycle window) and, with ``aggregate``, the IEC 61000-4-30
+    150/180-cycle and 10-min aggregates of its window values. First matching rule wins."""
+
+    match: str = Field(description="Key expression matched against the input key")
+    nominal_frequency_hz: Literal[50, 60] = Field(50, description="50 Hz: 10-cycle windows; 60 Hz: 12-cycle windows")
+    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order reported and used in THD")
+    aggregate: bool = Field(True, description="Publish the 150/180-cycle and 10-min aggregates too")
+
+
+class ThreePhaseGroup(_Section):
+    """Three channels taken together: one ThreePhaseReport (phasors, symmetrical components,
+    u2, u0) per estimate timestamp the phases share. A phase whose estimate for a timestamp
+    has not come once another phase's data time is more than ``max_skew_s`` past it is
+    reported missing (null phasor, named in ``missing``)."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.\-/]+$", description="Group name; reports go to PQ_PREFIX/group/<name>")
+    phases: list[str] = Field(min_length=3, max_length=3, description="Channel names of phase a, b, c")
+    max_skew_s: float = Field(
+        0.5, gt=0, allow_inf_nan=False, description="How far (data time) a phase may lag before it counts as missing"
+    )
+    aggregate_nominal_frequency_hz: Literal[50, 60] | None = Field(
+        None,
+        description="When set: the three phases' samples are also analysed on one IEC 61000-4-7 10/12-cycle "
+        "window grid (synchronised to phase a) and u2, u0, the sequence magnitudes and the frequency are "
+        "aggregated over 150/180 cycles and 10 min (IEC 61000-4-30), on PQ_PREFIX/agg/<name>",
+    )
+
+    @field_validator("phases")
+    @classmethod
+    def _distinct(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != 3:
+            raise ValueError(f"phases: expected three different channels, got {v}")
+        return v
+
+
+class PowerQualitySection(_Section):
+    """Power quality on top of the channel estimators (off unless configured)."""
+
+    harmonics: list[HarmonicsRule] = Field(
+        default_factory=list, description="Channels analysed for harmonics (IEC 61000-4-7) and aggregated"
+    )
+    groups: list[ThreePhaseGroup] = Field(default_factory=list, description="Three-phase groups")
+
+    @field_validator("groups")
+    @classmethod
+    def _one_group_per_channel(cls, v: list[ThreePhaseGroup]) -> list[ThreePhaseGroup]:
+        names = [g.name for g in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"groups: expected unique names, got {names}")
+        seen: dict[str, str] = {}
+        for g in v:
+            for ch in g.phases:
+                if ch in seen:
+                    raise ValueError(
+                        f"groups: expected each channel in one group, got {ch!r} in {seen[ch]!r} and {g.name!r}"
+                    )
+                seen[ch] = g.name
+        return v
+
+
 class RecordingSection(_Section):
     enabled: bool = True
     directory: Path = Field(Path("sinewatch-runs"), description="Where MCAP files are written")
@@ -95,6 +162,7 @@ class RecordingSection(_Section):
     )
     inputs: bool = True
     estimates: bool = True
+    power_quality: bool = Field(True, description="Record HarmonicsReports, ThreePhaseReports and PqAggregates")
     errors: bool = True
     status: bool = True
 
@@ -122,6 +190,7 @@ class SinewatchConfig(_Section):
         "coast",
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
+    power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
     status_interval_s: float = Field(1.0, gt=0)

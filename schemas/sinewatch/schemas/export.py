@@ -15,10 +15,12 @@ from pydantic import BaseModel
 
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import MESSAGE_MODELS
+from sinewatch.schemas.power_quality import PQ_MESSAGE_MODELS
 
 
 def all_schemas(estimator_params: Mapping[str, type[BaseModel]]) -> dict[str, dict[str, Any]]:
-    out = {f"{name}.json": model.model_json_schema() for name, model in MESSAGE_MODELS.items()}
+    models = {**MESSAGE_MODELS, **PQ_MESSAGE_MODELS}
+    out = {f"{name}.json": model.model_json_schema() for name, model in models.items()}
     out["Config.json"] = SinewatchConfig.model_json_schema()
     for name, params in estimator_params.items():
         out[f"estimators/{name}.json"] = params.model_json_schema()

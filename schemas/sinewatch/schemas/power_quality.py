@@ -23,6 +23,7 @@ from sinewatch.schemas.codec import dumps, finite_or_none
 __all__ = [
     "PQ_FORMAT_VERSION",
     "PQ_MESSAGE_MODELS",
+    "PQ_ROLES",
     "HarmonicsReport",
     "PqAggregate",
     "SequencePhasor",
@@ -116,6 +117,14 @@ PQ_MESSAGE_MODELS: dict[str, type[BaseModel]] = {
 }
 
 PQ_MESSAGE_VERSIONS: dict[str, int] = dict.fromkeys(PQ_MESSAGE_MODELS, PQ_FORMAT_VERSION)
+
+# The role of each message kind in a recording (MCAP channel metadata ``role``): replay
+# compares every output role bit for bit.
+PQ_ROLES: dict[str, str] = {
+    "HarmonicsReport": "harmonics",
+    "ThreePhaseReport": "three_phase",
+    "PqAggregate": "pq_aggregate",
+}
 
 
 def json_encoding(name: str) -> str:
