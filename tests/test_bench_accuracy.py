@@ -262,20 +262,20 @@ def test_run_scenarios_lists_the_library(capsys):
 
 
 def test_c37_rocof_comes_from_the_estimator_when_it_publishes_one(monkeypatch):
-    # sogi-fll publishes its ROCOF as an extra; an estimator that reports it in the track's
-    # own field (Estimate v2) must be scored the same way, not by differencing
+    # sogi-fll publishes its ROCOF in the track's own field (Estimate v2) and as an extra;
+    # an estimator that has it as an extra only must be scored the same way, not by differencing
     r = evaluate("sogi-fll", "c37-50hz-ramp-up")
     c = r["metrics"]["c37"]
-    assert c["rocof_source"] == "extras"
+    assert c["rocof_source"] == "track"
     base = estimators.get("sogi-fll")
 
-    class FieldRocof(base):  # the same estimator, ROCOF moved from extras to the field
-        def update(self, samples, *, last_only=False):
-            tr = super().update(samples, last_only=last_only)
-            tr.rocof_hz_per_s = tr.extras.pop("rocof_hz_per_s")[:, None]
+    class ExtrasRocof(base):  # the same estimator, ROCOF in extras only
+        def update(self, samples, *, last_only=False, t0_ns=None):
+            tr = super().update(samples, last_only=last_only, t0_ns=t0_ns)
+            tr.rocof_hz_per_s = None
             return tr
 
-    monkeypatch.setattr(runner.est_registry, "get", lambda name: FieldRocof)
+    monkeypatch.setattr(runner.est_registry, "get", lambda name: ExtrasRocof)
     moved = evaluate("sogi-fll", "c37-50hz-ramp-up")["metrics"]["c37"]
-    assert moved["rocof_source"] == "track"
+    assert moved["rocof_source"] == "extras"
     assert moved["rfe_max_hz_per_s"] == c["rfe_max_hz_per_s"] and moved["tve_max_pct"] == c["tve_max_pct"]

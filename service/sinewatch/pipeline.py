@@ -287,10 +287,10 @@ class Pipeline:
             stage = "estimator"
             if reset:
                 channel.estimator.reset()
-            track = channel.estimator.update(block.samples, last_only=True)
+            track = channel.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
             stage = "estimate"
             self._accept(channel, block, gap_blocks, restart, reset)
-            payload_out = self._estimate_payload(channel, block, track, gap_blocks, restart, reset)
+            payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset)
         except InputError as exc:
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
             return
@@ -301,9 +301,10 @@ class Pipeline:
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
         out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
-        for sink in self.sinks:
-            sink.on_estimate(out_key, payload_out, log_time_ns)
-        self.counters.estimates += 1
+        for payload_out in payloads:
+            for sink in self.sinks:
+                sink.on_estimate(out_key, payload_out, log_time_ns)
+        self.counters.estimates += len(payloads)
         if self.pq.enabled:
             self._power_quality(key, channel, block, track, reset, log_time_ns)
         if received_ns is not None:
@@ -430,16 +431,32 @@ class Pipeline:
             what = "sender restarted its sequence at" if restart else f"{gap_blocks} block(s) missing before"
             log.warning("channel %s: %s seq %d%s", ch.name, what, block.seq, " (estimator reset)" if reset else "")
 
-    def _estimate_payload(
+    def _estimate_payloads(
         self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool
+    ) -> list[bytes]:
+        """One Estimate at the block's last sample; or, for an estimator that reports on a
+        time grid, one per report the block completed (zero, one or several), at its time."""
+        grid = track.reports
+        if grid is None:
+            ch.converged = bool(track.converged[-1])
+            t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
+            return [self._estimate_payload(ch, block, track, t_last, gap_blocks, restart, reset)]
+        if grid.n_reports:
+            ch.converged = bool(grid.track.converged[-1])
+        return [
+            self._estimate_payload(ch, block, grid.track.rows(slice(r, r + 1)), t_ns, gap_blocks, restart, reset)
+            for r, t_ns in enumerate(grid.timestamps_ns())
+        ]
+
+    def _estimate_payload(
+        self, ch: Channel, block: Block, track: Track, timestamp_ns: int, gap_blocks: int, restart: bool, reset: bool
     ) -> bytes:
         converged = bool(track.converged[-1])
-        ch.converged = converged
         n = block.n_samples
         estimate = Estimate(
             channel=ch.name,
             seq=block.seq,
-            timestamp_ns=block.t0_ns + round((n - 1) * 1e9 / block.sample_rate_hz),
+            timestamp_ns=timestamp_ns,
             n_samples=n,
             estimator=ch.estimator.name,
             frequency_hz=_finite_list(track.frequency_hz[-1]),

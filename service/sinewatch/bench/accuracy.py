@@ -65,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {max(1, args.jobs)} jobs",
     }
     md = render_markdown(results, meta["command"], meta)
+    if any(p in ("c37.118", "tag:c37.118") for p in (args.scenarios or [])):
+        from sinewatch.bench.compliance import markdown_section  # the grid estimators' full C37 suite
+
+        section = markdown_section(ests)
+        md += "\n\n" + section if section else ""
     (out / "accuracy.md").write_text("# sinewatch accuracy results\n\n" + md + "\n")
     write_json(out / "accuracy.json", results, meta)
     plots = write_plots(out, results) if want_plots else []

@@ -45,6 +45,7 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
+        ("compliance", "IEEE C37.118.1 M-class tests of estimators reporting on a time grid", add_compliance_arguments),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
@@ -130,6 +131,17 @@ def add_accuracy_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="also replace the results block of FILE (e.g. docs/accuracy.md)",
     )
+
+
+def add_compliance_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--estimator", default="pmu")
+    parser.add_argument(
+        "--rates",
+        default="50/50,60/60",
+        help="comma-separated f0/Fs pairs (M-class: 50/10, 50/25, 50/50, 60/10, 60/12, 60/15, 60/20, 60/30, 60/60)",
+    )
+    parser.add_argument("--full", action="store_true", help="the standard's full sweeps (slower)")
+    parser.add_argument("--json", type=Path, help="also write the rows as JSON")
 
 
 def add_scenarios_arguments(parser: argparse.ArgumentParser) -> None:

@@ -132,12 +132,20 @@ def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace:
     acc = _Trials(prof)
     trace = None
     elapsed = 0.0
+    # an estimator that reports on a time grid gives the report for time t one latency
+    # after t: it is fed the scenario's continuation (1 s more) so that every reporting
+    # instant of the scenario has its report, and scored on the first n rows
+    on_grid = est.reports_on_grid
     for trial in range(n_trials):
         y, truth = sc.generate(seed + trial)
+        if on_grid:
+            y = sc.generate(seed + trial, n=prof.n_samples + round(sc.sample_rate_hz))[0]
         est.reset()
         t0 = time.perf_counter()
-        tr = est.update(y)
+        tr = est.update(y, t0_ns=0) if on_grid else est.update(y)  # grid reports at k / Fs from the start
         elapsed += time.perf_counter() - t0
+        if on_grid and tr.reports is not None:
+            tr = reports_on_rows(tr, sc.sample_rate_hz).rows(slice(0, prof.n_samples))
         ef, ea, ep = acc.add(tr, truth)
         if keep_trace and trace is None:
             trace = _trace(acc.t, ef, truth, ea, ep, prof)
@@ -156,6 +164,56 @@ def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace:
     if trace is not None:
         record["_trace"] = trace
     return record
+
+
+def reports_on_rows(tr: Track, sample_rate_hz: float) -> Track:
+    """The per-sample track of an estimator that reports on a time grid, rebuilt from its
+    reports by their timestamps (not by when they were computed, one latency later).
+    Between reports k and k+1 every quantity is interpolated linearly, the phase as
+    ``phase_k + 2 pi fbar dt + d (dt / Dt)`` with ``fbar`` the mean of the two frequencies
+    and ``d`` what that leaves of the next report's phase (wrapped): exact for a steady
+    tone, and a step's change spread over one interval rather than extrapolated at a
+    transient frequency. After the last report: held, the phase advanced at its
+    frequency; before the first: NaN, not converged. The reporting instants of the C37
+    scoring then read the reports themselves."""
+    assert tr.reports is not None
+    grid = tr.reports
+    g = grid.track
+    n = tr.n_samples
+    t = np.arange(n) / sample_rate_hz
+    tk = grid.times_s()
+    n_rep = tk.size
+    if n_rep == 0:
+        nan2 = np.full((n, 1), np.nan)
+        return Track(nan2, nan2.copy(), nan2.copy(), np.full(n, np.nan), np.zeros(n, dtype=bool), tr.residual_rms)
+    k = np.searchsorted(tk, t + 0.5 / sample_rate_hz, side="right") - 1  # report at or before (to half a sample)
+    have = k >= 0
+    k0 = np.clip(k, 0, n_rep - 1)
+    k1 = np.minimum(k0 + 1, n_rep - 1)
+    span = np.where(k1 > k0, tk[k1] - tk[k0], 1.0)
+    dt = t - tk[k0]
+    alpha = np.where(k1 > k0, np.clip(dt / span, 0.0, 1.0), 0.0)[:, None]
+
+    def lerp(a: np.ndarray) -> np.ndarray:
+        a2 = a if a.ndim == 2 else a[:, None]
+        out: np.ndarray = a2[k0] + alpha * (a2[k1] - a2[k0])
+        out[~have] = np.nan
+        return out if a.ndim == 2 else out[:, 0]
+
+    f0, f1 = g.frequency_hz[k0], g.frequency_hz[k1]
+    fbar = np.where(k1[:, None] > k0[:, None], 0.5 * (f0 + f1), f0)
+    d = M.wrap(g.phase_rad[k1] - g.phase_rad[k0] - 2.0 * np.pi * fbar * span[:, None])
+    phase = M.wrap(g.phase_rad[k0] + 2.0 * np.pi * fbar * dt[:, None] + d * alpha)
+    phase[~have] = np.nan
+    return Track(
+        frequency_hz=lerp(g.frequency_hz),
+        amplitude=lerp(g.amplitude),
+        phase_rad=phase,
+        offset=lerp(g.offset),
+        converged=np.where(have, g.converged[k0], False),
+        residual_rms=tr.residual_rms,
+        rocof_hz_per_s=None if g.rocof_hz_per_s is None else lerp(g.rocof_hz_per_s),
+    )
 
 
 def _own_window_bound(est: Any, scen_name: str) -> dict[str, float] | None:

@@ -170,6 +170,9 @@ class Track:
     # First-class optional outputs (None: the estimator does not provide them).
     rocof_hz_per_s: np.ndarray | None = None  # (N, K) float64, rate of change of frequency
     std: TrackStd | None = None  # standard deviations of frequency, amplitude, phase, offset
+    # Estimators that report on a time grid (``update(..., t0_ns=...)``): the reports this
+    # block completed, zero, one or several; None for estimators that do not.
+    reports: GridReports | None = None
 
     @property
     def n_samples(self) -> int:
@@ -178,6 +181,20 @@ class Track:
     @property
     def n_components(self) -> int:
         return int(self.frequency_hz.shape[1])
+
+    def rows(self, index: slice) -> Track:
+        """The rows ``index`` (a slice), as a Track (without ``reports``)."""
+        return Track(
+            frequency_hz=self.frequency_hz[index],
+            amplitude=self.amplitude[index],
+            phase_rad=self.phase_rad[index],
+            offset=self.offset[index],
+            converged=self.converged[index],
+            residual_rms=self.residual_rms,
+            extras={k: v[index] for k, v in self.extras.items()},
+            rocof_hz_per_s=None if self.rocof_hz_per_s is None else self.rocof_hz_per_s[index],
+            std=None if self.std is None else self.std.rows(index),
+        )
 
     def last(self) -> Track:
         """The final row only, as a one-row Track."""
@@ -191,6 +208,7 @@ class Track:
             extras={k: v[-1:] for k, v in self.extras.items()},
             rocof_hz_per_s=None if self.rocof_hz_per_s is None else self.rocof_hz_per_s[-1:],
             std=None if self.std is None else self.std.rows(slice(-1, None)),
+            reports=self.reports,  # the block's reports, whatever the rows kept
         )
 
     def reconstruct(self) -> np.ndarray:
@@ -213,6 +231,7 @@ def concat_tracks(tracks: list[Track]) -> Track:
         residual_rms=total,
         extras={k: np.concatenate([t.extras[k] for t in tracks]) for k in tracks[0].extras},
         rocof_hz_per_s=_concat_optional([t.rocof_hz_per_s for t in tracks]),
+        reports=_concat_reports([t.reports for t in tracks]),
         std=None
         if tracks[0].std is None
         else TrackStd(
@@ -221,6 +240,40 @@ def concat_tracks(tracks: list[Track]) -> Track:
                 for f in ("frequency_hz", "amplitude", "phase_rad", "offset")
             )
         ),
+    )
+
+
+@dataclass(slots=True)
+class GridReports:
+    """Estimates on a reporting grid: report r is at ``index[r] / reporting_rate_hz``
+    seconds since the epoch (so the grid is aligned to whole seconds); ``track`` holds
+    one row per report, with the values at the report time."""
+
+    index: np.ndarray  # (R,) int64
+    reporting_rate_hz: int
+    track: Track
+
+    @property
+    def n_reports(self) -> int:
+        return int(self.index.shape[0])
+
+    def timestamps_ns(self) -> list[int]:
+        """Report times in ns since the epoch: k 1e9 / Fs, exact, rounded half up."""
+        fs = self.reporting_rate_hz
+        return [(int(k) * 2_000_000_000 + fs) // (2 * fs) for k in self.index]
+
+    def times_s(self, origin_ns: int = 0) -> np.ndarray:
+        """Report times in seconds after ``origin_ns`` (ns since the epoch)."""
+        fs = self.reporting_rate_hz
+        return np.array([(int(k) * 1_000_000_000 - origin_ns * fs) / fs * 1e-9 for k in self.index])
+
+
+def _concat_reports(parts: list[GridReports | None]) -> GridReports | None:
+    if parts[0] is None:
+        return None
+    done = [p for p in parts if p is not None]
+    return GridReports(
+        np.concatenate([p.index for p in done]), done[0].reporting_rate_hz, concat_tracks([p.track for p in done])
     )
 
 
@@ -260,6 +313,9 @@ class Estimator(ABC, Generic[ParamsT]):
     params: ParamsT
     summary: ClassVar[str] = ""
     paper: ClassVar[str | None] = None  # the paper implemented: authors, title, year
+    # True for estimators that report on a time grid (Track.reports, from update(...,
+    # t0_ns=...)) rather than once per block
+    reports_on_grid: ClassVar[bool] = False
     _kernel: ClassVar[Callable[..., tuple[Any, ...]]]
     _constants: tuple[Any, ...] = ()  # the kernel's read-only arguments after the state
 
@@ -375,6 +431,14 @@ class Estimator(ABC, Generic[ParamsT]):
         n_outputs = len(result) - len(state)  # so the zip below pairs every state array
         return self._track(result[:n_outputs], block), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
+    def _run_timed(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        """:meth:`_run` for a block whose first sample is at ``t0_ns`` (ns since the epoch,
+        None when unknown). Estimators that report on a time grid override this; the
+        others ignore the time."""
+        return self._run(samples, state, last_only)
+
     def reset(self) -> None:
         """Return to the state of a freshly constructed estimator."""
         self._state = self._initial_state()
@@ -418,14 +482,16 @@ class Estimator(ABC, Generic[ParamsT]):
         return est
 
     # ---- the one entry point -------------------------------------------------------------
-    def update(self, samples: np.ndarray, *, last_only: bool = False) -> Track:
+    def update(self, samples: np.ndarray, *, last_only: bool = False, t0_ns: int | None = None) -> Track:
         """Feed a block of samples; return per-sample estimates (or the last row only).
 
         The input is never modified. A rejected block raises InputError/InputTypeError
-        and leaves the state untouched.
+        and leaves the state untouched. ``t0_ns`` (ns since the epoch) is the time of the
+        block's first sample: estimators that report on a time grid need it (their
+        ``Track.reports``); the others ignore it.
         """
         x = self._as_block(samples)
-        track, new_state = self._run(x, self._state, last_only)
+        track, new_state = self._run_timed(x, self._state, last_only, t0_ns)
         self._state = new_state
         return track
 

@@ -1323,4 +1323,7 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
             "frequency_std_hz": ext[:, 1],
             "reference_frequency_hz": ext[:, 2],
         }
-        return track_from_columns(out, sse, block.shape[0], extras)
+        track = track_from_columns(out, sse, block.shape[0], extras)
+        if self.params.rocof_model:  # first class too (Estimate v2), the extra kept
+            track.rocof_hz_per_s = rocof[:, None]
+        return track

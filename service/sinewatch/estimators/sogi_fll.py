@@ -335,4 +335,6 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, ext, sse = outputs
         extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
-        return track_from_columns(out, sse, block.shape[0], extras)
+        track = track_from_columns(out, sse, block.shape[0], extras)
+        track.rocof_hz_per_s = ext[:, 1:2]  # first class too (Estimate v2), the extra kept
+        return track

@@ -25,6 +25,10 @@ Families, for nominal f0 = 50 and 60 Hz (``c37-50hz-...``, ``c37-60hz-...``):
   ``0.5 exp(-(t - 1.5)/0.05)`` from t = 1.5 s (fault-current like; not in the standard,
   judged against the steady-state limits).
 
+The steady window before a step (or the DC onset) ends ``7 / Fs`` before it, the M-class
+TVE response-time allowance: a PMU's centred window answers up to half its length before
+an event, which the standard judges as response time (``t_r``), not as steady state.
+
 Limits (``bench.limits``) are the M-class requirements as recalled from C37.118.1-2011
 and its 2014 amendment (TVE in %, FE in Hz, RFE in Hz/s, response time in s, overshoot
 in % of the step); the bench reports against them, but check the standard before
@@ -209,7 +213,7 @@ def _step(f0: float, quantity: str, sign: float) -> Callable[..., Composite]:
             comp,
             "step",
             duration=3.0,
-            windows=((1.0, T_STEP), (T_STEP + 1.0, 3.0)),
+            windows=((1.0, T_STEP - 7.0 / f0), (T_STEP + 1.0, 3.0)),
             events=(event,),
             limits=limits,
             overrides=kw,
@@ -229,7 +233,7 @@ def _dc(f0: float, decay: bool) -> Callable[..., Composite]:
                 Component(f0, phi0=0.4),
                 "steady",
                 duration=3.0,
-                windows=((1.0, T_STEP), (2.0, 3.0)),
+                windows=((1.0, T_STEP - 7.0 / f0), (2.0, 3.0)),
                 events=(Event(T_STEP, "offset", 0.5),),
                 extra_tags=("dc",),
                 composite_kw={"offset_decay": 0.5, "offset_tau": 0.05, "offset_decay_start": T_STEP},

@@ -1,0 +1,783 @@
+"""``pmu``: synchrophasor, frequency and ROCOF on the reporting grid (IEEE C37.118.1).
+
+The estimator reports, at the times ``k / Fs`` since the epoch (``Fs`` the reporting rate,
+``k`` an integer), the synchrophasor ``X = (Xm / sqrt 2) e^{j phi}`` of the signal
+``x(t) = Xm cos(2 pi f0 t + phi(t))`` (magnitude RMS, phase referred to the
+nominal-frequency cosine at the report time, C37.118.1-2011 clause 4.2 eq. (1)-(3)),
+its frequency ``f = f0 + (1 / 2 pi) dphi/dt`` and ROCOF ``df/dt`` (clause 4.3 eq. (4)-(5)).
+
+Design: quadrature demodulation and a filter bank of a smooth lowpass kernel and its
+first two time derivatives, evaluated at the report time, with iterative cancellation of
+the negative-frequency image. References:
+
+* [S] IEEE Std C37.118.1-2011, "IEEE Standard for Synchrophasor Measurements for Power
+  Systems", and IEEE Std C37.118.1a-2014 (amendment): the quantities, Annex C's reference
+  structure (quadrature demodulation at f0, symmetric FIR lowpass, phasor at the filter's
+  centre) that (D) and (K) follow.
+* [T] J. A. de la O Serna, "Dynamic Phasor Estimates for Power System Oscillations",
+  IEEE Trans. Instrum. Meas. 56(5), 1648-1657, 2007: the phasor and its first two
+  derivatives estimated by a bank of three FIR filters (the Taylor-Fourier filters, from
+  a second-order Taylor model of the phasor over the window); here the bank is one
+  kernel and its exact time derivatives (K'), and the Taylor model gives (C).
+* [R] P. Romano, M. Paolone, "Enhanced Interpolated-DFT for Synchrophasor Estimation in
+  FPGAs: Theory, Implementation, and Validation of a PMU Prototype", IEEE Trans.
+  Instrum. Meas. 63(12), 2824-2836, 2014: iterative compensation of the spectral
+  interference of the negative-frequency image (the e-IpDFT), applied here to the
+  filter-bank outputs (I).
+* [N] A. H. Nuttall, "Some Windows with Very Good Sidelobe Behavior", IEEE Trans.
+  Acoust., Speech, Signal Process. 29(1), 84-91, 1981: the four-term window with a
+  continuous first derivative (-93 dB sidelobes), used as the taper (K).
+
+The papers' own equation numbers are not quoted: they were not at hand to check, so the
+equations below carry this module's labels (D)..(R), each derived in place.
+
+Symbols: ``fs`` sample rate, ``f0`` nominal frequency, ``Fs`` reporting rate, ``D``
+decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutoff (Hz),
+``nu = f - f0`` the frequency offset.
+
+(D)  demodulation and decimation. Sample ``n`` (counted from the time anchor, below):
+     ``z_n = sqrt 2 x_n e^{-j 2 pi f0 n / fs}`` [S, Annex C eq. (C.1)] (the oscillator from
+     a table of one period ``P = fs / gcd(fs, f0)`` samples, so exact at any n), then a
+     triangle (two cascaded boxcars of D, the CIC2 response
+     ``A(nu) = (sin(pi nu D / fs) / (D sin(pi nu / fs)))^2``) centred on every D-th sample:
+     ``c_j = sum_{|i| < D} (D - |i|) / D^2 z_{jD + i}``. For ``x = sqrt 2 Re(X e^{j 2 pi
+     f0 t})``, ``z = X + conj(X) e^{-j 4 pi f0 t}``: the phasor plus its image at
+     ``-(2 f0 + nu)``.
+(K)  kernel: ``w(t) = sinc(2 fc t) v(t / T)`` on ``|t| <= T/2``, ``v(u) = a0 + a1 cos 2 pi u +
+     a2 cos 4 pi u + a3 cos 6 pi u`` [N]; unit gain: ``p(t) = sum_j w(t - t_j) c_j / (fd W(0))``
+     with ``W`` the Fourier transform of w. For a tone ``c_j = e^{j 2 pi nu t_j}`` (Poisson
+     summation, up to the aliases ``W(nu +- fd)``, see (B)): ``p(t) = G(nu) e^{j 2 pi nu t}``
+     with ``G(nu) = A(nu) W(nu) / W(0)``.
+(K') derivatives: ``p'(t) = sum_j w'(t - t_j) c_j / (fd W(0))`` and ``p''`` likewise with w'',
+     so for a tone ``p' = (j 2 pi nu) p`` and ``p'' = (j 2 pi nu)^2 p`` exactly, whatever
+     G's passband shape (this is what makes frequency unbiased off nominal). The kernels
+     are tabulated per input-sample phase ``rho = n mod D`` (polyphase), so a report at any
+     input sample costs three complex dot products of ``T fd`` taps.
+(I)  image cancellation [R]: with ``X1 = p / G(nu)`` and ``nu = Im(p' / p) / 2 pi``, the
+     image ``Xi = conj(X1) e^{-j 4 pi f0 t}`` at ``nu_i = -(2 f0 + nu)`` contributes
+     ``(H0(nu_i), H1(nu_i), H2(nu_i)) Xi`` to ``(p, p', p'')``, H_k the exact responses of the
+     sampled kernels (tabulated per rho; in exact arithmetic ``H_k = (j 2 pi nu_i)^k G``, but
+     deep in the stopband the aliases of (B) dominate); subtract, re-estimate, twice (each
+     pass multiplies the residual image by about ``|G(nu_i)| < 1e-3``; a third changed the
+     steady-state ROCOF by < 1e-8 Hz/s).
+(E)  estimates at the computing sample: ``nu = Im(p'/p) / 2 pi`` [S eq. (4)],
+     ``ROCOF = Im(a2) / 2 pi`` with ``a2 = p''/p - (p'/p)^2 - b(nu)`` (= d nu / dt, [S eq. (5)]),
+     ``X`` by (C).
+(B)  ``b(nu)``: what ``p''/p - (p'/p)^2`` reads on a steady tone (zero in exact
+     arithmetic). (K') holds up to the aliases of the sampled kernels, ``fd W(nu +- fd) e^{+-j 2 pi rho D / fs ...}``: tiny for w, but
+     w'' multiplies them by ``(2 pi fd)^2``; they cancel on the symmetric phases (rho = 0,
+     D/2) only. Measured before (B): up to 0.015 Hz/s at 52.3 Hz (rho = 1, Fs = 50). The
+     responses of all three kernels per rho (and the image tables of (I)) are computed from
+     the sampled kernels themselves, exactly, at design time.
+(C)  second order [T, eq. (9)-(10): the phasor's Taylor terms]: with ``a2 = d^2 log X / dt^2``
+     (its imaginary part is 2 pi ROCOF, its real part the curvature of log |X|), a phasor
+     ``X(t - tau) ~ X e^{-a1 tau + a2 tau^2 / 2}`` reads ``p ~ X (G(nu) + a2 / 2 G2(nu))``
+     with ``G2`` the response of ``t^2 w(t)``, so ``X = p / (G + a2 G2 / 2)`` with
+     ``a2 = p''/p - (p'/p)^2 - b(nu)``. This is what recovers the measurement bandwidth
+     (modulation) and ramps that the lowpass alone attenuates, and what lets the lowpass
+     be narrow enough for the out-of-band test. Measured with ``sinewatch bench compliance
+     --full``: 10 % AM at 5 Hz, Fs = 50: TVE 2.0 % with the first-order form
+     ``G(nu)`` alone, 0.24 % with (C); the +-1 Hz/s ramp at Fs = 10: 1.25 % -> 0.04 %.
+(R)  report time: the computing sample is the input sample nearest the grid time ``t_r``;
+     ``X(t_r) = X e^{j 2 pi nu tau}``, ``f(t_r) = f + ROCOF tau`` (``|tau| <= 1 / 2 fs``).
+     Absolute reference: ``phi = arg X - 2 pi f0 t_anchor`` (mod 2 pi, from integer ns).
+
+Kernel choice per (class, f0, Fs): ``T = 9 / Fs`` (latency ``4.5 / Fs + 2 D / fs``, under the
+M-class ``5 / Fs``) and ``fc`` a fraction of ``Fs / 2``: 0.26 (50 Hz) and 0.22 (60 Hz) at
+Fs = f0, 0.375 below. The fractions were searched with the compliance bench (``sinewatch
+bench compliance``, the smallest limit/worst ratio over every M-class row): a wider
+passband helps modulation (TVE, FE), a narrower one the out-of-band FE; the figures are in
+docs/pmu.md. P class uses a short three-cycle taper without the sinc (P-class latency
+``2 / Fs``; not validated against the P-class limits by the bench, which models M class).
+
+Time: reports are on the grid ``k / Fs`` since the epoch. The block's absolute start time
+(``update(samples, t0_ns=...)``) anchors the sample count; without it the stream is
+taken to start at t = 0. A block whose start time disagrees with the count by more than
+half a sample (a gap in time) re-anchors the estimator: it restarts (its reports resume
+after one kernel length). Every report is computed once the kernel's last tap has
+arrived: the latency is ``T / 2 + 2 D / fs``.
+
+Per-sample outputs (the Track rows) hold the latest report, the phase advanced at its
+frequency (``y = offset + A sin(phase)``, A = sqrt 2 |X|); ``offset`` is the kernel's DC
+output on the raw samples. ``residual_rms`` is the one-step prediction error of that
+held model. The reports themselves (``Track.reports``, a GridReports) carry the same
+fields at the report times, the ROCOF in ``rocof_hz_per_s`` and the synchrophasor in
+``extras`` (``synchrophasor_magnitude``, RMS, and ``synchrophasor_angle_rad``).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field
+
+from sinewatch.estimators import register
+from sinewatch.estimators.base import Estimator, EstimatorParams, GridReports, Track, kernel
+from sinewatch.schemas.errors import ParameterError
+
+# [N] four-term window, continuous first derivative (-93 dB sidelobes)
+NUTTALL = (0.355768, 0.487396, 0.144232, 0.012604)
+
+M_CLASS_RATES = {50: (10, 25, 50), 60: (10, 12, 15, 20, 30, 60)}
+# P class: the same rates; 100/120 frames/s would need a window under 2 cycles (latency 2 / Fs)
+P_CLASS_RATES = M_CLASS_RATES
+
+# M class: T = 9 / Fs (latency 4.5 / Fs + 2 ms < 5 / Fs); fc as a fraction of Fs / 2.
+M_WINDOW_REPORTS = 9.0
+M_CUTOFF_FRACTION = {50: 0.26, 60: 0.22}  # at Fs = f0 (docs/pmu.md: the search)
+M_CUTOFF_LOW_RATE = 0.375  # Fs < f0
+P_WINDOW_CYCLES = 3.0
+
+TABLE_STEP_HZ = 0.04
+N_IMAGE_PASSES = 2
+
+
+class PmuParams(EstimatorParams):
+    nominal_frequency_hz: Literal[50, 60] = Field(50, description="Nominal frequency f0 (Hz): 50 or 60")
+    reporting_rate_hz: int | None = Field(
+        None,
+        description="Reports per second Fs (default f0). M class: 10, 25, 50 at 50 Hz; "
+        "10, 12, 15, 20, 30, 60 at 60 Hz (the same for P class)",
+    )
+    performance_class: Literal["M", "P"] = Field("M", description="C37.118.1 performance class")
+    min_amplitude: float = Field(
+        1e-9, ge=0, allow_inf_nan=False, description="converged requires the RMS magnitude > this"
+    )
+
+
+@dataclass(frozen=True)
+class Design:
+    """Everything derived from (fs, f0, Fs, class), computed once per configuration."""
+
+    fs: float
+    f0: int
+    reporting_rate: int
+    decimation: int
+    window_s: float
+    cutoff_hz: float
+    osc: np.ndarray  # (P, 2) cos, sin of 2 pi f0 n / fs
+    weights: np.ndarray  # (Q, 6), Q = lcm(P, D): (D) folded per sample phase, see demod_weights
+    kernels: np.ndarray  # (D, 3, M) w, w', w'' per input-sample phase, over fd W(0)
+    m_lo: int  # tap m runs m_lo..m_lo + M - 1; c index = q - m
+    g_pass: np.ndarray  # (D, T) complex: kernel 0's response on nu_pass0 + i * TABLE_STEP_HZ
+    a2_bias: np.ndarray  # (D, T) complex: what a2 of (E) reads on a steady tone (kernel aliasing, (B))
+    g_chirp: np.ndarray  # (D, T) complex: kernel 0's response to t^2 e^{j 2 pi nu t} (C)
+    nu_pass0: float
+    g_image: np.ndarray  # (D, 3, T) complex: the three kernels' responses on nu_image0 + i * step
+    nu_image0: float
+
+    @property
+    def n_taps(self) -> int:
+        return int(self.kernels.shape[2])
+
+    @property
+    def latency_s(self) -> float:
+        """Report time to the arrival of the last sample it needs (worst case over phases)."""
+        d = self.decimation
+        return ((-self.m_lo) * d + d - 1 + 0.5) / self.fs
+
+
+def _sinc_derivs(t: np.ndarray, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s = sin(bt)/(bt) and its first two derivatives (series near t = 0)."""
+    bt = b * t
+    small = np.abs(bt) < 1e-3
+    safe = np.where(small, 1.0, bt)
+    ts = np.where(small, 1.0, t)
+    s = np.where(small, 1.0 - bt**2 / 6.0, np.sin(safe) / safe)
+    s1 = np.where(small, -b * bt / 3.0, (safe * np.cos(safe) - np.sin(safe)) / (safe * ts))
+    s2 = np.where(
+        small,
+        -(b**2) / 3.0 + b**2 * bt**2 / 10.0,
+        ((2.0 - safe**2) * np.sin(safe) - 2.0 * safe * np.cos(safe)) / (safe * ts * ts),
+    )
+    return s, s1, s2
+
+
+def demod_weights(osc: np.ndarray, d: int) -> np.ndarray:
+    """(D) as six multiply-adds per sample: for the sample phase ``q = n mod lcm(P, D)``
+    (``rho = q mod D``), the weights of ``x_n`` in the two triangles it feeds,
+    ``(D - rho) / D^2`` (c_j) and ``rho / D^2`` (c_{j+1}), times ``sqrt 2 e^{-j 2 pi f0 n / fs}``
+    (re, im) and alone (the raw-sample DC triangle): columns cur re, cur im, next re,
+    next im, cur dc, next dc."""
+    period = osc.shape[0]
+    q = np.arange(period * d // math.gcd(period, d))
+    rho = q % d
+    c, s = osc[q % period, 0], osc[q % period, 1]
+    cur, nxt = (d - rho) / (d * d), rho / (d * d)
+    r2 = math.sqrt(2.0)
+    return np.ascontiguousarray(np.stack([cur * r2 * c, -cur * r2 * s, nxt * r2 * c, -nxt * r2 * s, cur, nxt], axis=1))
+
+
+def _kernel(t: np.ndarray, window_s: float, cutoff_hz: float | None) -> np.ndarray:
+    """(3, len(t)): w, w', w'' of (K) at times t (zero outside |t| <= T/2)."""
+    big_t = window_s
+    inside = np.abs(t) <= 0.5 * big_t
+    v = np.zeros_like(t)
+    v1 = np.zeros_like(t)
+    v2 = np.zeros_like(t)
+    for k, a in enumerate(NUTTALL):
+        om = 2.0 * np.pi * k / big_t
+        v += a * np.cos(om * t)
+        v1 -= a * om * np.sin(om * t)
+        v2 -= a * om * om * np.cos(om * t)
+    if cutoff_hz is None:
+        w = np.stack([v, v1, v2])
+    else:
+        s, s1, s2 = _sinc_derivs(t, 2.0 * np.pi * cutoff_hz)
+        w = np.stack([s * v, s1 * v + s * v1, s2 * v + 2.0 * s1 * v1 + s * v2])
+    return np.where(inside, w, 0.0)
+
+
+def _w_transform(nu: np.ndarray, window_s: float, cutoff_hz: float | None) -> np.ndarray:
+    """W(nu) of the kernel (real: w is even), by the midpoint rule on a fine grid."""
+    n = 8192
+    t = (np.arange(n) + 0.5) / n * window_s - 0.5 * window_s
+    w = _kernel(t, window_s, cutoff_hz)[0] * (window_s / n)
+    out = np.empty(nu.shape)
+    for i in range(0, nu.size, 512):
+        out[i : i + 512] = np.cos(2.0 * np.pi * np.outer(nu[i : i + 512], t)) @ w
+    return out
+
+
+def _bank_response(kernels: np.ndarray, m: np.ndarray, d: int, fs: float, nu: np.ndarray) -> np.ndarray:
+    """(D, K, len(nu)) complex: the exact response of the sampled kernels (after the CIC2)
+    to a tone at nu, per input-sample phase rho: sum_m K[rho, k, m] e^{-j 2 pi nu t_m} A(nu).
+    Exact (not the continuous W): deep in the stopband, where the image lies, the sampled
+    kernels' aliases are comparable to W itself and the derivative relations of (K') fail."""
+    out = np.empty((kernels.shape[0], kernels.shape[1], nu.size), dtype=np.complex128)
+    a = _cic2(nu, d, fs)
+    for rho in range(kernels.shape[0]):
+        t = (m * d + rho) / fs
+        e = np.exp(-2j * np.pi * np.outer(t, nu))
+        out[rho] = (kernels[rho] @ e) * a
+    return np.ascontiguousarray(out)
+
+
+def _cic2(nu: np.ndarray, d: int, fs: float) -> np.ndarray:
+    num = np.sin(np.pi * nu * d / fs)
+    den = d * np.sin(np.pi * nu / fs)
+    r: np.ndarray = np.divide(num, den, out=np.ones_like(nu), where=np.abs(den) > 1e-300)
+    r2: np.ndarray = r * r
+    return r2
+
+
+@functools.lru_cache(maxsize=32)
+def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> Design:
+    fs_int = round(fs)
+    if abs(fs - fs_int) > 1e-9 * fs or fs_int <= 0:
+        raise ParameterError(f"sample_rate_hz: expected a whole number of Hz for the pmu oscillator, got {fs}")
+    if fs < 20.0 * f0:
+        raise ParameterError(f"sample_rate_hz: expected >= {20 * f0} Hz (20 samples per nominal cycle), got {fs}")
+    d = max(1, fs_int // 1000)
+    fd = fs / d
+    if performance_class == "M":
+        window_s = M_WINDOW_REPORTS / reporting_rate
+        frac = M_CUTOFF_FRACTION[f0] if reporting_rate == f0 else M_CUTOFF_LOW_RATE
+        cutoff: float | None = frac * reporting_rate / 2.0
+    else:
+        window_s = P_WINDOW_CYCLES / f0
+        cutoff = None
+    period = fs_int // math.gcd(fs_int, f0)
+    n = np.arange(period)
+    ang = 2.0 * np.pi * ((f0 * n) % fs_int) / fs_int
+    osc = np.ascontiguousarray(np.stack([np.cos(ang), np.sin(ang)], axis=1))
+    weights = demod_weights(osc, d)
+    half = 0.5 * window_s * fs  # in input samples
+    m_lo = math.ceil((-half - (d - 1)) / d)
+    m_hi = math.floor(half / d)
+    taps = m_hi - m_lo + 1
+    w0 = _w_transform(np.zeros(1), window_s, cutoff)[0]
+    scale = 1.0 / (fd * w0)
+    kernels = np.empty((d, 3, taps))
+    m = np.arange(m_lo, m_hi + 1)
+    for rho in range(d):
+        t = (m * d + rho) / fs
+        kernels[rho] = _kernel(t, window_s, cutoff) * scale
+    span = 0.5 * reporting_rate + 1.0
+    nu_pass = np.arange(-span, span + TABLE_STEP_HZ / 2, TABLE_STEP_HZ)
+    nu_img = -2.0 * f0 + nu_pass
+    bank = _bank_response(kernels, m, d, fs, nu_pass)
+    t2 = np.stack([((m * d + rho) / fs) ** 2 for rho in range(d)])  # t_m^2 per phase
+    g_chirp = np.ascontiguousarray(_bank_response(kernels[:, :1] * t2[:, None, :], m, d, fs, nu_pass)[:, 0])
+    g_pass = np.ascontiguousarray(bank[:, 0])
+    r1 = bank[:, 1] / bank[:, 0]
+    a2_bias = np.ascontiguousarray(bank[:, 2] / bank[:, 0] - r1 * r1)
+    g_img = _bank_response(kernels, m, d, fs, nu_img)
+    return Design(
+        fs=fs,
+        f0=f0,
+        reporting_rate=reporting_rate,
+        decimation=d,
+        window_s=window_s,
+        cutoff_hz=math.nan if cutoff is None else cutoff,
+        osc=osc,
+        weights=weights,
+        kernels=np.ascontiguousarray(kernels),
+        m_lo=m_lo,
+        g_pass=g_pass,
+        a2_bias=a2_bias,
+        g_chirp=g_chirp,
+        nu_pass0=float(nu_pass[0]),
+        g_image=g_img,
+        nu_image0=float(nu_img[0]),
+    )
+
+
+def gain(d: Design, nu: float | np.ndarray) -> np.ndarray:
+    """The kernel bank's complex gain G(nu) (real), exact, for analysis and tests."""
+    nu = np.atleast_1d(np.asarray(nu, dtype=np.float64))
+    w0 = _w_transform(np.zeros(1), d.window_s, None if math.isnan(d.cutoff_hz) else d.cutoff_hz)[0]
+    cut = None if math.isnan(d.cutoff_hz) else d.cutoff_hz
+    g: np.ndarray = _w_transform(nu, d.window_s, cut) / w0 * _cic2(nu, d.decimation, d.fs)
+    return g
+
+
+# --------------------------------------------------------------------------------------
+# kernel
+
+# istate: 0 n (samples since the anchor), 1 j (next decimated index), 2 k_next (grid
+# index of the next report), 3 k0 (first grid index at/after the anchor), 4 held (a
+# report has been made), 5 defined (it has a finite estimate)
+# fstate: 0 delta0 (samples from the anchor to grid point k0), 1 beta (2 pi f0 t_anchor
+# mod 2 pi), 2-3 acc_cur (re, im), 4-5 acc_next, 6 dc_cur, 7 dc_next,
+# 8 f, 9 A (peak), 10 theta (phase at the current sample), 11 B (offset), 12 rocof,
+# 13 converged, 14 cos theta, 15 sin theta (rotor at the current sample)
+N_ISTATE = 6
+N_FSTATE = 16
+
+
+@kernel
+def _wrap(p: float) -> float:
+    y = math.pi - p
+    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
+    if r >= 2.0 * math.pi:
+        r = 0.0
+    return math.pi - r
+
+
+@kernel
+def _interp(table: np.ndarray, x0: float, step: float, x: float) -> Any:
+    """Cubic (4-point Lagrange) interpolation of a table sampled at x0 + i step; clamped."""
+    u = (x - x0) / step
+    n = table.shape[0]
+    i = math.floor(u)
+    if i < 1:
+        i = 1
+    if i > n - 3:
+        i = n - 3
+    s = u - i
+    if s < -1.0:
+        s = -1.0
+    if s > 2.0:
+        s = 2.0
+    ym, y0, y1, y2 = table[i - 1], table[i], table[i + 1], table[i + 2]
+    return (
+        -s * (s - 1.0) * (s - 2.0) / 6.0 * ym
+        + (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0 * y0
+        - (s + 1.0) * s * (s - 2.0) / 2.0 * y1
+        + (s + 1.0) * s * (s - 1.0) / 6.0 * y2
+    )
+
+
+@kernel
+def _report(
+    ring: np.ndarray,
+    dcring: np.ndarray,
+    start: int,
+    kern: np.ndarray,
+    osc: np.ndarray,
+    n_r: int,
+    fconsts: np.ndarray,
+    gp: np.ndarray,
+    bias: np.ndarray,
+    gc: np.ndarray,
+    gi3: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """(K)-(E) from the M decimated samples ring[start:start+M] (oldest first): fills
+    out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame)."""
+    M = kern.shape[1]
+    f0, nu_p0, nu_i0, step = fconsts[0], fconsts[2], fconsts[3], fconsts[4]
+    # taps run m = m_lo .. m_lo + M - 1 over c_{q - m}: newest sample first
+    p0r = p0i = p1r = p1i = p2r = p2i = b = 0.0
+    last = start + M - 1
+    for i in range(M):
+        cr = ring[last - i, 0]
+        ci = ring[last - i, 1]
+        k0v = kern[0, i]
+        k1v = kern[1, i]
+        k2v = kern[2, i]
+        p0r += k0v * cr
+        p0i += k0v * ci
+        p1r += k1v * cr
+        p1i += k1v * ci
+        p2r += k2v * cr
+        p2i += k2v * ci
+        b += k0v * dcring[last - i]
+    p0 = complex(p0r, p0i)
+    p1 = complex(p1r, p1i)
+    p2 = complex(p2r, p2i)
+    if not (abs(p0) > 0.0) or not math.isfinite(abs(p0)):
+        out[5] = 0.0
+        return
+    # e^{-j 4 pi f0 n_r / fs} from the oscillator table
+    P = osc.shape[0]
+    ph = n_r % P
+    e1 = complex(osc[ph, 0], -osc[ph, 1])
+    e2 = e1 * e1
+    q0, q1, q2 = p0, p1, p2
+    nu = 0.0
+    for _ in range(N_IMAGE_PASSES):  # (I) image cancellation passes [R]
+        nu = (q1 / q0).imag / (2.0 * math.pi)
+        x1 = q0 / _interp(gp, nu_p0, step, nu)
+        nu_i = -2.0 * f0 - nu
+        xi = x1.conjugate() * e2
+        q0 = p0 - _interp(gi3[0], nu_i0, step, nu_i) * xi
+        q1 = p1 - _interp(gi3[1], nu_i0, step, nu_i) * xi
+        q2 = p2 - _interp(gi3[2], nu_i0, step, nu_i) * xi
+        if not (abs(q0) > 0.0):
+            out[5] = 0.0
+            return
+    r1 = q1 / q0
+    nu = r1.imag / (2.0 * math.pi)  # (E)
+    a2 = q2 / q0 - r1 * r1 - _interp(bias, nu_p0, step, nu)  # (B): d^2 log X / dt^2
+    rocof = a2.imag / (2.0 * math.pi)
+    x = q0 / (_interp(gp, nu_p0, step, nu) + 0.5 * a2 * _interp(gc, nu_p0, step, nu))  # (C)
+    out[0] = nu
+    out[1] = x.real
+    out[2] = x.imag
+    out[3] = rocof
+    out[4] = b
+    out[5] = 1.0 if (math.isfinite(nu) and math.isfinite(rocof) and math.isfinite(abs(x))) else 0.0
+
+
+@kernel
+def pmu_kernel(
+    x: np.ndarray,
+    ring: np.ndarray,
+    dcring: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    anchor: np.ndarray,
+    kernels: np.ndarray,
+    osc: np.ndarray,
+    weights: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    g_pass: np.ndarray,
+    a2_bias: np.ndarray,
+    g_chirp: np.ndarray,
+    g_image: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 8), sse,
+    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor) (``anchor``, the
+    time anchor the class keeps, passes through unchanged).
+
+    ``ring`` (2L, 2) holds the decimated c_j twice (so any window is contiguous), dcring
+    (2L,) the decimated raw samples; ``iconsts`` = (D, M, m_lo, L); ``fconsts`` = (f0, fs,
+    nu_pass0, nu_image0, table step, samples per report fs/Fs, min_amplitude). Output
+    columns: frequency_hz, amplitude, phase_rad, offset, converged, rocof. Report rows:
+    k, f, rocof, RMS magnitude, synchrophasor angle, amplitude (peak), phase_rad (sine,
+    instantaneous), offset. Pure: no input is modified."""
+    D, M, m_lo, L = iconsts[0], iconsts[1], iconsts[2], iconsts[3]
+    f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
+    rg = ring.copy()
+    dr = dcring.copy()
+    ist = istate.copy()
+    fst = fstate.copy()
+    n, j, k_next, k0, held, defined = ist[0], ist[1], ist[2], ist[3], ist[4], ist[5]
+    delta0, beta = fst[0], fst[1]
+    acr, aci, anr, ani, dcc, dcn = fst[2], fst[3], fst[4], fst[5], fst[6], fst[7]
+    f, A, B, rocof, conv = fst[8], fst[9], fst[11], fst[12], fst[13]
+    cth, sth = fst[14], fst[15]
+    n_in = x.shape[0]
+    out = np.empty((1 if last_only else n_in, 6))
+    cap = n_in // max(1, int(spr)) + 2
+    reps = np.empty((cap, 8))
+    n_rep = 0
+    est = np.zeros(6)
+    Q = weights.shape[0]
+    ph = n % Q  # sample phase (weights) and decimation phase of sample n, then counted
+    rho = n % D
+    sse = 0.0
+    n_pred = 0
+    cstep = 1.0
+    sstep = 0.0
+    if held and defined:
+        cstep = math.cos(2.0 * math.pi * f / fs)
+        sstep = math.sin(2.0 * math.pi * f / fs)
+    for i in range(n_in):
+        xi = x[i]
+        if held and defined:  # one-step prediction of the held model
+            e = xi - (B + A * sth)
+            sse += e * e
+            n_pred += 1
+        # (D) demodulate and accumulate the triangle
+        acr += xi * weights[ph, 0]
+        aci += xi * weights[ph, 1]
+        anr += xi * weights[ph, 2]
+        ani += xi * weights[ph, 3]
+        dcc += xi * weights[ph, 4]
+        dcn += xi * weights[ph, 5]
+        if rho == D - 1:  # c_j complete
+            slot = j % L
+            rg[slot, 0] = acr
+            rg[slot, 1] = aci
+            rg[slot + L, 0] = acr
+            rg[slot + L, 1] = aci
+            dr[slot] = dcc
+            dr[slot + L] = dcc
+            acr, aci, dcc = anr, ani, dcn
+            anr = ani = dcn = 0.0
+            # reports whose newest tap is c_j (or that can never be made)
+            while True:
+                u = delta0 + (k_next - k0) * spr
+                n_r = math.floor(u + 0.5)
+                q = n_r // D
+                newest = q - m_lo
+                oldest = newest - M + 1
+                if newest > j:
+                    break
+                if oldest < 1 or newest < j:  # window reaches before the anchor: skip
+                    k_next += 1
+                    continue
+                ph_r = n_r - q * D
+                _report(
+                    rg,
+                    dr,
+                    oldest % L,
+                    kernels[ph_r],
+                    osc,
+                    n_r,
+                    fconsts,
+                    g_pass[ph_r],
+                    a2_bias[ph_r],
+                    g_chirp[ph_r],
+                    g_image[ph_r],
+                    est,
+                )
+                held = 1
+                tau = (u - n_r) / fs
+                if est[5] != 0.0:
+                    nu = est[0]
+                    xr = complex(est[1], est[2]) * complex(
+                        math.cos(2 * math.pi * nu * tau), math.sin(2 * math.pi * nu * tau)
+                    )
+                    mag = abs(xr)
+                    rocof = est[3]
+                    f = f0 + nu + rocof * tau
+                    B = est[4]
+                    defined = 1
+                    conv = 1.0 if mag > min_amp else 0.0
+                    arg = math.atan2(xr.imag, xr.real)
+                    # phase of the nominal oscillator at u: 2 pi f0 u / fs (mod 2 pi)
+                    nom = 2.0 * math.pi * ((f0 * u / fs) - math.floor(f0 * u / fs))
+                    theta_r = arg + nom + 0.5 * math.pi  # sine convention
+                    A = math.sqrt(2.0) * mag
+                    if n_rep < cap:
+                        reps[n_rep, 0] = k_next
+                        reps[n_rep, 1] = f
+                        reps[n_rep, 2] = rocof
+                        reps[n_rep, 3] = mag
+                        reps[n_rep, 4] = _wrap(arg - beta)
+                        reps[n_rep, 5] = A
+                        reps[n_rep, 6] = _wrap(theta_r)
+                        reps[n_rep, 7] = B
+                        n_rep += 1
+                    # rotor at the current sample n (predicts sample n + 1 after a step)
+                    th = theta_r + 2.0 * math.pi * f * (n - u) / fs
+                    cth = math.cos(th)
+                    sth = math.sin(th)
+                    cstep = math.cos(2.0 * math.pi * f / fs)
+                    sstep = math.sin(2.0 * math.pi * f / fs)
+                else:
+                    defined = 0
+                    f = A = B = rocof = conv = 0.0
+                    cth, sth = 1.0, 0.0
+                    if n_rep < cap:
+                        reps[n_rep, 0] = k_next
+                        for c in range(1, 8):
+                            reps[n_rep, c] = np.nan
+                        n_rep += 1
+                k_next += 1
+            j += 1
+        if not (last_only and i != n_in - 1):
+            row = 0 if last_only else i
+            if held and defined:
+                out[row, 0] = f
+                out[row, 1] = A
+                out[row, 2] = math.atan2(sth, cth) if (not last_only or i == n_in - 1) else 0.0
+                out[row, 3] = B
+                out[row, 4] = conv
+                out[row, 5] = rocof
+            else:
+                for c in range(4):
+                    out[row, c] = np.nan
+                out[row, 4] = 0.0
+                out[row, 5] = np.nan
+        # advance the rotor to sample n + 1
+        if held and defined:
+            c2 = cth * cstep - sth * sstep
+            sth = sth * cstep + cth * sstep
+            cth = c2
+        n += 1
+        ph += 1
+        if ph == Q:
+            ph = 0
+        rho += 1
+        if rho == D:
+            rho = 0
+    ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
+    fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
+    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
+
+
+@register
+class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
+    """Synchrophasor estimator on the reporting grid (see module docstring)."""
+
+    name = "pmu"
+    reports_on_grid = True
+    summary = (
+        "C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the "
+        "reporting grid: demodulation + derivative filter bank + image cancellation (M or P class)"
+    )
+    paper = None
+    example_sample_rate_hz = 10_000.0
+    example_frequency_hz = 50.0
+    example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
+
+    def _check_params(self) -> None:
+        p = self.params
+        f0 = int(p.nominal_frequency_hz)
+        rate = f0 if p.reporting_rate_hz is None else int(p.reporting_rate_hz)
+        allowed = (M_CLASS_RATES if p.performance_class == "M" else P_CLASS_RATES)[f0]
+        if rate not in allowed:
+            raise ParameterError(
+                f"reporting_rate_hz: expected one of {list(allowed)} for class {p.performance_class} at {f0} Hz, "
+                f"got {rate}"
+            )
+        self.reporting_rate = rate
+        self.design = design(self.sample_rate_hz, f0, rate, p.performance_class)
+
+    def _setup(self) -> None:
+        d = self.design
+        self._ring_len = d.n_taps + 2
+        self._iconsts = np.array([d.decimation, d.n_taps, d.m_lo, self._ring_len], dtype=np.int64)
+        self._fconsts = np.array(
+            [
+                float(d.f0),
+                d.fs,
+                d.nu_pass0,
+                d.nu_image0,
+                TABLE_STEP_HZ,
+                d.fs / d.reporting_rate,
+                self.params.min_amplitude,
+            ]
+        )
+        self._constants = (
+            d.kernels, d.osc, d.weights, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image
+        )  # fmt: skip
+
+    # ---- time anchor ----------------------------------------------------------------------
+    def _anchor_state(self, anchor_ns: int) -> dict[str, np.ndarray]:
+        fs_rep = self.reporting_rate
+        f0 = self.design.f0
+        k0 = -((-anchor_ns * fs_rep) // 1_000_000_000)  # ceil(anchor * Fs / 1e9)
+        delta0_ns = (k0 * 1_000_000_000 - anchor_ns * fs_rep) / fs_rep  # exact rational -> float
+        delta0 = delta0_ns * 1e-9 * self.sample_rate_hz
+        beta = 2.0 * math.pi * (((f0 * anchor_ns) % 1_000_000_000) / 1e9)
+        istate = np.array([0, 0, k0, k0, 0, 0], dtype=np.int64)
+        fstate = np.zeros(N_FSTATE)
+        fstate[0] = delta0
+        fstate[1] = beta
+        fstate[14] = 1.0
+        return {
+            "ring": np.zeros((2 * self._ring_len, 2)),
+            "dc_ring": np.zeros(2 * self._ring_len),
+            "counters": istate,
+            "values": fstate,
+            "anchor_ns": np.array([anchor_ns, 0], dtype=np.int64),  # anchor, anchored by a t0 (0/1)
+        }
+
+    def _initial_state(self) -> dict[str, np.ndarray]:
+        """``ring`` (2L, 2): the decimated c_j (re, im), each written twice so that a window
+        is contiguous; ``dc_ring`` (2L,): the decimated raw samples; ``counters`` (6,) int64:
+        samples since the anchor, next decimated index, next grid index, first grid index
+        after the anchor, report held, report defined; ``values`` (16,): see ``N_FSTATE``;
+        ``anchor_ns`` (2,) int64: the anchor (ns since the epoch) and whether a block's
+        time set it (1) or it is the default t = 0 (0)."""
+        return self._anchor_state(0)
+
+    def _expected_t0_ns(self, st: dict[str, np.ndarray]) -> int:
+        """Where the next block starts if the stream is contiguous (ns since the epoch)."""
+        return int(st["anchor_ns"][0]) + round(int(st["counters"][0]) * 1e9 / self.sample_rate_hz)
+
+    def _state_for_block(self, st: dict[str, np.ndarray], t0_ns: int | None) -> dict[str, np.ndarray]:
+        """The state to run the block from: ``st``, or a fresh one anchored at ``t0_ns`` on
+        the first timed block and after a gap in time."""
+        if t0_ns is None:
+            return st
+        t0_ns = int(t0_ns)
+        n = int(st["counters"][0])
+        anchored = int(st["anchor_ns"][1]) != 0
+        if n == 0 and not anchored:
+            s = self._anchor_state(t0_ns)
+            s["anchor_ns"][1] = 1
+            return s
+        half_sample_ns = 0.5e9 / self.sample_rate_hz
+        if abs(t0_ns - self._expected_t0_ns(st)) > half_sample_ns:  # a gap in time: restart on the grid
+            s = self._anchor_state(t0_ns)
+            s["anchor_ns"][1] = 1
+            return s
+        return st
+
+    # ---- the kernel ----------------------------------------------------------------------
+    def _run_timed(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        return self._run(samples, self._state_for_block(state, t0_ns), last_only)
+
+    def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
+        out, reps, sse, n_pred = outputs
+        residual = math.sqrt(sse / n_pred) if n_pred else math.nan
+        return Track(
+            frequency_hz=out[:, 0:1],
+            amplitude=out[:, 1:2],
+            phase_rad=out[:, 2:3],
+            offset=out[:, 3],
+            converged=out[:, 4] != 0.0,
+            residual_rms=residual,
+            rocof_hz_per_s=out[:, 5:6],
+            reports=GridReports(
+                index=reps[:, 0].astype(np.int64),
+                reporting_rate_hz=self.reporting_rate,
+                track=Track(
+                    frequency_hz=reps[:, 1:2],
+                    amplitude=reps[:, 5:6],
+                    phase_rad=reps[:, 6:7],
+                    offset=reps[:, 7],
+                    converged=reps[:, 3] > self._fconsts[6],
+                    residual_rms=residual,
+                    extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
+                    rocof_hz_per_s=reps[:, 2:3],
+                ),
+            ),
+        )
+
+    @classmethod
+    def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
+        f0s = hints.get("nominal_frequency_hz") or (50.0,)
+        f0 = round(float(f0s[0]))
+        if f0 not in (50, 60) or hints.get("n_components", 1) != 1 or hints.get("n_inputs", 1) != 1:
+            raise ParameterError("pmu: one tone at a 50 or 60 Hz nominal frequency only")
+        rate = hints.get("reporting_rate_hz") or f0
+        rate = round(float(rate))
+        if rate not in M_CLASS_RATES[f0]:
+            rate = f0
+        return {"nominal_frequency_hz": f0, "reporting_rate_hz": rate}
