@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload soak schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance soak schemas clean
 
 install: $(STAMP)
 
@@ -58,6 +58,10 @@ bench-crlb: $(STAMP)
 # The power-quality stage's cost per block against the estimator alone.
 bench-pq: $(STAMP)
 	$(BIN)/python -m sinewatch.bench.pq_stage
+
+# The IEEE C37.118.1 M-class suite (pmu), at 50 and 60 Hz at their highest reporting rates.
+bench-compliance: $(STAMP)
+	$(BIN)/sinewatch bench compliance --rates 50/50,60/60 --full
 
 bench-overload: $(STAMP)
 	$(BIN)/sinewatch bench overload

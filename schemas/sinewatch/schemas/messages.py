@@ -85,7 +85,10 @@ class Estimate(_Message):
     format_version: Literal[1, 2] = 2
     channel: str
     seq: int = Field(description="Sequence number of the input block")
-    timestamp_ns: int = Field(description="Time of the block's last sample, ns since the epoch")
+    timestamp_ns: int = Field(
+        description="Time the estimate refers to, ns since the epoch: the block's last sample, or the report "
+        "time k/Fs for an estimator that reports on a time grid (pmu)"
+    )
     n_samples: int = Field(description="Samples in the input block")
     estimator: str
     frequency_hz: list[float | None]
