@@ -164,10 +164,14 @@ def format_estimate(msg: dict[str, Any]) -> str:
         (" converged" if d["converged"] else " -", " GAP" if d["gap"] else "", " RESET" if d["reset"] else "")
     )
     off = "nan" if msg["offset"] is None else f"{msg['offset']:.4f}"
+    rocof = msg.get("rocof_hz_per_s")  # Estimate v2; absent in v1 recordings
+    rocof_text = "" if rocof is None else f" rocof={f(rocof, '+.4f')}Hz/s"
+    std = msg.get("std")
+    std_text = "" if not std or std["frequency_hz"][0] is None else f" sd(f)={f(std['frequency_hz'], '.2g')}Hz"
     return (
         f"{msg['timestamp_ns'] / 1e9:.4f} {msg['channel']} #{msg['seq']} {msg['estimator']} "
         f"f={f(msg['frequency_hz'], '.4f')}Hz A={f(msg['amplitude'], '.4f')} "
-        f"phi={f(msg['phase_rad'], '.3f')} off={off}{flags}"
+        f"phi={f(msg['phase_rad'], '.3f')} off={off}{rocof_text}{std_text}{flags}"
     )
 
 
