@@ -9,7 +9,9 @@ The run, module by module:
 * :mod:`sinewatch.bench.params`: the estimator's parameters for each scenario;
 * :mod:`sinewatch.bench.runner`: the seeded Monte Carlo trials (in worker processes);
 * :mod:`sinewatch.bench.metrics`: the definitions of every figure;
-* :mod:`sinewatch.bench.report`: the Markdown tables, the JSON records and the plots.
+* :mod:`sinewatch.bench.report`: the Markdown tables, the JSON records and the plots;
+* :mod:`sinewatch.bench.pq_accuracy`: the power-quality families (``--scenarios pq``),
+  scored against IEC 61000-4-7 class I and IEC 61000-4-30 class A, pqopen-lib beside.
 
 The arguments are defined in :mod:`sinewatch.bench.args`; :func:`run` is the command. The
 same run is available from Python as :func:`sinewatch.bench.runner.run_bench` (the tests
@@ -27,6 +29,10 @@ import time
 from pathlib import Path
 
 from sinewatch.bench.args import DEFAULT_TRIALS, QUICK_TRIALS
+from sinewatch.bench.pq_accuracy import DOCS_BEGIN as PQ_DOCS_BEGIN
+from sinewatch.bench.pq_accuracy import DOCS_END as PQ_DOCS_END
+from sinewatch.bench.pq_accuracy import pqopen_available, run_pq, split_patterns
+from sinewatch.bench.pq_accuracy import render_markdown as render_pq_markdown
 from sinewatch.bench.report import render_markdown, update_docs, write_json, write_plots
 from sinewatch.bench.runner import run_bench
 from sinewatch.bench.scenarios import select_estimators, select_scenarios
@@ -36,7 +42,8 @@ from sinewatch.schemas.errors import ParameterError
 def run(args: argparse.Namespace) -> int:
     """``sinewatch bench accuracy [...]``: run, write accuracy.md, accuracy.json, plots."""
     try:
-        scens = select_scenarios(args.scenarios, quick=args.quick)
+        regular, pq = split_patterns(args.scenarios)
+        scens = select_scenarios(regular, quick=args.quick) if regular is None or regular else []
         ests = select_estimators(args.estimators)
     except ParameterError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -47,8 +54,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     want_plots = not getattr(args, "no_plots", False)
     t0 = time.perf_counter()
-    results = run_bench(
-        ests, scens, trials=trials, seed=args.seed, jobs=max(1, args.jobs), keep_trace=want_plots, progress=True
+    results = (
+        run_bench(
+            ests, scens, trials=trials, seed=args.seed, jobs=max(1, args.jobs), keep_trace=want_plots, progress=True
+        )
+        if scens
+        else []
     )
     elapsed = time.perf_counter() - t0
     out: Path = args.out
@@ -64,22 +75,43 @@ def run(args: argparse.Namespace) -> int:
         "date": time.strftime("%Y-%m-%d"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {max(1, args.jobs)} jobs",
     }
-    md = render_markdown(results, meta["command"], meta)
+    md = render_markdown(results, meta["command"], meta) if scens else ""
     if any(p in ("c37.118", "tag:c37.118") for p in (args.scenarios or [])):
         from sinewatch.bench.compliance import markdown_section  # the grid estimators' full C37 suite
 
         section = markdown_section(ests)
         md += "\n\n" + section if section else ""
-    (out / "accuracy.md").write_text("# sinewatch accuracy results\n\n" + md + "\n")
-    write_json(out / "accuracy.json", results, meta)
-    plots = write_plots(out, results) if want_plots else []
+    pq_md, pq_records, pq_over = "", None, 0
+    if pq:
+        t1 = time.perf_counter()
+        installed = pqopen_available()
+        pq_records = run_pq(pq, with_pqopen=installed)
+        pq_s = time.perf_counter() - t1
+        meta["pq_scenarios"], meta["pq_elapsed_s"] = pq, pq_s
+        pq_over = sum(v["ratio"] > 1.0 for r in pq_records for v in r["sinewatch"].values())
+        pq_md = (
+            f"Command:\n\n```\n{meta['command']}\n```\n\n"
+            f"{len(pq)} power-quality scenarios, deterministic (noise-free); sinewatch {meta['version']}, "
+            f"{meta['date']}; {pq_s:.0f} s on {platform.machine()}, {os.cpu_count()} cores, one process.\n\n"
+            + render_pq_markdown(pq_records, installed)
+        )
+    full = "\n\n".join(part for part in (md, pq_md) if part)
+    (out / "accuracy.md").write_text("# sinewatch accuracy results\n\n" + full + "\n")
+    write_json(out / "accuracy.json", results, meta, power_quality=pq_records)
+    plots = write_plots(out, results) if want_plots and results else []
     if getattr(args, "update_docs", None):
-        update_docs(args.update_docs, md)
+        if scens:
+            update_docs(args.update_docs, md)
+        if pq:
+            update_docs(args.update_docs, pq_md, PQ_DOCS_BEGIN, PQ_DOCS_END)
     n_ok = sum(r["status"] == "ok" for r in results)
     n_na = sum(r["status"] == "n/a" for r in results)
     n_err = sum(r["status"] == "error" for r in results)
-    msg = f"{n_ok} runs, {n_na} n/a, {n_err} errors in {elapsed:.0f} s; wrote {out / 'accuracy.md'}, {out / 'accuracy.json'}"
-    if want_plots:
+    msg = f"{n_ok} runs, {n_na} n/a, {n_err} errors in {elapsed:.0f} s"
+    if pq:
+        msg += f"; {len(pq)} power-quality scenarios, {pq_over} sinewatch rows over their IEC limit"
+    msg += f"; wrote {out / 'accuracy.md'}, {out / 'accuracy.json'}"
+    if want_plots and results:
         msg += f", {len(plots)} plots" if plots else " (no plots: matplotlib is not installed)"
     print(msg)
     return 1 if n_err else 0

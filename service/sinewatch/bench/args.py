@@ -102,7 +102,9 @@ def add_accuracy_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         metavar="NAME",
         help="scenario names, globs (c37-50hz-*) or tags (c37.118, paper, snr, gap, "
-        "multitone, phasor; or tag:NAME); default: all (with --quick: tag quick)",
+        "multitone, phasor; or tag:NAME); pq: the power-quality families (IEC 61000-4-7/4-30, "
+        "pqopen-lib beside when installed; or their names and globs, pq-unbalance-*); "
+        "default: all single-channel scenarios (with --quick: tag quick)",
     )
     parser.add_argument(
         "--trials",

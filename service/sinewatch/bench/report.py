@@ -258,9 +258,14 @@ def _finite_or_none(x: Any) -> Any:
     return x
 
 
-def write_json(path: Path, results: list[dict[str, Any]], meta: dict[str, Any]) -> None:
+def write_json(
+    path: Path, results: list[dict[str, Any]], meta: dict[str, Any], power_quality: list[dict[str, Any]] | None = None
+) -> None:
     clean = [{k: v for k, v in r.items() if not k.startswith("_")} for r in results]
-    path.write_text(json.dumps(_finite_or_none({"meta": meta, "results": clean}), indent=1, default=str) + "\n")
+    doc: dict[str, Any] = {"meta": meta, "results": clean}
+    if power_quality is not None:
+        doc["power_quality"] = power_quality
+    path.write_text(json.dumps(_finite_or_none(doc), indent=1, default=str) + "\n")
 
 
 def write_plots(out: Path, results: list[dict[str, Any]]) -> list[Path]:
@@ -333,13 +338,14 @@ def write_plots(out: Path, results: list[dict[str, Any]]) -> list[Path]:
     return written
 
 
-def update_docs(path: Path, table_md: str) -> None:
-    """Replace the text between the results markers of ``path`` (append them if absent)."""
+def update_docs(path: Path, table_md: str, begin: str = DOCS_BEGIN, end: str = DOCS_END) -> None:
+    """Replace the text between the results markers ``begin`` and ``end`` of ``path``
+    (append them if absent)."""
     text = path.read_text() if path.exists() else ""
-    block = f"{DOCS_BEGIN}\n{table_md}\n{DOCS_END}"
-    if DOCS_BEGIN in text and DOCS_END in text:
-        head, rest = text.split(DOCS_BEGIN, 1)
-        _, tail = rest.split(DOCS_END, 1)
+    block = f"{begin}\n{table_md}\n{end}"
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
         text = head + block + tail
     else:
         text = text + ("\n" if text and not text.endswith("\n") else "") + block + "\n"
