@@ -279,3 +279,69 @@ def test_c37_rocof_comes_from_the_estimator_when_it_publishes_one(monkeypatch):
     moved = evaluate("sogi-fll", "c37-50hz-ramp-up")["metrics"]["c37"]
     assert moved["rocof_source"] == "extras"
     assert moved["rfe_max_hz_per_s"] == c["rfe_max_hz_per_s"] and moved["tve_max_pct"] == c["tve_max_pct"]
+
+
+def test_pq_families_through_the_bench_scored_against_the_iec_limits(tmp_path, capsys):
+    from sinewatch.bench import pq_accuracy
+    from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
+    from sinewatch.power_quality.limits import LIMITS
+    from sinewatch.power_quality.reports import window_sequence
+    from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
+
+    # selection: pq is every power-quality scenario; the default run takes none of them
+    assert pq_accuracy.split_patterns(["pq"]) == ([], pq_names()) and len(pq_names()) == 44
+    assert pq_accuracy.split_patterns(None) == (None, [])
+    assert pq_accuracy.split_patterns(["tone-snr-40db", "pq-harmonics-60hz-low*"]) == (
+        ["tone-snr-40db"],
+        ["pq-harmonics-60hz-low", "pq-harmonics-60hz-low-m5", "pq-harmonics-60hz-low-p5"],
+    )
+    docs = tmp_path / "accuracy-doc.md"
+    docs.write_text(f"# title\n\n{report.DOCS_BEGIN}\nsingle-channel tables\n{report.DOCS_END}\n")
+    unb, low = "pq-unbalance-50hz-u2-2pct-harmonics-m5", "pq-harmonics-60hz-low-p5"
+    args = _parse(
+        ["--scenarios", unb, low, "--out", str(tmp_path / "out"), "--update-docs", str(docs)], add_accuracy_arguments
+    )
+    assert accuracy.run(args) == 0
+    assert "2 power-quality scenarios, 0 sinewatch rows over their IEC limit" in capsys.readouterr().out
+    data = json.loads((tmp_path / "out" / "accuracy.json").read_text())
+    assert data["results"] == [] and [r["scenario"] for r in data["power_quality"]] == [unb, low]
+    by = {r["scenario"]: r["sinewatch"] for r in data["power_quality"]}
+    for scores in by.values():
+        for s in scores.values():  # class I, class A: every worst reading within its limit
+            assert s["ratio"] == pytest.approx(s["error"] / s["limit"]) and s["ratio"] <= 1.0
+    assert by[unb]["u2"]["limit"] == LIMITS["u2_absolute"] and by[unb]["frequency"]["limit"] == LIMITS["frequency_hz"]
+    # the 0.1-0.9 % harmonics are judged against 0.05 % of nominal (1 per unit)
+    assert by[low]["harmonics"]["limit"] == pytest.approx(LIMITS["harmonic_absolute"])
+    # u2 recomputed from the group analyser's windows and the scenario's exact truth
+    sc = get_pq(unb)
+    y, _ = sc.generate()
+    an = HarmonicAnalyser(sc.sample_rate_hz, HarmonicParams(nominal_frequency_hz=50.0, n_channels=3))
+    seq = [window_sequence(w) for i in range(0, y.shape[0], 1000) for w in an.update(y[i : i + 1000], i * 100_000)]
+    assert len(seq) == int(2.0 * 47.5 / 10) and sc.pq_truth.u2 == pytest.approx(0.02)  # 10-cycle windows in 2 s
+    assert by[unb]["u2"]["error"] == pytest.approx(max(abs(float(s.u2) - 0.02) for s in seq), rel=1e-9, abs=1e-15)
+    # the report: Markdown beside the single-channel tables, in its own block of the docs
+    text = docs.read_text()
+    assert "single-channel tables" in text and text.count(pq_accuracy.DOCS_BEGIN) == 1
+    assert f"| `{unb}` | u2 | IEC 61000-4-30 class A |" in text
+    rows = [ln.split(" | ") for ln in text.split("#### Every")[1].splitlines() if ln.startswith("| `")]
+    assert len(rows) == 5 + 3 and all(r[5].endswith("PASS") for r in rows)  # sinewatch's ratio column
+    if pq_accuracy.pqopen_available():  # pqopen-lib on the same samples: its u2 is within class A too
+        ref = {r["scenario"]: r["pqopen"] for r in data["power_quality"]}
+        assert ref[unb]["u2"]["ratio"] < 1.0 and ref[low]["max_order"]["ratio"] == 41
+    else:
+        assert "not installed" in text
+    md = pq_accuracy.render_markdown(pq_accuracy.run_pq([low], with_pqopen=False), installed=False)
+    assert "| not installed | - |" in md and "pqopen-lib is not installed" in md
+
+
+def test_pq_scoring_fails_a_measurement_outside_the_class_i_limit():
+    from sinewatch.bench import pq_accuracy
+    from sinewatch.scenarios.power_quality_iec import get_pq
+
+    # white noise of 1 % of nominal (seeded): the 0.1-0.9 % harmonics, held to 0.05 % of
+    # nominal, cannot all be within class I; u2 and frequency stay within class A
+    sc = get_pq("pq-unbalance-50hz-u2-1pct", noise_std=0.02)
+    y, _ = sc.generate(3)
+    scores = pq_accuracy.sinewatch_scores(sc, y, sc.pq_truth)
+    assert scores["harmonics"]["ratio"] > 1.0 and scores["harmonics"]["limit"] == pytest.approx(0.0005)
+    assert scores["u2"]["ratio"] < 1.0
