@@ -248,8 +248,8 @@ def render_markdown(records: list[dict[str, Any]], installed: bool) -> str:
         "",
         "#### Worst ratio per family",
         "",
-        "| family | quantity | sinewatch | pqopen |",
-        "|---|---|---|---|",
+        "| family | scenarios | quantity | sinewatch | pqopen |",
+        "|---|---|---|---|---|",
     ]
     fams = list(dict.fromkeys(r["family"] for r in records))
     for fam in fams:
@@ -260,7 +260,7 @@ def render_markdown(records: list[dict[str, Any]], installed: bool) -> str:
                 continue
             worst_sw = max(sw, key=lambda s: s["ratio"])
             lines.append(
-                f"| {fam} ({len(recs)}) | {label} | {_ratio_cell(worst_sw)} | {_family_ref(recs, key, installed)} |"
+                f"| {fam} | {len(recs)} | {label} | {_ratio_cell(worst_sw)} | {_family_ref(recs, key, installed)} |"
             )
     lines += [
         "",
