@@ -1,7 +1,7 @@
 """adaptive-multisine against paper 004 (Chen, Pin, Ng, Hui, Parisini), Section V.
 
 The extraction lost the figures, so the paper's results are quoted from its text beside
-what is measured here (seeded, at the paper's Ts = 0.3 ms unless said otherwise). Print
+what this test measures (seeded, at the paper's Ts = 0.3 ms unless said otherwise). Print
 the figures with ``.venv/bin/python -m pytest -q -s tests/test_adaptive_multisine.py -k
 section_v`` (docs/estimators/adaptive-multisine.md holds the table).
 """

@@ -150,7 +150,7 @@ def test_recentring_re_expresses_theta_exactly(n, deriv):
 def test_oversampled_differential_noise_eq_14(M, paper):
     # Ideal low-pass noise sampled at T_sN / M: E[(n(k) - n(k-1))^2] = 2 sigma^2 (1 - sinc(1/M)).
     # Paper: .033 sigma^2 for M = 10 (matches: 0.0327) and .065 sigma^2 for M = 5, which is
-    # 1 - sinc(1/5) = 0.0645 without the factor 2 (measured here: 0.129).
+    # 1 - sinc(1/5) = 0.0645 without the factor 2 (this test measures 0.129).
     theory = 2.0 * (1.0 - np.sinc(1.0 / M))
     rng = np.random.default_rng(6)
     N = 2**18

@@ -3,8 +3,9 @@
 Threading model. Zenoh delivers samples on its own threads into a bounded FIFO channel
 (never blocking a Zenoh callback on Python work). One *pump* thread drains that channel
 in batches (a blocking ``recv`` then ``try_recv`` up to ``limits.intake_batch``) and
-hands each batch to the event loop with one ``call_soon_threadsafe`` (measured here: a
-call per message caps near 50-90 k msgs/s; per batch 90-200 k). The event loop runs the
+hands each batch to the event loop with one ``call_soon_threadsafe`` (a call per message
+would wake the loop once per message, which caps the intake well below what Zenoh
+delivers; ``sinewatch bench e2e`` measures the whole path). The event loop runs the
 pipeline, so estimator state is only ever touched by one thread.
 
 Backpressure. A counting semaphore bounds the inputs in flight (``limits.queue_capacity``).
