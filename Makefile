@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance soak schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy soak schemas clean
 
 install: $(STAMP)
 
@@ -62,6 +62,10 @@ bench-pq: $(STAMP)
 # The IEEE C37.118.1 M-class suite (pmu), at 50 and 60 Hz at their highest reporting rates.
 bench-compliance: $(STAMP)
 	$(BIN)/sinewatch bench compliance --rates 50/50,60/60 --full
+
+# Power-quality families against IEC 61000-4-7 class I / 61000-4-30 class A (pqopen-lib beside, if installed).
+bench-pq-accuracy: $(STAMP)
+	$(BIN)/sinewatch bench accuracy --scenarios pq --update-docs docs/accuracy.md
 
 bench-overload: $(STAMP)
 	$(BIN)/sinewatch bench overload
