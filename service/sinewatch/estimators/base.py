@@ -122,6 +122,42 @@ def kernel(
     return wrap if fn is None else wrap(fn)
 
 
+def require_below_nyquist(field: str, value: float, sample_rate_hz: float) -> float:
+    """The Nyquist frequency 0.5 * sample_rate_hz; ParameterError unless ``value`` (the
+    parameter ``field``, Hz) is below it."""
+    nyq = 0.5 * sample_rate_hz
+    if value >= nyq:
+        raise ParameterError(f"{field}: expected < Nyquist = {nyq} Hz, got {value}")
+    return nyq
+
+
+@kernel(inline="always")
+def ring_push(
+    b: np.ndarray, xj: float, pos: int, fill: int, since: int, hop: int, xw: np.ndarray
+) -> tuple[int, int, int, bool]:
+    """Write sample ``xj`` into the ring buffer ``b`` (length N) of a sliding window that is
+    re-estimated every ``hop`` samples; return the new ``(pos, fill, since, due)``: ``fill``
+    counts up to N and ``since`` up to ``hop``; when the window is full and a hop has passed,
+    ``due`` is true, ``since`` is 0 and ``xw`` holds the window in chronological order
+    (oldest sample, at the write position, first). Mutates ``b`` and ``xw`` (the kernels'
+    own working copies)."""
+    N = b.shape[0]
+    b[pos] = xj
+    pos += 1
+    if pos == N:
+        pos = 0
+    if fill < N:
+        fill += 1
+    if since < hop:
+        since += 1
+    due = fill == N and since >= hop
+    if due:
+        since = 0
+        for i in range(N):
+            xw[i] = b[pos + i if pos + i < N else pos + i - N]
+    return pos, fill, since, due
+
+
 class EstimatorParams(BaseModel):
     """Base of every estimator's parameter model: frozen, unknown keys rejected."""
 

@@ -704,7 +704,6 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
     )
     paper = 'H. F. Grip, "Observer design in the presence of periodic output disturbances by mixing of past and present output data"'
     example_sample_rate_hz = 4000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {
         "preset": "harmonics",
         "frequencies_hz": [50.0, 150.0, 250.0],

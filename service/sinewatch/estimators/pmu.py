@@ -649,7 +649,6 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
     )
     paper = None
     example_sample_rate_hz = 10_000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
 
     def _check_params(self) -> None:
