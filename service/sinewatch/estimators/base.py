@@ -131,6 +131,16 @@ def require_below_nyquist(field: str, value: float, sample_rate_hz: float) -> fl
     return nyq
 
 
+@kernel
+def wrap_pi(p: float) -> float:
+    """An angle in radians wrapped to (-pi, pi] (exactly pi - ((pi - p) mod 2 pi))."""
+    y = math.pi - p
+    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
+    if r >= 2.0 * math.pi:
+        r = 0.0
+    return math.pi - r
+
+
 @kernel(inline="always")
 def ring_push(
     b: np.ndarray, xj: float, pos: int, fill: int, since: int, hop: int, xw: np.ndarray
@@ -603,11 +613,12 @@ def empty_outputs(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
 
 
 def track_from_columns(
-    out: np.ndarray, sse: float, n_samples: int, extras: dict[str, np.ndarray] | None = None
+    out: np.ndarray, sse: float, n_samples: int, extras: dict[str, np.ndarray] | None = None, **more: Any
 ) -> Track:
     """Track of a one-component kernel whose output columns are
     (frequency_hz, amplitude, phase_rad, offset, converged as 0/1); ``sse`` is the sum of
-    squared one-step prediction errors over the ``n_samples`` of the block."""
+    squared one-step prediction errors over the ``n_samples`` of the block; ``more``: the
+    other Track fields (rocof_hz_per_s, reports, ...)."""
     n = n_samples
     return Track(
         frequency_hz=out[:, 0:1],
@@ -617,4 +628,5 @@ def track_from_columns(
         converged=out[:, 4] != 0.0,
         residual_rms=math.sqrt(sse / n) if n else math.nan,
         extras=extras or {},
+        **more,
     )

@@ -93,6 +93,7 @@ from sinewatch.estimators.base import (
     ring_push,
     track_from_columns,
     undefined_row,
+    wrap_pi,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -143,16 +144,6 @@ class IpdftParams(EstimatorParams):
                 f"({self.window_cycles} cycles, {self.window_samples} samples)"
             )
         return self
-
-
-@kernel
-def _wrap(p: float) -> float:
-    """Radians to (-pi, pi]."""
-    y = math.pi - p
-    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
-    if r >= 2.0 * math.pi:
-        r = 0.0
-    return math.pi - r
 
 
 @kernel
@@ -256,7 +247,7 @@ def _window_estimate(
     est[0] = 1.0
     est[1] = lam / N
     est[2] = math.hypot(a, b)
-    est[3] = _wrap(omega * c + math.atan2(b, a))
+    est[3] = wrap_pi(omega * c + math.atan2(b, a))
     est[4] = mu + d
     est[5] = math.sqrt(sse / N)
 
@@ -323,7 +314,7 @@ def ipdft_kernel(
         if held and defined:
             out[row, 0] = fcy * fs
             out[row, 1] = A
-            out[row, 2] = _wrap(th + 2.0 * math.pi * fcy * m)
+            out[row, 2] = wrap_pi(th + 2.0 * math.pi * fcy * m)
             out[row, 3] = B
             out[row, 4] = conv
             resid[row] = r

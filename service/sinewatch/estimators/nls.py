@@ -114,7 +114,15 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, TrackStd, require_below_nyquist, ring_push
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    Track,
+    TrackStd,
+    require_below_nyquist,
+    ring_push,
+    wrap_pi,
+)
 from sinewatch.schemas.errors import ParameterError
 
 Arr = np.ndarray  # numba ignores annotations; these are for the type checker
@@ -263,16 +271,6 @@ def _fft_inplace(re: Arr, im: Arr, cos_tab: Arr, sin_tab: Arr, tstride: int) -> 
                 im[k] += xi
                 t += step
         size <<= 1
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p: float) -> float:
-    """Radians to (-pi, pi]."""
-    y = math.pi - p
-    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
-    if r >= 2.0 * math.pi:
-        r = 0.0
-    return math.pi - r
 
 
 # ---- one fit ---------------------------------------------------------------------------------
@@ -832,7 +830,7 @@ def _window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab:
         a_max = max(a_max, A)
         tones[slot, 0] = nu[j] / c
         tones[slot, 1] = A
-        tones[slot, 2] = _wrap(math.atan2(b, a) + nu[j])
+        tones[slot, 2] = wrap_pi(math.atan2(b, a) + nu[j])
         tones[slot, 7] = math.sin(tones[slot, 2])
         tones[slot, 8] = math.cos(tones[slot, 2])
         tones[slot, 9] = math.cos(tones[slot, 0])
@@ -945,7 +943,7 @@ def nls_kernel(
                 w = tones[i, 0]
                 freq[r, i] = w * fs / (2.0 * math.pi)
                 amp[r, i] = tones[i, 1]
-                phase[r, i] = _wrap(tones[i, 2] + w * m)
+                phase[r, i] = wrap_pi(tones[i, 2] + w * m)
                 sf[r, i] = math.sqrt(tones[i, 3]) * fs / (2.0 * math.pi)
                 sa[r, i] = math.sqrt(tones[i, 4])
                 vphi = tones[i, 5] + m * m * tones[i, 3] + 2.0 * m * tones[i, 6]
