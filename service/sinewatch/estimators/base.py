@@ -142,6 +142,12 @@ def wrap_pi(p: float) -> float:
 
 
 @kernel(inline="always")
+def cyclic_next(i: int, n: int) -> int:
+    """``i + 1``, back to 0 on reaching ``n`` (a ring-buffer position or a phase counter)."""
+    return 0 if i + 1 == n else i + 1
+
+
+@kernel(inline="always")
 def ring_push(
     b: np.ndarray, xj: float, pos: int, fill: int, since: int, hop: int, xw: np.ndarray
 ) -> tuple[int, int, int, bool]:

@@ -121,6 +121,7 @@ from sinewatch.estimators.base import (
     EstimatorParams,
     GridReports,
     Track,
+    cyclic_next,
     kernel,
     track_from_columns,
     wrap_pi,
@@ -625,12 +626,8 @@ def pmu_kernel(
             sth = sth * cstep + cth * sstep
             cth = c2
         n += 1
-        ph += 1
-        if ph == Q:
-            ph = 0
-        rho += 1
-        if rho == D:
-            rho = 0
+        ph = cyclic_next(ph, Q)
+        rho = cyclic_next(rho, D)
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
