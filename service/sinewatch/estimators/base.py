@@ -174,6 +174,20 @@ def ring_push(
     return pos, fill, since, due
 
 
+def state_snapshot(
+    format_version: int, role: str, name: str, sample_rate_hz: float, params: BaseModel, state: Mapping[str, np.ndarray]
+) -> dict[str, Any]:
+    """The JSON-serialisable snapshot of a stateful stage (an estimator, an analyser): its
+    format version, ``{role: name}``, sample rate, parameters and state arrays (base64)."""
+    return {
+        "format_version": format_version,
+        role: name,
+        "sample_rate_hz": sample_rate_hz,
+        "params": params.model_dump(mode="json"),
+        "state": {k: encode_array(v) for k, v in state.items()},
+    }
+
+
 class EstimatorParams(BaseModel):
     """Base of every estimator's parameter model: frozen, unknown keys rejected."""
 
@@ -497,13 +511,9 @@ class Estimator(ABC, Generic[ParamsT]):
 
     def get_state(self) -> dict[str, Any]:
         """A JSON-serialisable snapshot that :meth:`set_state` restores exactly."""
-        return {
-            "format_version": STATE_FORMAT_VERSION,
-            "estimator": self.name,
-            "sample_rate_hz": self.sample_rate_hz,
-            "params": self.params.model_dump(mode="json"),
-            "state": {k: encode_array(v) for k, v in self._state.items()},
-        }
+        return state_snapshot(
+            STATE_FORMAT_VERSION, "estimator", self.name, self.sample_rate_hz, self.params, self._state
+        )
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
         if snapshot.get("format_version") != STATE_FORMAT_VERSION:
