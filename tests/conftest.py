@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
 
+from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
 from sinewatch.daemon import Daemon
 from sinewatch.feed import make_channels
@@ -84,6 +88,28 @@ def run_daemon(
         return result, daemon, code
 
     return asyncio.run(main())
+
+
+def serve_blocks(
+    config: SinewatchConfig, channel: str, blocks: list[Block], n_messages: int
+) -> tuple[list[Any], Daemon]:
+    """Run a daemon on ``config``; a client on real Zenoh publishes ``blocks`` (float64) on
+    ``channel`` once the daemon subscribes, and takes ``n_messages`` estimates (20 s each at
+    most). Returns the messages and the daemon, after asserting a clean exit and that every
+    message came."""
+
+    def client(_daemon: Daemon, ep: str) -> list[Any]:
+        with connect([ep]) as s:
+            est = subscribe_estimates(s)
+            pub = BlockPublisher(s)
+            assert pub.wait_for_subscriber(channel, 20)
+            for blk in blocks:
+                pub.publish_raw(channel, encode_block_binary(blk, "float64"))
+            return [est.get(timeout=20) for _ in range(n_messages)]
+
+    got, daemon, code = run_daemon(config, client)
+    assert code == 0 and all(m is not None for m in got)
+    return got, daemon
 
 
 def take(subscription: Any, n: int, timeout: float = TIMEOUT) -> list[dict[str, Any]]:
@@ -159,3 +185,48 @@ def record_run(tmp_path: Path, n_blocks=60, rotate_seconds=None, tamper_at=None,
             recorder.flush()  # what the daemon's flush timer does
     recorder.close()
     return recorder.paths, pipeline
+
+
+def sinewatch(*args: str) -> list[str]:
+    """The command line that runs ``sinewatch ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "sinewatch", *args]
+
+
+def serve_feed_tail(
+    serve_args: list[str], tail_args: list[str], feed_args: list[str], serve_env: dict[str, str] | None = None
+) -> tuple[str, list[dict[str, Any]], str]:
+    """``sinewatch serve``, ``tail --json`` and ``feed`` as separate processes, as a user runs
+    them: tail is subscribed before feed (``--fast --wait 60`` after ``feed_args``) publishes; serve is stopped by SIGINT once tail has its
+    messages. Returns feed's stderr, tail's messages and serve's stderr, after asserting that
+    all three exited 0."""
+    serve = subprocess.Popen(sinewatch("serve", *serve_args), stderr=subprocess.PIPE, text=True, env=serve_env)
+    try:
+        tail = subprocess.Popen(
+            sinewatch("tail", *tail_args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        assert tail.stderr is not None and tail.stderr.readline().startswith("tail: subscribed to")
+        feed = subprocess.run(
+            sinewatch("feed", *feed_args, "--fast", "--wait", "60"),
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+        assert feed.returncode == 0, feed.stderr
+        out, _ = tail.communicate(timeout=120)
+    finally:
+        serve.send_signal(signal.SIGINT)
+        _, err = serve.communicate(timeout=60)
+    assert serve.returncode == 0, err
+    return feed.stderr, [json.loads(line) for line in out.splitlines()], err
+
+
+def replay_recording(directory: Path) -> str:
+    """``sinewatch replay`` of the one MCAP file in ``directory``; its stdout, after asserting
+    that it exited 0."""
+    [mcap] = list(directory.glob("*.mcap"))
+    r = subprocess.run(
+        sinewatch("replay", str(mcap), "--no-progress"), capture_output=True, text=True, timeout=120, check=False
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    return r.stdout

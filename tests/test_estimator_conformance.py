@@ -174,6 +174,59 @@ def test_bad_block_is_rejected_without_touching_state(name, bad, kind):
     assert_tracks_identical(est.update(x[N // 2 :]), ref.update(x[N // 2 :]))
 
 
+# Parameters an estimator must reject with a ParameterError naming the problem: per row the
+# kind, the parameters (at 1000 Hz, over the kind's BAD_PARAMETER_BASE) and the words the message
+# must hold.
+BAD_PARAMETER_BASE = {"differential-rls": {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}}
+BAD_PARAMETERS = [
+    ("differential-rls", {"forgetting_factor": 0.0}, "forgetting"),
+    ("differential-rls", {"forgetting_factor": 1.01}, "forgetting"),
+    ("differential-rls", {"phase_forgetting_factor": -0.5}, "forgetting"),
+    ("differential-rls", {"oversampling": 0.5}, "oversampling M >= 1"),
+    ("differential-rls", {"n_terms": 0}, "n_terms"),
+    ("differential-rls", {"n_terms": 7}, "n_terms"),
+    ("differential-rls", {"n_terms": 5}, "rocof_model"),
+    ("differential-rls", {"nominal_frequency_hz": 495.0}, "Nyquist"),
+    ("differential-rls", {"nominal_frequency_hz": 0.0}, "nominal_frequency_hz"),
+    ("differential-rls", {"bandwidth_hz": 30.0}, "bandwidth_hz"),
+    ("differential-rls", {"bandwidth_hz": 0.0}, "bandwidth_hz"),
+    ("differential-rls", {"oversampling": 200.0}, "decimation factor"),
+    ("differential-rls", {"n_terms": 6, "rocof_model": False, "oversampling": 40.0}, "distinct sampling intervals"),
+    ("differential-rls", {"els_damping": 1.0}, "els_damping"),
+    ("differential-rls", {"cycle_spacing": 1.0}, "cycle_spacing"),
+    ("differential-rls", {"recenter_every": -1}, "recenter_every"),
+    ("differential-rls", {"tracking_range_hz": -1.0}, "tracking_range_hz"),
+    ("differential-rls", {"min_amplitude": float("nan")}, "min_amplitude"),
+    ("ipdft", {"window_cycles": 4, "window_samples": 80}, "window_cycles or window_samples"),
+    ("ipdft", {"window_cycles": 1.5}, "window_cycles"),
+    ("ipdft", {"window_samples": 30}, "window_samples: expected >= 2 nominal cycles"),
+    ("ipdft", {"hop_samples": 81}, "hop_samples: expected <= window"),
+    ("ipdft", {"hop_samples": 0}, "hop_samples"),
+    ("ipdft", {"nominal_frequency_hz": 500.0}, "Nyquist"),
+    ("ipdft", {"max_frequency_hz": 600.0}, "max_frequency_hz: expected < Nyquist"),
+    ("ipdft", {"min_frequency_hz": 60.0, "max_frequency_hz": 55.0}, "min_frequency_hz: expected <"),
+    ("ipdft", {"min_frequency_hz": 1.0, "max_frequency_hz": 10.0}, "search band"),
+    ("ipdft", {"interpolation": "5-point"}, "interpolation"),
+    ("ipdft", {"max_relative_residual": 0}, "max_relative_residual"),
+    ("ges-kalman", {"q": [1e-6, 1e-6]}, "q"),
+    ("ges-kalman", {"r": 0}, "r"),
+    ("ges-kalman", {"x0": [0, 0]}, "x0"),
+    ("ges-kalman", {"q": -1.0}, "q"),
+    ("nls", {"window_cycles": 4, "window_s": 0.1}, "window"),
+    ("nls", {"zero_pad": 3}, "power of 2"),
+    ("nls", {"max_frequency_hz": 600.0}, "Nyquist"),
+    ("nls", {"window_samples": 10, "n_components": 3}, "samples for 3 tones"),
+    ("nls", {"window_samples": 100, "hop_samples": 101}, "hop_samples"),
+    ("nls", {"min_frequency_hz": 300.0, "max_frequency_hz": 200.0}, "search band"),
+]
+
+
+@pytest.mark.parametrize("kind, params, match", BAD_PARAMETERS)
+def test_bad_parameters_are_clear_errors(kind, params, match):
+    with pytest.raises(ParameterError, match=match):
+        create(kind, 1000.0, **{**BAD_PARAMETER_BASE.get(kind, {}), **params})
+
+
 def test_wrong_types_and_shapes_are_typed_errors(name):
     est = get(name).example()
     with pytest.raises(InputTypeError):

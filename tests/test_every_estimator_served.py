@@ -5,12 +5,11 @@ replayed bit for bit."""
 from __future__ import annotations
 
 import pytest
-from conftest import make_config, run_daemon
+from conftest import make_config, serve_blocks
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.estimators import available, get
 from sinewatch.replay import replay
-from sinewatch.schemas.codec import Block, encode_block_binary
+from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.messages import Estimate
 
@@ -26,17 +25,7 @@ def test_served_recorded_and_replayed(tmp_path, name):
     x = cls.example_signal(4000, seed=5)
     blocks = [Block("x/one", i, i * 10**9, fs, x[i * 400 : (i + 1) * 400]) for i in range(10)]
 
-    def client(_daemon, ep):
-        with connect([ep]) as s:
-            est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("x/one", 20)
-            for blk in blocks:
-                pub.publish_raw("x/one", encode_block_binary(blk, "float64"))
-            return [est.get(timeout=20) for _ in blocks]
-
-    got, daemon, code = run_daemon(config, client)
-    assert code == 0 and all(m is not None for m in got)
+    got, daemon = serve_blocks(config, "x/one", blocks, len(blocks))
     assert [m["seq"] for m in got] == list(range(10))
     for m in got:
         e = Estimate.model_validate({k: v for k, v in m.items() if k != "_key"})

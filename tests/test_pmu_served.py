@@ -6,13 +6,12 @@ for bit."""
 from __future__ import annotations
 
 import numpy as np
-from conftest import make_config, run_daemon
+from conftest import make_config, serve_blocks
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.estimators import create
 from sinewatch.replay import replay
 from sinewatch.scenarios import get as get_scenario
-from sinewatch.schemas.codec import Block, encode_block_binary
+from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.messages import Estimate
 
@@ -41,17 +40,7 @@ def test_pmu_served_on_the_grid_recorded_and_replayed(tmp_path):
         expected += [(blk.seq, ts, float(rep.track.frequency_hz[r, 0])) for r, ts in enumerate(rep.timestamps_ns())]
     assert 0 < len(expected) < n_blocks * 5 + 1
 
-    def client(_daemon, ep):
-        with connect([ep]) as s:
-            est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("pmu/pa", 20)
-            for blk in blocks:
-                pub.publish_raw("pmu/pa", encode_block_binary(blk, "float64"))
-            return [est.get(timeout=20) for _ in expected]
-
-    got, daemon, code = run_daemon(config, client)
-    assert code == 0 and all(m is not None for m in got)
+    got, daemon = serve_blocks(config, "pmu/pa", blocks, len(expected))
     msgs = [Estimate.model_validate({k: v for k, v in m.items() if k != "_key"}) for m in got]
     assert [(m.seq, m.timestamp_ns, m.frequency_hz[0]) for m in msgs] == expected
     # on the grid: multiples of 20 ms since the epoch, every one from the first to the last

@@ -12,14 +12,11 @@ from __future__ import annotations
 import json
 import os
 import queue
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, FakeClock, make_config, run_daemon
+from conftest import TIMEOUT, FakeClock, make_config, replay_recording, run_daemon, serve_feed_tail
 
 from sinewatch.clients import BlockPublisher, connect
 from sinewatch.feed import make_channels
@@ -206,6 +203,17 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     )
 
 
+def record_and_replay(config, recorder, rounds):
+    """Run the rounds of phase blocks through a pipeline that records to ``recorder`` (round i
+    logged at i + 1 ns), close the files and replay them."""
+    pipeline = Pipeline(config, [recorder])
+    for i, blocks in enumerate(rounds):
+        for b in blocks:
+            pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, i + 1)
+    recorder.close()
+    return replay(recorder.paths)
+
+
 def test_replay_catches_a_changed_pq_output(tmp_path):
     """The comparator covers the new roles: a recording whose harmonics differ fails."""
     rounds, names = phase_blocks(12)
@@ -222,12 +230,7 @@ def test_replay_catches_a_changed_pq_output(tmp_path):
         original(kind, key, payload, log_time_ns)
 
     recorder.on_output = tampered
-    pipeline = Pipeline(config, [recorder])
-    for i, blocks in enumerate(rounds):
-        for b in blocks:
-            pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, i + 1)
-    recorder.close()
-    result = replay(recorder.paths)
+    result = record_and_replay(config, recorder, rounds)
     assert not result.ok and result.matched == 36
     [m] = result.mismatches
     assert m.role == "harmonics" and m.topic.startswith("sinewatch/pq/harmonics/")
@@ -240,12 +243,7 @@ def test_a_recording_without_pq_messages_replays(tmp_path):
     rounds, names = phase_blocks(12)
     config = pq_config(tmp_path, names, recording=RecordingSection(directory=tmp_path / "rec", power_quality=False))
     recorder = McapRecorder(config)
-    pipeline = Pipeline(config, [recorder])
-    for i, blocks in enumerate(rounds):
-        for b in blocks:
-            pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, i + 1)
-    recorder.close()
-    result = replay(recorder.paths)
+    result = record_and_replay(config, recorder, rounds)
     assert result.ok and result.matched == 36 and result.recorded_other == {} and result.produced_other == {}
 
 
@@ -331,10 +329,6 @@ def _load(data: dict) -> SinewatchConfig:
     return load_config(None, env)
 
 
-def sinewatch(*args: str) -> list[str]:
-    return [sys.executable, "-m", "sinewatch", *args]
-
-
 def test_feed_serve_tail_processes_with_the_deploy_config(tmp_path):
     """`sinewatch serve --config deploy/power-quality.toml` (port and directory moved by the
     environment), `sinewatch feed --scenario pq-unbalance-50hz-u2-2pct-harmonics` and
@@ -345,64 +339,25 @@ def test_feed_serve_tail_processes_with_the_deploy_config(tmp_path):
         "SINEWATCH__ZENOH__LISTEN": json.dumps([ep]),
         "SINEWATCH__RECORDING__DIRECTORY": str(tmp_path / "rec"),
     }
-    serve = subprocess.Popen(
-        sinewatch("serve", "--config", str(REPO / "deploy" / "power-quality.toml")),
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
+    feed_err, lines, serve_err = serve_feed_tail(
+        ["--config", str(REPO / "deploy" / "power-quality.toml")],
+        ["sinewatch/pq/**", "--connect", ep, "--count", "40", "--json", "--timeout", "60", "--wait", "60"],
+        ["--connect", ep, "--scenario", "pq-unbalance-50hz-u2-2pct-harmonics", "--duration", "2", "--block", "1000"],
+        serve_env=env,
     )
-    try:
-        tail = subprocess.Popen(
-            [
-                *sinewatch("tail", "sinewatch/pq/**", "--connect", ep, "--count", "40", "--json", "--timeout", "60"),
-                "--wait",
-                "60",
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        assert tail.stderr.readline().startswith("tail: subscribed to")
-        feed = subprocess.run(
-            [
-                *sinewatch("feed", "--connect", ep, "--scenario", "pq-unbalance-50hz-u2-2pct-harmonics"),
-                "--duration",
-                "2",
-                "--block",
-                "1000",
-                "--fast",
-                "--wait",
-                "60",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=False,
-        )
-        assert feed.returncode == 0, feed.stderr
-        assert "published 60 blocks" in feed.stderr  # 20 blocks x 3 phases
-        out, _ = tail.communicate(timeout=120)
-        lines = [json.loads(line) for line in out.splitlines()]
-        assert len(lines) == 40
-        groups = [m for m in lines if "group" in m]
-        harmonics = [m for m in lines if "harmonic_rms" in m]
-        assert groups and harmonics
-        assert all(g["group"] == "feeder1" and g["missing"] == [] for g in groups)
-        truth = get_pq("pq-unbalance-50hz-u2-2pct-harmonics").pq_truth
-        late = [g for g in groups if g["u2"] is not None][-1]
-        assert abs(late["u2"] - truth.u2) <= LIMITS["u2_absolute"]
-    finally:
-        serve.send_signal(signal.SIGINT)
-        _, err = serve.communicate(timeout=60)
-    assert serve.returncode == 0, err
-    assert "drained: 60 inputs, 60 estimates, 0 errors" in err
-    [mcap] = list((tmp_path / "rec").glob("*.mcap"))
-    r = subprocess.run(
-        sinewatch("replay", str(mcap), "--no-progress"), capture_output=True, text=True, timeout=120, check=False
-    )
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "all 60 recorded estimates reproduced bit for bit" in r.stdout
-    assert "all other recorded outputs (" in r.stdout and "three_phase)" in r.stdout
+    assert "published 60 blocks" in feed_err  # 20 blocks x 3 phases
+    assert len(lines) == 40
+    groups = [m for m in lines if "group" in m]
+    harmonics = [m for m in lines if "harmonic_rms" in m]
+    assert groups and harmonics
+    assert all(g["group"] == "feeder1" and g["missing"] == [] for g in groups)
+    truth = get_pq("pq-unbalance-50hz-u2-2pct-harmonics").pq_truth
+    late = [g for g in groups if g["u2"] is not None][-1]
+    assert abs(late["u2"] - truth.u2) <= LIMITS["u2_absolute"]
+    assert "drained: 60 inputs, 60 estimates, 0 errors" in serve_err
+    stdout = replay_recording(tmp_path / "rec")
+    assert "all 60 recorded estimates reproduced bit for bit" in stdout
+    assert "all other recorded outputs (" in stdout and "three_phase)" in stdout
 
 
 def test_tail_prints_each_pq_message_on_one_line(tmp_path):

@@ -188,14 +188,7 @@ class GuardedSink:
             log.error("sink %s failed to close: %s", self.name, self.last_error)
 
     def status(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "ok": self.ok,
-            "failures": self.failures,
-            "skipped": self.skipped,
-            "recoveries": self.recoveries,
-            "last_error": self.last_error,
-        }
+        return _attributes(self, "name", "ok", "failures", "skipped", "recoveries", "last_error")
 
 
 @dataclass
@@ -216,17 +209,9 @@ class Channel:
     converged: bool = False
 
     def snapshot(self) -> dict[str, Any]:
+        counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
         return {
-            "name": self.name,
-            "key": self.key,
-            "sample_rate_hz": self.sample_rate_hz,
-            "last_seq": self.last_seq,
-            "next_t0_ns": self.next_t0_ns,
-            "blocks": self.blocks,
-            "samples": self.samples,
-            "gaps": self.gaps,
-            "errors": self.errors,
-            "converged": self.converged,
+            **_attributes(self, "name", "key", "sample_rate_hz", *counters),
             "estimator": self.estimator.get_state(),
         }
 
@@ -576,6 +561,11 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+def _attributes(obj: object, *names: str) -> dict[str, Any]:
+    """``{name: obj.name}`` for the names given, in that order (status and snapshot dicts)."""
+    return {name: getattr(obj, name) for name in names}
 
 
 def _key_matches(expr: str, key: str) -> bool:

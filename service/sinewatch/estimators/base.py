@@ -122,6 +122,72 @@ def kernel(
     return wrap if fn is None else wrap(fn)
 
 
+def require_below_nyquist(field: str, value: float, sample_rate_hz: float) -> float:
+    """The Nyquist frequency 0.5 * sample_rate_hz; ParameterError unless ``value`` (the
+    parameter ``field``, Hz) is below it."""
+    nyq = 0.5 * sample_rate_hz
+    if value >= nyq:
+        raise ParameterError(f"{field}: expected < Nyquist = {nyq} Hz, got {value}")
+    return nyq
+
+
+@kernel
+def wrap_pi(p: float) -> float:
+    """An angle in radians wrapped to (-pi, pi] (exactly pi - ((pi - p) mod 2 pi))."""
+    y = math.pi - p
+    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
+    if r >= 2.0 * math.pi:
+        r = 0.0
+    return math.pi - r
+
+
+@kernel(inline="always")
+def cyclic_next(i: int, n: int) -> int:
+    """``i + 1``, back to 0 on reaching ``n`` (a ring-buffer position or a phase counter)."""
+    return 0 if i + 1 == n else i + 1
+
+
+@kernel(inline="always")
+def ring_push(
+    b: np.ndarray, xj: float, pos: int, fill: int, since: int, hop: int, xw: np.ndarray
+) -> tuple[int, int, int, bool]:
+    """Write sample ``xj`` into the ring buffer ``b`` (length N) of a sliding window that is
+    re-estimated every ``hop`` samples; return the new ``(pos, fill, since, due)``: ``fill``
+    counts up to N and ``since`` up to ``hop``; when the window is full and a hop has passed,
+    ``due`` is true, ``since`` is 0 and ``xw`` holds the window in chronological order
+    (oldest sample, at the write position, first). Mutates ``b`` and ``xw`` (the kernels'
+    own working copies)."""
+    N = b.shape[0]
+    b[pos] = xj
+    pos += 1
+    if pos == N:
+        pos = 0
+    if fill < N:
+        fill += 1
+    if since < hop:
+        since += 1
+    due = fill == N and since >= hop
+    if due:
+        since = 0
+        for i in range(N):
+            xw[i] = b[pos + i if pos + i < N else pos + i - N]
+    return pos, fill, since, due
+
+
+def state_snapshot(
+    format_version: int, role: str, name: str, sample_rate_hz: float, params: BaseModel, state: Mapping[str, np.ndarray]
+) -> dict[str, Any]:
+    """The JSON-serialisable snapshot of a stateful stage (an estimator, an analyser): its
+    format version, ``{role: name}``, sample rate, parameters and state arrays (base64)."""
+    return {
+        "format_version": format_version,
+        role: name,
+        "sample_rate_hz": sample_rate_hz,
+        "params": params.model_dump(mode="json"),
+        "state": {k: encode_array(v) for k, v in state.items()},
+    }
+
+
 class EstimatorParams(BaseModel):
     """Base of every estimator's parameter model: frozen, unknown keys rejected."""
 
@@ -445,13 +511,9 @@ class Estimator(ABC, Generic[ParamsT]):
 
     def get_state(self) -> dict[str, Any]:
         """A JSON-serialisable snapshot that :meth:`set_state` restores exactly."""
-        return {
-            "format_version": STATE_FORMAT_VERSION,
-            "estimator": self.name,
-            "sample_rate_hz": self.sample_rate_hz,
-            "params": self.params.model_dump(mode="json"),
-            "state": {k: encode_array(v) for k, v in self._state.items()},
-        }
+        return state_snapshot(
+            STATE_FORMAT_VERSION, "estimator", self.name, self.sample_rate_hz, self.params, self._state
+        )
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
         if snapshot.get("format_version") != STATE_FORMAT_VERSION:
@@ -567,11 +629,12 @@ def empty_outputs(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
 
 
 def track_from_columns(
-    out: np.ndarray, sse: float, n_samples: int, extras: dict[str, np.ndarray] | None = None
+    out: np.ndarray, sse: float, n_samples: int, extras: dict[str, np.ndarray] | None = None, **more: Any
 ) -> Track:
     """Track of a one-component kernel whose output columns are
     (frequency_hz, amplitude, phase_rad, offset, converged as 0/1); ``sse`` is the sum of
-    squared one-step prediction errors over the ``n_samples`` of the block."""
+    squared one-step prediction errors over the ``n_samples`` of the block; ``more``: the
+    other Track fields (rocof_hz_per_s, reports, ...)."""
     n = n_samples
     return Track(
         frequency_hz=out[:, 0:1],
@@ -581,4 +644,5 @@ def track_from_columns(
         converged=out[:, 4] != 0.0,
         residual_rms=math.sqrt(sse / n) if n else math.nan,
         extras=extras or {},
+        **more,
     )

@@ -1213,7 +1213,6 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         '"Differential signal model and sampling techniques for recursive (extended) least-squares '
         'estimation of frequency, frequency derivatives, phase and amplitude"'
     )
-    example_sample_rate_hz = 1000.0
     example_frequency_hz = 50.3
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
 

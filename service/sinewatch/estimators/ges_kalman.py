@@ -182,7 +182,6 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
     name = "ges-kalman"
     summary = "GES Kalman observer for one biased sinusoid"
     paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
-    example_sample_rate_hz = 1000.0
     example_frequency_hz = 100.0  # the paper's Section IV
 
     def _setup(self) -> None:

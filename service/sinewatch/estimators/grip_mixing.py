@@ -138,7 +138,7 @@ import scipy.signal
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, cyclic_next, kernel
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
@@ -642,12 +642,8 @@ def grip_mixing_kernel(
         for b in range(m):
             up[b] = block[i, 1 + b]
         k += 1
-        pos += 1
-        if pos == Lb:
-            pos = 0
-        kp += 1
-        if kp == P:
-            kp = 0
+        pos = cyclic_next(pos, Lb)
+        kp = cyclic_next(kp, P)
         if last_only and i != N - 1:
             continue
         r = 0 if last_only else i
@@ -704,7 +700,6 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
     )
     paper = 'H. F. Grip, "Observer design in the presence of periodic output disturbances by mixing of past and present output data"'
     example_sample_rate_hz = 4000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {
         "preset": "harmonics",
         "frequencies_hz": [50.0, 150.0, 250.0],

@@ -89,8 +89,11 @@ from sinewatch.estimators.base import (
     PositiveFinite,
     Track,
     kernel,
+    require_below_nyquist,
+    ring_push,
     track_from_columns,
     undefined_row,
+    wrap_pi,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -141,16 +144,6 @@ class IpdftParams(EstimatorParams):
                 f"({self.window_cycles} cycles, {self.window_samples} samples)"
             )
         return self
-
-
-@kernel
-def _wrap(p: float) -> float:
-    """Radians to (-pi, pi]."""
-    y = math.pi - p
-    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))  # in [0, 2 pi]
-    if r >= 2.0 * math.pi:
-        r = 0.0
-    return math.pi - r
 
 
 @kernel
@@ -254,7 +247,7 @@ def _window_estimate(
     est[0] = 1.0
     est[1] = lam / N
     est[2] = math.hypot(a, b)
-    est[3] = _wrap(omega * c + math.atan2(b, a))
+    est[3] = wrap_pi(omega * c + math.atan2(b, a))
     est[4] = mu + d
     est[5] = math.sqrt(sse / N)
 
@@ -303,18 +296,8 @@ def ipdft_kernel(
             sse += e * e
             n_pred += 1
         m += 1
-        b[pos] = xj
-        pos += 1
-        if pos == N:
-            pos = 0
-        if fill < N:
-            fill += 1
-        if since < hop:
-            since += 1
-        if fill == N and since >= hop:  # a hop: re-estimate from the window
-            since = 0
-            for i in range(N):  # chronological copy: oldest sample at the write position
-                xw[i] = b[pos + i if pos + i < N else pos + i - N]
+        pos, fill, since, due = ring_push(b, xj, pos, fill, since, hop, xw)
+        if due:  # a hop: re-estimate from the window
             _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, mags, wu, est)
             held = 1
             m = 0
@@ -331,7 +314,7 @@ def ipdft_kernel(
         if held and defined:
             out[row, 0] = fcy * fs
             out[row, 1] = A
-            out[row, 2] = _wrap(th + 2.0 * math.pi * fcy * m)
+            out[row, 2] = wrap_pi(th + 2.0 * math.pi * fcy * m)
             out[row, 3] = B
             out[row, 4] = conv
             resid[row] = r
@@ -349,16 +332,12 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
 
     name = "ipdft"
     summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
-    example_sample_rate_hz = 1000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
 
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
-        nyq = 0.5 * fs
-        if p.nominal_frequency_hz >= nyq:
-            raise ParameterError(f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}")
+        nyq = require_below_nyquist("nominal_frequency_hz", p.nominal_frequency_hz, fs)
         samples_per_cycle = fs / p.nominal_frequency_hz
         if p.window_samples is not None:
             n = p.window_samples
@@ -376,8 +355,8 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
             raise ParameterError(f"hop_samples: expected <= window = {n} samples, got {hop}")
         f_lo = 0.5 * p.nominal_frequency_hz if p.min_frequency_hz is None else p.min_frequency_hz
         f_hi = min(1.5 * p.nominal_frequency_hz, nyq) if p.max_frequency_hz is None else p.max_frequency_hz
-        if p.max_frequency_hz is not None and f_hi >= nyq:
-            raise ParameterError(f"max_frequency_hz: expected < Nyquist = {nyq} Hz, got {f_hi}")
+        if p.max_frequency_hz is not None:
+            require_below_nyquist("max_frequency_hz", f_hi, fs)
         if f_lo >= f_hi:
             raise ParameterError(f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}")
         bin_hz = fs / n

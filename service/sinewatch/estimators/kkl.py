@@ -710,7 +710,6 @@ class FilterBankObserver(Estimator[_KP]):
     ell_label: ClassVar[str] = "l of (10)"
     example_sample_rate_hz = 5000.0
     example_params: ClassVar[dict[str, Any]] = {"f_min_hz": 45.0, "f_max_hz": 65.0}
-    example_frequency_hz = 50.0
 
     def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
         """(l, the x3 where its infimum is reached) for filters ``self.lam_n`` and x3 in

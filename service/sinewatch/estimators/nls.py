@@ -114,7 +114,15 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, TrackStd
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    Track,
+    TrackStd,
+    require_below_nyquist,
+    ring_push,
+    wrap_pi,
+)
 from sinewatch.schemas.errors import ParameterError
 
 Arr = np.ndarray  # numba ignores annotations; these are for the type checker
@@ -263,16 +271,6 @@ def _fft_inplace(re: Arr, im: Arr, cos_tab: Arr, sin_tab: Arr, tstride: int) -> 
                 im[k] += xi
                 t += step
         size <<= 1
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _wrap(p: float) -> float:
-    """Radians to (-pi, pi]."""
-    y = math.pi - p
-    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
-    if r >= 2.0 * math.pi:
-        r = 0.0
-    return math.pi - r
 
 
 # ---- one fit ---------------------------------------------------------------------------------
@@ -832,7 +830,7 @@ def _window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab:
         a_max = max(a_max, A)
         tones[slot, 0] = nu[j] / c
         tones[slot, 1] = A
-        tones[slot, 2] = _wrap(math.atan2(b, a) + nu[j])
+        tones[slot, 2] = wrap_pi(math.atan2(b, a) + nu[j])
         tones[slot, 7] = math.sin(tones[slot, 2])
         tones[slot, 8] = math.cos(tones[slot, 2])
         tones[slot, 9] = math.cos(tones[slot, 0])
@@ -930,18 +928,8 @@ def nls_kernel(
             sse += e * e
             n_pred += 1
         m += 1
-        b[pos] = xj
-        pos += 1
-        if pos == N:
-            pos = 0
-        if fill < N:
-            fill += 1
-        if since < hop:
-            since += 1
-        if fill == N and since >= hop:
-            since = 0
-            for i in range(N):
-                xw[i] = b[pos + i if pos + i < N else pos + i - N]
+        pos, fill, since, due = ring_push(b, xj, pos, fill, since, hop, xw)
+        if due:
             _window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob)
             held = 1 if glob[7] > 0.0 else 0
             m = 0
@@ -949,37 +937,31 @@ def nls_kernel(
         if last_only and j != n_in - 1:
             continue
         r = 0 if last_only else j
-        if held:
-            for i in range(kc):
-                if i < nt:
-                    w = tones[i, 0]
-                    freq[r, i] = w * fs / (2.0 * math.pi)
-                    amp[r, i] = tones[i, 1]
-                    phase[r, i] = _wrap(tones[i, 2] + w * m)
-                    sf[r, i] = math.sqrt(tones[i, 3]) * fs / (2.0 * math.pi)
-                    sa[r, i] = math.sqrt(tones[i, 4])
-                    vphi = tones[i, 5] + m * m * tones[i, 3] + 2.0 * m * tones[i, 6]
-                    sp[r, i] = math.sqrt(max(vphi, 0.0))
-                else:
-                    freq[r, i] = np.nan
-                    amp[r, i] = np.nan
-                    phase[r, i] = np.nan
-                    sf[r, i] = np.nan
-                    sa[r, i] = np.nan
-                    sp[r, i] = np.nan
-            off[r] = glob[0] + glob[1] * m
-            sb[r] = math.sqrt(max(glob[2] + m * m * glob[3] + 2.0 * m * glob[4], 0.0))
-            conv[r] = glob[6]
-            ntones[r] = nt
-            fit_rms[r] = glob[5]
-        else:
-            for i in range(kc):
+        shown = nt if held else 0  # tones written; the rest of the kc columns are NaN
+        for i in range(kc):
+            if i < shown:
+                w = tones[i, 0]
+                freq[r, i] = w * fs / (2.0 * math.pi)
+                amp[r, i] = tones[i, 1]
+                phase[r, i] = wrap_pi(tones[i, 2] + w * m)
+                sf[r, i] = math.sqrt(tones[i, 3]) * fs / (2.0 * math.pi)
+                sa[r, i] = math.sqrt(tones[i, 4])
+                vphi = tones[i, 5] + m * m * tones[i, 3] + 2.0 * m * tones[i, 6]
+                sp[r, i] = math.sqrt(max(vphi, 0.0))
+            else:
                 freq[r, i] = np.nan
                 amp[r, i] = np.nan
                 phase[r, i] = np.nan
                 sf[r, i] = np.nan
                 sa[r, i] = np.nan
                 sp[r, i] = np.nan
+        if held:
+            off[r] = glob[0] + glob[1] * m
+            sb[r] = math.sqrt(max(glob[2] + m * m * glob[3] + 2.0 * m * glob[4], 0.0))
+            conv[r] = glob[6]
+            ntones[r] = nt
+            fit_rms[r] = glob[5]
+        else:
             off[r] = np.nan
             sb[r] = np.nan
             conv[r] = 0.0
@@ -999,8 +981,6 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel):
         'G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares '
         'problems whose variables separate", 1973 (variable projection)'
     )
-    example_sample_rate_hz = 1000.0
-    example_frequency_hz = 50.0
     # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
     example_params: ClassVar[dict[str, Any]] = {
         "min_frequency_hz": 20.0,
@@ -1012,9 +992,7 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel):
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
-        nyq = 0.5 * fs
-        if p.min_frequency_hz >= nyq:
-            raise ParameterError(f"min_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.min_frequency_hz}")
+        nyq = require_below_nyquist("min_frequency_hz", p.min_frequency_hz, fs)
         if p.window_samples is not None:
             n = p.window_samples
         elif p.window_s is not None:
@@ -1036,8 +1014,7 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel):
         nfft = p.zero_pad * (1 << max(3, math.ceil(math.log2(n))))
         bin_hz = fs / nfft
         f_hi = nyq - 2.0 * fs / n if p.max_frequency_hz is None else p.max_frequency_hz
-        if f_hi >= nyq:
-            raise ParameterError(f"max_frequency_hz: expected < Nyquist = {nyq} Hz, got {f_hi}")
+        require_below_nyquist("max_frequency_hz", f_hi, fs)
         lo = max(1, math.ceil(p.min_frequency_hz / bin_hz))
         hi = min(nfft // 2 - 1, math.floor(f_hi / bin_hz))
         if lo > hi:

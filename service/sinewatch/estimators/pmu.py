@@ -116,7 +116,16 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, GridReports, Track, kernel
+from sinewatch.estimators.base import (
+    Estimator,
+    EstimatorParams,
+    GridReports,
+    Track,
+    cyclic_next,
+    kernel,
+    track_from_columns,
+    wrap_pi,
+)
 from sinewatch.schemas.errors import ParameterError
 
 # [N] four-term window, continuous first derivative (-93 dB sidelobes)
@@ -351,15 +360,6 @@ N_FSTATE = 16
 
 
 @kernel
-def _wrap(p: float) -> float:
-    y = math.pi - p
-    r = y - 2.0 * math.pi * math.floor(y / (2.0 * math.pi))
-    if r >= 2.0 * math.pi:
-        r = 0.0
-    return math.pi - r
-
-
-@kernel
 def _interp(table: np.ndarray, x0: float, step: float, x: float) -> Any:
     """Cubic (4-point Lagrange) interpolation of a table sampled at x0 + i step; clamped."""
     u = (x - x0) / step
@@ -584,9 +584,9 @@ def pmu_kernel(
                         reps[n_rep, 1] = f
                         reps[n_rep, 2] = rocof
                         reps[n_rep, 3] = mag
-                        reps[n_rep, 4] = _wrap(arg - beta)
+                        reps[n_rep, 4] = wrap_pi(arg - beta)
                         reps[n_rep, 5] = A
-                        reps[n_rep, 6] = _wrap(theta_r)
+                        reps[n_rep, 6] = wrap_pi(theta_r)
                         reps[n_rep, 7] = B
                         n_rep += 1
                     # rotor at the current sample n (predicts sample n + 1 after a step)
@@ -626,12 +626,8 @@ def pmu_kernel(
             sth = sth * cstep + cth * sstep
             cth = c2
         n += 1
-        ph += 1
-        if ph == Q:
-            ph = 0
-        rho += 1
-        if rho == D:
-            rho = 0
+        ph = cyclic_next(ph, Q)
+        rho = cyclic_next(rho, D)
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
@@ -649,7 +645,6 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
     )
     paper = None
     example_sample_rate_hz = 10_000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
 
     def _check_params(self) -> None:
@@ -746,13 +741,10 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, reps, sse, n_pred = outputs
         residual = math.sqrt(sse / n_pred) if n_pred else math.nan
-        return Track(
-            frequency_hz=out[:, 0:1],
-            amplitude=out[:, 1:2],
-            phase_rad=out[:, 2:3],
-            offset=out[:, 3],
-            converged=out[:, 4] != 0.0,
-            residual_rms=residual,
+        return track_from_columns(
+            out,
+            sse,
+            n_pred,
             rocof_hz_per_s=out[:, 5:6],
             reports=GridReports(
                 index=reps[:, 0].astype(np.int64),

@@ -115,6 +115,7 @@ from sinewatch.estimators.base import (
     PositiveFinite,
     Track,
     kernel,
+    require_below_nyquist,
     track_from_columns,
 )
 from sinewatch.schemas.errors import ParameterError
@@ -274,19 +275,15 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
     name = "sogi-fll"
     summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
     example_sample_rate_hz = 5000.0
-    example_frequency_hz = 50.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0}
 
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
-        nyq = 0.5 * fs
-        if p.nominal_frequency_hz >= nyq:
-            raise ParameterError(f"nominal_frequency_hz: expected < Nyquist = {nyq} Hz, got {p.nominal_frequency_hz}")
+        require_below_nyquist("nominal_frequency_hz", p.nominal_frequency_hz, fs)
         f_lo = 0.5 * p.nominal_frequency_hz if p.min_frequency_hz is None else p.min_frequency_hz
         f_hi = 1.5 * p.nominal_frequency_hz if p.max_frequency_hz is None else p.max_frequency_hz
-        if f_hi >= nyq:
-            raise ParameterError(f"max_frequency_hz: expected < Nyquist = {nyq} Hz, got {f_hi}")
+        require_below_nyquist("max_frequency_hz", f_hi, fs)
         if not f_lo < f_hi:
             raise ParameterError(f"min_frequency_hz: expected < max_frequency_hz = {f_hi} Hz, got {f_lo}")
         if not f_lo <= p.nominal_frequency_hz <= f_hi:

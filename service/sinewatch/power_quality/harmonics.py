@@ -99,7 +99,7 @@ import numpy as np
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from sinewatch.estimators.base import checked_sample_rate, decode_array, encode_array
+from sinewatch.estimators.base import checked_sample_rate, decode_array, state_snapshot
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 STATE_FORMAT_VERSION = 1
@@ -528,13 +528,9 @@ class HarmonicAnalyser:
         self._state = initial_state(self.constants)
 
     def get_state(self) -> dict[str, Any]:
-        return {
-            "format_version": STATE_FORMAT_VERSION,
-            "analyser": self.name,
-            "sample_rate_hz": self.sample_rate_hz,
-            "params": self.params.model_dump(mode="json"),
-            "state": {k: encode_array(v) for k, v in self._state.items()},
-        }
+        return state_snapshot(
+            STATE_FORMAT_VERSION, "analyser", self.name, self.sample_rate_hz, self.params, self._state
+        )
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
         if snapshot.get("format_version") != STATE_FORMAT_VERSION or snapshot.get("analyser") != self.name:
