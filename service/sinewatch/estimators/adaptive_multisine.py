@@ -858,11 +858,11 @@ def adaptive_multisine_kernel(
 
 
 @register
-class AdaptiveMultisine(Estimator[AdaptiveMultisineParams], kernel=adaptive_multisine_kernel):
-    """Adaptive observer with excitation-based switching for n biased sinusoids (Chen et al. 2018)."""
+class AdaptiveMultisine(
+    Estimator[AdaptiveMultisineParams], kernel=adaptive_multisine_kernel, name="adaptive-multisine"
+):
+    """Adaptive observer for n biased sinusoids with excitation-based switching (Chen et al. 2018)"""
 
-    name = "adaptive-multisine"
-    summary = "Adaptive observer for n biased sinusoids with excitation-based switching (Chen et al. 2018)"
     paper = (
         'B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based robust estimator '
         'of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6), 2018'

@@ -385,10 +385,18 @@ class Estimator(ABC, Generic[ParamsT]):
     _kernel: ClassVar[Callable[..., tuple[Any, ...]]]
     _constants: tuple[Any, ...] = ()  # the kernel's read-only arguments after the state
 
-    def __init_subclass__(cls, /, kernel: Callable[..., tuple[Any, ...]] | None = None, **kwargs: Any) -> None:
+    def __init_subclass__(
+        cls, /, kernel: Callable[..., tuple[Any, ...]] | None = None, name: str | None = None, **kwargs: Any
+    ) -> None:
+        """``class X(Estimator[XParams], kernel=x_kernel, name="x")``: the parameter model, the
+        kernel and the registered name in one line; the class docstring is the summary that
+        ``sinewatch estimators`` prints."""
         super().__init_subclass__(**kwargs)
         if kernel is not None:
             setattr(cls, "_kernel", staticmethod(kernel))  # noqa: B010 (a ClassVar, set once)
+        if name is not None:
+            cls.name = name
+            cls.summary = " ".join((cls.__doc__ or "").split())
         for base in cls.__dict__.get("__orig_bases__", ()):
             origin = get_origin(base)
             if isinstance(origin, type) and issubclass(origin, Estimator):

@@ -1204,11 +1204,9 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 
 @register
-class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel):
-    """Differential signal model + recursive extended least squares (module docstring)."""
+class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel, name="differential-rls"):
+    """Differential signal model + recursive extended least squares, with ROCOF"""
 
-    name = "differential-rls"
-    summary = "Differential signal model + recursive extended least squares, with ROCOF"
     paper = (
         '"Differential signal model and sampling techniques for recursive (extended) least-squares '
         'estimation of frequency, frequency derivatives, phase and amplitude"'

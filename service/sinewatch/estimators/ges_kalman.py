@@ -176,11 +176,9 @@ def ges_kalman_kernel(
 
 
 @register
-class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
-    """Kalman filter on the 4-state LTV model of the GES observer paper (module docstring)."""
+class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-kalman"):
+    """GES Kalman observer for one biased sinusoid"""
 
-    name = "ges-kalman"
-    summary = "GES Kalman observer for one biased sinusoid"
     paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_frequency_hz = 100.0  # the paper's Section IV
 

@@ -690,14 +690,9 @@ def state_layout(n: int, m: int, lz: int, lb: int) -> dict[str, tuple[int, ...]]
 
 
 @register
-class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel):
-    """Grip's mixing observer on y(t) - y(t - T) (module docstring)."""
+class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="grip-mixing"):
+    """LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; preset 'harmonics' tracks known-frequency lines"""
 
-    name = "grip-mixing"
-    summary = (
-        "LTI observer on y(t) - y(t-T) that cancels a periodic output disturbance of known period; "
-        "preset 'harmonics' tracks known-frequency lines"
-    )
     paper = 'H. F. Grip, "Observer design in the presence of periodic output disturbances by mixing of past and present output data"'
     example_sample_rate_hz = 4000.0
     example_params: ClassVar[dict[str, Any]] = {

@@ -327,11 +327,9 @@ def ipdft_kernel(
 
 
 @register
-class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel):
-    """Sliding Hann-window interpolated DFT + LS fit (see module docstring)."""
+class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft"):
+    """Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"""
 
-    name = "ipdft"
-    summary = "Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
 
     def _check_params(self) -> None:

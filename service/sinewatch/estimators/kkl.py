@@ -734,14 +734,9 @@ class FilterBankObserver(Estimator[_KP]):
 
 
 @register
-class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel):
-    """m first-order filters and the static inverse gamma of Praly et al. (module docstring)."""
+class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
+    """KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 first-order filters and the static inverse map gamma (Praly, Marconi, Isidori)"""
 
-    name = "kkl"
-    summary = (
-        "KKL / nonlinear Luenberger observer of one sinusoid without offset: m >= 4 "
-        "first-order filters and the static inverse map gamma (Praly, Marconi, Isidori)"
-    )
     paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator"'
 
     @classmethod

@@ -281,14 +281,9 @@ def kkl_biased_kernel(
 
 
 @register
-class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel):
-    """Extension of Praly et al.'s observer to a biased sinusoid (module docstring)."""
+class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, name="kkl-biased"):
+    """KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters and a static inverse map (extension of Praly, Marconi, Isidori)"""
 
-    name = "kkl-biased"
-    summary = (
-        "KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters "
-        "and a static inverse map (extension of Praly, Marconi, Isidori)"
-    )
     paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator" (extended)'
     ell_label = "l_b"
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise

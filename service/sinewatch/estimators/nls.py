@@ -972,11 +972,9 @@ def nls_kernel(
 
 
 @register
-class Nls(Estimator[NlsParams], kernel=nls_kernel):
-    """Windowed maximum-likelihood fit of K tones by variable projection (module docstring)."""
+class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
+    """Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"""
 
-    name = "nls"
-    summary = "Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"
     paper = (
         'G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares '
         'problems whose variables separate", 1973 (variable projection)'

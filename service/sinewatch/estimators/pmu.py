@@ -634,15 +634,10 @@ def pmu_kernel(
 
 
 @register
-class Pmu(Estimator[PmuParams], kernel=pmu_kernel):
-    """Synchrophasor estimator on the reporting grid (see module docstring)."""
+class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
+    """C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the reporting grid: demodulation + derivative filter bank + image cancellation (M or P class)"""
 
-    name = "pmu"
     reports_on_grid = True
-    summary = (
-        "C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the "
-        "reporting grid: demodulation + derivative filter bank + image cancellation (M or P class)"
-    )
     paper = None
     example_sample_rate_hz = 10_000.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}

@@ -269,11 +269,9 @@ def sogi_fll_kernel(
 
 
 @register
-class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel):
-    """SOGI-FLL with DC-offset integrator, Tustin-discretised (see module docstring)."""
+class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll"):
+    """SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"""
 
-    name = "sogi-fll"
-    summary = "SOGI quadrature generator + normalised FLL + DC integrator (power-electronics PLL family)"
     example_sample_rate_hz = 5000.0
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0}
 
