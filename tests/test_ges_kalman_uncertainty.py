@@ -79,7 +79,9 @@ def test_the_reported_sd_scales_with_the_noise() -> None:
     for sigma in (0.05, 0.05 / np.sqrt(10.0)):
         tr = create("ges-kalman", FS).update(OFFSET + np.sin(2 * np.pi * 50.5 * t + 0.3) + sigma * v, last_only=True)
         assert tr.std is not None
-        sds.append(np.array([tr.std.frequency_hz[0, 0], tr.std.amplitude[0, 0], tr.std.phase_rad[0, 0], tr.std.offset[0]]))
+        sds.append(
+            np.array([tr.std.frequency_hz[0, 0], tr.std.amplitude[0, 0], tr.std.phase_rad[0, 0], tr.std.offset[0]])
+        )
     np.testing.assert_allclose(sds[0] / sds[1], np.sqrt(10.0), rtol=0.1)
 
 

@@ -157,8 +157,16 @@ def _propagate_error(Z: np.ndarray, s: float, K: np.ndarray, h: np.ndarray, w: f
 
 @kernel(inline="always")
 def _parameter_std(
-    x1: float, x2: float, x3: float, x4: float, T: np.ndarray, U: np.ndarray, s2: float, Ts: float,
-    std: np.ndarray, row: int,
+    x1: float,
+    x2: float,
+    x3: float,
+    x4: float,
+    T: np.ndarray,
+    U: np.ndarray,
+    s2: float,
+    Ts: float,
+    std: np.ndarray,
+    row: int,
 ) -> None:
     """Row ``row`` of ``std``: sd of (f [Hz], A, theta, B) = sqrt(diag(J Pa J^T)) with
     ``Pa = T + s2 U`` (U1, U6); NaN outside (-4, 0) (eq. 20). J is the Jacobian of the
@@ -334,9 +342,7 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
     def _setup(self) -> None:
         p = self.params
         q = p.q if isinstance(p.q, list) else [p.q] * 4
-        self._constants = (
-            np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std, float(NOISE_MEMORY)]),
-        )
+        self._constants = (np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std, float(NOISE_MEMORY)]),)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``xP`` (20,): the state estimate x1..x4, then the 16 entries of its covariance P
@@ -362,7 +368,5 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel):
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, sse, std = outputs
         track = track_from_columns(out, sse, block.shape[0])
-        track.std = TrackStd(
-            frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3]
-        )
+        track.std = TrackStd(frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3])
         return track
