@@ -102,3 +102,34 @@ def test_the_uncertainty_does_not_touch_the_estimates_and_old_snapshots_load() -
     for f in ("frequency_hz", "amplitude", "phase_rad", "offset"):
         assert getattr(ta, f).tobytes() == getattr(tb, f).tobytes()
     assert ta.residual_rms == tb.residual_rms
+
+
+def _recover(x: np.ndarray, ts: float) -> np.ndarray:
+    """(f, A, theta, B) from the state, the recovery formulas of the module docstring."""
+    x1, x2, x3, x4 = x
+    sh, ch = np.sqrt(-x3 / 4), np.sqrt(1 + x3 / 4)
+    b = -x4 / x3
+    a_s = x1 - b
+    a_c = (x2 / (2 * sh) + a_s * sh) / ch
+    return np.array([np.arcsin(sh) / (np.pi * ts), np.hypot(a_s, a_c), np.arctan2(a_s, a_c), b])
+
+
+def test_the_delta_method_uses_the_jacobian_of_the_recovery_formulas() -> None:
+    """U6 against central differences of the recovery formulas, for a random covariance."""
+    from sinewatch.estimators.ges_kalman import _parameter_std
+
+    ts = 1.0 / FS
+    x = np.array([0.9, 0.25, -4 * np.sin(np.pi * 50.5 * ts) ** 2, 4 * 0.5 * np.sin(np.pi * 50.5 * ts) ** 2])
+    jac = np.empty((4, 4))
+    for i in range(4):
+        d = np.zeros(4)
+        d[i] = 1e-7
+        jac[:, i] = (_recover(x + d, ts) - _recover(x - d, ts)) / 2e-7
+    rng = np.random.default_rng(0)
+    m = rng.standard_normal((4, 4))
+    t_part, u_part, s2 = m @ m.T * 1e-4, np.eye(4) * 1e-5, 2.0
+    std = np.empty((1, 4))
+    _parameter_std(x[0], x[1], x[2], x[3], t_part, u_part, s2, ts, std, 0)
+    np.testing.assert_allclose(std[0], np.sqrt(np.diag(jac @ (t_part + s2 * u_part) @ jac.T)), rtol=1e-6)
+    _parameter_std(x[0], x[1], 0.5, x[3], t_part, u_part, s2, ts, std, 0)  # outside (-4, 0), eq. (20)
+    assert np.all(np.isnan(std[0]))
