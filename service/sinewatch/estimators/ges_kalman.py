@@ -25,7 +25,9 @@ The filter (Section III-C) is the standard Kalman filter on (6) with process noi
 covariance ``Q = diag(q)`` and measurement noise variance ``R``; the paper's Section IV
 uses Q = 1e-6 I, R = 1e-2 and a zero initial state. The prediction and the update are
 written out on the ten distinct entries of the symmetric covariance ``P`` so that the
-kernel costs ~10 ns per sample.
+kernel stays cheap; with the standard-deviation recursion below it runs at 0.43x a
+streaming numpy FFT on the same blocks (``sinewatch bench kernels --estimators ges-kalman
+--block 4096``; 1.07x without it).
 
 Recovery of the parameters from the state estimate x_hat:
 
@@ -122,6 +124,7 @@ from sinewatch.estimators.base import (
 )
 
 NOISE_MEMORY = 128  # N_sigma, samples: time constant of the noise-variance estimate (U5)
+T_NEGLIGIBLE = 1e-100  # trace of T below which T (U3) is set to 0 and no longer propagated
 
 
 class GesKalmanParams(EstimatorParams):
@@ -309,7 +312,10 @@ def ges_kalman_kernel(
         m_cu = lam * m_cu + (1.0 - lam) * (1.0 + U[0, 0] + 2.0 * U[0, 1] + U[1, 1])
         Kg[0], Kg[1], Kg[2], Kg[3] = k0, k1, k2, k3
         h[0], h[1], h[2], h[3] = k0, k1 + x3_prior, k2, k3
-        _propagate_error(T, s, Kg, h, 0.0, M)
+        if T[0, 0] + T[1, 1] + T[2, 2] + T[3, 3] > T_NEGLIGIBLE:  # T decays geometrically (U3):
+            _propagate_error(T, s, Kg, h, 0.0, M)
+        elif T[0, 0] != 0.0:  # once negligible, zero (subnormal floats are ~100x slower)
+            T[:, :] = 0.0
         _propagate_error(U, s, Kg, h, 1.0, M)
         if last_only and k != n - 1:
             continue
