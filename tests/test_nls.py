@@ -271,7 +271,9 @@ def test_accuracy_bench_reports_own_window_crlb_and_calibration():
         assert 0.8 < m["calibration"][q] < 1.25, q
         # the record-length bound is far tighter than the window's: the first is much larger
         assert m["crlb"][q]["over_crlb_db"] > own[q]["over_crlb_db"] + 3.0, q
-    other = evaluate("ges-kalman", "tone-snr-40db", trials=1, seed=0)["metrics"]
+    other = evaluate("sogi-fll", "tone-snr-40db", trials=1, seed=0)["metrics"]  # reports no sd
     assert "calibration" not in other and "crlb_own_window" not in other
+    kalman = evaluate("ges-kalman", "tone-snr-40db", trials=1, seed=0)["metrics"]  # an sd, no window
+    assert "calibration" in kalman and "crlb_own_window" not in kalman
     md = render_markdown([rec], "cmd", {"trials": 4, "seed": 0})
     assert "own window" in md and "### Calibration of the reported standard deviations" in md
