@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
     if args.plot:
-        _plot(samples, args.plot)
+        _plot(samples, args.plot, args.rotate_seconds)
         console.print(f"RSS curve: {args.plot}")
     return 0 if growth < GROWTH_LIMIT else 1
 
@@ -106,15 +106,22 @@ def _growth(samples: list[dict[str, Any]], warm_up_s: float) -> float:
     return float((max(after) - after[0]) / after[0])
 
 
-def _plot(samples: list[dict[str, Any]], path: Path) -> None:
+def _plot(samples: list[dict[str, Any]], path: Path, warm_up_s: float) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     t = [s["t_s"] / 60 for s in samples]
+    rss = [s["rss_mb"] for s in samples]
     fig, ax = plt.subplots(figsize=(7, 3.2))
-    ax.plot(t, [s["rss_mb"] for s in samples], marker="o", ms=3)
+    ax.plot(t, rss, marker="o", ms=3, label="RSS")
+    after = [r for s, r in zip(samples, rss, strict=True) if s["t_s"] >= warm_up_s]
+    if after:  # the pass band: within 5 % of the first sample after warm-up
+        ax.axhspan(after[0], after[0] * (1 + GROWTH_LIMIT), color="tab:green", alpha=0.12, label="+5 % after warm-up")
+        ax.axvline(warm_up_s / 60, color="grey", lw=0.8, ls="--")
+    ax.set_ylim(0, max(rss) * 1.15)
+    ax.legend(loc="lower right")
     ax.set_xlabel("minutes")
     ax.set_ylabel("daemon RSS, MB")
     ax.set_title("sinewatch bench soak: RSS under constant load")
