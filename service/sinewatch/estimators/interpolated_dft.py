@@ -76,6 +76,7 @@ wide band on a long window (bins ~ N/2) costs O(N^2) per hop; the docs give the 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -88,6 +89,7 @@ from sinewatch.estimators.base import (
     NonNegativeFinite,
     PositiveFinite,
     Track,
+    encode_array,
     kernel,
     require_below_nyquist,
     ring_push,
@@ -258,15 +260,22 @@ def ipdft_kernel(
     buf: np.ndarray,
     istate: np.ndarray,
     fstate: np.ndarray,
+    rstate: np.ndarray,
     hann: np.ndarray,
     cos_tab: np.ndarray,
     sin_tab: np.ndarray,
     iconsts: np.ndarray,
     fconsts: np.ndarray,
     last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run the sliding interpolated DFT over block ``x``; return
-    ``(out, resid, sse, n_pred, new_buf, new_istate, new_fstate)``.
+    ``(out, resid, rocof, sse, n_pred, new_buf, new_istate, new_fstate, new_rstate)``.
+
+    ROCOF is the difference of two consecutive windows' frequencies over the hop (Hz/s),
+    held like the other outputs (``rstate`` = previous window's frequency in cycles/sample,
+    the held ROCOF, and how many consecutive windows were defined, up to 2: ROCOF is defined
+    from the second); it is as noisy as the frequency difference, so it is for slow
+    ramps, not for a single report.
 
     ``buf``, ``istate`` and ``fstate`` are the ``buffer``, ``counters`` and ``estimate``
     arrays (layout: :meth:`InterpolatedDft._initial_state`); ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
@@ -280,8 +289,10 @@ def ipdft_kernel(
     b = buf.copy()
     pos, fill, since, held, defined, m = istate[0], istate[1], istate[2], istate[3], istate[4], istate[5]
     fcy, A, th, B, r, conv = fstate[0], fstate[1], fstate[2], fstate[3], fstate[4], fstate[5]
+    f_prev, rocof, run = rstate[0], rstate[1], rstate[2]
     n_in = x.shape[0]
     out = np.empty((1 if last_only else n_in, 5))
+    rocof_out = np.empty(1 if last_only else n_in)
     resid = np.empty(1 if last_only else n_in)
     xw = np.empty(N)
     wu = np.empty(N)
@@ -305,9 +316,13 @@ def ipdft_kernel(
                 defined = 1
                 fcy, A, th, B, r = est[1], est[2], est[3], est[4], est[5]
                 conv = 1.0 if (A > min_amp and r <= max_rel * A) else 0.0
+                run = min(run + 1.0, 2.0)
+                rocof = (fcy - f_prev) * fs * fs / hop if run >= 2.0 else 0.0
+                f_prev = fcy
             else:
                 defined = 0
                 fcy = A = th = B = r = conv = 0.0
+                f_prev = rocof = run = 0.0
         if last_only and j != n_in - 1:
             continue
         row = 0 if last_only else j
@@ -318,12 +333,15 @@ def ipdft_kernel(
             out[row, 3] = B
             out[row, 4] = conv
             resid[row] = r
+            rocof_out[row] = rocof if run >= 2.0 else np.nan
         else:
             undefined_row(out, row)
             resid[row] = np.nan
+            rocof_out[row] = np.nan
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])
-    return out, resid, sse, n_pred, b, new_istate, new_fstate
+    new_rstate = np.array([f_prev, rocof, run])
+    return out, resid, rocof_out, sse, n_pred, b, new_istate, new_fstate, new_rstate
 
 
 @register
@@ -385,13 +403,25 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         write position, fill, samples since the last hop (starts at hop: estimate as soon
         as full), estimate held, estimate defined, samples since the held estimate;
         ``estimate`` (6,): frequency in cycles/sample, A, theta_end, B, fit residual r,
-        converged (0/1)."""
+        converged (0/1); ``rocof`` (3,): the previous window's frequency (cycles/sample), the
+        held ROCOF (Hz/s), consecutive defined windows (0, 1 or 2: ROCOF from the second)."""
         return {
             "buffer": np.zeros(self.window_samples),
             "counters": np.array([0, 0, self.hop_samples, 0, 0, 0], dtype=np.int64),
             "estimate": np.zeros(6),
+            "rocof": np.zeros(3),
         }
 
+    def set_state(self, snapshot: Mapping[str, Any]) -> None:
+        """As :meth:`Estimator.set_state`; a snapshot from a build before ``rocof`` existed
+        is accepted, its ROCOF undefined until the next two windows."""
+        state = snapshot.get("state")
+        if isinstance(state, Mapping) and "estimate" in state and "rocof" not in state:
+            snapshot = {**snapshot, "state": {**state, "rocof": encode_array(np.zeros(3))}}
+        super().set_state(snapshot)
+
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
-        out, resid, sse, n_pred = outputs
-        return track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})
+        out, resid, rocof, sse, n_pred = outputs
+        track = track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})
+        track.rocof_hz_per_s = rocof[:, None]
+        return track
