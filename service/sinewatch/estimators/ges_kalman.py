@@ -94,12 +94,16 @@ paper000-tone --trials 30`` shows it per scenario (the bench's own tuning: see b
 
 Where it does not hold: U1-U6 are first order in the noise, and the noise on the sample in
 A(k) biases x3_hat towards 0 (errors in variables: a noisy regressor attenuates its
-coefficient, here roughly by P_s / (P_s + sigma^2), P_s the tone's power). When that bias
-is not small against the spread, the frequency's normalised error has a mean of several
-units and an sd below 0.9: with the bench's tuning (R = sigma^2, Q scaled to the nominal
-frequency) at 10 dB, frequency bias -2.2 Hz at 50.5 Hz (-3 reported sd), sd 0.56-0.65;
-with the default tuning at 100-200 Hz (5 to 10 samples per cycle) and SNR <= 20 dB, mean
--1.5 to -8, sd 0.4-0.8; amplitude, phase and offset 0.58-1.31 there (worst at 200 Hz).
+coefficient, the more the longer the filter's memory). Tuned with R = sigma^2 at 10 dB SNR
+the memory is long enough for a -1.9 Hz bias at 50.5 Hz (-3 reported sd; sd of the
+normalised error 0.66); the bench's tuning (R = sigma^2 / 10, floored at 1e-3 A^2:
+``sinewatch.bench.params``) keeps it short: calibration 0.99-1.01 on its tone scenarios at
+10 to 50 dB (``sinewatch bench accuracy --estimators ges-kalman --scenarios snr --trials
+30``). At 0 dB the filter is out of its linear regime (amplitude 0.87, phase 1.2); at 60 dB
+the reported sd is conservative for the first 1.5 s (calibration 0.89-0.90 over the second
+half of a 2 s record: U keeps the start's noise longer than the actual error does). With
+the default tuning at 100-200 Hz (5 to 10 samples per cycle) and SNR <= 20 dB, mean -1.5
+to -8, sd 0.4-0.8; amplitude, phase and offset 0.58-1.31 there (worst at 200 Hz).
 """
 
 from __future__ import annotations
