@@ -56,9 +56,24 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from sinewatch.schemas.config import load_config
 
     config = load_config(args.config)
+    if args.c37118 is not None:
+        enable_c37118(config, args.c37118)
     check_rules(config.rules)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
     return serve(config)
+
+
+def enable_c37118(config: Any, port: int) -> None:
+    """``serve --c37118 PORT``: the ``[c37118]`` section on, on PORT (its stations come from the config)."""
+    from pydantic import ValidationError
+
+    from sinewatch.schemas.errors import ConfigError
+
+    try:
+        config.c37118.port = port
+        config.c37118.enabled = True
+    except ValidationError as exc:
+        raise ConfigError(f"--c37118 {port}: {exc.errors()[0]['msg']} (configure [[c37118.stations]])") from None
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
@@ -134,6 +149,8 @@ def cmd_feed(args: argparse.Namespace) -> int:
 
 
 def cmd_tail(args: argparse.Namespace) -> int:
+    if args.c37118:
+        return tail_c37118(args)
     from sinewatch.clients import JsonSubscription, connect
 
     shown = 0
@@ -150,6 +167,54 @@ def cmd_tail(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
     return 0 if shown or not args.count else 1
+
+
+def tail_c37118(args: argparse.Namespace) -> int:
+    """``tail --c37118 HOST:PORT``: read CFG-2, turn data on, print each frame (one line per PMU)."""
+    from sinewatch.clients.c37118 import C37118Reader, parse_host_port
+
+    host, port = parse_host_port(args.c37118)
+    shown = 0
+    try:
+        with C37118Reader(host, port, id_code=args.id_code, timeout_s=args.timeout or args.wait) as pmu:
+            cfg = pmu.config()
+            for p in cfg.pmus:
+                print(
+                    f"tail: {host}:{port} station {p.station!r} ID {p.id_code}, {cfg.data_rate} frames/s, "
+                    f"{p.nominal_frequency_hz} Hz, phasors {', '.join(p.phasor_names)}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            pmu.start()
+            try:
+                for row in pmu.rows():
+                    print(json.dumps(row) if args.json else format_c37118(row), flush=True)
+                    shown += 1
+                    if args.count and shown >= args.count:
+                        break
+            finally:
+                pmu.stop()
+    except (OSError, ValueError) as exc:
+        print(f"sinewatch: error: C37.118.2 {args.c37118}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    return 0 if shown or not args.count else 1
+
+
+def format_c37118(row: dict[str, Any]) -> str:
+    """One line per PMU data block: time, station, frequency, ROCOF, phasors, STAT."""
+    if row["polar"]:
+        phasors = " ".join(f"{n}={m:.5g}/{a:+.4f}rad" for n, (m, a) in row["phasors"].items())
+    else:
+        phasors = " ".join(f"{n}={re:.5g}{im:+.5g}j" for n, (re, im) in row["phasors"].items())
+    flags = ("" if row["data_error"] == 0 else f" ERROR={row['data_error']:02b}") + (
+        "" if row["in_sync"] else " unsync"
+    )
+    return (
+        f"{row['time_ns'] / 1e9:.4f} {row['station']} f={row['frequency_hz']:.4f}Hz "
+        f"rocof={row['rocof_hz_per_s']:+.4f}Hz/s {phasors} stat=0x{row['stat']:04X}{flags}"
+    )
 
 
 def format_estimate(msg: dict[str, Any]) -> str:
@@ -263,7 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--record-dir", default="sinewatch-runs", help="where the MCAP file goes")
     d.add_argument("--no-record", action="store_true", help="do not record")
 
-    _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    sv = _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    sv.add_argument(
+        "--c37118",
+        type=int,
+        metavar="PORT",
+        help="serve IEEE C37.118.2 on PORT (TCP and UDP; the stations come from [c37118] in the config)",
+    )
 
     csub = _subcommands(sub, "config", "configuration", "config_command")
     _command(csub, "show", "print the effective configuration (file + environment)", cmd_config_show, config=True)
@@ -306,6 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")
     t.add_argument("--wait", type=float, default=10.0, help="seconds to keep trying to connect")
+    t.add_argument("--c37118", metavar="HOST:PORT", help="read a C37.118.2 PMU (or sinewatch serve --c37118) instead")
+    t.add_argument("--id-code", type=int, default=1, help="with --c37118: the station's ID code (default 1)")
 
     r = _command(sub, "replay", "replay recordings through fresh estimators", cmd_replay)
     r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")

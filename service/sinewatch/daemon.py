@@ -38,6 +38,7 @@ from typing import Any, TypeVar
 import zenoh
 import zenoh.ext
 
+from sinewatch.c37118_server import C37118Server
 from sinewatch.clients.session import open_session
 from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
@@ -164,6 +165,7 @@ class Daemon:
         self._session: zenoh.Session | None = None
         self._pipeline: Pipeline | None = None
         self.recorder: McapRecorder | None = None
+        self.c37118: C37118Server | None = None  # [c37118]: sinewatch as a PMU
         self._intake: Intake | None = None
         self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
         self._queued = 0
@@ -260,6 +262,7 @@ class Daemon:
             recording=str(self.recorder.path) if self.recorder and self.recorder.path else None,
             sinks=[SinkStatus(**s) for s in p.sink_status()],
             channels=[ChannelStatus(**c) for c in p.channel_status()],
+            c37118=self.c37118.status() if self.c37118 is not None else None,
         )
         return encode_status(status)
 
@@ -300,6 +303,9 @@ class Daemon:
         if cfg.recording.enabled:
             self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
             sinks.append(self.recorder)
+        if cfg.c37118.enabled:
+            self.c37118 = C37118Server(cfg.c37118)
+            sinks.append(self.c37118)
         self._pipeline = Pipeline(cfg, sinks)
         self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
         self._intake = Intake(self, asyncio.get_running_loop())
@@ -317,6 +323,8 @@ class Daemon:
         """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
         with self._signals():
             self.start()
+            if self.c37118 is not None:
+                await self.c37118.start()
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             if self.recorder is not None:
@@ -328,6 +336,8 @@ class Daemon:
                 await self.should_exit.wait()
                 await self._shutdown(consumer, periodic)
             finally:
+                if self.c37118 is not None:
+                    await self.c37118.stop()
                 self._close()
         return 130 if self.force_exit.is_set() else 0
 

@@ -276,4 +276,5 @@ def encode_error(report: ErrorReport) -> bytes:
 
 
 def encode_status(status: Status) -> bytes:
-    return dumps(status.model_dump(mode="json"))
+    # c37118 is left out when the server is off: the message stays what earlier builds wrote
+    return dumps(status.model_dump(mode="json", exclude={"c37118"} if status.c37118 is None else None))

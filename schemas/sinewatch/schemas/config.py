@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sinewatch.schemas.errors import ConfigError
 
@@ -150,6 +150,95 @@ class PowerQualitySection(_Section):
         return v
 
 
+class C37118Station(_Section):
+    """One PMU as a phasor data concentrator sees it: one ID code, one data stream, one phasor
+    per channel (the channel estimator's synchrophasor: the ``pmu`` estimator's, or one derived
+    from any estimator's amplitude and phase). FREQ and DFREQ are the first channel's."""
+
+    id_code: int = Field(ge=1, le=65534, description="IDCODE of the data stream (unique per station)")
+    name: str = Field(pattern=r"^[ -~]{1,16}$", description="Station name (STN): 1-16 printable ASCII characters")
+    channels: list[str] = Field(
+        min_length=1, max_length=64, description="Channel names (as in the Estimates), one phasor each, in order"
+    )
+    phasor_names: list[str] | None = Field(
+        None, description="Phasor channel names (CHNAM, 16 ASCII characters); default: the channel names' last part"
+    )
+    phasor_type: Literal["voltage", "current"] = Field("voltage", description="PHUNIT type of every phasor")
+    nominal_frequency_hz: Literal[50, 60] = Field(50, description="FNOM")
+    data_rate: int = Field(
+        50, ge=1, le=200, description="Frames per second (DATA_RATE): the channels' reporting rate (pmu estimator)"
+    )
+    phasor_format: Literal["polar", "rectangular"] = Field(
+        "polar", description="Phasors as 32-bit floats, magnitude (RMS) and angle (rad), or real and imaginary"
+    )
+    max_skew_s: float = Field(
+        0.5,
+        gt=0,
+        allow_inf_nan=False,
+        description="A frame waits for every channel's estimate of its time until another channel is this far "
+        "(data time) past it; then it is sent with the missing phasors NaN and STAT data error 10 (absent data)",
+    )
+    time_synchronised: bool = Field(
+        False,
+        description="The gateways' sample clocks are traceable to UTC (GPS/PTP): STAT sync bit 0 and FRACSEC "
+        "time quality 0; otherwise STAT bit 13 (not in sync), unlocked > 1000 s and time quality 0xF",
+    )
+    pmu_time_quality: int = Field(
+        7, ge=0, le=7, description="STAT bits 8-6 (C37.118.2 Table 8): 7 = time error unknown or > 10 ms"
+    )
+
+    @field_validator("channels")
+    @classmethod
+    def _distinct_channels(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"channels: expected distinct channel names, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _names(self) -> C37118Station:
+        if self.phasor_names is not None and len(self.phasor_names) != len(self.channels):
+            raise ValueError(
+                f"phasor_names: expected one per channel ({len(self.channels)}), got {len(self.phasor_names)}"
+            )
+        return self
+
+
+class C37118Section(_Section):
+    """An IEEE C37.118.2-2011 server (sinewatch as a PMU; off by default): each station answers
+    command frames over TCP (and UDP) on ``port`` and streams data frames at its rate."""
+
+    enabled: bool = Field(False, description="Serve C37.118.2 (also: sinewatch serve --c37118 PORT)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    port: int = Field(4712, ge=0, le=65535, description="TCP and UDP port for command frames (0: any free port)")
+    time_base: int = Field(1_000_000, ge=1, lt=1 << 24, description="TIME_BASE: FRACSEC counts 1/TIME_BASE s")
+    client_queue_frames: int = Field(
+        256, ge=1, description="Frames queued per client; past that a slow client's frames are dropped and counted"
+    )
+    udp_destinations: list[str] = Field(
+        default_factory=list,
+        description="HOST:PORT destinations of spontaneous UDP data frames (every station, no command needed)",
+    )
+    stations: list[C37118Station] = Field(default_factory=list, description="The stations (PMUs) served")
+
+    @field_validator("udp_destinations")
+    @classmethod
+    def _destinations(cls, v: list[str]) -> list[str]:
+        for d in v:
+            host, _, port = d.rpartition(":")
+            if not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ValueError(f"udp_destinations: expected HOST:PORT, got {d!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _stations(self) -> C37118Section:
+        ids = [s.id_code for s in self.stations]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"stations: expected unique id_code values, got {ids}")
+        if self.enabled and not self.stations:
+            raise ValueError("stations: expected at least one station when enabled")
+        return self
+
+
 class RecordingSection(_Section):
     enabled: bool = True
     directory: Path = Field(Path("sinewatch-runs"), description="Where MCAP files are written")
@@ -191,6 +280,7 @@ class SinewatchConfig(_Section):
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
+    c37118: C37118Section = Field(default_factory=C37118Section)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
     status_interval_s: float = Field(1.0, gt=0)

@@ -203,6 +203,30 @@ class SinkStatus(_Message):
     last_error: str | None = Field(description="The last failure, as 'ExceptionType: message'")
 
 
+class C37118ClientStatus(_Message):
+    """One connected phasor data concentrator (or UDP destination) of the C37.118.2 server."""
+
+    peer: str = Field(description="HOST:PORT of the client")
+    transport: Literal["tcp", "udp"]
+    streaming: list[int] = Field(description="ID codes whose data frames it has turned on")
+    frames_sent: int = Field(description="Frames handed to its connection")
+    frames_dropped: int = Field(description="Data frames dropped because its queue was full (a slow reader)")
+
+
+class C37118Status(_Message):
+    """The C37.118.2 server (present only when ``[c37118]`` is enabled)."""
+
+    port: int
+    clients: list[C37118ClientStatus]
+    frames_built: int = Field(description="Data frames built (one per station per reporting time)")
+    frames_incomplete: int = Field(description="Data frames sent with a missing channel (STAT data error 10)")
+    frames_dropped: int = Field(description="Data frames dropped for slow clients, since start (all clients)")
+    frames_late: int = Field(description="Estimates that came after their frame was sent (not sent)")
+    commands: int = Field(description="Command frames accepted")
+    commands_rejected: int = Field(description="Command frames rejected (bad CRC, unknown ID code, truncated, ...)")
+    rejected_by_reason: dict[str, int] = Field(default_factory=dict)
+
+
 class Status(_Message):
     """Periodic daemon status."""
 
@@ -224,6 +248,9 @@ class Status(_Message):
     recording: str | None = Field(description="Current MCAP file, if recording")
     sinks: list[SinkStatus] = Field(default_factory=list, description="Health of each output")
     channels: list[ChannelStatus]
+    c37118: C37118Status | None = Field(
+        None, description="The C37.118.2 server's counters (absent when it is off; added within format version 1)"
+    )
 
 
 MESSAGE_MODELS: dict[str, type[BaseModel]] = {
