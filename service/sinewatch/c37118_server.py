@@ -35,6 +35,7 @@ import contextlib
 import json
 import logging
 import math
+import socket
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -334,6 +335,11 @@ class C37118Server(NullSink):
         peername = writer.get_extra_info("peername")
         peer = f"{peername[0]}:{peername[1]}" if peername else "?"
         client = Client(peer, "tcp", asyncio.Queue(self.config.client_queue_frames))
+        limit = self.config.client_buffer_bytes
+        sock = writer.get_extra_info("socket")
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, limit)
+        writer.transport.set_write_buffer_limits(high=limit)
         self.clients.append(client)
         self._writers.add(writer)
         sender = asyncio.create_task(self._send_loop(client, writer), name=f"c37118-send-{peer}")
@@ -367,9 +373,14 @@ class C37118Server(NullSink):
 
     def _reply(self, client: Client, writer: asyncio.StreamWriter, frame: bytes) -> None:
         """A command's answer (configuration, header): written at once, ahead of queued data."""
-        if not writer.is_closing():
-            writer.write(frame)
-            client.sent += 1
+        if writer.is_closing():
+            return
+        if writer.transport.get_write_buffer_size() > 4 * self.config.client_buffer_bytes:
+            client.dropped += 1  # a client that sends commands but never reads the answers
+            self.dropped_total += 1
+            return
+        writer.write(frame)
+        client.sent += 1
 
     @staticmethod
     async def _send_loop(client: Client, writer: asyncio.StreamWriter) -> None:
@@ -409,8 +420,7 @@ class C37118Server(NullSink):
             frame = decode_frame(raw)
             cmd, _ = decode_command(frame)
         except FrameError as exc:
-            reason = "crc" if "CHK" in str(exc) else "truncated" if "FRAMESIZE" in str(exc) else "malformed"
-            self._reject(reason, client.peer, str(exc))
+            self._reject(exc.kind, client.peer, str(exc))
             return []
         station = self.stations.get(frame.id_code)
         if station is None:

@@ -12,7 +12,8 @@ off   field       size and meaning
 ====  ==========  =====================================================================
 0     SYNC        2: 0xAA, then bit 7 reserved (0), bits 6-4 frame type (000 data,
                   001 header, 010 CFG-1, 011 CFG-2, 101 CFG-3, 100 command), bits 3-0
-                  version (1: C37.118-2005, 2: C37.118.2-2011)
+                  version: 2 for CFG-3 (added in 2011), 1 for the frames defined in
+                  C37.118-2005, which "shall remain version 1" (clause 6.2.1)
 2     FRAMESIZE   2: bytes in the frame, SYNC to CHK inclusive
 4     IDCODE      2: data stream ID (the PMU/PDC's; in a command, the destination's)
 6     SOC         4: seconds since 1970-01-01 UTC (unsigned)
@@ -25,7 +26,7 @@ off   field       size and meaning
                   final XOR, no reflection) of every byte before it
 ====  ==========  =====================================================================
 
-Data frame words (clause 6.3, Table 5), per PMU block: STAT 2 (Table 7), PHASORS
+Data frame words (clause 6.3, Tables 5 and 6), per PMU block: STAT 2 (Table 6), PHASORS
 4 or 8 each, FREQ 2 or 4, DFREQ 2 or 4, ANALOG 2 or 4 each, DIGITAL 2 each. FORMAT
 (Table 9) bit 0: phasors polar (1) or rectangular (0); bit 1: phasors float (1) or 16-bit
 integer (0); bit 2: analogs float; bit 3: FREQ/DFREQ float. As floats FREQ is the
@@ -43,9 +44,9 @@ are length-prefixed (1-255 bytes, Table 12); per PMU after IDCODE a 16-byte G_PM
 (scale float, offset float); DIGUNIT 4; then PMU_LAT, PMU_LON, PMU_ELEV (float), SVC_CLASS
 (1 ASCII byte, M or P), WINDOW (int32, us), GRP_DLY (int32, us), FNOM 2, CFGCNT 2.
 
-Command frame (clause 6.6, Table 14): CMD 2 (Table 15: 1 turn off transmission of data
-frames, 2 turn on, 3 send HDR, 4 send CFG-1, 5 send CFG-2, 6 send CFG-3, 8 extended frame),
-then EXTFRAME (optional, up to 65518 bytes). Header frame (clause 6.5, Table 13): ASCII text.
+Command frame (clause 6.6): CMD 2 (1 turn off transmission of data frames, 2 turn on,
+3 send HDR, 4 send CFG-1, 5 send CFG-2, 6 send CFG-3, 8 extended frame), then EXTFRAME
+(optional, up to 65518 bytes). Header frame (clause 6.5): ASCII text.
 """
 
 from __future__ import annotations
@@ -68,9 +69,11 @@ NAME_SIZE = 16  # CFG-1/2 names: 16 ASCII bytes, space padded
 
 
 class FrameError(DecodeError):
-    """Bytes that are not a valid C37.118.2 frame (bad SYNC, size, CRC, or content)."""
+    """Bytes that are not a valid C37.118.2 frame. ``kind`` says why: ``sync`` (no 0xAA),
+    ``size`` (FRAMESIZE too small), ``truncated`` (fewer bytes than the frame or its words
+    need), ``crc`` (CHK does not match), ``type`` (not the frame type expected), ``content``."""
 
-    kind = "c37118_frame_error"
+    kind = "content"
 
 
 class FrameType(IntEnum):
@@ -85,7 +88,7 @@ class FrameType(IntEnum):
 
 
 class Command(IntEnum):
-    """CMD word of a command frame (Table 15)."""
+    """CMD word of a command frame (clause 6.6)."""
 
     DATA_OFF = 0x0001
     DATA_ON = 0x0002
@@ -97,7 +100,7 @@ class Command(IntEnum):
 
 
 class DataError(IntEnum):
-    """STAT bits 15-14 (Table 7)."""
+    """STAT bits 15-14 (Table 6)."""
 
     GOOD = 0b00  # good measurement data, no errors
     PMU_ERROR_NO_INFO = 0b01  # PMU error, no information about data
@@ -193,9 +196,11 @@ _HEADER = struct.Struct(">BBHHII")
 
 
 def encode_frame(
-    frame_type: FrameType, id_code: int, soc: int, fracsec: int, body: bytes, version: int = VERSION_2011
+    frame_type: FrameType, id_code: int, soc: int, fracsec: int, body: bytes, version: int | None = None
 ) -> bytes:
-    """SYNC, FRAMESIZE, IDCODE, SOC, FRACSEC, the body, CHK."""
+    """SYNC, FRAMESIZE, IDCODE, SOC, FRACSEC, the body, CHK. ``version`` None: 2 for CFG-3, else 1."""
+    if version is None:
+        version = VERSION_2011 if frame_type is FrameType.CFG3 else VERSION_2005
     size = MIN_FRAME_SIZE + len(body)
     if size > MAX_FRAME_SIZE:
         raise ValueError(f"FRAMESIZE: expected at most {MAX_FRAME_SIZE} bytes, got {size}")
@@ -209,12 +214,14 @@ def encode_frame(
 def frame_size(head: bytes) -> int:
     """FRAMESIZE from the first 4 bytes of a frame, after checking the SYNC byte."""
     if len(head) < 4:
-        raise FrameError(f"truncated frame: expected at least 4 bytes (SYNC, FRAMESIZE), got {len(head)}")
+        raise FrameError(
+            f"truncated frame: expected at least 4 bytes (SYNC, FRAMESIZE), got {len(head)}", kind="truncated"
+        )
     if head[0] != SYNC_BYTE:
-        raise FrameError(f"SYNC: expected first byte 0xAA, got 0x{head[0]:02X}")
+        raise FrameError(f"SYNC: expected first byte 0xAA, got 0x{head[0]:02X}", kind="sync")
     size = int.from_bytes(head[2:4], "big")
     if size < MIN_FRAME_SIZE:
-        raise FrameError(f"FRAMESIZE: expected at least {MIN_FRAME_SIZE}, got {size}")
+        raise FrameError(f"FRAMESIZE: expected at least {MIN_FRAME_SIZE}, got {size}", kind="size")
     return size
 
 
@@ -222,17 +229,19 @@ def decode_frame(data: bytes) -> Frame:
     """Check SYNC, FRAMESIZE (equal to ``len(data)``), the frame type and CHK; split the header."""
     size = frame_size(data)
     if size != len(data):
-        raise FrameError(f"FRAMESIZE: the frame says {size} bytes, got {len(data)}")
+        raise FrameError(
+            f"FRAMESIZE: the frame says {size} bytes, got {len(data)}", kind="truncated" if len(data) < size else "size"
+        )
     want = crc_ccitt(data[:-2])
     got = int.from_bytes(data[-2:], "big")
     if want != got:
-        raise FrameError(f"CHK: expected CRC-CCITT 0x{want:04X}, got 0x{got:04X}")
+        raise FrameError(f"CHK: expected CRC-CCITT 0x{want:04X}, got 0x{got:04X}", kind="crc")
     _, type_version, _, id_code, soc, fracsec = _HEADER.unpack_from(data)
     code = (type_version >> 4) & 0x07
     try:
         frame_type = FrameType(code)
     except ValueError:
-        raise FrameError(f"frame type: expected 0-5, got {code}") from None
+        raise FrameError(f"frame type: expected 0-5, got {code}", kind="type") from None
     return Frame(frame_type, type_version & 0x0F, id_code, soc, fracsec, bytes(data[HEADER_SIZE:-2]))
 
 
@@ -269,7 +278,7 @@ class FrameSplitter:
 
 # ---- command and header frames (clauses 6.5, 6.6) -------------------------------------------------
 def encode_command(
-    id_code: int, command: int, soc: int = 0, fracsec: int = 0, extframe: bytes = b"", version: int = VERSION_2011
+    id_code: int, command: int, soc: int = 0, fracsec: int = 0, extframe: bytes = b"", version: int | None = None
 ) -> bytes:
     return encode_frame(FrameType.CMD, id_code, soc, fracsec, command.to_bytes(2, "big") + extframe, version)
 
@@ -277,13 +286,13 @@ def encode_command(
 def decode_command(frame: Frame) -> tuple[int, bytes]:
     """(CMD, EXTFRAME) of a command frame."""
     if frame.frame_type is not FrameType.CMD:
-        raise FrameError(f"expected a command frame, got {frame.frame_type.name}")
+        raise FrameError(f"expected a command frame, got {frame.frame_type.name}", kind="type")
     if len(frame.body) < 2:
-        raise FrameError(f"command frame: expected a 2-byte CMD word, got {len(frame.body)} byte(s)")
+        raise FrameError(f"command frame: expected a 2-byte CMD word, got {len(frame.body)} byte(s)", kind="truncated")
     return int.from_bytes(frame.body[:2], "big"), frame.body[2:]
 
 
-def encode_header(id_code: int, text: str, soc: int, fracsec: int, version: int = VERSION_2011) -> bytes:
+def encode_header(id_code: int, text: str, soc: int, fracsec: int, version: int | None = None) -> bytes:
     return encode_frame(FrameType.HEADER, id_code, soc, fracsec, text.encode("ascii", "replace"), version)
 
 
@@ -370,7 +379,7 @@ class ConfigFrame:
     soc: int = 0
     fracsec: int = 0
     cont_idx: int = 0  # CFG-3 continuation index (0: the only frame)
-    version: int = VERSION_2011
+    version: int | None = None  # None: as the standard says (2 for CFG-3, else 1)
 
     def data_block_size(self) -> int:
         return sum(p.block_size() for p in self.pmus)
@@ -447,7 +456,8 @@ class _Reader:
         if self.pos + n > len(self.body):
             raise FrameError(
                 f"{self.what}: truncated, expected {n} more byte(s) at offset {HEADER_SIZE + self.pos}, "
-                f"got {len(self.body) - self.pos}"
+                f"got {len(self.body) - self.pos}",
+                kind="truncated",
             )
         out = self.body[self.pos : self.pos + n]
         self.pos += n
@@ -470,7 +480,7 @@ class _Reader:
 
 def decode_config(frame: Frame) -> ConfigFrame:
     if frame.frame_type not in (FrameType.CFG1, FrameType.CFG2, FrameType.CFG3):
-        raise FrameError(f"expected a configuration frame, got {frame.frame_type.name}")
+        raise FrameError(f"expected a configuration frame, got {frame.frame_type.name}", kind="type")
     cfg3 = frame.frame_type is FrameType.CFG3
     r = _Reader(frame.body, frame.frame_type.name)
     cont_idx = r.u16() if cfg3 else 0
@@ -561,9 +571,9 @@ def stat_word(
     unlocked: int = 0,
     trigger_reason: int = 0,
 ) -> int:
-    """STAT (Table 7): 15-14 data error, 13 PMU sync error (1: not in sync with UTC), 12 data
+    """STAT (Table 6): 15-14 data error, 13 PMU sync error (1: not in sync with UTC), 12 data
     sorting (1: by arrival), 11 trigger, 10 configuration change, 9 data modified, 8-6 PMU
-    time quality (Table 8), 5-4 unlocked time (00 < 10 s ... 11 > 1000 s), 3-0 trigger reason."""
+    time quality (Table 7), 5-4 unlocked time (00 < 10 s ... 11 > 1000 s), 3-0 trigger reason."""
     if not 0 <= pmu_time_quality <= 7 or not 0 <= unlocked <= 3 or not 0 <= trigger_reason <= 15:
         raise ValueError(
             f"STAT: expected time quality 0..7, unlocked 0..3, trigger reason 0..15, "
@@ -673,7 +683,7 @@ def _anunit_scale(unit: int) -> float:
 def decode_data(frame: Frame, cfg: ConfigFrame) -> DataFrame:
     """The PMU blocks of a data frame, read with the configuration it was sent under."""
     if frame.frame_type is not FrameType.DATA:
-        raise FrameError(f"expected a data frame, got {frame.frame_type.name}")
+        raise FrameError(f"expected a data frame, got {frame.frame_type.name}", kind="type")
     want = cfg.data_block_size()
     if len(frame.body) != want:
         raise FrameError(f"data frame: expected {want} bytes of PMU data for the configuration, got {len(frame.body)}")

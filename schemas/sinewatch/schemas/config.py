@@ -214,6 +214,12 @@ class C37118Section(_Section):
     client_queue_frames: int = Field(
         256, ge=1, description="Frames queued per client; past that a slow client's frames are dropped and counted"
     )
+    client_buffer_bytes: int = Field(
+        65536,
+        ge=1024,
+        description="Per TCP client: socket send buffer and write-buffer high-water mark; with the queue, what a "
+        "client that stops reading may hold before its frames are dropped",
+    )
     udp_destinations: list[str] = Field(
         default_factory=list,
         description="HOST:PORT destinations of spontaneous UDP data frames (every station, no command needed)",
