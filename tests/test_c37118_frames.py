@@ -46,7 +46,11 @@ pymu_data = pytest.importorskip("pymu.pmuDataFrame")
 
 SOC = 1_149_580_800  # 2006-06-06 08:00:00 UTC
 ID = 7734
-F32 = lambda v: struct.unpack(">f", struct.pack(">f", v))[0]  # noqa: E731 (float32 rounding)
+
+
+def F32(v: float) -> float:
+    """v rounded to float32, as it travels in a float frame."""
+    return struct.unpack(">f", struct.pack(">f", v))[0]
 
 
 def crc_bitwise(data: bytes) -> int:
