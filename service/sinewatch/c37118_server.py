@@ -9,10 +9,12 @@ Data path. The pipeline hands every Estimate to :meth:`C37118Server.on_estimate`
 loop. A station collects its channels' estimates by timestamp (the ``pmu`` estimator reports
 on the grid k/Fs); a frame is built once every channel has reported that time, or once some
 channel is ``max_skew_s`` of data time past it (the missing phasors are then NaN and STAT says
-absent data). The frame goes, without waiting, into each subscribed client's bounded queue;
-a client's own task writes it to its socket. A client that stops reading fills its socket
-buffer, then its queue, and then its frames are dropped and counted (``Status.c37118``): the
-daemon never waits for a client. UDP sends never wait either (a datagram the OS cannot take
+absent data). The frame is written to each subscribed client's connection without waiting
+(the transport buffers it) while that client's buffer is below ``client_buffer_bytes``; past
+that it goes into the client's bounded queue (``client_queue_frames``), which the client's own
+task drains as its socket drains. A client that stops reading fills its socket buffer, its
+write buffer and its queue, and then its frames are dropped and counted (``Status.c37118``):
+the daemon never waits for a client. UDP sends never wait either (a datagram the OS cannot take
 is lost, as UDP is).
 
 STAT (Table 7), per station: data error 00 when every channel's estimate is there, valid and
@@ -219,6 +221,7 @@ class Client:
     sent: int = 0
     dropped: int = 0
     addr: tuple[str, int] | None = None  # UDP
+    writer: asyncio.StreamWriter | None = None  # TCP
 
     def status(self) -> C37118ClientStatus:
         return C37118ClientStatus(
@@ -315,12 +318,19 @@ class C37118Server(NullSink):
                 continue
             if c.queue is None:
                 self._sendto(c, frame)
-                continue
-            try:
-                c.queue.put_nowait(frame)
-            except asyncio.QueueFull:
-                c.dropped += 1
-                self.dropped_total += 1
+            elif (
+                c.writer is not None
+                and c.queue.empty()
+                and c.writer.transport.get_write_buffer_size() < self.config.client_buffer_bytes
+            ):
+                c.writer.write(frame)  # never waits: the transport buffers it, the kernel takes it
+                c.sent += 1
+            else:
+                try:
+                    c.queue.put_nowait(frame)  # the client's sender writes it once the buffer drains
+                except asyncio.QueueFull:
+                    c.dropped += 1
+                    self.dropped_total += 1
         for addr in self._spontaneous:
             if self._udp is not None:
                 self._udp.sendto(frame, addr)
@@ -334,7 +344,7 @@ class C37118Server(NullSink):
     async def _serve_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peername = writer.get_extra_info("peername")
         peer = f"{peername[0]}:{peername[1]}" if peername else "?"
-        client = Client(peer, "tcp", asyncio.Queue(self.config.client_queue_frames))
+        client = Client(peer, "tcp", asyncio.Queue(self.config.client_queue_frames), writer=writer)
         limit = self.config.client_buffer_bytes
         sock = writer.get_extra_info("socket")
         if sock is not None:
@@ -384,13 +394,16 @@ class C37118Server(NullSink):
 
     @staticmethod
     async def _send_loop(client: Client, writer: asyncio.StreamWriter) -> None:
+        """Writes the frames that were queued while the client's buffer was full. It never holds
+        a frame across an await (drain, then get, then write at once), so a frame written
+        directly by :meth:`_broadcast` (only when the queue is empty) never overtakes one queued."""
         assert client.queue is not None
         try:
             while True:
+                await writer.drain()
                 frame = await client.queue.get()
                 writer.write(frame)
                 client.sent += 1
-                await writer.drain()
         except (ConnectionError, OSError):
             return
 
