@@ -46,6 +46,11 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
         ("compliance", "IEEE C37.118.1 M-class tests of estimators reporting on a time grid", add_compliance_arguments),
+        (
+            "c37118",
+            "the daemon as a C37.118.2 PMU: latency with no, a reading and a stalled client",
+            add_c37118_arguments,
+        ),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
@@ -80,6 +85,14 @@ def add_soak_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--interval", type=float, default=60.0, help="seconds between report lines (default 60)")
     parser.add_argument("--rotate-seconds", type=float, default=300.0, help="a new recording this often (default 300)")
     parser.add_argument("--plot", type=Path, help="write the RSS curve to this PNG (needs matplotlib)")
+
+
+def add_c37118_arguments(parser: argparse.ArgumentParser) -> None:
+    add_e2e_arguments(parser)
+    parser.set_defaults(channels=30, duration=30.0, block=1000, estimator="pmu")
+    parser.add_argument(
+        "--station-channels", type=int, help="channels in the served station (default all: 266-byte frames at 30)"
+    )
 
 
 def add_overload_arguments(parser: argparse.ArgumentParser) -> None:

@@ -145,10 +145,11 @@ class _Recording:
 
 @contextlib.contextmanager
 def running_daemon(
-    args: argparse.Namespace, recording: dict[str, Any] | None = None
+    args: argparse.Namespace, recording: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
 ) -> Iterator[tuple[str, subprocess.Popen[bytes], _Recording]]:
     """``sinewatch serve`` as its own process on a free loopback port, recording to a
-    temporary directory; stopped with SIGINT (drain, finish the file) on exit."""
+    temporary directory; stopped with SIGINT (drain, finish the file) on exit. ``extra``:
+    more config sections (e.g. ``c37118``)."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     rec = _Recording()
     with tempfile.TemporaryDirectory(prefix="sinewatch-bench-") as tmp:
@@ -159,6 +160,7 @@ def running_daemon(
             "recording": {"directory": str(Path(tmp) / "rec"), **(recording or {})},
             "limits": {"queue_policy": args.queue_policy, "queue_capacity": args.queue_capacity},
             "status_interval_s": 1.0,
+            **(extra or {}),
         }
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(config))
