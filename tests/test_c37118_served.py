@@ -293,7 +293,7 @@ def test_a_stalled_client_costs_the_daemon_nothing_and_its_drops_are_counted(tmp
 
 
 def test_malformed_command_frames_are_rejected_counted_and_logged(tmp_path, caplog):
-    config = daemon_config(tmp_path)
+    config = daemon_config(tmp_path, max_clients=2)
     good_cmd = encode_command(ID, Command.SEND_CFG2)
     bad_crc = good_cmd[:-1] + bytes([good_cmd[-1] ^ 0xFF])
     wrong_id = encode_command(ID + 1, Command.SEND_CFG2)
@@ -314,6 +314,11 @@ def test_malformed_command_frames_are_rejected_counted_and_logged(tmp_path, capl
             frames = splitter.feed(data)
         return frames[0]
 
+    def hang_up(sock: socket.socket) -> None:
+        """Close our side and wait for the server to close its own: by then it has let go."""
+        sock.shutdown(socket.SHUT_WR)
+        assert sock.recv(65536) == b""
+
     def client(daemon, ep):
         port = daemon.c37118.port
         with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as sock:
@@ -322,6 +327,18 @@ def test_malformed_command_frames_are_rejected_counted_and_logged(tmp_path, capl
                 sock.sendall(bad)
                 cfg2 = decode_frame(ask_cfg2(sock, splitter))  # still answered after each
                 assert (cfg2.frame_type.name, cfg2.id_code) == ("CFG2", ID)
+            hang_up(sock)
+        # past max_clients (2 here: the one above has closed, these two are in) a third is refused
+        with (
+            socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as one,
+            socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as two,
+        ):
+            ask_cfg2(one, FrameSplitter())
+            ask_cfg2(two, FrameSplitter())  # both served: both counted as clients now
+            with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as three:
+                assert three.recv(1) == b""  # closed at once
+            hang_up(one)
+            hang_up(two)
         # a frame cut short by the client closing: counted when the server sees the end
         with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as sock:
             sock.sendall(good_cmd[:9])
@@ -332,6 +349,7 @@ def test_malformed_command_frames_are_rejected_counted_and_logged(tmp_path, capl
     stats, _, code = run_daemon(config, client)
     assert code == 0
     assert stats.rejected_by_reason == {
+        "client_limit": 1,
         "command": 1,
         "crc": 1,
         "id_code": 1,
@@ -339,7 +357,7 @@ def test_malformed_command_frames_are_rejected_counted_and_logged(tmp_path, capl
         "truncated": 2,
         "type": 1,
     }
-    assert stats.commands_rejected == 7 and stats.commands == 6
+    assert stats.commands_rejected == 8 and stats.commands == 8
     logged = [r.getMessage() for r in caplog.records if r.name == "sinewatch.c37118"]
     assert any("rejected (crc): CHK: expected CRC-CCITT" in m for m in logged)
     assert any("rejected (id_code): IDCODE: expected one of [7], got 8" in m for m in logged)

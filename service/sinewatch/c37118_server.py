@@ -344,6 +344,10 @@ class C37118Server(NullSink):
     async def _serve_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peername = writer.get_extra_info("peername")
         peer = f"{peername[0]}:{peername[1]}" if peername else "?"
+        if len(self.clients) >= self.config.max_clients:
+            self._reject("client_limit", peer, f"expected at most {self.config.max_clients} clients: connection closed")
+            writer.close()
+            return
         client = Client(peer, "tcp", asyncio.Queue(self.config.client_queue_frames), writer=writer)
         limit = self.config.client_buffer_bytes
         sock = writer.get_extra_info("socket")
@@ -420,6 +424,10 @@ class C37118Server(NullSink):
         for reply in self._command(bytes(data), client):
             self._sendto(client, reply)
         if client.streaming and addr not in self._udp_clients:
+            if len(self.clients) >= self.config.max_clients:
+                client.streaming.clear()
+                self._reject("client_limit", client.peer, f"expected at most {self.config.max_clients} clients")
+                return
             self._udp_clients[addr] = client
             self.clients.append(client)
         elif not client.streaming and addr in self._udp_clients:

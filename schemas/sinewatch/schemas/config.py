@@ -214,6 +214,9 @@ class C37118Section(_Section):
     client_queue_frames: int = Field(
         256, ge=1, description="Frames queued per client; past that a slow client's frames are dropped and counted"
     )
+    max_clients: int = Field(
+        32, ge=1, description="TCP connections and UDP streaming clients at once; more are refused and counted"
+    )
     client_buffer_bytes: int = Field(
         65536,
         ge=1024,
