@@ -56,6 +56,7 @@ class C37118Reader:
         self._sock = socket.create_connection((host, port), timeout=timeout_s)
         self._splitter = FrameSplitter()
         self._frames: list[bytes] = []
+        self._held: list[Frame] = []  # frames read while waiting for another kind
         self.cfg: ConfigFrame | None = None
         self.rejected = 0  # frames that failed their CRC or could not be decoded
 
@@ -63,9 +64,16 @@ class C37118Reader:
     def command(self, cmd: int) -> None:
         self._sock.sendall(encode_command(self.id_code, cmd))
 
-    def start(self) -> None:
-        """Turn data frames on (a configuration must have been read: :meth:`config`)."""
+    def start(self, *, confirm: bool = False) -> None:
+        """Turn data frames on (a configuration must have been read: :meth:`config`).
+
+        With ``confirm``, also ask for the header and wait for it: a PMU handles one
+        connection's commands in order, so once the header is here data is on (data frames
+        that came first are kept). Not every PMU sends a header: off by default."""
         self.command(Command.DATA_ON)
+        if confirm:
+            self.command(Command.SEND_HDR)
+            self.next_frame(FrameType.HEADER, keep_others=True)
 
     def stop(self) -> None:
         self.command(Command.DATA_OFF)
@@ -86,8 +94,12 @@ class C37118Reader:
         return self.next_frame(FrameType.HEADER).body.decode("ascii", "replace")
 
     # ---- frames ---------------------------------------------------------------------------------
-    def next_frame(self, frame_type: FrameType | None = None) -> Frame:
-        """The next frame that passes its CRC (of ``frame_type``, skipping others)."""
+    def next_frame(self, frame_type: FrameType | None = None, *, keep_others: bool = False) -> Frame:
+        """The next frame that passes its CRC (of ``frame_type``; others are skipped, or kept
+        for later calls with ``keep_others``)."""
+        for i, held in enumerate(self._held):
+            if frame_type is None or held.frame_type is frame_type:
+                return self._held.pop(i)
         while True:
             while not self._frames:
                 data = self._sock.recv(65536)
@@ -102,6 +114,8 @@ class C37118Reader:
                 continue
             if frame_type is None or frame.frame_type is frame_type:
                 return frame
+            if keep_others:
+                self._held.append(frame)
 
     def data_frames(self, count: int | None = None) -> Iterator[DataFrame]:
         """Data frames, decoded with the last configuration read."""

@@ -51,11 +51,12 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
             "the daemon as a C37.118.2 PMU: latency with no, a reading and a stalled client",
             add_c37118_arguments,
         ),
+        ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
         add_arguments(p)
-        p.set_defaults(fn=_runner(name))
+        p.set_defaults(fn=_runner(name.replace("-", "_")))
     return b
 
 
@@ -93,6 +94,17 @@ def add_c37118_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--station-channels", type=int, help="channels in the served station (default all: 266-byte frames at 30)"
     )
+
+
+def add_pmu_reference_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--c37118", required=True, metavar="HOST:PORT", help="the reference PMU (or PDC)")
+    parser.add_argument("--id-code", type=int, required=True, help="its data stream's ID code")
+    parser.add_argument("--phasor", help="its phasor to compare with (default its first)")
+    parser.add_argument("--channel", required=True, help="the sinewatch channel measuring the same signal")
+    parser.add_argument("--connect", action="append", help="Zenoh endpoint of the daemon (repeatable)")
+    parser.add_argument("--frames", type=int, default=500, help="data frames to compare (default 500)")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for a frame or an estimate")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 def add_overload_arguments(parser: argparse.ArgumentParser) -> None:
