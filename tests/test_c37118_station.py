@@ -4,6 +4,7 @@ its config section, and its UDP side (commanded and spontaneous) on loopback."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import socket
@@ -15,6 +16,7 @@ from test_c37118_served import CHANNELS, ID, PARAMS, f32, publish_interleaved, r
 from sinewatch.c37118_server import C37118Server, Station, synchrophasor
 from sinewatch.cli import main as cli_main
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
+from sinewatch.daemon import Daemon
 from sinewatch.schemas.c37118 import (
     Command,
     DataError,
@@ -253,3 +255,18 @@ def test_udp_commanded_and_spontaneous(tmp_path):
             assert f.pmus[0].freq_hz == f32(want[(t, CHANNELS[0])]["frequency_hz"][0])
     assert stats.clients == []  # DATA_OFF: the UDP client is gone
     assert stats.commands == 5 and stats.commands_rejected == 0
+
+
+def test_a_port_in_use_is_a_config_error_not_a_crash(tmp_path):
+    busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    port = busy.getsockname()[1]
+    config = make_config(
+        tmp_path,
+        recording=RecordingSection(enabled=False),
+        c37118=C37118Section(enabled=True, port=port, stations=[C37118Station(id_code=ID, name="B", channels=["x"])]),
+    )
+    with pytest.raises(ConfigError, match=f"expected to listen on 127.0.0.1:{port}"):
+        asyncio.run(Daemon(config, install_signal_handlers=False).run())
+    busy.close()

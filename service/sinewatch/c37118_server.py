@@ -64,6 +64,7 @@ from sinewatch.schemas.c37118 import (
     stat_word,
 )
 from sinewatch.schemas.config import C37118Section, C37118Station
+from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.messages import C37118ClientStatus, C37118Status
 
 log = logging.getLogger("sinewatch.c37118")
@@ -275,9 +276,17 @@ class C37118Server(NullSink):
     # ---- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
-        self._tcp = await asyncio.start_server(self._serve_tcp, self.config.host, self.config.port)
-        self.port = int(self._tcp.sockets[0].getsockname()[1])
-        transport, _ = await loop.create_datagram_endpoint(lambda: _Udp(self), local_addr=(self.config.host, self.port))
+        where = f"{self.config.host}:{self.config.port}"
+        try:
+            self._tcp = await asyncio.start_server(self._serve_tcp, self.config.host, self.config.port)
+            self.port = int(self._tcp.sockets[0].getsockname()[1])
+            where = f"{self.config.host}:{self.port}"
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Udp(self), local_addr=(self.config.host, self.port)
+            )
+        except OSError as exc:
+            await self.stop()
+            raise ConfigError(f"[c37118]: expected to listen on {where} (TCP and UDP), got: {exc.strerror}") from None
         self._udp = transport
         log.info(
             "C37.118.2 server on %s:%d (TCP and UDP): stations %s",

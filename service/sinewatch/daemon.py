@@ -324,7 +324,11 @@ class Daemon:
         with self._signals():
             self.start()
             if self.c37118 is not None:
-                await self.c37118.start()
+                try:
+                    await self.c37118.start()
+                except BaseException:
+                    self._close()
+                    raise
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             if self.recorder is not None:
