@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 from sinewatch.replay import ReplayResult, replay
 from sinewatch.schemas.config import EstimatorRule
 
@@ -82,7 +82,7 @@ def report(console: Console, r: ReplayResult) -> None:
             table.add_column(col)
         for topic, (rec, new) in sorted(r.final.items()):
             table.add_row(topic, _brief(rec), _brief(new))
-        console.print(table)
+        print_table(console, table)
     for path in r.out_paths:
         console.print(f"new recording: {path}")
 
