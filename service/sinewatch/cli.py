@@ -16,14 +16,17 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from sinewatch.bench.args import add_bench_parser
 from sinewatch.schemas import __version__
-from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.errors import ConfigError, SinewatchError
+
+log = logging.getLogger("sinewatch.cli")
 
 
 def _setup_logging(verbose: int) -> None:
@@ -47,6 +50,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from sinewatch.demo import main
 
     names = args.scenarios.split(",") if args.scenarios else None
+    if names:
+        _check_scenarios(names)
+    if not args.no_record:
+        from sinewatch.console import check_output_dir
+
+        check_output_dir(Path(args.record_dir), "--record-dir")
     return main(names, args.duration, Path(args.record_dir), not args.no_record)
 
 
@@ -57,8 +66,34 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     check_rules(config.rules)
+    _check_recording_dir(config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
     return serve(config)
+
+
+def _check_recording_dir(config: Any) -> None:
+    if config.recording.enabled:
+        from sinewatch.console import check_output_dir
+
+        check_output_dir(Path(config.recording.directory), "recording.directory")
+
+
+def _check_scenarios(names: list[str]) -> None:
+    """Unknown scenario names, with the nearest known ones (the whole list is long)."""
+    import difflib
+
+    from sinewatch import scenarios
+    from sinewatch.scenarios.power_quality_iec import pq_names
+
+    known = [*scenarios.names(), *pq_names()]
+    for name in names:
+        if name not in known:
+            near = difflib.get_close_matches(name, known, n=3)
+            hint = f"did you mean {', '.join(near)}? " if near else ""
+            raise ConfigError(
+                f"scenario: expected one of {len(known)} names ({hint}`sinewatch bench scenarios` lists them), "
+                f"got {name!r}"
+            )
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
@@ -79,10 +114,11 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
 
 def cmd_schemas_export(args: argparse.Namespace) -> int:
+    from sinewatch.console import check_output_dir
     from sinewatch.estimators import available
     from sinewatch.schemas.export import export_schemas
 
-    for path in export_schemas(Path(args.dir), available()):
+    for path in export_schemas(check_output_dir(Path(args.dir), "schemas export"), available()):
         print(path)
     return 0
 
@@ -106,6 +142,7 @@ def cmd_feed(args: argparse.Namespace) -> int:
     from sinewatch.scenarios.demo import DEMO_CHANNELS
 
     names = args.scenario or DEMO_CHANNELS
+    _check_scenarios(names)
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
     console = make_console(stderr=True)
@@ -219,6 +256,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 # ---- parser ----------------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage mistake told on one line (exit code 2, as argparse's own)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 _Subparsers = argparse._SubParsersAction  # the type of add_subparsers()' result
 
 
@@ -247,7 +291,7 @@ def _subcommands(
 def build_parser() -> argparse.ArgumentParser:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
 
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="sinewatch",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -255,6 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"sinewatch {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    p.add_argument("--debug", action="store_true", help="a traceback with every error, not only the one-line message")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     d = _command(sub, "demo", "run daemon + simulated feed on loopback with a live table", cmd_demo)
@@ -327,19 +372,57 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command. A mistake (a missing or wrong file, an unknown estimator, a bad value,
+    an unreachable endpoint, an unwritable directory) ends in one line on stderr saying what
+    was expected and what came, and exit code 2; ``--debug`` adds the traceback. Anything
+    else is a bug and keeps its traceback."""
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
-    if getattr(args, "connect", "absent") is None:
-        from sinewatch.clients.session import DEFAULT_CONNECT
-
-        args.connect = list(DEFAULT_CONNECT)
     try:
+        if getattr(args, "connect", "absent") is None:
+            from sinewatch.clients.session import DEFAULT_CONNECT
+
+            args.connect = list(DEFAULT_CONNECT)
+        elif isinstance(getattr(args, "connect", None), list):
+            _check_endpoints(args.connect)
         return int(args.fn(args) or 0)
-    except SinewatchError as exc:
-        print(f"sinewatch: error: {exc}", file=sys.stderr)
+    except (SinewatchError, OSError) as exc:
+        # OSError: a file or directory named on the command line (or in the config) that cannot be used
+        log.debug("the error's traceback", exc_info=True)
+        if args.debug:
+            import traceback
+
+            traceback.print_exc()
+        print(f"sinewatch: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _check_endpoints(endpoints: list[str]) -> None:
+    from pydantic import ValidationError
+
+    from sinewatch.schemas.config import ZenohSection
+
+    try:
+        ZenohSection(connect=endpoints)
+    except ValidationError as exc:
+        raise ConfigError(
+            "--connect: " + "; ".join(str(e["ctx"].get("error", e["msg"])) for e in exc.errors())
+        ) from None
+
+
+_RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")  # zenoh's messages end with the Rust file that raised
+
+
+def one_line(exc: BaseException) -> str:
+    """The error's message on one line: an indented list after a colon joins with '; '."""
+    if isinstance(exc, OSError) and not isinstance(exc, SinewatchError) and exc.filename is not None:
+        text = f"{exc.filename}: {(exc.strerror or type(exc).__name__).lower()}"
+    else:
+        text = _RUST_SOURCE.sub("", str(exc)) or type(exc).__name__
+    head, *rest = [line.strip() for line in text.splitlines() if line.strip()] or [type(exc).__name__]
+    return f"{head} {'; '.join(rest)}" if rest else head
 
 
 if __name__ == "__main__":

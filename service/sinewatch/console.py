@@ -9,13 +9,17 @@ line and one line per row, cells separated by two spaces, nothing wrapped or dra
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 
 from rich.console import Console
 from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
+
+from sinewatch.schemas.errors import OutputError
 
 PIPE_WIDTH = 140  # what rich wraps free text at when the output is not a terminal
 
@@ -75,3 +79,21 @@ def _plain(cell: object) -> str:
     if isinstance(cell, Text):
         return cell.plain
     return Text.from_markup(cell).plain if isinstance(cell, str) else str(cell)
+
+
+def check_output_dir(directory: Path, what: str) -> Path:
+    """Create ``directory`` (and its parents) if needed; raise OutputError saying why it
+    cannot be written to (a file in the way, no permission) before any work starts."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{what} {directory}: expected a writable directory, got {_reason(exc)}") from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {directory}: expected a writable directory, got one without write permission")
+    return directory
+
+
+def _reason(exc: OSError) -> str:
+    if isinstance(exc, FileExistsError | NotADirectoryError):
+        return "a file in the way"
+    return (exc.strerror or type(exc).__name__).lower()

@@ -118,6 +118,23 @@ def diff_fields(a: bytes, b: bytes) -> list[str]:
     return out or ["byte-level difference only (formatting)"]
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_recording(path: Path) -> None:
+    """Raise ReplayError unless ``path`` is a readable file that starts as an MCAP file does."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ReplayError(
+            f"{path}: expected an MCAP recording, got {(exc.strerror or type(exc).__name__).lower()}"
+        ) from None
+    if head != MCAP_MAGIC:
+        got = "an empty file" if not head else f"a file starting {head!r}"
+        raise ReplayError(f"{path}: expected an MCAP recording (starting {MCAP_MAGIC!r}), got {got}")
+
+
 def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
     order; ("incomplete", reason) last if the file ends early."""
@@ -192,6 +209,8 @@ def replay(
     max_mismatches: int = 1000,
 ) -> ReplayResult:
     """Replay recordings (one run's files, in order); see the module docstring."""
+    for path in paths:
+        check_recording(path)
     result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None

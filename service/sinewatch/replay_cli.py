@@ -10,9 +10,11 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from sinewatch.console import make_console, print_table
-from sinewatch.replay import ReplayResult, replay
+from sinewatch.console import check_output_dir, make_console, print_table
+from sinewatch.estimators import check_rules
+from sinewatch.replay import ReplayResult, check_recording, replay
 from sinewatch.schemas.config import EstimatorRule
+from sinewatch.schemas.errors import ConfigError
 
 
 def run_replay(args: argparse.Namespace) -> int:
@@ -20,9 +22,13 @@ def run_replay(args: argparse.Namespace) -> int:
     rules = None
     if args.estimator:
         rules = [EstimatorRule(match=args.match, estimator=args.estimator, params=dict(args.param))]
+        check_rules(rules)
     elif args.param:
-        console.print("[red]--param needs --estimator[/red]")
-        return 2
+        raise ConfigError(f"--param: expected with --estimator, got {len(args.param)} without it")
+    for path in args.paths:
+        check_recording(path)
+    if args.out is not None:
+        check_output_dir(args.out.parent, "--out")
     # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.
     logging.getLogger("sinewatch.pipeline").setLevel(logging.ERROR)
     total = sum(p.stat().st_size for p in args.paths)
