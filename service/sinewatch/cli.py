@@ -20,7 +20,7 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, cast
 
 from sinewatch.bench.args import add_bench_parser
 from sinewatch.schemas import __version__
@@ -300,7 +300,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"sinewatch {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     p.add_argument("--debug", action="store_true", help="a traceback with every error, not only the one-line message")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    # subcommands' parsers are _Parser too (argparse makes them of the parent's class)
+    sub = cast(
+        "_Subparsers[argparse.ArgumentParser]", p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    )
 
     d = _command(sub, "demo", "run daemon + simulated feed on loopback with a live table", cmd_demo)
     d.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
