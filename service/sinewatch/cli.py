@@ -8,6 +8,7 @@ sinewatch estimators                list estimators and their parameters
 sinewatch feed [...]                publish simulated sample blocks
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
+sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
 sinewatch bench kernels|e2e|accuracy|scenarios
 """
 
@@ -249,6 +250,12 @@ def format_power_quality(msg: dict[str, Any]) -> str | None:
     return None
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from sinewatch.export import run_export
+
+    return run_export(args)
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from sinewatch.replay_cli import run_replay
 
@@ -369,6 +376,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
     r.add_argument("--no-progress", action="store_true")
+
+    e = _command(sub, "export", "write a recording's estimates (and samples) as CSV or Parquet tables", cmd_export)
+    e.add_argument("path", help="MCAP recording")
+    e.add_argument("--format", choices=["csv", "parquet"], default="csv", help="csv (default) or parquet (pyarrow)")
+    e.add_argument("--channels", default="*", metavar="GLOB", help="channels to export (default all), e.g. 'demo/*'")
+    e.add_argument("--out", metavar="DIR", help="output directory (default: the recording's)")
+    e.add_argument("--samples", action="store_true", help="also export the input samples")
+    e.add_argument("--no-progress", action="store_true")
 
     add_bench_parser(sub)
     return p
