@@ -35,6 +35,7 @@ def files(tmp_path_factory) -> Path:
         f'[recording]\ndirectory = "{d / "notes.txt" / "runs"}"\n'
     )
     (d / "not-toml.toml").write_text("this is not toml\n")
+    (d / "bad.cfg").write_text("not, a comtrade\nconfiguration\n")
     return d
 
 
@@ -64,6 +65,10 @@ MISTAKES = [
     ("tail --connect tcp/127.0.0.1:{port} --wait 1", ["could not open the Zenoh session", "Unable to connect"]),
     ("feed --connect tcp/127.0.0.1:{port} --wait 1", ["could not open the Zenoh session", "Unable to connect"]),
     ("feed --scenario demo-rmp --wait 1", ["expected one of", "did you mean demo-ramp", "got 'demo-rmp'"]),
+    ("feed --comtrade {d}/missing.cfg --wait 1", ["missing.cfg", "expected a COMTRADE file", "no such file"]),
+    ("feed --comtrade {d}/notes.txt --wait 1", ["expected a COMTRADE .cfg or .cff file, got a .txt file"]),
+    ("feed --comtrade {d}/bad.cfg --wait 1", ["bad.cfg", "expected a COMTRADE record"]),
+    ("replay {d}/bad.cfg", ["bad.cfg", "expected a COMTRADE record"]),
     ("feed --encoding xml", ["invalid choice: 'xml'"]),
     ("feed --duration soon", ["invalid float value: 'soon'"]),
     ("schemas export {d}/notes.txt/schemas", ["schemas export", "expected a writable directory"]),

@@ -142,19 +142,20 @@ def cmd_feed(args: argparse.Namespace) -> int:
     from sinewatch.feed import Feed, make_channels
     from sinewatch.scenarios.demo import DEMO_CHANNELS
 
+    if args.comtrade:
+        return _feed_comtrade(args)
     names = args.scenario or DEMO_CHANNELS
     _check_scenarios(names)
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
-        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
+        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
         if not pub.wait_for_subscriber(channels[0].channel, args.wait):
-            console.print(
-                f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
-                f"(is the daemon running and reachable at {args.connect}?)[/red]"
+            raise ConfigError(
+                f"expected a subscriber on {pub.key(channels[0].channel)} within {args.wait} s, got none "
+                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
-            return 2
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
         t0 = time.monotonic()
         try:
@@ -168,6 +169,44 @@ def cmd_feed(args: argparse.Namespace) -> int:
         f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
         f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
     )
+    return 0
+
+
+def _feed_comtrade(args: argparse.Namespace) -> int:
+    """``feed --comtrade FILE.cfg``: each analog channel at its recorded rate (float64 samples
+    unless --dtype says otherwise: COMTRADE values are scaled integers or floats)."""
+    from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.comtrade_file import read_comtrade
+    from sinewatch.console import make_console
+    from sinewatch.feed import publish_comtrade
+
+    if args.scenario:
+        raise ConfigError("--comtrade: expected instead of --scenario, got both")
+    record = read_comtrade(Path(args.comtrade), prefix=args.prefix if args.prefix != "sim" else "comtrade")
+    console = make_console(stderr=True)
+    with connect(args.connect, timeout_s=args.wait) as session:
+        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float64")
+        first = record.channels[0].channel
+        if not pub.wait_for_subscriber(first, args.wait):
+            raise ConfigError(
+                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
+                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
+            )
+        t0 = time.monotonic()
+        try:
+            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast)
+        except KeyboardInterrupt:
+            sent = pub.published
+        dt = time.monotonic() - t0
+        pub.close()
+    n_samples = sum(len(c.samples) for c in record.channels)
+    console.print(
+        f"published {sent} blocks ({n_samples} samples) on {len(record.channels)} channels of {record.path} "
+        f"(COMTRADE {record.rev_year} {record.data_format}, {record.station}) in {dt:.2f} s",
+        soft_wrap=True,
+    )
+    for c in record.channels:
+        console.print(f"  {c.channel}: {len(c.samples)} samples at {c.sample_rate_hz:g} Hz ({c.unit or 'no unit'})")
     return 0
 
 
@@ -342,13 +381,18 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="scenario name (repeatable; default: the demo channels); see `sinewatch bench scenarios`",
     )
+    f.add_argument(
+        "--comtrade", metavar="FILE.cfg", help="publish the analog channels of a COMTRADE file (.cfg or .cff)"
+    )
     f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
     f.add_argument("--rate", type=float, help="sample rate override, Hz")
     f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
     f.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
     f.add_argument("--fast", action="store_true", help="as fast as possible instead of real time")
     f.add_argument("--encoding", choices=["binary", "json"], default="binary")
-    f.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="binary sample type")
+    f.add_argument(
+        "--dtype", choices=["float32", "float64"], help="binary sample type (default float32; COMTRADE float64)"
+    )
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--prefix", default="sim", help="channel name prefix (default sim)")
     f.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")

@@ -28,8 +28,10 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
+from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
@@ -257,6 +259,42 @@ def replay(
         raise ReplayError(f"{', '.join(map(str, paths))}: no recorded messages to replay")
     if result.r.inputs == 0:
         raise ReplayError("the recording has no inputs (recording.inputs was off?): nothing to replay")
+    result.finish(comparator)
+    return result.r
+
+
+def replay_comtrade(
+    path: Path,
+    *,
+    rules: list[EstimatorRule] | None = None,
+    out: Path | None = None,
+    block_size: int = 1000,
+) -> ReplayResult:
+    """Run a COMTRADE record (:mod:`sinewatch.comtrade_file`) through a fresh pipeline, as
+    ``sinewatch feed --comtrade`` would send it to a daemon: each analog channel in blocks of
+    ``block_size`` samples (float64) on ``sinewatch/in/CHANNEL``, with ``rules`` (default: the
+    default config's). Nothing is compared (there is no recorded estimate); ``out`` records
+    inputs and outputs to a new MCAP file, which replays bit for bit."""
+    record = read_comtrade(path)
+    config = SinewatchConfig(daemon_id="sinewatch-comtrade")
+    if rules is not None:
+        config = config.model_copy(update={"rules": rules})
+    prefix = config.keys.input.removesuffix("/**")
+    result = ResultBuilder([path], compare=False, max_mismatches=0)
+    comparator = _Comparator()
+    comparator.other_outputs = config.recording.power_quality
+    sinks: list[Sink] = [comparator]
+    recorder = McapRecorder(config, path=out) if out is not None else None
+    if recorder is not None:
+        sinks.append(recorder)
+    pipeline = Pipeline(config, sinks)
+    for block in interleaved_blocks(record, block_size):
+        payload = encode_block_binary(block, "float64")
+        message = RecordedMessage("input", f"{prefix}/{block.channel}", BLOCK_BINARY_ENCODING, payload, block.t0_ns)
+        result.message(message, pipeline, comparator)
+    if recorder is not None:
+        recorder.close()
+        result.r.out_paths = list(recorder.paths)
     result.finish(comparator)
     return result.r
 

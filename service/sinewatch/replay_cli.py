@@ -10,9 +10,10 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from sinewatch.comtrade_file import is_comtrade
 from sinewatch.console import check_output_dir, make_console, print_table
 from sinewatch.estimators import check_rules
-from sinewatch.replay import ReplayResult, check_recording, replay
+from sinewatch.replay import ReplayResult, check_recording, replay, replay_comtrade
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ConfigError
 
@@ -25,10 +26,16 @@ def run_replay(args: argparse.Namespace) -> int:
         check_rules(rules)
     elif args.param:
         raise ConfigError(f"--param: expected with --estimator, got {len(args.param)} without it")
-    for path in args.paths:
-        check_recording(path)
     if args.out is not None:
         check_output_dir(args.out.parent, "--out")
+    if any(is_comtrade(p) for p in args.paths):
+        if len(args.paths) > 1:
+            raise ConfigError(f"replay of COMTRADE: expected one .cfg or .cff file, got {len(args.paths)} paths")
+        result = replay_comtrade(args.paths[0], rules=rules, out=args.out)
+        report(console, result)
+        return 0
+    for path in args.paths:
+        check_recording(path)
     # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.
     logging.getLogger("sinewatch.pipeline").setLevel(logging.ERROR)
     total = sum(p.stat().st_size for p in args.paths)
