@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import struct
 import subprocess
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -202,3 +203,18 @@ def test_feed_comtrade_to_a_daemon(tmp_path):
     check_estimates(estimates, [f"comtrade/SUB-STATION-1/{k}" for k in PHASES])
     first = min(estimates, key=lambda e: e["timestamp_ns"])
     assert first["timestamp_ns"] == START_NS + round(999 * 1e9 / FS)  # the block's last sample, at the file's time
+
+
+def test_without_the_comtrade_package_the_error_names_the_extra(tmp_path):
+    cfg = write_comtrade(tmp_path, "1999", "ASCII")
+    code = (
+        "import sys; sys.modules['comtrade'] = None\n"  # as if the package were not installed
+        "from sinewatch.cli import main\n"
+        f"sys.exit(main(['replay', {str(cfg)!r}]))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert r.returncode == 2
+    assert r.stderr.splitlines() == [
+        "sinewatch: error: COMTRADE: expected the comtrade package to be installed, got none "
+        "(install the extra: pip install 'sinewatch[comtrade]')"
+    ]
