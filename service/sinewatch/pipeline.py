@@ -48,6 +48,7 @@ from sinewatch.schemas.messages import (
     Estimate,
     Uncertainty,
 )
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION
 
 log = logging.getLogger("sinewatch.pipeline")
 
@@ -232,9 +233,10 @@ class Pipeline:
         *,
         rules: list[EstimatorRule] | None = None,
         estimate_version: int = ESTIMATE_FORMAT_VERSION,
+        pq_version: int = PQ_FORMAT_VERSION,
     ) -> None:
         self.config = config
-        self.estimate_version = estimate_version  # 1 to reproduce recordings of earlier builds
+        self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
         self.sinks = [
             GuardedSink(
                 sink,
@@ -250,7 +252,9 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
-        self.pq = PqStage(config, _key_matches)  # power quality (harmonics, groups, aggregates): off unless configured
+        self.pq = PqStage(
+            config, _key_matches, pq_version
+        )  # power quality (harmonics, groups, aggregates): off unless configured
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(

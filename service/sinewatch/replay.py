@@ -35,7 +35,7 @@ from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
-from sinewatch.schemas.power_quality import PQ_ROLES
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -220,6 +220,7 @@ def replay(
     pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
     estimate_version = ESTIMATE_FORMAT_VERSION
+    pq_version = PQ_FORMAT_VERSION
     for file_no, path in enumerate(paths):
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
         for kind, item in read_recording(path, progress):
@@ -229,6 +230,7 @@ def replay(
                     # check in the recording's own format (files of earlier builds have no key: 1)
                     if rules is None:
                         estimate_version = int(item.get("estimate_format_version", "1"))
+                        pq_version = int(item.get("pq_format_version", "1"))
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
@@ -248,7 +250,9 @@ def replay(
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
                         recorder = McapRecorder(rec_config, path=out)
                         sinks.append(recorder)
-                    pipeline = Pipeline(config, sinks, rules=rules, estimate_version=estimate_version)
+                    pipeline = Pipeline(
+                        config, sinks, rules=rules, estimate_version=estimate_version, pq_version=pq_version
+                    )
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)
