@@ -8,6 +8,7 @@ import io
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -39,7 +40,7 @@ def recorded(path):
     """(estimates, input blocks) straight from the MCAP file."""
     estimates, blocks = [], []
     with open(path, "rb") as f:
-        for _schema, channel, message in make_reader(f).iter_messages():
+        for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False):  # file order
             role = channel.metadata.get("role")
             if role == "estimate":
                 estimates.append(json.loads(message.data))
@@ -70,6 +71,7 @@ def expected_estimate_rows(estimates):
                     "offset": m["offset"],
                     "std_frequency_hz": (std.get("frequency_hz") or [None] * 9)[k],
                     "converged": m["diagnostics"]["converged"],
+                    "valid": m["diagnostics"]["valid"],
                     "residual_rms": m["diagnostics"]["residual_rms"],
                     "extras": m["diagnostics"]["extras"],
                 }
@@ -84,7 +86,7 @@ def assert_same(frame: pd.DataFrame, rows: list[dict]) -> None:
         got = frame[col].tolist()
         if col == "extras":
             assert [json.loads(g) for g in got] == want
-        elif isinstance(next((w for w in want if w is not None), None), float):
+        elif dict(ESTIMATE_COLUMNS)[col] == "float":
             a = np.array([np.nan if w is None else w for w in want], dtype=float)
             np.testing.assert_array_equal(np.asarray(got, dtype=float), a)  # exact, NaN where null
         else:
@@ -164,3 +166,17 @@ def test_parquet_without_pyarrow_names_the_extra(recording, tmp_path):
         "(install the extra: pip install 'sinewatch[export]')"
     ]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_recording_of_an_earlier_format_exports_with_its_missing_fields_null(tmp_path):
+    old = Path(__file__).parent / "data" / "recorded-before-layering.mcap"  # Estimate format 1
+    lines = run_export(str(old), "--format", "parquet", "--out", str(tmp_path))
+    table = pq.read_table(tmp_path / f"{old.stem}.estimates.parquet").to_pandas()
+    estimates, _ = recorded(old)
+    rows = expected_estimate_rows([{**e, "diagnostics": {**e["diagnostics"], "valid": None}} for e in estimates])
+    assert lines[0] == f"96 estimates ({len(rows)} rows)" and len(estimates) == 96
+    assert set(table["format_version"]) == {1}
+    assert (
+        table["valid"].isna().all() and table["std_frequency_hz"].isna().all() and table["rocof_hz_per_s"].isna().all()
+    )
+    assert_same(table.drop(columns=["valid"]), [{k: v for k, v in r.items() if k != "valid"} for r in rows])

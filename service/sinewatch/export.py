@@ -9,8 +9,9 @@ Parquet):
 
 * ``STEM.estimates.{csv,parquet}``: one row per estimate and component ``k``; the
   Estimate's fields flattened (``std_*`` for its standard deviations, the diagnostics by
-  name, ``extras`` as JSON text). An undefined value (JSON null) is an empty CSV cell and
-  a Parquet null.
+  name, ``extras`` as JSON text; the ``{sec, nsec}`` twin of ``timestamp_ns`` left out).
+  A field a recording's format does not have (``valid`` before format 3, ``std`` before
+  2) and an undefined value (JSON null) are an empty CSV cell and a Parquet null.
 * ``STEM.samples.{csv,parquet}`` (``--samples``): one row per recorded input sample and
   column (``column`` 0 is the measurement, others known inputs), at
   ``timestamp_ns = t0_ns + round(i * 1e9 / sample_rate_hz)``.
@@ -57,6 +58,7 @@ ESTIMATE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("std_phase_rad", "float"),
     ("std_offset", "float"),
     ("converged", "bool"),
+    ("valid", "bool"),
     ("residual_rms", "float"),
     ("gap", "bool"),
     ("gap_blocks", "int"),
@@ -115,6 +117,7 @@ def estimate_rows(msg: dict[str, Any]) -> Iterable[tuple[Any, ...]]:
             _at(std.get("phase_rad"), k),
             std.get("offset"),
             d["converged"],
+            d.get("valid"),  # format version 3; null in earlier recordings
             d.get("residual_rms"),
             d.get("gap", False),
             d.get("gap_blocks", 0),
