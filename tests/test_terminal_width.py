@@ -14,6 +14,7 @@ import re
 import struct
 import subprocess
 import termios
+from pathlib import Path
 
 from conftest import sinewatch
 from rich.cells import cell_len
@@ -108,3 +109,13 @@ def test_table_lines_are_aligned_plain_text():
         "name        a                     b                     c",
         "xxxxxxxxxx  11111111111111111111  22222222222222222222  33333333333333333333",
     ]
+
+
+def test_export_shows_a_progress_bar_on_a_terminal_only(tmp_path):
+    recording = Path(__file__).parent / "data" / "recorded-before-layering.mcap"
+    args = sinewatch("export", str(recording), "--out", str(tmp_path))
+    on_terminal = run_on_pty(args, 100)
+    assert "exporting" in on_terminal and "\x1b[" in on_terminal  # drawn, then erased (transient)
+    assert "96 estimates" in on_terminal
+    piped = subprocess.run(args, capture_output=True, text=True, check=True)
+    assert "exporting" not in piped.stdout + piped.stderr and "\x1b" not in piped.stdout + piped.stderr
