@@ -217,3 +217,36 @@ def test_without_the_comtrade_package_the_error_names_the_extra(tmp_path):
         "sinewatch: error: COMTRADE: expected the comtrade package to be installed, got none "
         "(install the extra: pip install 'sinewatch[comtrade]')"
     ]
+
+
+def two_rate_record(directory: Path, rates: str) -> Path:
+    """A one-channel 1999 ASCII record whose sample-rate lines are ``rates``: 2000 Hz for
+    samples 1-1000, then 1000 Hz for samples 1001-1500 (a fault recorder's usual slow-down).
+    Sample 1001 comes 1/1000 s after sample 1000 (the step into a segment is at its rate, as
+    python-comtrade reads it): at 999/2000 + 1/1000 = 0.5005 s."""
+    n1, n2 = 1000, 500
+    t = np.concatenate([np.arange(n1) / 2000.0, 0.5005 + np.arange(n2) / 1000.0])
+    x = np.round(AMPLITUDE * np.sin(2 * np.pi * F * t) / A16).astype(int)
+    head = ["S,R,1999", "1,1A,0D", f"1,IA,A,,A,{A16!r},0,0,-32767,32767,1,1,P", "50"]
+    stamp = "01/02/2026,00:00:00.000000"
+    cfg = "\r\n".join([*head, *rates.split("\n"), stamp, stamp, "ASCII", "1"])
+    (directory / "two.cfg").write_text(cfg + "\r\n", newline="")
+    rows = [f"{n + 1},{round(t[n] * 1e6)},{x[n]}" for n in range(n1 + n2)]
+    (directory / "two.dat").write_text("\r\n".join(rows) + "\r\n", newline="")
+    return directory / "two.cfg"
+
+
+def test_each_sample_rate_segment_is_a_channel_at_its_rate_and_time(tmp_path):
+    record = read_comtrade(two_rate_record(tmp_path, "2\n2000,1000\n1000,1500"))
+    start = 1769904000 * 10**9  # 2026-02-01 00:00 UTC
+    assert [(c.channel, c.sample_rate_hz, len(c.samples), c.t0_ns) for c in record.channels] == [
+        ("comtrade/S/IA/seg1", 2000.0, 1000, start),
+        ("comtrade/S/IA/seg2", 1000.0, 500, start + 500_500_000),  # sample 1001 at 0.5005 s
+    ]
+    t2 = 0.5005 + np.arange(500) / 1000.0
+    np.testing.assert_allclose(record.channels[1].samples, AMPLITUDE * np.sin(2 * np.pi * F * t2), atol=A16)
+
+
+def test_a_record_without_a_sample_rate_is_told(tmp_path):
+    with pytest.raises(ComtradeError, match=r"expected a sample rate \(samp > 0\), got samp = 0"):
+        read_comtrade(two_rate_record(tmp_path, "0\n0,1500"))  # nrates 0: timestamps only

@@ -12,8 +12,10 @@ Each **analog** channel becomes a sinewatch channel ``PREFIX/STATION/CHANNEL`` (
 reduced to the characters a channel name allows), at the file's recorded sample rate,
 starting at the record's start time plus the first sample's time. A record with several
 sample-rate segments (``nrates`` > 1) gives one channel per segment (``.../CHANNEL/seg2``...),
-since a sinewatch channel keeps one rate. Status (digital) channels are not estimated and
-are left out. The start time is read as UTC (the 1999 revision has no time zone field).
+since a sinewatch channel keeps one rate (the first sample of a segment comes one period
+of its own rate after the last of the one before, as python-comtrade reads it). A record
+with timestamps only (``samp`` = 0) is refused: a channel needs a fixed rate. Status
+(digital) channels are not estimated and are left out. The start time is read as UTC (the 1999 revision has no time zone field).
 """
 
 from __future__ import annotations
