@@ -80,7 +80,7 @@ snapshot_interval_s = 0.5
 directory = "{tmp_path / daemon_id}"
 """
     )
-    log = open(tmp_path / f"{daemon_id}.log", "w")
+    log = open(tmp_path / f"{daemon_id}.log", "a")
     return subprocess.Popen(
         [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
     )
@@ -195,6 +195,11 @@ def test_standby_takes_over_a_killed_shard_within_2_s(tmp_path, recovery):
             takeover_s = max(_after(estimates.by_channel[c], t_kill)[0]["_arrival"] for c in SHARD_1) - t_kill
             t_back = time.monotonic()
             estimates.wait(lambda e: all(len(_after(e[c], t_back)) >= 10 for c in CHANNELS), "a second more")
+            # the killed daemon comes back (same config, role active): it stands by
+            procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, recovery)
+            tokens.wait_for("standby/a1")
+            t_again = time.monotonic()
+            estimates.wait(lambda e: all(len(_after(e[c], t_again)) >= 10 for c in CHANNELS), "a second more")
             gateway.stop.set()
             gateway.join()
             estimates.wait(
@@ -226,11 +231,14 @@ def test_standby_takes_over_a_killed_shard_within_2_s(tmp_path, recovery):
 
     assert status.returncode == 0, status.stderr
     owners = {r["daemon_id"]: r for r in json.loads(status.stdout)}
-    assert set(owners) == {"a2", "s1"}
+    assert set(owners) == {"a2", "s1", "a1"}
     assert owners["s1"]["role"] == "active" and owners["s1"]["takeovers"] == 1
+    assert owners["a1"]["role"] == "standby" and owners["a1"]["shard"] == "1/2"
     assert sorted(c["channel"] for c in owners["s1"]["channels"]) == SHARD_1
     assert sorted(c["channel"] for c in owners["a2"]["channels"]) == SHARD_2
     assert all(c["last_seq"] == gateway.sent[c["channel"]] - 1 for r in owners.values() for c in r["channels"])
+    # a standby lists what it would take over: shard 1's channels, as last published
+    assert [c["channel"] for c in owners["a1"]["channels"]] == SHARD_1
 
     # the standby's recording from the takeover on replays bit for bit on its own
     takeover_file = sorted((tmp_path / "s1").glob("*.mcap"))[-1]

@@ -295,11 +295,20 @@ class ClusterMember:
                 }
                 for ch in self.daemon.pipeline.channels.values()
             ]
-        else:
-            channels = [
-                {"channel": name, "key": None, "estimator": None, "last_seq": seq, "last_estimate_ns": ts}
-                for name, (seq, ts) in sorted(self.published.items())
-            ]
+        else:  # what it would take over: the channels of the latest snapshot, as last published
+            snapshot = json.loads(self.latest_snapshot) if self.latest_snapshot is not None else {"channels": []}
+            channels = []
+            for item in snapshot["channels"]:
+                seq, ts = self.published.get(item["name"], (item["last_seq"], None))
+                channels.append(
+                    {
+                        "channel": item["name"],
+                        "key": item["key"],
+                        "estimator": item["estimator"]["estimator"],
+                        "last_seq": seq,
+                        "last_estimate_ns": ts,
+                    }
+                )
         return {
             "daemon_id": cfg.daemon_id,
             "shard_id": self.shard_id,
