@@ -9,6 +9,8 @@ sinewatch feed [...]                publish simulated sample blocks
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
+sinewatch status                    which daemon owns which channels (shards, standbys)
+sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios
 """
 
@@ -229,6 +231,69 @@ def cmd_tail(args: argparse.Namespace) -> int:
     return 0 if shown or not args.count else 1
 
 
+def cmd_status(args: argparse.Namespace) -> int:
+    from sinewatch.clients import connect
+
+    replies: list[dict[str, Any]] = []
+    with connect(args.connect, timeout_s=args.wait) as session:
+        for reply in session.get(f"{args.admin_prefix.rstrip('/')}/*/channels", timeout=args.timeout):
+            if reply.ok is not None:
+                replies.append(json.loads(reply.ok.payload.to_bytes()))
+    replies.sort(key=lambda r: (r["shard_id"], r["role"] != "active", r["daemon_id"]))
+    if args.json:
+        print(json.dumps(replies, indent=2))
+    else:
+        print(format_status(replies, show_channels=not args.summary))
+    return 0 if replies else 1
+
+
+def format_status(replies: list[dict[str, Any]], *, show_channels: bool = True) -> str:
+    """Who owns what: one line per daemon, then (``show_channels``) one per channel served,
+    with the time of its last estimate."""
+    if not replies:
+        return "no sinewatch daemon answered"
+    lines = [f"{'daemon':<20} {'shard':<28} {'role':<8} {'channels':>8} {'takeovers':>9}"]
+    for r in replies:
+        shard = r["shard_id"] + (f" ({r['shard']})" if r["shard"] else "")
+        lines.append(f"{r['daemon_id']:<20} {shard:<28} {r['role']:<8} {len(r['channels']):>8} {r['takeovers']:>9}")
+    if show_channels:
+        lines += ["", f"{'channel':<32} {'owner':<20} {'last estimate (UTC)':<30} {'seq':>10}"]
+        for r in replies:
+            if r["role"] != "active":
+                continue
+            for c in r["channels"]:
+                lines.append(
+                    f"{c['channel']:<32} {r['daemon_id']:<20} {_utc(c['last_estimate_ns']):<30} {c['last_seq']!s:>10}"
+                )
+    return "\n".join(lines)
+
+
+def _utc(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(sec)) + f".{nsec:09d}Z"
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh router: a session in router mode (the eclipse-zenoh wheel's own), until
+    SIGINT/SIGTERM."""
+    import signal
+    import threading
+
+    from sinewatch.clients.session import open_session
+    from sinewatch.schemas.config import ZenohSection
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    section = ZenohSection(mode="router", listen=args.listen or ["tcp/127.0.0.1:7447"], connect=args.connect or [])
+    with open_session(section):
+        print(f"sinewatch router: listening on {', '.join(section.listen)}", flush=True)
+        stop.wait()
+    return 0
+
+
 def format_estimate(msg: dict[str, Any]) -> str:
     if "diagnostics" not in msg:  # not an Estimate: power quality on one line, the rest as JSON
         return format_power_quality(msg) or json.dumps({k: v for k, v in msg.items() if k != "_key"})
@@ -428,6 +493,18 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", metavar="DIR", help="output directory (default: the recording's)")
     e.add_argument("--samples", action="store_true", help="also export the input samples")
     e.add_argument("--no-progress", action="store_true")
+
+    st = _command(sub, "status", "ask every daemon which channels it owns (shards, standbys)", cmd_status)
+    st.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
+    st.add_argument("--admin-prefix", default="sinewatch/admin", help="the daemons' keys.admin_prefix")
+    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the daemons' answers")
+    st.add_argument("--wait", type=float, default=5.0, help="seconds to keep trying to connect")
+    st.add_argument("--summary", action="store_true", help="one line per daemon, no channel list")
+    st.add_argument("--json", action="store_true", help="the daemons' answers as JSON")
+
+    ro = _command(sub, "router", "run a Zenoh router (for several daemons and gateways)", cmd_router)
+    ro.add_argument("--listen", action="append", help="endpoint (repeatable; default tcp/127.0.0.1:7447)")
+    ro.add_argument("--connect", action="append", help="other routers to connect to (repeatable)")
 
     add_bench_parser(sub)
     return p

@@ -39,6 +39,7 @@ import zenoh
 import zenoh.ext
 
 from sinewatch.clients.session import open_session
+from sinewatch.cluster import ClusterMember
 from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
@@ -57,6 +58,7 @@ class IntakeCounters:
     dropped: int = 0
     backpressure_waits: int = 0
     unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
+    not_owned: int = 0  # inputs of keys another shard owns (cluster.shard), dropped unread
 
 
 # (key, payload, encoding, received monotonic ns)
@@ -74,6 +76,7 @@ class Intake:
         self._policy = cfg.limits.queue_policy
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
+        self._shard = daemon.cluster.shard if daemon.cluster is not None else None
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
         fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
         self._miss_listener = None
@@ -107,6 +110,10 @@ class Intake:
                     if more is None:
                         break
                     batch.append(self._take(more))
+                if self._shard is not None:  # another daemon's keys: not ours to decode, record or count
+                    owned = [item for item in batch if self._shard.owns(item[0])]
+                    self.counters.not_owned += len(batch) - len(owned)
+                    batch = owned
                 dropped: Counter[str] = Counter()
                 batch = [item for item in batch if self._admit(item, dropped)]
                 if batch:
@@ -169,6 +176,7 @@ class Daemon:
         self._queued = 0
         self._started = time.monotonic()
         self._last_log_time = 0
+        self.cluster: ClusterMember | None = None
 
     # ---- what start() creates ------------------------------------------------------------------
     @property
@@ -240,11 +248,15 @@ class Daemon:
                 self.pipeline.process(key, payload, encoding, self._log_time(), received)
         finally:
             self._queued -= len(batch)
-            self.intake.release(len(batch))
+            if self._intake is not None:
+                self._intake.release(len(batch))
 
     # ---- periodic tasks -------------------------------------------------------------------------
+    def intake_counters(self) -> IntakeCounters:
+        return self._intake.counters if self._intake else IntakeCounters()
+
     def status_payload(self) -> bytes:
-        c = self._intake.counters if self._intake else IntakeCounters()
+        c = self.intake_counters()
         p = self.pipeline
         status = Status(
             daemon_id=self.config.daemon_id,
@@ -302,7 +314,8 @@ class Daemon:
             sinks.append(self.recorder)
         self._pipeline = Pipeline(cfg, sinks)
         self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
-        self._intake = Intake(self, asyncio.get_running_loop())
+        self.cluster = ClusterMember(self)
+        self.cluster.start(asyncio.get_running_loop())  # active: start_intake() now; standby: at takeover
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
             cfg.daemon_id,
@@ -312,6 +325,11 @@ class Daemon:
             cfg.keys.input,
             cfg.keys.estimates_prefix,
         )
+
+    def start_intake(self) -> None:
+        """Subscribe to the inputs (at start, or when a standby takes over)."""
+        if self._intake is None:
+            self._intake = Intake(self, asyncio.get_running_loop())
 
     async def run(self) -> int:
         """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
@@ -334,10 +352,13 @@ class Daemon:
     async def _shutdown(self, consumer: asyncio.Task[None], periodic: list[asyncio.Task[None]]) -> None:
         for task in periodic:
             task.cancel()
-        await self.intake.stop()  # no new inputs; the pump has handed over all it had
+        if self._intake is not None:
+            await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
         self.publish_status()
+        if self.cluster is not None:  # only now: a standby takes over after our last estimate
+            self.cluster.close()
         c = self.pipeline.counters
         log.info(
             "%s: %d inputs, %d estimates, %d errors",

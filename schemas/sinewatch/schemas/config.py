@@ -68,6 +68,11 @@ class KeysSection(_Section):
     estimates_prefix: str = Field("sinewatch/est", description="Estimates go to PREFIX/<channel>")
     errors_prefix: str = Field("sinewatch/err", description="ErrorReports go to PREFIX/<channel or _unknown>")
     status_key: str = Field("sinewatch/status", description="Status messages go to KEY/<daemon_id>")
+    admin_prefix: str = Field(
+        "sinewatch/admin",
+        description="Cluster keys: PREFIX/<daemon_id>/channels (queryable: what a daemon owns), "
+        "PREFIX/shard/<shard_id>/{active,standby}/<daemon_id> (liveliness), PREFIX/shard/<shard_id>/snapshot",
+    )
     pq_prefix: str = Field(
         "sinewatch/pq",
         description="Power quality: HarmonicsReports go to PREFIX/harmonics/<channel>, PqAggregates to "
@@ -167,6 +172,46 @@ class RecordingSection(_Section):
     status: bool = True
 
 
+class ClusterSection(_Section):
+    """Several daemons behind Zenoh routers: each owns a shard of the channels; a standby
+    for a shard takes over when the active daemon's liveliness token goes away.
+
+    A shard is the key space the daemon subscribes to (``keys.input``, e.g.
+    ``sinewatch/in/site1/**``), optionally cut further by ``shard = "i/N"``: the daemon then
+    owns the input keys whose CRC-32 (of the UTF-8 key) modulo N is i - 1, so N daemons with
+    ``1/N`` .. ``N/N`` split any set of keys with no overlap and no gap (each still receives
+    every key of ``keys.input`` from Zenoh and drops the others' before decoding: prefer
+    disjoint ``keys.input`` where the key layout allows it). The active daemon of a shard
+    puts the state of its channels on PREFIX/shard/<shard_id>/snapshot every
+    ``snapshot_interval_s``; its standbys keep the latest and watch its liveliness token."""
+
+    shard: str | None = Field(
+        None,
+        pattern=r"^[1-9][0-9]*/[1-9][0-9]*$",
+        description="i/N: own the input keys whose CRC-32 mod N is i-1; unset: every key of keys.input",
+    )
+    shard_id: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_.\-]+$",
+        description="Name shared by a shard's active daemon and its standbys (default: from keys.input and shard)",
+    )
+    role: Literal["active", "standby"] = Field(
+        "active",
+        description="active: serve the shard unless another daemon already does (then stand by); "
+        "standby: serve it only when its active daemon goes away",
+    )
+    snapshot_interval_s: float = Field(1.0, gt=0, description="How often the active daemon publishes its state")
+
+    @field_validator("shard")
+    @classmethod
+    def _in_range(cls, v: str | None) -> str | None:
+        if v is not None:
+            i, n = (int(x) for x in v.split("/"))
+            if not 1 <= i <= n:
+                raise ValueError(f"shard: expected i/N with 1 <= i <= N, got {v!r}")
+        return v
+
+
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
     max_block_samples: int = Field(1_000_000, ge=1)
@@ -191,6 +236,7 @@ class SinewatchConfig(_Section):
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
+    cluster: ClusterSection = Field(default_factory=ClusterSection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
     status_interval_s: float = Field(1.0, gt=0)
