@@ -417,10 +417,8 @@ class Daemon:
                 self._close()  # what start() opened before it failed (ports, session)
                 raise
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
-            periodic = [
-                asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status)),
-                asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat)),
-            ]
+            periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
+            beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
             if self.recorder is not None:
                 periodic.append(
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
@@ -431,8 +429,9 @@ class Daemon:
             self.notifier.ready(f"subscribed to {self.config.keys.input}")
             try:
                 await self.should_exit.wait()
-                await self._shutdown(consumer, periodic)
+                await self._shutdown(consumer, periodic)  # the heartbeat goes on while it drains
             finally:
+                beat.cancel()
                 self._close()
         return 130 if self.force_exit.is_set() else 0
 
