@@ -23,10 +23,12 @@ message's ``timestamp``.
 Cost. Nothing is serialised for a topic no client subscribes to. Outputs are already JSON:
 they are handed to the SDK as they are (no re-encoding), and the SDK queues them per
 client, at most ``backlog`` messages, dropping the oldest for a client that reads too
-slowly: a slow client never slows the daemon. Input summaries need a decode and some numpy,
-so they are made on a worker thread; the event loop only puts the raw payload on a bounded
-queue (``queue``), and when the worker falls behind the newest block is dropped and counted
-(``inputs_dropped``). ``sinewatch bench e2e --foxglove`` measures the daemon with a client
+slowly: a slow client never slows the daemon. Input summaries need a decode, some numpy
+and JSON floats (Python's float formatting: ~1 us a sample, the bulk of their cost), so they
+are made on a worker thread, at most ``input_rate_hz`` a second (all channels together;
+past it a block is skipped and counted, ``inputs_over_rate``), ``input_points`` samples
+each; the event loop only puts the raw payload on a bounded queue (``queue``), and when the
+worker falls behind the newest block is dropped and counted (``inputs_dropped``). ``sinewatch bench e2e --foxglove`` measures the daemon with a client
 subscribed to everything, against the same run without.
 """
 
@@ -37,6 +39,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -128,6 +131,7 @@ def summarise(payload: bytes, encoding: str, max_points: int) -> dict[str, Any]:
 class FoxgloveCounters:
     input_summaries: int = 0  # published
     inputs_dropped: int = 0  # the summary queue was full
+    inputs_over_rate: int = 0  # past input_rate_hz
     inputs_unreadable: int = 0  # not a valid block (the pipeline reports those)
     topics_refused: int = 0  # past max_topics
     log_lines: int = 0
@@ -208,6 +212,8 @@ class FoxgloveSink(NullSink):
         self._samples_by_key: dict[str, foxglove.Channel] = {}
         self._queue: queue.Queue[tuple[str, bytes, str, int] | None] = queue.Queue(self.section.queue)
         self.subscriptions = _Subscriptions(self.counters)
+        self._tokens = self.section.input_rate_hz  # a token bucket: input_rate_hz, one second's burst
+        self._refilled = time.monotonic()
         self.server = foxglove.start_server(
             name=f"sinewatch {config.daemon_id}",
             host=self.section.host,
@@ -259,12 +265,21 @@ class FoxgloveSink(NullSink):
         self._publish(key, kind, payload, log_time_ns)
 
     def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
-        """On the event loop: at most a dict lookup, a subscription check and a bounded put."""
+        """On the event loop: at most a dict lookup, a subscription check, a token and a
+        bounded put."""
         if self._worker is None:
             return
         ch = self._samples_by_key.get(key)
         if ch is not None and not ch.has_sinks():
             return
+        rate = self.section.input_rate_hz
+        now = time.monotonic()
+        self._tokens = min(rate, self._tokens + (now - self._refilled) * rate)
+        self._refilled = now
+        if self._tokens < 1.0:
+            self.counters.inputs_over_rate += 1
+            return
+        self._tokens -= 1.0
         try:
             self._queue.put_nowait((key, payload, encoding, log_time_ns))
         except queue.Full:

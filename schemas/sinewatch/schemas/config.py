@@ -185,13 +185,21 @@ class FoxgloveSection(_Section):
     one plottable summary per input block on ``sinewatch/samples/<channel>``, and the log on
     ``sinewatch/log`` (``foxglove.Log``). Off unless a port is given. It never slows the
     daemon: each client has a bounded backlog (oldest dropped), and the input summaries are
-    made on a worker thread behind a bounded queue (newest dropped and counted)."""
+    made on a worker thread behind a bounded queue (newest dropped and counted), at most
+    ``input_rate_hz`` of them a second."""
 
     port: int | None = Field(None, ge=0, le=65535, description="WebSocket port (None: off; 0: any free port)")
     host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
     inputs: bool = Field(True, description="Publish a summary of each input block (min, max, mean, RMS, samples)")
     input_points: int = Field(
-        256, ge=1, le=100_000, description="At most this many samples per input summary (every k-th sample)"
+        64, ge=1, le=100_000, description="At most this many samples per input summary (every k-th sample)"
+    )
+    input_rate_hz: float = Field(
+        200.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Input summaries per second at most, all channels together (one second's worth may come at "
+        "once); past it blocks are skipped and counted: the summaries' cost has a ceiling",
     )
     queue: int = Field(
         1024, ge=1, description="Input blocks waiting for the summary worker; past it they are dropped and counted"

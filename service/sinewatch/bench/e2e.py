@@ -81,67 +81,84 @@ class LatencyProbe:
 
 
 class FoxgloveProbe:
-    """A Foxglove WebSocket client on its own thread: subscribes to every channel the
-    daemon advertises and counts the messages (and bytes) per topic kind."""
+    """A Foxglove WebSocket client, run as its own process (:func:`foxglove_probe_main`) so
+    that reading the stream cannot slow this process's Zenoh subscriber (which would push
+    back on the daemon through CongestionControl.BLOCK and be mistaken for the daemon's
+    cost): subscribes to every channel the daemon advertises and counts the messages (and
+    bytes) per topic kind."""
 
     SUBPROTOCOL = "foxglove.sdk.v1"
 
     def __init__(self, port: int) -> None:
-        import asyncio
-
+        code = "import sys; from sinewatch.bench.e2e import foxglove_probe_main; sys.exit(foxglove_probe_main(sys.argv[1]))"
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        assert self._proc.stdout is not None
+        if self._proc.stdout.readline().strip() != "connected":
+            raise RuntimeError("the daemon's Foxglove server did not accept the probe")
         self.messages: dict[str, int] = {}
         self.bytes = 0
-        self.connected = threading.Event()
-        self._port = port
-        self._loop = asyncio.new_event_loop()
-        self._stop = asyncio.Event()
-        self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._run(),), daemon=True)
-        self._thread.start()
-
-    async def _run(self) -> None:
-        import asyncio
-        import struct
-
-        import websockets
-
-        topics: dict[int, str] = {}  # channel id -> topic
-        subs: dict[int, str] = {}  # subscription id -> topic kind
-        async with websockets.connect(f"ws://127.0.0.1:{self._port}", subprotocols=[self.SUBPROTOCOL]) as ws:
-            self.connected.set()
-
-            async def subscribe(ids: list[int]) -> None:
-                batch = []
-                for cid in ids:
-                    sid = len(subs) + 1
-                    subs[sid] = "/".join(topics[cid].split("/")[:2])  # sinewatch/est, sinewatch/samples, ...
-                    batch.append({"id": sid, "channelId": cid})
-                await ws.send(json.dumps({"op": "subscribe", "subscriptions": batch}))
-
-            stop = asyncio.ensure_future(self._stop.wait())
-            while not self._stop.is_set():
-                recv = asyncio.ensure_future(ws.recv())
-                await asyncio.wait([recv, stop], return_when=asyncio.FIRST_COMPLETED)
-                if not recv.done():
-                    recv.cancel()
-                    break
-                frame = recv.result()
-                if isinstance(frame, bytes):
-                    (sid,) = struct.unpack_from("<I", frame, 1)
-                    self.messages[subs[sid]] = self.messages.get(subs[sid], 0) + 1
-                    self.bytes += len(frame)
-                    continue
-                msg = json.loads(frame)
-                if msg["op"] == "advertise":
-                    for ch in msg["channels"]:
-                        topics[ch["id"]] = ch["topic"]
-                    await subscribe([ch["id"] for ch in msg["channels"]])
-                elif msg["op"] == "status" and "Unknown channel ID" in msg["message"]:
-                    # foxglove-sdk 0.30 may not know a channel it has just advertised: ask again
-                    await subscribe([int(msg["message"].rsplit(":", 1)[1])])
 
     def close(self) -> None:
-        self._loop.call_soon_threadsafe(self._stop.set)
-        self._thread.join(30.0)
+        out, _ = self._proc.communicate(timeout=60)  # stdin closed: the probe reports and exits
+        counts = json.loads(out)
+        self.messages, self.bytes = counts["messages"], counts["bytes"]
+
+
+def foxglove_probe_main(port: str) -> int:
+    import asyncio
+
+    messages: dict[str, int] = {}
+    total = [0]
+    asyncio.run(_foxglove_probe(int(port), messages, total))
+    print(json.dumps({"messages": dict(sorted(messages.items())), "bytes": total[0]}), flush=True)
+    return 0
+
+
+async def _foxglove_probe(port: int, messages: dict[str, int], total: list[int]) -> None:
+    import asyncio
+    import struct
+
+    import websockets
+
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), loop.call_soon_threadsafe(stop.set)), daemon=True).start()
+    topics: dict[int, str] = {}  # channel id -> topic
+    subs: dict[int, str] = {}  # subscription id -> topic kind
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[FoxgloveProbe.SUBPROTOCOL]) as ws:
+        print("connected", flush=True)
+
+        async def subscribe(ids: list[int]) -> None:
+            batch = []
+            for cid in ids:
+                sid = len(subs) + 1
+                subs[sid] = "/".join(topics[cid].split("/")[:2])  # sinewatch/est, sinewatch/samples, ...
+                batch.append({"id": sid, "channelId": cid})
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": batch}))
+
+        stopped = asyncio.ensure_future(stop.wait())
+        while not stop.is_set():
+            recv = asyncio.ensure_future(ws.recv())
+            await asyncio.wait([recv, stopped], return_when=asyncio.FIRST_COMPLETED)
+            if not recv.done():
+                recv.cancel()
+                break
+            frame = recv.result()
+            if isinstance(frame, bytes):
+                (sid,) = struct.unpack_from("<I", frame, 1)
+                messages[subs[sid]] = messages.get(subs[sid], 0) + 1
+                total[0] += len(frame)
+                continue
+            msg = json.loads(frame)
+            if msg["op"] == "advertise":
+                for ch in msg["channels"]:
+                    topics[ch["id"]] = ch["topic"]
+                await subscribe([ch["id"] for ch in msg["channels"]])
+            elif msg["op"] == "status" and "Unknown channel ID" in msg["message"]:
+                # foxglove-sdk 0.30 may not know a channel it has just advertised: ask again
+                await subscribe([int(msg["message"].rsplit(":", 1)[1])])
 
 
 def feeder_main(argv: list[str] | None = None) -> int:
@@ -294,8 +311,6 @@ def _drive(
         probe = LatencyProbe(session, "sinewatch/est/**")
         probe.expected = rounds * n_ch
         fox = FoxgloveProbe(args.foxglove_port) if getattr(args, "foxglove", False) else None
-        if fox is not None and not fox.connected.wait(30.0):
-            raise RuntimeError("the daemon's Foxglove server did not accept a client within 30 s")
         console.print(
             f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
             f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
