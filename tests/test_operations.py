@@ -7,7 +7,10 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
 import socket
+import subprocess
+import sys
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -218,3 +221,52 @@ def test_notifier_reads_the_environment_as_sd_notify_does(tmp_path):
     assert other_pid.watchdog_s is None and not other_pid.watchdog()  # the watchdog is another process's
     gone = Notifier({"NOTIFY_SOCKET": str(Path(tmp_path) / "missing.sock")})
     assert not gone.notify("READY=1") and gone.sent == 0  # logged, never raised
+
+
+def test_serve_flags_turn_on_metrics_and_foxglove_as_the_config_would(tmp_path):
+    """``sinewatch serve --metrics PORT --foxglove PORT`` as a user runs it: the flags set
+    ``[metrics] port`` and ``[foxglove] port``; both answer once the daemon says it is up."""
+    pytest.importorskip("foxglove")
+    websockets = pytest.importorskip("websockets.sync.client")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{free_loopback_port()}"]\n[recording]\nenabled = false\n'
+        '[[rules]]\nestimator = "ipdft"\n'
+    )
+    mport, fport = free_loopback_port(), free_loopback_port()
+    serve = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sinewatch",
+            "serve",
+            "--config",
+            str(cfg),
+            "--metrics",
+            str(mport),
+            "--foxglove",
+            str(fport),
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert serve.stderr is not None
+        lines = []
+        while not (line := serve.stderr.readline()).count("sinewatch daemon"):  # start() logs it last
+            assert line, "".join(lines)
+            lines.append(line)
+        status, _, body = _get(f"http://127.0.0.1:{mport}/healthz")
+        with websockets.connect(f"ws://127.0.0.1:{fport}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            info = json.loads(ws.recv(timeout=TIMEOUT))
+            advertised = json.loads(ws.recv(timeout=TIMEOUT))
+        metrics = _samples(_get(f"http://127.0.0.1:{mport}/metrics")[2])
+    finally:
+        serve.send_signal(signal.SIGINT)
+        _, err = serve.communicate(timeout=60)
+    assert serve.returncode == 0, err
+    assert status == 200 and json.loads(body)["status"] == "ok"
+    assert info["op"] == "serverInfo" and info["name"] == "sinewatch sinewatch"
+    assert [c["topic"] for c in advertised["channels"]] == ["sinewatch/log"]
+    assert metrics[("sinewatch_foxglove_subscriptions_total", ())] == 0
+    assert metrics[("sinewatch_blocks_received_total", ())] == 0
