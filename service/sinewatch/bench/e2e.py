@@ -90,6 +90,15 @@ class FoxgloveProbe:
     SUBPROTOCOL = "foxglove.sdk.v1"
 
     def __init__(self, port: int) -> None:
+        import importlib.util
+
+        from sinewatch.schemas.errors import SinewatchError
+
+        if importlib.util.find_spec("websockets") is None:
+            raise SinewatchError(
+                "bench e2e --foxglove: expected the websockets package for its client "
+                "(pip install 'sinewatch[test]'), got none installed"
+            )
         code = "import sys; from sinewatch.bench.e2e import foxglove_probe_main; sys.exit(foxglove_probe_main(sys.argv[1]))"
         self._proc = subprocess.Popen(
             [sys.executable, "-c", code, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
@@ -121,13 +130,16 @@ async def _foxglove_probe(port: int, messages: dict[str, int], total: list[int])
     import struct
 
     import websockets
+    from websockets.typing import Subprotocol
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), loop.call_soon_threadsafe(stop.set)), daemon=True).start()
     topics: dict[int, str] = {}  # channel id -> topic
     subs: dict[int, str] = {}  # subscription id -> topic kind
-    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[FoxgloveProbe.SUBPROTOCOL]) as ws:
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(FoxgloveProbe.SUBPROTOCOL)]
+    ) as ws:
         print("connected", flush=True)
 
         async def subscribe(ids: list[int]) -> None:
