@@ -295,6 +295,11 @@ class FoxgloveSink(NullSink):
             except InputError:
                 self.counters.inputs_unreadable += 1
                 continue
+            except Exception:  # a bug here must not end the worker: close() waits for it
+                self.counters.inputs_unreadable += 1
+                if self.counters.inputs_unreadable <= 5:
+                    log.exception("foxglove: input summary of %s failed", key)
+                continue
             ch = self._samples_by_key.get(key)
             if ch is None:
                 ch = self._topic(f"{SAMPLES_PREFIX}/{msg['channel']}", SUMMARY_SCHEMA_NAME, SUMMARY_SCHEMA.copy)
