@@ -11,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -82,12 +83,14 @@ def test_metrics_count_what_the_daemon_did_and_healthz_says_ok(tmp_path):
             got, errors = take(est, len(blocks)), take(err, 2)
             _on_loop(daemon, daemon.pipeline.flush_sinks)  # the recording's bytes reach the disk
             on_disk = sum(p.stat().st_size for p in daemon.recording_paths)
+            cpu_before = time.process_time()
             metrics = _get(f"http://127.0.0.1:{port}/metrics")
+            cpu_after = time.process_time()
             healthz = _get(f"http://127.0.0.1:{port}/healthz")
             missing = _get(f"http://127.0.0.1:{port}/nothing")
-            return got, errors, on_disk, metrics, healthz, missing
+            return got, errors, on_disk, (cpu_before, cpu_after), metrics, healthz, missing
 
-    (got, errors, on_disk, metrics, healthz, missing), _daemon, code = run_daemon(config, client)
+    (got, errors, on_disk, cpu_span, metrics, healthz, missing), _daemon, code = run_daemon(config, client)
     assert code == 0 and len(got) == 20 and sorted(e["kind"] for e in errors) == ["duplicate", "non_finite"]
 
     status, ctype, text = metrics
@@ -110,7 +113,7 @@ def test_metrics_count_what_the_daemon_did_and_healthz_says_ok(tmp_path):
     assert m[("sinewatch_recording_messages_total", ())] >= 22 + 20 + 2  # inputs, estimates, errors (+ status)
     assert m[("sinewatch_sink_up", (("sink", "mcap"),))] == 1 and m[("sinewatch_sink_up", (("sink", "zenoh"),))] == 1
     cpu = m[("sinewatch_worker_cpu_seconds_total", (("worker", "0"),))]
-    assert 0 < cpu <= (os.times().user + os.times().system)  # this process's CPU, so far
+    assert cpu_span[0] <= cpu <= cpu_span[1]  # the daemon's process (this one) CPU time, read at the scrape
     assert ("process_cpu_seconds_total", ()) in m  # prometheus-client's process collector
 
     status, ctype, body = healthz

@@ -380,6 +380,8 @@ class Daemon:
         self._pipeline = Pipeline(cfg, sinks)
         self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
         self._intake = Intake(self, asyncio.get_running_loop())
+        self._beat = time.monotonic()
+        self._running = True  # subscribed: /healthz says ok from here (inputs wait for the consumer)
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
             cfg.daemon_id,
@@ -424,7 +426,6 @@ class Daemon:
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
                 )
             self._beat = time.monotonic()  # the heartbeat task pings systemd from here on
-            self._running = True
             self.ready.set()
             self.notifier.ready(f"subscribed to {self.config.keys.input}")
             try:
