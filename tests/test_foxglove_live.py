@@ -203,3 +203,22 @@ def test_without_the_foxglove_extra_serve_says_so_in_one_line(tmp_path):
         "sinewatch: error: --foxglove / [foxglove] needs the 'foxglove' extra: pip install 'sinewatch[foxglove]' "
         "(expected the foxglove-sdk package, got no module 'foxglove')"
     )
+
+
+def test_input_summaries_past_the_rate_are_skipped_and_counted(tmp_path):
+    """input_rate_hz below one a second: the bucket never holds a whole token, so every
+    block is skipped on the event loop's side (counted), none reaches the worker."""
+    from sinewatch.foxglove_live import FoxgloveSink
+
+    config = make_config(tmp_path, foxglove=FoxgloveSection(port=0, input_rate_hz=0.5))
+    sink = FoxgloveSink(config)
+    try:
+        payload = encode_block_binary(_blocks(1)[0])
+        for i in range(10):
+            sink.on_input("sinewatch/in/fox/a", payload, BLOCK_BINARY_ENCODING, i)
+    finally:
+        sink.close()  # waits for the worker: it has seen nothing
+    c = sink.counters
+    assert (c.inputs_over_rate, c.input_summaries, c.inputs_unreadable, c.inputs_dropped) == (10, 0, 0, 0)
+    assert "sinewatch/samples/fox/a" not in sink._topics  # the worker never decoded a block
+    assert sink.port > 0
