@@ -321,7 +321,7 @@ class Daemon:
             unrecovered=c.unrecovered,
             queue_depth=self._queued,
             channels=len(p.channels) if p else 0,
-            recording_bytes=sum(path.stat().st_size for path in list(rec.paths) if path.exists()) if rec else 0,
+            recording_bytes=sum(_size(path) for path in list(rec.paths)) if rec else 0,
             recording_messages=rec.messages_written if rec else 0,
             sinks=p.sink_status() if p else [],
             cpu_seconds_by_worker={"0": time.process_time()},  # one process today; workers come later
@@ -469,6 +469,14 @@ class Daemon:
 
 
 _T = TypeVar("_T")
+
+
+def _size(path: Path) -> int:
+    """Bytes on disk (0 for a file gone meanwhile: a scrape must not fail on it)."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def _optional(module: str, package: str, dist: str, extra: str, what: str) -> Any:
