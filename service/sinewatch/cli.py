@@ -68,6 +68,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from sinewatch.schemas.config import load_config
 
     config = load_config(args.config)
+    if args.foxglove is not None:  # the flags override [foxglove] port and [metrics] port
+        config.foxglove.port = args.foxglove
+    if args.metrics is not None:
+        config.metrics.port = args.metrics
     check_rules(config.rules)
     _check_recording_dir(config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
@@ -97,6 +101,16 @@ def _check_scenarios(names: list[str]) -> None:
                 f"scenario: expected one of {len(known)} names ({hint}`sinewatch bench scenarios` lists them), "
                 f"got {name!r}"
             )
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 0-65535 (0: any free one), got {text!r}")
+    return port
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
@@ -422,7 +436,19 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--record-dir", default="sinewatch-runs", help="where the MCAP file goes")
     d.add_argument("--no-record", action="store_true", help="do not record")
 
-    _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    s = _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    s.add_argument(
+        "--foxglove",
+        type=_port,
+        metavar="PORT",
+        help="serve a live Foxglove WebSocket on PORT ([foxglove] port; needs the foxglove extra)",
+    )
+    s.add_argument(
+        "--metrics",
+        type=_port,
+        metavar="PORT",
+        help="serve Prometheus /metrics and /healthz on PORT ([metrics] port; needs the metrics extra)",
+    )
 
     csub = _subcommands(sub, "config", "configuration", "config_command")
     _command(csub, "show", "print the effective configuration (file + environment)", cmd_config_show, config=True)

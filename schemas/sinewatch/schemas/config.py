@@ -223,6 +223,49 @@ class LimitsSection(_Section):
     intake_batch: int = Field(256, ge=1, description="Blocks handed to the event loop at once")
 
 
+class FoxgloveSection(_Section):
+    """Live view in Foxglove (``serve --foxglove PORT``): a Foxglove WebSocket server
+    (the ``foxglove-sdk`` package, ``pip install 'sinewatch[foxglove]'``) streams the
+    estimates, errors, status and power-quality messages on their Zenoh keys as topics,
+    one plottable summary per input block on ``sinewatch/samples/<channel>``, and the log on
+    ``sinewatch/log`` (``foxglove.Log``). Off unless a port is given. It never slows the
+    daemon: each client has a bounded backlog (oldest dropped), and the input summaries are
+    made on a worker thread behind a bounded queue (newest dropped and counted), at most
+    ``input_rate_hz`` of them a second."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="WebSocket port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    inputs: bool = Field(True, description="Publish a summary of each input block (min, max, mean, RMS, samples)")
+    input_points: int = Field(
+        64, ge=1, le=100_000, description="At most this many samples per input summary (every k-th sample)"
+    )
+    input_rate_hz: float = Field(
+        200.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Input summaries per second at most, all channels together (one second's worth may come at "
+        "once); past it blocks are skipped and counted: the summaries' cost has a ceiling",
+    )
+    queue: int = Field(
+        1024, ge=1, description="Input blocks waiting for the summary worker; past it they are dropped and counted"
+    )
+    backlog: int = Field(1024, ge=1, description="Messages buffered per client; a slow client loses the oldest")
+    max_topics: int = Field(4096, ge=1, description="Topics advertised at most (further ones are counted, not sent)")
+
+
+class MetricsSection(_Section):
+    """Prometheus metrics and a health endpoint (``serve --metrics PORT``): ``/metrics``
+    (the ``prometheus-client`` package, ``pip install 'sinewatch[metrics]'``) and
+    ``/healthz`` (JSON; 200 while the event loop turns and every sink is ok, else 503).
+    Off unless a port is given."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="HTTP port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    stall_s: float = Field(
+        5.0, gt=0, allow_inf_nan=False, description="/healthz fails once the event loop has not turned for this long"
+    )
+
+
 class SinewatchConfig(_Section):
     daemon_id: str = Field("sinewatch", pattern=r"^[A-Za-z0-9_.\-]+$")
     zenoh: ZenohSection = Field(default_factory=ZenohSection)
@@ -239,6 +282,8 @@ class SinewatchConfig(_Section):
     cluster: ClusterSection = Field(default_factory=ClusterSection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
+    foxglove: FoxgloveSection = Field(default_factory=FoxgloveSection)
+    metrics: MetricsSection = Field(default_factory=MetricsSection)
     status_interval_s: float = Field(1.0, gt=0)
     sink_retry_s: float = Field(
         1.0,
