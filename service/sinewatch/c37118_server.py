@@ -231,6 +231,7 @@ class Client:
             streaming=sorted(self.streaming),
             frames_sent=self.sent,
             frames_dropped=self.dropped,
+            frames_queued=self.queue.qsize() if self.queue is not None else 0,
         )
 
 

@@ -211,6 +211,7 @@ class C37118ClientStatus(_Message):
     streaming: list[int] = Field(description="ID codes whose data frames it has turned on")
     frames_sent: int = Field(description="Frames handed to its connection")
     frames_dropped: int = Field(description="Data frames dropped because its queue was full (a slow reader)")
+    frames_queued: int = Field(0, description="Data frames waiting in its queue now")
 
 
 class C37118Status(_Message):
