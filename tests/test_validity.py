@@ -12,12 +12,13 @@ here. The presence detector itself is checked against hand-made signals.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
 import numpy as np
-import pytest
 import pypqd.synthetic as pqd
+import pytest
 
 from sinewatch import estimators
 from sinewatch.bench.params import estimator_params
@@ -73,13 +74,20 @@ def _serve(name: str, params: dict, x: np.ndarray) -> tuple[list[tuple[float, fl
     pipeline = Pipeline(cfg, [sink])
     for seq, i in enumerate(range(0, x.size, BLOCK)):
         t0 = T00 + round(i * 1e9 / FS)
-        pipeline.process("sinewatch/in/d", encode_block_binary(Block("d", seq, t0, float(FS), x[i : i + BLOCK])), "", t0)
+        pipeline.process(
+            "sinewatch/in/d", encode_block_binary(Block("d", seq, t0, float(FS), x[i : i + BLOCK])), "", t0
+        )
     assert not sink.errors, sink.errors[:1]
     rows = []
     for e in sink.estimates:
         f = e["frequency_hz"][0]
         rows.append(
-            ((e["timestamp_ns"] - T00) / 1e9, math.inf if f is None else f, e["diagnostics"]["valid"], e["diagnostics"]["converged"])
+            (
+                (e["timestamp_ns"] - T00) / 1e9,
+                math.inf if f is None else f,
+                e["diagnostics"]["valid"],
+                e["diagnostics"]["converged"],
+            )
         )
     return rows, pipeline
 
@@ -130,7 +138,7 @@ def test_an_interruption_or_deep_sag_is_flagged_and_every_estimator_recovers(nam
 def test_a_sag_to_half_is_a_signal_not_an_absence(name):
     """IEEE 1159 sags from 0.1 to 0.9 pu are measurements: valid throughout."""
     params, _ = estimator_params(estimators.get(name), get_scenario("c37-50hz-steady"))
-    x, truth = _pypqd("sag-0.5pu")
+    x, _truth = _pypqd("sag-0.5pu")
     rows, pipeline = _serve(name, params, x)
     memory_s = pipeline.channels["d"].estimator.memory_samples / FS
     assert all(r[2] for r in rows if r[0] >= memory_s + BLOCK / FS)
@@ -153,7 +161,10 @@ def test_adaptive_multisine_flags_an_interruption_of_its_example():
         pipeline.process("sinewatch/in/m", encode_block_binary(Block("m", seq, t0, fs, x[i : i + block])), "", t0)
     assert not sink.errors
     memory_s = pipeline.channels["m"].estimator.memory_samples / fs
-    rows = [((e["timestamp_ns"] - T00) / 1e9, e["diagnostics"]["valid"], e["diagnostics"]["converged"]) for e in sink.estimates]
+    rows = [
+        ((e["timestamp_ns"] - T00) / 1e9, e["diagnostics"]["valid"], e["diagnostics"]["converged"])
+        for e in sink.estimates
+    ]
     assert any(r[2] for r in rows if 25.0 <= r[0] < 30.0)  # converged before
     assert not any(r[1] or r[2] for r in rows if 30.3 <= r[0] < 32.0 + memory_s)
     assert all(r[1] for r in rows if r[0] >= 32.0 + memory_s + 0.1)
@@ -193,7 +204,7 @@ def test_presence_does_not_depend_on_how_the_stream_is_cut():
     run_whole, level_whole = whole.update(x)
     parts = SignalPresence(fs)
     cuts = [0, 1, 7, 64, 65, 1000, 2100, 2101, 6400]
-    got = [parts.update(x[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    got = [parts.update(x[a:b]) for a, b in itertools.pairwise(cuts)]
     assert np.array_equal(np.concatenate([g[0] for g in got]), run_whole)
     assert np.array_equal(np.concatenate([g[1] for g in got]), level_whole)
     restored = SignalPresence(fs)

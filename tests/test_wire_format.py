@@ -155,5 +155,5 @@ def test_estimate_time_is_exact_where_javascript_numbers_are_not(ns):
 
 
 def test_estimate_time_must_agree_with_timestamp_ns():
-    with pytest.raises(ValueError, match="expected {sec, nsec} equal to"):
+    with pytest.raises(ValueError, match=r"expected \{sec, nsec\} equal to"):
         _estimate(timestamp={"sec": 1, "nsec": 0})
