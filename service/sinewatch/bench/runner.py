@@ -26,11 +26,10 @@ from typing import Any
 import numpy as np
 
 from sinewatch import crlb as crlb_mod
-from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
 from sinewatch.bench import metrics as M
 from sinewatch.bench.args import DEFAULT_TRIALS
-from sinewatch.bench.params import NotApplicable, estimator_params
+from sinewatch.bench.params import NotApplicable, bench_estimator
 from sinewatch.bench.scenarios import Profile, profile
 from sinewatch.estimators.base import Track
 from sinewatch.scenarios import Truth
@@ -117,8 +116,7 @@ def evaluate(
 def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace: bool) -> dict[str, Any]:
     sc = sc_registry.get(scen_name)
     prof = profile(sc)
-    cls = est_registry.get(est_name)
-    params, source = estimator_params(cls, sc, prof)
+    cls, params, source = bench_estimator(est_name, sc, prof)
     try:
         est = cls(sc.sample_rate_hz, params)
     except (ParameterError, SinewatchError, ValueError, TypeError) as exc:
