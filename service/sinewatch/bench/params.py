@@ -20,7 +20,7 @@
 :data:`DEFAULT_RULE` (``default-rule``) is one more column: the daemon's default rule
 exactly as a user with no config gets it (:data:`sinewatch.schemas.config.DEFAULT_ESTIMATOR`
 at :data:`~sinewatch.schemas.config.DEFAULT_PARAMS`, nominal 50 Hz whatever the scenario):
-none of the steps above applies to it (:func:`bench_estimator`).
+none of the steps above applies to it (:func:`default_rule_estimator`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from sinewatch import estimators as est_registry
-from sinewatch.bench.scenarios import DEFAULT_RULE, Profile, profile, scenario_hints
+from sinewatch.bench.scenarios import Profile, profile, scenario_hints
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
 from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
@@ -162,14 +162,7 @@ def estimator_params(cls: type[Estimator], sc: Scenario, prof: Profile | None = 
     return params, "+".join(sources)
 
 
-def bench_estimator(
-    name: str, sc: Scenario, prof: Profile | None = None
-) -> tuple[type[Estimator], dict[str, Any], str]:
-    """The estimator class, parameters and their source for bench column ``name``: a
-    registered estimator through :func:`estimator_params`, or :data:`DEFAULT_RULE`, the
-    default rule's estimator at its parameters, untouched by the scenario."""
-    if name == DEFAULT_RULE:
-        return est_registry.get(DEFAULT_ESTIMATOR), dict(DEFAULT_PARAMS), "default rule"
-    cls = est_registry.get(name)
-    params, source = estimator_params(cls, sc, prof)
-    return cls, params, source
+def default_rule_estimator() -> tuple[type[Estimator], dict[str, Any], str]:
+    """Bench column :data:`DEFAULT_RULE`: the default rule's estimator class and parameters,
+    untouched by the scenario (what a user with no config gets)."""
+    return est_registry.get(DEFAULT_ESTIMATOR), dict(DEFAULT_PARAMS), "default rule"
