@@ -2,12 +2,10 @@
 not valid (and not converged), never a confident wild number, and every estimator recovers
 within about one memory (its window, or its settling time) after the event.
 
-The disturbances come from a third-party generator, pypqd (R. A. Montoya Gutierrez, the
-integral model of Igual, Medrano, Arcega, Mantescu, "Integral mathematical model of power
-quality disturbances", ICHQP 2018): interruptions and sags with fixed start, end and depth, so
-no random draw is involved. Its time base is ``linspace(0, D, N)``, a step of D / (N - 1)
-rather than 1 / fs: at the declared rate the fundamental is ``f N / (N - 1)``, the truth used
-here. The presence detector itself is checked against hand-made signals.
+The disturbances come from a third-party generator, pypqd, through
+:mod:`sinewatch.bench.validity` (``python -m sinewatch.bench.validity`` prints the table in
+docs/validity.md from the same runs). The presence detector itself is checked against
+hand-made signals.
 """
 
 from __future__ import annotations
@@ -17,22 +15,18 @@ import json
 import math
 
 import numpy as np
-import pypqd.synthetic as pqd
 import pytest
 
 from sinewatch import estimators
-from sinewatch.bench.params import estimator_params
+from sinewatch.bench import validity as bench
+from sinewatch.bench.scenarios import DEFAULT_RULE
 from sinewatch.estimators.presence import SignalPresence
 from sinewatch.pipeline import NullSink, Pipeline
-from sinewatch.scenarios import get as get_scenario
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 
-FS = 10_000
-DURATION_S = 3.0
-T_ON, T_OFF = 1.0, 1.3  # the event
-BLOCK = 250  # 25 ms blocks
-T00 = 1_700_000_000_000_000_000
+T00 = bench.T00
+BLOCK_S = bench.BLOCK / bench.FS
 CYCLE_S = 0.02
 
 
@@ -48,100 +42,57 @@ class Keep(NullSink):
         self.errors.append(json.loads(payload))
 
 
-def _pypqd(kind: str) -> tuple[np.ndarray, float]:
-    common = dict(fundamental_freq=50, phase_angle=(0.3,), signal_duration=DURATION_S, sampling_freq=FS)
-    interval = ("fixed", (T_ON, T_OFF))
-    if kind == "interruption":  # to zero
-        [s] = pqd.interruption(interruption_magnitude=(1.0,), interruption_interval=interval, **common)
-    elif kind == "interruption-0.08pu":  # IEEE 1159: below 0.1 pu
-        [s] = pqd.interruption(interruption_magnitude=(0.92,), interruption_interval=interval, **common)
-    elif kind == "deep-sag-0.05pu":
-        [s] = pqd.sag(sag_magnitude=(0.95,), sag_interval=interval, **common)
-    elif kind == "sag-0.5pu":
-        [s] = pqd.sag(sag_magnitude=(0.5,), sag_interval=interval, **common)
-    else:
-        raise ValueError(kind)
-    x = np.asarray(s["Values"], dtype=np.float64)
-    x = x + np.random.default_rng(7).normal(0.0, 1e-3, x.size)  # 57 dB SNR: a measured signal
-    n = x.size
-    return x, 50.0 * n / (n - 1)
-
-
-def _serve(name: str, params: dict, x: np.ndarray) -> tuple[list[tuple[float, float, bool, bool]], Pipeline]:
-    """Run ``x`` through the real pipeline in 25 ms blocks; (t, frequency, valid, converged) per estimate."""
-    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator=name, params=params)])
-    sink = Keep()
-    pipeline = Pipeline(cfg, [sink])
-    for seq, i in enumerate(range(0, x.size, BLOCK)):
-        t0 = T00 + round(i * 1e9 / FS)
-        pipeline.process(
-            "sinewatch/in/d", encode_block_binary(Block("d", seq, t0, float(FS), x[i : i + BLOCK])), "", t0
-        )
-    assert not sink.errors, sink.errors[:1]
-    rows = []
-    for e in sink.estimates:
-        f = e["frequency_hz"][0]
-        rows.append(
-            (
-                (e["timestamp_ns"] - T00) / 1e9,
-                math.inf if f is None else f,
-                e["diagnostics"]["valid"],
-                e["diagnostics"]["converged"],
-            )
-        )
-    return rows, pipeline
-
-
-SINGLE_TONE = [n for n in estimators.available() if n != "adaptive-multisine"]
+COVERED = bench.applicable()
 
 
 def test_every_estimator_is_covered():
     """adaptive-multisine tracks n >= 2 sinusoids (its single-tone design is left to the user):
-    it is checked on its own example below; every other estimator on a 50 Hz mains signal."""
-    assert set(SINGLE_TONE) | {"adaptive-multisine"} == set(estimators.available())
+    it is checked on its own example below; every other estimator, and the default rule, on a
+    50 Hz mains signal."""
+    assert set(COVERED) == (set(estimators.available()) - {"adaptive-multisine"}) | {DEFAULT_RULE}
 
 
-@pytest.mark.parametrize("kind", ["interruption", "interruption-0.08pu", "deep-sag-0.05pu"])
-@pytest.mark.parametrize("name", SINGLE_TONE)
-def test_an_interruption_or_deep_sag_is_flagged_and_every_estimator_recovers(name, kind):
-    params, _ = estimator_params(estimators.get(name), get_scenario("c37-50hz-steady"))
-    x, truth = _pypqd(kind)
-    rows, pipeline = _serve(name, params, x)
-    memory_s = pipeline.channels["d"].estimator.memory_samples / FS
+@pytest.mark.parametrize("event", bench.ABSENCES)
+@pytest.mark.parametrize("name", COVERED)
+def test_an_interruption_or_deep_sag_is_flagged_and_every_estimator_recovers(name, event):
+    run = bench.run(name, event)
+    t_on, t_off, memory_s = bench.T_ON, bench.T_OFF, run.memory_s
     # before: settled and valid (to 0.1 s before the onset: a pmu report's window reaches
     # half its kernel past the report time)
-    before = [r for r in rows if T_ON - 0.4 <= r[0] < T_ON - 0.1]
-    assert before and all(r[2] and r[3] and abs(r[1] - truth) < 0.05 for r in before)
+    before = run.between(t_on - 0.4, t_on - 0.1)
+    assert before and all(r[2] and r[3] and run.error(r[1]) < 0.05 for r in before)
     # during: from one cycle (the detector's window) and one block after the onset, not one
     # estimate is valid or converged
-    during = [r for r in rows if T_ON + CYCLE_S + BLOCK / FS <= r[0] < T_OFF]
+    during = run.between(t_on + CYCLE_S + BLOCK_S, t_off)
     assert during and not any(r[2] or r[3] for r in during)
     # nor in the estimator's memory after the signal is back
-    refill = [r for r in rows if T_OFF <= r[0] < T_OFF + memory_s]
-    assert not any(r[2] for r in refill)
+    assert not any(r[2] for r in run.between(t_off, t_off + memory_s))
     # never a confident wild number: every valid estimate is a measurement (within 0.15 Hz,
     # differential-rls's worst while it re-converges, not flagged converged) and every
     # converged one within 0.05 Hz
-    assert max(abs(r[1] - truth) for r in rows if r[2]) < 0.15
-    assert max(abs(r[1] - truth) for r in rows if r[3]) < 0.05
+    assert max(run.error(r[1]) for r in run.rows if r[2]) < 0.15
+    assert max(run.error(r[1]) for r in run.rows if r[3]) < 0.05
     # recovered: valid again within one memory and a block, and settled (converged, within
     # 0.05 Hz) within two memories and a block, except differential-rls, whose convergence
     # test waits for its frequency standard deviation (about 0.8 s at the bench's tuning)
-    back = T_OFF + memory_s + BLOCK / FS
-    assert all(r[2] for r in rows if r[0] >= back)
-    settle = T_OFF + (1.0 if name == "differential-rls" else 2 * memory_s + BLOCK / FS)
-    late = [r for r in rows if r[0] >= settle]
-    assert late and all(r[3] and abs(r[1] - truth) < 0.05 for r in late), (name, kind)
+    assert all(r[2] for r in run.between(t_off + memory_s + BLOCK_S, math.inf))
+    settle = t_off + (1.0 if name == "differential-rls" else 2 * memory_s + BLOCK_S)
+    late = run.between(settle, math.inf)
+    assert late and all(r[3] and run.error(r[1]) < 0.05 for r in late), (name, event)
+    summary = run.summary()
+    assert summary["valid_during"] == summary["converged_during"] == 0
 
 
-@pytest.mark.parametrize("name", ["ipdft", "ges-kalman", "sogi-fll", "nls"])
+@pytest.mark.parametrize("name", ["ipdft", "ges-kalman", "sogi-fll", "nls", DEFAULT_RULE])
 def test_a_sag_to_half_is_a_signal_not_an_absence(name):
     """IEEE 1159 sags from 0.1 to 0.9 pu are measurements: valid throughout."""
-    params, _ = estimator_params(estimators.get(name), get_scenario("c37-50hz-steady"))
-    x, _truth = _pypqd("sag-0.5pu")
-    rows, pipeline = _serve(name, params, x)
-    memory_s = pipeline.channels["d"].estimator.memory_samples / FS
-    assert all(r[2] for r in rows if r[0] >= memory_s + BLOCK / FS)
+    run = bench.run(name, "sag-0.5pu")
+    assert all(r[2] for r in run.between(run.memory_s + BLOCK_S, math.inf))
+
+
+def test_the_bench_table_names_every_covered_estimator():
+    text = bench.table(("interruption",))
+    assert all(f"| `{name}` |" in text for name in COVERED)
 
 
 def test_adaptive_multisine_flags_an_interruption_of_its_example():
