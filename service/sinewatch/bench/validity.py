@@ -94,7 +94,7 @@ class Run:
         return [r for r in self.rows if a <= r[0] < b]
 
     def summary(self) -> dict[str, Any]:
-        during = self.between(T_ON + 0.02 + BLOCK / FS, T_OFF)  # from one cycle and a block in
+        during = self.between(T_ON + 0.03 + BLOCK / FS, T_OFF)  # from 1.5 cycles (detection) and a block in
         after = self.between(T_OFF, math.inf)
         first_valid = next((r[0] for r in after if r[2]), math.nan)
         unsettled = [r[0] for r in after if not (r[3] and self.error(r[1]) < 0.05)]
