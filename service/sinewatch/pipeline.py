@@ -225,11 +225,24 @@ class Channel:
         }
 
 
+@dataclass(frozen=True)
+class ResumePoint:
+    """Where another daemon left a channel (hot standby, :mod:`sinewatch.cluster`): the
+    last block whose estimate it published. Blocks up to ``published_seq`` (Zenoh's
+    history brings them again) bring the estimator's state up to date without publishing
+    (they were published once); the first block after it is published, flagged as a gap of
+    the blocks nobody estimated."""
+
+    published_seq: int
+    next_t0_ns: int | None
+
+
 @dataclass
 class PipelineCounters:
     inputs: int = 0
     estimates: int = 0
     errors: int = 0
+    caught_up: int = 0  # blocks taken into the state without publishing (after a takeover)
     by_kind: Counter[str] = field(default_factory=Counter)
 
 
@@ -260,6 +273,7 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
+        self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
         self.pq = PqStage(
             config, _key_matches, pq_version
         )  # power quality (harmonics, groups, aggregates): off unless configured
@@ -279,6 +293,8 @@ class Pipeline:
             block = self._decode(payload, encoding)
             stage = "channel"
             channel = self._channel_for(key, block)
+            if channel.name in self.resume_points and self._catch_up(channel, block):
+                return
             gap_blocks, restart = self._check_sequence(channel, block)
             reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
             stage = "estimator"
@@ -389,6 +405,21 @@ class Pipeline:
         self.channels[block.channel] = ch
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
         return ch
+
+    def _catch_up(self, ch: Channel, block: Block) -> bool:
+        """A block of a channel taken over from another daemon: True when it was taken into
+        the state only (already published by the other daemon, or already in the state)."""
+        point = self.resume_points[ch.name]
+        if block.seq > point.published_seq:  # the first block to publish: the gap is what nobody estimated
+            del self.resume_points[ch.name]
+            if ch.last_seq is None or ch.last_seq < point.published_seq:
+                ch.last_seq, ch.next_t0_ns = point.published_seq, point.next_t0_ns
+            return False
+        if ch.last_seq is None or block.seq > ch.last_seq:
+            ch.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            self._accept(ch, block, 0, False, False)
+        self.counters.caught_up += 1
+        return True
 
     def _rule_for(self, key: str) -> EstimatorRule | None:
         if key not in self._rule_cache:
@@ -577,6 +608,11 @@ class Pipeline:
             "format_version": 1,
             "channels": [ch.snapshot() for ch in self.channels.values()],
             "error_counts": [[k, kind, n] for (k, kind), n in self._error_counts.items()],
+            **(
+                {"resume_points": {ch: [p.published_seq, p.next_t0_ns] for ch, p in self.resume_points.items()}}
+                if self.resume_points
+                else {}
+            ),
             **({"power_quality": self.pq.snapshot()} if self.pq.enabled else {}),
         }
 
@@ -592,6 +628,8 @@ class Pipeline:
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):
             self._error_counts[(key, kind)] = n
+        for ch_name, (seq, next_t0) in snapshot.get("resume_points", {}).items():
+            self.resume_points[ch_name] = ResumePoint(seq, next_t0)
         if "power_quality" in snapshot:
             self.pq.restore(snapshot["power_quality"])
 

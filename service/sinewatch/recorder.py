@@ -182,6 +182,13 @@ class McapRecorder:
             self._w.flush()
             self._f.flush()
 
+    def rotate(self) -> Path:
+        """Finish this file and start the next, which carries the snapshot (as at a timed
+        rotation): e.g. when a standby takes over, so that its file replays on its own."""
+        self.close()
+        self.index += 1
+        return self.open()
+
     def _maybe_rotate(self) -> None:
         if self._fixed_path is not None or self._file is None:
             return

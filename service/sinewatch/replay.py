@@ -28,8 +28,10 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
+from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
@@ -118,6 +120,23 @@ def diff_fields(a: bytes, b: bytes) -> list[str]:
     return out or ["byte-level difference only (formatting)"]
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_recording(path: Path) -> None:
+    """Raise ReplayError unless ``path`` is a readable file that starts as an MCAP file does."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ReplayError(
+            f"{path}: expected an MCAP recording, got {(exc.strerror or type(exc).__name__).lower()}"
+        ) from None
+    if head != MCAP_MAGIC:
+        got = "an empty file" if not head else f"a file starting {head!r}"
+        raise ReplayError(f"{path}: expected an MCAP recording (starting {MCAP_MAGIC!r}), got {got}")
+
+
 def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
     order; ("incomplete", reason) last if the file ends early."""
@@ -192,6 +211,8 @@ def replay(
     max_mismatches: int = 1000,
 ) -> ReplayResult:
     """Replay recordings (one run's files, in order); see the module docstring."""
+    for path in paths:
+        check_recording(path)
     result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None
@@ -242,6 +263,42 @@ def replay(
         raise ReplayError(f"{', '.join(map(str, paths))}: no recorded messages to replay")
     if result.r.inputs == 0:
         raise ReplayError("the recording has no inputs (recording.inputs was off?): nothing to replay")
+    result.finish(comparator)
+    return result.r
+
+
+def replay_comtrade(
+    path: Path,
+    *,
+    rules: list[EstimatorRule] | None = None,
+    out: Path | None = None,
+    block_size: int = 1000,
+) -> ReplayResult:
+    """Run a COMTRADE record (:mod:`sinewatch.comtrade_file`) through a fresh pipeline, as
+    ``sinewatch feed --comtrade`` would send it to a daemon: each analog channel in blocks of
+    ``block_size`` samples (float64) on ``sinewatch/in/CHANNEL``, with ``rules`` (default: the
+    default config's). Nothing is compared (there is no recorded estimate); ``out`` records
+    inputs and outputs to a new MCAP file, which replays bit for bit."""
+    record = read_comtrade(path)
+    config = SinewatchConfig(daemon_id="sinewatch-comtrade")
+    if rules is not None:
+        config = config.model_copy(update={"rules": rules})
+    prefix = config.keys.input.removesuffix("/**")
+    result = ResultBuilder([path], compare=False, max_mismatches=0)
+    comparator = _Comparator()
+    comparator.other_outputs = config.recording.power_quality
+    sinks: list[Sink] = [comparator]
+    recorder = McapRecorder(config, path=out) if out is not None else None
+    if recorder is not None:
+        sinks.append(recorder)
+    pipeline = Pipeline(config, sinks)
+    for block in interleaved_blocks(record, block_size):
+        payload = encode_block_binary(block, "float64")
+        message = RecordedMessage("input", f"{prefix}/{block.channel}", BLOCK_BINARY_ENCODING, payload, block.t0_ns)
+        result.message(message, pipeline, comparator)
+    if recorder is not None:
+        recorder.close()
+        result.r.out_paths = list(recorder.paths)
     result.finish(comparator)
     return result.r
 

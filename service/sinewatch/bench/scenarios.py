@@ -20,7 +20,7 @@ from typing import Any
 
 from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 from sinewatch.scenarios import Event, Scenario
 from sinewatch.schemas.errors import ParameterError
 
@@ -189,5 +189,5 @@ def run(args: argparse.Namespace) -> int:
             str(r["components"]),
             r["summary"],
         )
-    make_console().print(table)
+    print_table(make_console(), table)
     return 0
