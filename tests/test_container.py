@@ -76,7 +76,7 @@ def test_the_container_config_serves_behind_a_router(tmp_path):
         router.kill()
         router.wait(timeout=30)
     assert [e["seq"] for e in estimates] == [0, 1, 2, 3, 4]
-    assert {e["estimator"] for e in estimates} == {"ges-kalman"}
+    assert {e["estimator"] for e in estimates} == {"ipdft"}  # the default rule
     assert "OK: all 5 recorded estimates reproduced bit for bit" in replay_recording(tmp_path / "runs")
 
 

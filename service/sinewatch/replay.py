@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 from collections import defaultdict, deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -167,7 +168,7 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
                     yield "snapshot", json.loads(record.data)
                 if on_progress is not None and n % 512 == 0:
                     on_progress(f.tell())
-        except (McapError, EOFError, ValueError, KeyError) as exc:
+        except (McapError, EOFError, ValueError, KeyError, struct.error) as exc:  # struct: cut inside a record header
             yield "incomplete", f"{type(exc).__name__}: {exc}"
         if on_progress is not None:
             on_progress(f.tell())

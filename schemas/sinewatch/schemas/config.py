@@ -80,8 +80,23 @@ class KeysSection(_Section):
     )
 
 
+#: The default rule's estimator and, when a rule names neither an estimator nor parameters,
+#: its parameters: a Hann interpolated DFT over 200 ms (10 cycles of 50 Hz, 12 of 60 Hz:
+#: the IEC 61000-4-30 measurement interval), re-estimated every 50 ms, searching 25-75 Hz,
+#: so 50 and 60 Hz systems are both measured as they are, with no detection step. The window
+#: in samples, the hop and the DFT bins follow from each channel's sample rate. Why this one:
+#: docs/accuracy.md, "The default rule" (``sinewatch bench accuracy --scenarios default-rule``).
+DEFAULT_ESTIMATOR = "ipdft"
+DEFAULT_PARAMS: dict[str, Any] = {"nominal_frequency_hz": 50.0, "window_cycles": 10.0}
+
+
 class EstimatorRule(_Section):
     """Channels whose input key matches ``match`` get ``estimator`` with ``params``.
+
+    A rule that names neither ``estimator`` nor ``params`` is the default rule:
+    ``ipdft`` with :data:`DEFAULT_PARAMS` (a 200 ms window, right for 50 and 60 Hz mains with
+    harmonics and noise at any sample rate from 1 to 50 kHz). A rule that names an estimator
+    without ``params`` gets that estimator's own defaults (``sinewatch estimators``).
 
     ``params`` is checked against the estimator's own parameter model by
     :func:`sinewatch.estimators.check_rules`, which the daemon runs before it starts and
@@ -89,8 +104,21 @@ class EstimatorRule(_Section):
     imports an estimator (nor numba)."""
 
     match: str = Field("sinewatch/in/**", description="Key expression matched against the input key")
-    estimator: str = Field("ges-kalman", description="Registered estimator name (sinewatch estimators)")
-    params: dict[str, Any] = Field(default_factory=dict, description="Estimator parameters")
+    estimator: str = Field(
+        DEFAULT_ESTIMATOR, description="Registered estimator name (sinewatch estimators); default ipdft"
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Estimator parameters; when neither estimator nor params is given, the default "
+        "rule's: a 200 ms ipdft window (nominal_frequency_hz = 50, window_cycles = 10)",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_rule(cls, data: Any) -> Any:
+        if isinstance(data, Mapping) and "estimator" not in data and "params" not in data:
+            return {**data, "params": dict(DEFAULT_PARAMS)}
+        return data
 
 
 class HarmonicsRule(_Section):

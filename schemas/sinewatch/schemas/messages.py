@@ -73,12 +73,17 @@ def fill_time(msg: Any, ns: int, field: str = "timestamp") -> None:
 
 
 class Diagnostics(_Message):
-    converged: bool = Field(description="The estimator considers its estimate settled (its own convergence test)")
+    converged: bool = Field(
+        description="The estimate is settled: the estimator's own convergence test passed (each estimator's "
+        "criterion: docs/validity.md) and, from format version 3, the estimate is valid"
+    )
     valid: bool = Field(
         True,
-        description="The signal the estimate describes is present now: false while the input is absent or "
-        "collapsing (interruption, deep sag) or the estimator has not yet seen enough of it; "
-        "an estimate with valid false is not a measurement (format version 3)",
+        description="The signal the estimate describes is present now and has been for the estimator's memory "
+        "(its window, or its settling time): false while the input is absent or collapsing (its one-cycle AC RMS "
+        "at or below 0.1 of the recent level: an interruption or a sag below 0.1 pu, IEEE 1159), for one memory "
+        "after it, before the estimator has seen one memory of signal, or when the estimate is undefined. An "
+        "estimate with valid false is not a measurement (format version 3; docs/validity.md)",
     )
     residual_rms: float | None = Field(description="RMS one-step prediction error over the block")
     gap: bool = Field(False, description="Samples were missing before this block (sequence gap)")

@@ -16,6 +16,11 @@
    not apply"), else an adapter from :data:`ADAPTERS`;
 4. the scenario's ``suggested_params`` when its ``suggested_estimator`` is this estimator
    (the papers' own tunings).
+
+:data:`DEFAULT_RULE` (``default-rule``) is one more column: the daemon's default rule
+exactly as a user with no config gets it (:data:`sinewatch.schemas.config.DEFAULT_ESTIMATOR`
+at :data:`~sinewatch.schemas.config.DEFAULT_PARAMS`, nominal 50 Hz whatever the scenario):
+none of the steps above applies to it (:func:`default_rule_estimator`).
 """
 
 from __future__ import annotations
@@ -26,9 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from sinewatch import estimators as est_registry
 from sinewatch.bench.scenarios import Profile, profile, scenario_hints
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
+from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
 from sinewatch.schemas.errors import ParameterError
 
 TWO_PI = 2.0 * math.pi
@@ -163,3 +170,9 @@ def estimator_params(cls: type[Estimator], sc: Scenario, prof: Profile | None = 
         params.update(sc.suggested_params)
         sources.append("scenario")
     return params, "+".join(sources)
+
+
+def default_rule_estimator() -> tuple[type[Estimator], dict[str, Any], str]:
+    """Bench column :data:`DEFAULT_RULE`: the default rule's estimator class and parameters,
+    untouched by the scenario (what a user with no config gets)."""
+    return est_registry.get(DEFAULT_ESTIMATOR), dict(DEFAULT_PARAMS), "default rule"

@@ -151,9 +151,15 @@ def select_scenarios(patterns: Iterable[str] | None, quick: bool = False) -> lis
     return _matching("scenarios", names, pats, tags)
 
 
+#: The bench column of the daemon's default rule (its estimator at its parameters, as a user
+#: with no config gets it; :func:`sinewatch.bench.params.bench_estimator`).
+DEFAULT_RULE = "default-rule"
+
+
 def select_estimators(patterns: Iterable[str] | None) -> list[str]:
-    """Estimator names from names or globs; None: every registered estimator."""
-    avail = list(est_registry.available())
+    """Estimator names from names or globs; None: every registered estimator and
+    :data:`DEFAULT_RULE`."""
+    avail = [*est_registry.available(), DEFAULT_RULE]
     pats = list(patterns or [])
     return _matching("estimators", avail, pats, None) if pats else avail
 
