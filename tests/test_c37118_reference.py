@@ -113,12 +113,14 @@ def test_live_reference_from_the_daemons_own_c37118_server(tmp_path):
     (rows, name, itself, p), _, code = run_daemon(config, client)
     assert code == 0 and name == "VA" and len(rows) == 200
     assert all(r["time_ns"] % 20_000_000 == 0 for r in rows)
-    # the channel the station serves, against its own frames: float32 rounding
-    assert (itself["pairs"], itself["flagged"], itself["unmatched"]) == (200, 0, 0)
+    # the channel the station serves, against its own frames: float32 rounding. The first
+    # frames may say "do not use" (STAT 11: the estimate's valid is false until the estimator
+    # has seen enough of the signal); they are left out of the comparison
+    assert itself["pairs"] + itself["flagged"] == 200 and itself["flagged"] <= 5 and itself["unmatched"] == 0
     assert itself["tve_pct"]["max"] < 1e-4 and itself["fe_hz"]["max"] < 1e-5 and itself["rfe_hz_per_s"]["max"] < 1e-5
     # a P-class estimator of the same signal against the M-class reference: a real difference
     # (the classes' windows follow the modulation differently), thousands of times the rounding
     # above and within what the classes' own limits allow (TVE 3 % each against the truth)
-    assert p["pairs"] == 200 and p["flagged"] == p["unmatched"] == 0
+    assert (p["pairs"], p["flagged"], p["unmatched"]) == (itself["pairs"], itself["flagged"], 0)
     assert 1000 * itself["tve_pct"]["max"] < p["tve_pct"]["max"] < 3.0
     assert p["fe_hz"]["max"] < 0.3 and p["rfe_hz_per_s"]["max"] < 14.0
