@@ -115,26 +115,17 @@ from sinewatch.schemas.errors import ParameterError
 # Example 1 (initial frequencies 3 and 4 rad/s as in the paper). Units: rad/s with
 # omega_unit_rad_s = 1.
 PAPER_DESIGN = {
-    True: {
-        "a": [-2.0, -1.0],
-        "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
-        "filter_poles": [-6.0],
-        "filter_gains": [6.0],
-        "mu": 70.0,
-        "rho": 0.3,
-        "mu_a": 0.1,
-        "omega0": [3.5, 2.5],
-    },
-    False: {
-        "a": [0.0, -0.5],
-        "poles": [-2.0, -0.7, -0.5, -0.2],
-        "filter_poles": [-5.0],
-        "filter_gains": [4.5],
-        "mu": 6.0,
-        "rho": 0.2,
-        "mu_a": 0.15,
-        "omega0": [3.0, 4.0],
-    },
+    "p_min": 2.0,  # AD2: slowest observer pole / omegah_1(0)
+    "p_max": 4.0,  # AD2: fastest observer pole / omegah_1(0)
+    "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
+    "kappa": 1.0,  # AD5: mu = kappa |slowest pole| / lambda_typ
+    "lambda_typ": 0.5,  # AD5
+    "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
+    "separation": 0.05,  # AD6: adjacent components at least this fraction apart
+    "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
+    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
+    "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
+    "level_poles": 1.0,  # smoothing time of the input's level and of tr(Xi^T Xi) (AD4)
 }
 _DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
 
@@ -304,6 +295,8 @@ DESIGN = {
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
     "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
     "level_poles": 1.0,  # smoothing time of the input power (AD4) = this / |slowest pole|
+    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
+    "separation": 0.05,  # AD6: adjacent components at least this fraction apart
 }
 
 
@@ -336,15 +329,15 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
 
 
 # packed constants of the automatic mode: ``ci`` = n, nx, nf, nz, 0, bias, 1 (the mode flag);
-# ``cf`` = the scalars below, then a (n), L_x (nx), F_f (nf), B_f (nf), theta_lo (n),
-# theta_hi (n), theta0 (n).
+# ``cf`` = the scalars below, then the observer poles (nx), F_f (nf), B_f (nf).
 _K_H, _K_MU, _K_RHO2, _K_MUA, _K_DHI, _K_DLO, _K_TBAR, _K_OMU = 0, 1, 2, 3, 4, 5, 6, 7
 _K_MINA, _K_FADE, _K_CALPHA, _K_CTOL, _K_DELAY, _K_ZMAX, _K_LALPHA = 8, 9, 10, 11, 12, 13, 14
-_N_K = 15
+_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR = 15, 16, 17, 18, 19
+_N_K = 20
 _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
-_S_CLOCK, _S_MEAN, _S_POW, _S_STARTED = 0, 1, 2, 3
-_N_S = 4
+_S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI = 0, 1, 2, 3, 4
+_N_S = 5
 
 
 @kernel
@@ -437,6 +430,37 @@ def _gen_eig(Phi: np.ndarray, R: np.ndarray, S: np.ndarray, W: np.ndarray, lam: 
 
 
 @kernel
+def _place(s: np.ndarray, oa: int, oL: int, poles: np.ndarray, n: int, bias: int) -> None:
+    """L_x with eig(F_x - L_x C_x) = poles for F_x = blockdiag(J_i, 0), a = s[oa : oa + n] < 0,
+    into s[oL : oL + nx]. Closed form (matrix determinant lemma): with D(s) = s^b prod(s^2 -
+    a_k) and P(s) = prod(s - p_m), ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)`` at
+    ``w_i = sqrt(-a_i)``, ``D_i = D / (s^2 - a_i)``, and ``l_bias = P(0) / prod(-a_k)``."""
+    nx = 2 * n + bias
+    for i in range(n):
+        om = -s[oa + i]
+        w = math.sqrt(om)
+        sj = complex(0.0, w)
+        pv = complex(1.0, 0.0)
+        for m in range(nx):
+            pv *= sj - poles[m]
+        dv = sj if bias else complex(1.0, 0.0)
+        for k in range(n):
+            if k != i:
+                dv *= -s[oa + k] - om
+        r = pv / dv
+        s[oL + 2 * i + 1] = r.real
+        s[oL + 2 * i] = r.imag / w
+    if bias:
+        p0 = 1.0
+        for m in range(nx):
+            p0 *= -poles[m]
+        d0 = 1.0
+        for k in range(n):
+            d0 *= -s[oa + k]
+        s[oL + nx - 1] = p0 / d0
+
+
+@kernel
 def auto_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -451,13 +475,8 @@ def auto_kernel(
     d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
     om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
     c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
-    oa_c = _N_K
-    oL = oa_c + n
-    oFf = oL + nx
+    oFf = _N_K + nx
     oBf = oFf + nf
-    olo = oBf + nf
-    ohi = olo + n
-    oth0 = ohi + n
     oz = nf
     oxi = oz + nz
     oth = oxi + nz * n
@@ -466,6 +485,11 @@ def auto_kernel(
     owb = ops + n
     odv = owb + n
     osc = odv + n
+    oa_c = osc + _N_S  # a (n), re-centred (AD8)
+    oL = oa_c + n  # L_x (nx), re-placed with a
+    om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
+    xi_floor = cf[_K_XIFLOOR]
+    poles = cf[_N_K : _N_K + nx]
     s = state.copy()
     nrow = 1 if last_only else y.shape[0]
     out = np.empty((nrow, 3 * n + 2))
@@ -499,7 +523,6 @@ def auto_kernel(
         s[osc + _S_MEAN] += l_alpha * (yk - s[osc + _S_MEAN])
         dv = yk - s[osc + _S_MEAN]
         s[osc + _S_POW] += l_alpha * (dv * dv - s[osc + _S_POW])
-        rho2 = rho2rel * max(2.0 * s[osc + _S_POW], min_a * min_a)
         present = 2.0 * s[osc + _S_POW] >= min_a * min_a
         # output error C_z zh - eta (16), (22)
         c = s[oz + nx - 1] if bias else 0.0
@@ -525,12 +548,20 @@ def auto_kernel(
                 acc = 0.0
                 for r in range(nz):
                     acc += s[bi + r] * s[bj + r]
-                M[i, i2] = acc + (rho2 if i == i2 else 0.0)
+                M[i, i2] = acc
                 acc = 0.0
                 for r in range(n):
                     acc += cx[r, i] * cx[r, i2]
                 Phi[i, i2] = acc
                 Phi[i2, i] = acc
+        # AD4: rho^2 relative to the smoothed size of Xi, floored
+        tr = 0.0
+        for i in range(n):
+            tr += M[i, i]
+        s[osc + _S_XI] += l_alpha * (tr / n - s[osc + _S_XI])
+        rho2 = rho2rel * max(s[osc + _S_XI], xi_floor)
+        for i in range(n):
+            M[i, i] += rho2
         _chol_into(M, R, n)  # M >= rho^2 I > 0
         # (25): while every psi_i is on, all stay on iff Phi_Xi - delta_low M > 0
         n_on = 0
@@ -600,8 +631,16 @@ def auto_kernel(
                 for i in range(n):
                     td[i] -= s[oth + i] * tu / tb2
             for i in range(n):  # AD6: the band's clips (Remark 3.1)
-                if (s[oth + i] <= cf[olo + i] and td[i] < 0.0) or (s[oth + i] >= cf[ohi + i] and td[i] > 0.0):
+                om2 = s[oth + i] - s[oa_c + i]
+                if (om2 <= om_lo and td[i] < 0.0) or (om2 >= om_hi and td[i] > 0.0):
                     td[i] = 0.0
+            for i in range(n - 1):  # AD6: the components stay ordered and apart
+                lo2 = s[oth + i] - s[oa_c + i]
+                hi2 = s[oth + i + 1] - s[oa_c + i + 1]
+                if hi2 <= lo2 * sep and td[i + 1] < td[i]:
+                    mid = 0.5 * (td[i] + td[i + 1])
+                    td[i] = mid
+                    td[i + 1] = mid
         # outputs at t_k, (8)-(10) with the sampled-oscillator relations; (11); convergence
         amax = 0.0
         for i in range(n):
@@ -609,7 +648,7 @@ def auto_kernel(
         thr = max(fade * amax, min_a)
         all_ok = adapting and present
         for i in range(n):
-            om2 = s[oth + i] - cf[oa_c + i]
+            om2 = s[oth + i] - s[oa_c + i]
             x1 = s[oz + 2 * i]
             x2 = s[oz + 2 * i + 1]
             ok = om2 > 0.0
@@ -663,12 +702,12 @@ def auto_kernel(
         inj = yk - c  # L (eta - C_z zh): L acts on the first output only
         for i in range(n):
             r = oz + 2 * i
-            x1 = s[r] + h * (s[r + 1] + cf[oL + 2 * i] * inj + dz[2 * i])
-            s[r + 1] += h * ((cf[oa_c + i] - s[oth + i]) * x1 + cf[oL + 2 * i + 1] * inj + dz[2 * i + 1])
+            x1 = s[r] + h * (s[r + 1] + s[oL + 2 * i] * inj + dz[2 * i])
+            s[r + 1] += h * ((s[oa_c + i] - s[oth + i]) * x1 + s[oL + 2 * i + 1] * inj + dz[2 * i + 1])
             s[r] = x1
             xo[i] = x1
         if bias:
-            s[oz + nx - 1] += h * (cf[oL + nx - 1] * inj + dz[nx - 1])
+            s[oz + nx - 1] += h * (s[oL + nx - 1] * inj + dz[nx - 1])
         for jj in range(nf):
             r = oz + nx + jj
             s[r] += h * (cf[oBf + jj] * c + cf[oFf + jj] * s[r] + dz[nx + jj])
@@ -678,12 +717,12 @@ def auto_kernel(
             cv = cx[0, i]
             for m in range(n):
                 r = b + 2 * m
-                x1 = s[r] + h * (s[r + 1] - cf[oL + 2 * m] * cv)
-                s[r + 1] += h * (cf[oa_c + m] * x1 - cf[oL + 2 * m + 1] * cv)
+                x1 = s[r] + h * (s[r + 1] - s[oL + 2 * m] * cv)
+                s[r + 1] += h * (s[oa_c + m] * x1 - s[oL + 2 * m + 1] * cv)
                 s[r] = x1
             s[b + 2 * i + 1] -= h * xo[i]
             if bias:
-                s[b + nx - 1] -= h * cf[oL + nx - 1] * cv
+                s[b + nx - 1] -= h * s[oL + nx - 1] * cv
             for jj in range(nf):
                 r = b + nx + jj
                 s[r] += h * (cf[oBf + jj] * cv + cf[oFf + jj] * s[r])
@@ -691,28 +730,47 @@ def auto_kernel(
         for jj in range(nf):
             s[jj] += h * (cf[oFf + jj] * s[jj] + cf[oBf + jj] * yk)
         # (19): thetah, kept in the band's clips and the ball
+        for i in range(n):  # as Omegah_i, ordered, apart, inside the band (AD6)
+            q[i] = s[oth + i] + h * td[i] - s[oa_c + i]
+        q[0] = max(q[0], om_lo)
+        for i in range(1, n):
+            q[i] = max(q[i], q[i - 1] * sep)
+        q[n - 1] = min(q[n - 1], om_hi)
+        for i in range(n - 2, -1, -1):
+            q[i] = min(q[i], q[i + 1] / sep)
         tt = 0.0
+        far = False
         for i in range(n):
-            v = s[oth + i] + h * td[i]
-            s[oth + i] = min(max(v, cf[olo + i]), cf[ohi + i])
+            s[oth + i] = s[oa_c + i] + q[i]
             tt += s[oth + i] * s[oth + i]
+            if abs(s[oth + i]) > rc * abs(s[oa_c + i]):
+                far = True
         if tt > tb2:
             f = tbar / math.sqrt(tt)
             for i in range(n):
                 s[oth + i] *= f
+        # AD8: re-centre a on the estimates and re-place L_x there (thetah -> 0)
+        if far:
+            for i in range(n):
+                s[oa_c + i] -= s[oth + i]
+                s[oth + i] = 0.0
+            _place(s, oa_c, oL, poles, n, bias)
         # guard (D7 of the explicit mode): a frozen observer far from the truth can be
         # unstable; restart it from zero, thetah kept
         lim = zmax * (1.0 + abs(s[osc + _S_MEAN]) + math.sqrt(s[osc + _S_POW]))
         bad = False
-        for r in range(oz, oth):
+        for r in range(oz, oxi):
             if not abs(s[r]) <= lim:  # also catches NaN
+                bad = True
+        for r in range(oxi, oth):
+            if not abs(s[r]) < math.inf:
                 bad = True
         if bad:
             for r in range(oth):
                 s[r] = 0.0
             for i in range(n):
                 if not abs(s[oth + i]) <= tbar:
-                    s[oth + i] = cf[oth0 + i]
+                    s[oth + i] = 0.0
                 s[ops + i] = 0.0
             s[osc + _S_CLOCK] = 0.0
         if write:
@@ -818,9 +876,8 @@ class AdaptiveMultisine(
         poles = np.asarray(d["poles"], dtype=np.float64)
         Lx = _place_observer(Fx, Cx, poles)
         w_lo, w_hi = d["w_lo"], d["w_hi"]
-        th_lo = a + w_lo * w_lo  # AD6, (4): omega in [w_lo, w_hi] <=> theta in [a + w_lo^2, a + w_hi^2]
-        th_hi = a + w_hi * w_hi
-        tbar = float(np.sqrt(np.sum(np.maximum(np.abs(th_lo), np.abs(th_hi)) ** 2)))
+        # the ball of (19)-(21): with a re-centred (AD8) |thetah_i| stays below the band's span
+        tbar = math.sqrt(n) * (w_hi * w_hi - w_lo * w_lo)
         h = d["w_ref"] / self.sample_rate_hz
         consts = np.zeros(_N_K)
         consts[_K_H] = h
@@ -838,13 +895,18 @@ class AdaptiveMultisine(
         consts[_K_DELAY] = d["dwell"]
         consts[_K_ZMAX] = 1e4
         consts[_K_LALPHA] = -math.expm1(-h / d["level_time"])
-        theta0 = a + np.asarray(d["omega0"]) ** 2  # = 0 (AD1)
-        self._cf = np.concatenate(
-            [consts, a, Lx, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"]), th_lo, th_hi, theta0]
-        )
+        consts[_K_OMLO] = w_lo * w_lo
+        consts[_K_OMHI] = w_hi * w_hi
+        consts[_K_RC] = DESIGN["recentre"]
+        consts[_K_SEP] = (1.0 + DESIGN["separation"]) ** 2
+        # |xi_i| ~ A / (omega p) for a tone of amplitude A at omega through poles p: the floor of
+        # rho is min_amplitude's
+        consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
+        self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
         self._constants = (self._cf, self._ci)
-        self._nf, self._nz, self._theta0 = nf, nz, theta0
+        self._nf, self._nz = nf, nz
+        self._a0 = a
         self.L_x = Lx
         self.theta_bar = tbar
         self.substeps = 1
@@ -854,13 +916,16 @@ class AdaptiveMultisine(
         """``s``, explicit mode: :func:`sinewatch.estimators._adaptive_multisine_explicit.initial_state`.
         Automatic mode: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n) |
         psi (n) | smoothed Omegah (n) | smoothed |Omegah - smoothed Omegah| (n) | the scalars
-        _S_CLOCK (dwell clock), _S_MEAN, _S_POW (input mean and AC power), _S_STARTED."""
+        _S_CLOCK (dwell clock), _S_MEAN, _S_POW (input mean and AC power), _S_STARTED | a (n)
+        and L_x (nx), re-centred and re-placed as the estimates move (AD8); thetah(0) = 0."""
         n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
         if not self.automatic:
             return {"s": explicit.initial_state(n, nf, nz, self._theta0)}
-        s = np.zeros(nf + nz + nz * n + 6 * n + _N_S)
-        oth = nf + nz + nz * n
-        s[oth : oth + n] = self._theta0
+        nx = nz - nf
+        s = np.zeros(nf + nz + nz * n + 5 * n + _N_S + n + nx)
+        oa = nf + nz + nz * n + 5 * n + _N_S
+        s[oa : oa + n] = self._a0
+        s[oa + n :] = self.L_x
         return {"s": s}
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
