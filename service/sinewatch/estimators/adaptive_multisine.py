@@ -115,13 +115,13 @@ from sinewatch.schemas.errors import ParameterError
 # Example 1 (initial frequencies 3 and 4 rad/s as in the paper). Units: rad/s with
 # omega_unit_rad_s = 1.
 PAPER_DESIGN = {
-    "p_min": 2.0,  # AD2: slowest observer pole / omegah_1(0)
-    "p_max": 4.0,  # AD2: fastest observer pole / omegah_1(0)
+    "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
+    "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
     "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
-    "kappa": 1.0,  # AD5: mu = kappa |slowest pole| / lambda_typ
+    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
     "lambda_typ": 0.5,  # AD5
     "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
-    "separation": 0.05,  # AD6: adjacent components at least this fraction apart
+    "separation": 0.15,  # AD6: adjacent components at least this fraction apart
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
     "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
     "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
@@ -296,7 +296,7 @@ DESIGN = {
     "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
     "level_poles": 1.0,  # smoothing time of the input power (AD4) = this / |slowest pole|
     "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
-    "separation": 0.05,  # AD6: adjacent components at least this fraction apart
+    "separation": 0.15,  # AD6: adjacent components at least this fraction apart
 }
 
 
@@ -307,7 +307,8 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
     beta = lo / hi
     w0 = [beta ** (1.0 - (i + 0.5) / n) for i in range(n)]  # AD1
     nx = 2 * n + int(bias)
-    p_lo, p_hi = DESIGN["p_min"] * w0[0], DESIGN["p_max"] * w0[0]
+    anchor = math.sqrt(w0[0])  # geometric mean of the lowest initial frequency and f_hi
+    p_lo, p_hi = DESIGN["p_min"] * anchor, DESIGN["p_max"] * anchor
     poles = [-p_lo * (p_hi / p_lo) ** (j / (nx - 1)) for j in range(nx)] if nx > 1 else [-p_lo]  # AD2
     slow = p_lo
     return {
