@@ -115,18 +115,33 @@ from sinewatch.schemas.errors import ParameterError
 # Example 1 (initial frequencies 3 and 4 rad/s as in the paper). Units: rad/s with
 # omega_unit_rad_s = 1.
 PAPER_DESIGN = {
-    "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
-    "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
-    "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
-    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
-    "lambda_typ": 0.5,  # AD5
-    "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
-    "separation": 0.15,  # AD6: adjacent components at least this fraction apart
-    "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
-    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
-    "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
-    "level_poles": 1.0,  # smoothing time of the input's level and of tr(Xi^T Xi) (AD4)
+    True: {
+        "a": [-2.0, -1.0],
+        "poles": [-0.6, -0.5, -0.3, -1.0, -10.0],
+        "filter_poles": [-6.0],
+        "filter_gains": [6.0],
+        "mu": 70.0,
+        "rho": 0.3,
+        "mu_a": 0.1,
+        "omega0": [3.5, 2.5],
+    },
+    False: {
+        "a": [0.0, -0.5],
+        "poles": [-2.0, -0.7, -0.5, -0.2],
+        "filter_poles": [-5.0],
+        "filter_gains": [4.5],
+        "mu": 6.0,
+        "rho": 0.2,
+        "mu_a": 0.15,
+        "omega0": [3.0, 4.0],
+    },
 }
+_DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
+
+#: A finite fraction in [0, 1) (the ratios and thresholds below; 0 switches a test off).
+_Fraction = Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)]
+
+
 _DESIGN_KEYS = ("a", "poles", "filter_poles", "filter_gains", "mu", "rho", "mu_a", "omega0")
 
 #: A finite fraction in [0, 1) (the ratios and thresholds below; 0 switches a test off).
@@ -286,17 +301,17 @@ EXPLICIT_ONLY = (
 
 #: The constants of the automatic design AD1-AD7 (module docstring), dimensionless.
 DESIGN = {
-    "p_min": 0.1,  # AD2: slowest observer pole / omegah_1(0)
-    "p_max": 1.0,  # AD2: fastest observer pole / omegah_1(0)
-    "rho_rel": 1.0,  # AD4
-    "lambda_typ": 1e-2,  # AD5
-    "kappa": 0.5,  # AD5
+    "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
+    "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
+    "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
+    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
+    "lambda_typ": 0.01,  # AD5
     "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
-    "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
-    "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
-    "level_poles": 1.0,  # smoothing time of the input power (AD4) = this / |slowest pole|
-    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
     "separation": 0.15,  # AD6: adjacent components at least this fraction apart
+    "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
+    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
+    "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
+    "level_poles": 1.0,  # smoothing time of the input's level and of tr(Xi^T Xi) (AD4)
 }
 
 
