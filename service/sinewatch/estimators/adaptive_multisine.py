@@ -392,6 +392,34 @@ def _gen_eig(Phi: np.ndarray, R: np.ndarray, S: np.ndarray, W: np.ndarray, lam: 
             for k in range(j):
                 acc -= S[i, k] * R[j, k]
             S[i, j] = acc / R[j, j]
+    if n == 2:  # closed form: the eigenvalues of [[a, b], [b, c]] and the rotation that diagonalises it
+        a = S[0, 0]
+        b = 0.5 * (S[0, 1] + S[1, 0])
+        c = S[1, 1]
+        half = 0.5 * (a - c)
+        r = math.sqrt(half * half + b * b)
+        lam[0] = 0.5 * (a + c) + r
+        lam[1] = 0.5 * (a + c) - r
+        if r == 0.0:
+            cs, sn = 1.0, 0.0
+        elif half >= 0.0:  # first eigenvector (cos, sin) of the larger eigenvalue
+            t = b / (half + r)
+            cs = 1.0 / math.sqrt(1.0 + t * t)
+            sn = t * cs
+        else:
+            t = b / (r - half)
+            sn = 1.0 / math.sqrt(1.0 + t * t)
+            cs = t * sn
+        W[0, 0] = cs
+        W[1, 0] = sn
+        W[0, 1] = -sn
+        W[1, 1] = cs
+        return
+    for i in range(n):  # symmetric up to rounding: symmetrise, or Jacobi never meets its tolerance
+        for j in range(i):
+            v = 0.5 * (S[i, j] + S[j, i])
+            S[i, j] = v
+            S[j, i] = v
     for i in range(n):
         for j in range(n):
             W[i, j] = 1.0 if i == j else 0.0
@@ -406,7 +434,7 @@ def _gen_eig(Phi: np.ndarray, R: np.ndarray, S: np.ndarray, W: np.ndarray, lam: 
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
-                apq = 0.5 * (S[p, q] + S[q, p])
+                apq = S[p, q]
                 if apq == 0.0:
                     continue
                 theta = (S[q, q] - S[p, p]) / (2.0 * apq)
@@ -778,9 +806,8 @@ def auto_kernel(
         for r in range(oz, oxi):
             if not abs(s[r]) <= lim:  # also catches NaN
                 bad = True
-        for r in range(oxi, oth):
-            if not abs(s[r]) < math.inf:
-                bad = True
+        if not abs(tr) < math.inf:  # tr(Xi^T Xi) of this sample: Xi finite
+            bad = True
         if bad:
             for r in range(oth):
                 s[r] = 0.0
