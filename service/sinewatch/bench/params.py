@@ -8,8 +8,7 @@
    field gets one per component), required range fields (``f_min_hz``/``f_max_hz``,
    ``min_frequency_hz``/``max_frequency_hz`` when their default is not None) the
    scenario's frequency range, component-count fields (``n_components``, ``n_sinusoids``,
-   ...) the number of truth components, ``omega_unit_rad_s`` 2 pi times the mean nominal
-   frequency;
+   ...) the number of truth components;
 3. the estimator's own hook, when it has one: ``params_for(sample_rate_hz, hints) ->
    dict`` (classmethod; ``hints`` as built by
    :func:`sinewatch.bench.scenarios.scenario_hints`; raising ParameterError means "does
@@ -55,7 +54,7 @@ NOMINAL_HZ_FIELDS = (
 RANGE_LO_FIELDS = ("f_min_hz", "min_frequency_hz", "frequency_min_hz")
 RANGE_HI_FIELDS = ("f_max_hz", "max_frequency_hz", "frequency_max_hz")
 COUNT_FIELDS = ("n_components", "n_sinusoids", "n_tones", "num_components")
-TIME_UNIT_FIELDS = ("omega_unit_rad_s",)
+TIME_UNIT_FIELDS: tuple[str, ...] = ()  # none left: adaptive-multisine designs itself from its band
 
 
 def _is_list_field(fld: Any) -> bool:
@@ -97,18 +96,13 @@ def _ges_kalman_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
 
 
 def _adaptive_multisine_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
-    """adaptive-multisine: one sinusoid per component, every rate relative to the mean
-    nominal frequency (as its own example does); its default design otherwise."""
-    nom = hints["nominal_frequency_hz"]
-    fmean = float(np.mean(nom))
-    # its frequency bound (default 4 units) must stay below Nyquist: the projection ball
-    # admits up to ~ n^(1/4) omega_max
-    nyquist_units = 0.5 * fs / fmean
-    return {
-        "n_sinusoids": len(nom),
-        "omega_unit_rad_s": TWO_PI * fmean,
-        "omega_max": min(4.0, 0.8 * nyquist_units / len(nom) ** 0.25),
-    }
+    """adaptive-multisine: its automatic design, from the number of components and the
+    scenario's frequency band only (a band from 0 starts at a twentieth of its top; the top
+    is kept to a quarter of the sample rate, as the estimator requires)."""
+    lo, hi = hints["frequency_range_hz"]
+    hi = min(float(hi), fs / 4.0 / 1.1)
+    lo = float(lo) if lo > 0 else hi / 20.0
+    return {"n_sinusoids": len(hints["nominal_frequency_hz"]), "band_hz": (min(lo, hi / 2.0), hi)}
 
 
 # Used for an estimator that has no ``params_for`` classmethod of its own.

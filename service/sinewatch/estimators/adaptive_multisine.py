@@ -103,7 +103,6 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.signal import place_poles
 
 from sinewatch.estimators import _adaptive_multisine_explicit as explicit
 from sinewatch.estimators import register
@@ -917,7 +916,14 @@ class AdaptiveMultisine(
         if bias:
             Cx[nx - 1] = 1.0
         poles = np.asarray(d["poles"], dtype=np.float64)
-        Lx = _place_observer(Fx, Cx, poles)
+        # (16): L_x by pole placement (Algorithm 1's initialisation), in the closed form the
+        # kernel re-places it with (AD8); checked against the eigenvalues it gives
+        tmp = np.concatenate([a, np.zeros(nx)])
+        _place(tmp, 0, n, poles, n, int(bias))
+        Lx = tmp[n:].copy()
+        got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
+        if not np.allclose(got, np.sort(poles), rtol=1e-3, atol=0.0):
+            raise ParameterError(f"band_hz: the observer poles {list(poles)} could not be placed (got {list(got)})")
         w_lo, w_hi = d["w_lo"], d["w_hi"]
         # the ball of (19)-(21): with a re-centred (AD8) |thetah_i| stays below the band's span
         tbar = math.sqrt(n) * (w_hi * w_hi - w_lo * w_lo)
@@ -990,15 +996,3 @@ class AdaptiveMultisine(
             },
         )
 
-
-def _place_observer(Fx: np.ndarray, Cx: np.ndarray, poles: np.ndarray) -> np.ndarray:
-    """L_x with eig(F_x - L_x C_x) = poles (Algorithm 1's initialisation), checked."""
-    try:
-        res = place_poles(Fx.T, Cx[:, None], poles)
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} ({exc})") from exc
-    Lx: np.ndarray = res.gain_matrix.T[:, 0]
-    got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
-    if not np.allclose(got, np.sort(poles), rtol=1e-6, atol=1e-9):
-        raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} (placed {list(got)})")
-    return Lx
