@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from sinewatch.bench.scenarios import Profile, profile, scenario_hints
+from sinewatch.estimators.adaptive_multisine import DESIGN, MIN_SAMPLES_PER_PERIOD
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
 from sinewatch.schemas.errors import ParameterError
@@ -98,9 +99,10 @@ def _ges_kalman_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
 def _adaptive_multisine_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
     """adaptive-multisine: its automatic design, from the number of components and the
     scenario's frequency band only (a band from 0 starts at a twentieth of its top; the top
-    is kept to a quarter of the sample rate, as the estimator requires)."""
+    is kept where the estimator's discretisation needs it: MIN_SAMPLES_PER_PERIOD samples
+    per period, with the band's margin)."""
     lo, hi = hints["frequency_range_hz"]
-    hi = min(float(hi), fs / 4.0 / 1.1)
+    hi = min(float(hi), fs / MIN_SAMPLES_PER_PERIOD / (1.0 + DESIGN["band_margin"]))
     lo = float(lo) if lo > 0 else hi / 20.0
     return {"n_sinusoids": len(hints["nominal_frequency_hz"]), "band_hz": (min(lo, hi / 2.0), hi)}
 
