@@ -237,7 +237,8 @@ class AdaptiveMultisineParams(EstimatorParams):
             lo, hi = self.band_hz
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
                 raise ValueError(f"band_hz: expected finite 0 < f_lo < f_hi, got {self.band_hz}")
-            fixed = sorted(self.model_fields_set & set(EXPLICIT_ONLY))
+            # set to other than their defaults (a dumped state carries every field)
+            fixed = sorted(k for k in EXPLICIT_ONLY if getattr(self, k) != type(self).model_fields[k].default)
             if fixed:
                 raise ValueError(
                     f"expected no {', '.join(fixed)} with band_hz (the automatic design sets them; "
