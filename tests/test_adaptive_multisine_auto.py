@@ -56,7 +56,7 @@ def settle_time(t, w, target, rel_tol, t0=0.0) -> float:
 def test_closed_form_pole_placement_matches_scipy(n, bias):
     rng = np.random.default_rng(n + 10 * bias)
     nx = 2 * n + int(bias)
-    a = -np.sort(rng.uniform(0.5, 4.0, n)) ** 2
+    a = -(np.sort(rng.uniform(0.5, 4.0, n)) ** 2)
     poles = -np.sort(rng.uniform(0.3, 3.0, nx))
     F, C = np.zeros((nx, nx)), np.zeros(nx)
     for i in range(n):
@@ -102,7 +102,9 @@ def test_design_comes_from_n_and_the_band_only():
     F = np.zeros((7, 7))
     for i in range(3):
         F[2 * i, 2 * i + 1], F[2 * i + 1, 2 * i] = 1.0, d["a"][i]
-    np.testing.assert_allclose(np.sort(np.linalg.eigvals(F - np.outer(est.L_x, C)).real), np.sort(d["poles"]), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.sort(np.linalg.eigvals(F - np.outer(est.L_x, C)).real), np.sort(d["poles"]), rtol=1e-6
+    )
     assert est.automatic and est.substeps == 1
 
 
@@ -203,7 +205,7 @@ def test_section_v_example_3_frequency_steps():
     # Paper (Fig. 10): w1: 2 -> 3 rad/s and w2: 5 -> 4.5 rad/s at t = 70 s with d uniform in
     # [-0.25, 0.25]; "succeeded in tracking sudden changes of frequency in a noisy environment".
     # Measured: over 50-70 s and 110-140 s the mean errors are below 0.015 rad/s.
-    t, tr, w = run_scenario("paper004-ex3")
+    t, _tr, w = run_scenario("paper004-ex3")
     pre, post = (t >= 50) & (t < 70), t >= 110
     np.testing.assert_allclose(w[pre].mean(axis=0), [2.0, 5.0], atol=0.02)
     np.testing.assert_allclose(w[post].mean(axis=0), [3.0, 4.5], atol=0.03)
@@ -253,7 +255,13 @@ def test_output_conventions_and_extras():
     x = cls.example_signal(2400)
     tr = est.update(x)
     assert est.n_components == 2 and tr.frequency_hz.shape == (2400, 2)
-    assert set(tr.extras) == {"excitation_level", "adaptation_enabled", "component_faded", "signal_present", "observer_reset"}
+    assert set(tr.extras) == {
+        "excitation_level",
+        "adaptation_enabled",
+        "component_faded",
+        "signal_present",
+        "observer_reset",
+    }
     for key in ("excitation_level", "adaptation_enabled", "component_faded"):
         assert tr.extras[key].shape == (2400, 2)
     assert tr.converged[-600:].all()

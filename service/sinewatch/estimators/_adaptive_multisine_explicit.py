@@ -682,9 +682,7 @@ def check(p: Any, sample_rate_hz: float) -> None:
         raise ParameterError(f"omega0: expected values in (0, omega_max={p.omega_max}), got {d['omega0']}")
     w0 = d["omega0"]
     if any(
-        abs(w0[i] - w0[j]) < p.min_separation * max(w0[i], w0[j])
-        for i in range(len(w0))
-        for j in range(i + 1, len(w0))
+        abs(w0[i] - w0[j]) < p.min_separation * max(w0[i], w0[j]) for i in range(len(w0)) for j in range(i + 1, len(w0))
     ):
         raise ParameterError(
             f"omega0: expected values at least min_separation={p.min_separation} (relative) apart, got {w0}"
