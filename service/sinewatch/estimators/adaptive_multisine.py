@@ -866,8 +866,8 @@ class AdaptiveMultisine(
         "filters (3n^2 states), forms M = Xi^T Xi + rho^2 I and Phi_Xi (23), factors M for the law "
         "(22) and tests Phi_Xi - delta_low M for (25) (two Cholesky factorisations), and takes n "
         "square roots for (11); the generalised eigen-decomposition runs only while a direction is "
-        "unexcited. About 250 ns/sample of CPU at n = 2 (one step per sample, no sub-steps, no "
-        "matrix exponential; the explicit-gain mode took about 5 us)."
+        "unexcited. One step per sample, no sub-steps, no matrix exponential: the ns/sample column "
+        "is that work at n = 2 (the explicit-gain mode's RK4 sub-steps took about 5 us)."
     )
 
     @classmethod
