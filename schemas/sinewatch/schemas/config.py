@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sinewatch.schemas.errors import ConfigError
 
@@ -68,6 +68,11 @@ class KeysSection(_Section):
     estimates_prefix: str = Field("sinewatch/est", description="Estimates go to PREFIX/<channel>")
     errors_prefix: str = Field("sinewatch/err", description="ErrorReports go to PREFIX/<channel or _unknown>")
     status_key: str = Field("sinewatch/status", description="Status messages go to KEY/<daemon_id>")
+    admin_prefix: str = Field(
+        "sinewatch/admin",
+        description="Cluster keys: PREFIX/<daemon_id>/channels (queryable: what a daemon owns), "
+        "PREFIX/shard/<shard_id>/{active,standby}/<daemon_id> (liveliness), PREFIX/shard/<shard_id>/snapshot",
+    )
     pq_prefix: str = Field(
         "sinewatch/pq",
         description="Power quality: HarmonicsReports go to PREFIX/harmonics/<channel>, PqAggregates to "
@@ -75,8 +80,23 @@ class KeysSection(_Section):
     )
 
 
+#: The default rule's estimator and, when a rule names neither an estimator nor parameters,
+#: its parameters: a Hann interpolated DFT over 200 ms (10 cycles of 50 Hz, 12 of 60 Hz:
+#: the IEC 61000-4-30 measurement interval), re-estimated every 50 ms, searching 25-75 Hz,
+#: so 50 and 60 Hz systems are both measured as they are, with no detection step. The window
+#: in samples, the hop and the DFT bins follow from each channel's sample rate. Why this one:
+#: docs/accuracy.md, "The default rule" (``sinewatch bench accuracy --scenarios default-rule``).
+DEFAULT_ESTIMATOR = "ipdft"
+DEFAULT_PARAMS: dict[str, Any] = {"nominal_frequency_hz": 50.0, "window_cycles": 10.0}
+
+
 class EstimatorRule(_Section):
     """Channels whose input key matches ``match`` get ``estimator`` with ``params``.
+
+    A rule that names neither ``estimator`` nor ``params`` is the default rule:
+    ``ipdft`` with :data:`DEFAULT_PARAMS` (a 200 ms window, right for 50 and 60 Hz mains with
+    harmonics and noise at any sample rate from 1 to 50 kHz). A rule that names an estimator
+    without ``params`` gets that estimator's own defaults (``sinewatch estimators``).
 
     ``params`` is checked against the estimator's own parameter model by
     :func:`sinewatch.estimators.check_rules`, which the daemon runs before it starts and
@@ -84,8 +104,21 @@ class EstimatorRule(_Section):
     imports an estimator (nor numba)."""
 
     match: str = Field("sinewatch/in/**", description="Key expression matched against the input key")
-    estimator: str = Field("ges-kalman", description="Registered estimator name (sinewatch estimators)")
-    params: dict[str, Any] = Field(default_factory=dict, description="Estimator parameters")
+    estimator: str = Field(
+        DEFAULT_ESTIMATOR, description="Registered estimator name (sinewatch estimators); default ipdft"
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Estimator parameters; when neither estimator nor params is given, the default "
+        "rule's: a 200 ms ipdft window (nominal_frequency_hz = 50, window_cycles = 10)",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_rule(cls, data: Any) -> Any:
+        if isinstance(data, Mapping) and "estimator" not in data and "params" not in data:
+            return {**data, "params": dict(DEFAULT_PARAMS)}
+        return data
 
 
 class HarmonicsRule(_Section):
@@ -167,6 +200,46 @@ class RecordingSection(_Section):
     status: bool = True
 
 
+class ClusterSection(_Section):
+    """Several daemons behind Zenoh routers: each owns a shard of the channels; a standby
+    for a shard takes over when the active daemon's liveliness token goes away.
+
+    A shard is the key space the daemon subscribes to (``keys.input``, e.g.
+    ``sinewatch/in/site1/**``), optionally cut further by ``shard = "i/N"``: the daemon then
+    owns the input keys whose CRC-32 (of the UTF-8 key) modulo N is i - 1, so N daemons with
+    ``1/N`` .. ``N/N`` split any set of keys with no overlap and no gap (each still receives
+    every key of ``keys.input`` from Zenoh and drops the others' before decoding: prefer
+    disjoint ``keys.input`` where the key layout allows it). The active daemon of a shard
+    puts the state of its channels on PREFIX/shard/<shard_id>/snapshot every
+    ``snapshot_interval_s``; its standbys keep the latest and watch its liveliness token."""
+
+    shard: str | None = Field(
+        None,
+        pattern=r"^[1-9][0-9]*/[1-9][0-9]*$",
+        description="i/N: own the input keys whose CRC-32 mod N is i-1; unset: every key of keys.input",
+    )
+    shard_id: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_.\-]+$",
+        description="Name shared by a shard's active daemon and its standbys (default: from keys.input and shard)",
+    )
+    role: Literal["active", "standby"] = Field(
+        "active",
+        description="active: serve the shard unless another daemon already does (then stand by); "
+        "standby: serve it only when its active daemon goes away",
+    )
+    snapshot_interval_s: float = Field(1.0, gt=0, description="How often the active daemon publishes its state")
+
+    @field_validator("shard")
+    @classmethod
+    def _in_range(cls, v: str | None) -> str | None:
+        if v is not None:
+            i, n = (int(x) for x in v.split("/"))
+            if not 1 <= i <= n:
+                raise ValueError(f"shard: expected i/N with 1 <= i <= N, got {v!r}")
+        return v
+
+
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
     max_block_samples: int = Field(1_000_000, ge=1)
@@ -176,6 +249,49 @@ class LimitsSection(_Section):
         "block", description="block: back-pressure to Zenoh (no loss); drop: drop and count the newest"
     )
     intake_batch: int = Field(256, ge=1, description="Blocks handed to the event loop at once")
+
+
+class FoxgloveSection(_Section):
+    """Live view in Foxglove (``serve --foxglove PORT``): a Foxglove WebSocket server
+    (the ``foxglove-sdk`` package, ``pip install 'sinewatch[foxglove]'``) streams the
+    estimates, errors, status and power-quality messages on their Zenoh keys as topics,
+    one plottable summary per input block on ``sinewatch/samples/<channel>``, and the log on
+    ``sinewatch/log`` (``foxglove.Log``). Off unless a port is given. It never slows the
+    daemon: each client has a bounded backlog (oldest dropped), and the input summaries are
+    made on a worker thread behind a bounded queue (newest dropped and counted), at most
+    ``input_rate_hz`` of them a second."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="WebSocket port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    inputs: bool = Field(True, description="Publish a summary of each input block (min, max, mean, RMS, samples)")
+    input_points: int = Field(
+        64, ge=1, le=100_000, description="At most this many samples per input summary (every k-th sample)"
+    )
+    input_rate_hz: float = Field(
+        200.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Input summaries per second at most, all channels together (one second's worth may come at "
+        "once); past it blocks are skipped and counted: the summaries' cost has a ceiling",
+    )
+    queue: int = Field(
+        1024, ge=1, description="Input blocks waiting for the summary worker; past it they are dropped and counted"
+    )
+    backlog: int = Field(1024, ge=1, description="Messages buffered per client; a slow client loses the oldest")
+    max_topics: int = Field(4096, ge=1, description="Topics advertised at most (further ones are counted, not sent)")
+
+
+class MetricsSection(_Section):
+    """Prometheus metrics and a health endpoint (``serve --metrics PORT``): ``/metrics``
+    (the ``prometheus-client`` package, ``pip install 'sinewatch[metrics]'``) and
+    ``/healthz`` (JSON; 200 while the event loop turns and every sink is ok, else 503).
+    Off unless a port is given."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="HTTP port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    stall_s: float = Field(
+        5.0, gt=0, allow_inf_nan=False, description="/healthz fails once the event loop has not turned for this long"
+    )
 
 
 class SinewatchConfig(_Section):
@@ -191,8 +307,11 @@ class SinewatchConfig(_Section):
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
+    cluster: ClusterSection = Field(default_factory=ClusterSection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
+    foxglove: FoxgloveSection = Field(default_factory=FoxgloveSection)
+    metrics: MetricsSection = Field(default_factory=MetricsSection)
     status_interval_s: float = Field(1.0, gt=0)
     sink_retry_s: float = Field(
         1.0,

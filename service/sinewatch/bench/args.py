@@ -71,6 +71,11 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
         "--queue-policy", choices=["block", "drop"], default="block", help="the daemon's limits.queue_policy"
     )
     parser.add_argument("--queue-capacity", type=int, default=8192, help="the daemon's limits.queue_capacity")
+    parser.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="the daemon serves its live Foxglove view and a client subscribes to every topic (needs the foxglove extra)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
