@@ -77,9 +77,11 @@ AD6 Frequency clips (Remark 3.1) at the band, widened by ``band_margin``, and th
     kept ordered and ``separation`` apart (two on one line form an unobservable pair, and the
     re-placement AD8 needs distinct frequencies); the projection ball (19)-(21) is the one the
     clips imply.
-AD7 The settling dwell (D4 of the explicit mode): ``thetah`` adapts only once some ``psi_i`` has
-    been on for ``dwell_poles / |slowest pole|``; start-up transients are output error the law
-    would read as parameter error.
+AD7 The settling dwell (D4 of the explicit mode): ``thetah`` adapts only ``dwell_poles /
+    |slowest pole|`` after the start and after the signal's return (start-up transients are
+    output error the law would read as parameter error); nothing adapts while the signal is
+    absent (its AC power over one period of ``omegah_1(0)`` below ``min_amplitude^2 / 2`` or a
+    quarter of its power over ten periods).
 AD8 Re-centring: the observer (16) runs ``F_x(a) - L_x C_x + G_x thetah = F_x(a - thetah) - L_x
     C_x``, so its poles are the placed ones only at ``thetah = 0``; with ``L_x`` fixed and the
     estimates far from ``-a`` some of its modes decay 30 times slower than placed (measured on
@@ -277,6 +279,12 @@ class AdaptiveMultisineParams(EstimatorParams):
                     )
         return self
 
+    @property
+    def f_min_hz(self) -> float | None:
+        """The lowest frequency expected: the band's bottom in the automatic mode (the pipeline
+        sizes its signal-presence window on it), None in the explicit mode."""
+        return self.band_hz[0] if self.band_hz is not None else None
+
     def design(self) -> dict[str, Any]:
         """The effective a, poles, filter poles and gains (lists), mu, rho, mu_a (floats) and
         omega0 (list)."""
@@ -318,7 +326,7 @@ DESIGN = {
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
     "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
     "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
-    "level_poles": 1.0,  # smoothing time of the input's level and of tr(Xi^T Xi) (AD4)
+    "level_poles": 1.0,  # smoothing time of tr(Xi^T Xi) (AD4) = this / |slowest pole|
 }
 
 
@@ -355,12 +363,12 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
 # ``cf`` = the scalars below, then the observer poles (nx), F_f (nf), B_f (nf).
 _K_H, _K_MU, _K_RHO2, _K_MUA, _K_DHI, _K_DLO, _K_TBAR, _K_OMU = 0, 1, 2, 3, 4, 5, 6, 7
 _K_MINA, _K_FADE, _K_CALPHA, _K_CTOL, _K_DELAY, _K_ZMAX, _K_LALPHA = 8, 9, 10, 11, 12, 13, 14
-_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR = 15, 16, 17, 18, 19
-_N_K = 20
+_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA = 15, 16, 17, 18, 19, 20
+_N_K = 21
 _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
-_S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI = 0, 1, 2, 3, 4
-_N_S = 5
+_S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
+_N_S = 6
 
 
 @kernel
@@ -540,6 +548,7 @@ def auto_kernel(
     oL = oa_c + n  # L_x (nx), re-placed with a
     om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
     xi_floor = cf[_K_XIFLOOR]
+    p_alpha = cf[_K_PALPHA]
     poles = cf[_N_K : _N_K + nx]
     s = state.copy()
     nrow = 1 if last_only else y.shape[0]
@@ -571,10 +580,13 @@ def auto_kernel(
         if s[osc + _S_STARTED] == 0.0:
             s[osc + _S_STARTED] = 1.0
             s[osc + _S_MEAN] = yk
-        s[osc + _S_MEAN] += l_alpha * (yk - s[osc + _S_MEAN])
+        s[osc + _S_MEAN] += p_alpha * (yk - s[osc + _S_MEAN])
         dv = yk - s[osc + _S_MEAN]
-        s[osc + _S_POW] += l_alpha * (dv * dv - s[osc + _S_POW])
-        present = 2.0 * s[osc + _S_POW] >= min_a * min_a
+        s[osc + _S_POW] += p_alpha * (dv * dv - s[osc + _S_POW])
+        s[osc + _S_POWL] += 0.1 * p_alpha * (dv * dv - s[osc + _S_POWL])
+        # the signal is present above min_amplitude and above a quarter of its power over ten
+        # times as long (a signal that stops is absent within ~1.4 periods of omegah_1(0))
+        present = 2.0 * s[osc + _S_POW] >= min_a * min_a and s[osc + _S_POW] >= 0.25 * s[osc + _S_POWL]
         # output error C_z zh - eta (16), (22)
         c = s[oz + nx - 1] if bias else 0.0
         for i in range(n):
@@ -636,11 +648,16 @@ def auto_kernel(
                     s[ops + i] = 0.0
                 if s[ops + i] != 0.0:
                     n_on += 1
-        # AD7: settling dwell, re-armed by a total dis-excitation
-        if n_on > 0:
-            s[osc + _S_CLOCK] = min(s[osc + _S_CLOCK] + h, delay)
-        else:
+        # AD7: settling dwell from the start and from the signal's return; while the signal is
+        # absent nothing adapts on the observer's free response, and the convergence test
+        # starts over (its smoothed deviation is reset to 100 %). Not re-armed by a total
+        # dis-excitation: with one component lambda_1 passes zero twice a period.
+        if not present:
+            for i in range(n):
+                s[odv + i] = abs(s[owb + i])
             s[osc + _S_CLOCK] = 0.0
+        else:
+            s[osc + _S_CLOCK] = min(s[osc + _S_CLOCK] + h, delay)
         adapting = s[osc + _S_CLOCK] >= delay and n_on > 0
         # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
         for i in range(n):
@@ -969,6 +986,9 @@ class AdaptiveMultisine(
         consts[_K_SEP] = (1.0 + DESIGN["separation"]) ** 2
         # |xi_i| ~ A / (omega p) for a tone of amplitude A at omega through poles p: the floor of
         # rho is min_amplitude's
+        # the input's mean and AC power (signal presence, the guard) over one period of the
+        # lowest initial frequency: shorter, they follow the waveform itself
+        consts[_K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
         consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
         self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
@@ -980,11 +1000,21 @@ class AdaptiveMultisine(
         self.substeps = 1
         self.settling_time = d["dwell"] / d["w_ref"]  # seconds
 
+    @property
+    def memory_samples(self) -> int:
+        """Automatic mode: the settling dwell (AD7) plus the convergence test's smoothing time;
+        explicit mode: the base class's default."""
+        if not self.automatic:
+            return super().memory_samples
+        d = self.design
+        return max(1, math.ceil((d["dwell"] + d["convergence_time"]) / d["w_ref"] * self.sample_rate_hz))
+
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``s``, explicit mode: :func:`sinewatch.estimators._adaptive_multisine_explicit.initial_state`.
         Automatic mode: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n) |
         psi (n) | smoothed Omegah (n) | smoothed |Omegah - smoothed Omegah| (n) | the scalars
-        _S_CLOCK (dwell clock), _S_MEAN, _S_POW (input mean and AC power), _S_STARTED | a (n)
+        _S_CLOCK (dwell clock), _S_MEAN, _S_POW (input mean and AC power), _S_STARTED,
+        _S_XI (smoothed tr(Xi^T Xi) / n), _S_POWL (AC power over ten times as long) | a (n)
         and L_x (nx), re-centred and re-placed as the estimates move (AD8); thetah(0) = 0."""
         n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
         if not self.automatic:
