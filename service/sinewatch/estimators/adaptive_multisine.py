@@ -1007,7 +1007,8 @@ class AdaptiveMultisine(
         if not self.automatic:
             return super().memory_samples
         d = self.design
-        return max(1, math.ceil((d["dwell"] + d["convergence_time"]) / d["w_ref"] * self.sample_rate_hz))
+        seconds = (float(d["dwell"]) + float(d["convergence_time"])) / float(d["w_ref"])
+        return max(1, math.ceil(seconds * self.sample_rate_hz))
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``s``, explicit mode: :func:`sinewatch.estimators._adaptive_multisine_explicit.initial_state`.
