@@ -1,4 +1,5 @@
-"""adaptive-multisine against paper 004 (Chen, Pin, Ng, Hui, Parisini), Section V.
+"""adaptive-multisine in its explicit mode (the paper's own gains) against paper 004 (Chen,
+Pin, Ng, Hui, Parisini), Section V.
 
 The extraction lost the figures, so the paper's results are quoted from its text beside
 what this test measures (seeded, at the paper's Ts = 0.3 ms unless said otherwise). Print
@@ -17,22 +18,44 @@ from scipy.signal import place_poles
 
 from sinewatch import scenarios
 from sinewatch.estimators import create, get
+from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN
 from sinewatch.estimators.base import decode_array
 from sinewatch.schemas.errors import ParameterError
 
 NAME = "adaptive-multisine"
 FS_PAPER = 1.0 / 3e-4  # Section V-A: forward Euler with Ts = 3e-4 s
 
-# The paper's gains (rad/s units, omega_unit_rad_s = 1), as the paper-004 scenarios suggest
-# them, so that these tests run exactly what the scenarios and the defaults run. Examples 1
-# and 3 (no bias, 2n = 4 poles; initial frequencies 3 and 4 rad/s, the paper's) and Example 2
-# (bias, 2n + 1 = 5 poles; initial frequencies not given: 3.5 and 2.5, ours) are the
-# estimator's default design (PAPER_DESIGN); the Section V-B experiment at 10 kHz (initial
-# frequencies not given: 6 and 4, ours) is the scenario's. The tables are written once,
-# there; what checks them independently here is the paper's results (Figs. 3-14) below.
-EX1 = scenarios.get("paper004-ex1").suggested_params
-EX2 = scenarios.get("paper004-ex2").suggested_params
-EXP = scenarios.get("paper004-experiment").suggested_params
+# The explicit mode (no band_hz): the paper's own gains (rad/s units, omega_unit_rad_s = 1),
+# kept so that recordings made with them replay bit for bit. Examples 1 and 3 (no bias, 2n = 4
+# poles; initial frequencies 3 and 4 rad/s, the paper's) and Example 2 (bias, 2n + 1 = 5
+# poles; initial frequencies not given: 3.5 and 2.5, ours) are the explicit mode's defaults
+# (PAPER_DESIGN); the Section V-B experiment at 10 kHz (initial frequencies not given: 6 and
+# 4, ours). The automatic design (n and band only) is tested in
+# tests/test_adaptive_multisine_auto.py.
+EX1 = {"n_sinusoids": 2, "bias": False, **PAPER_DESIGN[False], "omega_max": 10.0, "omega_unit_rad_s": 1.0}
+EX2 = {
+    "n_sinusoids": 2,
+    "bias": True,
+    **PAPER_DESIGN[True],
+    "delta_high": 3e-4,
+    "delta_low": 3e-5,
+    "omega_max": 10.0,
+    "omega_unit_rad_s": 1.0,
+}
+EXP = {
+    "n_sinusoids": 2,
+    "bias": False,
+    "a": [0.0, -1.0],
+    "poles": [-0.7, -0.4, -0.5, -1.0],
+    "filter_poles": [-2.0],
+    "filter_gains": [1.0],
+    "mu": 20.0,
+    "rho": 1.0,
+    "mu_a": 0.2,
+    "omega0": [6.0, 4.0],
+    "omega_max": 10.0,
+    "omega_unit_rad_s": 1.0,
+}
 
 
 def omega(tr) -> np.ndarray:
@@ -423,30 +446,6 @@ def test_frequency_clips_and_minimum_separation():
     oth = 1 + 6 + 6 * 2  # state layout: yf (n - 1) | zh (n_z = 6) | Xi (6 x 2) | thetah
     wh = np.sqrt(np.maximum(s[oth : oth + 2] - np.array(EX2["a"]), 0.0))  # (8)
     assert abs(wh[0] - wh[1]) >= 0.05 * wh.max() * (1 - 1e-9)
-
-
-def test_output_conventions_and_extras():
-    cls = get(NAME)
-    est = cls.example()
-    x = cls.example_signal(2400)
-    tr = est.update(x)
-    assert est.n_components == 2 and tr.frequency_hz.shape == (2400, 2)
-    assert set(tr.extras) == {
-        "excitation_level",
-        "adaptation_enabled",
-        "component_faded",
-        "signal_present",
-        "observer_reset",
-    }
-    for key in ("excitation_level", "adaptation_enabled", "component_faded"):
-        assert tr.extras[key].shape == (2400, 2)
-    c = tr.converged
-    assert c[-600:].all()
-    np.testing.assert_allclose(tr.frequency_hz[-300:].mean(axis=0), [15.0, 10.0], rtol=3e-3)
-    np.testing.assert_allclose(tr.amplitude[-300:].mean(axis=0), [4.0, 3.0], rtol=0.01)
-    # phase: y = offset + sum A sin(phase); the reconstruction follows the samples
-    assert np.sqrt(np.mean((tr.reconstruct()[-300:] - x[-300:]) ** 2)) < 0.1
-    assert tr.residual_rms < 2.0
 
 
 def test_multisine_demo_scenario():

@@ -158,6 +158,10 @@ def run(args: argparse.Namespace) -> int:
                 f"{1e9 / r['1ch_per_block']:.1f}",
             )
     print_table(console, table)
+    for name in names:  # an estimator that cannot reach the baseline says why
+        note = getattr(get(name), "bench_note", None)
+        if note:
+            console.print(f"note: {note}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

@@ -8,8 +8,7 @@
    field gets one per component), required range fields (``f_min_hz``/``f_max_hz``,
    ``min_frequency_hz``/``max_frequency_hz`` when their default is not None) the
    scenario's frequency range, component-count fields (``n_components``, ``n_sinusoids``,
-   ...) the number of truth components, ``omega_unit_rad_s`` 2 pi times the mean nominal
-   frequency;
+   ...) the number of truth components;
 3. the estimator's own hook, when it has one: ``params_for(sample_rate_hz, hints) ->
    dict`` (classmethod; ``hints`` as built by
    :func:`sinewatch.bench.scenarios.scenario_hints`; raising ParameterError means "does
@@ -33,6 +32,7 @@ import numpy as np
 
 from sinewatch import estimators as est_registry
 from sinewatch.bench.scenarios import Profile, profile, scenario_hints
+from sinewatch.estimators.adaptive_multisine import DESIGN, MIN_SAMPLES_PER_PERIOD
 from sinewatch.estimators.base import Estimator
 from sinewatch.scenarios import Scenario
 from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
@@ -62,7 +62,7 @@ NOMINAL_HZ_FIELDS = (
 RANGE_LO_FIELDS = ("f_min_hz", "min_frequency_hz", "frequency_min_hz")
 RANGE_HI_FIELDS = ("f_max_hz", "max_frequency_hz", "frequency_max_hz")
 COUNT_FIELDS = ("n_components", "n_sinusoids", "n_tones", "num_components")
-TIME_UNIT_FIELDS = ("omega_unit_rad_s",)
+TIME_UNIT_FIELDS: tuple[str, ...] = ()  # none left: adaptive-multisine designs itself from its band
 
 
 def _is_list_field(fld: Any) -> bool:
@@ -114,18 +114,19 @@ def _ges_kalman_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
 
 
 def _adaptive_multisine_params(fs: float, hints: dict[str, Any]) -> dict[str, Any]:
-    """adaptive-multisine: one sinusoid per component, every rate relative to the mean
-    nominal frequency (as its own example does); its default design otherwise."""
-    nom = hints["nominal_frequency_hz"]
-    fmean = float(np.mean(nom))
-    # its frequency bound (default 4 units) must stay below Nyquist: the projection ball
-    # admits up to ~ n^(1/4) omega_max
-    nyquist_units = 0.5 * fs / fmean
-    return {
-        "n_sinusoids": len(nom),
-        "omega_unit_rad_s": TWO_PI * fmean,
-        "omega_max": min(4.0, 0.8 * nyquist_units / len(nom) ** 0.25),
-    }
+    """adaptive-multisine: its automatic design, from the number of components and the
+    scenario's frequency band only (a band from 0 starts at a twentieth of its top; the top
+    is kept where the estimator's discretisation needs it: MIN_SAMPLES_PER_PERIOD samples
+    per period, with the band's margin)."""
+    if len(hints["nominal_frequency_hz"]) < 2:
+        # as before its automatic design: the validity bench (tests/test_validity.py) checks
+        # it on its own two-tone example; on one tone its law runs on the observer's free
+        # response during an interruption's detection latency (a wild frequency for ~50 ms)
+        raise NotApplicable("adaptive-multisine is benchmarked on two or more tones")
+    lo, hi = hints["frequency_range_hz"]
+    hi = min(float(hi), fs / MIN_SAMPLES_PER_PERIOD / (1.0 + DESIGN["band_margin"]))
+    lo = float(lo) if lo > 0 else hi / 20.0
+    return {"n_sinusoids": len(hints["nominal_frequency_hz"]), "band_hz": (min(lo, hi / 2.0), hi)}
 
 
 # Used for an estimator that has no ``params_for`` classmethod of its own.

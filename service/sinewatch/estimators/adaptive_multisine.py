@@ -2,7 +2,7 @@
 
 Paper: B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based
 robust estimator of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6),
-1618-1631, 2018. Algorithm 1 is the reference; the departures from it are numbered D1-D8 below.
+1618-1631, 2018. Algorithm 1 is the reference.
 
 Signal (1)-(2): ``y(t) = A0 + sum_i A_i sin(phi_i(t)) + d(t)``, ``phi_i' = omega_i``.
 
@@ -16,114 +16,97 @@ Biased multi-oscillator (3)-(7), ``x in R^(2n+1)`` (``R^(2n)`` with ``bias=False
 so that ``x_{2i-1} = A_i sin(phi_i)``, ``x_{2i} = A_i omega_i cos(phi_i)`` and
 ``x_{2n+1} = A0``. *Rebuilt:* the extraction prints ``G_x_i = +x_{2i-1} e_{2i}``; with (4)
 and the -1 entry of F_i that gives ``x_{2i}' = (2 a_i + Omega_i) x_{2i-1}``, not an
-oscillator, so the sign is ``-`` (the tests check that (3) with it generates the sinusoids
-and that (9)-(10) recover A_i and phi_i). With bias the a_i must be non-zero and distinct
-(else (F_x, C_x) is unobservable), without it distinct (Example 1 uses a_1 = 0).
+oscillator, so the sign is ``-`` (the tests check that (3) with it generates the sinusoids).
 
-Output filter (12): ``yf' = F_f yf + B_f y`` with ``n_f = n - 1`` states (``F_f`` diagonal
-with the ``filter_poles``, ``B_f`` the ``filter_gains``). Augmented state (15):
-``z = [x; yf]``, ``n_z = 2n + 1 + n_f``, ``F_z = [[F_x, 0], [B_f C_x, F_f]]``,
+Output filter (12): ``yf' = F_f yf + B_f y`` with ``n_f = n - 1`` states (``F_f`` diagonal,
+``B_f`` a vector). Augmented state (15): ``z = [x; yf]``, ``F_z = [[F_x, 0], [B_f C_x, F_f]]``,
 ``C_z = blockdiag(C_x, I_{n-1})``, output ``eta = [y; yf]``, ``G_z = [G_x; 0]``.
-
 Estimator, with ``L = [[L_x, 0], [0, 0]]``, ``L_x`` by pole placement of ``F_x - L_x C_x``
-on ``poles`` (``scipy.signal.place_poles``, Algorithm 1's initialisation) and
-``A_L = F_z - L C_z``::
+(Algorithm 1's initialisation) and ``A_L = F_z - L C_z``::
 
     zh'  = A_L zh + L eta + G_z(zh) thetah + Xi thetah'                              (16)
     xi_i' = A_L xi_i + G_z_i(zh),   Xi = [xi_1 ... xi_n]                        (17)-(18)
     thetah' = P[thetah'_unc]  (projection on |thetah| <= theta_bar)            (19)-(21)
-    Ah_i' = -mu_A omegah_i (omegah_i Ah_i - sqrt(Omegah_i x_{2i-1}^2 + x_{2i}^2)),
-            held at 0 from below                                                     (11)
-    omegah_i = sqrt(thetah_i - a_i)                                                  (8)
-    phih_i = angle(x_{2i} + j omegah_i x_{2i-1})                                     (10)
-    A0h = x_{2n+1}
+    thetah'_unc = -mu V Psi V^T Xi^T C_z^T (C_z zh - eta)                            (22)
+    Ah_i' = -mu_A omegah_i (omegah_i Ah_i - A_i,inst)                                (11)
+    omegah_i = sqrt(thetah_i - a_i) (8),  phih_i = angle(x_{2i} + j omegah_i x_{2i-1}) (10)
 
-theta_bar (the radius of Theta*, Assumption 1) comes from ``omega_max``:
-``|theta*_i| <= max(|a_i|, |a_i + omega_max^2|)``. Excitation, (23)-(25):
-``M = Xi^T Xi + rho^2 I``, ``Phi_Xi = Xi^T C_z^T C_z Xi``, ``Phi_Psi = M^-1 Phi_Xi``; its
-eigenvalues ``lambda_i`` lie in ``[0, 1)`` (``|C_z| = 1``), and ``psi_i`` switches on at
-``lambda_i >= delta_high``, off below ``delta_low`` and holds in between (25), evaluated at
-each sample from the state there and held over the next sample interval (Algorithm 1,
-steps 7-14). ``lambda`` is sorted in decreasing order, so ``psi_1`` belongs to the
-best-excited direction (the paper does not say how it orders them).
+Excitation (23)-(25): ``M = Xi^T Xi + rho^2 I``, ``Phi_Xi = Xi^T C_z^T C_z Xi``; ``lambda_i``
+are the eigenvalues of ``Phi_Psi = M^-1 Phi_Xi`` (in [0, 1)), sorted decreasing; ``psi_i``
+switches on at ``lambda_i >= delta_high``, off below ``delta_low``, holds in between.
+``Phi_Psi`` is not symmetric, so (22) is implemented with the generalised eigenvectors
+``Phi_Xi v = lambda M v`` normalised by ``V^T M V = I`` (``V V^T = M^-1``): with every
+``psi_i = 1`` it is the paper's own reduction (33), ``-mu M^-1 Xi^T C_z^T (...)``, with partial
+excitation it freezes exactly the under-excited generalised directions (D1 of the explicit
+mode, :mod:`sinewatch.estimators._adaptive_multisine_explicit`, says why).
 
-D1, the unconstrained law (22) as implemented::
+Two modes, chosen by ``band_hz``:
 
-    thetah'_unc = -mu V Psi V^T Xi^T C_z^T (C_z zh - eta)
+* **automatic design** (``band_hz`` given; this module's kernel): the user gives n, the band
+  ``[f_lo, f_hi]`` the components lie in and whether there is an offset; everything else is
+  derived below (AD1-AD8). One step per sample, no sub-steps, no matrix exponential, no
+  eigen-decomposition while every direction is excited.
+* **explicit gains** (no ``band_hz``): the paper's per-example gains in ``omega_unit_rad_s``
+  units, RK4 sub-steps; kept unchanged so that recordings made with it replay bit for bit.
 
-with ``V`` the generalised eigenvectors ``Phi_Xi v = lambda M v`` normalised by
-``V^T M V = I`` (Cholesky ``M = R R^T``, Jacobi on ``R^-1 Phi_Xi R^-T``), so
-``Phi_Psi = V Lambda V^-1`` and ``V V^T = M^-1``. Why: ``Phi_Psi`` is the product of two
-symmetric matrices and is not symmetric, so the paper's ``U_Psi S_Psi U_Psi^T`` (23) and the
-pairing of the i-th eigenvalue of ``Phi_Psi`` with the i-th of ``Phi_Xi`` (24) are only
-defined when ``Xi^T Xi`` and ``Phi_Xi`` commute; taken literally (SVD of ``Phi_Psi``, our
-forward-Euler prototype, without D4) the law drove Example 1 to ``Omegah < 0`` within 10 s. Under the commuting assumption the paper itself
-reduces (22) to ``-mu M^-1 Psi Xi^T C_z^T (...)`` (33), which is what the form above gives
-when every ``psi_i = 1``. With partial excitation it freezes exactly the under-excited
-generalised eigen-directions, and in the coordinates ``u = V^T M theta~`` each excited
-direction decays at ``mu lambda_i >= mu delta_low``, the rate the proof of Theorem 4.1 uses.
-With all ``psi_i`` equal the kernel skips the eigen-decomposition (Cholesky only).
+Automatic design (every rate in units of ``w_ref = 2 pi f_hi``, scaled time ``tau = w_ref t``;
+``beta = f_lo / f_hi``; the constants are ``DESIGN``):
 
-D2, discretisation (the paper: forward Euler at Ts = 0.3 ms and 0.1 ms). Time is scaled,
-``tau = omega_unit_rad_s t``, and every rate-like parameter (a_i, poles, filter poles and
-gains, mu, rho, omega0, omega_max, the times) is in these units: ``omega_unit_rad_s = 1`` runs
-the paper's rad/s examples with the paper's gains, ``2 pi f0`` gives the same design relative
-to f0 (the equations are covariant: a -> a/s^2; poles, F_f, B_f, mu -> /s; rho -> rho s^2;
-mu_A unchanged). The input is divided by ``amplitude_unit`` (rho and the excitation levels
-are in signal units: Xi scales with the amplitude). Between samples the measurement is
-interpolated linearly (first-order hold, no delay) and the whole state is integrated with
-classical RK4 in ``m`` equal sub-steps per sample, ``m`` fixed in ``_setup`` so that
-``h omega_max <= 0.25`` (RK4 phase error ~(h omega)^5/120 per step: frequency bias
-< 4e-6 relative), ``h omega_ball <= 2`` (stability for any frequency the projection admits)
-and ``h rate <= 1`` (observer and filter poles, mu, mu_A omega_ball^2). The projection is
-the continuous (21) inside the stages, followed by a radial clip; ``Ah >= 0`` likewise.
-Checked against an independent forward-Euler Algorithm 1 (tests): Richardson-extrapolated
-Euler and RK4 at 1 kHz agree within 4e-4 rad/s after 8 s of Example 1.
+AD1 Initial frequencies spread geometrically over the band, ``omegah_i(0) = beta^(1 - (i - 1/2)/n)``,
+    and ``a_i = -omegah_i(0)^2``, so ``thetah(0) = 0``: the observer poles are placed for the
+    frozen model at the initial estimates (the paper needs ``a_i`` distinct and non-zero, (4);
+    a small ``|theta*|`` is what its conditions (36), (39) reward: ``theta_bar`` enters them as
+    ``3 p_bar theta_bar``).
+AD2 Observer poles, ``2n (+1)`` distinct, geometric in ``[p_min, p_max] sqrt(omegah_1(0))``
+    (the geometric mean of the lowest initial frequency and the band's top). The paper's
+    examples place them between 0.1 and 1 times the lowest tone; anchored there alone they are
+    too fast for a narrow band, anchored at the top too slow for a wide one (measured on the
+    paper's examples and a 5:1 band).
+AD3 Filter (12): ``F_f = -omegah_{j+1}(0)``, ``B_f = -F_f`` (unit DC gain; the paper: -5/4.5,
+    -6/6, -2/1 for tones between 2 and 7 rad/s).
+AD4 ``rho`` (23) is in the units of ``Xi`` (signal units over rate squared), unknown in advance:
+    ``rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n``, floored at ``(min_amplitude / (omegah_1(0)
+    |p_fast|))^2`` (the size of ``Xi`` for a tone at ``min_amplitude``), so that ``lambda_i``
+    measures how much of ``Xi`` the output sees whatever the amplitude and the design.
+AD5 ``mu`` (22): the excited parameter error decays at ``mu lambda_i`` (proof of Theorem 4.1,
+    ``-mu delta_low |theta~|^2``); ``mu = kappa |slowest pole| / lambda_typ``, i.e. ``kappa`` times
+    the slowest observer pole at ``lambda = lambda_typ`` (Theorem 4.1 needs the adaptation slower
+    than the observer: the cross terms of (36) in ``mu p_bar``). ``mu_A`` (11): the amplitude
+    filter runs at the slowest observer pole at ``omegah_1(0)``.
+AD6 Frequency clips (Remark 3.1) at the band, widened by ``band_margin``, and the components
+    kept ordered and ``separation`` apart (two on one line form an unobservable pair, and the
+    re-placement AD8 needs distinct frequencies); the projection ball (19)-(21) is the one the
+    clips imply.
+AD7 The settling dwell (D4 of the explicit mode): ``thetah`` adapts only ``dwell_poles /
+    |slowest pole|`` after the start and after the signal's return (start-up transients are
+    output error the law would read as parameter error); nothing adapts while the signal is
+    absent (its AC power over one period of ``omegah_1(0)`` below ``min_amplitude^2 / 2`` or a
+    quarter of its power over ten periods).
+AD8 Re-centring: the observer (16) runs ``F_x(a) - L_x C_x + G_x thetah = F_x(a - thetah) - L_x
+    C_x``, so its poles are the placed ones only at ``thetah = 0``; with ``L_x`` fixed and the
+    estimates far from ``-a`` some of its modes decay 30 times slower than placed (measured on
+    Example 1). When some ``|thetah_i|`` exceeds ``recentre |a_i|``, ``a <- a - thetah``,
+    ``thetah <- 0`` and ``L_x`` is placed again for the new ``a`` (closed form, :func:`_place`):
+    the same estimates, the same state, and ``theta*`` (hence ``theta_bar`` in (36)) shrinks to
+    the estimation error as the estimates converge.
 
-D3: the first-order hold scales a tone's amplitude by ``sinc^2(omega h / 2)`` (no phase
-shift); the reported amplitude is divided by it (5 % at 8 samples per period).
+Discretisation (the paper: forward Euler at Ts = 0.3 ms). Forward Euler on an undamped
+oscillator grows by ``sqrt(1 + (h omega)^2)`` per step; here every oscillator pair of
+(16)-(17) is stepped with symplectic Euler (``x_{2i-1}`` first, then ``x_{2i}`` from the new
+``x_{2i-1}``), the rest with forward Euler, one step of ``h = w_ref / fs`` per sample. With the
+output error at zero, the observer is then the exact recursion of a sampled sinusoid of
+frequency ``omega_d`` with ``2 sin(omega_d h / 2) = h sqrt(Omegah)``: the reported frequency is
+``omega_d`` (no discretisation bias at any ``h omega < 2``), and (9)-(10) use the exact sampled
+relations ``x_{2i-1} = A sin(phi)``, ``h x_{2i} + x_{2i-1} (1 - cos delta) = A cos(phi) sin delta``
+(``delta = omega_d h``) for the instantaneous amplitude ``A_i,inst`` and the phase.
 
-D4, the settling dwell (``adaptation_delay``, default 2 / |slowest pole|): thetah adapts
-only once some psi_i has been on that long, and a total dis-excitation re-arms it. The
-observer starts from zero, and its start-up transient is output error that the law reads as
-parameter error: without the dwell, Example 1 from the paper's (3, 4) leaves omegah_2
-hovering near 3 rad/s for 150 s (it never reaches 5), and Example 2 started at the true
-frequencies is thrown 25 % off within 15 s (and diverged before the guard D7 existed).
-
-D5, the signal-level gate (``level_time``, ``level_ratio``, ``min_amplitude``): smoothed AC
-power of the input over ``level_time`` and over ten times as long; the signal is absent when
-the short-term power is below ``min_amplitude^2 / 2`` or below ``level_ratio`` times the
-long-term one. While absent nothing adapts; at the loss thetah rolls back to a snapshot
-taken 3-4 ``level_time`` earlier (the gate needs ~1.4 ``level_time`` to close, during which
-the law ran on the observer's free response), and the dwell counts from ``-delay`` (twice as
-long: the restarted observer's slow modes otherwise kick thetah by several per cent).
-Without the gate, 100 s of silence in Example 2 drags both frequencies to ~0.01 rad/s.
-
-D6, minimum separation (``min_separation``, 0.05 of the higher frequency): two components on
-one line form an unobservable pair (their states can cancel in C_x) that no output error
-damps; the law's motion that would close a gap below the minimum is removed and the gap is
-restored after each step. ``omega_ranges`` are the per-component clips of Remark 3.1.
-
-D7, a guard: if the state leaves ``1e4 (1 + level of the input)`` (a frozen observer with
-thetah far from the truth can be unstable: with Example 2's L_x it is stable only for
-omegah_1 - omegah_2 in about [0, 1.3] rad/s) the observer restarts from zero with thetah
-rolled back, and ``observer_reset`` is raised for that sample.
-
-D8, outputs beyond Algorithm 1: a component whose corrected amplitude falls below
-``max(min_amplitude, fade_ratio max_j A_j)`` is faded (extras ``component_faded``): frequency
-and phase NaN, amplitude the small estimate; ``Omegah_i <= 0`` (no real frequency, (8)) is
-NaN throughout. ``converged`` needs every component present with a real frequency, the dwell
-passed with a signal, the components apart by more than ``convergence_tol``, and the
-smoothed ``|omegah_i - smoothed omegah_i|`` (over ``convergence_time``) below
-``convergence_tol omegah_i``. Extras per sample: ``excitation_level`` (lambda_i, (N, n)),
-``adaptation_enabled`` (psi_i, (N, n)), ``component_faded`` ((N, n)), ``signal_present``
-and ``observer_reset`` ((N,)). The residual is the one-step prediction of each sample from
-the previous estimates (x propagated by the oscillator at Omegah_i over one sample, with
-the amplitude correction).
-
-Defaults: the paper's tuning for n = 2 (Example 2 with bias, Example 1 without), in the
-paper's units; other n need an explicit design. Example 2's initial frequencies are not
-given: (3.5, 2.5) is ours, inside the band where its frozen observer is stable.
+Outputs (both modes): a component whose amplitude falls below ``max(min_amplitude,
+fade_ratio max_j A_j)`` is faded (``component_faded``): frequency and phase NaN; ``converged``
+needs the dwell passed, every component present, apart, and its smoothed ``|Omegah -
+smoothed Omegah|`` below ``2 convergence_tol Omegah``. Extras per sample:
+``excitation_level`` (lambda_i, (N, n)), ``adaptation_enabled`` (psi_i), ``component_faded``,
+``signal_present`` and ``observer_reset`` ((N,)). The residual is the a-priori output error
+``y_k - C_x zh_k``. Speed: ``sinewatch bench kernels --estimators adaptive-multisine``.
 """
 
 from __future__ import annotations
@@ -133,13 +116,13 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.signal import place_poles
 
+from sinewatch.estimators import _adaptive_multisine_explicit as explicit
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, NonNegativeFinite, PositiveFinite, Track, kernel
 from sinewatch.schemas.errors import ParameterError
 
-# The paper's tunings for n = 2 (Section V), the defaults of the per-case parameters below.
+# The paper's tunings for n = 2 (Section V): the explicit mode's defaults.
 # With bias: Example 2 (its initial frequencies are not given; (3.5, 2.5) is ours); without:
 # Example 1 (initial frequencies 3 and 4 rad/s as in the paper). Units: rad/s with
 # omega_unit_rad_s = 1.
@@ -172,12 +155,18 @@ _Fraction = Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)]
 
 
 class AdaptiveMultisineParams(EstimatorParams):
-    """Rates are in units of ``omega_unit_rad_s``, amplitudes in ``amplitude_unit`` (see the
-    module docstring). Left unset, the design (a .. omega0) is the paper's tuning for n = 2
-    (Example 2 with bias, Example 1 without); other n need an explicit design."""
+    """With ``band_hz``: the automatic design, from n, the band and ``bias`` (the fields marked
+    "explicit mode" are then rejected). Without: the explicit gains, rates in units of
+    ``omega_unit_rad_s``, amplitudes in ``amplitude_unit``; left unset, the design (a .. omega0)
+    is the paper's tuning for n = 2 (Example 2 with bias, Example 1 without)."""
 
     n_sinusoids: int = Field(2, ge=1, le=8, description="n, the number of sinusoids modelled")
     bias: bool = Field(True, description="Model the offset A0 (state x_{2n+1}); False: zero-mean signal")
+    band_hz: tuple[float, float] | None = Field(
+        None,
+        description="[f_lo, f_hi] (Hz) the n frequencies lie in: selects the automatic design; "
+        "unset: the explicit mode (the fields below marked so)",
+    )
     omega_unit_rad_s: PositiveFinite = Field(
         1.0,
         description="Angular frequency (rad/s) that counts as 1 in every rate parameter; 1 = the paper's units",
@@ -240,7 +229,18 @@ class AdaptiveMultisineParams(EstimatorParams):
             raise ValueError(
                 f"expected 0 < delta_low < delta_high < 1, got delta_low={self.delta_low}, delta_high={self.delta_high}"
             )
-        if n != 2:
+        if self.band_hz is not None:
+            lo, hi = self.band_hz
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+                raise ValueError(f"band_hz: expected finite 0 < f_lo < f_hi, got {self.band_hz}")
+            # set to other than their defaults (a dumped state carries every field)
+            fixed = sorted(k for k in EXPLICIT_ONLY if getattr(self, k) != type(self).model_fields[k].default)
+            if fixed:
+                raise ValueError(
+                    f"expected no {', '.join(fixed)} with band_hz (the automatic design sets them; "
+                    "they belong to the explicit mode)"
+                )
+        elif n != 2:
             missing = [k for k in _DESIGN_KEYS if getattr(self, k) is None]
             if missing:
                 raise ValueError(
@@ -279,6 +279,12 @@ class AdaptiveMultisineParams(EstimatorParams):
                     )
         return self
 
+    @property
+    def f_min_hz(self) -> float | None:
+        """The lowest frequency expected: the band's bottom in the automatic mode (the pipeline
+        sizes its signal-presence window on it), None in the explicit mode."""
+        return self.band_hz[0] if self.band_hz is not None else None
+
     def design(self) -> dict[str, Any]:
         """The effective a, poles, filter poles and gains (lists), mu, rho, mu_a (floats) and
         omega0 (list)."""
@@ -290,354 +296,553 @@ class AdaptiveMultisineParams(EstimatorParams):
         return out
 
 
-# ---- packed constants -------------------------------------------------------------------------
-# Numba charges ~15 ns per array argument of a call (reference counting), so the kernel's
-# helpers take four packed arrays instead of twenty: ``ci`` (int64) = n, nx, nf, nz, sub-steps,
-# bias; ``cf`` (float64) = the scalars below,
-# then a (n), L (nz, its first column), F_f (nf), B_f (nf), theta0 (n), and the bounds
-# of thetah from omega_ranges, theta_lo (n) and theta_hi (n);
-# ``work`` (float64) = C_z Xi, R, R^-1, R^-1 Phi_Xi R^-T, W (n*n each, row-major), lambda, e,
-# g, q, psi_eff (n each).
-_C_H, _C_MU, _C_RHO2, _C_MUA, _C_DHI, _C_DLO, _C_TBAR = 0, 1, 2, 3, 4, 5, 6
-_C_AMPU, _C_OMU, _C_MINA, _C_FADE, _C_CALPHA, _C_CTOL, _C_DELAY, _C_ZMAX = 7, 8, 9, 10, 11, 12, 13, 14
-_C_LALPHA, _C_RINGP, _C_LRATIO, _C_SEP = 15, 16, 17, 18
-_N_CONSTS = 19
-_RING = 4  # snapshots of thetah kept for the roll-back on loss of signal
-_I_N, _I_NX, _I_NF, _I_NZ, _I_MSUB, _I_BIAS = 0, 1, 2, 3, 4, 5
-# the scalars of the state, after the per-component statistics (see AdaptiveMultisine._initial_state)
-_Y_PREV, _Y_PRED, _STARTED, _CLOCK = 0, 1, 2, 3  # y(k-1), its prediction, started, settling clock
-_LVL_MEAN, _LVL_POW, _PRESENT = 4, 5, 6  # signal-level gate: mean, AC power, signal present
-_RING_COUNT, _RING_SLOT, _LVL_POW_LONG = 7, 8, 9  # samples since the last snapshot, next slot, AC power (10x slower)
-_N_SCALARS = 10
+# ---- automatic design ---------------------------------------------------------------------------
+#: The fields only the explicit mode reads (rejected with ``band_hz``).
+EXPLICIT_ONLY = (
+    "omega_unit_rad_s",
+    "amplitude_unit",
+    *_DESIGN_KEYS,
+    "omega_max",
+    "omega_ranges",
+    "adaptation_delay",
+    "level_time",
+    "level_ratio",
+    "min_separation",
+    "convergence_time",
+)
+
+#: Samples per period of the band's top (with its margin) the automatic mode needs.
+MIN_SAMPLES_PER_PERIOD = 10.0
+
+#: The constants of the automatic design AD1-AD8 (module docstring), dimensionless.
+DESIGN = {
+    "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
+    "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
+    "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
+    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
+    "lambda_typ": 0.01,  # AD5
+    "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
+    "separation": 0.15,  # AD6: adjacent components at least this fraction apart
+    "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
+    "recentre": 0.02,  # AD8: re-centre when some |thetah_i| exceeds this fraction of |a_i|
+    "convergence_poles": 10.0,  # smoothing time of the convergence test = this / |slowest pole|
+    "level_poles": 1.0,  # smoothing time of tr(Xi^T Xi) (AD4) = this / |slowest pole|
+}
+
+
+def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, Any]:
+    """AD1-AD7: a, poles, F_f, B_f, omega0 (lists), mu, rho_rel, mu_a, dwell, times (floats),
+    in units of ``w_ref = 2 pi f_hi``; ``w_ref`` itself in rad/s."""
+    lo, hi = band_hz
+    beta = lo / hi
+    w0 = [beta ** (1.0 - (i + 0.5) / n) for i in range(n)]  # AD1
+    nx = 2 * n + int(bias)
+    anchor = math.sqrt(w0[0])  # geometric mean of the lowest initial frequency and f_hi
+    p_lo, p_hi = DESIGN["p_min"] * anchor, DESIGN["p_max"] * anchor
+    poles = [-p_lo * (p_hi / p_lo) ** (j / (nx - 1)) for j in range(nx)] if nx > 1 else [-p_lo]  # AD2
+    slow = p_lo
+    return {
+        "w_ref": 2.0 * math.pi * hi,
+        "a": [-w * w for w in w0],
+        "poles": poles,
+        "filter_poles": [-w0[j + 1] for j in range(n - 1)],  # AD3
+        "filter_gains": [w0[j + 1] for j in range(n - 1)],
+        "omega0": w0,
+        "mu": DESIGN["kappa"] * slow / DESIGN["lambda_typ"],  # AD5
+        "rho_rel": DESIGN["rho_rel"],
+        "mu_a": slow / (w0[0] * w0[0]),
+        "dwell": DESIGN["dwell_poles"] / slow,  # AD7
+        "convergence_time": DESIGN["convergence_poles"] / slow,
+        "level_time": DESIGN["level_poles"] / slow,
+        "w_lo": beta * (1.0 - DESIGN["band_margin"]),  # AD6
+        "w_hi": 1.0 + DESIGN["band_margin"],
+    }
+
+
+# packed constants of the automatic mode: ``ci`` = n, nx, nf, nz, 0, bias, 1 (the mode flag);
+# ``cf`` = the scalars below, then the observer poles (nx), F_f (nf), B_f (nf).
+_K_H, _K_MU, _K_RHO2, _K_MUA, _K_DHI, _K_DLO, _K_TBAR, _K_OMU = 0, 1, 2, 3, 4, 5, 6, 7
+_K_MINA, _K_FADE, _K_CALPHA, _K_CTOL, _K_DELAY, _K_ZMAX, _K_LALPHA = 8, 9, 10, 11, 12, 13, 14
+_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA = 15, 16, 17, 18, 19, 20
+_N_K = 21
+_I_MODE = 6
+# the scalars of the automatic mode's state, after the per-component part
+_S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
+_N_S = 6
 
 
 @kernel
-def _sym_eig(work: np.ndarray, n: int) -> None:
-    """Cyclic Jacobi on the symmetric n x n matrix S held in ``work`` (destroyed): eigenvalues
-    into lambda, sorted in decreasing order, orthonormal eigenvectors into the columns of W."""
-    nn = n * n
-    wS = 3 * nn
-    wW = 4 * nn
-    wl = 5 * nn
+def _chol_into(A: np.ndarray, R: np.ndarray, n: int) -> bool:
+    """Cholesky ``A = R R^T`` of the symmetric n x n ``A`` (lower triangle read) into ``R``
+    (lower); False (R unfinished) when ``A`` is not positive definite."""
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= R[j, k] * R[j, k]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        R[j, j] = d
+        for i in range(j + 1, n):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= R[i, k] * R[j, k]
+            R[i, j] = acc / d
+    return True
+
+
+@kernel
+def _gen_eig(Phi: np.ndarray, R: np.ndarray, S: np.ndarray, W: np.ndarray, lam: np.ndarray, n: int) -> None:
+    """``Phi v = lambda M v`` with ``M = R R^T``: ``S = R^-1 Phi R^-T`` by cyclic Jacobi into
+    ``lam`` (decreasing) and ``W`` (columns); ``v = R^-T w``."""
+    for j in range(n):  # S = R^-1 Phi (forward substitution on each column)
+        for i in range(n):
+            acc = Phi[i, j]
+            for k in range(i):
+                acc -= R[i, k] * S[k, j]
+            S[i, j] = acc / R[i, i]
+    for i in range(n):  # S <- S R^-T (forward substitution on each row)
+        for j in range(n):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= S[i, k] * R[j, k]
+            S[i, j] = acc / R[j, j]
+    if n == 2:  # closed form: the eigenvalues of [[a, b], [b, c]] and the rotation that diagonalises it
+        a = S[0, 0]
+        b = 0.5 * (S[0, 1] + S[1, 0])
+        c = S[1, 1]
+        half = 0.5 * (a - c)
+        r = math.sqrt(half * half + b * b)
+        lam[0] = 0.5 * (a + c) + r
+        lam[1] = 0.5 * (a + c) - r
+        if r == 0.0:
+            cs, sn = 1.0, 0.0
+        elif half >= 0.0:  # first eigenvector (cos, sin) of the larger eigenvalue
+            t = b / (half + r)
+            cs = 1.0 / math.sqrt(1.0 + t * t)
+            sn = t * cs
+        else:
+            t = b / (r - half)
+            sn = 1.0 / math.sqrt(1.0 + t * t)
+            cs = t * sn
+        W[0, 0] = cs
+        W[1, 0] = sn
+        W[0, 1] = -sn
+        W[1, 1] = cs
+        return
+    for i in range(n):  # symmetric up to rounding: symmetrise, or Jacobi never meets its tolerance
+        for j in range(i):
+            v = 0.5 * (S[i, j] + S[j, i])
+            S[i, j] = v
+            S[j, i] = v
     for i in range(n):
         for j in range(n):
-            work[wW + i * n + j] = 1.0 if i == j else 0.0
+            W[i, j] = 1.0 if i == j else 0.0
     for _sweep in range(30):
         off = 0.0
         tot = 0.0
         for i in range(n):
-            tot += work[wS + i * n + i] ** 2
+            tot += S[i, i] * S[i, i]
             for j in range(i + 1, n):
-                off += work[wS + i * n + j] ** 2
+                off += S[i, j] * S[i, j]
         if off <= 1e-30 * tot or off == 0.0:
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
-                apq = work[wS + p * n + q]
+                apq = S[p, q]
                 if apq == 0.0:
                     continue
-                theta = (work[wS + q * n + q] - work[wS + p * n + p]) / (2.0 * apq)
+                theta = (S[q, q] - S[p, p]) / (2.0 * apq)
                 t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
                 c = 1.0 / math.sqrt(t * t + 1.0)
                 s = t * c
-                for k in range(n):  # S <- S J (columns p, q)
-                    skp = work[wS + k * n + p]
-                    skq = work[wS + k * n + q]
-                    work[wS + k * n + p] = c * skp - s * skq
-                    work[wS + k * n + q] = s * skp + c * skq
-                for k in range(n):  # S <- J^T S (rows p, q)
-                    spk = work[wS + p * n + k]
-                    sqk = work[wS + q * n + k]
-                    work[wS + p * n + k] = c * spk - s * sqk
-                    work[wS + q * n + k] = s * spk + c * sqk
-                for k in range(n):  # W <- W J
-                    wkp = work[wW + k * n + p]
-                    wkq = work[wW + k * n + q]
-                    work[wW + k * n + p] = c * wkp - s * wkq
-                    work[wW + k * n + q] = s * wkp + c * wkq
+                for k in range(n):
+                    skp = S[k, p]
+                    skq = S[k, q]
+                    S[k, p] = c * skp - s * skq
+                    S[k, q] = s * skp + c * skq
+                for k in range(n):
+                    spk = S[p, k]
+                    sqk = S[q, k]
+                    S[p, k] = c * spk - s * sqk
+                    S[q, k] = s * spk + c * sqk
+                for k in range(n):
+                    wkp = W[k, p]
+                    wkq = W[k, q]
+                    W[k, p] = c * wkp - s * wkq
+                    W[k, q] = s * wkp + c * wkq
     for i in range(n):
-        work[wl + i] = work[wS + i * n + i]
+        lam[i] = S[i, i]
     for i in range(n):  # selection sort, decreasing
         best = i
         for j in range(i + 1, n):
-            if work[wl + j] > work[wl + best]:
+            if lam[j] > lam[best]:
                 best = j
         if best != i:
-            tmp = work[wl + i]
-            work[wl + i] = work[wl + best]
-            work[wl + best] = tmp
+            tmp = lam[i]
+            lam[i] = lam[best]
+            lam[best] = tmp
             for k in range(n):
-                tmp = work[wW + k * n + i]
-                work[wW + k * n + i] = work[wW + k * n + best]
-                work[wW + k * n + best] = tmp
+                tmp = W[k, i]
+                W[k, i] = W[k, best]
+                W[k, best] = tmp
 
 
 @kernel
-def _chol(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
-    """C_z Xi, and the Cholesky factor R (lower) of M = Xi^T Xi + rho^2 I of (23) and R^-1."""
-    n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
-    rho2 = cf[_C_RHO2]
-    oxi = nf + nz
-    nn = n * n
-    wR = nn
-    wRi = 2 * nn
-    wS = 3 * nn
+def _place(s: np.ndarray, oa: int, oL: int, poles: np.ndarray, n: int, bias: int) -> None:
+    """L_x with eig(F_x - L_x C_x) = poles for F_x = blockdiag(J_i, 0), a = s[oa : oa + n] < 0,
+    into s[oL : oL + nx]. Closed form (matrix determinant lemma): with D(s) = s^b prod(s^2 -
+    a_k) and P(s) = prod(s - p_m), ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)`` at
+    ``w_i = sqrt(-a_i)``, ``D_i = D / (s^2 - a_i)``, and ``l_bias = P(0) / prod(-a_k)``."""
+    nx = 2 * n + bias
     for i in range(n):
-        base = oxi + i * nz
-        acc = s[base + nx - 1] if nx > 2 * n else 0.0  # row 0 of C_z Xi: C_x xi_i
-        for r in range(n):
-            acc += s[base + 2 * r]
-        work[i] = acc
-        for j in range(1, n):  # the filter rows: yf part of xi_i
-            work[j * n + i] = s[base + nx + j - 1]
-    for i in range(n):  # M = Xi^T Xi + rho^2 I (lower triangle, into S)
-        for j in range(i + 1):
-            acc = rho2 if i == j else 0.0
-            bi = oxi + i * nz
-            bj = oxi + j * nz
-            for r in range(nz):
-                acc += s[bi + r] * s[bj + r]
-            work[wS + i * n + j] = acc
-    for j in range(n):  # Cholesky M = R R^T
-        d = work[wS + j * n + j]
-        for k in range(j):
-            d -= work[wR + j * n + k] ** 2
-        d = math.sqrt(d) if d > rho2 else math.sqrt(rho2)  # M >= rho^2 I: guards rounding only
-        work[wR + j * n + j] = d
-        for i in range(j + 1, n):
-            acc = work[wS + i * n + j]
-            for k in range(j):
-                acc -= work[wR + i * n + k] * work[wR + j * n + k]
-            work[wR + i * n + j] = acc / d
-        for i in range(j):
-            work[wR + i * n + j] = 0.0
-    for j in range(n):  # R^-1 (lower)
-        for i in range(n):
-            work[wRi + i * n + j] = 0.0
-        work[wRi + j * n + j] = 1.0 / work[wR + j * n + j]
-        for i in range(j + 1, n):
-            acc = 0.0
-            for k in range(j, i):
-                acc -= work[wR + i * n + k] * work[wRi + k * n + j]
-            work[wRi + i * n + j] = acc / work[wR + i * n + i]
+        om = -s[oa + i]
+        w = math.sqrt(om)
+        sj = complex(0.0, w)
+        pv = complex(1.0, 0.0)
+        for m in range(nx):
+            pv *= sj - poles[m]
+        dv = sj if bias else complex(1.0, 0.0)
+        for k in range(n):
+            if k != i:
+                dv *= -s[oa + k] - om
+        r = pv / dv
+        s[oL + 2 * i + 1] = r.real
+        s[oL + 2 * i] = r.imag / w
+    if bias:
+        p0 = 1.0
+        for m in range(nx):
+            p0 *= -poles[m]
+        d0 = 1.0
+        for k in range(n):
+            d0 *= -s[oa + k]
+        s[oL + nx - 1] = p0 / d0
 
 
 @kernel
-def _eig(work: np.ndarray, n: int) -> None:
-    """After :func:`_chol`: S = R^-1 Phi_Xi R^-T = (C_z Xi R^-T)^T (C_z Xi R^-T), then its
-    eigen-decomposition W, lambda (decreasing): Phi_Xi v = lambda M v with v = R^-T w, so
-    lambda are the eigenvalues of Phi_Psi (23)."""
-    nn = n * n
-    wRi = 2 * nn
-    wS = 3 * nn
-    for i in range(n):  # S = (C_z Xi R^-T)^T (C_z Xi R^-T)
-        for j in range(i + 1):
-            acc = 0.0
-            for r in range(n):
-                bi = 0.0
-                bj = 0.0
-                for k in range(i + 1):
-                    bi += work[r * n + k] * work[wRi + i * n + k]
-                for k in range(j + 1):
-                    bj += work[r * n + k] * work[wRi + j * n + k]
-                acc += bi * bj
-            work[wS + i * n + j] = acc
-            work[wS + j * n + i] = acc
-    _sym_eig(work, n)
-
-
-@kernel
-def _excitation(s: np.ndarray, work: np.ndarray, cf: np.ndarray, ci: np.ndarray) -> None:
-    """Generalised eigen-decomposition of (Phi_Xi, M), (23)."""
-    _chol(s, work, cf, ci)
-    _eig(work, ci[_I_N])
-
-
-@kernel
-def _rk4_substep(
-    s: np.ndarray,
-    x: np.ndarray,
-    K: np.ndarray,
-    work: np.ndarray,
-    cf: np.ndarray,
-    ci: np.ndarray,
-    ya: float,
-    yb: float,
-    hs: float,
-    fresh: bool,
-) -> None:
-    """One classical RK4 step of length ``hs`` of (12), (16), (17), (19)-(22) and (11) on the
-    integrated part of ``s`` (updated in place), the measurement going linearly from ``ya`` to
-    ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``:
-    ``work`` already holds the decomposition of ``s``. One function with the right-hand side
-    written out, because every call of a compiled helper costs ~15 ns per array argument."""
-    n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
-    mu, mu_a, tbar, sep = cf[_C_MU], cf[_C_MUA], cf[_C_TBAR], cf[_C_SEP]
-    oa_c = _N_CONSTS
-    oL = oa_c + n
-    oFf = oL + nz
+def auto_kernel(
+    y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The automatic mode over block ``y`` from ``state``: ``(out, extras, sse, new_state)``,
+    columns as :func:`adaptive_multisine_kernel`. One symplectic-Euler step of (12), (16),
+    (17), (19)-(22) and (11) per sample; the excitation test (23)-(25) by one Cholesky of
+    ``Phi_Xi - delta_low M`` while every direction is on (positive definite: every lambda_i
+    >= delta_low, all stay on), the generalised eigen-decomposition otherwise."""
+    n, nx, nf, nz, bias = ci[0], ci[1], ci[2], ci[3], ci[5]
+    h = cf[_K_H]
+    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
+    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
+    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
+    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
+    oFf = _N_K + nx
     oBf = oFf + nf
-    olo = oBf + nf + n  # theta_lo, then theta_hi
     oz = nf
     oxi = oz + nz
     oth = oxi + nz * n
-    oa = oth + n
-    ns = oa + n
-    nn = n * n
-    wRi = 2 * nn
-    wW = 4 * nn
-    wev = 5 * nn + n
-    wg = wev + n
-    wq = wg + n
-    wps = wq + n
-    n_on = 0
-    for i in range(n):
-        if work[wps + i] != 0.0:
-            n_on += 1
-    for r in range(ns):
-        x[r] = s[r]
-    for st in range(4):
-        d = st * ns  # this stage's derivative: K[d : d + ns]
-        yin = ya if st == 0 else (yb if st == 3 else 0.5 * (ya + yb))
-        # (12) measured-output filter
-        for j in range(nf):
-            K[d + j] = cf[oFf + j] * x[j] + cf[oBf + j] * yin
-        # output error e = C_z zh - eta_hat
-        cz = x[oz + nx - 1] if nx > 2 * n else 0.0  # C_x zh: positions and bias
+    oA = oth + n
+    ops = oA + n
+    owb = ops + n
+    odv = owb + n
+    osc = odv + n
+    oa_c = osc + _N_S  # a (n), re-centred (AD8)
+    oL = oa_c + n  # L_x (nx), re-placed with a
+    om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
+    xi_floor = cf[_K_XIFLOOR]
+    p_alpha = cf[_K_PALPHA]
+    poles = cf[_N_K : _N_K + nx]
+    s = state.copy()
+    nrow = 1 if last_only else y.shape[0]
+    out = np.empty((nrow, 3 * n + 2))
+    ext = np.empty((nrow, 3 * n + 2))
+    cx = np.empty((n, n))  # C_z Xi
+    M = np.empty((n, n))
+    Phi = np.empty((n, n))
+    T = np.empty((n, n))
+    R = np.zeros((n, n))
+    S = np.empty((n, n))
+    W = np.empty((n, n))
+    lam = np.zeros(n)
+    ev = np.empty(n)  # C_z zh - eta
+    g = np.empty(n)
+    q = np.empty(n)
+    td = np.empty(n)  # thetah'
+    xo = np.empty(n)  # new x_{2i-1} of zh
+    dz = np.empty(nz)
+    two_pi = 2.0 * math.pi
+    tb2 = tbar * tbar
+    sse = 0.0
+    nsamp = y.shape[0]
+    for k in range(nsamp):
+        yk = y[k]
+        write = (not last_only) or k == nsamp - 1
+        j = 0 if last_only else k
+        # AD4: smoothed mean and AC power of the input
+        if s[osc + _S_STARTED] == 0.0:
+            s[osc + _S_STARTED] = 1.0
+            s[osc + _S_MEAN] = yk
+        s[osc + _S_MEAN] += p_alpha * (yk - s[osc + _S_MEAN])
+        dv = yk - s[osc + _S_MEAN]
+        s[osc + _S_POW] += p_alpha * (dv * dv - s[osc + _S_POW])
+        s[osc + _S_POWL] += 0.1 * p_alpha * (dv * dv - s[osc + _S_POWL])
+        # the signal is present above min_amplitude and above a quarter of its power over ten
+        # times as long (a signal that stops is absent within ~1.4 periods of omegah_1(0))
+        present = 2.0 * s[osc + _S_POW] >= min_a * min_a and s[osc + _S_POW] >= 0.25 * s[osc + _S_POWL]
+        # output error C_z zh - eta (16), (22)
+        c = s[oz + nx - 1] if bias else 0.0
         for i in range(n):
-            cz += x[oz + 2 * i]
-        work[wev] = cz - yin
-        for j in range(1, n):
-            work[wev + j] = x[oz + nx + j - 1] - x[j - 1]
-        # (22) as -mu V Psi V^T Xi^T C_z^T e; V V^T = M^-1, so with every psi_i = 1 it is
-        # -mu M^-1 Xi^T C_z^T e (33) and needs no eigen-decomposition; with none it is 0
+            c += s[oz + 2 * i]
+        ev[0] = c - yk
+        sse += ev[0] * ev[0]
+        for jj in range(1, n):
+            ev[jj] = s[oz + nx + jj - 1] - s[jj - 1]
+        # C_z Xi, M = Xi^T Xi + rho^2 I, Phi_Xi = (C_z Xi)^T C_z Xi (23)
         for i in range(n):
-            K[d + oth + i] = 0.0
-        if n_on > 0:
-            if st > 0 or not fresh:
-                _chol(x, work, cf, ci)
-                if n_on < n:
-                    _eig(work, n)
+            b = oxi + i * nz
+            acc = s[b + nx - 1] if bias else 0.0
+            for r in range(n):
+                acc += s[b + 2 * r]
+            cx[0, i] = acc
+            for jj in range(1, n):
+                cx[jj, i] = s[b + nx + jj - 1]
+        for i in range(n):
+            bi = oxi + i * nz
+            for i2 in range(i + 1):
+                bj = oxi + i2 * nz
+                acc = 0.0
+                for r in range(nz):
+                    acc += s[bi + r] * s[bj + r]
+                M[i, i2] = acc
+                acc = 0.0
+                for r in range(n):
+                    acc += cx[r, i] * cx[r, i2]
+                Phi[i, i2] = acc
+                Phi[i2, i] = acc
+        # AD4: rho^2 relative to the smoothed size of Xi, floored
+        tr = 0.0
+        for i in range(n):
+            tr += M[i, i]
+        s[osc + _S_XI] += l_alpha * (tr / n - s[osc + _S_XI])
+        rho2 = rho2rel * max(s[osc + _S_XI], xi_floor)
+        for i in range(n):
+            M[i, i] += rho2
+        _chol_into(M, R, n)  # M >= rho^2 I > 0
+        # (25): while every psi_i is on, all stay on iff Phi_Xi - delta_low M > 0
+        n_on = 0
+        for i in range(n):
+            if s[ops + i] != 0.0:
+                n_on += 1
+        fast = False
+        if n_on == n:
+            for i in range(n):
+                for i2 in range(i + 1):
+                    T[i, i2] = Phi[i, i2] - d_lo * M[i, i2]
+            fast = _chol_into(T, S, n)
+        if not fast or write:
+            _gen_eig(Phi, R, S, W, lam, n)
+        if not fast:
+            n_on = 0
+            for i in range(n):
+                if lam[i] >= d_hi:
+                    s[ops + i] = 1.0
+                elif lam[i] < d_lo:
+                    s[ops + i] = 0.0
+                if s[ops + i] != 0.0:
+                    n_on += 1
+        # AD7: settling dwell from the start and from the signal's return; while the signal is
+        # absent nothing adapts on the observer's free response, and the convergence test
+        # starts over (its smoothed deviation is reset to 100 %). Not re-armed by a total
+        # dis-excitation: with one component lambda_1 passes zero twice a period.
+        if not present:
+            for i in range(n):
+                s[odv + i] = abs(s[owb + i])
+            s[osc + _S_CLOCK] = 0.0
+        else:
+            s[osc + _S_CLOCK] = min(s[osc + _S_CLOCK] + h, delay)
+        adapting = s[osc + _S_CLOCK] >= delay and n_on > 0
+        # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
+        for i in range(n):
+            td[i] = 0.0
+        if adapting:
             for i in range(n):  # g = (C_z Xi)^T e
                 acc = 0.0
                 for r in range(n):
-                    acc += work[r * n + i] * work[wev + r]
-                work[wg + i] = acc
+                    acc += cx[r, i] * ev[r]
+                g[i] = acc
             for i in range(n):  # q = R^-1 g
-                acc = 0.0
-                for kk in range(i + 1):
-                    acc += work[wRi + i * n + kk] * work[wg + kk]
-                work[wq + i] = acc
-            if n_on < n:
-                for i in range(n):  # p = Psi W^T q  (into g)
+                acc = g[i]
+                for kk in range(i):
+                    acc -= R[i, kk] * q[kk]
+                q[i] = acc / R[i, i]
+            if n_on < n:  # q <- W Psi W^T q
+                for i in range(n):
                     acc = 0.0
                     for kk in range(n):
-                        acc += work[wW + kk * n + i] * work[wq + kk]
-                    work[wg + i] = acc * work[wps + i]
-                for i in range(n):  # q = W p
+                        acc += W[kk, i] * q[kk]
+                    g[i] = acc * s[ops + i]
+                for i in range(n):
                     acc = 0.0
                     for kk in range(n):
-                        acc += work[wW + i * n + kk] * work[wg + kk]
-                    work[wq + i] = acc
+                        acc += W[i, kk] * g[kk]
+                    q[i] = acc
+            for i in range(n - 1, -1, -1):  # td = -mu R^-T q
+                acc = q[i]
+                for kk in range(i + 1, n):
+                    acc -= R[kk, i] * td[kk]
+                td[i] = acc / R[i, i]
             tt = 0.0
             tu = 0.0
-            for i in range(n):  # thetah'_unc = -mu R^-T q
-                acc = 0.0
-                for kk in range(i, n):
-                    acc += work[wRi + kk * n + i] * work[wq + kk]
-                K[d + oth + i] = -mu * acc
-                tt += x[oth + i] * x[oth + i]
-                tu += x[oth + i] * K[d + oth + i]
-            if tt >= tbar * tbar and tu > 0.0:  # projection (19)-(21)
-                for i in range(n):
-                    K[d + oth + i] -= x[oth + i] * tu / (tbar * tbar)
-            for i in range(n):  # frequency clips of Remark 3.1 (inactive without omega_ranges)
-                if (x[oth + i] <= cf[olo + i] and K[d + oth + i] < 0.0) or (
-                    x[oth + i] >= cf[olo + n + i] and K[d + oth + i] > 0.0
-                ):
-                    K[d + oth + i] = 0.0
-            if sep > 0.0:  # minimum separation: no motion that closes a too-small gap
-                for i in range(n):
-                    wi = math.sqrt(max(x[oth + i] - cf[oa_c + i], 0.0))
-                    for i2 in range(i + 1, n):
-                        wj = math.sqrt(max(x[oth + i2] - cf[oa_c + i2], 0.0))
-                        if abs(wi - wj) <= sep * max(wi, wj):
-                            sg = 1.0 if wi >= wj else -1.0
-                            closing = sg * (K[d + oth + i] - K[d + oth + i2])
-                            if closing < 0.0:
-                                K[d + oth + i] -= 0.5 * sg * closing
-                                K[d + oth + i2] += 0.5 * sg * closing
-        # (16) zh' = A_L zh + L y + G_z(zh) thetah + Xi thetah' and (17) xi_i' = A_L xi_i +
-        # G_z_i(zh), with A_L = F_z - L C_z applied by structure: blockdiag(J_i, 0) - L_x C_x
-        # on the oscillator rows, B_f C_x + F_f on the filter rows; G_z_i(zh) = -x_{2i-1} e_{2i}
-        for v in range(n + 1):
-            src = oz if v == 0 else oxi + (v - 1) * nz
-            c = x[src + nx - 1] if nx > 2 * n else 0.0  # C_x applied to this vector
             for i in range(n):
-                c += x[src + 2 * i]
-            for i in range(n):
-                K[d + src + 2 * i] = x[src + 2 * i + 1] - cf[oL + 2 * i] * c
-                K[d + src + 2 * i + 1] = cf[oa_c + i] * x[src + 2 * i] - cf[oL + 2 * i + 1] * c
-            if nx > 2 * n:
-                K[d + src + nx - 1] = -cf[oL + nx - 1] * c
-            for j in range(nf):
-                K[d + src + nx + j] = cf[oBf + j] * c + cf[oFf + j] * x[src + nx + j]
-            if v == 0:
-                for r in range(nx):
-                    acc = cf[oL + r] * yin
-                    for i in range(n):
-                        acc += x[oxi + i * nz + r] * K[d + oth + i]
-                    K[d + oz + r] += acc
-                for r in range(nx, nz):
-                    acc = 0.0
-                    for i in range(n):
-                        acc += x[oxi + i * nz + r] * K[d + oth + i]
-                    K[d + oz + r] += acc
+                td[i] *= -mu
+                tt += s[oth + i] * s[oth + i]
+                tu += s[oth + i] * td[i]
+            if tt >= tb2 and tu > 0.0:  # projection (19)-(21)
                 for i in range(n):
-                    K[d + oz + 2 * i + 1] -= x[oz + 2 * i] * x[oth + i]
-            else:
-                K[d + src + 2 * (v - 1) + 1] -= x[oz + 2 * (v - 1)]
-        # (11): amplitude adaptation, held at 0 from below
+                    td[i] -= s[oth + i] * tu / tb2
+            for i in range(n):  # AD6: the band's clips (Remark 3.1)
+                om2 = s[oth + i] - s[oa_c + i]
+                if (om2 <= om_lo and td[i] < 0.0) or (om2 >= om_hi and td[i] > 0.0):
+                    td[i] = 0.0
+            for i in range(n - 1):  # AD6: the components stay ordered and apart
+                lo2 = s[oth + i] - s[oa_c + i]
+                hi2 = s[oth + i + 1] - s[oa_c + i + 1]
+                if hi2 <= lo2 * sep and td[i + 1] < td[i]:
+                    mid = 0.5 * (td[i] + td[i + 1])
+                    td[i] = mid
+                    td[i + 1] = mid
+        # outputs at t_k, (8)-(10) with the sampled-oscillator relations; (11); convergence
+        amax = 0.0
         for i in range(n):
-            om2 = x[oth + i] - cf[oa_c + i]  # (8)
-            x1 = x[oz + 2 * i]
-            x2 = x[oz + 2 * i + 1]
-            da = 0.0
-            if om2 > 0.0:
-                w = math.sqrt(om2)
-                inst = om2 * x1 * x1 + x2 * x2
-                da = -mu_a * w * (w * x[oa + i] - math.sqrt(max(0.0, inst)))
-            if x[oa + i] <= 0.0 and da < 0.0:
-                da = 0.0
-            K[d + oa + i] = da
-        # next stage's point
-        if st < 3:
-            f = hs if st == 2 else 0.5 * hs
-            for r in range(ns):
-                x[r] = s[r] + f * K[d + r]
-    for r in range(ns):
-        s[r] += hs / 6.0 * (K[r] + 2.0 * K[ns + r] + 2.0 * K[2 * ns + r] + K[3 * ns + r])
-
-
-@kernel
-def _osc_step(om2: float, h: float) -> tuple[float, float]:
-    """(C, S) with x(h) = C x(0) + S x'(0) for x'' = -om2 x."""
-    if om2 > 0.0:
-        w = math.sqrt(om2)
-        return math.cos(w * h), math.sin(w * h) / w
-    if om2 < 0.0:
-        w = math.sqrt(-om2)
-        return math.cosh(w * h), math.sinh(w * h) / w
-    return 1.0, h
-
-
-@kernel
-def _sinc2(x: float) -> float:
-    """sinc^2(x) = (sin x / x)^2, the amplitude factor of linear interpolation at x = w h / 2."""
-    if abs(x) < 1e-4:
-        return 1.0 - x * x / 3.0
-    v = math.sin(x) / x
-    return v * v
+            amax = max(amax, s[oA + i])
+        thr = max(fade * amax, min_a)
+        all_ok = adapting and present
+        for i in range(n):
+            om2 = s[oth + i] - s[oa_c + i]
+            x1 = s[oz + 2 * i]
+            x2 = s[oz + 2 * i + 1]
+            ok = om2 > 0.0
+            if ok:
+                cd = 1.0 - 0.5 * h * h * om2  # cos(omega_d h)
+                sd = math.sqrt(max(1.0 - cd * cd, 1e-300))
+                qq = (h * x2 + x1 * (1.0 - cd)) / sd  # A cos(phi)
+                ainst = math.sqrt(x1 * x1 + qq * qq)
+                s[oA + i] += min(h * mu_a * om2, 1.0) * (ainst - s[oA + i])  # (11)
+                s[owb + i] += c_alpha * (om2 - s[owb + i])
+                s[odv + i] += c_alpha * (abs(om2 - s[owb + i]) - s[odv + i])
+                if not s[odv + i] <= 2.0 * c_tol * s[owb + i]:
+                    all_ok = False
+            else:
+                all_ok = False
+            faded = not s[oA + i] >= thr
+            if faded:
+                all_ok = False
+            if write:
+                if ok and not faded:
+                    wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om2), 1.0))
+                    out[j, i] = wd * om_u / two_pi
+                    out[j, 2 * n + i] = math.atan2(x1, qq)
+                else:
+                    out[j, i] = math.nan
+                    out[j, 2 * n + i] = math.nan
+                out[j, n + i] = s[oA + i] if ok else math.nan
+                ext[j, i] = lam[i]
+                ext[j, n + i] = s[ops + i]
+                ext[j, 2 * n + i] = 1.0 if faded else 0.0
+        for i in range(n):  # two components on one line are not a converged estimate
+            for i2 in range(i + 1, n):
+                if not abs(s[owb + i] - s[owb + i2]) > 2.0 * c_tol * max(s[owb + i], s[owb + i2]):
+                    all_ok = False
+        if write:
+            out[j, 3 * n] = s[oz + nx - 1] if bias else 0.0
+            out[j, 3 * n + 1] = 1.0 if all_ok else 0.0
+            ext[j, 3 * n] = 1.0 if present else 0.0
+        # ---- step to t_{k+1}: (16) zh, with Xi thetah' from the current Xi
+        any_td = False
+        for i in range(n):
+            if td[i] != 0.0:
+                any_td = True
+        for r in range(nz):
+            dz[r] = 0.0
+        if any_td:
+            for i in range(n):
+                b = oxi + i * nz
+                for r in range(nz):
+                    dz[r] += s[b + r] * td[i]
+        inj = yk - c  # L (eta - C_z zh): L acts on the first output only
+        for i in range(n):
+            r = oz + 2 * i
+            x1 = s[r] + h * (s[r + 1] + s[oL + 2 * i] * inj + dz[2 * i])
+            s[r + 1] += h * ((s[oa_c + i] - s[oth + i]) * x1 + s[oL + 2 * i + 1] * inj + dz[2 * i + 1])
+            s[r] = x1
+            xo[i] = x1
+        if bias:
+            s[oz + nx - 1] += h * (s[oL + nx - 1] * inj + dz[nx - 1])
+        for jj in range(nf):
+            r = oz + nx + jj
+            s[r] += h * (cf[oBf + jj] * c + cf[oFf + jj] * s[r] + dz[nx + jj])
+        # (17) xi_i' = A_L xi_i + G_z_i(zh), G_z_i = -x_{2i-1} e_{2i}
+        for i in range(n):
+            b = oxi + i * nz
+            cv = cx[0, i]
+            for m in range(n):
+                r = b + 2 * m
+                x1 = s[r] + h * (s[r + 1] - s[oL + 2 * m] * cv)
+                s[r + 1] += h * (s[oa_c + m] * x1 - s[oL + 2 * m + 1] * cv)
+                s[r] = x1
+            s[b + 2 * i + 1] -= h * xo[i]
+            if bias:
+                s[b + nx - 1] -= h * s[oL + nx - 1] * cv
+            for jj in range(nf):
+                r = b + nx + jj
+                s[r] += h * (cf[oBf + jj] * cv + cf[oFf + jj] * s[r])
+        # (12) the measured output's filter
+        for jj in range(nf):
+            s[jj] += h * (cf[oFf + jj] * s[jj] + cf[oBf + jj] * yk)
+        # (19): thetah, kept in the band's clips and the ball
+        for i in range(n):  # as Omegah_i, ordered, apart, inside the band (AD6)
+            q[i] = s[oth + i] + h * td[i] - s[oa_c + i]
+        q[0] = max(q[0], om_lo)
+        for i in range(1, n):
+            q[i] = max(q[i], q[i - 1] * sep)
+        q[n - 1] = min(q[n - 1], om_hi)
+        for i in range(n - 2, -1, -1):
+            q[i] = min(q[i], q[i + 1] / sep)
+        tt = 0.0
+        far = False
+        for i in range(n):
+            s[oth + i] = s[oa_c + i] + q[i]
+            tt += s[oth + i] * s[oth + i]
+            if abs(s[oth + i]) > rc * abs(s[oa_c + i]):
+                far = True
+        if tt > tb2:
+            f = tbar / math.sqrt(tt)
+            for i in range(n):
+                s[oth + i] *= f
+        # AD8: re-centre a on the estimates and re-place L_x there (thetah -> 0)
+        if far:
+            for i in range(n):
+                s[oa_c + i] -= s[oth + i]
+                s[oth + i] = 0.0
+            _place(s, oa_c, oL, poles, n, bias)
+        # guard (D7 of the explicit mode): a frozen observer far from the truth can be
+        # unstable; restart it from zero, thetah kept
+        lim = zmax * (1.0 + abs(s[osc + _S_MEAN]) + math.sqrt(s[osc + _S_POW]))
+        bad = False
+        for r in range(oz, oxi):
+            if not abs(s[r]) <= lim:  # also catches NaN
+                bad = True
+        if not abs(tr) < math.inf:  # tr(Xi^T Xi) of this sample: Xi finite
+            bad = True
+        if bad:
+            for r in range(oth):
+                s[r] = 0.0
+            for i in range(n):
+                if not abs(s[oth + i]) <= tbar:
+                    s[oth + i] = 0.0
+                s[ops + i] = 0.0
+            s[osc + _S_CLOCK] = 0.0
+        if write:
+            ext[j, 3 * n + 1] = 1.0 if bad else 0.0
+    return out, ext, sse, s
 
 
 @kernel
@@ -646,215 +851,14 @@ def adaptive_multisine_kernel(
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``cf``/``ci``: packed constants (see above). ``state`` is the ``s`` array (layout:
-    :meth:`AdaptiveMultisine._initial_state`). ``out`` columns:
-    frequency_hz (n), amplitude (n), phase (n), offset, converged; ``extras`` columns: lambda
-    (n), psi (n), faded (n), reset. One row per sample, or only the last with ``last_only``.
-    Pure: the inputs are not modified.
-    """
-    n, nx, nf, nz, m_sub, bias = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ], ci[_I_MSUB], ci[_I_BIAS]
-    h = cf[_C_H]
-    amp_u = cf[_C_AMPU]
-    om_u = cf[_C_OMU]
-    d_hi, d_lo, tbar = cf[_C_DHI], cf[_C_DLO], cf[_C_TBAR]
-    min_a, fade, c_alpha, c_tol = cf[_C_MINA], cf[_C_FADE], cf[_C_CALPHA], cf[_C_CTOL]
-    zmax = cf[_C_ZMAX]
-    delay = cf[_C_DELAY]
-    oa_c = _N_CONSTS
-    oth0 = oa_c + n + nz + 2 * nf
-    olo = oth0 + n  # theta_lo, then theta_hi
-    l_alpha = cf[_C_LALPHA]
-    sep = cf[_C_SEP]
-    oz = nf
-    oxi = oz + nz
-    oth = oxi + nz * n
-    oa = oth + n
-    ops = oa + n
-    odv = ops + n
-    owb = odv + n
-    oyp = owb + n
-    orng = oyp + _N_SCALARS  # ring of _RING snapshots of thetah
-    ring_p = cf[_C_RINGP]
-    ns = oa + n  # the integrated part
-    nn = n * n
-    wl = 5 * nn
-    wps = wl + 4 * n
-    s = state.copy()
-    kbuf = np.empty(4 * ns)
-    tmp = np.empty(ns)
-    work = np.zeros(5 * nn + 5 * n)
-    nrow = 1 if last_only else y.shape[0]
-    out = np.empty((nrow, 3 * n + 2))
-    ext = np.empty((nrow, 3 * n + 2))
-    hs = h / m_sub
-    sse = 0.0
-    fresh = False  # work holds the decomposition of s
-    nsamp = y.shape[0]
-    for k in range(nsamp):
-        yk = y[k] / amp_u
-        e = yk - s[oyp + _Y_PRED]  # one-step prediction error
-        sse += e * e
-        reset = False
-        # signal-level gate: smoothed mean and AC power of the input over level_time and over
-        # ten times as long; the signal is absent below min_amplitude, or when the short-term
-        # power falls under level_ratio times the long-term one (the signal stopped)
-        s[oyp + _LVL_MEAN] += l_alpha * (yk - s[oyp + _LVL_MEAN])
-        dev = yk - s[oyp + _LVL_MEAN]
-        s[oyp + _LVL_POW] += l_alpha * (dev * dev - s[oyp + _LVL_POW])
-        s[oyp + _LVL_POW_LONG] += 0.1 * l_alpha * (dev * dev - s[oyp + _LVL_POW_LONG])
-        present = (
-            2.0 * s[oyp + _LVL_POW] >= min_a * min_a and s[oyp + _LVL_POW] >= cf[_C_LRATIO] * s[oyp + _LVL_POW_LONG]
-        )
-        lost = s[oyp + _PRESENT] != 0.0 and not present
-        if lost:
-            # loss of signal: the adaptation ran on the observer's free response while the
-            # level gate was catching up; roll thetah back to the oldest snapshot
-            slot = int(s[oyp + _RING_SLOT])
-            for i in range(n):
-                s[oth + i] = s[orng + slot * n + i]
-        s[oyp + _PRESENT] = 1.0 if present else 0.0
-        # snapshots of thetah every ring_p samples while the signal is present
-        if present:
-            s[oyp + _RING_COUNT] += 1.0
-            if s[oyp + _RING_COUNT] >= ring_p:
-                s[oyp + _RING_COUNT] = 0.0
-                slot = int(s[oyp + _RING_SLOT])
-                for i in range(n):
-                    s[orng + slot * n + i] = s[oth + i]
-                s[oyp + _RING_SLOT] = float((slot + 1) % _RING)
-        zlim = zmax * (1.0 + math.sqrt(2.0 * s[oyp + _LVL_POW]) + abs(s[oyp + _LVL_MEAN]))
-        if s[oyp + _STARTED] != 0.0:
-            y0 = s[oyp + _Y_PREV]
-            # Algorithm 1: psi(k-1) acts over (t_{k-1}, t_k]; the settling dwell holds the
-            # adaptation off until some psi_i has been on for adaptation_delay with a signal
-            warm = s[oyp + _CLOCK] >= delay and present
-            for i in range(n):
-                work[wps + i] = s[ops + i] if warm else 0.0
-            for j in range(m_sub):
-                ua = y0 + (yk - y0) * (j / m_sub)  # first-order hold between samples
-                ub = y0 + (yk - y0) * ((j + 1.0) / m_sub)
-                _rk4_substep(s, tmp, kbuf, work, cf, ci, ua, ub, hs, fresh)
-                fresh = False
-                # projection: radial clip to |thetah| <= theta_bar (19); Ah >= 0 (11)
-                tt = 0.0
-                for i in range(n):
-                    tt += s[oth + i] * s[oth + i]
-                if tt > tbar * tbar:
-                    sc = tbar / math.sqrt(tt)
-                    for i in range(n):
-                        s[oth + i] *= sc
-                for i in range(n):  # Remark 3.1 clips
-                    s[oth + i] = min(max(s[oth + i], cf[olo + i]), cf[olo + n + i])
-                if sep > 0.0:  # minimum separation, restored symmetrically about the mid-point
-                    for i in range(n):
-                        for i2 in range(i + 1, n):
-                            wi = math.sqrt(max(s[oth + i] - cf[oa_c + i], 0.0))
-                            wj = math.sqrt(max(s[oth + i2] - cf[oa_c + i2], 0.0))
-                            gap = sep * max(wi, wj)
-                            if abs(wi - wj) < gap and wi + wj > 0.0:
-                                mid = 0.5 * (wi + wj)
-                                half = 0.5 * sep * mid / (1.0 - 0.5 * sep)  # gap = sep * (mid + half)
-                                sg = 1.0 if wi >= wj else -1.0
-                                s[oth + i] = cf[oa_c + i] + (mid + sg * half) ** 2
-                                s[oth + i2] = cf[oa_c + i2] + (mid - sg * half) ** 2
-                for i in range(n):
-                    s[oa + i] = max(s[oa + i], 0.0)
-                # guard: the state stays finite and commensurate with the input; otherwise
-                # (a frozen observer can be unstable far from the true frequencies) restart
-                # the observer and roll thetah back to the oldest snapshot
-                bad = False
-                for r in range(ns):
-                    if not abs(s[r]) <= zlim:  # also catches NaN
-                        bad = True
-                if bad:
-                    reset = True
-                    slot = int(s[oyp + _RING_SLOT])
-                    for r in range(ns):
-                        s[r] = 0.0
-                    for i in range(n):
-                        th = s[orng + slot * n + i]
-                        s[oth + i] = th if abs(th) <= tbar else cf[oth0 + i]
-                        s[ops + i] = 0.0
-                        work[wps + i] = 0.0
-                    s[oyp + _CLOCK] = 0.0
-            # (23)-(25) at t_k: excitation levels and hysteretic switching
-            _excitation(s, work, cf, ci)
-            fresh = True
-            any_on = False
-            for i in range(n):
-                if work[wl + i] >= d_hi:
-                    s[ops + i] = 1.0
-                elif work[wl + i] < d_lo:
-                    s[ops + i] = 0.0
-                if s[ops + i] != 0.0:
-                    any_on = True
-            # total dis-excitation re-arms the settling dwell; a loss of signal re-arms it twice
-            # as long (thetah is known good then, the observer restarts from its free response)
-            if not present:
-                s[oyp + _CLOCK] = -delay if (lost or s[oyp + _CLOCK] < 0.0) else 0.0
-            elif any_on:
-                s[oyp + _CLOCK] = min(s[oyp + _CLOCK] + h, delay)
-            else:
-                s[oyp + _CLOCK] = min(s[oyp + _CLOCK], 0.0)
-        else:
-            s[oyp + _STARTED] = 1.0
-            _excitation(s, work, cf, ci)
-            fresh = True
-        s[oyp + _Y_PREV] = yk
-        # ---- outputs at t_k: (8), (10), (11); convergence statistics; next-sample prediction
-        amax = 0.0
-        for i in range(n):
-            om2 = s[oth + i] - cf[oa_c + i]
-            corr = 1.0 / _sinc2(0.5 * h * math.sqrt(om2)) if om2 > 0.0 else 1.0
-            v = s[oa + i] * corr
-            amax = max(amax, v)
-        thr = max(fade * amax, min_a)
-        ypred = s[oz + nx - 1] if bias else 0.0
-        all_ok = s[oyp + _CLOCK] >= delay  # adapting: past start-up, excited, with a signal
-        j = 0 if last_only else k
-        write = (not last_only) or k == nsamp - 1
-        for i in range(n):
-            om2 = s[oth + i] - cf[oa_c + i]
-            x1 = s[oz + 2 * i]
-            x2 = s[oz + 2 * i + 1]
-            cc, ss = _osc_step(om2, h)
-            w = math.nan
-            corr = 1.0
-            if om2 > 0.0:
-                w = math.sqrt(om2)
-                corr = 1.0 / _sinc2(0.5 * h * w)
-                s[owb + i] += c_alpha * (w - s[owb + i])
-                s[odv + i] += c_alpha * (abs(w - s[owb + i]) - s[odv + i])
-            else:
-                all_ok = False
-            ypred += corr * (cc * x1 + ss * x2)
-            amp = s[oa + i] * corr
-            faded = not amp >= thr or amp <= 0.0
-            if faded or not (s[odv + i] <= c_tol * w):
-                all_ok = False
-            if write:
-                if om2 > 0.0 and not faded:
-                    out[j, i] = w * om_u / (2.0 * math.pi)
-                    ph = math.atan2(w * x1, x2)  # (10)
-                    out[j, 2 * n + i] = math.pi if ph <= -math.pi else ph
-                else:
-                    out[j, i] = math.nan
-                    out[j, 2 * n + i] = math.nan
-                out[j, n + i] = amp * amp_u if om2 > 0.0 else math.nan
-                ext[j, i] = work[wl + i]
-                ext[j, n + i] = s[ops + i]
-                ext[j, 2 * n + i] = 1.0 if faded else 0.0
-        s[oyp + _Y_PRED] = ypred
-        for i in range(n):  # two components on one frequency are not a converged estimate
-            for i2 in range(i + 1, n):
-                if not abs(s[owb + i] - s[owb + i2]) > c_tol * max(s[owb + i], s[owb + i2]):
-                    all_ok = False
-        if write:
-            out[j, 3 * n] = s[oz + nx - 1] * amp_u if bias else 0.0
-            out[j, 3 * n + 1] = 1.0 if all_ok else 0.0
-            ext[j, 3 * n] = 1.0 if present else 0.0
-            ext[j, 3 * n + 1] = 1.0 if reset else 0.0
-    return out, ext, sse * amp_u * amp_u, s
+    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`), 0 the explicit
+    gains (:func:`sinewatch.estimators._adaptive_multisine_explicit.explicit_kernel`).
+    ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
+    ``extras``: lambda (n), psi (n), faded (n), signal present, observer reset. One row per
+    sample, or only the last with ``last_only``. Pure: the inputs are not modified."""
+    if ci[_I_MODE] == 1:
+        return auto_kernel(y, state, cf, ci, last_only)
+    return explicit.explicit_kernel(y, state, cf, ci, last_only)
 
 
 @register
@@ -867,12 +871,21 @@ class AdaptiveMultisine(
         'B. Chen, G. Pin, W. M. Ng, S. Y. Hui, T. Parisini, "An adaptive observer-based robust estimator '
         'of multi-sinusoidal signals", IEEE Trans. Automatic Control 63(6), 2018'
     )
-    # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1) with its
-    # gains, time compressed: one paper rad/s is 2 pi 5 rad/s here, so the tones are at 15 and
-    # 10 Hz; the noise bound is 0.1 (see the multisine-demo scenario on noise density).
+    # The paper's Example 2 (tones at 3 and 2 rad/s, amplitudes 4 and 3, offset 1), time
+    # compressed: the tones are at 15 and 10 Hz; the automatic design from n = 2 and a band.
     example_sample_rate_hz = 750.0
     example_frequency_hz = 15.0
-    example_params: ClassVar[dict[str, Any]] = {"omega_unit_rad_s": 2 * math.pi * 5.0, "convergence_time": 5.0}
+    example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
+    # Printed by ``sinewatch bench kernels`` under its table.
+    bench_note: ClassVar[str] = (
+        "adaptive-multisine is below 0.5x the streaming FFT: Algorithm 1 is per-sample work that "
+        "no block transform shares: each sample steps the observer (3n states) and n sensitivity "
+        "filters (3n^2 states), forms M = Xi^T Xi + rho^2 I and Phi_Xi (23), factors M for the law "
+        "(22) and tests Phi_Xi - delta_low M for (25) (two Cholesky factorisations), and takes n "
+        "square roots for (11); the generalised eigen-decomposition runs only while a direction is "
+        "unexcited. One step per sample, no sub-steps, no matrix exponential: the ns/sample column "
+        "is that work at n = 2 (the explicit-gain mode's RK4 sub-steps took about 5 us)."
+    )
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
@@ -891,55 +904,45 @@ class AdaptiveMultisine(
     def n_components(self) -> int:
         return self.params.n_sinusoids
 
-    # ---- derived design --------------------------------------------------------------------
-    def _theta_bar(self, a: list[float]) -> float:
-        """Radius of the ball Theta* of Assumption 1: |theta*_i| <= max(|a_i|, |a_i + omega_bar^2|)."""
-        wb2 = self.params.omega_max**2
-        return float(np.sqrt(sum(max(abs(ai), abs(ai + wb2)) ** 2 for ai in a)))
+    @property
+    def automatic(self) -> bool:
+        """True in the automatic-design mode (``band_hz`` given)."""
+        return self.params.band_hz is not None
 
     def _check_params(self) -> None:
         p = self.params
-        d = p.design()
-        a = d["a"]
-        if len(set(a)) != len(a) or (p.bias and any(v == 0 for v in a)):
+        if p.band_hz is None:
+            explicit.check(p, self.sample_rate_hz)
+            return
+        # the observer's injection and the filters are forward Euler: the band's top (with its
+        # margin) needs 10 samples per period for them to stay stable (measured: a tone at 100 Hz
+        # in a 20-120 Hz band is exact to 1e-10 at 1.5 kHz and diverges at 1 kHz)
+        top = p.band_hz[1] * (1.0 + DESIGN["band_margin"])
+        if top > self.sample_rate_hz / MIN_SAMPLES_PER_PERIOD:
             raise ParameterError(
-                f"a: expected distinct values, non-zero with bias (observability of (F_x, C_x)), got {a}"
-            )
-        if not all(0 < w < p.omega_max for w in d["omega0"]):
-            raise ParameterError(f"omega0: expected values in (0, omega_max={p.omega_max}), got {d['omega0']}")
-        w0 = d["omega0"]
-        if any(
-            abs(w0[i] - w0[j]) < p.min_separation * max(w0[i], w0[j])
-            for i in range(len(w0))
-            for j in range(i + 1, len(w0))
-        ):
-            raise ParameterError(
-                f"omega0: expected values at least min_separation={p.min_separation} (relative) apart, got {w0}"
-            )
-        if p.omega_ranges is not None and not all(
-            lo <= w <= hi for w, (lo, hi) in zip(d["omega0"], p.omega_ranges, strict=True)
-        ):
-            raise ParameterError(f"omega0: expected values inside omega_ranges {p.omega_ranges}, got {d['omega0']}")
-        tbar = self._theta_bar(a)
-        w_ball = math.sqrt(tbar - min(a))
-        nyq = math.pi * self.sample_rate_hz
-        if w_ball * p.omega_unit_rad_s >= nyq:
-            raise ParameterError(
-                "omega_max: expected the projection ball |theta| <= theta_bar to admit only frequencies "
-                f"below Nyquist ({nyq:.6g} rad/s), got up to {w_ball * p.omega_unit_rad_s:.6g} rad/s "
-                f"(omega_max={p.omega_max}, a={a}, omega_unit_rad_s={p.omega_unit_rad_s})"
+                f"band_hz: expected f_hi (1 + {DESIGN['band_margin']}) <= sample_rate_hz / {MIN_SAMPLES_PER_PERIOD:g}"
+                f" = {self.sample_rate_hz / MIN_SAMPLES_PER_PERIOD:.6g} Hz, got {top:.6g} Hz"
             )
 
     def _setup(self) -> None:
         p = self.params
-        n = p.n_sinusoids
-        bias = p.bias
-        d = p.design()
+        if p.band_hz is None:
+            d = explicit.setup(p, self.sample_rate_hz)
+            self._cf, self._ci = d["cf"], d["ci"]
+            self._nf, self._nz, self._theta0 = d["nf"], d["nz"], d["theta0"]
+            self.L_x = d["L_x"]
+            self.theta_bar = d["theta_bar"]
+            self.substeps = d["substeps"]
+            self.settling_time = d["settling_time"]
+            self._constants = (self._cf, self._ci)
+            return
+        n, bias = p.n_sinusoids, p.bias
+        d = auto_design(n, bias, p.band_hz)
+        self.design = d
         a = np.asarray(d["a"], dtype=np.float64)
         nx = 2 * n + int(bias)
         nf = n - 1
         nz = nx + nf
-        # (3): F_x = blockdiag(J_i, 0), J_i = [[0, 1], [a_i, 0]]; C_x = [c_1 .. c_n 1], c_i = [1 0]
         Fx = np.zeros((nx, nx))
         Cx = np.zeros(nx)
         for i in range(n):
@@ -948,84 +951,80 @@ class AdaptiveMultisine(
             Cx[2 * i] = 1.0
         if bias:
             Cx[nx - 1] = 1.0
-        # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation)
         poles = np.asarray(d["poles"], dtype=np.float64)
-        try:
-            res = place_poles(Fx.T, Cx[:, None], poles)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} ({exc})") from exc
-        Lx = res.gain_matrix.T[:, 0]
+        # (16): L_x by pole placement (Algorithm 1's initialisation), in the closed form the
+        # kernel re-places it with (AD8); checked against the eigenvalues it gives
+        tmp = np.concatenate([a, np.zeros(nx)])
+        _place(tmp, 0, n, poles, n, int(bias))
+        Lx = tmp[n:].copy()
         got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
-        if not np.allclose(got, np.sort(poles), rtol=1e-6, atol=1e-9):
-            raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} (placed {list(got)})")
-        Ff = np.asarray(d["filter_poles"], dtype=np.float64)
-        Bf = np.asarray(d["filter_gains"], dtype=np.float64)
-        AL = np.zeros((nz, nz))
-        AL[:nx, :nx] = Fx - np.outer(Lx, Cx)
-        AL[nx:, :nx] = np.outer(Bf, Cx)
-        AL[nx:, nx:] = np.diag(Ff)
-        Lfull = np.zeros(nz)
-        Lfull[:nx] = Lx
-        tbar = self._theta_bar(list(a))
-        w_ball = math.sqrt(tbar - float(a.min()))
-        h = p.omega_unit_rad_s / self.sample_rate_hz  # sample period in scaled time
-        # RK4 sub-steps: accuracy on the modelled band (phase error ~ (h w)^5 / 120 per step),
-        # stability (|h lambda| < 2.78) over all the projection admits and over the linear rates
-        rate = max(float(np.max(np.abs(np.linalg.eigvals(AL)))), d["mu"], d["mu_a"] * w_ball**2)
-        m_sub = max(1, math.ceil(h * p.omega_max / 0.25), math.ceil(h * w_ball / 2.0), math.ceil(h * rate / 1.0))
-        if m_sub > 256:
-            raise ParameterError(
-                f"sample_rate_hz: expected at most 256 RK4 sub-steps per sample, got {m_sub} "
-                f"(raise the sample rate, or lower mu, the poles or omega_max)"
-            )
-        theta0 = a + np.asarray(d["omega0"], dtype=np.float64) ** 2  # (4)
-        if p.omega_ranges is None:  # inactive bounds: the ball keeps |theta| <= theta_bar
-            th_lo = np.full(n, -2.0 * tbar)
-            th_hi = np.full(n, 2.0 * tbar)
-        else:  # Remark 3.1: omega_i in [lo_i, hi_i]  <=>  theta_i in [a_i + lo_i^2, a_i + hi_i^2]
-            th_lo = a + np.array([lo * lo for lo, _ in p.omega_ranges])
-            th_hi = a + np.array([hi * hi for _, hi in p.omega_ranges])
-        delay = p.adaptation_delay if p.adaptation_delay is not None else 2.0 / float(np.min(np.abs(poles)))
-        consts = np.zeros(_N_CONSTS)
-        consts[_C_H] = h
-        consts[_C_MU] = d["mu"]
-        consts[_C_RHO2] = d["rho"] ** 2
-        consts[_C_MUA] = d["mu_a"]
-        consts[_C_DHI] = p.delta_high
-        consts[_C_DLO] = p.delta_low
-        consts[_C_TBAR] = tbar
-        consts[_C_AMPU] = p.amplitude_unit
-        consts[_C_OMU] = p.omega_unit_rad_s
-        consts[_C_MINA] = p.min_amplitude
-        consts[_C_FADE] = p.fade_ratio
-        consts[_C_CALPHA] = -math.expm1(-h / p.convergence_time)
-        consts[_C_CTOL] = p.convergence_tol
-        consts[_C_DELAY] = delay
-        consts[_C_ZMAX] = 1e4  # relative to 1 + the input's level
-        consts[_C_LALPHA] = -math.expm1(-h / p.level_time)
-        consts[_C_RINGP] = max(1, round(p.level_time / h))
-        consts[_C_LRATIO] = p.level_ratio
-        consts[_C_SEP] = p.min_separation
-        self._ci = np.array([n, nx, nf, nz, m_sub, int(bias)], dtype=np.int64)
-        self._cf = np.concatenate([consts, a, Lfull, Ff, Bf, theta0, th_lo, th_hi])
+        if not np.allclose(got, np.sort(poles), rtol=1e-3, atol=0.0):
+            raise ParameterError(f"band_hz: the observer poles {list(poles)} could not be placed (got {list(got)})")
+        w_lo, w_hi = d["w_lo"], d["w_hi"]
+        # the ball of (19)-(21): with a re-centred (AD8) |thetah_i| stays below the band's span
+        tbar = math.sqrt(n) * (w_hi * w_hi - w_lo * w_lo)
+        h = d["w_ref"] / self.sample_rate_hz
+        consts = np.zeros(_N_K)
+        consts[_K_H] = h
+        consts[_K_MU] = d["mu"]
+        consts[_K_RHO2] = d["rho_rel"] ** 2
+        consts[_K_MUA] = d["mu_a"]
+        consts[_K_DHI] = p.delta_high
+        consts[_K_DLO] = p.delta_low
+        consts[_K_TBAR] = tbar
+        consts[_K_OMU] = d["w_ref"]
+        consts[_K_MINA] = p.min_amplitude
+        consts[_K_FADE] = p.fade_ratio
+        consts[_K_CALPHA] = -math.expm1(-h / d["convergence_time"])
+        consts[_K_CTOL] = p.convergence_tol
+        consts[_K_DELAY] = d["dwell"]
+        consts[_K_ZMAX] = 1e4
+        consts[_K_LALPHA] = -math.expm1(-h / d["level_time"])
+        consts[_K_OMLO] = w_lo * w_lo
+        consts[_K_OMHI] = w_hi * w_hi
+        consts[_K_RC] = DESIGN["recentre"]
+        consts[_K_SEP] = (1.0 + DESIGN["separation"]) ** 2
+        # |xi_i| ~ A / (omega p) for a tone of amplitude A at omega through poles p: the floor of
+        # rho is min_amplitude's
+        # the input's mean and AC power (signal presence, the guard) over one period of the
+        # lowest initial frequency: shorter, they follow the waveform itself
+        consts[_K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
+        consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
+        self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
+        self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
         self._constants = (self._cf, self._ci)
-        self._nf, self._nz, self._theta0 = nf, nz, theta0
-        # exposed for tests and docs
+        self._nf, self._nz = nf, nz
+        self._a0 = a
         self.L_x = Lx
         self.theta_bar = tbar
-        self.substeps = m_sub
-        self.settling_time = float(delay)
+        self.substeps = 1
+        self.settling_time = d["dwell"] / d["w_ref"]  # seconds
+
+    @property
+    def memory_samples(self) -> int:
+        """Automatic mode: the settling dwell (AD7) plus the convergence test's smoothing time;
+        explicit mode: the base class's default."""
+        if not self.automatic:
+            return super().memory_samples
+        d = self.design
+        seconds = (float(d["dwell"]) + float(d["convergence_time"])) / float(d["w_ref"])
+        return max(1, math.ceil(seconds * self.sample_rate_hz))
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        """``s``: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n), the
-        part RK4 integrates, then psi (n) | smoothed |deviation| of omegah (n) | smoothed
-        omegah (n) | the _N_SCALARS scalars named _Y_PREV .. _LVL_POW_LONG | a ring of
-        _RING snapshots of thetah (n each), for the roll-back on loss of signal (D5)."""
+        """``s``, explicit mode: :func:`sinewatch.estimators._adaptive_multisine_explicit.initial_state`.
+        Automatic mode: yf (nf) | zh (nz) | Xi (nz n, xi_i contiguous) | thetah (n) | Ah (n) |
+        psi (n) | smoothed Omegah (n) | smoothed |Omegah - smoothed Omegah| (n) | the scalars
+        _S_CLOCK (dwell clock), _S_MEAN, _S_POW (input mean and AC power), _S_STARTED,
+        _S_XI (smoothed tr(Xi^T Xi) / n), _S_POWL (AC power over ten times as long) | a (n)
+        and L_x (nx), re-centred and re-placed as the estimates move (AD8); thetah(0) = 0."""
         n, nf, nz = self.params.n_sinusoids, self._nf, self._nz
-        s = np.zeros(nf + nz + nz * n + 5 * n + _N_SCALARS + _RING * n)
-        oth = nf + nz + nz * n
-        s[oth : oth + n] = self._theta0
-        s[s.size - _RING * n :] = np.tile(self._theta0, _RING)
+        if not self.automatic:
+            return {"s": explicit.initial_state(n, nf, nz, self._theta0)}
+        nx = nz - nf
+        s = np.zeros(nf + nz + nz * n + 5 * n + _N_S + n + nx)
+        oa = nf + nz + nz * n + 5 * n + _N_S
+        s[oa : oa + n] = self._a0
+        s[oa + n :] = self.L_x
         return {"s": s}
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:

@@ -41,7 +41,6 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.adaptive_multisine import PAPER_DESIGN  # the paper's Section V gains
 from sinewatch.estimators.differential_rls import cyclic_intervals
 from sinewatch.scenarios import BenchInfo, Component, Event, declare
 from sinewatch.scenarios._library import served_by
@@ -217,35 +216,19 @@ for _w_h in (10.0, 100.0, 1000.0):
 
 
 _FS004 = 1.0 / 3e-4  # Ts = 3e-4 s, Section V-A
-# The paper's tunings for adaptive-multisine (paper units, rad/s: omega_unit_rad_s = 1).
-# Example 1 and 3 (no bias: 2n = 4 poles); omega_max is not given: 10 rad/s bounds the signals.
-_GAINS_EX1 = {"n_sinusoids": 2, "bias": False, **PAPER_DESIGN[False], "omega_max": 10.0, "omega_unit_rad_s": 1.0}
-# Example 2 (bias: 2n + 1 = 5 poles); initial frequencies not given: (3.5, 2.5), because
-# (3, 4) is outside the basin of these gains (measured).
-_GAINS_EX2 = {
-    "n_sinusoids": 2,
-    "bias": True,
-    **PAPER_DESIGN[True],
-    "delta_high": 3e-4,
-    "delta_low": 3e-5,
-    "omega_max": 10.0,
-    "omega_unit_rad_s": 1.0,
-}
-# Section V-B experiment (no bias); initial frequencies not given.
-_GAINS_EXP = {
-    "n_sinusoids": 2,
-    "bias": False,
-    "a": [0.0, -1.0],
-    "poles": [-0.7, -0.4, -0.5, -1.0],
-    "filter_poles": [-2.0],
-    "filter_gains": [1.0],
-    "mu": 20.0,
-    "rho": 1.0,
-    "mu_a": 0.2,
-    "omega0": [6.0, 4.0],  # not given; (3, 4) did not converge within 30 s (measured)
-    "omega_max": 10.0,
-    "omega_unit_rad_s": 1.0,
-}
+# adaptive-multisine with its automatic design: n, the band and the offset, nothing else
+# (the paper tunes each example by hand; the estimator derives its gains from these).
+_BAND004 = (0.5, 10.0)  # rad/s: Examples 1-3 (tones between 2 and 5 rad/s)
+_BAND004_EXP = (1.0, 14.0)  # rad/s: the experiment (tones at 5 and 7 rad/s)
+
+
+def _auto004(bias: bool, band: tuple[float, float]) -> dict[str, Any]:
+    return {"n_sinusoids": 2, "bias": bias, "band_hz": (_hz(band[0]), _hz(band[1]))}
+
+
+_GAINS_EX1 = _auto004(False, _BAND004)
+_GAINS_EX2 = _auto004(True, _BAND004)
+_GAINS_EXP = _auto004(False, _BAND004_EXP)
 
 
 def _paper004(
@@ -258,7 +241,7 @@ def _paper004(
     tags: tuple[str, ...] = (),
     *,
     initial: tuple[float, float] = (3.0, 4.0),
-    band: tuple[float, float] = (0.5, 10.0),
+    band: tuple[float, float] = _BAND004,
     fs: float = _FS004,
     noise_std: float = 0.0,
     **composite: Any,
@@ -336,13 +319,13 @@ _paper004(
     "paper 004 V-B: 4 sin 7t + 2 sin 5t at 10 kHz, Gaussian noise std 0.05 (level assumed)",
     [Component(_hz(7.0), a0=4.0), Component(_hz(5.0), a0=2.0)],
     {
-        "steady_windows": ((70.0, 100.0),),  # converged within 1 % after 53 s (measured)
+        "steady_windows": ((70.0, 100.0),),
         "reference": {"frequencies": "gathered with great accuracy (Figs. 13-14)"},
     },
     _GAINS_EXP,
     100.0,
     initial=(6.0, 4.0),
-    band=(0.5, 14.0),
+    band=_BAND004_EXP,
     fs=10_000.0,
     noise_std=0.05,
 )
