@@ -125,15 +125,15 @@ has the measured figures beside the paper's.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from scipy import signal as _sig
 
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
-from sinewatch.schemas.errors import ParameterError
+from sinewatch.schemas.errors import InputError, ParameterError
 
 TWO_PI = 2.0 * math.pi
 
@@ -181,7 +181,7 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
-@kernel
+@kernel(inline="always")
 def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, ri: np.ndarray) -> None:
     """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
 
@@ -210,7 +210,7 @@ def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, 
             ri[q] = -mag
 
 
-@kernel
+@kernel(inline="always")
 def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: float, px: np.ndarray) -> None:
     """One scalar RLS update with forgetting f (eq. 12): P <- (P - P x x' P / (f + x' P x)) / f."""
     p = theta.shape[0]
@@ -236,7 +236,7 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
             P[b, a] = v
 
 
-@kernel
+@kernel(inline="always")
 def core_step(
     cr: float,
     ci: float,
@@ -421,7 +421,7 @@ def core_step(
     core[C_PREV_IM] = ci
 
 
-@kernel
+@kernel(inline="always")
 def core_status(
     core: np.ndarray, theta: np.ndarray, P: np.ndarray, consts: np.ndarray
 ) -> tuple[float, float, float, bool, bool, bool, float]:
@@ -605,7 +605,7 @@ def _biquads(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> float:
     return y
 
 
-@kernel
+@kernel(inline="always")
 def rebase(
     core: np.ndarray,
     theta: np.ndarray,
@@ -628,7 +628,7 @@ def rebase(
     core[SINCE_REBASE] = 0.0
 
 
-@kernel
+@kernel(inline="always")
 def _wrap(ph: float) -> float:
     while ph > math.pi:
         ph -= TWO_PI
@@ -692,7 +692,7 @@ def _cis_small(a: float) -> complex:
     return complex(1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0))
 
 
-@kernel
+@kernel(inline="always")
 def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     """H_s(z) of biquad s at z = zc (complex)."""
     zi1 = 1.0 / zc
@@ -701,7 +701,7 @@ def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     return h
 
 
-@kernel
+@kernel(inline="always")
 def lowpass_response(sos: np.ndarray, om: float) -> complex:
     """H(e^{j om}) of the biquad cascade, om in rad per input sample."""
     zc = complex(math.cos(om), math.sin(om))
@@ -733,7 +733,7 @@ def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, 
 
 
 @kernel
-def differential_rls_kernel(
+def real_front_end(
     x: np.ndarray,
     fe_in: np.ndarray,
     core_in: np.ndarray,
@@ -750,6 +750,7 @@ def differential_rls_kernel(
     (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
     -> :func:`core_step` at every decimated sample; outputs at every input sample.
 
+    ``x`` is (N, 1): the real samples in column 0.
     Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
     """
     fe = fe_in.copy()
@@ -777,7 +778,7 @@ def differential_rls_kernel(
     bb = complex(fe[F_BB_RE], fe[F_BB_IM])  # e^{j phi_bb} predicted for this sample
     bs = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
     if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
-        _biquads_steady(x[0], sos, fe, F_ZI)
+        _biquads_steady(x[0, 0], sos, fe, F_ZI)
     # the low-pass coefficients and the 12 delays of its three channels live in registers
     s0b0, s0b1, s0b2, s0a1, s0a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
     s1b0, s1b1, s1b2, s1a1, s1a2 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
@@ -785,7 +786,7 @@ def differential_rls_kernel(
     r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
     q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
     for i in range(n):
-        xi = x[i]
+        xi = x[i, 0]
         if ist[2] < warm:
             ist[2] += 1
         # ---- one-step prediction of x(i) from the estimate so far (for residual_rms)
@@ -945,6 +946,178 @@ def differential_rls_kernel(
     return out, ext, sse, fe, core, theta, P, ist
 
 
+@kernel
+def iq_front_end(
+    x: np.ndarray,
+    fe_in: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ist_in: np.ndarray,
+    tab: np.ndarray,
+    cyc: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """In-phase/quadrature input (the paper's own setting, eqs. 1-2): ``x`` is (N, 2), column
+    0 the in-phase y = A sin(w t + phi), column 1 the quadrature z = A cos(w t + phi), taken
+    against an external oscillator at consts[K_W_NOM]. c(k) = z + j y is taken every
+    cyc[0], cyc[1], ... input samples (nonuniform cyclic sampling, Section 5; the first
+    sample ever is the first c), rotated by the digital reference oscillator (phase psi2,
+    offset w2 rad/T0 and ramp l2 rad/T0^2 from the external one, re-centred on the
+    estimate as in :func:`iq_kernel`, kept within +- consts[K_W_RANGE]) and handed to
+    :func:`core_step`; outputs at every input sample, held between decimated samples with
+    the phase advanced at the estimated frequency. The one-step prediction error is that
+    of the in-phase column (y = A sin(phase_rad), the output convention).
+
+    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
+    """
+    fe = fe_in.copy()
+    core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
+    ist = ist_in.copy()
+    n = x.shape[0]
+    nout = 1 if last_only else n
+    out = np.empty((nout, 5))
+    ext = np.empty((nout, 3))
+    fs = consts[K_FS]
+    inv_fs = 1.0 / fs
+    T0 = consts[K_T0]
+    d0 = T0 * fs
+    w_nom = consts[K_W_NOM]
+    w_max = consts[K_W_RANGE] * T0  # the digital reference stays within +- the tracking range
+    recenter = consts[K_RECENTER] != 0.0
+    ncyc = cyc.shape[0]
+    psi2 = fe[F_PSI]
+    w2 = fe[F_WREF]
+    l2 = fe[F_LREF]
+    pp = complex(fe[F_BB_RE], fe[F_BB_IM])  # predicted c for this sample (A e^{j phase})
+    ps = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    sse = 0.0
+    for i in range(n):
+        yi = x[i, 0]
+        zi = x[i, 1]
+        # ---- one-step prediction of the in-phase sample from the estimate so far (residual_rms)
+        e = yi - pp.imag if fe[F_SNAP_VALID] != 0.0 else yi
+        sse += e * e
+        # ---- nonuniform cyclic sampling (Section 5): c(k) every cyc[j] input samples
+        ist[0] += 1
+        first = ist[2] == 0
+        if first or ist[0] >= cyc[ist[1]]:
+            if first:
+                u = 0.0  # no interval before the first sample (core_step only stores it)
+                ist[2] = 1
+            else:
+                u = cyc[ist[1]] / d0
+                ist[1] = (ist[1] + 1) % ncyc
+                # advance the digital reference over dt_k = u T0 (as iq_kernel does)
+                psi2 += w2 * u + 0.5 * l2 * u * u
+                w2 += l2 * u
+                psi2 = math.pi - ((math.pi - psi2) % TWO_PI)
+                if w2 > w_max or w2 < -w_max:
+                    w2 = w_max if w2 > 0.0 else -w_max
+                    l2 = 0.0
+            ist[0] = 0
+            c0 = math.cos(psi2)
+            s0 = math.sin(psi2)
+            cr = zi * c0 + yi * s0  # c e^{-j psi2}, c = z + j y (eqs. 1-2)
+            ci = yi * c0 - zi * s0
+            core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
+            w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+            if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+                dw = 0.0
+                dl = 0.0
+                if recenter and confident:
+                    # periodic re-centring of the reference on the estimate (Section 10)
+                    dw = w
+                    dl = lsig
+                    wnew = w2 + dw
+                    if wnew > w_max or wnew < -w_max:  # clamped to the tracking range
+                        wnew = w_max if wnew > 0.0 else -w_max
+                        dw = wnew - w2
+                        dl = -l2
+                    w2 = wnew
+                    l2 += dl
+                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
+                w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+            amp = math.hypot(core[A_RE], core[A_IM])  # A^ = |a^|, eq. (23)
+            val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
+            wt = (w + w2) / T0  # offset from the external oscillator, rad/s
+            lt = (lb + l2) / (T0 * T0)
+            ph = _wrap(math.atan2(core[A_IM], core[A_RE]) + psi2)  # phi^(t_k), eq. (23)
+            fe[F_SNAP_W] = wt
+            fe[F_SNAP_L] = lt
+            fe[F_SNAP_PH] = ph
+            fe[F_SNAP_A] = amp
+            fe[F_SNAP_VALID] = 1.0 if val else 0.0
+            fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
+            fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
+            fe[F_SINCE] = 0.0
+            pp = complex(amp * math.cos(ph), amp * math.sin(ph)) if val else complex(0.0, 0.0)
+            a_ = (wt + 0.5 * lt * inv_fs) * inv_fs
+            ps = complex(math.cos(a_), math.sin(a_))
+        else:
+            fe[F_SINCE] += 1.0
+        # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
+        if not last_only or i == n - 1:
+            j = 0 if last_only else i
+            ts = fe[F_SINCE] * inv_fs
+            if fe[F_SNAP_VALID] != 0.0:
+                wt = fe[F_SNAP_W]
+                lt = fe[F_SNAP_L]
+                out[j, 0] = (w_nom + wt + lt * ts) / TWO_PI
+                out[j, 1] = fe[F_SNAP_A]
+                out[j, 2] = _wrap(fe[F_SNAP_PH] + (wt + 0.5 * lt * ts) * ts)
+                out[j, 3] = 0.0  # the model (eqs. 1-2) has no offset
+                out[j, 4] = fe[F_SNAP_CONV]
+                ext[j, 0] = lt / TWO_PI
+                ext[j, 1] = fe[F_SNAP_STD] if fe[F_SNAP_STD] >= 0.0 else np.nan
+            else:
+                out[j, 0] = np.nan
+                out[j, 1] = np.nan
+                out[j, 2] = np.nan
+                out[j, 3] = np.nan
+                out[j, 4] = 0.0
+                ext[j, 0] = np.nan
+                ext[j, 1] = np.nan
+            ext[j, 2] = (w_nom + w2 / T0) / TWO_PI
+        # ---- advance the prediction by one sample (a chirp's step turns at lt / fs^2)
+        pp = pp * ps
+        if fe[F_SNAP_L] != 0.0:
+            ps = ps * _cis_small(fe[F_SNAP_L] * inv_fs * inv_fs)
+    fe[F_PSI] = psi2
+    fe[F_WREF] = w2
+    fe[F_LREF] = l2
+    fe[F_BB_RE] = pp.real
+    fe[F_BB_IM] = pp.imag
+    fe[F_BS_RE] = ps.real
+    fe[F_BS_IM] = ps.imag
+    return out, ext, sse, fe, core, theta, P, ist
+
+
+@kernel
+def differential_rls_kernel(
+    x: np.ndarray,
+    fe_in: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ist_in: np.ndarray,
+    sos: np.ndarray,
+    tab: np.ndarray,
+    cyc: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The estimator's kernel: ``x`` (N, 1) real samples -> :func:`real_front_end`; (N, 2)
+    in-phase/quadrature samples -> :func:`iq_front_end` (``sos`` unused there).
+
+    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
+    """
+    if x.shape[1] == 2:
+        return iq_front_end(x, fe_in, core_in, theta_in, P_in, ist_in, tab, cyc, consts, last_only)
+    return real_front_end(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab, cyc, consts, last_only)
+
+
 def core_constants(
     *,
     fs: float,
@@ -1063,8 +1236,15 @@ def band_limited_iq_noise(k: int, m: float, var: float, seed: int) -> np.ndarray
 
 
 class DifferentialRlsParams(EstimatorParams):
+    input: Literal["real", "iq"] = Field(
+        "real",
+        description="'real': one column, demodulated against the reference oscillator; 'iq': two columns, "
+        "in-phase y = A sin(phase) and quadrature z = A cos(phase) (the paper's eqs. 1-2)",
+    )
     nominal_frequency_hz: float = Field(
-        50.0, description="Initial frequency of the reference oscillator (the demodulation carrier), Hz"
+        50.0,
+        description="Initial frequency of the reference oscillator (the demodulation carrier), Hz; with "
+        "input = 'iq', the frequency of the oscillator the I/Q were taken against (0: baseband)",
     )
     bandwidth_hz: float = Field(
         5.0,
@@ -1098,18 +1278,46 @@ class DifferentialRlsParams(EstimatorParams):
     tracking_range_hz: float | None = Field(
         None, description="How far the reference may move from nominal, Hz; default: bandwidth_hz"
     )
+    noise_correlation: float | None = Field(
+        None,
+        description="r1, lag-1 correlation of the noise at the decimated rate (ELS, eqs. 11-13); default: "
+        "'real': from the demodulator's low-pass; 'iq': sinc(1/M), ideal low-pass noise of bandwidth B_N (eq. 14)",
+    )
     p0: float = Field(1e4, description="Initial covariance P(0) = p0 I (amplitude-normalised units)")
     convergence_rel_std: float = Field(
         0.01, description="converged once the frequency standard deviation < this * bandwidth_hz"
     )
     min_amplitude: float = Field(1e-6, description="Below this amplitude the estimate is undefined (NaN)")
 
-    @field_validator("nominal_frequency_hz", "bandwidth_hz", "p0", "convergence_rel_std")
+    @field_validator("bandwidth_hz", "p0", "convergence_rel_std")
     @classmethod
     def _positive(cls, v: float) -> float:
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"expected a finite value > 0, got {v}")
         return v
+
+    @field_validator("nominal_frequency_hz")
+    @classmethod
+    def _nominal(cls, v: float) -> float:
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"expected a finite value >= 0, got {v}")
+        return v
+
+    @field_validator("noise_correlation")
+    @classmethod
+    def _r1(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and -1.0 < v < 1.0):
+            raise ValueError(f"expected -1 < noise_correlation < 1, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _carrier(self) -> DifferentialRlsParams:
+        if self.input == "real" and self.nominal_frequency_hz <= 0.0:
+            raise ValueError(
+                f"nominal_frequency_hz: expected > 0 with input = 'real' (the demodulation carrier), "
+                f"got {self.nominal_frequency_hz}"
+            )
+        return self
 
     @field_validator("oversampling")
     @classmethod
@@ -1232,21 +1440,51 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
                                  f"at {sample_rate_hz} Hz")  # fmt: skip
         return {"nominal_frequency_hz": f0, "bandwidth_hz": bw, "tracking_range_hz": rng, "oversampling": m}
 
+    @property
+    def n_inputs(self) -> int:
+        """1 with input = 'real', 2 (in-phase, quadrature) with input = 'iq'."""
+        return 2 if self.params.input == "iq" else 1
+
+    def _as_block(self, samples: Any) -> np.ndarray:
+        """The block checked against ``input``: a typed error that names the parameter when
+        the columns disagree with it (before the generic checks of the base class)."""
+        if isinstance(samples, np.ndarray) and samples.ndim >= 1:
+            cols = samples.shape[1] if samples.ndim == 2 else (1 if samples.ndim == 1 else -1)
+            if cols != self.n_inputs:
+                want = "2 columns (in-phase, quadrature)" if self.params.input == "iq" else "1 column"
+                raise InputError(
+                    f"samples: expected {want} with input = {self.params.input!r}, got shape {samples.shape}",
+                    kind="shape_mismatch",
+                )
+        return super()._as_block(samples)
+
+    def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
+        """(N, 1) for real input (a view), (N, 2) for I/Q: the kernel takes a 2-D block."""
+        return samples.reshape(-1, 1) if samples.ndim == 1 else samples
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
-        top = p.nominal_frequency_hz + rng + p.bandwidth_hz
-        if top >= fs / 2:
-            raise ParameterError(
-                f"nominal_frequency_hz: expected nominal + tracking range + bandwidth below Nyquist "
-                f"({fs / 2} Hz), got {p.nominal_frequency_hz} + {rng} + {p.bandwidth_hz} = {top}"
-            )
-        if p.nominal_frequency_hz - rng - p.bandwidth_hz <= 0:
-            raise ParameterError(
-                f"bandwidth_hz: expected nominal - tracking range - bandwidth > 0, got "
-                f"{p.nominal_frequency_hz} - {rng} - {p.bandwidth_hz}"
-            )
+        if p.input == "iq":
+            # complex samples at fs hold offsets within (-fs/2, fs/2) of the external oscillator
+            if rng + p.bandwidth_hz >= fs / 2:
+                raise ParameterError(
+                    f"tracking_range_hz: expected tracking range + bandwidth below half the I/Q sample rate "
+                    f"({fs / 2} Hz), got {rng} + {p.bandwidth_hz} = {rng + p.bandwidth_hz}"
+                )
+        else:
+            top = p.nominal_frequency_hz + rng + p.bandwidth_hz
+            if top >= fs / 2:
+                raise ParameterError(
+                    f"nominal_frequency_hz: expected nominal + tracking range + bandwidth below Nyquist "
+                    f"({fs / 2} Hz), got {p.nominal_frequency_hz} + {rng} + {p.bandwidth_hz} = {top}"
+                )
+            if p.nominal_frequency_hz - rng - p.bandwidth_hz <= 0:
+                raise ParameterError(
+                    f"bandwidth_hz: expected nominal - tracking range - bandwidth > 0, got "
+                    f"{p.nominal_frequency_hz} - {rng} - {p.bandwidth_hz}"
+                )
         if p.rocof_model and p.n_terms > 4:
             raise ParameterError(f"n_terms: expected <= 4 with rocof_model (n(n+3)/2 parameters), got {p.n_terms}")
         decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing)
@@ -1254,6 +1492,7 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
     def _setup(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
+        iq = p.input == "iq"
         self._cyc = np.array(
             decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing), dtype=np.int64
         )
@@ -1261,8 +1500,15 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         T0 = d0 / fs
         self._tab = monomial_table(p.n_terms, p.rocof_model)
         n_par = self._tab.shape[0]
+        # the demodulator's low-pass (real input; passed but unused with I/Q input)
         self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
+        if p.noise_correlation is not None:
+            r1 = p.noise_correlation
+        elif iq:  # ideal low-pass noise of bandwidth B_N sampled at T_sN / M, eq. (14)
+            r1 = float(np.sinc(1.0 / p.oversampling))
+        else:
+            r1 = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
         c = core_constants(
             fs=fs,
             T0=T0,
@@ -1277,32 +1523,40 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
             recenter_every=p.recenter_every,
             els=p.els,
             derivative=p.rocof_model,
-            r1=lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0])),
+            r1=r1,
         )
         c[K_W_NOM] = TWO_PI * p.nominal_frequency_hz
         c[K_W_RANGE] = TWO_PI * rng
         c[K_MIN_AMP] = p.min_amplitude
-        c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
-        c[K_HOLD] = math.ceil(c[K_WARM] / d0)
+        if not iq:  # I/Q input: no low-pass to settle
+            c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
+            c[K_HOLD] = math.ceil(c[K_WARM] / d0)
         self._consts = c
         self._constants = (self._sos, self._tab, self._cyc, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        """``fe`` (FE_SIZE,): the real-input front end, slots named F_* (reference phase,
-        frequency and ramp, offset, the low-pass delays, the snapshot at the last decimated
-        step, the rotators); ``core`` (CORE_SIZE,): the baseband estimator, slots named
-        by the constants above (c(k-1), n^, a^, the weighted powers, counters, flags);
-        ``theta`` (p,): the parameter estimate (monomials w^a lam^b, :func:`monomial_table`);
-        ``P`` (p, p): its covariance; ``ist`` (3,) int64: input samples since the last decimated one, position in the
-        decimation cycle, samples seen while the low-pass warms up."""
+        """``fe`` (FE_SIZE,): the front end, slots named F_*. Real input: reference phase
+        (rad), frequency (rad/s) and ramp (rad/s^2), offset, the low-pass delays, the
+        snapshot at the last decimated step, the rotators. I/Q input: F_PSI, F_WREF, F_LREF
+        hold the digital reference's phase (rad), offset from the external oscillator (rad
+        per T0) and ramp (rad per T0^2), F_BB_* the predicted c and F_BS_* its per-sample
+        step, the snapshot slots as for real input (F_SNAP_W, F_SNAP_L: offset from the
+        external oscillator), the others unused. ``core`` (CORE_SIZE,): the baseband
+        estimator, slots named by the constants above (c(k-1), n^, a^, the weighted
+        powers, counters, flags); ``theta`` (p,): the parameter estimate (monomials w^a
+        lam^b, :func:`monomial_table`); ``P`` (p, p): its covariance; ``ist`` (3,) int64:
+        input samples since the last decimated one, position in the decimation cycle, and
+        (real) samples seen while the low-pass warms up / (I/Q) 1 once the first sample
+        was taken."""
         n_par = self._tab.shape[0]
         fe = np.zeros(FE_SIZE)
-        w = TWO_PI * self.params.nominal_frequency_hz
-        fe[F_WREF] = w
-        fe[F_LO_RE] = 1.0
-        fe[F_LS_RE] = math.cos(w / self.sample_rate_hz)
-        fe[F_LS_IM] = math.sin(w / self.sample_rate_hz)
-        fe[F_BB_RE] = 1.0
+        if self.params.input == "real":
+            w = TWO_PI * self.params.nominal_frequency_hz
+            fe[F_WREF] = w
+            fe[F_LO_RE] = 1.0
+            fe[F_LS_RE] = math.cos(w / self.sample_rate_hz)
+            fe[F_LS_IM] = math.sin(w / self.sample_rate_hz)
+            fe[F_BB_RE] = 1.0
         fe[F_BS_RE] = 1.0
         return {
             "fe": fe,
