@@ -11,13 +11,14 @@ The paper's figures are quoted beside the measured ones. Figures for the docs:
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from sinewatch.estimators import create
-from sinewatch.estimators.base import decode_array
+from sinewatch.estimators.base import concat_tracks, decode_array
 from sinewatch.estimators.differential_rls import (
     _biquads,
     _lowpass_retune,
@@ -32,6 +33,7 @@ from sinewatch.estimators.differential_rls import (
 )
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.scenarios.papers import paper001_baseband
+from sinewatch.schemas.errors import InputError, ParameterError
 
 NAME = "differential-rls"
 FS = 1000.0
@@ -594,3 +596,100 @@ def test_served_fig3_tracking_and_the_derivative_model():
     assert errs[False] < 0.06
     assert errs[True] < 0.004
     assert errs[True] < errs[False] / 10
+
+
+# ------------------------------------------- input = "iq": the estimator's conventions
+
+
+def iq_estimator(**kw):
+    from sinewatch.scenarios.papers import PAPER001_IQ_FIG3
+
+    return create(NAME, IQ_FS, **{**PAPER001_IQ_FIG3, **kw})
+
+
+def iq_signal(n: int, seed: int = 0) -> np.ndarray:
+    x, _ = get_scenario("paper001-iq-fig3", noise_std=1e-4).generate(seed, n=n)  # 1e-4 per component
+    return x
+
+
+def test_iq_blocks_state_and_kernel_follow_the_conventions():
+    from sinewatch.estimators.differential_rls import differential_rls_kernel
+
+    x = iq_signal(6000)
+    x_copy = x.copy()
+    whole = iq_estimator().update(x)
+    assert np.array_equal(x, x_copy)  # the input is not modified
+    assert whole.converged[-1] and whole.frequency_hz.shape == (6000, 1)
+    for size in (1, 7, 1000):  # block boundaries do not change the output (bitwise, NaN == NaN)
+        est = iq_estimator()
+        parts = [est.update(x[i : i + size]) for i in range(0, 6000, size)]
+        for f in ("frequency_hz", "amplitude", "phase_rad", "offset", "converged"):
+            np.testing.assert_array_equal(np.concatenate([getattr(p, f) for p in parts]), getattr(whole, f))
+        np.testing.assert_array_equal(np.concatenate([p.rocof_hz_per_s for p in parts]), whole.rocof_hz_per_s)
+    est = iq_estimator()
+    last = est.update(x[:3000], last_only=True)
+    assert last.frequency_hz[0, 0] == whole.frequency_hz[2999, 0] and last.rocof_hz_per_s.shape == (1, 1)
+    # the state goes through JSON and back exactly
+    restored = iq_estimator()
+    restored.set_state(json.loads(json.dumps(est.get_state())))
+    a, b = est.update(x[3000:]), restored.update(x[3000:])
+    np.testing.assert_array_equal(a.phase_rad, b.phase_rad)
+    np.testing.assert_array_equal(a.phase_rad, whole.phase_rad[3000:])
+    # the kernel takes the (N, 2) block and returns new state arrays, its inputs untouched
+    state = {k: v.copy() for k, v in est._state.items()}
+    result = differential_rls_kernel(x[:500], *est._state.values(), *est._constants, False)
+    for (key, old), new in zip(state.items(), result[3:], strict=True):
+        np.testing.assert_array_equal(est._state[key], old)
+        assert new is not est._state[key] and new.shape == old.shape and new.dtype == old.dtype
+
+
+def test_iq_column_count_is_checked_against_input():
+    # a typed error that names the parameter, before the estimator sees the block
+    iq, real = iq_estimator(), create(NAME, FS, **P50)
+    with pytest.raises(InputError, match=r"2 columns \(in-phase, quadrature\) with input = 'iq'") as e:
+        iq.update(np.zeros(100))
+    assert e.value.kind == "shape_mismatch"
+    with pytest.raises(InputError, match="1 column with input = 'real'") as e:
+        real.update(np.zeros((100, 2)))
+    assert e.value.kind == "shape_mismatch"
+    assert iq.n_inputs == 2 and real.n_inputs == 1
+    assert real.update(np.zeros((100, 1))).frequency_hz.shape == (100, 1)  # (N, 1) is one column
+
+
+def test_iq_parameters_are_checked():
+    with pytest.raises(ParameterError, match="nominal_frequency_hz: expected > 0 with input = 'real'"):
+        create(NAME, FS, nominal_frequency_hz=0.0)
+    with pytest.raises(ParameterError, match="half the I/Q sample rate"):
+        create(NAME, IQ_FS, input="iq", nominal_frequency_hz=0.0, bandwidth_hz=1.0, tracking_range_hz=24.5)
+    with pytest.raises(ParameterError, match="noise_correlation"):
+        create(NAME, IQ_FS, input="iq", nominal_frequency_hz=0.0, bandwidth_hz=1.0, noise_correlation=1.0)
+    with pytest.raises(ParameterError, match="input"):
+        create(NAME, FS, **P50, input="complex")
+
+
+def test_iq_frequency_is_the_external_oscillator_plus_the_offset():
+    # I/Q taken against a 1 kHz oscillator, the signal at 1000.3 Hz: frequency_hz = 1000.3, the
+    # phase that of the pair (y = A sin(phase)), the digital reference near the offset
+    fs = 100.0
+    t = np.arange(20_000) / fs
+    c = 2.0 * np.exp(1j * (2 * np.pi * 0.3 * t + 1.0))
+    est = create(NAME, fs, input="iq", nominal_frequency_hz=1000.0, bandwidth_hz=1.0, rocof_model=False)
+    tr = est.update(iq_columns(c[:10_000]))
+    tr = concat_tracks([tr, est.update(iq_columns(c[10_000:]))])
+    late = t > 100
+    assert np.abs(tr.frequency_hz[late, 0] - 1000.3).max() < 1e-6
+    assert np.abs(tr.amplitude[late, 0] - 2.0).max() < 1e-5
+    assert np.abs(np.angle(np.exp(1j * (tr.phase_rad[late, 0] - (2 * np.pi * 0.3 * t[late] + 1.0))))).max() < 1e-5
+    assert tr.extras["reference_frequency_hz"][-1] == pytest.approx(1000.3, abs=1e-6)
+    # the one-step prediction error of the in-phase column, over the second block
+    assert est.update(iq_columns(c[-1:] * np.exp(2j * np.pi * 0.3 / fs))).residual_rms < 1e-6
+
+
+def test_iq_zero_input_then_signal():
+    est = iq_estimator()
+    tr = est.update(np.zeros((3000, 2)))
+    assert np.isnan(tr.frequency_hz).all() and not tr.converged.any()
+    assert final_state_is_finite(est)
+    x, truth = get_scenario("paper001-iq-fig3").generate(n=6000)
+    tr = est.update(x)
+    assert tr.converged[-1] and abs(tr.frequency_hz[-1, 0] - truth.frequency_hz[-1, 0]) < 1e-3
