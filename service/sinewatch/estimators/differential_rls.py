@@ -103,6 +103,24 @@ at every input sample ``frequency = (w_ref + w^ + lam0^ s) / 2 pi``, ``phase = p
 + w^ s + lam0^ s^2 / 2`` (s = time since the last decimated sample), ``rocof_hz_per_s =
 (lam_ref + lam0^) / 2 pi`` (NaN without ``rocof_model``).
 
+I/Q input (``input = "iq"``: the paper's own setting)
+---------------------------------------------------
+A channel whose blocks carry two columns, the in-phase ``y`` (column 0) and the quadrature
+``z`` (column 1) of eqs. (1)-(2), measured against an external oscillator at
+``nominal_frequency_hz`` (0 for a baseband signal, as in Section 10), skips the demodulator:
+``c = z + j y`` is taken every ``round(fs / (2 B_N M))`` input samples (cycled as above when
+n > 2: the paper's T, 0.9 T come from decimating a uniform stream) and rotated by a digital
+reference oscillator, which re-centring moves exactly as the analogue one (within
+``tracking_range_hz`` of the external one). ``bandwidth_hz`` is B_N, the bound on the offset
+(the I/Q front end's bandwidth, Omega_d / 2 pi); r1 defaults to ``sinc(1/M)``, the ideal
+low-pass noise of eq. (14) (``noise_correlation = 0`` for white noise, eq. 11's model). Outputs:
+``frequency_hz = nominal + (w_ref + w^ + lam0^ s) / 2 pi``, ``phase_rad`` the phase of the pair
+(``y = A sin(phase)``, relative to the external oscillator), ``offset`` 0 (the model has none),
+``rocof_hz_per_s`` as above; ``residual_rms`` is the in-phase column's one-step prediction error.
+The column count must match ``input`` (InputError ``shape_mismatch`` otherwise). Through the
+registry this reproduces the offline Section 10 runs (tests/test_differential_rls.py,
+``test_served_*``).
+
 Internally times are in units of T0 (the longest decimated interval) and every equation
 is divided by the RMS amplitude of c (weighted with lam^4, taken before c(k-1) so that the
 weight is independent of the equation's own noise, and never below |c(k-1)| / 2), so that P
@@ -1413,7 +1431,11 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 @register
 class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel, name="differential-rls"):
-    """Differential signal model + recursive extended least squares, with ROCOF"""
+    """Differential signal model + recursive extended least squares, with ROCOF. input = "real": one
+    column, quadrature-mixed against a re-centred reference oscillator; input = "iq": two columns,
+    in-phase y = A sin(phase) and quadrature z = A cos(phase) taken against an external oscillator at
+    nominal_frequency_hz (0: baseband, the paper's setting); a block with the other column count is
+    rejected (shape_mismatch)"""
 
     paper = (
         '"Differential signal model and sampling techniques for recursive (extended) least-squares '
