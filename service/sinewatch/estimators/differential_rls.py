@@ -199,6 +199,9 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
+_FACTORIALS = np.array([float(math.factorial(k)) for k in range(8)])  # 0! .. 7! (n <= 6), exact
+
+
 @kernel(inline="always")
 def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, ri: np.ndarray) -> None:
     """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
@@ -252,6 +255,219 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
             v = (P[a, b] - pa * px[b]) * inv_f
             P[a, b] = v
             P[b, a] = v
+
+
+@kernel(inline="always")
+def _rls_pair5(P: np.ndarray, theta: np.ndarray, xr: np.ndarray, yr: float, f: float, xi: np.ndarray, yi: float) -> None:
+    """The two scalar updates of :func:`core_step` (xr with forgetting f, then xi without),
+    as :func:`_rls_scalar` computes them, for p = 5 (n = 2 with the derivative model, the
+    default): P (symmetric: its upper triangle), theta and x in registers; the same
+    operations in the same order, hence the same bits."""
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = (
+        P[0, 0], P[0, 1], P[0, 2], P[0, 3], P[0, 4], P[1, 1], P[1, 2], P[1, 3], P[1, 4], P[2, 2], P[2, 3], P[2, 4], P[3, 3], P[3, 4], P[4, 4],
+    )  # fmt: skip
+    t0, t1, t2, t3, t4 = theta[0], theta[1], theta[2], theta[3], theta[4]
+    x0, x1, x2, x3, x4 = xr[0], xr[1], xr[2], xr[3], xr[4]
+    den = f
+    e = yr
+    s = 0.0
+    s += p00 * x0
+    s += p01 * x1
+    s += p02 * x2
+    s += p03 * x3
+    s += p04 * x4
+    q0 = s
+    den += x0 * s
+    e -= x0 * t0
+    s = 0.0
+    s += p01 * x0
+    s += p11 * x1
+    s += p12 * x2
+    s += p13 * x3
+    s += p14 * x4
+    q1 = s
+    den += x1 * s
+    e -= x1 * t1
+    s = 0.0
+    s += p02 * x0
+    s += p12 * x1
+    s += p22 * x2
+    s += p23 * x3
+    s += p24 * x4
+    q2 = s
+    den += x2 * s
+    e -= x2 * t2
+    s = 0.0
+    s += p03 * x0
+    s += p13 * x1
+    s += p23 * x2
+    s += p33 * x3
+    s += p34 * x4
+    q3 = s
+    den += x3 * s
+    e -= x3 * t3
+    s = 0.0
+    s += p04 * x0
+    s += p14 * x1
+    s += p24 * x2
+    s += p34 * x3
+    s += p44 * x4
+    q4 = s
+    den += x4 * s
+    e -= x4 * t4
+    if den > 0.0:
+        ge = e / den
+        inv_f = 1.0 / f
+        t0 += q0 * ge
+        pa = q0 / den
+        p00 = (p00 - pa * q0) * inv_f
+        p01 = (p01 - pa * q1) * inv_f
+        p02 = (p02 - pa * q2) * inv_f
+        p03 = (p03 - pa * q3) * inv_f
+        p04 = (p04 - pa * q4) * inv_f
+        t1 += q1 * ge
+        pa = q1 / den
+        p11 = (p11 - pa * q1) * inv_f
+        p12 = (p12 - pa * q2) * inv_f
+        p13 = (p13 - pa * q3) * inv_f
+        p14 = (p14 - pa * q4) * inv_f
+        t2 += q2 * ge
+        pa = q2 / den
+        p22 = (p22 - pa * q2) * inv_f
+        p23 = (p23 - pa * q3) * inv_f
+        p24 = (p24 - pa * q4) * inv_f
+        t3 += q3 * ge
+        pa = q3 / den
+        p33 = (p33 - pa * q3) * inv_f
+        p34 = (p34 - pa * q4) * inv_f
+        t4 += q4 * ge
+        pa = q4 / den
+        p44 = (p44 - pa * q4) * inv_f
+    x0, x1, x2, x3, x4 = xi[0], xi[1], xi[2], xi[3], xi[4]
+    den = 1.0
+    e = yi
+    s = 0.0
+    s += p00 * x0
+    s += p01 * x1
+    s += p02 * x2
+    s += p03 * x3
+    s += p04 * x4
+    q0 = s
+    den += x0 * s
+    e -= x0 * t0
+    s = 0.0
+    s += p01 * x0
+    s += p11 * x1
+    s += p12 * x2
+    s += p13 * x3
+    s += p14 * x4
+    q1 = s
+    den += x1 * s
+    e -= x1 * t1
+    s = 0.0
+    s += p02 * x0
+    s += p12 * x1
+    s += p22 * x2
+    s += p23 * x3
+    s += p24 * x4
+    q2 = s
+    den += x2 * s
+    e -= x2 * t2
+    s = 0.0
+    s += p03 * x0
+    s += p13 * x1
+    s += p23 * x2
+    s += p33 * x3
+    s += p34 * x4
+    q3 = s
+    den += x3 * s
+    e -= x3 * t3
+    s = 0.0
+    s += p04 * x0
+    s += p14 * x1
+    s += p24 * x2
+    s += p34 * x3
+    s += p44 * x4
+    q4 = s
+    den += x4 * s
+    e -= x4 * t4
+    if den > 0.0:
+        ge = e / den
+        inv_f = 1.0 / 1.0
+        t0 += q0 * ge
+        pa = q0 / den
+        p00 = (p00 - pa * q0) * inv_f
+        p01 = (p01 - pa * q1) * inv_f
+        p02 = (p02 - pa * q2) * inv_f
+        p03 = (p03 - pa * q3) * inv_f
+        p04 = (p04 - pa * q4) * inv_f
+        t1 += q1 * ge
+        pa = q1 / den
+        p11 = (p11 - pa * q1) * inv_f
+        p12 = (p12 - pa * q2) * inv_f
+        p13 = (p13 - pa * q3) * inv_f
+        p14 = (p14 - pa * q4) * inv_f
+        t2 += q2 * ge
+        pa = q2 / den
+        p22 = (p22 - pa * q2) * inv_f
+        p23 = (p23 - pa * q3) * inv_f
+        p24 = (p24 - pa * q4) * inv_f
+        t3 += q3 * ge
+        pa = q3 / den
+        p33 = (p33 - pa * q3) * inv_f
+        p34 = (p34 - pa * q4) * inv_f
+        t4 += q4 * ge
+        pa = q4 / den
+        p44 = (p44 - pa * q4) * inv_f
+    P[0, 0] = p00
+    P[0, 1] = p01
+    P[1, 0] = p01
+    P[0, 2] = p02
+    P[2, 0] = p02
+    P[0, 3] = p03
+    P[3, 0] = p03
+    P[0, 4] = p04
+    P[4, 0] = p04
+    P[1, 1] = p11
+    P[1, 2] = p12
+    P[2, 1] = p12
+    P[1, 3] = p13
+    P[3, 1] = p13
+    P[1, 4] = p14
+    P[4, 1] = p14
+    P[2, 2] = p22
+    P[2, 3] = p23
+    P[3, 2] = p23
+    P[2, 4] = p24
+    P[4, 2] = p24
+    P[3, 3] = p33
+    P[3, 4] = p34
+    P[4, 3] = p34
+    P[4, 4] = p44
+    theta[0], theta[1], theta[2], theta[3], theta[4] = t0, t1, t2, t3, t4
+
+
+
+@kernel(inline="always")
+def _all_finite_sum(theta: np.ndarray, P: np.ndarray) -> bool:
+    """Whether sum(theta) + sum(P), added in row order, is finite. Every entry finite and below
+    1e300 in magnitude cannot overflow (checked row by row, independent chains); otherwise the
+    sum itself decides, in the original order (NaN, Inf or an overflow: not finite)."""
+    p = theta.shape[0]
+    small = True
+    for q in range(p):
+        row = abs(theta[q]) < 1e300
+        for r in range(p):
+            row = row and abs(P[q, r]) < 1e300
+        small = small and row
+    if small:
+        return True
+    acc = 0.0
+    for q in range(p):
+        acc += theta[q]
+        for r in range(p):
+            acc += P[q, r]
+    return math.isfinite(acc)
 
 
 @kernel(inline="always")
@@ -322,7 +538,14 @@ def core_step(
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
     g = u * (tau + 0.5 * u) if deriv else 0.0  # (tau_k^2 - tau_{k-1}^2) / 2, eq. (25)
-    regressor_coefficients(u, g, tab, rr, ri)
+    if p == 5 and deriv:  # n = 2 with the derivative model (the default), as the loop computes it
+        rr[0], ri[0] = 0.0, 1.0 * u  # j w dt
+        rr[1], ri[1] = 0.0, 1.0 * g  # j lam g
+        rr[2], ri[2] = -(0.5 * u * u), 0.0  # -(w dt)^2 / 2
+        rr[3], ri[3] = -(1.0 * u * g), 0.0  # -w lam dt g
+        rr[4], ri[4] = -(0.5 * g * g), 0.0  # -(lam g)^2 / 2
+    else:
+        regressor_coefficients(u, g, tab, rr, ri)
     # E^_k = 1 + sum r_p theta^_p(k-1): the estimated one-step rotation e^{j w dt}, eqs. (4), (11)
     er = 1.0
     ei = 0.0
@@ -389,16 +612,14 @@ def core_step(
         # and P is sane: P stays finite on zero input and on a signal that stops
         excited = cp2 > 1e-4 * m2
         f = lam if (excited and tr < consts[K_TRACE_MAX]) else 1.0
-        _rls_scalar(P, theta, xr, yr, f, px)
-        _rls_scalar(P, theta, xi, yi, 1.0, px)
+        if p == 5:  # the default model, unrolled (the same arithmetic)
+            _rls_pair5(P, theta, xr, yr, f, xi, yi)
+        else:
+            _rls_scalar(P, theta, xr, yr, f, px)
+            _rls_scalar(P, theta, xi, yi, 1.0, px)
         # never let the state go non-finite or the estimate leave the decimated band
         # (|w dt| < pi): restart the parameter estimate
-        acc = 0.0
-        for q in range(p):
-            acc += theta[q]
-            for r in range(p):
-                acc += P[q, r]
-        if not (abs(theta[0]) < math.pi and math.isfinite(acc)):
+        if not (abs(theta[0]) < math.pi and _all_finite_sum(theta, P)):
             p0 = consts[K_P0]
             for q in range(p):
                 theta[q] = 0.0
@@ -534,11 +755,7 @@ def recenter_transform(
     index of w^a lam^b; T, b0, work are scratch.
     """
     p = theta.shape[0]
-    nmax = idx.shape[0] - 1
-    fact = np.empty(nmax + 1)
-    fact[0] = 1.0
-    for k in range(1, nmax + 1):
-        fact[k] = fact[k - 1] * k
+    fact = _FACTORIALS
     for q in range(p):
         b0[q] = 0.0
         for r in range(p):
