@@ -1012,6 +1012,12 @@ def real_front_end(
     ls = complex(fe[F_LS_RE], fe[F_LS_IM])  # its per-sample step
     bb = complex(fe[F_BB_RE], fe[F_BB_IM])  # e^{j phi_bb} predicted for this sample
     bs = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    # the chirp corrections of the two steps, _cis_small of (ramp / fs^2): computed once per
+    # value of the ramp, not per sample (the same function of the same value: the same bits)
+    cb_for = 0.0
+    cb = complex(1.0, 0.0)
+    cl_for = 0.0
+    cl = complex(1.0, 0.0)
     if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
         _biquads_steady(x[0, 0], sos, fe, F_ZI)
     # the low-pass coefficients and the 12 delays of its three channels live in registers
@@ -1116,10 +1122,10 @@ def real_front_end(
             bs = complex(math.cos(a_), math.sin(a_))
         else:
             fe[F_SINCE] += 1.0
-        ts = fe[F_SINCE] * inv_fs
         # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
         if not last_only or i == n - 1:
             j = 0 if last_only else i
+            ts = fe[F_SINCE] * inv_fs
             if fe[F_SNAP_VALID] != 0.0:
                 wbb = fe[F_SNAP_W]
                 lbb = fe[F_SNAP_L]
@@ -1141,9 +1147,12 @@ def real_front_end(
             ext[j, 2] = wref / TWO_PI
         # ---- advance the baseband prediction rotator by one sample
         bb = bb * bs
-        if fe[F_SNAP_L] != 0.0:
-            a_ = fe[F_SNAP_L] * inv_fs * inv_fs
-            bs = bs * _cis_small(a_)
+        snap_l = fe[F_SNAP_L]
+        if snap_l != 0.0:
+            if snap_l != cb_for:
+                cb = _cis_small(snap_l * inv_fs * inv_fs)
+                cb_for = snap_l
+            bs = bs * cb
         # ---- advance the reference oscillator (linear frequency ramp, exact phase integral)
         psi = _wrap(psi + (wref + 0.5 * lref * inv_fs) * inv_fs)
         wref += lref * inv_fs
@@ -1163,7 +1172,10 @@ def real_front_end(
         else:
             lo = lo * ls
         if lref != 0.0:
-            ls = ls * _cis_small(lref * inv_fs * inv_fs)
+            if lref != cl_for:
+                cl = _cis_small(lref * inv_fs * inv_fs)
+                cl_for = lref
+            ls = ls * cl
     fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3] = o1, o2, o3, o4
     fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
     fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
