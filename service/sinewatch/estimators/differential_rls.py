@@ -199,7 +199,19 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
-_FACTORIALS = np.array([float(math.factorial(k)) for k in range(8)])  # 0! .. 7! (n <= 6), exact
+def _multinomials(nmax: int) -> np.ndarray:
+    """M[a, j, l] = a! / (i! j! l!), i = a - j - l, as the float expression computes it (exact
+    integers here); M[b, s, 0] is C(b, s). A table, so that re-centring divides nothing."""
+    f = [float(math.factorial(k)) for k in range(nmax + 1)]
+    m = np.zeros((nmax + 1, nmax + 1, nmax + 1))
+    for a in range(nmax + 1):
+        for j in range(a + 1):
+            for ll in range(a - j + 1):
+                m[a, j, ll] = f[a] / (f[a - j - ll] * f[j] * f[ll])
+    return m
+
+
+_MULTINOMIAL = _multinomials(6)  # n_terms <= 6
 
 
 @kernel(inline="always")
@@ -722,7 +734,7 @@ def working_core(
     return core_in.copy(), theta_in.copy(), P_in.copy(), rr, ri, xr, xi, px, idx, T, b0, work
 
 
-@kernel
+@kernel(inline="always")
 def _ipow(x: float, k: int) -> float:
     r = 1.0
     for _ in range(k):
@@ -755,7 +767,6 @@ def recenter_transform(
     index of w^a lam^b; T, b0, work are scratch.
     """
     p = theta.shape[0]
-    fact = _FACTORIALS
     for q in range(p):
         b0[q] = 0.0
         for r in range(p):
@@ -767,11 +778,11 @@ def recenter_transform(
         for j in range(aq + 1):
             for ll in range(aq - j + 1):
                 i = aq - j - ll
-                ca = fact[aq] / (fact[i] * fact[j] * fact[ll]) * _ipow(delta, j) * _ipow(-dw, ll)
+                ca = _MULTINOMIAL[aq, j, ll] * _ipow(delta, j) * _ipow(-dw, ll)
                 if ca == 0.0:
                     continue
                 for s_ in range(bq + 1):
-                    cb = fact[bq] / (fact[s_] * fact[bq - s_]) * _ipow(-dl, bq - s_)
+                    cb = _MULTINOMIAL[bq, s_, 0] * _ipow(-dl, bq - s_)
                     v = ca * cb
                     if v == 0.0:
                         continue
@@ -952,11 +963,21 @@ def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, 
     output continues as if the reference had always been at the new frequency."""
     zo = complex(math.cos(om_old), math.sin(om_old))
     zn = complex(math.cos(om_new), math.sin(om_new))
+    _retune_stages(sos, fe, X, zo, zn, _stage_response(sos, 0, zo), _stage_response(sos, 1, zo),
+                   _stage_response(sos, 0, zn), _stage_response(sos, 1, zn))  # fmt: skip
+
+
+@kernel(inline="always")
+def _retune_stages(
+    sos: np.ndarray, fe: np.ndarray, X: complex, zo: complex, zn: complex, ho0: complex, ho1: complex,
+    hn0: complex, hn1: complex,
+) -> None:  # fmt: skip
+    """:func:`_lowpass_retune` given z = e^{j om} and the stages' responses there."""
     xo = X
     xn = X
     for s in range(2):
-        ho = _stage_response(sos, s, zo)
-        hn = _stage_response(sos, s, zn)
+        ho = ho0 if s == 0 else ho1
+        hn = hn0 if s == 0 else hn1
         d1 = (hn - sos[s, 0]) * xn * zn - (ho - sos[s, 0]) * xo * zo
         d2 = (sos[s, 2] - sos[s, 5] * hn) * xn - (sos[s, 2] - sos[s, 5] * ho) * xo
         fe[F_ZI + 4 + 2 * s] += d1.real
@@ -965,6 +986,25 @@ def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, 
         fe[F_ZI + 8 + 2 * s + 1] += d2.imag
         xo = ho * xo
         xn = hn * xn
+
+
+@kernel(inline="always")
+def _retune_responses(
+    sos: np.ndarray, fe: np.ndarray, a_now: complex, om_old: float, om_new: float
+) -> tuple[complex, complex]:
+    """``h_old = H(om_old)``, ``h_new = H(om_new)`` (:func:`lowpass_response`) and
+    :func:`_lowpass_retune` for the tone ``a_now / h_old``, each stage's response computed
+    once for both (the same values, the same bits)."""
+    zo = complex(math.cos(om_old), math.sin(om_old))
+    zn = complex(math.cos(om_new), math.sin(om_new))
+    ho0 = _stage_response(sos, 0, zo)
+    ho1 = _stage_response(sos, 1, zo)
+    hn0 = _stage_response(sos, 0, zn)
+    hn1 = _stage_response(sos, 1, zn)
+    h_old = ho0 * ho1
+    h_new = hn0 * hn1
+    _retune_stages(sos, fe, a_now / h_old, zo, zn, ho0, ho1, hn0, hn1)
+    return h_old, h_new
 
 
 @kernel
@@ -1078,12 +1118,10 @@ def real_front_end(
                     if dw != 0.0:
                         om_old = w / d0
                         om_new = (w - dw) / d0
-                        h_old = lowpass_response(sos, om_old)
-                        h_new = lowpass_response(sos, om_new)
                         a_now = complex(core[A_RE], core[A_IM])
                         fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
                         fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
-                        _lowpass_retune(sos, fe, a_now / h_old, om_old, om_new)
+                        h_old, h_new = _retune_responses(sos, fe, a_now, om_old, om_new)
                         r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
                         q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
                         g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
