@@ -1142,7 +1142,8 @@ def real_front_end(
             h = lowpass_response(sos, w / d0)
             ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
             habs2 = h.real * h.real + h.imag * h.imag
-            amp = abs(ah) / habs2  # |a^ / H|
+            aah = abs(ah)
+            amp = aah / habs2  # |a^ / H|
             val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
             wb_s = w / T0
             lb_s = lb / (T0 * T0)
@@ -1155,7 +1156,7 @@ def real_front_end(
             fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
             fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
             fe[F_SINCE] = 0.0
-            bb = ah / abs(ah) if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
+            bb = ah / aah if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
             a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
             bs = complex(math.cos(a_), math.sin(a_))
         else:
