@@ -486,7 +486,7 @@ def served_fig1(k: int, **kw):
 def test_served_iq_is_the_paper_setting_of_the_offline_core():
     # the same c(k) at the same t_k give the offline run's numbers (up to the rounding of t)
     for rec in (0, 10):
-        t_k, f, _, _ = served_fig1(3000, recenter_every=rec)
+        _, f, _, _ = served_fig1(3000, recenter_every=rec)
         dt, _, c = paper001_baseband(3000, [0.54, 0.6], W)
         off = baseband_estimate(c, dt, n_terms=4, forgetting_factor=0.995, els=False, p0=1e4, recenter_every=rec)
         np.testing.assert_allclose(f, off["frequency_rad_s"], rtol=1e-10, atol=0)

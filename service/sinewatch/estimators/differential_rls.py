@@ -270,7 +270,9 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
 
 
 @kernel(inline="always")
-def _rls_pair5(P: np.ndarray, theta: np.ndarray, xr: np.ndarray, yr: float, f: float, xi: np.ndarray, yi: float) -> None:
+def _rls_pair5(
+    P: np.ndarray, theta: np.ndarray, xr: np.ndarray, yr: float, f: float, xi: np.ndarray, yi: float
+) -> None:
     """The two scalar updates of :func:`core_step` (xr with forgetting f, then xi without),
     as :func:`_rls_scalar` computes them, for p = 5 (n = 2 with the derivative model, the
     default): P (symmetric: its upper triangle), theta and x in registers; the same
@@ -457,7 +459,6 @@ def _rls_pair5(P: np.ndarray, theta: np.ndarray, xr: np.ndarray, yr: float, f: f
     P[4, 3] = p34
     P[4, 4] = p44
     theta[0], theta[1], theta[2], theta[3], theta[4] = t0, t1, t2, t3, t4
-
 
 
 @kernel(inline="always")

@@ -187,7 +187,6 @@ _paper001(
 )
 
 
-
 class Paper001IQ(Scenario):
     """Paper 001's own measurements (eqs. 1-2) as a two-column stream: column 0 the
     in-phase ``y = A sin(w t + phi)``, column 1 the quadrature ``z = A cos(w t + phi)``,
