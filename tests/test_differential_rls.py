@@ -613,7 +613,7 @@ def iq_signal(n: int, seed: int = 0) -> np.ndarray:
 
 
 def test_iq_blocks_state_and_kernel_follow_the_conventions():
-    from sinewatch.estimators.differential_rls import differential_rls_kernel
+    from sinewatch.estimators.differential_rls import differential_rls_iq_kernel
 
     x = iq_signal(6000)
     x_copy = x.copy()
@@ -637,7 +637,7 @@ def test_iq_blocks_state_and_kernel_follow_the_conventions():
     np.testing.assert_array_equal(a.phase_rad, whole.phase_rad[3000:])
     # the kernel takes the (N, 2) block and returns new state arrays, its inputs untouched
     state = {k: v.copy() for k, v in est._state.items()}
-    result = differential_rls_kernel(x[:500], *est._state.values(), *est._constants, False)
+    result = differential_rls_iq_kernel(x[:500], *est._state.values(), *est._constants[1:], False)
     for (key, old), new in zip(state.items(), result[3:], strict=True):
         np.testing.assert_array_equal(est._state[key], old)
         assert new is not est._state[key] and new.shape == old.shape and new.dtype == old.dtype

@@ -214,7 +214,7 @@ def _multinomials(nmax: int) -> np.ndarray:
 _MULTINOMIAL = _multinomials(6)  # n_terms <= 6
 
 
-@kernel(inline="always")
+@kernel
 def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, ri: np.ndarray) -> None:
     """r_p such that e^{j alpha} - 1 = sum_p r_p theta_p + O(alpha^(n+1)), alpha = w u + lam g.
 
@@ -243,7 +243,7 @@ def regressor_coefficients(u: float, g: float, tab: np.ndarray, rr: np.ndarray, 
             ri[q] = -mag
 
 
-@kernel(inline="always")
+@kernel
 def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: float, px: np.ndarray) -> None:
     """One scalar RLS update with forgetting f (eq. 12): P <- (P - P x x' P / (f + x' P x)) / f."""
     p = theta.shape[0]
@@ -483,7 +483,7 @@ def _all_finite_sum(theta: np.ndarray, P: np.ndarray) -> bool:
     return math.isfinite(acc)
 
 
-@kernel(inline="always")
+@kernel
 def core_step(
     cr: float,
     ci: float,
@@ -673,7 +673,7 @@ def core_step(
     core[C_PREV_IM] = ci
 
 
-@kernel(inline="always")
+@kernel
 def core_status(
     core: np.ndarray, theta: np.ndarray, P: np.ndarray, consts: np.ndarray
 ) -> tuple[float, float, float, bool, bool, bool, float]:
@@ -852,7 +852,7 @@ def _biquads(x: float, sos: np.ndarray, zi: np.ndarray, off: int) -> float:
     return y
 
 
-@kernel(inline="always")
+@kernel
 def rebase(
     core: np.ndarray,
     theta: np.ndarray,
@@ -875,7 +875,7 @@ def rebase(
     core[SINCE_REBASE] = 0.0
 
 
-@kernel(inline="always")
+@kernel
 def _wrap(ph: float) -> float:
     while ph > math.pi:
         ph -= TWO_PI
@@ -939,7 +939,7 @@ def _cis_small(a: float) -> complex:
     return complex(1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0))
 
 
-@kernel(inline="always")
+@kernel
 def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     """H_s(z) of biquad s at z = zc (complex)."""
     zi1 = 1.0 / zc
@@ -948,7 +948,7 @@ def _stage_response(sos: np.ndarray, s: int, zc: complex) -> complex:
     return h
 
 
-@kernel(inline="always")
+@kernel
 def lowpass_response(sos: np.ndarray, om: float) -> complex:
     """H(e^{j om}) of the biquad cascade, om in rad per input sample."""
     zc = complex(math.cos(om), math.sin(om))
@@ -1009,7 +1009,7 @@ def _retune_responses(
 
 
 @kernel
-def real_front_end(
+def differential_rls_kernel(
     x: np.ndarray,
     fe_in: np.ndarray,
     core_in: np.ndarray,
@@ -1026,7 +1026,6 @@ def real_front_end(
     (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
     -> :func:`core_step` at every decimated sample; outputs at every input sample.
 
-    ``x`` is (N, 1): the real samples in column 0.
     Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
     """
     fe = fe_in.copy()
@@ -1060,7 +1059,7 @@ def real_front_end(
     cl_for = 0.0
     cl = complex(1.0, 0.0)
     if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
-        _biquads_steady(x[0, 0], sos, fe, F_ZI)
+        _biquads_steady(x[0], sos, fe, F_ZI)
     # the low-pass coefficients and the 12 delays of its three channels live in registers
     s0b0, s0b1, s0b2, s0a1, s0a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
     s1b0, s1b1, s1b2, s1a1, s1a2 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
@@ -1068,7 +1067,7 @@ def real_front_end(
     r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
     q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
     for i in range(n):
-        xi = x[i, 0]
+        xi = x[i]
         if ist[2] < warm:
             ist[2] += 1
         # ---- one-step prediction of x(i) from the estimate so far (for residual_rms)
@@ -1234,7 +1233,7 @@ def real_front_end(
 
 
 @kernel
-def iq_front_end(
+def differential_rls_iq_kernel(
     x: np.ndarray,
     fe_in: np.ndarray,
     core_in: np.ndarray,
@@ -1380,29 +1379,6 @@ def iq_front_end(
     fe[F_BS_IM] = ps.imag
     return out, ext, sse, fe, core, theta, P, ist
 
-
-@kernel
-def differential_rls_kernel(
-    x: np.ndarray,
-    fe_in: np.ndarray,
-    core_in: np.ndarray,
-    theta_in: np.ndarray,
-    P_in: np.ndarray,
-    ist_in: np.ndarray,
-    sos: np.ndarray,
-    tab: np.ndarray,
-    cyc: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The estimator's kernel: ``x`` (N, 1) real samples -> :func:`real_front_end`; (N, 2)
-    in-phase/quadrature samples -> :func:`iq_front_end` (``sos`` unused there).
-
-    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
-    """
-    if x.shape[1] == 2:
-        return iq_front_end(x, fe_in, core_in, theta_in, P_in, ist_in, tab, cyc, consts, last_only)
-    return real_front_end(x, fe_in, core_in, theta_in, P_in, ist_in, sos, tab, cyc, consts, last_only)
 
 
 def core_constants(
@@ -1749,9 +1725,18 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
                 )
         return super()._as_block(samples)
 
-    def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
-        """(N, 1) for real input (a view), (N, 2) for I/Q: the kernel takes a 2-D block."""
-        return samples.reshape(-1, 1) if samples.ndim == 1 else samples
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        """Real input: the class kernel (:func:`differential_rls_kernel`), as the base class
+        calls it; I/Q input: :func:`differential_rls_iq_kernel`, called the same way (block,
+        state arrays, constants without the demodulator's low-pass, last_only). Two kernels
+        rather than one that branches, so that a channel compiles only its own."""
+        if self.params.input == "real":
+            return super()._run(samples, state, last_only)
+        result = differential_rls_iq_kernel(samples, *state.values(), *self._constants[1:], last_only)
+        n_outputs = len(result) - len(state)
+        return self._track(result[:n_outputs], samples), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
     def _check_params(self) -> None:
         p = self.params
