@@ -1380,7 +1380,6 @@ def differential_rls_iq_kernel(
     return out, ext, sse, fe, core, theta, P, ist
 
 
-
 def core_constants(
     *,
     fs: float,
