@@ -143,6 +143,7 @@ has the measured figures beside the paper's.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -1733,7 +1734,8 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         rather than one that branches, so that a channel compiles only its own."""
         if self.params.input == "real":
             return super()._run(samples, state, last_only)
-        result = differential_rls_iq_kernel(samples, *state.values(), *self._constants[1:], last_only)
+        kern: Callable[..., tuple[Any, ...]] = differential_rls_iq_kernel
+        result = kern(samples, *state.values(), *self._constants[1:], last_only)
         n_outputs = len(result) - len(state)
         return self._track(result[:n_outputs], samples), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
