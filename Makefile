@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy soak schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -66,6 +66,14 @@ bench-compliance: $(STAMP)
 # Power-quality families against IEC 61000-4-7 class I / 61000-4-30 class A (pqopen-lib beside, if installed).
 bench-pq-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy --scenarios pq --update-docs docs/accuracy.md
+
+# Every estimator through third-party interruptions and sags (pypqd): valid, converged, recovery.
+bench-validity: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.validity
+
+# The C37.118.2 server's cost: latency with no client, a reading and a stalled PDC.
+bench-c37118: $(STAMP)
+	$(BIN)/sinewatch bench c37118
 
 bench-overload: $(STAMP)
 	$(BIN)/sinewatch bench overload

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from sinewatch.estimators import create
-from sinewatch.estimators.base import encode_array
+from sinewatch.estimators.base import decode_array, encode_array
 
 FS = 1000.0
 N = 2000  # 2 s
@@ -102,6 +102,44 @@ def test_the_uncertainty_does_not_touch_the_estimates_and_old_snapshots_load() -
     for f in ("frequency_hz", "amplitude", "phase_rad", "offset"):
         assert getattr(ta, f).tobytes() == getattr(tb, f).tobytes()
     assert ta.residual_rms == tb.residual_rms
+
+
+def test_a_snapshot_with_the_former_noise_means_continues_from_their_ratio() -> None:
+    """An ``unc`` of 34 values (<e^2>, <1 + C U C^T> at the end, as the previous build
+    wrote it) loads: T and U kept, sigma_hat^2 their ratio, so the reported sd carries on."""
+    rng = np.random.default_rng(12)
+    y = 1.0 + np.sin(2 * np.pi * 100.0 * np.arange(3000) / FS) + 0.01 * rng.standard_normal(3000)
+    a = create("ges-kalman", FS)
+    a.update(y[:1500])
+    snap = a.get_state()
+    unc = decode_array(snap["state"]["unc"])
+    s2 = unc[32] / unc[33]
+    former = np.concatenate([unc[:32], [3.0 * s2, 3.0]])  # the same ratio, another weight
+    b = create("ges-kalman", FS)
+    b.set_state({**snap, "state": {**snap["state"], "unc": encode_array(former)}})
+    loaded = decode_array(b.get_state()["state"]["unc"])
+    assert loaded.shape == (35,) and np.array_equal(loaded[:32], unc[:32])
+    assert loaded[32] / loaded[33] == pytest.approx(s2, rel=1e-12)
+    ta, tb = a.update(y[1500:]), b.update(y[1500:])
+    assert ta.frequency_hz.tobytes() == tb.frequency_hz.tobytes()  # estimates never depend on unc
+    assert np.allclose(tb.std.frequency_hz[-1], ta.std.frequency_hz[-1], rtol=0.05)
+
+
+def test_the_noise_estimate_forgets_the_start_at_high_snr() -> None:
+    """At 60 dB SNR the start's innovations are 10^4 times the noise; sigma_hat^2 (U5, U5a)
+    is within 30 % of sigma^2 after 700 samples (the plain exponential mean started at R
+    was 88 times too large there, 9 times after 1,000 samples)."""
+    fs, n = 1000.0, 700
+    sigma = np.sqrt(0.5) * 10 ** (-60 / 20)
+    t = np.arange(n) / fs
+    ratios = []
+    for seed in range(20):
+        y = 0.5 + np.sin(2 * np.pi * 50.5 * t + 0.3) + np.random.default_rng(seed).normal(0.0, sigma, n)
+        est = create("ges-kalman", fs, q=[2.55e-7, 2.55e-7, 6.5e-8, 6.5e-8], r=1e-3)
+        est.update(y)
+        unc = decode_array(est.get_state()["state"]["unc"])
+        ratios.append(unc[32] / unc[33] / sigma**2)
+    assert 0.7 < float(np.median(ratios)) < 1.3
 
 
 def _recover(x: np.ndarray, ts: float) -> np.ndarray:

@@ -13,7 +13,7 @@ from sinewatch.replay import replay
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule
-from sinewatch.schemas.messages import Estimate
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, Estimate
 
 T0_NS = 1_700_000_000 * 10**9 + 7_300_000  # 7.3 ms after a whole second: off the 20 ms grid
 BLOCK = 1000  # 0.1 s at 10 kHz: five reports per block at 50 frames/s
@@ -50,8 +50,8 @@ def test_pmu_served_on_the_grid_recorded_and_replayed(tmp_path):
     # several reports per block, none for the blocks that only fill the window
     per_block = np.bincount([m.seq for m in msgs], minlength=n_blocks)
     assert per_block[0] == 0 and set(per_block[3:].tolist()) == {5}
-    # ROCOF first class, the synchrophasor in extras, version-2 messages
-    assert all(m.format_version == 2 and m.rocof_hz_per_s is not None for m in msgs)
+    # ROCOF first class, the synchrophasor in extras, messages of the current version
+    assert all(m.format_version == ESTIMATE_FORMAT_VERSION and m.rocof_hz_per_s is not None for m in msgs)
     angle = [m.diagnostics.extras["synchrophasor_angle_rad"] for m in msgs]
     t_step_ns = T0_NS + 1_500_000_000
     before = [a for a, ts in zip(angle, stamps, strict=True) if ts < t_step_ns - 200_000_000]

@@ -406,7 +406,11 @@ def test_harmonics_report_round_trip_and_schemas():
     again = HarmonicsReport.model_validate_json(raw)
     assert again == rep and encode_pq(again) == raw
     assert rep.timestamp_ns == windows[-1].end_ns
-    assert json_encoding("HarmonicsReport") == "application/json;sinewatch/HarmonicsReport@1"
+    assert json_encoding("HarmonicsReport") == "application/json;sinewatch/HarmonicsReport@2"
+    t = json.loads(raw)["timestamp"]  # {sec, nsec}: exact in JavaScript, where timestamp_ns is not
+    assert t["sec"] * 10**9 + t["nsec"] == rep.timestamp_ns and 0 <= t["nsec"] < 10**9
+    v1 = json.loads(encode_pq(rep, version=1))  # what the first build wrote, for replaying its recordings
+    assert v1["format_version"] == 1 and "timestamp" not in v1
     for name, model in PQ_MESSAGE_MODELS.items():
         schema = model.model_json_schema()
         assert schema["title"] == name and schema["additionalProperties"] is False

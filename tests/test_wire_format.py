@@ -114,15 +114,24 @@ def _estimate(**over):
     return Estimate(**fields)
 
 
-def test_estimate_v2_carries_rocof_and_uncertainty_and_v1_is_the_earlier_bytes():
+def test_estimate_v3_carries_rocof_uncertainty_time_and_validity_and_earlier_versions_are_their_bytes():
     est = _estimate(
         rocof_hz_per_s=[0.5],
         std=Uncertainty(frequency_hz=[0.001], amplitude=[None], phase_rad=[0.01], offset=None),
     )
-    v2 = json.loads(encode_estimate(est))
-    assert v2["format_version"] == 2 and v2["rocof_hz_per_s"] == [0.5] and v2["std"]["frequency_hz"] == [0.001]
-    assert Estimate.model_validate(v2) == est
-    # Version 1 is what earlier builds wrote: the same keys in the same order, nothing more.
+    v3 = json.loads(encode_estimate(est))
+    assert v3["format_version"] == 3 and v3["rocof_hz_per_s"] == [0.5] and v3["std"]["frequency_hz"] == [0.001]
+    assert v3["diagnostics"]["valid"] is True
+    assert Estimate.model_validate(v3) == est
+    # Version 2 and 1 are what earlier builds wrote: the same keys in the same order, nothing more.
+    v2 = encode_estimate(est, version=2)
+    assert v2 == (
+        b'{"format_version":2,"channel":"a/b","seq":3,"timestamp_ns":1700000000000000000,"n_samples":10,'
+        b'"estimator":"x","frequency_hz":[50.0],"amplitude":[1.0],"phase_rad":[0.25],"offset":null,'
+        b'"rocof_hz_per_s":[0.5],"std":{"frequency_hz":[0.001],"amplitude":[null],"phase_rad":[0.01],'
+        b'"offset":null},"diagnostics":{"converged":true,"residual_rms":0.01,"gap":false,"gap_blocks":0,'
+        b'"restart":false,"reset":false,"extras":{"k":1.5}}}'
+    )
     v1 = encode_estimate(est, version=1)
     assert v1 == (
         b'{"format_version":1,"channel":"a/b","seq":3,"timestamp_ns":1700000000000000000,"n_samples":10,'
@@ -130,4 +139,21 @@ def test_estimate_v2_carries_rocof_and_uncertainty_and_v1_is_the_earlier_bytes()
         b'"diagnostics":{"converged":true,"residual_rms":0.01,"gap":false,"gap_blocks":0,"restart":false,'
         b'"reset":false,"extras":{"k":1.5}}}'
     )
-    assert ESTIMATE_JSON_ENCODING.endswith("@2")
+    assert ESTIMATE_JSON_ENCODING.endswith("@3")
+
+
+@pytest.mark.parametrize("ns", [1_763_900_000_123_456_789, 2**63 - 1, -1, -(2**63), 0])
+def test_estimate_time_is_exact_where_javascript_numbers_are_not(ns):
+    """timestamp_ns beyond 2^53 loses digits in a JavaScript number (a float64); its
+    {sec, nsec} twin does not: both parts are exact floats and recombine to the integer."""
+    msg = json.loads(encode_estimate(_estimate(timestamp_ns=ns)))
+    sec, nsec = msg["timestamp"]["sec"], msg["timestamp"]["nsec"]
+    assert 0 <= nsec < 10**9 and abs(sec) < 2**53
+    assert int(float(sec)) * 10**9 + int(float(nsec)) == ns
+    if ns == 1_763_900_000_123_456_789:  # a time of today, in ns: not a float64 (JavaScript number)
+        assert int(float(ns)) != ns
+
+
+def test_estimate_time_must_agree_with_timestamp_ns():
+    with pytest.raises(ValueError, match=r"expected \{sec, nsec\} equal to"):
+        _estimate(timestamp={"sec": 1, "nsec": 0})

@@ -8,6 +8,9 @@ sinewatch estimators                list estimators and their parameters
 sinewatch feed [...]                publish simulated sample blocks
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
+sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
+sinewatch status                    which daemon owns which channels (shards, standbys)
+sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios
 """
 
@@ -16,14 +19,17 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn, cast
 
 from sinewatch.bench.args import add_bench_parser
 from sinewatch.schemas import __version__
-from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.errors import ConfigError, SinewatchError
+
+log = logging.getLogger("sinewatch.cli")
 
 
 def _setup_logging(verbose: int) -> None:
@@ -47,6 +53,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from sinewatch.demo import main
 
     names = args.scenarios.split(",") if args.scenarios else None
+    if names:
+        _check_scenarios(names)
+    if not args.no_record:
+        from sinewatch.console import check_output_dir
+
+        check_output_dir(Path(args.record_dir), "--record-dir")
     return main(names, args.duration, Path(args.record_dir), not args.no_record)
 
 
@@ -56,9 +68,64 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from sinewatch.schemas.config import load_config
 
     config = load_config(args.config)
+    if args.foxglove is not None:  # the flags override [foxglove] port and [metrics] port
+        config.foxglove.port = args.foxglove
+    if args.metrics is not None:
+        config.metrics.port = args.metrics
+    if args.c37118 is not None:
+        enable_c37118(config, args.c37118)
     check_rules(config.rules)
+    _check_recording_dir(config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
     return serve(config)
+
+
+def _check_recording_dir(config: Any) -> None:
+    if config.recording.enabled:
+        from sinewatch.console import check_output_dir
+
+        check_output_dir(Path(config.recording.directory), "recording.directory")
+
+
+def _check_scenarios(names: list[str]) -> None:
+    """Unknown scenario names, with the nearest known ones (the whole list is long)."""
+    import difflib
+
+    from sinewatch import scenarios
+    from sinewatch.scenarios.power_quality_iec import pq_names
+
+    known = [*scenarios.names(), *pq_names()]
+    for name in names:
+        if name not in known:
+            near = difflib.get_close_matches(name, known, n=3)
+            hint = f"did you mean {', '.join(near)}? " if near else ""
+            raise ConfigError(
+                f"scenario: expected one of {len(known)} names ({hint}`sinewatch bench scenarios` lists them), "
+                f"got {name!r}"
+            )
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 0-65535 (0: any free one), got {text!r}")
+    return port
+
+
+def enable_c37118(config: Any, port: int) -> None:
+    """``serve --c37118 PORT``: the ``[c37118]`` section on, on PORT (its stations come from the config)."""
+    from pydantic import ValidationError
+
+    from sinewatch.schemas.errors import ConfigError
+
+    try:
+        config.c37118.port = port
+        config.c37118.enabled = True
+    except ValidationError as exc:
+        raise ConfigError(f"--c37118 {port}: {exc.errors()[0]['msg']} (configure [[c37118.stations]])") from None
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
@@ -79,10 +146,11 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
 
 def cmd_schemas_export(args: argparse.Namespace) -> int:
+    from sinewatch.console import check_output_dir
     from sinewatch.estimators import available
     from sinewatch.schemas.export import export_schemas
 
-    for path in export_schemas(Path(args.dir), available()):
+    for path in export_schemas(check_output_dir(Path(args.dir), "schemas export"), available()):
         print(path)
     return 0
 
@@ -105,18 +173,20 @@ def cmd_feed(args: argparse.Namespace) -> int:
     from sinewatch.feed import Feed, make_channels
     from sinewatch.scenarios.demo import DEMO_CHANNELS
 
+    if args.comtrade:
+        return _feed_comtrade(args)
     names = args.scenario or DEMO_CHANNELS
+    _check_scenarios(names)
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
-        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype)
+        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
         if not pub.wait_for_subscriber(channels[0].channel, args.wait):
-            console.print(
-                f"[red]no subscriber on {pub.key(channels[0].channel)} after {args.wait} s "
-                f"(is the daemon running and reachable at {args.connect}?)[/red]"
+            raise ConfigError(
+                f"expected a subscriber on {pub.key(channels[0].channel)} within {args.wait} s, got none "
+                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
-            return 2
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
         t0 = time.monotonic()
         try:
@@ -133,7 +203,47 @@ def cmd_feed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _feed_comtrade(args: argparse.Namespace) -> int:
+    """``feed --comtrade FILE.cfg``: each analog channel at its recorded rate (float64 samples
+    unless --dtype says otherwise: COMTRADE values are scaled integers or floats)."""
+    from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.comtrade_file import read_comtrade
+    from sinewatch.console import make_console
+    from sinewatch.feed import publish_comtrade
+
+    if args.scenario:
+        raise ConfigError("--comtrade: expected instead of --scenario, got both")
+    record = read_comtrade(Path(args.comtrade), prefix=args.prefix if args.prefix != "sim" else "comtrade")
+    console = make_console(stderr=True)
+    with connect(args.connect, timeout_s=args.wait) as session:
+        pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float64")
+        first = record.channels[0].channel
+        if not pub.wait_for_subscriber(first, args.wait):
+            raise ConfigError(
+                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
+                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
+            )
+        t0 = time.monotonic()
+        try:
+            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast)
+        except KeyboardInterrupt:
+            sent = pub.published
+        dt = time.monotonic() - t0
+        pub.close()
+    n_samples = sum(len(c.samples) for c in record.channels)
+    console.print(
+        f"published {sent} blocks ({n_samples} samples) on {len(record.channels)} channels of {record.path} "
+        f"(COMTRADE {record.rev_year} {record.data_format}, {record.station}) in {dt:.2f} s",
+        soft_wrap=True,
+    )
+    for c in record.channels:
+        console.print(f"  {c.channel}: {len(c.samples)} samples at {c.sample_rate_hz:g} Hz ({c.unit or 'no unit'})")
+    return 0
+
+
 def cmd_tail(args: argparse.Namespace) -> int:
+    if args.c37118:
+        return tail_c37118(args)
     from sinewatch.clients import JsonSubscription, connect
 
     shown = 0
@@ -150,6 +260,117 @@ def cmd_tail(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
     return 0 if shown or not args.count else 1
+
+
+def tail_c37118(args: argparse.Namespace) -> int:
+    """``tail --c37118 HOST:PORT``: read CFG-2, turn data on, print each frame (one line per PMU)."""
+    from sinewatch.clients.c37118 import C37118Reader, parse_host_port
+
+    host, port = parse_host_port(args.c37118)
+    shown = 0
+    try:
+        with C37118Reader(host, port, id_code=args.id_code, timeout_s=args.timeout or args.wait) as pmu:
+            cfg = pmu.config()
+            for p in cfg.pmus:
+                print(
+                    f"tail: {host}:{port} station {p.station!r} ID {p.id_code}, {cfg.data_rate} frames/s, "
+                    f"{p.nominal_frequency_hz} Hz, phasors {', '.join(p.phasor_names)}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            pmu.start()
+            try:
+                for row in pmu.rows():
+                    print(json.dumps(row) if args.json else format_c37118(row), flush=True)
+                    shown += 1
+                    if args.count and shown >= args.count:
+                        break
+            finally:
+                pmu.stop()
+    except (OSError, ValueError) as exc:
+        print(f"sinewatch: error: C37.118.2 {args.c37118}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    return 0 if shown or not args.count else 1
+
+
+def format_c37118(row: dict[str, Any]) -> str:
+    """One line per PMU data block: time, station, frequency, ROCOF, phasors, STAT."""
+    if row["polar"]:
+        phasors = " ".join(f"{n}={m:.5g}/{a:+.4f}rad" for n, (m, a) in row["phasors"].items())
+    else:
+        phasors = " ".join(f"{n}={re:.5g}{im:+.5g}j" for n, (re, im) in row["phasors"].items())
+    flags = ("" if row["data_error"] == 0 else f" ERROR={row['data_error']:02b}") + (
+        "" if row["in_sync"] else " unsync"
+    )
+    return (
+        f"{row['time_ns'] / 1e9:.4f} {row['station']} f={row['frequency_hz']:.4f}Hz "
+        f"rocof={row['rocof_hz_per_s']:+.4f}Hz/s {phasors} stat=0x{row['stat']:04X}{flags}"
+    )
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from sinewatch.clients import connect
+
+    replies: list[dict[str, Any]] = []
+    with connect(args.connect, timeout_s=args.wait) as session:
+        for reply in session.get(f"{args.admin_prefix.rstrip('/')}/*/channels", timeout=args.timeout):
+            if reply.ok is not None:
+                replies.append(json.loads(reply.ok.payload.to_bytes()))
+    replies.sort(key=lambda r: (r["shard_id"], r["role"] != "active", r["daemon_id"]))
+    if args.json:
+        print(json.dumps(replies, indent=2))
+    else:
+        print(format_status(replies, show_channels=not args.summary))
+    return 0 if replies else 1
+
+
+def format_status(replies: list[dict[str, Any]], *, show_channels: bool = True) -> str:
+    """Who owns what: one line per daemon, then (``show_channels``) one per channel served,
+    with the time of its last estimate."""
+    if not replies:
+        return "no sinewatch daemon answered"
+    lines = [f"{'daemon':<20} {'shard':<28} {'role':<8} {'channels':>8} {'takeovers':>9}"]
+    for r in replies:
+        shard = r["shard_id"] + (f" ({r['shard']})" if r["shard"] else "")
+        lines.append(f"{r['daemon_id']:<20} {shard:<28} {r['role']:<8} {len(r['channels']):>8} {r['takeovers']:>9}")
+    if show_channels:
+        lines += ["", f"{'channel':<32} {'owner':<20} {'last estimate (UTC)':<30} {'seq':>10}"]
+        for r in replies:
+            if r["role"] != "active":
+                continue
+            for c in r["channels"]:
+                lines.append(
+                    f"{c['channel']:<32} {r['daemon_id']:<20} {_utc(c['last_estimate_ns']):<30} {c['last_seq']!s:>10}"
+                )
+    return "\n".join(lines)
+
+
+def _utc(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(sec)) + f".{nsec:09d}Z"
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh router: a session in router mode (the eclipse-zenoh wheel's own), until
+    SIGINT/SIGTERM."""
+    import signal
+    import threading
+
+    from sinewatch.clients.session import open_session
+    from sinewatch.schemas.config import ZenohSection
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    section = ZenohSection(mode="router", listen=args.listen or ["tcp/127.0.0.1:7447"], connect=args.connect or [])
+    with open_session(section):
+        print(f"sinewatch router: listening on {', '.join(section.listen)}", flush=True)
+        stop.wait()
+    return 0
 
 
 def format_estimate(msg: dict[str, Any]) -> str:
@@ -212,6 +433,12 @@ def format_power_quality(msg: dict[str, Any]) -> str | None:
     return None
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from sinewatch.export import run_export
+
+    return run_export(args)
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from sinewatch.replay_cli import run_replay
 
@@ -219,6 +446,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 # ---- parser ----------------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage mistake told on one line (exit code 2, as argparse's own)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 _Subparsers = argparse._SubParsersAction  # the type of add_subparsers()' result
 
 
@@ -247,7 +481,7 @@ def _subcommands(
 def build_parser() -> argparse.ArgumentParser:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT  # not the client library: that imports zenoh
 
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="sinewatch",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -255,7 +489,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"sinewatch {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.add_argument("--debug", action="store_true", help="a traceback with every error, not only the one-line message")
+    # subcommands' parsers are _Parser too (argparse makes them of the parent's class)
+    sub = cast(
+        "_Subparsers[argparse.ArgumentParser]", p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    )
 
     d = _command(sub, "demo", "run daemon + simulated feed on loopback with a live table", cmd_demo)
     d.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
@@ -263,7 +501,25 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--record-dir", default="sinewatch-runs", help="where the MCAP file goes")
     d.add_argument("--no-record", action="store_true", help="do not record")
 
-    _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    s = _command(sub, "serve", "run the daemon until SIGINT/SIGTERM", cmd_serve, config=True)
+    s.add_argument(
+        "--foxglove",
+        type=_port,
+        metavar="PORT",
+        help="serve a live Foxglove WebSocket on PORT ([foxglove] port; needs the foxglove extra)",
+    )
+    s.add_argument(
+        "--metrics",
+        type=_port,
+        metavar="PORT",
+        help="serve Prometheus /metrics and /healthz on PORT ([metrics] port; needs the metrics extra)",
+    )
+    s.add_argument(
+        "--c37118",
+        type=_port,
+        metavar="PORT",
+        help="serve IEEE C37.118.2 on PORT (TCP and UDP; the stations come from [c37118] in the config)",
+    )
 
     csub = _subcommands(sub, "config", "configuration", "config_command")
     _command(csub, "show", "print the effective configuration (file + environment)", cmd_config_show, config=True)
@@ -287,13 +543,18 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help="scenario name (repeatable; default: the demo channels); see `sinewatch bench scenarios`",
     )
+    f.add_argument(
+        "--comtrade", metavar="FILE.cfg", help="publish the analog channels of a COMTRADE file (.cfg or .cff)"
+    )
     f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
     f.add_argument("--rate", type=float, help="sample rate override, Hz")
     f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
     f.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
     f.add_argument("--fast", action="store_true", help="as fast as possible instead of real time")
     f.add_argument("--encoding", choices=["binary", "json"], default="binary")
-    f.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="binary sample type")
+    f.add_argument(
+        "--dtype", choices=["float32", "float64"], help="binary sample type (default float32; COMTRADE float64)"
+    )
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--prefix", default="sim", help="channel name prefix (default sim)")
     f.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
@@ -306,6 +567,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")
     t.add_argument("--wait", type=float, default=10.0, help="seconds to keep trying to connect")
+    t.add_argument("--c37118", metavar="HOST:PORT", help="read a C37.118.2 PMU (or sinewatch serve --c37118) instead")
+    t.add_argument("--id-code", type=int, default=1, help="with --c37118: the station's ID code (default 1)")
 
     r = _command(sub, "replay", "replay recordings through fresh estimators", cmd_replay)
     r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")
@@ -322,24 +585,82 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, help="write a new recording")
     r.add_argument("--no-progress", action="store_true")
 
+    e = _command(sub, "export", "write a recording's estimates (and samples) as CSV or Parquet tables", cmd_export)
+    e.add_argument("path", help="MCAP recording")
+    e.add_argument("--format", choices=["csv", "parquet"], default="csv", help="csv (default) or parquet (pyarrow)")
+    e.add_argument("--channels", default="*", metavar="GLOB", help="channels to export (default all), e.g. 'demo/*'")
+    e.add_argument("--out", metavar="DIR", help="output directory (default: the recording's)")
+    e.add_argument("--samples", action="store_true", help="also export the input samples")
+    e.add_argument("--no-progress", action="store_true")
+
+    st = _command(sub, "status", "ask every daemon which channels it owns (shards, standbys)", cmd_status)
+    st.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
+    st.add_argument("--admin-prefix", default="sinewatch/admin", help="the daemons' keys.admin_prefix")
+    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the daemons' answers")
+    st.add_argument("--wait", type=float, default=5.0, help="seconds to keep trying to connect")
+    st.add_argument("--summary", action="store_true", help="one line per daemon, no channel list")
+    st.add_argument("--json", action="store_true", help="the daemons' answers as JSON")
+
+    ro = _command(sub, "router", "run a Zenoh router (for several daemons and gateways)", cmd_router)
+    ro.add_argument("--listen", action="append", help="endpoint (repeatable; default tcp/127.0.0.1:7447)")
+    ro.add_argument("--connect", action="append", help="other routers to connect to (repeatable)")
+
     add_bench_parser(sub)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a command. A mistake (a missing or wrong file, an unknown estimator, a bad value,
+    an unreachable endpoint, an unwritable directory) ends in one line on stderr saying what
+    was expected and what came, and exit code 2; ``--debug`` adds the traceback. Anything
+    else is a bug and keeps its traceback."""
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
-    if getattr(args, "connect", "absent") is None:
-        from sinewatch.clients.session import DEFAULT_CONNECT
-
-        args.connect = list(DEFAULT_CONNECT)
     try:
+        if getattr(args, "connect", "absent") is None:
+            from sinewatch.clients.session import DEFAULT_CONNECT
+
+            args.connect = list(DEFAULT_CONNECT)
+        elif isinstance(getattr(args, "connect", None), list):
+            _check_endpoints(args.connect)
         return int(args.fn(args) or 0)
-    except SinewatchError as exc:
-        print(f"sinewatch: error: {exc}", file=sys.stderr)
+    except (SinewatchError, OSError) as exc:
+        # OSError: a file or directory named on the command line (or in the config) that cannot be used
+        log.debug("the error's traceback", exc_info=True)
+        if args.debug:
+            import traceback
+
+            traceback.print_exc()
+        print(f"sinewatch: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _check_endpoints(endpoints: list[str]) -> None:
+    from pydantic import ValidationError
+
+    from sinewatch.schemas.config import ZenohSection
+
+    try:
+        ZenohSection(connect=endpoints)
+    except ValidationError as exc:
+        raise ConfigError(
+            "--connect: " + "; ".join(str(e["ctx"].get("error", e["msg"])) for e in exc.errors())
+        ) from None
+
+
+_RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")  # zenoh's messages end with the Rust file that raised
+
+
+def one_line(exc: BaseException) -> str:
+    """The error's message on one line: an indented list after a colon joins with '; '."""
+    if isinstance(exc, OSError) and not isinstance(exc, SinewatchError) and exc.filename is not None:
+        text = f"{exc.filename}: {(exc.strerror or type(exc).__name__).lower()}"
+    else:
+        text = _RUST_SOURCE.sub("", str(exc)) or type(exc).__name__
+    head, *rest = [line.strip() for line in text.splitlines() if line.strip()] or [type(exc).__name__]
+    return f"{head} {'; '.join(rest)}" if rest else head
 
 
 if __name__ == "__main__":

@@ -19,6 +19,14 @@ intake (undeclares the subscriber, so the pump drains Zenoh's FIFO and ends), pr
 everything already accepted, publishes a last Status and finishes the MCAP file. A
 second SIGINT sets ``force_exit``: processing stops at the next input, the MCAP file is
 still finished, and ``run`` returns 130.
+
+Operations (each off unless configured): ``[foxglove]`` adds a sink that serves the
+Foxglove WebSocket protocol (:mod:`sinewatch.foxglove_live`); ``[metrics]`` serves
+Prometheus metrics and ``/healthz`` from a thread (:mod:`sinewatch.metrics`). Under systemd
+(``Type=notify``, :mod:`sinewatch.sdnotify`) the daemon sends ``READY=1`` once it is
+subscribed, ``WATCHDOG=1`` from a heartbeat task on the event loop (a stuck loop stops
+it, and systemd restarts the service), and ``STOPPING=1`` when it starts to drain. The
+same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 """
 
 from __future__ import annotations
@@ -33,20 +41,30 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import zenoh
 import zenoh.ext
 
+from sinewatch.c37118_server import C37118Server
 from sinewatch.clients.session import open_session
+from sinewatch.cluster import ClusterMember
 from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
+from sinewatch.sdnotify import Notifier
+
+if TYPE_CHECKING:
+    from sinewatch.foxglove_live import FoxgloveSink
+    from sinewatch.metrics import Health, LatencyHistogram, MetricsServer, Snapshot
 
 log = logging.getLogger("sinewatch.daemon")
+
+HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at most this far apart
 
 HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -57,6 +75,7 @@ class IntakeCounters:
     dropped: int = 0
     backpressure_waits: int = 0
     unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
+    not_owned: int = 0  # inputs of keys another shard owns (cluster.shard), dropped unread
 
 
 # (key, payload, encoding, received monotonic ns)
@@ -74,6 +93,7 @@ class Intake:
         self._policy = cfg.limits.queue_policy
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
+        self._shard = daemon.cluster.shard if daemon.cluster is not None else None
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
         fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
         self._miss_listener = None
@@ -107,6 +127,10 @@ class Intake:
                     if more is None:
                         break
                     batch.append(self._take(more))
+                if self._shard is not None:  # another daemon's keys: not ours to decode, record or count
+                    owned = [item for item in batch if self._shard.owns(item[0])]
+                    self.counters.not_owned += len(batch) - len(owned)
+                    batch = owned
                 dropped: Counter[str] = Counter()
                 batch = [item for item in batch if self._admit(item, dropped)]
                 if batch:
@@ -164,11 +188,19 @@ class Daemon:
         self._session: zenoh.Session | None = None
         self._pipeline: Pipeline | None = None
         self.recorder: McapRecorder | None = None
+        self.c37118: C37118Server | None = None  # [c37118]: sinewatch as a PMU
         self._intake: Intake | None = None
         self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
         self._queued = 0
         self._started = time.monotonic()
         self._last_log_time = 0
+        self.cluster: ClusterMember | None = None
+        self.notifier = Notifier()
+        self.foxglove: FoxgloveSink | None = None
+        self.metrics: MetricsServer | None = None
+        self._latency: LatencyHistogram | None = None
+        self._beat = time.monotonic()  # the event loop's last heartbeat
+        self._running = False
 
     # ---- what start() creates ------------------------------------------------------------------
     @property
@@ -238,13 +270,19 @@ class Daemon:
                 if self.force_exit.is_set():
                     return
                 self.pipeline.process(key, payload, encoding, self._log_time(), received)
+                if self._latency is not None:
+                    self._latency.observe_ns(time.monotonic_ns() - received)
         finally:
             self._queued -= len(batch)
-            self.intake.release(len(batch))
+            if self._intake is not None:
+                self._intake.release(len(batch))
 
     # ---- periodic tasks -------------------------------------------------------------------------
+    def intake_counters(self) -> IntakeCounters:
+        return self._intake.counters if self._intake else IntakeCounters()
+
     def status_payload(self) -> bytes:
-        c = self._intake.counters if self._intake else IntakeCounters()
+        c = self.intake_counters()
         p = self.pipeline
         status = Status(
             daemon_id=self.config.daemon_id,
@@ -260,6 +298,7 @@ class Daemon:
             recording=str(self.recorder.path) if self.recorder and self.recorder.path else None,
             sinks=[SinkStatus(**s) for s in p.sink_status()],
             channels=[ChannelStatus(**c) for c in p.channel_status()],
+            c37118=self.c37118.status() if self.c37118 is not None else None,
         )
         return encode_status(status)
 
@@ -268,6 +307,56 @@ class Daemon:
         payload = self.status_payload()
         for sink in self.pipeline.sinks:
             sink.on_status(key, payload, self._log_time())
+
+    def heartbeat(self) -> None:
+        """The event loop is turning: note it (``/healthz``) and tell systemd's watchdog."""
+        self._beat = time.monotonic()
+        self.notifier.watchdog()
+
+    def _heartbeat_s(self) -> float:
+        periods = [HEARTBEAT_S, self.config.metrics.stall_s / 4]
+        if self.notifier.watchdog_s is not None:
+            periods.append(self.notifier.watchdog_s / 2)  # sd_watchdog_enabled(3): ping at half the timeout
+        return min(periods)
+
+    # ---- metrics and health (read on the metrics server's thread) -----------------------------
+    def metrics_snapshot(self) -> Snapshot:
+        from sinewatch.metrics import LatencyHistogram, Snapshot
+
+        c = self._intake.counters if self._intake else IntakeCounters()
+        p = self._pipeline
+        rec = self.recorder
+        return Snapshot(
+            blocks_received=c.received,
+            blocks_processed=p.counters.inputs if p else 0,
+            estimates=p.counters.estimates if p else 0,
+            rejections_by_kind=dict(p.counters.by_kind) if p else {},
+            dropped=c.dropped,
+            backpressure_waits=c.backpressure_waits,
+            unrecovered=c.unrecovered,
+            queue_depth=self._queued,
+            channels=len(p.channels) if p else 0,
+            recording_bytes=sum(_size(path) for path in list(rec.paths)) if rec else 0,
+            recording_messages=rec.messages_written if rec else 0,
+            sinks=p.sink_status() if p else [],
+            cpu_seconds_by_worker={"0": time.process_time()},  # one process today; workers come later
+            uptime_s=time.monotonic() - self._started,
+            loop_age_s=time.monotonic() - self._beat,
+            latency=self._latency or LatencyHistogram(),
+            foxglove=self.foxglove.counters.as_dict() if self.foxglove else {},
+        )
+
+    def health(self) -> Health:
+        from sinewatch.metrics import health
+
+        p = self._pipeline
+        return health(
+            running=self._running,
+            stopping=self.should_exit.is_set(),
+            loop_age_s=time.monotonic() - self._beat,
+            stall_s=self.config.metrics.stall_s,
+            sinks=p.sink_status() if p else [],
+        )
 
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
@@ -295,14 +384,23 @@ class Daemon:
         """Open the session and sinks and start intake (call from the event loop)."""
         cfg = self.config
         self.warm_up()
+        self._start_operations()  # before Zenoh: a port in use or a missing extra fails first
         self._session = open_session(cfg.zenoh)
         sinks: list[Sink] = [ZenohPublisherSink(self._session)]
         if cfg.recording.enabled:
             self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
             sinks.append(self.recorder)
+        if self.foxglove is not None:
+            sinks.append(self.foxglove)
+        if cfg.c37118.enabled:
+            self.c37118 = C37118Server(cfg.c37118)
+            sinks.append(self.c37118)
         self._pipeline = Pipeline(cfg, sinks)
         self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
-        self._intake = Intake(self, asyncio.get_running_loop())
+        self.cluster = ClusterMember(self)
+        self.cluster.start(asyncio.get_running_loop())  # active: start_intake() now; standby: at takeover
+        self._beat = time.monotonic()
+        self._running = True  # serving or standing by: /healthz says ok from here
         log.info(
             "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
             cfg.daemon_id,
@@ -313,31 +411,70 @@ class Daemon:
             cfg.keys.estimates_prefix,
         )
 
+    def start_intake(self) -> None:
+        """Subscribe to the inputs (at start, or when a standby takes over)."""
+        if self._intake is None:
+            self._intake = Intake(self, asyncio.get_running_loop())
+
+    def _start_operations(self) -> None:
+        """The Foxglove server and the metrics server, when configured."""
+        fox, met = self.config.foxglove, self.config.metrics
+        if fox.port is not None:
+            module = _optional("foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]")
+            try:
+                self.foxglove = module.FoxgloveSink(self.config)
+            except Exception as exc:  # noqa: BLE001 (the SDK's errors have no common base: say what failed)
+                raise ConfigError(f"foxglove: expected to listen on {fox.host}:{fox.port}, got {exc}") from None
+        if met.port is not None:
+            module = _optional("metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]")
+            self._latency = module.LatencyHistogram()
+            try:
+                self.metrics = module.MetricsServer(met.host, met.port, self.metrics_snapshot, self.health)
+            except OSError as exc:
+                raise ConfigError(f"metrics: expected to listen on {met.host}:{met.port}, got {exc}") from None
+            self.metrics.start()
+
     async def run(self) -> int:
         """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
         with self._signals():
-            self.start()
+            try:
+                self.start()
+                if self.c37118 is not None:
+                    await self.c37118.start()
+            except BaseException:
+                self._close()  # what start() opened before it failed (ports, session)
+                raise
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
+            beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
             if self.recorder is not None:
                 periodic.append(
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
                 )
+            self._beat = time.monotonic()  # the heartbeat task pings systemd from here on
             self.ready.set()
+            self.notifier.ready(f"subscribed to {self.config.keys.input}")
             try:
                 await self.should_exit.wait()
-                await self._shutdown(consumer, periodic)
+                await self._shutdown(consumer, periodic)  # the heartbeat goes on while it drains
             finally:
+                beat.cancel()
+                if self.c37118 is not None:
+                    await self.c37118.stop()
                 self._close()
         return 130 if self.force_exit.is_set() else 0
 
     async def _shutdown(self, consumer: asyncio.Task[None], periodic: list[asyncio.Task[None]]) -> None:
+        self.notifier.stopping("draining: intake stopped, finishing the queue and the recording")
         for task in periodic:
             task.cancel()
-        await self.intake.stop()  # no new inputs; the pump has handed over all it had
+        if self._intake is not None:
+            await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
         self.publish_status()
+        if self.cluster is not None:  # only now: a standby takes over after our last estimate
+            self.cluster.close()
         c = self.pipeline.counters
         log.info(
             "%s: %d inputs, %d estimates, %d errors",
@@ -350,8 +487,12 @@ class Daemon:
     def _close(self) -> None:
         if self._pipeline is not None:
             self._pipeline.close_sinks()
+        elif self.foxglove is not None:  # started, but the pipeline never was
+            self.foxglove.close()
         if self._session is not None:
             self._session.close()
+        if self.metrics is not None:  # last: /healthz says "stopping" until the end
+            self.metrics.close()
 
     @property
     def recording_paths(self) -> list[Path]:
@@ -359,6 +500,30 @@ class Daemon:
 
 
 _T = TypeVar("_T")
+
+
+def _size(path: Path) -> int:
+    """Bytes on disk (0 for a file gone meanwhile: a scrape must not fail on it)."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _optional(module: str, package: str, dist: str, extra: str, what: str) -> Any:
+    """``sinewatch.<module>``, which needs ``package`` from the ``extra`` extra: a missing
+    package is one clear line (a ConfigError), not a traceback."""
+    import importlib
+
+    try:
+        return importlib.import_module(f"sinewatch.{module}")
+    except ModuleNotFoundError as exc:
+        if exc.name != package and not (exc.name or "").startswith(f"{package}."):
+            raise
+        raise ConfigError(
+            f"{what} needs the {extra!r} extra: pip install 'sinewatch[{extra}]' "
+            f"(expected the {dist} package, got no module {package!r})"
+        ) from None
 
 
 def _started(value: _T | None, what: str) -> _T:

@@ -30,7 +30,7 @@ from rich.table import Table
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.console import make_console
+from sinewatch.console import fit_table, make_console, print_table
 from sinewatch.daemon import Daemon
 from sinewatch.feed import Feed, FeedChannel, make_channels, rules_for
 from sinewatch.scenarios.demo import DEMO_CHANNELS
@@ -75,7 +75,12 @@ def _short(channel: str) -> str:
     return channel.removeprefix(f"{PREFIX}/").removeprefix("demo-")
 
 
-def render(views: list[ChannelView], title: str) -> Table:
+# The columns a narrow terminal loses first, in order; channel, f est Hz and A est stay.
+DROP_ORDER = ("off true", "bad in", "est.", "offset", "A true", "estimator", "phase err°", "conv", "f true")
+
+
+def render(views: list[ChannelView], title: str, width: int | None = None) -> Table:
+    """The live table; with ``width``, fitted to it (:data:`DROP_ORDER`)."""
     t = Table(title=title, title_justify="left")
     for col in (
         "channel",
@@ -112,7 +117,7 @@ def render(views: list[ChannelView], title: str) -> Table:
             str(v.estimates),
             str(sum(v.feed.faults_injected.get(k, 0) for k in ("nan", "duplicate"))),
         )
-    return t
+    return t if width is None else fit_table(t, width, DROP_ORDER)
 
 
 async def run_demo(
@@ -168,20 +173,25 @@ async def run_demo(
             v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
 
     title = f"sinewatch demo: {len(channels)} channels, {duration_s:g} s (Ctrl-C stops early)"
-    with (
-        Live(render(ordered, title), console=console, refresh_per_second=4, transient=False) as live,
-        _logs_through(console),
-    ):
+    # On a terminal a live table fitted to its width; elsewhere (a pipe, a log) plain lines at the end.
+    live = None
+    if console.is_terminal:
+        live = Live(render(ordered, title, console.width), console=console, refresh_per_second=4, transient=False)
+    with live or contextlib.nullcontext(), _logs_through(console):
         while not feed_done.is_set() and not daemon.should_exit.is_set():
             await asyncio.sleep(0.25)  # the display's refresh period
             absorb()
-            live.update(render(ordered, title))
+            if live is not None:
+                live.update(render(ordered, title, console.width))
         feed.stop.set()
         await asyncio.to_thread(feed_done.wait)
         daemon.should_exit.set()
         code = await daemon_task
         absorb()
-        live.update(render(ordered, title + " (finished)"))
+        if live is not None:
+            live.update(render(ordered, title + " (finished)", console.width))
+    if live is None:
+        print_table(console, render(ordered, title + " (finished)"))
     estimates.close()
     publisher.close()
     session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it untyped

@@ -26,6 +26,7 @@ import numpy as np
 
 from sinewatch import scenarios
 from sinewatch.clients.publisher import BlockPublisher
+from sinewatch.comtrade_file import ComtradeRecord, interleaved_blocks
 from sinewatch.scenarios import Scenario, ScenarioStream, Truth
 from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
 from sinewatch.schemas.config import EstimatorRule
@@ -167,3 +168,34 @@ class Feed:
             self.publisher.publish_raw(ch.channel, payload)
             return 2
         return 1
+
+
+def publish_comtrade(
+    publisher: BlockPublisher,
+    record: ComtradeRecord,
+    *,
+    block_size: int = 1000,
+    realtime: bool = True,
+    stop: threading.Event | None = None,
+) -> int:
+    """Publish every analog channel of a COMTRADE record in blocks of ``block_size``
+    samples at its recorded rate, in the order of the blocks' times (channels interleaved as
+    they were sampled); in real time, each block when its last sample is due. Returns the
+    number of blocks published."""
+    stop = stop or threading.Event()
+    blocks = interleaved_blocks(record, block_size)
+    if not blocks:
+        return 0
+    first_ns = blocks[0].t0_ns
+    start = time.monotonic()
+    sent = 0
+    for block in blocks:
+        if realtime:
+            end_s = (block.t0_ns - first_ns) / 1e9 + block.n_samples / block.sample_rate_hz
+            if stop.wait(max(0.0, start + end_s - time.monotonic())):
+                break
+        elif stop.is_set():
+            break
+        publisher.publish_raw(block.channel, publisher.encode(block))
+        sent += 1
+    return sent

@@ -36,6 +36,7 @@ import zenoh
 
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
+from sinewatch.estimators.presence import SignalPresence
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
@@ -48,6 +49,7 @@ from sinewatch.schemas.messages import (
     Estimate,
     Uncertainty,
 )
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION
 
 log = logging.getLogger("sinewatch.pipeline")
 
@@ -207,13 +209,32 @@ class Channel:
     errors: int = 0
     last_latency_ns: int | None = None
     converged: bool = False
+    presence: SignalPresence | None = None  # set in __post_init__
+
+    def __post_init__(self) -> None:
+        if self.presence is None:
+            self.presence = SignalPresence(self.sample_rate_hz, _cycle_frequency_hz(self.estimator))
 
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
+        assert self.presence is not None
         return {
             **_attributes(self, "name", "key", "sample_rate_hz", *counters),
             "estimator": self.estimator.get_state(),
+            "presence": self.presence.get_state(),
         }
+
+
+@dataclass(frozen=True)
+class ResumePoint:
+    """Where another daemon left a channel (hot standby, :mod:`sinewatch.cluster`): the
+    last block whose estimate it published. Blocks up to ``published_seq`` (Zenoh's
+    history brings them again) bring the estimator's state up to date without publishing
+    (they were published once); the first block after it is published, flagged as a gap of
+    the blocks nobody estimated."""
+
+    published_seq: int
+    next_t0_ns: int | None
 
 
 @dataclass
@@ -221,6 +242,7 @@ class PipelineCounters:
     inputs: int = 0
     estimates: int = 0
     errors: int = 0
+    caught_up: int = 0  # blocks taken into the state without publishing (after a takeover)
     by_kind: Counter[str] = field(default_factory=Counter)
 
 
@@ -232,9 +254,10 @@ class Pipeline:
         *,
         rules: list[EstimatorRule] | None = None,
         estimate_version: int = ESTIMATE_FORMAT_VERSION,
+        pq_version: int = PQ_FORMAT_VERSION,
     ) -> None:
         self.config = config
-        self.estimate_version = estimate_version  # 1 to reproduce recordings of earlier builds
+        self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
         self.sinks = [
             GuardedSink(
                 sink,
@@ -250,7 +273,10 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
-        self.pq = PqStage(config, _key_matches)  # power quality (harmonics, groups, aggregates): off unless configured
+        self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
+        self.pq = PqStage(
+            config, _key_matches, pq_version
+        )  # power quality (harmonics, groups, aggregates): off unless configured
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(
@@ -267,12 +293,15 @@ class Pipeline:
             block = self._decode(payload, encoding)
             stage = "channel"
             channel = self._channel_for(key, block)
+            if channel.name in self.resume_points and self._catch_up(channel, block):
+                return
             gap_blocks, restart = self._check_sequence(channel, block)
             reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
             stage = "estimator"
             if reset:
                 channel.estimator.reset()
             track = channel.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            self._presence(channel, block, reset)
             stage = "estimate"
             self._accept(channel, block, gap_blocks, restart, reset)
             payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset)
@@ -377,6 +406,21 @@ class Pipeline:
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
         return ch
 
+    def _catch_up(self, ch: Channel, block: Block) -> bool:
+        """A block of a channel taken over from another daemon: True when it was taken into
+        the state only (already published by the other daemon, or already in the state)."""
+        point = self.resume_points[ch.name]
+        if block.seq > point.published_seq:  # the first block to publish: the gap is what nobody estimated
+            del self.resume_points[ch.name]
+            if ch.last_seq is None or ch.last_seq < point.published_seq:
+                ch.last_seq, ch.next_t0_ns = point.published_seq, point.next_t0_ns
+            return False
+        if ch.last_seq is None or block.seq > ch.last_seq:
+            ch.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            self._accept(ch, block, 0, False, False)
+        self.counters.caught_up += 1
+        return True
+
     def _rule_for(self, key: str) -> EstimatorRule | None:
         if key not in self._rule_cache:
             if len(self._rule_cache) > 4 * self.config.limits.max_channels:
@@ -406,6 +450,16 @@ class Pipeline:
             )
         return block.seq - ch.last_seq - 1, False
 
+    @staticmethod
+    def _presence(ch: Channel, block: Block, reset: bool) -> None:
+        """Run the channel's signal-presence detector over the block's signal (column 0),
+        after the estimator accepted it; reset with the estimator."""
+        assert ch.presence is not None
+        if reset:
+            ch.presence.reset()
+        samples = block.samples if block.samples.ndim == 1 else block.samples[:, 0]
+        ch.presence.update(samples)
+
     def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
         ch.last_seq = block.seq
         ch.next_t0_ns = block.t0_ns + round(block.n_samples * 1e9 / block.sample_rate_hz)
@@ -422,21 +476,45 @@ class Pipeline:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time."""
         grid = track.reports
+        t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
         if grid is None:
-            ch.converged = bool(track.converged[-1])
-            t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
-            return [self._estimate_payload(ch, block, track, t_last, gap_blocks, restart, reset)]
-        if grid.n_reports:
-            ch.converged = bool(grid.track.converged[-1])
-        return [
-            self._estimate_payload(ch, block, grid.track.rows(slice(r, r + 1)), t_ns, gap_blocks, restart, reset)
-            for r, t_ns in enumerate(grid.timestamps_ns())
-        ]
+            payload, ch.converged = self._estimate_payload(ch, block, track, t_last, t_last, gap_blocks, restart, reset)
+            return [payload]
+        payloads = []
+        for r, t_ns in enumerate(grid.timestamps_ns()):
+            row = grid.track.rows(slice(r, r + 1))
+            payload, ch.converged = self._estimate_payload(ch, block, row, t_ns, t_last, gap_blocks, restart, reset)
+            payloads.append(payload)
+        return payloads
+
+    def _valid(self, ch: Channel, track: Track, timestamp_ns: int, t_last_ns: int) -> bool:
+        """``diagnostics.valid`` (format 3): the signal has been present (the presence
+        detector, :mod:`sinewatch.estimators.presence`) from the estimator's memory before
+        the estimate's time up to the block's last sample, and the estimate is finite."""
+        assert ch.presence is not None
+        lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
+        if ch.presence.run_samples < ch.estimator.memory_samples + lag:
+            return False
+        return bool(np.all(np.isfinite(track.frequency_hz[-1])) and np.all(np.isfinite(track.amplitude[-1])))
 
     def _estimate_payload(
-        self, ch: Channel, block: Block, track: Track, timestamp_ns: int, gap_blocks: int, restart: bool, reset: bool
-    ) -> bytes:
+        self,
+        ch: Channel,
+        block: Block,
+        track: Track,
+        timestamp_ns: int,
+        t_last_ns: int,
+        gap_blocks: int,
+        restart: bool,
+        reset: bool,
+    ) -> tuple[bytes, bool]:
+        """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
+        not valid is not converged either."""
         converged = bool(track.converged[-1])
+        valid = True
+        if self.estimate_version >= 3:
+            valid = self._valid(ch, track, timestamp_ns, t_last_ns)
+            converged = converged and valid
         n = block.n_samples
         estimate = Estimate(
             channel=ch.name,
@@ -452,6 +530,7 @@ class Pipeline:
             std=None if track.std is None else _uncertainty(track.std),
             diagnostics=Diagnostics(
                 converged=converged,
+                valid=valid,
                 residual_rms=finite_or_none(track.residual_rms),
                 gap=gap_blocks > 0 or restart,
                 gap_blocks=gap_blocks,
@@ -460,7 +539,7 @@ class Pipeline:
                 extras={k: _last_value(v) for k, v in track.extras.items()},
             ),
         )
-        return encode_estimate(estimate, self.estimate_version)
+        return encode_estimate(estimate, self.estimate_version), converged
 
     def _reject(
         self,
@@ -529,6 +608,11 @@ class Pipeline:
             "format_version": 1,
             "channels": [ch.snapshot() for ch in self.channels.values()],
             "error_counts": [[k, kind, n] for (k, kind), n in self._error_counts.items()],
+            **(
+                {"resume_points": {ch: [p.published_seq, p.next_t0_ns] for ch, p in self.resume_points.items()}}
+                if self.resume_points
+                else {}
+            ),
             **({"power_quality": self.pq.snapshot()} if self.pq.enabled else {}),
         }
 
@@ -538,9 +622,14 @@ class Pipeline:
             ch = Channel(item["name"], item["key"], est, float(item["sample_rate_hz"]))
             for attr in ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged"):
                 setattr(ch, attr, item[attr])
+            if "presence" in item:  # snapshots of earlier builds have none: it starts afresh
+                assert ch.presence is not None
+                ch.presence.set_state(item["presence"])
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):
             self._error_counts[(key, kind)] = n
+        for ch_name, (seq, next_t0) in snapshot.get("resume_points", {}).items():
+            self.resume_points[ch_name] = ResumePoint(seq, next_t0)
         if "power_quality" in snapshot:
             self.pq.restore(snapshot["power_quality"])
 
@@ -570,6 +659,26 @@ def _attributes(obj: object, *names: str) -> dict[str, Any]:
 
 def _key_matches(expr: str, key: str) -> bool:
     return bool(zenoh.KeyExpr(expr).includes(zenoh.KeyExpr(key)))
+
+
+def _cycle_frequency_hz(estimator: Estimator) -> float:
+    """The frequency whose one cycle is the presence detector's window: the estimator's
+    nominal frequency, else the lowest it expects (``f_min_hz``, ``min_frequency_hz``), else its
+    time unit (``omega_unit_rad_s`` / 2 pi), else 50 Hz. The window need not match the signal:
+    over a window of a quarter of a cycle, a steady sine's AC RMS still stays above 0.21 of its
+    highest value whatever the phase (above the 0.1 threshold), and over 0.83 to 1.2 cycles (60 Hz
+    in a 50 Hz window, or the reverse) within 0.80 of it."""
+    params = estimator.params
+    for name, scale in (
+        ("nominal_frequency_hz", 1.0),
+        ("f_min_hz", 1.0),
+        ("min_frequency_hz", 1.0),
+        ("omega_unit_rad_s", 0.5 / np.pi),
+    ):
+        value = getattr(params, name, None)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+            return float(value) * scale
+    return 50.0
 
 
 def _is_power_of_ten(n: int) -> bool:

@@ -37,7 +37,7 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
-from sinewatch.schemas.power_quality import PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
 log = logging.getLogger("sinewatch.recorder")
 
@@ -129,6 +129,7 @@ class McapRecorder:
             {
                 "format_version": "1",
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
+                "pq_format_version": str(PQ_FORMAT_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),
@@ -180,6 +181,13 @@ class McapRecorder:
         if self._writer is not None:
             self._w.flush()
             self._f.flush()
+
+    def rotate(self) -> Path:
+        """Finish this file and start the next, which carries the snapshot (as at a timed
+        rotation): e.g. when a standby takes over, so that its file replays on its own."""
+        self.close()
+        self.index += 1
+        return self.open()
 
     def _maybe_rotate(self) -> None:
         if self._fixed_path is not None or self._file is None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 from collections import defaultdict, deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -28,12 +29,14 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
+from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
-from sinewatch.schemas.power_quality import PQ_ROLES
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -118,6 +121,23 @@ def diff_fields(a: bytes, b: bytes) -> list[str]:
     return out or ["byte-level difference only (formatting)"]
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_recording(path: Path) -> None:
+    """Raise ReplayError unless ``path`` is a readable file that starts as an MCAP file does."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ReplayError(
+            f"{path}: expected an MCAP recording, got {(exc.strerror or type(exc).__name__).lower()}"
+        ) from None
+    if head != MCAP_MAGIC:
+        got = "an empty file" if not head else f"a file starting {head!r}"
+        raise ReplayError(f"{path}: expected an MCAP recording (starting {MCAP_MAGIC!r}), got {got}")
+
+
 def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
     order; ("incomplete", reason) last if the file ends early."""
@@ -148,7 +168,7 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
                     yield "snapshot", json.loads(record.data)
                 if on_progress is not None and n % 512 == 0:
                     on_progress(f.tell())
-        except (McapError, EOFError, ValueError, KeyError) as exc:
+        except (McapError, EOFError, ValueError, KeyError, struct.error) as exc:  # struct: cut inside a record header
             yield "incomplete", f"{type(exc).__name__}: {exc}"
         if on_progress is not None:
             on_progress(f.tell())
@@ -192,6 +212,8 @@ def replay(
     max_mismatches: int = 1000,
 ) -> ReplayResult:
     """Replay recordings (one run's files, in order); see the module docstring."""
+    for path in paths:
+        check_recording(path)
     result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None
@@ -199,6 +221,7 @@ def replay(
     pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
     estimate_version = ESTIMATE_FORMAT_VERSION
+    pq_version = PQ_FORMAT_VERSION
     for file_no, path in enumerate(paths):
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
         for kind, item in read_recording(path, progress):
@@ -208,6 +231,7 @@ def replay(
                     # check in the recording's own format (files of earlier builds have no key: 1)
                     if rules is None:
                         estimate_version = int(item.get("estimate_format_version", "1"))
+                        pq_version = int(item.get("pq_format_version", "1"))
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
@@ -227,7 +251,9 @@ def replay(
                         rec_config = config if rules is None else config.model_copy(update={"rules": rules})
                         recorder = McapRecorder(rec_config, path=out)
                         sinks.append(recorder)
-                    pipeline = Pipeline(config, sinks, rules=rules, estimate_version=estimate_version)
+                    pipeline = Pipeline(
+                        config, sinks, rules=rules, estimate_version=estimate_version, pq_version=pq_version
+                    )
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)
@@ -238,6 +264,42 @@ def replay(
         raise ReplayError(f"{', '.join(map(str, paths))}: no recorded messages to replay")
     if result.r.inputs == 0:
         raise ReplayError("the recording has no inputs (recording.inputs was off?): nothing to replay")
+    result.finish(comparator)
+    return result.r
+
+
+def replay_comtrade(
+    path: Path,
+    *,
+    rules: list[EstimatorRule] | None = None,
+    out: Path | None = None,
+    block_size: int = 1000,
+) -> ReplayResult:
+    """Run a COMTRADE record (:mod:`sinewatch.comtrade_file`) through a fresh pipeline, as
+    ``sinewatch feed --comtrade`` would send it to a daemon: each analog channel in blocks of
+    ``block_size`` samples (float64) on ``sinewatch/in/CHANNEL``, with ``rules`` (default: the
+    default config's). Nothing is compared (there is no recorded estimate); ``out`` records
+    inputs and outputs to a new MCAP file, which replays bit for bit."""
+    record = read_comtrade(path)
+    config = SinewatchConfig(daemon_id="sinewatch-comtrade")
+    if rules is not None:
+        config = config.model_copy(update={"rules": rules})
+    prefix = config.keys.input.removesuffix("/**")
+    result = ResultBuilder([path], compare=False, max_mismatches=0)
+    comparator = _Comparator()
+    comparator.other_outputs = config.recording.power_quality
+    sinks: list[Sink] = [comparator]
+    recorder = McapRecorder(config, path=out) if out is not None else None
+    if recorder is not None:
+        sinks.append(recorder)
+    pipeline = Pipeline(config, sinks)
+    for block in interleaved_blocks(record, block_size):
+        payload = encode_block_binary(block, "float64")
+        message = RecordedMessage("input", f"{prefix}/{block.channel}", BLOCK_BINARY_ENCODING, payload, block.t0_ns)
+        result.message(message, pipeline, comparator)
+    if recorder is not None:
+        recorder.close()
+        result.r.out_paths = list(recorder.paths)
     result.finish(comparator)
     return result.r
 

@@ -10,9 +10,12 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from sinewatch.console import make_console
-from sinewatch.replay import ReplayResult, replay
+from sinewatch.comtrade_file import is_comtrade
+from sinewatch.console import check_output_dir, make_console, print_table
+from sinewatch.estimators import check_rules
+from sinewatch.replay import ReplayResult, check_recording, replay, replay_comtrade
 from sinewatch.schemas.config import EstimatorRule
+from sinewatch.schemas.errors import ConfigError
 
 
 def run_replay(args: argparse.Namespace) -> int:
@@ -20,9 +23,19 @@ def run_replay(args: argparse.Namespace) -> int:
     rules = None
     if args.estimator:
         rules = [EstimatorRule(match=args.match, estimator=args.estimator, params=dict(args.param))]
+        check_rules(rules)
     elif args.param:
-        console.print("[red]--param needs --estimator[/red]")
-        return 2
+        raise ConfigError(f"--param: expected with --estimator, got {len(args.param)} without it")
+    if args.out is not None:
+        check_output_dir(args.out.parent, "--out")
+    if any(is_comtrade(p) for p in args.paths):
+        if len(args.paths) > 1:
+            raise ConfigError(f"replay of COMTRADE: expected one .cfg or .cff file, got {len(args.paths)} paths")
+        result = replay_comtrade(args.paths[0], rules=rules, out=args.out)
+        report(console, result)
+        return 0
+    for path in args.paths:
+        check_recording(path)
     # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.
     logging.getLogger("sinewatch.pipeline").setLevel(logging.ERROR)
     total = sum(p.stat().st_size for p in args.paths)
@@ -82,7 +95,7 @@ def report(console: Console, r: ReplayResult) -> None:
             table.add_column(col)
         for topic, (rec, new) in sorted(r.final.items()):
             table.add_row(topic, _brief(rec), _brief(new))
-        console.print(table)
+        print_table(console, table)
     for path in r.out_paths:
         console.print(f"new recording: {path}")
 

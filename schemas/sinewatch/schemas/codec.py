@@ -5,7 +5,7 @@ Every message announces its encoding in its Zenoh Encoding:
 =========================================  =============================================
 ``application/x-sinewatch-block;v=1``      SampleBlock, compact binary (layout below)
 ``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/sinewatch/schemas/json/SampleBlock.json)
-``application/json;sinewatch/Estimate@2``      Estimate, JSON (``@1`` in recordings of earlier builds)
+``application/json;sinewatch/Estimate@3``      Estimate, JSON (``@1``/``@2`` in recordings of earlier builds)
 ``application/json;sinewatch/ErrorReport@1``   ErrorReport, JSON
 ``application/json;sinewatch/Status@1``        Status, JSON
 =========================================  =============================================
@@ -61,7 +61,7 @@ from sinewatch.schemas.messages import (
 
 BLOCK_BINARY_ENCODING = "application/x-sinewatch-block;v=1"
 BLOCK_JSON_ENCODING = "application/json;sinewatch/SampleBlock@1"
-ESTIMATE_JSON_ENCODING = "application/json;sinewatch/Estimate@2"
+ESTIMATE_JSON_ENCODING = f"application/json;sinewatch/Estimate@{ESTIMATE_FORMAT_VERSION}"
 ESTIMATE_V1_JSON_ENCODING = "application/json;sinewatch/Estimate@1"
 ERROR_JSON_ENCODING = "application/json;sinewatch/ErrorReport@1"
 STATUS_JSON_ENCODING = "application/json;sinewatch/Status@1"
@@ -258,9 +258,15 @@ def dumps(msg: dict[str, Any]) -> bytes:
 
 
 def encode_estimate(estimate: Estimate, version: int = ESTIMATE_FORMAT_VERSION) -> bytes:
-    """The Estimate's JSON bytes in wire-format ``version`` (2, or 1 for replaying
+    """The Estimate's JSON bytes in wire-format ``version`` (3, or 2 or 1 for replaying
     recordings of earlier builds: the same bytes those builds wrote)."""
-    msg = estimate.model_dump(mode="python", exclude=set(Estimate.V2_FIELDS) if version == 1 else None)
+    exclude: dict[str, Any] = {}
+    if version < 3:
+        exclude.update(dict.fromkeys(Estimate.V3_FIELDS, True))
+        exclude["diagnostics"] = set(Estimate.V3_DIAGNOSTICS)
+    if version < 2:
+        exclude.update(dict.fromkeys(Estimate.V2_FIELDS, True))
+    msg = estimate.model_dump(mode="python", exclude=exclude or None)
     msg["format_version"] = version
     return dumps(msg)
 
@@ -270,4 +276,5 @@ def encode_error(report: ErrorReport) -> bytes:
 
 
 def encode_status(status: Status) -> bytes:
-    return dumps(status.model_dump(mode="json"))
+    # c37118 is left out when the server is off: the message stays what earlier builds wrote
+    return dumps(status.model_dump(mode="json", exclude={"c37118"} if status.c37118 is None else None))

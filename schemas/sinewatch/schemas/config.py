@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sinewatch.schemas.errors import ConfigError
 
@@ -68,6 +68,11 @@ class KeysSection(_Section):
     estimates_prefix: str = Field("sinewatch/est", description="Estimates go to PREFIX/<channel>")
     errors_prefix: str = Field("sinewatch/err", description="ErrorReports go to PREFIX/<channel or _unknown>")
     status_key: str = Field("sinewatch/status", description="Status messages go to KEY/<daemon_id>")
+    admin_prefix: str = Field(
+        "sinewatch/admin",
+        description="Cluster keys: PREFIX/<daemon_id>/channels (queryable: what a daemon owns), "
+        "PREFIX/shard/<shard_id>/{active,standby}/<daemon_id> (liveliness), PREFIX/shard/<shard_id>/snapshot",
+    )
     pq_prefix: str = Field(
         "sinewatch/pq",
         description="Power quality: HarmonicsReports go to PREFIX/harmonics/<channel>, PqAggregates to "
@@ -75,8 +80,23 @@ class KeysSection(_Section):
     )
 
 
+#: The default rule's estimator and, when a rule names neither an estimator nor parameters,
+#: its parameters: a Hann interpolated DFT over 200 ms (10 cycles of 50 Hz, 12 of 60 Hz:
+#: the IEC 61000-4-30 measurement interval), re-estimated every 50 ms, searching 25-75 Hz,
+#: so 50 and 60 Hz systems are both measured as they are, with no detection step. The window
+#: in samples, the hop and the DFT bins follow from each channel's sample rate. Why this one:
+#: docs/accuracy.md, "The default rule" (``sinewatch bench accuracy --scenarios default-rule``).
+DEFAULT_ESTIMATOR = "ipdft"
+DEFAULT_PARAMS: dict[str, Any] = {"nominal_frequency_hz": 50.0, "window_cycles": 10.0}
+
+
 class EstimatorRule(_Section):
     """Channels whose input key matches ``match`` get ``estimator`` with ``params``.
+
+    A rule that names neither ``estimator`` nor ``params`` is the default rule:
+    ``ipdft`` with :data:`DEFAULT_PARAMS` (a 200 ms window, right for 50 and 60 Hz mains with
+    harmonics and noise at any sample rate from 1 to 50 kHz). A rule that names an estimator
+    without ``params`` gets that estimator's own defaults (``sinewatch estimators``).
 
     ``params`` is checked against the estimator's own parameter model by
     :func:`sinewatch.estimators.check_rules`, which the daemon runs before it starts and
@@ -84,8 +104,21 @@ class EstimatorRule(_Section):
     imports an estimator (nor numba)."""
 
     match: str = Field("sinewatch/in/**", description="Key expression matched against the input key")
-    estimator: str = Field("ges-kalman", description="Registered estimator name (sinewatch estimators)")
-    params: dict[str, Any] = Field(default_factory=dict, description="Estimator parameters")
+    estimator: str = Field(
+        DEFAULT_ESTIMATOR, description="Registered estimator name (sinewatch estimators); default ipdft"
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Estimator parameters; when neither estimator nor params is given, the default "
+        "rule's: a 200 ms ipdft window (nominal_frequency_hz = 50, window_cycles = 10)",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_rule(cls, data: Any) -> Any:
+        if isinstance(data, Mapping) and "estimator" not in data and "params" not in data:
+            return {**data, "params": dict(DEFAULT_PARAMS)}
+        return data
 
 
 class HarmonicsRule(_Section):
@@ -150,6 +183,104 @@ class PowerQualitySection(_Section):
         return v
 
 
+class C37118Station(_Section):
+    """One PMU as a phasor data concentrator sees it: one ID code, one data stream, one phasor
+    per channel (the channel estimator's synchrophasor: the ``pmu`` estimator's, or one derived
+    from any estimator's amplitude and phase). FREQ and DFREQ are the first channel's."""
+
+    id_code: int = Field(ge=1, le=65534, description="IDCODE of the data stream (unique per station)")
+    name: str = Field(pattern=r"^[ -~]{1,16}$", description="Station name (STN): 1-16 printable ASCII characters")
+    channels: list[str] = Field(
+        min_length=1, max_length=64, description="Channel names (as in the Estimates), one phasor each, in order"
+    )
+    phasor_names: list[str] | None = Field(
+        None, description="Phasor channel names (CHNAM, 16 ASCII characters); default: the channel names' last part"
+    )
+    phasor_type: Literal["voltage", "current"] = Field("voltage", description="PHUNIT type of every phasor")
+    nominal_frequency_hz: Literal[50, 60] = Field(50, description="FNOM")
+    data_rate: int = Field(
+        50, ge=1, le=200, description="Frames per second (DATA_RATE): the channels' reporting rate (pmu estimator)"
+    )
+    phasor_format: Literal["polar", "rectangular"] = Field(
+        "polar", description="Phasors as 32-bit floats, magnitude (RMS) and angle (rad), or real and imaginary"
+    )
+    max_skew_s: float = Field(
+        0.5,
+        gt=0,
+        allow_inf_nan=False,
+        description="A frame waits for every channel's estimate of its time until another channel is this far "
+        "(data time) past it; then it is sent with the missing phasors NaN and STAT data error 10 (absent data)",
+    )
+    time_synchronised: bool = Field(
+        False,
+        description="The gateways' sample clocks are traceable to UTC (GPS/PTP): STAT sync bit 0 and FRACSEC "
+        "time quality 0; otherwise STAT bit 13 (not in sync), unlocked > 1000 s and time quality 0xF",
+    )
+    pmu_time_quality: int = Field(
+        7, ge=0, le=7, description="STAT bits 8-6 (C37.118.2 Table 8): 7 = time error unknown or > 10 ms"
+    )
+
+    @field_validator("channels")
+    @classmethod
+    def _distinct_channels(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"channels: expected distinct channel names, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _names(self) -> C37118Station:
+        if self.phasor_names is not None and len(self.phasor_names) != len(self.channels):
+            raise ValueError(
+                f"phasor_names: expected one per channel ({len(self.channels)}), got {len(self.phasor_names)}"
+            )
+        return self
+
+
+class C37118Section(_Section):
+    """An IEEE C37.118.2-2011 server (sinewatch as a PMU; off by default): each station answers
+    command frames over TCP (and UDP) on ``port`` and streams data frames at its rate."""
+
+    enabled: bool = Field(False, description="Serve C37.118.2 (also: sinewatch serve --c37118 PORT)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    port: int = Field(4712, ge=0, le=65535, description="TCP and UDP port for command frames (0: any free port)")
+    time_base: int = Field(1_000_000, ge=1, lt=1 << 24, description="TIME_BASE: FRACSEC counts 1/TIME_BASE s")
+    client_queue_frames: int = Field(
+        256, ge=1, description="Frames queued per client; past that a slow client's frames are dropped and counted"
+    )
+    max_clients: int = Field(
+        32, ge=1, description="TCP connections and UDP streaming clients at once; more are refused and counted"
+    )
+    client_buffer_bytes: int = Field(
+        65536,
+        ge=1024,
+        description="Per TCP client: socket send buffer and write-buffer high-water mark; with the queue, what a "
+        "client that stops reading may hold before its frames are dropped",
+    )
+    udp_destinations: list[str] = Field(
+        default_factory=list,
+        description="HOST:PORT destinations of spontaneous UDP data frames (every station, no command needed)",
+    )
+    stations: list[C37118Station] = Field(default_factory=list, description="The stations (PMUs) served")
+
+    @field_validator("udp_destinations")
+    @classmethod
+    def _destinations(cls, v: list[str]) -> list[str]:
+        for d in v:
+            host, _, port = d.rpartition(":")
+            if not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ValueError(f"udp_destinations: expected HOST:PORT, got {d!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _stations(self) -> C37118Section:
+        ids = [s.id_code for s in self.stations]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"stations: expected unique id_code values, got {ids}")
+        if self.enabled and not self.stations:
+            raise ValueError("stations: expected at least one station when enabled")
+        return self
+
+
 class RecordingSection(_Section):
     enabled: bool = True
     directory: Path = Field(Path("sinewatch-runs"), description="Where MCAP files are written")
@@ -167,6 +298,46 @@ class RecordingSection(_Section):
     status: bool = True
 
 
+class ClusterSection(_Section):
+    """Several daemons behind Zenoh routers: each owns a shard of the channels; a standby
+    for a shard takes over when the active daemon's liveliness token goes away.
+
+    A shard is the key space the daemon subscribes to (``keys.input``, e.g.
+    ``sinewatch/in/site1/**``), optionally cut further by ``shard = "i/N"``: the daemon then
+    owns the input keys whose CRC-32 (of the UTF-8 key) modulo N is i - 1, so N daemons with
+    ``1/N`` .. ``N/N`` split any set of keys with no overlap and no gap (each still receives
+    every key of ``keys.input`` from Zenoh and drops the others' before decoding: prefer
+    disjoint ``keys.input`` where the key layout allows it). The active daemon of a shard
+    puts the state of its channels on PREFIX/shard/<shard_id>/snapshot every
+    ``snapshot_interval_s``; its standbys keep the latest and watch its liveliness token."""
+
+    shard: str | None = Field(
+        None,
+        pattern=r"^[1-9][0-9]*/[1-9][0-9]*$",
+        description="i/N: own the input keys whose CRC-32 mod N is i-1; unset: every key of keys.input",
+    )
+    shard_id: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_.\-]+$",
+        description="Name shared by a shard's active daemon and its standbys (default: from keys.input and shard)",
+    )
+    role: Literal["active", "standby"] = Field(
+        "active",
+        description="active: serve the shard unless another daemon already does (then stand by); "
+        "standby: serve it only when its active daemon goes away",
+    )
+    snapshot_interval_s: float = Field(1.0, gt=0, description="How often the active daemon publishes its state")
+
+    @field_validator("shard")
+    @classmethod
+    def _in_range(cls, v: str | None) -> str | None:
+        if v is not None:
+            i, n = (int(x) for x in v.split("/"))
+            if not 1 <= i <= n:
+                raise ValueError(f"shard: expected i/N with 1 <= i <= N, got {v!r}")
+        return v
+
+
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
     max_block_samples: int = Field(1_000_000, ge=1)
@@ -176,6 +347,49 @@ class LimitsSection(_Section):
         "block", description="block: back-pressure to Zenoh (no loss); drop: drop and count the newest"
     )
     intake_batch: int = Field(256, ge=1, description="Blocks handed to the event loop at once")
+
+
+class FoxgloveSection(_Section):
+    """Live view in Foxglove (``serve --foxglove PORT``): a Foxglove WebSocket server
+    (the ``foxglove-sdk`` package, ``pip install 'sinewatch[foxglove]'``) streams the
+    estimates, errors, status and power-quality messages on their Zenoh keys as topics,
+    one plottable summary per input block on ``sinewatch/samples/<channel>``, and the log on
+    ``sinewatch/log`` (``foxglove.Log``). Off unless a port is given. It never slows the
+    daemon: each client has a bounded backlog (oldest dropped), and the input summaries are
+    made on a worker thread behind a bounded queue (newest dropped and counted), at most
+    ``input_rate_hz`` of them a second."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="WebSocket port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    inputs: bool = Field(True, description="Publish a summary of each input block (min, max, mean, RMS, samples)")
+    input_points: int = Field(
+        64, ge=1, le=100_000, description="At most this many samples per input summary (every k-th sample)"
+    )
+    input_rate_hz: float = Field(
+        200.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Input summaries per second at most, all channels together (one second's worth may come at "
+        "once); past it blocks are skipped and counted: the summaries' cost has a ceiling",
+    )
+    queue: int = Field(
+        1024, ge=1, description="Input blocks waiting for the summary worker; past it they are dropped and counted"
+    )
+    backlog: int = Field(1024, ge=1, description="Messages buffered per client; a slow client loses the oldest")
+    max_topics: int = Field(4096, ge=1, description="Topics advertised at most (further ones are counted, not sent)")
+
+
+class MetricsSection(_Section):
+    """Prometheus metrics and a health endpoint (``serve --metrics PORT``): ``/metrics``
+    (the ``prometheus-client`` package, ``pip install 'sinewatch[metrics]'``) and
+    ``/healthz`` (JSON; 200 while the event loop turns and every sink is ok, else 503).
+    Off unless a port is given."""
+
+    port: int | None = Field(None, ge=0, le=65535, description="HTTP port (None: off; 0: any free port)")
+    host: str = Field("127.0.0.1", description="Address to listen on (loopback by default)")
+    stall_s: float = Field(
+        5.0, gt=0, allow_inf_nan=False, description="/healthz fails once the event loop has not turned for this long"
+    )
 
 
 class SinewatchConfig(_Section):
@@ -191,8 +405,12 @@ class SinewatchConfig(_Section):
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
+    c37118: C37118Section = Field(default_factory=C37118Section)
+    cluster: ClusterSection = Field(default_factory=ClusterSection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
+    foxglove: FoxgloveSection = Field(default_factory=FoxgloveSection)
+    metrics: MetricsSection = Field(default_factory=MetricsSection)
     status_interval_s: float = Field(1.0, gt=0)
     sink_retry_s: float = Field(
         1.0,

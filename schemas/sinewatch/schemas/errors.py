@@ -58,5 +58,12 @@ class ConfigError(SinewatchError, ValueError):
     """The configuration file or environment is invalid."""
 
 
+class OutputError(SinewatchError, OSError):
+    """An output (a file, a directory) cannot be written where it was asked for."""
+
+    def __str__(self) -> str:  # OSError would prefix an errno
+        return str(self.args[0]) if self.args else ""
+
+
 class ReplayMismatchError(SinewatchError, AssertionError):
     """A replay did not reproduce the recorded estimates bit for bit."""

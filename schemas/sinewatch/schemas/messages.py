@@ -10,12 +10,12 @@ JSON has no NaN: an undefined estimate is ``null``.
 from __future__ import annotations
 
 from enum import Enum
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 FORMAT_VERSION = 1  # SampleBlock, ErrorReport, Status
-ESTIMATE_FORMAT_VERSION = 2  # Estimate: 2 added rocof_hz_per_s and std (see Estimate)
+ESTIMATE_FORMAT_VERSION = 3  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid (see Estimate)
 
 CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 
@@ -48,8 +48,43 @@ class SampleBlock(_Message):
     samples: list[float] | list[list[float]] = Field(description="Samples, oldest first")
 
 
+class Time(_Message):
+    """A time as Foxglove (and ROS) write it: whole seconds and nanoseconds since the epoch.
+
+    Both fit a JavaScript number exactly, where ``timestamp_ns`` (beyond 2^53) does not:
+    a JavaScript reader takes ``sec + nsec / 1e9``, or ``BigInt(sec) * 1000000000n + BigInt(nsec)``."""
+
+    sec: int = Field(description="Whole seconds since the epoch (floor, so negative before 1970)")
+    nsec: int = Field(ge=0, lt=1_000_000_000, description="Nanoseconds past ``sec``")
+
+    @classmethod
+    def of(cls, ns: int) -> Time:
+        sec, nsec = divmod(ns, 1_000_000_000)
+        return cls(sec=sec, nsec=nsec)
+
+
+def fill_time(msg: Any, ns: int, field: str = "timestamp") -> None:
+    """Set (or check) the ``{sec, nsec}`` twin of a nanosecond timestamp."""
+    t = getattr(msg, field)
+    if t is None:
+        setattr(msg, field, Time.of(ns))
+    elif t.sec * 1_000_000_000 + t.nsec != ns:
+        raise ValueError(f"{field}: expected {{sec, nsec}} equal to {ns} ns, got {t.sec} s + {t.nsec} ns")
+
+
 class Diagnostics(_Message):
-    converged: bool = Field(description="The estimator considers its estimate valid")
+    converged: bool = Field(
+        description="The estimate is settled: the estimator's own convergence test passed (each estimator's "
+        "criterion: docs/validity.md) and, from format version 3, the estimate is valid"
+    )
+    valid: bool = Field(
+        True,
+        description="The signal the estimate describes is present now and has been for the estimator's memory "
+        "(its window, or its settling time): false while the input is absent or collapsing (its one-cycle AC RMS "
+        "at or below 0.1 of the recent level: an interruption or a sag below 0.1 pu, IEEE 1159), for one memory "
+        "after it, before the estimator has seen one memory of signal, or when the estimate is undefined. An "
+        "estimate with valid false is not a measurement (format version 3; docs/validity.md)",
+    )
     residual_rms: float | None = Field(description="RMS one-step prediction error over the block")
     gap: bool = Field(False, description="Samples were missing before this block (sequence gap)")
     gap_blocks: int = Field(0, ge=0, description="How many blocks were missing before this one")
@@ -77,17 +112,21 @@ class Estimate(_Message):
 
     y = offset + sum_k amplitude[k] * sin(phase_rad[k]); phase at ``timestamp_ns``.
 
-    Version 2 added ``rocof_hz_per_s`` and ``std``. A version-1 Estimate is this message
-    without those two fields and with ``format_version`` 1, byte for byte what earlier
-    builds wrote: replay renders estimates in the version of the recording it checks.
+    Version 2 added ``rocof_hz_per_s`` and ``std``; version 3 ``timestamp`` (``{sec, nsec}``,
+    exact in JavaScript) and ``diagnostics.valid``. An earlier version is this message without
+    the later fields and with its own ``format_version``, byte for byte what earlier builds
+    wrote: replay renders estimates in the version of the recording it checks.
     """
 
-    format_version: Literal[1, 2] = 2
+    format_version: Literal[1, 2, 3] = 3
     channel: str
     seq: int = Field(description="Sequence number of the input block")
     timestamp_ns: int = Field(
         description="Time the estimate refers to, ns since the epoch: the block's last sample, or the report "
         "time k/Fs for an estimator that reports on a time grid (pmu)"
+    )
+    timestamp: Time | None = Field(
+        None, description="timestamp_ns as {sec, nsec} (filled from timestamp_ns when not given; format version 3)"
     )
     n_samples: int = Field(description="Samples in the input block")
     estimator: str
@@ -102,6 +141,13 @@ class Estimate(_Message):
     diagnostics: Diagnostics
 
     V2_FIELDS: ClassVar[frozenset[str]] = frozenset({"rocof_hz_per_s", "std"})
+    V3_FIELDS: ClassVar[frozenset[str]] = frozenset({"timestamp"})
+    V3_DIAGNOSTICS: ClassVar[frozenset[str]] = frozenset({"valid"})
+
+    @model_validator(mode="after")
+    def _timestamp(self) -> Estimate:
+        fill_time(self, self.timestamp_ns)
+        return self
 
 
 class ErrorKind(str, Enum):
@@ -162,6 +208,31 @@ class SinkStatus(_Message):
     last_error: str | None = Field(description="The last failure, as 'ExceptionType: message'")
 
 
+class C37118ClientStatus(_Message):
+    """One connected phasor data concentrator (or UDP destination) of the C37.118.2 server."""
+
+    peer: str = Field(description="HOST:PORT of the client")
+    transport: Literal["tcp", "udp"]
+    streaming: list[int] = Field(description="ID codes whose data frames it has turned on")
+    frames_sent: int = Field(description="Frames handed to its connection")
+    frames_dropped: int = Field(description="Data frames dropped because its queue was full (a slow reader)")
+    frames_queued: int = Field(0, description="Data frames waiting in its queue now")
+
+
+class C37118Status(_Message):
+    """The C37.118.2 server (present only when ``[c37118]`` is enabled)."""
+
+    port: int
+    clients: list[C37118ClientStatus]
+    frames_built: int = Field(description="Data frames built (one per station per reporting time)")
+    frames_incomplete: int = Field(description="Data frames sent with a missing channel (STAT data error 10)")
+    frames_dropped: int = Field(description="Data frames dropped for slow clients, since start (all clients)")
+    frames_late: int = Field(description="Estimates that came after their frame was sent (not sent)")
+    commands: int = Field(description="Command frames accepted")
+    commands_rejected: int = Field(description="Command frames rejected (bad CRC, unknown ID code, truncated, ...)")
+    rejected_by_reason: dict[str, int] = Field(default_factory=dict)
+
+
 class Status(_Message):
     """Periodic daemon status."""
 
@@ -183,6 +254,9 @@ class Status(_Message):
     recording: str | None = Field(description="Current MCAP file, if recording")
     sinks: list[SinkStatus] = Field(default_factory=list, description="Health of each output")
     channels: list[ChannelStatus]
+    c37118: C37118Status | None = Field(
+        None, description="The C37.118.2 server's counters (absent when it is off; added within format version 1)"
+    )
 
 
 MESSAGE_MODELS: dict[str, type[BaseModel]] = {

@@ -1,4 +1,4 @@
-"""Power-quality messages (format version 1): IEC 61000-4-7 harmonics per channel, the
+"""Power-quality messages (format version 2): IEC 61000-4-7 harmonics per channel, the
 three-phase group (symmetrical components, unbalance) and the IEC 61000-4-30 aggregates.
 
 Like :mod:`sinewatch.schemas.messages`: pydantic v2 models, unknown keys rejected, JSON
@@ -14,11 +14,12 @@ interharmonic group (or centred subgroup) between orders n and n+1.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sinewatch.schemas.codec import dumps, finite_or_none
+from sinewatch.schemas.messages import Time, fill_time
 
 __all__ = [
     "PQ_FORMAT_VERSION",
@@ -33,7 +34,7 @@ __all__ = [
     "json_encoding",
 ]
 
-PQ_FORMAT_VERSION = 1
+PQ_FORMAT_VERSION = 2  # 2 added ``timestamp`` ({sec, nsec}, exact in JavaScript) beside timestamp_ns
 
 OptFloat = float | None
 
@@ -41,14 +42,21 @@ OptFloat = float | None
 class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
+    @model_validator(mode="after")
+    def _timestamp(self) -> Self:
+        if "timestamp" in type(self).model_fields:
+            fill_time(self, getattr(self, "timestamp_ns"))  # noqa: B009 (the subclasses that have a timestamp)
+        return self
+
 
 class HarmonicsReport(_Message):
     """One IEC 61000-4-7 window of one channel: N = 10 (50 Hz) or 12 (60 Hz) cycles of the
     measured fundamental, reported at the window end."""
 
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = 2
     channel: str
     timestamp_ns: int = Field(description="End of the window, ns since the epoch")
+    timestamp: Time | None = Field(None, description="timestamp_ns as {sec, nsec} (format version 2)")
     window_start_ns: int = Field(description="Start of the window, ns since the epoch")
     n_cycles: int = Field(description="Cycles of the fundamental the window spans: 10 or 12")
     nominal_frequency_hz: float
@@ -79,9 +87,10 @@ class ThreePhaseReport(_Message):
     """A three-phase group at one instant: the phases' fundamental phasors and their
     symmetrical components (Fortescue), u2 = |V2|/|V1| and u0 = |V0|/|V1|."""
 
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = 2
     group: str
     timestamp_ns: int = Field(description="The instant the phasors refer to, ns since the epoch")
+    timestamp: Time | None = Field(None, description="timestamp_ns as {sec, nsec} (format version 2)")
     phases: list[str] = Field(description="Channel of phase a, b, c", min_length=3, max_length=3)
     frequency_hz: OptFloat
     phase_rms: list[OptFloat] = Field(description="Fundamental RMS of phase a, b, c", min_length=3, max_length=3)
@@ -99,10 +108,11 @@ class PqAggregate(_Message):
     or a group): RMS of the values for magnitudes, THD and unbalance; total cycles over total
     duration for frequency."""
 
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = 2
     source: str = Field(description="Channel or group the values come from")
     interval: Literal["150/180-cycle", "10-min"]
     timestamp_ns: int = Field(description="End of the interval (the 10-min tick for 10-min values)")
+    timestamp: Time | None = Field(None, description="timestamp_ns as {sec, nsec} (format version 2)")
     start_ns: int = Field(description="Start of the interval")
     n_windows: int = Field(ge=0, description="10/12-cycle values aggregated")
     complete: bool = Field(description="150/180-cycle: 15 contiguous values; 10-min: no value missing")
@@ -132,8 +142,10 @@ def json_encoding(name: str) -> str:
     return f"application/json;sinewatch/{name}@{PQ_MESSAGE_VERSIONS[name]}"
 
 
-def encode_pq(msg: BaseModel) -> bytes:
+def encode_pq(msg: BaseModel, version: int = PQ_FORMAT_VERSION) -> bytes:
     """Compact, deterministic JSON bytes of a power-quality message (as the codec writes
-    the other JSON messages)."""
-    data: dict[str, Any] = msg.model_dump(mode="json")
+    the other JSON messages), in format ``version`` (1 for replaying recordings of earlier
+    builds: without ``timestamp``)."""
+    data: dict[str, Any] = msg.model_dump(mode="json", exclude={"timestamp"} if version < 2 else None)
+    data["format_version"] = version
     return dumps(data)

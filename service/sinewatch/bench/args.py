@@ -46,11 +46,17 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
         ("compliance", "IEEE C37.118.1 M-class tests of estimators reporting on a time grid", add_compliance_arguments),
+        (
+            "c37118",
+            "the daemon as a C37.118.2 PMU: latency with no, a reading and a stalled client",
+            add_c37118_arguments,
+        ),
+        ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
         add_arguments(p)
-        p.set_defaults(fn=_runner(name))
+        p.set_defaults(fn=_runner(name.replace("-", "_")))
     return b
 
 
@@ -71,6 +77,11 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
         "--queue-policy", choices=["block", "drop"], default="block", help="the daemon's limits.queue_policy"
     )
     parser.add_argument("--queue-capacity", type=int, default=8192, help="the daemon's limits.queue_capacity")
+    parser.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="the daemon serves its live Foxglove view and a client subscribes to every topic (needs the foxglove extra)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
@@ -80,6 +91,25 @@ def add_soak_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--interval", type=float, default=60.0, help="seconds between report lines (default 60)")
     parser.add_argument("--rotate-seconds", type=float, default=300.0, help="a new recording this often (default 300)")
     parser.add_argument("--plot", type=Path, help="write the RSS curve to this PNG (needs matplotlib)")
+
+
+def add_c37118_arguments(parser: argparse.ArgumentParser) -> None:
+    add_e2e_arguments(parser)
+    parser.set_defaults(channels=30, duration=30.0, block=1000, estimator="pmu")
+    parser.add_argument(
+        "--station-channels", type=int, help="channels in the served station (default all: 266-byte frames at 30)"
+    )
+
+
+def add_pmu_reference_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--c37118", required=True, metavar="HOST:PORT", help="the reference PMU (or PDC)")
+    parser.add_argument("--id-code", type=int, required=True, help="its data stream's ID code")
+    parser.add_argument("--phasor", help="its phasor to compare with (default its first)")
+    parser.add_argument("--channel", required=True, help="the sinewatch channel measuring the same signal")
+    parser.add_argument("--connect", action="append", help="Zenoh endpoint of the daemon (repeatable)")
+    parser.add_argument("--frames", type=int, default=500, help="data frames to compare (default 500)")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for a frame or an estimate")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 def add_overload_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,6 +8,12 @@ subscribes to the estimates. Latency is block-to-estimate: the feeder (its own p
 each block so that its last sample's time is its publish time on CLOCK_MONOTONIC, which
 is system-wide, and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
 daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU use.
+
+With ``--foxglove`` the daemon also serves its live Foxglove view and a client here
+(:class:`FoxgloveProbe`, the protocol over ``websockets``) subscribes to every topic it
+advertises (estimates, input summaries, status, log): the cost of a watched daemon. Run it
+with and without the flag at an offer above what the daemon sustains (``--channels``) to
+compare throughput.
 """
 
 from __future__ import annotations
@@ -72,6 +78,99 @@ class LatencyProbe:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+class FoxgloveProbe:
+    """A Foxglove WebSocket client, run as its own process (:func:`foxglove_probe_main`) so
+    that reading the stream cannot slow this process's Zenoh subscriber (which would push
+    back on the daemon through CongestionControl.BLOCK and be mistaken for the daemon's
+    cost): subscribes to every channel the daemon advertises and counts the messages (and
+    bytes) per topic kind."""
+
+    SUBPROTOCOL = "foxglove.sdk.v1"
+
+    def __init__(self, port: int) -> None:
+        import importlib.util
+
+        from sinewatch.schemas.errors import SinewatchError
+
+        if importlib.util.find_spec("websockets") is None:
+            raise SinewatchError(
+                "bench e2e --foxglove: expected the websockets package for its client "
+                "(pip install 'sinewatch[test]'), got none installed"
+            )
+        code = "import sys; from sinewatch.bench.e2e import foxglove_probe_main; sys.exit(foxglove_probe_main(sys.argv[1]))"
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        assert self._proc.stdout is not None
+        if self._proc.stdout.readline().strip() != "connected":
+            raise RuntimeError("the daemon's Foxglove server did not accept the probe")
+        self.messages: dict[str, int] = {}
+        self.bytes = 0
+
+    def close(self) -> None:
+        out, _ = self._proc.communicate(timeout=60)  # stdin closed: the probe reports and exits
+        counts = json.loads(out)
+        self.messages, self.bytes = counts["messages"], counts["bytes"]
+
+
+def foxglove_probe_main(port: str) -> int:
+    import asyncio
+
+    messages: dict[str, int] = {}
+    total = [0]
+    asyncio.run(_foxglove_probe(int(port), messages, total))
+    print(json.dumps({"messages": dict(sorted(messages.items())), "bytes": total[0]}), flush=True)
+    return 0
+
+
+async def _foxglove_probe(port: int, messages: dict[str, int], total: list[int]) -> None:
+    import asyncio
+    import struct
+
+    import websockets
+    from websockets.typing import Subprotocol
+
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), loop.call_soon_threadsafe(stop.set)), daemon=True).start()
+    topics: dict[int, str] = {}  # channel id -> topic
+    subs: dict[int, str] = {}  # subscription id -> topic kind
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(FoxgloveProbe.SUBPROTOCOL)]
+    ) as ws:
+        print("connected", flush=True)
+
+        async def subscribe(ids: list[int]) -> None:
+            batch = []
+            for cid in ids:
+                sid = len(subs) + 1
+                subs[sid] = "/".join(topics[cid].split("/")[:2])  # sinewatch/est, sinewatch/samples, ...
+                batch.append({"id": sid, "channelId": cid})
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": batch}))
+
+        stopped = asyncio.ensure_future(stop.wait())
+        while not stop.is_set():
+            recv = asyncio.ensure_future(ws.recv())
+            await asyncio.wait([recv, stopped], return_when=asyncio.FIRST_COMPLETED)
+            if not recv.done():
+                recv.cancel()
+                break
+            frame = recv.result()
+            if isinstance(frame, bytes):
+                (sid,) = struct.unpack_from("<I", frame, 1)
+                messages[subs[sid]] = messages.get(subs[sid], 0) + 1
+                total[0] += len(frame)
+                continue
+            msg = json.loads(frame)
+            if msg["op"] == "advertise":
+                for ch in msg["channels"]:
+                    topics[ch["id"]] = ch["topic"]
+                await subscribe([ch["id"] for ch in msg["channels"]])
+            elif msg["op"] == "status" and "Unknown channel ID" in msg["message"]:
+                # foxglove-sdk 0.30 may not know a channel it has just advertised: ask again
+                await subscribe([int(msg["message"].rsplit(":", 1)[1])])
 
 
 def feeder_main(argv: list[str] | None = None) -> int:
@@ -145,10 +244,11 @@ class _Recording:
 
 @contextlib.contextmanager
 def running_daemon(
-    args: argparse.Namespace, recording: dict[str, Any] | None = None
+    args: argparse.Namespace, recording: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
 ) -> Iterator[tuple[str, subprocess.Popen[bytes], _Recording]]:
     """``sinewatch serve`` as its own process on a free loopback port, recording to a
-    temporary directory; stopped with SIGINT (drain, finish the file) on exit."""
+    temporary directory; stopped with SIGINT (drain, finish the file) on exit. ``extra``:
+    more config sections (e.g. ``c37118``)."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     rec = _Recording()
     with tempfile.TemporaryDirectory(prefix="sinewatch-bench-") as tmp:
@@ -159,7 +259,11 @@ def running_daemon(
             "recording": {"directory": str(Path(tmp) / "rec"), **(recording or {})},
             "limits": {"queue_policy": args.queue_policy, "queue_capacity": args.queue_capacity},
             "status_interval_s": 1.0,
+            **(extra or {}),
         }
+        if getattr(args, "foxglove", False):
+            args.foxglove_port = free_loopback_port()
+            config["foxglove"] = {"port": args.foxglove_port}
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(config))
         # The daemon's log goes to a file: a pipe nobody reads fills up (64 KiB) and then
@@ -220,6 +324,7 @@ def _drive(
             raise RuntimeError("the daemon did not come up within 60 s")
         probe = LatencyProbe(session, "sinewatch/est/**")
         probe.expected = rounds * n_ch
+        fox = FoxgloveProbe(args.foxglove_port) if getattr(args, "foxglove", False) else None
         console.print(
             f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
             f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
@@ -251,6 +356,8 @@ def _drive(
         last_status = status.get(timeout=5.0) or {}
         probe.close()
         status.close()
+        if fox is not None:
+            fox.close()
     lat = np.array(probe.latencies_ns) / 1e6
     sent = rounds * n_ch
     return {
@@ -277,6 +384,8 @@ def _drive(
         "daemon_rss_mb_start": rss0,
         "daemon_rss_mb_end": rss1,
         "drained_s": drained_s,
+        "foxglove_messages": dict(sorted(fox.messages.items())) if fox is not None else None,
+        "foxglove_bytes": fox.bytes if fox is not None else None,
     }
 
 
@@ -292,3 +401,6 @@ def _print(console: Console, r: dict[str, Any]) -> None:
         f"max {r['latency_ms_max']:.2f} ms; daemon CPU {100 * r['daemon_cpu_fraction_of_one_core']:.0f} % of one core; "
         f"recorded {r['recorded_bytes'] / 1e6:.1f} MB"
     )
+    if r.get("foxglove_messages") is not None:
+        kinds = ", ".join(f"{k} {n}" for k, n in r["foxglove_messages"].items())
+        console.print(f"foxglove client received {kinds} ({r['foxglove_bytes'] / 1e6:.1f} MB)")

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from rich.table import Table
 
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 from sinewatch.estimators import available, get
 from sinewatch.estimators.base import Estimator
 
@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{r['1ch_per_sample'] / 1e6:.1f} M",
                 f"{1e9 / r['1ch_per_block']:.1f}",
             )
-    console.print(table)
+    print_table(console, table)
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

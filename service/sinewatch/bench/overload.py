@@ -20,7 +20,7 @@ from typing import Any
 from rich.table import Table
 
 from sinewatch.bench.e2e import measure
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
         a.queue_policy = policy
         console.print(f"[bold]queue_policy = {policy!r}[/bold]")
         results[policy] = measure(a, console)
-    console.print(_table(results, args))
+    print_table(console, _table(results, args))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0 if _verdict(results) else 1

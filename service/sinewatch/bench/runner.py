@@ -30,8 +30,8 @@ from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
 from sinewatch.bench import metrics as M
 from sinewatch.bench.args import DEFAULT_TRIALS
-from sinewatch.bench.params import NotApplicable, estimator_params
-from sinewatch.bench.scenarios import Profile, profile
+from sinewatch.bench.params import NotApplicable, default_rule_estimator, estimator_params
+from sinewatch.bench.scenarios import DEFAULT_RULE, Profile, profile
 from sinewatch.estimators.base import Track
 from sinewatch.scenarios import Truth
 from sinewatch.schemas.errors import ParameterError, SinewatchError
@@ -117,8 +117,11 @@ def evaluate(
 def _evaluate(est_name: str, scen_name: str, trials: int, seed: int, keep_trace: bool) -> dict[str, Any]:
     sc = sc_registry.get(scen_name)
     prof = profile(sc)
-    cls = est_registry.get(est_name)
-    params, source = estimator_params(cls, sc, prof)
+    if est_name == DEFAULT_RULE:
+        cls, params, source = default_rule_estimator()
+    else:
+        cls = est_registry.get(est_name)
+        params, source = estimator_params(cls, sc, prof)
     try:
         est = cls(sc.sample_rate_hz, params)
     except (ParameterError, SinewatchError, ValueError, TypeError) as exc:

@@ -20,7 +20,7 @@ from typing import Any
 
 from sinewatch import estimators as est_registry
 from sinewatch import scenarios as sc_registry
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 from sinewatch.scenarios import Event, Scenario
 from sinewatch.schemas.errors import ParameterError
 
@@ -151,9 +151,15 @@ def select_scenarios(patterns: Iterable[str] | None, quick: bool = False) -> lis
     return _matching("scenarios", names, pats, tags)
 
 
+#: The bench column of the daemon's default rule (its estimator at its parameters, as a user
+#: with no config gets it; :func:`sinewatch.bench.params.bench_estimator`).
+DEFAULT_RULE = "default-rule"
+
+
 def select_estimators(patterns: Iterable[str] | None) -> list[str]:
-    """Estimator names from names or globs; None: every registered estimator."""
-    avail = list(est_registry.available())
+    """Estimator names from names or globs; None: every registered estimator and
+    :data:`DEFAULT_RULE`."""
+    avail = [*est_registry.available(), DEFAULT_RULE]
     pats = list(patterns or [])
     return _matching("estimators", avail, pats, None) if pats else avail
 
@@ -183,5 +189,5 @@ def run(args: argparse.Namespace) -> int:
             str(r["components"]),
             r["summary"],
         )
-    make_console().print(table)
+    print_table(make_console(), table)
     return 0

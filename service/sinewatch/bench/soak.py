@@ -29,11 +29,14 @@ import numpy as np
 from sinewatch.bench.e2e import LatencyProbe, _rss_mb, feeder_command, running_daemon
 from sinewatch.clients import JsonSubscription, connect
 from sinewatch.console import make_console
+from sinewatch.schemas.errors import ConfigError
 
 GROWTH_LIMIT = 0.05
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.duration < args.interval:  # no RSS line at all: nothing to report
+        raise ConfigError(f"--duration: expected at least --interval ({args.interval:g} s), got {args.duration:g} s")
     console = make_console()
     rounds = max(1, int(args.duration * args.rate / args.block))
     samples: list[dict[str, Any]] = []

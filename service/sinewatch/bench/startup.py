@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 from rich.table import Table
 
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 from sinewatch.schemas.errors import SinewatchError
 
 BASELINE = "python -c pass"
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
             f"{tm.added_ms:+.0f}",
             verdict,
         )
-    console.print(table)
+    print_table(console, table)
     if os.environ.get("PYTHONDONTWRITEBYTECODE"):
         console.print("PYTHONDONTWRITEBYTECODE is set: sinewatch's own modules are compiled on every start")
     if args.json:

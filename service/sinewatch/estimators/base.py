@@ -479,6 +479,18 @@ class Estimator(ABC, Generic[ParamsT]):
         """Columns expected per sample: 1 for the signal, more when known inputs travel along."""
         return 1
 
+    #: The memory of an estimator that does not say (a recursive one without a settling time
+    #: of its own): 0.1 s, five cycles at 50 Hz.
+    DEFAULT_MEMORY_S: ClassVar[float] = 0.1
+
+    @property
+    def memory_samples(self) -> int:
+        """How many samples before an estimate's time the estimate depends on: a windowed
+        estimator's window, a recursive one's settling time. The pipeline flags an estimate
+        valid only once the signal has been present for this long (``diagnostics.valid``,
+        :mod:`sinewatch.estimators.presence`). Default: :attr:`DEFAULT_MEMORY_S` seconds."""
+        return max(1, math.ceil(self.DEFAULT_MEMORY_S * self.sample_rate_hz))
+
     # ---- state --------------------------------------------------------------------------
     @abstractmethod
     def _initial_state(self) -> dict[str, np.ndarray]:

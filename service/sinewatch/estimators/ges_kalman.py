@@ -70,11 +70,22 @@ Its covariance splits into the start's part and the noise's part, ``Pa = T + sig
 
 sigma^2 is estimated from the innovations e = y(k+1) - C x_pred, whose variance is
 ``C A T A^T C^T + sigma^2 (1 + C A U A^T C^T)``; the start's term is left out (p0 I
-overstates the actual initial error), and exponentially weighted means with time constant
-N_sigma = 128 samples (``NOISE_MEMORY``) forget the first, large innovations::
+overstates the actual initial error). With u = e^2 / (1 + C A U A^T C^T) and
+exponentially weighted means of time constant N_sigma = 128 samples (``NOISE_MEMORY``),
+started at zero and divided by their weight w (so that no initial guess, such as R,
+lingers: R is often far from sigma^2)::
 
-    sigma_hat^2 = <e^2> / <1 + C A U A^T C^T>,   <z>(k+1) = l <z>(k) + (1 - l) z,
-    l = 1 - 1/N_sigma                                                            (U5)
+    <z>(k+1) = l <z>(k) + (1 - l) z,  w(k+1) = l w(k) + (1 - l),  l = 1 - 1/N_sigma
+    sigma_hat^2 = <u> / w                                                        (U5)
+
+The innovations of the start's transient are far larger than the noise and an exponential
+mean forgets them only as l^k (at 60 dB SNR, sigma_hat would still be 9 times too large
+after 1,000 samples); their logarithms are forgotten as fast but exceed log sigma^2 only by
+a few units, so ``<u>`` is capped by the estimate the mean of log u gives for Gaussian
+noise (E log z^2 = psi(1/2) + log 2 for z ~ N(0, 1)), times ``ROBUST_CAP`` = 4 so that
+heavier-tailed noise is not cut::
+
+    <u> <- min(<u>, 4 w exp(<log u> / w - psi(1/2) - log 2))                     (U5a)
 
 The reported parameters p = (f, A, theta, B) are the functions of x_hat above (eq. 21,
 Section III-E, the amplitude/phase recovery); their covariance follows by the delta method
@@ -94,12 +105,14 @@ paper000-tone --trials 30`` shows it per scenario (the bench's own tuning: see b
 
 Where it does not hold: U1-U6 are first order in the noise, and the noise on the sample in
 A(k) biases x3_hat towards 0 (errors in variables: a noisy regressor attenuates its
-coefficient, here roughly by P_s / (P_s + sigma^2), P_s the tone's power). When that bias
-is not small against the spread, the frequency's normalised error has a mean of several
-units and an sd below 0.9: with the bench's tuning (R = sigma^2, Q scaled to the nominal
-frequency) at 10 dB, frequency bias -2.2 Hz at 50.5 Hz (-3 reported sd), sd 0.56-0.65;
-with the default tuning at 100-200 Hz (5 to 10 samples per cycle) and SNR <= 20 dB, mean
--1.5 to -8, sd 0.4-0.8; amplitude, phase and offset 0.58-1.31 there (worst at 200 Hz).
+coefficient, the more the longer the filter's memory). Tuned with R = sigma^2 at 10 dB SNR
+the memory is long enough for a -1.9 Hz bias at 50.5 Hz (-3 reported sd; sd of the
+normalised error 0.66); the bench's tuning (R = sigma^2 / 100, floored at 1e-3 A^2:
+``sinewatch.bench.params``) keeps it short: calibration 0.95-1.08 for all four parameters
+on its tone scenarios from 0 to 60 dB (``sinewatch bench accuracy --estimators ges-kalman
+--scenarios snr --trials 30``). With the default tuning at 100-200 Hz (5 to 10 samples per
+cycle) and SNR <= 20 dB, mean -1.5 to -8, sd 0.4-0.8; amplitude, phase and offset
+0.58-1.31 there (worst at 200 Hz).
 """
 
 from __future__ import annotations
@@ -117,6 +130,7 @@ from sinewatch.estimators.base import (
     EstimatorParams,
     Track,
     TrackStd,
+    decode_array,
     encode_array,
     kernel,
     track_from_columns,
@@ -125,6 +139,10 @@ from sinewatch.estimators.base import (
 
 NOISE_MEMORY = 128  # N_sigma, samples: time constant of the noise-variance estimate (U5)
 T_NEGLIGIBLE = 1e-100  # trace of T below which T (U3) is set to 0 and no longer propagated
+LOG_CHI2_MEAN = -1.2703628454614782  # E[log z^2] for z ~ N(0, 1): psi(1/2) + log 2, (U5a)
+ROBUST_CAP = 4.0  # (U5a): <u> at most four times the log-mean's estimate of sigma^2
+TINY = 1e-300  # log(0) guard, (U5a)
+UNC_SIZE = 35  # T (16), U (16), <u>, the weight w, <log u>
 
 
 class GesKalmanParams(EstimatorParams):
@@ -259,7 +277,7 @@ def ges_kalman_kernel(
     sse = 0.0
     T = unc[0:16].reshape(4, 4).copy()
     U = unc[16:32].reshape(4, 4).copy()
-    m_e2, m_cu = unc[32], unc[33]
+    m_u, w, m_l = unc[32], unc[33], unc[34]
     M = np.empty((4, 4))
     Kg = np.empty(4)
     h = np.empty(4)
@@ -308,8 +326,11 @@ def ges_kalman_kernel(
         p33 = n33 - k3 * n03
         # actual error covariance (U1-U5): innovation statistics from the predicted U,
         # then T <- F T F^T, U <- F U F^T + h h^T with F = (I - K C) A(k), h = K + g_k
-        m_e2 = lam * m_e2 + (1.0 - lam) * e * e
-        m_cu = lam * m_cu + (1.0 - lam) * (1.0 + U[0, 0] + 2.0 * U[0, 1] + U[1, 1])
+        u = e * e / (1.0 + U[0, 0] + 2.0 * U[0, 1] + U[1, 1])  # (U5)
+        w = lam * w + (1.0 - lam)
+        m_u = lam * m_u + (1.0 - lam) * u
+        m_l = lam * m_l + (1.0 - lam) * math.log(max(u, TINY))
+        m_u = min(m_u, ROBUST_CAP * w * math.exp(m_l / w - LOG_CHI2_MEAN))  # (U5a)
         Kg[0], Kg[1], Kg[2], Kg[3] = k0, k1, k2, k3
         h[0], h[1], h[2], h[3] = k0, k1 + x3_prior, k2, k3
         if T[0, 0] + T[1, 1] + T[2, 2] + T[3, 3] > T_NEGLIGIBLE:  # T decays geometrically (U3):
@@ -320,7 +341,7 @@ def ges_kalman_kernel(
         if last_only and k != n - 1:
             continue
         j = 0 if last_only else k
-        _parameter_std(x1, x2, x3, x4, T, U, m_e2 / m_cu, Ts, std, j)
+        _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, j)
         if -4.0 < x3 < 0.0:  # (20)
             sh = math.sqrt(-0.25 * x3)  # sin(w Ts/2), from (4)
             ch = math.sqrt(1.0 + 0.25 * x3)  # cos(w Ts/2)
@@ -341,11 +362,12 @@ def ges_kalman_kernel(
          p02, p12, p22, p23,
          p03, p13, p23, p33]
     )  # fmt: skip
-    new_unc = np.empty(34)
+    new_unc = np.empty(UNC_SIZE)
     new_unc[0:16] = T.ravel()
     new_unc[16:32] = U.ravel()
-    new_unc[32] = m_e2
-    new_unc[33] = m_cu
+    new_unc[32] = m_u
+    new_unc[33] = w
+    new_unc[34] = m_l
     return out, sse, std, new_state, new_unc
 
 
@@ -363,23 +385,30 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``xP`` (20,): the state estimate x1..x4, then the 16 entries of its covariance P
-        (row-major). ``unc`` (34,): the actual error covariance's parts T (16, row-major,
-        from p0 I) and U (16, from 0), then the exponentially weighted means of e^2 (from R)
-        and of 1 + C U- C^T (from 1), eq. (U1)-(U5)."""
+        (row-major). ``unc`` (35,): the actual error covariance's parts T (16, row-major,
+        from p0 I) and U (16, from 0), then the exponentially weighted sums <u>, w and
+        <log u> (from 0), eq. (U1)-(U5a)."""
         P0 = np.eye(4) * self.params.p0
         return {
             "xP": np.concatenate([np.asarray(self.params.x0, dtype=np.float64), P0.ravel()]),
-            "unc": np.concatenate([P0.ravel(), np.zeros(16), [self.params.r, 1.0]]),
+            "unc": np.concatenate([P0.ravel(), np.zeros(16), np.zeros(3)]),
         }
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
-        """As :meth:`Estimator.set_state`; a snapshot from a build before ``unc`` existed
-        (only ``xP``) is accepted, its ``unc`` starting afresh (the estimates themselves
-        do not depend on it; the reported sd settles within a few N_sigma samples)."""
+        """As :meth:`Estimator.set_state`; snapshots of earlier builds are accepted: one
+        without ``unc`` (only ``xP``) starts ``unc`` afresh (the estimates themselves do not
+        depend on it; the reported sd settles within a few N_sigma samples), one whose
+        ``unc`` ends in the former (<e^2>, <1 + C U C^T>) pair continues from their ratio."""
         state = snapshot.get("state")
         if isinstance(state, Mapping) and "xP" in state and "unc" not in state:
             fresh = self._initial_state()["unc"]
             snapshot = {**snapshot, "state": {**state, "unc": encode_array(fresh)}}
+        elif isinstance(state, Mapping) and "unc" in state:
+            unc = decode_array(state["unc"])
+            if unc.shape == (UNC_SIZE - 1,):  # (T, U, <e^2>, <1 + C U C^T>)
+                s2 = unc[32] / unc[33] if unc[33] > 0 else self.params.r
+                tail = [s2, 1.0, math.log(max(s2, TINY)) + LOG_CHI2_MEAN]  # <u>, w = 1, <log u>
+                snapshot = {**snapshot, "state": {**state, "unc": encode_array(np.concatenate([unc[:32], tail]))}}
         super().set_state(snapshot)
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:

@@ -740,6 +740,12 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
             "fractional_delay": False,
         }
 
+    @property
+    def memory_samples(self) -> int:
+        """The samples before converged may be True: the delays filled and the Theorem 2
+        bound settled (``GripDesign.warm``)."""
+        return int(self._design.warm)
+
     def _check_params(self) -> None:
         self._design = design(self.params, self.sample_rate_hz)
 

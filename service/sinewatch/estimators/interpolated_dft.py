@@ -386,6 +386,11 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
             )
         self.window_samples, self.hop_samples, self.k_lo, self.k_hi = n, hop, k_lo, k_hi
 
+    @property
+    def memory_samples(self) -> int:
+        """The window: an estimate describes the last ``window_samples`` samples."""
+        return int(self.window_samples)
+
     def _setup(self) -> None:
         n = self.window_samples
         idx = np.arange(n)

@@ -729,6 +729,12 @@ class FilterBankObserver(Estimator[_KP]):
         self._fa, self._fb0, self._fb1 = foh_coefficients(self.lambdas, ts)
         self._consts = observer_consts(self.params, ts, self.omega_ref, self.ell, float(self.lambdas.min()))
 
+    @property
+    def memory_samples(self) -> int:
+        """``settle_time_constants / lambda_min`` seconds (n_settle samples): the run of good
+        samples converged needs, the filters' slowest memory."""
+        return int(self._consts[5])
+
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         return observer_track(outputs, block)
 

@@ -1022,6 +1022,11 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
         self.window_samples, self.hop_samples, self.k_cols, self.nfft = n, hop, k_cols, nfft
         self._band = (lo, hi)
 
+    @property
+    def memory_samples(self) -> int:
+        """The window: a fit describes the last ``window_samples`` samples."""
+        return int(self.window_samples)
+
     def _setup(self) -> None:
         p = self.params
         j = np.arange(self.nfft // 2)

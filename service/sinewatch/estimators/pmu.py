@@ -655,6 +655,13 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self.reporting_rate = rate
         self.design = design(self.sample_rate_hz, f0, rate, p.performance_class)
 
+    @property
+    def memory_samples(self) -> int:
+        """A report depends on the samples within half its kernel (``window_s / 2``) of the
+        report time, plus one decimation step of the triangle (D) before it."""
+        d = self.design
+        return math.ceil(0.5 * d.window_s * self.sample_rate_hz) + d.decimation
+
     def _setup(self) -> None:
         d = self.design
         self._ring_len = d.n_taps + 2

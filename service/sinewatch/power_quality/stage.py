@@ -73,7 +73,7 @@ from sinewatch.power_quality.reports import (
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import HarmonicsRule, SinewatchConfig, ThreePhaseGroup
 from sinewatch.schemas.errors import ParameterError
-from sinewatch.schemas.power_quality import encode_pq
+from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, encode_pq
 
 Output = tuple[str, str, bytes]  # (message name, key, payload)
 KeyMatcher = Callable[[str, str], bool]  # (key expression, key) -> the expression includes the key
@@ -138,8 +138,9 @@ class _Group:
 class PqStage:
     """Harmonics, aggregates and three-phase groups for one pipeline (see the module doc)."""
 
-    def __init__(self, config: SinewatchConfig, key_matcher: KeyMatcher) -> None:
+    def __init__(self, config: SinewatchConfig, key_matcher: KeyMatcher, version: int = PQ_FORMAT_VERSION) -> None:
         self.section = config.power_quality
+        self.version = version  # 1 to reproduce recordings of earlier builds
         self.prefix = config.keys.pq_prefix.rstrip("/")
         self._matches = key_matcher
         self.harmonics: dict[str, _HarmonicsChannel | None] = {}  # by channel; None: no rule matched
@@ -193,10 +194,10 @@ class PqStage:
         nominal = float(hc.rule.nominal_frequency_hz)
         for window in hc.analyser.update(x, block.t0_ns):
             report = harmonics_report(window, channel, 0, nominal)
-            out.append(("HarmonicsReport", f"{self.prefix}/harmonics/{channel}", encode_pq(report)))
+            out.append(("HarmonicsReport", f"{self.prefix}/harmonics/{channel}", encode_pq(report, self.version)))
             if hc.aggregator is not None:
                 for agg in hc.aggregator.add(channel_window_values(window)):
-                    out.append(("PqAggregate", f"{self.prefix}/agg/{channel}", encode_pq(agg)))
+                    out.append(("PqAggregate", f"{self.prefix}/agg/{channel}", encode_pq(agg, self.version)))
         return out
 
     # ---- groups ------------------------------------------------------------------------------
@@ -243,7 +244,7 @@ class PqStage:
         assert group.aggregator is not None
         for window in group.analyser.update(x, first.t0_ns):
             for agg in group.aggregator.add(group_window_values(window)):
-                out.append(("PqAggregate", key, encode_pq(agg)))
+                out.append(("PqAggregate", key, encode_pq(agg, self.version)))
         return out
 
     def _group_report(self, group: _Group, timestamp_ns: int, slot: Slot) -> Output:
@@ -253,7 +254,7 @@ class PqStage:
         frequency = math.fsum(freqs) / len(freqs) if freqs else math.nan
         missing = [ch for ch, v in zip(phases, slot, strict=True) if v is None]
         report = three_phase_report(group.config.name, phases, timestamp_ns, phasors, frequency, missing)
-        return "ThreePhaseReport", f"{self.prefix}/group/{group.config.name}", encode_pq(report)
+        return "ThreePhaseReport", f"{self.prefix}/group/{group.config.name}", encode_pq(report, self.version)
 
     # ---- state -------------------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:

@@ -1,0 +1,187 @@
+"""Signal presence: is there a signal to estimate, and for how long has there been one?
+
+Not an estimator: the pipeline runs it beside every channel's estimator to fill
+``diagnostics.valid`` (an estimate is a measurement only while the signal it describes is
+present, and only once the estimator's own memory holds nothing but that signal).
+
+The level is the one-cycle RMS of the AC part refreshed every half cycle, as IEC 61000-4-30
+(Sec. 5.4, voltage dips and interruptions, its U_rms(1/2)) measures it: at the end of each
+half cycle of H = max(1, round(fs / (2 f_nominal))) samples, over the last two half cycles
+(M = 2 H samples),
+
+(L)  ``L^2 = max(0, S2 / M - (S1 / M)^2)``, ``S1 = sum x``, ``S2 = sum x^2`` over the window,
+
+so a DC offset is not a signal. The reference is the recent level, a peak hold that decays
+with time constant ``tau`` while the signal is present and is frozen while it is absent:
+
+(R)  ``R = max(L, R' exp(-H / (tau fs)))`` while present, ``R = R'`` while absent (R' the
+     previous half cycle's reference).
+
+(A)  The signal is absent from a half-cycle boundary to the next when ``L <= ratio R`` there
+     (default ratio 0.1: IEEE Std 1159-2019 Table 2 calls a fall below 0.1 pu an
+     interruption) or ``L = 0``; before the first full cycle it is absent too.
+
+Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
+below the signal never becomes "the signal"); letting it decay while present lets a sustained
+change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
+a signal (valid); its transitions are what ``converged`` is for.
+
+Each sample's output is the run length: the number of consecutive samples, up to and
+including this one, at which the signal was present by the last decision (capped at 2^62). The pipeline calls an
+estimate valid when the run length at its sample is at least the estimator's memory
+(:attr:`sinewatch.estimators.base.Estimator.memory_samples`): present now, and present
+throughout the span of input the estimate depends on. At a channel's start the run length
+starts at 0, so the first estimates (before one memory of signal) are not valid either.
+
+Onset latency: the level of a one-cycle window falls below 0.1 of R only once about 99 % of
+the window is the interruption, and it is read every half cycle, so valid turns false within
+one and a half nominal cycles of the onset.
+
+The sums are of two half cycles only, started afresh each half cycle (no running sum, so
+no accumulated rounding, and a state of a few numbers rather than a ring of samples); the
+outputs depend only on the samples, not on how they are cut into blocks.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from sinewatch.estimators.base import decode_array, encode_array, kernel
+from sinewatch.schemas.errors import ParameterError
+
+PRESENCE_STATE_VERSION = 1
+DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
+DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
+RUN_CAP = 1 << 62
+
+# slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R
+_P1, _P2, _C1, _C2, _R = 0, 1, 2, 3, 4
+# slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
+# length, present (0/1: the last decision)
+_COUNT, _HALVES, _RUN, _PRESENT = 0, 1, 2, 3
+
+
+@kernel
+def presence_kernel(
+    x: np.ndarray,
+    sums: np.ndarray,
+    counters: np.ndarray,
+    half: int,
+    decay: float,
+    ratio: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run (L), (R), (A) over ``x``; return ``(run, level, new_sums, new_counters)``: per sample
+    the run length of presence and the last level read (0 before the first). Pure: the
+    inputs are not modified."""
+    p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
+    count, halves, run, present = counters[_COUNT], counters[_HALVES], counters[_RUN], counters[_PRESENT]
+    level = math.sqrt(sums[5])  # the last level read (its square, kept for the outputs)
+    n = x.shape[0]
+    run_out = np.empty(n, dtype=np.int64)
+    level_out = np.empty(n)
+    m_total = 2.0 * half
+    for j in range(n):
+        xj = x[j]
+        c1 += xj
+        c2 += xj * xj
+        count += 1
+        if count == half:  # a half-cycle boundary: read the last cycle
+            if halves < 2:
+                halves += 1
+            if halves == 2:
+                mean = (p1 + c1) / m_total
+                ms = (p2 + c2) / m_total - mean * mean
+                level = math.sqrt(ms) if ms > 0.0 else 0.0
+                rd = r * decay
+                ref = level if level > rd else rd
+                present = 1 if (level > 0.0 and level > ratio * ref) else 0
+                if present:
+                    r = ref
+            p1, p2, c1, c2 = c1, c2, 0.0, 0.0
+            count = 0
+        if present:
+            if run < RUN_CAP:
+                run += 1
+        else:
+            run = 0
+        run_out[j] = run
+        level_out[j] = level
+    new_sums = np.array([p1, p2, c1, c2, r, level * level])
+    new_counters = np.array([count, halves, run, present], dtype=np.int64)
+    return run_out, level_out, new_sums, new_counters
+
+
+class SignalPresence:
+    """The presence detector of one channel: owns the state, runs :func:`presence_kernel`."""
+
+    def __init__(
+        self,
+        sample_rate_hz: float,
+        nominal_frequency_hz: float = 50.0,
+        *,
+        ratio: float = DEFAULT_RATIO,
+        tau_s: float = DEFAULT_TAU_S,
+    ) -> None:
+        if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
+            raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
+        if not (math.isfinite(nominal_frequency_hz) and nominal_frequency_hz > 0):
+            raise ParameterError(f"nominal_frequency_hz: expected a finite value > 0, got {nominal_frequency_hz}")
+        if not (0 < ratio < 1):
+            raise ParameterError(f"ratio: expected 0 < ratio < 1, got {ratio}")
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.nominal_frequency_hz = float(nominal_frequency_hz)
+        self.half_cycle_samples = max(1, round(sample_rate_hz / (2.0 * nominal_frequency_hz)))
+        self.ratio = float(ratio)
+        self.decay = math.exp(-self.half_cycle_samples / (tau_s * sample_rate_hz))
+        self.reset()
+
+    def reset(self) -> None:
+        """``sums`` (6,): the previous half cycle's sum of x and of x^2, the current one's,
+        the reference R, the last level squared; ``counters`` (4,) int64: samples in the
+        current half cycle, half cycles seen (up to 2), the run length, present (0/1)."""
+        self.sums = np.zeros(6)
+        self.counters = np.zeros(4, dtype=np.int64)
+
+    def update(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-sample (run length of presence, level) over ``samples`` (float64, 1-D)."""
+        x = np.ascontiguousarray(samples, dtype=np.float64)
+        run, level, self.sums, self.counters = presence_kernel(
+            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio
+        )
+        return run, level
+
+    @property
+    def run_samples(self) -> int:
+        """The run length after the last sample seen."""
+        return int(self.counters[_RUN])
+
+    def get_state(self) -> dict[str, Any]:
+        return {
+            "format_version": PRESENCE_STATE_VERSION,
+            "half_cycle_samples": self.half_cycle_samples,
+            "sums": encode_array(self.sums),
+            "counters": encode_array(self.counters),
+        }
+
+    def set_state(self, snapshot: dict[str, Any]) -> None:
+        if snapshot.get("format_version") != PRESENCE_STATE_VERSION:
+            raise ParameterError(
+                f"presence format_version: expected {PRESENCE_STATE_VERSION}, got {snapshot.get('format_version')!r}"
+            )
+        if snapshot.get("half_cycle_samples") != self.half_cycle_samples:
+            raise ParameterError(
+                f"presence half_cycle_samples: expected {self.half_cycle_samples}, "
+                f"got {snapshot.get('half_cycle_samples')!r}"
+            )
+        sums, counters = decode_array(snapshot["sums"]), decode_array(snapshot["counters"])
+        if sums.shape != (6,) or counters.shape != (4,):
+            raise ParameterError(
+                f"presence state: expected shapes (6,) and (4,), got {sums.shape} and {counters.shape}"
+            )
+        self.sums, self.counters = sums, counters
+
+
+__all__ = ["DEFAULT_RATIO", "DEFAULT_TAU_S", "SignalPresence", "presence_kernel"]
