@@ -11,13 +11,14 @@ The paper's figures are quoted beside the measured ones. Figures for the docs:
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from sinewatch.estimators import create
-from sinewatch.estimators.base import decode_array
+from sinewatch.estimators.base import concat_tracks, decode_array
 from sinewatch.estimators.differential_rls import (
     _biquads,
     _lowpass_retune,
@@ -32,6 +33,7 @@ from sinewatch.estimators.differential_rls import (
 )
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.scenarios.papers import paper001_baseband
+from sinewatch.schemas.errors import InputError, ParameterError
 
 NAME = "differential-rls"
 FS = 1000.0
@@ -451,3 +453,243 @@ def test_acquisition_settles_within_a_second():
     w = (t >= 1.0) & (t < 2.0)
     assert np.sqrt(np.mean((tr.frequency_hz[w, 0] - 50.5) ** 2)) < 2e-3
     assert tr.converged[w].all()
+
+
+# ------------------------------------------- Section 10 through create(): input = "iq"
+# The same runs as above, through the registry (as the daemon and `sinewatch replay` create
+# the estimator): two-column blocks (in-phase y, quadrature z) at a uniform rate, the
+# paper's cyclic intervals made by decimating them, outputs at every input sample. The
+# decimated samples carry the core's estimates; ``decimated`` picks them out.
+
+IQ_FS = 50.0  # Fig. 1's intervals 0.6 s, 0.54 s = 30, 27 samples at 50 Hz
+
+
+def iq_columns(c: np.ndarray) -> np.ndarray:
+    """c = z + j y (eqs. 1-2) as the block's columns (y, z)."""
+    return np.column_stack([c.imag, c.real])
+
+
+def served_fig1(k: int, **kw):
+    """Fig. 1 through create(): the paper001-iq-fig1 scenario's signal and parameters (n = 4,
+    lam = 0.995, no ELS), re-centring off unless asked for. Returns the decimated sample
+    times, the frequency there (rad/s), the track and the estimator."""
+    sc = get_scenario("paper001-iq-fig1")
+    x, _ = sc.generate(n=round(k * 0.57 * IQ_FS) + 31)
+    params = {**sc.suggested_params, "recenter_every": 0, "p0": 1e4, **kw}
+    est = create(NAME, sc.sample_rate_hz, **params)
+    tr = est.update(x)
+    t_k = np.cumsum(cyclic_intervals(k, [0.54, 0.6]))  # the decimation: 0, 30, 57, 87, ... samples
+    idx = np.round(t_k * IQ_FS).astype(int)
+    return t_k, tr.frequency_hz[idx, 0] * 2 * np.pi, tr, est
+
+
+def test_served_iq_is_the_paper_setting_of_the_offline_core():
+    # the same c(k) at the same t_k give the offline run's numbers (up to the rounding of t)
+    for rec in (0, 10):
+        _, f, _, _ = served_fig1(3000, recenter_every=rec)
+        dt, _, c = paper001_baseband(3000, [0.54, 0.6], W)
+        off = baseband_estimate(c, dt, n_terms=4, forgetting_factor=0.995, els=False, p0=1e4, recenter_every=rec)
+        np.testing.assert_allclose(f, off["frequency_rad_s"], rtol=1e-10, atol=0)
+
+
+def test_served_fig1_noise_free_convergence_in_a_fraction_of_a_period():
+    t, f, tr, est = served_fig1(3000)
+    assert list(est._cyc) == [30, 27] and est.n_inputs == 2
+    err = np.abs(f - W) / W
+    assert err[2] < 0.03 and t[2] < 0.25 * 2 * np.pi  # measured 1.5 % at t = 1.14 s
+    assert 3e-4 < err[-1] < 2e-3  # the n = 4 truncation floor, measured 8.6e-4
+    t, f, tr, _ = served_fig1(3000, recenter_every=10)
+    assert np.abs(f[-1] - W) / W < 1e-6  # re-centred: measured 7.5e-9
+    # outputs at every input sample: the phase is instantaneous (y = A sin(phase), eq. 1)
+    # (measured max phase error 5.6e-3 rad after 100 s, 2.3e-5 after 1000 s, as the frequency
+    # error shrinks at the rate of lam = 0.995)
+    ts = np.arange(tr.phase_rad.shape[0]) / IQ_FS
+    phase_err = np.abs(np.angle(np.exp(1j * (tr.phase_rad[:, 0] - (W * ts + 0.3)))))
+    assert phase_err[ts > 100].max() < 0.01 and phase_err[ts > 1000].max() < 1e-4
+    late = ts > 200  # converged from t = 104.9 s on (std < 1 % of the bandwidth, measured)
+    assert np.abs(tr.amplitude[late, 0] - 1.0).max() < 1e-4 and tr.converged[late].all()
+    assert (tr.offset[late] == 0.0).all()
+
+
+def test_served_fig1_faster_than_exponential_then_exponential():
+    _, f, _, _ = served_fig1(3000)
+    _, ref, _, _ = served_fig1(3000, p0=1e12)
+    d = np.abs(f - ref)
+    slope = lambda a, b: np.log(d[b] / d[a]) / (b - a)
+    ln_lam = np.log(0.995)
+    assert slope(2, 8) < 20 * ln_lam
+    assert slope(1024, 2048) == pytest.approx(ln_lam, rel=0.05)
+
+
+def test_served_fig2_noisy_case_els_removes_the_bias():
+    # Fig. 2's setting as in the offline test: n = 2, dt = T_sN / 5 for Omega_d = 2 rad/s
+    # (B_N = 1/pi Hz), sigma^2 = .15 per component band-limited to B_N, lam = 0.995; the I/Q
+    # stream at 10 samples per dt, decimated by 10. ELS with the default r1 = sinc(1/M) (eq. 14).
+    # Measured: LS -23.8 %, ELS -3.2 %, RMS 0.034 -> 0.021 rad/s (offline: -24 %, -3.4 %).
+    M, k, d0 = 5, 6000, 10
+    T0 = (np.pi / 2.0) / M
+    fs = d0 / T0
+    n = k * d0
+    t = np.arange(n) / fs
+    c = np.exp(1j * (W * t + 0.3))
+    p = {"input": "iq", "nominal_frequency_hz": 0.0, "bandwidth_hz": 1 / np.pi, "oversampling": M, "n_terms": 2,
+         "rocof_model": False, "forgetting_factor": 0.995, "recenter_every": 0}  # fmt: skip
+    est = create(NAME, fs, **p)
+    assert list(est._cyc) == [d0] and est._consts[18] == pytest.approx(np.sinc(1 / M))
+    steady = slice(1000 * d0, None, d0)  # the decimated samples after 1000 of them
+    free = create(NAME, fs, **p, els=False).update(iq_columns(c)).frequency_hz[steady, 0] * 2 * np.pi
+    assert -0.02 < free[-1] - W < -0.012  # the n = 2 truncation, measured -0.0164 as offline
+    bias_ls, bias_els, rms_ls, rms_els = [], [], [], []
+    for seed in range(3):
+        x = iq_columns(c + band_limited_iq_noise(n, M * d0, 0.15, seed))
+        ls = create(NAME, fs, **p, els=False).update(x).frequency_hz[steady, 0] * 2 * np.pi
+        els = create(NAME, fs, **p).update(x).frequency_hz[steady, 0] * 2 * np.pi
+        bias_ls.append(ls.mean() - W)
+        bias_els.append(els.mean() - W)
+        rms_ls.append(ls.std())
+        rms_els.append(els.std())
+    assert -0.28 < np.mean(bias_ls) < -0.20
+    assert -0.05 < np.mean(bias_els) < 0.0
+    assert np.mean(rms_els) < np.mean(rms_ls)
+
+
+def test_served_els_whitens_white_noise():
+    # eq. (11)'s white noise, sigma^2 = .15 per component, n = 2, dt = 0.2 s: the
+    # paper001-iq-noisy scenario (noise_correlation = 0). Plain LS -23 % - 0.67 %, ELS at the
+    # truncation floor -(w dt)^2 / 6, as offline. Measured: -23.4 %, ELS -0.64 %.
+    sc = get_scenario("paper001-iq-noisy", duration_s=800.0)
+    floor = -((W * 0.2) ** 2) / 6
+    bias_ls, bias_els = [], []
+    for seed in range(4):
+        x, _ = sc.generate(seed)
+        steady = slice(500 * 10, None, 10)
+        ls = create(NAME, sc.sample_rate_hz, **sc.suggested_params, els=False).update(x)
+        els = create(NAME, sc.sample_rate_hz, **sc.suggested_params).update(x)
+        bias_ls.append(ls.frequency_hz[steady, 0].mean() * 2 * np.pi - W)
+        bias_els.append(els.frequency_hz[steady, 0].mean() * 2 * np.pi - W)
+    assert np.mean(bias_ls) == pytest.approx(-0.3 / 1.3 + floor, abs=0.015)
+    assert np.mean(bias_els) == pytest.approx(floor, abs=0.005)
+
+
+def test_served_fig3_tracking_and_the_derivative_model():
+    # Fig. 3 through create(): the paper001-iq-fig3 scenario (w(t) = w0 [1 + 0.5 sin(0.01 w0 t)],
+    # lam = 0.9, n = 4, Fig. 1's sampling, re-centred every 10 samples), with and without the
+    # derivative model; errors over every input sample after 200 s. Offline figures: 0.040 and
+    # 0.0016 rad/s, ROCOF RMS error 3.8e-4 rad/s^2; measured here (every input sample, phase
+    # and frequency held between decimated ones): 0.043, 0.0018 and 3.9e-4. ROCOF is the
+    # Estimate's field (Track.rocof_hz_per_s), not only an extra.
+    sc = get_scenario("paper001-iq-fig3")
+    x, truth = sc.generate()
+    t = np.arange(x.shape[0]) / sc.sample_rate_hz
+    sel = t > 200
+    w_true = truth.frequency_hz[sel, 0] * 2 * np.pi
+    errs = {}
+    for deriv in (False, True):
+        tr = create(NAME, sc.sample_rate_hz, **{**sc.suggested_params, "rocof_model": deriv}).update(x)
+        errs[deriv] = np.max(np.abs(tr.frequency_hz[sel, 0] * 2 * np.pi - w_true))
+        if deriv:
+            rocof = tr.rocof_hz_per_s[sel, 0] * 2 * np.pi
+            assert np.sqrt(np.mean((rocof - truth.rocof_hz_per_s[sel, 0] * 2 * np.pi) ** 2)) < 1e-3
+            assert tr.converged[sel].all()
+        else:
+            assert tr.rocof_hz_per_s is None
+    assert errs[False] < 0.06
+    assert errs[True] < 0.004
+    assert errs[True] < errs[False] / 10
+
+
+# ------------------------------------------- input = "iq": the estimator's conventions
+
+
+def iq_estimator(**kw):
+    from sinewatch.scenarios.papers import PAPER001_IQ_FIG3
+
+    return create(NAME, IQ_FS, **{**PAPER001_IQ_FIG3, **kw})
+
+
+def iq_signal(n: int, seed: int = 0) -> np.ndarray:
+    x, _ = get_scenario("paper001-iq-fig3", noise_std=1e-4).generate(seed, n=n)  # 1e-4 per component
+    return x
+
+
+def test_iq_blocks_state_and_kernel_follow_the_conventions():
+    from sinewatch.estimators.differential_rls import differential_rls_iq_kernel
+
+    x = iq_signal(6000)
+    x_copy = x.copy()
+    whole = iq_estimator().update(x)
+    assert np.array_equal(x, x_copy)  # the input is not modified
+    assert whole.converged[-1] and whole.frequency_hz.shape == (6000, 1)
+    for size in (1, 7, 1000):  # block boundaries do not change the output (bitwise, NaN == NaN)
+        est = iq_estimator()
+        parts = [est.update(x[i : i + size]) for i in range(0, 6000, size)]
+        for f in ("frequency_hz", "amplitude", "phase_rad", "offset", "converged"):
+            np.testing.assert_array_equal(np.concatenate([getattr(p, f) for p in parts]), getattr(whole, f))
+        np.testing.assert_array_equal(np.concatenate([p.rocof_hz_per_s for p in parts]), whole.rocof_hz_per_s)
+    est = iq_estimator()
+    last = est.update(x[:3000], last_only=True)
+    assert last.frequency_hz[0, 0] == whole.frequency_hz[2999, 0] and last.rocof_hz_per_s.shape == (1, 1)
+    # the state goes through JSON and back exactly
+    restored = iq_estimator()
+    restored.set_state(json.loads(json.dumps(est.get_state())))
+    a, b = est.update(x[3000:]), restored.update(x[3000:])
+    np.testing.assert_array_equal(a.phase_rad, b.phase_rad)
+    np.testing.assert_array_equal(a.phase_rad, whole.phase_rad[3000:])
+    # the kernel takes the (N, 2) block and returns new state arrays, its inputs untouched
+    state = {k: v.copy() for k, v in est._state.items()}
+    result = differential_rls_iq_kernel(x[:500], *est._state.values(), *est._constants[1:], False)
+    for (key, old), new in zip(state.items(), result[3:], strict=True):
+        np.testing.assert_array_equal(est._state[key], old)
+        assert new is not est._state[key] and new.shape == old.shape and new.dtype == old.dtype
+
+
+def test_iq_column_count_is_checked_against_input():
+    # a typed error that names the parameter, before the estimator sees the block
+    iq, real = iq_estimator(), create(NAME, FS, **P50)
+    with pytest.raises(InputError, match=r"2 columns \(in-phase, quadrature\) with input = 'iq'") as e:
+        iq.update(np.zeros(100))
+    assert e.value.kind == "shape_mismatch"
+    with pytest.raises(InputError, match="1 column with input = 'real'") as e:
+        real.update(np.zeros((100, 2)))
+    assert e.value.kind == "shape_mismatch"
+    assert iq.n_inputs == 2 and real.n_inputs == 1
+    assert real.update(np.zeros((100, 1))).frequency_hz.shape == (100, 1)  # (N, 1) is one column
+
+
+def test_iq_parameters_are_checked():
+    with pytest.raises(ParameterError, match="nominal_frequency_hz: expected > 0 with input = 'real'"):
+        create(NAME, FS, nominal_frequency_hz=0.0)
+    with pytest.raises(ParameterError, match="half the I/Q sample rate"):
+        create(NAME, IQ_FS, input="iq", nominal_frequency_hz=0.0, bandwidth_hz=1.0, tracking_range_hz=24.5)
+    with pytest.raises(ParameterError, match="noise_correlation"):
+        create(NAME, IQ_FS, input="iq", nominal_frequency_hz=0.0, bandwidth_hz=1.0, noise_correlation=1.0)
+    with pytest.raises(ParameterError, match="input"):
+        create(NAME, FS, **P50, input="complex")
+
+
+def test_iq_frequency_is_the_external_oscillator_plus_the_offset():
+    # I/Q taken against a 1 kHz oscillator, the signal at 1000.3 Hz: frequency_hz = 1000.3, the
+    # phase that of the pair (y = A sin(phase)), the digital reference near the offset
+    fs = 100.0
+    t = np.arange(20_000) / fs
+    c = 2.0 * np.exp(1j * (2 * np.pi * 0.3 * t + 1.0))
+    est = create(NAME, fs, input="iq", nominal_frequency_hz=1000.0, bandwidth_hz=1.0, rocof_model=False)
+    tr = est.update(iq_columns(c[:10_000]))
+    tr = concat_tracks([tr, est.update(iq_columns(c[10_000:]))])
+    late = t > 100
+    assert np.abs(tr.frequency_hz[late, 0] - 1000.3).max() < 1e-6
+    assert np.abs(tr.amplitude[late, 0] - 2.0).max() < 1e-5
+    assert np.abs(np.angle(np.exp(1j * (tr.phase_rad[late, 0] - (2 * np.pi * 0.3 * t[late] + 1.0))))).max() < 1e-5
+    assert tr.extras["reference_frequency_hz"][-1] == pytest.approx(1000.3, abs=1e-6)
+    # the one-step prediction error of the in-phase column, over the second block
+    assert est.update(iq_columns(c[-1:] * np.exp(2j * np.pi * 0.3 / fs))).residual_rms < 1e-6
+
+
+def test_iq_zero_input_then_signal():
+    est = iq_estimator()
+    tr = est.update(np.zeros((3000, 2)))
+    assert np.isnan(tr.frequency_hz).all() and not tr.converged.any()
+    assert final_state_is_finite(est)
+    x, truth = get_scenario("paper001-iq-fig3").generate(n=6000)
+    tr = est.update(x)
+    assert tr.converged[-1] and abs(tr.frequency_hz[-1, 0] - truth.frequency_hz[-1, 0]) < 1e-3

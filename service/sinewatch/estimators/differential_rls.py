@@ -103,6 +103,24 @@ at every input sample ``frequency = (w_ref + w^ + lam0^ s) / 2 pi``, ``phase = p
 + w^ s + lam0^ s^2 / 2`` (s = time since the last decimated sample), ``rocof_hz_per_s =
 (lam_ref + lam0^) / 2 pi`` (NaN without ``rocof_model``).
 
+I/Q input (``input = "iq"``: the paper's own setting)
+---------------------------------------------------
+A channel whose blocks carry two columns, the in-phase ``y`` (column 0) and the quadrature
+``z`` (column 1) of eqs. (1)-(2), measured against an external oscillator at
+``nominal_frequency_hz`` (0 for a baseband signal, as in Section 10), skips the demodulator:
+``c = z + j y`` is taken every ``round(fs / (2 B_N M))`` input samples (cycled as above when
+n > 2: the paper's T, 0.9 T come from decimating a uniform stream) and rotated by a digital
+reference oscillator, which re-centring moves exactly as the analogue one (within
+``tracking_range_hz`` of the external one). ``bandwidth_hz`` is B_N, the bound on the offset
+(the I/Q front end's bandwidth, Omega_d / 2 pi); r1 defaults to ``sinc(1/M)``, the ideal
+low-pass noise of eq. (14) (``noise_correlation = 0`` for white noise, eq. 11's model). Outputs:
+``frequency_hz = nominal + (w_ref + w^ + lam0^ s) / 2 pi``, ``phase_rad`` the phase of the pair
+(``y = A sin(phase)``, relative to the external oscillator), ``offset`` 0 (the model has none),
+``rocof_hz_per_s`` as above; ``residual_rms`` is the in-phase column's one-step prediction error.
+The column count must match ``input`` (InputError ``shape_mismatch`` otherwise). Through the
+registry this reproduces the offline Section 10 runs (tests/test_differential_rls.py,
+``test_served_*``).
+
 Internally times are in units of T0 (the longest decimated interval) and every equation
 is divided by the RMS amplitude of c (weighted with lam^4, taken before c(k-1) so that the
 weight is independent of the equation's own noise, and never below |c(k-1)| / 2), so that P
@@ -125,15 +143,16 @@ has the measured figures beside the paper's.
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from scipy import signal as _sig
 
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns
-from sinewatch.schemas.errors import ParameterError
+from sinewatch.schemas.errors import InputError, ParameterError
 
 TWO_PI = 2.0 * math.pi
 
@@ -179,6 +198,21 @@ def monomial_table(n: int, derivative: bool) -> np.ndarray:
         for b in range((m if derivative else 0) + 1):
             rows.append((m, b, math.comb(m, b) / math.factorial(m)))
     return np.array(rows, dtype=np.float64)
+
+
+def _multinomials(nmax: int) -> np.ndarray:
+    """M[a, j, l] = a! / (i! j! l!), i = a - j - l, as the float expression computes it (exact
+    integers here); M[b, s, 0] is C(b, s). A table, so that re-centring divides nothing."""
+    f = [float(math.factorial(k)) for k in range(nmax + 1)]
+    m = np.zeros((nmax + 1, nmax + 1, nmax + 1))
+    for a in range(nmax + 1):
+        for j in range(a + 1):
+            for ll in range(a - j + 1):
+                m[a, j, ll] = f[a] / (f[a - j - ll] * f[j] * f[ll])
+    return m
+
+
+_MULTINOMIAL = _multinomials(6)  # n_terms <= 6
 
 
 @kernel
@@ -234,6 +268,220 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
             v = (P[a, b] - pa * px[b]) * inv_f
             P[a, b] = v
             P[b, a] = v
+
+
+@kernel(inline="always")
+def _rls_pair5(
+    P: np.ndarray, theta: np.ndarray, xr: np.ndarray, yr: float, f: float, xi: np.ndarray, yi: float
+) -> None:
+    """The two scalar updates of :func:`core_step` (xr with forgetting f, then xi without),
+    as :func:`_rls_scalar` computes them, for p = 5 (n = 2 with the derivative model, the
+    default): P (symmetric: its upper triangle), theta and x in registers; the same
+    operations in the same order, hence the same bits."""
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = (
+        P[0, 0], P[0, 1], P[0, 2], P[0, 3], P[0, 4], P[1, 1], P[1, 2], P[1, 3], P[1, 4], P[2, 2], P[2, 3], P[2, 4], P[3, 3], P[3, 4], P[4, 4],
+    )  # fmt: skip
+    t0, t1, t2, t3, t4 = theta[0], theta[1], theta[2], theta[3], theta[4]
+    x0, x1, x2, x3, x4 = xr[0], xr[1], xr[2], xr[3], xr[4]
+    den = f
+    e = yr
+    s = 0.0
+    s += p00 * x0
+    s += p01 * x1
+    s += p02 * x2
+    s += p03 * x3
+    s += p04 * x4
+    q0 = s
+    den += x0 * s
+    e -= x0 * t0
+    s = 0.0
+    s += p01 * x0
+    s += p11 * x1
+    s += p12 * x2
+    s += p13 * x3
+    s += p14 * x4
+    q1 = s
+    den += x1 * s
+    e -= x1 * t1
+    s = 0.0
+    s += p02 * x0
+    s += p12 * x1
+    s += p22 * x2
+    s += p23 * x3
+    s += p24 * x4
+    q2 = s
+    den += x2 * s
+    e -= x2 * t2
+    s = 0.0
+    s += p03 * x0
+    s += p13 * x1
+    s += p23 * x2
+    s += p33 * x3
+    s += p34 * x4
+    q3 = s
+    den += x3 * s
+    e -= x3 * t3
+    s = 0.0
+    s += p04 * x0
+    s += p14 * x1
+    s += p24 * x2
+    s += p34 * x3
+    s += p44 * x4
+    q4 = s
+    den += x4 * s
+    e -= x4 * t4
+    if den > 0.0:
+        ge = e / den
+        inv_f = 1.0 / f
+        t0 += q0 * ge
+        pa = q0 / den
+        p00 = (p00 - pa * q0) * inv_f
+        p01 = (p01 - pa * q1) * inv_f
+        p02 = (p02 - pa * q2) * inv_f
+        p03 = (p03 - pa * q3) * inv_f
+        p04 = (p04 - pa * q4) * inv_f
+        t1 += q1 * ge
+        pa = q1 / den
+        p11 = (p11 - pa * q1) * inv_f
+        p12 = (p12 - pa * q2) * inv_f
+        p13 = (p13 - pa * q3) * inv_f
+        p14 = (p14 - pa * q4) * inv_f
+        t2 += q2 * ge
+        pa = q2 / den
+        p22 = (p22 - pa * q2) * inv_f
+        p23 = (p23 - pa * q3) * inv_f
+        p24 = (p24 - pa * q4) * inv_f
+        t3 += q3 * ge
+        pa = q3 / den
+        p33 = (p33 - pa * q3) * inv_f
+        p34 = (p34 - pa * q4) * inv_f
+        t4 += q4 * ge
+        pa = q4 / den
+        p44 = (p44 - pa * q4) * inv_f
+    x0, x1, x2, x3, x4 = xi[0], xi[1], xi[2], xi[3], xi[4]
+    den = 1.0
+    e = yi
+    s = 0.0
+    s += p00 * x0
+    s += p01 * x1
+    s += p02 * x2
+    s += p03 * x3
+    s += p04 * x4
+    q0 = s
+    den += x0 * s
+    e -= x0 * t0
+    s = 0.0
+    s += p01 * x0
+    s += p11 * x1
+    s += p12 * x2
+    s += p13 * x3
+    s += p14 * x4
+    q1 = s
+    den += x1 * s
+    e -= x1 * t1
+    s = 0.0
+    s += p02 * x0
+    s += p12 * x1
+    s += p22 * x2
+    s += p23 * x3
+    s += p24 * x4
+    q2 = s
+    den += x2 * s
+    e -= x2 * t2
+    s = 0.0
+    s += p03 * x0
+    s += p13 * x1
+    s += p23 * x2
+    s += p33 * x3
+    s += p34 * x4
+    q3 = s
+    den += x3 * s
+    e -= x3 * t3
+    s = 0.0
+    s += p04 * x0
+    s += p14 * x1
+    s += p24 * x2
+    s += p34 * x3
+    s += p44 * x4
+    q4 = s
+    den += x4 * s
+    e -= x4 * t4
+    if den > 0.0:
+        ge = e / den
+        inv_f = 1.0 / 1.0
+        t0 += q0 * ge
+        pa = q0 / den
+        p00 = (p00 - pa * q0) * inv_f
+        p01 = (p01 - pa * q1) * inv_f
+        p02 = (p02 - pa * q2) * inv_f
+        p03 = (p03 - pa * q3) * inv_f
+        p04 = (p04 - pa * q4) * inv_f
+        t1 += q1 * ge
+        pa = q1 / den
+        p11 = (p11 - pa * q1) * inv_f
+        p12 = (p12 - pa * q2) * inv_f
+        p13 = (p13 - pa * q3) * inv_f
+        p14 = (p14 - pa * q4) * inv_f
+        t2 += q2 * ge
+        pa = q2 / den
+        p22 = (p22 - pa * q2) * inv_f
+        p23 = (p23 - pa * q3) * inv_f
+        p24 = (p24 - pa * q4) * inv_f
+        t3 += q3 * ge
+        pa = q3 / den
+        p33 = (p33 - pa * q3) * inv_f
+        p34 = (p34 - pa * q4) * inv_f
+        t4 += q4 * ge
+        pa = q4 / den
+        p44 = (p44 - pa * q4) * inv_f
+    P[0, 0] = p00
+    P[0, 1] = p01
+    P[1, 0] = p01
+    P[0, 2] = p02
+    P[2, 0] = p02
+    P[0, 3] = p03
+    P[3, 0] = p03
+    P[0, 4] = p04
+    P[4, 0] = p04
+    P[1, 1] = p11
+    P[1, 2] = p12
+    P[2, 1] = p12
+    P[1, 3] = p13
+    P[3, 1] = p13
+    P[1, 4] = p14
+    P[4, 1] = p14
+    P[2, 2] = p22
+    P[2, 3] = p23
+    P[3, 2] = p23
+    P[2, 4] = p24
+    P[4, 2] = p24
+    P[3, 3] = p33
+    P[3, 4] = p34
+    P[4, 3] = p34
+    P[4, 4] = p44
+    theta[0], theta[1], theta[2], theta[3], theta[4] = t0, t1, t2, t3, t4
+
+
+@kernel(inline="always")
+def _all_finite_sum(theta: np.ndarray, P: np.ndarray) -> bool:
+    """Whether sum(theta) + sum(P), added in row order, is finite. Every entry finite and below
+    1e300 in magnitude cannot overflow (checked row by row, independent chains); otherwise the
+    sum itself decides, in the original order (NaN, Inf or an overflow: not finite)."""
+    p = theta.shape[0]
+    small = True
+    for q in range(p):
+        row = abs(theta[q]) < 1e300
+        for r in range(p):
+            row = row and abs(P[q, r]) < 1e300
+        small = small and row
+    if small:
+        return True
+    acc = 0.0
+    for q in range(p):
+        acc += theta[q]
+        for r in range(p):
+            acc += P[q, r]
+    return math.isfinite(acc)
 
 
 @kernel
@@ -304,7 +552,14 @@ def core_step(
     deriv = consts[K_DERIV] != 0.0
     tau = core[TAU]
     g = u * (tau + 0.5 * u) if deriv else 0.0  # (tau_k^2 - tau_{k-1}^2) / 2, eq. (25)
-    regressor_coefficients(u, g, tab, rr, ri)
+    if p == 5 and deriv:  # n = 2 with the derivative model (the default), as the loop computes it
+        rr[0], ri[0] = 0.0, 1.0 * u  # j w dt
+        rr[1], ri[1] = 0.0, 1.0 * g  # j lam g
+        rr[2], ri[2] = -(0.5 * u * u), 0.0  # -(w dt)^2 / 2
+        rr[3], ri[3] = -(1.0 * u * g), 0.0  # -w lam dt g
+        rr[4], ri[4] = -(0.5 * g * g), 0.0  # -(lam g)^2 / 2
+    else:
+        regressor_coefficients(u, g, tab, rr, ri)
     # E^_k = 1 + sum r_p theta^_p(k-1): the estimated one-step rotation e^{j w dt}, eqs. (4), (11)
     er = 1.0
     ei = 0.0
@@ -371,16 +626,14 @@ def core_step(
         # and P is sane: P stays finite on zero input and on a signal that stops
         excited = cp2 > 1e-4 * m2
         f = lam if (excited and tr < consts[K_TRACE_MAX]) else 1.0
-        _rls_scalar(P, theta, xr, yr, f, px)
-        _rls_scalar(P, theta, xi, yi, 1.0, px)
+        if p == 5:  # the default model, unrolled (the same arithmetic)
+            _rls_pair5(P, theta, xr, yr, f, xi, yi)
+        else:
+            _rls_scalar(P, theta, xr, yr, f, px)
+            _rls_scalar(P, theta, xi, yi, 1.0, px)
         # never let the state go non-finite or the estimate leave the decimated band
         # (|w dt| < pi): restart the parameter estimate
-        acc = 0.0
-        for q in range(p):
-            acc += theta[q]
-            for r in range(p):
-                acc += P[q, r]
-        if not (abs(theta[0]) < math.pi and math.isfinite(acc)):
+        if not (abs(theta[0]) < math.pi and _all_finite_sum(theta, P)):
             p0 = consts[K_P0]
             for q in range(p):
                 theta[q] = 0.0
@@ -483,7 +736,7 @@ def working_core(
     return core_in.copy(), theta_in.copy(), P_in.copy(), rr, ri, xr, xi, px, idx, T, b0, work
 
 
-@kernel
+@kernel(inline="always")
 def _ipow(x: float, k: int) -> float:
     r = 1.0
     for _ in range(k):
@@ -516,11 +769,6 @@ def recenter_transform(
     index of w^a lam^b; T, b0, work are scratch.
     """
     p = theta.shape[0]
-    nmax = idx.shape[0] - 1
-    fact = np.empty(nmax + 1)
-    fact[0] = 1.0
-    for k in range(1, nmax + 1):
-        fact[k] = fact[k - 1] * k
     for q in range(p):
         b0[q] = 0.0
         for r in range(p):
@@ -532,11 +780,11 @@ def recenter_transform(
         for j in range(aq + 1):
             for ll in range(aq - j + 1):
                 i = aq - j - ll
-                ca = fact[aq] / (fact[i] * fact[j] * fact[ll]) * _ipow(delta, j) * _ipow(-dw, ll)
+                ca = _MULTINOMIAL[aq, j, ll] * _ipow(delta, j) * _ipow(-dw, ll)
                 if ca == 0.0:
                     continue
                 for s_ in range(bq + 1):
-                    cb = fact[bq] / (fact[s_] * fact[bq - s_]) * _ipow(-dl, bq - s_)
+                    cb = _MULTINOMIAL[bq, s_, 0] * _ipow(-dl, bq - s_)
                     v = ca * cb
                     if v == 0.0:
                         continue
@@ -717,11 +965,21 @@ def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, 
     output continues as if the reference had always been at the new frequency."""
     zo = complex(math.cos(om_old), math.sin(om_old))
     zn = complex(math.cos(om_new), math.sin(om_new))
+    _retune_stages(sos, fe, X, zo, zn, _stage_response(sos, 0, zo), _stage_response(sos, 1, zo),
+                   _stage_response(sos, 0, zn), _stage_response(sos, 1, zn))  # fmt: skip
+
+
+@kernel(inline="always")
+def _retune_stages(
+    sos: np.ndarray, fe: np.ndarray, X: complex, zo: complex, zn: complex, ho0: complex, ho1: complex,
+    hn0: complex, hn1: complex,
+) -> None:  # fmt: skip
+    """:func:`_lowpass_retune` given z = e^{j om} and the stages' responses there."""
     xo = X
     xn = X
     for s in range(2):
-        ho = _stage_response(sos, s, zo)
-        hn = _stage_response(sos, s, zn)
+        ho = ho0 if s == 0 else ho1
+        hn = hn0 if s == 0 else hn1
         d1 = (hn - sos[s, 0]) * xn * zn - (ho - sos[s, 0]) * xo * zo
         d2 = (sos[s, 2] - sos[s, 5] * hn) * xn - (sos[s, 2] - sos[s, 5] * ho) * xo
         fe[F_ZI + 4 + 2 * s] += d1.real
@@ -730,6 +988,25 @@ def _lowpass_retune(sos: np.ndarray, fe: np.ndarray, X: complex, om_old: float, 
         fe[F_ZI + 8 + 2 * s + 1] += d2.imag
         xo = ho * xo
         xn = hn * xn
+
+
+@kernel(inline="always")
+def _retune_responses(
+    sos: np.ndarray, fe: np.ndarray, a_now: complex, om_old: float, om_new: float
+) -> tuple[complex, complex]:
+    """``h_old = H(om_old)``, ``h_new = H(om_new)`` (:func:`lowpass_response`) and
+    :func:`_lowpass_retune` for the tone ``a_now / h_old``, each stage's response computed
+    once for both (the same values, the same bits)."""
+    zo = complex(math.cos(om_old), math.sin(om_old))
+    zn = complex(math.cos(om_new), math.sin(om_new))
+    ho0 = _stage_response(sos, 0, zo)
+    ho1 = _stage_response(sos, 1, zo)
+    hn0 = _stage_response(sos, 0, zn)
+    hn1 = _stage_response(sos, 1, zn)
+    h_old = ho0 * ho1
+    h_new = hn0 * hn1
+    _retune_stages(sos, fe, a_now / h_old, zo, zn, ho0, ho1, hn0, hn1)
+    return h_old, h_new
 
 
 @kernel
@@ -776,6 +1053,12 @@ def differential_rls_kernel(
     ls = complex(fe[F_LS_RE], fe[F_LS_IM])  # its per-sample step
     bb = complex(fe[F_BB_RE], fe[F_BB_IM])  # e^{j phi_bb} predicted for this sample
     bs = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    # the chirp corrections of the two steps, _cis_small of (ramp / fs^2): computed once per
+    # value of the ramp, not per sample (the same function of the same value: the same bits)
+    cb_for = 0.0
+    cb = complex(1.0, 0.0)
+    cl_for = 0.0
+    cl = complex(1.0, 0.0)
     if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
         _biquads_steady(x[0], sos, fe, F_ZI)
     # the low-pass coefficients and the 12 delays of its three channels live in registers
@@ -836,12 +1119,10 @@ def differential_rls_kernel(
                     if dw != 0.0:
                         om_old = w / d0
                         om_new = (w - dw) / d0
-                        h_old = lowpass_response(sos, om_old)
-                        h_new = lowpass_response(sos, om_new)
                         a_now = complex(core[A_RE], core[A_IM])
                         fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
                         fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
-                        _lowpass_retune(sos, fe, a_now / h_old, om_old, om_new)
+                        h_old, h_new = _retune_responses(sos, fe, a_now, om_old, om_new)
                         r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
                         q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
                         g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
@@ -862,7 +1143,8 @@ def differential_rls_kernel(
             h = lowpass_response(sos, w / d0)
             ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
             habs2 = h.real * h.real + h.imag * h.imag
-            amp = abs(ah) / habs2  # |a^ / H|
+            aah = abs(ah)
+            amp = aah / habs2  # |a^ / H|
             val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
             wb_s = w / T0
             lb_s = lb / (T0 * T0)
@@ -875,15 +1157,15 @@ def differential_rls_kernel(
             fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
             fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
             fe[F_SINCE] = 0.0
-            bb = ah / abs(ah) if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
+            bb = ah / aah if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
             a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
             bs = complex(math.cos(a_), math.sin(a_))
         else:
             fe[F_SINCE] += 1.0
-        ts = fe[F_SINCE] * inv_fs
         # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
         if not last_only or i == n - 1:
             j = 0 if last_only else i
+            ts = fe[F_SINCE] * inv_fs
             if fe[F_SNAP_VALID] != 0.0:
                 wbb = fe[F_SNAP_W]
                 lbb = fe[F_SNAP_L]
@@ -905,9 +1187,12 @@ def differential_rls_kernel(
             ext[j, 2] = wref / TWO_PI
         # ---- advance the baseband prediction rotator by one sample
         bb = bb * bs
-        if fe[F_SNAP_L] != 0.0:
-            a_ = fe[F_SNAP_L] * inv_fs * inv_fs
-            bs = bs * _cis_small(a_)
+        snap_l = fe[F_SNAP_L]
+        if snap_l != 0.0:
+            if snap_l != cb_for:
+                cb = _cis_small(snap_l * inv_fs * inv_fs)
+                cb_for = snap_l
+            bs = bs * cb
         # ---- advance the reference oscillator (linear frequency ramp, exact phase integral)
         psi = _wrap(psi + (wref + 0.5 * lref * inv_fs) * inv_fs)
         wref += lref * inv_fs
@@ -927,7 +1212,10 @@ def differential_rls_kernel(
         else:
             lo = lo * ls
         if lref != 0.0:
-            ls = ls * _cis_small(lref * inv_fs * inv_fs)
+            if lref != cl_for:
+                cl = _cis_small(lref * inv_fs * inv_fs)
+                cl_for = lref
+            ls = ls * cl
     fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3] = o1, o2, o3, o4
     fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
     fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
@@ -942,6 +1230,154 @@ def differential_rls_kernel(
     fe[F_BB_IM] = bb.imag
     fe[F_BS_RE] = bs.real
     fe[F_BS_IM] = bs.imag
+    return out, ext, sse, fe, core, theta, P, ist
+
+
+@kernel
+def differential_rls_iq_kernel(
+    x: np.ndarray,
+    fe_in: np.ndarray,
+    core_in: np.ndarray,
+    theta_in: np.ndarray,
+    P_in: np.ndarray,
+    ist_in: np.ndarray,
+    tab: np.ndarray,
+    cyc: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """In-phase/quadrature input (the paper's own setting, eqs. 1-2): ``x`` is (N, 2), column
+    0 the in-phase y = A sin(w t + phi), column 1 the quadrature z = A cos(w t + phi), taken
+    against an external oscillator at consts[K_W_NOM]. c(k) = z + j y is taken every
+    cyc[0], cyc[1], ... input samples (nonuniform cyclic sampling, Section 5; the first
+    sample ever is the first c), rotated by the digital reference oscillator (phase psi2,
+    offset w2 rad/T0 and ramp l2 rad/T0^2 from the external one, re-centred on the
+    estimate as in :func:`iq_kernel`, kept within +- consts[K_W_RANGE]) and handed to
+    :func:`core_step`; outputs at every input sample, held between decimated samples with
+    the phase advanced at the estimated frequency. The one-step prediction error is that
+    of the in-phase column (y = A sin(phase_rad), the output convention).
+
+    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
+    """
+    fe = fe_in.copy()
+    core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
+    ist = ist_in.copy()
+    n = x.shape[0]
+    nout = 1 if last_only else n
+    out = np.empty((nout, 5))
+    ext = np.empty((nout, 3))
+    fs = consts[K_FS]
+    inv_fs = 1.0 / fs
+    T0 = consts[K_T0]
+    d0 = T0 * fs
+    w_nom = consts[K_W_NOM]
+    w_max = consts[K_W_RANGE] * T0  # the digital reference stays within +- the tracking range
+    recenter = consts[K_RECENTER] != 0.0
+    ncyc = cyc.shape[0]
+    psi2 = fe[F_PSI]
+    w2 = fe[F_WREF]
+    l2 = fe[F_LREF]
+    pp = complex(fe[F_BB_RE], fe[F_BB_IM])  # predicted c for this sample (A e^{j phase})
+    ps = complex(fe[F_BS_RE], fe[F_BS_IM])  # its per-sample step
+    sse = 0.0
+    for i in range(n):
+        yi = x[i, 0]
+        zi = x[i, 1]
+        # ---- one-step prediction of the in-phase sample from the estimate so far (residual_rms)
+        e = yi - pp.imag if fe[F_SNAP_VALID] != 0.0 else yi
+        sse += e * e
+        # ---- nonuniform cyclic sampling (Section 5): c(k) every cyc[j] input samples
+        ist[0] += 1
+        first = ist[2] == 0
+        if first or ist[0] >= cyc[ist[1]]:
+            if first:
+                u = 0.0  # no interval before the first sample (core_step only stores it)
+                ist[2] = 1
+            else:
+                u = cyc[ist[1]] / d0
+                ist[1] = (ist[1] + 1) % ncyc
+                # advance the digital reference over dt_k = u T0 (as iq_kernel does)
+                psi2 += w2 * u + 0.5 * l2 * u * u
+                w2 += l2 * u
+                psi2 = math.pi - ((math.pi - psi2) % TWO_PI)
+                if w2 > w_max or w2 < -w_max:
+                    w2 = w_max if w2 > 0.0 else -w_max
+                    l2 = 0.0
+            ist[0] = 0
+            c0 = math.cos(psi2)
+            s0 = math.sin(psi2)
+            cr = zi * c0 + yi * s0  # c e^{-j psi2}, c = z + j y (eqs. 1-2)
+            ci = yi * c0 - zi * s0
+            core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
+            w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+            if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+                dw = 0.0
+                dl = 0.0
+                if recenter and confident:
+                    # periodic re-centring of the reference on the estimate (Section 10)
+                    dw = w
+                    dl = lsig
+                    wnew = w2 + dw
+                    if wnew > w_max or wnew < -w_max:  # clamped to the tracking range
+                        wnew = w_max if wnew > 0.0 else -w_max
+                        dw = wnew - w2
+                        dl = -l2
+                    w2 = wnew
+                    l2 += dl
+                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
+                w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+            amp = math.hypot(core[A_RE], core[A_IM])  # A^ = |a^|, eq. (23)
+            val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
+            wt = (w + w2) / T0  # offset from the external oscillator, rad/s
+            lt = (lb + l2) / (T0 * T0)
+            ph = _wrap(math.atan2(core[A_IM], core[A_RE]) + psi2)  # phi^(t_k), eq. (23)
+            fe[F_SNAP_W] = wt
+            fe[F_SNAP_L] = lt
+            fe[F_SNAP_PH] = ph
+            fe[F_SNAP_A] = amp
+            fe[F_SNAP_VALID] = 1.0 if val else 0.0
+            fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
+            fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
+            fe[F_SINCE] = 0.0
+            pp = complex(amp * math.cos(ph), amp * math.sin(ph)) if val else complex(0.0, 0.0)
+            a_ = (wt + 0.5 * lt * inv_fs) * inv_fs
+            ps = complex(math.cos(a_), math.sin(a_))
+        else:
+            fe[F_SINCE] += 1.0
+        # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
+        if not last_only or i == n - 1:
+            j = 0 if last_only else i
+            ts = fe[F_SINCE] * inv_fs
+            if fe[F_SNAP_VALID] != 0.0:
+                wt = fe[F_SNAP_W]
+                lt = fe[F_SNAP_L]
+                out[j, 0] = (w_nom + wt + lt * ts) / TWO_PI
+                out[j, 1] = fe[F_SNAP_A]
+                out[j, 2] = _wrap(fe[F_SNAP_PH] + (wt + 0.5 * lt * ts) * ts)
+                out[j, 3] = 0.0  # the model (eqs. 1-2) has no offset
+                out[j, 4] = fe[F_SNAP_CONV]
+                ext[j, 0] = lt / TWO_PI
+                ext[j, 1] = fe[F_SNAP_STD] if fe[F_SNAP_STD] >= 0.0 else np.nan
+            else:
+                out[j, 0] = np.nan
+                out[j, 1] = np.nan
+                out[j, 2] = np.nan
+                out[j, 3] = np.nan
+                out[j, 4] = 0.0
+                ext[j, 0] = np.nan
+                ext[j, 1] = np.nan
+            ext[j, 2] = (w_nom + w2 / T0) / TWO_PI
+        # ---- advance the prediction by one sample (a chirp's step turns at lt / fs^2)
+        pp = pp * ps
+        if fe[F_SNAP_L] != 0.0:
+            ps = ps * _cis_small(fe[F_SNAP_L] * inv_fs * inv_fs)
+    fe[F_PSI] = psi2
+    fe[F_WREF] = w2
+    fe[F_LREF] = l2
+    fe[F_BB_RE] = pp.real
+    fe[F_BB_IM] = pp.imag
+    fe[F_BS_RE] = ps.real
+    fe[F_BS_IM] = ps.imag
     return out, ext, sse, fe, core, theta, P, ist
 
 
@@ -1063,8 +1499,15 @@ def band_limited_iq_noise(k: int, m: float, var: float, seed: int) -> np.ndarray
 
 
 class DifferentialRlsParams(EstimatorParams):
+    input: Literal["real", "iq"] = Field(
+        "real",
+        description="'real': one column, demodulated against the reference oscillator; 'iq': two columns, "
+        "in-phase y = A sin(phase) and quadrature z = A cos(phase) (the paper's eqs. 1-2)",
+    )
     nominal_frequency_hz: float = Field(
-        50.0, description="Initial frequency of the reference oscillator (the demodulation carrier), Hz"
+        50.0,
+        description="Initial frequency of the reference oscillator (the demodulation carrier), Hz; with "
+        "input = 'iq', the frequency of the oscillator the I/Q were taken against (0: baseband)",
     )
     bandwidth_hz: float = Field(
         5.0,
@@ -1098,18 +1541,46 @@ class DifferentialRlsParams(EstimatorParams):
     tracking_range_hz: float | None = Field(
         None, description="How far the reference may move from nominal, Hz; default: bandwidth_hz"
     )
+    noise_correlation: float | None = Field(
+        None,
+        description="r1, lag-1 correlation of the noise at the decimated rate (ELS, eqs. 11-13); default: "
+        "'real': from the demodulator's low-pass; 'iq': sinc(1/M), ideal low-pass noise of bandwidth B_N (eq. 14)",
+    )
     p0: float = Field(1e4, description="Initial covariance P(0) = p0 I (amplitude-normalised units)")
     convergence_rel_std: float = Field(
         0.01, description="converged once the frequency standard deviation < this * bandwidth_hz"
     )
     min_amplitude: float = Field(1e-6, description="Below this amplitude the estimate is undefined (NaN)")
 
-    @field_validator("nominal_frequency_hz", "bandwidth_hz", "p0", "convergence_rel_std")
+    @field_validator("bandwidth_hz", "p0", "convergence_rel_std")
     @classmethod
     def _positive(cls, v: float) -> float:
         if not (math.isfinite(v) and v > 0):
             raise ValueError(f"expected a finite value > 0, got {v}")
         return v
+
+    @field_validator("nominal_frequency_hz")
+    @classmethod
+    def _nominal(cls, v: float) -> float:
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"expected a finite value >= 0, got {v}")
+        return v
+
+    @field_validator("noise_correlation")
+    @classmethod
+    def _r1(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and -1.0 < v < 1.0):
+            raise ValueError(f"expected -1 < noise_correlation < 1, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _carrier(self) -> DifferentialRlsParams:
+        if self.input == "real" and self.nominal_frequency_hz <= 0.0:
+            raise ValueError(
+                f"nominal_frequency_hz: expected > 0 with input = 'real' (the demodulation carrier), "
+                f"got {self.nominal_frequency_hz}"
+            )
+        return self
 
     @field_validator("oversampling")
     @classmethod
@@ -1205,7 +1676,11 @@ def decimation_pattern(fs: float, bandwidth_hz: float, oversampling: float, n: i
 
 @register
 class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_kernel, name="differential-rls"):
-    """Differential signal model + recursive extended least squares, with ROCOF"""
+    """Differential signal model + recursive extended least squares, with ROCOF. input = "real": one
+    column, quadrature-mixed against a re-centred reference oscillator; input = "iq": two columns,
+    in-phase y = A sin(phase) and quadrature z = A cos(phase) taken against an external oscillator at
+    nominal_frequency_hz (0: baseband, the paper's setting); a block with the other column count is
+    rejected (shape_mismatch)"""
 
     paper = (
         '"Differential signal model and sampling techniques for recursive (extended) least-squares '
@@ -1232,21 +1707,61 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
                                  f"at {sample_rate_hz} Hz")  # fmt: skip
         return {"nominal_frequency_hz": f0, "bandwidth_hz": bw, "tracking_range_hz": rng, "oversampling": m}
 
+    @property
+    def n_inputs(self) -> int:
+        """1 with input = 'real', 2 (in-phase, quadrature) with input = 'iq'."""
+        return 2 if self.params.input == "iq" else 1
+
+    def _as_block(self, samples: Any) -> np.ndarray:
+        """The block checked against ``input``: a typed error that names the parameter when
+        the columns disagree with it (before the generic checks of the base class)."""
+        if isinstance(samples, np.ndarray) and samples.ndim >= 1:
+            cols = samples.shape[1] if samples.ndim == 2 else (1 if samples.ndim == 1 else -1)
+            if cols != self.n_inputs:
+                want = "2 columns (in-phase, quadrature)" if self.params.input == "iq" else "1 column"
+                raise InputError(
+                    f"samples: expected {want} with input = {self.params.input!r}, got shape {samples.shape}",
+                    kind="shape_mismatch",
+                )
+        return super()._as_block(samples)
+
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        """Real input: the class kernel (:func:`differential_rls_kernel`), as the base class
+        calls it; I/Q input: :func:`differential_rls_iq_kernel`, called the same way (block,
+        state arrays, constants without the demodulator's low-pass, last_only). Two kernels
+        rather than one that branches, so that a channel compiles only its own."""
+        if self.params.input == "real":
+            return super()._run(samples, state, last_only)
+        kern: Callable[..., tuple[Any, ...]] = differential_rls_iq_kernel
+        result = kern(samples, *state.values(), *self._constants[1:], last_only)
+        n_outputs = len(result) - len(state)
+        return self._track(result[:n_outputs], samples), dict(zip(state, result[n_outputs:]))  # noqa: B905
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
-        top = p.nominal_frequency_hz + rng + p.bandwidth_hz
-        if top >= fs / 2:
-            raise ParameterError(
-                f"nominal_frequency_hz: expected nominal + tracking range + bandwidth below Nyquist "
-                f"({fs / 2} Hz), got {p.nominal_frequency_hz} + {rng} + {p.bandwidth_hz} = {top}"
-            )
-        if p.nominal_frequency_hz - rng - p.bandwidth_hz <= 0:
-            raise ParameterError(
-                f"bandwidth_hz: expected nominal - tracking range - bandwidth > 0, got "
-                f"{p.nominal_frequency_hz} - {rng} - {p.bandwidth_hz}"
-            )
+        if p.input == "iq":
+            # complex samples at fs hold offsets within (-fs/2, fs/2) of the external oscillator
+            if rng + p.bandwidth_hz >= fs / 2:
+                raise ParameterError(
+                    f"tracking_range_hz: expected tracking range + bandwidth below half the I/Q sample rate "
+                    f"({fs / 2} Hz), got {rng} + {p.bandwidth_hz} = {rng + p.bandwidth_hz}"
+                )
+        else:
+            top = p.nominal_frequency_hz + rng + p.bandwidth_hz
+            if top >= fs / 2:
+                raise ParameterError(
+                    f"nominal_frequency_hz: expected nominal + tracking range + bandwidth below Nyquist "
+                    f"({fs / 2} Hz), got {p.nominal_frequency_hz} + {rng} + {p.bandwidth_hz} = {top}"
+                )
+            if p.nominal_frequency_hz - rng - p.bandwidth_hz <= 0:
+                raise ParameterError(
+                    f"bandwidth_hz: expected nominal - tracking range - bandwidth > 0, got "
+                    f"{p.nominal_frequency_hz} - {rng} - {p.bandwidth_hz}"
+                )
         if p.rocof_model and p.n_terms > 4:
             raise ParameterError(f"n_terms: expected <= 4 with rocof_model (n(n+3)/2 parameters), got {p.n_terms}")
         decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing)
@@ -1254,6 +1769,7 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
     def _setup(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
+        iq = p.input == "iq"
         self._cyc = np.array(
             decimation_pattern(fs, p.bandwidth_hz, p.oversampling, p.n_terms, p.cycle_spacing), dtype=np.int64
         )
@@ -1261,8 +1777,15 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         T0 = d0 / fs
         self._tab = monomial_table(p.n_terms, p.rocof_model)
         n_par = self._tab.shape[0]
+        # the demodulator's low-pass (real input; passed but unused with I/Q input)
         self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
+        if p.noise_correlation is not None:
+            r1 = p.noise_correlation
+        elif iq:  # ideal low-pass noise of bandwidth B_N sampled at T_sN / M, eq. (14)
+            r1 = float(np.sinc(1.0 / p.oversampling))
+        else:
+            r1 = lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0]))
         c = core_constants(
             fs=fs,
             T0=T0,
@@ -1277,32 +1800,40 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
             recenter_every=p.recenter_every,
             els=p.els,
             derivative=p.rocof_model,
-            r1=lowpass_noise_correlation(self._sos, fs, p.bandwidth_hz, int(self._cyc[0])),
+            r1=r1,
         )
         c[K_W_NOM] = TWO_PI * p.nominal_frequency_hz
         c[K_W_RANGE] = TWO_PI * rng
         c[K_MIN_AMP] = p.min_amplitude
-        c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
-        c[K_HOLD] = math.ceil(c[K_WARM] / d0)
+        if not iq:  # I/Q input: no low-pass to settle
+            c[K_WARM] = settling_samples(self._sos, fs, p.bandwidth_hz)
+            c[K_HOLD] = math.ceil(c[K_WARM] / d0)
         self._consts = c
         self._constants = (self._sos, self._tab, self._cyc, self._consts)
 
     def _initial_state(self) -> dict[str, np.ndarray]:
-        """``fe`` (FE_SIZE,): the real-input front end, slots named F_* (reference phase,
-        frequency and ramp, offset, the low-pass delays, the snapshot at the last decimated
-        step, the rotators); ``core`` (CORE_SIZE,): the baseband estimator, slots named
-        by the constants above (c(k-1), n^, a^, the weighted powers, counters, flags);
-        ``theta`` (p,): the parameter estimate (monomials w^a lam^b, :func:`monomial_table`);
-        ``P`` (p, p): its covariance; ``ist`` (3,) int64: input samples since the last decimated one, position in the
-        decimation cycle, samples seen while the low-pass warms up."""
+        """``fe`` (FE_SIZE,): the front end, slots named F_*. Real input: reference phase
+        (rad), frequency (rad/s) and ramp (rad/s^2), offset, the low-pass delays, the
+        snapshot at the last decimated step, the rotators. I/Q input: F_PSI, F_WREF, F_LREF
+        hold the digital reference's phase (rad), offset from the external oscillator (rad
+        per T0) and ramp (rad per T0^2), F_BB_* the predicted c and F_BS_* its per-sample
+        step, the snapshot slots as for real input (F_SNAP_W, F_SNAP_L: offset from the
+        external oscillator), the others unused. ``core`` (CORE_SIZE,): the baseband
+        estimator, slots named by the constants above (c(k-1), n^, a^, the weighted
+        powers, counters, flags); ``theta`` (p,): the parameter estimate (monomials w^a
+        lam^b, :func:`monomial_table`); ``P`` (p, p): its covariance; ``ist`` (3,) int64:
+        input samples since the last decimated one, position in the decimation cycle, and
+        (real) samples seen while the low-pass warms up / (I/Q) 1 once the first sample
+        was taken."""
         n_par = self._tab.shape[0]
         fe = np.zeros(FE_SIZE)
-        w = TWO_PI * self.params.nominal_frequency_hz
-        fe[F_WREF] = w
-        fe[F_LO_RE] = 1.0
-        fe[F_LS_RE] = math.cos(w / self.sample_rate_hz)
-        fe[F_LS_IM] = math.sin(w / self.sample_rate_hz)
-        fe[F_BB_RE] = 1.0
+        if self.params.input == "real":
+            w = TWO_PI * self.params.nominal_frequency_hz
+            fe[F_WREF] = w
+            fe[F_LO_RE] = 1.0
+            fe[F_LS_RE] = math.cos(w / self.sample_rate_hz)
+            fe[F_LS_IM] = math.sin(w / self.sample_rate_hz)
+            fe[F_BB_RE] = 1.0
         fe[F_BS_RE] = 1.0
         return {
             "fe": fe,
