@@ -452,13 +452,12 @@ class Pipeline:
 
     @staticmethod
     def _presence(ch: Channel, block: Block, reset: bool) -> None:
-        """Run the channel's signal-presence detector over the block's signal (column 0),
-        after the estimator accepted it; reset with the estimator."""
+        """Run the channel's signal-presence detector over the block's signal (column 0, or
+        what the estimator says), after the estimator accepted it; reset with the estimator."""
         assert ch.presence is not None
         if reset:
             ch.presence.reset()
-        samples = block.samples if block.samples.ndim == 1 else block.samples[:, 0]
-        ch.presence.update(samples)
+        ch.presence.update(ch.estimator.presence_samples(block.samples))
 
     def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
         ch.last_seq = block.seq
@@ -668,6 +667,8 @@ def _cycle_frequency_hz(estimator: Estimator) -> float:
     over a window of a quarter of a cycle, a steady sine's AC RMS still stays above 0.21 of its
     highest value whatever the phase (above the 0.1 threshold), and over 0.83 to 1.2 cycles (60 Hz
     in a 50 Hz window, or the reverse) within 0.80 of it."""
+    if estimator.presence_cycle_hz is not None:
+        return estimator.presence_cycle_hz
     params = estimator.params
     for name, scale in (
         ("nominal_frequency_hz", 1.0),

@@ -491,6 +491,18 @@ class Estimator(ABC, Generic[ParamsT]):
         :mod:`sinewatch.estimators.presence`). Default: :attr:`DEFAULT_MEMORY_S` seconds."""
         return max(1, math.ceil(self.DEFAULT_MEMORY_S * self.sample_rate_hz))
 
+    def presence_samples(self, samples: np.ndarray) -> np.ndarray:
+        """The one-column signal the pipeline's presence detector reads from a block
+        (``diagnostics.valid``): column 0, the measurement, unless an estimator says
+        otherwise (an in-phase/quadrature pair: its magnitude)."""
+        return samples if samples.ndim == 1 else samples[:, 0]
+
+    @property
+    def presence_cycle_hz(self) -> float | None:
+        """The frequency whose cycle is the presence detector's window, when the estimator
+        knows better than its parameters (None: from ``nominal_frequency_hz`` and the like)."""
+        return None
+
     # ---- state --------------------------------------------------------------------------
     @abstractmethod
     def _initial_state(self) -> dict[str, np.ndarray]:

@@ -1739,6 +1739,20 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         n_outputs = len(result) - len(state)
         return self._track(result[:n_outputs], samples), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
+    def presence_samples(self, samples: np.ndarray) -> np.ndarray:
+        """I/Q input: the magnitude |z + j y| with alternating sign, so that the presence
+        detector's AC RMS over its (even, :attr:`presence_cycle_hz`) window reads the
+        amplitude whatever the baseband frequency; real input: column 0."""
+        if self.params.input == "real" or samples.ndim == 1:
+            return super().presence_samples(samples)
+        sign = np.where(np.arange(samples.shape[0]) % 2 == 0, 1.0, -1.0)
+        return np.asarray(np.hypot(samples[:, 0], samples[:, 1]) * sign, dtype=np.float64)
+
+    @property
+    def presence_cycle_hz(self) -> float | None:
+        """I/Q input: a window of 4 samples (see :meth:`presence_samples`)."""
+        return self.sample_rate_hz / 4.0 if self.params.input == "iq" else None
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
