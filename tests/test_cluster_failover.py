@@ -86,6 +86,15 @@ directory = "{tmp_path / daemon_id}"
     )
 
 
+def stop_all(procs: dict[str, subprocess.Popen[str]]) -> None:
+    """SIGINT every daemon still running (each drains and finishes its file), then wait."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs.values():
+        p.wait(timeout=WAIT)
+
+
 class Tokens:
     """The cluster's liveliness tokens as the network sees them (a liveliness subscriber)."""
 
@@ -213,11 +222,7 @@ def test_standby_takes_over_a_killed_shard_within_2_s(tmp_path, recovery):
                 check=False,
             )
         finally:
-            for p in procs.values():
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-            for p in procs.values():
-                p.wait(timeout=WAIT)
+            stop_all(procs)
 
     print(f"takeover: first estimate of every shard-1 channel within {takeover_s:.3f} s of the kill")
     assert takeover_s < 2.0, takeover_s
@@ -284,11 +289,7 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path):
                 tokens.wait_for("active/a1", "active/a2", "standby/s1")
                 roles = set(tokens.present)
         finally:
-            for p in procs.values():
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-            for p in procs.values():
-                p.wait(timeout=WAIT)
+            stop_all(procs)
 
     print(f"router restart: estimates of every channel within {resumed_s:.3f} s of the router's return")
     assert t_back - t_down < 5.0
