@@ -1,7 +1,7 @@
 """The configuration: one pydantic model tree, unknown keys rejected everywhere.
 
 Defaults work out of the box and are safe: a Zenoh peer listening on loopback only,
-multicast scouting off, every channel estimated with ``ges-kalman``, recording on.
+multicast scouting off, every channel estimated by the default rule (``ipdft`` over 200 ms), recording on.
 Loaded from a TOML or JSON file plus ``SINEWATCH__SECTION__KEY`` environment variables by
 :func:`load_config`; printed back by ``sinewatch config show``.
 
