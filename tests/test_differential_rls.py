@@ -575,7 +575,7 @@ def test_served_fig3_tracking_and_the_derivative_model():
     # Fig. 3 through create(): the paper001-iq-fig3 scenario (w(t) = w0 [1 + 0.5 sin(0.01 w0 t)],
     # lam = 0.9, n = 4, Fig. 1's sampling, re-centred every 10 samples), with and without the
     # derivative model; errors over every input sample after 200 s. Offline figures: 0.040 and
-    # 0.0016 rad/s, ROCOF RMS error 3.8e-4 rad/s^2; measured here (every input sample, phase
+    # 0.0016 rad/s, ROCOF RMS error 3.8e-4 rad/s^2; through create() (every input sample, phase
     # and frequency held between decimated ones): 0.043, 0.0018 and 3.9e-4. ROCOF is the
     # Estimate's field (Track.rocof_hz_per_s), not only an extra.
     sc = get_scenario("paper001-iq-fig3")
