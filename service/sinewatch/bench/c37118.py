@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import socket
-import subprocess
 import threading
 import time
 from typing import Any
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 from rich.table import Table
 
-from sinewatch.bench.e2e import LatencyProbe, feeder_command, running_daemon
+from sinewatch.bench.e2e import LatencyProbe, running_daemon, start_feeder, stop_feeder
 from sinewatch.clients import JsonSubscription, connect
 from sinewatch.clients.c37118 import C37118Reader
 from sinewatch.clients.session import free_loopback_port
@@ -111,16 +110,7 @@ def _measure(args: argparse.Namespace, mode: str, console: Any) -> dict[str, Any
                 stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
                 stalled.connect(("127.0.0.1", port))
                 stalled.sendall(encode_command(ID_CODE, Command.DATA_ON))  # and never reads
-            feeder = subprocess.Popen(
-                feeder_command(endpoint, n_ch, fs, block, rounds),
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-            )
-            assert feeder.stdin is not None and feeder.stdout is not None
-            if not feeder.stdout.readline():
-                raise RuntimeError(f"bench feeder failed: {feeder.communicate()[1][-2000:]}")
+            feeder, _ = start_feeder(endpoint, n_ch, fs, block, rounds)
             # drained: the daemon's Status says every block sent has been processed
             last: dict[str, Any] = {}
             deadline = time.monotonic() + 60.0
@@ -129,8 +119,7 @@ def _measure(args: argparse.Namespace, mode: str, console: Any) -> dict[str, Any
                 if msg["blocks_processed"] >= rounds * n_ch:
                     break
             last = status.get(timeout=10.0) or last  # one more: the counters after the last frame
-            feeder.stdin.close()
-            feeder.wait()
+            stop_feeder(feeder)
             if reader is not None:
                 reader.close()
             if stalled is not None:

@@ -287,6 +287,32 @@ def running_daemon(
             rec.recorded_bytes = sum(f.stat().st_size for f in (Path(tmp) / "rec").glob("*.mcap"))
 
 
+def start_feeder(
+    endpoint: str, channels: int, rate: float, block: int, rounds: int
+) -> tuple[subprocess.Popen[str], str]:
+    """Start the bench feeder process and wait for its first line (what it published);
+    the feeder keeps its session until its stdin is closed."""
+    feeder = subprocess.Popen(
+        feeder_command(endpoint, channels, rate, block, rounds),
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert feeder.stdin is not None and feeder.stdout is not None
+    line = feeder.stdout.readline()
+    if not line:
+        raise RuntimeError(f"bench feeder failed: {feeder.communicate()[1][-2000:]}")
+    return feeder, line
+
+
+def stop_feeder(feeder: subprocess.Popen[str]) -> None:
+    """Let the feeder close its session (it waits on its stdin) and end."""
+    assert feeder.stdin is not None
+    feeder.stdin.close()
+    feeder.wait()
+
+
 def feeder_command(endpoint: str, channels: int, rate: float, block: int, rounds: int) -> list[str]:
     """The bench feeder (:func:`feeder_main`) as its own process."""
     return [
@@ -332,21 +358,10 @@ def _drive(
         cpu0 = _cpu_seconds(daemon.pid)
         rss0 = _rss_mb(daemon.pid)
         t0 = time.monotonic()
-        feeder = subprocess.Popen(
-            feeder_command(endpoint, n_ch, fs, block, rounds),
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        assert feeder.stdin is not None and feeder.stdout is not None
-        line = feeder.stdout.readline()
-        if not line:
-            raise RuntimeError(f"bench feeder failed: {feeder.communicate()[1][-2000:]}")
+        feeder, line = start_feeder(endpoint, n_ch, fs, block, rounds)
         fed = json.loads(line)
         probe.done.wait(30.0)
-        feeder.stdin.close()  # everything published has had its chance to arrive
-        feeder.wait()
+        stop_feeder(feeder)  # everything published has had its chance to arrive
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
         rss1 = _rss_mb(daemon.pid)

@@ -702,6 +702,22 @@ def check(p: Any, sample_rate_hz: float) -> None:
         )
 
 
+def observer_matrices(a: np.ndarray, bias: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(3): F_x = blockdiag(J_i, 0), J_i = [[0, 1], [a_i, 0]]; C_x = [c_1 .. c_n 1], c_i = [1 0]
+    (the offset's state and its 1 only with ``bias``)."""
+    n = a.shape[0]
+    nx = 2 * n + int(bias)
+    Fx = np.zeros((nx, nx))
+    Cx = np.zeros(nx)
+    for i in range(n):
+        Fx[2 * i, 2 * i + 1] = 1.0
+        Fx[2 * i + 1, 2 * i] = a[i]
+        Cx[2 * i] = 1.0
+    if bias:
+        Cx[nx - 1] = 1.0
+    return Fx, Cx
+
+
 def setup(p: Any, sample_rate_hz: float) -> dict[str, Any]:
     """Constants of the explicit design: ``cf``, ``ci`` (with the mode flag 0 appended),
     ``L_x``, ``theta_bar``, ``substeps``, ``settling_time``, ``theta0``, ``nf``, ``nz``."""
@@ -712,15 +728,7 @@ def setup(p: Any, sample_rate_hz: float) -> dict[str, Any]:
     nx = 2 * n + int(bias)
     nf = n - 1
     nz = nx + nf
-    # (3): F_x = blockdiag(J_i, 0), J_i = [[0, 1], [a_i, 0]]; C_x = [c_1 .. c_n 1], c_i = [1 0]
-    Fx = np.zeros((nx, nx))
-    Cx = np.zeros(nx)
-    for i in range(n):
-        Fx[2 * i, 2 * i + 1] = 1.0
-        Fx[2 * i + 1, 2 * i] = a[i]
-        Cx[2 * i] = 1.0
-    if bias:
-        Cx[nx - 1] = 1.0
+    Fx, Cx = observer_matrices(a, bias)
     # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation)
     poles = np.asarray(d["poles"], dtype=np.float64)
     try:

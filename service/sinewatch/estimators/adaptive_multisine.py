@@ -943,14 +943,7 @@ class AdaptiveMultisine(
         nx = 2 * n + int(bias)
         nf = n - 1
         nz = nx + nf
-        Fx = np.zeros((nx, nx))
-        Cx = np.zeros(nx)
-        for i in range(n):
-            Fx[2 * i, 2 * i + 1] = 1.0
-            Fx[2 * i + 1, 2 * i] = a[i]
-            Cx[2 * i] = 1.0
-        if bias:
-            Cx[nx - 1] = 1.0
+        Fx, Cx = explicit.observer_matrices(a, bias)
         poles = np.asarray(d["poles"], dtype=np.float64)
         # (16): L_x by pole placement (Algorithm 1's initialisation), in the closed form the
         # kernel re-places it with (AD8); checked against the eigenvalues it gives
