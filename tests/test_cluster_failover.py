@@ -156,6 +156,26 @@ class Gateway(threading.Thread):
             self.stop.wait(max(0.0, start + n * BLOCK / FS - time.monotonic()))  # the gateway's real-time pace
 
 
+def start_cluster(
+    tmp_path: Path,
+    port: int,
+    recovery: bool,
+    procs: dict[str, subprocess.Popen[str]],
+    tokens: Tokens,
+    session: zenoh.Session,
+) -> Gateway:
+    """The two active daemons (a1: shard 1/2, a2: 2/2), then the standby of shard 1 (s1)
+    once they serve, then the gateway; ``procs`` gets the daemons as they start."""
+    procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, recovery)
+    procs["a2"] = daemon(tmp_path, "a2", "2/2", "active", port, recovery)
+    tokens.wait_for("active/a1", "active/a2")
+    procs["s1"] = daemon(tmp_path, "s1", "1/2", "standby", port, recovery)
+    tokens.wait_for("standby/s1")
+    gateway = Gateway(session)
+    gateway.start()
+    return gateway
+
+
 def _after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
     return [m for m in msgs if m["_arrival"] > t]
 
@@ -181,16 +201,9 @@ def test_standby_takes_over_a_killed_shard_within_2_s(tmp_path, recovery):
     port = free_loopback_port()
     with router(port), connect([f"tcp/127.0.0.1:{port}"]) as session:
         tokens, estimates = Tokens(session), Estimates(session)
-        procs = {
-            "a1": daemon(tmp_path, "a1", "1/2", "active", port, recovery),
-            "a2": daemon(tmp_path, "a2", "2/2", "active", port, recovery),
-        }
+        procs: dict[str, subprocess.Popen[str]] = {}
         try:
-            tokens.wait_for("active/a1", "active/a2")
-            procs["s1"] = daemon(tmp_path, "s1", "1/2", "standby", port, recovery)
-            tokens.wait_for("standby/s1")
-            gateway = Gateway(session)
-            gateway.start()
+            gateway = start_cluster(tmp_path, port, recovery, procs, tokens, session)
             estimates.wait(lambda e: all(len(e[c]) >= 15 for c in CHANNELS), "every channel estimated")
 
             # the active daemon of shard 1 hangs (what it receives now, nobody estimates) ...
@@ -263,13 +276,7 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path):
         session = stack.enter_context(connect([f"tcp/127.0.0.1:{port}"]))
         tokens, estimates = Tokens(session), Estimates(session)
         try:
-            procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, True)
-            procs["a2"] = daemon(tmp_path, "a2", "2/2", "active", port, True)
-            tokens.wait_for("active/a1", "active/a2")
-            procs["s1"] = daemon(tmp_path, "s1", "1/2", "standby", port, True)
-            tokens.wait_for("standby/s1")
-            gateway = Gateway(session)
-            gateway.start()
+            gateway = start_cluster(tmp_path, port, True, procs, tokens, session)
             estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated")
 
             first.send_signal(signal.SIGKILL)
