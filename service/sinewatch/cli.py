@@ -77,6 +77,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     check_rules(config.rules)
     _check_recording_dir(config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
+    from sinewatch.workers import supervise, worker_count
+
+    count = worker_count(config, args.workers)
+    if count > 1:
+        return supervise(config, count)
     return serve(config)
 
 
@@ -113,6 +118,16 @@ def _port(text: str) -> int:
     if not 0 <= port <= 65535:
         raise argparse.ArgumentTypeError(f"expected a TCP port 0-65535 (0: any free one), got {text!r}")
     return port
+
+
+def _count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if not 1 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, got {text!r}")
+    return n
 
 
 def enable_c37118(config: Any, port: int) -> None:
@@ -513,6 +528,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=_port,
         metavar="PORT",
         help="serve Prometheus /metrics and /healthz on PORT ([metrics] port; needs the metrics extra)",
+    )
+    s.add_argument(
+        "--workers",
+        type=_count,
+        metavar="N",
+        help="run the estimators in N worker processes ([workers] count; default: one per core; 1: in this process)",
     )
     s.add_argument(
         "--c37118",

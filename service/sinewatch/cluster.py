@@ -92,12 +92,47 @@ def shard_of(key: str, count: int) -> int:
     return zlib.crc32(key.encode("utf-8")) % count + 1
 
 
+def worker_of(key: str, workers: int, shards: int = 1) -> int:
+    """The worker process (1..workers) that runs input key ``key`` (``serve --workers``).
+    The CRC-32 is divided by the shard count before the modulo: within one shard (a fixed
+    CRC-32 mod ``shards``) the keys still spread evenly over the workers."""
+    return zlib.crc32(key.encode("utf-8")) // shards % workers + 1
+
+
+@dataclass(frozen=True)
+class Ownership:
+    """The input keys this process runs: its shard (``cluster.shard``) and, in a worker
+    process, its share of the shard (``workers.index`` of ``workers.count``)."""
+
+    shard: Shard | None
+    worker: int | None
+    workers: int
+
+    @classmethod
+    def of(cls, config: SinewatchConfig) -> Ownership | None:
+        """None when the process owns every key of ``keys.input``."""
+        shard = Shard.parse(config.cluster.shard) if config.cluster.shard else None
+        worker = config.workers.index
+        if shard is None and worker is None:
+            return None
+        return cls(shard, worker, max(config.workers.count, 1))
+
+    def owns(self, key: str) -> bool:
+        if self.shard is not None and not self.shard.owns(key):
+            return False
+        shards = self.shard.count if self.shard is not None else 1
+        return self.worker is None or worker_of(key, self.workers, shards) == self.worker
+
+
 def shard_id_of(config: SinewatchConfig) -> str:
-    """The configured ``cluster.shard_id``, or one made from ``keys.input`` and the shard."""
+    """The configured ``cluster.shard_id``, or one made from ``keys.input`` and the shard;
+    a worker process's (``serve --workers``) ends in ``_w<i>of<N>``, so the workers of one
+    daemon are not each other's standbys, and a standby daemon's worker i watches worker i."""
+    worker = f"_w{config.workers.index}of{config.workers.count}" if config.workers.index is not None else ""
     if config.cluster.shard_id:
-        return config.cluster.shard_id
+        return config.cluster.shard_id + worker
     base = re.sub(r"[^A-Za-z0-9_.\-]+", "_", config.keys.input.replace("/**", "")).strip("_") or "all"
-    return f"{base}_{config.cluster.shard.replace('/', 'of')}" if config.cluster.shard else base
+    return (f"{base}_{config.cluster.shard.replace('/', 'of')}" if config.cluster.shard else base) + worker
 
 
 class ClusterMember:

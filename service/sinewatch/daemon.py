@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import signal
 import threading
@@ -48,8 +49,8 @@ import zenoh.ext
 
 from sinewatch.c37118_server import C37118Server
 from sinewatch.clients.session import open_session
-from sinewatch.cluster import ClusterMember
-from sinewatch.pipeline import Pipeline, Sink, sanitize_log_time
+from sinewatch.cluster import ClusterMember, Ownership
+from sinewatch.pipeline import Pipeline, ResumePoint, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.codec import encode_status
@@ -93,7 +94,7 @@ class Intake:
         self._policy = cfg.limits.queue_policy
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
-        self._shard = daemon.cluster.shard if daemon.cluster is not None else None
+        self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
         # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
         fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
         self._miss_listener = None
@@ -121,16 +122,17 @@ class Intake:
         try:
             while True:
                 sample = handler.recv()  # raises ZError once undeclared and drained
-                batch = [self._take(sample)]
-                while len(batch) < self._batch:
-                    more = handler.try_recv()
-                    if more is None:
+                batch = []
+                while sample is not None:
+                    key = str(sample.key_expr)
+                    # another daemon's or worker's keys: not ours to copy, decode, record or count
+                    if self._owner is None or self._owner.owns(key):
+                        batch.append(self._take(key, sample))
+                    else:
+                        self.counters.not_owned += 1
+                    if len(batch) >= self._batch:
                         break
-                    batch.append(self._take(more))
-                if self._shard is not None:  # another daemon's keys: not ours to decode, record or count
-                    owned = [item for item in batch if self._shard.owns(item[0])]
-                    self.counters.not_owned += len(batch) - len(owned)
-                    batch = owned
+                    sample = handler.try_recv()
                 dropped: Counter[str] = Counter()
                 batch = [item for item in batch if self._admit(item, dropped)]
                 if batch:
@@ -149,8 +151,8 @@ class Intake:
         log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
 
     @staticmethod
-    def _take(sample: zenoh.Sample) -> Item:
-        return (str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
+    def _take(key: str, sample: zenoh.Sample) -> Item:
+        return (key, sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         self.counters.received += 1
@@ -396,6 +398,8 @@ class Daemon:
             self.c37118 = C37118Server(cfg.c37118)
             sinks.append(self.c37118)
         self._pipeline = Pipeline(cfg, sinks)
+        if cfg.workers.resume_from:  # a worker process restarted by its supervisor
+            self._resume(Path(cfg.workers.resume_from))
         self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
         self.cluster = ClusterMember(self)
         self.cluster.start(asyncio.get_running_loop())  # active: start_intake() now; standby: at takeover
@@ -410,6 +414,23 @@ class Daemon:
             cfg.keys.input,
             cfg.keys.estimates_prefix,
         )
+
+    def _resume(self, path: Path) -> None:
+        """Restore the state a dead predecessor published last (``serve --workers``): each
+        channel resumes after its last block in that state. Blocks Zenoh brings again up to
+        there are taken as already in the state; later ones are estimated and published (those
+        between the snapshot and the death a second time, with the same bytes); blocks nobody
+        received are flagged as a gap on the channel's next estimate. The recording's first
+        file carries this state, so it replays on its own."""
+        snapshot = json.loads(path.read_text())
+        pipeline = self.pipeline
+        pipeline.restore(snapshot)
+        for ch in pipeline.channels.values():
+            if ch.last_seq is not None:
+                pipeline.resume_points[ch.name] = ResumePoint(ch.last_seq, ch.next_t0_ns)
+        if self.recorder is not None:
+            self.recorder.attach_first_snapshot = True
+        log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
 
     def start_intake(self) -> None:
         """Subscribe to the inputs (at start, or when a standby takes over)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -77,6 +78,7 @@ class McapRecorder:
         self._run_stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
         self.index = 0
         self.paths: list[Path] = []
+        self.attach_first_snapshot = False  # a resumed worker: its first file starts with the state too
         self._file: BinaryIO | None = None
         self._writer: Writer | None = None
         self._opened_at = 0.0
@@ -107,7 +109,11 @@ class McapRecorder:
             return self._fixed_path
         directory = Path(self.section.directory)
         directory.mkdir(parents=True, exist_ok=True)
-        return directory / f"{self.config.daemon_id}-{self._run_stamp}-{self.index:04d}.mcap"
+        path = directory / f"{self.config.daemon_id}-{self._run_stamp}-{self.index:04d}.mcap"
+        if self.index == 0 and path.exists():  # e.g. a worker restarted within the second: never overwrite
+            self._run_stamp += f".{os.getpid()}"
+            path = directory / f"{self.config.daemon_id}-{self._run_stamp}-{self.index:04d}.mcap"
+        return path
 
     def open(self) -> Path:
         path = self._next_path()
@@ -135,7 +141,7 @@ class McapRecorder:
                 "config": json.dumps(self.config.model_dump(mode="json")),
             },
         )
-        if self.index > 0 and self._snapshot is not None:
+        if (self.index > 0 or self.attach_first_snapshot) and self._snapshot is not None:
             now = time.time_ns()
             self._w.add_attachment(now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode())
         log.info("recording to %s", path)

@@ -211,9 +211,90 @@ def replay(
     on_progress: Callable[[Path, int], None] | None = None,
     max_mismatches: int = 1000,
 ) -> ReplayResult:
-    """Replay recordings (one run's files, in order); see the module docstring."""
+    """Replay recordings; see the module docstring. ``paths`` may hold several runs (the
+    files of each worker process of ``serve --workers``, of a restarted worker, of other
+    daemons): each run (:func:`split_runs`) replays through a pipeline of its own, as it was
+    recorded, and the results add up. With ``out`` and several runs, run k > 1 is written
+    to ``out`` with ``-run<k>`` before its suffix."""
     for path in paths:
         check_recording(path)
+    runs = split_runs(paths)
+    if len(runs) == 1:
+        return _replay_run(paths, rules=rules, out=out, on_progress=on_progress, max_mismatches=max_mismatches)
+    results = [
+        _replay_run(
+            run,
+            rules=rules,
+            out=None if out is None else out if k == 1 else out.with_name(f"{out.stem}-run{k}{out.suffix}"),
+            on_progress=on_progress,
+            max_mismatches=max_mismatches,
+        )
+        for k, run in enumerate(runs, start=1)
+    ]
+    return merge_results(paths, results)
+
+
+def file_identity(path: Path) -> tuple[str, int]:
+    """(daemon id, index of the file in its run) from a recording's sinewatch metadata."""
+    for kind, item in read_recording(path):
+        if kind == "metadata":
+            return json.loads(item["config"]).get("daemon_id", ""), int(item.get("file_index", "0"))
+        if kind in ("message", "incomplete"):
+            break
+    raise ReplayError(f"{path}: no sinewatch metadata at its start; expected a file written by sinewatch")
+
+
+def split_runs(paths: list[Path]) -> list[list[Path]]:
+    """The runs among ``paths``: a daemon's files whose indices follow each other, in the
+    order given. A file of another daemon (a worker process has an id of its own), or one
+    whose index does not follow its daemon's previous file (a new run of it, e.g. a worker
+    restarted from its state), starts another run."""
+    runs: list[list[Path]] = []
+    open_runs: dict[str, tuple[int, list[Path]]] = {}  # daemon id -> (its last file index, its run)
+    for path in paths:
+        daemon_id, index = file_identity(path)
+        last = open_runs.get(daemon_id)
+        if last is not None and index == last[0] + 1:
+            last[1].append(path)
+            open_runs[daemon_id] = (index, last[1])
+        else:
+            run = [path]
+            runs.append(run)
+            open_runs[daemon_id] = (index, run)
+    return runs
+
+
+def merge_results(paths: list[Path], results: list[ReplayResult]) -> ReplayResult:
+    """One result for several runs: counts added, lists joined."""
+    merged = ReplayResult(paths=list(paths), compared=all(r.compared for r in results))
+    for r in results:
+        for name in ("inputs", "recorded_estimates", "produced_estimates", "matched", "recorded_errors"):
+            setattr(merged, name, getattr(merged, name) + getattr(r, name))
+        merged.produced_errors += r.produced_errors
+        merged.uncompared_tail += r.uncompared_tail
+        merged.mismatches.extend(r.mismatches)
+        merged.incomplete_files.extend(r.incomplete_files)
+        merged.out_paths.extend(r.out_paths)
+        merged.final.update(r.final)
+        for mine, theirs in (
+            (merged.recorded_other, r.recorded_other),
+            (merged.produced_other, r.produced_other),
+            (merged.matched_other, r.matched_other),
+        ):
+            for role, n in theirs.items():
+                mine[role] = mine.get(role, 0) + n
+    return merged
+
+
+def _replay_run(
+    paths: list[Path],
+    *,
+    rules: list[EstimatorRule] | None,
+    out: Path | None,
+    on_progress: Callable[[Path, int], None] | None,
+    max_mismatches: int,
+) -> ReplayResult:
+    """Replay one run's files, in order."""
     result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None

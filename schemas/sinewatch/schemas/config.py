@@ -338,6 +338,42 @@ class ClusterSection(_Section):
         return v
 
 
+class WorkersSection(_Section):
+    """Estimator worker processes (``serve --workers N``). With more than one, ``sinewatch
+    serve`` is a supervisor: it hosts the Zenoh endpoints (a router session on
+    ``zenoh.listen``) and runs N worker processes, each a whole pipeline (intake, estimators,
+    publisher, its own MCAP recording) for the input keys a stable hash assigns it
+    (CRC-32 of the key, independent of ``cluster.shard``), so each channel's state lives in
+    one process and its estimates stay in order. A worker that dies is restarted from the
+    last state it published (every ``cluster.snapshot_interval_s``); what it missed is
+    flagged as a gap on the next estimates."""
+
+    count: int = Field(
+        0, ge=0, le=256, description="Worker processes; 0: one per core; 1: estimate in the serving process"
+    )
+    index: int | None = Field(
+        None, ge=1, description="Set by the supervisor in each worker's config (1..count); leave unset"
+    )
+    resume_from: str | None = Field(
+        None, description="Set by the supervisor when it restarts a worker: the state snapshot to resume from"
+    )
+    stall_s: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="A worker whose event loop has not turned for this long is restarted",
+    )
+    restart_backoff_s: float = Field(
+        1.0, gt=0, allow_inf_nan=False, description="Wait before restarting a worker that died soon after its start"
+    )
+
+    @model_validator(mode="after")
+    def _index_in_range(self) -> WorkersSection:
+        if self.index is not None and not 1 <= self.index <= max(self.count, 1):
+            raise ValueError(f"workers.index: expected 1..{self.count}, got {self.index}")
+        return self
+
+
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
     max_block_samples: int = Field(1_000_000, ge=1)
@@ -409,6 +445,7 @@ class SinewatchConfig(_Section):
     cluster: ClusterSection = Field(default_factory=ClusterSection)
     recording: RecordingSection = Field(default_factory=RecordingSection)
     limits: LimitsSection = Field(default_factory=LimitsSection)
+    workers: WorkersSection = Field(default_factory=WorkersSection)
     foxglove: FoxgloveSection = Field(default_factory=FoxgloveSection)
     metrics: MetricsSection = Field(default_factory=MetricsSection)
     status_interval_s: float = Field(1.0, gt=0)

@@ -78,6 +78,12 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--queue-capacity", type=int, default=8192, help="the daemon's limits.queue_capacity")
     parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="the daemon's worker processes (serve --workers; default 0: one per core)",
+    )
+    parser.add_argument(
         "--foxglove",
         action="store_true",
         help="the daemon serves its live Foxglove view and a client subscribes to every topic (needs the foxglove extra)",

@@ -40,16 +40,41 @@ from sinewatch.clients.session import free_loopback_port
 from sinewatch.console import make_console
 
 
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (a ``serve`` supervisor and its worker processes)."""
+    pids = [pid]
+    for p in pids:
+        for task in Path(f"/proc/{p}/task").glob("*/children"):
+            with contextlib.suppress(OSError):
+                pids.extend(int(c) for c in task.read_text().split())
+    return pids
+
+
 def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    """Resident memory of the process and its children (the workers), MB."""
+    total = 0.0
+    for p in process_tree(pid):
+        with contextlib.suppress(OSError):
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+    return total
 
 
 def _cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """CPU time of the process and its living children (the workers), seconds."""
+    total = 0.0
+    for p in process_tree(pid):
+        with contextlib.suppress(OSError):
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
+def expected_daemons(args: argparse.Namespace) -> int:
+    """How many daemons (worker processes) publish Status: ``--workers``, 0 = one per core."""
+    workers = getattr(args, "workers", 1)
+    return workers if workers > 0 else max(1, len(os.sched_getaffinity(0)))
 
 
 class LatencyProbe:
@@ -258,6 +283,7 @@ def running_daemon(
             "rules": [{"match": "sinewatch/in/**", "estimator": args.estimator, "params": _params(args)}],
             "recording": {"directory": str(Path(tmp) / "rec"), **(recording or {})},
             "limits": {"queue_policy": args.queue_policy, "queue_capacity": args.queue_capacity},
+            "workers": {"count": getattr(args, "workers", 1)},
             "status_interval_s": 1.0,
             **(extra or {}),
         }
@@ -346,8 +372,7 @@ def _drive(
     rounds = max(1, int(args.duration * fs / block))
     with connect([endpoint], timeout_s=30.0) as session:
         status = JsonSubscription(session, "sinewatch/status/**")
-        if status.get(timeout=60.0) is None:
-            raise RuntimeError("the daemon did not come up within 60 s")
+        wait_for_daemons(status, expected_daemons(args))
         probe = LatencyProbe(session, "sinewatch/est/**")
         probe.expected = rounds * n_ch
         fox = FoxgloveProbe(args.foxglove_port) if getattr(args, "foxglove", False) else None
@@ -365,10 +390,11 @@ def _drive(
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
         rss1 = _rss_mb(daemon.pid)
-        # The daemon publishes Status every second: drop the backlog, then take a fresh one.
+        # Each daemon (worker) publishes Status every second: drop the backlog, then take a
+        # fresh one from each and add them up.
         while status.get(timeout=0) is not None:
             pass
-        last_status = status.get(timeout=5.0) or {}
+        last_status = latest_statuses(status, expected_daemons(args))
         probe.close()
         status.close()
         if fox is not None:
@@ -398,10 +424,37 @@ def _drive(
         "gap_blocks_flagged": probe.gap_blocks,
         "daemon_rss_mb_start": rss0,
         "daemon_rss_mb_end": rss1,
+        "daemon_rss_mb_per_channel": (rss1 - rss0) / n_ch,
+        "workers": expected_daemons(args),
         "drained_s": drained_s,
         "foxglove_messages": dict(sorted(fox.messages.items())) if fox is not None else None,
         "foxglove_bytes": fox.bytes if fox is not None else None,
     }
+
+
+def wait_for_daemons(status: JsonSubscription, count: int, timeout_s: float = 90.0) -> None:
+    """Wait until ``count`` daemons (the workers) have published a Status: all are serving."""
+    seen: set[str] = set()
+    deadline = time.monotonic() + timeout_s
+    while len(seen) < count:
+        msg = status.get(timeout=max(0.0, deadline - time.monotonic()))
+        if msg is None:
+            raise RuntimeError(f"expected {count} daemon(s) serving within {timeout_s:g} s, got {len(seen)}")
+        seen.add(msg["daemon_id"])
+
+
+def latest_statuses(status: JsonSubscription, count: int) -> dict[str, int]:
+    """The next Status of each of ``count`` daemons, their counters added up (-1: none came)."""
+    latest: dict[str, dict[str, Any]] = {}
+    deadline = time.monotonic() + 5.0
+    while len(latest) < count:
+        msg = status.get(timeout=max(0.0, deadline - time.monotonic()))
+        if msg is None:
+            break
+        latest[msg["daemon_id"]] = msg
+    if not latest:
+        return {}
+    return {k: sum(m[k] for m in latest.values()) for k in ("dropped", "errors", "backpressure_waits")}
 
 
 def _print(console: Console, r: dict[str, Any]) -> None:
