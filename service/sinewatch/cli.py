@@ -77,8 +77,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     check_rules(config.rules)
     _check_recording_dir(config)
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
-    from sinewatch.workers import supervise, worker_count
+    from sinewatch.workers import end_with_parent, supervise, worker_count
 
+    if config.workers.index is not None:  # a worker process of a supervisor
+        end_with_parent()
     count = worker_count(config, args.workers)
     if count > 1:
         return supervise(config, count)

@@ -196,9 +196,10 @@ class ClusterMember:
 
     # ---- active ----------------------------------------------------------------------------------
     def _activate(self) -> None:
+        # Subscribed first: the token says "serving", and a publisher that sees it may send at once.
+        self.daemon.start_intake()
         self._set_token(self.active_key)
         self.role = "active"
-        self.daemon.start_intake()
         self._spawn(self._publish_snapshots())
         log.info("cluster: active for shard %s (%s)", self.shard_id, self.shard or self.daemon.config.keys.input)
 
@@ -207,6 +208,8 @@ class ClusterMember:
         while self.role == "active":
             await asyncio.sleep(interval)
             try:
+                # What the state covers is on disk first: a restart from it loses no recorded input.
+                self.daemon.pipeline.flush_sinks()
                 payload = json.dumps(self.daemon.pipeline.snapshot(), separators=(",", ":")).encode()
                 self._session().put(self.snapshot_key, payload, encoding="application/json")
             except Exception:  # a failed put (session closing) must not end the timer

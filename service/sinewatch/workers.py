@@ -309,7 +309,10 @@ class Supervisor:
             return
         log.info("%s received: draining %d workers", signal.Signals(sig).name, len(self.workers))
         self.should_exit.set()
-        self._signal_workers(signal.SIGINT)
+        # SIGTERM drains a worker as SIGINT does, and ends one still starting (its handlers not
+        # installed yet) at once, where SIGINT would raise KeyboardInterrupt wherever it is;
+        # a SIGINT after it forces a draining worker.
+        self._signal_workers(signal.SIGTERM)
 
     def _signal_workers(self, sig: int) -> None:
         for worker in self.workers:
@@ -374,6 +377,18 @@ class Supervisor:
         self._tmp.rmdir()
 
 
+def end_with_parent() -> None:
+    """In a worker: the kernel sends it SIGTERM when its supervisor dies (even by SIGKILL),
+    so no worker outlives it (``prctl(PR_SET_PDEATHSIG)``, Linux)."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    if os.getppid() == 1:  # the supervisor died before the call: nobody would send it
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def supervise(config: SinewatchConfig, count: int) -> int:
     """``sinewatch serve`` with ``count`` worker processes, in the foreground until SIGINT/SIGTERM."""
 
@@ -383,4 +398,4 @@ def supervise(config: SinewatchConfig, count: int) -> int:
     return asyncio.run(main())
 
 
-__all__ = ["Supervisor", "Worker", "supervise", "worker_count"]
+__all__ = ["Supervisor", "Worker", "end_with_parent", "supervise", "worker_count"]
