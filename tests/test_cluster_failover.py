@@ -78,6 +78,8 @@ role = "{role}"
 snapshot_interval_s = 0.5
 [recording]
 directory = "{tmp_path / daemon_id}"
+[workers]
+count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
 """
     )
     log = open(tmp_path / f"{daemon_id}.log", "a")

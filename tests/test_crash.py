@@ -30,7 +30,9 @@ def test_sigkill_under_load_loses_at_most_the_flush_interval(tmp_path):
     config = make_config(tmp_path, recording=RecordingSection(directory=tmp_path / "rec", flush_interval_s=FLUSH_S))
     cfg_file = tmp_path / "serve.json"
     cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
-    serve = subprocess.Popen([sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_file)])
+    # One process: what a SIGKILL of the process holding the recorder loses (with workers, a
+    # SIGKILL of the supervisor makes its workers drain: test_workers.py)
+    serve = subprocess.Popen([sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_file), "--workers", "1"])
     handled_at: list[float] = []  # when each block's estimate came back
     try:
         with connect([config.zenoh.listen[0]], timeout_s=TIMEOUT) as s:

@@ -249,6 +249,8 @@ def test_serve_flags_turn_on_metrics_and_foxglove_as_the_config_would(tmp_path):
             str(mport),
             "--foxglove",
             str(fport),
+            "--workers",
+            "1",  # the flags in one process (ports per worker: test_workers.py)
         ],
         stderr=subprocess.PIPE,
         text=True,

@@ -15,19 +15,22 @@ import json
 import queue
 import signal
 import subprocess
+import urllib.request
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import zenoh
 from conftest import TIMEOUT, endpoint, make_config, sinewatch, take
 
 from sinewatch.bench.e2e import process_tree
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_estimates
+from sinewatch.clients.session import free_loopback_port
 from sinewatch.cluster import shard_id_of, worker_of
 from sinewatch.replay import file_identity, replay, split_runs
 from sinewatch.schemas.codec import Block, encode_block_binary
-from sinewatch.schemas.config import ClusterSection, EstimatorRule, SinewatchConfig, WorkersSection
+from sinewatch.schemas.config import ClusterSection, EstimatorRule, MetricsSection, SinewatchConfig, WorkersSection
 
 FS = 1000.0
 BLOCK = 100
@@ -89,8 +92,24 @@ def _by_channel(estimates: list[dict[str, Any]]) -> dict[str, list[dict[str, Any
     return out
 
 
+def _blocks_processed(port: int) -> float:
+    """``sinewatch_blocks_processed_total`` from a worker's /metrics."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=TIMEOUT) as r:
+        text = r.read().decode()
+    return sum(
+        s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+        if s.name == "sinewatch_blocks_processed_total"
+    )
+
+
 def test_two_workers_serve_200_channels_in_order_and_replay_bit_for_bit(tmp_path):
-    config = _config(tmp_path)
+    pytest.importorskip("prometheus_client")
+    port = free_loopback_port()  # worker 1's; worker 2 takes the next one
+    config = _config(tmp_path).model_copy(update={"metrics": MetricsSection(port=port)})
     serve = _start(config, tmp_path)
     try:
         with connect([endpoint(config)], timeout_s=60) as session:
@@ -99,9 +118,12 @@ def test_two_workers_serve_200_channels_in_order_and_replay_bit_for_bit(tmp_path
             pub = BlockPublisher(session)
             _publish(pub, range(200), range(10))
             got = take(est, 2000, timeout=60)
+            # each worker serves its own /metrics, worker i on the port + i - 1; together: every block
+            processed = [_blocks_processed(port), _blocks_processed(port + 1)]
     finally:
         _stop(serve)
     assert len(got) == 2000
+    assert sum(processed) == 2000 and min(processed) > 0
     per_channel = _by_channel(got)
     assert len(per_channel) == 200
     for name, estimates in per_channel.items():

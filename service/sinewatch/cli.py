@@ -83,6 +83,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         end_with_parent()
     count = worker_count(config, args.workers)
     if count > 1:
+        from sinewatch.daemon import check_extras
+
+        check_extras(config)  # here, in one line, not in each worker
         return supervise(config, count)
     return serve(config)
 

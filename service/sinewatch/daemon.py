@@ -441,13 +441,13 @@ class Daemon:
         """The Foxglove server and the metrics server, when configured."""
         fox, met = self.config.foxglove, self.config.metrics
         if fox.port is not None:
-            module = _optional("foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]")
+            module = _foxglove_module()
             try:
                 self.foxglove = module.FoxgloveSink(self.config)
             except Exception as exc:  # noqa: BLE001 (the SDK's errors have no common base: say what failed)
                 raise ConfigError(f"foxglove: expected to listen on {fox.host}:{fox.port}, got {exc}") from None
         if met.port is not None:
-            module = _optional("metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]")
+            module = _metrics_module()
             self._latency = module.LatencyHistogram()
             try:
                 self.metrics = module.MetricsServer(met.host, met.port, self.metrics_snapshot, self.health)
@@ -545,6 +545,23 @@ def _optional(module: str, package: str, dist: str, extra: str, what: str) -> An
             f"{what} needs the {extra!r} extra: pip install 'sinewatch[{extra}]' "
             f"(expected the {dist} package, got no module {package!r})"
         ) from None
+
+
+def _foxglove_module() -> Any:
+    return _optional("foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]")
+
+
+def _metrics_module() -> Any:
+    return _optional("metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]")
+
+
+def check_extras(config: SinewatchConfig) -> None:
+    """Raise ConfigError (one line) when ``[foxglove]`` or ``[metrics]`` is on without its
+    extra: ``serve --workers`` checks it before it starts any worker."""
+    if config.foxglove.port is not None:
+        _foxglove_module()
+    if config.metrics.port is not None:
+        _metrics_module()
 
 
 def _started(value: _T | None, what: str) -> _T:

@@ -105,6 +105,7 @@ class Supervisor:
         self.install_signal_handlers = install_signal_handlers
         self.should_exit = asyncio.Event()
         self.force_exit = False
+        self.failed_to_start = False
         self.all_ready = asyncio.Event()
         self.notifier = Notifier()
         self.workers: list[Worker] = []
@@ -189,6 +190,11 @@ class Supervisor:
             code = await worker.process.wait()
             worker.exit_codes.append(code)
             if self.should_exit.is_set():
+                return
+            if code == 2 and not worker.ready:  # it refused its configuration (a port in use...): so would a restart
+                log.error("worker %d could not start (exit 2, its error above): stopping", worker.index)
+                self.failed_to_start = True
+                self.handle_signal(signal.SIGTERM)
                 return
             lived = time.monotonic() - worker.started_at
             worker.backoff_s = (
@@ -352,6 +358,8 @@ class Supervisor:
             finally:
                 self._close(loop)
         codes = [w.exit_codes[-1] for w in self.workers if w.exit_codes]
+        if self.failed_to_start:
+            return 2
         if self.force_exit:
             return 130
         return 0 if all(code == 0 for code in codes) else 1
