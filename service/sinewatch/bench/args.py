@@ -39,7 +39,7 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     bsub = b.add_subparsers(dest="bench_command", required=True, metavar="BENCH")
     benches: tuple[tuple[str, str, Callable[[argparse.ArgumentParser], None]], ...] = (
         ("kernels", "samples/s per core per estimator vs a numpy FFT baseline", add_kernels_arguments),
-        ("e2e", "daemon fed through Zenoh on loopback, recording on", add_e2e_arguments),
+        ("e2e", "daemon fed through Zenoh on loopback, recording on", add_e2e_only_arguments),
         ("overload", "the daemon offered twice what it sustains, with each queue policy", add_overload_arguments),
         ("soak", "hours of load with recording rotation: RSS, fds, latency every interval", add_soak_arguments),
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
@@ -71,7 +71,7 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channels", type=int, default=200)
     parser.add_argument("--rate", type=float, default=10_000.0, help="per-channel sample rate, Hz")
     parser.add_argument("--block", type=int, default=1024)
-    parser.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    parser.add_argument("--duration", type=float, help="seconds (default 60; 20 per point with --sweep)")
     parser.add_argument("--estimator", default="ges-kalman")
     parser.add_argument(
         "--queue-policy", choices=["block", "drop"], default="block", help="the daemon's limits.queue_policy"
@@ -89,6 +89,15 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
         help="the daemon serves its live Foxglove view and a client subscribes to every topic (needs the foxglove extra)",
     )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
+def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
+    add_e2e_arguments(parser)
+    parser.add_argument(
+        "--sweep", action="store_true", help="measure at 1, 10, 100, 1000 and 5000 channels: a table and a plot"
+    )
+    parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep")
+    parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
 
 
 def add_soak_arguments(parser: argparse.ArgumentParser) -> None:

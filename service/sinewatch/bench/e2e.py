@@ -34,10 +34,11 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.table import Table
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.console import make_console
+from sinewatch.console import make_console, print_table
 
 
 def process_tree(pid: int) -> list[int]:
@@ -244,14 +245,113 @@ def feeder_main(argv: list[str] | None = None) -> int:
     return 0
 
 
+SWEEP_CHANNELS = (1, 10, 100, 1000, 5000)
+SWEEP_DURATION_S = 20.0
+SINGLE_DURATION_S = 60.0
+
+
 def run(args: argparse.Namespace) -> int:
     console = make_console()
+    if getattr(args, "sweep", False):
+        return run_sweep(args, console)
+    if args.duration is None:
+        args.duration = SINGLE_DURATION_S
     result = measure(args, console)
     _print(console, result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
     ok = result["missing_estimates"] == 0 and result["daemon_dropped"] == 0
     return 0 if ok else 1
+
+
+def run_sweep(args: argparse.Namespace, console: Console) -> int:
+    """``bench e2e --sweep``: the same measurement at 1, 10, 100, 1,000 and 5,000 channels
+    (``--sweep-channels``), a table, the JSON (``--json``) and a plot of sustained throughput
+    and p99 latency against channels (``--plot``; needs matplotlib, the ``plots`` extra)."""
+    counts = [int(c) for c in args.sweep_channels.split(",")] if args.sweep_channels else list(SWEEP_CHANNELS)
+    duration = args.duration if args.duration is not None else SWEEP_DURATION_S
+    rows = []
+    for n in counts:
+        point = argparse.Namespace(**{**vars(args), "channels": n, "duration": duration, "foxglove": False})
+        row = measure(point, console)
+        if rows:  # memory per channel: the slope from the point before (fixed costs cancel)
+            prev = rows[-1]
+            row["daemon_rss_mb_per_channel"] = (row["daemon_rss_mb_end"] - prev["daemon_rss_mb_end"]) / (
+                n - prev["channels"]
+            )
+        _print(console, row)
+        rows.append(row)
+    print_table(console, sweep_table(rows))
+    if args.json:
+        args.json.write_text(json.dumps({"sweep": rows}, indent=2))
+    plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
+    if plot is not None:
+        plot_sweep(rows, plot)
+        console.print(f"plot: {plot}")
+    return 0
+
+
+def sweep_table(rows: list[dict[str, Any]]) -> Table:
+    table = Table(title="sinewatch bench e2e --sweep (recording on)")
+    for col in (
+        "channels",
+        "offered M/s",
+        "fed M/s",
+        "sustained M/s",
+        "sustained/offered",
+        "missing",
+        "p50 ms",
+        "p99 ms",
+        "CPU (cores)",
+        "RSS MB",
+        "RSS/channel kB (slope)",
+    ):
+        table.add_column(col, justify="right")
+    for r in rows:
+        table.add_row(
+            str(r["channels"]),
+            f"{r['offered_samples_per_s'] / 1e6:.3f}",
+            f"{r['fed_samples_per_s'] / 1e6:.3f}",
+            f"{r['sustained_samples_per_s'] / 1e6:.3f}",
+            f"{r['sustained_samples_per_s'] / r['offered_samples_per_s']:.3f}",
+            str(r["missing_estimates"]),
+            _ms(r["latency_ms_p50"]),
+            _ms(r["latency_ms_p99"]),
+            f"{r['daemon_cpu_fraction_of_one_core']:.2f}",
+            f"{r['daemon_rss_mb_end']:.0f}",
+            f"{1e3 * r['daemon_rss_mb_per_channel']:.1f}" if "daemon_rss_mb_per_channel" in r else "-",
+        )
+    return table
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    channels = [r["channels"] for r in rows]
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    ax.plot(channels, [r["offered_samples_per_s"] / 1e6 for r in rows], "k--", lw=0.8, label="offered")
+    ax.plot(channels, [r["sustained_samples_per_s"] / 1e6 for r in rows], "o-", label="sustained")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("channels (10 kHz each, 1024-sample blocks)")
+    ax.set_ylabel("M samples/s")
+    lat = ax.twinx()
+    lat.plot(channels, [r["latency_ms_p99"] or float("nan") for r in rows], "s-", color="tab:red", label="p99 latency")
+    lat.set_yscale("log")
+    lat.set_ylabel("p99 block-to-estimate latency, ms", color="tab:red")
+    lines = [*ax.get_lines(), *lat.get_lines()]
+    ax.legend(lines, [str(line.get_label()) for line in lines], loc="upper left", fontsize=8)
+    ax.set_title("sinewatch bench e2e --sweep", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def measure(args: argparse.Namespace, console: Console) -> dict[str, Any]:
@@ -407,7 +507,11 @@ def _drive(
         "block": block,
         "duration_s": round(fed["elapsed_s"], 2),
         "offered_samples_per_s": n_ch * fs,
-        "sustained_samples_per_s": probe.received * block / fed["elapsed_s"],
+        # n blocks a channel span n block periods (the feeder's clock spans n - 1 of them)
+        "sustained_samples_per_s": probe.received * block / max(fed["elapsed_s"], rounds * block / fs),
+        "fed_samples_per_s": sent
+        * block
+        / max(fed["elapsed_s"], rounds * block / fs),  # below offered: the feeder could not keep up
         "blocks_sent": sent,
         "estimates_received": probe.received,
         "missing_estimates": sent - probe.received,
@@ -424,7 +528,7 @@ def _drive(
         "gap_blocks_flagged": probe.gap_blocks,
         "daemon_rss_mb_start": rss0,
         "daemon_rss_mb_end": rss1,
-        "daemon_rss_mb_per_channel": (rss1 - rss0) / n_ch,
+        "daemon_rss_mb_growth_per_channel": (rss1 - rss0) / n_ch,  # fixed costs too: --sweep gives the slope
         "workers": expected_daemons(args),
         "drained_s": drained_s,
         "foxglove_messages": dict(sorted(fox.messages.items())) if fox is not None else None,
