@@ -270,7 +270,7 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
     and p99 latency against channels (``--plot``; needs matplotlib, the ``plots`` extra)."""
     counts = [int(c) for c in args.sweep_channels.split(",")] if args.sweep_channels else list(SWEEP_CHANNELS)
     duration = args.duration if args.duration is not None else SWEEP_DURATION_S
-    rows = []
+    rows: list[dict[str, Any]] = []
     for n in counts:
         point = argparse.Namespace(**{**vars(args), "channels": n, "duration": duration, "foxglove": False})
         row = measure(point, console)
