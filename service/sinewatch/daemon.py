@@ -169,8 +169,8 @@ class Intake:
         return True
 
     def release(self, n: int) -> None:
-        for _ in range(n):
-            self._room.release()
+        if n:
+            self._room.release(n)
 
     async def stop(self) -> None:
         """Stop intake: no new inputs; everything already received is handed over."""

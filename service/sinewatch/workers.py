@@ -64,6 +64,7 @@ HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 WORKER_WATCHDOG_USEC = 2_000_000  # workers ping at least every second (half of it)
 EARLY_DEATH_S = 10.0  # a worker that dies sooner than this after its start is restarted after a backoff
 MAX_BACKOFF_S = 30.0
+FORCE_KILL_S = 10.0  # after a forced exit, a worker still running this long after is killed
 
 
 def worker_count(config: SinewatchConfig, requested: int | None = None) -> int:
@@ -312,6 +313,8 @@ class Supervisor:
             log.warning("second SIGINT: forcing the workers to exit (their MCAP files are still finished)")
             self.force_exit = True
             self._signal_workers(signal.SIGINT)
+            # a worker that does not end even then (stuck in a kernel) is killed
+            asyncio.get_running_loop().call_later(FORCE_KILL_S, self._signal_workers, signal.SIGKILL)
             return
         log.info("%s received: draining %d workers", signal.Signals(sig).name, len(self.workers))
         self.should_exit.set()
