@@ -226,6 +226,7 @@ def feeder_main(argv: list[str] | None = None) -> int:
         if not pub.wait_for_subscriber(channels[0], 30.0):
             return 2
         start = time.monotonic()
+        cpu0 = time.process_time()
         for r in range(a.rounds):
             idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
             for c, name in enumerate(channels):
@@ -237,7 +238,8 @@ def feeder_main(argv: list[str] | None = None) -> int:
                 blk = pub.block(name, base[c][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
                 pub.publish_raw(name, pub.encode(blk))
         elapsed = time.monotonic() - start
-        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late}), flush=True)
+        cpu = time.process_time() - cpu0
+        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late, "cpu_s": cpu}), flush=True)
         # Stay connected until told: blocks still in this session's send queue would be lost
         # with it, and counted against the daemon.
         sys.stdin.read()
@@ -516,6 +518,7 @@ def _drive(
         "estimates_received": probe.received,
         "missing_estimates": sent - probe.received,
         "feeder_late_blocks": fed["late_blocks"],
+        "feeder_cpu_fraction_of_one_core": fed["cpu_s"] / fed["elapsed_s"],
         "daemon_dropped": last_status.get("dropped", -1),
         "daemon_errors": last_status.get("errors", -1),
         "daemon_backpressure_waits": last_status.get("backpressure_waits", -1),
