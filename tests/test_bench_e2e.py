@@ -35,3 +35,22 @@ def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
     assert "daemon_rss_mb_per_channel" in rows[1]
     assert "sustained M/s" in r.stdout and "p99 ms" in r.stdout
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_fanout_delivers_every_block_both_ways(tmp_path):
+    """``sinewatch bench fanout``: every block reaches its worker through Zenoh and through
+    the shared-memory rings; the JSON has both ways' CPU per block."""
+    out = tmp_path / "fanout.json"
+    r = subprocess.run(
+        sinewatch("bench", "fanout", "--channels", "20", "--blocks", "400", "--json", str(out)),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = {row["way"]: row for row in json.loads(out.read_text())}
+    assert set(rows) == {"zenoh", "shm"}
+    for row in rows.values():
+        assert row["delivered"] == row["blocks"] == 400
+        assert row["total_cpu_us_per_block"] >= row["receiver_cpu_us_per_block"] > 0

@@ -40,6 +40,11 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     benches: tuple[tuple[str, str, Callable[[argparse.ArgumentParser], None]], ...] = (
         ("kernels", "samples/s per core per estimator vs a numpy FFT baseline", add_kernels_arguments),
         ("e2e", "daemon fed through Zenoh on loopback, recording on", add_e2e_only_arguments),
+        (
+            "fanout",
+            "serve --workers' input fan-out: Zenoh to every worker vs shared-memory rings",
+            add_fanout_arguments,
+        ),
         ("overload", "the daemon offered twice what it sustains, with each queue policy", add_overload_arguments),
         ("soak", "hours of load with recording rotation: RSS, fds, latency every interval", add_soak_arguments),
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
@@ -98,6 +103,14 @@ def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep")
     parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
+
+
+def add_fanout_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--channels", type=int, default=1000)
+    parser.add_argument("--block", type=int, default=1024, help="float32 samples per block")
+    parser.add_argument("--blocks", type=int, default=20_000, help="blocks offered (default 20000)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 def add_soak_arguments(parser: argparse.ArgumentParser) -> None:
