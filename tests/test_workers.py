@@ -11,6 +11,7 @@ processes on real Zenoh over loopback, real MCAP files, a real SIGKILL.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import queue
 import signal
@@ -225,3 +226,44 @@ def test_a_killed_worker_is_restarted_from_its_state_and_flags_the_gap(tmp_path)
     result = replay(files)
     assert result.ok, [m.describe() for m in result.mismatches[:5]]
     assert result.matched == result.recorded_estimates > 600
+
+
+def _supervise_until_ready_then(config: SinewatchConfig, then: Any) -> int:
+    """Run a supervisor in this process (its signal handlers installed) until all its
+    workers serve, call ``then(supervisor)`` on the event loop, and return its exit code."""
+    from sinewatch.workers import Supervisor
+
+    async def main() -> int:
+        supervisor = Supervisor(config, 2)
+        task = asyncio.create_task(supervisor.run())
+        ready = asyncio.create_task(supervisor.all_ready.wait())
+        await asyncio.wait([task, ready], return_when=asyncio.FIRST_COMPLETED, timeout=120)
+        assert supervisor.all_ready.is_set(), "the workers did not all serve within 120 s"
+        then(supervisor)
+        return await task
+
+    return asyncio.run(main())
+
+
+def test_sigint_drains_every_worker_and_finishes_their_files(tmp_path):
+    """SIGINT raised in-process, as a terminal's Ctrl-C: the supervisor drains both workers;
+    each finishes its MCAP file (a summary at its end), exit code 0."""
+    config = _config(tmp_path)
+    code = _supervise_until_ready_then(config, lambda _s: signal.raise_signal(signal.SIGINT))
+    assert code == 0
+    files = sorted((tmp_path / "rec").glob("*.mcap"))
+    assert {file_identity(f)[0] for f in files} == {"test.w1", "test.w2"}
+    for f in files:
+        assert f.read_bytes()[-8:] == b"\x89MCAP0\r\n"  # finished: the closing magic is written
+
+
+def test_a_second_sigint_forces_the_workers_and_says_130(tmp_path):
+    config = _config(tmp_path)
+
+    def twice(_s: Any) -> None:
+        signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)
+
+    assert _supervise_until_ready_then(config, twice) == 130
+    for f in (tmp_path / "rec").glob("*.mcap"):
+        assert f.read_bytes()[-8:] == b"\x89MCAP0\r\n"  # a forced worker still finishes its file
