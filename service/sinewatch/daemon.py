@@ -265,6 +265,10 @@ class Daemon:
                 self._process(batch)
             except Exception:  # the pipeline isolates faults; this is the last line of defence
                 log.exception("batch of %d inputs not fully processed", len(batch))
+            # Queue.get() does not yield while batches wait: without this, a backlog would keep
+            # the heartbeat, status and flush timers from running until it is gone (a watchdog
+            # or a supervisor would then take the busy daemon for a stuck one).
+            await asyncio.sleep(0)
 
     def _process(self, batch: list[Item]) -> None:
         try:
