@@ -267,3 +267,28 @@ def test_a_second_sigint_forces_the_workers_and_says_130(tmp_path):
     assert _supervise_until_ready_then(config, twice) == 130
     for f in (tmp_path / "rec").glob("*.mcap"):
         assert f.read_bytes()[-8:] == b"\x89MCAP0\r\n"  # a forced worker still finishes its file
+
+
+def test_a_backlog_does_not_keep_the_heartbeat_from_running(tmp_path):
+    """The consumer yields after each batch: with batches waiting, another task (the
+    heartbeat that tells the supervisor the worker is alive) still runs between them."""
+    from sinewatch.daemon import Daemon
+
+    class Recording(Daemon):
+        processed: list[int] = []
+
+        def _process(self, batch: list[Any]) -> None:
+            self.processed.append(len(batch))
+
+    async def main() -> int:
+        daemon = Recording(_config(tmp_path), install_signal_handlers=False)
+        for n in range(5):
+            daemon.enqueue([("k", b"", "", n)])
+        daemon._queue.put_nowait(None)
+        consumer = asyncio.create_task(daemon._consume())
+        await asyncio.sleep(0)  # the consumer starts with five batches waiting
+        seen = len(daemon.processed)
+        await consumer
+        return seen
+
+    assert asyncio.run(main()) < 5
