@@ -18,7 +18,7 @@ import signal
 import subprocess
 import urllib.request
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -275,7 +275,7 @@ def test_a_backlog_does_not_keep_the_heartbeat_from_running(tmp_path):
     from sinewatch.daemon import Daemon
 
     class Recording(Daemon):
-        processed: list[int] = []
+        processed: ClassVar[list[int]] = []
 
         def _process(self, batch: list[Any]) -> None:
             self.processed.append(len(batch))
