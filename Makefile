@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: install demo test lint test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -42,6 +42,13 @@ bench-kernels: $(STAMP)
 
 bench-e2e: $(STAMP)
 	$(BIN)/sinewatch bench e2e
+
+bench-e2e-sweep: $(STAMP)
+	mkdir -p bench-results
+	$(BIN)/sinewatch bench e2e --sweep --json bench-results/e2e-sweep.json
+
+bench-fanout: $(STAMP)
+	$(BIN)/sinewatch bench fanout
 
 bench-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy
