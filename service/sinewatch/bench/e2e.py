@@ -294,8 +294,11 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
         args.json.write_text(json.dumps({"sweep": rows}, indent=2))
     plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
     if plot is not None:
-        plot_sweep(rows, plot)
-        console.print(f"plot: {plot}")
+        try:
+            plot_sweep(rows, plot)
+            console.print(f"plot: {plot}")
+        except ModuleNotFoundError as exc:
+            console.print(f"no plot ({exc.name} is not installed: pip install 'sinewatch[plots]')")
     return 0
 
 
