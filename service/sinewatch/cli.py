@@ -584,7 +584,12 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--prefix", default="sim", help="channel name prefix (default sim)")
     f.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
-    f.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the daemon")
+    f.add_argument(
+        "--wait",
+        type=float,
+        default=60.0,
+        help="seconds to wait for the daemon (default 60: a daemon starting its workers opens its endpoint once all serve)",
+    )
 
     t = _command(sub, "tail", "print estimates (or any sinewatch JSON messages) as they arrive", cmd_tail)
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
@@ -592,7 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--count", type=int, default=0, help="exit after N messages")
     t.add_argument("--timeout", type=float, default=None, help="exit after this many idle seconds")
     t.add_argument("--json", action="store_true", help="print raw JSON lines")
-    t.add_argument("--wait", type=float, default=10.0, help="seconds to keep trying to connect")
+    t.add_argument("--wait", type=float, default=60.0, help="seconds to keep trying to connect (default 60)")
     t.add_argument("--c37118", metavar="HOST:PORT", help="read a C37.118.2 PMU (or sinewatch serve --c37118) instead")
     t.add_argument("--id-code", type=int, default=1, help="with --c37118: the station's ID code (default 1)")
 

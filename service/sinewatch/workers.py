@@ -111,7 +111,7 @@ class Supervisor:
         self.notifier = Notifier()
         self.workers: list[Worker] = []
         self._tmp = Path(tempfile.mkdtemp(prefix="sinewatch-workers-"))
-        self._session: zenoh.Session | None = None
+        self._sessions: list[zenoh.Session] = []  # the inner router (or the config's session), then the outer
         self._subscribers: list[Any] = []
         self._notify_sock: socket.socket | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -134,11 +134,18 @@ class Supervisor:
             raw=dict(z.raw),
         )
 
-    def _router_section(self) -> ZenohSection:
+    def _inner_section(self) -> ZenohSection:
+        """The workers' router: on the private endpoint only, so that nobody outside reaches
+        a worker before all of them have subscribed."""
+        return ZenohSection(mode="router", listen=[self._private_endpoint], connect=[], recovery=False)
+
+    def _outer_section(self) -> ZenohSection:
+        """The configured endpoints, opened once every worker has subscribed: a router that
+        reaches the workers through the inner one. A publisher that connects sees the
+        subscription of the inner router, which has every worker's already: no worker's first
+        blocks go to nobody (the bare race: `feed` starts when the first worker subscribed)."""
         z = self.config.zenoh
-        if not z.listen:
-            return z
-        return z.model_copy(update={"mode": "router", "listen": [*z.listen, self._private_endpoint]})
+        return z.model_copy(update={"mode": "router", "connect": [*z.connect, self._private_endpoint]})
 
     def worker_config(self, index: int, resume_from: Path | None = None) -> SinewatchConfig:
         """Worker ``index``'s config: the supervisor's, with its id, session, share of the keys
@@ -334,28 +341,34 @@ class Supervisor:
         loop = asyncio.get_running_loop()
         with self._signals():
             try:
-                self._session = open_session(self._router_section())
+                hosting = bool(self.config.zenoh.listen)
+                inner = open_session(self._inner_section() if hosting else self.config.zenoh)
+                self._sessions.append(inner)
                 admin = self.config.keys.admin_prefix.rstrip("/")
-                self._subscribers.append(
-                    self._session.declare_subscriber(f"{admin}/shard/*/snapshot", self._on_snapshot)
-                )
+                self._subscribers.append(inner.declare_subscriber(f"{admin}/shard/*/snapshot", self._on_snapshot))
                 self._open_notify_socket(loop)
                 for i in range(1, self.count + 1):
                     worker = Worker(i, self._tmp / f"worker-{i}.json", shard_id_of(self.worker_config(i)))
                     self.workers.append(worker)
                     await self._spawn(worker)
-                log.info(
-                    "sinewatch supervisor %s: %d workers, zenoh %s listen=%s",
-                    self.config.daemon_id,
-                    self.count,
-                    self.config.zenoh.mode,
-                    self.config.zenoh.listen,
-                )
                 self._tasks = [asyncio.create_task(self._watch(w)) for w in self.workers]
                 self._tasks.append(asyncio.create_task(self._heartbeat()))
-                ready = asyncio.create_task(self._announce_ready())
-                await self.should_exit.wait()
+                ready = asyncio.create_task(self.all_ready.wait())
+                stop = asyncio.create_task(self.should_exit.wait())
+                await asyncio.wait([ready, stop], return_when=asyncio.FIRST_COMPLETED)
                 ready.cancel()
+                if not self.should_exit.is_set():
+                    if hosting:
+                        self._sessions.append(open_session(self._outer_section()))
+                    self.notifier.ready(f"{self.count} workers serving {self.config.keys.input}")
+                    log.info(
+                        "sinewatch supervisor %s: %d workers serving, zenoh router listen=%s connect=%s",
+                        self.config.daemon_id,
+                        self.count,
+                        self.config.zenoh.listen,
+                        self.config.zenoh.connect,
+                    )
+                await stop
                 self.notifier.stopping(f"draining {self.count} workers")
                 await asyncio.gather(*(w.process.wait() for w in self.workers if w.process is not None))
             finally:
@@ -367,11 +380,6 @@ class Supervisor:
             return 130
         return 0 if all(code == 0 for code in codes) else 1
 
-    async def _announce_ready(self) -> None:
-        await self.all_ready.wait()
-        self.notifier.ready(f"{self.count} workers serving {self.config.keys.input}")
-        log.info("all %d workers serving", self.count)
-
     def _close(self, loop: asyncio.AbstractEventLoop) -> None:
         for task in self._tasks:
             task.cancel()
@@ -381,8 +389,8 @@ class Supervisor:
         if self._notify_sock is not None:
             loop.remove_reader(self._notify_sock.fileno())
             self._notify_sock.close()
-        if self._session is not None:
-            self._session.close()  # type: ignore[no-untyped-call]
+        for session in reversed(self._sessions):  # the outer router first: no new input meanwhile
+            session.close()  # type: ignore[no-untyped-call]
         for path in self._tmp.iterdir():
             path.unlink()
         self._tmp.rmdir()
