@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from math import isfinite
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,7 +39,14 @@ from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
 from sinewatch.estimators.presence import SignalPresence
 from sinewatch.power_quality.stage import PqStage
-from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
+from sinewatch.schemas.codec import (
+    Block,
+    decode_block,
+    encode_error,
+    encode_estimate_values,
+    finite_or_none,
+    json_string,
+)
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
 from sinewatch.schemas.messages import (
@@ -210,6 +218,7 @@ class Channel:
     last_latency_ns: int | None = None
     converged: bool = False
     presence: SignalPresence | None = None  # set in __post_init__
+    json_names: tuple[str, str] | None = field(default=None, repr=False)  # name, estimator as JSON strings
 
     def __post_init__(self) -> None:
         if self.presence is None:
@@ -486,15 +495,24 @@ class Pipeline:
             payloads.append(payload)
         return payloads
 
-    def _valid(self, ch: Channel, track: Track, timestamp_ns: int, t_last_ns: int) -> bool:
+    def _valid(
+        self,
+        ch: Channel,
+        timestamp_ns: int,
+        t_last_ns: int,
+        frequency_hz: list[float | None],
+        amplitude: list[float | None],
+    ) -> bool:
         """``diagnostics.valid`` (format 3): the signal has been present (the presence
         detector, :mod:`sinewatch.estimators.presence`) from the estimator's memory before
-        the estimate's time up to the block's last sample, and the estimate is finite."""
+        the estimate's time up to the block's last sample, and the estimate is finite
+        (``frequency_hz`` and ``amplitude`` as :func:`_finite_list` made them: None where
+        not finite)."""
         assert ch.presence is not None
         lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
         if ch.presence.run_samples < ch.estimator.memory_samples + lag:
             return False
-        return bool(np.all(np.isfinite(track.frequency_hz[-1])) and np.all(np.isfinite(track.amplitude[-1])))
+        return None not in frequency_hz and None not in amplitude
 
     def _estimate_payload(
         self,
@@ -508,37 +526,53 @@ class Pipeline:
         reset: bool,
     ) -> tuple[bytes, bool]:
         """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
-        not valid is not converged either."""
+        not valid is not converged either.
+
+        The bytes are built without the pydantic model (:func:`encode_estimate_values`, the
+        same bytes as ``encode_estimate(estimate_model(...))``; tests/test_codec_estimate_fast.py
+        proves it), one estimate per block being the pipeline's hot path."""
         converged = bool(track.converged[-1])
+        frequency_hz = _finite_list(track.frequency_hz[-1])
+        amplitude = _finite_list(track.amplitude[-1])
         valid = True
-        if self.estimate_version >= 3:
-            valid = self._valid(ch, track, timestamp_ns, t_last_ns)
+        version = self.estimate_version
+        if version >= 3:
+            valid = self._valid(ch, timestamp_ns, t_last_ns, frequency_hz, amplitude)
             converged = converged and valid
-        n = block.n_samples
-        estimate = Estimate(
-            channel=ch.name,
-            seq=block.seq,
-            timestamp_ns=timestamp_ns,
-            n_samples=n,
-            estimator=ch.estimator.name,
-            frequency_hz=_finite_list(track.frequency_hz[-1]),
-            amplitude=_finite_list(track.amplitude[-1]),
-            phase_rad=_finite_list(track.phase_rad[-1]),
-            offset=finite_or_none(track.offset[-1]),
-            rocof_hz_per_s=None if track.rocof_hz_per_s is None else _finite_list(track.rocof_hz_per_s[-1]),
-            std=None if track.std is None else _uncertainty(track.std),
-            diagnostics=Diagnostics(
-                converged=converged,
-                valid=valid,
-                residual_rms=finite_or_none(track.residual_rms),
-                gap=gap_blocks > 0 or restart,
-                gap_blocks=gap_blocks,
-                restart=restart,
-                reset=reset,
-                extras={k: _last_value(v) for k, v in track.extras.items()},
+        std = track.std
+        names = ch.json_names
+        if names is None:
+            names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
+        payload = encode_estimate_values(
+            version,
+            names[0],
+            block.seq,
+            int(timestamp_ns),
+            block.n_samples,
+            names[1],
+            frequency_hz,
+            amplitude,
+            _finite_list(track.phase_rad[-1]),
+            finite_or_none(track.offset[-1]),
+            None if track.rocof_hz_per_s is None else _finite_list(track.rocof_hz_per_s[-1]),
+            None
+            if std is None
+            else (
+                _finite_list(std.frequency_hz[-1]),
+                _finite_list(std.amplitude[-1]),
+                _finite_list(std.phase_rad[-1]),
+                finite_or_none(std.offset[-1]),
             ),
+            converged,
+            valid,
+            finite_or_none(track.residual_rms),
+            gap_blocks > 0 or restart,
+            gap_blocks,
+            restart,
+            reset,
+            {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
         )
-        return encode_estimate(estimate, self.estimate_version), converged
+        return payload, converged
 
     def _reject(
         self,
@@ -688,15 +722,61 @@ def _is_power_of_ten(n: int) -> bool:
     return n == 1
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _finite_list(row: np.ndarray) -> list[float | None]:
+    """``[finite_or_none(v) for v in row]``, faster for the usual float64 row."""
+    if type(row) is np.ndarray and row.dtype == _F64 and row.ndim == 1:
+        return [v if isfinite(v) else None for v in row.tolist()]
     return [finite_or_none(v) for v in row]
+
+
+def estimate_model(
+    ch: Channel,
+    block: Block,
+    track: Track,
+    timestamp_ns: int,
+    converged: bool,
+    valid: bool,
+    gap_blocks: int,
+    restart: bool,
+    reset: bool,
+) -> Estimate:
+    """The Estimate the pipeline's bytes encode, as the pydantic model: the schema's way of
+    building it, what :meth:`Pipeline._estimate_payload` equals byte for byte (tests)."""
+    return Estimate(
+        channel=ch.name,
+        seq=block.seq,
+        timestamp_ns=timestamp_ns,
+        n_samples=block.n_samples,
+        estimator=ch.estimator.name,
+        frequency_hz=[finite_or_none(v) for v in track.frequency_hz[-1]],
+        amplitude=[finite_or_none(v) for v in track.amplitude[-1]],
+        phase_rad=[finite_or_none(v) for v in track.phase_rad[-1]],
+        offset=finite_or_none(track.offset[-1]),
+        rocof_hz_per_s=None
+        if track.rocof_hz_per_s is None
+        else [finite_or_none(v) for v in track.rocof_hz_per_s[-1]],
+        std=None if track.std is None else _uncertainty(track.std),
+        diagnostics=Diagnostics(
+            converged=converged,
+            valid=valid,
+            residual_rms=finite_or_none(track.residual_rms),
+            gap=gap_blocks > 0 or restart,
+            gap_blocks=gap_blocks,
+            restart=restart,
+            reset=reset,
+            extras={k: _last_value(v) for k, v in track.extras.items()},
+        ),
+    )
 
 
 def _uncertainty(std: TrackStd) -> Uncertainty:
     return Uncertainty(
-        frequency_hz=_finite_list(std.frequency_hz[-1]),
-        amplitude=_finite_list(std.amplitude[-1]),
-        phase_rad=_finite_list(std.phase_rad[-1]),
+        frequency_hz=[finite_or_none(v) for v in std.frequency_hz[-1]],
+        amplitude=[finite_or_none(v) for v in std.amplitude[-1]],
+        phase_rad=[finite_or_none(v) for v in std.phase_rad[-1]],
         offset=finite_or_none(std.offset[-1]),
     )
 
