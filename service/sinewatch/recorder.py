@@ -21,11 +21,14 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mcap.opcode import Opcode
+from mcap.records import MessageIndex
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.schemas import __version__, codec
@@ -56,6 +59,58 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
     return "json", "sinewatch.SampleBlock"
 
 
+# A Message record: opcode, record length, then channel_id u16, sequence u32, log_time u64,
+# publish_time u64 and the data (MCAP spec, "Message (op=0x05)"): what mcap's Message.write
+# writes, in one pack.
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+_MESSAGE_OPCODE = int(Opcode.MESSAGE)
+
+
+class FastWriter(Writer):
+    """mcap's :class:`~mcap.writer.Writer` with a cheaper :meth:`add_message`: the Message
+    record goes into the open chunk with one ``struct.pack`` instead of a record object and
+    six writes, and the chunk's and file's bookkeeping (message index, statistics, chunk
+    times) is updated inline. Everything else (chunks, compression, CRCs, indexes, summary)
+    is mcap's own, so the file is byte for byte what ``Writer`` writes for the same calls
+    (tests/test_recorder_fast_writer.py checks it against ``Writer`` itself, so an mcap
+    release that changes its internals fails there, not in the field).
+
+    Only chunked writing is supported (what the recorder uses)."""
+
+    def __init__(self, output: BinaryIO, *, chunk_size: int, compression: CompressionType) -> None:
+        super().__init__(output, chunk_size=chunk_size, compression=compression)
+        # mcap keeps these private (name-mangled); FastWriter updates them as add_message would
+        self._chunk_builder = getattr(self, "_Writer__chunk_builder")
+        self._statistics = getattr(self, "_Writer__statistics")
+        self._maybe_finalize_chunk = getattr(self, "_Writer__maybe_finalize_chunk")
+        self._chunk_limit = chunk_size
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+        head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+        stats = self._statistics
+        if stats.message_count == 0 or log_time < stats.message_start_time:
+            stats.message_start_time = log_time
+        if log_time > stats.message_end_time:
+            stats.message_end_time = log_time
+        stats.channel_message_counts[channel_id] += 1
+        stats.message_count += 1
+        cb = self._chunk_builder
+        if cb.num_messages == 0 or log_time < cb.message_start_time:
+            cb.message_start_time = log_time
+        if log_time > cb.message_end_time:
+            cb.message_end_time = log_time
+        buf = cb.record_writer._buffer
+        index = cb.message_indices.get(channel_id)
+        if index is None:
+            index = cb.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+        index.records.append((log_time, buf.tell()))
+        cb.num_messages += 1
+        buf.write(head)
+        buf.write(data)
+        if buf.tell() > self._chunk_limit:
+            self._maybe_finalize_chunk()
+
+
 class McapRecorder:
     """Pipeline sink writing MCAP; also records Status through :meth:`on_status`."""
 
@@ -78,7 +133,7 @@ class McapRecorder:
         self.index = 0
         self.paths: list[Path] = []
         self._file: BinaryIO | None = None
-        self._writer: Writer | None = None
+        self._writer: FastWriter | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
@@ -86,7 +141,7 @@ class McapRecorder:
         self.messages_written = 0
 
     @property
-    def _w(self) -> Writer:
+    def _w(self) -> FastWriter:
         if self._writer is None:
             raise RuntimeError("recorder: no open file (call open() first)")
         return self._writer
@@ -113,7 +168,7 @@ class McapRecorder:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(path, "wb")
-        self._writer = Writer(
+        self._writer = FastWriter(
             self._file,
             chunk_size=self.section.chunk_size_bytes,
             compression=_COMPRESSION[self.section.compression],
@@ -231,7 +286,10 @@ class McapRecorder:
     def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
         seq = self._sequence.get(cid, 0)
         self._sequence[cid] = seq + 1
-        self._w.add_message(cid, log_time_ns, payload, time.time_ns(), sequence=seq)
+        writer = self._writer
+        if writer is None:
+            raise RuntimeError("recorder: no open file (call open() first)")
+        writer.add_message(cid, log_time_ns, payload, time.time_ns(), seq)
         self.messages_written += 1
 
     # ---- the sink --------------------------------------------------------------------------
@@ -268,4 +326,4 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "McapRecorder"]
+__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
