@@ -99,7 +99,8 @@ class NullSink:
 
 class GuardedSink:
     """A sink whose failures are caught, counted and reported, never raised into the
-    pipeline: a full disk or a closed Zenoh session must not stop estimation.
+    pipeline: a full disk or a closed Zenoh session must not stop estimation. The sink's
+    ``on_input``, ``on_estimate`` and ``on_output`` are looked up once, when it is wrapped.
 
     After a failure the sink is skipped (each output it misses is counted) for
     ``retry_s``; the next *input* after that reopens it (its ``recover()``, if it has
@@ -127,6 +128,10 @@ class GuardedSink:
         self.recoveries = 0
         self.last_error: str | None = None
         self._retry_at = 0.0
+        # the sink's per-message methods, looked up once (None: NullSink's, which does nothing)
+        self._on_input: Callable[[str, bytes, str, int], None] | None = _own_method(sink, "on_input")
+        self._on_estimate: Callable[[str, bytes, int], None] | None = _own_method(sink, "on_estimate")
+        self._on_output: Callable[[str, str, bytes, int], None] | None = _own_method(sink, "on_output")
 
     def _call(self, method: str, *args: Any) -> None:
         if not self.ok and (method != "on_input" or self._clock() < self._retry_at or not self._recover()):
@@ -166,11 +171,27 @@ class GuardedSink:
             )
             self._on_failure(self.name, f"{self.name} failed in {where}: {self.last_error}")
 
+    # The per-message methods: the same as _call(name, ...), without its getattr and
+    # argument tuple (one call per block each, the pipeline's hot path); a method the sink
+    # leaves as NullSink's (it does nothing) is not called at all while the sink is ok.
     def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
-        self._call("on_input", key, payload, encoding, log_time_ns)
+        if not self.ok and (self._clock() < self._retry_at or not self._recover()):
+            self.skipped += 1
+            return
+        if self._on_input is not None:
+            try:
+                self._on_input(key, payload, encoding, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (a sink's fault is the sink's: isolate it, report it)
+                self._fail("on_input", exc)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._call("on_estimate", key, payload, log_time_ns)
+        if not self.ok:
+            self.skipped += 1
+        elif self._on_estimate is not None:
+            try:
+                self._on_estimate(key, payload, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_estimate", exc)
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._call("on_error", key, payload, log_time_ns)
@@ -179,7 +200,13 @@ class GuardedSink:
         self._call("on_status", key, payload, log_time_ns)
 
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._call("on_output", kind, key, payload, log_time_ns)
+        if not self.ok:
+            self.skipped += 1
+        elif self._on_output is not None:
+            try:
+                self._on_output(kind, key, payload, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_output", exc)
 
     def open(self) -> None:
         if hasattr(self.sink, "open"):
@@ -683,6 +710,12 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+def _own_method(sink: Sink, name: str) -> Any:
+    """``sink.<name>`` (bound once), or None when it is NullSink's, which does nothing."""
+    method = getattr(sink, name)
+    return None if getattr(method, "__func__", None) is getattr(NullSink, name) else method
 
 
 def _attributes(obj: object, *names: str) -> dict[str, Any]:

@@ -24,9 +24,11 @@ import logging
 import struct
 import time
 from collections.abc import Callable
+from itertools import chain
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import MessageIndex
 from mcap.writer import CompressionType, Writer
@@ -64,6 +66,27 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
 # writes, in one pack.
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_OPCODE = int(Opcode.MESSAGE)
+_MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
+
+
+class _PackedMessageIndex(MessageIndex):
+    """A MessageIndex record written with one ``struct.pack`` (mcap's writes two 8-byte
+    fields per entry, one call each): opcode, record length, channel_id u16, entries' byte
+    length u32, then (log_time u64, offset u64) per entry (MCAP spec, "Message Index
+    (op=0x07)"), the same bytes."""
+
+    def write(self, stream: RecordBuilder) -> None:
+        n = len(self.records)
+        stream.write(
+            struct.pack(
+                f"<BQHI{2 * n}Q",
+                _MESSAGE_INDEX_OPCODE,
+                6 + 16 * n,
+                self.channel_id,
+                16 * n,
+                *chain.from_iterable(self.records),
+            )
+        )
 
 
 class FastWriter(Writer):
@@ -71,7 +94,7 @@ class FastWriter(Writer):
     record goes into the open chunk with one ``struct.pack`` instead of a record object and
     six writes, and the chunk's and file's bookkeeping (message index, statistics, chunk
     times) is updated inline. Everything else (chunks, compression, CRCs, indexes, summary)
-    is mcap's own, so the file is byte for byte what ``Writer`` writes for the same calls
+    is mcap's own (message indexes packed in one call each, the same bytes), so the file is byte for byte what ``Writer`` writes for the same calls
     (tests/test_recorder_fast_writer.py checks it against ``Writer`` itself, so an mcap
     release that changes its internals fails there, not in the field).
 
@@ -102,7 +125,7 @@ class FastWriter(Writer):
         buf = cb.record_writer._buffer
         index = cb.message_indices.get(channel_id)
         if index is None:
-            index = cb.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+            index = cb.message_indices[channel_id] = _PackedMessageIndex(channel_id=channel_id, records=[])
         index.records.append((log_time, buf.tell()))
         cb.num_messages += 1
         buf.write(head)
