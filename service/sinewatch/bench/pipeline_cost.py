@@ -17,8 +17,9 @@ The same blocks are also taken through each step alone, to break the cost down:
 * ``rest``: the pipeline's cost less the steps above (sequence checks, dispatch to the
   sinks, counters).
 
-Each figure is the median over ``--repeats`` of ``--rounds`` blocks per channel, microseconds
-per block (one block = one channel's ``--block`` samples).
+Microseconds per block (one block = one channel's ``--block`` samples): each repeat takes
+``--rounds`` fresh blocks per channel through every step in turn; a figure is the step's
+fastest repeat (the least disturbed by other load on the machine), its median beside it.
 """
 
 from __future__ import annotations
@@ -88,15 +89,7 @@ class Feed:
         return out
 
 
-def _measure(feed: Feed, rounds: int, repeats: int, step: Callable[[list[list[tuple[str, bytes, Block]]]], None]) -> float:
-    """Median microseconds per block of ``step`` over ``repeats`` batches of ``rounds`` rounds."""
-    times = []
-    for _ in range(repeats):
-        batch = feed.rounds(rounds)
-        t0 = time.perf_counter()
-        step(batch)
-        times.append((time.perf_counter() - t0) / (rounds * len(feed.names)) * 1e6)
-    return statistics.median(times)
+Batch = list[list[tuple[str, bytes, Block]]]
 
 
 def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
@@ -107,95 +100,102 @@ def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
     )
 
 
-def measure(args: argparse.Namespace) -> dict[str, Any]:
-    """Every figure of the bench, as a dict (what ``--json`` writes)."""
-    with tempfile.TemporaryDirectory(prefix="sinewatch-bench-pipeline-") as tmp:
-        config = _config(args, Path(tmp))
-        feed = Feed(args.channels, args.block, args.rate)
-        us: dict[str, float] = {}
+def _steps(args: argparse.Namespace, directory: Path, names: list[str]) -> tuple[dict[str, Callable[[Batch], None]], list[Any]]:
+    """Every measured step, by name, each taking a batch of blocks; and what to close after."""
+    config = _config(args, directory)
+    off = Pipeline(config, [NullSink()])
+    recorder = McapRecorder(config)
+    on = Pipeline(_config(args, directory / "pipeline"), [NullSink(), recorder])
+    cls = get_estimator(args.estimator)
+    channels = {
+        name: Channel(name, f"sinewatch/in/{name}", cls(args.rate, _params(args.estimator)), args.rate)
+        for name in names
+    }
+    tracks: dict[str, Any] = {}
+    step_recorder = McapRecorder(_config(args, directory / "steps"))
+    estimate: list[bytes] = []
 
-        # the pipelines first: they also warm up (compile, caches) what the steps use
-        off = Pipeline(config, [NullSink()])
-        recorder = McapRecorder(config)
-        on = Pipeline(config, [NullSink(), recorder])
-        for name, pipe in (("pipeline_off", off), ("pipeline_on", on)):
-
-            def run(batch: list[list[tuple[str, bytes, Block]]], pipe: Pipeline = pipe) -> None:
-                process = pipe.process
-                for row in batch:
-                    for key, payload, blk in row:
-                        process(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
-
-            run(feed.rounds(2))  # warm-up
-            us[name] = _measure(feed, args.rounds, args.repeats, run)
-        on.close_sinks()
-        assert off.counters.errors == 0 and on.counters.errors == 0, (off.counters, on.counters)
-
-        cls = get_estimator(args.estimator)
-        channels = {
-            name: Channel(name, f"sinewatch/in/{name}", cls(args.rate, _params(args.estimator)), args.rate)
-            for name in feed.names
-        }
-        tracks: dict[str, Any] = {}
-
-        def estimator(batch: list[list[tuple[str, bytes, Block]]]) -> None:
-            for row in batch:
-                for _key, _payload, blk in row:
-                    tracks[blk.channel] = channels[blk.channel].estimator.update(
-                        blk.samples, last_only=True, t0_ns=blk.t0_ns
-                    )
-
-        def decode(batch: list[list[tuple[str, bytes, Block]]]) -> None:
-            dec = off._decode
-            for row in batch:
-                for _key, payload, _blk in row:
-                    dec(payload, BLOCK_BINARY_ENCODING)
-
-        def presence(batch: list[list[tuple[str, bytes, Block]]]) -> None:
-            pres = Pipeline._presence
-            for row in batch:
-                for _key, _payload, blk in row:
-                    pres(channels[blk.channel], blk, False)
-
-        with_estimate: list[bytes | None] = [None]
-
-        def record(batch: list[list[tuple[str, bytes, Block]]]) -> None:
-            est = with_estimate[0]
-            assert est is not None
-            on_input, on_estimate = rec.on_input, rec.on_estimate
+    def pipeline(pipe: Pipeline) -> Callable[[Batch], None]:
+        def run(batch: Batch) -> None:
+            process = pipe.process
             for row in batch:
                 for key, payload, blk in row:
-                    on_input(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
-                    on_estimate(key.replace("/in/", "/est/"), est, blk.t0_ns)
+                    process(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
 
-        estimator(feed.rounds(2))
-        us["estimator"] = _measure(feed, args.rounds, args.repeats, estimator)
-        us["decode"] = _measure(feed, args.rounds, args.repeats, decode)
-        presence(feed.rounds(1))
-        us["presence"] = _measure(feed, args.rounds, args.repeats, presence)
-        sample = feed.rounds(1)
-        estimator(sample)
-        blk0 = sample[0][0][2]
-        with_estimate[0] = on._estimate_payloads(channels[blk0.channel], blk0, tracks[blk0.channel], 0, False, False)[0]
+        return run
 
-        def encode_same(batch: list[list[tuple[str, bytes, Block]]]) -> None:
-            # the tracks of the last estimator batch, encoded for the blocks of this one
-            payloads = on._estimate_payloads
-            for row in batch:
-                for _key, _payload, blk in row:
-                    payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)
+    def estimator(batch: Batch) -> None:
+        for row in batch:
+            for _key, _payload, blk in row:
+                tracks[blk.channel] = channels[blk.channel].estimator.update(
+                    blk.samples, last_only=True, t0_ns=blk.t0_ns
+                )
 
-        us["encode"] = _measure(feed, args.rounds, args.repeats, encode_same)
-        rec = McapRecorder(_config(args, Path(tmp) / "steps"))
-        record(feed.rounds(1))
-        us["recorder"] = _measure(feed, args.rounds, args.repeats, record)
-        rec.close()
+    def decode(batch: Batch) -> None:
+        dec = off._decode
+        for row in batch:
+            for _key, payload, _blk in row:
+                dec(payload, BLOCK_BINARY_ENCODING)
 
+    def presence(batch: Batch) -> None:
+        pres = Pipeline._presence
+        for row in batch:
+            for _key, _payload, blk in row:
+                pres(channels[blk.channel], blk, False)
+
+    def encode(batch: Batch) -> None:  # the tracks of the estimator step on this batch
+        payloads = on._estimate_payloads
+        for row in batch:
+            for _key, _payload, blk in row:
+                estimate[:] = payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)
+
+    def record(batch: Batch) -> None:  # the input, and an estimate of the encode step
+        on_input, on_estimate, est = step_recorder.on_input, step_recorder.on_estimate, estimate[0]
+        for row in batch:
+            for key, payload, blk in row:
+                on_input(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
+                on_estimate(key.replace("/in/", "/est/"), est, blk.t0_ns)
+
+    steps = {
+        "pipeline_on": pipeline(on),
+        "pipeline_off": pipeline(off),
+        "estimator": estimator,
+        "decode": decode,
+        "presence": presence,
+        "encode": encode,
+        "recorder": record,
+    }
+    return steps, [on, off, step_recorder]
+
+
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    """Every figure of the bench, as a dict (what ``--json`` writes).
+
+    Each repeat takes a fresh batch of ``rounds`` blocks per channel through every step in
+    turn (interleaved, so that a burst of load from elsewhere hits all steps alike); a step's
+    figure is its fastest repeat (the least disturbed), its median is given beside it."""
+    with tempfile.TemporaryDirectory(prefix="sinewatch-bench-pipeline-") as tmp:
+        feed = Feed(args.channels, args.block, args.rate)
+        steps, to_close = _steps(args, Path(tmp), feed.names)
+        times: dict[str, list[float]] = {name: [] for name in steps}
+        for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
+            batch = feed.rounds(args.rounds if repeat else 2)
+            for name, step in steps.items():
+                t0 = time.perf_counter()
+                step(batch)
+                if repeat:
+                    times[name].append((time.perf_counter() - t0) / (args.rounds * len(feed.names)) * 1e6)
+        on, off, step_recorder = to_close
+        on.close_sinks()
+        step_recorder.close()
+        if on.counters.errors or off.counters.errors:
+            raise RuntimeError(f"the bench's blocks were rejected: {on.counters.by_kind + off.counters.by_kind}")
+    us = {name: min(t) for name, t in times.items()}
+    median = {name: statistics.median(t) for name, t in times.items()}
     base = us["estimator"]
-    outside_on = us["pipeline_on"] - base
-    outside_off = us["pipeline_off"] - base
     us["rest_on"] = us["pipeline_on"] - sum(us[s] for s in STEPS)
     us["rest_off"] = us["pipeline_off"] - sum(us[s] for s in STEPS if s != "recorder")
+    outside = {"recording_on": us["pipeline_on"] - base, "recording_off": us["pipeline_off"] - base}
     return {
         "channels": args.channels,
         "block": args.block,
@@ -205,8 +205,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "rounds": args.rounds,
         "repeats": args.repeats,
         "us_per_block": us,
+        "us_per_block_median": median,
         "ratio_to_estimator": {k: v / base for k, v in us.items()},
-        "outside_estimator_us": {"recording_on": outside_on, "recording_off": outside_off},
+        "outside_estimator_us": outside,
+        "outside_estimator_ratio": {k: v / base for k, v in outside.items()},
         "blocks_per_s_per_core": {"recording_on": 1e6 / us["pipeline_on"], "recording_off": 1e6 / us["pipeline_off"]},
         "samples_per_s_per_core": {
             "recording_on": 1e6 / us["pipeline_on"] * args.block,
@@ -215,10 +217,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float]]:
-    us, ratio = result["us_per_block"], result["ratio_to_estimator"]
+def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float | None, float]]:
+    us, median, ratio = result["us_per_block"], result["us_per_block_median"], result["ratio_to_estimator"]
     for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
-        yield name, us[name], ratio[name]
+        yield name, us[name], median.get(name), ratio[name]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -228,18 +230,20 @@ def run(args: argparse.Namespace) -> int:
         f"{args.rounds} blocks per channel x {args.repeats} repeats ..."
     )
     result = measure(args)
-    table = Table(title="pipeline cost per block (median; ratio to the estimator's update alone)")
+    table = Table(title="pipeline cost per block (fastest repeat; ratio to the estimator's update alone)")
     table.add_column("step")
     table.add_column("us/block", justify="right")
+    table.add_column("median", justify="right")
     table.add_column("x estimator", justify="right")
-    for name, value, ratio in _rows(result):
-        table.add_row(name, f"{value:.1f}", f"{ratio:.2f}")
+    for name, value, median, ratio in _rows(result):
+        table.add_row(name, f"{value:.1f}", "" if median is None else f"{median:.1f}", f"{ratio:.2f}")
     print_table(console, table)
     for mode in ("recording_on", "recording_off"):
         console.print(
             f"{mode.replace('_', ' ')}: {result['blocks_per_s_per_core'][mode]:,.0f} blocks/s per core "
             f"({result['samples_per_s_per_core'][mode] / 1e6:.2f} M samples/s), "
-            f"{result['outside_estimator_us'][mode]:.1f} us per block outside the estimator"
+            f"{result['outside_estimator_us'][mode]:.1f} us per block outside the estimator "
+            f"({result['outside_estimator_ratio'][mode]:.2f} x the estimator)"
         )
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
