@@ -38,6 +38,7 @@ offset=40 + channel_len + unit_len)``.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
@@ -235,13 +236,19 @@ def _json_samples(rows: list[float] | list[list[float]], columns: int) -> np.nda
     return samples.reshape(-1, columns)
 
 
+@functools.lru_cache(maxsize=64)  # a handful of encodings in practice; bounded against hostile ones
 def _encoding_version(encoding: str) -> int | None:
     m = re.search(r"[;,]v=(\d+)", encoding)
     return int(m.group(1)) if m else None
 
 
+@functools.lru_cache(maxsize=8192)  # each channel's name is checked once, not once per block
+def _channel_ok(channel: str) -> bool:
+    return bool(channel) and len(channel) <= 256 and _CHANNEL_RE.match(channel) is not None
+
+
 def _check_channel(channel: str) -> None:
-    if not channel or len(channel) > 256 or not _CHANNEL_RE.match(channel):
+    if not _channel_ok(channel):
         raise DecodeError(f"channel: expected 1-256 chars of [A-Za-z0-9_.-] separated by '/', got {channel!r}")
 
 
