@@ -199,6 +199,6 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block", type=int, default=1024)
     parser.add_argument("--estimator", default="ges-kalman")
     parser.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="the recording's")
-    parser.add_argument("--rounds", type=int, default=10, help="blocks per channel per repeat (default 10)")
-    parser.add_argument("--repeats", type=int, default=5, help="repeats of each measurement; the median is shown")
+    parser.add_argument("--rounds", type=int, default=5, help="blocks per channel per repeat (default 5)")
+    parser.add_argument("--repeats", type=int, default=12, help="repeats of each measurement (default 12)")
     parser.add_argument("--json", type=Path, help="also write results as JSON")

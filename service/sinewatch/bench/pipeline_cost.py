@@ -17,7 +17,8 @@ The same blocks are also taken through each step alone, to break the cost down:
 * ``rest``: the pipeline's cost less the steps above (sequence checks, dispatch to the
   sinks, counters).
 
-Microseconds per block (one block = one channel's ``--block`` samples): each repeat takes
+CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
+time, not wall time, so that other processes on the machine count less): each repeat takes
 ``--rounds`` fresh blocks per channel through every step in turn; a figure is the step's
 fastest repeat (the least disturbed by other load on the machine), its median beside it.
 """
@@ -113,7 +114,7 @@ def _steps(args: argparse.Namespace, directory: Path, names: list[str]) -> tuple
     }
     tracks: dict[str, Any] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
-    estimate: list[bytes] = []
+    estimates: dict[str, bytes] = {}
 
     def pipeline(pipe: Pipeline) -> Callable[[Batch], None]:
         def run(batch: Batch) -> None:
@@ -147,14 +148,14 @@ def _steps(args: argparse.Namespace, directory: Path, names: list[str]) -> tuple
         payloads = on._estimate_payloads
         for row in batch:
             for _key, _payload, blk in row:
-                estimate[:] = payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)
+                estimates[blk.channel] = payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)[0]
 
-    def record(batch: Batch) -> None:  # the input, and an estimate of the encode step
-        on_input, on_estimate, est = step_recorder.on_input, step_recorder.on_estimate, estimate[0]
+    def record(batch: Batch) -> None:  # the input, and the channel's estimate of the encode step
+        on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate
         for row in batch:
             for key, payload, blk in row:
                 on_input(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
-                on_estimate(key.replace("/in/", "/est/"), est, blk.t0_ns)
+                on_estimate(key.replace("/in/", "/est/"), estimates[blk.channel], blk.t0_ns)
 
     steps = {
         "pipeline_on": pipeline(on),
@@ -181,10 +182,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
             batch = feed.rounds(args.rounds if repeat else 2)
             for name, step in steps.items():
-                t0 = time.perf_counter()
+                t0 = time.process_time()
                 step(batch)
                 if repeat:
-                    times[name].append((time.perf_counter() - t0) / (args.rounds * len(feed.names)) * 1e6)
+                    times[name].append((time.process_time() - t0) / (args.rounds * len(feed.names)) * 1e6)
         on, off, step_recorder = to_close
         on.close_sinks()
         step_recorder.close()
