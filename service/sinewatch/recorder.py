@@ -23,6 +23,7 @@ import json
 import logging
 import struct
 import time
+import zlib
 from collections.abc import Callable
 from itertools import chain
 from pathlib import Path
@@ -30,7 +31,8 @@ from typing import Any, BinaryIO
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import MessageIndex
+from mcap import writer as _mcap_writer
+from mcap.records import ChunkIndex, MessageIndex
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.schemas import __version__, codec
@@ -67,6 +69,7 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_OPCODE = int(Opcode.MESSAGE)
 _MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
+_CHUNK_OPCODE = int(Opcode.CHUNK)
 
 
 class _PackedMessageIndex(MessageIndex):
@@ -75,30 +78,28 @@ class _PackedMessageIndex(MessageIndex):
     length u32, then (log_time u64, offset u64) per entry (MCAP spec, "Message Index
     (op=0x07)"), the same bytes."""
 
-    def write(self, stream: RecordBuilder) -> None:
+    def packed(self) -> bytes:
         n = len(self.records)
-        stream.write(
-            struct.pack(
-                f"<BQHI{2 * n}Q",
-                _MESSAGE_INDEX_OPCODE,
-                6 + 16 * n,
-                self.channel_id,
-                16 * n,
-                *chain.from_iterable(self.records),
-            )
+        return struct.pack(
+            f"<BQHI{2 * n}Q", _MESSAGE_INDEX_OPCODE, 6 + 16 * n, self.channel_id, 16 * n, *chain.from_iterable(self.records)
         )
+
+    def write(self, stream: RecordBuilder) -> None:
+        stream.write(self.packed())
 
 
 class FastWriter(Writer):
     """mcap's :class:`~mcap.writer.Writer` with a cheaper :meth:`add_message`: the Message
     record goes into the open chunk with one ``struct.pack`` instead of a record object and
     six writes, and the chunk's and file's bookkeeping (message index, statistics, chunk
-    times) is updated inline. Everything else (chunks, compression, CRCs, indexes, summary)
+    times) is updated inline; a finished chunk goes to the file without a copy through a
+    record buffer (:meth:`_Writer__finalize_chunk`). Everything else (chunks, compression, CRCs, indexes, summary)
     is mcap's own (message indexes packed in one call each, the same bytes), so the file is byte for byte what ``Writer`` writes for the same calls
     (tests/test_recorder_fast_writer.py checks it against ``Writer`` itself, so an mcap
     release that changes its internals fails there, not in the field).
 
-    Only chunked writing is supported (what the recorder uses)."""
+    Only what the recorder uses is supported: chunked, every index, CRCs of the chunks and
+    the summary, none of the data section (mcap's defaults)."""
 
     def __init__(self, output: BinaryIO, *, chunk_size: int, compression: CompressionType) -> None:
         super().__init__(output, chunk_size=chunk_size, compression=compression)
@@ -106,7 +107,72 @@ class FastWriter(Writer):
         self._chunk_builder = getattr(self, "_Writer__chunk_builder")
         self._statistics = getattr(self, "_Writer__statistics")
         self._maybe_finalize_chunk = getattr(self, "_Writer__maybe_finalize_chunk")
+        self._flush_records = getattr(self, "_Writer__flush")
+        self._stream: BinaryIO = getattr(self, "_Writer__stream")
+        self._chunk_indices: list[ChunkIndex] = getattr(self, "_Writer__chunk_indices")
         self._chunk_limit = chunk_size
+        self._compression = compression
+
+    def _Writer__finalize_chunk(self) -> None:  # noqa: N802 (overrides Writer's private __finalize_chunk)
+        """Writer's ``__finalize_chunk`` (it calls this one instead): the Chunk record and the
+        chunk's MessageIndex records, the same bytes, but written to the file as they are
+        rather than copied through a record buffer first (a chunk is a megabyte)."""
+        cb = self._chunk_builder
+        if cb.num_messages == 0:
+            return
+        self._statistics.chunk_count += 1
+        chunk_data = cb.end()
+        if self._compression == CompressionType.LZ4:
+            compression, data = b"lz4", _mcap_writer.lz4.frame.compress(chunk_data)
+        elif self._compression == CompressionType.ZSTD:
+            compression, data = b"zstd", _mcap_writer.zstandard.compress(chunk_data)
+        else:
+            compression, data = b"", chunk_data
+        self._flush_records()
+        stream = self._stream
+        chunk_start_offset = stream.tell()
+        # Chunk (op=0x06): message_start_time, message_end_time, uncompressed_size u64,
+        # uncompressed_crc u32, compression (u32-prefixed string), records (u64-prefixed)
+        record_length = 8 + 8 + 8 + 4 + 4 + len(compression) + 8 + len(data)
+        stream.write(
+            struct.pack(
+                f"<BQQQQII{len(compression)}sQ",
+                _CHUNK_OPCODE,
+                record_length,
+                cb.message_start_time,
+                cb.message_end_time,
+                len(chunk_data),
+                zlib.crc32(chunk_data),
+                len(compression),
+                compression,
+                len(data),
+            )
+        )
+        stream.write(data)
+        message_index_start = chunk_start_offset + 9 + record_length
+        offsets: dict[int, int] = {}
+        records = []
+        at = message_index_start
+        for channel_id, index in cb.message_indices.items():
+            offsets[channel_id] = at
+            record = index.packed()
+            records.append(record)
+            at += len(record)
+        stream.write(b"".join(records))
+        self._chunk_indices.append(
+            ChunkIndex(
+                message_start_time=cb.message_start_time,
+                message_end_time=cb.message_end_time,
+                chunk_start_offset=chunk_start_offset,
+                chunk_length=9 + record_length,
+                message_index_offsets=offsets,
+                message_index_length=at - message_index_start,
+                compression=compression.decode(),
+                compressed_size=len(data),
+                uncompressed_size=len(chunk_data),
+            )
+        )
+        cb.reset()
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
         head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
