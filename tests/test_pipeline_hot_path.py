@@ -118,7 +118,9 @@ def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
     fs, n = 10_000.0, 256
     x = np.sin(2 * np.pi * 50 * np.arange(n * 5) / fs)
     for i in range(5):
-        pipeline.process("sinewatch/in/a", encode_block_binary(Block("a", i, i * 25_600_000, fs, x[i * n : (i + 1) * n])), "", i)
+        pipeline.process(
+            "sinewatch/in/a", encode_block_binary(Block("a", i, i * 25_600_000, fs, x[i * n : (i + 1) * n])), "", i
+        )
     assert pipeline.counters.estimates == 5 and pipeline.channels["a"].blocks == 5
     (status,) = pipeline.sink_status()
     # skipped: 4 inputs and 4 estimates after the failure, and the ErrorReport of the failure itself

@@ -55,7 +55,10 @@ def test_fast_writer_bytes_are_mcap_writers_bytes(compression, chunk_size):
     assert fast == ref
     # and mcap reads them back: every message, in order, chunk CRCs checked
     reader = make_reader(io.BytesIO(fast), validate_crcs=True)
-    got = [(m.channel_id, m.sequence, m.log_time, m.publish_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False)]
+    got = [
+        (m.channel_id, m.sequence, m.log_time, m.publish_time, m.data)
+        for _, _, m in reader.iter_messages(log_time_order=False)
+    ]
     assert got == messages
     summary = reader.get_summary()
     assert summary.statistics.message_count == len(messages)
@@ -63,7 +66,9 @@ def test_fast_writer_bytes_are_mcap_writers_bytes(compression, chunk_size):
     assert summary.statistics.message_end_time == max(m[2] for m in messages)
     if chunk_size == 1024:
         assert summary.statistics.chunk_count > 100
-    streamed = [m.data for _, _, m in NonSeekingReader(io.BytesIO(fast), validate_crcs=True).iter_messages(log_time_order=False)]
+    streamed = [
+        m.data for _, _, m in NonSeekingReader(io.BytesIO(fast), validate_crcs=True).iter_messages(log_time_order=False)
+    ]
     assert streamed == [m[4] for m in messages]
 
 
@@ -80,6 +85,7 @@ def test_a_pipeline_recording_reads_back_with_crcs_and_replays_bit_for_bit(tmp_p
             payload = encode_block_binary(Block(ch, i, t0, fs, x[i * n : (i + 1) * n]), "float32")
             payloads.append(payload)
             pipeline.process(f"sinewatch/in/{ch}", payload, "", t0)
+    assert type(recorder._writer) is FastWriter  # this mcap's internals are the ones FastWriter knows
     pipeline.close_sinks()
     (path,) = recorder.paths
     with open(path, "rb") as f:

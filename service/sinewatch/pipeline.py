@@ -26,10 +26,10 @@ from __future__ import annotations
 
 import logging
 import time
-from math import isfinite
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from math import isfinite
 from typing import Any, Protocol
 
 import numpy as np
@@ -788,9 +788,7 @@ def estimate_model(
         amplitude=[finite_or_none(v) for v in track.amplitude[-1]],
         phase_rad=[finite_or_none(v) for v in track.phase_rad[-1]],
         offset=finite_or_none(track.offset[-1]),
-        rocof_hz_per_s=None
-        if track.rocof_hz_per_s is None
-        else [finite_or_none(v) for v in track.rocof_hz_per_s[-1]],
+        rocof_hz_per_s=None if track.rocof_hz_per_s is None else [finite_or_none(v) for v in track.rocof_hz_per_s[-1]],
         std=None if track.std is None else _uncertainty(track.std),
         diagnostics=Diagnostics(
             converged=converged,

@@ -29,10 +29,11 @@ from itertools import chain
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mcap import writer as _mcap_writer
+from mcap._chunk_builder import ChunkBuilder
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap import writer as _mcap_writer
-from mcap.records import ChunkIndex, MessageIndex
+from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.schemas import __version__, codec
@@ -70,6 +71,13 @@ _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_OPCODE = int(Opcode.MESSAGE)
 _MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
 _CHUNK_OPCODE = int(Opcode.CHUNK)
+_MCAP_MODULES = vars(_mcap_writer)  # its lz4 and zstandard: the very compressors Writer uses
+_MCAP_VERSION = _mcap_writer.__version__
+
+
+def _private(writer: Writer, name: str) -> Any:
+    """Writer's private (name-mangled) attribute ``__<name>``."""
+    return getattr(writer, "_Writer__" + name)
 
 
 class _PackedMessageIndex(MessageIndex):
@@ -81,7 +89,12 @@ class _PackedMessageIndex(MessageIndex):
     def packed(self) -> bytes:
         n = len(self.records)
         return struct.pack(
-            f"<BQHI{2 * n}Q", _MESSAGE_INDEX_OPCODE, 6 + 16 * n, self.channel_id, 16 * n, *chain.from_iterable(self.records)
+            f"<BQHI{2 * n}Q",
+            _MESSAGE_INDEX_OPCODE,
+            6 + 16 * n,
+            self.channel_id,
+            16 * n,
+            *chain.from_iterable(self.records),
         )
 
     def write(self, stream: RecordBuilder) -> None:
@@ -103,17 +116,21 @@ class FastWriter(Writer):
 
     def __init__(self, output: BinaryIO, *, chunk_size: int, compression: CompressionType) -> None:
         super().__init__(output, chunk_size=chunk_size, compression=compression)
+        if not isinstance(_private(self, "chunk_builder"), ChunkBuilder) or not isinstance(
+            _private(self, "statistics"), Statistics
+        ):
+            raise TypeError("Writer's chunk builder or statistics are not what FastWriter updates")
         # mcap keeps these private (name-mangled); FastWriter updates them as add_message would
-        self._chunk_builder = getattr(self, "_Writer__chunk_builder")
-        self._statistics = getattr(self, "_Writer__statistics")
-        self._maybe_finalize_chunk = getattr(self, "_Writer__maybe_finalize_chunk")
-        self._flush_records = getattr(self, "_Writer__flush")
-        self._stream: BinaryIO = getattr(self, "_Writer__stream")
-        self._chunk_indices: list[ChunkIndex] = getattr(self, "_Writer__chunk_indices")
+        self._chunk_builder = _private(self, "chunk_builder")
+        self._statistics = _private(self, "statistics")
+        self._maybe_finalize_chunk = _private(self, "maybe_finalize_chunk")
+        self._flush_records = _private(self, "flush")
+        self._stream: BinaryIO = _private(self, "stream")
+        self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
         self._compression = compression
 
-    def _Writer__finalize_chunk(self) -> None:  # noqa: N802 (overrides Writer's private __finalize_chunk)
+    def _Writer__finalize_chunk(self) -> None:
         """Writer's ``__finalize_chunk`` (it calls this one instead): the Chunk record and the
         chunk's MessageIndex records, the same bytes, but written to the file as they are
         rather than copied through a record buffer first (a chunk is a megabyte)."""
@@ -123,9 +140,9 @@ class FastWriter(Writer):
         self._statistics.chunk_count += 1
         chunk_data = cb.end()
         if self._compression == CompressionType.LZ4:
-            compression, data = b"lz4", _mcap_writer.lz4.frame.compress(chunk_data)
+            compression, data = b"lz4", _MCAP_MODULES["lz4"].frame.compress(chunk_data)
         elif self._compression == CompressionType.ZSTD:
-            compression, data = b"zstd", _mcap_writer.zstandard.compress(chunk_data)
+            compression, data = b"zstd", _MCAP_MODULES["zstandard"].compress(chunk_data)
         else:
             compression, data = b"", chunk_data
         self._flush_records()
@@ -200,6 +217,16 @@ class FastWriter(Writer):
             self._maybe_finalize_chunk()
 
 
+def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:
+    """A FastWriter; mcap's own Writer (the same file, slower) under an mcap release whose
+    private internals FastWriter does not find."""
+    try:
+        return FastWriter(file, chunk_size=chunk_size, compression=compression)
+    except (AttributeError, TypeError) as exc:
+        log.warning("mcap %s: its Writer's internals changed (%s); recording with Writer itself", _MCAP_VERSION, exc)
+        return Writer(file, chunk_size=chunk_size, compression=compression)
+
+
 class McapRecorder:
     """Pipeline sink writing MCAP; also records Status through :meth:`on_status`."""
 
@@ -222,7 +249,7 @@ class McapRecorder:
         self.index = 0
         self.paths: list[Path] = []
         self._file: BinaryIO | None = None
-        self._writer: FastWriter | None = None
+        self._writer: Writer | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
@@ -230,7 +257,7 @@ class McapRecorder:
         self.messages_written = 0
 
     @property
-    def _w(self) -> FastWriter:
+    def _w(self) -> Writer:
         if self._writer is None:
             raise RuntimeError("recorder: no open file (call open() first)")
         return self._writer
@@ -257,11 +284,7 @@ class McapRecorder:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(path, "wb")
-        self._writer = FastWriter(
-            self._file,
-            chunk_size=self.section.chunk_size_bytes,
-            compression=_COMPRESSION[self.section.compression],
-        )
+        self._writer = _writer(self._file, self.section.chunk_size_bytes, _COMPRESSION[self.section.compression])
         self._w.start(profile="", library=f"sinewatch {__version__}")
         self._schemas.clear()
         self._channels.clear()

@@ -82,7 +82,13 @@ class Feed:
             self.seq += 1
             row = []
             for name, sig in zip(self.names, self.signals, strict=True):
-                blk = Block(name, seq, 1_700_000_000_000_000_000 + seq * self.step_ns, self.rate_hz, sig[k * self.block : (k + 1) * self.block])
+                blk = Block(
+                    name,
+                    seq,
+                    1_700_000_000_000_000_000 + seq * self.step_ns,
+                    self.rate_hz,
+                    sig[k * self.block : (k + 1) * self.block],
+                )
                 payload = encode_block_binary(blk, "float32")
                 blk.samples = np.frombuffer(payload, dtype="<f4", offset=len(payload) - 4 * self.block)
                 row.append((f"sinewatch/in/{name}", payload, blk))
@@ -101,7 +107,9 @@ def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
     )
 
 
-def _steps(args: argparse.Namespace, directory: Path, names: list[str]) -> tuple[dict[str, Callable[[Batch], None]], list[Any]]:
+def _steps(
+    args: argparse.Namespace, directory: Path, names: list[str]
+) -> tuple[dict[str, Callable[[Batch], None]], list[Any]]:
     """Every measured step, by name, each taking a batch of blocks; and what to close after."""
     config = _config(args, directory)
     off = Pipeline(config, [NullSink()])
