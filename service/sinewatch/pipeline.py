@@ -246,6 +246,7 @@ class Channel:
     converged: bool = False
     presence: SignalPresence | None = None  # set in __post_init__
     json_names: tuple[str, str] | None = field(default=None, repr=False)  # name, estimator as JSON strings
+    out_key: str | None = field(default=None, repr=False)  # where its estimates go (set at the first)
 
     def __post_init__(self) -> None:
         if self.presence is None:
@@ -331,8 +332,12 @@ class Pipeline:
             channel = self._channel_for(key, block)
             if channel.name in self.resume_points and self._catch_up(channel, block):
                 return
-            gap_blocks, restart = self._check_sequence(channel, block)
-            reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+            last_seq = channel.last_seq
+            if last_seq is not None and block.seq == last_seq + 1:  # the usual case, inline
+                gap_blocks, restart, reset = 0, False, False
+            else:
+                gap_blocks, restart = self._check_sequence(channel, block)
+                reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
             stage = "estimator"
             if reset:
                 channel.estimator.reset()
@@ -350,7 +355,9 @@ class Pipeline:
         except Exception as exc:  # noqa: BLE001 (a bug in one channel's path must not stop the others)
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
-        out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        out_key = channel.out_key
+        if out_key is None:
+            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
         for payload_out in payloads:
             for sink in self.sinks:
                 sink.on_estimate(out_key, payload_out, log_time_ns)
