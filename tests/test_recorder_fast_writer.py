@@ -39,7 +39,9 @@ def _write(cls, compression: CompressionType, chunk_size: int, seed: int) -> tup
             w.add_attachment(t, t, "a", "application/json", b"{}")
         t += int(rng.integers(-2_000, 10_000))  # log times not monotonic either
         cid = int(rng.choice(channels))
-        data = rng.bytes(int(rng.choice([0, 1, 37, 600, 5000])))
+        size = int(rng.choice([0, 1, 37, 600, 5000]))
+        # noise, or JSON-like text the compressors do shrink
+        data = rng.bytes(size) if rng.random() < 0.5 else (b'{"seq":%d,"x":[0.5,1.25]}' % i * size)[:size]
         seq, pub = int(rng.integers(0, 2**32)), int(rng.integers(0, 2**63))
         w.add_message(cid, t, data, pub, seq)
         messages.append((cid, seq, t, pub, data))

@@ -129,6 +129,7 @@ class FastWriter(Writer):
         self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
         self._compression = compression
+        self._zstd: Any = None
 
     def _Writer__finalize_chunk(self) -> None:
         """Writer's ``__finalize_chunk`` (it calls this one instead): the Chunk record and the
@@ -142,7 +143,9 @@ class FastWriter(Writer):
         if self._compression == CompressionType.LZ4:
             compression, data = b"lz4", _MCAP_MODULES["lz4"].frame.compress(chunk_data)
         elif self._compression == CompressionType.ZSTD:
-            compression, data = b"zstd", _MCAP_MODULES["zstandard"].compress(chunk_data)
+            if self._zstd is None:  # what zstandard.compress (Writer's call) builds each time, kept
+                self._zstd = _MCAP_MODULES["zstandard"].ZstdCompressor(level=3)
+            compression, data = b"zstd", self._zstd.compress(chunk_data)
         else:
             compression, data = b"", chunk_data
         self._flush_records()
