@@ -29,6 +29,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from math import isfinite
 from typing import Any, Protocol
 
 import numpy as np
@@ -38,7 +39,14 @@ from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
 from sinewatch.estimators.presence import SignalPresence
 from sinewatch.power_quality.stage import PqStage
-from sinewatch.schemas.codec import Block, decode_block, encode_error, encode_estimate, finite_or_none
+from sinewatch.schemas.codec import (
+    Block,
+    decode_block,
+    encode_error,
+    encode_estimate_values,
+    finite_or_none,
+    json_string,
+)
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
 from sinewatch.schemas.messages import (
@@ -91,7 +99,8 @@ class NullSink:
 
 class GuardedSink:
     """A sink whose failures are caught, counted and reported, never raised into the
-    pipeline: a full disk or a closed Zenoh session must not stop estimation.
+    pipeline: a full disk or a closed Zenoh session must not stop estimation. The sink's
+    ``on_input``, ``on_estimate`` and ``on_output`` are looked up once, when it is wrapped.
 
     After a failure the sink is skipped (each output it misses is counted) for
     ``retry_s``; the next *input* after that reopens it (its ``recover()``, if it has
@@ -119,6 +128,10 @@ class GuardedSink:
         self.recoveries = 0
         self.last_error: str | None = None
         self._retry_at = 0.0
+        # the sink's per-message methods, looked up once (None: NullSink's, which does nothing)
+        self._on_input: Callable[[str, bytes, str, int], None] | None = _own_method(sink, "on_input")
+        self._on_estimate: Callable[[str, bytes, int], None] | None = _own_method(sink, "on_estimate")
+        self._on_output: Callable[[str, str, bytes, int], None] | None = _own_method(sink, "on_output")
 
     def _call(self, method: str, *args: Any) -> None:
         if not self.ok and (method != "on_input" or self._clock() < self._retry_at or not self._recover()):
@@ -158,11 +171,27 @@ class GuardedSink:
             )
             self._on_failure(self.name, f"{self.name} failed in {where}: {self.last_error}")
 
+    # The per-message methods: the same as _call(name, ...), without its getattr and
+    # argument tuple (one call per block each, the pipeline's hot path); a method the sink
+    # leaves as NullSink's (it does nothing) is not called at all while the sink is ok.
     def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
-        self._call("on_input", key, payload, encoding, log_time_ns)
+        if not self.ok and (self._clock() < self._retry_at or not self._recover()):
+            self.skipped += 1
+            return
+        if self._on_input is not None:
+            try:
+                self._on_input(key, payload, encoding, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (a sink's fault is the sink's: isolate it, report it)
+                self._fail("on_input", exc)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._call("on_estimate", key, payload, log_time_ns)
+        if not self.ok:
+            self.skipped += 1
+        elif self._on_estimate is not None:
+            try:
+                self._on_estimate(key, payload, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_estimate", exc)
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._call("on_error", key, payload, log_time_ns)
@@ -171,7 +200,13 @@ class GuardedSink:
         self._call("on_status", key, payload, log_time_ns)
 
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
-        self._call("on_output", kind, key, payload, log_time_ns)
+        if not self.ok:
+            self.skipped += 1
+        elif self._on_output is not None:
+            try:
+                self._on_output(kind, key, payload, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_output", exc)
 
     def open(self) -> None:
         if hasattr(self.sink, "open"):
@@ -210,6 +245,8 @@ class Channel:
     last_latency_ns: int | None = None
     converged: bool = False
     presence: SignalPresence | None = None  # set in __post_init__
+    json_names: tuple[str, str] | None = field(default=None, repr=False)  # name, estimator as JSON strings
+    out_key: str | None = field(default=None, repr=False)  # where its estimates go (set at the first)
 
     def __post_init__(self) -> None:
         if self.presence is None:
@@ -295,8 +332,12 @@ class Pipeline:
             channel = self._channel_for(key, block)
             if channel.name in self.resume_points and self._catch_up(channel, block):
                 return
-            gap_blocks, restart = self._check_sequence(channel, block)
-            reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+            last_seq = channel.last_seq
+            if last_seq is not None and block.seq == last_seq + 1:  # the usual case, inline
+                gap_blocks, restart, reset = 0, False, False
+            else:
+                gap_blocks, restart = self._check_sequence(channel, block)
+                reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
             stage = "estimator"
             if reset:
                 channel.estimator.reset()
@@ -314,7 +355,9 @@ class Pipeline:
         except Exception as exc:  # noqa: BLE001 (a bug in one channel's path must not stop the others)
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
-        out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        out_key = channel.out_key
+        if out_key is None:
+            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
         for payload_out in payloads:
             for sink in self.sinks:
                 sink.on_estimate(out_key, payload_out, log_time_ns)
@@ -486,15 +529,24 @@ class Pipeline:
             payloads.append(payload)
         return payloads
 
-    def _valid(self, ch: Channel, track: Track, timestamp_ns: int, t_last_ns: int) -> bool:
+    def _valid(
+        self,
+        ch: Channel,
+        timestamp_ns: int,
+        t_last_ns: int,
+        frequency_hz: list[float | None],
+        amplitude: list[float | None],
+    ) -> bool:
         """``diagnostics.valid`` (format 3): the signal has been present (the presence
         detector, :mod:`sinewatch.estimators.presence`) from the estimator's memory before
-        the estimate's time up to the block's last sample, and the estimate is finite."""
+        the estimate's time up to the block's last sample, and the estimate is finite
+        (``frequency_hz`` and ``amplitude`` as :func:`_finite_list` made them: None where
+        not finite)."""
         assert ch.presence is not None
         lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
         if ch.presence.run_samples < ch.estimator.memory_samples + lag:
             return False
-        return bool(np.all(np.isfinite(track.frequency_hz[-1])) and np.all(np.isfinite(track.amplitude[-1])))
+        return None not in frequency_hz and None not in amplitude
 
     def _estimate_payload(
         self,
@@ -508,37 +560,53 @@ class Pipeline:
         reset: bool,
     ) -> tuple[bytes, bool]:
         """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
-        not valid is not converged either."""
+        not valid is not converged either.
+
+        The bytes are built without the pydantic model (:func:`encode_estimate_values`, the
+        same bytes as ``encode_estimate(estimate_model(...))``; tests/test_codec_estimate_fast.py
+        proves it), one estimate per block being the pipeline's hot path."""
         converged = bool(track.converged[-1])
+        frequency_hz = _finite_list(track.frequency_hz[-1])
+        amplitude = _finite_list(track.amplitude[-1])
         valid = True
-        if self.estimate_version >= 3:
-            valid = self._valid(ch, track, timestamp_ns, t_last_ns)
+        version = self.estimate_version
+        if version >= 3:
+            valid = self._valid(ch, timestamp_ns, t_last_ns, frequency_hz, amplitude)
             converged = converged and valid
-        n = block.n_samples
-        estimate = Estimate(
-            channel=ch.name,
-            seq=block.seq,
-            timestamp_ns=timestamp_ns,
-            n_samples=n,
-            estimator=ch.estimator.name,
-            frequency_hz=_finite_list(track.frequency_hz[-1]),
-            amplitude=_finite_list(track.amplitude[-1]),
-            phase_rad=_finite_list(track.phase_rad[-1]),
-            offset=finite_or_none(track.offset[-1]),
-            rocof_hz_per_s=None if track.rocof_hz_per_s is None else _finite_list(track.rocof_hz_per_s[-1]),
-            std=None if track.std is None else _uncertainty(track.std),
-            diagnostics=Diagnostics(
-                converged=converged,
-                valid=valid,
-                residual_rms=finite_or_none(track.residual_rms),
-                gap=gap_blocks > 0 or restart,
-                gap_blocks=gap_blocks,
-                restart=restart,
-                reset=reset,
-                extras={k: _last_value(v) for k, v in track.extras.items()},
+        std = track.std
+        names = ch.json_names
+        if names is None:
+            names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
+        payload = encode_estimate_values(
+            version,
+            names[0],
+            block.seq,
+            int(timestamp_ns),
+            block.n_samples,
+            names[1],
+            frequency_hz,
+            amplitude,
+            _finite_list(track.phase_rad[-1]),
+            finite_or_none(track.offset[-1]),
+            None if track.rocof_hz_per_s is None else _finite_list(track.rocof_hz_per_s[-1]),
+            None
+            if std is None
+            else (
+                _finite_list(std.frequency_hz[-1]),
+                _finite_list(std.amplitude[-1]),
+                _finite_list(std.phase_rad[-1]),
+                finite_or_none(std.offset[-1]),
             ),
+            converged,
+            valid,
+            finite_or_none(track.residual_rms),
+            gap_blocks > 0 or restart,
+            gap_blocks,
+            restart,
+            reset,
+            {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
         )
-        return encode_estimate(estimate, self.estimate_version), converged
+        return payload, converged
 
     def _reject(
         self,
@@ -651,6 +719,12 @@ class Pipeline:
         ]
 
 
+def _own_method(sink: Sink, name: str) -> Any:
+    """``sink.<name>`` (bound once), or None when it is NullSink's, which does nothing."""
+    method = getattr(sink, name)
+    return None if getattr(method, "__func__", None) is getattr(NullSink, name) else method
+
+
 def _attributes(obj: object, *names: str) -> dict[str, Any]:
     """``{name: obj.name}`` for the names given, in that order (status and snapshot dicts)."""
     return {name: getattr(obj, name) for name in names}
@@ -688,15 +762,59 @@ def _is_power_of_ten(n: int) -> bool:
     return n == 1
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _finite_list(row: np.ndarray) -> list[float | None]:
+    """``[finite_or_none(v) for v in row]``, faster for the usual float64 row."""
+    if type(row) is np.ndarray and row.dtype == _F64 and row.ndim == 1:
+        return [v if isfinite(v) else None for v in row.tolist()]
     return [finite_or_none(v) for v in row]
+
+
+def estimate_model(
+    ch: Channel,
+    block: Block,
+    track: Track,
+    timestamp_ns: int,
+    converged: bool,
+    valid: bool,
+    gap_blocks: int,
+    restart: bool,
+    reset: bool,
+) -> Estimate:
+    """The Estimate the pipeline's bytes encode, as the pydantic model: the schema's way of
+    building it, what :meth:`Pipeline._estimate_payload` equals byte for byte (tests)."""
+    return Estimate(
+        channel=ch.name,
+        seq=block.seq,
+        timestamp_ns=timestamp_ns,
+        n_samples=block.n_samples,
+        estimator=ch.estimator.name,
+        frequency_hz=[finite_or_none(v) for v in track.frequency_hz[-1]],
+        amplitude=[finite_or_none(v) for v in track.amplitude[-1]],
+        phase_rad=[finite_or_none(v) for v in track.phase_rad[-1]],
+        offset=finite_or_none(track.offset[-1]),
+        rocof_hz_per_s=None if track.rocof_hz_per_s is None else [finite_or_none(v) for v in track.rocof_hz_per_s[-1]],
+        std=None if track.std is None else _uncertainty(track.std),
+        diagnostics=Diagnostics(
+            converged=converged,
+            valid=valid,
+            residual_rms=finite_or_none(track.residual_rms),
+            gap=gap_blocks > 0 or restart,
+            gap_blocks=gap_blocks,
+            restart=restart,
+            reset=reset,
+            extras={k: _last_value(v) for k, v in track.extras.items()},
+        ),
+    )
 
 
 def _uncertainty(std: TrackStd) -> Uncertainty:
     return Uncertainty(
-        frequency_hz=_finite_list(std.frequency_hz[-1]),
-        amplitude=_finite_list(std.amplitude[-1]),
-        phase_rad=_finite_list(std.phase_rad[-1]),
+        frequency_hz=[finite_or_none(v) for v in std.frequency_hz[-1]],
+        amplitude=[finite_or_none(v) for v in std.amplitude[-1]],
+        phase_rad=[finite_or_none(v) for v in std.phase_rad[-1]],
         offset=finite_or_none(std.offset[-1]),
     )
 

@@ -22,11 +22,19 @@ from __future__ import annotations
 import json
 import logging
 import os
+import struct
 import time
+import zlib
 from collections.abc import Callable
+from itertools import chain
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from mcap import writer as _mcap_writer
+from mcap._chunk_builder import ChunkBuilder
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.schemas import __version__, codec
@@ -55,6 +63,172 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
     if zenoh_encoding.startswith("application/x-sinewatch-block") or payload[:4] == b"SWSB":
         return BINARY_MESSAGE_ENCODING, "sinewatch.SampleBlock.binary"
     return "json", "sinewatch.SampleBlock"
+
+
+# A Message record: opcode, record length, then channel_id u16, sequence u32, log_time u64,
+# publish_time u64 and the data (MCAP spec, "Message (op=0x05)"): what mcap's Message.write
+# writes, in one pack.
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+_MESSAGE_OPCODE = int(Opcode.MESSAGE)
+_MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
+_CHUNK_OPCODE = int(Opcode.CHUNK)
+_MCAP_MODULES = vars(_mcap_writer)  # its lz4 and zstandard: the very compressors Writer uses
+_MCAP_VERSION = _mcap_writer.__version__
+
+
+def _private(writer: Writer, name: str) -> Any:
+    """Writer's private (name-mangled) attribute ``__<name>``."""
+    return getattr(writer, "_Writer__" + name)
+
+
+class _PackedMessageIndex(MessageIndex):
+    """A MessageIndex record written with one ``struct.pack`` (mcap's writes two 8-byte
+    fields per entry, one call each): opcode, record length, channel_id u16, entries' byte
+    length u32, then (log_time u64, offset u64) per entry (MCAP spec, "Message Index
+    (op=0x07)"), the same bytes."""
+
+    def packed(self) -> bytes:
+        n = len(self.records)
+        return struct.pack(
+            f"<BQHI{2 * n}Q",
+            _MESSAGE_INDEX_OPCODE,
+            6 + 16 * n,
+            self.channel_id,
+            16 * n,
+            *chain.from_iterable(self.records),
+        )
+
+    def write(self, stream: RecordBuilder) -> None:
+        stream.write(self.packed())
+
+
+class FastWriter(Writer):
+    """mcap's :class:`~mcap.writer.Writer` with a cheaper :meth:`add_message`: the Message
+    record goes into the open chunk with one ``struct.pack`` instead of a record object and
+    six writes, and the chunk's and file's bookkeeping (message index, statistics, chunk
+    times) is updated inline; a finished chunk goes to the file without a copy through a
+    record buffer (:meth:`_Writer__finalize_chunk`). Everything else (chunks, compression, CRCs, indexes, summary)
+    is mcap's own (message indexes packed in one call each, the same bytes), so the file is byte for byte what ``Writer`` writes for the same calls
+    (tests/test_recorder_fast_writer.py checks it against ``Writer`` itself, so an mcap
+    release that changes its internals fails there, not in the field).
+
+    Only what the recorder uses is supported: chunked, every index, CRCs of the chunks and
+    the summary, none of the data section (mcap's defaults)."""
+
+    def __init__(self, output: BinaryIO, *, chunk_size: int, compression: CompressionType) -> None:
+        super().__init__(output, chunk_size=chunk_size, compression=compression)
+        if not isinstance(_private(self, "chunk_builder"), ChunkBuilder) or not isinstance(
+            _private(self, "statistics"), Statistics
+        ):
+            raise TypeError("Writer's chunk builder or statistics are not what FastWriter updates")
+        # mcap keeps these private (name-mangled); FastWriter updates them as add_message would
+        self._chunk_builder = _private(self, "chunk_builder")
+        self._statistics = _private(self, "statistics")
+        self._maybe_finalize_chunk = _private(self, "maybe_finalize_chunk")
+        self._flush_records = _private(self, "flush")
+        self._stream: BinaryIO = _private(self, "stream")
+        self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
+        self._chunk_limit = chunk_size
+        self._compression = compression
+        self._zstd: Any = None
+
+    def _Writer__finalize_chunk(self) -> None:
+        """Writer's ``__finalize_chunk`` (it calls this one instead): the Chunk record and the
+        chunk's MessageIndex records, the same bytes, but written to the file as they are
+        rather than copied through a record buffer first (a chunk is a megabyte)."""
+        cb = self._chunk_builder
+        if cb.num_messages == 0:
+            return
+        self._statistics.chunk_count += 1
+        chunk_data = cb.end()
+        if self._compression == CompressionType.LZ4:
+            compression, data = b"lz4", _MCAP_MODULES["lz4"].frame.compress(chunk_data)
+        elif self._compression == CompressionType.ZSTD:
+            if self._zstd is None:  # what zstandard.compress (Writer's call) builds each time, kept
+                self._zstd = _MCAP_MODULES["zstandard"].ZstdCompressor(level=3)
+            compression, data = b"zstd", self._zstd.compress(chunk_data)
+        else:
+            compression, data = b"", chunk_data
+        self._flush_records()
+        stream = self._stream
+        chunk_start_offset = stream.tell()
+        # Chunk (op=0x06): message_start_time, message_end_time, uncompressed_size u64,
+        # uncompressed_crc u32, compression (u32-prefixed string), records (u64-prefixed)
+        record_length = 8 + 8 + 8 + 4 + 4 + len(compression) + 8 + len(data)
+        stream.write(
+            struct.pack(
+                f"<BQQQQII{len(compression)}sQ",
+                _CHUNK_OPCODE,
+                record_length,
+                cb.message_start_time,
+                cb.message_end_time,
+                len(chunk_data),
+                zlib.crc32(chunk_data),
+                len(compression),
+                compression,
+                len(data),
+            )
+        )
+        stream.write(data)
+        message_index_start = chunk_start_offset + 9 + record_length
+        offsets: dict[int, int] = {}
+        records = []
+        at = message_index_start
+        for channel_id, index in cb.message_indices.items():
+            offsets[channel_id] = at
+            record = index.packed()
+            records.append(record)
+            at += len(record)
+        stream.write(b"".join(records))
+        self._chunk_indices.append(
+            ChunkIndex(
+                message_start_time=cb.message_start_time,
+                message_end_time=cb.message_end_time,
+                chunk_start_offset=chunk_start_offset,
+                chunk_length=9 + record_length,
+                message_index_offsets=offsets,
+                message_index_length=at - message_index_start,
+                compression=compression.decode(),
+                compressed_size=len(data),
+                uncompressed_size=len(chunk_data),
+            )
+        )
+        cb.reset()
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+        head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+        stats = self._statistics
+        if stats.message_count == 0 or log_time < stats.message_start_time:
+            stats.message_start_time = log_time
+        if log_time > stats.message_end_time:
+            stats.message_end_time = log_time
+        stats.channel_message_counts[channel_id] += 1
+        stats.message_count += 1
+        cb = self._chunk_builder
+        if cb.num_messages == 0 or log_time < cb.message_start_time:
+            cb.message_start_time = log_time
+        if log_time > cb.message_end_time:
+            cb.message_end_time = log_time
+        buf = cb.record_writer._buffer
+        index = cb.message_indices.get(channel_id)
+        if index is None:
+            index = cb.message_indices[channel_id] = _PackedMessageIndex(channel_id=channel_id, records=[])
+        index.records.append((log_time, buf.tell()))
+        cb.num_messages += 1
+        buf.write(head)
+        buf.write(data)
+        if buf.tell() > self._chunk_limit:
+            self._maybe_finalize_chunk()
+
+
+def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:
+    """A FastWriter; mcap's own Writer (the same file, slower) under an mcap release whose
+    private internals FastWriter does not find."""
+    try:
+        return FastWriter(file, chunk_size=chunk_size, compression=compression)
+    except (AttributeError, TypeError) as exc:
+        log.warning("mcap %s: its Writer's internals changed (%s); recording with Writer itself", _MCAP_VERSION, exc)
+        return Writer(file, chunk_size=chunk_size, compression=compression)
 
 
 class McapRecorder:
@@ -119,11 +293,7 @@ class McapRecorder:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(path, "wb")
-        self._writer = Writer(
-            self._file,
-            chunk_size=self.section.chunk_size_bytes,
-            compression=_COMPRESSION[self.section.compression],
-        )
+        self._writer = _writer(self._file, self.section.chunk_size_bytes, _COMPRESSION[self.section.compression])
         self._w.start(profile="", library=f"sinewatch {__version__}")
         self._schemas.clear()
         self._channels.clear()
@@ -237,7 +407,10 @@ class McapRecorder:
     def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
         seq = self._sequence.get(cid, 0)
         self._sequence[cid] = seq + 1
-        self._w.add_message(cid, log_time_ns, payload, time.time_ns(), sequence=seq)
+        writer = self._writer
+        if writer is None:
+            raise RuntimeError("recorder: no open file (call open() first)")
+        writer.add_message(cid, log_time_ns, payload, time.time_ns(), seq)
         self.messages_written += 1
 
     # ---- the sink --------------------------------------------------------------------------
@@ -274,4 +447,4 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "McapRecorder"]
+__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]

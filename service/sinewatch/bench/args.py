@@ -20,6 +20,9 @@ QUICK_TRIALS = 3  # the same with --quick
 STARTUP_RUNS = 15  # runs per command (sinewatch bench startup)
 
 
+_MODULES = {"pipeline": "pipeline_cost"}  # bench name -> module, where they differ
+
+
 def _runner(module: str) -> Callable[[argparse.Namespace], int]:
     """``run(args)`` of ``sinewatch.bench.<module>``, imported when the bench runs."""
 
@@ -57,11 +60,12 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
             add_c37118_arguments,
         ),
         ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
+        ("pipeline", "in-process CPU cost per block of the pipeline, recording on and off", add_pipeline_arguments),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
         add_arguments(p)
-        p.set_defaults(fn=_runner(name.replace("-", "_")))
+        p.set_defaults(fn=_runner(_MODULES.get(name, name.replace("-", "_"))))
     return b
 
 
@@ -214,4 +218,15 @@ def add_startup_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", type=Path, help="config file for `sinewatch config show` (default: built-in defaults)"
     )
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--channels", type=int, default=200)
+    parser.add_argument("--rate", type=float, default=10_000.0, help="per-channel sample rate, Hz")
+    parser.add_argument("--block", type=int, default=1024)
+    parser.add_argument("--estimator", default="ges-kalman")
+    parser.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="the recording's")
+    parser.add_argument("--rounds", type=int, default=5, help="blocks per channel per repeat (default 5)")
+    parser.add_argument("--repeats", type=int, default=12, help="repeats of each measurement (default 12)")
     parser.add_argument("--json", type=Path, help="also write results as JSON")

@@ -56,6 +56,7 @@ PRESENCE_STATE_VERSION = 1
 DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
 RUN_CAP = 1 << 62
+_KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
 # slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R
 _P1, _P2, _C1, _C2, _R = 0, 1, 2, 3, 4
@@ -84,7 +85,7 @@ def presence_kernel(
     level_out = np.empty(n)
     m_total = 2.0 * half
     for j in range(n):
-        xj = x[j]
+        xj = np.float64(x[j])  # float32 samples are summed in float64, as if converted first
         c1 += xj
         c2 += xj * xj
         count += 1
@@ -146,8 +147,12 @@ class SignalPresence:
         self.counters = np.zeros(4, dtype=np.int64)
 
     def update(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-sample (run length of presence, level) over ``samples`` (float64, 1-D)."""
-        x = np.ascontiguousarray(samples, dtype=np.float64)
+        """Per-sample (run length of presence, level) over ``samples`` (1-D; float32 or
+        float64 as they come, anything else converted to float64: the kernel sums in float64
+        either way, so the outputs are the same as for the samples converted to float64)."""
+        x = samples
+        if not (type(x) is np.ndarray and x.dtype in _KERNEL_DTYPES and x.flags.c_contiguous):
+            x = np.ascontiguousarray(samples, dtype=np.float64)
         run, level, self.sums, self.counters = presence_kernel(
             x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio
         )

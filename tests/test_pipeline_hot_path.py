@@ -1,0 +1,144 @@
+"""The per-block shortcuts of the pipeline change no result: the presence detector on float32
+samples, the sink dispatch (methods looked up once, NullSink's no-ops skipped) with its
+failure, skip and recovery accounting, and the bench that measures them runs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+from conftest import make_config
+
+from sinewatch.estimators.presence import SignalPresence
+from sinewatch.pipeline import GuardedSink, NullSink, Pipeline
+from sinewatch.schemas.codec import Block, encode_block_binary
+
+
+def test_presence_on_float32_samples_is_presence_on_them_as_float64():
+    fs = 10_000.0
+    rng = np.random.default_rng(7)
+    t = np.arange(40_000) / fs
+    x = (np.sin(2 * np.pi * 50 * t) + 0.05 * rng.standard_normal(t.size)).astype(np.float32)
+    x[12_000:15_000] *= np.float32(0.01)  # an interruption: run lengths fall to 0 and come back
+    a, b = SignalPresence(fs), SignalPresence(fs)
+    runs = []
+    for lo in range(0, x.size, 1024):
+        run32, level32 = a.update(x[lo : lo + 1024])
+        run64, level64 = b.update(x[lo : lo + 1024].astype(np.float64))
+        assert np.array_equal(run32, run64) and np.array_equal(level32, level64)
+        assert np.array_equal(a.sums, b.sums) and np.array_equal(a.counters, b.counters)
+        runs.append(run32)
+    run = np.concatenate(runs)
+    assert run[11_999] > 10_000 and run[13_000] == 0 and run[-1] > 20_000  # present, lost, back
+    strided = SignalPresence(fs)  # a non-contiguous view is converted, with the same result
+    c = SignalPresence(fs)
+    y = np.stack([x, -x], axis=1)[:, 0]
+    assert np.array_equal(strided.update(y)[0], c.update(x.astype(np.float64))[0])
+
+
+class FlakySink(NullSink):
+    """Fails ``on_estimate`` while ``broken``; records what it got."""
+
+    def __init__(self):
+        self.broken = False
+        self.inputs, self.estimates, self.recovered = 0, 0, 0
+
+    def on_input(self, key, payload, encoding, log_time_ns):
+        self.inputs += 1
+
+    def on_estimate(self, key, payload, log_time_ns):
+        if self.broken:
+            raise OSError("disk full")
+        self.estimates += 1
+
+    def recover(self):
+        self.recovered += 1
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_guarded_sink_skips_counts_and_recovers_at_an_input_after_the_retry_time():
+    sink, clock, reports = FlakySink(), Clock(), []
+    g = GuardedSink(sink, "flaky", lambda name, msg: reports.append(msg), retry_s=1.0, clock=clock)
+    g.on_input("k", b"", "", 1)
+    g.on_estimate("k", b"{}", 1)
+    sink.broken = True
+    g.on_estimate("k", b"{}", 2)  # fails: reported once
+    g.on_estimate("k", b"{}", 3)  # skipped
+    g.on_output("HarmonicsReport", "k", b"{}", 3)  # skipped, though NullSink's does nothing
+    g.on_input("k", b"", "", 4)  # before the retry time: skipped
+    assert (g.ok, g.failures, g.skipped, sink.inputs, sink.estimates) == (False, 1, 3, 1, 1)
+    assert reports == ["flaky failed in on_estimate: OSError: disk full"]
+    sink.broken = False
+    clock.t = 1.5
+    g.on_input("k", b"", "", 5)  # after it: recover(), then the input goes through
+    g.on_estimate("k", b"{}", 5)
+    assert (g.ok, g.recoveries, sink.recovered, sink.inputs, sink.estimates) == (True, 1, 1, 2, 2)
+
+
+def test_a_sink_without_on_input_still_recovers_at_the_next_input():
+    """A sink that leaves on_input as NullSink's (the Zenoh publisher) is not called for
+    inputs while ok, but an input is still where it comes back after a failure."""
+
+    class Publisher(NullSink):
+        def __init__(self):
+            self.fail, self.got, self.recovered = True, 0, 0
+
+        def on_estimate(self, key, payload, log_time_ns):
+            if self.fail:
+                raise ConnectionError("session closed")
+            self.got += 1
+
+        def recover(self):
+            self.recovered += 1
+            self.fail = False
+
+    sink, clock = Publisher(), Clock()
+    g = GuardedSink(sink, "zenoh", lambda name, msg: None, retry_s=0.5, clock=clock)
+    g.on_input("k", b"", "", 1)
+    g.on_estimate("k", b"{}", 1)
+    assert not g.ok
+    clock.t = 1.0
+    g.on_input("k", b"", "", 2)
+    g.on_estimate("k", b"{}", 2)
+    assert g.ok and sink.recovered == 1 and sink.got == 1
+
+
+def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
+    sink = FlakySink()
+    sink.broken = True
+    pipeline = Pipeline(make_config(tmp_path, sink_retry_s=3600.0), [sink])
+    fs, n = 10_000.0, 256
+    x = np.sin(2 * np.pi * 50 * np.arange(n * 5) / fs)
+    for i in range(5):
+        pipeline.process(
+            "sinewatch/in/a", encode_block_binary(Block("a", i, i * 25_600_000, fs, x[i * n : (i + 1) * n])), "", i
+        )
+    assert pipeline.counters.estimates == 5 and pipeline.channels["a"].blocks == 5
+    (status,) = pipeline.sink_status()
+    # skipped: 4 inputs and 4 estimates after the failure, and the ErrorReport of the failure itself
+    assert status["failures"] == 1 and status["skipped"] == 4 + 4 + 1
+
+
+def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
+    from sinewatch.bench.pipeline_cost import STEPS, run
+
+    out = tmp_path / "bench.json"
+    args = argparse.Namespace(
+        channels=3, rate=10_000.0, block=256, estimator="ges-kalman", compression="zstd", rounds=2, repeats=2, json=out
+    )
+    assert run(args) == 0
+    result = json.loads(out.read_text())
+    for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
+        assert result["us_per_block"][name] == result["us_per_block"][name]  # a number, not NaN
+        assert name in result["ratio_to_estimator"]
+    assert result["ratio_to_estimator"]["estimator"] == 1.0
+    assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
+    assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
