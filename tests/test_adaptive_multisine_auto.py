@@ -78,9 +78,13 @@ def test_generalised_eigen_decomposition_matches_scipy(n):
     for _ in range(50):
         X, Y = rng.standard_normal((n + 2, n)), rng.standard_normal((n + 3, n))
         Phi, M = X.T @ X, Y.T @ Y + 0.1 * np.eye(n)
-        R, S, W, lam = np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n)
+        G = np.zeros((5, n, n))  # packed: Phi, R, scratch, W, lambda
+        G[0] = Phi
+        R = np.zeros((n, n))
         assert _chol_into(M, R, n)
-        _gen_eig(Phi, R, S, W, lam, n)
+        G[1] = R
+        _gen_eig(G, n)
+        W, lam = G[3], G[4, 0]
         np.testing.assert_allclose(lam, eigh(Phi, M, eigvals_only=True)[::-1], rtol=1e-9, atol=1e-12)
         V = np.linalg.solve(R.T, W)  # v = R^-T w
         np.testing.assert_allclose(Phi @ V, M @ V * lam, atol=1e-9)
