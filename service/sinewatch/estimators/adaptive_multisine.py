@@ -397,18 +397,20 @@ def _gen_eig(G: np.ndarray, n: int) -> None:
     ``G[1]`` R (lower), ``G[2]`` scratch, out: ``G[3]`` W (columns), ``G[4, 0]`` lambda
     (decreasing). ``S = R^-1 Phi R^-T`` by closed form (n = 2) or cyclic Jacobi; ``v = R^-T w``.
     One array argument: numba counts a reference per array passed (an atomic operation each)."""
-    for j in range(n):  # S = R^-1 Phi (forward substitution on each column)
-        for i in range(n):
+    for i in range(n):  # S = R^-1 Phi (forward substitution, row by row: one division a row)
+        inv = 1.0 / G[1, i, i]
+        for j in range(n):
             acc = G[0, i, j]
             for k in range(i):
                 acc -= G[1, i, k] * G[2, k, j]
-            G[2, i, j] = acc / G[1, i, i]
-    for i in range(n):  # S <- S R^-T (forward substitution on each row)
-        for j in range(n):
+            G[2, i, j] = acc * inv
+    for j in range(n):  # S <- S R^-T (forward substitution, column by column)
+        inv = 1.0 / G[1, j, j]
+        for i in range(n):
             acc = G[2, i, j]
             for k in range(j):
                 acc -= G[2, i, k] * G[1, j, k]
-            G[2, i, j] = acc / G[1, j, j]
+            G[2, i, j] = acc * inv
     if n == 2:  # closed form: the eigenvalues of [[a, b], [b, c]] and the rotation that diagonalises it
         a = G[2, 0, 0]
         b = 0.5 * (G[2, 0, 1] + G[2, 1, 0])
@@ -771,9 +773,9 @@ def auto_kernel(
             ok = om2 > 0.0
             if ok:
                 cd = 1.0 - 0.5 * h * h * om2  # cos(omega_d h)
-                sd = math.sqrt(max(1.0 - cd * cd, 1e-300))
-                qq = (h * x2 + x1 * (1.0 - cd)) / sd  # A cos(phi)
-                ainst = math.sqrt(x1 * x1 + qq * qq)
+                sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
+                num = h * x2 + x1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
+                ainst = math.sqrt(x1 * x1 + num * num / sd2)
                 s[oA + i] += min(h * mu_a * om2, 1.0) * (ainst - s[oA + i])  # (11)
                 s[owb + i] += c_alpha * (om2 - s[owb + i])
                 s[odv + i] += c_alpha * (abs(om2 - s[owb + i]) - s[odv + i])
@@ -788,7 +790,7 @@ def auto_kernel(
                 if ok and not faded:
                     wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om2), 1.0))
                     out[j, i] = wd * om_u / two_pi
-                    out[j, 2 * n + i] = math.atan2(x1, qq)
+                    out[j, 2 * n + i] = math.atan2(x1, num / math.sqrt(sd2))
                 else:
                     out[j, i] = math.nan
                     out[j, 2 * n + i] = math.nan
