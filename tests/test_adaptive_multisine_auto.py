@@ -233,20 +233,61 @@ def test_section_v_experiment_at_10_khz():
 
 
 # ---- any n, no per-case tuning --------------------------------------------------------------------
-@pytest.mark.parametrize("n", [1, 2, 3, 4, 5])
-def test_n_sinusoids_from_1_to_5_with_the_band_only(n):
-    # n tones spread over 2-20 Hz (unequal amplitudes, an offset, noise std 0.05) at 2 kHz;
-    # the same defaults for every n. Measured: every frequency within 0.5 % and every amplitude
-    # within 3 % over the last 10 s of 60 s.
-    freqs = {1: [7.0], 2: [5.0, 9.0], 3: [4.0, 7.0, 12.0], 4: [3.0, 5.0, 8.0, 13.0], 5: [2.5, 4.0, 6.5, 10.0, 15.0]}[n]
+def _n_tones(n: int, bias: bool, freqs: list[float], seconds: float = 60.0):
+    """n tones at ``freqs`` (amplitudes 1 + 0.15 (n - 1 - i), phases 0.3 i), offset 0.7 with
+    ``bias`` (none without), Gaussian noise std 0.05, at 2 kHz through the automatic design for
+    the 2-20 Hz band: time and track."""
     amps = [1.0 + 0.15 * (n - 1 - i) for i in range(n)]
     fs = 2000.0
-    t = np.arange(int(60 * fs)) / fs
+    t = np.arange(int(seconds * fs)) / fs
     rng = np.random.default_rng(n)
-    y = 0.7 + sum(a * np.sin(2 * np.pi * f * t + 0.3 * i) for i, (a, f) in enumerate(zip(amps, freqs, strict=True)))
-    tr = create(NAME, fs, n_sinusoids=n, band_hz=(2.0, 20.0)).update(y + 0.05 * rng.standard_normal(t.size))
+    y = (0.7 if bias else 0.0) + sum(
+        a * np.sin(2 * np.pi * f * t + 0.3 * i) for i, (a, f) in enumerate(zip(amps, freqs, strict=True))
+    )
+    tr = create(NAME, fs, n_sinusoids=n, bias=bias, band_hz=(2.0, 20.0)).update(y + 0.05 * rng.standard_normal(t.size))
+    return t, tr, amps
+
+
+_N_FREQS = {1: [7.0], 2: [5.0, 9.0], 3: [4.0, 7.0, 12.0], 4: [3.0, 5.0, 8.0, 13.0], 5: [2.5, 4.0, 6.5, 10.0, 15.0]}
+
+
+_N5_NO_OFFSET = pytest.mark.xfail(
+    strict=True, reason="n = 5 without an offset does not converge with the automatic design (see the comment)"
+)
+
+
+@pytest.mark.parametrize(
+    "n, bias",
+    [(n, b) for n in (1, 2, 3, 4, 5) for b in (True, False) if (n, b) != (5, False)]
+    + [pytest.param(5, False, marks=_N5_NO_OFFSET)],
+)
+def test_n_sinusoids_from_1_to_5_with_the_band_only(n, bias):
+    # n tones spread over 2-20 Hz (unequal amplitudes, noise std 0.05, an offset with bias, none
+    # without) at 2 kHz; the same defaults for every n. Measured: every frequency within 0.5 %
+    # (n = 1 without offset 0.27 %, n = 4 without 0.3 %) and every amplitude within 3 % over
+    # the last 10 s of 60 s. Not yet: n = 5 without an offset (measured 2.50, 4.07, 7.32, 9.30,
+    # 14.97 Hz: the adaptive loop of that design walks away from the truth even when started
+    # there, noise-free; with kappa = 0.03 instead of 0.1 and a dwell 7 times longer it stays).
+    freqs = _N_FREQS[n]
+    t, tr, amps = _n_tones(n, bias, freqs)
     last = t >= 50.0
     np.testing.assert_allclose(tr.frequency_hz[last].mean(axis=0), freqs, rtol=5e-3)
+    np.testing.assert_allclose(tr.amplitude[last].mean(axis=0), amps, rtol=0.03)
+    if bias:
+        assert abs(tr.offset[last].mean() - 0.7) < 0.02
+    else:
+        assert np.all(tr.offset == 0.0)
+
+
+def test_five_sinusoids_away_from_the_initial_frequencies():
+    # For n = 5 the design's initial frequencies (AD1: 2.52, 3.99, 6.32, 10.0, 15.9 Hz for the
+    # 2-20 Hz band) lie within 3 % of the tones above; these tones are 16-37 % from them.
+    # Measured with the offset: 3.001, 5.023, 7.527, 11.007, 16.995 Hz over the last 10 s of 60 s
+    # (within 0.5 %), amplitudes within 0.5 %.
+    freqs = [3.0, 5.0, 7.5, 11.0, 17.0]
+    t, tr, amps = _n_tones(5, True, freqs)
+    last = t >= 50.0
+    np.testing.assert_allclose(tr.frequency_hz[last].mean(axis=0), freqs, rtol=1e-2)
     np.testing.assert_allclose(tr.amplitude[last].mean(axis=0), amps, rtol=0.03)
     assert abs(tr.offset[last].mean() - 0.7) < 0.02
 
