@@ -68,11 +68,18 @@ AD4 ``rho`` (23) is in the units of ``Xi`` (signal units over rate squared), unk
     ``rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n``, floored at ``(min_amplitude / (omegah_1(0)
     |p_fast|))^2`` (the size of ``Xi`` for a tone at ``min_amplitude``), so that ``lambda_i``
     measures how much of ``Xi`` the output sees whatever the amplitude and the design.
+    ``rho`` also sets how hard the law (22) drives a component whose tone is gone: its column
+    ``xi_i`` shrinks with its state, and its gain goes as ``|xi_i| / (|xi_i|^2 + rho^2)``.
+    ``rho_rel = 0.1`` let the idle component of Example 2 drift from 2 to 2.6 rad/s towards the
+    remaining tone and share it (amplitude still 0.08 at 240 s); ``0.2`` holds it below
+    2.35 rad/s and fades it (amplitude below 0.03 from 190 s); ``0.5`` slows Example 1 three
+    times (measured, tests/test_adaptive_multisine_auto.py).
 AD5 ``mu`` (22): the excited parameter error decays at ``mu lambda_i`` (proof of Theorem 4.1,
     ``-mu delta_low |theta~|^2``); ``mu = kappa |slowest pole| / lambda_typ``, i.e. ``kappa`` times
     the slowest observer pole at ``lambda = lambda_typ`` (Theorem 4.1 needs the adaptation slower
     than the observer: the cross terms of (36) in ``mu p_bar``). ``mu_A`` (11): the amplitude
-    filter runs at the slowest observer pole at ``omegah_1(0)``.
+    filter runs at the slowest observer pole at ``omegah_1(0)``. ``lambda_typ`` is the
+    excitation of the paper's examples at this ``rho_rel`` (lambda_1 ~ 0.01-0.02 in Example 2).
 AD6 Frequency clips (Remark 3.1) at the band, widened by ``band_margin``, and the components
     kept ordered and ``separation`` apart (two on one line form an unobservable pair, and the
     re-placement AD8 needs distinct frequencies); the projection ball (19)-(21) is the one the
@@ -318,9 +325,9 @@ MIN_SAMPLES_PER_PERIOD = 10.0
 DESIGN = {
     "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
     "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
-    "rho_rel": 0.1,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
+    "rho_rel": 0.2,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
     "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
-    "lambda_typ": 0.01,  # AD5
+    "lambda_typ": 0.008,  # AD5
     "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
     "separation": 0.15,  # AD6: adjacent components at least this fraction apart
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
