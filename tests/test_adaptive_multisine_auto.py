@@ -23,7 +23,7 @@ from scipy.signal import place_poles
 
 from sinewatch import scenarios
 from sinewatch.estimators import create, get
-from sinewatch.estimators.adaptive_multisine import DESIGN, _chol_into, _gen_eig, _place
+from sinewatch.estimators.adaptive_multisine import DESIGN, _gen_eig, _place
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ParameterError
 
@@ -80,8 +80,7 @@ def test_generalised_eigen_decomposition_matches_scipy(n):
         Phi, M = X.T @ X, Y.T @ Y + 0.1 * np.eye(n)
         G = np.zeros((5, n, n))  # packed: Phi, R, scratch, W, lambda
         G[0] = Phi
-        R = np.zeros((n, n))
-        assert _chol_into(M, R, n)
+        R = np.linalg.cholesky(M)  # M = R R^T
         G[1] = R
         _gen_eig(G, n)
         W, lam = G[3], G[4, 0]
@@ -89,7 +88,29 @@ def test_generalised_eigen_decomposition_matches_scipy(n):
         V = np.linalg.solve(R.T, W)  # v = R^-T w
         np.testing.assert_allclose(Phi @ V, M @ V * lam, atol=1e-9)
         np.testing.assert_allclose(V.T @ M @ V, np.eye(n), atol=1e-9)
-    assert not _chol_into(-np.eye(n), R, n)  # the positive-definiteness test of (25)
+
+
+def test_pivot_test_of_25_decides_as_the_eigenvalues():
+    # While every psi_i is on, the kernel decides (25) by the sign of the L D L^T pivots of
+    # Phi_Xi - delta_low M, not by the eigenvalues; the per-sample track reports the
+    # eigenvalues lambda_i of every sample: the decisions must be the hysteresis rule on them.
+    # Example 2's signal (the class example) has a direction switching off and on (18 % of
+    # the samples partly excited).
+    cls = get(NAME)
+    est = cls.example()
+    tr = est.update(cls.example_signal(20_000, seed=3))
+    lam, psi = tr.extras["excitation_level"], tr.extras["adaptation_enabled"]
+    d_lo, d_hi = est.params.delta_low, est.params.delta_high
+    prev_all = psi[:-1].all(axis=1)
+    stays = prev_all & psi[1:].all(axis=1)
+    drops = prev_all & ~psi[1:].all(axis=1)
+    assert stays.sum() > 1000 and drops.sum() > 10  # both branches exercised
+    assert np.all(lam[1:][stays].min(axis=1) >= d_lo)
+    assert np.all(lam[1:][drops].min(axis=1) < d_lo)
+    # and the partly excited samples follow the rule on lambda itself
+    part = ~prev_all
+    on_now = psi[1:][part]
+    assert np.all(on_now[lam[1:][part] >= d_hi]) and not np.any(on_now[lam[1:][part] < d_lo])
 
 
 def test_design_comes_from_n_and_the_band_only():
