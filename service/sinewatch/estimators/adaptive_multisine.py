@@ -664,10 +664,10 @@ def auto_kernel(
                             T[i, i2] -= f * T[i2, jj]
         if not fast or write:
             for jj in range(n):  # the Cholesky factor R = L D^(1/2) of M
-                r = math.sqrt(D[jj])
-                R[jj, jj] = r
+                rj = math.sqrt(D[jj])
+                R[jj, jj] = rj
                 for i in range(jj + 1, n):
-                    R[i, jj] = L[i, jj] * r
+                    R[i, jj] = L[i, jj] * rj
             _gen_eig(G, n)
         if not fast:
             n_on = 0
