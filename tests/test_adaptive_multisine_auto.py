@@ -23,7 +23,7 @@ from scipy.signal import place_poles
 
 from sinewatch import scenarios
 from sinewatch.estimators import create, get
-from sinewatch.estimators.adaptive_multisine import DESIGN, _chol_into, _gen_eig, _place
+from sinewatch.estimators.adaptive_multisine import DESIGN, _gen_eig, _place
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ParameterError
 
@@ -78,14 +78,39 @@ def test_generalised_eigen_decomposition_matches_scipy(n):
     for _ in range(50):
         X, Y = rng.standard_normal((n + 2, n)), rng.standard_normal((n + 3, n))
         Phi, M = X.T @ X, Y.T @ Y + 0.1 * np.eye(n)
-        R, S, W, lam = np.zeros((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty(n)
-        assert _chol_into(M, R, n)
-        _gen_eig(Phi, R, S, W, lam, n)
+        G = np.zeros((5, n, n))  # packed: Phi, R, scratch, W, lambda
+        G[0] = Phi
+        R = np.linalg.cholesky(M)  # M = R R^T
+        G[1] = R
+        _gen_eig(G, n)
+        W, lam = G[3], G[4, 0]
         np.testing.assert_allclose(lam, eigh(Phi, M, eigvals_only=True)[::-1], rtol=1e-9, atol=1e-12)
         V = np.linalg.solve(R.T, W)  # v = R^-T w
         np.testing.assert_allclose(Phi @ V, M @ V * lam, atol=1e-9)
         np.testing.assert_allclose(V.T @ M @ V, np.eye(n), atol=1e-9)
-    assert not _chol_into(-np.eye(n), R, n)  # the positive-definiteness test of (25)
+
+
+def test_pivot_test_of_25_decides_as_the_eigenvalues():
+    # While every psi_i is on, the kernel decides (25) by the sign of the L D L^T pivots of
+    # Phi_Xi - delta_low M, not by the eigenvalues; the per-sample track reports the
+    # eigenvalues lambda_i of every sample: the decisions must be the hysteresis rule on them.
+    # Example 2's signal (the class example) has a direction switching off and on (18 % of
+    # the samples partly excited).
+    cls = get(NAME)
+    est = cls.example()
+    tr = est.update(cls.example_signal(20_000, seed=3))
+    lam, psi = tr.extras["excitation_level"], tr.extras["adaptation_enabled"]
+    d_lo, d_hi = est.params.delta_low, est.params.delta_high
+    prev_all = psi[:-1].all(axis=1)
+    stays = prev_all & psi[1:].all(axis=1)
+    drops = prev_all & ~psi[1:].all(axis=1)
+    assert stays.sum() > 1000 and drops.sum() > 10  # both branches exercised
+    assert np.all(lam[1:][stays].min(axis=1) >= d_lo)
+    assert np.all(lam[1:][drops].min(axis=1) < d_lo)
+    # and the partly excited samples follow the rule on lambda itself
+    part = ~prev_all
+    on_now = psi[1:][part]
+    assert np.all(on_now[lam[1:][part] >= d_hi]) and not np.any(on_now[lam[1:][part] < d_lo])
 
 
 def test_design_comes_from_n_and_the_band_only():
@@ -143,7 +168,7 @@ def test_coarse_sampling_reports_the_true_frequency():
 def test_section_v_example_1_noise_free():
     # Paper (Fig. 3, from its text): from omegah(0) = (3, 4) all methods "succeed in detecting
     # the frequencies" of sin 2t + sin 5t "after a similar transient behavior". Here from the
-    # design's own (1.06, 4.73) rad/s: measured within 1 % after 6.6 s and 6.8 s, errors below
+    # design's own (1.06, 4.73) rad/s: measured within 1 % after 8.4 s and 7.6 s, errors below
     # 1e-5 rad/s and amplitudes 1.000 over 60-100 s.
     t, tr, w = run_scenario("paper004-ex1")
     for i, target in enumerate((2.0, 5.0)):
@@ -159,8 +184,8 @@ def test_section_v_example_1_noise_free():
 
 def test_section_v_example_1_uniform_noise():
     # Paper (Figs. 4-5): with d uniform in [-0.25, 0.25] the method keeps "a relatively better
-    # noise immunity" than [30], [32]. Measured over 60-100 s: bias 2e-4 / 2e-3 rad/s, std
-    # 7e-3 / 1.9e-2 rad/s (0.35 % / 0.4 %); within 2 % after 7 s; amplitudes 1.000 +- 0.01.
+    # noise immunity" than [30], [32]. Measured over 60-100 s: bias 2e-4 / 4e-3 rad/s, std
+    # 6e-3 / 1.3e-2 rad/s (0.3 % / 0.3 %); within 2 % after 7 s; amplitudes 1.000 +- 0.01.
     t, tr, w = run_scenario("paper004-ex1-noisy")
     ss = t >= 60.0
     np.testing.assert_allclose(w[ss].mean(axis=0), [2.0, 5.0], atol=5e-3)
@@ -175,22 +200,27 @@ def test_section_v_example_2_bias_and_overparametrisation():
     # Paper (Figs. 7-9): 4 sin 3t + A2 sin 2t + 1 + d, A2 = 3 -> 0 at 120 s: "all the
     # initialized parameters including the offset are successfully estimated"; after 120 s the
     # second amplitude "fades to 0 eventually", the excited component stays "in a neighborhood
-    # of the true ones"; Fig. 7 shows lambda_i and psi_i. Measured: within 1 % after 7.9 s and
-    # 7.7 s; over 60-120 s errors below 5e-3 rad/s, amplitudes 3.01 / 4.00, offset 1.00.
-    # After 120 s (over-parametrised) the paper's fade is only partly reproduced: the idle
-    # component drifts up towards the 3 rad/s line until the separation of AD6 holds it
-    # (2.59 rad/s) and the two share the tone: A = 0.25-0.35 and 4.25-4.35 over 180-240 s, the
-    # excited one within 0.03 rad/s (1 %), the offset 1.00. Not faded (0.25 is above 2 % of 4.3).
+    # of the true ones"; Fig. 7 shows lambda_i and psi_i. (The figures are not in the text we
+    # have: these are the text's statements.) Measured: within 1 % after 8.0 s and 11.0 s; over
+    # 60-120 s errors below 5e-4 rad/s, amplitudes 3.000 / 4.000, offset 1.000. After 120 s the
+    # idle component stays below 2.34 rad/s (with rho_rel = 0.1, AD4, it drifted to 2.6 and
+    # shared the 3 rad/s tone at 0.1-0.3), its amplitude falls to 0.06 by 170 s and is faded from
+    # 170.4 s on (mean 0.021 over 200-240 s); the excited one 2.999 rad/s, 4.005, offset 1.000.
     t, tr, w = run_scenario("paper004-ex2")
     amp = tr.amplitude
-    pre, post = (t >= 60) & (t < 120), t >= 180
+    pre, post = (t >= 60) & (t < 120), t >= 200
     for i, target in enumerate((2.0, 3.0)):  # ordered components: 2 rad/s first
         assert settle_time(t[t < 120], w[t < 120, i], target, 0.01) < 15.0
     np.testing.assert_allclose(w[pre].mean(axis=0), [2.0, 3.0], atol=5e-3)
     np.testing.assert_allclose(amp[pre].mean(axis=0), [3.0, 4.0], atol=0.02)
     assert abs(tr.offset[pre].mean() - 1.0) < 0.01
-    assert abs(np.mean(w[post, 1]) - 3.0) < 0.04 and abs(tr.offset[post].mean() - 1.0) < 0.02
-    assert amp[post, 0].max() < 0.5 and abs(amp[post, 1].mean() - 4.0) < 0.4
+    # the vanished tone's component: held away from the remaining tone, then faded to ~0
+    assert np.nanmax(w[t >= 120, 0]) < 2.45
+    assert amp[post, 0].mean() < 0.04 and amp[post, 0].max() < 0.08
+    assert tr.extras["component_faded"][post, 0].all() and np.isnan(w[post, 0]).all()
+    assert not tr.extras["component_faded"][post, 1].any()
+    assert abs(np.mean(w[post, 1]) - 3.0) < 0.01 and abs(amp[post, 1].mean() - 4.0) < 0.02
+    assert abs(tr.offset[post].mean() - 1.0) < 0.01
     psi, lam = tr.extras["adaptation_enabled"], tr.extras["excitation_level"]
     assert psi.shape == lam.shape == (t.size, 2) and psi.dtype == bool
     assert psi[pre].any(axis=1).all() and np.all(lam >= -1e-12)
@@ -217,7 +247,7 @@ def test_section_v_example_3_frequency_steps():
 def test_section_v_experiment_at_10_khz():
     # Paper (Figs. 13-14, dSpace at 10 kHz): 4 sin 7t + 2 sin 5t with measurement noise; the
     # estimator gathers "the frequency and amplitude contents with great accuracy". Noise level
-    # not given (Gaussian std 0.05 here). Measured: within 1 % after 12.5 s and 10.1 s; over
+    # not given (Gaussian std 0.05 here). Measured: within 1 % after 9.2 s and 8.4 s; over
     # 70-100 s errors 5e-4 / 2e-4 rad/s, amplitudes 2.00 / 4.00.
     t, tr, w = run_scenario("paper004-experiment")
     for i, target in enumerate((5.0, 7.0)):
@@ -229,20 +259,63 @@ def test_section_v_experiment_at_10_khz():
 
 
 # ---- any n, no per-case tuning --------------------------------------------------------------------
-@pytest.mark.parametrize("n", [1, 2, 3, 4, 5])
-def test_n_sinusoids_from_1_to_5_with_the_band_only(n):
-    # n tones spread over 2-20 Hz (unequal amplitudes, an offset, noise std 0.05) at 2 kHz;
-    # the same defaults for every n. Measured: every frequency within 0.5 % and every amplitude
-    # within 3 % over the last 10 s of 60 s.
-    freqs = {1: [7.0], 2: [5.0, 9.0], 3: [4.0, 7.0, 12.0], 4: [3.0, 5.0, 8.0, 13.0], 5: [2.5, 4.0, 6.5, 10.0, 15.0]}[n]
+def _n_tones(n: int, bias: bool, freqs: list[float], seconds: float = 60.0):
+    """n tones at ``freqs`` (amplitudes 1 + 0.15 (n - 1 - i), phases 0.3 i), offset 0.7 with
+    ``bias`` (none without), Gaussian noise std 0.05, at 2 kHz through the automatic design for
+    the 2-20 Hz band: time and track."""
     amps = [1.0 + 0.15 * (n - 1 - i) for i in range(n)]
     fs = 2000.0
-    t = np.arange(int(60 * fs)) / fs
+    t = np.arange(int(seconds * fs)) / fs
     rng = np.random.default_rng(n)
-    y = 0.7 + sum(a * np.sin(2 * np.pi * f * t + 0.3 * i) for i, (a, f) in enumerate(zip(amps, freqs, strict=True)))
-    tr = create(NAME, fs, n_sinusoids=n, band_hz=(2.0, 20.0)).update(y + 0.05 * rng.standard_normal(t.size))
+    y = (0.7 if bias else 0.0) + sum(
+        a * np.sin(2 * np.pi * f * t + 0.3 * i) for i, (a, f) in enumerate(zip(amps, freqs, strict=True))
+    )
+    tr = create(NAME, fs, n_sinusoids=n, bias=bias, band_hz=(2.0, 20.0)).update(y + 0.05 * rng.standard_normal(t.size))
+    return t, tr, amps
+
+
+_N_FREQS = {1: [7.0], 2: [5.0, 9.0], 3: [4.0, 7.0, 12.0], 4: [3.0, 5.0, 8.0, 13.0], 5: [2.5, 4.0, 6.5, 10.0, 15.0]}
+
+
+_N5_NO_OFFSET = pytest.mark.xfail(
+    strict=True, reason="n = 5 without an offset does not converge with the automatic design (see the comment)"
+)
+
+
+@pytest.mark.parametrize(
+    "n, bias",
+    [(n, b) for n in (1, 2, 3, 4, 5) for b in (True, False) if (n, b) != (5, False)]
+    + [pytest.param(5, False, marks=_N5_NO_OFFSET)],
+)
+def test_n_sinusoids_from_1_to_5_with_the_band_only(n, bias):
+    # n tones spread over 2-20 Hz (unequal amplitudes, noise std 0.05, an offset with bias, none
+    # without) at 2 kHz; the same defaults for every n. Measured: every frequency within 0.5 %
+    # (n = 1 without offset 0.27 %, n = 4 without 0.3 %) and every amplitude within 3 % over
+    # the last 10 s of 60 s. Not yet: n = 5 without an offset (measured 2.50, 4.07, 7.32, 9.30,
+    # 14.97 Hz: the adaptive loop of that design walks away from the truth even when started
+    # there, noise-free; with kappa = 0.03 instead of 0.1 and a dwell 7 times longer it stays).
+    freqs = _N_FREQS[n]
+    t, tr, amps = _n_tones(n, bias, freqs)
     last = t >= 50.0
     np.testing.assert_allclose(tr.frequency_hz[last].mean(axis=0), freqs, rtol=5e-3)
+    np.testing.assert_allclose(tr.amplitude[last].mean(axis=0), amps, rtol=0.03)
+    if bias:
+        assert abs(tr.offset[last].mean() - 0.7) < 0.02
+    else:
+        assert np.all(tr.offset == 0.0)
+
+
+@pytest.mark.xfail(strict=True, reason="n = 5 from far off the initial frequencies: see the comment")
+def test_five_sinusoids_away_from_the_initial_frequencies():
+    # For n = 5 the design's initial frequencies (AD1: 2.52, 3.99, 6.32, 10.0, 15.9 Hz for the
+    # 2-20 Hz band) lie within 3 % of the tones of the test above; these tones are 16-37 % from
+    # them. Not yet: measured 1.88, 4.49, 5.17, 9.48, 17.29 Hz over the last 10 s of 60 s (the
+    # start-up kicks the lowest below the band; with rho_rel = 0.1, AD4, it converged to 0.5 %,
+    # at the price of Example 2's fade). Thresholds (25) ten times lower do not change it.
+    freqs = [3.0, 5.0, 7.5, 11.0, 17.0]
+    t, tr, amps = _n_tones(5, True, freqs)
+    last = t >= 50.0
+    np.testing.assert_allclose(tr.frequency_hz[last].mean(axis=0), freqs, rtol=1e-2)
     np.testing.assert_allclose(tr.amplitude[last].mean(axis=0), amps, rtol=0.03)
     assert abs(tr.offset[last].mean() - 0.7) < 0.02
 
