@@ -437,8 +437,12 @@ def ges_kalman_kernel(
          p03, p13, p23, p33]
     )  # fmt: skip
     new_unc = np.empty(UNC_SIZE)
-    _store4x4(new_unc[0:16].reshape(4, 4), t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
-    _store4x4(new_unc[16:32].reshape(4, 4), u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
+    _store4x4(
+        new_unc[0:16].reshape(4, 4), t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33
+    )
+    _store4x4(
+        new_unc[16:32].reshape(4, 4), u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33
+    )
     new_unc[32] = m_u
     new_unc[33] = w
     new_unc[34] = m_l

@@ -483,21 +483,33 @@ def consistent(
 
 @kernel(inline="always")
 def record_sample(
-    out: np.ndarray, ext: np.ndarray, k: int, n: int, last_only: bool, good: bool, n_good: float,
+    out: np.ndarray, ext: np.ndarray, k: int, last_only: bool, good: bool, n_good: float,
     n_settle: float, defined: bool, wts: float, Ts: float, a_sin: float, a_cos: float, offset: float,
     det: float, ell: float, rr: float, ff: float, e2_avg: float, level: float,
 ) -> float:  # fmt: skip
     """Count ``good`` samples (converged after n_settle in a row) and write sample ``k``'s
-    row unless only the last is wanted: frequency from omega Ts, the margin 2 det / l, the
-    relative fit residual, and the prediction error relative to ``level``. Returns the new
-    count."""
+    row unless only the last is wanted (the kernel then writes it after its loop, with
+    :func:`write_sample`: a row write in the loop, even one taken once, slowed every
+    sample). Returns the new count."""
     n_good = min(n_good + 1.0, n_settle) if good else 0.0
-    if not last_only or k == n - 1:
-        j = 0 if last_only else k
-        ext[j, 2] = math.sqrt(e2_avg / level) if level > 0.0 else np.nan
-        write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
-                  good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
+    if not last_only:
+        write_sample(out, ext, k, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, level)  # fmt: skip
     return n_good
+
+
+@kernel(inline="always")
+def write_sample(
+    out: np.ndarray, ext: np.ndarray, j: int, good: bool, n_good: float, n_settle: float, defined: bool,
+    wts: float, Ts: float, a_sin: float, a_cos: float, offset: float, det: float, ell: float, rr: float,
+    ff: float, e2_avg: float, level: float,
+) -> None:  # fmt: skip
+    """Row ``j`` of a sample counted by :func:`record_sample`: frequency from omega Ts, the
+    margin 2 det / l, the relative fit residual, and the prediction error relative to
+    ``level``."""
+    ext[j, 2] = math.sqrt(e2_avg / level) if level > 0.0 else np.nan
+    write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
+              good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
 
 
 @kernel(inline="always")
@@ -585,6 +597,24 @@ def kkl_kernel(
     consts: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """:func:`kkl_block` compiled once per value of ``last_only`` (a constant in each copy,
+    so that the per-sample loop of the last_only copy holds no row writes)."""
+    if last_only:
+        return kkl_block(y, state, lam, fa, fb0, fb1, consts, True)
+    return kkl_block(y, state, lam, fa, fb0, fb1, consts, False)
+
+
+@kernel(inline="always")
+def kkl_block(
+    y: np.ndarray,
+    state: np.ndarray,
+    lam: np.ndarray,
+    fa: np.ndarray,
+    fb0: np.ndarray,
+    fb1: np.ndarray,
+    consts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
@@ -610,6 +640,8 @@ def kkl_kernel(
         s_l += lam[i]
     s_11 = float(m)
     sse = 0.0
+    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
+    offset = np.nan
     for k in range(n):
         yk = y[k]
         if have_prev != 0.0:
@@ -692,8 +724,12 @@ def kkl_kernel(
                         good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
         # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
         # model has no offset: 0 whenever defined
-        n_good = record_sample(out, ext, k, n, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
-                               0.0 if defined else np.nan, det, ell, rr, ff, e2_avg, y2_avg)  # fmt: skip
+        offset = 0.0 if defined else np.nan
+        n_good = record_sample(out, ext, k, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
+                               offset, det, ell, rr, ff, e2_avg, y2_avg)  # fmt: skip
+    if last_only:  # the last sample's row, from the loop's final values
+        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, y2_avg)  # fmt: skip
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
 
