@@ -304,8 +304,39 @@ def _parameter_std(
         std[row, r] = math.sqrt(max(v, 0.0))
 
 
+@kernel(inline="always")
+def _write_estimates(
+    out: np.ndarray, j: int, x1: float, x2: float, x3: float, x4: float, p22: float, Ts: float, rel_std: float
+) -> None:
+    """Row ``j`` of ``out``: the parameters recovered from x_hat (module docstring)."""
+    if -4.0 < x3 < 0.0:  # (20)
+        sh = math.sqrt(-0.25 * x3)  # sin(w Ts/2), from (4)
+        ch = math.sqrt(1.0 + 0.25 * x3)  # cos(w Ts/2)
+        B = -x4 / x3  # Section III-E
+        a_sin = x1 - B  # A sin(theta_k)
+        a_cos = (x2 / (2.0 * sh) + a_sin * sh) / ch  # A cos(theta_k), derived above
+        out[j, 0] = math.asin(sh) / (math.pi * Ts)  # eq. (21), w/(2 pi)
+        out[j, 1] = math.hypot(a_sin, a_cos)
+        out[j, 2] = math.atan2(a_sin, a_cos)
+        out[j, 3] = B
+        out[j, 4] = 1.0 if math.sqrt(max(p22, 0.0)) < rel_std * -x3 else 0.0
+    else:
+        undefined_row(out, j)
+
+
 @kernel
 def ges_kalman_kernel(
+    y: np.ndarray, state: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ges_kalman_block` compiled once per value of ``last_only`` (a constant in
+    each copy, so that the per-sample loop of the last_only copy holds no row writes)."""
+    if last_only:
+        return ges_kalman_block(y, state, unc, consts, True)
+    return ges_kalman_block(y, state, unc, consts, False)
+
+
+@kernel(inline="always")
+def ges_kalman_block(
     y: np.ndarray, state: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """Run the filter over block ``y`` from ``state`` and ``unc`` and return
@@ -405,30 +436,18 @@ def ges_kalman_kernel(
             u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33,
             s, k0, k1, k2, k3, k0, h1, k2, k3, 1.0,
         )  # (U4)  # fmt: skip
-        if last_only and k != n - 1:
-            continue
-        j = 0 if last_only else k
-        _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
-        _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
-        if not last_only:
-            _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, j)
-        if -4.0 < x3 < 0.0:  # (20)
-            sh = math.sqrt(-0.25 * x3)  # sin(w Ts/2), from (4)
-            ch = math.sqrt(1.0 + 0.25 * x3)  # cos(w Ts/2)
-            B = -x4 / x3  # Section III-E
-            a_sin = x1 - B  # A sin(theta_k)
-            a_cos = (x2 / (2.0 * sh) + a_sin * sh) / ch  # A cos(theta_k), derived above
-            out[j, 0] = math.asin(sh) / (math.pi * Ts)  # eq. (21), w/(2 pi)
-            out[j, 1] = math.hypot(a_sin, a_cos)
-            out[j, 2] = math.atan2(a_sin, a_cos)
-            out[j, 3] = B
-            out[j, 4] = 1.0 if math.sqrt(max(p22, 0.0)) < rel_std * -x3 else 0.0
-        else:
-            undefined_row(out, j)
+        if not last_only:  # row k (last_only: the last row, after the loop)
+            _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
+            _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
+            _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, k)
+            _write_estimates(out, k, x1, x2, x3, x4, p22, Ts, rel_std)
     if last_only:  # (U5)-(U5a) over the block's u, in order: the same values as in the loop
         for k in range(n):
             w, m_u, m_l = _noise_means(u_seq[k], w, m_u, m_l, lam)
+        _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
+        _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
         _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, 0)
+        _write_estimates(out, 0, x1, x2, x3, x4, p22, Ts, rel_std)
     new_state = np.array(
         [x1, x2, x3, x4,
          p00, p01, p02, p03,
