@@ -452,8 +452,55 @@ def _modes(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array([lam[i].imag / (2 * np.pi) for i in idx]), W.real.copy(), W.imag.copy(), True
 
 
+@kernel(inline="always")
+def _write_row(
+    out: np.ndarray, r: int, x: np.ndarray, cx: float, Du: float, dsum: float, dhat: float, k: int,
+    Wre: np.ndarray, Wim: np.ndarray, freq: np.ndarray, modal_ok: bool, window: int, warm: int,
+) -> None:  # fmt: skip
+    """Row ``r`` of ``out`` after the sample that brought the count to ``k``: the modal
+    read-out of xhat (module docstring), the offset, converged, dhat and xhat."""
+    K, n = Wre.shape
+    rest = cx + Du + dsum / window
+    for c in range(K):
+        qre = 0.0
+        qim = 0.0
+        for a in range(n):
+            qre += Wre[c, a] * x[a]
+            qim += Wim[c, a] * x[a]
+        out[r, c] = freq[c]
+        if modal_ok:
+            out[r, K + c] = math.sqrt(qre * qre + qim * qim)
+            ph = math.atan2(qre, -qim)  # q = a e^{j(phase - pi/2)}
+            out[r, 2 * K + c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
+            rest -= qre
+        else:
+            out[r, K + c] = np.nan
+            out[r, 2 * K + c] = np.nan
+    out[r, 3 * K] = rest
+    out[r, 3 * K + 1] = 1.0 if modal_ok and k - 1 >= warm else 0.0
+    out[r, 3 * K + 2] = dhat
+    for a in range(n):
+        out[r, 3 * K + 3 + a] = x[a]
+
+
 @kernel
 def grip_mixing_kernel(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """:func:`grip_mixing_block` compiled once per value of ``last_only`` (a constant in
+    each copy, so that the per-sample loop of the last_only copy holds no row writes)."""
+    if last_only:
+        return grip_mixing_block(block, state, count0, fconst, iconst, True)
+    return grip_mixing_block(block, state, count0, fconst, iconst, False)
+
+
+@kernel(inline="always")
+def grip_mixing_block(
     block: np.ndarray,
     state: np.ndarray,
     count0: np.ndarray,
@@ -531,6 +578,7 @@ def grip_mixing_kernel(
     zn = np.empty(n)
     rd = np.empty(nt, dtype=np.int64)  # ring positions of the taps of the delay T
     sse = 0.0
+    cx = Du = dhat = 0.0  # (N >= 1: set by the loop)
     pos = k % Lb  # ring position of sample k; kept by increments below (no modulo per sample)
     kw = k % window  # phase of k in the mean-of-dhat window
     kp = k % P  # phase of k in the reset interval of z
@@ -644,30 +692,10 @@ def grip_mixing_kernel(
         k += 1
         pos = cyclic_next(pos, Lb)
         kp = cyclic_next(kp, P)
-        if last_only and i != N - 1:
-            continue
-        r = 0 if last_only else i
-        rest = cx + Du + dsum / window
-        for c in range(K):
-            qre = 0.0
-            qim = 0.0
-            for a in range(n):
-                qre += Wre[c, a] * x[a]
-                qim += Wim[c, a] * x[a]
-            out[r, c] = freq[c]
-            if modal_ok:
-                out[r, K + c] = math.sqrt(qre * qre + qim * qim)
-                ph = math.atan2(qre, -qim)  # q = a e^{j(phase - pi/2)}
-                out[r, 2 * K + c] = ph + 2.0 * math.pi if ph <= -math.pi else ph
-                rest -= qre
-            else:
-                out[r, K + c] = np.nan
-                out[r, 2 * K + c] = np.nan
-        out[r, 3 * K] = rest
-        out[r, 3 * K + 1] = 1.0 if modal_ok and k - 1 >= warm else 0.0
-        out[r, 3 * K + 2] = dhat
-        for a in range(n):
-            out[r, 3 * K + 3 + a] = x[a]
+        if not last_only:  # row i (last_only: the last row, after the loop)
+            _write_row(out, i, x, cx, Du, dsum, dhat, k, Wre, Wim, freq, modal_ok, window, warm)
+    if last_only:
+        _write_row(out, 0, x, cx, Du, dsum, dhat, k, Wre, Wim, freq, modal_ok, window, warm)
     new_state[o] = dsum
     count = np.empty(1, dtype=np.int64)
     count[0] = k
