@@ -787,6 +787,12 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
             g.Wre.ravel(), g.Wim.ravel(), g.frequencies_hz if g.modal_ok else np.full(1, np.nan),
         ])  # fmt: skip
         self._n, self._K = n, int(g.Wre.shape[0])
+        K, every = self._K, slice(None)
+        # the index of each output column group of the kernel's ``out``, built once
+        self._columns = (
+            (every, slice(0, K)), (every, slice(K, 2 * K)), (every, slice(2 * K, 3 * K)), (every, 3 * K),
+            (every, 3 * K + 1), (every, 3 * K + 2), (every, slice(3 * K + 3, 3 * K + 3 + n)),
+        )  # fmt: skip
         self._iconst = np.array(
             [n, m, g.Wre.shape[0], g.tap_h.size, self._lb, self._lz, g.window, g.reset_half, g.warm,
              int(g.modal_ok), *g.tap_o, int(_pairs(g.Ad))],
@@ -829,13 +835,13 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, sse = outputs
-        K, n = self._K, self._n
+        f, a, p, off, conv, dh, xh = self._columns
         return Track(
-            frequency_hz=out[:, :K],
-            amplitude=out[:, K : 2 * K],
-            phase_rad=out[:, 2 * K : 3 * K],
-            offset=out[:, 3 * K],
-            converged=out[:, 3 * K + 1] != 0.0,
-            residual_rms=math.sqrt(sse / block.shape[0]),
-            extras={"x_hat": out[:, 3 * K + 3 : 3 * K + 3 + n], "d_hat": out[:, 3 * K + 2]},
+            out[f],  # frequency_hz
+            out[a],  # amplitude
+            out[p],  # phase_rad
+            out[off],  # offset
+            out[conv].astype(np.bool_),  # converged: != 0 (NaN counts as True either way), one call
+            math.sqrt(sse / block.shape[0]),  # residual_rms
+            {"x_hat": out[xh], "d_hat": out[dh]},
         )

@@ -418,7 +418,10 @@ EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
 def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
     """The Track of a kernel's outputs ``(out, extras, sse)`` over ``block``."""
     out, ext, sse = outputs
-    return track_from_columns(out, sse, block.shape[0], {name: ext[:, i] for i, name in enumerate(EXTRA_NAMES)})
+    e = ext.T  # e[i] is the column ext[:, i], one index operation
+    return track_from_columns(
+        out, sse, block.shape[0], {EXTRA_NAMES[0]: e[0], EXTRA_NAMES[1]: e[1], EXTRA_NAMES[2]: e[2]}
+    )
 
 
 # ---- kernel pieces shared with kkl-biased (inlined: the same arithmetic in both) -----------

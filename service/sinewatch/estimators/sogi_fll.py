@@ -329,7 +329,7 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, ext, sse = outputs
-        extras = {"relative_error_rms": ext[:, 0], "rocof_hz_per_s": ext[:, 1]}
-        track = track_from_columns(out, sse, block.shape[0], extras)
-        track.rocof_hz_per_s = ext[:, 1:2]  # first class too (Estimate v2), the extra kept
-        return track
+        e = ext.T  # e[i] is the column ext[:, i], one index operation
+        extras = {"relative_error_rms": e[0], "rocof_hz_per_s": e[1]}
+        # rocof first class too (Estimate v2), the extra kept
+        return track_from_columns(out, sse, block.shape[0], extras, rocof_hz_per_s=ext[:, 1:2])
