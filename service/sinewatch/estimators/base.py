@@ -528,6 +528,9 @@ class Estimator(ABC, Generic[ParamsT]):
         block = self._kernel_input(samples)
         result = self._kernel(block, *state.values(), *self._constants, last_only)
         n_outputs = len(result) - len(state)  # so the zip below pairs every state array
+        if n_outputs == len(result) - 1:  # one state array (most kernels): no zip, ~0.3 us less
+            (key,) = state
+            return self._track(result[:n_outputs], block), {key: result[-1]}
         return self._track(result[:n_outputs], block), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
     def _run_timed(
