@@ -328,17 +328,6 @@ def _write_estimates(
 def ges_kalman_kernel(
     y: np.ndarray, state: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`ges_kalman_block` compiled once per value of ``last_only`` (a constant in
-    each copy, so that the per-sample loop of the last_only copy holds no row writes)."""
-    if last_only:
-        return ges_kalman_block(y, state, unc, consts, True)
-    return ges_kalman_block(y, state, unc, consts, False)
-
-
-@kernel(inline="always")
-def ges_kalman_block(
-    y: np.ndarray, state: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
-) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """Run the filter over block ``y`` from ``state`` and ``unc`` and return
     ``(out, sse, std, new_state, new_unc)``.
 

@@ -492,22 +492,6 @@ def grip_mixing_kernel(
     iconst: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-    """:func:`grip_mixing_block` compiled once per value of ``last_only`` (a constant in
-    each copy, so that the per-sample loop of the last_only copy holds no row writes)."""
-    if last_only:
-        return grip_mixing_block(block, state, count0, fconst, iconst, True)
-    return grip_mixing_block(block, state, count0, fconst, iconst, False)
-
-
-@kernel(inline="always")
-def grip_mixing_block(
-    block: np.ndarray,
-    state: np.ndarray,
-    count0: np.ndarray,
-    fconst: np.ndarray,
-    iconst: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """Run the sampled observer (7) over ``block`` (N, 1 + m): column 0 = y, then u.
 
     ``state`` and ``count0`` are the ``state`` and ``count`` arrays (layout:
