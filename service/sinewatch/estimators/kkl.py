@@ -411,6 +411,9 @@ def observer_consts(p: KklParams, ts: float, omega_ref: float, ell: float, lam_m
     )
 
 
+#: values kept per sample for its row (:func:`record_sample`)
+RECORD_SIZE = 12
+
 #: the kernels' ``extras`` columns, in order (module docstring, "extras")
 EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
 
@@ -486,19 +489,41 @@ def consistent(
 
 @kernel(inline="always")
 def record_sample(
-    out: np.ndarray, ext: np.ndarray, k: int, last_only: bool, good: bool, n_good: float,
-    n_settle: float, defined: bool, wts: float, Ts: float, a_sin: float, a_cos: float, offset: float,
-    det: float, ell: float, rr: float, ff: float, e2_avg: float, level: float,
+    rec: np.ndarray, k: int, last_only: bool, good: bool, n_good: float, n_settle: float, defined: bool,
+    wts: float, a_sin: float, a_cos: float, offset: float, det: float, rr: float, ff: float, e2_avg: float,
+    level: float,
 ) -> float:  # fmt: skip
-    """Count ``good`` samples (converged after n_settle in a row) and write sample ``k``'s
-    row unless only the last is wanted (the kernel then writes it after its loop, with
-    :func:`write_sample`: a row write in the loop, even one taken once, slowed every
-    sample). Returns the new count."""
+    """Count ``good`` samples (converged after n_settle in a row) and keep sample ``k``'s
+    values in row k of ``rec`` (row 0 when only the last is wanted) for
+    :func:`write_samples`: the rows are written after the per-sample loop, because their
+    calls (atan2 and the like) in the loop, even on a branch taken once, slowed every
+    sample. Returns the new count."""
     n_good = min(n_good + 1.0, n_settle) if good else 0.0
-    if not last_only:
-        write_sample(out, ext, k, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, level)  # fmt: skip
+    j = 0 if last_only else k
+    rec[j, 0] = 1.0 if good else 0.0
+    rec[j, 1] = n_good
+    rec[j, 2] = 1.0 if defined else 0.0
+    rec[j, 3] = wts
+    rec[j, 4] = a_sin
+    rec[j, 5] = a_cos
+    rec[j, 6] = offset
+    rec[j, 7] = det
+    rec[j, 8] = rr
+    rec[j, 9] = ff
+    rec[j, 10] = e2_avg
+    rec[j, 11] = level
     return n_good
+
+
+@kernel(inline="always")
+def write_samples(
+    out: np.ndarray, ext: np.ndarray, rec: np.ndarray, n_settle: float, Ts: float, ell: float
+) -> None:  # fmt: skip
+    """The rows of the samples kept in ``rec`` by :func:`record_sample`."""
+    for k in range(rec.shape[0]):
+        write_sample(out, ext, k, rec[k, 0] != 0.0, rec[k, 1], n_settle, rec[k, 2] != 0.0, rec[k, 3], Ts,
+                     rec[k, 4], rec[k, 5], rec[k, 6], rec[k, 7], ell, rec[k, 8], rec[k, 9], rec[k, 10],
+                     rec[k, 11])  # fmt: skip
 
 
 @kernel(inline="always")
@@ -600,24 +625,6 @@ def kkl_kernel(
     consts: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """:func:`kkl_block` compiled once per value of ``last_only`` (a constant in each copy,
-    so that the per-sample loop of the last_only copy holds no row writes)."""
-    if last_only:
-        return kkl_block(y, state, lam, fa, fb0, fb1, consts, True)
-    return kkl_block(y, state, lam, fa, fb0, fb1, consts, False)
-
-
-@kernel(inline="always")
-def kkl_block(
-    y: np.ndarray,
-    state: np.ndarray,
-    lam: np.ndarray,
-    fa: np.ndarray,
-    fb0: np.ndarray,
-    fb1: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
@@ -643,8 +650,7 @@ def kkl_block(
         s_l += lam[i]
     s_11 = float(m)
     sse = 0.0
-    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
-    offset = np.nan
+    rec = np.empty((1 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
         yk = y[k]
         if have_prev != 0.0:
@@ -728,11 +734,9 @@ def kkl_block(
         # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
         # model has no offset: 0 whenever defined
         offset = 0.0 if defined else np.nan
-        n_good = record_sample(out, ext, k, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
-                               offset, det, ell, rr, ff, e2_avg, y2_avg)  # fmt: skip
-    if last_only:  # the last sample's row, from the loop's final values
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, y2_avg)  # fmt: skip
+        n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
+                               rr, ff, e2_avg, y2_avg)  # fmt: skip
+    write_samples(out, ext, rec, n_settle, Ts, ell)  # the rows, after the loop
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
 

@@ -66,6 +66,7 @@ from sinewatch.estimators.base import kernel
 from sinewatch.estimators.kkl import (
     ABS_FLOOR,
     PAPER_LAMBDA_FACTORS,
+    RECORD_SIZE,
     FilterBankObserver,
     KklParams,
     consistent,
@@ -83,7 +84,7 @@ from sinewatch.estimators.kkl import (
     record_sample,
     silence_ratio_field,
     undefined_sample,
-    write_sample,
+    write_samples,
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
@@ -149,27 +150,6 @@ def kkl_biased_kernel(
     consts: np.ndarray,
     last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """:func:`kkl_biased_block` compiled once per value of ``last_only`` (a constant in each
-    copy, so that the per-sample loop of the last_only copy holds no row writes)."""
-    if last_only:
-        return kkl_biased_block(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, True)
-    return kkl_biased_block(y, state, lam, lam_phys, fa, fb0, fb1, kv, kk, consts, False)
-
-
-@kernel(inline="always")
-def kkl_biased_block(
-    y: np.ndarray,
-    state: np.ndarray,
-    lam: np.ndarray,
-    lam_phys: np.ndarray,
-    fa: np.ndarray,
-    fb0: np.ndarray,
-    fb1: np.ndarray,
-    kv: np.ndarray,
-    kk: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the biased observer over ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
     ``lam`` = lambda~ (units of omega_ref), ``lam_phys`` = lambda (rad/s); ``fa, fb0, fb1``
@@ -192,8 +172,7 @@ def kkl_biased_block(
     ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
     sse = 0.0
-    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
-    offset = np.nan
+    rec = np.empty((1 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
         yk = y[k]
         if have_prev != 0.0:
@@ -296,11 +275,9 @@ def kkl_biased_block(
                             mu, rr, ff, max_fit2, e2_avg, max_pred2, yv_avg, jump, wts, wts_lo, wts_hi
                         )
         # the offset is reported even while the oscillation is undefined
-        n_good = record_sample(out, ext, k, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos,
-                               offset, det, ell, rr, ff, e2_avg, yv_avg)  # fmt: skip
-    if last_only:  # the last sample's row, from the loop's final values
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, yv_avg)  # fmt: skip
+        n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
+                               rr, ff, e2_avg, yv_avg)  # fmt: skip
+    write_samples(out, ext, rec, n_settle, Ts, ell)  # the rows, after the loop
     tail = np.array(
         [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
     )
