@@ -470,7 +470,7 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         "filter on (6) (~50 flops a sample), every sample propagates the actual error's covariance "
         "U (U4), 16 entries at ~9 flops each after M = A U A^T, and updates the noise means "
         "(U5)-(U5a), one log and one exp per sample. With U and T in registers, the means in a "
-        "second pass and no row writes in the loop, the kernel runs at about 45 ns/sample "
+        "second pass and the last row written after the loop, the kernel runs at ~45 ns/sample "
         "(~30 for the filter and U, ~14 for log and exp), each operation in the order that keeps "
         "the outputs bit for bit; the FFT shares its work across a frame instead."
     )

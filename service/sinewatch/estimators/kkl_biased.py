@@ -295,7 +295,7 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
         "kkl-biased is below the streaming FFT (about 0.4x at 1024-sample blocks): the work of "
         "kkl (see its note) with m = 5 filters, their centred part and the 4 x 4 regularised "
         "solve by its Schur complement in the eigenbasis of C^T C, every sample: ~80 ns/sample "
-        "for the kernel with no row writes in the loop."
+        "for the kernel with the rows written after the loop."
     )
     ell_label = "l_b"
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
