@@ -25,9 +25,10 @@ The filter (Section III-C) is the standard Kalman filter on (6) with process noi
 covariance ``Q = diag(q)`` and measurement noise variance ``R``; the paper's Section IV
 uses Q = 1e-6 I, R = 1e-2 and a zero initial state. The prediction and the update are
 written out on the ten distinct entries of the symmetric covariance ``P`` so that the
-kernel stays cheap; with the standard-deviation recursion below it runs at 0.43x a
-streaming numpy FFT on the same blocks (``sinewatch bench kernels --estimators ges-kalman
---block 4096``; 1.07x without it).
+kernel stays cheap; with the standard-deviation recursion below (U and T in registers,
+the noise means in a second pass) it runs at about 0.6x a streaming numpy FFT on the same
+blocks (``sinewatch bench kernels --estimators ges-kalman --block 1024``; the bench's note
+says why).
 
 Recovery of the parameters from the state estimate x_hat:
 
