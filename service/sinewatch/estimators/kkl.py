@@ -493,25 +493,25 @@ def record_sample(
     wts: float, a_sin: float, a_cos: float, offset: float, det: float, rr: float, ff: float, e2_avg: float,
     level: float,
 ) -> float:  # fmt: skip
-    """Count ``good`` samples (converged after n_settle in a row) and keep sample ``k``'s
-    values in row k of ``rec`` (row 0 when only the last is wanted) for
-    :func:`write_samples`: the rows are written after the per-sample loop, because their
-    calls (atan2 and the like) in the loop, even on a branch taken once, slowed every
-    sample. Returns the new count."""
+    """Count ``good`` samples (converged after n_settle in a row) and, unless only the last
+    is wanted, keep sample ``k``'s values in row k of ``rec`` for :func:`write_samples`:
+    the rows are written after the per-sample loop, because their calls (atan2 and the
+    like) in the loop, even on a branch taken once, slowed every sample. Returns the new
+    count."""
     n_good = min(n_good + 1.0, n_settle) if good else 0.0
-    j = 0 if last_only else k
-    rec[j, 0] = 1.0 if good else 0.0
-    rec[j, 1] = n_good
-    rec[j, 2] = 1.0 if defined else 0.0
-    rec[j, 3] = wts
-    rec[j, 4] = a_sin
-    rec[j, 5] = a_cos
-    rec[j, 6] = offset
-    rec[j, 7] = det
-    rec[j, 8] = rr
-    rec[j, 9] = ff
-    rec[j, 10] = e2_avg
-    rec[j, 11] = level
+    if not last_only:  # (last_only: the loop's final values are the row)
+        rec[k, 0] = 1.0 if good else 0.0
+        rec[k, 1] = n_good
+        rec[k, 2] = 1.0 if defined else 0.0
+        rec[k, 3] = wts
+        rec[k, 4] = a_sin
+        rec[k, 5] = a_cos
+        rec[k, 6] = offset
+        rec[k, 7] = det
+        rec[k, 8] = rr
+        rec[k, 9] = ff
+        rec[k, 10] = e2_avg
+        rec[k, 11] = level
     return n_good
 
 
@@ -650,7 +650,9 @@ def kkl_kernel(
         s_l += lam[i]
     s_11 = float(m)
     sse = 0.0
-    rec = np.empty((1 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
+    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
+    offset = np.nan
+    rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
         yk = y[k]
         if have_prev != 0.0:
@@ -736,7 +738,11 @@ def kkl_kernel(
         offset = 0.0 if defined else np.nan
         n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
                                rr, ff, e2_avg, y2_avg)  # fmt: skip
-    write_samples(out, ext, rec, n_settle, Ts, ell)  # the rows, after the loop
+    if last_only:  # the last sample's row, from the loop's final values
+        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, y2_avg)  # fmt: skip
+    else:  # the rows, after the loop
+        write_samples(out, ext, rec, n_settle, Ts, ell)
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
 

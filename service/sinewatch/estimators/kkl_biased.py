@@ -84,6 +84,7 @@ from sinewatch.estimators.kkl import (
     record_sample,
     silence_ratio_field,
     undefined_sample,
+    write_sample,
     write_samples,
 )
 
@@ -172,7 +173,9 @@ def kkl_biased_kernel(
     ik0, ik1, ik2 = 1.0 / kk[0], 1.0 / kk[1], 1.0 / kk[2]
     inv_m = 1.0 / m
     sse = 0.0
-    rec = np.empty((1 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
+    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
+    offset = np.nan
+    rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
         yk = y[k]
         if have_prev != 0.0:
@@ -277,7 +280,11 @@ def kkl_biased_kernel(
         # the offset is reported even while the oscillation is undefined
         n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
                                rr, ff, e2_avg, yv_avg)  # fmt: skip
-    write_samples(out, ext, rec, n_settle, Ts, ell)  # the rows, after the loop
+    if last_only:  # the last sample's row, from the loop's final values
+        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, yv_avg)  # fmt: skip
+    else:  # the rows, after the loop
+        write_samples(out, ext, rec, n_settle, Ts, ell)
     tail = np.array(
         [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
     )
