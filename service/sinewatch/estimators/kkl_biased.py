@@ -299,7 +299,7 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators kkl-biased``
     # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
     bench_note: ClassVar[str] = (
-        "kkl-biased is below the streaming FFT (about 0.4x at 1024-sample blocks): the work of "
+        "kkl-biased is below the streaming FFT (about 0.3-0.4x at 1024-sample blocks): the work of "
         "kkl (see its note) with m = 5 filters, their centred part and the 4 x 4 regularised "
         "solve by its Schur complement in the eigenbasis of C^T C, every sample: ~80 ns/sample "
         "for the kernel with the rows written after the loop."
