@@ -92,6 +92,7 @@ from typing_extensions import TypeVar  # a TypeVar with a default (PEP 696); pyd
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 STATE_FORMAT_VERSION = 1
+_F64 = np.dtype(np.float64)  # the dtype of a native float64 array (``_as_block``'s fast path)
 
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
@@ -527,6 +528,9 @@ class Estimator(ABC, Generic[ParamsT]):
         block = self._kernel_input(samples)
         result = self._kernel(block, *state.values(), *self._constants, last_only)
         n_outputs = len(result) - len(state)  # so the zip below pairs every state array
+        if n_outputs == len(result) - 1:  # one state array (most kernels): no zip, ~0.3 us less
+            (key,) = state
+            return self._track(result[:n_outputs], block), {key: result[-1]}
         return self._track(result[:n_outputs], block), dict(zip(state, result[n_outputs:]))  # noqa: B905
 
     def _run_timed(
@@ -590,6 +594,22 @@ class Estimator(ABC, Generic[ParamsT]):
         return track
 
     def _as_block(self, samples: Any) -> np.ndarray:
+        # The common case first, in as few Python operations as possible (this runs once per
+        # block and per channel): a float64 numpy array of shape (N,) with N > 0 for a
+        # one-input estimator, used as is when C-contiguous (kernels never write to their
+        # input). Everything else takes the general path below, which raises the typed errors.
+        if (
+            type(samples) is np.ndarray
+            and samples.dtype is _F64
+            and samples.ndim == 1
+            and samples.shape[0]
+            and self.n_inputs == 1
+        ):
+            x = samples if samples.flags.c_contiguous else np.ascontiguousarray(samples)
+            if _all_finite(x):
+                return x
+            bad = int(np.count_nonzero(~np.isfinite(x)))
+            raise InputError(f"samples: expected finite values, got {bad} NaN/Inf", kind="non_finite")
         if not isinstance(samples, np.ndarray):
             if isinstance(samples, (list, tuple)):
                 samples = np.asarray(samples)
@@ -669,12 +689,12 @@ def track_from_columns(
     other Track fields (rocof_hz_per_s, reports, ...)."""
     n = n_samples
     return Track(
-        frequency_hz=out[:, 0:1],
-        amplitude=out[:, 1:2],
-        phase_rad=out[:, 2:3],
-        offset=out[:, 3],
-        converged=out[:, 4] != 0.0,
-        residual_rms=math.sqrt(sse / n) if n else math.nan,
-        extras=extras or {},
+        out[:, 0:1],  # frequency_hz
+        out[:, 1:2],  # amplitude
+        out[:, 2:3],  # phase_rad
+        out[:, 3],  # offset
+        out[:, 4].astype(np.bool_),  # converged: != 0 (NaN counts as True either way), one call
+        math.sqrt(sse / n) if n else math.nan,  # residual_rms
+        extras or {},
         **more,
     )
