@@ -148,54 +148,21 @@ class IpdftParams(EstimatorParams):
         return self
 
 
-@kernel
-def _window_estimate(
-    xw: np.ndarray,
-    hann: np.ndarray,
-    hann_sum: float,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    k_lo: int,
-    k_hi: int,
-    three_point: bool,
-    mags: np.ndarray,
-    wu: np.ndarray,
-    est: np.ndarray,
-) -> None:
-    """Estimate from the chronological window ``xw`` into ``est`` =
-    (defined, f_cycles_per_sample, A, theta_end, B, r). ``mags`` (bins,) and ``wu`` (N,)
-    are scratch."""
-    N = xw.shape[0]
-    # (M) Hann-weighted mean
-    acc = 0.0
-    for n in range(N):
-        acc += hann[n] * xw[n]
-    mu = acc / hann_sum
-    for n in range(N):  # windowed, offset-cancelled samples w_n u_n (into scratch)
-        wu[n] = hann[n] * (xw[n] - mu)
-    # (D) the bins k_lo-1 .. k_hi+1
-    for bi in range(k_hi - k_lo + 3):
-        k = k_lo - 1 + bi
-        re = 0.0
-        im = 0.0
-        idx = 0
-        for n in range(N):
-            v = wu[n]
-            re += v * cos_tab[idx]
-            im -= v * sin_tab[idx]
-            idx += k
-            if idx >= N:
-                idx -= N
-        mags[bi] = math.hypot(re, im)
-    # (P) peak in the band
+LANES = 4  # windows estimated side by side (see _window_estimates)
+CHUNK = 64  # windows gathered before they are estimated: bounds the scratch to CHUNK x N samples
+
+
+@kernel(inline="always")
+def _peak(mags: np.ndarray, lane: int, k_lo: int, k_hi: int, three_point: bool) -> float:
+    """(P), (I3)/(I2) and (F): ``lambda`` (bins) from the magnitudes ``mags[:, lane]`` of
+    the bins k_lo-1 .. k_hi+1; NaN when there is no peak (an all-zero window)."""
     bp = 1
-    for bb in range(2, k_hi - k_lo + 2):
-        if mags[bb] > mags[bp]:
+    for bb in range(2, k_hi - k_lo + 2):  # (P) peak in the band
+        if mags[bb, lane] > mags[bp, lane]:
             bp = bb
-    xm, x0, xp = mags[bp - 1], mags[bp], mags[bp + 1]
+    xm, x0, xp = mags[bp - 1, lane], mags[bp, lane], mags[bp + 1, lane]
     if not (x0 > 0.0) or not math.isfinite(x0):
-        est[0] = 0.0
-        return
+        return np.nan
     if three_point:  # (I3)
         delta = 2.0 * (xp - xm) / (xm + 2.0 * x0 + xp)
     else:  # (I2)
@@ -205,53 +172,230 @@ def _window_estimate(
         else:
             alpha = xm / x0
             delta = -(2.0 * alpha - 1.0) / (alpha + 1.0)
-    lam = (k_lo - 1 + bp) + delta  # (F)
-    omega = 2.0 * math.pi * lam / N
-    # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c
-    c = 0.5 * (N - 1)
-    cw, sw = math.cos(omega), math.sin(omega)
-    s, co = math.sin(-omega * c), math.cos(-omega * c)
-    sss = scc = ssc = ss = sc = 0.0
-    sus = suc = su = 0.0
-    for n in range(N):
-        u = xw[n] - mu
-        sss += s * s
-        scc += co * co
-        ssc += s * co
-        ss += s
-        sc += co
-        sus += u * s
-        suc += u * co
-        su += u
-        s, co = s * cw + co * sw, co * cw - s * sw
-    # Cramer's rule on the symmetric 3x3 normal matrix [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]]
-    m00, m01, m02, m11, m12, m22 = sss, ssc, ss, scc, sc, float(N)
+    return (k_lo - 1 + bp) + delta  # (F)
+
+
+@kernel(inline="always")
+def _cramer(
+    m00: float, m01: float, m02: float, m11: float, m12: float, m22: float, sus: float, suc: float, su: float
+) -> tuple[bool, float, float, float]:
+    """(LS) ``(solved, a, b, d)`` by Cramer's rule on the symmetric 3x3 normal matrix
+    [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]] = [[m00,m01,m02],[m01,m11,m12],[m02,m12,m22]]."""
     c00 = m11 * m22 - m12 * m12
     c01 = m02 * m12 - m01 * m22
     c02 = m01 * m12 - m02 * m11
     det = m00 * c00 + m01 * c01 + m02 * c02
     if not (abs(det) > 0.0) or not math.isfinite(det):
-        est[0] = 0.0
-        return
+        return False, 0.0, 0.0, 0.0
     c11 = m00 * m22 - m02 * m02
     c12 = m01 * m02 - m00 * m12
     c22 = m00 * m11 - m01 * m01
     a = (c00 * sus + c01 * suc + c02 * su) / det
     b = (c01 * sus + c11 * suc + c12 * su) / det
     d = (c02 * sus + c12 * suc + c22 * su) / det
-    # residual, second pass (one pass would cancel badly on large offsets)
-    s, co = math.sin(-omega * c), math.cos(-omega * c)
-    sse = 0.0
-    for n in range(N):
-        e = xw[n] - mu - (a * s + b * co + d)
-        sse += e * e
-        s, co = s * cw + co * sw, co * cw - s * sw
-    est[0] = 1.0
-    est[1] = lam / N
-    est[2] = math.hypot(a, b)
-    est[3] = wrap_pi(omega * c + math.atan2(b, a))
-    est[4] = mu + d
-    est[5] = math.sqrt(sse / N)
+    return True, a, b, d
+
+
+@kernel
+def _window_estimates(
+    win: np.ndarray,
+    n_win: int,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    est: np.ndarray,
+) -> None:
+    """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of the chronological
+    window ``win[q]``, for q < ``n_win``.
+
+    The windows are independent, so they are estimated LANES at a time: every sum of every
+    window is accumulated in a variable of its own, term by term in the same order as for one
+    window alone (the same roundings, bit for bit), which gives the CPU LANES independent
+    dependency chains to overlap (and to pack into vector registers) where one window alone
+    has one. A last group short of LANES windows repeats its last window."""
+    N = win.shape[1]
+    nb = k_hi - k_lo + 3
+    xt = np.empty((N, LANES))  # the LANES windows, sample-major: xt[n, lane]
+    wu = np.empty((N, LANES))  # w_n u_n
+    st = np.empty((N, LANES))  # sin(omega t_n), cos(omega t_n) of (LS)
+    ct = np.empty((N, LANES))
+    mags = np.empty((nb, LANES))
+    c = 0.5 * (N - 1)
+    for q0 in range(0, n_win, LANES):
+        for lane in range(LANES):
+            q = min(q0 + lane, n_win - 1)
+            for n in range(N):
+                xt[n, lane] = win[q, n]
+        # (M) Hann-weighted mean
+        h0 = h1 = h2 = h3 = 0.0
+        for n in range(N):
+            w = hann[n]
+            h0 += w * xt[n, 0]
+            h1 += w * xt[n, 1]
+            h2 += w * xt[n, 2]
+            h3 += w * xt[n, 3]
+        mu0, mu1, mu2, mu3 = h0 / hann_sum, h1 / hann_sum, h2 / hann_sum, h3 / hann_sum
+        for n in range(N):  # windowed, offset-cancelled samples w_n u_n
+            w = hann[n]
+            wu[n, 0] = w * (xt[n, 0] - mu0)
+            wu[n, 1] = w * (xt[n, 1] - mu1)
+            wu[n, 2] = w * (xt[n, 2] - mu2)
+            wu[n, 3] = w * (xt[n, 3] - mu3)
+        # (D) the bins k_lo-1 .. k_hi+1, two at a time (an odd last one twice)
+        for ba in range(0, nb, 2):
+            bb = min(ba + 1, nb - 1)
+            ka, kb = k_lo - 1 + ba, k_lo - 1 + bb
+            ra0 = ra1 = ra2 = ra3 = ia0 = ia1 = ia2 = ia3 = 0.0
+            rb0 = rb1 = rb2 = rb3 = ib0 = ib1 = ib2 = ib3 = 0.0
+            ja = jb = 0
+            for n in range(N):
+                ca, sa, cb, sb = cos_tab[ja], sin_tab[ja], cos_tab[jb], sin_tab[jb]
+                v0, v1, v2, v3 = wu[n, 0], wu[n, 1], wu[n, 2], wu[n, 3]
+                ra0 += v0 * ca
+                ra1 += v1 * ca
+                ra2 += v2 * ca
+                ra3 += v3 * ca
+                ia0 -= v0 * sa
+                ia1 -= v1 * sa
+                ia2 -= v2 * sa
+                ia3 -= v3 * sa
+                rb0 += v0 * cb
+                rb1 += v1 * cb
+                rb2 += v2 * cb
+                rb3 += v3 * cb
+                ib0 -= v0 * sb
+                ib1 -= v1 * sb
+                ib2 -= v2 * sb
+                ib3 -= v3 * sb
+                ja += ka
+                if ja >= N:
+                    ja -= N
+                jb += kb
+                if jb >= N:
+                    jb -= N
+            mags[ba, 0], mags[ba, 1] = math.hypot(ra0, ia0), math.hypot(ra1, ia1)
+            mags[ba, 2], mags[ba, 3] = math.hypot(ra2, ia2), math.hypot(ra3, ia3)
+            mags[bb, 0], mags[bb, 1] = math.hypot(rb0, ib0), math.hypot(rb1, ib1)
+            mags[bb, 2], mags[bb, 3] = math.hypot(rb2, ib2), math.hypot(rb3, ib3)
+        # (P), (I3)/(I2), (F)
+        lam0 = _peak(mags, 0, k_lo, k_hi, three_point)
+        lam1 = _peak(mags, 1, k_lo, k_hi, three_point)
+        lam2 = _peak(mags, 2, k_lo, k_hi, three_point)
+        lam3 = _peak(mags, 3, k_lo, k_hi, three_point)
+        om0, om1 = 2.0 * math.pi * lam0 / N, 2.0 * math.pi * lam1 / N
+        om2, om3 = 2.0 * math.pi * lam2 / N, 2.0 * math.pi * lam3 / N
+        # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
+        cw0, sw0, cw1, sw1 = math.cos(om0), math.sin(om0), math.cos(om1), math.sin(om1)
+        cw2, sw2, cw3, sw3 = math.cos(om2), math.sin(om2), math.cos(om3), math.sin(om3)
+        s0, co0 = math.sin(-om0 * c), math.cos(-om0 * c)
+        s1, co1 = math.sin(-om1 * c), math.cos(-om1 * c)
+        s2, co2 = math.sin(-om2 * c), math.cos(-om2 * c)
+        s3, co3 = math.sin(-om3 * c), math.cos(-om3 * c)
+        for n in range(N):
+            st[n, 0], ct[n, 0], st[n, 1], ct[n, 1] = s0, co0, s1, co1
+            st[n, 2], ct[n, 2], st[n, 3], ct[n, 3] = s2, co2, s3, co3
+            s0, co0 = s0 * cw0 + co0 * sw0, co0 * cw0 - s0 * sw0
+            s1, co1 = s1 * cw1 + co1 * sw1, co1 * cw1 - s1 * sw1
+            s2, co2 = s2 * cw2 + co2 * sw2, co2 * cw2 - s2 * sw2
+            s3, co3 = s3 * cw3 + co3 * sw3, co3 * cw3 - s3 * sw3
+        sss0 = sss1 = sss2 = sss3 = scc0 = scc1 = scc2 = scc3 = 0.0
+        ssc0 = ssc1 = ssc2 = ssc3 = ss0 = ss1 = ss2 = ss3 = 0.0
+        for n in range(N):
+            s0, s1, s2, s3 = st[n, 0], st[n, 1], st[n, 2], st[n, 3]
+            co0, co1, co2, co3 = ct[n, 0], ct[n, 1], ct[n, 2], ct[n, 3]
+            sss0 += s0 * s0
+            sss1 += s1 * s1
+            sss2 += s2 * s2
+            sss3 += s3 * s3
+            scc0 += co0 * co0
+            scc1 += co1 * co1
+            scc2 += co2 * co2
+            scc3 += co3 * co3
+            ssc0 += s0 * co0
+            ssc1 += s1 * co1
+            ssc2 += s2 * co2
+            ssc3 += s3 * co3
+            ss0 += s0
+            ss1 += s1
+            ss2 += s2
+            ss3 += s3
+        sc0 = sc1 = sc2 = sc3 = sus0 = sus1 = sus2 = sus3 = 0.0
+        suc0 = suc1 = suc2 = suc3 = su0 = su1 = su2 = su3 = 0.0
+        for n in range(N):
+            u0, u1, u2, u3 = xt[n, 0] - mu0, xt[n, 1] - mu1, xt[n, 2] - mu2, xt[n, 3] - mu3
+            s0, s1, s2, s3 = st[n, 0], st[n, 1], st[n, 2], st[n, 3]
+            co0, co1, co2, co3 = ct[n, 0], ct[n, 1], ct[n, 2], ct[n, 3]
+            sc0 += co0
+            sc1 += co1
+            sc2 += co2
+            sc3 += co3
+            sus0 += u0 * s0
+            sus1 += u1 * s1
+            sus2 += u2 * s2
+            sus3 += u3 * s3
+            suc0 += u0 * co0
+            suc1 += u1 * co1
+            suc2 += u2 * co2
+            suc3 += u3 * co3
+            su0 += u0
+            su1 += u1
+            su2 += u2
+            su3 += u3
+        fN = float(N)
+        ok0, a0, b0, d0 = _cramer(sss0, ssc0, ss0, scc0, sc0, fN, sus0, suc0, su0)
+        ok1, a1, b1, d1 = _cramer(sss1, ssc1, ss1, scc1, sc1, fN, sus1, suc1, su1)
+        ok2, a2, b2, d2 = _cramer(sss2, ssc2, ss2, scc2, sc2, fN, sus2, suc2, su2)
+        ok3, a3, b3, d3 = _cramer(sss3, ssc3, ss3, scc3, sc3, fN, sus3, suc3, su3)
+        # residual, second pass (one pass would cancel badly on large offsets)
+        e0 = e1 = e2 = e3 = 0.0
+        for n in range(N):
+            r0 = xt[n, 0] - mu0 - (a0 * st[n, 0] + b0 * ct[n, 0] + d0)
+            r1 = xt[n, 1] - mu1 - (a1 * st[n, 1] + b1 * ct[n, 1] + d1)
+            r2 = xt[n, 2] - mu2 - (a2 * st[n, 2] + b2 * ct[n, 2] + d2)
+            r3 = xt[n, 3] - mu3 - (a3 * st[n, 3] + b3 * ct[n, 3] + d3)
+            e0 += r0 * r0
+            e1 += r1 * r1
+            e2 += r2 * r2
+            e3 += r3 * r3
+        _store(est, q0, n_win, lam0, om0, c, ok0, a0, b0, d0, mu0, e0, fN)
+        _store(est, q0 + 1, n_win, lam1, om1, c, ok1, a1, b1, d1, mu1, e1, fN)
+        _store(est, q0 + 2, n_win, lam2, om2, c, ok2, a2, b2, d2, mu2, e2, fN)
+        _store(est, q0 + 3, n_win, lam3, om3, c, ok3, a3, b3, d3, mu3, e3, fN)
+
+
+@kernel(inline="always")
+def _store(
+    est: np.ndarray,
+    q: int,
+    n_win: int,
+    lam: float,
+    omega: float,
+    c: float,
+    ok: bool,
+    a: float,
+    b: float,
+    d: float,
+    mu: float,
+    sse: float,
+    fN: float,
+) -> None:
+    """Row ``q`` of ``est`` (if q < n_win) from one window's fit: undefined (0) without a
+    spectral peak or a solvable fit; otherwise A, theta_end, B and r of (LS)."""
+    if q >= n_win:
+        return
+    if math.isnan(lam) or not ok:
+        est[q, 0] = 0.0
+        return
+    est[q, 0] = 1.0
+    est[q, 1] = lam / fN
+    est[q, 2] = math.hypot(a, b)
+    est[q, 3] = wrap_pi(omega * c + math.atan2(b, a))
+    est[q, 4] = mu + d
+    est[q, 5] = math.sqrt(sse / fN)
 
 
 @kernel
@@ -282,6 +426,12 @@ def ipdft_kernel(
     max_relative_residual, sum of the Hann window). ``out`` columns are frequency_hz,
     amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
     row. Pure: the inputs are not modified.
+
+    The block is run in chunks of up to CHUNK windows: first the samples go into the ring
+    buffer and every window due is copied out, then the chunk's windows are estimated
+    together (:func:`_window_estimates`; a window's estimate depends on its samples only),
+    then the samples are run again for the held estimates, the one-step predictions and
+    the outputs.
     """
     N = buf.shape[0]
     hop, k_lo, k_hi, three_point = iconsts[0], iconsts[1], iconsts[2], iconsts[3] != 0
@@ -294,50 +444,61 @@ def ipdft_kernel(
     out = np.empty((1 if last_only else n_in, 5))
     rocof_out = np.empty(1 if last_only else n_in)
     resid = np.empty(1 if last_only else n_in)
-    xw = np.empty(N)
-    wu = np.empty(N)
-    mags = np.empty(k_hi - k_lo + 3)
-    est = np.zeros(6)
+    chunk = min(CHUNK, (n_in - 1) // hop + 1)  # at most one window per hop samples
+    win = np.empty((chunk, N))
+    due_at = np.empty(chunk, dtype=np.int64)
+    est = np.zeros((chunk, 6))
     sse = 0.0
     n_pred = 0
-    for j in range(n_in):
-        xj = x[j]
-        if held and defined:  # one-step prediction from the estimate held before x_j
-            e = xj - (B + A * math.sin(th + 2.0 * math.pi * fcy * (m + 1)))
-            sse += e * e
-            n_pred += 1
-        m += 1
-        pos, fill, since, due = ring_push(b, xj, pos, fill, since, hop, xw)
-        if due:  # a hop: re-estimate from the window
-            _window_estimate(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, mags, wu, est)
-            held = 1
-            m = 0
-            if est[0] != 0.0:
-                defined = 1
-                fcy, A, th, B, r = est[1], est[2], est[3], est[4], est[5]
-                conv = 1.0 if (A > min_amp and r <= max_rel * A) else 0.0
-                run = min(run + 1.0, 2.0)
-                rocof = (fcy - f_prev) * fs * fs / hop if run >= 2.0 else 0.0
-                f_prev = fcy
+    j0 = 0
+    while j0 < n_in:
+        n_win = 0  # the samples into the ring buffer, the windows due copied out
+        j1 = j0
+        while j1 < n_in and n_win < chunk:
+            pos, fill, since, due = ring_push(b, x[j1], pos, fill, since, hop, win[n_win])
+            if due:
+                due_at[n_win] = j1
+                n_win += 1
+            j1 += 1
+        _window_estimates(win, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+        q = 0
+        for j in range(j0, j1):
+            if held and defined:  # one-step prediction from the estimate held before x_j
+                e = x[j] - (B + A * math.sin(th + 2.0 * math.pi * fcy * (m + 1)))
+                sse += e * e
+                n_pred += 1
+            m += 1
+            if q < n_win and due_at[q] == j:  # a hop: the estimate of the window ending here
+                held = 1
+                m = 0
+                if est[q, 0] != 0.0:
+                    defined = 1
+                    fcy, A, th, B, r = est[q, 1], est[q, 2], est[q, 3], est[q, 4], est[q, 5]
+                    conv = 1.0 if (A > min_amp and r <= max_rel * A) else 0.0
+                    run = min(run + 1.0, 2.0)
+                    rocof = (fcy - f_prev) * fs * fs / hop if run >= 2.0 else 0.0
+                    f_prev = fcy
+                else:
+                    defined = 0
+                    fcy = A = th = B = r = conv = 0.0
+                    f_prev = rocof = run = 0.0
+                q += 1
+            if last_only and j != n_in - 1:
+                continue
+            row = 0 if last_only else j
+            if held and defined:
+                out[row, 0] = fcy * fs
+                out[row, 1] = A
+                out[row, 2] = wrap_pi(th + 2.0 * math.pi * fcy * m)
+                out[row, 3] = B
+                out[row, 4] = conv
+                resid[row] = r
+                rocof_out[row] = rocof if run >= 2.0 else np.nan
             else:
-                defined = 0
-                fcy = A = th = B = r = conv = 0.0
-                f_prev = rocof = run = 0.0
-        if last_only and j != n_in - 1:
-            continue
-        row = 0 if last_only else j
-        if held and defined:
-            out[row, 0] = fcy * fs
-            out[row, 1] = A
-            out[row, 2] = wrap_pi(th + 2.0 * math.pi * fcy * m)
-            out[row, 3] = B
-            out[row, 4] = conv
-            resid[row] = r
-            rocof_out[row] = rocof if run >= 2.0 else np.nan
-        else:
-            undefined_row(out, row)
-            resid[row] = np.nan
-            rocof_out[row] = np.nan
+                undefined_row(out, row)
+                resid[row] = np.nan
+                rocof_out[row] = np.nan
+        j0 = j1
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])
     new_rstate = np.array([f_prev, rocof, run])
