@@ -92,7 +92,6 @@ from sinewatch.estimators.base import (
     encode_array,
     kernel,
     require_below_nyquist,
-    ring_push,
     track_from_columns,
     undefined_row,
     wrap_pi,
@@ -148,19 +147,18 @@ class IpdftParams(EstimatorParams):
         return self
 
 
-LANES = 4  # windows estimated side by side (see _window_estimates)
-CHUNK = 64  # windows gathered before they are estimated: bounds the scratch to CHUNK x N samples
+CHUNK = 64  # windows estimated together (see _window_estimates): bounds the scratch to CHUNK x N
 
 
 @kernel(inline="always")
-def _peak(mags: np.ndarray, lane: int, k_lo: int, k_hi: int, three_point: bool) -> float:
-    """(P), (I3)/(I2) and (F): ``lambda`` (bins) from the magnitudes ``mags[:, lane]`` of
+def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> float:
+    """(P), (I3)/(I2) and (F): ``lambda`` (bins) from the magnitudes ``mags[:, q]`` of
     the bins k_lo-1 .. k_hi+1; NaN when there is no peak (an all-zero window)."""
     bp = 1
     for bb in range(2, k_hi - k_lo + 2):  # (P) peak in the band
-        if mags[bb, lane] > mags[bp, lane]:
+        if mags[bb, q] > mags[bp, q]:
             bp = bb
-    xm, x0, xp = mags[bp - 1, lane], mags[bp, lane], mags[bp + 1, lane]
+    xm, x0, xp = mags[bp - 1, q], mags[bp, q], mags[bp + 1, q]
     if not (x0 > 0.0) or not math.isfinite(x0):
         return np.nan
     if three_point:  # (I3)
@@ -175,30 +173,9 @@ def _peak(mags: np.ndarray, lane: int, k_lo: int, k_hi: int, three_point: bool) 
     return (k_lo - 1 + bp) + delta  # (F)
 
 
-@kernel(inline="always")
-def _cramer(
-    m00: float, m01: float, m02: float, m11: float, m12: float, m22: float, sus: float, suc: float, su: float
-) -> tuple[bool, float, float, float]:
-    """(LS) ``(solved, a, b, d)`` by Cramer's rule on the symmetric 3x3 normal matrix
-    [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]] = [[m00,m01,m02],[m01,m11,m12],[m02,m12,m22]]."""
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    if not (abs(det) > 0.0) or not math.isfinite(det):
-        return False, 0.0, 0.0, 0.0
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    a = (c00 * sus + c01 * suc + c02 * su) / det
-    b = (c01 * sus + c11 * suc + c12 * su) / det
-    d = (c02 * sus + c12 * suc + c22 * su) / det
-    return True, a, b, d
-
-
 @kernel
 def _window_estimates(
-    win: np.ndarray,
+    xt: np.ndarray,
     n_win: int,
     hann: np.ndarray,
     hann_sum: float,
@@ -209,193 +186,151 @@ def _window_estimates(
     three_point: bool,
     est: np.ndarray,
 ) -> None:
-    """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of the chronological
-    window ``win[q]``, for q < ``n_win``.
+    """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of window q, for
+    q < ``n_win``; ``xt[n, q]`` is sample n (oldest first) of window q.
 
-    The windows are independent, so they are estimated LANES at a time: every sum of every
-    window is accumulated in a variable of its own, term by term in the same order as for one
-    window alone (the same roundings, bit for bit), which gives the CPU LANES independent
-    dependency chains to overlap (and to pack into vector registers) where one window alone
-    has one. A last group short of LANES windows repeats its last window."""
-    N = win.shape[1]
+    The windows are independent, so every step runs over all of them at once, window index
+    innermost: each sum of each window is accumulated in its own slot, term by term in the
+    same order as for one window alone (the same roundings, bit for bit), but the loop over
+    the windows has no dependency from one iteration to the next, so the compiler vectorises
+    it and the CPU overlaps it, where one window alone is one long chain of dependent adds.
+    Loops touch few arrays each, so that the compiler's aliasing checks stay cheap."""
+    N = xt.shape[0]
+    Q = n_win
     nb = k_hi - k_lo + 3
-    xt = np.empty((N, LANES))  # the LANES windows, sample-major: xt[n, lane]
-    wu = np.empty((N, LANES))  # w_n u_n
-    st = np.empty((N, LANES))  # sin(omega t_n), cos(omega t_n) of (LS)
-    ct = np.empty((N, LANES))
-    mags = np.empty((nb, LANES))
+    wu = np.empty((N, Q))  # w_n u_n
+    st = np.empty((N, Q))  # sin(omega t_n), cos(omega t_n) of (LS)
+    ct = np.empty((N, Q))
+    mags = np.empty((nb, Q))
+    mu = np.zeros(Q)
+    acc1 = np.zeros(Q)
+    acc2 = np.zeros(Q)
+    # (M) Hann-weighted mean
+    for n in range(N):
+        w = hann[n]
+        xn = xt[n]
+        for q in range(Q):
+            mu[q] += w * xn[q]
+    for q in range(Q):
+        mu[q] = mu[q] / hann_sum
+    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
+        w = hann[n]
+        xn = xt[n]
+        wn = wu[n]
+        for q in range(Q):
+            wn[q] = w * (xn[q] - mu[q])
+    # (D) the bins k_lo-1 .. k_hi+1
+    for bi in range(nb):
+        k = k_lo - 1 + bi
+        acc1[:] = 0.0
+        acc2[:] = 0.0
+        idx = 0
+        for n in range(N):
+            cv = cos_tab[idx]
+            sv = sin_tab[idx]
+            wn = wu[n]
+            for q in range(Q):
+                acc1[q] += wn[q] * cv
+                acc2[q] -= wn[q] * sv
+            idx += k
+            if idx >= N:
+                idx -= N
+        for q in range(Q):
+            mags[bi, q] = math.hypot(acc1[q], acc2[q])
+    # (P), (I3)/(I2), (F), then the start of the rotation recurrence of (LS)
     c = 0.5 * (N - 1)
-    for q0 in range(0, n_win, LANES):
-        for lane in range(LANES):
-            q = min(q0 + lane, n_win - 1)
-            for n in range(N):
-                xt[n, lane] = win[q, n]
-        # (M) Hann-weighted mean
-        h0 = h1 = h2 = h3 = 0.0
-        for n in range(N):
-            w = hann[n]
-            h0 += w * xt[n, 0]
-            h1 += w * xt[n, 1]
-            h2 += w * xt[n, 2]
-            h3 += w * xt[n, 3]
-        mu0, mu1, mu2, mu3 = h0 / hann_sum, h1 / hann_sum, h2 / hann_sum, h3 / hann_sum
-        for n in range(N):  # windowed, offset-cancelled samples w_n u_n
-            w = hann[n]
-            wu[n, 0] = w * (xt[n, 0] - mu0)
-            wu[n, 1] = w * (xt[n, 1] - mu1)
-            wu[n, 2] = w * (xt[n, 2] - mu2)
-            wu[n, 3] = w * (xt[n, 3] - mu3)
-        # (D) the bins k_lo-1 .. k_hi+1, two at a time (an odd last one twice)
-        for ba in range(0, nb, 2):
-            bb = min(ba + 1, nb - 1)
-            ka, kb = k_lo - 1 + ba, k_lo - 1 + bb
-            ra0 = ra1 = ra2 = ra3 = ia0 = ia1 = ia2 = ia3 = 0.0
-            rb0 = rb1 = rb2 = rb3 = ib0 = ib1 = ib2 = ib3 = 0.0
-            ja = jb = 0
-            for n in range(N):
-                ca, sa, cb, sb = cos_tab[ja], sin_tab[ja], cos_tab[jb], sin_tab[jb]
-                v0, v1, v2, v3 = wu[n, 0], wu[n, 1], wu[n, 2], wu[n, 3]
-                ra0 += v0 * ca
-                ra1 += v1 * ca
-                ra2 += v2 * ca
-                ra3 += v3 * ca
-                ia0 -= v0 * sa
-                ia1 -= v1 * sa
-                ia2 -= v2 * sa
-                ia3 -= v3 * sa
-                rb0 += v0 * cb
-                rb1 += v1 * cb
-                rb2 += v2 * cb
-                rb3 += v3 * cb
-                ib0 -= v0 * sb
-                ib1 -= v1 * sb
-                ib2 -= v2 * sb
-                ib3 -= v3 * sb
-                ja += ka
-                if ja >= N:
-                    ja -= N
-                jb += kb
-                if jb >= N:
-                    jb -= N
-            mags[ba, 0], mags[ba, 1] = math.hypot(ra0, ia0), math.hypot(ra1, ia1)
-            mags[ba, 2], mags[ba, 3] = math.hypot(ra2, ia2), math.hypot(ra3, ia3)
-            mags[bb, 0], mags[bb, 1] = math.hypot(rb0, ib0), math.hypot(rb1, ib1)
-            mags[bb, 2], mags[bb, 3] = math.hypot(rb2, ib2), math.hypot(rb3, ib3)
-        # (P), (I3)/(I2), (F)
-        lam0 = _peak(mags, 0, k_lo, k_hi, three_point)
-        lam1 = _peak(mags, 1, k_lo, k_hi, three_point)
-        lam2 = _peak(mags, 2, k_lo, k_hi, three_point)
-        lam3 = _peak(mags, 3, k_lo, k_hi, three_point)
-        om0, om1 = 2.0 * math.pi * lam0 / N, 2.0 * math.pi * lam1 / N
-        om2, om3 = 2.0 * math.pi * lam2 / N, 2.0 * math.pi * lam3 / N
-        # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
-        cw0, sw0, cw1, sw1 = math.cos(om0), math.sin(om0), math.cos(om1), math.sin(om1)
-        cw2, sw2, cw3, sw3 = math.cos(om2), math.sin(om2), math.cos(om3), math.sin(om3)
-        s0, co0 = math.sin(-om0 * c), math.cos(-om0 * c)
-        s1, co1 = math.sin(-om1 * c), math.cos(-om1 * c)
-        s2, co2 = math.sin(-om2 * c), math.cos(-om2 * c)
-        s3, co3 = math.sin(-om3 * c), math.cos(-om3 * c)
-        for n in range(N):
-            st[n, 0], ct[n, 0], st[n, 1], ct[n, 1] = s0, co0, s1, co1
-            st[n, 2], ct[n, 2], st[n, 3], ct[n, 3] = s2, co2, s3, co3
-            s0, co0 = s0 * cw0 + co0 * sw0, co0 * cw0 - s0 * sw0
-            s1, co1 = s1 * cw1 + co1 * sw1, co1 * cw1 - s1 * sw1
-            s2, co2 = s2 * cw2 + co2 * sw2, co2 * cw2 - s2 * sw2
-            s3, co3 = s3 * cw3 + co3 * sw3, co3 * cw3 - s3 * sw3
-        sss0 = sss1 = sss2 = sss3 = scc0 = scc1 = scc2 = scc3 = 0.0
-        ssc0 = ssc1 = ssc2 = ssc3 = ss0 = ss1 = ss2 = ss3 = 0.0
-        for n in range(N):
-            s0, s1, s2, s3 = st[n, 0], st[n, 1], st[n, 2], st[n, 3]
-            co0, co1, co2, co3 = ct[n, 0], ct[n, 1], ct[n, 2], ct[n, 3]
-            sss0 += s0 * s0
-            sss1 += s1 * s1
-            sss2 += s2 * s2
-            sss3 += s3 * s3
-            scc0 += co0 * co0
-            scc1 += co1 * co1
-            scc2 += co2 * co2
-            scc3 += co3 * co3
-            ssc0 += s0 * co0
-            ssc1 += s1 * co1
-            ssc2 += s2 * co2
-            ssc3 += s3 * co3
-            ss0 += s0
-            ss1 += s1
-            ss2 += s2
-            ss3 += s3
-        sc0 = sc1 = sc2 = sc3 = sus0 = sus1 = sus2 = sus3 = 0.0
-        suc0 = suc1 = suc2 = suc3 = su0 = su1 = su2 = su3 = 0.0
-        for n in range(N):
-            u0, u1, u2, u3 = xt[n, 0] - mu0, xt[n, 1] - mu1, xt[n, 2] - mu2, xt[n, 3] - mu3
-            s0, s1, s2, s3 = st[n, 0], st[n, 1], st[n, 2], st[n, 3]
-            co0, co1, co2, co3 = ct[n, 0], ct[n, 1], ct[n, 2], ct[n, 3]
-            sc0 += co0
-            sc1 += co1
-            sc2 += co2
-            sc3 += co3
-            sus0 += u0 * s0
-            sus1 += u1 * s1
-            sus2 += u2 * s2
-            sus3 += u3 * s3
-            suc0 += u0 * co0
-            suc1 += u1 * co1
-            suc2 += u2 * co2
-            suc3 += u3 * co3
-            su0 += u0
-            su1 += u1
-            su2 += u2
-            su3 += u3
-        fN = float(N)
-        ok0, a0, b0, d0 = _cramer(sss0, ssc0, ss0, scc0, sc0, fN, sus0, suc0, su0)
-        ok1, a1, b1, d1 = _cramer(sss1, ssc1, ss1, scc1, sc1, fN, sus1, suc1, su1)
-        ok2, a2, b2, d2 = _cramer(sss2, ssc2, ss2, scc2, sc2, fN, sus2, suc2, su2)
-        ok3, a3, b3, d3 = _cramer(sss3, ssc3, ss3, scc3, sc3, fN, sus3, suc3, su3)
-        # residual, second pass (one pass would cancel badly on large offsets)
-        e0 = e1 = e2 = e3 = 0.0
-        for n in range(N):
-            r0 = xt[n, 0] - mu0 - (a0 * st[n, 0] + b0 * ct[n, 0] + d0)
-            r1 = xt[n, 1] - mu1 - (a1 * st[n, 1] + b1 * ct[n, 1] + d1)
-            r2 = xt[n, 2] - mu2 - (a2 * st[n, 2] + b2 * ct[n, 2] + d2)
-            r3 = xt[n, 3] - mu3 - (a3 * st[n, 3] + b3 * ct[n, 3] + d3)
-            e0 += r0 * r0
-            e1 += r1 * r1
-            e2 += r2 * r2
-            e3 += r3 * r3
-        _store(est, q0, n_win, lam0, om0, c, ok0, a0, b0, d0, mu0, e0, fN)
-        _store(est, q0 + 1, n_win, lam1, om1, c, ok1, a1, b1, d1, mu1, e1, fN)
-        _store(est, q0 + 2, n_win, lam2, om2, c, ok2, a2, b2, d2, mu2, e2, fN)
-        _store(est, q0 + 3, n_win, lam3, om3, c, ok3, a3, b3, d3, mu3, e3, fN)
-
-
-@kernel(inline="always")
-def _store(
-    est: np.ndarray,
-    q: int,
-    n_win: int,
-    lam: float,
-    omega: float,
-    c: float,
-    ok: bool,
-    a: float,
-    b: float,
-    d: float,
-    mu: float,
-    sse: float,
-    fN: float,
-) -> None:
-    """Row ``q`` of ``est`` (if q < n_win) from one window's fit: undefined (0) without a
-    spectral peak or a solvable fit; otherwise A, theta_end, B and r of (LS)."""
-    if q >= n_win:
-        return
-    if math.isnan(lam) or not ok:
-        est[q, 0] = 0.0
-        return
-    est[q, 0] = 1.0
-    est[q, 1] = lam / fN
-    est[q, 2] = math.hypot(a, b)
-    est[q, 3] = wrap_pi(omega * c + math.atan2(b, a))
-    est[q, 4] = mu + d
-    est[q, 5] = math.sqrt(sse / fN)
+    lam = np.empty(Q)
+    omega = np.empty(Q)
+    cw = np.empty(Q)
+    sw = np.empty(Q)
+    for q in range(Q):
+        lam[q] = _peak(mags, q, k_lo, k_hi, three_point)
+        om = 2.0 * math.pi * lam[q] / N
+        omega[q] = om
+        cw[q], sw[q] = math.cos(om), math.sin(om)
+        st[0, q], ct[0, q] = math.sin(-om * c), math.cos(-om * c)
+    # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
+    for n in range(1, N):
+        sp, cp, sn, cn = st[n - 1], ct[n - 1], st[n], ct[n]
+        for q in range(Q):
+            s, co = sp[q], cp[q]
+            sn[q] = s * cw[q] + co * sw[q]
+            cn[q] = co * cw[q] - s * sw[q]
+    sss = np.zeros(Q)
+    scc = np.zeros(Q)
+    ssc = np.zeros(Q)
+    ss = np.zeros(Q)
+    sc = np.zeros(Q)
+    sus = np.zeros(Q)
+    suc = np.zeros(Q)
+    su = np.zeros(Q)
+    for n in range(N):
+        sn = st[n]
+        for q in range(Q):
+            sss[q] += sn[q] * sn[q]
+            ss[q] += sn[q]
+    for n in range(N):
+        cn = ct[n]
+        for q in range(Q):
+            scc[q] += cn[q] * cn[q]
+            sc[q] += cn[q]
+    for n in range(N):
+        sn, cn = st[n], ct[n]
+        for q in range(Q):
+            ssc[q] += sn[q] * cn[q]
+    for n in range(N):
+        xn = xt[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            su[q] += u
+    for n in range(N):
+        xn, sn = xt[n], st[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            sus[q] += u * sn[q]
+    for n in range(N):
+        xn, cn = xt[n], ct[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            suc[q] += u * cn[q]
+    # Cramer's rule on the symmetric 3x3 normal matrix [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]]
+    ok = np.empty(Q, dtype=np.bool_)
+    fa = np.zeros(Q)
+    fb = np.zeros(Q)
+    fd = np.zeros(Q)
+    for q in range(Q):
+        m00, m01, m02, m11, m12, m22 = sss[q], ssc[q], ss[q], scc[q], sc[q], float(N)
+        c00 = m11 * m22 - m12 * m12
+        c01 = m02 * m12 - m01 * m22
+        c02 = m01 * m12 - m02 * m11
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        ok[q] = (abs(det) > 0.0) and math.isfinite(det) and not math.isnan(lam[q])
+        if not ok[q]:
+            continue
+        c11 = m00 * m22 - m02 * m02
+        c12 = m01 * m02 - m00 * m12
+        c22 = m00 * m11 - m01 * m01
+        fa[q] = (c00 * sus[q] + c01 * suc[q] + c02 * su[q]) / det
+        fb[q] = (c01 * sus[q] + c11 * suc[q] + c12 * su[q]) / det
+        fd[q] = (c02 * sus[q] + c12 * suc[q] + c22 * su[q]) / det
+    # residual, second pass (one pass would cancel badly on large offsets)
+    acc1[:] = 0.0
+    for n in range(N):
+        xn, sn, cn = xt[n], st[n], ct[n]
+        for q in range(Q):
+            e = xn[q] - mu[q] - (fa[q] * sn[q] + fb[q] * cn[q] + fd[q])
+            acc1[q] += e * e
+    for q in range(Q):
+        if not ok[q]:
+            est[q, 0] = 0.0
+            continue
+        a, b = fa[q], fb[q]
+        est[q, 0] = 1.0
+        est[q, 1] = lam[q] / N
+        est[q, 2] = math.hypot(a, b)
+        est[q, 3] = wrap_pi(omega[q] * c + math.atan2(b, a))
+        est[q, 4] = mu[q] + fd[q]
+        est[q, 5] = math.sqrt(acc1[q] / N)
 
 
 @kernel
@@ -436,7 +371,6 @@ def ipdft_kernel(
     N = buf.shape[0]
     hop, k_lo, k_hi, three_point = iconsts[0], iconsts[1], iconsts[2], iconsts[3] != 0
     fs, min_amp, max_rel, hann_sum = fconsts[0], fconsts[1], fconsts[2], fconsts[3]
-    b = buf.copy()
     pos, fill, since, held, defined, m = istate[0], istate[1], istate[2], istate[3], istate[4], istate[5]
     fcy, A, th, B, r, conv = fstate[0], fstate[1], fstate[2], fstate[3], fstate[4], fstate[5]
     f_prev, rocof, run = rstate[0], rstate[1], rstate[2]
@@ -445,22 +379,35 @@ def ipdft_kernel(
     rocof_out = np.empty(1 if last_only else n_in)
     resid = np.empty(1 if last_only else n_in)
     chunk = min(CHUNK, (n_in - 1) // hop + 1)  # at most one window per hop samples
-    win = np.empty((chunk, N))
+    # the stream: the buffer's N samples, oldest first, then the block (window ending at
+    # block sample j = seg[j + 1 : j + 1 + N])
+    seg = np.empty(N + n_in)
+    for i in range(N):
+        seg[i] = buf[pos + i if pos + i < N else pos + i - N]
+    seg[N:] = x
+    xt = np.empty((N, chunk))  # the chunk's windows, xt[n, q]: sample n of window q
     due_at = np.empty(chunk, dtype=np.int64)
     est = np.zeros((chunk, 6))
     sse = 0.0
     n_pred = 0
     j0 = 0
     while j0 < n_in:
-        n_win = 0  # the samples into the ring buffer, the windows due copied out
+        n_win = 0  # the ring buffer's counters over the samples, the windows due
         j1 = j0
         while j1 < n_in and n_win < chunk:
-            pos, fill, since, due = ring_push(b, x[j1], pos, fill, since, hop, win[n_win])
-            if due:
+            if fill < N:
+                fill += 1
+            if since < hop:
+                since += 1
+            if fill == N and since >= hop:
+                since = 0
                 due_at[n_win] = j1
                 n_win += 1
             j1 += 1
-        _window_estimates(win, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+        for n in range(N):
+            for q in range(n_win):
+                xt[n, q] = seg[due_at[q] + 1 + n]
+        _window_estimates(xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
         q = 0
         for j in range(j0, j1):
             if held and defined:  # one-step prediction from the estimate held before x_j
@@ -499,6 +446,10 @@ def ipdft_kernel(
                 resid[row] = np.nan
                 rocof_out[row] = np.nan
         j0 = j1
+    pos = (pos + n_in) % N  # the last N samples of the stream back into the ring, oldest at pos
+    b = np.empty(N)
+    for i in range(N):
+        b[pos + i if pos + i < N else pos + i - N] = seg[n_in + i]
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])
     new_rstate = np.array([f_prev, rocof, run])
