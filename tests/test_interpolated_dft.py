@@ -13,7 +13,7 @@ import pytest
 
 from sinewatch.estimators import create
 from sinewatch.estimators.base import wrap_pi
-from sinewatch.estimators.interpolated_dft import _window_estimates
+from sinewatch.estimators.interpolated_dft import _one_window_estimate, _window_estimates
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
 
 FS = 1000.0
@@ -306,21 +306,27 @@ def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_po
 @pytest.mark.parametrize("interp", ["3-point", "2-point"])
 @pytest.mark.parametrize("n_win", [1, 3, 37])
 def test_windows_estimated_together_equal_each_window_alone_bit_for_bit(interp, n_win):
-    # The kernel estimates a chunk of windows at once, vectorised across windows; every sum must
-    # still be added in index order, as for one window alone (recordings replay bit for bit).
+    # The kernel estimates a chunk of windows at once, vectorised across windows, or one by one
+    # with the bins interleaved; every sum must still be added in index order, as for one window
+    # alone in plain Python (recordings replay bit for bit).
     est = create("ipdft", FS, nominal_frequency_hz=50.0, window_cycles=4.0, interpolation=interp)
     hann, cos_tab, sin_tab, iconsts, fconsts = est._constants
     n_w = est.window_samples
     _t, x = tone(49.3, (n_win * 7 + n_w) / FS, noise=0.05, seed=4)
     windows = np.stack([x[7 * q : 7 * q + n_w] for q in range(n_win)])
     windows[n_win // 2] = 0.0  # no spectral peak: undefined
-    out = np.zeros((n_win, 6))
-    k_lo, k_hi = int(iconsts[1]), int(iconsts[2])
-    _window_estimates(np.ascontiguousarray(windows.T), n_win, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi,
-                      interp == "3-point", out)  # fmt: skip
+    xt = np.ascontiguousarray(windows.T)
+    k_lo, k_hi, three = int(iconsts[1]), int(iconsts[2]), interp == "3-point"
+    together = np.zeros((n_win, 6))  # the batch, vectorised across windows
+    _window_estimates(xt, n_win, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, together)
+    one_by_one = np.zeros((n_win, 6))  # the path of chunks with fewer than BATCH_MIN windows
+    scratch = [np.empty(n_w) for _ in range(3)]
     for q in range(n_win):
-        alone = _one_window_alone(list(windows[q]), hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, interp == "3-point")
-        if alone is None:
-            assert out[q, 0] == 0.0
-        else:
-            assert out[q].tobytes() == np.array(alone).tobytes(), (q, out[q], alone)
+        _one_window_estimate(xt, q, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, one_by_one, *scratch)
+    for q in range(n_win):
+        alone = _one_window_alone(list(windows[q]), hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three)
+        for out in (together, one_by_one):
+            if alone is None:
+                assert out[q, 0] == 0.0
+            else:
+                assert out[q].tobytes() == np.array(alone).tobytes(), (q, out[q], alone)

@@ -148,6 +148,7 @@ class IpdftParams(EstimatorParams):
 
 
 CHUNK = 64  # windows estimated together (see _window_estimates): bounds the scratch to CHUNK x N
+BATCH_MIN = 8  # fewer windows in a chunk are estimated one by one (_one_window_estimate)
 
 
 @kernel(inline="always")
@@ -172,6 +173,109 @@ def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> 
             delta = -(2.0 * alpha - 1.0) / (alpha + 1.0)
     lam: float = (k_lo - 1 + bp) + delta  # (F)
     return lam
+
+
+@kernel
+def _one_window_estimate(
+    xt: np.ndarray,
+    q: int,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    est: np.ndarray,
+    wu: np.ndarray,
+    st: np.ndarray,
+    ct: np.ndarray,
+) -> None:
+    """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
+    fewer than BATCH_MIN windows, where a loop over the windows has too few iterations to pay
+    for itself): the same sums in the same order; the bins of (D) four at a time, so that
+    eight independent sums overlap. ``wu``, ``st``, ``ct`` (N,) are scratch."""
+    N = xt.shape[0]
+    nb = k_hi - k_lo + 3
+    acc = 0.0  # (M) Hann-weighted mean
+    for n in range(N):
+        acc += hann[n] * xt[n, q]
+    mu = acc / hann_sum
+    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
+        wu[n] = hann[n] * (xt[n, q] - mu)
+    mags = np.empty(nb)
+    for b0 in range(0, nb, 4):  # (D) bins b0 .. b0 + 3 (the last group repeats its last bin)
+        b1, b2, b3 = min(b0 + 1, nb - 1), min(b0 + 2, nb - 1), min(b0 + 3, nb - 1)
+        k0, k1, k2, k3 = k_lo - 1 + b0, k_lo - 1 + b1, k_lo - 1 + b2, k_lo - 1 + b3
+        r0 = r1 = r2 = r3 = i0 = i1 = i2 = i3 = 0.0
+        j0 = j1 = j2 = j3 = 0
+        for n in range(N):
+            v = wu[n]
+            r0 += v * cos_tab[j0]
+            i0 -= v * sin_tab[j0]
+            r1 += v * cos_tab[j1]
+            i1 -= v * sin_tab[j1]
+            r2 += v * cos_tab[j2]
+            i2 -= v * sin_tab[j2]
+            r3 += v * cos_tab[j3]
+            i3 -= v * sin_tab[j3]
+            j0 = j0 + k0 if j0 + k0 < N else j0 + k0 - N
+            j1 = j1 + k1 if j1 + k1 < N else j1 + k1 - N
+            j2 = j2 + k2 if j2 + k2 < N else j2 + k2 - N
+            j3 = j3 + k3 if j3 + k3 < N else j3 + k3 - N
+        mags[b0] = math.hypot(r0, i0)
+        mags[b1] = math.hypot(r1, i1)
+        mags[b2] = math.hypot(r2, i2)
+        mags[b3] = math.hypot(r3, i3)
+    lam = _peak(mags.reshape((nb, 1)), 0, k_lo, k_hi, three_point)  # (P), (I3)/(I2), (F)
+    if math.isnan(lam):
+        est[q, 0] = 0.0
+        return
+    omega = 2.0 * math.pi * lam / N
+    # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
+    c = 0.5 * (N - 1)
+    cw, sw = math.cos(omega), math.sin(omega)
+    s, co = math.sin(-omega * c), math.cos(-omega * c)
+    sss = scc = ssc = ss = sc = 0.0
+    sus = suc = su = 0.0
+    for n in range(N):
+        u = xt[n, q] - mu
+        st[n] = s
+        ct[n] = co
+        sss += s * s
+        scc += co * co
+        ssc += s * co
+        ss += s
+        sc += co
+        sus += u * s
+        suc += u * co
+        su += u
+        s, co = s * cw + co * sw, co * cw - s * sw
+    # Cramer's rule on the symmetric 3x3 normal matrix [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]]
+    m00, m01, m02, m11, m12, m22 = sss, ssc, ss, scc, sc, float(N)
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    if not (abs(det) > 0.0) or not math.isfinite(det):
+        est[q, 0] = 0.0
+        return
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    a = (c00 * sus + c01 * suc + c02 * su) / det
+    b = (c01 * sus + c11 * suc + c12 * su) / det
+    d = (c02 * sus + c12 * suc + c22 * su) / det
+    sse = 0.0  # residual, second pass (one pass would cancel badly on large offsets)
+    for n in range(N):
+        e = xt[n, q] - mu - (a * st[n] + b * ct[n] + d)
+        sse += e * e
+    est[q, 0] = 1.0
+    est[q, 1] = lam / N
+    est[q, 2] = math.hypot(a, b)
+    est[q, 3] = wrap_pi(omega * c + math.atan2(b, a))
+    est[q, 4] = mu + d
+    est[q, 5] = math.sqrt(sse / N)
 
 
 @kernel
@@ -388,6 +492,7 @@ def ipdft_kernel(
     seg[N:] = x
     xt = np.empty((N, chunk))  # the chunk's windows, xt[n, q]: sample n of window q
     due_at = np.empty(chunk, dtype=np.int64)
+    wu1, st1, ct1 = np.empty(N), np.empty(N), np.empty(N)  # scratch of _one_window_estimate
     est = np.zeros((chunk, 6))
     sse = 0.0
     n_pred = 0
@@ -418,7 +523,13 @@ def ipdft_kernel(
         for n in range(N):
             for q in range(n_win):
                 xt[n, q] = seg[due_at[q] + 1 + n]
-        _window_estimates(xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+        if n_win >= BATCH_MIN:
+            _window_estimates(xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+        else:
+            for q in range(n_win):
+                _one_window_estimate(
+                    xt, q, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est, wu1, st1, ct1
+                )
         q = 0
         for j in range(j0, j1):
             if held and defined:  # one-step prediction from the estimate held before x_j
