@@ -66,11 +66,18 @@ is cut into blocks (the hop positions depend only on the sample count).
 
 Why a numba kernel with direct DFT sums and not ``numpy.fft.rfft`` per hop: the search
 band needs only a handful of bins (k_lo - 1 .. k_hi + 1, 7 bins for the default band at 4
-cycles), so the direct sums cost O(N * bins) per hop: measured 2 us (N = 80) and 7 us
-(N = 400) per hop, against ~60 us for the same hop written with numpy (rfft, argmax,
-lstsq: Python and ufunc overhead dominate at these sizes). It also keeps the whole
-estimator in one pure compiled kernel that supports ``last_only`` like the others. A very
-wide band on a long window (bins ~ N/2) costs O(N^2) per hop; the docs give the figures.
+cycles), so the direct sums cost O(N * bins) per hop, against ~60 us for a hop written
+with numpy (rfft, argmax, lstsq: Python and ufunc overhead dominate at these sizes). It
+also keeps the whole estimator in one pure compiled kernel that supports ``last_only``
+like the others. A very wide band on a long window (bins ~ N/2) costs O(N^2) per hop; the
+docs give the figures (``sinewatch bench kernels --estimators ipdft``: the example
+configuration).
+
+The windows due in a block are independent, so they are estimated together, the loop over
+the windows innermost: every sum still runs over n in index order for each window (the
+same roundings as one window alone: ``tests/test_interpolated_dft.py`` checks the bytes
+against a plain-Python oracle), but consecutive iterations no longer wait for each other,
+so the compiler vectorises them, where one window alone is a chain of dependent adds.
 """
 
 from __future__ import annotations
@@ -467,11 +474,13 @@ def ipdft_kernel(
     amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
     row. Pure: the inputs are not modified.
 
-    The block is run in chunks of up to CHUNK windows: first the samples go into the ring
-    buffer and every window due is copied out, then the chunk's windows are estimated
-    together (:func:`_window_estimates`; a window's estimate depends on its samples only),
-    then the samples are run again for the held estimates, the one-step predictions and
-    the outputs.
+    The block is run in chunks of up to CHUNK windows: first the ring buffer's counters
+    find the samples where a window is due and the windows are gathered from the stream
+    (the buffer, oldest first, then the block), then the chunk's windows are estimated
+    (a window's estimate depends on its samples only: together, :func:`_window_estimates`,
+    or one by one below BATCH_MIN, :func:`_one_window_estimate`), then the samples are run
+    again for the held estimates, the one-step predictions and the outputs; the buffer
+    ends as the stream's last N samples.
     """
     N = buf.shape[0]
     hop, k_lo, k_hi, three_point = iconsts[0], iconsts[1], iconsts[2], iconsts[3] != 0
