@@ -6,10 +6,14 @@ truth; measured values (seeded) are quoted beside each assertion.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from sinewatch.estimators import create
+from sinewatch.estimators.base import wrap_pi
+from sinewatch.estimators.interpolated_dft import _one_window_estimate, _window_estimates
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
 
 FS = 1000.0
@@ -235,3 +239,94 @@ def test_a_snapshot_from_before_rocof_still_loads():
     ta, tb = a.update(x[2000:]), b.update(x[2000:])
     np.testing.assert_array_equal(ta.frequency_hz, tb.frequency_hz)  # the estimates do not depend on it
     assert np.isnan(tb.rocof_hz_per_s[0, 0]) and np.isfinite(tb.rocof_hz_per_s[-1, 0])
+
+
+def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point):
+    """(M)-(LS) for one window in plain Python, each sum accumulated term by term in index
+    order: the arithmetic the kernel must reproduce bit for bit whatever it batches."""
+    n_w = len(xw)
+    acc = 0.0
+    for n in range(n_w):  # (M)
+        acc += hann[n] * xw[n]
+    mu = acc / hann_sum
+    wu = [hann[n] * (xw[n] - mu) for n in range(n_w)]
+    mags = []
+    for k in range(k_lo - 1, k_hi + 2):  # (D)
+        re = im = 0.0
+        for n in range(n_w):
+            re += wu[n] * cos_tab[k * n % n_w]
+            im -= wu[n] * sin_tab[k * n % n_w]
+        mags.append(math.hypot(re, im))
+    bp = 1  # (P)
+    for bb in range(2, k_hi - k_lo + 2):
+        if mags[bb] > mags[bp]:
+            bp = bb
+    xm, x0, xp = mags[bp - 1], mags[bp], mags[bp + 1]
+    if not x0 > 0.0:
+        return None
+    if three_point:  # (I3)
+        delta = 2.0 * (xp - xm) / (xm + 2.0 * x0 + xp)
+    else:  # (I2)
+        alpha = (xp if xp >= xm else xm) / x0
+        delta = (1.0 if xp >= xm else -1.0) * (2.0 * alpha - 1.0) / (alpha + 1.0)
+    lam = (k_lo - 1 + bp) + delta  # (F)
+    omega = 2.0 * math.pi * lam / n_w
+    c = 0.5 * (n_w - 1)  # (LS)
+    cw, sw = math.cos(omega), math.sin(omega)
+    s, co = math.sin(-omega * c), math.cos(-omega * c)
+    sss = scc = ssc = ss = sc = sus = suc = su = 0.0
+    sins, coss = [], []
+    for n in range(n_w):
+        u = xw[n] - mu
+        sss += s * s
+        scc += co * co
+        ssc += s * co
+        ss += s
+        sc += co
+        sus += u * s
+        suc += u * co
+        su += u
+        sins.append(s)
+        coss.append(co)
+        s, co = s * cw + co * sw, co * cw - s * sw
+    m00, m01, m02, m11, m12, m22 = sss, ssc, ss, scc, sc, float(n_w)
+    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+    a = (c00 * sus + c01 * suc + c02 * su) / det
+    b = (c01 * sus + c11 * suc + c12 * su) / det
+    d = (c02 * sus + c12 * suc + c22 * su) / det
+    sse = 0.0
+    for n in range(n_w):
+        e = xw[n] - mu - (a * sins[n] + b * coss[n] + d)
+        sse += e * e
+    return [1.0, lam / n_w, math.hypot(a, b), wrap_pi(omega * c + math.atan2(b, a)), mu + d, math.sqrt(sse / n_w)]
+
+
+@pytest.mark.parametrize("interp", ["3-point", "2-point"])
+@pytest.mark.parametrize("n_win", [1, 3, 37])
+def test_windows_estimated_together_equal_each_window_alone_bit_for_bit(interp, n_win):
+    # The kernel estimates a chunk of windows at once, vectorised across windows, or one by one
+    # with the bins interleaved; every sum must still be added in index order, as for one window
+    # alone in plain Python (recordings replay bit for bit).
+    est = create("ipdft", FS, nominal_frequency_hz=50.0, window_cycles=4.0, interpolation=interp)
+    hann, cos_tab, sin_tab, iconsts, fconsts = est._constants
+    n_w = est.window_samples
+    _t, x = tone(49.3, (n_win * 7 + n_w) / FS, noise=0.05, seed=4)
+    windows = np.stack([x[7 * q : 7 * q + n_w] for q in range(n_win)])
+    windows[n_win // 2] = 0.0  # no spectral peak: undefined
+    xt = np.ascontiguousarray(windows.T)
+    k_lo, k_hi, three = int(iconsts[1]), int(iconsts[2]), interp == "3-point"
+    together = np.zeros((n_win, 6))  # the batch, vectorised across windows
+    _window_estimates(xt, n_win, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, together)
+    one_by_one = np.zeros((n_win, 6))  # the path of chunks with fewer than BATCH_MIN windows
+    scratch = [np.empty(n_w) for _ in range(3)]
+    for q in range(n_win):
+        _one_window_estimate(xt, q, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, one_by_one, *scratch)
+    for q in range(n_win):
+        alone = _one_window_alone(list(windows[q]), hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three)
+        for out in (together, one_by_one):
+            if alone is None:
+                assert out[q, 0] == 0.0
+            else:
+                assert out[q].tobytes() == np.array(alone).tobytes(), (q, out[q], alone)

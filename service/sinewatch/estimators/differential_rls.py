@@ -1688,6 +1688,16 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
     )
     example_frequency_hz = 50.3
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
+    # Printed by ``sinewatch bench kernels`` under its table.
+    bench_note: ClassVar[str] = (
+        "differential-rls is below the streaming FFT: it is one recursion, sample after sample, with "
+        "nothing a block transform could share. Every input sample steps the reference oscillator, the "
+        "quadrature demodulator's three channels of two cascaded biquads and the one-step prediction; "
+        "every decimated sample (every 10th in the example) runs the pair of RLS updates (12) on 5 "
+        "parameters, the ELS noise recursion (13), the phase stage (21)-(23) and the low-pass "
+        "compensation: 14 sin/cos/atan2/hypot calls in one dependency chain. The arithmetic order is "
+        "fixed (recordings replay bit for bit), so the chain is neither reassociated nor vectorised."
+    )
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
