@@ -13,7 +13,9 @@ both ways measured in the same run.
   and the wake-ups, and one more process whose single Python lock every block crosses.
 
 A publisher process offers ``--blocks`` blocks of ``--block`` float32 samples over
-``--channels`` keys as fast as Zenoh takes them (CongestionControl.BLOCK: nothing is lost)
+``--channels`` keys, ``--rate`` blocks a second as sensors send them (default 10,000: 1,000
+channels at 10 kHz; 0: as fast as Zenoh takes them, which batches messages and hides their
+per-message cost), CongestionControl.BLOCK (nothing is lost),
 through a router session in this process. Reported per way: the blocks/s through, and
 the CPU time per block of the receiving processes (user + system, summed), and the ratio
 shm / zenoh. Neither decodes nor estimates: only the fan-out is compared.
@@ -56,15 +58,23 @@ def _cpu() -> float:
 
 
 # ---- the publisher ---------------------------------------------------------------------------
-def _publish(endpoint: str, channels: int, block: int, blocks: int, go: Connection) -> None:
+def _publish(endpoint: str, channels: int, block: int, blocks: int, rate: float, go: Connection) -> None:
+    import threading
+
     import zenoh
 
     payload = bytes(4 * block)
+    tick = threading.Event()
     with _session(endpoint) as session:
         pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in _keys(channels)]
         go.send("ready")
         go.recv()  # every receiver subscribed
+        start = time.monotonic()
         for n in range(blocks):
+            if rate > 0:  # paced as sensors are: the blocks due within a millisecond go out together
+                delay = start + n / rate - time.monotonic()
+                if delay > 0:
+                    tick.wait(max(delay, 0.001))
             pubs[n % channels].put(payload)
         go.send("done")
         go.recv()  # stay connected until everything was delivered
@@ -183,7 +193,9 @@ def _run_way(way: str, args: argparse.Namespace, endpoint: str) -> dict[str, Any
         proc.start()
         assert conn.recv() == "ready"
     go, go_theirs = ctx.Pipe()
-    publisher = ctx.Process(target=_publish, args=(endpoint, args.channels, args.block, args.blocks, go_theirs))
+    publisher = ctx.Process(
+        target=_publish, args=(endpoint, args.channels, args.block, args.blocks, args.rate, go_theirs)
+    )
     publisher.start()
     assert go.recv() == "ready"
     t0, router0 = time.monotonic(), _cpu()
@@ -219,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     console.print(
         f"fan-out of {args.blocks} blocks of {args.block} float32 samples over {args.channels} keys "
-        f"to {args.workers} workers, both ways ..."
+        f"to {args.workers} workers at {args.rate:g} blocks/s, both ways ..."
     )
     with open_session(ZenohSection(mode="router", listen=[endpoint], recovery=False)):
         rows = [_run_way(way, args, endpoint) for way in ("zenoh", "shm")]
