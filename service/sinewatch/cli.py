@@ -538,7 +538,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=_count,
         metavar="N",
-        help="run the estimators in N worker processes ([workers] count; default: one per core; 1: in this process)",
+        help="run the estimators in N worker processes ([workers] count; default 1: in this process)",
     )
     s.add_argument(
         "--c37118",

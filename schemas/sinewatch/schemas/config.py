@@ -349,7 +349,12 @@ class WorkersSection(_Section):
     flagged as a gap on the next estimates."""
 
     count: int = Field(
-        0, ge=0, le=256, description="Worker processes; 0: one per core; 1: estimate in the serving process"
+        1,
+        ge=0,
+        le=256,
+        description="Worker processes; 1 (default): estimate in the serving process; 0: one per core. Each worker "
+        "receives every block from Zenoh: on 2 cores with the publisher beside it, 2 workers sustained less than 1 "
+        "(sinewatch bench e2e --workers 2)",
     )
     index: int | None = Field(
         None, ge=1, description="Set by the supervisor in each worker's config (1..count); leave unset"

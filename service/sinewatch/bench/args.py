@@ -89,8 +89,8 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--workers",
         type=int,
-        default=0,
-        help="the daemon's worker processes (serve --workers; default 0: one per core)",
+        default=1,
+        help="the daemon's worker processes (serve --workers; default 1; 0: one per core)",
     )
     parser.add_argument(
         "--foxglove",
@@ -114,6 +114,9 @@ def add_fanout_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block", type=int, default=1024, help="float32 samples per block")
     parser.add_argument("--blocks", type=int, default=20_000, help="blocks offered (default 20000)")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--rate", type=float, default=10_000.0, help="blocks/s offered (default 10000; 0: as fast as possible)"
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
