@@ -47,6 +47,7 @@ log = logging.getLogger("sinewatch.cluster")
 
 ADMIN_QUERY_TIMEOUT_S = 2.0
 TAKEOVER_RECHECK_S = 0.25  # while the network is unreachable, how often a standby looks again
+RECONNECT_GRACE_S = 5.0  # after that, how long it waits for the active daemon to come back too
 
 
 class IntakeCount(Protocol):
@@ -258,7 +259,9 @@ class ClusterMember:
         standbys ranked by id go in turn, so only one of several takes over. After the
         network was unreachable (a router restart), wait a grace period first: the active
         daemon's token comes back with its session, not at once."""
-        grace = 2 * self.daemon.config.cluster.snapshot_interval_s
+        # Zenoh retries a lost link after 1, 2, 4, 4 ... s: the active daemon may reach the
+        # network again up to 4 s after this one, with its token.
+        grace = max(2 * self.daemon.config.cluster.snapshot_interval_s, RECONNECT_GRACE_S)
         was_cut_off = False
         try:
             while self.role == "standby":
