@@ -214,6 +214,7 @@ def cmd_feed(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0
+        _settle(session)
         pub.close()
     n_samples = sum(c.blocks for c in channels) * args.block
     console.print(
@@ -221,6 +222,14 @@ def cmd_feed(args: argparse.Namespace) -> int:
         f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
     )
     return 0
+
+
+def _settle(session: Any, timeout_s: float = 5.0) -> None:
+    """A round trip to the daemons' admin queryables before the session closes: blocks still
+    in the session's send queue would be lost with it (``feed --fast`` ends right after its
+    last put), and the reply comes over the same link after them."""
+    for _ in session.get("sinewatch/admin/*/channels", timeout=timeout_s):
+        pass
 
 
 def _feed_comtrade(args: argparse.Namespace) -> int:
@@ -249,6 +258,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0
+        _settle(session)
         pub.close()
     n_samples = sum(len(c.samples) for c in record.channels)
     console.print(
