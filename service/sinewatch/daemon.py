@@ -32,14 +32,13 @@ same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import signal
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -58,6 +57,7 @@ from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 from sinewatch.sdnotify import Notifier
+from sinewatch.signals import shutdown_signals
 
 if TYPE_CHECKING:
     from sinewatch.foxglove_live import FoxgloveSink
@@ -66,8 +66,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("sinewatch.daemon")
 
 HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at most this far apart
-
-HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 @dataclass
@@ -225,20 +223,6 @@ class Daemon:
             return
         log.info("%s received: stopping intake, draining", signal.Signals(sig).name)
         self.should_exit.set()
-
-    @contextlib.contextmanager
-    def _signals(self) -> Iterator[None]:
-        loop = asyncio.get_running_loop()
-        if not self.install_signal_handlers or threading.current_thread() is not threading.main_thread():
-            yield
-            return
-        for sig in HANDLED_SIGNALS:
-            loop.add_signal_handler(sig, self.handle_signal, sig)
-        try:
-            yield
-        finally:
-            for sig in HANDLED_SIGNALS:
-                loop.remove_signal_handler(sig)
 
     # ---- intake -> pipeline ---------------------------------------------------------------------
     def enqueue(self, batch: list[Item]) -> None:
@@ -461,7 +445,7 @@ class Daemon:
 
     async def run(self) -> int:
         """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
-        with self._signals():
+        with shutdown_signals(self.handle_signal, enabled=self.install_signal_handlers):
             try:
                 self.start()
                 if self.c37118 is not None:

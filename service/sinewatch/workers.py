@@ -46,7 +46,6 @@ import struct
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,10 +56,10 @@ from sinewatch.clients.session import free_loopback_port, open_session
 from sinewatch.cluster import shard_id_of
 from sinewatch.schemas.config import ENV_PREFIX, SinewatchConfig, ZenohSection
 from sinewatch.sdnotify import Notifier
+from sinewatch.signals import shutdown_signals
 
 log = logging.getLogger("sinewatch.workers")
 
-HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 WORKER_WATCHDOG_USEC = 2_000_000  # workers ping at least every second (half of it)
 EARLY_DEATH_S = 10.0  # a worker that dies sooner than this after its start is restarted after a backoff
 MAX_BACKOFF_S = 30.0
@@ -301,20 +300,6 @@ class Supervisor:
             self.notifier.watchdog()
 
     # ---- lifecycle ---------------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def _signals(self) -> Iterator[None]:
-        loop = asyncio.get_running_loop()
-        if not self.install_signal_handlers:
-            yield
-            return
-        for sig in HANDLED_SIGNALS:
-            loop.add_signal_handler(sig, self.handle_signal, sig)
-        try:
-            yield
-        finally:
-            for sig in HANDLED_SIGNALS:
-                loop.remove_signal_handler(sig)
-
     def handle_signal(self, sig: int) -> None:
         if sig == signal.SIGINT and self.should_exit.is_set():
             log.warning("second SIGINT: forcing the workers to exit (their MCAP files are still finished)")
@@ -339,7 +324,7 @@ class Supervisor:
     async def run(self) -> int:
         """Serve until SIGINT/SIGTERM; 0, or 130 when forced, or 1 when a worker failed to drain."""
         loop = asyncio.get_running_loop()
-        with self._signals():
+        with shutdown_signals(self.handle_signal, enabled=self.install_signal_handlers):
             try:
                 hosting = bool(self.config.zenoh.listen)
                 inner = open_session(self._inner_section() if hosting else self.config.zenoh)
