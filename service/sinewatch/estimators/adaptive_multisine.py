@@ -887,17 +887,384 @@ def auto_kernel(
 
 
 @kernel
+def auto_kernel_n2(
+    y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """:func:`auto_kernel` written out for n = 2 (the paper's examples and the bench's): the same
+    steps on the same state layout, every state variable a local for the whole block (written
+    back at its end) and every 2 x 2 product spelt out, so that the compiler keeps them in
+    registers instead of a chain of loads and stores through ``s``. The generalised eigenvalues
+    of (23) come in closed form each sample (one square root), so (25) needs no pivot test and
+    the eigenvectors are formed only for a partly excited sample. Agrees with
+    :func:`auto_kernel` to rounding (tests/test_adaptive_multisine_auto.py). With ``bias=False``
+    the A0 state, its sensitivities and its gain are held at zero, which adds exact zeros."""
+    n, nx, bias = 2, ci[1], ci[5]
+    h = cf[_K_H]
+    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
+    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
+    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
+    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
+    om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
+    xi_floor, p_alpha = cf[_K_XIFLOOR], cf[_K_PALPHA]
+    Ff = cf[_N_K + nx]  # F_f and B_f of (12), n_f = 1
+    Bf = cf[_N_K + nx + 1]
+    poles = cf[_N_K : _N_K + nx]
+    # offsets as in auto_kernel (nf = 1, nz = nx + 1)
+    nz = nx + 1
+    oz = 1
+    oxi = oz + nz
+    oth = oxi + 2 * nz
+    oA, ops, owb, odv = oth + 2, oth + 4, oth + 6, oth + 8
+    osc = oth + 10
+    oa_c = osc + _N_S
+    oL = oa_c + 2
+    s = state.copy()
+    # ---- the state as locals: yf (12); zh = [x_1 .. x_4, A0, yfh]; xi_1, xi_2 likewise (17)
+    yf = s[0]
+    z1, z2, z3, z4 = s[oz], s[oz + 1], s[oz + 2], s[oz + 3]
+    z0 = s[oz + 4] if bias else 0.0
+    zf = s[oz + nx]
+    p1, p2, p3, p4 = s[oxi], s[oxi + 1], s[oxi + 2], s[oxi + 3]
+    p0 = s[oxi + 4] if bias else 0.0
+    pf = s[oxi + nx]
+    b = oxi + nz
+    q1, q2, q3, q4 = s[b], s[b + 1], s[b + 2], s[b + 3]
+    q0 = s[b + 4] if bias else 0.0
+    qf = s[b + nx]
+    th1, th2 = s[oth], s[oth + 1]
+    A1, A2 = s[oA], s[oA + 1]
+    ps1, ps2 = s[ops], s[ops + 1]
+    wb1, wb2 = s[owb], s[owb + 1]
+    dv1, dv2 = s[odv], s[odv + 1]
+    clock, mean, pw, started, sxi, pwl = (
+        s[osc + _S_CLOCK],
+        s[osc + _S_MEAN],
+        s[osc + _S_POW],
+        s[osc + _S_STARTED],
+        s[osc + _S_XI],
+        s[osc + _S_POWL],
+    )
+    a1, a2 = s[oa_c], s[oa_c + 1]
+    L1, L2, L3, L4 = s[oL], s[oL + 1], s[oL + 2], s[oL + 3]
+    L0 = s[oL + 4] if bias else 0.0
+    pl = np.empty(2 + nx)  # a and L_x for _place (AD8, rare: an array argument costs a reference count)
+    nrow = 1 if last_only else y.shape[0]
+    out = np.empty((nrow, 3 * n + 2))
+    ext = np.empty((nrow, 3 * n + 2))
+    two_pi = 2.0 * math.pi
+    tb2 = tbar * tbar
+    sse = 0.0
+    nsamp = y.shape[0]
+    for k in range(nsamp):
+        yk = y[k]
+        write = (not last_only) or k == nsamp - 1
+        j = 0 if last_only else k
+        # AD4: smoothed mean and AC power of the input
+        if started == 0.0:
+            started = 1.0
+            mean = yk
+        mean += p_alpha * (yk - mean)
+        dy = yk - mean
+        pw += p_alpha * (dy * dy - pw)
+        pwl += 0.1 * p_alpha * (dy * dy - pwl)
+        present = 2.0 * pw >= min_a * min_a and pw >= 0.25 * pwl  # as in auto_kernel
+        # output error C_z zh - eta (16), (22)
+        c = z0 + z1 + z3
+        e0 = c - yk
+        sse += e0 * e0
+        e1 = zf - yf
+        # C_z Xi (rows: y, yf), M = Xi^T Xi + rho^2 I, Phi_Xi = (C_z Xi)^T C_z Xi (23)
+        c01 = p0 + p1 + p3
+        c02 = q0 + q1 + q3
+        M11 = p1 * p1 + p2 * p2 + p3 * p3 + p4 * p4 + p0 * p0 + pf * pf
+        M21 = q1 * p1 + q2 * p2 + q3 * p3 + q4 * p4 + q0 * p0 + qf * pf
+        M22 = q1 * q1 + q2 * q2 + q3 * q3 + q4 * q4 + q0 * q0 + qf * qf
+        P11 = c01 * c01 + pf * pf
+        P21 = c02 * c01 + qf * pf
+        P22 = c02 * c02 + qf * qf
+        # AD4: rho^2 relative to the smoothed size of Xi, floored
+        tr = M11 + M22
+        sxi += l_alpha * (0.5 * tr - sxi)
+        rho2 = rho2rel * max(sxi, xi_floor)
+        M11 += rho2
+        M22 += rho2
+        # (25) without the eigenvalues: lambda_2 >= delta iff T = Phi_Xi - delta M >= 0 (T_11, T_22,
+        # det T >= 0), lambda_1 < delta iff T < 0 (T_11 < 0 < det T): no division, no root
+        t11 = P11 - d_hi * M11
+        t22 = P22 - d_hi * M22
+        t21 = P21 - d_hi * M21
+        det_t = t11 * t22 - t21 * t21
+        if not (t11 < 0.0 and det_t > 0.0):  # lambda_1 >= delta_high
+            ps1 = 1.0
+        if t11 >= 0.0 and t22 >= 0.0 and det_t >= 0.0:  # lambda_2 >= delta_high
+            ps2 = 1.0
+        t11 = P11 - d_lo * M11
+        t22 = P22 - d_lo * M22
+        t21 = P21 - d_lo * M21
+        det_t = t11 * t22 - t21 * t21
+        if t11 < 0.0 and det_t > 0.0:  # lambda_1 < delta_low
+            ps1 = 0.0
+        if not (t11 >= 0.0 and t22 >= 0.0 and det_t >= 0.0):  # lambda_2 < delta_low
+            ps2 = 0.0
+        n_on = int(ps1 != 0.0) + int(ps2 != 0.0)
+        # AD7: settling dwell, as in auto_kernel
+        if not present:
+            dv1 = abs(wb1)
+            dv2 = abs(wb2)
+            clock = 0.0
+        else:
+            clock = min(clock + h, delay)
+        adapting = clock >= delay and n_on > 0
+        # the eigenvalues themselves (an output) and the eigenvectors (the law with one direction
+        # on): M = L D L^T, S = D^-1/2 L^-1 Phi_Xi L^-T D^-1/2 = [[sa, sb], [sb, sc]] (23)-(24)
+        lam1 = 0.0
+        lam2 = 0.0
+        partial = adapting and n_on == 1
+        if write or partial:
+            D1 = M11
+            l21 = M21 / D1
+            D2 = max(M22 - l21 * l21 * D1, rho2)  # M >= rho^2 I: guards rounding
+            s12 = P21 - l21 * P11
+            sa = P11 / D1
+            sc = (P22 - l21 * P21 - l21 * s12) / D2
+            rd1 = math.sqrt(D1)
+            rd2 = math.sqrt(D2)
+            sb = s12 / (rd1 * rd2)
+            half = 0.5 * (sa - sc)
+            r = math.sqrt(half * half + sb * sb)
+            lam1 = 0.5 * (sa + sc) + r
+            lam2 = 0.5 * (sa + sc) - r
+        # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
+        td1 = 0.0
+        td2 = 0.0
+        if adapting:
+            g1 = c01 * e0 + pf * e1  # g = (C_z Xi)^T e
+            g2 = c02 * e0 + qf * e1
+            if not partial:  # td = M^-1 g (one division; det M >= M_11 rho^2 guards rounding)
+                idet = 1.0 / max(M11 * M22 - M21 * M21, M11 * rho2)
+                td1 = (M22 * g1 - M21 * g2) * idet
+                td2 = (M11 * g2 - M21 * g1) * idet
+            else:  # td = R^-T W Psi W^T R^-1 g, R = L D^(1/2), W the rotation diagonalising S
+                if r == 0.0:
+                    cs, sn = 1.0, 0.0
+                elif half >= 0.0:  # first eigenvector (cos, sin) of the larger eigenvalue
+                    t = sb / (half + r)
+                    cs = 1.0 / math.sqrt(1.0 + t * t)
+                    sn = t * cs
+                else:
+                    t = sb / (r - half)
+                    sn = 1.0 / math.sqrt(1.0 + t * t)
+                    cs = t * sn
+                u1 = g1 / rd1  # R^-1 g
+                u2 = (g2 - l21 * g1) / rd2
+                v1 = (cs * u1 + sn * u2) * ps1  # Psi W^T R^-1 g
+                v2 = (cs * u2 - sn * u1) * ps2
+                u1 = cs * v1 - sn * v2  # W (...)
+                u2 = sn * v1 + cs * v2
+                td2 = u2 / rd2  # R^-T (...)
+                td1 = (u1 - l21 * rd1 * td2) / rd1
+            td1 *= -mu
+            td2 *= -mu
+            tt = th1 * th1 + th2 * th2
+            tu = th1 * td1 + th2 * td2
+            if tt >= tb2 and tu > 0.0:  # projection (19)-(21)
+                td1 -= th1 * tu / tb2
+                td2 -= th2 * tu / tb2
+            om1 = th1 - a1  # AD6: the band's clips (Remark 3.1)
+            om2 = th2 - a2
+            if (om1 <= om_lo and td1 < 0.0) or (om1 >= om_hi and td1 > 0.0):
+                td1 = 0.0
+            if (om2 <= om_lo and td2 < 0.0) or (om2 >= om_hi and td2 > 0.0):
+                td2 = 0.0
+            if om2 <= om1 * sep and td2 < td1:  # AD6: the components stay ordered and apart
+                mid = 0.5 * (td1 + td2)
+                td1 = mid
+                td2 = mid
+        # outputs at t_k, (8)-(10) with the sampled-oscillator relations; (11); convergence
+        thr = max(fade * max(0.0, A1, A2), min_a)
+        all_ok = adapting and present
+        om1 = th1 - a1
+        ok1 = om1 > 0.0
+        num1 = 0.0
+        if ok1:
+            cd = 1.0 - 0.5 * h * h * om1  # cos(omega_d h)
+            sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
+            num1 = h * z2 + z1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
+            A1 += min(h * mu_a * om1, 1.0) * (math.sqrt(z1 * z1 + num1 * num1 / sd2) - A1)  # (9), (11)
+            wb1 += c_alpha * (om1 - wb1)
+            dv1 += c_alpha * (abs(om1 - wb1) - dv1)
+            if not dv1 <= 2.0 * c_tol * wb1:
+                all_ok = False
+        else:
+            all_ok = False
+        faded1 = not A1 >= thr
+        om2 = th2 - a2
+        ok2 = om2 > 0.0
+        num2 = 0.0
+        if ok2:
+            cd = 1.0 - 0.5 * h * h * om2
+            sd2b = max(1.0 - cd * cd, 1e-300)
+            num2 = h * z4 + z3 * (1.0 - cd)
+            A2 += min(h * mu_a * om2, 1.0) * (math.sqrt(z3 * z3 + num2 * num2 / sd2b) - A2)  # (9), (11)
+            wb2 += c_alpha * (om2 - wb2)
+            dv2 += c_alpha * (abs(om2 - wb2) - dv2)
+            if not dv2 <= 2.0 * c_tol * wb2:
+                all_ok = False
+        else:
+            all_ok = False
+        faded2 = not A2 >= thr
+        if faded1 or faded2:
+            all_ok = False
+        if not abs(wb1 - wb2) > 2.0 * c_tol * max(wb1, wb2):  # two on one line: not converged
+            all_ok = False
+        if write:
+            if ok1 and not faded1:
+                cd = 1.0 - 0.5 * h * h * om1
+                wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om1), 1.0))
+                out[j, 0] = wd * om_u / two_pi
+                out[j, 4] = math.atan2(z1, num1 / math.sqrt(max(1.0 - cd * cd, 1e-300)))  # (10)
+            else:
+                out[j, 0] = math.nan
+                out[j, 4] = math.nan
+            if ok2 and not faded2:
+                cd = 1.0 - 0.5 * h * h * om2
+                wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om2), 1.0))
+                out[j, 1] = wd * om_u / two_pi
+                out[j, 5] = math.atan2(z3, num2 / math.sqrt(max(1.0 - cd * cd, 1e-300)))  # (10)
+            else:
+                out[j, 1] = math.nan
+                out[j, 5] = math.nan
+            out[j, 2] = A1 if ok1 else math.nan
+            out[j, 3] = A2 if ok2 else math.nan
+            out[j, 6] = z0 if bias else 0.0
+            out[j, 7] = 1.0 if all_ok else 0.0
+            ext[j, 0] = lam1
+            ext[j, 1] = lam2
+            ext[j, 2] = ps1
+            ext[j, 3] = ps2
+            ext[j, 4] = 1.0 if faded1 else 0.0
+            ext[j, 5] = 1.0 if faded2 else 0.0
+            ext[j, 6] = 1.0 if present else 0.0
+        # ---- step to t_{k+1}: (16) zh, with Xi thetah' from the current Xi
+        inj = yk - c  # L (eta - C_z zh): L acts on the first output only
+        x1 = z1 + h * (z2 + L1 * inj + (p1 * td1 + q1 * td2))
+        z2 += h * ((a1 - th1) * x1 + L2 * inj + (p2 * td1 + q2 * td2))
+        z1 = x1
+        x3 = z3 + h * (z4 + L3 * inj + (p3 * td1 + q3 * td2))
+        z4 += h * ((a2 - th2) * x3 + L4 * inj + (p4 * td1 + q4 * td2))
+        z3 = x3
+        if bias:
+            z0 += h * (L0 * inj + (p0 * td1 + q0 * td2))
+        zf += h * (Bf * c + Ff * zf + (pf * td1 + qf * td2))
+        # (17) xi_i' = A_L xi_i + G_z_i(zh), G_z_i = -x_{2i-1} e_{2i}
+        xx = p1 + h * (p2 - L1 * c01)
+        p2 += h * (a1 * xx - L2 * c01)
+        p2 -= h * x1
+        p1 = xx
+        xx = p3 + h * (p4 - L3 * c01)
+        p4 += h * (a2 * xx - L4 * c01)
+        p3 = xx
+        if bias:
+            p0 -= h * L0 * c01
+        pf += h * (Bf * c01 + Ff * pf)
+        xx = q1 + h * (q2 - L1 * c02)
+        q2 += h * (a1 * xx - L2 * c02)
+        q1 = xx
+        xx = q3 + h * (q4 - L3 * c02)
+        q4 += h * (a2 * xx - L4 * c02)
+        q4 -= h * x3
+        q3 = xx
+        if bias:
+            q0 -= h * L0 * c02
+        qf += h * (Bf * c02 + Ff * qf)
+        # (12) the measured output's filter
+        yf += h * (Ff * yf + Bf * yk)
+        # (19): thetah, kept in the band's clips and the ball; as Omegah_i, ordered, apart (AD6)
+        w1 = max(th1 + h * td1 - a1, om_lo)
+        w2 = min(max(th2 + h * td2 - a2, w1 * sep), om_hi)
+        w1 = min(w1, w2 / sep)
+        th1 = a1 + w1
+        th2 = a2 + w2
+        tt = th1 * th1 + th2 * th2
+        far = abs(th1) > rc * abs(a1) or abs(th2) > rc * abs(a2)
+        if tt > tb2:
+            f = tbar / math.sqrt(tt)
+            th1 *= f
+            th2 *= f
+        if far:  # AD8: re-centre a on the estimates and re-place L_x there (thetah -> 0)
+            a1 -= th1
+            a2 -= th2
+            th1 = 0.0
+            th2 = 0.0
+            pl[0] = a1
+            pl[1] = a2
+            _place(pl, 0, 2, poles, n, bias)
+            L1, L2, L3, L4 = pl[2], pl[3], pl[4], pl[5]
+            if bias:
+                L0 = pl[6]
+        # guard (D7 of the explicit mode): restart a diverged observer from zero, thetah kept
+        lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
+        bad = not (
+            abs(z1) <= lim and abs(z2) <= lim and abs(z3) <= lim and abs(z4) <= lim and abs(z0) <= lim and abs(zf) <= lim
+        )
+        if bad:  # also NaN; then the full bound
+            lim = zmax * (1.0 + abs(mean) + math.sqrt(pw))
+            bad = not (
+                abs(z1) <= lim
+                and abs(z2) <= lim
+                and abs(z3) <= lim
+                and abs(z4) <= lim
+                and abs(z0) <= lim
+                and abs(zf) <= lim
+            )
+        if not abs(tr) < math.inf:  # tr(Xi^T Xi) of this sample: Xi finite
+            bad = True
+        if bad:
+            yf = z1 = z2 = z3 = z4 = z0 = zf = 0.0
+            p1 = p2 = p3 = p4 = p0 = pf = 0.0
+            q1 = q2 = q3 = q4 = q0 = qf = 0.0
+            if not abs(th1) <= tbar:
+                th1 = 0.0
+            if not abs(th2) <= tbar:
+                th2 = 0.0
+            ps1 = ps2 = 0.0
+            clock = 0.0
+        if write:
+            ext[j, 7] = 1.0 if bad else 0.0
+    # ---- the locals back into the new state
+    s[0] = yf
+    s[oz], s[oz + 1], s[oz + 2], s[oz + 3] = z1, z2, z3, z4
+    s[oxi], s[oxi + 1], s[oxi + 2], s[oxi + 3] = p1, p2, p3, p4
+    s[b], s[b + 1], s[b + 2], s[b + 3] = q1, q2, q3, q4
+    if bias:
+        s[oz + 4], s[oxi + 4], s[b + 4] = z0, p0, q0
+    s[oz + nx], s[oxi + nx], s[b + nx] = zf, pf, qf
+    s[oth], s[oth + 1], s[oA], s[oA + 1], s[ops], s[ops + 1] = th1, th2, A1, A2, ps1, ps2
+    s[owb], s[owb + 1], s[odv], s[odv + 1] = wb1, wb2, dv1, dv2
+    s[osc + _S_CLOCK], s[osc + _S_MEAN], s[osc + _S_POW] = clock, mean, pw
+    s[osc + _S_STARTED], s[osc + _S_XI], s[osc + _S_POWL] = started, sxi, pwl
+    s[oa_c], s[oa_c + 1] = a1, a2
+    s[oL], s[oL + 1], s[oL + 2], s[oL + 3] = L1, L2, L3, L4
+    if bias:
+        s[oL + 4] = L0
+    return out, ext, sse, s
+
+
+@kernel
 def adaptive_multisine_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`), 0 the explicit
-    gains (:func:`sinewatch.estimators._adaptive_multisine_explicit.explicit_kernel`).
+    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`, or for n = 2 the
+    same written out, :func:`auto_kernel_n2`), 0 the explicit gains
+    (:func:`sinewatch.estimators._adaptive_multisine_explicit.explicit_kernel`).
     ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
     ``extras``: lambda (n), psi (n), faded (n), signal present, observer reset. One row per
     sample, or only the last with ``last_only``. Pure: the inputs are not modified."""
     if ci[_I_MODE] == 1:
+        if ci[0] == 2:
+            return auto_kernel_n2(y, state, cf, ci, last_only)
         return auto_kernel(y, state, cf, ci, last_only)
     return explicit.explicit_kernel(y, state, cf, ci, last_only)
 
