@@ -886,6 +886,22 @@ def auto_kernel(
     return out, ext, sse, s
 
 
+@kernel(inline="always")
+def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
+    """:func:`_place` for one component of n = 2, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and
+    the other's ``Omega_k``: ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)``. Inlined into
+    :func:`auto_kernel_n2`, so that a re-placement (AD8) calls nothing."""
+    w = math.sqrt(om)
+    sj = complex(0.0, w)
+    pv = complex(1.0, 0.0)
+    for m in range(poles.shape[0]):
+        pv *= sj - poles[m]
+    dv = sj if bias else complex(1.0, 0.0)
+    dv *= om_k - om
+    r = pv / dv
+    return r.imag / w, r.real
+
+
 @kernel
 def auto_kernel_n2(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
@@ -947,7 +963,6 @@ def auto_kernel_n2(
     a1, a2 = s[oa_c], s[oa_c + 1]
     L1, L2, L3, L4 = s[oL], s[oL + 1], s[oL + 2], s[oL + 3]
     L0 = s[oL + 4] if bias else 0.0
-    pl = np.empty(2 + nx)  # a and L_x for _place (AD8, rare: an array argument costs a reference count)
     nrow = 1 if last_only else y.shape[0]
     out = np.empty((nrow, 3 * n + 2))
     ext = np.empty((nrow, 3 * n + 2))
@@ -1015,54 +1030,44 @@ def auto_kernel_n2(
         else:
             clock = min(clock + h, delay)
         adapting = clock >= delay and n_on > 0
-        # the eigenvalues themselves (an output) and the eigenvectors (the law with one direction
-        # on): M = L D L^T, S = D^-1/2 L^-1 Phi_Xi L^-T D^-1/2 = [[sa, sb], [sb, sc]] (23)-(24)
+        # the eigenvalues themselves (an output) and one eigenvector (the law with one direction
+        # on), (23)-(24) in closed form: det(Phi_Xi - lambda M) = det M lambda^2 - b lambda + det Phi_Xi
+        # = 0 (det Phi_Xi = det(C_z Xi)^2), the smaller root as det Phi_Xi / (det M lambda_1)
+        det_m = max(M11 * M22 - M21 * M21, M11 * rho2)  # M >= rho^2 I: det M >= M_11 rho^2
         lam1 = 0.0
         lam2 = 0.0
         partial = adapting and n_on == 1
         if write or partial:
-            D1 = M11
-            l21 = M21 / D1
-            D2 = max(M22 - l21 * l21 * D1, rho2)  # M >= rho^2 I: guards rounding
-            s12 = P21 - l21 * P11
-            sa = P11 / D1
-            sc = (P22 - l21 * P21 - l21 * s12) / D2
-            rd1 = math.sqrt(D1)
-            rd2 = math.sqrt(D2)
-            sb = s12 / (rd1 * rd2)
-            half = 0.5 * (sa - sc)
-            r = math.sqrt(half * half + sb * sb)
-            lam1 = 0.5 * (sa + sc) + r
-            lam2 = 0.5 * (sa + sc) - r
+            bq = P11 * M22 + P22 * M11 - 2.0 * P21 * M21
+            dc = c01 * qf - c02 * pf
+            sq = bq + math.sqrt(max(bq * bq - 4.0 * det_m * dc * dc, 0.0))
+            if sq > 0.0:
+                lam1 = 0.5 * sq / det_m
+                lam2 = 2.0 * dc * dc / sq
         # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
         td1 = 0.0
         td2 = 0.0
         if adapting:
             g1 = c01 * e0 + pf * e1  # g = (C_z Xi)^T e
             g2 = c02 * e0 + qf * e1
-            if not partial:  # td = M^-1 g (one division; det M >= M_11 rho^2 guards rounding)
-                idet = 1.0 / max(M11 * M22 - M21 * M21, M11 * rho2)
+            if not partial:  # td = M^-1 g, by the adjugate
+                idet = 1.0 / det_m
                 td1 = (M22 * g1 - M21 * g2) * idet
                 td2 = (M11 * g2 - M21 * g1) * idet
-            else:  # td = R^-T W Psi W^T R^-1 g, R = L D^(1/2), W the rotation diagonalising S
-                if r == 0.0:
-                    cs, sn = 1.0, 0.0
-                elif half >= 0.0:  # first eigenvector (cos, sin) of the larger eigenvalue
-                    t = sb / (half + r)
-                    cs = 1.0 / math.sqrt(1.0 + t * t)
-                    sn = t * cs
+            else:  # td = v v^T g, v the eigenvector of the one lambda on, v^T M v = 1
+                lam = lam1 if ps1 != 0.0 else lam2
+                e11 = P11 - lam * M11  # (Phi_Xi - lambda M) v = 0: v is normal to its larger row
+                e21 = P21 - lam * M21
+                e22 = P22 - lam * M22
+                if e11 * e11 >= e22 * e22:
+                    v1, v2 = -e21, e11
                 else:
-                    t = sb / (r - half)
-                    sn = 1.0 / math.sqrt(1.0 + t * t)
-                    cs = t * sn
-                u1 = g1 / rd1  # R^-1 g
-                u2 = (g2 - l21 * g1) / rd2
-                v1 = (cs * u1 + sn * u2) * ps1  # Psi W^T R^-1 g
-                v2 = (cs * u2 - sn * u1) * ps2
-                u1 = cs * v1 - sn * v2  # W (...)
-                u2 = sn * v1 + cs * v2
-                td2 = u2 / rd2  # R^-T (...)
-                td1 = (u1 - l21 * rd1 * td2) / rd1
+                    v1, v2 = e22, -e21
+                if v1 == 0.0 and v2 == 0.0:  # Phi_Xi = lambda M: any v (auto_kernel's choice)
+                    v1, v2 = (1.0, 0.0) if ps1 != 0.0 else (-M21, M11)
+                f = (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
+                td1 = v1 * f
+                td2 = v2 * f
             td1 *= -mu
             td2 *= -mu
             tt = th1 * th1 + th2 * th2
@@ -1196,12 +1201,13 @@ def auto_kernel_n2(
             a2 -= th2
             th1 = 0.0
             th2 = 0.0
-            pl[0] = a1
-            pl[1] = a2
-            _place(pl, 0, 2, poles, n, bias)
-            L1, L2, L3, L4 = pl[2], pl[3], pl[4], pl[5]
+            L1, L2 = _place_pair(-a1, -a2, poles, bias)  # as _place, written out for n = 2
+            L3, L4 = _place_pair(-a2, -a1, poles, bias)
             if bias:
-                L0 = pl[6]
+                pz = 1.0  # P(0)
+                for m in range(nx):
+                    pz *= -poles[m]
+                L0 = pz / (-a1 * -a2)
         # guard (D7 of the explicit mode): restart a diverged observer from zero, thetah kept
         lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
         bad = not (
