@@ -886,7 +886,7 @@ def auto_kernel(
     return out, ext, sse, s
 
 
-@kernel(inline="always")
+@kernel(inline="always", contract=True)
 def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
     """:func:`_place` for one component of n = 2, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and
     the other's ``Omega_k``: ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)``. Inlined into
@@ -902,7 +902,7 @@ def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[f
     return r.imag / w, r.real
 
 
-@kernel
+@kernel(contract=True)
 def auto_kernel_n2(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
