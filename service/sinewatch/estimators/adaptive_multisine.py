@@ -1037,11 +1037,11 @@ def auto_kernel_n2(
         lam1 = 0.0
         lam2 = 0.0
         partial = adapting and n_on == 1
-        if write or partial:
+        if write or partial:  # lambda_1 = sq / (2 det M), lambda_2 = 2 det Phi_Xi / sq
             bq = P11 * M22 + P22 * M11 - 2.0 * P21 * M21
             dc = c01 * qf - c02 * pf
             sq = bq + math.sqrt(max(bq * bq - 4.0 * det_m * dc * dc, 0.0))
-            if sq > 0.0:
+            if write and sq > 0.0:
                 lam1 = 0.5 * sq / det_m
                 lam2 = 2.0 * dc * dc / sq
         # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
@@ -1050,26 +1050,26 @@ def auto_kernel_n2(
         if adapting:
             g1 = c01 * e0 + pf * e1  # g = (C_z Xi)^T e
             g2 = c02 * e0 + qf * e1
-            if not partial:  # td = M^-1 g, by the adjugate
-                idet = 1.0 / det_m
+            if not partial:  # td = -mu M^-1 g, by the adjugate
+                idet = -mu / det_m
                 td1 = (M22 * g1 - M21 * g2) * idet
                 td2 = (M11 * g2 - M21 * g1) * idet
-            else:  # td = v v^T g, v the eigenvector of the one lambda on, v^T M v = 1
-                lam = lam1 if ps1 != 0.0 else lam2
-                e11 = P11 - lam * M11  # (Phi_Xi - lambda M) v = 0: v is normal to its larger row
-                e21 = P21 - lam * M21
-                e22 = P22 - lam * M22
+            else:  # td = -mu v v^T g, v the eigenvector of the one lambda on, v^T M v = 1
+                # (Phi_Xi - lambda M) v = 0, scaled by the denominator of lambda (no division):
+                # v is normal to its larger row
+                ca, cb = (2.0 * det_m, sq) if ps1 != 0.0 else (sq, 2.0 * dc * dc)
+                e11 = ca * P11 - cb * M11
+                e21 = ca * P21 - cb * M21
+                e22 = ca * P22 - cb * M22
                 if e11 * e11 >= e22 * e22:
                     v1, v2 = -e21, e11
                 else:
                     v1, v2 = e22, -e21
                 if v1 == 0.0 and v2 == 0.0:  # Phi_Xi = lambda M: any v (auto_kernel's choice)
                     v1, v2 = (1.0, 0.0) if ps1 != 0.0 else (-M21, M11)
-                f = (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
+                f = -mu * (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
                 td1 = v1 * f
                 td2 = v2 * f
-            td1 *= -mu
-            td2 *= -mu
             tt = th1 * th1 + th2 * th2
             tu = th1 * td1 + th2 * td2
             if tt >= tb2 and tu > 0.0:  # projection (19)-(21)
