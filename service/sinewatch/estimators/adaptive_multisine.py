@@ -966,6 +966,7 @@ def auto_kernel_n2(
     nrow = 1 if last_only else y.shape[0]
     out = np.empty((nrow, 3 * n + 2))
     ext = np.empty((nrow, 3 * n + 2))
+    cph = np.empty((nrow, 2))  # A_i cos(phi_i) sin(omega_d h) per row, for (10)
     two_pi = 2.0 * math.pi
     tb2 = tbar * tbar
     sse = 0.0
@@ -1122,23 +1123,13 @@ def auto_kernel_n2(
             all_ok = False
         if not abs(wb1 - wb2) > 2.0 * c_tol * max(wb1, wb2):  # two on one line: not converged
             all_ok = False
-        if write:
-            if ok1 and not faded1:
-                cd = 1.0 - 0.5 * h * h * om1
-                wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om1), 1.0))
-                out[j, 0] = wd * om_u / two_pi
-                out[j, 4] = math.atan2(z1, num1 / math.sqrt(max(1.0 - cd * cd, 1e-300)))  # (10)
-            else:
-                out[j, 0] = math.nan
-                out[j, 4] = math.nan
-            if ok2 and not faded2:
-                cd = 1.0 - 0.5 * h * h * om2
-                wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om2), 1.0))
-                out[j, 1] = wd * om_u / two_pi
-                out[j, 5] = math.atan2(z3, num2 / math.sqrt(max(1.0 - cd * cd, 1e-300)))  # (10)
-            else:
-                out[j, 1] = math.nan
-                out[j, 5] = math.nan
+        if write:  # Omegah_i, x_{2i-1} and A cos(phi) sin(omega_d h): (8), (10) after the loop
+            out[j, 0] = om1 if ok1 and not faded1 else math.nan
+            out[j, 1] = om2 if ok2 and not faded2 else math.nan
+            out[j, 4] = z1
+            out[j, 5] = z3
+            cph[j, 0] = num1
+            cph[j, 1] = num2
             out[j, 2] = A1 if ok1 else math.nan
             out[j, 3] = A2 if ok2 else math.nan
             out[j, 6] = z0 if bias else 0.0
@@ -1237,6 +1228,17 @@ def auto_kernel_n2(
             clock = 0.0
         if write:
             ext[j, 7] = 1.0 if bad else 0.0
+    # (8) omega_d from 2 sin(omega_d h / 2) = h sqrt(Omegah), (10) the phase: after the loop, so that
+    # the loop calls no library function (a call would cost the loop its registers)
+    for j in range(nrow):
+        for i in range(n):
+            om = out[j, i]
+            if om == om:  # not NaN: present, not faded
+                cd = 1.0 - 0.5 * h * h * om
+                out[j, i] = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om), 1.0)) * om_u / two_pi
+                out[j, 4 + i] = math.atan2(out[j, 4 + i], cph[j, i] / math.sqrt(max(1.0 - cd * cd, 1e-300)))
+            else:
+                out[j, 4 + i] = math.nan
     # ---- the locals back into the new state
     s[0] = yf
     s[oz], s[oz + 1], s[oz + 2], s[oz + 3] = z1, z2, z3, z4
