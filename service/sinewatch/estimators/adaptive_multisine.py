@@ -1441,13 +1441,14 @@ class AdaptiveMultisine(
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, ext, sse = outputs
         n = self.params.n_sinusoids
-        flags = ext[:, n:] != 0.0  # one comparison for the four flags (~0.7 us each at 1024 rows)
+        # the flags are 0.0 or 1.0: one conversion for the four (a comparison each cost ~0.8 us a block)
+        flags = ext[:, n:].astype(bool)
         return Track(
             frequency_hz=out[:, 0:n],
             amplitude=out[:, n : 2 * n],
             phase_rad=out[:, 2 * n : 3 * n],
             offset=out[:, 3 * n],
-            converged=out[:, 3 * n + 1] != 0.0,
+            converged=out[:, 3 * n + 1].astype(bool),
             residual_rms=math.sqrt(sse / block.shape[0]),
             extras={
                 "excitation_level": ext[:, 0:n],
