@@ -119,7 +119,7 @@ smoothed Omegah|`` below ``2 convergence_tol Omegah``. Extras per sample:
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -376,6 +376,10 @@ _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
 _S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
 _N_S = 6
+#: LLVM fast-math flags of :func:`auto_kernel_n2` (no golden bytes for the automatic mode): FMA,
+#: reassociation and unsigned zeros; NaN and infinity keep their meaning (the guard's NaN test).
+#: Measured: 55 -> 51 ns/sample (FMA alone took it from 69 to 55).
+_FAST: tuple[Literal["contract", "reassoc", "nsz"], ...] = ("contract", "reassoc", "nsz")
 
 
 @kernel
@@ -886,7 +890,7 @@ def auto_kernel(
     return out, ext, sse, s
 
 
-@kernel(inline="always", contract=True)
+@kernel(inline="always", fastmath=_FAST)
 def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
     """:func:`_place` for one component of n = 2, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and
     the other's ``Omega_k``: ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)``. Inlined into
@@ -902,7 +906,7 @@ def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[f
     return r.imag / w, r.real
 
 
-@kernel(contract=True)
+@kernel(fastmath=_FAST)
 def auto_kernel_n2(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:

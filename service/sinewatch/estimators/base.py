@@ -105,7 +105,7 @@ def kernel(
     *,
     inline: Literal["never", "always"] = "never",
     error_model: Literal["numpy", "python"] = "numpy",
-    contract: bool = False,
+    fastmath: tuple[Literal["contract", "reassoc", "nsz"], ...] = (),
 ) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]: ...
 def kernel(
     fn: Callable[_P, _R] | None = None,
@@ -113,19 +113,20 @@ def kernel(
     *,
     inline: Literal["never", "always"] = "never",
     error_model: Literal["numpy", "python"] = "numpy",
-    contract: bool = False,
+    fastmath: tuple[Literal["contract", "reassoc", "nsz"], ...] = (),
 ) -> Callable[_P, _R] | Callable[[Callable[_P, _R]], Callable[_P, _R]]:
     """Compile a kernel or a helper it calls: ``numba.njit(cache=True, nogil=True,
     error_model=...)``, typed as the plain Python function it wraps (numba has no type
     stubs), so that the annotations of a kernel are what callers and mypy see.
-    ``@kernel`` or ``@kernel(inline="always", error_model="python")``. ``contract=True``
-    lets the compiler fuse ``a * b + c`` into one rounding (FMA, LLVM's only fast-math flag
-    given: NaN and infinity keep their meaning); for kernels whose outputs need not repeat
-    earlier builds bit for bit."""
+    ``@kernel`` or ``@kernel(inline="always", error_model="python")``. ``fastmath``: LLVM
+    fast-math flags that change results at the rounding level only and keep NaN and infinity
+    meaningful (a ``not x <= lim`` guard still catches NaN): ``contract`` fuses ``a * b + c``
+    into one rounding (FMA), ``reassoc`` reorders sums and products, ``nsz`` ignores the sign
+    of zero. Only for kernels whose outputs need not repeat earlier builds bit for bit."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
-        fastmath = {"contract"} if contract else False
-        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, fastmath=fastmath)(f)
+        flags = set(fastmath) if fastmath else False
+        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, fastmath=flags)(f)
         return cast(Callable[_P, _R], compiled)
 
     return wrap if fn is None else wrap(fn)
