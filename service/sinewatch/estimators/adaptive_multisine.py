@@ -891,9 +891,10 @@ def auto_kernel(
 
 
 @kernel(inline="always", fastmath=_FAST)
-def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
-    """:func:`_place` for one component of n = 2, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and
-    the other's ``Omega_k``: ``l_2i + j w_i l_2i-1 = P(j w_i) / D_i(j w_i)``. Inlined into
+def _place_one(om: float, dk: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
+    """:func:`_place` for one component, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and ``dk``, the
+    product of ``Omega_k - Omega_i`` over the other components (1 for n = 1): ``l_2i + j w_i
+    l_2i-1 = P(j w_i) / D_i(j w_i)``. Inlined into :func:`auto_kernel_n1` and
     :func:`auto_kernel_n2`, so that a re-placement (AD8) calls nothing."""
     w = math.sqrt(om)
     sj = complex(0.0, w)
@@ -901,9 +902,203 @@ def _place_pair(om: float, om_k: float, poles: np.ndarray, bias: int) -> tuple[f
     for m in range(poles.shape[0]):
         pv *= sj - poles[m]
     dv = sj if bias else complex(1.0, 0.0)
-    dv *= om_k - om
+    dv *= dk
     r = pv / dv
     return r.imag / w, r.real
+
+
+@kernel(fastmath=_FAST)
+def auto_kernel_n1(
+    y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """:func:`auto_kernel` written out for n = 1, as :func:`auto_kernel_n2` for two: the state in
+    locals, no output filter (n_f = 0), ``M`` and ``Phi_Xi`` scalars, so ``lambda_1 = Phi_Xi / M``
+    (23) and (25) compares ``Phi_Xi`` with ``delta M``. Agrees with :func:`auto_kernel` to
+    rounding (tests/test_adaptive_multisine_small_n.py)."""
+    nx, bias = ci[1], ci[5]
+    h = cf[_K_H]
+    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
+    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
+    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
+    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
+    om_lo, om_hi, rc = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC]
+    xi_floor, p_alpha = cf[_K_XIFLOOR], cf[_K_PALPHA]
+    poles = cf[_N_K : _N_K + nx]
+    # offsets as in auto_kernel (nf = 0, nz = nx)
+    oz = 0
+    oxi = nx
+    oth = 2 * nx
+    oA, ops, owb, odv = oth + 1, oth + 2, oth + 3, oth + 4
+    osc = oth + 5
+    oa_c = osc + _N_S
+    oL = oa_c + 1
+    s = state.copy()
+    # ---- the state as locals: zh = [x_1, x_2, A0], xi_1 likewise (17)
+    z1, z2 = s[oz], s[oz + 1]
+    z0 = s[oz + 2] if bias else 0.0
+    p1, p2 = s[oxi], s[oxi + 1]
+    p0 = s[oxi + 2] if bias else 0.0
+    th1, A1, ps1, wb1, dv1 = s[oth], s[oA], s[ops], s[owb], s[odv]
+    clock, mean, pw, started, sxi, pwl = (
+        s[osc + _S_CLOCK],
+        s[osc + _S_MEAN],
+        s[osc + _S_POW],
+        s[osc + _S_STARTED],
+        s[osc + _S_XI],
+        s[osc + _S_POWL],
+    )
+    a1 = s[oa_c]
+    L1, L2 = s[oL], s[oL + 1]
+    L0 = s[oL + 2] if bias else 0.0
+    nrow = 1 if last_only else y.shape[0]
+    out = np.empty((nrow, 5))
+    ext = np.empty((nrow, 5))
+    cph = np.empty(nrow)  # A_1 cos(phi_1) sin(omega_d h) per row, for (10)
+    two_pi = 2.0 * math.pi
+    tb2 = tbar * tbar
+    sse = 0.0
+    nsamp = y.shape[0]
+    for k in range(nsamp):
+        yk = y[k]
+        write = (not last_only) or k == nsamp - 1
+        j = 0 if last_only else k
+        # AD4: smoothed mean and AC power of the input
+        if started == 0.0:
+            started = 1.0
+            mean = yk
+        mean += p_alpha * (yk - mean)
+        dy = yk - mean
+        pw += p_alpha * (dy * dy - pw)
+        pwl += 0.1 * p_alpha * (dy * dy - pwl)
+        present = 2.0 * pw >= min_a * min_a and pw >= 0.25 * pwl  # as in auto_kernel
+        # output error C_z zh - eta (16), (22)
+        c = z0 + z1
+        e0 = c - yk
+        sse += e0 * e0
+        # C_z Xi, M = Xi^T Xi + rho^2 (AD4), Phi_Xi = (C_z Xi)^2 (23)
+        c01 = p0 + p1
+        tr = p1 * p1 + p2 * p2 + p0 * p0
+        sxi += l_alpha * (tr - sxi)
+        rho2 = rho2rel * max(sxi, xi_floor)
+        M11 = tr + rho2
+        P11 = c01 * c01
+        # (25) on lambda_1 = Phi_Xi / M >= delta iff Phi_Xi >= delta M
+        if P11 >= d_hi * M11:
+            ps1 = 1.0
+        elif P11 < d_lo * M11:
+            ps1 = 0.0
+        # AD7: settling dwell, as in auto_kernel
+        if not present:
+            dv1 = abs(wb1)
+            clock = 0.0
+        else:
+            clock = min(clock + h, delay)
+        adapting = clock >= delay and ps1 != 0.0
+        # (22) thetah'_unc = -mu M^-1 Xi^T C_z^T e
+        td1 = 0.0
+        if adapting:
+            td1 = -mu * c01 * e0 / M11
+            tu = th1 * td1
+            if th1 * th1 >= tb2 and tu > 0.0:  # projection (19)-(21)
+                td1 -= th1 * tu / tb2
+            om1 = th1 - a1  # AD6: the band's clips (Remark 3.1)
+            if (om1 <= om_lo and td1 < 0.0) or (om1 >= om_hi and td1 > 0.0):
+                td1 = 0.0
+        # outputs at t_k, (8)-(10) with the sampled-oscillator relations; (11); convergence
+        thr = max(fade * max(0.0, A1), min_a)
+        all_ok = adapting and present
+        om1 = th1 - a1
+        ok1 = om1 > 0.0
+        num1 = 0.0
+        if ok1:
+            cd = 1.0 - 0.5 * h * h * om1  # cos(omega_d h)
+            sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
+            num1 = h * z2 + z1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
+            A1 += min(h * mu_a * om1, 1.0) * (math.sqrt(z1 * z1 + num1 * num1 / sd2) - A1)  # (9), (11)
+            wb1 += c_alpha * (om1 - wb1)
+            dv1 += c_alpha * (abs(om1 - wb1) - dv1)
+            if not dv1 <= 2.0 * c_tol * wb1:
+                all_ok = False
+        else:
+            all_ok = False
+        faded1 = not A1 >= thr
+        if faded1:
+            all_ok = False
+        if write:  # Omegah_1, x_1 and A cos(phi) sin(omega_d h): (8), (10) after the loop
+            out[j, 0] = om1 if ok1 and not faded1 else math.nan
+            out[j, 2] = z1
+            cph[j] = num1
+            out[j, 1] = A1 if ok1 else math.nan
+            out[j, 3] = z0 if bias else 0.0
+            out[j, 4] = 1.0 if all_ok else 0.0
+            ext[j, 0] = P11 / M11
+            ext[j, 1] = ps1
+            ext[j, 2] = 1.0 if faded1 else 0.0
+            ext[j, 3] = 1.0 if present else 0.0
+        # ---- step to t_{k+1}: (16) zh, with Xi thetah' from the current Xi
+        inj = yk - c  # L (eta - C_z zh)
+        x1 = z1 + h * (z2 + L1 * inj + p1 * td1)
+        z2 += h * ((a1 - th1) * x1 + L2 * inj + p2 * td1)
+        z1 = x1
+        if bias:
+            z0 += h * (L0 * inj + p0 * td1)
+        # (17) xi_1' = A_L xi_1 + G_z_1(zh), G_z_1 = -x_1 e_2
+        xx = p1 + h * (p2 - L1 * c01)
+        p2 += h * (a1 * xx - L2 * c01)
+        p2 -= h * x1
+        p1 = xx
+        if bias:
+            p0 -= h * L0 * c01
+        # (19): thetah, kept in the band's clips (AD6) and the ball
+        th1 = a1 + min(max(th1 + h * td1 - a1, om_lo), om_hi)
+        far = abs(th1) > rc * abs(a1)
+        if th1 * th1 > tb2:
+            th1 *= tbar / math.sqrt(th1 * th1)
+        if far:  # AD8: re-centre a on the estimate and re-place L_x there (thetah -> 0)
+            a1 -= th1
+            th1 = 0.0
+            L1, L2 = _place_one(-a1, 1.0, poles, bias)  # as _place, written out for n = 1
+            if bias:
+                pz = 1.0  # P(0)
+                for m in range(nx):
+                    pz *= -poles[m]
+                L0 = pz / -a1
+        # guard (D7 of the explicit mode): restart a diverged observer from zero, thetah kept
+        lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
+        bad = not (abs(z1) <= lim and abs(z2) <= lim and abs(z0) <= lim)
+        if bad:  # also NaN; then the full bound
+            lim = zmax * (1.0 + abs(mean) + math.sqrt(pw))
+            bad = not (abs(z1) <= lim and abs(z2) <= lim and abs(z0) <= lim)
+        if not abs(tr) < math.inf:  # tr(Xi^T Xi) of this sample: Xi finite
+            bad = True
+        if bad:
+            z1 = z2 = z0 = 0.0
+            p1 = p2 = p0 = 0.0
+            if not abs(th1) <= tbar:
+                th1 = 0.0
+            ps1 = 0.0
+            clock = 0.0
+        if write:
+            ext[j, 4] = 1.0 if bad else 0.0
+    # (8) omega_d from 2 sin(omega_d h / 2) = h sqrt(Omegah), (10) the phase: after the loop, so that
+    # the loop calls no library function
+    for j in range(nrow):
+        om = out[j, 0]
+        if om == om:  # not NaN: present, not faded
+            cd = 1.0 - 0.5 * h * h * om
+            out[j, 0] = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om), 1.0)) * om_u / two_pi
+            out[j, 2] = math.atan2(out[j, 2], cph[j] / math.sqrt(max(1.0 - cd * cd, 1e-300)))
+        else:
+            out[j, 2] = math.nan
+    # ---- the locals back into the new state
+    s[oz], s[oz + 1], s[oxi], s[oxi + 1] = z1, z2, p1, p2
+    if bias:
+        s[oz + 2], s[oxi + 2], s[oL + 2] = z0, p0, L0
+    s[oth], s[oA], s[ops], s[owb], s[odv] = th1, A1, ps1, wb1, dv1
+    s[osc + _S_CLOCK], s[osc + _S_MEAN], s[osc + _S_POW] = clock, mean, pw
+    s[osc + _S_STARTED], s[osc + _S_XI], s[osc + _S_POWL] = started, sxi, pwl
+    s[oa_c], s[oL], s[oL + 1] = a1, L1, L2
+    return out, ext, sse, s
 
 
 @kernel(fastmath=_FAST)
@@ -1196,8 +1391,8 @@ def auto_kernel_n2(
             a2 -= th2
             th1 = 0.0
             th2 = 0.0
-            L1, L2 = _place_pair(-a1, -a2, poles, bias)  # as _place, written out for n = 2
-            L3, L4 = _place_pair(-a2, -a1, poles, bias)
+            L1, L2 = _place_one(-a1, -a2 + a1, poles, bias)  # as _place, written out for n = 2
+            L3, L4 = _place_one(-a2, -a1 + a2, poles, bias)
             if bias:
                 pz = 1.0  # P(0)
                 for m in range(nx):
@@ -1268,13 +1463,15 @@ def adaptive_multisine_kernel(
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`, or for n = 2 the
-    same written out, :func:`auto_kernel_n2`), 0 the explicit gains
+    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`, or for n = 1 and 2
+    the same written out, :func:`auto_kernel_n1`, :func:`auto_kernel_n2`), 0 the explicit gains
     (:func:`sinewatch.estimators._adaptive_multisine_explicit.explicit_kernel`).
     ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
     ``extras``: lambda (n), psi (n), faded (n), signal present, observer reset. One row per
     sample, or only the last with ``last_only``. Pure: the inputs are not modified."""
     if ci[_I_MODE] == 1:
+        if ci[0] == 1:
+            return auto_kernel_n1(y, state, cf, ci, last_only)
         if ci[0] == 2:
             return auto_kernel_n2(y, state, cf, ci, last_only)
         return auto_kernel(y, state, cf, ci, last_only)

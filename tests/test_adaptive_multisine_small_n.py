@@ -1,11 +1,12 @@
-"""adaptive-multisine's automatic mode for n = 2 runs a kernel written out for two components
-(:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel_n2`: state in locals, the
-eigenvalues of (23) and the switching test (25) in closed form). These tests hold it to the
+"""adaptive-multisine's automatic mode for n = 1 and n = 2 runs kernels written out for one and
+two components (:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel_n1`,
+:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel_n2`: state in locals, the
+eigenvalues of (23) and the switching test (25) in closed form). These tests hold them to the
 general kernel (:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel`, any n) on the
 same input and state, with and without the offset, through every branch the loop has: the
-law (22) with both directions on and with one, the re-centring AD8, the signal lost and back
-(AD7), a component fading, and the guard's restart. The two differ in rounding only (FMA,
-closed forms): measured, the outputs agree to 4e-12 relative."""
+law (22) with every direction on, with one of two and with none, the re-centring AD8, the
+signal lost and back (AD7), a component fading (n = 2), and the guard's restart. They differ
+in rounding only (FMA, closed forms): measured, the outputs agree to 4e-12 relative."""
 
 from __future__ import annotations
 
@@ -13,20 +14,27 @@ import numpy as np
 import pytest
 
 from sinewatch.estimators import create, get
-from sinewatch.estimators.adaptive_multisine import adaptive_multisine_kernel, auto_kernel, auto_kernel_n2
+from sinewatch.estimators.adaptive_multisine import (
+    adaptive_multisine_kernel,
+    auto_kernel,
+    auto_kernel_n1,
+    auto_kernel_n2,
+)
 
 NAME = "adaptive-multisine"
 FS = 750.0  # the class's example: tones at 15 and 10 Hz in a 5-25 Hz band
 
 
-def _signal(bias: bool) -> np.ndarray:
-    """40 s: the example signal (offset 1 with bias, none without); from 12 s to 14 s the input
-    is lost (noise of 1e-3 only); from 26 s the 10 Hz tone stops (its component fades)."""
-    n = int(40 * FS)
-    t = np.arange(n) / FS
+def _signal(n: int, bias: bool) -> np.ndarray:
+    """40 s: the example signal (offset 1 with bias, none without; n = 1: its 15 Hz tone only);
+    from 12 s to 14 s the input is lost (noise of 1e-3 only); from 26 s the 10 Hz tone stops
+    (its component fades)."""
+    t = np.arange(int(40 * FS)) / FS
     rng = np.random.default_rng(7)
-    y = 4.0 * np.sin(2 * np.pi * 15.0 * t) + np.where(t < 26.0, 3.0 * np.sin(2 * np.pi * 10.0 * t + 0.5), 0.0)
-    y += (1.0 if bias else 0.0) + rng.uniform(-0.1, 0.1, n)
+    y = 4.0 * np.sin(2 * np.pi * 15.0 * t)
+    if n == 2:
+        y += np.where(t < 26.0, 3.0 * np.sin(2 * np.pi * 10.0 * t + 0.5), 0.0)
+    y += (1.0 if bias else 0.0) + rng.uniform(-0.1, 0.1, t.size)
     lost = (t >= 12.0) & (t < 14.0)
     y[lost] = 1e-3 * rng.standard_normal(lost.sum())
     return y
@@ -50,25 +58,29 @@ def _run(kern, est, y: np.ndarray, block: int, blow_up_at: int):
     return np.concatenate(outs), np.concatenate(exts), np.array(sses), np.array(states)
 
 
+@pytest.mark.parametrize("n", [1, 2])
 @pytest.mark.parametrize("bias", [True, False])
-def test_the_n2_kernel_agrees_with_the_general_kernel(bias):
-    est = create(NAME, FS, n_sinusoids=2, bias=bias, band_hz=(5.0, 25.0))
-    y = _signal(bias)
+def test_the_written_out_kernels_agree_with_the_general_kernel(n, bias):
+    est = create(NAME, FS, n_sinusoids=n, bias=bias, band_hz=(5.0, 25.0))
+    y = _signal(n, bias)
     o_g, e_g, sse_g, s_g = _run(auto_kernel, est, y, 1500, int(32 * FS))
-    o_2, e_2, sse_2, s_2 = _run(auto_kernel_n2, est, y, 1500, int(32 * FS))
+    o_2, e_2, sse_2, s_2 = _run(auto_kernel_n1 if n == 1 else auto_kernel_n2, est, y, 1500, int(32 * FS))
     t = np.arange(y.size) / FS
-    # every branch was taken (general kernel's extras): both on, one on, none on
-    n_on = e_g[:, 2:4].sum(axis=1)
-    assert (n_on == 2).sum() > 1000 and (n_on == 1).sum() > 1000 and (n_on == 0).sum() > 10
-    present = e_g[:, 6] != 0.0
+    # every branch was taken (general kernel's extras): all on, one of two on, none on
+    n_on = e_g[:, n : 2 * n].sum(axis=1)
+    assert (n_on == n).sum() > 1000 and (n_on == 0).sum() > 10
+    if n == 2:
+        assert (n_on == 1).sum() > 1000
+    present = e_g[:, 3 * n] != 0.0
     assert not present[(t >= 12.5) & (t < 14.0)].any() and present[(t >= 15.0) & (t < 33.0)].all()
-    faded = e_g[:, 4] != 0.0  # the 10 Hz component, after its tone stops
-    assert faded[(t >= 26.0) & (t < 32.0)].sum() > 200 and not faded[(t >= 20.0) & (t < 26.0)].any()
-    reset = np.flatnonzero(e_g[:, 7])
+    if n == 2:
+        faded = e_g[:, 4] != 0.0  # the 10 Hz component, after its tone stops
+        assert faded[(t >= 26.0) & (t < 32.0)].sum() > 200 and not faded[(t >= 20.0) & (t < 26.0)].any()
+    reset = np.flatnonzero(e_g[:, 3 * n + 1])
     assert reset.tolist() == [int(32 * FS)]
-    # AD8 re-centred a (from -omegah_i(0)^2) in most of the blocks
-    oa = 1 + est._nz + 2 * est._nz + 10 + 6
-    assert (np.diff(s_g[:, oa : oa + 2], axis=0) != 0.0).any(axis=1).sum() > 10
+    # AD8 re-centred a (from -omegah_i(0)^2) in many blocks
+    oa = est._nf + est._nz * (1 + n) + 5 * n + 6
+    assert (np.diff(s_g[:, oa : oa + n], axis=0) != 0.0).any(axis=1).sum() > 10
     # the outputs: NaN in the same places, the rest to rounding
     np.testing.assert_array_equal(np.isnan(o_2), np.isnan(o_g))
     ok = ~np.isnan(o_g)
@@ -79,7 +91,7 @@ def test_the_n2_kernel_agrees_with_the_general_kernel(bias):
     np.testing.assert_allclose(sse_2, sse_g, rtol=1e-9)
     np.testing.assert_allclose(s_2, s_g, rtol=1e-9, atol=1e-10)
     if not bias:
-        assert np.all(o_2[:, 6] == 0.0)  # the offset column
+        assert np.all(o_2[:, 3 * n] == 0.0)  # the offset column
 
 
 def test_last_only_is_the_last_row_of_the_track():
@@ -95,7 +107,7 @@ def test_last_only_is_the_last_row_of_the_track():
     np.testing.assert_array_equal(a._state["s"], b._state["s"])
 
 
-def test_the_estimator_runs_the_n2_kernel_for_n_2_only():
+def test_the_estimator_runs_the_written_out_kernels_for_n_1_and_2_only():
     cls = get(NAME)
     y = cls.example_signal(3000, seed=4)
     for n in (1, 2, 3):
@@ -103,7 +115,7 @@ def test_the_estimator_runs_the_n2_kernel_for_n_2_only():
         s0 = est._state["s"].copy()
         tr = est.update(y)
         cf, ci = est._constants
-        ref = (auto_kernel_n2 if n == 2 else auto_kernel)(y, s0, cf, ci, False)
+        ref = {1: auto_kernel_n1, 2: auto_kernel_n2}.get(n, auto_kernel)(y, s0, cf, ci, False)
         via = adaptive_multisine_kernel(y, s0, cf, ci, False)
         for r, v in zip(ref, via, strict=True):
             np.testing.assert_array_equal(r, v)
