@@ -1401,7 +1401,12 @@ def auto_kernel_n2(
         # guard (D7 of the explicit mode): restart a diverged observer from zero, thetah kept
         lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
         bad = not (
-            abs(z1) <= lim and abs(z2) <= lim and abs(z3) <= lim and abs(z4) <= lim and abs(z0) <= lim and abs(zf) <= lim
+            abs(z1) <= lim
+            and abs(z2) <= lim
+            and abs(z3) <= lim
+            and abs(z4) <= lim
+            and abs(z0) <= lim
+            and abs(zf) <= lim
         )
         if bad:  # also NaN; then the full bound
             lim = zmax * (1.0 + abs(mean) + math.sqrt(pw))

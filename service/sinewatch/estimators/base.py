@@ -125,7 +125,7 @@ def kernel(
     of zero. Only for kernels whose outputs need not repeat earlier builds bit for bit."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
-        flags = set(fastmath) if fastmath else False
+        flags: set[str] | bool = set(fastmath) if fastmath else False
         compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, fastmath=flags)(f)
         return cast(Callable[_P, _R], compiled)
 
