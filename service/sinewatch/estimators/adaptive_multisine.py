@@ -122,6 +122,7 @@ class's ``bench_note`` gives the figures).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -1471,17 +1472,13 @@ def adaptive_multisine_kernel(
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
 
-    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`, or for n = 1 and 2
-    the same written out, :func:`auto_kernel_n1`, :func:`auto_kernel_n2`), 0 the explicit gains
+    ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`; for n = 1 and 2 the
+    class runs the same written out, :func:`auto_kernel_n1`, :func:`auto_kernel_n2`), 0 the explicit gains
     (:func:`sinewatch.estimators._adaptive_multisine_explicit.explicit_kernel`).
     ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
     ``extras``: lambda (n), psi (n), faded (n), signal present, observer reset. One row per
     sample, or only the last with ``last_only``. Pure: the inputs are not modified."""
     if ci[_I_MODE] == 1:
-        if ci[0] == 1:
-            return auto_kernel_n1(y, state, cf, ci, last_only)
-        if ci[0] == 2:
-            return auto_kernel_n2(y, state, cf, ci, last_only)
         return auto_kernel(y, state, cf, ci, last_only)
     return explicit.explicit_kernel(y, state, cf, ci, last_only)
 
@@ -1556,6 +1553,11 @@ class AdaptiveMultisine(
 
     def _setup(self) -> None:
         p = self.params
+        # n = 1, 2 of the automatic mode: the kernels written out for them (_run). Called from
+        # Python, not from adaptive_multisine_kernel: numba compiles a callee that sets no
+        # fastmath with its caller's flags, and a dispatcher compiling them next to the explicit
+        # kernel changed that kernel's last bits (tests/test_recording_compatibility.py)
+        self._small_n_kernel: Callable[..., tuple[Any, ...]] | None = None
         if p.band_hz is None:
             d = explicit.setup(p, self.sample_rate_hz)
             self._cf, self._ci = d["cf"], d["ci"]
@@ -1615,6 +1617,7 @@ class AdaptiveMultisine(
         consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
         self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
+        self._small_n_kernel = {1: auto_kernel_n1, 2: auto_kernel_n2}.get(n)
         self._constants = (self._cf, self._ci)
         self._nf, self._nz = nf, nz
         self._a0 = a
@@ -1649,6 +1652,14 @@ class AdaptiveMultisine(
         s[oa : oa + n] = self._a0
         s[oa + n :] = self.L_x
         return {"s": s}
+
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        if self._small_n_kernel is None:
+            return super()._run(samples, state, last_only)
+        out, ext, sse, s = self._small_n_kernel(samples, state["s"], self._cf, self._ci, last_only)
+        return self._track((out, ext, sse), samples), {"s": s}
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, ext, sse = outputs

@@ -125,8 +125,15 @@ def kernel(
     of zero. Only for kernels whose outputs need not repeat earlier builds bit for bit."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
-        flags: set[str] | bool = set(fastmath) if fastmath else False
-        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, fastmath=flags)(f)
+        if fastmath:
+            flags: set[str] = set(fastmath)
+            compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, fastmath=flags)(f)
+        else:  # no fastmath argument at all: with fastmath=False some kernels compiled to other last
+            # bits (the pole placement of adaptive-multisine, the recording of
+            # tests/test_recording_compatibility.py), and a kernel without flags must stay what it was.
+            # (So a helper without flags that a fastmath kernel calls inherits the caller's flags:
+            # numba's rule; the fastmath kernels here call none.)
+            compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline)(f)
         return cast(Callable[_P, _R], compiled)
 
     return wrap if fn is None else wrap(fn)
