@@ -949,8 +949,8 @@ class AdaptiveMultisine(
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
-        "adaptive-multisine is below 0.5x the streaming FFT (about 0.15x: 225-235 ns/sample at n = 2 "
-        "against 34-36 for the FFT, CPU time of one thread, same run): Algorithm 1 is per-sample "
+        "adaptive-multisine is below 0.5x the streaming FFT (about 0.12x: 275-280 ns/sample at n = 2 "
+        "against 34-37 for the FFT, CPU time of one thread, same run): Algorithm 1 is per-sample "
         "work that no block transform shares, a chain of dependent steps each sample: the observer "
         "(3n states) and n sensitivity filters (3n^2 states), M = Xi^T Xi + rho^2 I and Phi_Xi (23), "
         "M = L D L^T for the law (22), the sign of the pivots of Phi_Xi - delta_low M for (25), the "
