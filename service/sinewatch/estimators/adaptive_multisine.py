@@ -956,8 +956,9 @@ class AdaptiveMultisine(
         "M = L D L^T for the law (22), the sign of the pivots of Phi_Xi - delta_low M for (25), the "
         "projection and clips (19)-(21), a square root per component for (11); while a direction "
         "is unexcited or above the rate cap of AD5 (84 % of the samples of this example, 18 % "
-        "unexcited) also the generalised eigen-decomposition (closed form at n = 2). One step per sample, no sub-steps, no matrix exponential (the explicit-gain "
-        "mode's RK4 sub-steps took about 5 us)."
+        "unexcited) also the generalised eigen-decomposition (closed form at n = 2). One step per "
+        "sample, no sub-steps, no matrix exponential (the explicit-gain mode's RK4 sub-steps took "
+        "about 5 us)."
     )
 
     @classmethod
