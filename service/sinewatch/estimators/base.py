@@ -128,7 +128,9 @@ def kernel(
     ``np.empty``, no ``.copy()``, no slices kept beyond the call)."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
-        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, _nrt=refcount)(f)
+        # _nrt is numba's own option (numba.core.options), absent from its type stubs
+        internal: dict[str, Any] = {"_nrt": refcount}
+        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, **internal)(f)
         return cast(Callable[_P, _R], compiled)
 
     return wrap if fn is None else wrap(fn)
