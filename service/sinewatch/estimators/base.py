@@ -102,7 +102,10 @@ _R = TypeVar("_R")
 def kernel(fn: Callable[_P, _R], /) -> Callable[_P, _R]: ...
 @overload
 def kernel(
-    *, inline: Literal["never", "always"] = "never", error_model: Literal["numpy", "python"] = "numpy"
+    *,
+    inline: Literal["never", "always"] = "never",
+    error_model: Literal["numpy", "python"] = "numpy",
+    refcount: bool = True,
 ) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]: ...
 def kernel(
     fn: Callable[_P, _R] | None = None,
@@ -110,14 +113,24 @@ def kernel(
     *,
     inline: Literal["never", "always"] = "never",
     error_model: Literal["numpy", "python"] = "numpy",
+    refcount: bool = True,
 ) -> Callable[_P, _R] | Callable[[Callable[_P, _R]], Callable[_P, _R]]:
     """Compile a kernel or a helper it calls: ``numba.njit(cache=True, nogil=True,
     error_model=...)``, typed as the plain Python function it wraps (numba has no type
     stubs), so that the annotations of a kernel are what callers and mypy see.
-    ``@kernel`` or ``@kernel(inline="always", error_model="python")``."""
+    ``@kernel`` or ``@kernel(inline="always", error_model="python")``.
+
+    ``refcount=False`` compiles without numba's reference counting (its ``_nrt`` option), for a
+    helper that allocates nothing and only reads or writes the arrays it is given: with it, numba
+    takes and releases a reference to every array argument on each call, two atomic operations
+    per array (~8 ns each, measured: a helper taking five arrays cost 79 ns a call with them and
+    2 ns without, since LLVM then also inlines it). Such a helper must not create arrays (no
+    ``np.empty``, no ``.copy()``, no slices kept beyond the call)."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
-        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline)(f)
+        # _nrt is numba's own option (numba.core.options), absent from its type stubs
+        internal: dict[str, Any] = {"_nrt": refcount}
+        compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, **internal)(f)
         return cast(Callable[_P, _R], compiled)
 
     return wrap if fn is None else wrap(fn)
