@@ -45,7 +45,7 @@ Two modes, chosen by ``band_hz``:
 * **automatic design** (``band_hz`` given; this module's kernel): the user gives n, the band
   ``[f_lo, f_hi]`` the components lie in and whether there is an offset; everything else is
   derived below (AD1-AD8). One step per sample, no sub-steps, no matrix exponential, no
-  eigen-decomposition while every direction is excited.
+  eigen-decomposition while every direction is excited and none above AD5's cap.
 * **explicit gains** (no ``band_hz``): the paper's per-example gains in ``omega_unit_rad_s``
   units, RK4 sub-steps; kept unchanged so that recordings made with it replay bit for bit.
 
@@ -72,14 +72,29 @@ AD4 ``rho`` (23) is in the units of ``Xi`` (signal units over rate squared), unk
     ``xi_i`` shrinks with its state, and its gain goes as ``|xi_i| / (|xi_i|^2 + rho^2)``.
     ``rho_rel = 0.1`` let the idle component of Example 2 drift from 2 to 2.6 rad/s towards the
     remaining tone and share it (amplitude still 0.08 at 240 s); ``0.2`` holds it below
-    2.35 rad/s and fades it (amplitude below 0.03 from 190 s); ``0.5`` slows Example 1 three
-    times (measured, tests/test_adaptive_multisine_auto.py).
+    2.35 rad/s and fades it (amplitude below 0.03 from 190 s; with AD5's cap below 2.02 rad/s,
+    faded from 124 s); ``0.5`` slows Example 1 three times (measured,
+    tests/test_adaptive_multisine_auto.py).
 AD5 ``mu`` (22): the excited parameter error decays at ``mu lambda_i`` (proof of Theorem 4.1,
-    ``-mu delta_low |theta~|^2``); ``mu = kappa |slowest pole| / lambda_typ``, i.e. ``kappa`` times
-    the slowest observer pole at ``lambda = lambda_typ`` (Theorem 4.1 needs the adaptation slower
-    than the observer: the cross terms of (36) in ``mu p_bar``). ``mu_A`` (11): the amplitude
-    filter runs at the slowest observer pole at ``omegah_1(0)``. ``lambda_typ`` is the
-    excitation of the paper's examples at this ``rho_rel`` (lambda_1 ~ 0.01-0.02 in Example 2).
+    ``-mu delta_low |theta~|^2``), and Theorem 4.1 needs the adaptation slower than the observer
+    (the cross terms of (36) grow with ``mu p_bar``). ``mu = kappa |slowest pole| / lambda_typ``,
+    and no direction adapts faster than ``kappa |slowest pole|``: while ``tr(M^-1 Phi_Xi) =
+    sum_i lambda_i`` (a bound of lambda_1 from the factors of M, n triangular solves) exceeds
+    ``lambda_typ``, (22) runs on the generalised eigenvectors with ``psi_i`` scaled by
+    ``min(1, lambda_typ / lambda_i)``: the rate of direction i is ``min(mu lambda_i, kappa
+    |slowest pole|)``. The lambda_i depend on n and the offset far more than on the tones: the
+    sum averages 0.27 in Example 1, 0.12 in the experiment, 0.03 in Example 2, 0.007 for n = 5
+    in 2-20 Hz, and reaches 0.16 at n = 5 as the dwell (AD7) ends, while Xi (17) is still
+    building up. With ``mu`` alone (``kappa = 0.1``, no cap) Example 1 adapted up to 3 times
+    faster than its slowest pole (estimates swinging between 1.3 and 4 rad/s for 5 s, the
+    settling time a matter of the trajectory) and n = 5 without offset, noise-free and started
+    at the true frequencies, was thrown 30 % off them within 30 ms of the dwell's end, into an
+    ordering that its partly excited directions (2 of 5 above delta_high) did not undo in 60 s
+    (measured). ``lambda_typ`` is thus the excitation above which a direction adapts at the
+    full rate (below it, the paper's law unchanged); ``kappa = 0.2``: 0.3 lets that n = 5
+    case walk away again (19 %), 0.25 settles the experiment in 24 s at one of four noise
+    seeds (tests/test_adaptive_multisine_auto.py measures the figures). ``mu_A`` (11): the
+    amplitude filter runs at the slowest observer pole at ``omegah_1(0)``.
 AD6 Frequency clips (Remark 3.1) at the band, widened by ``band_margin``, and the components
     kept ordered and ``separation`` apart (two on one line form an unobservable pair, and the
     re-placement AD8 needs distinct frequencies); the projection ball (19)-(21) is the one the
@@ -326,8 +341,8 @@ DESIGN = {
     "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
     "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
     "rho_rel": 0.2,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
-    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
-    "lambda_typ": 0.008,  # AD5
+    "kappa": 0.2,  # AD5: mu = kappa |slowest pole| / lambda_typ; no direction adapts faster
+    "lambda_typ": 0.008,  # AD5: the excitation above which a direction's rate is capped
     "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
     "separation": 0.15,  # AD6: adjacent components at least this fraction apart
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
@@ -356,6 +371,7 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
         "filter_gains": [w0[j + 1] for j in range(n - 1)],
         "omega0": w0,
         "mu": DESIGN["kappa"] * slow / DESIGN["lambda_typ"],  # AD5
+        "lambda_cap": DESIGN["lambda_typ"],
         "rho_rel": DESIGN["rho_rel"],
         "mu_a": slow / (w0[0] * w0[0]),
         "dwell": DESIGN["dwell_poles"] / slow,  # AD7
@@ -370,8 +386,8 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
 # ``cf`` = the scalars below, then the observer poles (nx), F_f (nf), B_f (nf).
 _K_H, _K_MU, _K_RHO2, _K_MUA, _K_DHI, _K_DLO, _K_TBAR, _K_OMU = 0, 1, 2, 3, 4, 5, 6, 7
 _K_MINA, _K_FADE, _K_CALPHA, _K_CTOL, _K_DELAY, _K_ZMAX, _K_LALPHA = 8, 9, 10, 11, 12, 13, 14
-_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA = 15, 16, 17, 18, 19, 20
-_N_K = 21
+_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA, _K_LCAP = 15, 16, 17, 18, 19, 20, 21
+_N_K = 22
 _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
 _S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
@@ -543,6 +559,7 @@ def auto_kernel(
     om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
     xi_floor = cf[_K_XIFLOOR]
     p_alpha = cf[_K_PALPHA]
+    lcap = cf[_K_LCAP]
     poles = cf[_N_K : _N_K + nx]
     s = state.copy()
     nrow = 1 if last_only else y.shape[0]
@@ -662,7 +679,18 @@ def auto_kernel(
                         f = T[i, jj] * inv
                         for i2 in range(jj + 1, i + 1):
                             T[i, i2] -= f * T[i2, jj]
-        if not fast or write:
+        # AD5: every lambda_i <= tr(M^-1 Phi_Xi) = sum_r |D^-1/2 L^-1 (C_z Xi)^T e_r|^2; above
+        # lambda_cap the law (22) runs on the eigen-decomposition, each rate capped (below)
+        lsum = 0.0
+        for r in range(n):
+            for i in range(n):
+                acc = cx[r, i]
+                for kk in range(i):
+                    acc -= L[i, kk] * q[kk]
+                q[i] = acc
+                lsum += acc * acc * Dinv[i]
+        capped = lsum > lcap
+        if not fast or write or capped:
             for jj in range(n):  # the Cholesky factor R = L D^(1/2) of M
                 rj = math.sqrt(D[jj])
                 R[jj, jj] = rj
@@ -698,7 +726,7 @@ def auto_kernel(
                 for r in range(n):
                     acc += cx[r, i] * ev[r]
                 g[i] = acc
-            if n_on == n:  # td = M^-1 g = L^-T D^-1 L^-1 g
+            if n_on == n and not capped:  # td = M^-1 g = L^-T D^-1 L^-1 g
                 for i in range(n):
                     acc = g[i]
                     for kk in range(i):
@@ -720,6 +748,8 @@ def auto_kernel(
                     for kk in range(n):
                         acc += W[kk, i] * q[kk]
                     g[i] = acc * s[ops + i]
+                    if lam[i] > lcap:  # AD5: rate mu lambda_i capped at mu lambda_typ = kappa |p|
+                        g[i] *= lcap / lam[i]
                 for i in range(n):
                     acc = 0.0
                     for kk in range(n):
@@ -919,15 +949,16 @@ class AdaptiveMultisine(
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
-        "adaptive-multisine is below 0.5x the streaming FFT (about 0.15x: 225-235 ns/sample at n = 2 "
-        "against 34-36 for the FFT, CPU time of one thread, same run): Algorithm 1 is per-sample "
+        "adaptive-multisine is below 0.5x the streaming FFT (about 0.12x: 275-280 ns/sample at n = 2 "
+        "against 34-37 for the FFT, CPU time of one thread, same run): Algorithm 1 is per-sample "
         "work that no block transform shares, a chain of dependent steps each sample: the observer "
         "(3n states) and n sensitivity filters (3n^2 states), M = Xi^T Xi + rho^2 I and Phi_Xi (23), "
         "M = L D L^T for the law (22), the sign of the pivots of Phi_Xi - delta_low M for (25), the "
         "projection and clips (19)-(21), a square root per component for (11); while a direction "
-        "is unexcited (18 % of the samples of this example) also the generalised eigen-"
-        "decomposition. One step per sample, no sub-steps, no matrix exponential (the explicit-gain "
-        "mode's RK4 sub-steps took about 5 us)."
+        "is unexcited or above the rate cap of AD5 (84 % of the samples of this example, 18 % "
+        "unexcited) also the generalised eigen-decomposition (closed form at n = 2). One step per "
+        "sample, no sub-steps, no matrix exponential (the explicit-gain mode's RK4 sub-steps took "
+        "about 5 us)."
     )
 
     @classmethod
@@ -1025,6 +1056,7 @@ class AdaptiveMultisine(
         # the input's mean and AC power (signal presence, the guard) over one period of the
         # lowest initial frequency: shorter, they follow the waveform itself
         consts[_K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
+        consts[_K_LCAP] = d["lambda_cap"]
         consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
         self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
