@@ -89,6 +89,18 @@ def test_binary_length_and_dtype_are_checked():
         decode_block(bytes(raw), BLOCK_BINARY_ENCODING)
 
 
+@pytest.mark.parametrize("channel", ["a/b\n", "a\n", "a/b\r", "\na", "a//b", "a/b/"])
+def test_channel_names_are_checked_to_the_last_character(channel):
+    # The binary path checks names with Python's re, where "$" also matches before a final
+    # newline: "a/b\n" was accepted there (and refused by the JSON path), a second channel
+    # that prints like the first.
+    good = bytearray(encode_block_binary(Block("a" * len(channel), 0, 0, 1.0, np.ones(4))))
+    at = bytes(good).index(b"a" * len(channel))
+    good[at : at + len(channel)] = channel.encode()
+    with pytest.raises(DecodeError, match="channel"):
+        decode_block(bytes(good), BLOCK_BINARY_ENCODING)
+
+
 def test_committed_json_schemas_are_up_to_date():
     # `make schemas` regenerates schemas/sinewatch/schemas/json from the models; a stale copy fails here.
     for rel, schema in all_schemas(available()).items():

@@ -244,7 +244,9 @@ def _encoding_version(encoding: str) -> int | None:
 
 @functools.lru_cache(maxsize=8192)  # each channel's name is checked once, not once per block
 def _channel_ok(channel: str) -> bool:
-    return bool(channel) and len(channel) <= 256 and _CHANNEL_RE.match(channel) is not None
+    # fullmatch: with match, the pattern's ``$`` also matches before a trailing newline, so
+    # "a/b\n" passed here while the pydantic models (Rust regex, ``$`` = end of text) refused it
+    return bool(channel) and len(channel) <= 256 and _CHANNEL_RE.fullmatch(channel) is not None
 
 
 def _check_channel(channel: str) -> None:

@@ -45,9 +45,10 @@ Two modes, chosen by ``band_hz``:
 * **automatic design** (``band_hz`` given; this module's kernels): the user gives n, the band
   ``[f_lo, f_hi]`` the components lie in and whether there is an offset; everything else is
   derived below (AD1-AD8). One step per sample, no sub-steps, no matrix exponential, no
-  eigen-decomposition while every direction is excited. For n = 1 and n = 2 the same steps are
-  written out (:func:`auto_kernel_n1`, :func:`auto_kernel_n2`: the state in registers, (23) and
-  (25) in closed form), 3-4 times faster than the general kernel and equal to it to rounding.
+  eigen-decomposition while every direction is excited and none above AD5's cap. For n = 1 and
+  n = 2 the same steps are written out (:func:`auto_kernel_n1`, :func:`auto_kernel_n2`: the state
+  in registers, (23), (25) and AD5's cap in closed form), several times faster than the general
+  kernel and equal to it to rounding.
 * **explicit gains** (no ``band_hz``): the paper's per-example gains in ``omega_unit_rad_s``
   units, RK4 sub-steps; kept unchanged so that recordings made with it replay bit for bit.
 
@@ -74,14 +75,29 @@ AD4 ``rho`` (23) is in the units of ``Xi`` (signal units over rate squared), unk
     ``xi_i`` shrinks with its state, and its gain goes as ``|xi_i| / (|xi_i|^2 + rho^2)``.
     ``rho_rel = 0.1`` let the idle component of Example 2 drift from 2 to 2.6 rad/s towards the
     remaining tone and share it (amplitude still 0.08 at 240 s); ``0.2`` holds it below
-    2.35 rad/s and fades it (amplitude below 0.03 from 190 s); ``0.5`` slows Example 1 three
-    times (measured, tests/test_adaptive_multisine_auto.py).
+    2.35 rad/s and fades it (amplitude below 0.03 from 190 s; with AD5's cap below 2.02 rad/s,
+    faded from 124 s); ``0.5`` slows Example 1 three times (measured,
+    tests/test_adaptive_multisine_auto.py).
 AD5 ``mu`` (22): the excited parameter error decays at ``mu lambda_i`` (proof of Theorem 4.1,
-    ``-mu delta_low |theta~|^2``); ``mu = kappa |slowest pole| / lambda_typ``, i.e. ``kappa`` times
-    the slowest observer pole at ``lambda = lambda_typ`` (Theorem 4.1 needs the adaptation slower
-    than the observer: the cross terms of (36) in ``mu p_bar``). ``mu_A`` (11): the amplitude
-    filter runs at the slowest observer pole at ``omegah_1(0)``. ``lambda_typ`` is the
-    excitation of the paper's examples at this ``rho_rel`` (lambda_1 ~ 0.01-0.02 in Example 2).
+    ``-mu delta_low |theta~|^2``), and Theorem 4.1 needs the adaptation slower than the observer
+    (the cross terms of (36) grow with ``mu p_bar``). ``mu = kappa |slowest pole| / lambda_typ``,
+    and no direction adapts faster than ``kappa |slowest pole|``: while ``tr(M^-1 Phi_Xi) =
+    sum_i lambda_i`` (a bound of lambda_1 from the factors of M, n triangular solves) exceeds
+    ``lambda_typ``, (22) runs on the generalised eigenvectors with ``psi_i`` scaled by
+    ``min(1, lambda_typ / lambda_i)``: the rate of direction i is ``min(mu lambda_i, kappa
+    |slowest pole|)``. The lambda_i depend on n and the offset far more than on the tones: the
+    sum averages 0.27 in Example 1, 0.12 in the experiment, 0.03 in Example 2, 0.007 for n = 5
+    in 2-20 Hz, and reaches 0.16 at n = 5 as the dwell (AD7) ends, while Xi (17) is still
+    building up. With ``mu`` alone (``kappa = 0.1``, no cap) Example 1 adapted up to 3 times
+    faster than its slowest pole (estimates swinging between 1.3 and 4 rad/s for 5 s, the
+    settling time a matter of the trajectory) and n = 5 without offset, noise-free and started
+    at the true frequencies, was thrown 30 % off them within 30 ms of the dwell's end, into an
+    ordering that its partly excited directions (2 of 5 above delta_high) did not undo in 60 s
+    (measured). ``lambda_typ`` is thus the excitation above which a direction adapts at the
+    full rate (below it, the paper's law unchanged); ``kappa = 0.2``: 0.3 lets that n = 5
+    case walk away again (19 %), 0.25 settles the experiment in 24 s at one of four noise
+    seeds (tests/test_adaptive_multisine_auto.py measures the figures). ``mu_A`` (11): the
+    amplitude filter runs at the slowest observer pole at ``omegah_1(0)``.
 AD6 Frequency clips (Remark 3.1) at the band, widened by ``band_margin``, and the components
     kept ordered and ``separation`` apart (two on one line form an unobservable pair, and the
     re-placement AD8 needs distinct frequencies); the projection ball (19)-(21) is the one the
@@ -330,8 +346,8 @@ DESIGN = {
     "p_min": 0.65,  # AD2: slowest observer pole / sqrt(omegah_1(0))
     "p_max": 1.3,  # AD2: fastest observer pole / sqrt(omegah_1(0))
     "rho_rel": 0.2,  # AD4: rho^2 = rho_rel * smoothed tr(Xi^T Xi) / n
-    "kappa": 0.1,  # AD5: mu = kappa |slowest pole| / lambda_typ
-    "lambda_typ": 0.008,  # AD5
+    "kappa": 0.2,  # AD5: mu = kappa |slowest pole| / lambda_typ; no direction adapts faster
+    "lambda_typ": 0.008,  # AD5: the excitation above which a direction's rate is capped
     "band_margin": 0.1,  # AD6: the clips are [f_lo (1 - m), f_hi (1 + m)]
     "separation": 0.15,  # AD6: adjacent components at least this fraction apart
     "dwell_poles": 2.0,  # AD7: dwell = this / |slowest pole|
@@ -360,6 +376,7 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
         "filter_gains": [w0[j + 1] for j in range(n - 1)],
         "omega0": w0,
         "mu": DESIGN["kappa"] * slow / DESIGN["lambda_typ"],  # AD5
+        "lambda_cap": DESIGN["lambda_typ"],
         "rho_rel": DESIGN["rho_rel"],
         "mu_a": slow / (w0[0] * w0[0]),
         "dwell": DESIGN["dwell_poles"] / slow,  # AD7
@@ -374,8 +391,8 @@ def auto_design(n: int, bias: bool, band_hz: tuple[float, float]) -> dict[str, A
 # ``cf`` = the scalars below, then the observer poles (nx), F_f (nf), B_f (nf).
 _K_H, _K_MU, _K_RHO2, _K_MUA, _K_DHI, _K_DLO, _K_TBAR, _K_OMU = 0, 1, 2, 3, 4, 5, 6, 7
 _K_MINA, _K_FADE, _K_CALPHA, _K_CTOL, _K_DELAY, _K_ZMAX, _K_LALPHA = 8, 9, 10, 11, 12, 13, 14
-_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA = 15, 16, 17, 18, 19, 20
-_N_K = 21
+_K_OMLO, _K_OMHI, _K_RC, _K_SEP, _K_XIFLOOR, _K_PALPHA, _K_LCAP = 15, 16, 17, 18, 19, 20, 21
+_N_K = 22
 _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
 _S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
@@ -551,6 +568,7 @@ def auto_kernel(
     om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
     xi_floor = cf[_K_XIFLOOR]
     p_alpha = cf[_K_PALPHA]
+    lcap = cf[_K_LCAP]
     poles = cf[_N_K : _N_K + nx]
     s = state.copy()
     nrow = 1 if last_only else y.shape[0]
@@ -670,7 +688,18 @@ def auto_kernel(
                         f = T[i, jj] * inv
                         for i2 in range(jj + 1, i + 1):
                             T[i, i2] -= f * T[i2, jj]
-        if not fast or write:
+        # AD5: every lambda_i <= tr(M^-1 Phi_Xi) = sum_r |D^-1/2 L^-1 (C_z Xi)^T e_r|^2; above
+        # lambda_cap the law (22) runs on the eigen-decomposition, each rate capped (below)
+        lsum = 0.0
+        for r in range(n):
+            for i in range(n):
+                acc = cx[r, i]
+                for kk in range(i):
+                    acc -= L[i, kk] * q[kk]
+                q[i] = acc
+                lsum += acc * acc * Dinv[i]
+        capped = lsum > lcap
+        if not fast or write or capped:
             for jj in range(n):  # the Cholesky factor R = L D^(1/2) of M
                 rj = math.sqrt(D[jj])
                 R[jj, jj] = rj
@@ -706,7 +735,7 @@ def auto_kernel(
                 for r in range(n):
                     acc += cx[r, i] * ev[r]
                 g[i] = acc
-            if n_on == n:  # td = M^-1 g = L^-T D^-1 L^-1 g
+            if n_on == n and not capped:  # td = M^-1 g = L^-T D^-1 L^-1 g
                 for i in range(n):
                     acc = g[i]
                     for kk in range(i):
@@ -728,6 +757,8 @@ def auto_kernel(
                     for kk in range(n):
                         acc += W[kk, i] * q[kk]
                     g[i] = acc * s[ops + i]
+                    if lam[i] > lcap:  # AD5: rate mu lambda_i capped at mu lambda_typ = kappa |p|
+                        g[i] *= lcap / lam[i]
                 for i in range(n):
                     acc = 0.0
                     for kk in range(n):
@@ -926,7 +957,7 @@ def auto_kernel_n1(
     om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
     c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
     om_lo, om_hi, rc = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC]
-    xi_floor, p_alpha = cf[_K_XIFLOOR], cf[_K_PALPHA]
+    xi_floor, p_alpha, lcap = cf[_K_XIFLOOR], cf[_K_PALPHA], cf[_K_LCAP]
     poles = cf[_N_K : _N_K + nx]
     # offsets as in auto_kernel (nf = 0, nz = nx)
     oz = 0
@@ -998,10 +1029,14 @@ def auto_kernel_n1(
         else:
             clock = min(clock + h, delay)
         adapting = clock >= delay and ps1 != 0.0
-        # (22) thetah'_unc = -mu M^-1 Xi^T C_z^T e
+        # (22) thetah'_unc = -mu M^-1 Xi^T C_z^T e; AD5: above lambda_cap the rate mu lambda_1 is
+        # capped at mu lambda_cap, i.e. M^-1 becomes lambda_cap / Phi_Xi
         td1 = 0.0
         if adapting:
-            td1 = -mu * c01 * e0 / M11
+            if P11 > lcap * M11:
+                td1 = -mu * lcap * c01 * e0 / P11
+            else:
+                td1 = -mu * c01 * e0 / M11
             tu = th1 * td1
             if th1 * th1 >= tb2 and tu > 0.0:  # projection (19)-(21)
                 td1 -= th1 * tu / tb2
@@ -1124,7 +1159,7 @@ def auto_kernel_n2(
     om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
     c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
     om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
-    xi_floor, p_alpha = cf[_K_XIFLOOR], cf[_K_PALPHA]
+    xi_floor, p_alpha, lcap = cf[_K_XIFLOOR], cf[_K_PALPHA], cf[_K_LCAP]
     Ff = cf[_N_K + nx]  # F_f and B_f of (12), n_f = 1
     Bf = cf[_N_K + nx + 1]
     poles = cf[_N_K : _N_K + nx]
@@ -1238,14 +1273,18 @@ def auto_kernel_n2(
         # on), (23)-(24) in closed form: det(Phi_Xi - lambda M) = det M lambda^2 - b lambda + det Phi_Xi
         # = 0 (det Phi_Xi = det(C_z Xi)^2), the smaller root as det Phi_Xi / (det M lambda_1)
         det_m = max(M11 * M22 - M21 * M21, M11 * rho2)  # M >= rho^2 I: det M >= M_11 rho^2
+        bq = P11 * M22 + P22 * M11 - 2.0 * P21 * M21  # det M tr(M^-1 Phi_Xi) = det M (lambda_1 + lambda_2)
+        # the eigen-decomposition is needed while one direction of two is on, or AD5 caps a rate
+        # (lambda_1 + lambda_2 above lambda_cap: auto_kernel's test), or for the output
+        eig = adapting and (n_on == 1 or bq > lcap * det_m)
         lam1 = 0.0
         lam2 = 0.0
-        partial = adapting and n_on == 1
-        if write or partial:  # lambda_1 = sq / (2 det M), lambda_2 = 2 det Phi_Xi / sq
-            bq = P11 * M22 + P22 * M11 - 2.0 * P21 * M21
+        sq = 0.0
+        dc = 0.0
+        if write or eig:  # lambda_1 = sq / (2 det M), lambda_2 = 2 det Phi_Xi / sq
             dc = c01 * qf - c02 * pf
             sq = bq + math.sqrt(max(bq * bq - 4.0 * det_m * dc * dc, 0.0))
-            if write and sq > 0.0:
+            if sq > 0.0:
                 lam1 = 0.5 * sq / det_m
                 lam2 = 2.0 * dc * dc / sq
         # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
@@ -1254,26 +1293,29 @@ def auto_kernel_n2(
         if adapting:
             g1 = c01 * e0 + pf * e1  # g = (C_z Xi)^T e
             g2 = c02 * e0 + qf * e1
-            if not partial:  # td = -mu M^-1 g, by the adjugate
+            if not eig:  # td = -mu M^-1 g, by the adjugate
                 idet = -mu / det_m
                 td1 = (M22 * g1 - M21 * g2) * idet
                 td2 = (M11 * g2 - M21 * g1) * idet
-            else:  # td = -mu v v^T g, v the eigenvector of the one lambda on, v^T M v = 1
-                # (Phi_Xi - lambda M) v = 0, scaled by the denominator of lambda (no division):
-                # v is normal to its larger row
-                ca, cb = (2.0 * det_m, sq) if ps1 != 0.0 else (sq, 2.0 * dc * dc)
-                e11 = ca * P11 - cb * M11
-                e21 = ca * P21 - cb * M21
-                e22 = ca * P22 - cb * M22
+            else:  # td = -mu V S V^T g, S = diag(s_i), s_i = psi_i min(1, lambda_cap / lambda_i) (AD5);
+                # with v_1 v_1^T + v_2 v_2^T = M^-1 (V^T M V = I): -mu (s_2 M^-1 g + (s_1 - s_2) v_1 v_1^T g)
+                s1 = ps1 * (lcap / lam1 if lam1 > lcap else 1.0)
+                s2 = ps2 * (lcap / lam2 if lam2 > lcap else 1.0)
+                # (Phi_Xi - lambda_1 M) v_1 = 0, scaled by the denominator of lambda_1: v_1 is
+                # normal to its larger row
+                e11 = 2.0 * det_m * P11 - sq * M11
+                e21 = 2.0 * det_m * P21 - sq * M21
+                e22 = 2.0 * det_m * P22 - sq * M22
                 if e11 * e11 >= e22 * e22:
                     v1, v2 = -e21, e11
                 else:
                     v1, v2 = e22, -e21
                 if v1 == 0.0 and v2 == 0.0:  # Phi_Xi = lambda M: any v (auto_kernel's choice)
-                    v1, v2 = (1.0, 0.0) if ps1 != 0.0 else (-M21, M11)
-                f = -mu * (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
-                td1 = v1 * f
-                td2 = v2 * f
+                    v1, v2 = 1.0, 0.0
+                f = (s1 - s2) * (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
+                idet = s2 / det_m
+                td1 = -mu * ((M22 * g1 - M21 * g2) * idet + v1 * f)
+                td2 = -mu * ((M11 * g2 - M21 * g1) * idet + v2 * f)
             tt = th1 * th1 + th2 * th2
             tu = th1 * td1 + th2 * td2
             if tt >= tb2 and tu > 0.0:  # projection (19)-(21)
@@ -1614,6 +1656,7 @@ class AdaptiveMultisine(
         # the input's mean and AC power (signal presence, the guard) over one period of the
         # lowest initial frequency: shorter, they follow the waveform itself
         consts[_K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
+        consts[_K_LCAP] = d["lambda_cap"]
         consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
         self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
