@@ -1284,7 +1284,7 @@ def auto_kernel_n2(
         if write or eig:  # lambda_1 = sq / (2 det M), lambda_2 = 2 det Phi_Xi / sq
             dc = c01 * qf - c02 * pf
             sq = bq + math.sqrt(max(bq * bq - 4.0 * det_m * dc * dc, 0.0))
-            if sq > 0.0:
+            if write and sq > 0.0:
                 lam1 = 0.5 * sq / det_m
                 lam2 = 2.0 * dc * dc / sq
         # (22) thetah'_unc = -mu V Psi V^T Xi^T C_z^T e, V V^T = M^-1
@@ -1299,8 +1299,10 @@ def auto_kernel_n2(
                 td2 = (M11 * g2 - M21 * g1) * idet
             else:  # td = -mu V S V^T g, S = diag(s_i), s_i = psi_i min(1, lambda_cap / lambda_i) (AD5);
                 # with v_1 v_1^T + v_2 v_2^T = M^-1 (V^T M V = I): -mu (s_2 M^-1 g + (s_1 - s_2) v_1 v_1^T g)
-                s1 = ps1 * (lcap / lam1 if lam1 > lcap else 1.0)
-                s2 = ps2 * (lcap / lam2 if lam2 > lcap else 1.0)
+                # (lambda_1 > lambda_cap iff sq > 2 lambda_cap det M; lambda_2 likewise: no division
+                # unless capped)
+                s1 = ps1 * (2.0 * lcap * det_m / sq if sq > 2.0 * lcap * det_m else 1.0)
+                s2 = ps2 * (lcap * sq / (2.0 * dc * dc) if 2.0 * dc * dc > lcap * sq else 1.0)
                 # (Phi_Xi - lambda_1 M) v_1 = 0, scaled by the denominator of lambda_1: v_1 is
                 # normal to its larger row
                 e11 = 2.0 * det_m * P11 - sq * M11
@@ -1312,10 +1314,12 @@ def auto_kernel_n2(
                     v1, v2 = e22, -e21
                 if v1 == 0.0 and v2 == 0.0:  # Phi_Xi = lambda M: any v (auto_kernel's choice)
                     v1, v2 = 1.0, 0.0
-                f = (s1 - s2) * (v1 * g1 + v2 * g2) / (v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2))
-                idet = s2 / det_m
-                td1 = -mu * ((M22 * g1 - M21 * g2) * idet + v1 * f)
-                td2 = -mu * ((M11 * g2 - M21 * g1) * idet + v2 * f)
+                vmv = v1 * (M11 * v1 + M21 * v2) + v2 * (M21 * v1 + M22 * v2)
+                inv = -mu / (det_m * vmv)  # one division for both terms
+                f = (s1 - s2) * (v1 * g1 + v2 * g2) * det_m * inv
+                idet = s2 * vmv * inv
+                td1 = (M22 * g1 - M21 * g2) * idet + v1 * f
+                td2 = (M11 * g2 - M21 * g1) * idet + v2 * f
             tt = th1 * th1 + th2 * th2
             tu = th1 * td1 + th2 * td2
             if tt >= tb2 and tu > 0.0:  # projection (19)-(21)
@@ -1542,18 +1546,19 @@ class AdaptiveMultisine(
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
-        "adaptive-multisine at n = 2 (the example) is 0.52-0.57x the streaming FFT: 60-62 ns/sample "
-        "against 32-34 (CPU time of one thread, same run, `sinewatch bench kernels --block 1024 "
-        "--estimators adaptive-multisine,ges-kalman`; 232 ns/sample, 0.15x, with the general "
-        "kernel). About 8 ns/sample is the block's Python call and Track (~8 us a block). For n = 1 "
-        "and 2 the kernel is written out (state in registers, FMA, the eigenvalues of (23) and the "
-        "switching (25) in closed form); each sample still runs the observer (3n states) and n "
-        "sensitivity filters (3n^2), M and Phi_Xi (23), M^-1 for the law (22), the projection and "
-        "clips (19)-(21), a square root per component for (11), and, while one direction of two is "
-        "excited (a sixth of this example's samples), a root and a division for its eigenvector. "
-        "n >= 3 runs the general kernel, many times slower: with three or more tones some direction "
-        "is always under-excited, so every sample takes the generalised eigen-decomposition "
-        "(Jacobi); that is what remains."
+        "adaptive-multisine at n = 2 (the example) is below 0.5x the streaming FFT: 0.43-0.46x, "
+        "74-78 ns/sample against 33-34 (CPU time of one thread, same run, `sinewatch bench kernels "
+        "--block 1024 --estimators adaptive-multisine,ges-kalman`; 275-280 ns/sample with the "
+        "general kernel). About 8 ns/sample is the block's Python call and Track (~8 us a block). "
+        "For n = 1 and 2 the kernel is written out (state in registers, FMA, the eigenvalues of "
+        "(23), the switching (25) and AD5's cap in closed form); each sample still runs the "
+        "observer (3n states) and n sensitivity filters (3n^2), M and Phi_Xi (23), M^-1 for the law "
+        "(22), the projection and clips (19)-(21), a square root per component for (11), and, on "
+        "the samples where one direction of two is excited or AD5 caps a rate (most of this "
+        "example's), a root and two divisions for the excited eigenvector: without the cap this "
+        "kernel ran at 58-60 ns/sample (0.56-0.57x). n >= 3 runs the general kernel, many times "
+        "slower: with three or more tones some direction is always under-excited, so every sample "
+        "takes the generalised eigen-decomposition (Jacobi); that is what remains."
     )
 
     @classmethod
