@@ -6,7 +6,8 @@ general kernel (:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel`, an
 same input and state, with and without the offset, through every branch the loop has: the
 law (22) with every direction on, with one of two and with none, the re-centring AD8, the
 signal lost and back (AD7), a component fading (n = 2), and the guard's restart. They differ
-in rounding only (FMA, closed forms): measured, each block's outputs from the same state agree to 3e-11 relative."""
+in rounding only (closed forms): each block's outputs from the same state agree within the
+1e-9 relative these tests allow."""
 
 from __future__ import annotations
 

@@ -139,7 +139,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -397,10 +397,6 @@ _I_MODE = 6
 # the scalars of the automatic mode's state, after the per-component part
 _S_CLOCK, _S_MEAN, _S_POW, _S_STARTED, _S_XI, _S_POWL = 0, 1, 2, 3, 4, 5
 _N_S = 6
-#: LLVM fast-math flags of :func:`auto_kernel_n2` (no golden bytes for the automatic mode): FMA,
-#: reassociation and unsigned zeros; NaN and infinity keep their meaning (the guard's NaN test).
-#: Measured: 55 -> 51 ns/sample (FMA alone took it from 69 to 55).
-_FAST: tuple[Literal["contract", "reassoc", "nsz"], ...] = ("contract", "reassoc", "nsz")
 
 
 @kernel
@@ -925,7 +921,7 @@ def auto_kernel(
     return out, ext, sse, s
 
 
-@kernel(inline="always", fastmath=_FAST)
+@kernel(inline="always")
 def _place_one(om: float, dk: float, poles: np.ndarray, bias: int) -> tuple[float, float]:
     """:func:`_place` for one component, ``(l_2i-1, l_2i)`` from ``Omega_i = -a_i`` and ``dk``, the
     product of ``Omega_k - Omega_i`` over the other components (1 for n = 1): ``l_2i + j w_i
@@ -942,7 +938,7 @@ def _place_one(om: float, dk: float, poles: np.ndarray, bias: int) -> tuple[floa
     return r.imag / w, r.real
 
 
-@kernel(fastmath=_FAST)
+@kernel
 def auto_kernel_n1(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -1140,7 +1136,7 @@ def auto_kernel_n1(
     return out, ext, sse, s
 
 
-@kernel(fastmath=_FAST)
+@kernel
 def auto_kernel_n2(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -1546,19 +1542,21 @@ class AdaptiveMultisine(
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
-        "adaptive-multisine at n = 2 (the example) is below 0.5x the streaming FFT: 0.43-0.46x, "
-        "74-78 ns/sample against 33-34 (CPU time of one thread, same run, `sinewatch bench kernels "
-        "--block 1024 --estimators adaptive-multisine,ges-kalman`; 275-280 ns/sample with the "
-        "general kernel). About 8 ns/sample is the block's Python call and Track (~8 us a block). "
-        "For n = 1 and 2 the kernel is written out (state in registers, FMA, the eigenvalues of "
-        "(23), the switching (25) and AD5's cap in closed form); each sample still runs the "
-        "observer (3n states) and n sensitivity filters (3n^2), M and Phi_Xi (23), M^-1 for the law "
-        "(22), the projection and clips (19)-(21), a square root per component for (11), and, on "
-        "the samples where one direction of two is excited or AD5 caps a rate (most of this "
-        "example's), a root and two divisions for the excited eigenvector: without the cap this "
-        "kernel ran at 58-60 ns/sample (0.56-0.57x). n >= 3 runs the general kernel, many times "
-        "slower: with three or more tones some direction is always under-excited, so every sample "
-        "takes the generalised eigen-decomposition (Jacobi); that is what remains."
+        "adaptive-multisine at n = 2 (the example) is below 0.5x the streaming FFT: 0.37x, 91 "
+        "ns/sample against 34 (CPU time of one thread, same run, `sinewatch bench kernels --block "
+        "1024 --estimators adaptive-multisine`; 230 ns/sample, 0.14x, with the general kernel, "
+        "which n >= 3 runs). About 8 ns/sample is the block's Python call and Track (~8 us a block). "
+        "For n = 1 and 2 the kernel is written out (state in registers, the eigenvalues of (23), "
+        "the switching (25) and AD5's cap in closed form); each sample still runs the observer (3n "
+        "states) and n sensitivity filters (3n^2), M and Phi_Xi (23), M^-1 for the law (22), the "
+        "projection and clips (19)-(21), a square root per component for (11), and, on the samples "
+        "where one direction of two is excited or AD5 caps a rate (84 % of this example's), a root "
+        "and two divisions for the excited eigenvector: 75 ns/sample without the cap. Compiled with "
+        "FMA contraction and reassociation it ran at 74-78 (0.45x), but numba then compiled some "
+        "kernels differently from one process to the next (a served estimate differed from the same "
+        "estimator run directly), so every kernel keeps IEEE order. n >= 3: with three or more "
+        "tones some direction is always under-excited, so every sample takes the generalised "
+        "eigen-decomposition (Jacobi): 0.9 us/sample at n = 3, 3.3 us at n = 5."
     )
 
     @classmethod
@@ -1600,10 +1598,9 @@ class AdaptiveMultisine(
 
     def _setup(self) -> None:
         p = self.params
-        # n = 1, 2 of the automatic mode: the kernels written out for them (_run). Called from
-        # Python, not from adaptive_multisine_kernel: numba compiles a callee that sets no
-        # fastmath with its caller's flags, and a dispatcher compiling them next to the explicit
-        # kernel changed that kernel's last bits (tests/test_recording_compatibility.py)
+        # n = 1, 2 of the automatic mode: the kernels written out for them (_run), called from
+        # Python rather than through adaptive_multisine_kernel, so that the explicit mode's kernel
+        # (recordings replay it bit for bit) is compiled alone, as before they existed
         self._small_n_kernel: Callable[..., tuple[Any, ...]] | None = None
         if p.band_hz is None:
             d = explicit.setup(p, self.sample_rate_hz)

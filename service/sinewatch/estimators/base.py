@@ -106,7 +106,6 @@ def kernel(
     inline: Literal["never", "always"] = "never",
     error_model: Literal["numpy", "python"] = "numpy",
     refcount: bool = True,
-    fastmath: tuple[Literal["contract", "reassoc", "nsz"], ...] = (),
 ) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]: ...
 def kernel(
     fn: Callable[_P, _R] | None = None,
@@ -115,7 +114,6 @@ def kernel(
     inline: Literal["never", "always"] = "never",
     error_model: Literal["numpy", "python"] = "numpy",
     refcount: bool = True,
-    fastmath: tuple[Literal["contract", "reassoc", "nsz"], ...] = (),
 ) -> Callable[_P, _R] | Callable[[Callable[_P, _R]], Callable[_P, _R]]:
     """Compile a kernel or a helper it calls: ``numba.njit(cache=True, nogil=True,
     error_model=...)``, typed as the plain Python function it wraps (numba has no type
@@ -127,21 +125,11 @@ def kernel(
     takes and releases a reference to every array argument on each call, two atomic operations
     per array (~8 ns each, measured: a helper taking five arrays cost 79 ns a call with them and
     2 ns without, since LLVM then also inlines it). Such a helper must not create arrays (no
-    ``np.empty``, no ``.copy()``, no slices kept beyond the call).
-
-    ``fastmath``: LLVM fast-math flags that change results at the rounding level only and keep
-    NaN and infinity meaningful (a ``not x <= lim`` guard still catches NaN): ``contract`` fuses
-    ``a * b + c`` into one rounding (FMA), ``reassoc`` reorders sums and products, ``nsz``
-    ignores the sign of zero. Only for kernels whose outputs need not repeat earlier builds bit
-    for bit. Without flags no fastmath argument is passed at all, so every other kernel compiles
-    as before (numba gives a callee that sets none its caller's flags: a fastmath kernel must
-    call no helper without flags, or that helper's compiled code depends on who compiled it first)."""
+    ``np.empty``, no ``.copy()``, no slices kept beyond the call)."""
 
     def wrap(f: Callable[_P, _R]) -> Callable[_P, _R]:
         # _nrt is numba's own option (numba.core.options), absent from its type stubs
         internal: dict[str, Any] = {"_nrt": refcount}
-        if fastmath:
-            internal["fastmath"] = set(fastmath)
         compiled = numba.njit(cache=True, nogil=True, error_model=error_model, inline=inline, **internal)(f)
         return cast(Callable[_P, _R], compiled)
 
