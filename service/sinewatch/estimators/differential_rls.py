@@ -1742,8 +1742,16 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         nominal frequency, low-pass bandwidth 10 % of it, tracking range covering the
         scenario's frequency range as far as the demodulator allows, M <= 10."""
         nom = tuple(hints["nominal_frequency_hz"])
-        if len(nom) != 1 or hints.get("n_inputs", 1) != 1:
-            raise ParameterError(f"expected one component on one input, got {len(nom)} components")
+        n_inputs = hints.get("n_inputs", 1)
+        if n_inputs == 2 and len(nom) == 1:
+            # I/Q blocks (the paper's own setting): the baseband frequency and the design come with
+            # the scenario (its suggested parameters, applied after these); no demodulator to fit
+            return {"input": "iq"}
+        if len(nom) != 1 or n_inputs != 1:
+            raise ParameterError(
+                f"expected one component on one (real) or two (I/Q) inputs, got {len(nom)} components "
+                f"on {n_inputs} inputs"
+            )
         f0 = float(nom[0])
         lo, hi = hints["frequency_range_hz"]
         bw = 0.1 * f0
