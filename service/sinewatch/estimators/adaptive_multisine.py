@@ -531,6 +531,34 @@ def _place(s: np.ndarray, oa: int, oL: int, poles: np.ndarray, n: int, bias: int
         s[oL + nx - 1] = p0 / d0
 
 
+@kernel(inline="always")
+def _input_level(
+    yk: float, started: float, mean: float, pw: float, pwl: float, p_alpha: float, min_a: float
+) -> tuple[float, float, float, float, bool]:
+    """AD4 and AD7's input level, one sample: (started, mean, AC power, its slow mean, present).
+    The signal is present above ``min_a`` and above a quarter of its power over ten times as
+    long (a signal that stops is absent within ~1.4 periods of omegah_1(0)). Scalars only, so
+    every kernel inlines it without reference counting."""
+    if started == 0.0:
+        started = 1.0
+        mean = yk
+    mean += p_alpha * (yk - mean)
+    dy = yk - mean
+    pw += p_alpha * (dy * dy - pw)
+    pwl += 0.1 * p_alpha * (dy * dy - pwl)
+    return started, mean, pw, pwl, 2.0 * pw >= min_a * min_a and pw >= 0.25 * pwl
+
+
+@kernel(inline="always")
+def _frequency_and_phase(om: float, x1: float, cph: float, h: float, om_u: float) -> tuple[float, float]:
+    """(8) and (10) for one component from ``Omegah = om > 0``: the frequency in Hz of the sampled
+    oscillator, omega_d from ``2 sin(omega_d h / 2) = h sqrt(Omegah)``, and the phase from
+    ``x_{2i-1} = A sin(phi)`` and ``cph = A cos(phi) sin(omega_d h)``."""
+    cd = 1.0 - 0.5 * h * h * om  # cos(omega_d h)
+    wd = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om), 1.0))
+    return wd * om_u / (2.0 * math.pi), math.atan2(x1, cph / math.sqrt(max(1.0 - cd * cd, 1e-300)))
+
+
 @kernel
 def auto_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
@@ -597,17 +625,10 @@ def auto_kernel(
         yk = y[k]
         write = (not last_only) or k == nsamp - 1
         j = 0 if last_only else k
-        # AD4: smoothed mean and AC power of the input
-        if s[osc + _S_STARTED] == 0.0:
-            s[osc + _S_STARTED] = 1.0
-            s[osc + _S_MEAN] = yk
-        s[osc + _S_MEAN] += p_alpha * (yk - s[osc + _S_MEAN])
-        dv = yk - s[osc + _S_MEAN]
-        s[osc + _S_POW] += p_alpha * (dv * dv - s[osc + _S_POW])
-        s[osc + _S_POWL] += 0.1 * p_alpha * (dv * dv - s[osc + _S_POWL])
-        # the signal is present above min_amplitude and above a quarter of its power over ten
-        # times as long (a signal that stops is absent within ~1.4 periods of omegah_1(0))
-        present = 2.0 * s[osc + _S_POW] >= min_a * min_a and s[osc + _S_POW] >= 0.25 * s[osc + _S_POWL]
+        # AD4: smoothed mean and AC power of the input; AD7: is the signal present
+        s[osc + _S_STARTED], s[osc + _S_MEAN], s[osc + _S_POW], s[osc + _S_POWL], present = _input_level(
+            yk, s[osc + _S_STARTED], s[osc + _S_MEAN], s[osc + _S_POW], s[osc + _S_POWL], p_alpha, min_a
+        )
         # output error C_z zh - eta (16), (22)
         c = s[oz + nx - 1] if bias else 0.0
         for i in range(n):
@@ -985,7 +1006,6 @@ def auto_kernel_n1(
     out = np.empty((nrow, 5))
     ext = np.empty((nrow, 5))
     cph = np.empty(nrow)  # A_1 cos(phi_1) sin(omega_d h) per row, for (10)
-    two_pi = 2.0 * math.pi
     tb2 = tbar * tbar
     sse = 0.0
     nsamp = y.shape[0]
@@ -993,15 +1013,8 @@ def auto_kernel_n1(
         yk = y[k]
         write = (not last_only) or k == nsamp - 1
         j = 0 if last_only else k
-        # AD4: smoothed mean and AC power of the input
-        if started == 0.0:
-            started = 1.0
-            mean = yk
-        mean += p_alpha * (yk - mean)
-        dy = yk - mean
-        pw += p_alpha * (dy * dy - pw)
-        pwl += 0.1 * p_alpha * (dy * dy - pwl)
-        present = 2.0 * pw >= min_a * min_a and pw >= 0.25 * pwl  # as in auto_kernel
+        # AD4: smoothed mean and AC power of the input; AD7: is the signal present
+        started, mean, pw, pwl, present = _input_level(yk, started, mean, pw, pwl, p_alpha, min_a)
         # output error C_z zh - eta (16), (22)
         c = z0 + z1
         e0 = c - yk
@@ -1120,9 +1133,7 @@ def auto_kernel_n1(
     for j in range(nrow):
         om = out[j, 0]
         if om == om:  # not NaN: present, not faded
-            cd = 1.0 - 0.5 * h * h * om
-            out[j, 0] = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om), 1.0)) * om_u / two_pi
-            out[j, 2] = math.atan2(out[j, 2], cph[j] / math.sqrt(max(1.0 - cd * cd, 1e-300)))
+            out[j, 0], out[j, 2] = _frequency_and_phase(om, out[j, 2], cph[j], h, om_u)
         else:
             out[j, 2] = math.nan
     # ---- the locals back into the new state
@@ -1201,7 +1212,6 @@ def auto_kernel_n2(
     out = np.empty((nrow, 3 * n + 2))
     ext = np.empty((nrow, 3 * n + 2))
     cph = np.empty((nrow, 2))  # A_i cos(phi_i) sin(omega_d h) per row, for (10)
-    two_pi = 2.0 * math.pi
     tb2 = tbar * tbar
     sse = 0.0
     nsamp = y.shape[0]
@@ -1209,15 +1219,8 @@ def auto_kernel_n2(
         yk = y[k]
         write = (not last_only) or k == nsamp - 1
         j = 0 if last_only else k
-        # AD4: smoothed mean and AC power of the input
-        if started == 0.0:
-            started = 1.0
-            mean = yk
-        mean += p_alpha * (yk - mean)
-        dy = yk - mean
-        pw += p_alpha * (dy * dy - pw)
-        pwl += 0.1 * p_alpha * (dy * dy - pwl)
-        present = 2.0 * pw >= min_a * min_a and pw >= 0.25 * pwl  # as in auto_kernel
+        # AD4: smoothed mean and AC power of the input; AD7: is the signal present
+        started, mean, pw, pwl, present = _input_level(yk, started, mean, pw, pwl, p_alpha, min_a)
         # output error C_z zh - eta (16), (22)
         c = z0 + z1 + z3
         e0 = c - yk
@@ -1484,9 +1487,7 @@ def auto_kernel_n2(
         for i in range(n):
             om = out[j, i]
             if om == om:  # not NaN: present, not faded
-                cd = 1.0 - 0.5 * h * h * om
-                out[j, i] = 2.0 / h * math.asin(min(0.5 * h * math.sqrt(om), 1.0)) * om_u / two_pi
-                out[j, 4 + i] = math.atan2(out[j, 4 + i], cph[j, i] / math.sqrt(max(1.0 - cd * cd, 1e-300)))
+                out[j, i], out[j, 4 + i] = _frequency_and_phase(om, out[j, 4 + i], cph[j, i], h, om_u)
             else:
                 out[j, 4 + i] = math.nan
     # ---- the locals back into the new state
