@@ -32,6 +32,10 @@ def connect(endpoints: list[str] | None = None, *, timeout_s: float = 10.0, mode
     return open_session(section)
 
 
+#: Zenoh's connect/retry for every sinewatch session: 0.25 s, then doubling up to 1 s.
+RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2.0}
+
+
 def zenoh_config(section: ZenohSection) -> zenoh.Config:
     conf = zenoh.Config()
     _insert(conf, "mode", section.mode)
@@ -40,6 +44,10 @@ def zenoh_config(section: ZenohSection) -> zenoh.Config:
     _insert(conf, "scouting/multicast/enabled", section.multicast_scouting)
     if section.shared_memory is not None:
         _insert(conf, "transport/shared_memory/enabled", section.shared_memory)
+    # A lost router is retried every second at most (Zenoh's default backs off to 4 s, and a
+    # daemon and its feeder each waiting out their own back-off left estimation stopped for up
+    # to 9.5 s after a router came back); `raw` can set its own
+    _insert(conf, "connect/retry", RECONNECT_RETRY)
     for path, value in section.raw.items():
         _insert(conf, path, value)
     return conf
