@@ -559,6 +559,25 @@ def _frequency_and_phase(om: float, x1: float, cph: float, h: float, om_u: float
     return wd * om_u / (2.0 * math.pi), math.atan2(x1, cph / math.sqrt(max(1.0 - cd * cd, 1e-300)))
 
 
+@kernel(inline="always")
+def _component_outputs(
+    om: float, x1: float, x2: float, A: float, wb: float, dv: float, h: float, mu_a: float, c_alpha: float,
+    c_tol: float,
+) -> tuple[bool, float, float, float, float, bool]:  # fmt: skip
+    """One component's outputs at t_k from ``Omegah = om``, ``x_{2i-1} = x1``, ``x_{2i} = x2``:
+    (ok: om > 0, A cos(phi) sin(omega_d h) for (10), A (9)/(11), smoothed Omegah, its smoothed
+    deviation, settled: deviation within 2 convergence_tol). Scalars: inlined, no reference counts."""
+    if not om > 0.0:
+        return False, 0.0, A, wb, dv, False
+    cd = 1.0 - 0.5 * h * h * om  # cos(omega_d h)
+    sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
+    num = h * x2 + x1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
+    A += min(h * mu_a * om, 1.0) * (math.sqrt(x1 * x1 + num * num / sd2) - A)  # (9), (11)
+    wb += c_alpha * (om - wb)
+    dv += c_alpha * (abs(om - wb) - dv)
+    return True, num, A, wb, dv, dv <= 2.0 * c_tol * wb
+
+
 @kernel
 def auto_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
@@ -1056,19 +1075,8 @@ def auto_kernel_n1(
         thr = max(fade * max(0.0, A1), min_a)
         all_ok = adapting and present
         om1 = th1 - a1
-        ok1 = om1 > 0.0
-        num1 = 0.0
-        if ok1:
-            cd = 1.0 - 0.5 * h * h * om1  # cos(omega_d h)
-            sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
-            num1 = h * z2 + z1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
-            A1 += min(h * mu_a * om1, 1.0) * (math.sqrt(z1 * z1 + num1 * num1 / sd2) - A1)  # (9), (11)
-            wb1 += c_alpha * (om1 - wb1)
-            dv1 += c_alpha * (abs(om1 - wb1) - dv1)
-            if not dv1 <= 2.0 * c_tol * wb1:
-                all_ok = False
-        else:
-            all_ok = False
+        ok1, num1, A1, wb1, dv1, settled = _component_outputs(om1, z1, z2, A1, wb1, dv1, h, mu_a, c_alpha, c_tol)
+        all_ok = all_ok and settled
         faded1 = not A1 >= thr
         if faded1:
             all_ok = False
@@ -1338,34 +1346,12 @@ def auto_kernel_n2(
         thr = max(fade * max(0.0, A1, A2), min_a)
         all_ok = adapting and present
         om1 = th1 - a1
-        ok1 = om1 > 0.0
-        num1 = 0.0
-        if ok1:
-            cd = 1.0 - 0.5 * h * h * om1  # cos(omega_d h)
-            sd2 = max(1.0 - cd * cd, 1e-300)  # sin^2(omega_d h)
-            num1 = h * z2 + z1 * (1.0 - cd)  # A cos(phi) sin(omega_d h)
-            A1 += min(h * mu_a * om1, 1.0) * (math.sqrt(z1 * z1 + num1 * num1 / sd2) - A1)  # (9), (11)
-            wb1 += c_alpha * (om1 - wb1)
-            dv1 += c_alpha * (abs(om1 - wb1) - dv1)
-            if not dv1 <= 2.0 * c_tol * wb1:
-                all_ok = False
-        else:
-            all_ok = False
+        ok1, num1, A1, wb1, dv1, settled = _component_outputs(om1, z1, z2, A1, wb1, dv1, h, mu_a, c_alpha, c_tol)
+        all_ok = all_ok and settled
         faded1 = not A1 >= thr
         om2 = th2 - a2
-        ok2 = om2 > 0.0
-        num2 = 0.0
-        if ok2:
-            cd = 1.0 - 0.5 * h * h * om2
-            sd2b = max(1.0 - cd * cd, 1e-300)
-            num2 = h * z4 + z3 * (1.0 - cd)
-            A2 += min(h * mu_a * om2, 1.0) * (math.sqrt(z3 * z3 + num2 * num2 / sd2b) - A2)  # (9), (11)
-            wb2 += c_alpha * (om2 - wb2)
-            dv2 += c_alpha * (abs(om2 - wb2) - dv2)
-            if not dv2 <= 2.0 * c_tol * wb2:
-                all_ok = False
-        else:
-            all_ok = False
+        ok2, num2, A2, wb2, dv2, settled = _component_outputs(om2, z3, z4, A2, wb2, dv2, h, mu_a, c_alpha, c_tol)
+        all_ok = all_ok and settled
         faded2 = not A2 >= thr
         if faded1 or faded2:
             all_ok = False
