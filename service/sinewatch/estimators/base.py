@@ -86,6 +86,9 @@ from typing import Annotated, Any, ClassVar, Generic, Literal, ParamSpec, cast, 
 
 import numba
 import numpy as np
+from llvmlite import ir as llvm_ir
+from numba.core import cgutils
+from numba.extending import intrinsic
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from typing_extensions import TypeVar  # a TypeVar with a default (PEP 696); pydantic requires it
 
@@ -134,6 +137,29 @@ def kernel(
         return cast(Callable[_P, _R], compiled)
 
     return wrap if fn is None else wrap(fn)
+
+
+@intrinsic
+def _fma_intrinsic(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
+    sig = numba.types.float64(numba.types.float64, numba.types.float64, numba.types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        d = llvm_ir.DoubleType()
+        fn = cgutils.get_or_insert_function(builder.module, llvm_ir.FunctionType(d, [d, d, d]), "llvm.fma.f64")  # type: ignore[no-untyped-call]
+        return builder.call(fn, list(args))  # numba has cast the arguments to the signature's float64
+
+    return sig, codegen
+
+
+@kernel(inline="always", refcount=False)
+def fma(a: float, b: float, c: float) -> float:
+    """``a * b + c`` rounded once (IEEE 754 fusedMultiplyAdd), in compiled code only: one
+    instruction where the CPU has FMA, a correctly rounded library call where it has not, so the
+    same inputs give the same bits on every machine and in every process. Kernels use it on
+    their critical paths (a multiply and an add in one step, half the latency); fast-math
+    contraction would do the same where the compiler chose to, and what it chose was seen to
+    depend on the order in which kernels were compiled and cached."""
+    return _fma_intrinsic(a, b, c)  # type: ignore[call-arg]  # numba passes the typing context
 
 
 def require_below_nyquist(field: str, value: float, sample_rate_hz: float) -> float:
