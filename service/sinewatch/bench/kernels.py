@@ -36,15 +36,19 @@ FFT_HOP = 256
 
 
 def _rate(fn: Callable[[], int], seconds: float, repeats: int = 3) -> float:
-    """Median samples/s of ``fn`` (which returns the samples it processed) over repeats."""
+    """Median samples/s of ``fn`` (which returns the samples it processed) over repeats, per
+    second of this thread's CPU time (``time.thread_time``): the rate of one core, which a
+    process elsewhere on the machine does not lower (by wall time, the same build's ratio to the
+    FFT moved by +-6 % between runs here). Everything timed runs on the calling thread: numpy's
+    FFT and the kernels start no threads."""
     fn()  # warm-up: compile, caches
     rates = []
     for _ in range(repeats):
         n = 0
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         while True:
             n += fn()
-            dt = time.perf_counter() - t0
+            dt = time.thread_time() - t0
             if dt >= seconds / repeats:
                 break
         rates.append(n / dt)
