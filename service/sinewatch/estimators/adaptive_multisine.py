@@ -1541,21 +1541,18 @@ class AdaptiveMultisine(
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
-        "adaptive-multisine at n = 2 (the example) is below 0.5x the streaming FFT: 0.37x, 91 "
-        "ns/sample against 34 (CPU time of one thread, same run, `sinewatch bench kernels --block "
-        "1024 --estimators adaptive-multisine`; 230 ns/sample, 0.14x, with the general kernel, "
-        "which n >= 3 runs). About 8 ns/sample is the block's Python call and Track (~8 us a block). "
-        "For n = 1 and 2 the kernel is written out (state in registers, the eigenvalues of (23), "
-        "the switching (25) and AD5's cap in closed form); each sample still runs the observer (3n "
-        "states) and n sensitivity filters (3n^2), M and Phi_Xi (23), M^-1 for the law (22), the "
-        "projection and clips (19)-(21), a square root per component for (11), and, on the samples "
-        "where one direction of two is excited or AD5 caps a rate (84 % of this example's), a root "
-        "and two divisions for the excited eigenvector: 75 ns/sample without the cap. Compiled with "
-        "FMA contraction and reassociation it ran at 74-78 (0.45x), but numba then compiled some "
-        "kernels differently from one process to the next (a served estimate differed from the same "
-        "estimator run directly), so every kernel keeps IEEE order. n >= 3: with three or more "
-        "tones some direction is always under-excited, so every sample takes the generalised "
-        "eigen-decomposition (Jacobi): 0.9 us/sample at n = 3, 3.3 us at n = 5."
+        "adaptive-multisine at n = 2 (the example) runs at 0.53-0.55x the streaming FFT, not 1x "
+        "(`sinewatch bench kernels --block 1024 --estimators adaptive-multisine`, five runs: 53-56 "
+        "ns/sample against 29-30): each sample is one chain of dependent arithmetic that the CPU "
+        "cannot overlap with the next. The observer (16) and the sensitivity filters (17) step with "
+        "the law (22) of the same sample, and the next sample's law needs M = Xi^T Xi + rho^2 I of "
+        "the new Xi, the eigenvalues of (23) (a square root) and a division; the state (~45 "
+        "numbers) and the constants do not fit in the registers. ~47 ns/sample in the kernel "
+        "(products fused with fma(), the eigenvector replaced by the projector (M^-1 Phi_Xi - "
+        "lambda_2 I) / (lambda_1 - lambda_2)), ~6.5 us a block of Python call and Track. n = 1: 38 "
+        "ns/sample. n >= 3 runs the general kernel: some direction is then always under-excited, so "
+        "every sample takes the generalised eigen-decomposition (Jacobi): 0.8 us/sample at n = 3, "
+        "3.1 us at n = 5."
     )
 
     @classmethod
