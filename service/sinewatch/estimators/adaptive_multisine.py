@@ -1164,10 +1164,13 @@ def auto_kernel_n2(
     steps on the same state layout, every state variable a local for the whole block (written
     back at its end) and every 2 x 2 product spelt out, so that the compiler keeps them in
     registers instead of a chain of loads and stores through ``s``. The generalised eigenvalues
-    of (23) come in closed form each sample (one square root), so (25) needs no pivot test and
-    the eigenvectors are formed only for a partly excited sample. Agrees with
-    :func:`auto_kernel` to rounding (tests/test_adaptive_multisine_auto.py). With ``bias=False``
-    the A0 state, its sensitivities and its gain are held at zero, which adds exact zeros."""
+    of (23) come in closed form each sample (one square root), so (25) needs no pivot test, and
+    the law (22) with one direction on or capped takes the projector onto the first eigenvector
+    in closed form instead of the eigenvector; products are fused (:func:`fma`), and the ball
+    rescaling of thetah, which the band's clips make inactive, is left out. Agrees with
+    :func:`auto_kernel` to rounding (tests/test_adaptive_multisine_small_n.py). With
+    ``bias=False`` the A0 state, its sensitivities and its gain are held at zero, which adds exact
+    zeros."""
     n, nx, bias = 2, ci[1], ci[5]
     h = cf[_K_H]
     mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
@@ -1283,8 +1286,8 @@ def auto_kernel_n2(
         else:
             clock = min(clock + h, delay)
         adapting = clock >= delay and n_on > 0
-        # the eigenvalues themselves (an output) and one eigenvector (the law with one direction
-        # on), (23)-(24) in closed form: det(Phi_Xi - lambda M) = det M lambda^2 - b lambda + det Phi_Xi
+        # the eigenvalues themselves (an output, and the law with one direction on or a rate
+        # capped), (23)-(24) in closed form: det(Phi_Xi - lambda M) = det M lambda^2 - b lambda + det Phi_Xi
         # = 0 (det Phi_Xi = det(C_z Xi)^2), the smaller root as det Phi_Xi / (det M lambda_1)
         det_m = max(fma(M11, M22, -(M21 * M21)), M11 * rho2)  # M >= rho^2 I: det M >= M_11 rho^2
         bq = fma(P11, M22, fma(P22, M11, -2.0 * P21 * M21))  # det M tr(M^-1 Phi_Xi) = det M (lambda_1 + lambda_2)
