@@ -97,3 +97,57 @@ def test_a_pipeline_recording_reads_back_with_crcs_and_replays_bit_for_bit(tmp_p
         assert reader.get_summary().statistics.chunk_count > 10
     result = replay([path])
     assert result.ok and result.matched == 60 == result.recorded_estimates
+
+
+class _RefusingFile(io.BytesIO):
+    """A file whose writes fail with ENOSPC once ``room`` bytes are in it."""
+
+    def __init__(self, room: int) -> None:
+        super().__init__()
+        self.room = room
+
+    def write(self, data) -> int:  # type: ignore[override]
+        if self.tell() + len(data) > self.room:
+            raise OSError(28, "No space left on device")
+        return super().write(data)
+
+
+def test_a_chunk_write_that_fails_in_the_background_raises_in_the_writer_s_next_call():
+    """Chunks are compressed and written on another thread: a write that fails there (a full
+    disk) is raised by the writer's next call that needs the file, so the recorder's guard
+    sees it and reports it, as it did when the write was synchronous."""
+    w = FastWriter(_RefusingFile(room=20_000), chunk_size=4096, compression=CompressionType.NONE)
+    w.start(profile="", library="test")
+    sid = w.register_schema("s", "jsonschema", b"{}")
+    cid = w.register_channel("t", "json", sid, {})
+    with pytest.raises(OSError, match="No space left"):
+        for i in range(100):  # 100 x 1 KB: the fifth chunk does not fit
+            w.add_message(cid, i, b"x" * 1000, i, i)
+        w.flush()
+
+
+def _rotating_recording(tmp_path, name: str) -> list[int]:
+    """Messages per file of a recording rotated by size (64 KiB chunks, 150 kB files)."""
+    section = RecordingSection(directory=tmp_path / name, chunk_size_bytes=1 << 16, rotate_bytes=150_000)
+    config = make_config(tmp_path, recording=section)
+    recorder = McapRecorder(config, snapshot=lambda: {})
+    pipeline = Pipeline(config, [NullSink(), recorder])
+    x = np.random.default_rng(3).standard_normal(1024 * 100).astype(np.float32)
+    for i in range(100):
+        t0 = 1_763_900_000_000_000_000 + round(i * 1024 * 1e5)
+        payload = encode_block_binary(Block("a", i, t0, 10_000.0, x[i * 1024 : (i + 1) * 1024]), "float32")
+        pipeline.process("sinewatch/in/a", payload, "", t0)
+    pipeline.close_sinks()
+    counts = []
+    for path in recorder.paths:
+        with open(path, "rb") as f:
+            counts.append(make_reader(f, validate_crcs=True).get_summary().statistics.message_count)
+    return counts
+
+
+def test_rotation_by_size_falls_on_the_same_block_at_every_run(tmp_path):
+    """The file's size that rotation reads is taken where the writer waits for its chunk in
+    flight, not from a file position another thread moves: the same files at every run."""
+    first = _rotating_recording(tmp_path, "one")
+    assert len(first) >= 2 and sum(first) == 200  # 100 inputs and 100 estimates
+    assert [_rotating_recording(tmp_path, f"again{i}") for i in range(3)] == [first] * 3

@@ -26,6 +26,7 @@ import struct
 import time
 import zlib
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from itertools import chain
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -74,6 +75,11 @@ _MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
 _CHUNK_OPCODE = int(Opcode.CHUNK)
 _MCAP_MODULES = vars(_mcap_writer)  # its lz4 and zstandard: the very compressors Writer uses
 _MCAP_VERSION = _mcap_writer.__version__
+
+
+#: Compresses and writes finished chunks for every FastWriter in the process, one chunk at a
+#: time each (a writer waits for its previous chunk before it hands over the next).
+_CHUNK_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sinewatch-mcap-chunks")
 
 
 def _private(writer: Writer, name: str) -> Any:
@@ -125,22 +131,52 @@ class FastWriter(Writer):
         self._chunk_builder = _private(self, "chunk_builder")
         self._statistics = _private(self, "statistics")
         self._maybe_finalize_chunk = _private(self, "maybe_finalize_chunk")
-        self._flush_records = _private(self, "flush")
+        self._flush_records = vars(Writer)["_Writer__flush"].__get__(self)  # Writer's own (overridden here)
         self._stream: BinaryIO = _private(self, "stream")
         self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
         self._compression = compression
         self._zstd: Any = None
+        self._in_flight: Future[None] | None = None  # the chunk _CHUNK_THREAD is writing
+        self.bytes_on_file = 0  # the file's size before the chunk in flight (rotation by size reads it)
 
     def _Writer__finalize_chunk(self) -> None:
         """Writer's ``__finalize_chunk`` (it calls this one instead): the Chunk record and the
-        chunk's MessageIndex records, the same bytes, but written to the file as they are
-        rather than copied through a record buffer first (a chunk is a megabyte)."""
+        chunk's MessageIndex records, the same bytes, but compressed, checksummed and written
+        by :data:`_CHUNK_THREAD` while this thread goes on filling the next chunk, and written
+        to the file as they are rather than copied through a record buffer first (a chunk is
+        a megabyte). Compression, the CRC and the write release the GIL: on a busy daemon
+        they were a tenth of the event loop's time (``sinewatch bench pipeline``, the
+        ``recorder`` step). At most one chunk is in flight: the previous one is waited for
+        here, and before anything else reaches the file (:meth:`_Writer__flush`), so the
+        bytes and their order are the synchronous writer's."""
         cb = self._chunk_builder
         if cb.num_messages == 0:
             return
         self._statistics.chunk_count += 1
         chunk_data = cb.end()
+        indices, cb.message_indices = cb.message_indices, {}  # reset() clears the dict in place
+        start, end = cb.message_start_time, cb.message_end_time
+        cb.reset()
+        self._Writer__flush()  # waits for the chunk in flight, then the records buffered since
+        self.bytes_on_file = self._stream.tell()  # here, not in the other thread: the same at every run
+        self._in_flight = _CHUNK_THREAD.submit(self._write_chunk, chunk_data, indices, start, end)
+
+    def _Writer__flush(self) -> None:
+        """Writer's ``__flush`` (the records buffered outside chunks, to the file), after the
+        chunk in flight is on the file: every write of Writer's own goes through here first."""
+        self.wait()
+        self._flush_records()
+
+    def wait(self) -> None:
+        """Wait for the chunk in flight; raise what writing it raised (e.g. a full disk)."""
+        in_flight, self._in_flight = self._in_flight, None
+        if in_flight is not None:
+            in_flight.result()
+
+    def _write_chunk(self, chunk_data: bytes, indices: dict[int, _PackedMessageIndex], start: int, end: int) -> None:
+        """On :data:`_CHUNK_THREAD`: compress, write the Chunk and its MessageIndex records,
+        index it (mcap's ``__finalize_chunk``, the same bytes)."""
         if self._compression == CompressionType.LZ4:
             compression, data = b"lz4", _MCAP_MODULES["lz4"].frame.compress(chunk_data)
         elif self._compression == CompressionType.ZSTD:
@@ -149,41 +185,39 @@ class FastWriter(Writer):
             compression, data = b"zstd", self._zstd.compress(chunk_data)
         else:
             compression, data = b"", chunk_data
-        self._flush_records()
         stream = self._stream
         chunk_start_offset = stream.tell()
         # Chunk (op=0x06): message_start_time, message_end_time, uncompressed_size u64,
         # uncompressed_crc u32, compression (u32-prefixed string), records (u64-prefixed)
         record_length = 8 + 8 + 8 + 4 + 4 + len(compression) + 8 + len(data)
-        stream.write(
-            struct.pack(
-                f"<BQQQQII{len(compression)}sQ",
-                _CHUNK_OPCODE,
-                record_length,
-                cb.message_start_time,
-                cb.message_end_time,
-                len(chunk_data),
-                zlib.crc32(chunk_data),
-                len(compression),
-                compression,
-                len(data),
-            )
-        )
-        stream.write(data)
         message_index_start = chunk_start_offset + 9 + record_length
         offsets: dict[int, int] = {}
         records = []
         at = message_index_start
-        for channel_id, index in cb.message_indices.items():
+        for channel_id, index in indices.items():
             offsets[channel_id] = at
             record = index.packed()
             records.append(record)
             at += len(record)
+        head = struct.pack(
+            f"<BQQQQII{len(compression)}sQ",
+            _CHUNK_OPCODE,
+            record_length,
+            start,
+            end,
+            len(chunk_data),
+            zlib.crc32(chunk_data),
+            len(compression),
+            compression,
+            len(data),
+        )
+        stream.write(head)
+        stream.write(data)
         stream.write(b"".join(records))
         self._chunk_indices.append(
             ChunkIndex(
-                message_start_time=cb.message_start_time,
-                message_end_time=cb.message_end_time,
+                message_start_time=start,
+                message_end_time=end,
                 chunk_start_offset=chunk_start_offset,
                 chunk_length=9 + record_length,
                 message_index_offsets=offsets,
@@ -193,7 +227,6 @@ class FastWriter(Writer):
                 uncompressed_size=len(chunk_data),
             )
         )
-        cb.reset()
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
         head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
@@ -344,6 +377,11 @@ class McapRecorder:
 
     def _abandon(self) -> None:
         """Drop the open file without finishing it (its complete chunks stay readable)."""
+        if isinstance(self._writer, FastWriter):
+            try:
+                self._writer.wait()  # its chunk in flight (which may be the write that failed)
+            except OSError as exc:
+                log.warning("recording %s: its last chunk was not written: %s", self.path, exc)
         if self._file is not None:
             try:
                 self._f.close()
@@ -369,12 +407,20 @@ class McapRecorder:
         if self._fixed_path is not None or self._file is None:
             return
         sec = self.section
-        too_big = sec.rotate_bytes is not None and self._f.tell() >= sec.rotate_bytes
+        too_big = sec.rotate_bytes is not None and self._size_on_file() >= sec.rotate_bytes
         too_old = sec.rotate_seconds is not None and self._clock() - self._opened_at >= sec.rotate_seconds
         if too_big or too_old:
             self.close()
             self.index += 1
             self.open()
+
+    def _size_on_file(self) -> int:
+        """The file's size for rotation: FastWriter's is up to the chunk before the one in
+        flight (the file's position moves on another thread, and rotation must fall on the
+        same block at every run)."""
+        if isinstance(self._writer, FastWriter):
+            return self._writer.bytes_on_file
+        return self._f.tell()
 
     # ---- schemas and channels --------------------------------------------------------------
     def _schema_id(self, name: str) -> int:
