@@ -32,8 +32,14 @@ def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
         assert row["sustained_samples_per_s"] == pytest.approx(row["offered_samples_per_s"], rel=0.05)
         assert 0 < row["latency_ms_p50"] <= row["latency_ms_p99"] <= row["latency_ms_max"]
         assert row["workers"] >= 1 and row["daemon_rss_mb_end"] > 0
+        # the CPU budget: per block, per process; times the offered blocks/s, the cores needed
+        budget = row["cpu_us_per_block"]
+        assert set(budget) == {"daemon", "feeder", "probe"} and budget["daemon"] > 0  # CPU ticks are 10 ms
+        blocks_per_s = row["offered_samples_per_s"] / row["block"]
+        assert row["cores_needed_at_offered"] == pytest.approx(sum(budget.values()) * blocks_per_s / 1e6)
+        assert row["machine_cores"] >= 1
     assert "daemon_rss_mb_per_channel" in rows[1]
-    assert "sustained M/s" in r.stdout and "p99 ms" in r.stdout
+    assert "sustained M/s" in r.stdout and "p99 ms" in r.stdout and "cores needed" in r.stdout
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

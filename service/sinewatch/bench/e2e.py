@@ -314,6 +314,8 @@ def sweep_table(rows: list[dict[str, Any]]) -> Table:
         "p50 ms",
         "p99 ms",
         "CPU (cores)",
+        "CPU us/block daemon+feeder+probe",
+        "cores needed at offered",
         "RSS MB",
         "RSS/channel kB (slope)",
     ):
@@ -329,6 +331,8 @@ def sweep_table(rows: list[dict[str, Any]]) -> Table:
             _ms(r["latency_ms_p50"]),
             _ms(r["latency_ms_p99"]),
             f"{r['daemon_cpu_fraction_of_one_core']:.2f}",
+            "+".join(f"{v:.0f}" for v in r["cpu_us_per_block"].values()),
+            f"{r['cores_needed_at_offered']:.2f} of {r['machine_cores']}",
             f"{r['daemon_rss_mb_end']:.0f}",
             f"{1e3 * r['daemon_rss_mb_per_channel']:.1f}" if "daemon_rss_mb_per_channel" in r else "-",
         )
@@ -493,6 +497,7 @@ def _drive(
         )
         cpu0 = _cpu_seconds(daemon.pid)
         rss0 = _rss_mb(daemon.pid)
+        probe_cpu0 = time.process_time()  # this process: the probe's Zenoh threads and parsing
         t0 = time.monotonic()
         feeder, line = start_feeder(endpoint, n_ch, fs, block, rounds)
         fed = json.loads(line)
@@ -500,6 +505,7 @@ def _drive(
         stop_feeder(feeder)  # everything published has had its chance to arrive
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
+        probe_cpu = time.process_time() - probe_cpu0
         rss1 = _rss_mb(daemon.pid)
         # Each daemon (worker) publishes Status every second: drop the backlog, then take a
         # fresh one from each and add them up.
@@ -512,6 +518,9 @@ def _drive(
             fox.close()
     lat = np.array(probe.latencies_ns) / 1e6
     sent = rounds * n_ch
+    budget = cpu_budget(
+        daemon_cpu_s=cpu, feeder_cpu_s=fed["cpu_s"], probe_cpu_s=probe_cpu, blocks=sent, estimates=probe.received
+    )
     return {
         "channels": n_ch,
         "sample_rate_hz": fs,
@@ -545,6 +554,27 @@ def _drive(
         "drained_s": drained_s,
         "foxglove_messages": dict(sorted(fox.messages.items())) if fox is not None else None,
         "foxglove_bytes": fox.bytes if fox is not None else None,
+        "cpu_us_per_block": budget,
+        # the CPU the three processes need for the offered load at this run's cost per block
+        "cores_needed_at_offered": sum(budget.values()) * n_ch * fs / block / 1e6,
+        "machine_cores": len(os.sched_getaffinity(0)),
+    }
+
+
+def cpu_budget(
+    *, daemon_cpu_s: float, feeder_cpu_s: float, probe_cpu_s: float, blocks: int, estimates: int
+) -> dict[str, float]:
+    """CPU microseconds a block costs each process of the bench: the daemon (all its
+    threads, Zenoh's included, from the first block to the last estimate), the feeder
+    (encoding and publishing) and this process's probe (receiving and parsing the estimate).
+    Times the offered blocks/s, their sum is the CPU the offered load needs on this machine,
+    whatever the daemon sustained: a daemon that cannot keep up is told apart from a machine
+    that cannot hold the load."""
+    per_estimate = max(estimates, 1)
+    return {
+        "daemon": 1e6 * daemon_cpu_s / per_estimate,
+        "feeder": 1e6 * feeder_cpu_s / max(blocks, 1),
+        "probe": 1e6 * probe_cpu_s / per_estimate,
     }
 
 
@@ -585,6 +615,13 @@ def _print(console: Console, r: dict[str, Any]) -> None:
         f"max {r['latency_ms_max']:.2f} ms; daemon CPU {100 * r['daemon_cpu_fraction_of_one_core']:.0f} % of one core; "
         f"recorded {r['recorded_bytes'] / 1e6:.1f} MB"
     )
+    if r.get("cpu_us_per_block"):
+        b = r["cpu_us_per_block"]
+        console.print(
+            f"CPU a block: daemon {b['daemon']:.0f} us, feeder {b['feeder']:.0f} us, this bench's probe "
+            f"{b['probe']:.0f} us; at the offered {r['offered_samples_per_s'] / r['block']:,.0f} blocks/s the three "
+            f"need {r['cores_needed_at_offered']:.2f} cores, of {r['machine_cores']} on this machine"
+        )
     if r.get("foxglove_messages") is not None:
         kinds = ", ".join(f"{k} {n}" for k, n in r["foxglove_messages"].items())
         console.print(f"foxglove client received {kinds} ({r['foxglove_bytes'] / 1e6:.1f} MB)")
