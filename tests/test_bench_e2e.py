@@ -61,3 +61,35 @@ def test_fanout_delivers_every_block_both_ways(tmp_path):
         assert row["delivered"] == row["blocks"] == 400
         # CPU is read in 10 ms ticks: so short a run may read 0
         assert row["total_cpu_us_per_block"] >= row["receiver_cpu_us_per_block"] >= 0
+
+
+def test_the_latency_probe_reads_what_json_reads_from_the_daemon_s_estimates(tmp_path):
+    """The bench's probe reads ``timestamp_ns`` and the gap from the bytes without parsing
+    them: on a pipeline's own estimates, with and without a gap, it reads what json does."""
+    import numpy as np
+    from conftest import make_config
+
+    from sinewatch.bench.e2e import probe_fields
+    from sinewatch.pipeline import NullSink, Pipeline
+    from sinewatch.schemas.codec import Block, encode_block_binary
+
+    class Capture(NullSink):
+        def __init__(self) -> None:
+            self.payloads: list[bytes] = []
+
+        def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+            self.payloads.append(payload)
+
+    sink = Capture()
+    pipeline = Pipeline(make_config(tmp_path), [sink])
+    x = np.sin(2 * np.pi * 50 * np.arange(1024 * 8) / 10_000.0).astype(np.float32)
+    for seq in (0, 1, 2, 6, 7):  # blocks 3-5 missing: the estimate of block 6 flags 3
+        t0 = 1_763_900_000_000_000_000 + seq * 102_400_000
+        payload = encode_block_binary(Block("p/a", seq, t0, 10_000.0, x[seq * 1024 : (seq + 1) * 1024]), "float32")
+        pipeline.process("sinewatch/in/p/a", payload, "", t0)
+    assert len(sink.payloads) == 5
+    for payload in sink.payloads:
+        msg = json.loads(payload)
+        gap = msg["diagnostics"]["gap_blocks"] if msg["diagnostics"]["gap"] else None
+        assert probe_fields(payload) == (msg["timestamp_ns"], gap)
+    assert [probe_fields(p)[1] for p in sink.payloads] == [None, None, None, 3, None]

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 from rich.console import Console
 from rich.table import Table
 
@@ -80,7 +81,14 @@ def expected_daemons(args: argparse.Namespace) -> int:
 
 class LatencyProbe:
     """Estimate subscriber: latency = arrival - the estimate's timestamp, which the bench
-    feeder sets to the block's publish time (CLOCK_MONOTONIC, system-wide on Linux)."""
+    feeder sets to the block's publish time (CLOCK_MONOTONIC, system-wide on Linux).
+
+    The probe shares the machine with the daemon it measures, so it costs as little as it
+    can: the estimates are drained from a Zenoh FIFO by one thread, many per wake-up (a
+    callback takes the GIL once per estimate), and only the three fields it needs are read
+    from the JSON as the daemon writes it (compact, ``"timestamp_ns":`` before
+    ``"diagnostics"``), not the whole message parsed: 40 -> 29 us an estimate at 1,000
+    channels (``sinewatch bench e2e --channels 1000``, the ``cpu_us_per_block`` field)."""
 
     def __init__(self, session: Any, key: str) -> None:
         self.latencies_ns: list[int] = []
@@ -89,21 +97,51 @@ class LatencyProbe:
         self.gap_blocks = 0
         self.done = threading.Event()
         self.expected: int | None = None
-        self._sub = session.declare_subscriber(key, self._on)
+        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(4096))
+        self._thread = threading.Thread(target=self._drain, name="bench-latency-probe", daemon=True)
+        self._thread.start()
 
-    def _on(self, sample: Any) -> None:
-        now = time.monotonic_ns()
-        msg = json.loads(sample.payload.to_bytes())
-        self.latencies_ns.append(now - msg["timestamp_ns"])
+    def _drain(self) -> None:
+        handler = self._sub.handler
+        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained: the probe is over
+            while True:
+                sample = handler.recv()
+                while sample is not None:
+                    self._on(sample.payload.to_bytes(), time.monotonic_ns())
+                    sample = handler.try_recv()
+
+    def _on(self, payload: bytes, now_ns: int) -> None:
+        timestamp_ns, gap_blocks = probe_fields(payload)
+        self.latencies_ns.append(now_ns - timestamp_ns)
         self.received += 1
-        if msg["diagnostics"]["gap"]:
+        if gap_blocks is not None:
             self.gaps += 1
-            self.gap_blocks += msg["diagnostics"]["gap_blocks"]
+            self.gap_blocks += gap_blocks
         if self.expected is not None and self.received >= self.expected:
             self.done.set()
 
     def close(self) -> None:
         self._sub.undeclare()
+        self._thread.join(5.0)
+
+
+def probe_fields(payload: bytes) -> tuple[int, int | None]:
+    """An Estimate's ``timestamp_ns``, and its ``diagnostics.gap_blocks`` when it flags a
+    gap (None when not), read from its JSON bytes as the daemon writes them."""
+    timestamp_ns = _json_int(payload, b'"timestamp_ns":')
+    diagnostics = payload.index(b'"diagnostics":')
+    if payload.find(b'"gap":true', diagnostics) < 0:
+        return timestamp_ns, None
+    return timestamp_ns, _json_int(payload, b'"gap_blocks":', diagnostics)
+
+
+def _json_int(payload: bytes, key: bytes, start: int = 0) -> int:
+    """The integer after ``key`` (``"name":``) in compact JSON: its first occurrence from ``start``."""
+    start = payload.index(key, start) + len(key)
+    end = start
+    while payload[end] in b"-0123456789":
+        end += 1
+    return int(payload[start:end])
 
 
 class FoxgloveProbe:
