@@ -151,3 +151,18 @@ def test_rotation_by_size_falls_on_the_same_block_at_every_run(tmp_path):
     first = _rotating_recording(tmp_path, "one")
     assert len(first) >= 2 and sum(first) == 200  # 100 inputs and 100 estimates
     assert [_rotating_recording(tmp_path, f"again{i}") for i in range(3)] == [first] * 3
+
+
+def test_a_writer_finished_after_its_chunk_thread_is_gone_writes_the_chunks_itself(monkeypatch):
+    """At interpreter exit the chunk thread takes no more work: a file finished then (an
+    atexit handler's) is written on the calling thread, the same bytes."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import sinewatch.recorder as recorder_module
+
+    gone = ThreadPoolExecutor(max_workers=1)
+    gone.shutdown()
+    monkeypatch.setattr(recorder_module, "_CHUNK_THREAD", gone)
+    ref, _ = _write(Writer, CompressionType.ZSTD, 1024, seed=7)
+    fast, _ = _write(FastWriter, CompressionType.ZSTD, 1024, seed=7)
+    assert fast == ref

@@ -208,8 +208,9 @@ class ClusterMember:
     async def _publish_snapshots(self) -> None:
         """Every ``snapshot_interval_s``, the state of every channel for whoever takes over
         from this daemon: a standby, or the supervisor of a worker. None listening, none is
-        built: at 1,000 channels a snapshot took ~7 % of the event loop's time and held it
-        for tens of milliseconds at a time (``sinewatch bench e2e --channels 1000``)."""
+        built: at 1,000 channels a snapshot took ~7 % of the event loop's time, tens of
+        milliseconds at a time (py-spy on the daemon during ``sinewatch bench e2e --channels
+        1000``)."""
         interval = self.daemon.config.cluster.snapshot_interval_s
         publisher = self._session().declare_publisher(self.snapshot_key, encoding=zenoh.Encoding("application/json"))
         try:

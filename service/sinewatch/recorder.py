@@ -146,10 +146,10 @@ class FastWriter(Writer):
         by :data:`_CHUNK_THREAD` while this thread goes on filling the next chunk, and written
         to the file as they are rather than copied through a record buffer first (a chunk is
         a megabyte). Compression, the CRC and the write release the GIL: on a busy daemon
-        they were a tenth of the event loop's time (``sinewatch bench pipeline``, the
-        ``recorder`` step). At most one chunk is in flight: the previous one is waited for
-        here, and before anything else reaches the file (:meth:`_Writer__flush`), so the
-        bytes and their order are the synchronous writer's."""
+        they were a tenth of the event loop's time (py-spy on the daemon during ``sinewatch
+        bench e2e --channels 1000``). At most one chunk is in flight: the previous one is
+        waited for here, and before anything else reaches the file (:meth:`_Writer__flush`),
+        so the bytes and their order are the synchronous writer's."""
         cb = self._chunk_builder
         if cb.num_messages == 0:
             return
@@ -160,7 +160,10 @@ class FastWriter(Writer):
         cb.reset()
         self._Writer__flush()  # waits for the chunk in flight, then the records buffered since
         self.bytes_on_file = self._stream.tell()  # here, not in the other thread: the same at every run
-        self._in_flight = _CHUNK_THREAD.submit(self._write_chunk, chunk_data, indices, start, end)
+        try:
+            self._in_flight = _CHUNK_THREAD.submit(self._write_chunk, chunk_data, indices, start, end)
+        except RuntimeError:  # the interpreter is shutting down (a file finished at exit): write it here
+            self._write_chunk(chunk_data, indices, start, end)
 
     def _Writer__flush(self) -> None:
         """Writer's ``__flush`` (the records buffered outside chunks, to the file), after the
