@@ -198,3 +198,16 @@ def test_accuracy_bench_scores_pmu_on_its_reports():
     assert step["metrics"]["c37"]["pass"], step["metrics"]["c37"]
     (event,) = step["metrics"]["events"]
     assert 0 < event["tve_response_time_s"] < 7 / 50 and event["overshoot_pct"] < 10
+
+
+@pytest.mark.parametrize(
+    ("f0", "rate", "fe_hz", "rfe_hz_per_s"),
+    [(50, 50, 0.3, 14.0), (60, 60, 0.3, 14.0), (60, 20, 0.24, 9.0), (60, 12, 0.14, 3.3), (50, 10, 0.12, 2.3)],
+)
+def test_measurement_bandwidth_limits_are_the_figures_the_tables_print(f0, rate, fe_hz, rfe_hz_per_s):
+    """C37.118.1a-2014 prints 0.3 Hz and 14 Hz/s at Frt = 5 Hz, not the formula's 14.14; the
+    scaled limits below 5 Hz are rounded to two significant figures likewise (9 Hz/s at 20
+    frames/s, 0.14 Hz at 12 frames/s)."""
+    for family in ("am", "pm"):
+        lim = limits(family, f0, rate)
+        assert lim["fe_hz"] == fe_hz and lim["rfe_hz_per_s"] == rfe_hz_per_s

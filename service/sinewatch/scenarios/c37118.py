@@ -8,7 +8,8 @@ cosine ``cos(2 pi f0 t)``, C37.118.1-2011 clause 4.2), frequency ``f(t)`` and RO
 (clause 4.3), and the times that are scored.
 
 Tests and limits: IEEE Std C37.118.1-2011 clause 5.5 (Tables 3-10) as amended by IEEE Std
-C37.118.1a-2014 (Tables 3, 4, 8, 11 changed); M class only. ``limits`` below is the one
+C37.118.1a-2014 (its abstract: requirements in Tables 4 to 10 modified, and Table 11, formerly
+Table 12); M class only. ``limits`` below is the one
 table. Where this module is unsure of a limit recalled from the standard, ``LIMIT_NOTES``
 says so; check the standard before quoting compliance (this is a model of the test suite,
 not a certified one). The ranges follow the standard's test conditions:
@@ -25,7 +26,9 @@ not a certified one). The ranges follow the standard's test conditions:
 * measurement bandwidth: 10 % amplitude modulation and 0.1 rad phase modulation at
   ``fm <= Frt = min(Fs/5, 5 Hz)`` [Table 5]; TVE 3 %; FE ``0.06 Frt`` Hz and RFE
   ``0.18 pi Frt^2`` Hz/s (0.3 Hz and 14 Hz/s at Frt = 5 Hz, the 2014 values;
-  IEC/IEEE 60255-118-1:2018 scales them with Frt, which is stricter below 5 Hz: used here).
+  IEC/IEEE 60255-118-1:2018 scales them with Frt, which is stricter below 5 Hz: used here),
+  rounded to two significant figures as the tables print them (:func:`printed`): 14 Hz/s,
+  not 0.18 pi 25 = 14.14; 9 Hz/s at 20 frames/s (Frt = 4); 0.14 Hz at 12 frames/s (Frt = 2.4).
 * frequency ramp +-1 Hz/s over the steady-state range [Table 6]; TVE 1 %, FE 0.01 Hz, RFE
   0.2 Hz/s [Table 7 as amended]; reports within ``7 / Fs`` of a ramp's start or end are
   excluded (clause 5.5.7).
@@ -72,6 +75,16 @@ def modulation_max_hz(fs_report: int) -> float:
     return min(fs_report / 5.0, 5.0)
 
 
+def printed(value: float) -> float:
+    """``value`` to two significant figures, as the standard's tables print a limit that a
+    formula gives (14 Hz/s where ``0.18 pi Frt^2`` is 14.137 at Frt = 5 Hz): the test judges
+    against the printed figure, not the formula's unrounded value."""
+    if value == 0.0 or not math.isfinite(value):
+        return value
+    digits = 1 - math.floor(math.log10(abs(value)))
+    return round(value, digits)
+
+
 def limits(family: str, f0: int, fs_report: int) -> dict[str, float]:
     """The M-class limits of one test family (keys: tve_pct, fe_hz, rfe_hz_per_s,
     response_s, fe_response_s, rfe_response_s, delay_s, overshoot_pct, latency_s)."""
@@ -84,7 +97,12 @@ def limits(family: str, f0: int, fs_report: int) -> dict[str, float]:
         return {"tve_pct": 1.3, "fe_hz": 0.01, **latency}
     if family in ("am", "pm"):
         frt = modulation_max_hz(fs_report)
-        return {"tve_pct": 3.0, "fe_hz": 0.06 * frt, "rfe_hz_per_s": 0.18 * math.pi * frt * frt, **latency}
+        return {
+            "tve_pct": 3.0,
+            "fe_hz": printed(0.06 * frt),
+            "rfe_hz_per_s": printed(0.18 * math.pi * frt * frt),
+            **latency,
+        }
     if family == "ramp":
         return {"tve_pct": 1.0, "fe_hz": 0.01, "rfe_hz_per_s": 0.2, **latency}
     if family in ("step-magnitude", "step-phase"):
