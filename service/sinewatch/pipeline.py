@@ -35,6 +35,7 @@ from typing import Any, Protocol
 import numpy as np
 import zenoh
 
+from sinewatch.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import Estimator, Track, TrackStd
 from sinewatch.estimators.presence import SignalPresence
@@ -247,6 +248,9 @@ class Channel:
     presence: SignalPresence | None = None  # set in __post_init__
     json_names: tuple[str, str] | None = field(default=None, repr=False)  # name, estimator as JSON strings
     out_key: str | None = field(default=None, repr=False)  # where its estimates go (set at the first)
+    # gap, restart, reset, time jump of blocks that completed no report (grid estimators):
+    # said by the next report
+    held_flags: tuple[int, bool, bool, bool] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.presence is None:
@@ -292,9 +296,11 @@ class Pipeline:
         rules: list[EstimatorRule] | None = None,
         estimate_version: int = ESTIMATE_FORMAT_VERSION,
         pq_version: int = PQ_FORMAT_VERSION,
+        validity_version: int = VALIDITY_RULES_VERSION,
     ) -> None:
         self.config = config
         self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
+        self.validity_version = validity_version  # likewise (sinewatch.continuity)
         self.sinks = [
             GuardedSink(
                 sink,
@@ -333,19 +339,35 @@ class Pipeline:
             if channel.name in self.resume_points and self._catch_up(channel, block):
                 return
             last_seq = channel.last_seq
-            if last_seq is not None and block.seq == last_seq + 1:  # the usual case, inline
-                gap_blocks, restart, reset = 0, False, False
+            if (
+                last_seq is not None
+                and block.seq == last_seq + 1
+                and (self.validity_version < 2 or _continues_in_time(channel, block))
+            ):  # the usual case, inline
+                gap_blocks, restart, jump, reset = 0, False, False, False
             else:
-                gap_blocks, restart = self._check_sequence(channel, block)
-                reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+                cont = check_continuity(
+                    last_seq,
+                    channel.next_t0_ns,
+                    block.seq,
+                    block.t0_ns,
+                    block.n_samples,
+                    block.sample_rate_hz,
+                    rules_version=self.validity_version,
+                )
+                gap_blocks, restart, jump = cont.gap_blocks, cont.restart, cont.time_jump_ns != 0
+                # a restart or a time jump starts the channel over (rules version 2); a gap follows on_gap
+                reset = cont.starts_over(self.validity_version) or (
+                    (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+                )
             stage = "estimator"
             if reset:
                 channel.estimator.reset()
             track = channel.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
             self._presence(channel, block, reset)
             stage = "estimate"
-            self._accept(channel, block, gap_blocks, restart, reset)
-            payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset)
+            self._accept(channel, block, gap_blocks, restart, reset, jump)
+            payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset, jump)
         except InputError as exc:
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
             return
@@ -475,25 +497,6 @@ class Pipeline:
         return self._rule_cache[key]
 
     @staticmethod
-    def _check_sequence(ch: Channel, block: Block) -> tuple[int, bool]:
-        """(blocks missing before this one, sender restarted); raise for duplicates and
-        blocks from the past. A sequence number that goes back while the block's time
-        goes forward is a sender that restarted its count: accepted, flagged."""
-        if ch.last_seq is None or block.seq == ch.last_seq + 1:
-            return 0, False
-        if block.seq <= ch.last_seq and ch.next_t0_ns is not None and block.t0_ns >= ch.next_t0_ns:
-            return 0, True
-        if block.seq == ch.last_seq:
-            raise InputError(f"seq: expected {ch.last_seq + 1}, got {block.seq} again", kind="duplicate")
-        if block.seq < ch.last_seq:
-            raise InputError(
-                f"seq: expected {ch.last_seq + 1}, got {block.seq} (older than the last accepted, "
-                "and its t0_ns is not later either)",
-                kind="out_of_order",
-            )
-        return block.seq - ch.last_seq - 1, False
-
-    @staticmethod
     def _presence(ch: Channel, block: Block, reset: bool) -> None:
         """Run the channel's signal-presence detector over the block's signal (column 0, or
         what the estimator says), after the estimator accepted it; reset with the estimator."""
@@ -502,30 +505,51 @@ class Pipeline:
             ch.presence.reset()
         ch.presence.update(ch.estimator.presence_samples(block.samples))
 
-    def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
+    def _accept(
+        self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
+    ) -> None:
         ch.last_seq = block.seq
         ch.next_t0_ns = block.t0_ns + round(block.n_samples * 1e9 / block.sample_rate_hz)
         ch.blocks += 1
         ch.samples += block.n_samples
-        if gap_blocks or restart:
+        if gap_blocks or restart or jump:
             ch.gaps += 1
-            what = "sender restarted its sequence at" if restart else f"{gap_blocks} block(s) missing before"
+            what = (
+                "sender restarted its sequence at"
+                if restart
+                else "time jumped at"
+                if jump
+                else f"{gap_blocks} block(s) missing before"
+            )
             log.warning("channel %s: %s seq %d%s", ch.name, what, block.seq, " (estimator reset)" if reset else "")
 
     def _estimate_payloads(
-        self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool
+        self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
         if grid is None:
-            payload, ch.converged = self._estimate_payload(ch, block, track, t_last, t_last, gap_blocks, restart, reset)
+            payload, ch.converged = self._estimate_payload(
+                ch, block, track, t_last, t_last, gap_blocks, restart, reset, jump
+            )
             return [payload]
+        if self.validity_version >= 2:  # a block without a report passes its flags on to the next report
+            held = ch.held_flags
+            if held is not None:
+                gap_blocks, restart, reset, jump = (
+                    gap_blocks + held[0], restart or held[1], reset or held[2], jump or held[3]
+                )
+                ch.held_flags = None
+            if grid.n_reports == 0 and (gap_blocks or restart or reset or jump):
+                ch.held_flags = (gap_blocks, restart, reset, jump)
         payloads = []
         for r, t_ns in enumerate(grid.timestamps_ns()):
             row = grid.track.rows(slice(r, r + 1))
-            payload, ch.converged = self._estimate_payload(ch, block, row, t_ns, t_last, gap_blocks, restart, reset)
+            payload, ch.converged = self._estimate_payload(
+                ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
+            )
             payloads.append(payload)
         return payloads
 
@@ -558,6 +582,7 @@ class Pipeline:
         gap_blocks: int,
         restart: bool,
         reset: bool,
+        jump: bool = False,
     ) -> tuple[bytes, bool]:
         """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
         not valid is not converged either.
@@ -600,7 +625,7 @@ class Pipeline:
             converged,
             valid,
             finite_or_none(track.residual_rms),
-            gap_blocks > 0 or restart,
+            gap_blocks > 0 or restart or jump,
             gap_blocks,
             restart,
             reset,
@@ -754,6 +779,15 @@ def _cycle_frequency_hz(estimator: Estimator) -> float:
         if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
             return float(value) * scale
     return 50.0
+
+
+def _continues_in_time(ch: Channel, block: Block) -> bool:
+    """The block's first sample is where the channel's samples ended (within half a block and
+    one sample): the inline test of the usual case, :func:`check_continuity` decides the rest."""
+    if ch.next_t0_ns is None:
+        return True
+    period_ns = 1e9 / block.sample_rate_hz
+    return abs(block.t0_ns - ch.next_t0_ns) <= max(0.5 * block.n_samples * period_ns, period_ns)
 
 
 def _is_power_of_ten(n: int) -> bool:

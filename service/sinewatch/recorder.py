@@ -38,6 +38,7 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
+from sinewatch.continuity import VALIDITY_RULES_VERSION
 from sinewatch.schemas import __version__, codec
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
@@ -342,6 +343,7 @@ class McapRecorder:
                 "format_version": "1",
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
+                "validity_rules_version": str(VALIDITY_RULES_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),

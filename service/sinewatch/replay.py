@@ -30,6 +30,7 @@ from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
+from sinewatch.continuity import VALIDITY_RULES_VERSION
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
@@ -303,6 +304,7 @@ def _replay_run(
     config: SinewatchConfig | None = None
     estimate_version = ESTIMATE_FORMAT_VERSION
     pq_version = PQ_FORMAT_VERSION
+    validity_version = VALIDITY_RULES_VERSION
     for file_no, path in enumerate(paths):
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
         for kind, item in read_recording(path, progress):
@@ -313,6 +315,7 @@ def _replay_run(
                     if rules is None:
                         estimate_version = int(item.get("estimate_format_version", "1"))
                         pq_version = int(item.get("pq_format_version", "1"))
+                        validity_version = int(item.get("validity_rules_version", "1"))
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
@@ -333,7 +336,12 @@ def _replay_run(
                         recorder = McapRecorder(rec_config, path=out)
                         sinks.append(recorder)
                     pipeline = Pipeline(
-                        config, sinks, rules=rules, estimate_version=estimate_version, pq_version=pq_version
+                        config,
+                        sinks,
+                        rules=rules,
+                        estimate_version=estimate_version,
+                        pq_version=pq_version,
+                        validity_version=validity_version,
                     )
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)

@@ -1,7 +1,7 @@
 """The configuration: one pydantic model tree, unknown keys rejected everywhere.
 
 Defaults work out of the box and are safe: a Zenoh peer listening on loopback only,
-multicast scouting off, every channel estimated by the default rule (``ipdft`` over 200 ms), recording on.
+multicast scouting off, every channel estimated by the default rule (``pmu``, C37.118.1 M class, its nominal frequency found from the signal), recording on.
 Loaded from a TOML or JSON file plus ``SINEWATCH__SECTION__KEY`` environment variables by
 :func:`load_config`; printed back by ``sinewatch config show``.
 
@@ -81,21 +81,22 @@ class KeysSection(_Section):
 
 
 #: The default rule's estimator and, when a rule names neither an estimator nor parameters,
-#: its parameters: a Hann interpolated DFT over 200 ms (10 cycles of 50 Hz, 12 of 60 Hz:
-#: the IEC 61000-4-30 measurement interval), re-estimated every 50 ms, searching 25-75 Hz,
-#: so 50 and 60 Hz systems are both measured as they are, with no detection step. The window
-#: in samples, the hop and the DFT bins follow from each channel's sample rate. Why this one:
-#: docs/accuracy.md, "The default rule" (``sinewatch bench accuracy --scenarios default-rule``).
-DEFAULT_ESTIMATOR = "ipdft"
-DEFAULT_PARAMS: dict[str, Any] = {"nominal_frequency_hz": 50.0, "window_cycles": 10.0}
+#: its parameters: the IEEE C37.118.1 M-class synchrophasor estimator (``pmu``) reporting at
+#: the nominal frequency (50 or 60 reports a second), that frequency found from the signal
+#: (its first 0.2 s), so 50 and 60 Hz systems are both measured with no setting. Each estimate
+#: is at its report time, the instant it describes. Measured in docs/accuracy.md, "The default
+#: rule" (``sinewatch bench compliance --estimator default-rule``).
+DEFAULT_ESTIMATOR = "pmu"
+DEFAULT_PARAMS: dict[str, Any] = {"nominal_frequency_hz": "auto"}
 
 
 class EstimatorRule(_Section):
     """Channels whose input key matches ``match`` get ``estimator`` with ``params``.
 
     A rule that names neither ``estimator`` nor ``params`` is the default rule:
-    ``ipdft`` with :data:`DEFAULT_PARAMS` (a 200 ms window, right for 50 and 60 Hz mains with
-    harmonics and noise at any sample rate from 1 to 50 kHz). A rule that names an estimator
+    ``pmu`` with :data:`DEFAULT_PARAMS` (C37.118.1 M class at the nominal frequency's reporting rate,
+    that frequency found from the signal: right for 50 and 60 Hz mains with harmonics and noise at
+    any sample rate from 1 to 50 kHz, whole hertz or not). A rule that names an estimator
     without ``params`` gets that estimator's own defaults (``sinewatch estimators``).
 
     ``params`` is checked against the estimator's own parameter model by
@@ -105,12 +106,12 @@ class EstimatorRule(_Section):
 
     match: str = Field("sinewatch/in/**", description="Key expression matched against the input key")
     estimator: str = Field(
-        DEFAULT_ESTIMATOR, description="Registered estimator name (sinewatch estimators); default ipdft"
+        DEFAULT_ESTIMATOR, description="Registered estimator name (sinewatch estimators); default pmu"
     )
     params: dict[str, Any] = Field(
         default_factory=dict,
         description="Estimator parameters; when neither estimator nor params is given, the default "
-        "rule's: a 200 ms ipdft window (nominal_frequency_hz = 50, window_cycles = 10)",
+        "rule's: pmu with nominal_frequency_hz = 'auto' (50 or 60 Hz from the signal)",
     )
 
     @model_validator(mode="before")

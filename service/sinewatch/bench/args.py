@@ -201,11 +201,19 @@ def add_accuracy_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_compliance_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimator", default="pmu")
+    parser.add_argument(
+        "--estimator", default="pmu", help="a grid-reporting estimator, or default-rule (the daemon's default rule)"
+    )
     parser.add_argument(
         "--rates",
-        default="50/50,60/60",
-        help="comma-separated f0/Fs pairs (M-class: 50/10, 50/25, 50/50, 60/10, 60/12, 60/15, 60/20, 60/30, 60/60)",
+        default=None,
+        help="comma-separated f0/Fs pairs (default 50/50,60/60; M-class: 50/10, 50/25, 50/50, 60/10, 60/12, 60/15, "
+        "60/20, 60/30, 60/60); default-rule: its own Fs at 50 and 60 Hz",
+    )
+    parser.add_argument(
+        "--sample-rates",
+        default="10000",
+        help="comma-separated input sample rates, Hz, whole or not (e.g. 10000,9999.33,12800,25600)",
     )
     parser.add_argument("--full", action="store_true", help="the standard's full sweeps (slower)")
     parser.add_argument("--json", type=Path, help="also write the rows as JSON")

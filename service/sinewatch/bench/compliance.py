@@ -26,14 +26,26 @@ import argparse
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from sinewatch.estimators import get as get_estimator
+from sinewatch.estimators.pmu import AMBIGUOUS_S, DETECTION_S
 from sinewatch.estimators.base import GridReports, concat_tracks
-from sinewatch.scenarios.c37118 import FAMILIES, LIMIT_NOTES, STEP_THRESHOLDS, TestSignal, generate, limits
+from sinewatch.scenarios.c37118 import (
+    FAMILIES,
+    LIMIT_NOTES,
+    SAMPLE_RATE_HZ,
+    STEP_THRESHOLDS,
+    TestSignal,
+    generate,
+    limits,
+)
+from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
+
+DEFAULT_RULE = "default-rule"  # the daemon's default rule (as sinewatch.bench.scenarios names it)
 
 T0_NS = 1_700_000_000 * 1_000_000_000  # a whole second: grid and nominal cosine aligned
 
@@ -47,6 +59,7 @@ class Row:
     worst: float
     limit: float | None
     where: str
+    sample_rate_hz: float = SAMPLE_RATE_HZ
 
     @property
     def passed(self) -> bool | None:
@@ -70,6 +83,11 @@ def run_signal(
     cls = get_estimator(estimator)
     est = cls(test.sample_rate_hz, params)
     n = round(test.duration_s * test.sample_rate_hz)
+    if params.get("nominal_frequency_hz") == "auto" and block is None:
+        # an estimator that finds the nominal frequency from the signal may hold its reports
+        # back (a signal at 55 Hz: up to AMBIGUOUS_S); the signal goes on past the test, whose
+        # scored reports (t <= duration_s) then all come (latency is measured on its own)
+        n += round((AMBIGUOUS_S + 0.5) * test.sample_rate_hz)
     t = np.arange(n) / test.sample_rate_hz
     x = test.signal(t)
     step = n if block is None else block
@@ -82,8 +100,9 @@ def run_signal(
             raise ValueError(f"{estimator}: expected an estimator that reports on a time grid")
         parts.append(rep)
         emit.extend([(i + min(step, n - i) - 1) / test.sample_rate_hz] * rep.n_reports)
+    # the last part's rate: one that finds its nominal frequency from the signal knows its rate only then
     reports = GridReports(
-        np.concatenate([p.index for p in parts]), parts[0].reporting_rate_hz, concat_tracks([p.track for p in parts])
+        np.concatenate([p.index for p in parts]), parts[-1].reporting_rate_hz, concat_tracks([p.track for p in parts])
     )
     times = reports.times_s(T0_NS)
     tr = reports.track
@@ -202,12 +221,22 @@ def score_step(
     return rows
 
 
-def measure_latency(f0: int, fs_report: int, est: str, params: dict[str, Any], settle_s: float) -> Row:
-    test = next(generate("steady-frequency", f0, fs_report, full=False, settle_s=settle_s))
-    test = TestSignal(**{**asdict(test), "duration_s": settle_s + 3.0 / fs_report})
+def measure_latency(
+    f0: int, fs_report: int, est: str, params: dict[str, Any], settle_s: float, sample_rate_hz: float = SAMPLE_RATE_HZ
+) -> Row:
+    # at the nominal frequency (the steady-frequency test whose offset is 0)
+    tests = list(generate("steady-frequency", f0, fs_report, full=False, settle_s=settle_s))
+    test = tests[len(tests) // 2]
+    # an estimator that finds the nominal frequency from the signal holds its first reports
+    # back until it has (up to AMBIGUOUS_S + DETECTION_S): the latency is that of the reports after
+    start_s = AMBIGUOUS_S + DETECTION_S if params.get("nominal_frequency_hz") == "auto" else 0.0
+    test = TestSignal(
+        **{**asdict(test), "duration_s": start_s + settle_s + 3.0 / fs_report, "sample_rate_hz": sample_rate_hz}
+    )
     times, _, emit = run_signal(test, est, params, block=1)
-    lat = np.array(emit) - times
-    return Row(f0, fs_report, "latency", "latency_s", _worst(lat), 5.0 / fs_report, "one sample per update")
+    lat = (np.array(emit) - times)[times >= start_s]
+    where = "one sample per update" + (f", reports after the first {start_s:g} s" if start_s else "")
+    return Row(f0, fs_report, "latency", "latency_s", _worst(lat), 5.0 / fs_report, where)
 
 
 def run_suite(
@@ -219,43 +248,66 @@ def run_suite(
     full: bool = False,
     families: tuple[str, ...] = FAMILIES,
     n_offsets: int = 10,
+    sample_rate_hz: float = SAMPLE_RATE_HZ,
 ) -> list[Row]:
+    """One (f0, Fs) of the suite; ``sample_rate_hz``: the input's rate (any, whole hertz or not)."""
     params = dict(params or {"nominal_frequency_hz": f0, "reporting_rate_hz": fs_report})
     settle = 12.0 / fs_report + 0.1
     rows: list[Row] = []
     for family in families:
-        tests = list(generate(family, f0, fs_report, full=full, settle_s=settle, n_offsets=n_offsets))
+        tests = [
+            replace(t, sample_rate_hz=sample_rate_hz)
+            for t in generate(family, f0, fs_report, full=full, settle_s=settle, n_offsets=n_offsets)
+        ]
         if family.startswith("step"):
             rows.extend(score_step(family, f0, fs_report, tests, estimator, params))
         else:
             rows.extend(score_steady(family, f0, fs_report, tests, estimator, params))
-    rows.append(measure_latency(f0, fs_report, estimator, params, settle))
+    rows.append(measure_latency(f0, fs_report, estimator, params, settle, sample_rate_hz))
     return rows
 
 
 def format_rows(rows: list[Row]) -> str:
     lines = [
-        "| f0 | Fs | test | metric | worst | limit | limit/worst | result | worst at |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| f0 | Fs | fs (Hz) | test | metric | worst | limit | limit/worst | result | worst at |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         result = {True: "PASS", False: "FAIL", None: "(no limit)"}[r.passed]
         lim = "-" if r.limit is None else f"{r.limit:.4g}"
         margin = "-" if r.margin is None else ("inf" if math.isinf(r.margin) else f"{r.margin:.1f}")
         lines.append(
-            f"| {r.f0} | {r.fs_report} | {r.family} | {r.metric} | {r.worst:.3g} | {lim} | {margin} | {result} | "
+            f"| {r.f0} | {r.fs_report} | {r.sample_rate_hz:g} | {r.family} | {r.metric} | {r.worst:.3g} | {lim} | {margin} | {result} | "
             f"{r.where} |"
         )
     return "\n".join(lines)
 
 
+def _suites(estimator: str, rates: str | None) -> list[tuple[int, int, str, dict[str, Any]]]:
+    """(f0, Fs, estimator, params) per suite: ``default-rule`` is the daemon's default rule as
+    a user with no config gets it (its nominal frequency found from the signal; Fs its own),
+    at 50 and 60 Hz."""
+    if estimator == DEFAULT_RULE:
+        params = dict(DEFAULT_PARAMS)
+        fs_report = params.get("reporting_rate_hz")
+        pairs = [(f0, int(fs_report or f0)) for f0 in (50, 60)]
+        return [(f0, fr, DEFAULT_ESTIMATOR, params) for f0, fr in pairs]
+    out = []
+    for item in (rates or "50/50,60/60").split(","):
+        f0_s, fs_s = item.split("/")
+        out.append(
+            (int(f0_s), int(fs_s), estimator, {"nominal_frequency_hz": int(f0_s), "reporting_rate_hz": int(fs_s)})
+        )
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     rows: list[Row] = []
     t_start = time.perf_counter()
-    for item in args.rates.split(","):
-        f0_s, fs_s = item.split("/")
-        params = {"nominal_frequency_hz": int(f0_s), "reporting_rate_hz": int(fs_s)}
-        rows.extend(run_suite(int(f0_s), int(fs_s), estimator=args.estimator, params=params, full=args.full))
+    for fs_in in [float(v) for v in args.sample_rates.split(",")]:
+        for f0, fs_report, estimator, params in _suites(args.estimator, args.rates):
+            suite = run_suite(f0, fs_report, estimator=estimator, params=params, full=args.full, sample_rate_hz=fs_in)
+            rows.extend(replace(r, sample_rate_hz=fs_in) for r in suite)
     print(format_rows(rows))
     n_fail = sum(1 for r in rows if r.passed is False)
     print(

@@ -109,6 +109,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -121,7 +122,10 @@ from sinewatch.estimators.base import (
     EstimatorParams,
     GridReports,
     Track,
+    concat_tracks,
     cyclic_next,
+    decode_array,
+    encode_array,
     kernel,
     track_from_columns,
     wrap_pi,
@@ -140,13 +144,19 @@ M_WINDOW_REPORTS = 9.0
 M_CUTOFF_FRACTION = {50: 0.26, 60: 0.22}  # at Fs = f0 (docs/pmu.md: the search)
 M_CUTOFF_LOW_RATE = 0.375  # Fs < f0
 P_WINDOW_CYCLES = 3.0
+# below 10 samples a nominal cycle the second harmonic folds onto the image band (D)
+MIN_SAMPLES_PER_CYCLE = 10
 
 TABLE_STEP_HZ = 0.04
 N_IMAGE_PASSES = 2
 
 
 class PmuParams(EstimatorParams):
-    nominal_frequency_hz: Literal[50, 60] = Field(50, description="Nominal frequency f0 (Hz): 50 or 60")
+    nominal_frequency_hz: Literal[50, 60, "auto"] = Field(
+        50,
+        description="Nominal frequency f0 (Hz): 50 or 60; 'auto': found from the signal (its first "
+        "0.2 s with a signal, the spectral peak between 40 and 70 Hz: 50 below 55 Hz, else 60)",
+    )
     reporting_rate_hz: int | None = Field(
         None,
         description="Reports per second Fs (default f0). M class: 10, 25, 50 at 50 Hz; "
@@ -164,6 +174,7 @@ class Design:
 
     fs: float
     f0: int
+    f_osc: float  # the demodulation oscillator's frequency: f0, or within fs / P^2 of it (oscillator)
     reporting_rate: int
     decimation: int
     window_s: float
@@ -274,14 +285,50 @@ def _cic2(nu: np.ndarray, d: int, fs: float) -> np.ndarray:
     return r2
 
 
+#: The largest table of demodulation weights (rows of ``lcm(P, D)``) a rate that is not a whole
+#: number of hertz may have: 2e5 rows of six floats, 9.6 MB.
+MAX_WEIGHT_ROWS = 200_000
+
+
+def oscillator(fs: float, f0: int, d: int) -> tuple[int, int, float]:
+    """``(a, M, f_osc)``: the demodulation oscillator ``e^{-j 2 pi (a n mod M) / M}``, exact at
+    every n from a table of one period ``P = M / gcd(M, a)``, at ``f_osc = fs a / M``. At a whole-number rate ``a / P = f0 /
+    fs`` exactly (``f_osc = f0``). At any other rate (a third-party generator's 9999.33 Hz)
+    ``f0 / fs`` has no short period, so ``a / P`` is its best rational approximation with
+    ``lcm(P, D) <= MAX_WEIGHT_ROWS`` (continued fractions): ``f_osc`` is then within
+    ``fs / P^2`` of f0 (2e-5 Hz at 9999.33 Hz, a few mHz at most at 50 kHz). Every step of
+    (D)-(R) is written for the oscillator's frequency, not f0, so the estimates are exact
+    either way; only the synchrophasor angle, referred to the nominal cosine, is turned by
+    ``2 pi (f_osc - f0) (t - t_anchor)`` afterwards (:meth:`Pmu._run_timed`)."""
+    fs_int = round(fs)
+    if abs(fs - fs_int) <= 1e-9 * fs and fs_int > 0:
+        return f0, fs_int, float(f0)
+    from fractions import Fraction
+
+    ratio = Fraction(f0) / Fraction(fs)
+    best = None
+    for limit in (MAX_WEIGHT_ROWS // d, MAX_WEIGHT_ROWS // (2 * d), MAX_WEIGHT_ROWS // (4 * d)):
+        frac = ratio.limit_denominator(max(1, limit))
+        a, period = frac.numerator, frac.denominator
+        rows = period * d // math.gcd(period, d)
+        err = abs(fs * a / period - f0)
+        if rows <= MAX_WEIGHT_ROWS and (best is None or err < best[2] - 1e-15):
+            best = (a, period, err)
+    assert best is not None
+    a, period, _ = best
+    return a, period, fs * a / period
+
+
 @functools.lru_cache(maxsize=32)
 def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> Design:
-    fs_int = round(fs)
-    if abs(fs - fs_int) > 1e-9 * fs or fs_int <= 0:
-        raise ParameterError(f"sample_rate_hz: expected a whole number of Hz for the pmu oscillator, got {fs}")
-    if fs < 20.0 * f0:
-        raise ParameterError(f"sample_rate_hz: expected >= {20 * f0} Hz (20 samples per nominal cycle), got {fs}")
-    d = max(1, fs_int // 1000)
+    if not (math.isfinite(fs) and fs > 0):
+        raise ParameterError(f"sample_rate_hz: expected a finite rate > 0, got {fs}")
+    if fs < MIN_SAMPLES_PER_CYCLE * f0:
+        raise ParameterError(
+            f"sample_rate_hz: expected >= {MIN_SAMPLES_PER_CYCLE * f0} Hz ({MIN_SAMPLES_PER_CYCLE} samples per "
+            f"nominal cycle), got {fs}"
+        )
+    d = max(1, int(fs) // 1000)
     fd = fs / d
     if performance_class == "M":
         window_s = M_WINDOW_REPORTS / reporting_rate
@@ -290,9 +337,10 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     else:
         window_s = P_WINDOW_CYCLES / f0
         cutoff = None
-    period = fs_int // math.gcd(fs_int, f0)
+    mult, modulus, f_osc = oscillator(fs, f0, d)
+    period = modulus // math.gcd(modulus, mult)
     n = np.arange(period)
-    ang = 2.0 * np.pi * ((f0 * n) % fs_int) / fs_int
+    ang = 2.0 * np.pi * ((mult * n) % modulus) / modulus
     osc = np.ascontiguousarray(np.stack([np.cos(ang), np.sin(ang)], axis=1))
     weights = demod_weights(osc, d)
     half = 0.5 * window_s * fs  # in input samples
@@ -308,7 +356,7 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         kernels[rho] = _kernel(t, window_s, cutoff) * scale
     span = 0.5 * reporting_rate + 1.0
     nu_pass = np.arange(-span, span + TABLE_STEP_HZ / 2, TABLE_STEP_HZ)
-    nu_img = -2.0 * f0 + nu_pass
+    nu_img = -2.0 * f_osc + nu_pass
     bank = _bank_response(kernels, m, d, fs, nu_pass)
     t2 = np.stack([((m * d + rho) / fs) ** 2 for rho in range(d)])  # t_m^2 per phase
     g_chirp = np.ascontiguousarray(_bank_response(kernels[:, :1] * t2[:, None, :], m, d, fs, nu_pass)[:, 0])
@@ -319,6 +367,7 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     return Design(
         fs=fs,
         f0=f0,
+        f_osc=f_osc,
         reporting_rate=reporting_rate,
         decimation=d,
         window_s=window_s,
@@ -334,6 +383,29 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         g_image=g_img,
         nu_image0=float(nu_img[0]),
     )
+
+
+#: 'auto': the detection window (ten cycles of 50 Hz, twelve of 60) and how long a signal
+#: between 54 and 56 Hz is held before the nominal frequency is taken from its side of 55 Hz.
+DETECTION_S = 0.2
+AMBIGUOUS_S = 3.0
+_DETECTION_GRID_HZ = np.arange(40.0, 70.0 + 1e-9, 0.25)
+
+
+def spectral_peak_hz(x: np.ndarray, fs: float) -> float:
+    """Where the Hann-windowed spectrum of ``x`` peaks between 40 and 70 Hz (0.25 Hz grid;
+    a DC offset removed first; harmonics of 50 or 60 Hz lie above 80 Hz): the fundamental of
+    mains. NaN when ``x`` has no AC content (a silent window says nothing)."""
+    ac = x - np.mean(x)
+    if not np.any(ac):
+        return math.nan
+    wx = np.hanning(ac.size) * ac
+    t = np.arange(ac.size) / fs
+    power = np.empty(_DETECTION_GRID_HZ.size)
+    for i in range(0, _DETECTION_GRID_HZ.size, 16):  # 16 frequencies at a time: bounded memory
+        f = _DETECTION_GRID_HZ[i : i + 16]
+        power[i : i + 16] = np.abs(np.exp(-2j * np.pi * np.outer(f, t)) @ wx)
+    return float(_DETECTION_GRID_HZ[int(np.argmax(power))])
 
 
 def gain(d: Design, nu: float | np.ndarray) -> np.ndarray:
@@ -644,7 +716,17 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
 
     def _check_params(self) -> None:
         p = self.params
-        f0 = int(p.nominal_frequency_hz)
+        self.auto = p.nominal_frequency_hz == "auto"
+        for f0 in (50, 60) if self.auto else (int(p.nominal_frequency_hz),):
+            self._configure(f0)  # raises for a rate or sample rate that does not fit
+        # 'auto': the 50 Hz design (the longer window) until the signal says which
+        self._nominal = 0 if self.auto else int(p.nominal_frequency_hz)
+        self._pending = np.zeros(0)
+        self._pending_t0 = np.array([0, 0], dtype=np.int64)  # t0_ns of pending[0], known (0/1)
+        self._configure(self._nominal or 50)
+
+    def _configure(self, f0: int) -> None:
+        p = self.params
         rate = f0 if p.reporting_rate_hz is None else int(p.reporting_rate_hz)
         allowed = (M_CLASS_RATES if p.performance_class == "M" else P_CLASS_RATES)[f0]
         if rate not in allowed:
@@ -668,7 +750,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self._iconsts = np.array([d.decimation, d.n_taps, d.m_lo, self._ring_len], dtype=np.int64)
         self._fconsts = np.array(
             [
-                float(d.f0),
+                d.f_osc,
                 d.fs,
                 d.nu_pass0,
                 d.nu_image0,
@@ -738,7 +820,146 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     def _run_timed(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
     ) -> tuple[Track, dict[str, np.ndarray]]:
-        return self._run(samples, self._state_for_block(state, t0_ns), last_only)
+        if self._nominal == 0:
+            return self._run_undecided(samples, state, last_only, t0_ns)
+        return self._run_decided(samples, self._state_for_block(state, t0_ns), last_only)
+
+    def _run_decided(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        track, new_state = self._run(samples, state, last_only)
+        d = self.design
+        if d.f_osc != d.f0 and track.reports is not None and track.reports.n_reports:
+            self._refer_to_nominal(track.reports, int(new_state["anchor_ns"][0]))
+        return track, new_state
+
+    # ---- nominal frequency from the signal ('auto') ----------------------------------------
+    @property
+    def detection_samples(self) -> int:
+        """Samples the nominal frequency is found from ('auto'): 0.2 s, ten cycles of 50 Hz."""
+        return max(1, round(DETECTION_S * self.sample_rate_hz))
+
+    def _run_undecided(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        """'auto' before the nominal frequency is known: the samples are held back and judged
+        in consecutive detection windows (aligned on the first held sample, so the decision
+        does not depend on how the stream is cut into blocks). Leading silent windows are
+        dropped. A spectral peak below 54 Hz says 50, above 56 Hz 60; between, both are
+        within the M-class range of the signal (f0 +- 5 Hz) and the next windows decide
+        which way it goes (a 1 Hz/s ramp from 55 Hz), for up to ``AMBIGUOUS_S`` of signal
+        (then 50 up to 55 Hz, else 60: a signal steady at 55 Hz is
+        at the edge of both ranges and is taken as 50 + 5). Once decided, the estimator is the one of that
+        nominal frequency, anchored at the first held sample, run over the held samples and
+        the block: its reports are those it would have made configured from the start, only
+        later."""
+        fs = self.sample_rate_hz
+        pending, pt0 = self._pending, self._pending_t0
+        if pending.size and t0_ns is not None and pt0[1]:
+            expected = int(pt0[0]) + round(pending.size * 1e9 / fs)
+            if abs(int(t0_ns) - expected) > 0.5e9 / fs:  # a gap in time: what was held is stale
+                pending = pending[:0]
+        if pending.size == 0:
+            pt0 = np.array([0 if t0_ns is None else int(t0_ns), 0 if t0_ns is None else 1], dtype=np.int64)
+        data = np.concatenate([pending, samples])
+        n_win = self.detection_samples
+        start, f0 = 0, 0
+        pos = (pending.size // n_win) * n_win  # windows before this were judged (ambiguous)
+        while data.size - pos >= n_win and f0 == 0:
+            peak = spectral_peak_hz(data[pos : pos + n_win], fs)
+            if math.isnan(peak):  # silent
+                if pos == start:
+                    start = pos + n_win
+            else:
+                f0 = 50 if peak < 54.0 else 60 if peak > 56.0 else 0
+                if f0 == 0 and (pos + n_win - start) >= AMBIGUOUS_S * fs:
+                    f0 = 50 if peak <= 55.0 else 60  # 55 Hz exactly is both f0 +- 5: 50
+            pos += n_win
+        t_start = int(pt0[0]) + round(start * 1e9 / fs)
+        if f0 == 0:
+            self._pending = data[start:].copy()
+            self._pending_t0 = np.array([t_start, pt0[1]], dtype=np.int64)
+            return self._undefined(samples, last_only), state
+        self._decide(f0)
+        fresh = self._state_for_block(self._initial_state(), t_start if pt0[1] else None)
+        rest = data[start:]
+        track, new_state = self._run_decided(rest, fresh, last_only)
+        n_block = samples.shape[0]
+        if not last_only and rest.size > n_block:  # the held samples' rows are not this block's
+            reports = track.reports
+            track = track.rows(slice(rest.size - n_block, None))
+            track.reports = reports
+        elif not last_only and rest.size < n_block:  # part of the block was a dropped silent window
+            track = concat_tracks([self._undefined(samples[: n_block - rest.size], False), track])
+        self._pending = np.zeros(0)
+        self._pending_t0 = np.array([0, 0], dtype=np.int64)
+        return track, new_state
+
+    def _undefined(self, samples: np.ndarray, last_only: bool) -> Track:
+        out = np.full((1 if last_only else samples.shape[0], 6), np.nan)
+        out[:, 4] = 0.0
+        return self._track((out, np.empty((0, 8)), 0.0, 0), samples)
+
+    def _decide(self, f0: int) -> None:
+        self._nominal = f0
+        self._configure(f0)
+        self._setup()
+
+    def reset(self) -> None:
+        if self.auto:
+            self._nominal = 0
+            self._pending = np.zeros(0)
+            self._pending_t0 = np.array([0, 0], dtype=np.int64)
+            self._configure(50)
+            self._setup()
+        super().reset()
+
+    def get_state(self) -> dict[str, Any]:
+        snap = super().get_state()
+        if self.auto:
+            snap["auto"] = {
+                "nominal_frequency_hz": self._nominal,
+                "pending": encode_array(self._pending),
+                "pending_t0_ns": encode_array(self._pending_t0),
+            }
+        return snap
+
+    def set_state(self, snapshot: Mapping[str, Any]) -> None:
+        if not self.auto:
+            super().set_state(snapshot)
+            return
+        auto = snapshot.get("auto")
+        if not isinstance(auto, Mapping) or auto.get("nominal_frequency_hz") not in (0, 50, 60):
+            raise ParameterError(
+                f"state auto: expected the nominal frequency found (0, 50 or 60) and the held samples, got {auto!r}"
+            )
+        pending, pt0 = decode_array(auto["pending"]), decode_array(auto["pending_t0_ns"])
+        if pending.ndim != 1 or pending.dtype != np.float64 or pt0.shape != (2,) or pt0.dtype != np.int64:
+            raise ParameterError("state auto: expected float64 (n,) held samples and an int64 (2,) start time")
+        before = self._nominal
+        self._decide(int(auto["nominal_frequency_hz"]) or 50)
+        self._nominal = int(auto["nominal_frequency_hz"])
+        try:
+            super().set_state(snapshot)
+        except ParameterError:
+            self._decide(before or 50)
+            self._nominal = before
+            raise
+        self._pending, self._pending_t0 = pending, pt0
+
+    def _refer_to_nominal(self, reports: GridReports, anchor_ns: int) -> None:
+        """The synchrophasor angle of reports made with an oscillator off f0 (a rate that is
+        not a whole number of hertz, :func:`oscillator`), referred to the nominal cosine: the
+        kernel refers it to the oscillator's, which has turned ``2 pi (f_osc - f0) (t_k -
+        t_anchor)`` ahead of it by the report time ``t_k = k / Fs``."""
+        d = self.design
+        fs_rep = self.reporting_rate
+        # t_k - t_anchor in ns, exact in integers, then seconds
+        base = anchor_ns * fs_rep  # beyond int64: Python integers
+        dt_s = np.array([(int(k) * 1_000_000_000 - base) / (fs_rep * 1e9) for k in reports.index.tolist()])
+        angle = reports.track.extras["synchrophasor_angle_rad"]
+        turned = angle + 2.0 * math.pi * (d.f_osc - d.f0) * dt_s
+        reports.track.extras["synchrophasor_angle_rad"] = np.angle(np.exp(1j * turned))
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, reps, sse, n_pred = outputs
