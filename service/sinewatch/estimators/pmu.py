@@ -392,12 +392,21 @@ AMBIGUOUS_S = 3.0
 _DETECTION_GRID_HZ = np.arange(40.0, 70.0 + 1e-9, 0.25)
 
 
+def _steady_level(x: np.ndarray) -> bool:
+    """Whether the two halves of ``x`` carry AC power within a factor of 4 of each other: a
+    window that a signal starts (or stops) in has a spectrum smeared by the edge, not one to
+    judge the nominal frequency from."""
+    h = x.size // 2
+    a, b = float(np.var(x[:h])), float(np.var(x[h:]))
+    return min(a, b) > 0.25 * max(a, b)
+
+
 def spectral_peak_hz(x: np.ndarray, fs: float) -> float:
     """Where the Hann-windowed spectrum of ``x`` peaks between 40 and 70 Hz (0.25 Hz grid;
     a DC offset removed first; harmonics of 50 or 60 Hz lie above 80 Hz): the fundamental of
     mains. NaN when ``x`` has no AC content (a silent window says nothing)."""
     ac = x - np.mean(x)
-    if not np.any(ac):
+    if not np.max(np.abs(ac)) > 1e-12 * np.max(np.abs(x)):  # a constant, up to the mean's rounding
         return math.nan
     wx = np.hanning(ac.size) * ac
     t = np.arange(ac.size) / fs
@@ -845,7 +854,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         """'auto' before the nominal frequency is known: the samples are held back and judged
         in consecutive detection windows (aligned on the first held sample, so the decision
         does not depend on how the stream is cut into blocks). Leading silent windows are
-        dropped. A spectral peak below 54 Hz says 50, above 56 Hz 60; between, both are
+        dropped; a window the signal starts in is not judged (the next one is). A spectral peak below 54 Hz says 50, above 56 Hz 60; between, both are
         within the M-class range of the signal (f0 +- 5 Hz) and the next windows decide
         which way it goes (a 1 Hz/s ramp from 55 Hz), for up to ``AMBIGUOUS_S`` of signal
         (then 50 up to 55 Hz, else 60: a signal steady at 55 Hz is
@@ -866,11 +875,12 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         start, f0 = 0, 0
         pos = (pending.size // n_win) * n_win  # windows before this were judged (ambiguous)
         while data.size - pos >= n_win and f0 == 0:
-            peak = spectral_peak_hz(data[pos : pos + n_win], fs)
+            win = data[pos : pos + n_win]
+            peak = spectral_peak_hz(win, fs)
             if math.isnan(peak):  # silent
                 if pos == start:
                     start = pos + n_win
-            else:
+            elif _steady_level(win):  # not a window the signal starts or stops in
                 f0 = 50 if peak < 54.0 else 60 if peak > 56.0 else 0
                 if f0 == 0 and (pos + n_win - start) >= AMBIGUOUS_S * fs:
                     f0 = 50 if peak <= 55.0 else 60  # 55 Hz exactly is both f0 +- 5: 50
