@@ -38,8 +38,21 @@ DURATION_S = 3.0
 T_ON, T_OFF = 1.0, 1.3
 BLOCK = 250  # 25 ms
 T00 = 1_700_000_000_000_000_000
-EVENTS = ("interruption", "interruption-0.08pu", "deep-sag-0.05pu", "sag-0.5pu")
+EVENTS = (
+    "interruption",
+    "interruption-0.08pu",
+    "deep-sag-0.05pu",
+    "sag-0.5pu",
+    "interruption-0.05pu",
+    "interruption-0.097pu",
+    "interruption-0.099pu",
+    "gateway-restart",
+)
 ABSENCES = EVENTS[:3]  # below 0.1 pu: the signal is absent
+#: what ``make bench-validity`` shows: every event, one row per estimator and event
+TABLE_EVENTS = EVENTS
+RESTART_SILENCE_NS = 45 * 1_000_000_000  # the gateway is away 45 s, then counts from 0 again
+RESTART_PHASE_RAD = 2.0  # and its signal resumes at another phase
 SINGLE_TONE_SCENARIO = "c37-50hz-steady"
 
 
@@ -57,6 +70,11 @@ def disturbance(kind: str) -> tuple[np.ndarray, float]:
         [s] = pqd.sag(sag_magnitude=(0.95,), sag_interval=interval, **common)
     elif kind == "sag-0.5pu":
         [s] = pqd.sag(sag_magnitude=(0.5,), sag_interval=interval, **common)
+    elif kind.startswith("interruption-0.0"):  # to 0.05, 0.097, 0.099 pu: below 0.1, an interruption
+        depth = float(kind.removeprefix("interruption-").removesuffix("pu"))
+        [s] = pqd.interruption(interruption_magnitude=(1.0 - depth,), interruption_interval=interval, **common)
+    elif kind == "gateway-restart":  # no disturbance in the signal: the blocks carry it (run)
+        [s] = pqd.sag(sag_magnitude=(0.0,), sag_interval=interval, **common)
     else:
         raise ValueError(f"event: expected one of {EVENTS}, got {kind!r}")
     x = np.asarray(s["Values"], dtype=np.float64)
@@ -140,9 +158,15 @@ def run(name: str, event: str) -> Run:
     cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator=cls.name, params=params)])
     sink = _Keep()
     pipeline = Pipeline(cfg, [sink])
+    restart_at = round(T_ON * FS) if event == "gateway-restart" else None
     for seq, i in enumerate(range(0, x.size, BLOCK)):
         t0 = T00 + round(i * 1e9 / FS)
-        block = Block("d", seq, t0, float(FS), x[i : i + BLOCK])
+        xb = x[i : i + BLOCK]
+        if restart_at is not None and i >= restart_at:
+            # after a 45 s silence the gateway counts from 0, its signal at another phase
+            seq, t0 = seq - restart_at // BLOCK, t0 + RESTART_SILENCE_NS
+            xb = _shifted_phase(x, i, BLOCK)
+        block = Block("d", seq, t0, float(FS), xb)
         pipeline.process("sinewatch/in/d", encode_block_binary(block), "", t0)
     if sink.errors:
         raise RuntimeError(f"{name} on {event}: {sink.errors[0]['message']}")
@@ -150,9 +174,22 @@ def run(name: str, event: str) -> Run:
     for e in sink.estimates:
         f = e["frequency_hz"][0]
         diag = e["diagnostics"]
-        rows.append(((e["timestamp_ns"] - T00) / 1e9, math.inf if f is None else f, diag["valid"], diag["converged"]))
+        t_ns = e["timestamp_ns"] - T00
+        if restart_at is not None and t_ns >= RESTART_SILENCE_NS:
+            t_ns -= RESTART_SILENCE_NS  # on the signal's own time axis
+        rows.append((t_ns / 1e9, math.inf if f is None else f, diag["valid"], diag["converged"]))
     memory_s = pipeline.channels["d"].estimator.memory_samples / FS
     return Run(name, event, truth, memory_s, rows)
+
+
+def _shifted_phase(x: np.ndarray, i: int, n: int) -> np.ndarray:
+    """``x[i:i+n]`` turned by RESTART_PHASE_RAD (its analytic signal rotated): the same tone
+    resumed at another phase, as a sensor that was off for a while sees it."""
+    from scipy.signal import hilbert
+
+    z = hilbert(x)[i : i + n]
+    out: np.ndarray = np.real(z * np.exp(1j * RESTART_PHASE_RAD))
+    return out
 
 
 def _fmt(v: float, unit: str = "") -> str:
@@ -181,11 +218,38 @@ def table(events: tuple[str, ...] = ABSENCES) -> str:
     return "\n".join(lines)
 
 
+def event_table(events: tuple[str, ...] = TABLE_EVENTS) -> str:
+    """Markdown: one row per estimator and event: the worst frequency error of an estimate
+    flagged valid during the event and after it, and how soon after the event's end an
+    estimate is valid again (a restart: after the blocks resume)."""
+    lines = [
+        "| estimator | event | valid estimates during | worst error of a valid one during | "
+        "worst error of a valid one after | valid again after |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for name in applicable():
+        for ev in events:
+            r = run(name, ev)
+            t_end = T_ON if ev == "gateway-restart" else T_OFF
+            during = [x for x in r.between(T_ON, t_end) if x[2]]
+            after = [x for x in r.between(t_end, math.inf)]
+            valid_after = [x for x in after if x[2]]
+            back = next((x[0] for x in after if x[2]), math.nan) - t_end
+            lines.append(
+                f"| `{name}` | {ev} | {len(during)} | "
+                f"{_fmt(max((r.error(x[1]) for x in during), default=math.nan), ' Hz')} | "
+                f"{_fmt(max((r.error(x[1]) for x in valid_after), default=math.nan), ' Hz')} | "
+                f"{'-' if math.isnan(back) else f'+{back * 1e3:.0f} ms'} |"
+            )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sinewatch.bench.validity", description=__doc__.split("\n\n")[0])
-    p.add_argument("--events", nargs="+", choices=EVENTS, default=list(ABSENCES))
+    p.add_argument("--events", nargs="+", choices=EVENTS, default=list(TABLE_EVENTS))
+    p.add_argument("--summary", action="store_true", help="the worst over the events per estimator (the older table)")
     args = p.parse_args(argv)
-    print(table(tuple(args.events)))
+    print(table(tuple(args.events)) if args.summary else event_table(tuple(args.events)))
     return 0
 
 

@@ -17,9 +17,10 @@ with time constant ``tau`` while the signal is present and is frozen while it is
 (R)  ``R = max(L, R' exp(-H / (tau fs)))`` while present, ``R = R'`` while absent (R' the
      previous half cycle's reference).
 
-(A)  The signal is absent from a half-cycle boundary to the next when ``L <= ratio R`` there
+(A)  The signal is absent from a half-cycle boundary to the next when ``L < ratio R`` there
      (default ratio 0.1: IEEE Std 1159-2019 Table 2 calls a fall below 0.1 pu an
-     interruption) or ``L = 0``; before the first full cycle it is absent too.
+     interruption: strictly below, so 0.1 pu itself is a sag) or ``L = 0``; before the first
+     full cycle it is absent too.
 
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
@@ -98,7 +99,7 @@ def presence_kernel(
                 level = math.sqrt(ms) if ms > 0.0 else 0.0
                 rd = r * decay
                 ref = level if level > rd else rd
-                present = 1 if (level > 0.0 and level > ratio * ref) else 0
+                present = 1 if (level > 0.0 and level >= ratio * ref) else 0  # strictly below: absent
                 if present:
                     r = ref
             p1, p2, c1, c2 = c1, c2, 0.0, 0.0
