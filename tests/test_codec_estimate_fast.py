@@ -117,8 +117,9 @@ class ComparingPipeline(Pipeline):
 
     compared = 0
 
-    def _estimate_payload(self, ch, block, track, ts, t_last, gap, restart, reset):
-        fast, conv = super()._estimate_payload(ch, block, track, ts, t_last, gap, restart, reset)
+    def _estimate_payload(self, ch, block, track, ts, t_last, gap, restart, reset, jump=False):
+        assert not jump  # the blocks here are contiguous in time
+        fast, conv = super()._estimate_payload(ch, block, track, ts, t_last, gap, restart, reset, jump)
         ref, ref_conv = _reference(self, ch, block, track, ts, t_last, gap, restart, reset)
         assert fast == ref, (ch.estimator.name, fast, ref)
         assert conv == ref_conv

@@ -16,10 +16,7 @@ from sinewatch.schemas.errors import ConfigError
 def test_defaults_are_safe_and_work_out_of_the_box():
     cfg = load_config(env={})
     assert cfg.zenoh.listen == ["tcp/127.0.0.1:7450"] and not cfg.zenoh.multicast_scouting
-    assert cfg.rules[0].estimator == "ipdft" and cfg.rules[0].params == {
-        "nominal_frequency_hz": 50.0,
-        "window_cycles": 10.0,
-    }
+    assert cfg.rules[0].estimator == "pmu" and cfg.rules[0].params == {"nominal_frequency_hz": "auto"}
     assert cfg.recording.enabled
     zc = json.loads(zenoh_config(cfg.zenoh).get_json("scouting/multicast/enabled"))
     assert zc is False

@@ -83,6 +83,32 @@ def test_an_interruption_or_deep_sag_is_flagged_and_every_estimator_recovers(nam
     assert summary["valid_during"] == summary["converged_during"] == 0
 
 
+@pytest.mark.parametrize("event", bench.NEAR_THRESHOLD)
+@pytest.mark.parametrize("name", COVERED)
+def test_an_interruption_just_below_a_tenth_is_flagged_by_every_estimator(name, event):
+    """0.05, 0.097 and 0.099 pu are interruptions: from the detector's latency and a block
+    after the onset to one memory after the end, no estimate is valid or converged. (0.099 pu
+    was missed while the reference decayed over the onset's readings: presence (H).)"""
+    run = bench.run(name, event)
+    t_on, t_off = bench.T_ON, bench.T_OFF
+    during = run.between(t_on + DETECT_S + BLOCK_S, t_off + run.memory_s)
+    assert during and not any(r[2] or r[3] for r in during), [r for r in during if r[2] or r[3]][:3]
+
+
+def test_a_reading_exactly_at_the_ratio_is_not_an_absence():
+    """Strictly below the ratio (0.1 pu by default) is an absence; exactly at it is not. With
+    ratio 0.5 the comparison is exact in floating point: a square wave of +-1 (level 1), then
+    of +-0.5 (level 0.5 exactly, 0.5 of the reference)."""
+    fs, f = 10_000.0, 50.0
+    half = round(fs / (2 * f))
+    x = np.concatenate(
+        [np.tile(np.r_[np.ones(half), -np.ones(half)], 20), np.tile(np.r_[np.full(half, 0.5), np.full(half, -0.5)], 20)]
+    )
+    run, level = SignalPresence(fs, f, ratio=0.5, tau_s=1e9).update(x)  # no decay: the reference stays 1
+    assert level[-1] == 0.5
+    assert run[-1] == x.size - 2 * half + 1  # present from the first full cycle on, throughout
+
+
 @pytest.mark.parametrize("name", ["ipdft", "ges-kalman", "sogi-fll", "nls", DEFAULT_RULE])
 def test_a_sag_to_half_is_a_signal_not_an_absence(name):
     """IEEE 1159 sags from 0.1 to 0.9 pu are measurements: valid throughout."""

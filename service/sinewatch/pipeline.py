@@ -252,9 +252,13 @@ class Channel:
     # said by the next report
     held_flags: tuple[int, bool, bool, bool] | None = field(default=None, repr=False)
 
+    validity_version: int = field(default=VALIDITY_RULES_VERSION, repr=False)  # the pipeline's rules
+
     def __post_init__(self) -> None:
         if self.presence is None:
-            self.presence = SignalPresence(self.sample_rate_hz, _cycle_frequency_hz(self.estimator))
+            self.presence = SignalPresence(
+                self.sample_rate_hz, _cycle_frequency_hz(self.estimator), hold=self.validity_version >= 2
+            )
 
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
@@ -466,7 +470,7 @@ class Pipeline:
             estimator = get_estimator(rule.estimator)(block.sample_rate_hz, rule.params)
         except ParameterError as exc:
             raise InputError(f"{rule.estimator} at {block.sample_rate_hz} Hz: {exc}", kind="estimator_error") from None
-        ch = Channel(block.channel, key, estimator, block.sample_rate_hz)
+        ch = Channel(block.channel, key, estimator, block.sample_rate_hz, validity_version=self.validity_version)
         self.channels[block.channel] = ch
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
         return ch
@@ -711,7 +715,9 @@ class Pipeline:
     def restore(self, snapshot: dict[str, Any]) -> None:
         for item in snapshot["channels"]:
             est = get_estimator(item["estimator"]["estimator"]).from_state(item["estimator"])
-            ch = Channel(item["name"], item["key"], est, float(item["sample_rate_hz"]))
+            ch = Channel(
+                item["name"], item["key"], est, float(item["sample_rate_hz"]), validity_version=self.validity_version
+            )
             for attr in ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged"):
                 setattr(ch, attr, item[attr])
             if "presence" in item:  # snapshots of earlier builds have none: it starts afresh

@@ -49,6 +49,7 @@ EVENTS = (
     "gateway-restart",
 )
 ABSENCES = EVENTS[:3]  # below 0.1 pu: the signal is absent
+NEAR_THRESHOLD = EVENTS[4:7]  # 0.05, 0.097, 0.099 pu: interruptions too (IEEE 1159: below 0.1 pu)
 #: what ``make bench-validity`` shows: every event, one row per estimator and event
 TABLE_EVENTS = EVENTS
 RESTART_SILENCE_NS = 45 * 1_000_000_000  # the gateway is away 45 s, then counts from 0 again

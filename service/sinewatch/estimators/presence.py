@@ -22,6 +22,14 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      interruption: strictly below, so 0.1 pu itself is a sag) or ``L = 0``; before the first
      full cycle it is absent too.
 
+(H)  (validity rules version 2) The fall is judged against ``max(R, R_-1, R_-2)``, R as it
+     was one and two half cycles back: while a one-cycle window straddles the onset of an
+     interruption its level is still above 0.1 R, so the signal counts as present and R
+     decays by ``exp(-H / (tau fs))`` at each of those two readings (2 % at 50 Hz); a fall
+     to 0.099 pu then reads 0.101 of the decayed R and was missed. Against the reference from
+     before the onset it is 0.099 and flagged, and R is frozen at that reference while the
+     signal stays absent.
+
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
 change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
@@ -53,14 +61,15 @@ import numpy as np
 from sinewatch.estimators.base import decode_array, encode_array, kernel
 from sinewatch.schemas.errors import ParameterError
 
-PRESENCE_STATE_VERSION = 1
+PRESENCE_STATE_VERSION = 2  # 1: sums without R one and two half cycles back (read, padded)
 DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
 RUN_CAP = 1 << 62
 _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
-# slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R
-_P1, _P2, _C1, _C2, _R = 0, 1, 2, 3, 4
+# slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R, the
+# last level squared, and R as it was one and two half cycles back
+_P1, _P2, _C1, _C2, _R, _R1, _R2 = 0, 1, 2, 3, 4, 6, 7
 # slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
 # length, present (0/1: the last decision)
 _COUNT, _HALVES, _RUN, _PRESENT = 0, 1, 2, 3
@@ -74,11 +83,13 @@ def presence_kernel(
     half: int,
     decay: float,
     ratio: float,
+    hold: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run (L), (R), (A) over ``x``; return ``(run, level, new_sums, new_counters)``: per sample
-    the run length of presence and the last level read (0 before the first). Pure: the
-    inputs are not modified."""
+    the run length of presence and the last level read (0 before the first). With ``hold``
+    (H) applies. Pure: the inputs are not modified."""
     p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
+    r1, r2 = sums[_R1], sums[_R2]
     count, halves, run, present = counters[_COUNT], counters[_HALVES], counters[_RUN], counters[_PRESENT]
     level = math.sqrt(sums[5])  # the last level read (its square, kept for the outputs)
     n = x.shape[0]
@@ -99,9 +110,15 @@ def presence_kernel(
                 level = math.sqrt(ms) if ms > 0.0 else 0.0
                 rd = r * decay
                 ref = level if level > rd else rd
-                present = 1 if (level > 0.0 and level >= ratio * ref) else 0  # strictly below: absent
+                judge = ref
+                if hold:  # (H): the reference of two half cycles back, before an onset's readings
+                    judge = max(ref, r1, r2)
+                present = 1 if (level > 0.0 and level >= ratio * judge) else 0  # strictly below: absent
+                r2, r1 = r1, r
                 if present:
                     r = ref
+                elif hold:  # absent: frozen at the level from before the onset's readings
+                    r = judge
             p1, p2, c1, c2 = c1, c2, 0.0, 0.0
             count = 0
         if present:
@@ -111,7 +128,7 @@ def presence_kernel(
             run = 0
         run_out[j] = run
         level_out[j] = level
-    new_sums = np.array([p1, p2, c1, c2, r, level * level])
+    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2])
     new_counters = np.array([count, halves, run, present], dtype=np.int64)
     return run_out, level_out, new_sums, new_counters
 
@@ -126,6 +143,7 @@ class SignalPresence:
         *,
         ratio: float = DEFAULT_RATIO,
         tau_s: float = DEFAULT_TAU_S,
+        hold: bool = True,
     ) -> None:
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
@@ -138,13 +156,14 @@ class SignalPresence:
         self.half_cycle_samples = max(1, round(sample_rate_hz / (2.0 * nominal_frequency_hz)))
         self.ratio = float(ratio)
         self.decay = math.exp(-self.half_cycle_samples / (tau_s * sample_rate_hz))
+        self.hold = 1 if hold else 0  # (H); off: the rule of earlier builds (their recordings)
         self.reset()
 
     def reset(self) -> None:
-        """``sums`` (6,): the previous half cycle's sum of x and of x^2, the current one's,
-        the reference R, the last level squared; ``counters`` (4,) int64: samples in the
+        """``sums`` (8,): the previous half cycle's sum of x and of x^2, the current one's,
+        the reference R, the last level squared, R one and two half cycles back; ``counters`` (4,) int64: samples in the
         current half cycle, half cycles seen (up to 2), the run length, present (0/1)."""
-        self.sums = np.zeros(6)
+        self.sums = np.zeros(8)
         self.counters = np.zeros(4, dtype=np.int64)
 
     def update(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,7 +174,7 @@ class SignalPresence:
         if not (type(x) is np.ndarray and x.dtype in _KERNEL_DTYPES and x.flags.c_contiguous):
             x = np.ascontiguousarray(samples, dtype=np.float64)
         run, level, self.sums, self.counters = presence_kernel(
-            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio
+            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio, self.hold
         )
         return run, level
 
@@ -173,7 +192,7 @@ class SignalPresence:
         }
 
     def set_state(self, snapshot: dict[str, Any]) -> None:
-        if snapshot.get("format_version") != PRESENCE_STATE_VERSION:
+        if snapshot.get("format_version") not in (1, PRESENCE_STATE_VERSION):
             raise ParameterError(
                 f"presence format_version: expected {PRESENCE_STATE_VERSION}, got {snapshot.get('format_version')!r}"
             )
@@ -183,9 +202,11 @@ class SignalPresence:
                 f"got {snapshot.get('half_cycle_samples')!r}"
             )
         sums, counters = decode_array(snapshot["sums"]), decode_array(snapshot["counters"])
-        if sums.shape != (6,) or counters.shape != (4,):
+        if snapshot["format_version"] == 1 and sums.shape == (6,):  # earlier builds: R back then is R
+            sums = np.concatenate([sums, sums[_R : _R + 1], sums[_R : _R + 1]])
+        if sums.shape != (8,) or counters.shape != (4,):
             raise ParameterError(
-                f"presence state: expected shapes (6,) and (4,), got {sums.shape} and {counters.shape}"
+                f"presence state: expected shapes (8,) and (4,), got {sums.shape} and {counters.shape}"
             )
         self.sums, self.counters = sums, counters
 
