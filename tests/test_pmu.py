@@ -83,9 +83,7 @@ def test_p_class_gives_the_exact_phasor_of_a_tone(f0, f):
     tr = rep.track
     x_est = tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"])
     assert np.max(np.abs(x_est - x_true) / np.abs(x_true)) < 1e-5
-    t_k = (idx - T_EPOCH_NS // 10**9 * nominal) / nominal
-    inside = t_k >= 0.3 + 0.1  # windows (+-4.5 reports) of signal only
-    assert inside.sum() > 0.9 * nominal and np.max(np.abs(tr.frequency_hz[inside, 0] - f)) < 1e-3
+    assert np.max(np.abs(tr.frequency_hz[:, 0] - f)) < 1e-3
     assert est.design.latency_s < 2.0 / f0  # the P-class latency limit at Fs = f0
 
 
