@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, make_config, run_daemon, take
+from conftest import make_config, run_daemon, take
 
 from sinewatch.clients import connect, subscribe_estimates
 from sinewatch.continuity import Continuity, check_continuity
@@ -23,7 +23,7 @@ T00 = 1_700_000_000 * 1_000_000_000
 
 
 def test_the_continuity_rule():
-    c = lambda seq, t0, v=2: check_continuity(4, 5 * BLOCK_NS, seq, t0, N, FS, rules_version=v)  # noqa: E731
+    c = lambda seq, t0, v=2: check_continuity(4, 5 * BLOCK_NS, seq, t0, N, FS, rules_version=v)
     assert c(5, 5 * BLOCK_NS) == Continuity()
     assert c(5, 5 * BLOCK_NS + 20_000_000) == Continuity()  # jitter under half a block
     assert c(5, 5 * BLOCK_NS + 30_000_000) == Continuity(time_jump_ns=30_000_000)

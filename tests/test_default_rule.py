@@ -6,6 +6,7 @@ C37.118.1 grid), with the nominal frequency (50 or 60 Hz) found from the signal.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 
@@ -50,7 +51,7 @@ def test_serve_without_config_converges_within_a_second_on_mains_channels(tmp_pa
         assert len(mine) > 60, name
         t_first_ns = min(e["timestamp_ns"] for e in mine)
         # reports on the 50-per-second grid, each at the instant it describes
-        steps = {b["timestamp_ns"] - a["timestamp_ns"] for a, b in zip(mine, mine[1:], strict=False)}
+        steps = {b["timestamp_ns"] - a["timestamp_ns"] for a, b in itertools.pairwise(mine)}
         assert steps == {20_000_000}, (name, steps)
         after_1s = [e for e in mine if e["timestamp_ns"] - t_first_ns >= 1_000_000_000]
         assert len(after_1s) > 20

@@ -276,6 +276,10 @@ def test_auto_waits_for_a_ramp_from_55_hz_to_say_where_it_goes():
     est, idx, tr = _auto_reports(x, fs, 500)
     assert est.reporting_rate == 50
     assert idx[0] - T_EPOCH_NS // 10**9 * 50 <= 5  # from the stream's first window on
+    t_k = (idx - T_EPOCH_NS // 10**9 * 50) / 50
+    truth = np.where(t_k < 1.0, 55.0, 55.0 - (t_k - 1.0))
+    ramp = (t_k > 1.2) & (t_k < 3.2)  # clear of the ramp's start (7 / Fs) and the end of the data
+    assert np.max(np.abs(tr.frequency_hz[ramp, 0] - truth[ramp])) < 0.01
 
 
 def test_auto_state_round_trips_while_undecided_and_after():

@@ -543,7 +543,10 @@ class Pipeline:
             held = ch.held_flags
             if held is not None:
                 gap_blocks, restart, reset, jump = (
-                    gap_blocks + held[0], restart or held[1], reset or held[2], jump or held[3]
+                    gap_blocks + held[0],
+                    restart or held[1],
+                    reset or held[2],
+                    jump or held[3],
                 )
                 ch.held_flags = None
             if grid.n_reports == 0 and (gap_blocks or restart or reset or jump):

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from sinewatch.estimators import get as get_estimator
-from sinewatch.estimators.pmu import AMBIGUOUS_S, DETECTION_S
 from sinewatch.estimators.base import GridReports, concat_tracks
+from sinewatch.estimators.pmu import AMBIGUOUS_S, DETECTION_S
 from sinewatch.scenarios.c37118 import (
     FAMILIES,
     LIMIT_NOTES,

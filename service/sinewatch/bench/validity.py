@@ -233,7 +233,7 @@ def event_table(events: tuple[str, ...] = TABLE_EVENTS) -> str:
             r = run(name, ev)
             t_end = T_ON if ev == "gateway-restart" else T_OFF
             during = [x for x in r.between(T_ON, t_end) if x[2]]
-            after = [x for x in r.between(t_end, math.inf)]
+            after = r.between(t_end, math.inf)
             valid_after = [x for x in after if x[2]]
             back = next((x[0] for x in after if x[2]), math.nan) - t_end
             lines.append(
