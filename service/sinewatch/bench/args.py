@@ -106,6 +106,13 @@ def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
         "--sweep", action="store_true", help="measure at 1, 10, 100, 1000 and 5000 channels: a table and a plot"
     )
     parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep")
+    parser.add_argument(
+        "--frame-channels",
+        default="1",
+        metavar="N[,N...]",
+        help="channels per message: 1 (default) sends one SampleBlock per channel, N > 1 SampleFrames of N "
+        "channels; several values run one after the other into one table (e.g. 1,8)",
+    )
     parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
 
 
