@@ -35,8 +35,8 @@ import numpy as np
 
 from sinewatch.replay import check_recording, read_recording
 from sinewatch.schemas.codec import Block
-from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.schemas.errors import DecodeError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
 
 FORMATS = ("csv", "parquet")
 BATCH_ROWS = 65_536  # rows per Parquet row group / CSV flush

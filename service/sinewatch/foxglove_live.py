@@ -52,9 +52,9 @@ from foxglove.websocket import ServerListener
 
 from sinewatch.pipeline import NullSink
 from sinewatch.schemas.codec import Block, decode_block
-from sinewatch.schemas.frame import decode_frame, is_frame
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import InputError
+from sinewatch.schemas.frame import decode_frame, is_frame
 from sinewatch.schemas.messages import MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_MESSAGE_MODELS
 
@@ -347,4 +347,4 @@ class FoxgloveSink(NullSink):
         self.server.stop()
 
 
-__all__ = ["LOG_TOPIC", "SAMPLES_PREFIX", "FoxgloveLogHandler", "FoxgloveSink", "summarise", "summaries"]
+__all__ = ["LOG_TOPIC", "SAMPLES_PREFIX", "FoxgloveLogHandler", "FoxgloveSink", "summaries", "summarise"]

@@ -48,8 +48,8 @@ from sinewatch.schemas.codec import (
     json_string,
 )
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
-from sinewatch.schemas.frame import Frame, channel_key, decode_input
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
+from sinewatch.schemas.frame import Frame, channel_key, decode_input
 from sinewatch.schemas.messages import (
     ESTIMATE_FORMAT_VERSION,
     Diagnostics,
@@ -342,10 +342,10 @@ class Pipeline:
         stage = "decode"
         try:
             decoded = self._decode(payload, encoding)
-            if type(decoded) is Frame:
+            if isinstance(decoded, Frame):
                 self._process_frame(key, decoded, log_time_ns, received_ns)
                 return
-            block = decoded  # type: ignore[assignment]
+            block = decoded
             stage = "channel"
             channel = self._channel_for(key, block)
             if channel.name in self.resume_points and self._catch_up(channel, block):

@@ -199,7 +199,9 @@ class BlockPublisher:
         t0 = self._next_t0.get(slot, self._start_ns) if t0_ns is None else t0_ns
         samples = np.asarray(samples)
         if samples.ndim != 2 or samples.shape[1] != len(channels):
-            raise ValueError(f"samples: expected shape (n, {len(channels)}) (one column per channel), got {samples.shape}")
+            raise ValueError(
+                f"samples: expected shape (n, {len(channels)}) (one column per channel), got {samples.shape}"
+            )
         self._next_seq[slot] = seq + 1
         self._next_t0[slot] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
         return Frame(tuple(channels), seq, t0, float(sample_rate_hz), samples)

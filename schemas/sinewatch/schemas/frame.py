@@ -245,7 +245,9 @@ def _decode_json(payload: bytes) -> Frame:
     n_ch = len(msg.channels)
     widths = {len(r) for r in msg.samples}
     if widths and widths != {n_ch}:
-        raise DecodeError(f"JSON frame samples: expected rows of {n_ch} values (one per channel), got {sorted(widths)[:5]}")
+        raise DecodeError(
+            f"JSON frame samples: expected rows of {n_ch} values (one per channel), got {sorted(widths)[:5]}"
+        )
     samples = np.asarray(msg.samples, dtype=np.float64).reshape(-1, n_ch)
     return Frame(tuple(msg.channels), msg.seq, msg.t0_ns, msg.sample_rate_hz, samples)
 

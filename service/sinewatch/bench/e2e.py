@@ -439,7 +439,7 @@ SWEEP_MAX_CHANNELS = 64_000  # 640 M samples/s at 10 kHz: past any saturation on
 
 def sustained(row: dict[str, Any]) -> bool:
     """The daemon kept up: every estimate came, at >= 99 % of the offered rate."""
-    return row["missing_estimates"] == 0 and row["sustained_samples_per_s"] >= 0.99 * row["offered_samples_per_s"]
+    return bool(row["missing_estimates"] == 0 and row["sustained_samples_per_s"] >= 0.99 * row["offered_samples_per_s"])
 
 
 def next_sweep_point(counts: list[int], rows: list[dict[str, Any]]) -> int:
@@ -594,7 +594,7 @@ def start_feeder(
     """Start the bench feeder process and wait for its first line (what it published);
     the feeder keeps its session until its stdin is closed."""
     feeder = subprocess.Popen(
-        feeder_command(endpoint, channels, rate, block, rounds) + ["--frame-channels", str(frame_channels)],
+        [*feeder_command(endpoint, channels, rate, block, rounds), "--frame-channels", str(frame_channels)],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
