@@ -216,7 +216,7 @@ def _decode_binary(payload: bytes, encoding: str) -> Frame:
     try:
         names = tuple(raw[:-1].decode("utf-8").split("\n"))
     except UnicodeDecodeError as exc:
-        raise DecodeError(f"binary frame: channel names are not UTF-8 ({exc})") from None
+        raise DecodeError(f"binary frame channel names: expected UTF-8, got {raw[:80]!r} ({exc.reason})") from None
     if len(names) != n_ch:
         raise DecodeError(f"binary frame names: expected {n_ch} (n_channels), got {len(names)}")
     _check_names(names)
@@ -230,7 +230,7 @@ def _decode_json(payload: bytes) -> Frame:
     try:
         raw = json.loads(payload)
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-        raise DecodeError(f"JSON frame: not valid JSON ({exc})") from None
+        raise DecodeError(f"JSON frame: expected valid JSON, got {payload[:40]!r}... ({exc})") from None
     if not isinstance(raw, dict):
         raise DecodeError(f"JSON frame: expected an object, got {type(raw).__name__}")
     version = raw.get("format_version", FORMAT_VERSION)
@@ -241,7 +241,7 @@ def _decode_json(payload: bytes) -> Frame:
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"][:2])
-        raise DecodeError(f"JSON frame: {where}: {first['msg']}") from None
+        raise DecodeError(f"JSON frame {where}: expected a valid value, got {first['msg'].lower()}") from None
     n_ch = len(msg.channels)
     widths = {len(r) for r in msg.samples}
     if widths and widths != {n_ch}:
