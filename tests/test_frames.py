@@ -361,3 +361,61 @@ def test_a_daemon_fed_frames_and_single_blocks_at_once_records_what_replays_bit_
 
 def test_typed_errors_stay_value_errors():
     assert issubclass(DecodeError, InputError) and issubclass(DecodeError, ValueError)
+
+
+def test_feed_sends_its_scenarios_as_frames_and_every_channel_is_estimated(tmp_path):
+    """``Feed(frame_channels=3)`` (``sinewatch feed --frame-channels 3``) over real Zenoh:
+    five channels go as a frame of three and a frame of two, each channel estimated on its
+    own key as if it had been fed alone."""
+    from sinewatch.feed import Feed, make_channels, rules_for
+
+    channels = make_channels(["demo-ramp"], copies=5, seed=3)
+    config = make_config(tmp_path, rules=rules_for(channels))
+
+    def client(_daemon, ep):
+        with connect([ep]) as s:
+            est = subscribe_estimates(s)
+            pub = BlockPublisher(s)
+            feed = Feed(pub, channels, block_size=500, realtime=False, frame_channels=3)
+            assert [(name, len(m)) for name, m in feed.frames] == [("sim-f0", 3), ("sim-f1", 2)]
+            assert pub.wait_for_frame_subscriber("sim-f0", 20)
+            sent = feed.run(0.5)
+            return sent, take(est, 5 * 10)
+
+    (sent, got), _daemon, code = run_daemon(config, client)
+    assert code == 0 and sent == 2 * 10
+    assert sorted({e["channel"] for e in got}) == [f"sim/demo-ramp/{c}" for c in range(5)]
+    assert all(sorted(e["seq"] for e in got if e["channel"] == ch.channel) == list(range(10)) for ch in channels)
+    [mcap] = list((tmp_path / "rec").glob("*.mcap"))
+    assert replay([mcap]).ok
+
+
+def test_feed_comtrade_as_frames_gives_the_estimates_of_its_blocks(tmp_path):
+    """``feed --comtrade --frame-channels 8``: the record's three analog channels (one rate
+    segment) go as one frame per block, and the estimates are those the same record fed as
+    blocks gives (test_comtrade), bit for bit: the frame path changes no bits."""
+    from conftest import serve_feed_tail
+    from test_comtrade import PHASES, check_estimates, write_comtrade
+
+    from sinewatch.clients.session import free_loopback_port
+
+    cfg = write_comtrade(tmp_path, "1999", "BINARY")
+    results = {}
+    for frame_channels in ("1", "8"):
+        port = free_loopback_port()
+        config = tmp_path / f"daemon{frame_channels}.toml"
+        config.write_text(
+            f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\nenabled = false\n\n'
+            '[[rules]]\nmatch = "sinewatch/in/comtrade/**"\nestimator = "ipdft"\n'
+            "params = { nominal_frequency_hz = 50.0, window_cycles = 10 }\n"
+        )
+        endpoint = f"tcp/127.0.0.1:{port}"
+        feed_err, estimates, _ = serve_feed_tail(
+            ["--config", str(config)],
+            ["--connect", endpoint, "--json", "--count", "12"],
+            ["--connect", endpoint, "--comtrade", str(cfg), "--frame-channels", frame_channels],
+        )
+        results[frame_channels] = (feed_err, sorted(estimates, key=lambda e: (e["channel"], e["seq"])))
+    assert "published 4 frames (12000 samples) on 3 channels" in results["8"][0]
+    check_estimates(results["8"][1], [f"comtrade/SUB-STATION-1/{k}" for k in PHASES])
+    assert results["8"][1] == results["1"][1]

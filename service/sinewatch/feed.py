@@ -188,12 +188,12 @@ class Feed:
             names.append(ch.channel)
             columns.append(samples)
         fs = members[0].scenario.sample_rate_hz
-        frame = self.publisher.frame(name, names or [members[0].channel], np.zeros((1, 1)), fs)
+        if not names:  # every channel dropped: the frame is not sent (its seq and time are spent)
+            self.publisher.frame(name, [members[0].channel], np.zeros((self._sizes[id(members[0])], 1)), fs)
+            return 0
+        frame = self.publisher.frame(name, names, np.stack(columns, axis=1), fs)
         for ch in members:
             ch.last_seq = frame.seq
-        if not names:  # every channel dropped: the frame is not sent (its seq is spent)
-            return 0
-        frame.channels, frame.samples = tuple(names), np.stack(columns, axis=1)
         self.publisher.publish_frame_raw(name, self.publisher.encode_frame(frame))
         return 1
 
