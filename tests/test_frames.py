@@ -328,7 +328,7 @@ def test_a_daemon_fed_frames_and_single_blocks_at_once_records_what_replays_bit_
             got = take(est, expected_estimates)
             return got, take(err, 1)
 
-    (got, errors), daemon, code = run_daemon(config, client)
+    (got, errors), _daemon, code = run_daemon(config, client)
     assert code == 0 and len(got) == expected_estimates
     by_channel: dict[str, list[int]] = {}
     for e in got:
@@ -419,3 +419,28 @@ def test_feed_comtrade_as_frames_gives_the_estimates_of_its_blocks(tmp_path):
     assert "published 4 frames (12000 samples) on 3 channels" in results["8"][0]
     check_estimates(results["8"][1], [f"comtrade/SUB-STATION-1/{k}" for k in PHASES])
     assert results["8"][1] == results["1"][1]
+
+
+def test_a_frame_of_the_three_phases_feeds_the_three_phase_stage_directly(tmp_path):
+    """The three phases of a power-quality group in one frame: every ThreePhaseReport comes
+    out while that frame is processed (all three phases at one time, nothing waiting for
+    another message to line up), within IEC 61000-4-30 class A of the scenario's truth,
+    and the stage's outputs are byte for byte those of the same phases sent as blocks."""
+    from test_pq_service import BLOCK, T0_NS, Outputs, check_accuracy, phase_blocks, pq_config
+
+    rounds, names = phase_blocks(36)
+    config = pq_config(tmp_path, names)
+    as_frames, as_blocks = Outputs(), Outputs()
+    frames, blocks = Pipeline(config, [as_frames]), Pipeline(config, [as_blocks])
+    for i, blks in enumerate(rounds):
+        x = np.stack([b.samples for b in blks], axis=1)
+        before = sum(kind == "ThreePhaseReport" for kind, _, _ in as_frames.out)
+        frames.process(
+            "sinewatch/in/pq-f0", encode_frame_binary(Frame(tuple(names), i, blks[0].t0_ns, 10_000.0, x)), "", 0
+        )
+        reports = [json.loads(p) for kind, _, p in as_frames.out if kind == "ThreePhaseReport"][before:]
+        assert [r["timestamp_ns"] for r in reports] == [T0_NS + i * BLOCK * 100_000 + (BLOCK - 1) * 100_000]
+        for b in blks:
+            blocks.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), "", 0)
+    assert as_frames.out == as_blocks.out
+    check_accuracy([(kind, key, json.loads(p)) for kind, key, p in as_frames.out], names)

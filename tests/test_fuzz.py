@@ -182,7 +182,13 @@ frame_fields = st.fixed_dictionaries(
         "samples": st.one_of(st.lists(st.lists(st.floats(), max_size=3), max_size=5), json_values),
     },
 )
-VALID_JSON_FRAME = {"seq": 1, "t0_ns": 0, "sample_rate_hz": 1000.0, "channels": ["fz/a", "fz/b"], "samples": [[0.5, 1.0]]}
+VALID_JSON_FRAME = {
+    "seq": 1,
+    "t0_ns": 0,
+    "sample_rate_hz": 1000.0,
+    "channels": ["fz/a", "fz/b"],
+    "samples": [[0.5, 1.0]],
+}
 
 payloads = st.one_of(
     st.binary(max_size=600),
