@@ -61,12 +61,23 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ),
         ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
         ("pipeline", "in-process CPU cost per block of the pipeline, recording on and off", add_pipeline_arguments),
+        (
+            "estimate-puts",
+            "a frame's estimates on Zenoh: one put per channel vs one estimate frame, both sides' CPU",
+            add_estimate_puts_arguments,
+        ),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
         add_arguments(p)
         p.set_defaults(fn=_runner(_MODULES.get(name, name.replace("-", "_"))))
     return b
+
+
+def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--channels", type=int, default=8, help="channels per input frame (default 8)")
+    parser.add_argument("--frames", type=int, default=5000, help="input frames' estimates put (default 5000)")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 def add_kernels_arguments(parser: argparse.ArgumentParser) -> None:
