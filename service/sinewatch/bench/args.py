@@ -114,9 +114,11 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
 def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
     add_e2e_arguments(parser)
     parser.add_argument(
-        "--sweep", action="store_true", help="measure at 1, 10, 100, 1000 and 5000 channels: a table and a plot"
+        "--sweep",
+        action="store_true",
+        help="measure at 1, 10, 100, 1000 and 5000 channels, then doubling while the daemon keeps up: a table and a plot",
     )
-    parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep")
+    parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep (exactly these)")
     parser.add_argument(
         "--frame-channels",
         default="1",

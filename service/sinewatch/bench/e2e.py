@@ -371,7 +371,10 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "sweep", False):
         code = 0
         for n in counts:
-            code |= run_sweep(argparse.Namespace(**{**vars(args), "frame_channels": n}), console)
+            point = {"frame_channels": n}
+            if len(counts) > 1 and args.json:  # one JSON (and plot) per frame size
+                point["json"] = args.json.with_name(f"{args.json.stem}-frame{n}{args.json.suffix}")
+            code |= run_sweep(argparse.Namespace(**{**vars(args), **point}), console)
         return code
     if args.duration is None:
         args.duration = SINGLE_DURATION_S
@@ -389,10 +392,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_sweep(args: argparse.Namespace, console: Console) -> int:
-    """``bench e2e --sweep``: the same measurement at 1, 10, 100, 1,000 and 5,000 channels
-    (``--sweep-channels``), a table, the JSON (``--json``) and a plot of sustained throughput
+    """``bench e2e --sweep``: the same measurement at 1, 10, 100, 1,000 and 5,000 channels,
+    and on, doubling, while the daemon still sustains the last point (or exactly at
+    ``--sweep-channels``), a table, the highest rate sustained, the JSON (``--json``) and a plot of sustained throughput
     and p99 latency against channels (``--plot``; needs matplotlib, the ``plots`` extra)."""
     counts = [int(c) for c in args.sweep_channels.split(",")] if args.sweep_channels else list(SWEEP_CHANNELS)
+    extend = not args.sweep_channels  # the default sweep goes on until the daemon saturates
     duration = args.duration if args.duration is not None else SWEEP_DURATION_S
     rows: list[dict[str, Any]] = []
     n = counts[0]
@@ -406,7 +411,7 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
             )
         _print(console, row)
         rows.append(row)
-        n = next_sweep_point(counts, rows)
+        n = next_sweep_point(counts, rows, extend=extend)
     highest = max((r for r in rows if sustained(r)), key=lambda r: r["offered_samples_per_s"], default=None)
     table = sweep_table(rows, f"sinewatch bench e2e --sweep --frame-channels {frame_channels(args)} (recording on)")
     print_table(console, table)
@@ -442,14 +447,14 @@ def sustained(row: dict[str, Any]) -> bool:
     return bool(row["missing_estimates"] == 0 and row["sustained_samples_per_s"] >= 0.99 * row["offered_samples_per_s"])
 
 
-def next_sweep_point(counts: list[int], rows: list[dict[str, Any]]) -> int:
-    """The channel count after the last measured one: the next listed, then (while the
-    daemon still sustains the last point) twice the last, until it saturates; 0 to stop."""
+def next_sweep_point(counts: list[int], rows: list[dict[str, Any]], *, extend: bool = True) -> int:
+    """The channel count after the last measured one: the next listed, then (``extend``, while
+    the daemon still sustains the last point) twice the last, until it saturates; 0 to stop."""
     done = len(rows)
     if done < len(counts):
         return counts[done]
     last = rows[-1]
-    if sustained(last) and last["channels"] * 2 <= SWEEP_MAX_CHANNELS:
+    if extend and sustained(last) and last["channels"] * 2 <= SWEEP_MAX_CHANNELS:
         return int(last["channels"] * 2)
     return 0
 
