@@ -444,3 +444,30 @@ def test_a_frame_of_the_three_phases_feeds_the_three_phase_stage_directly(tmp_pa
             blocks.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), "", 0)
     assert as_frames.out == as_blocks.out
     check_accuracy([(kind, key, json.loads(p)) for kind, key, p in as_frames.out], names)
+
+
+def test_the_intake_queue_counts_a_frame_as_its_channels(tmp_path):
+    """``limits.queue_capacity`` counts blocks: a frame of 8 channels takes 8 places, so a
+    backlog of frames holds no more samples than one of blocks (drop policy here: the frame
+    that does not fit is dropped whole and gives its partial room back)."""
+    import threading
+    from collections import Counter
+
+    from sinewatch.daemon import Intake, IntakeCounters
+
+    intake = Intake.__new__(Intake)  # its queue logic only: no session, no thread
+    intake._capacity, intake._policy = 10, "drop"
+    intake._room = threading.Semaphore(10)
+    intake.counters = IntakeCounters()
+    frame8 = _frame([f"d/{c}" for c in range(8)], 0, _signal(0, 8))
+    block = encode_block_binary(Block("d/x", 0, 0, FS, np.zeros(4)))
+    dropped: Counter[str] = Counter()
+    assert intake.weight(frame8) == 8 and intake.weight(block) == 1
+    assert intake._admit(("sinewatch/in/d", frame8, "", 0), dropped)
+    assert not intake._admit(("sinewatch/in/d", frame8, "", 0), dropped)  # 2 places left, 8 needed
+    assert dropped == {"sinewatch/in/d": 1} and intake.counters.dropped == 1
+    assert intake._admit(("sinewatch/in/x", block, "", 0), dropped)
+    assert intake._admit(("sinewatch/in/x", block, "", 0), dropped)  # the dropped frame's room came back
+    assert not intake._admit(("sinewatch/in/x", block, "", 0), dropped)
+    intake.release(intake.weight(frame8))
+    assert intake._admit(("sinewatch/in/d", frame8, "", 0), dropped)
