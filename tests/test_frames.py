@@ -471,3 +471,17 @@ def test_the_intake_queue_counts_a_frame_as_its_channels(tmp_path):
     assert not intake._admit(("sinewatch/in/x", block, "", 0), dropped)
     intake.release(intake.weight(frame8))
     assert intake._admit(("sinewatch/in/d", frame8, "", 0), dropped)
+
+
+def test_foxglove_summarises_each_readable_channel_of_a_frame():
+    pytest.importorskip("foxglove")
+    from sinewatch.foxglove_live import summaries
+
+    x = _signal(0, 3)
+    x[5, 1] = np.inf
+    msgs = summaries(_frame(["daq/a", "daq/b", "daq/c"], 0, x), FRAME_BINARY_ENCODING, 64)
+    assert [m["channel"] for m in msgs] == ["daq/a", "daq/c"]  # b's block is rejected by the pipeline too
+    a = x[:, 0].astype(np.float32).astype(np.float64)
+    assert msgs[0]["n_samples"] == N and msgs[0]["max"] == float(a.max()) and len(msgs[0]["samples"]) == 64
+    with pytest.raises(InputError):
+        summaries(_frame(["daq/a"], 0, np.full((4, 1), np.nan)), "", 64)
