@@ -5,8 +5,6 @@ file written by the real recorder."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 from conftest import FakeClock, make_config
 
