@@ -2,7 +2,8 @@
 
 Layout of a recording:
 
-* one MCAP channel per Zenoh key (and message encoding), its metadata saying the role
+* one MCAP channel per Zenoh key, message encoding and Zenoh encoding (so each input is
+  replayed with the encoding it came with, whatever else came on its key), its metadata saying the role
   (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
   ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
 * inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
@@ -301,7 +302,7 @@ class McapRecorder:
         self._writer: Writer | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
-        self._channels: dict[tuple[str, str], int] = {}
+        self._channels: dict[tuple[str, str, str], int] = {}
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
 
@@ -451,7 +452,9 @@ class McapRecorder:
         return sid
 
     def _channel_id(self, topic: str, message_encoding: str, schema: str, role: str, zenoh_encoding: str) -> int:
-        key = (topic, message_encoding)
+        # The Zenoh encoding is part of the key: the decoder's verdict depends on it (a
+        # ``;v=2`` block is refused), and replay takes it from the channel's metadata.
+        key = (topic, message_encoding, zenoh_encoding)
         cid = self._channels.get(key)
         if cid is None:
             cid = self._w.register_channel(

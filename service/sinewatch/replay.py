@@ -314,8 +314,13 @@ def _replay_run(
                         estimate_version = int(item.get("estimate_format_version", "1"))
                         pq_version = int(item.get("pq_format_version", "1"))
             elif kind == "snapshot":
-                if file_no == 0:
+                # A later file's snapshot is the state replay has reached by then, unless
+                # no input came before it: the files of a standby before its takeover hold
+                # status only, and the takeover's state is in this one.
+                if file_no == 0 or result.r.inputs == 0:
                     pending_snapshot = item
+                    if pipeline is not None:
+                        pipeline.restore(item)
             elif kind == "incomplete":
                 log.warning("%s ends early (%s): replayed its complete chunks", path, item)
                 result.r.incomplete_files.append(path)
