@@ -485,3 +485,19 @@ def test_foxglove_summarises_each_readable_channel_of_a_frame():
     assert msgs[0]["n_samples"] == N and msgs[0]["max"] == float(a.max()) and len(msgs[0]["samples"]) == 64
     with pytest.raises(InputError):
         summaries(_frame(["daq/a"], 0, np.full((4, 1), np.nan)), "", 64)
+
+
+def test_refused_columns_of_frames_leave_the_channel_slots_free(tmp_path):
+    """As for blocks: a channel whose first column is refused (NaN) gives its slot back, so
+    frames of NaN columns on ever new names cannot use up ``limits.max_channels``."""
+    from sinewatch.schemas.config import LimitsSection
+
+    keep = Keep()
+    p = Pipeline(make_config(tmp_path, limits=LimitsSection(max_channels=6)), [keep])
+    for i in range(5):  # 20 hostile channels, 4 a frame, beside one good channel
+        x = _signal(i, 5)
+        x[3, 1:] = np.nan
+        names = ["good/a", *(f"hostile/{i}/{c}" for c in range(4))]
+        p.process("sinewatch/in/f", _frame(names, i, x), "", i)
+    assert len(keep.errors) == 20 and {e["kind"] for e in keep.errors} == {"non_finite"}
+    assert list(p.channels) == ["good/a"] and len(keep.estimates["sinewatch/est/good/a"]) == 5

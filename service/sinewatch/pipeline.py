@@ -416,12 +416,15 @@ class Pipeline:
                     continue
                 member = self._frame_member(channel, block, c, finite)
             except InputError as exc:
+                self._forget_unborn(channel)
                 self._reject(ckey, block, channel, exc.kind, str(exc), log_time_ns)
                 continue
             except SinewatchError as exc:
+                self._forget_unborn(channel)
                 self._reject(ckey, block, channel, "estimator_error", str(exc), log_time_ns)
                 continue
             except Exception as exc:  # noqa: BLE001 (one channel's fault, not the frame's)
+                self._forget_unborn(channel)
                 self._fault(ckey, block, channel, "channel", exc, log_time_ns)
                 continue
             est = channel.estimator
@@ -489,9 +492,11 @@ class Pipeline:
             try:
                 tracks.append(m.channel.estimator.update(m.block.samples, last_only=True, t0_ns=t0_ns))
             except InputError as exc:
+                self._forget_unborn(m.channel)
                 self._reject(m.channel.key, m.block, m.channel, exc.kind, str(exc), log_time_ns)
                 tracks.append(None)
             except Exception as exc:  # noqa: BLE001 (one channel's fault)
+                self._forget_unborn(m.channel)
                 self._fault(m.channel.key, m.block, m.channel, "estimator", exc, log_time_ns)
                 tracks.append(None)
         return tracks
@@ -504,6 +509,7 @@ class Pipeline:
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset)
             payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset)
         except Exception as exc:  # noqa: BLE001 (one channel's fault)
+            self._forget_unborn(channel)
             self._fault(channel.key, block, channel, "estimate", exc, log_time_ns)
             return
         out_key = channel.out_key
