@@ -215,7 +215,9 @@ def _decode_json(payload: bytes) -> Block:
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"][:2])
-        raise DecodeError(f"JSON block: {where}: {first['msg']}") from None
+        got = repr(first.get("input"))
+        got = got if len(got) <= 60 else got[:57] + "..."
+        raise DecodeError(f"JSON block: {where}: {first['msg']}, got {got}") from None
     samples = _json_samples(msg.samples, msg.columns)
     return Block(msg.channel, msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, msg.unit)
 
