@@ -73,9 +73,9 @@ class HarmonicsReport(_Message):
     interharmonic_centred_subgroup_rms: list[OptFloat] = Field(
         description="Interharmonic centred subgroups C_isg,n, n = 0..H (IEC 61000-4-7 3.3)"
     )
-    thd: OptFloat = Field(description="Total harmonic distortion, components 2..H over C_1")
-    thdg: OptFloat = Field(description="Group total harmonic distortion, groups 2..H over G_g,1")
-    thds: OptFloat = Field(description="Subgroup total harmonic distortion, subgroups 2..H over G_sg,1")
+    thd: OptFloat = Field(description="Total harmonic distortion, components 2..40 over C_1 (IEC 61000-4-7)")
+    thdg: OptFloat = Field(description="Group total harmonic distortion, groups 2..40 over G_g,1")
+    thds: OptFloat = Field(description="Subgroup total harmonic distortion, subgroups 2..40 over G_sg,1")
 
 
 class SequencePhasor(_Message):

@@ -82,7 +82,9 @@ The method, per window (one report per window):
 (IS) Interharmonic centred subgroup [4-7 3.3, 5.5.1]: ``C_isg,n^2 = sum_{i=2}^{N-2}
      C_{nN+i}^2`` (the bins next to the harmonics are left to the harmonic subgroups).
 (T)  ``THD = sqrt(sum_{h=2}^{H} (C_h / C_1)^2)``, ``THDG`` the same with ``G_g,h``,
-     ``THDS`` the same with ``G_sg,h`` [4-7 3.2]; ``H = max_harmonic`` (50 by default).
+     ``THDS`` the same with ``G_sg,h`` [4-7 3.2]; ``H = 40``, the order [4-7] sets for
+     these ratios (``THD_MAX_ORDER``; lower when ``max_harmonic`` is lower), whatever the
+     highest order reported: a 1 % 45th harmonic is in ``harmonic_rms`` but not in THD.
      All are ratios (multiply by 100 for percent); null when the fundamental is zero.
 
 Order 0 of the harmonic arrays is the DC value ``C_0`` (groups and subgroups included:
@@ -128,6 +130,7 @@ TABLE_PHASES = 2048  # P, rows of the polyphase kernel table of (I)
 FREQUENCY_RANGE = (0.85, 1.15)  # x f_nom, the clamp of (F)
 FREQUENCY_TOLERANCE = 1e-9  # relative, the stop test of (F)
 MAX_ITERATIONS = 8
+THD_MAX_ORDER = 40  # H of (T)
 SYNC_TERMS = 4  # H of the Rife-Vincent class I window of (F)
 NS_PER_S = 1_000_000_000
 
@@ -140,7 +143,9 @@ class HarmonicParams(BaseModel):
     nominal_frequency_hz: float = Field(
         50.0, description="Nominal supply frequency: 50 Hz (10-cycle windows) or 60 Hz (12-cycle windows)"
     )
-    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order H reported and used in THD")
+    max_harmonic: int = Field(
+        50, ge=2, le=50, description="Highest harmonic order reported (THD, THDG, THDS stop at min(40, this))"
+    )
     n_channels: int = Field(1, ge=1, le=16, description="Columns analysed on one common window grid")
     reference_channel: int = Field(0, ge=0, description="Column whose fundamental synchronises the windows")
     resync_interval_s: float | None = Field(
@@ -359,9 +364,11 @@ def _analyse(y: np.ndarray, c: KernelConstants) -> dict[str, np.ndarray]:
     ig = np.sqrt(np.sum(c2[:, k[:, None] + np.arange(1, n)[None, :]], axis=2))  # (IG)
     isg = np.sqrt(np.sum(c2[:, k[:, None] + np.arange(2, n - 1)[None, :]], axis=2))  # (IS)
 
+    top = min(h, THD_MAX_ORDER)
+
     def ratio(a: np.ndarray) -> np.ndarray:  # (T)
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.sqrt(np.sum(a[:, 2:] ** 2, axis=1)) / a[:, 1]
+            r = np.sqrt(np.sum(a[:, 2 : top + 1] ** 2, axis=1)) / a[:, 1]
         return np.where(a[:, 1] > 0.0, r, np.nan)
 
     return {
