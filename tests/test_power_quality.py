@@ -420,37 +420,144 @@ def test_150_cycle_aggregate_by_hand():
 
 def test_10_min_aggregate_and_resynchronisation_by_hand():
     """Windows of 0.2 s from 599.05 s: the one from 599.85 to 600.05 s holds the tick
-    (overlap 1) and ends the first 10-min interval; the next starts at 600 s."""
+    (overlap 1) and ends the first 10-min interval; the next starts at 600 s. The
+    150/180-cycle interval in progress at the tick goes on with the new stream's windows
+    until it has 15 (overlap 2, IEC 61000-4-30 class A), while a new one starts at 600 s."""
     agg = Aggregator("ch")
     out = []
     starts = [599.05 + 0.2 * i for i in range(5)]  # 599.05 .. 599.85
     for i, s in enumerate(starts):
         out += agg.add(_window(s, 0.2, float(i + 1)))
     assert out == []
-    # the first window after the tick starts on it
+    # the first window after the tick starts on it: the 10-s value of 590..600 s and the 10-min one
     out += agg.add(_window(600.0, 0.2, 10.0))
-    short, ten = out
-    assert short.interval == "150/180-cycle" and not short.complete and short.n_windows == 5  # overlap 2
-    assert short.values["rms"] == pytest.approx(math.sqrt(55 / 5), rel=1e-15)
-    assert short.timestamp_ns == round(600.05 * NS)
+    ten_s, ten = out
+    assert ten_s.interval == "10-s" and ten_s.start_ns == 590 * NS and ten_s.timestamp_ns == 600 * NS
+    assert not ten_s.complete and ten_s.values == {"frequency_hz": 50.0}  # the stream began at 599.05 s
     assert ten.interval == "10-min" and ten.timestamp_ns == 600 * NS and ten.start_ns == 0
     assert ten.n_windows == 5 and not ten.complete  # the stream began inside the interval
     assert ten.values["rms"] == pytest.approx(math.sqrt(55 / 5), rel=1e-15)
     # a whole 10-min interval from the tick: 3000 windows of 0.2 s, values 1, 2, 3, 1, 2, 3, ...
     out = []
     for i in range(1, 3000):
-        out += agg.add(_window(600.0 + 0.2 * i, 0.2, float(i % 3 + 1) if i else 10.0))
+        out += agg.add(_window(600.0 + 0.2 * i, 0.2, float(i % 3 + 1)))
     out += agg.add(_window(1200.0, 0.2, 1.0))  # the next interval's first window closes it
     shorts = [a for a in out if a.interval == "150/180-cycle"]
     tens = [a for a in out if a.interval == "10-min"]
-    assert len(shorts) == 200 and all(a.complete for a in shorts) and len(tens) == 1
-    assert shorts[0].start_ns == 600 * NS  # resynchronised on the tick
     vals = [10.0] + [float(i % 3 + 1) for i in range(1, 3000)]
-    assert shorts[0].values["rms"] == pytest.approx(math.sqrt(sum(v * v for v in vals[:15]) / 15), rel=1e-14)
+    # overlap 2: the interval of 599.05 s took 10 more windows, from the new stream, to 602.0 s
+    first = shorts[0]
+    assert first.start_ns == round(599.05 * NS) and first.timestamp_ns == 602 * NS
+    assert first.n_windows == 15 and first.complete
+    expect = [1.0, 2.0, 3.0, 4.0, 5.0, *vals[:10]]
+    assert first.values["rms"] == pytest.approx(math.sqrt(sum(v * v for v in expect) / 15), rel=1e-14)
+    assert len(shorts) == 201 and all(a.complete for a in shorts) and len(tens) == 1
+    assert shorts[1].start_ns == 600 * NS  # resynchronised on the tick
+    assert shorts[1].values["rms"] == pytest.approx(math.sqrt(sum(v * v for v in vals[:15]) / 15), rel=1e-14)
     ten = tens[0]
     assert ten.complete and ten.n_windows == 3000 and ten.timestamp_ns == 1200 * NS
     assert ten.values["rms"] == pytest.approx(math.sqrt(sum(v * v for v in vals) / 3000), rel=1e-13)
     assert ten.values["frequency_hz"] == pytest.approx(50.0, rel=1e-15)
+    ten_s = [a for a in out if a.interval == "10-s"]
+    assert [a.start_ns for a in ten_s] == [(600 + 10 * k) * NS for k in range(60)]
+    assert all(a.complete and a.n_windows == 50 and a.values["frequency_hz"] == 50.0 for a in ten_s)
+
+
+def _cycles_truth(windows: list[tuple[float, float]], k: int) -> float:
+    """IEC 61000-4-30 5.1 by enumeration: the whole cycles of windows (start s, f Hz; 10
+    cycles each) inside [10k, 10k + 10) s, their count over their summed duration."""
+    count, duration = 0, 0.0
+    for start, f in windows:
+        for j in range(10):
+            a, b = start + j / f, start + (j + 1) / f
+            if 10 * k <= a and b <= 10 * k + 10 + 1e-12:
+                count += 1
+                duration += 1 / f
+    return count / duration
+
+
+def test_10_s_frequency_counts_whole_cycles_within_the_clock_interval():
+    """Windows of 10 cycles at a wandering frequency (49.9 Hz +- 0.05), from 3.0 s: each
+    10-s value is the whole cycles inside its interval over their duration (cycles that
+    cross a 10-s tick dropped), the first incomplete (the stream starts inside it); a hole
+    in the stream makes the values around it incomplete."""
+    agg = Aggregator("ch")
+    windows, t = [], 3.0
+    for i in range(200):
+        f = 49.9 + 0.05 * math.sin(0.3 * i)
+        windows.append((t, f))
+        t += 10.0 / f
+    out = []
+    for start, f in windows:
+        out += agg.add(_window(start, 10.0 / f, 1.0, f))
+    ten_s = [a for a in out if a.interval == "10-s"]
+    assert [a.start_ns for a in ten_s] == [0, 10 * NS, 20 * NS, 30 * NS]  # 40..43 s still open
+    assert [a.complete for a in ten_s] == [False, True, True, True]
+    for k, a in enumerate(ten_s):
+        assert a.values["frequency_hz"] == pytest.approx(_cycles_truth(windows, k), rel=1e-12)
+        assert a.values["frequency_hz"] != pytest.approx(49.9, rel=1e-9)  # it does wander
+    rest = agg.flush()
+    assert [a.interval for a in rest][:1] == ["10-s"] and not rest[0].complete
+    # a hole of 1 s at 15 s: the 10-s value of 10..20 s is incomplete, the next ones are not
+    agg, out = Aggregator("ch"), []
+    for i in range(150):
+        start = 0.2 * i + (1.0 if 0.2 * i >= 15.0 else 0.0)
+        out += agg.add(_window(start, 0.2, 1.0))
+    ten_s = [a for a in out if a.interval == "10-s"]
+    assert [(a.start_ns // NS, a.complete) for a in ten_s] == [(0, True), (10, False), (20, True)]
+
+
+def test_overlap_1_cycles_are_counted_once_in_the_10_s_value():
+    """At the 10-min tick the window in progress (599.85 s, here at 50.5 Hz, to 600.048 s)
+    overlaps the new stream's first window (600.0 s): its cycles past the tick give way,
+    so the 10-s value of 600..610 s holds the new stream's 500 cycles at 50 Hz only."""
+    agg, out = Aggregator("ch"), []
+    for i in range(4):
+        out += agg.add(_window(599.05 + 0.2 * i, 0.2, 1.0))
+    out += agg.add(_window(599.85, 10 / 50.5, 1.0, 50.5))
+    for i in range(60):
+        out += agg.add(_window(600.0 + 0.2 * i, 0.2, 1.0))
+    [a] = [a for a in out if a.interval == "10-s" and a.start_ns == 600 * NS]
+    assert a.complete and a.values["frequency_hz"] == 50.0
+
+
+def test_2_h_aggregate_of_twelve_10_min_values():
+    """IEC 61000-4-30 2-h interval: the RMS of the twelve 10-min values (each counting
+    once, whatever its number of windows), on the 2-h clock; here with a 1-s "10-min"
+    interval (so a 12-s "2-h" one) to keep the stream short."""
+    agg, out = Aggregator("ch", tick_s=1.0), []
+    t, k = 0.0, 0
+    while t < 24.0 - 1e-9:
+        n = 5 if k % 2 else 4  # windows per 1-s interval: 4 x 0.25 s or 5 x 0.2 s
+        for _ in range(n):
+            out += agg.add(_window(t, 1.0 / n, float(k + 1), 50.0))
+            t = round(t + 1.0 / n, 9)
+        k += 1
+    out += agg.add(_window(24.0, 0.2, 1.0))
+    two_h = [a for a in out if a.interval == "2-h"]
+    assert [(a.start_ns, a.timestamp_ns) for a in two_h] == [(0, 12 * NS), (12 * NS, 24 * NS)]
+    assert all(a.n_windows == 12 and a.complete for a in two_h)
+    for j, a in enumerate(two_h):
+        vals = [float(12 * j + i + 1) for i in range(12)]
+        assert a.values["rms"] == pytest.approx(math.sqrt(sum(v * v for v in vals) / 12), rel=1e-14)
+        assert a.values["frequency_hz"] == pytest.approx(50.0, rel=1e-14)
+        assert a.arrays["h"][1] == pytest.approx(2 * math.sqrt(sum(v * v for v in vals) / 12), rel=1e-14)
+    assert PqAggregate.model_validate_json(encode_pq(two_h[1])) == two_h[1]
+    # a stream that starts inside the first 10-min interval: that 2-h value is incomplete
+    agg, out = Aggregator("ch", tick_s=1.0), []
+    for i in range(2, 13 * 5):
+        out += agg.add(_window(0.2 * i, 0.2, 1.0))
+    [a] = [a for a in out if a.interval == "2-h"]
+    assert a.n_windows == 12 and not a.complete and a.values["rms"] == pytest.approx(1.0, rel=1e-15)
+    # the state carries a 2-h interval in progress across a restore, exactly
+    a1, a2 = Aggregator("ch", tick_s=1.0), Aggregator("ch", tick_s=1.0)
+    stream = [_window(0.25 * i, 0.25, float(i % 7 + 1)) for i in range(100)]
+    o1 = [x for w in stream for x in a1.add(w)]
+    o2 = [x for w in stream[:37] for x in a2.add(w)]
+    restored = Aggregator("ch", tick_s=1.0)
+    restored.set_state(json.loads(json.dumps(a2.get_state())))
+    o2 += [x for w in stream[37:] for x in restored.add(w)]
+    assert [encode_pq(x) for x in o1] == [encode_pq(x) for x in o2]
 
 
 def test_aggregation_gaps_and_undefined_values():
@@ -459,11 +566,15 @@ def test_aggregation_gaps_and_undefined_values():
     for i in range(4):
         out += agg.add(_window(10.0 + 0.2 * i, 0.2, 2.0))
     out += agg.add(_window(20.0, 0.2, float("nan")))  # discontinuous and undefined
-    assert len(out) == 1 and not out[0].complete and out[0].n_windows == 4
+    ten_s, short = out  # the 10-s value of 10..20 s (a hole in it), the 150/180-cycle one cut short
+    assert ten_s.interval == "10-s" and not ten_s.complete and ten_s.n_windows == 4
+    assert short.interval == "150/180-cycle" and not short.complete and short.n_windows == 4
     rest = agg.flush()
-    assert [a.interval for a in rest] == ["150/180-cycle", "10-min"]
-    assert rest[0].values["rms"] is None and rest[0].n_windows == 1
-    assert rest[1].values["rms"] == pytest.approx(2.0) and not rest[1].complete
+    assert [a.interval for a in rest] == ["10-s", "150/180-cycle", "10-min", "2-h"]
+    assert rest[0].values["frequency_hz"] == 50.0 and rest[0].n_windows == 1 and not rest[0].complete
+    assert rest[1].values["rms"] is None and rest[1].n_windows == 1
+    assert rest[2].values["rms"] == pytest.approx(2.0) and not rest[2].complete
+    assert rest[3].values["rms"] == pytest.approx(2.0) and not rest[3].complete and rest[3].n_windows == 1
     with pytest.raises(ParameterError):
         Aggregator("x", windows_per_interval=0)
 
@@ -483,9 +594,13 @@ def test_analyser_to_aggregates_across_a_tick():
     tens = [a for a in out_grp if a.interval == "10-min"]
     assert len(tens) == 1 and tens[0].timestamp_ns == 600 * NS
     truth = sc.pq_truth
+    for a in out_grp + out_ch:
+        assert a.values["frequency_hz"] == pytest.approx(truth.frequency_hz, abs=1e-6)
+    assert [a.start_ns for a in out_ch if a.interval == "10-s"] == [590 * NS]  # 600..610 s still open
+    out_grp = [a for a in out_grp if a.interval != "10-s"]
+    out_ch = [a for a in out_ch if a.interval != "10-s"]
     for a in out_grp:
         assert a.values["u2"] == pytest.approx(truth.u2, abs=1e-6)
-        assert a.values["frequency_hz"] == pytest.approx(truth.frequency_hz, abs=1e-6)
     for a in out_ch:
         assert a.values["thd"] == pytest.approx(truth.thd[0], rel=1e-5)
         assert a.arrays["harmonic_subgroup_rms"][5] == pytest.approx(truth.harmonic_rms[0, 5], rel=1e-4)
