@@ -58,7 +58,7 @@ def write_comtrade(
     """A record of the three phases and one status channel, in revision ``rev`` (1999 or 2013)
     and data format ``ft`` (``n_samples`` long, the .cfg in ``encoding``); the .cfg path (or
     the .cff path)."""
-    N = n_samples  # noqa: N806 (the module's record length, here this record's)
+    N = n_samples  # the module's record length, here this record's
     a = {"FLOAT32": 1.0, "BINARY32": A32}.get(ft, A16)
     x = counts(a, N) if ft != "FLOAT32" else dict.fromkeys(PHASES)
     t = np.arange(N) / FS

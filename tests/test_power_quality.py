@@ -146,7 +146,9 @@ def test_thd_stops_at_the_40th_order():
     ``harmonic_rms`` but adds nothing to them (before: THD read 1 % for a 0 % truth)."""
     fs, f = 10_000.0, 50.0
     t = np.arange(int(1 * fs)) / fs
-    y = math.sqrt(2) * (np.sin(2 * np.pi * f * t) + 0.05 * np.sin(10 * np.pi * f * t) + 0.01 * np.sin(90 * np.pi * f * t))
+    y = math.sqrt(2) * (
+        np.sin(2 * np.pi * f * t) + 0.05 * np.sin(10 * np.pi * f * t) + 0.01 * np.sin(90 * np.pi * f * t)
+    )
     for w in run(HarmonicAnalyser(fs), y, fs):
         assert abs(w.harmonic_rms[0, 45] - 0.01) < 1e-7
         for ratio in (w.thd[0], w.thdg[0], w.thds[0]):

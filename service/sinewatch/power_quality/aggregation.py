@@ -170,7 +170,12 @@ class _Accumulator:
         }
 
     def set_state(self, d: Mapping[str, Any]) -> None:
-        self.start_ns, self.end_ns, self.n_windows, self.broken = d["start_ns"], d["end_ns"], d["n_windows"], d["broken"]
+        self.start_ns, self.end_ns, self.n_windows, self.broken = (
+            d["start_ns"],
+            d["end_ns"],
+            d["n_windows"],
+            d["broken"],
+        )
         self.sums = {k: float(v) for k, v in d["sums"].items()}
         self.counts = {k: int(v) for k, v in d["counts"].items()}
         self.cycles = {k: float(v) for k, v in d["cycles"].items()}
@@ -210,6 +215,12 @@ class _TenSecond:
     last_ns: float = -math.inf
     n_windows: int = 0
     broken: bool = False
+
+
+def _ten_s_row(k: int, t: _TenSecond) -> list[Any]:
+    """A 10-s interval's state as JSON (first/last are +-inf before any cycle: JSON has none)."""
+    first, last = (t.first_ns, t.last_ns) if t.count else (None, None)
+    return [k, t.count, t.duration_ns, first, last, t.n_windows, t.broken]
 
 
 def window_cycles(start_ns: int, n_cycles: int, frequency_hz: float) -> list[tuple[int, float, float]]:
@@ -461,11 +472,7 @@ class Aggregator:
             "two_h": self._two_h.state(),
             "two_h_index": self._two_h_index,
             "two_h_complete": self._two_h_complete,
-            "ten_s": [  # first/last are +-inf before any cycle: JSON has no inf
-                [k, t.count, t.duration_ns, t.first_ns if t.count else None, t.last_ns if t.count else None]
-                + [t.n_windows, t.broken]
-                for k, t in sorted(self._ten_s.items())
-            ],
+            "ten_s": [_ten_s_row(k, t) for k, t in sorted(self._ten_s.items())],
             "last_cycles": [list(c) for c in self._last_cycles],
         }
 
@@ -487,7 +494,12 @@ class Aggregator:
         self._two_h_complete = int(d.get("two_h_complete", 0))
         self._ten_s = {
             int(k): _TenSecond(
-                int(n), float(dur), math.inf if a is None else float(a), -math.inf if b is None else float(b), int(nw), br
+                int(n),
+                float(dur),
+                math.inf if a is None else float(a),
+                -math.inf if b is None else float(b),
+                int(nw),
+                br,
             )
             for k, n, dur, a, b, nw, br in d.get("ten_s", [])
         }

@@ -310,18 +310,24 @@ def fundamental_bin_offset(y: np.ndarray, basis_re: np.ndarray, basis_im: np.nda
     """(F): ``delta``, the fundamental's offset in bins from bin N of the resampled window
     ``y`` (M points), from the windowed DFT at bins N-1, N, N+1 (``basis`` rows: the
     window times ``exp(-j 2 pi (N + d) m / M)``); NaN when those bins are all zero."""
-    mags = np.empty(3)
+    m0 = m1 = m2 = 0.0
     for d in range(3):
         re = 0.0
         im = 0.0
         for k in range(y.shape[0]):
             re += y[k] * basis_re[d, k]
             im += y[k] * basis_im[d, k]
-        mags[d] = math.sqrt(re * re + im * im)
-    den = mags[0] + 2.0 * mags[1] + mags[2]
+        mag = math.sqrt(re * re + im * im)
+        if d == 0:
+            m0 = mag
+        elif d == 1:
+            m1 = mag
+        else:
+            m2 = mag
+    den = m0 + 2.0 * m1 + m2
     if den == 0.0:
         return math.nan
-    return SYNC_TERMS * (mags[2] - mags[0]) / den
+    return SYNC_TERMS * (m2 - m0) / den
 
 
 def sync_basis(n_cycles: int, n_points: int) -> tuple[np.ndarray, np.ndarray]:

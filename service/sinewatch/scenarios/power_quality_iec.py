@@ -333,7 +333,13 @@ def single_interharmonic(
     rms[0, 1], ph[0, 1] = 1.0, 0.4
     kw["interharmonics"] = ((ratio, level, phase),)
     return _one_phase(
-        f"pq-interharmonic-{int(f0)}hz-single", f"interharmonic {ratio:g} f at {100 * level:g} %", f0, df_pct, rms, ph, kw
+        f"pq-interharmonic-{int(f0)}hz-single",
+        f"interharmonic {ratio:g} f at {100 * level:g} %",
+        f0,
+        df_pct,
+        rms,
+        ph,
+        kw,
     )
 
 
@@ -378,7 +384,13 @@ for _f0 in (50.0, 60.0):
         _add(f"pq-harmonics-{_n}hz-all{_suffix}", harmonics_family, f0=_f0, df_pct=_df)
         _add(f"pq-harmonics-{_n}hz-low{_suffix}", harmonics_family, f0=_f0, df_pct=_df, low=0.001, high=0.009)
         for _lvl in (0.01, 0.03, 0.05):
-            _add(f"pq-interharmonics-{_n}hz-{100 * _lvl:g}pct{_suffix}", interharmonics_family, f0=_f0, df_pct=_df, level=_lvl)
+            _add(
+                f"pq-interharmonics-{_n}hz-{100 * _lvl:g}pct{_suffix}",
+                interharmonics_family,
+                f0=_f0,
+                df_pct=_df,
+                level=_lvl,
+            )
         _add(
             f"pq-unbalance-{_n}hz-u2-2pct-interharmonic-5pct{_suffix}",
             unbalance, f0=_f0, u2=0.02, df_pct=_df, interharmonic=0.05,
