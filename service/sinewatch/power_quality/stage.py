@@ -9,7 +9,7 @@ published a block's Estimate; the stage returns the messages that block complete
 
 * ``PREFIX/harmonics/<channel>``: one HarmonicsReport per 10/12-cycle window of a channel
   whose input key matches a ``power_quality.harmonics`` rule (first match wins);
-* ``PREFIX/agg/<channel>``: the PqAggregates (150/180-cycle, 10-min) of those windows
+* ``PREFIX/agg/<channel>``: the PqAggregates (10-s, 150/180-cycle, 10-min, 2-h) of those windows
   (``aggregate = true``, the default): true and fundamental RMS, frequency, THD/THDG/THDS,
   harmonic and interharmonic subgroups;
 * ``PREFIX/agg/<group>``: with ``aggregate_nominal_frequency_hz`` set on a group, the
