@@ -390,6 +390,13 @@ class WorkersSection(_Section):
 
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
+    max_json_payload_bytes: int = Field(
+        256 << 10,
+        ge=64,
+        description="A JSON block larger than this is refused before it is parsed (oversized_block): parsing "
+        "holds the event loop, 50-180 ns a byte, so every channel would wait (a binary block costs nothing to "
+        "decode); 256 KiB is about 13,000 samples",
+    )
     max_block_samples: int = Field(1_000_000, ge=1)
     max_channels: int = Field(10_000, ge=1)
     queue_capacity: int = Field(8192, ge=1, description="Input blocks waiting for the estimators")
