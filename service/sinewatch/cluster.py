@@ -324,7 +324,7 @@ class ClusterMember:
         if self.latest_snapshot is not None:
             try:
                 pipeline.restore(json.loads(self.latest_snapshot))
-            except Exception:  # noqa: BLE001 (a snapshot that does not restore must not stop the takeover)
+            except Exception:  # a snapshot that does not restore must not stop the takeover
                 log.exception("cluster: the snapshot of shard %s does not restore; serving from scratch", self.shard_id)
                 pipeline.channels.clear()
                 pipeline.resume_points.clear()
