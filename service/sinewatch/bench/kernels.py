@@ -13,6 +13,11 @@ frames with hop 256:
   transforms): the like-for-like baseline, used for the ``ratio`` columns;
 * ``fft-batch``: the same transform over one long signal at once, with no per-block
   overhead: the best numpy can do, shown for context (``vs batch``).
+
+``--bank N`` adds each estimator's bank (:func:`sinewatch.estimators.bank.update_bank`: the N
+channels of a frame, each with its own signal, advanced by one compiled call), per sample of
+every channel, beside the same estimator one channel at a time; an estimator whose bank stays
+below twice the streaming FFT says why under the table.
 """
 
 from __future__ import annotations
@@ -29,10 +34,12 @@ from rich.table import Table
 
 from sinewatch.console import make_console, print_table
 from sinewatch.estimators import available, get
+from sinewatch.estimators.bank import NO_BANK, update_bank
 from sinewatch.estimators.base import Estimator
 
 FFT_SIZE = 1024
 FFT_HOP = 256
+BANK_TARGET = 2.0  # a bank's rate per sample against the streaming FFT's that needs no note
 
 
 def _rate(fn: Callable[[], int], seconds: float, repeats: int = 3) -> float:
@@ -117,6 +124,24 @@ def estimator_rates(name: str, block: int, seconds: float) -> dict[str, float]:
     return out
 
 
+def bank_rate(name: str, block: int, bank: int, seconds: float) -> float:
+    """Samples/s (every channel's samples) of ``bank`` channels, each with its own signal,
+    advanced together by :func:`update_bank`, one estimate per block and channel."""
+    cls = get(name)
+    n_blocks = 16
+    x = np.stack([cls.example_signal(block * n_blocks, seed=1 + c) for c in range(bank)], axis=1)
+    frames = [np.ascontiguousarray(x[i * block : (i + 1) * block]) for i in range(n_blocks)]
+    ests = [cls.example() for _ in range(bank)]
+    state = {"i": 0}
+
+    def run() -> int:
+        update_bank(ests, frames[state["i"] % n_blocks], last_only=True)
+        state["i"] += 1
+        return block * bank
+
+    return _rate(run, seconds)
+
+
 def run(args: argparse.Namespace) -> int:
     console = make_console()
     names = args.estimators.split(",") if args.estimators else list(available())
@@ -134,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
         "estimators": {},
     }
     table = Table(title="samples/s per core; ratio = estimator / streaming FFT on the same blocks, same run")
+    results["bank_channels"] = args.bank
+    bank_ratios: dict[str, list[float]] = {}
     for col in (
         "estimator",
         "block",
@@ -144,12 +171,19 @@ def run(args: argparse.Namespace) -> int:
         "ratio",
         "1 ch, per-sample track",
         "ns/sample",
+        f"bank {args.bank}, 1 est/block",
+        "ratio",
+        "x 1 ch",
+        "ns/sample",
     ):
         table.add_column(col, justify="left" if col == "estimator" else "right")
     for name in names:
         for block in blocks:
             r = estimator_rates(name, block, args.seconds)
+            r[f"bank{args.bank}_per_block"] = bank_rate(name, block, args.bank, args.seconds)
             results["estimators"].setdefault(name, {})[str(block)] = r
+            rb = r[f"bank{args.bank}_per_block"]
+            bank_ratios.setdefault(name, []).append(rb / stream[block])
             table.add_row(
                 name,
                 str(block),
@@ -160,12 +194,20 @@ def run(args: argparse.Namespace) -> int:
                 f"{r['64ch_per_block'] / stream[block]:.2f}",
                 f"{r['1ch_per_sample'] / 1e6:.1f} M",
                 f"{1e9 / r['1ch_per_block']:.1f}",
+                f"{rb / 1e6:.1f} M",
+                f"{rb / stream[block]:.2f}",
+                f"{rb / r['1ch_per_block']:.2f}",
+                f"{1e9 / rb:.1f}",
             )
     print_table(console, table)
     for name in names:  # an estimator that cannot reach the baseline says why
         note = getattr(get(name), "bench_note", None)
         if note:
             console.print(f"note: {note}")
+    for name in names:  # and a bank below the target, why
+        if min(bank_ratios[name]) < BANK_TARGET:
+            why = NO_BANK.get(name) or getattr(get(name), "bank_note", None) or "(no reason given)"
+            console.print(f"bank note: {name}'s bank {args.bank} is below {BANK_TARGET:g}x the streaming FFT: {why}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0
