@@ -28,7 +28,11 @@ T0_NS = 1_700_000_000_000_000_000
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     a, b = np.asarray(a), np.asarray(b)
-    return a.shape == b.shape and a.dtype == b.dtype and np.ascontiguousarray(a).tobytes() == np.ascontiguousarray(b).tobytes()
+    return (
+        a.shape == b.shape
+        and a.dtype == b.dtype
+        and np.ascontiguousarray(a).tobytes() == np.ascontiguousarray(b).tobytes()
+    )
 
 
 def assert_tracks_bitwise(a: Track, b: Track, where: str) -> None:
@@ -77,7 +81,9 @@ def test_bank_matches_single_channel_bit_for_bit(name: str, size: int) -> None:
     x, singles, banked = _channels(name, size)
     for a, b, last_only in BLOCKS:
         t0 = T0_NS + a * 1_000_000
-        expected = [est.update(np.ascontiguousarray(x[a:b, c]), last_only=last_only, t0_ns=t0) for c, est in enumerate(singles)]
+        expected = [
+            est.update(np.ascontiguousarray(x[a:b, c]), last_only=last_only, t0_ns=t0) for c, est in enumerate(singles)
+        ]
         got = update_bank(banked, x[a:b], last_only=last_only, t0_ns=t0)
         assert len(got) == size
         for c in range(size):  # every position in the bank
@@ -110,7 +116,7 @@ def test_every_registered_estimator_has_a_bank_or_says_why() -> None:
 
 @pytest.mark.parametrize("name", NAMES)
 def test_a_non_finite_column_rejects_the_call_and_changes_no_channel(name: str) -> None:
-    x, singles, banked = _channels(name, 3)
+    x, _, banked = _channels(name, 3)
     bad = x[:50].copy()
     bad[7, 1] = np.nan
     before = [{k: v.copy() for k, v in e._state.items()} for e in banked]

@@ -55,10 +55,49 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    name: "no compiled bank yet: its channels run one after the other, each through its own kernel"
-    for name in ("adaptive-multisine", "differential-rls", "ges-kalman", "grip-mixing", "ipdft", "kkl",
-                 "kkl-biased", "nls", "pmu")
-}  # fmt: skip
+    "ges-kalman": (
+        "no compiled bank: one was built (the single kernel's per-sample step over the channels, "
+        "bit for bit) and ran slower than one channel at a time (91 against 72 ns/sample at 8 "
+        "channels, same process). The single kernel is not waiting on its recursion but on its "
+        "arithmetic: it keeps the 46 per-sample quantities (x, P, T, U of (U1)-(U4)) in registers "
+        "and does ~220 flops a sample; interleaving channels adds a load and a store of each of them "
+        "per sample, and numba's LLVM did not vectorise the channel loop (it could not prove the "
+        "state rows independent of each other), which is what it would take"
+    ),
+    "kkl-biased": (
+        "no compiled bank yet: kkl's bank (the same observer step shared with its single kernel) "
+        "gained about 10 %, since the observer is bound by its ~200 flops, three square roots and "
+        "a sine per sample rather than by the recursion's latency; kkl-biased does more of the same "
+        "work (m = 5 filters, a 4 x 4 solve), so a bank would gain as little without SIMD"
+    ),
+    "grip-mixing": (
+        "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "
+        "dhat: 421 values in the example) would have to be re-laid across channels and every "
+        "access of the per-sample step indexed by channel"
+    ),
+    "adaptive-multisine": (
+        "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
+        "loops) would have to be split into a per-sample step shared with a bank first"
+    ),
+    "differential-rls": (
+        "no compiled bank yet: most of its cost is the decimated RLS and phase stage (9 "
+        "sin/cos/hypot/sqrt calls a decimated sample, library calls that stay scalar per lane), "
+        "which a bank could interleave but not vectorise"
+    ),
+    "ipdft": (
+        "no compiled bank: a windowed estimator whose work is per window, not per sample, and "
+        "already vectorised across the windows of a block; its channels run one after the other"
+    ),
+    "nls": (
+        "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
+        "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
+        "numbers of steps and do not advance in lock step); its channels run one after the other"
+    ),
+    "pmu": (
+        "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "
+        "the block's time before its kernel runs; its channels run one after the other"
+    ),
+}
 
 
 def register_bank(cls: type[Estimator[Any]], kernel: Callable[..., tuple[Any, ...]], n_outputs: int) -> None:
@@ -117,7 +156,9 @@ def _check_alike(estimators: Sequence[Estimator[Any]], cls: type[Estimator[Any]]
     for c, est in enumerate(estimators):
         if type(est) is not cls:
             raise TypeError(f"estimators[{c}]: expected {cls.__name__} like estimators[0], got {type(est).__name__}")
-        if est.sample_rate_hz != first.sample_rate_hz or (est.params is not first.params and est.params != first.params):
+        if est.sample_rate_hz != first.sample_rate_hz or (
+            est.params is not first.params and est.params != first.params
+        ):
             raise ValueError(f"estimators[{c}]: expected the sample rate and parameters of estimators[0]")
 
 

@@ -126,8 +126,8 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -640,7 +640,7 @@ def _kkl_step(
     scalars (sse, y_prev, have_prev, y_pred, pred_valid, env, e2_avg, y2_avg, e2_fast, e2_slow),
     then the sample's (defined, good, det, A sin, A cos, omega Ts, rr, ff, offset). The one
     definition of the per-sample recursion, called by :func:`kkl_kernel` and by its bank."""
-    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+    Ts, w_ref, ell, silence_ratio, env_decay, _n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
         observer_constants(consts)
     )  # fmt: skip
     m = lam.shape[0]
@@ -752,9 +752,7 @@ def kkl_kernel(
     columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
-    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
-        observer_constants(consts)
-    )  # fmt: skip
+    Ts, ell, n_settle = consts[0], consts[2], consts[5]  # (the rest: _kkl_step's, observer_constants)
     m, n = lam.shape[0], y.shape[0]
     xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
     e2_avg, y2_avg = state[m + 6], state[m + 7]
@@ -886,9 +884,7 @@ def kkl_bank_kernel(
     ``sse`` (C,) and the new state (m + 10, C). Samples outer, channels inner, each channel
     through the same :func:`_kkl_step` as the single kernel: the C chains are independent, so
     the CPU overlaps them."""
-    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
-        observer_constants(consts)
-    )  # fmt: skip
+    Ts, ell, n_settle = consts[0], consts[2], consts[5]  # (the rest: _kkl_step's, observer_constants)
     n, nc = y.shape
     m = lam.shape[0]
     st = state.copy()

@@ -174,8 +174,19 @@ def _sogi_fll_tan(w: float, consts: np.ndarray) -> float:
 
 @kernel(inline="always")
 def _sogi_fll_step(
-    vn: float, a: float, vp: float, qv: float, d: float, w: float, v_prev: float, u_prev: float,
-    ms: float, lu1: float, lu: float, pa: float, consts: np.ndarray,
+    vn: float,
+    a: float,
+    vp: float,
+    qv: float,
+    d: float,
+    w: float,
+    v_prev: float,
+    u_prev: float,
+    ms: float,
+    lu1: float,
+    lu: float,
+    pa: float,
+    consts: np.ndarray,
 ) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float]:
     """One sample ``vn`` of the SOGI-FLL from ``a`` (:func:`_sogi_fll_tan` of omega') and the
     state ``(v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1, LPF(u) stage 2,
