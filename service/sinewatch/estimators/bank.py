@@ -64,11 +64,18 @@ NO_BANK: dict[str, str] = {
         "per sample, and numba's LLVM did not vectorise the channel loop (it could not prove the "
         "state rows independent of each other), which is what it would take"
     ),
+    "kkl": (
+        "no compiled bank: one was built (the observer's per-sample step shared by the single "
+        "kernel and a bank, bit for bit) and gained about 10 % over one channel at 8 channels, "
+        "while the single kernel, indexing its filter states as one column of a channel-major "
+        "array, ran ~1.5x slower; the observer is bound by its arithmetic (~200 flops, three "
+        "square roots, four divisions and a sine a sample), not by the recursion's latency, so "
+        "interleaving channels has little to overlap, and the sine (a C library call per lane) and "
+        "the branches of the inverse map keep the compiler from vectorising the channel loop"
+    ),
     "kkl-biased": (
-        "no compiled bank yet: kkl's bank (the same observer step shared with its single kernel) "
-        "gained about 10 %, since the observer is bound by its ~200 flops, three square roots and "
-        "a sine per sample rather than by the recursion's latency; kkl-biased does more of the same "
-        "work (m = 5 filters, a 4 x 4 solve), so a bank would gain as little without SIMD"
+        "no compiled bank: the work of kkl (see its reason) with m = 5 filters and a 4 x 4 solve, "
+        "bound by its arithmetic in the same way"
     ),
     "grip-mixing": (
         "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "

@@ -126,7 +126,6 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
 from sinewatch.schemas.errors import ParameterError
 
@@ -615,122 +614,6 @@ def write_row(
 # ---- kernel -------------------------------------------------------------------------------
 
 
-@kernel(inline="always")
-def filter_step_at(
-    xi: np.ndarray, col: int, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, y_prev: float, yk: float
-) -> None:
-    """:func:`filter_step` on column ``col`` of ``xi`` (m, C): the same arithmetic, for a state
-    laid out across the channels of a bank (one column for a single channel)."""
-    for i in range(xi.shape[0]):
-        v = fa[i] * xi[i, col] + fb0[i] * y_prev + fb1[i] * yk
-        xi[i, col] = v if abs(v) > FLUSH else 0.0
-
-
-@kernel(inline="always")
-def _kkl_step(
-    yk: float, xi: np.ndarray, col: int, lam: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray,
-    consts: np.ndarray, s_ll: float, s_l: float, s_11: float, sse: float, y_prev: float, have_prev: float,
-    y_pred: float, pred_valid: float, env: float, e2_avg: float, y2_avg: float, e2_fast: float, e2_slow: float,
-) -> tuple[
-    float, float, float, float, float, float, float, float, float, float,
-    bool, bool, float, float, float, float, float, float, float,
-]:  # fmt: skip
-    """One sample ``yk`` of the observer (the filters (12), then the inverse map (8)-(9) afresh)
-    on column ``col`` of the filter states ``xi`` (m, C), updated in place; returns the new
-    scalars (sse, y_prev, have_prev, y_pred, pred_valid, env, e2_avg, y2_avg, e2_fast, e2_slow),
-    then the sample's (defined, good, det, A sin, A cos, omega Ts, rr, ff, offset). The one
-    definition of the per-sample recursion, called by :func:`kkl_kernel` and by its bank."""
-    Ts, w_ref, ell, silence_ratio, env_decay, _n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
-        observer_constants(consts)
-    )  # fmt: skip
-    m = lam.shape[0]
-    if have_prev != 0.0:
-        filter_step_at(xi, col, fa, fb0, fb1, y_prev, yk)  # (12)
-    have_prev = 1.0
-    y_prev = yk
-    # one-step prediction error and its running mean square, against that of y
-    e2, sse, e2_avg = prediction_error(yk, y_pred, pred_valid, sse, e2_avg, avg_gain)
-    jump, e2_fast, e2_slow = jump_detector(e2, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
-    y2_avg += avg_gain * (yk * yk - y2_avg)
-    # sums over the filters
-    s2 = 0.0
-    p0 = 0.0
-    p1 = 0.0
-    p2 = 0.0
-    p3 = 0.0
-    q2 = 0.0
-    for i in range(m):
-        v = xi[i, col]
-        l2v = lam[i] * lam[i] * v
-        s2 += v * v
-        p0 += v
-        p1 += lam[i] * v
-        p2 += l2v
-        p3 += lam[i] * l2v
-        q2 += l2v * v
-    s = math.sqrt(s2)
-    env = max(s, env * env_decay)
-    pred_valid = 0.0
-    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()
-    mu = 0.0
-    if s > ABS_FLOOR and s >= silence_ratio * env:  # else "xi near 0": undefined
-        inv = 1.0 / s
-        # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
-        # r = L^T F^2 xi, for the unit vector xi/|xi| (8)
-        b02 = -p1 * inv
-        b12 = -p0 * inv
-        r0 = p3 * inv
-        r1 = p2 * inv
-        r2 = -q2 * inv * inv
-        # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
-        det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
-        mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
-        # Phi = L^T L + mu I, solved with its adjugate (8)
-        a = s_ll + mu
-        d = s_11 + mu
-        f = 1.0 + mu
-        k00 = d * f - b12 * b12
-        k01 = b02 * b12 - s_l * f
-        k02 = s_l * b12 - d * b02
-        k11 = a * f - b02 * b02
-        k12 = s_l * b02 - a * b12
-        k22 = a * d - s_l * s_l
-        det_phi = a * k00 + s_l * k01 + b02 * k02
-        if det_phi > 1e-300:
-            idet = 1.0 / det_phi
-            # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
-            z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
-            z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
-            z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
-            if z2 > 0.0:
-                sq = math.sqrt(z2)
-                wts = w_ref * sq * Ts  # omega Ts
-                if wts < math.pi:  # below Nyquist
-                    defined = True
-                    sh, ch, g = half_step(wts)
-                    a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
-                    a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
-                    # y(k+1) predicted: A sin(theta + w Ts)
-                    y_pred = a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * ch)
-                    pred_valid = 1.0
-                    # least-squares residual of (13), zero on T(O)
-                    ff = 0.0
-                    for i in range(m):
-                        xn = xi[i, col] * inv
-                        t = lam[i] * lam[i] * xn
-                        res = lam[i] * z0 + z1 - xn * z2 - t
-                        rr += res * res
-                        ff += t * t
-                    good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
-    # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
-    # model has no offset: 0 whenever defined
-    offset = 0.0 if defined else np.nan
-    return (
-        sse, y_prev, have_prev, y_pred, pred_valid, env, e2_avg, y2_avg, e2_fast, e2_slow,
-        defined, good, det, a_sin, a_cos, wts, rr, ff, offset,
-    )  # fmt: skip
-
-
 @kernel
 def kkl_kernel(
     y: np.ndarray,
@@ -752,7 +635,9 @@ def kkl_kernel(
     columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
     manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
     """
-    Ts, ell, n_settle = consts[0], consts[2], consts[5]  # (the rest: _kkl_step's, observer_constants)
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
     m, n = lam.shape[0], y.shape[0]
     xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
     e2_avg, y2_avg = state[m + 6], state[m + 7]
@@ -768,15 +653,89 @@ def kkl_kernel(
     defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
     offset = np.nan
     rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
-    xi2 = xi.reshape((m, 1))  # one column: the layout the step shares with the bank
     for k in range(n):
-        (
-            sse, y_prev, have_prev, y_pred, pred_valid, env, e2_avg, y2_avg, e2_fast, e2_slow,
-            defined, good, det, a_sin, a_cos, wts, rr, ff, offset,
-        ) = _kkl_step(
-            y[k], xi2, 0, lam, fa, fb0, fb1, consts, s_ll, s_l, s_11, sse, y_prev, have_prev, y_pred,
-            pred_valid, env, e2_avg, y2_avg, e2_fast, e2_slow,
-        )  # fmt: skip
+        yk = y[k]
+        if have_prev != 0.0:
+            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
+        have_prev = 1.0
+        y_prev = yk
+        # one-step prediction error and its running mean square, against that of y
+        e2, sse, e2_avg = prediction_error(yk, y_pred, pred_valid, sse, e2_avg, avg_gain)
+        jump, e2_fast, e2_slow = jump_detector(e2, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
+        y2_avg += avg_gain * (yk * yk - y2_avg)
+        # sums over the filters
+        s2 = 0.0
+        p0 = 0.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        q2 = 0.0
+        for i in range(m):
+            v = xi[i]
+            l2v = lam[i] * lam[i] * v
+            s2 += v * v
+            p0 += v
+            p1 += lam[i] * v
+            p2 += l2v
+            p3 += lam[i] * l2v
+            q2 += l2v * v
+        s = math.sqrt(s2)
+        env = max(s, env * env_decay)
+        pred_valid = 0.0
+        defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()
+        mu = 0.0
+        if s > ABS_FLOOR and s >= silence_ratio * env:  # else "xi near 0": undefined
+            inv = 1.0 / s
+            # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
+            # r = L^T F^2 xi, for the unit vector xi/|xi| (8)
+            b02 = -p1 * inv
+            b12 = -p0 * inv
+            r0 = p3 * inv
+            r1 = p2 * inv
+            r2 = -q2 * inv * inv
+            # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
+            det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
+            mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
+            # Phi = L^T L + mu I, solved with its adjugate (8)
+            a = s_ll + mu
+            d = s_11 + mu
+            f = 1.0 + mu
+            k00 = d * f - b12 * b12
+            k01 = b02 * b12 - s_l * f
+            k02 = s_l * b12 - d * b02
+            k11 = a * f - b02 * b02
+            k12 = s_l * b02 - a * b12
+            k22 = a * d - s_l * s_l
+            det_phi = a * k00 + s_l * k01 + b02 * k02
+            if det_phi > 1e-300:
+                idet = 1.0 / det_phi
+                # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
+                z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
+                z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
+                z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
+                if z2 > 0.0:
+                    sq = math.sqrt(z2)
+                    wts = w_ref * sq * Ts  # omega Ts
+                    if wts < math.pi:  # below Nyquist
+                        defined = True
+                        sh, ch, g = half_step(wts)
+                        a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
+                        a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
+                        # y(k+1) predicted: A sin(theta + w Ts)
+                        y_pred = a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * ch)
+                        pred_valid = 1.0
+                        # least-squares residual of (13), zero on T(O)
+                        ff = 0.0
+                        for i in range(m):
+                            xn = xi[i] * inv
+                            t = lam[i] * lam[i] * xn
+                            res = lam[i] * z0 + z1 - xn * z2 - t
+                            rr += res * res
+                            ff += t * t
+                        good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
+        # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
+        # model has no offset: 0 whenever defined
+        offset = 0.0 if defined else np.nan
         n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
                                rr, ff, e2_avg, y2_avg)  # fmt: skip
     if last_only:  # the last sample's row, from the loop's final values
@@ -863,67 +822,3 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
         have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
-
-
-# ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
-
-
-@kernel
-def kkl_bank_kernel(
-    y: np.ndarray,
-    state: np.ndarray,
-    lam: np.ndarray,
-    fa: np.ndarray,
-    fb0: np.ndarray,
-    fb1: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`kkl_kernel` for C channels at once: ``y`` (N, C), ``state`` (m + 10, C) (each
-    column one channel's ``xi_state``); returns ``out`` (C, rows, 5), ``extras`` (C, rows, 3),
-    ``sse`` (C,) and the new state (m + 10, C). Samples outer, channels inner, each channel
-    through the same :func:`_kkl_step` as the single kernel: the C chains are independent, so
-    the CPU overlaps them."""
-    Ts, ell, n_settle = consts[0], consts[2], consts[5]  # (the rest: _kkl_step's, observer_constants)
-    n, nc = y.shape
-    m = lam.shape[0]
-    st = state.copy()
-    xi = st[:m]  # (m, C): the filter states, updated in place
-    s_ll = 0.0
-    s_l = 0.0
-    for i in range(m):
-        s_ll += lam[i] * lam[i]
-        s_l += lam[i]
-    s_11 = float(m)
-    sse = np.zeros(nc)
-    rows = 1 if last_only else n
-    out = np.empty((nc, rows, 5))
-    ext = np.empty((nc, rows, 3))
-    rec = np.empty((nc, 0 if last_only else n, RECORD_SIZE))
-    fin = np.empty((nc, RECORD_SIZE))  # last_only: each channel's latest sample, for its row
-    for k in range(n):
-        for c in range(nc):
-            (
-                sse[c], st[m, c], st[m + 1, c], st[m + 2, c], st[m + 3, c], st[m + 5, c], st[m + 6, c], st[m + 7, c],
-                st[m + 8, c], st[m + 9, c], defined, good, det, a_sin, a_cos, wts, rr, ff, offset,
-            ) = _kkl_step(
-                y[k, c], xi, c, lam, fa, fb0, fb1, consts, s_ll, s_l, s_11, sse[c], st[m, c], st[m + 1, c],
-                st[m + 2, c], st[m + 3, c], st[m + 5, c], st[m + 6, c], st[m + 7, c], st[m + 8, c], st[m + 9, c],
-            )  # fmt: skip
-            if last_only:  # fin[c]: the values of the channel's latest sample (no view made per sample)
-                st[m + 4, c] = record_sample(fin, c, False, good, st[m + 4, c], n_settle, defined, wts, a_sin, a_cos,
-                                             offset, det, rr, ff, st[m + 6, c], st[m + 7, c])  # fmt: skip
-            else:
-                st[m + 4, c] = record_sample(rec[c], k, False, good, st[m + 4, c], n_settle, defined, wts, a_sin,
-                                             a_cos, offset, det, rr, ff, st[m + 6, c], st[m + 7, c])  # fmt: skip
-    for c in range(nc):
-        if last_only:  # row 0 from the last sample's values, n_good already counted
-            write_sample(out[c], ext[c], 0, fin[c, 0] != 0.0, st[m + 4, c], n_settle, fin[c, 2] != 0.0, fin[c, 3], Ts,
-                         fin[c, 4], fin[c, 5], fin[c, 6], fin[c, 7], ell, fin[c, 8], fin[c, 9], fin[c, 10],
-                         fin[c, 11])  # fmt: skip
-        else:
-            write_samples(out[c], ext[c], rec[c], n_settle, Ts, ell)
-    return out, ext, sse, st
-
-
-register_bank(Kkl, kkl_bank_kernel, n_outputs=3)

@@ -323,6 +323,15 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
         "arithmetic to shorten it would change the outputs, which stay bit for bit)."
     )
 
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank interleaves the channels' chains (about 1.5-1.8x one channel at 8 channels), but "
+        "every sample of every channel still takes one tan from the C library (~11 ns of "
+        "throughput here; numba has no SVML, and a vectorised tan would round differently) and five "
+        "divisions; a variant whose channel loop the compiler vectorised (4 lanes, the tan kept "
+        "scalar per lane, the same bits) ran no faster, so the tan is the bound"
+    )
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
