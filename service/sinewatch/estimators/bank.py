@@ -174,5 +174,11 @@ def _one_by_one(
 ) -> list[Track]:
     """Each channel's own kernel in turn, every column checked first so that a rejected
     column leaves every estimator as it was."""
+    if samples.dtype == np.float64 and samples.shape[0] and estimators[0].n_inputs == 1:
+        # the common case in one pass: one transposing copy makes every column contiguous (what
+        # ``update`` takes as is), one finiteness check covers them all
+        cols = np.ascontiguousarray(samples.T)
+        if _all_finite(cols.reshape(-1)):
+            return [est.update(cols[c], last_only=last_only, t0_ns=t0_ns) for c, est in enumerate(estimators)]
     blocks = [est._as_block(samples[:, c]) for c, est in enumerate(estimators)]
     return [est.update(b, last_only=last_only, t0_ns=t0_ns) for est, b in zip(estimators, blocks, strict=True)]
