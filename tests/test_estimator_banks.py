@@ -132,3 +132,26 @@ def test_a_bank_of_different_parameters_is_refused() -> None:
     ests = [cls.example(), cls(cls.example_sample_rate_hz, {"nominal_frequency_hz": 60.0})]
     with pytest.raises(ValueError, match=r"estimators\[1\]"):
         update_bank(ests, np.zeros((8, 2)))
+
+
+def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_path, capsys) -> None:
+    """``sinewatch bench kernels --bank N``: every estimator's bank measured beside its single
+    channel and the streaming FFT, and every bank below the target says why (no timing asserted)."""
+    import argparse
+
+    from sinewatch.bench import kernels
+
+    out_json = tmp_path / "k.json"
+    names = ["sogi-fll", "pmu"]
+    args = argparse.Namespace(estimators=",".join(names), block=[256], seconds=0.02, bank=3, json=out_json)
+    assert kernels.run(args) == 0
+    printed = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
+    results = json.loads(out_json.read_text())
+    assert results["bank_channels"] == 3
+    for name in names:
+        r = results["estimators"][name]["256"]
+        assert r["bank3_bank"] > 0 and r["bank3_single"] > 0 and r["bank3_fft_stream"] > 0
+        if r["bank3_bank_vs_fft"] < kernels.BANK_TARGET:
+            why = NO_BANK.get(name) or get(name).bank_note
+            assert f"bank note: {name}'s bank 3" in printed
+            assert " ".join(why.split())[:60] in printed
