@@ -128,7 +128,9 @@ class HarmonicsRule(_Section):
 
     match: str = Field(description="Key expression matched against the input key")
     nominal_frequency_hz: Literal[50, 60] = Field(50, description="50 Hz: 10-cycle windows; 60 Hz: 12-cycle windows")
-    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order reported and used in THD")
+    max_harmonic: int = Field(
+        50, ge=2, le=50, description="Highest harmonic order reported (THD stops at min(40, this), IEC 61000-4-7)"
+    )
     aggregate: bool = Field(True, description="Publish the 150/180-cycle and 10-min aggregates too")
 
 

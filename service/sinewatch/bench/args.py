@@ -84,6 +84,13 @@ def add_kernels_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimators", help="comma-separated names (default all)")
     parser.add_argument("--block", type=int, action="append", help="block size (repeatable; default 1024 and 4096)")
     parser.add_argument("--seconds", type=float, default=0.5, help="time per measurement (default 0.5)")
+    parser.add_argument(
+        "--bank",
+        type=int,
+        default=8,
+        metavar="N",
+        help="channels per estimator bank (one compiled call for N channels of a frame), beside one channel (default 8)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
