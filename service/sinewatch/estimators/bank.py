@@ -16,10 +16,11 @@ overlaps them (out-of-order execution, and SIMD where the compiler vectorises th
 loop). Each channel's arithmetic is the single-channel kernel's, operation for operation:
 both kernels call the same compiled per-sample step function, so they agree by
 construction, not by test alone (the tests check it too). No fast-math, and no vectorised
-library function where it would round differently: numba here has no SVML, so ``tan``,
-``atan2`` and the like stay scalar library calls per lane (the same calls the
-single-channel kernel makes); ``sqrt`` and the project's :func:`fma` are correctly rounded
-either way.
+library function where it would round differently: without Intel's SVML (numba uses it only
+when it is installed; ``numba -s`` says), ``tan``, ``atan2`` and the like stay scalar C library
+calls per lane, the same calls the single-channel kernel makes, and a bank keeps any such call
+in a loop of its own so that the rest of the step may vectorise; ``sqrt`` and the project's
+:func:`fma` are correctly rounded either way.
 
 A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from sinewatch.estimators.base import Estimator, Track, _all_finite
-from sinewatch.schemas.errors import InputError, InputTypeError
+from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,11 +163,16 @@ def _check_alike(estimators: Sequence[Estimator[Any]], cls: type[Estimator[Any]]
     first = estimators[0]
     for c, est in enumerate(estimators):
         if type(est) is not cls:
-            raise TypeError(f"estimators[{c}]: expected {cls.__name__} like estimators[0], got {type(est).__name__}")
+            raise InputTypeError(
+                f"estimators[{c}]: expected {cls.__name__} like estimators[0], got {type(est).__name__}"
+            )
         if est.sample_rate_hz != first.sample_rate_hz or (
             est.params is not first.params and est.params != first.params
         ):
-            raise ValueError(f"estimators[{c}]: expected the sample rate and parameters of estimators[0]")
+            raise ParameterError(
+                f"estimators[{c}]: expected the sample rate and parameters of estimators[0] "
+                f"({first.sample_rate_hz} Hz, {first.params!r}), got {est.sample_rate_hz} Hz, {est.params!r}"
+            )
 
 
 def _one_by_one(

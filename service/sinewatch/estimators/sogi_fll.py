@@ -104,11 +104,12 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
+import numba
 import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import NO_BANK, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -327,7 +328,8 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
     bank_note: ClassVar[str] = (
         "the bank interleaves the channels' chains (about 1.5-1.8x one channel at 8 channels), but "
         "every sample of every channel still takes one tan from the C library (~11 ns of "
-        "throughput here; numba has no SVML, and a vectorised tan would round differently) and five "
+        "throughput on a Sapphire Rapids core; numba without Intel's SVML has no vectorised tan, and "
+        "one would round differently) and five "
         "divisions; a variant whose channel loop the compiler vectorised (4 lanes, the tan kept "
         "scalar per lane, the same bits) ran no faster, so the tan is the bound"
     )
@@ -430,4 +432,9 @@ def sogi_fll_bank_kernel(
     return out, ext, sse, x
 
 
-register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3)
+# With Intel's SVML installed, numba would vectorise the bank's tan loop with SVML's tan, which
+# rounds differently from the C library's that the single kernel calls: no bank then.
+if not getattr(numba.config, "USING_SVML", False):  # (absent from numba's type information)
+    register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3)
+else:  # pragma: no cover (numba without SVML, as tested)
+    NO_BANK["sogi-fll"] = "no compiled bank: numba uses SVML, whose vectorised tan rounds differently"
