@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_config, run_daemon, take
+from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
 
-from sinewatch.clients import connect, subscribe_estimates
+from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.continuity import Continuity, check_continuity
 from sinewatch.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary
@@ -40,15 +40,14 @@ def test_the_continuity_rule():
 
 
 def _blocks(seqs_and_starts, f_before=50.0, f_after=50.0, switch_at=None):
-    """(seq, t0_ns) -> encoded blocks of a 50 Hz sine (its frequency f_after from block
-    ``switch_at`` on, with a phase that is not the old one's continuation)."""
+    """(seq, t0_ns) -> blocks of a 50 Hz sine (its frequency f_after from block ``switch_at``
+    on, with a phase that is not the old one's continuation)."""
     out = []
     for i, (seq, t0) in enumerate(seqs_and_starts):
         f = f_before if switch_at is None or i < switch_at else f_after
         phase = 0.0 if switch_at is None or i < switch_at else 1.9
         t = (t0 - T00) / 1e9 + np.arange(N) / FS
-        x = np.sin(2 * np.pi * f * t + phase)
-        out.append(encode_block_binary(Block("gw/a", seq, t0, FS, x)))
+        out.append(Block("gw/a", seq, t0, FS, np.sin(2 * np.pi * f * t + phase)))
     return out
 
 
@@ -63,28 +62,20 @@ def test_a_gateway_restart_on_a_live_daemon_starts_the_channel_over(tmp_path, es
     before = [(s, T00 + s * BLOCK_NS) for s in range(40)]
     t_back = T00 + 40 * BLOCK_NS + 45 * 10**9
     after = [(s, t_back + s * BLOCK_NS) for s in range(40)]
-    payloads = _blocks(before + after, f_after=52.0, switch_at=40)
+    blocks = _blocks(before + after, f_after=52.0, switch_at=40)
+    n_expected = len(clean_estimates(config, "sinewatch/in/gw/a", blocks))  # pmu: reports, not blocks
 
     def client(daemon, ep):
         with connect([ep]) as s:
             est = subscribe_estimates(s)
-            pub = s.declare_publisher("sinewatch/in/gw/a")
-            for p in payloads:
-                pub.put(p)
-            n_expected = 80 if estimator != "pmu" else None
-            if n_expected is not None:
-                return take(est, n_expected)
-            # pmu publishes on its grid: wait for the last report the blocks can complete
-            got: list[dict] = []
-            while not got or got[-1]["timestamp_ns"] < t_back + 40 * BLOCK_NS - 400_000_000:
-                more = take(est, 1)
-                if not more:
-                    break
-                got += more
-            return got
+            pub = BlockPublisher(s, dtype="float64")
+            assert pub.wait_for_subscriber("gw/a", TIMEOUT)
+            for b in blocks:  # the blocks as made: their own seq and t0 (a restart among them)
+                pub.publish_raw("gw/a", encode_block_binary(b))
+            return take(est, n_expected)
 
     estimates, daemon, code = run_daemon(config, client)
-    assert code == 0
+    assert code == 0 and len(estimates) == n_expected
     assert all(e["estimator"] == estimator for e in estimates)
     after_restart = [e for e in estimates if e["timestamp_ns"] >= t_back]
     first = after_restart[0]["diagnostics"]
