@@ -372,9 +372,7 @@ class Pipeline:
             else:
                 gap_blocks, restart, jump, reset = self._continuity(channel, block)
             stage = "estimator"
-            if reset:
-                channel.estimator.reset()
-            track = channel.estimator.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            track = self._update(channel, block, reset)
             self._presence(channel, block, reset)
             stage = "estimate"
             self._accept(channel, block, gap_blocks, restart, reset, jump)
@@ -459,6 +457,22 @@ class Pipeline:
                 self._frame_keys.clear()  # bounded: hostile senders may invent layouts
             cached = self._frame_keys[(key, names)] = tuple(channel_key(key, name) for name in names)
         return cached
+
+    @staticmethod
+    def _update(channel: Channel, block: Block, reset: bool) -> Track:
+        """The channel's estimator on the block, reset first when ``reset``. A block the
+        estimator rejects (a NaN, the wrong shape) leaves the state as it was, reset or not:
+        a rejected block must not start a channel over."""
+        est = channel.estimator
+        if not reset:
+            return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+        before = est.get_state()
+        est.reset()
+        try:
+            return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+        except Exception:
+            est.set_state(before)
+            raise
 
     def _continuity(self, channel: Channel, block: Block) -> tuple[int, bool, bool, bool]:
         """(gap blocks, restart, time jump, reset) of a block that does not plainly continue its
