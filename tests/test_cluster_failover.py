@@ -80,6 +80,10 @@ snapshot_interval_s = 0.5
 directory = "{tmp_path / daemon_id}"
 [workers]
 count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
+[[rules]]  # one estimate per block (the default rule reports on its own grid)
+match = "sinewatch/in/**"
+estimator = "ipdft"
+params = {{ nominal_frequency_hz = 50.0, window_cycles = 10.0 }}
 """
     )
     log = open(tmp_path / f"{daemon_id}.log", "a")
