@@ -6,6 +6,7 @@ sinewatch config show [--config F]  print the effective configuration
 sinewatch schemas export DIR        write the JSON Schemas
 sinewatch estimators                list estimators and their parameters
 sinewatch feed [...]                publish simulated sample blocks
+sinewatch gateway sv [...]          IEC 61850-9-2 sampled values (interface or pcap) as frames
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
@@ -239,6 +240,12 @@ def cmd_feed(args: argparse.Namespace) -> int:
         f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
     )
     return 0
+
+
+def cmd_gateway_sv(args: argparse.Namespace) -> int:
+    from sinewatch.gateway import serve
+
+    return serve(args)
 
 
 def _settle(session: Any, timeout_s: float = 5.0) -> None:
@@ -635,6 +642,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds to wait for the daemon (default 60: a daemon starting its workers opens its endpoint once all serve)",
     )
 
+    _gateway_parser(sub)
+
     t = _command(sub, "tail", "print estimates (or any sinewatch JSON messages) as they arrive", cmd_tail)
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
     t.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
@@ -682,6 +691,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_parser(sub)
     return p
+
+
+def _gateway_parser(sub: _Subparsers) -> None:
+    from sinewatch.schemas.config import DEFAULT_ENDPOINT
+
+    gsub = _subcommands(sub, "gateway", "bring field data in as sample frames", "gateway_command")
+    g = _command(gsub, "sv", "IEC 61850-9-2 (9-2LE) sampled values -> SampleFrames on Zenoh", cmd_gateway_sv)
+    g.add_argument("--pcap", metavar="FILE", help="read a pcap/pcapng capture (as fast as possible unless --realtime)")
+    g.add_argument("--iface", metavar="NAME", help="listen on a network interface (Linux; root or CAP_NET_RAW)")
+    g.add_argument("--realtime", action="store_true", help="with --pcap: at the capture's pace")
+    g.add_argument("--sv-id", action="append", metavar="SVID", help="only this svID (repeatable; default all)")
+    g.add_argument(
+        "--app-id", action="append", type=lambda t: int(t, 0), metavar="N", help="only this APPID (repeatable)"
+    )
+    g.add_argument("--dst-mac", action="append", metavar="MAC", help="only this destination MAC (repeatable)")
+    g.add_argument(
+        "--channels",
+        action="append",
+        metavar="SVID=IA,IB,...",
+        help="the 8 channel names of a stream (repeatable; default IA,IB,IC,IN,VA,VB,VC,VN), each <svID>/<name>",
+    )
+    g.add_argument(
+        "--rate", type=int, default=4000, help="samples per second of the streams (default 4000; 4800 at 60 Hz)"
+    )
+    g.add_argument("--samples", type=_count, default=80, help="samples per published frame (default 80: a 50 Hz cycle)")
+    g.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: the end/never)")
+    g.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
+    g.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
+    g.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the daemon (default 60)")
 
 
 def main(argv: list[str] | None = None) -> int:
