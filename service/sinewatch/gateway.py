@@ -106,7 +106,10 @@ class SvStreamDecoder:
         self.names = names
         self.stats = StreamStats(spec.sv_id)
         self._scales = np.asarray(spec.scales, dtype=np.float64)
-        self._buf = np.empty((n_samples, len(names)), dtype=np.float64)
+        # the raw (value, quality) pairs of the frame being filled, copied as they come and
+        # scaled once per frame: one numpy call per frame, not per sample
+        self._width = 8 * len(names)
+        self._raw = bytearray(n_samples * self._width)
         self._fill = 0
         self._t0_ns = 0
         self._seq = 0
@@ -114,7 +117,10 @@ class SvStreamDecoder:
         self._last_cnt: int | None = None
         self._last_arrival_ns = 0
         self._synced = False
-        self._next_t_ns = 0.0  # time of the next consecutive sample (unsynchronised stretches)
+        # an unsynchronised stretch: the time of its first sample and the samples since
+        # (integers: a float of ns since the epoch has a 256-ns step)
+        self._base_ns = 0
+        self._k = 0
 
     # ---- per ASDU ------------------------------------------------------------------------
     def push(self, arrival_ns: int, smp_cnt: int, smp_synch: int, sample: bytes) -> list[Frame]:
@@ -133,27 +139,22 @@ class SvStreamDecoder:
             self.stats.lost += step - 1
             self.stats.lost_events += 1
             self._break(out, lost=step - 1)
-            self._next_t_ns += (step - 1) * 1e9 / self.rate
         if step is None or synced != self._synced:
             if step is not None:
                 self.stats.synch_changes += 1
                 self._break(out)
             self._synced = synced
-            self._next_t_ns = float(arrival_ns)  # an unsynchronised stretch starts on our clock
+            self._base_ns, self._k = arrival_ns, 0  # an unsynchronised stretch starts on our clock
+        else:
+            self._k += step
         t_ns = self._time_ns(arrival_ns, smp_cnt)
         self._last_cnt, self._last_arrival_ns = smp_cnt, arrival_ns
-        self._next_t_ns = t_ns + 1e9 / self.rate
         if not synced:
             self.stats.unsynchronised += 1
         if self._fill == 0:
-            self._t0_ns = round(t_ns)
-        raw = np.frombuffer(sample, dtype=">i4").reshape(n_ch, 2)
-        row = raw[:, 0] * self._scales
-        bad = (raw[:, 1] & _VALIDITY_MASK) != 0
-        if bad.any():
-            row[bad] = np.nan
-            self.stats.bad_quality += int(bad.sum())
-        self._buf[self._fill] = row
+            self._t0_ns = t_ns
+        at = self._fill * self._width
+        self._raw[at : at + self._width] = sample
         self._fill += 1
         self.stats.samples += 1
         if self._fill == self.n:
@@ -174,12 +175,13 @@ class SvStreamDecoder:
         elapsed = (arrival_ns - self._last_arrival_ns) * self.rate / 1e9
         return delta + round((elapsed - delta) / self.rate) * self.rate
 
-    def _time_ns(self, arrival_ns: int, smp_cnt: int) -> float:
+    def _time_ns(self, arrival_ns: int, smp_cnt: int) -> int:
         if not self._synced:
-            return self._next_t_ns
+            return self._base_ns + round(self._k * 1e9 / self.rate)
         # the UTC second of the sample: its arrival less its offset in the second, rounded
-        second = round((arrival_ns - smp_cnt * 1e9 / self.rate) / 1e9)
-        return second * 1e9 + smp_cnt * 1e9 / self.rate
+        offset_ns = round(smp_cnt * 1e9 / self.rate)
+        second = (arrival_ns - offset_ns + 500_000_000) // 1_000_000_000
+        return second * 1_000_000_000 + offset_ns
 
     def _break(self, out: list[Frame], lost: int = 0) -> None:
         """End the frame being filled; the next frame's seq skips ceil(lost / n) (at least 1)."""
@@ -190,7 +192,14 @@ class SvStreamDecoder:
     def _emit(self) -> Frame:
         self._seq += self._skip
         self._skip = 0
-        frame = Frame(self.names, self._seq, self._t0_ns, float(self.rate), self._buf[: self._fill].copy())
+        raw = np.frombuffer(self._raw, dtype=">i4", count=self._fill * self._width // 4)
+        pairs = raw.reshape(self._fill, len(self.names), 2)
+        samples = pairs[:, :, 0] * self._scales
+        bad = (pairs[:, :, 1] & _VALIDITY_MASK) != 0
+        if bad.any():
+            samples[bad] = np.nan
+            self.stats.bad_quality += int(np.count_nonzero(bad))
+        frame = Frame(self.names, self._seq, self._t0_ns, float(self.rate), samples)
         self._seq += 1
         self._fill = 0
         self.stats.frames += 1
