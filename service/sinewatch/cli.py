@@ -693,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _gateway_parser(sub: _Subparsers) -> None:
+def _gateway_parser(sub: "_Subparsers[argparse.ArgumentParser]") -> None:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT
 
     gsub = _subcommands(sub, "gateway", "bring field data in as sample frames", "gateway_command")
@@ -717,6 +717,9 @@ def _gateway_parser(sub: _Subparsers) -> None:
     )
     g.add_argument("--samples", type=_count, default=80, help="samples per published frame (default 80: a 50 Hz cycle)")
     g.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: the end/never)")
+    g.add_argument(
+        "--idle", type=float, default=0.0, help="with --iface: stop once the bus has been silent this many seconds"
+    )
     g.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     g.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
     g.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the daemon (default 60)")

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import re
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -117,7 +118,7 @@ class SvStreamDecoder:
         self._last_cnt: int | None = None
         self._last_arrival_ns = 0
         self._synced = False
-        # an unsynchronised stretch: the time of its first sample and the samples since
+        # the time base of the current stretch (see _start_stretch) and the samples since
         # (integers: a float of ns since the epoch has a 256-ns step)
         self._base_ns = 0
         self._k = 0
@@ -144,7 +145,7 @@ class SvStreamDecoder:
                 self.stats.synch_changes += 1
                 self._break(out)
             self._synced = synced
-            self._base_ns, self._k = arrival_ns, 0  # an unsynchronised stretch starts on our clock
+            self._start_stretch(arrival_ns, smp_cnt)
         else:
             self._k += step
         t_ns = self._time_ns(arrival_ns, smp_cnt)
@@ -175,13 +176,25 @@ class SvStreamDecoder:
         elapsed = (arrival_ns - self._last_arrival_ns) * self.rate / 1e9
         return delta + round((elapsed - delta) / self.rate) * self.rate
 
+    def _start_stretch(self, arrival_ns: int, smp_cnt: int) -> None:
+        """The time base of a stretch of one synchronisation state: synchronised, the UTC
+        second of its first sample (its arrival less its offset in the second, rounded: the
+        arrival must be within half a second of the sample); else the arrival itself. From
+        there the counter alone times the stretch, so a gateway running behind (a backlog in
+        the socket buffer) does not shift it."""
+        self._k = 0
+        if self._synced:
+            offset_ns = round(smp_cnt * 1e9 / self.rate)
+            second = (arrival_ns - offset_ns + 500_000_000) // 1_000_000_000
+            self._base_ns = second * self.rate + smp_cnt  # in samples since the epoch
+        else:
+            self._base_ns = arrival_ns
+
     def _time_ns(self, arrival_ns: int, smp_cnt: int) -> int:
         if not self._synced:
             return self._base_ns + round(self._k * 1e9 / self.rate)
-        # the UTC second of the sample: its arrival less its offset in the second, rounded
-        offset_ns = round(smp_cnt * 1e9 / self.rate)
-        second = (arrival_ns - offset_ns + 500_000_000) // 1_000_000_000
-        return second * 1_000_000_000 + offset_ns
+        second, index = divmod(self._base_ns + self._k, self.rate)
+        return second * 1_000_000_000 + round(index * 1e9 / self.rate)
 
     def _break(self, out: list[Frame], lost: int = 0) -> None:
         """End the frame being filled; the next frame's seq skips ceil(lost / n) (at least 1)."""
@@ -300,23 +313,30 @@ def pcap_frames(path: str, *, realtime: bool, stop: threading.Event) -> Iterator
 
 
 def iface_frames(
-    iface: str, *, stop: threading.Event, ready: threading.Event | None = None
+    iface: str, *, stop: threading.Event, on_ready: Callable[[], None] | None = None, idle_s: float = 0.0
 ) -> Iterator[tuple[bytes, int]]:
-    """(frame bytes, receive time in ns) of the SV frames on a network interface (Linux
-    AF_PACKET; root or CAP_NET_RAW), until ``stop`` is set."""
+    """(frame bytes, receive time in ns) of the frames on a network interface (Linux
+    AF_PACKET; root or CAP_NET_RAW), until ``stop`` is set or, with ``idle_s``, the bus has
+    been silent that long after a first frame (what is still in the socket's buffer is read
+    first, so nothing received is left behind)."""
     eth_p_all = 0x0003
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(eth_p_all))
     try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 * 1024 * 1024)
+        # a large buffer absorbs the bursts of a gateway that is late on a loaded machine
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 32 * 1024 * 1024)
         sock.bind((iface, 0))
-        sock.settimeout(0.2)  # how often ``stop`` is looked at while the bus is silent
-        if ready is not None:
-            ready.set()
+        sock.settimeout(0.2)  # how often ``stop`` and ``idle_s`` are looked at while silent
+        if on_ready is not None:
+            on_ready()
+        last = None
         while not stop.is_set():
             try:
                 data, addr = sock.recvfrom(65535)
             except TimeoutError:
+                if idle_s and last is not None and time.monotonic() - last > idle_s:
+                    return
                 continue
+            last = time.monotonic()
             if addr[2] == socket.PACKET_OUTGOING:
                 continue
             yield data, time.time_ns()
@@ -335,7 +355,6 @@ def serve(args: Any) -> int:
     Zenoh; prints the per-stream counts as one JSON object on stdout at the end."""
     import json
     import logging
-    import sys
 
     from sinewatch.clients import BlockPublisher, connect
 
@@ -370,11 +389,13 @@ def serve(args: Any) -> int:
 
         gateway = SvGateway(options, emit)
         if args.duration:
-            threading.Timer(args.duration, stop.set).start()
+            timer = threading.Timer(args.duration, stop.set)
+            timer.daemon = True
+            timer.start()
         if args.pcap:
             source = pcap_frames(args.pcap, realtime=args.realtime, stop=stop)
         else:
-            source = iface_frames(args.iface, stop=stop)
+            source = iface_frames(args.iface, stop=stop, on_ready=_say(f"listening on {args.iface}"), idle_s=args.idle)
         try:
             run(source, gateway)
         except KeyboardInterrupt:
@@ -387,6 +408,13 @@ def serve(args: Any) -> int:
     summary["published"] = pub.published
     print(json.dumps(summary), file=sys.stdout, flush=True)
     return 0
+
+
+def _say(text: str) -> Callable[[], None]:
+    def say() -> None:
+        print(f"gateway sv: {text}", file=sys.stderr, flush=True)
+
+    return say
 
 
 def _settle(session: Any, timeout_s: float = 5.0) -> None:
