@@ -342,3 +342,19 @@ def test_live_from_a_publisher_on_a_veth_pair(tmp_path, veth):
 @pytest.mark.slow
 def test_live_ten_seconds_without_a_lost_frame(tmp_path, veth):
     _live(tmp_path, veth, seconds=10.0)
+
+
+def test_bench_gateway_runs_its_three_ways_and_zenoh_delivers_every_frame(tmp_path):
+    """The bench's bookkeeping (no timing asserted): every SV frame goes through each way,
+    and the subscriber counts every SampleFrame the gateway put (4000 samples / 80)."""
+    import argparse
+
+    from sinewatch.bench.gateway import run
+
+    out = tmp_path / "bench.json"
+    args = argparse.Namespace(streams=1, seconds=1, rate=RATE, samples=80, json=out)
+    assert run(args) == 0
+    result = json.loads(out.read_text())
+    assert [r["way"] for r in result["results"]] == ["decode (open61850)", "gateway", "gateway + Zenoh"]
+    assert all(r["frames"] == RATE for r in result["results"])
+    assert result["results"][2]["zenoh_frames"] == RATE // 80

@@ -12,7 +12,7 @@ sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-r
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
-sinewatch bench kernels|e2e|accuracy|scenarios
+sinewatch bench kernels|e2e|accuracy|scenarios|gateway|...
 """
 
 from __future__ import annotations
