@@ -358,3 +358,55 @@ def test_bench_gateway_runs_its_three_ways_and_zenoh_delivers_every_frame(tmp_pa
     assert [r["way"] for r in result["results"]] == ["decode (open61850)", "gateway", "gateway + Zenoh"]
     assert all(r["frames"] == RATE for r in result["results"])
     assert result["results"][2]["zenoh_frames"] == RATE // 80
+
+
+def test_the_deploy_example_serves_the_merging_unit_as_a_pmu_and_a_power_quality_meter(tmp_path, capture):
+    """deploy/sv-merging-unit.toml on the gateway's frames: C37.118.2 data frames of the three
+    voltages (RMS within 0.1 %, 120 degrees apart within 0.1, frequency within 5 mHz, STAT
+    in sync as the example declares) and the three-phase group's reports (balanced: u2 ~ 0)."""
+    import threading
+
+    from sinewatch.clients.c37118 import C37118Reader
+    from sinewatch.clients.session import free_loopback_port
+    from sinewatch.clients.subscriber import JsonSubscription
+    from sinewatch.schemas.config import ZenohSection, load_config
+
+    example = load_config(Path(__file__).resolve().parents[1] / "deploy" / "sv-merging-unit.toml", {})
+    c_port = free_loopback_port()
+    config = example.model_copy(
+        update={
+            "zenoh": ZenohSection(listen=[f"tcp/127.0.0.1:{free_loopback_port()}"]),
+            "c37118": example.c37118.model_copy(update={"port": c_port}),
+            "recording": example.recording.model_copy(update={"enabled": False}),
+        }
+    )
+
+    def client(_daemon, ep):
+        rows: list[dict] = []
+        with connect([ep]) as s, C37118Reader("127.0.0.1", c_port, id_code=61, timeout_s=60) as pmu:
+            groups = JsonSubscription(s, "sinewatch/pq/group/**")
+            pmu.config()
+            pmu.start()
+            reader = threading.Thread(target=lambda: rows.extend(pmu.rows(count=150)), daemon=True)
+            reader.start()
+            r = subprocess.run(
+                [sys.executable, "-m", "sinewatch", "gateway", "sv", "--pcap", str(capture), "--connect", ep,
+                 "--wait", "30"],
+                capture_output=True, text=True, timeout=300, check=False,
+            )  # fmt: skip
+            reader.join(timeout=120)
+            return r, list(rows), take(groups, 100)
+
+    (r, rows, groups), _daemon, code = run_daemon(config, client)
+    assert r.returncode == 0, r.stderr
+    assert code == 0 and len(rows) == 150 and len(groups) == 100
+    good = [row for row in rows if row["data_error"] == 0]
+    assert all(row["in_sync"] for row in rows)  # time_synchronised = true in the example
+    last = good[-1]
+    mags = [last["phasors"][p][0] for p in ("VA", "VB", "VC")]
+    angles = [math.degrees(last["phasors"][p][1]) for p in ("VA", "VB", "VC")]
+    assert all(abs(m - V_PEAK / math.sqrt(2)) / (V_PEAK / math.sqrt(2)) < 0.001 for m in mags), mags
+    for k in (1, 2):
+        assert abs((angles[0] - angles[k] - 120 * k + 180) % 360 - 180) < 0.1, angles
+    assert abs(last["frequency_hz"] - F) < 0.005, last
+    assert groups[-1]["u2"] is not None and groups[-1]["u2"] < 1e-3, groups[-1]
