@@ -107,8 +107,14 @@ def capture(tmp_path_factory) -> Path:
     return path
 
 
-def test_the_gateway_s_frames_carry_the_values_sent_at_the_times_of_their_sample_counters(capture):
-    frames, gw = gateway_frames(capture)
+@pytest.fixture(scope="module")
+def decoded(capture) -> tuple[list[Frame], SvGateway]:
+    """The capture through the gateway in this process, frames of N (decoded once)."""
+    return gateway_frames(capture)
+
+
+def test_the_gateway_s_frames_carry_the_values_sent_at_the_times_of_their_sample_counters(decoded):
+    frames, gw = decoded
     [stats] = gw.summary()["streams"]
     assert stats == {
         "sv_id": SV_ID,
@@ -148,8 +154,8 @@ def test_the_gateway_s_frames_carry_the_values_sent_at_the_times_of_their_sample
     assert bad.t0_ns + nan[0][1] * 250_000 == (START + BAD_QUALITY[0]) * 10**9 + BAD_QUALITY[1] * 250_000
 
 
-def test_wrap_loss_repeat_and_unsynchronised_stretch_are_flagged_as_documented(capture):
-    frames, _ = gateway_frames(capture)
+def test_wrap_loss_repeat_and_unsynchronised_stretch_are_flagged_as_documented(decoded):
+    frames, _ = decoded
     seqs = [f.seq for f in frames]
     skips = [(a, b) for a, b in itertools.pairwise(seqs) if b != a + 1]
     # one skip each: the lost sample, the repeated one, into and out of the unsynchronised second
@@ -213,10 +219,10 @@ def check_three_phase(estimates: list[dict], channels=("VA", "VB", "VC"), peak=V
         assert abs((d - expected + 180) % 360 - 180) < 0.1, (k, d)
 
 
-def test_a_daemon_estimates_the_gateway_s_frames_from_the_pcap(tmp_path, capture):
+def test_a_daemon_estimates_the_gateway_s_frames_from_the_pcap(tmp_path, capture, decoded):
     rules = [EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params=IPDFT)]
     config = make_config(tmp_path, rules=rules)
-    frames, _ = gateway_frames(capture)
+    frames, _ = decoded
     expected = 8 * len(frames) - 1  # every channel of every frame, but VA's NaN block
 
     def client(_daemon, ep):
@@ -410,3 +416,66 @@ def test_the_deploy_example_serves_the_merging_unit_as_a_pmu_and_a_power_quality
         assert abs((angles[0] - angles[k] - 120 * k + 180) % 360 - 180) < 0.1, angles
     assert abs(last["frequency_hz"] - F) < 0.005, last
     assert groups[-1]["u2"] is not None and groups[-1]["u2"] < 1e-3, groups[-1]
+
+
+def _head(capture: Path, path: Path, count: int) -> Path:
+    """The first ``count`` frames of a capture, as a capture of their own."""
+    with pcap.PcapWriter(path) as w:
+        for frame in itertools.islice(pcap.read_pcap(capture), count):
+            w.write(frame)
+    return path
+
+
+def test_malformed_sv_is_counted_never_raised_and_other_streams_go_on(capture):
+    good = [c.data for c in itertools.islice(pcap.read_pcap(capture), 4)]
+    got: list[Frame] = []
+    gw = SvGateway(GatewayOptions(rate=RATE, samples=2), lambda name, f: got.append(f))
+    gw.feed(good[0], START * 10**9)
+    gw.feed(good[0][:60], START * 10**9)  # cut: its Length field says more (open61850: not an SV frame)
+    broken = bytearray(good[1])
+    broken[22] = 0x61  # the SavPdu tag ([APPLICATION 0] = 0x60) after the 14 + 8 header bytes
+    gw.feed(bytes(broken), START * 10**9 + 250_000)
+    seven = svp.SvStream(sv_id=SV_ID, app_id=0x4000, dst_mac="01:0c:cd:04:00:01", src_mac="02:00:00:00:00:01",
+                         waves=[svp.Wave(1.0, scale=1000)] * 7, smp_synch=2)  # fmt: skip
+    gw.feed(svp.render_frame(svp.build_template(seven, 1, RATE), seven, START, 1, RATE), START * 10**9 + 250_000)
+    high = svp.render_frame(svp.build_template(_stream(2), 1, 8000), _stream(2), START, 5000, 8000)
+    gw.feed(high, START * 10**9 + 625_000_000)  # smpCnt 5000: beyond the 4000 a second
+    gw.feed(good[1], START * 10**9 + 250_000 + LATENCY_NS)
+    assert (gw.not_sv, gw.undecodable, gw.streams[SV_ID].stats.rejected) == (1, 1, 2)
+    assert len(got) == 1 and got[0].n_samples == 2 and got[0].seq == 0  # samples 0 and 1, unharmed
+
+
+def test_realtime_reads_the_same_frames_at_the_capture_s_pace(tmp_path, capture):
+    import threading
+
+    from sinewatch.gateway import pcap_frames
+
+    short = _head(capture, tmp_path / "short.pcap", 400)  # 0.1 s of traffic
+    stop = threading.Event()
+    assert list(pcap_frames(str(short), realtime=True, stop=stop)) == list(
+        pcap_frames(str(short), realtime=False, stop=stop)
+    )
+
+
+def test_a_cut_capture_publishes_what_was_complete_then_says_so(tmp_path, capture):
+    short = _head(capture, tmp_path / "short.pcap", 1000)
+    cut = tmp_path / "cut.pcap"
+    cut.write_bytes(short.read_bytes()[:-10])  # the last record cut, as a killed capture leaves it
+    config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params=IPDFT)])
+
+    def client(_daemon, ep):
+        with connect([ep]) as s:
+            est = subscribe_estimates(s)
+            r = subprocess.run(
+                [sys.executable, "-m", "sinewatch", "gateway", "sv", "--pcap", str(cut), "--connect", ep,
+                 "--samples", "100", "--wait", "30"],
+                capture_output=True, text=True, timeout=300, check=False,
+            )  # fmt: skip
+            return r, take(est, 8 * 10)
+
+    (r, got), _daemon, code = run_daemon(config, client)
+    assert r.returncode == 2 and code == 0
+    assert r.stderr.strip().splitlines()[-1].startswith("sinewatch: error: --pcap ") and "expected a pcap" in r.stderr
+    [stream] = json.loads(r.stdout.strip().splitlines()[-1])["streams"]
+    assert stream["samples"] == 999 and stream["frames"] == 10  # 9 frames of 100, then the 99 complete
+    assert len(got) == 80

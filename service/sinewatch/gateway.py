@@ -362,7 +362,7 @@ def serve(args: Any) -> int:
     if bool(args.pcap) == bool(args.iface):
         raise GatewayError("gateway sv: expected exactly one of --pcap FILE or --iface NAME")
     try:
-        import open61850  # noqa: F401
+        from open61850.pcap import PcapError
     except ImportError:
         raise GatewayError(
             "gateway sv: expected the open61850 package (pip install 'sinewatch[sv]'), got none"
@@ -396,10 +396,14 @@ def serve(args: Any) -> int:
             source = pcap_frames(args.pcap, realtime=args.realtime, stop=stop)
         else:
             source = iface_frames(args.iface, stop=stop, on_ready=_say(f"listening on {args.iface}"), idle_s=args.idle)
+        failed: str | None = None
         try:
             run(source, gateway)
         except KeyboardInterrupt:
             gateway.flush()
+        except PcapError as exc:  # a cut capture: what was complete is published, then the error
+            gateway.flush()
+            failed = f"--pcap {args.pcap}: expected a pcap or pcapng capture of Ethernet frames, got {exc}"
         finally:
             stop.set()
         _settle(session)
@@ -407,6 +411,8 @@ def serve(args: Any) -> int:
     summary = gateway.summary()
     summary["published"] = pub.published
     print(json.dumps(summary), file=sys.stdout, flush=True)
+    if failed is not None:
+        raise GatewayError(failed)
     return 0
 
 
