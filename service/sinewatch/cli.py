@@ -693,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _gateway_parser(sub: "_Subparsers[argparse.ArgumentParser]") -> None:
+def _gateway_parser(sub: _Subparsers[argparse.ArgumentParser]) -> None:
     from sinewatch.schemas.config import DEFAULT_ENDPOINT
 
     gsub = _subcommands(sub, "gateway", "bring field data in as sample frames", "gateway_command")
