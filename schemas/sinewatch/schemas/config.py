@@ -291,6 +291,12 @@ class RecordingSection(_Section):
     flush_interval_s: float = Field(
         1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much"
     )
+    snapshot_interval_s: float | None = Field(
+        10.0,
+        gt=0,
+        description="Also write the state of every channel this often (log time; at an input) so that a "
+        "window of the file replays from the snapshot before it; None: at file starts only",
+    )
     inputs: bool = True
     estimates: bool = True
     power_quality: bool = Field(True, description="Record HarmonicsReports, ThreePhaseReports and PqAggregates")
