@@ -63,7 +63,11 @@ class ParameterDiff:
     worst: float | None = None  # the largest |B - A|
     worst_at: Where | None = None
     first_divergence: Where | None = None
+    reported_by: str = "both"  # "A", "B": the other recording's estimator never gives it (not a divergence)
     _sum_sq: float = field(default=0.0, repr=False)
+    _first_beyond: Where | None = field(default=None, repr=False)
+    _first_one_sided: Where | None = field(default=None, repr=False)
+    _defined: list[int] = field(default_factory=lambda: [0, 0], repr=False)  # in A, in B
 
 
 @dataclass
@@ -88,7 +92,7 @@ class ChannelComparison:
         return (
             self.a.only_here == 0
             and self.b.only_here == 0
-            and all(p.one_defined == 0 and not p.worst for p in self.parameters)
+            and all(p.one_defined == 0 and not p.worst for p in self.parameters if p.reported_by == "both")
         )
 
 
@@ -176,22 +180,29 @@ def compare_channel(
                     d = diffs[name] = ParameterDiff(name, tolerances[p])
                 x = va[k] if k < len(va) else None
                 y = vb[k] if k < len(vb) else None
+                d._defined[0] += x is not None
+                d._defined[1] += y is not None
                 if x is None and y is None:
                     continue
                 if x is None or y is None:
                     d.one_defined += 1
-                    if d.first_divergence is None:
-                        d.first_divergence = where
+                    d._first_one_sided = d._first_one_sided or where
                     continue
                 delta = abs(_difference(p, x, y))
                 d.compared += 1
                 d._sum_sq += delta * delta
                 if d.worst is None or delta > d.worst:
                     d.worst, d.worst_at = delta, where
-                if delta > d.tolerance and d.first_divergence is None:
-                    d.first_divergence = where
+                if delta > d.tolerance and d._first_beyond is None:
+                    d._first_beyond = where
     for d in diffs.values():
         d.rms = math.sqrt(d._sum_sq / d.compared) if d.compared else None
+        if not d._defined[0] or not d._defined[1]:  # one estimator does not report it at all
+            d.reported_by = "B" if d._defined[1] else "A" if d._defined[0] else "neither"
+            d.first_divergence = d._first_beyond
+        else:
+            firsts = [w for w in (d._first_beyond, d._first_one_sided) if w is not None]
+            d.first_divergence = min(firsts, key=lambda w: w.timestamp_ns) if firsts else None
     return ChannelComparison(channel, len(times), _counts(a, b), _counts(b, a), list(diffs.values()))
 
 
@@ -233,6 +244,10 @@ def _g(v: float | None) -> str:
     return "-" if v is None else f"{v:.3g}"
 
 
+def _pct(k: int, n: int) -> str:
+    return f"{100.0 * k / n:.1f} %" if n else "-"
+
+
 def format_comparison(c: Comparison) -> list[str]:
     """The comparison as text: a header per channel, a line per parameter."""
     lines = [f"A: {c.a}", f"B: {c.b}", f"window: {c.window}; B - A, phases wrapped"]
@@ -244,16 +259,21 @@ def format_comparison(c: Comparison) -> list[str]:
             + (" - identical" if ch.identical else "")
         )
         for tag, n in (("A", ch.a), ("B", ch.b)):
-            pct = (lambda k: f"{100.0 * k / n.estimates:.1f} %") if n.estimates else (lambda k: "-")
             lines.append(
-                f"  {tag} {n.estimator or '-'}: {n.estimates} estimates, valid {pct(n.valid)}, "
-                f"converged {pct(n.converged)}"
+                f"  {tag} {n.estimator or '-'}: {n.estimates} estimates, valid {_pct(n.valid, n.estimates)}, "
+                f"converged {_pct(n.converged, n.estimates)}"
             )
         lines.append(f"  {'parameter':<18} {'n':>6} {'RMS':>10} {'worst':>10} {'at':>22} {'first > tol':>30}")
         for p in ch.parameters:
             first = "-" if p.first_divergence is None else p.first_divergence.text()
             worst_at = "-" if p.worst_at is None else p.worst_at.text()
-            undefined = f" ({p.one_defined} one-sided)" if p.one_defined else ""
+            undefined = (
+                f" (only {p.reported_by} reports it)"
+                if p.reported_by != "both"
+                else f" ({p.one_defined} defined in one only)"
+                if p.one_defined
+                else ""
+            )
             lines.append(
                 f"  {p.parameter:<18} {p.compared:>6} {_g(p.rms):>10} {_g(p.worst):>10} {worst_at:>22} "
                 f"{first + f' [tol {p.tolerance:g}]':>30}{undefined}"
