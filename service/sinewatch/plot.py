@@ -213,7 +213,7 @@ def plot(
                 for ax in axes[:4]:
                     ax.axvspan(lo, hi, color=INVALID_COLOUR, alpha=0.12, lw=0)
     _labels(axes, series, t_origin)
-    handles = [matplotlib.lines.Line2D([], [], color=INPUT_COLOUR, lw=1.2, label="input samples")]
+    handles: list[Any] = [matplotlib.lines.Line2D([], [], color=INPUT_COLOUR, lw=1.2, label="input samples")]
     for i, s in enumerate(series):
         handles.append(
             matplotlib.lines.Line2D(

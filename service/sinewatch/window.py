@@ -23,7 +23,7 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from decimal import Decimal, InvalidOperation
+from decimal import Decimal
 
 from sinewatch.schemas.errors import SinewatchError
 
@@ -54,11 +54,8 @@ def parse_time(text: str, option: str = "--start") -> TimeSpec:
     s = text.strip()
     m = _RELATIVE.match(s)
     if m:
-        try:
-            ns = Decimal(m.group(1)) * _UNITS_NS[m.group(2)]
-        except InvalidOperation:
-            ns = Decimal(-1)
-        return TimeSpec(text, relative_ns=int(ns.to_integral_value()))
+        exact = Decimal(m.group(1)) * _UNITS_NS[m.group(2)]  # the regex admits only decimal numbers
+        return TimeSpec(text, relative_ns=int(exact.to_integral_value()))
     if _EPOCH_NS.match(s):
         return TimeSpec(text, absolute_ns=int(s))
     try:
