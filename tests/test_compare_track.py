@@ -177,3 +177,12 @@ def test_track_goes_into_the_output_recording_for_foxglove(recording, tmp_path):
     assert last["frequency_hz"] == estimate["frequency_hz"] and last["offset"] == estimate["offset"]
     assert first["timestamp"] == {"sec": first["timestamp_ns"] // 10**9, "nsec": first["timestamp_ns"] % 10**9}
     assert replay([out]).ok  # track rows are not outputs a replay compares
+
+
+def test_relative_windows_are_the_first_recordings_for_both(recording, tmp_path):
+    # a re-run of a window starts 1 s later: "+1s" still means 1 s after A's start in B
+    later = tmp_path / "later.mcap"
+    assert replay([recording], window=Window.parse("+1s", None), out=later).ok
+    c = compare(recording, later, window=Window.parse("+1s", "+1.4s"))
+    assert [(ch.paired, ch.a.estimates, ch.b.estimates) for ch in c.channels] == [(10, 10, 10), (9, 9, 9), (10, 10, 10)]
+    assert all(ch.identical for ch in c.channels)

@@ -214,8 +214,8 @@ def compare(
     channels: ChannelFilter | None = None,
     tolerances: dict[str, float] | None = None,
 ) -> Comparison:
-    """Compare the estimates of recordings ``a`` and ``b`` (module docstring); the window
-    is resolved against each recording's own start."""
+    """Compare the estimates of recordings ``a`` and ``b`` (module docstring); a relative
+    window is resolved against A's start, for both."""
     tol = dict(DEFAULT_TOLERANCES)
     for name, value in (tolerances or {}).items():
         if name not in tol:
@@ -226,7 +226,10 @@ def compare(
     window = window or Window()
     channels = channels or ChannelFilter()
     est_a, origin = read_estimates(a, Window(window.start, window.end), channels)
-    est_b, _ = read_estimates(b, Window(window.start, window.end), channels)
+    window_b = Window(window.start, window.end)
+    if origin is not None:  # relative times are A's: B may start later (a re-run of some channels)
+        window_b.anchor(origin)
+    est_b, _ = read_estimates(b, window_b, channels)
     if not est_a and not est_b:
         raise WindowError(
             f"{a}, {b}: expected estimates in the window ({window.describe()}) on the channels "

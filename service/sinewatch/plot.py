@@ -156,7 +156,13 @@ def plot(
     from matplotlib.patches import Patch
 
     window = window or Window()
-    series = [read_series(p, channel, Window(window.start, window.end)) for p in paths]
+    first_window = Window(window.start, window.end)
+    series = [read_series(paths[0], channel, first_window)]
+    for path in paths[1:]:  # relative times are the first recording's: a re-run may start later
+        other = Window(window.start, window.end)
+        if first_window.origin_ns is not None:
+            other.anchor(first_window.origin_ns)
+        series.append(read_series(path, channel, other))
     if not any(s.estimates for s in series):
         seen = sorted(set().union(*(s.channels_seen for s in series)))
         listed = ", ".join(seen[:8]) + (", ..." if len(seen) > 8 else "")
@@ -192,15 +198,16 @@ def plot(
         style = "-" if i == 0 else "--"
         if rate is not None:
             _reconstruction(ax_sig, s.estimates, rate, secs, colour, style)
+        gaps = np.array([bool(m["diagnostics"].get("gap")) for m in s.estimates])
         for ax, name in ((ax_f, "frequency_hz"), (ax_a, "amplitude"), (ax_r, "rocof_hz_per_s")):
             k_max = max(len(m.get(name) or []) for m in s.estimates)
             for k in range(k_max):
-                y = _component(s.estimates, name, k)
-                ax.plot(t, y, color=colour, lw=1.4, ls=style)
+                tb, y = _broken(t, _component(s.estimates, name, k), gaps)
+                ax.plot(tb, y, color=colour, lw=1.4, ls=style)
                 if name != "rocof_hz_per_s":
-                    sd = _component(s.estimates, name, k, std=True)
+                    _, sd = _broken(t, _component(s.estimates, name, k, std=True), gaps)
                     if np.isfinite(sd).any():
-                        ax.fill_between(t, y - sd, y + sd, color=colour, alpha=0.25, lw=0)
+                        ax.fill_between(tb, y - sd, y + sd, color=colour, alpha=0.25, lw=0)
         valid = np.array([bool(m["diagnostics"].get("valid", m["diagnostics"]["converged"])) for m in s.estimates])
         converged = np.array([bool(m["diagnostics"]["converged"]) for m in s.estimates])
         level = len(series) - 1 - i
@@ -231,13 +238,20 @@ def plot(
     fig.tight_layout(rect=(0, 0, 1, 0.925))
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=DPI)
-    w, h = fig.canvas.get_width_height()
+    width_px, height_px = fig.canvas.get_width_height()
     boxes = {}
     for name, ax in zip(("signal", "frequency", "amplitude", "rocof", "validity"), axes, strict=True):
         x0, y0, x1, y1 = ax.get_window_extent().extents
-        boxes[name] = (round(x0), round(h - y1), round(x1), round(h - y0))
+        boxes[name] = (round(x0), round(height_px - y1), round(x1), round(height_px - y0))
     plt.close(fig)
-    return PlotResult(out, (w, h), boxes, colours, [len(s.estimates) for s in series])
+    return PlotResult(out, (width_px, height_px), boxes, colours, [len(s.estimates) for s in series])
+
+
+def _broken(t: np.ndarray, y: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t`` and ``y`` with a NaN point before each estimate after a gap: the line stops at
+    the gap instead of bridging it."""
+    at = np.flatnonzero(gaps)
+    return np.insert(t, at, np.nan), np.insert(y, at, np.nan)
 
 
 def _tag(i: int) -> str:

@@ -90,7 +90,7 @@ def _track_target(args: argparse.Namespace) -> Path | bool:
 
 
 def report(console: Console, r: ReplayResult) -> None:
-    if r.window or r.started_from:
+    if r.window:
         console.print(
             f"window: {r.window or 'whole recording'}; started from the {r.started_from or 'run start'}, "
             f"{r.warmup_inputs} inputs before the window run, not compared"

@@ -7,7 +7,8 @@ is half-open, ``[start, end)``; either end may be left open. A time is written a
 
 * ``+2.5s``, ``+2500ms``, ``+2500000us``, ``+2500000000ns``, ``+1.5min`` or ``+2.5``
   (seconds): relative to the recording's start, the log time of its first message (for
-  several files of one run, the first file's);
+  several files of one run, the first file's; for ``compare`` and ``plot``, the first
+  recording's, since a re-run of some channels starts at their first input);
 * ``2026-11-26T16:57:03.25Z`` (ISO 8601; without a zone, UTC): absolute;
 * ``1764176223250000000``: absolute, integer ns since the Unix epoch.
 
