@@ -163,3 +163,16 @@ def test_export_takes_the_window_and_channel_globs(recording, tmp_path):
     assert sorted(zip(est["channel"], est["seq"], strict=True)) == sorted((m["channel"], m["seq"]) for m in expected)
     samples = pd.read_csv(tmp_path / f"{stem}.samples.csv")
     assert set(samples["seq"]) == set(range(25, 50)) and len(samples) == 2 * 25 * BLOCK
+
+
+def test_a_window_in_a_later_file_starts_from_that_files_snapshot(tmp_path):
+    from conftest import record_run
+
+    paths, _ = record_run(tmp_path, n_blocks=60, rotate_seconds=1.0)  # 3 files, log times 1001, 1002, ...
+    assert len(paths) == 3
+    whole = replay(paths, out=tmp_path / "whole.mcap")
+    part = replay(paths, window=Window.parse("+70ns", "+100ns"), out=tmp_path / "part.mcap")
+    # file 2 starts at block 25, the 51st input (block 30 of the ramp is missing): +50 ns
+    assert part.ok and part.started_from == "snapshot at +0.000 s" and part.warmup_inputs == 70 - 50
+    expected = [m for m in messages(tmp_path / "whole.mcap") if 1001 + 70 <= m[0] < 1001 + 100]
+    assert messages(tmp_path / "part.mcap") == expected and len(expected) == part.matched == 30
