@@ -291,8 +291,11 @@ class RecordingSection(_Section):
     flush_interval_s: float = Field(
         1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much"
     )
+    # 60 s: a window's warm-up is at most a minute of its channels' data (tens of ms per
+    # channel to re-run), while a snapshot of 1000 channels (1.4 MB of JSON) costs the
+    # event loop tens of ms each time
     snapshot_interval_s: float | None = Field(
-        10.0,
+        60.0,
         gt=0,
         description="Also write the state of every channel this often (log time; at an input) so that a "
         "window of the file replays from the snapshot before it; None: at file starts only",
