@@ -291,9 +291,9 @@ class RecordingSection(_Section):
     flush_interval_s: float = Field(
         1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much"
     )
-    # 60 s: a window's warm-up is at most a minute of its channels' data (tens of ms per
-    # channel to re-run), while a snapshot of 1000 channels (1.4 MB of JSON) costs the
-    # event loop tens of ms each time
+    # 60 s: a window's warm-up is at most a minute of its channels' data, while each
+    # snapshot is built on the daemon's event loop (1.4 MB of JSON for 1000 ges-kalman
+    # channels): rarer snapshots keep that off the latency
     snapshot_interval_s: float | None = Field(
         60.0,
         gt=0,
