@@ -250,6 +250,13 @@ class C37118Section(_Section):
     max_clients: int = Field(
         32, ge=1, description="TCP connections and UDP streaming clients at once; more are refused and counted"
     )
+    idle_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="A TCP client that sends no command for this long while no data is on for it is disconnected "
+        "(counted as rejected, reason idle): idle connections cannot hold every client slot",
+    )
     client_buffer_bytes: int = Field(
         65536,
         ge=1024,
