@@ -473,7 +473,7 @@ class McapRecorder:
         per-sample rows) on channel ``topic`` with ``role`` and its JSON Schema ``schema``."""
         if self._writer is None:
             self.open()
-        key = (topic, "json")
+        key = (topic, "json", "application/json")
         cid = self._channels.get(key)
         if cid is None:
             sid = self._schemas.get(schema_name)

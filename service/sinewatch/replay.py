@@ -367,8 +367,9 @@ def _replay_run(
             elif kind == "snapshot":
                 # A later file's snapshot is the state replay has reached by then, unless
                 # no input came before it: the files of a standby before its takeover hold
-                # status only, and the takeover's state is in this one.
-                if file_no == 0 or result.r.inputs == 0:
+                # status only, and the takeover's state is in this one. So are the snapshots
+                # written every recording.snapshot_interval_s (for windows): not restored.
+                if (file_no == 0 and pipeline is None) or result.r.inputs == 0:
                     pending_snapshot = item
                     if pipeline is not None:
                         pipeline.restore(item)
@@ -574,6 +575,12 @@ def _replay_window_run(
                         pipeline = _start(build(), snapshot)
                     pipeline.process(m.topic, m.payload, m.zenoh_encoding, m.log_time_ns)
                     result.r.warmup_inputs += 1
+                    continue
+                # the pipeline starts at the window's first input: a standby's status-only files
+                # before it leave the snapshot of its takeover to start from
+                if pipeline is None and m.role != "input":
+                    if m.role == "error":
+                        result.r.recorded_errors += 1
                     continue
                 if pipeline is None:
                     pipeline = _start(build(), snapshot)
