@@ -170,9 +170,30 @@ def test_a_window_in_a_later_file_starts_from_that_files_snapshot(tmp_path):
 
     paths, _ = record_run(tmp_path, n_blocks=60, rotate_seconds=1.0)  # 3 files, log times 1001, 1002, ...
     assert len(paths) == 3
-    whole = replay(paths, out=tmp_path / "whole.mcap")
+    assert replay(paths, out=tmp_path / "whole.mcap").ok
     part = replay(paths, window=Window.parse("+70ns", "+100ns"), out=tmp_path / "part.mcap")
     # file 2 starts at block 25, the 51st input (block 30 of the ramp is missing): +50 ns
     assert part.ok and part.started_from == "snapshot at +0.000 s" and part.warmup_inputs == 70 - 50
     expected = [m for m in messages(tmp_path / "whole.mcap") if 1001 + 70 <= m[0] < 1001 + 100]
     assert messages(tmp_path / "part.mcap") == expected and len(expected) == part.matched == 30
+
+
+def test_a_rerun_of_a_window_is_that_window_of_the_whole_rerun(recording, tmp_path):
+    from sinewatch.schemas.config import EstimatorRule
+
+    rules = [EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params={"nominal_frequency_hz": 50.0})]
+    replay([recording], rules=rules, out=tmp_path / "full.mcap")
+    part = replay(
+        [recording],
+        rules=rules,
+        window=Window.parse("+2.2s", "+3.1s"),
+        channels=ChannelFilter.of("*faulty*"),
+        out=tmp_path / "win.mcap",
+    )
+    # another estimator cannot start from the recorded one's snapshot: the run's start, as warm-up
+    assert part.started_from == "run start" and part.warmup_inputs > 50
+    start, end = T0 + 40_000_000 + 2_200_000_000, T0 + 40_000_000 + 3_100_000_000
+    expected = [m for m in messages(tmp_path / "full.mcap") if start <= m[0] < end and "faulty" in m[1]]
+    got = messages(tmp_path / "win.mcap")
+    assert got == expected and len(got) == part.produced_estimates > 15
+    assert json.loads(got[0][2])["estimator"] == "ipdft"
