@@ -16,7 +16,7 @@ from sinewatch.cli import main
 from sinewatch.feed import make_channels
 from sinewatch.pipeline import Pipeline
 from sinewatch.recorder import SNAPSHOT_NAME, McapRecorder
-from sinewatch.replay import replay
+from sinewatch.replay import replay, seek_point
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 from sinewatch.window import ChannelFilter, Window, WindowError, parse_time
@@ -99,8 +99,14 @@ def test_a_window_replays_bit_for_bit_from_the_snapshot_before_it(recording, tmp
     full = replay([recording], out=tmp_path / "full.mcap")  # the same estimator: a check and a copy
     assert full.ok
     window = Window.parse("+2.2s", "+3.1s")
-    part = replay([recording], window=window, out=tmp_path / "win.mcap")
+    positions = []
+    part = replay(
+        [recording], window=window, out=tmp_path / "win.mcap", on_progress=lambda _, pos: positions.append(pos)
+    )
     assert part.ok and part.matched == part.recorded_estimates > 0
+    # the file was read from the snapshot on (the summary's index), not from its start
+    offset, _, _ = seek_point(recording, T0 + 40_000_000 + 2_200_000_000)
+    assert min(positions) > offset > recording.stat().st_size / 3
     # it ran from the snapshot 2 s after the start, not from the start: 3 channels x 5 blocks of warm-up
     assert part.started_from == "snapshot at +2.000 s" and part.warmup_inputs == 15
     start, end = T0 + 40_000_000 + 2_200_000_000, T0 + 40_000_000 + 3_100_000_000

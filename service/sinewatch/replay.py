@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
@@ -146,12 +147,24 @@ def check_recording(path: Path) -> None:
         raise ReplayError(f"{path}: expected an MCAP recording (starting {MCAP_MAGIC!r}), got {got}")
 
 
-def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
+def read_recording(
+    path: Path, on_progress: Callable[[int], None] | None = None, *, from_snapshot_before_ns: int | None = None
+) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
-    order; ("incomplete", reason) last if the file ends early."""
+    order; ("incomplete", reason) last if the file ends early.
+
+    ``from_snapshot_before_ns``: in a finished file (one with a summary), skip what comes
+    before its latest state snapshot logged at or before that time (:func:`seek_point`):
+    the metadata, then that snapshot and everything after it."""
     channels: dict[int, Channel] = {}
+    point = None if from_snapshot_before_ns is None else seek_point(path, from_snapshot_before_ns)
     with open(path, "rb") as f:
-        reader = StreamReader(f, validate_crcs=True)
+        if point is not None:
+            offset, channels, metadata = point
+            for item in metadata:
+                yield "metadata", item
+            f.seek(offset)
+        reader = StreamReader(f, skip_magic=point is not None, validate_crcs=True)
         try:
             for n, record in enumerate(reader.records):
                 if isinstance(record, DataEnd):
@@ -180,6 +193,39 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
             yield "incomplete", f"{type(exc).__name__}: {exc}"
         if on_progress is not None:
             on_progress(f.tell())
+
+
+def seek_point(path: Path, before_ns: int) -> tuple[int, dict[int, Channel], list[dict[str, str]]] | None:
+    """Where to start reading a finished recording for a window from ``before_ns``: the
+    offset of its latest snapshot logged at or before then (the snapshots written every
+    ``recording.snapshot_interval_s`` are logged at the input they precede), the file's
+    channels and its sinewatch metadata, all from the summary; None without a summary or
+    such a snapshot (then the file is read from its start)."""
+    with open(path, "rb") as f:
+        try:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None:
+                return None
+            snapshots = [a for a in summary.attachment_indexes if a.name == SNAPSHOT_NAME and a.log_time <= before_ns]
+            if not snapshots:
+                return None
+            metadata = [dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA_NAME]
+        except (McapError, EOFError, ValueError, KeyError, struct.error):
+            return None
+    return max(snapshots, key=lambda a: a.offset).offset, dict(summary.channels), metadata
+
+
+def first_log_time(path: Path) -> int | None:
+    """The log time of a finished recording's first message (its summary's), else None."""
+    with open(path, "rb") as f:
+        try:
+            summary = make_reader(f).get_summary()
+        except (McapError, EOFError, ValueError, KeyError, struct.error):
+            return None
+    if summary is None or summary.statistics is None or not summary.statistics.message_count:
+        return None
+    return int(summary.statistics.message_start_time)
 
 
 class _Comparator(NullSink):
@@ -533,7 +579,11 @@ def _replay_window_run(
         if done:
             break
         progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
-        for kind, item in read_recording(path, progress):
+        if window.origin_ns is None and (first := first_log_time(path)) is not None:
+            window.anchor(first)
+        # a check skips what comes before the latest snapshot before its window, unread
+        seek = window.start_ns if rules is None and pipeline is None else None
+        for kind, item in read_recording(path, progress, from_snapshot_before_ns=seek):
             if kind == "metadata":
                 if config is None:
                     config = SinewatchConfig.model_validate(json.loads(item["config"]))
