@@ -45,6 +45,7 @@ from sinewatch.schemas.codec import (
     encode_error,
     encode_estimate_values,
     finite_or_none,
+    is_json_block,
     json_string,
 )
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
@@ -409,6 +410,13 @@ class Pipeline:
         if len(payload) > limits.max_payload_bytes:
             raise InputError(
                 f"payload: expected at most {limits.max_payload_bytes} bytes, got {len(payload)}",
+                kind="oversized_block",
+            )
+        if len(payload) > limits.max_json_payload_bytes and is_json_block(payload, encoding):
+            # refused unparsed: parsing holds the event loop (every channel) ~0.1 us a byte
+            raise InputError(
+                f"JSON payload: expected at most {limits.max_json_payload_bytes} bytes, got {len(payload)} "
+                "(send large blocks in the binary encoding)",
                 kind="oversized_block",
             )
         block = decode_block(payload, encoding)

@@ -133,8 +133,11 @@ class FastWriter(Writer):
         # mcap keeps these private (name-mangled); FastWriter updates them as add_message would
         self._chunk_builder = _private(self, "chunk_builder")
         self._statistics = _private(self, "statistics")
-        self._maybe_finalize_chunk = _private(self, "maybe_finalize_chunk")
-        self._flush_records = vars(Writer)["_Writer__flush"].__get__(self)  # Writer's own (overridden here)
+        _private(self, "maybe_finalize_chunk")  # there (AttributeError: Writer is used instead)
+        # Writer's own __flush (overridden here), called as a plain function: a bound method
+        # kept on the instance is a reference cycle, which left every finished file's writer
+        # (its chunk and message indexes, its compressor) in memory until a full collection
+        self._flush_records = vars(Writer)["_Writer__flush"]
         self._stream: BinaryIO = _private(self, "stream")
         self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
@@ -172,7 +175,7 @@ class FastWriter(Writer):
         """Writer's ``__flush`` (the records buffered outside chunks, to the file), after the
         chunk in flight is on the file: every write of Writer's own goes through here first."""
         self.wait()
-        self._flush_records()
+        self._flush_records(self)
 
     def wait(self) -> None:
         """Wait for the chunk in flight; raise what writing it raised (e.g. a full disk)."""
@@ -257,7 +260,7 @@ class FastWriter(Writer):
         buf.write(head)
         buf.write(data)
         if buf.tell() > self._chunk_limit:
-            self._maybe_finalize_chunk()
+            self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
 
 
 def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:

@@ -30,7 +30,7 @@ from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
+from sinewatch.comtrade_file import ComtradeError, ComtradeRecord, interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, decode_block, encode_block_binary
@@ -95,6 +95,8 @@ class ReplayResult:
     recorded_other: dict[str, int] = field(default_factory=dict)
     produced_other: dict[str, int] = field(default_factory=dict)
     matched_other: dict[str, int] = field(default_factory=dict)
+    # COMTRADE: channels shorter than their estimator's window (no estimate could be valid)
+    short_channels: list[str] = field(default_factory=list)
     # a window or channel filter (_replay_window_run)
     window: str = ""  # the window in words; "" for a whole replay
     warmup_inputs: int = 0  # inputs run between the snapshot (or run start) and the window, not compared
@@ -104,6 +106,8 @@ class ReplayResult:
 
     @property
     def ok(self) -> bool:
+        if self.short_channels:
+            return False
         if not self.compared:
             return True
         return (
@@ -683,7 +687,9 @@ def replay_comtrade(
     ``sinewatch feed --comtrade`` would send it to a daemon: each analog channel in blocks of
     ``block_size`` samples (float64) on ``sinewatch/in/CHANNEL``, with ``rules`` (default: the
     default config's). Nothing is compared (there is no recorded estimate); ``out`` records
-    inputs and outputs to a new MCAP file, which replays bit for bit."""
+    inputs and outputs to a new MCAP file, which replays bit for bit. A channel shorter than
+    its estimator's window is named in ``short_channels`` (the result is then not ``ok``);
+    when every channel is, :class:`ComtradeError` says so (after ``out`` is written)."""
     record = read_comtrade(path)
     config = SinewatchConfig(daemon_id="sinewatch-comtrade")
     if rules is not None:
@@ -705,7 +711,28 @@ def replay_comtrade(
         recorder.close()
         result.r.out_paths = list(recorder.paths)
     result.finish(comparator)
+    result.r.short_channels = _short_channels(record, pipeline)
+    if result.r.short_channels and len(result.r.short_channels) == len(record.channels):
+        raise ComtradeError(f"{path}: {'; '.join(result.r.short_channels)}: no estimate can be valid")
     return result.r
+
+
+def _short_channels(record: ComtradeRecord, pipeline: Pipeline) -> list[str]:
+    """The record's channels shorter than the window (``memory_samples``) of the estimator
+    the rules gave them, each as 'CHANNEL: expected at least N samples (ESTIMATOR's window
+    at RATE Hz), got M'."""
+    out = []
+    for c in record.channels:
+        ch = pipeline.channels.get(c.channel)
+        if ch is None:
+            continue
+        need = ch.estimator.memory_samples
+        if len(c.samples) < need:
+            out.append(
+                f"{c.channel}: expected at least {need} samples ({ch.estimator.name}'s window at "
+                f"{c.sample_rate_hz:g} Hz, {need / c.sample_rate_hz:.3g} s), got {len(c.samples)}"
+            )
+    return out
 
 
 class ResultBuilder:
