@@ -137,6 +137,16 @@ def _count(text: str) -> int:
     return n
 
 
+def _frame_count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if not 1 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a number of channels per frame 1-65535, got {text!r}")
+    return n
+
+
 def enable_c37118(config: Any, port: int) -> None:
     """``serve --c37118 PORT``: the ``[c37118]`` section on, on PORT (its stations come from the config)."""
     from pydantic import ValidationError
@@ -204,12 +214,18 @@ def cmd_feed(args: argparse.Namespace) -> int:
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
-        if not pub.wait_for_subscriber(channels[0].channel, args.wait):
+        feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast, frame_channels=args.frame_channels)
+        first = feed.frames[0][0] if feed.frames else channels[0].channel
+        found = (
+            pub.wait_for_frame_subscriber(first, args.wait)
+            if feed.frames
+            else pub.wait_for_subscriber(first, args.wait)
+        )
+        if not found:
             raise ConfigError(
-                f"expected a subscriber on {pub.key(channels[0].channel)} within {args.wait} s, got none "
+                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
-        feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
         t0 = time.monotonic()
         try:
             sent = feed.run(args.duration)
@@ -219,8 +235,9 @@ def cmd_feed(args: argparse.Namespace) -> int:
         _settle(session)
         pub.close()
     n_samples = sum(c.blocks for c in channels) * args.block
+    what = f"frames of up to {args.frame_channels} channels" if feed.frames else "blocks"
     console.print(
-        f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
+        f"published {sent} {what} ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
         f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
     )
     return 0
@@ -240,7 +257,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     from sinewatch.clients import BlockPublisher, connect
     from sinewatch.comtrade_file import read_comtrade
     from sinewatch.console import make_console
-    from sinewatch.feed import publish_comtrade
+    from sinewatch.feed import publish_comtrade, publish_comtrade_frames
 
     if args.scenario:
         raise ConfigError("--comtrade: expected instead of --scenario, got both")
@@ -248,15 +265,23 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float64")
-        first = record.channels[0].channel
-        if not pub.wait_for_subscriber(first, args.wait):
+        as_frames = args.frame_channels > 1
+        if as_frames:
+            from sinewatch.comtrade_file import interleaved_frames
+
+            first = interleaved_frames(record, args.block)[0][0]
+        else:
+            first = record.channels[0].channel
+        waiting = pub.wait_for_frame_subscriber if as_frames else pub.wait_for_subscriber
+        if not waiting(first, args.wait):
             raise ConfigError(
                 f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
         t0 = time.monotonic()
         try:
-            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast)
+            send = publish_comtrade_frames if as_frames else publish_comtrade
+            sent = send(pub, record, block_size=args.block, realtime=not args.fast)
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0
@@ -264,7 +289,8 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
         pub.close()
     n_samples = sum(len(c.samples) for c in record.channels)
     console.print(
-        f"published {sent} blocks ({n_samples} samples) on {len(record.channels)} channels of {record.path} "
+        f"published {sent} {'frames' if as_frames else 'blocks'} ({n_samples} samples) on {len(record.channels)} "
+        f"channels of {record.path} "
         f"(COMTRADE {record.rev_year} {record.data_format}, {record.station}) in {dt:.2f} s",
         soft_wrap=True,
     )
@@ -615,6 +641,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--comtrade", metavar="FILE.cfg", help="publish the analog channels of a COMTRADE file (.cfg or .cff)"
     )
     f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
+    f.add_argument(
+        "--frame-channels",
+        type=_frame_count,
+        default=1,
+        metavar="N",
+        help="send N channels (of one rate) per message as SampleFrames (default 1: one SampleBlock per channel); "
+        "with --comtrade, any N > 1 sends each rate segment's analog channels as one frame",
+    )
     f.add_argument("--rate", type=float, help="sample rate override, Hz")
     f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
     f.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")

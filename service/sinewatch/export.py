@@ -33,8 +33,9 @@ from typing import Any, TextIO
 import numpy as np
 
 from sinewatch.replay import check_recording, read_recording
-from sinewatch.schemas.codec import decode_block
+from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import DecodeError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.window import ChannelFilter, Window
 
 FORMATS = ("csv", "parquet")
@@ -133,8 +134,15 @@ def _at(values: list[Any] | None, k: int) -> Any:
 
 
 def sample_rows(payload: bytes, encoding: str) -> list[tuple[Any, ...]]:
-    """The rows of one recorded input block (DecodeError if it is not a block)."""
-    block = decode_block(payload, encoding)
+    """The rows of one recorded input block, or of each channel of a multi-channel frame
+    in turn (DecodeError if it is neither)."""
+    decoded = decode_input(payload, encoding)
+    if isinstance(decoded, Frame):
+        return [row for c in range(decoded.n_channels) for row in _block_rows(decoded.block(c))]
+    return _block_rows(decoded)
+
+
+def _block_rows(block: Block) -> list[tuple[Any, ...]]:
     samples = block.samples.reshape(block.n_samples, -1).astype(np.float64)
     n, columns = samples.shape
     offsets = np.round(np.arange(n) * (1e9 / block.sample_rate_hz)).astype(np.int64)
@@ -272,7 +280,9 @@ def export(
                 except DecodeError:
                     result.skipped_inputs += 1
                     continue
-                if rows and selected.matches(rows[0][0]):
+                if not selected.everything:  # a frame's rows are of several channels
+                    rows = [row for row in rows if selected.matches(row[0])]
+                if rows:
                     tables["samples"].add(rows)
                     result.inputs += 1
     finally:

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from sinewatch.replay import check_recording, read_recording
-from sinewatch.schemas.codec import decode_block
-from sinewatch.schemas.errors import DecodeError, SinewatchError
+from sinewatch.schemas.codec import Block
+from sinewatch.schemas.errors import InputError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.window import Window
 
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf")  # tab10, red left out
@@ -73,15 +74,24 @@ def read_series(path: Path, channel: str, window: Window) -> Series:
             if msg["channel"] == channel:
                 s.estimates.append(msg)
                 s.estimator = msg["estimator"]
-        elif item.role == "input" and item.topic.endswith(channel):
-            try:
-                block = decode_block(item.payload, item.zenoh_encoding)
-            except DecodeError:
-                continue
-            if block.channel == channel:
+        elif item.role == "input":
+            block = _channel_block(item.payload, item.zenoh_encoding, channel)
+            if block is not None:
                 x = block.samples.reshape(block.n_samples, -1)[:, 0].astype(np.float64)
                 s.blocks.append((block.seq, block.t0_ns, block.sample_rate_hz, x))
     return s
+
+
+def _channel_block(payload: bytes, encoding: str, channel: str) -> Block | None:
+    """The channel's block in a recorded input: the block itself, or its column of a
+    multi-channel frame; None for another channel's input or one that does not decode."""
+    try:
+        decoded = decode_input(payload, encoding)
+    except InputError:
+        return None
+    if isinstance(decoded, Frame):
+        return decoded.block(decoded.channels.index(channel)) if channel in decoded.channels else None
+    return decoded if decoded.channel == channel else None
 
 
 def _arr(values: list[Any]) -> np.ndarray:

@@ -42,6 +42,7 @@ from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.schemas import __version__, codec
+from sinewatch.schemas import frame as frame_codec
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     ERROR_JSON_ENCODING,
@@ -49,6 +50,7 @@ from sinewatch.schemas.codec import (
     STATUS_JSON_ENCODING,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
+from sinewatch.schemas.frame import FRAME_MAGIC, is_frame
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
@@ -58,6 +60,8 @@ METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
 BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
 BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
+FRAME_MESSAGE_ENCODING = "sinewatch-frame-v1"
+FRAME_SCHEMA_ENCODING = "sinewatch-frame-layout"
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -66,6 +70,10 @@ def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
     """(MCAP message encoding, schema name) for a payload with this Zenoh encoding."""
     if zenoh_encoding.startswith("application/x-sinewatch-block") or payload[:4] == b"SWSB":
         return BINARY_MESSAGE_ENCODING, "sinewatch.SampleBlock.binary"
+    if is_frame(payload, zenoh_encoding):  # one message per frame, whatever its channel count
+        if zenoh_encoding.startswith("application/x-sinewatch-frame") or payload[:4] == FRAME_MAGIC:
+            return FRAME_MESSAGE_ENCODING, "sinewatch.SampleFrame.binary"
+        return "json", "sinewatch.SampleFrame"
     return "json", "sinewatch.SampleBlock"
 
 
@@ -501,6 +509,8 @@ class McapRecorder:
             if name == "sinewatch.SampleBlock.binary":
                 # the byte layout, as documented in the codec, travels with the data
                 sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
+            elif name == "sinewatch.SampleFrame.binary":
+                sid = self._w.register_schema(name, FRAME_SCHEMA_ENCODING, frame_codec.__doc__.encode())
             else:
                 short = name.removeprefix("sinewatch.")
                 model = MESSAGE_MODELS[short] if short in MESSAGE_MODELS else PQ_MESSAGE_MODELS[short]

@@ -33,9 +33,10 @@ from mcap.stream_reader import StreamReader
 from sinewatch.comtrade_file import ComtradeError, ComtradeRecord, interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
-from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, decode_block, encode_block_binary
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
-from sinewatch.schemas.errors import DecodeError, SinewatchError
+from sinewatch.schemas.errors import InputError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 from sinewatch.track import TRACK_ROLE, TrackingPipeline, TrackWriter
@@ -492,16 +493,20 @@ class _InputChannels:
         self._by_topic: dict[str, bool] = {}
 
     def selected(self, m: RecordedMessage) -> bool:
+        """A block of a selected channel, or a multi-channel frame with one among its
+        channels (the whole frame is run: its channels advance together)."""
         if self.filter.everything:
             return True
         hit = self._by_topic.get(m.topic)
         if hit is not None:
             return hit
         try:
-            name = decode_block(m.payload, m.zenoh_encoding).channel
-        except DecodeError:
+            decoded = decode_input(m.payload, m.zenoh_encoding)
+        except InputError:
             return self.filter.matches_topic(m.topic)
-        hit = self._by_topic[m.topic] = self.filter.matches(name)
+        if isinstance(decoded, Frame):  # a frame's layout may change from one to the next: not cached
+            return any(self.filter.matches(name) for name in decoded.channels)
+        hit = self._by_topic[m.topic] = self.filter.matches(decoded.channel)
         return hit
 
 
