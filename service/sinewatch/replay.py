@@ -245,9 +245,11 @@ class _Comparator(NullSink):
         self.errors = 0
         self.other_outputs = True  # False: the recording has none (recording.power_quality off)
         self.active = True  # False: a window's warm-up, whose outputs are not compared
+        # the channels compared (a frame runs whole: its other channels' outputs are dropped)
+        self.select: ChannelFilter | None = None
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        if not self.active:
+        if not self.active or (self.select is not None and not self.select.matches_topic(key)):
             return
         self.estimates[key].append(payload)
         self.roles[key] = "estimate"
@@ -255,6 +257,8 @@ class _Comparator(NullSink):
 
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
         if not self.other_outputs or not self.active:
+            return
+        if self.select is not None and not self.select.matches_topic(key):
             return
         role = PQ_ROLES.get(kind, kind)
         self.estimates[key].append(payload)
@@ -538,6 +542,7 @@ def _replay_window_run(
     result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
     comparator = _Comparator()
     comparator.active = False
+    comparator.select = None if channels.everything else channels
     inputs = _InputChannels(channels)
     config: SinewatchConfig | None = None
     estimate_version, pq_version = ESTIMATE_FORMAT_VERSION, PQ_FORMAT_VERSION
