@@ -10,6 +10,8 @@ sinewatch gateway sv [...]          IEC 61850-9-2 sampled values (interface or p
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
+sinewatch compare A.mcap B.mcap     two recordings of the same inputs, channel by channel
+sinewatch plot RUN.mcap [...]       one channel's input and estimates as a PNG
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios|gateway|...
@@ -508,6 +510,36 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return run_replay(args)
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from sinewatch.compare import run_compare
+
+    return run_compare(args)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from sinewatch.plot import run_plot
+
+    return run_plot(args)
+
+
+def _window_arguments(parser: argparse.ArgumentParser, *, channels: bool = True) -> None:
+    """``--start``, ``--end`` (and ``--channels``): the part of a recording a command reads
+    (syntax: :mod:`sinewatch.window`)."""
+    parser.add_argument(
+        "--start",
+        metavar="TIME",
+        help="from this log time: +SECONDS after the recording's start (+2.5s, +2500ms), ISO 8601, or ns since the epoch",
+    )
+    parser.add_argument("--end", metavar="TIME", help="up to (not including) this log time, as --start")
+    if channels:
+        parser.add_argument(
+            "--channels",
+            action="append",
+            metavar="GLOB",
+            help="channel names to take (repeatable; default all), e.g. 'demo/*'",
+        )
+
+
 # ---- parser ----------------------------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
     """argparse, with a usage mistake told on one line (exit code 2, as argparse's own)."""
@@ -667,15 +699,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
+    _window_arguments(r)
+    r.add_argument(
+        "--track",
+        nargs="?",
+        const=True,
+        default=False,
+        metavar="FILE.parquet",
+        help="every sample's estimate and the estimator's internal signals, for the window and channels: "
+        "into the --out recording (sinewatch/track/CHANNEL), or into FILE.parquet",
+    )
     r.add_argument("--no-progress", action="store_true")
 
     e = _command(sub, "export", "write a recording's estimates (and samples) as CSV or Parquet tables", cmd_export)
     e.add_argument("path", help="MCAP recording")
     e.add_argument("--format", choices=["csv", "parquet"], default="csv", help="csv (default) or parquet (pyarrow)")
-    e.add_argument("--channels", default="*", metavar="GLOB", help="channels to export (default all), e.g. 'demo/*'")
+    _window_arguments(e)
     e.add_argument("--out", metavar="DIR", help="output directory (default: the recording's)")
     e.add_argument("--samples", action="store_true", help="also export the input samples")
     e.add_argument("--no-progress", action="store_true")
+
+    cm = _command(sub, "compare", "compare two recordings of the same inputs, channel by channel", cmd_compare)
+    cm.add_argument("a", type=Path, help="the first recording (e.g. the original)")
+    cm.add_argument("b", type=Path, help="the second recording (e.g. a re-run with another estimator)")
+    _window_arguments(cm)
+    cm.add_argument(
+        "--tolerance",
+        action="append",
+        type=parse_param,
+        default=[],
+        metavar="PARAM=VALUE",
+        help="divergence threshold of a parameter (repeatable), e.g. frequency_hz=0.001; "
+        "defaults: frequency_hz=0.01 amplitude=0.01 phase_rad=0.01 offset=0.01 rocof_hz_per_s=0.1",
+    )
+    cm.add_argument("--json", action="store_true", help="the comparison as JSON")
+
+    pl = _command(sub, "plot", "plot one channel of recordings: input, estimates, validity, gaps (PNG)", cmd_plot)
+    pl.add_argument("paths", nargs="+", type=Path, help="recordings of the same inputs (each in its own colour)")
+    pl.add_argument("--channel", required=True, help="the channel name, e.g. demo/demo-faulty-sensor")
+    _window_arguments(pl, channels=False)
+    pl.add_argument("--out", type=Path, help="the PNG (default: CHANNEL.png beside the first recording)")
+    pl.add_argument("--width", type=float, default=12.0, help="inches (default 12; 100 dpi)")
 
     st = _command(sub, "status", "ask every daemon which channels it owns (shards, standbys)", cmd_status)
     st.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")

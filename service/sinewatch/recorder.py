@@ -13,6 +13,8 @@ Layout of a recording:
   sinewatch version, the file's index in its run;
 * from the second file of a run on, a ``sinewatch.snapshot`` attachment: the state of
   every channel and estimator at the rotation point, so each file replays on its own;
+  and every ``snapshot_interval_s`` of log time another one between two inputs, so a
+  window of a file replays from the snapshot before it (``replay --start``);
 * chunked and compressed, rotated by size or duration, and flushed on a timer
   (``Writer.flush`` closes the open chunk) so that a crash loses at most one interval:
   ``sinewatch replay`` recovers the complete chunks of an unfinished file.
@@ -309,6 +311,8 @@ class McapRecorder:
         self._channels: dict[tuple[str, str, str], int] = {}
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
+        self._last_snapshot_ns: int | None = None  # log time of the file's latest snapshot (or first input)
+        self.snapshots_written = 0
 
     @property
     def _w(self) -> Writer:
@@ -373,9 +377,11 @@ class McapRecorder:
                 **({"follows_outage": "true"} if self._after_outage else {}),
             },
         )
+        self._last_snapshot_ns = None
         if (self.index > 0 or self.attach_first_snapshot) and self._snapshot is not None:
             now = time.time_ns()
             self._w.add_attachment(now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode())
+            self.snapshots_written += 1
         log.info("recording to %s", path)
         return path
 
@@ -449,6 +455,45 @@ class McapRecorder:
             self.index += 1
             self.open()
 
+    def _maybe_snapshot(self, log_time_ns: int) -> None:
+        """Every ``snapshot_interval_s`` of log time (not wall time: a re-recording made by
+        replay puts its snapshots at the same inputs), at an input and before it, the state
+        of every channel, so that ``replay --start`` begins at the latest snapshot before its
+        window instead of the file's start. The open chunk is closed first: in file order
+        the snapshot then sits between the messages before it and those after it."""
+        interval = self.section.snapshot_interval_s
+        if interval is None or self._snapshot is None:
+            return
+        last = self._last_snapshot_ns
+        if last is None:  # the file's first input: its start (or its rotation snapshot) is the reference
+            self._last_snapshot_ns = log_time_ns
+            return
+        if log_time_ns - last < interval * 1e9:
+            return
+        self._last_snapshot_ns = log_time_ns
+        self._w.flush()
+        self._w.add_attachment(
+            time.time_ns(), log_time_ns, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode()
+        )
+        self.snapshots_written += 1
+
+    def record_json(
+        self, topic: str, role: str, schema_name: str, schema: bytes, payload: bytes, log_time_ns: int
+    ) -> None:
+        """A JSON message of a kind the pipeline does not produce (e.g. ``replay --track``'s
+        per-sample rows) on channel ``topic`` with ``role`` and its JSON Schema ``schema``."""
+        if self._writer is None:
+            self.open()
+        key = (topic, "json", "application/json")
+        cid = self._channels.get(key)
+        if cid is None:
+            sid = self._schemas.get(schema_name)
+            if sid is None:
+                sid = self._schemas[schema_name] = self._w.register_schema(schema_name, "jsonschema", schema)
+            cid = self._w.register_channel(topic, "json", sid, {"role": role, "zenoh_encoding": "application/json"})
+            self._channels[key] = cid
+        self._write(cid, payload, log_time_ns)
+
     def _size_on_file(self) -> int:
         """The file's size for rotation: FastWriter's is up to the chunk before the one in
         flight (the file's position moves on another thread, and rotation must fall on the
@@ -503,6 +548,7 @@ class McapRecorder:
         if self._writer is None:
             self.open()
         self._maybe_rotate()  # at an input: snapshots fall on block boundaries
+        self._maybe_snapshot(log_time_ns)
         if not self.section.inputs:
             return
         msg_enc, schema = mcap_encodings(encoding, payload)
