@@ -479,3 +479,27 @@ def test_a_cut_capture_publishes_what_was_complete_then_says_so(tmp_path, captur
     [stream] = json.loads(r.stdout.strip().splitlines()[-1])["streams"]
     assert stream["samples"] == 999 and stream["frames"] == 10  # 9 frames of 100, then the 99 complete
     assert len(got) == 80
+
+
+def test_two_asdus_a_frame_at_4800_per_second_as_iec_61869_9_sends_them(tmp_path):
+    """Several ASDUs in one Ethernet frame (IEC 61869-9; 60 Hz, 4800/s, 2 a frame): every
+    sample is taken, in order, on the 4800/s grid of the UTC second, none lost."""
+    rate = 4800
+    stream = _stream(sv.SMP_SYNCH_GLOBAL)
+    template = svp.build_template(stream, 2, rate)
+    path = tmp_path / "two.pcap"
+    with pcap.PcapWriter(path) as w:
+        for c in range(0, rate, 2):  # a frame leaves with its last sample
+            w.write(svp.render_frame(template, stream, START, c, rate), (START * 10**9 + (c + 1) * 10**9 // rate) / 1e9)
+    frames: list[Frame] = []
+    gw = SvGateway(GatewayOptions(rate=rate, samples=160), lambda name, f: frames.append(f))
+    for captured in pcap.read_pcap(path):
+        gw.feed(captured.data, round(captured.timestamp * 1e9))
+    gw.flush()
+    stats = gw.streams[SV_ID].stats
+    assert (stats.samples, stats.lost, stats.repeated, stats.rejected) == (rate, 0, 0, 0)
+    assert [f.seq for f in frames] == list(range(rate // 160))
+    assert [f.t0_ns for f in frames] == [START * 10**9 + round(k * 160 * 1e9 / rate) for k in range(rate // 160)]
+    va = np.concatenate([f.samples[:, 4] for f in frames])
+    expected = [svp.sample_values(stream, START, c, rate)[4] * 0.01 for c in range(rate)]
+    assert np.array_equal(va, np.asarray(expected))
