@@ -503,3 +503,21 @@ def test_two_asdus_a_frame_at_4800_per_second_as_iec_61869_9_sends_them(tmp_path
     va = np.concatenate([f.samples[:, 4] for f in frames])
     expected = [svp.sample_values(stream, START, c, rate)[4] * 0.01 for c in range(rate)]
     assert np.array_equal(va, np.asarray(expected))
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        ([], "expected exactly one of --pcap FILE or --iface NAME"),
+        (["--pcap", "x.pcap", "--iface", "eth0"], "expected exactly one of --pcap FILE or --iface NAME"),
+        (["--pcap", "x.pcap", "--channels", "MU01=a,b"], "--channels: expected SVID=NAME,... with 8 names"),
+        (["--pcap", "x.pcap", "--channels", "MU01=a,b,c,d,e,f,g,h i"], "--channels: expected SVID=NAME,..."),
+        (["--pcap", "x.pcap", "--dst-mac", "01:0c:cd"], "--dst-mac: expected six hex octets"),
+    ],
+)
+def test_gateway_mistakes_are_one_line_saying_what_was_expected(capsys, argv, says):
+    from sinewatch.cli import main
+
+    assert main(["gateway", "sv", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0]

@@ -436,9 +436,10 @@ def parse_channels(items: list[str]) -> dict[str, tuple[str, ...]]:
     for item in items:
         sv_id, sep, names = item.partition("=")
         parts = tuple(n.strip() for n in names.split(",") if n.strip())
-        if not sep or not sv_id or len(parts) != len(DEFAULT_CHANNELS):
+        if not sep or not sv_id or len(parts) != len(DEFAULT_CHANNELS) or any(_NAME_BAD.search(n) for n in parts):
             raise GatewayError(
-                f"--channels: expected SVID=NAME,... with {len(DEFAULT_CHANNELS)} names (9-2LE), got {item!r}"
+                f"--channels: expected SVID=NAME,... with {len(DEFAULT_CHANNELS)} names (9-2LE) of "
+                f"[A-Za-z0-9_.-], got {item!r}"
             )
         out[sv_id] = parts
     return out
