@@ -19,6 +19,7 @@ import pytest
 from conftest import make_config, run_daemon, take
 
 from sinewatch.clients import connect, subscribe_errors, subscribe_estimates
+from sinewatch.clients.subscriber import JsonSubscription
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.frame import Frame
 
@@ -229,14 +230,25 @@ def test_a_daemon_estimates_the_gateway_s_frames_from_the_pcap(tmp_path, capture
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             err = subscribe_errors(s)
+            status = JsonSubscription(s, "sinewatch/gateway/sv/**")
             r = subprocess.run(
                 [sys.executable, "-m", "sinewatch", "gateway", "sv", "--pcap", str(capture), "--connect", ep,
                  "--samples", str(N), "--rate", str(RATE), "--wait", "30"],
                 capture_output=True, text=True, timeout=300, check=False,
             )  # fmt: skip
-            return r, take(est, expected), take(err, 1)
+            final = None  # the gateway's last status: every sample counted
+            for final in status.iter(timeout=30):
+                if final["samples"] == SECONDS * RATE - 1:
+                    break
+            return r, take(est, expected), take(err, 1), final
 
-    (r, got, errors), _daemon, code = run_daemon(config, client)
+    (r, got, errors, status), _daemon, code = run_daemon(config, client)
+    # the gateway's live status key: its last message the final counts
+    assert status is not None and status["_key"] == "sinewatch/gateway/sv/MU01"
+    assert (status["samples"], status["lost"], status["repeated"], status["synch_changes"]) == (
+        SECONDS * RATE - 1, 1, 1, 2,
+    )  # fmt: skip
+    assert status["synchronised"] is True
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["published"] == len(frames) and summary["streams"][0]["lost"] == 1
@@ -374,7 +386,6 @@ def test_the_deploy_example_serves_the_merging_unit_as_a_pmu_and_a_power_quality
 
     from sinewatch.clients.c37118 import C37118Reader
     from sinewatch.clients.session import free_loopback_port
-    from sinewatch.clients.subscriber import JsonSubscription
     from sinewatch.schemas.config import ZenohSection, load_config
 
     example = load_config(Path(__file__).resolve().parents[1] / "deploy" / "sv-merging-unit.toml", {})

@@ -786,6 +786,11 @@ def _gateway_parser(sub: _Subparsers[argparse.ArgumentParser]) -> None:
     )
     g.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
     g.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
+    g.add_argument(
+        "--status-prefix",
+        default="sinewatch/gateway/sv",
+        help="each stream's counts and synchronisation, JSON on PREFIX/<svID> once a second (default sinewatch/gateway/sv)",
+    )
     g.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the daemon (default 60)")
 
 

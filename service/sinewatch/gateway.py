@@ -162,6 +162,11 @@ class SvStreamDecoder:
             out.append(self._emit())
         return out
 
+    @property
+    def synchronised(self) -> bool:
+        """Whether the last sample said smpSynch = 2 (global)."""
+        return self._synced
+
     def flush(self) -> list[Frame]:
         """The partly filled frame, if any (at the end of a capture)."""
         return [self._emit()] if self._fill else []
@@ -388,6 +393,10 @@ def serve(args: Any) -> int:
             pub.publish_frame_raw(name, pub.encode_frame(frame))
 
         gateway = SvGateway(options, emit)
+        status = threading.Thread(
+            target=_status_loop, args=(session, args.status_prefix, gateway, stop), name="sv-status", daemon=True
+        )
+        status.start()
         if args.duration:
             timer = threading.Timer(args.duration, stop.set)
             timer.daemon = True
@@ -406,6 +415,8 @@ def serve(args: Any) -> int:
             failed = f"--pcap {args.pcap}: expected a pcap or pcapng capture of Ethernet frames, got {exc}"
         finally:
             stop.set()
+        status.join()
+        _put_status(session, args.status_prefix, gateway)  # the final counts
         _settle(session)
         pub.close()
     summary = gateway.summary()
@@ -414,6 +425,21 @@ def serve(args: Any) -> int:
     if failed is not None:
         raise GatewayError(failed)
     return 0
+
+
+def _put_status(session: Any, prefix: str, gateway: SvGateway) -> None:
+    """Each stream's counts and whether it is synchronised now, as JSON on PREFIX/<svID>:
+    the operator's live view of what the frames cannot carry (time quality)."""
+    import json
+
+    for sv_id, stream in list(gateway.streams.items()):
+        msg = {**asdict(stream.stats), "synchronised": stream.synchronised}
+        session.put(f"{prefix}/{channel_prefix(sv_id)}", json.dumps(msg).encode())
+
+
+def _status_loop(session: Any, prefix: str, gateway: SvGateway, stop: threading.Event) -> None:
+    while not stop.wait(1.0):  # once a second while running
+        _put_status(session, prefix, gateway)
 
 
 def _say(text: str) -> Callable[[], None]:
