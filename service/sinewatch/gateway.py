@@ -26,6 +26,9 @@ decoded ASDUs of each stream (one per svID) into frames of ``n`` consecutive sam
   reserved or questionable) is never a value: it is NaN in its channel's column, so the
   daemon refuses that channel's block of the frame (a ``non_finite`` error, counted) and
   flags the channel's next block as a gap of one; the other channels go on.
+
+What a frame cannot carry (the stream's synchronisation now, the counts) goes on a status
+key, ``sinewatch/gateway/sv/<svID>``, once a second and at the end.
 """
 
 from __future__ import annotations
