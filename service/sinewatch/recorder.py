@@ -5,9 +5,13 @@ Layout of a recording:
 * one MCAP channel per Zenoh key (and message encoding), its metadata saying the role
   (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
   ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
-* inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
-  the same code; JSON messages with their JSON Schema embedded (``jsonschema``), so
-  Foxglove can plot estimates;
+* inputs as protobuf ``sinewatch.InputBlock`` records with their schema (a FileDescriptorSet)
+  in the file (:mod:`sinewatch.schemas.input_record`): any MCAP reader decodes a block's
+  samples, and replay rebuilds from each record the exact bytes and Zenoh encoding the
+  daemon received (rejected inputs included); recordings of earlier builds carry the raw
+  payloads (``sinewatch-block-v1`` or ``json``) and still replay;
+* JSON messages with their JSON Schema embedded (``jsonschema``), so Foxglove plots
+  estimates beside the samples;
 * a ``sinewatch`` metadata record at the start of each file: the effective config, the
   sinewatch version, the file's index in its run;
 * from the second file of a run on, a ``sinewatch.snapshot`` attachment: the state of
@@ -38,7 +42,7 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
-from sinewatch.schemas import __version__, codec
+from sinewatch.schemas import __version__
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     ERROR_JSON_ENCODING,
@@ -46,6 +50,13 @@ from sinewatch.schemas.codec import (
     STATUS_JSON_ENCODING,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
+from sinewatch.schemas.input_record import (
+    INPUT_MESSAGE_ENCODING,
+    INPUT_SCHEMA_ENCODING,
+    INPUT_SCHEMA_NAME,
+    encode_input_record,
+    file_descriptor_set,
+)
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
@@ -53,17 +64,13 @@ log = logging.getLogger("sinewatch.recorder")
 
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
+#: The recording's layout: 2 records inputs as protobuf InputBlock (1: raw payloads).
+RECORDING_FORMAT_VERSION = 2
+#: How builds before RECORDING_FORMAT_VERSION 2 recorded binary inputs (replay still reads them).
 BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
 BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-
-
-def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
-    """(MCAP message encoding, schema name) for a payload with this Zenoh encoding."""
-    if zenoh_encoding.startswith("application/x-sinewatch-block") or payload[:4] == b"SWSB":
-        return BINARY_MESSAGE_ENCODING, "sinewatch.SampleBlock.binary"
-    return "json", "sinewatch.SampleBlock"
 
 
 # A Message record: opcode, record length, then channel_id u16, sequence u32, log_time u64,
@@ -339,7 +346,7 @@ class McapRecorder:
         self._w.add_metadata(
             METADATA_NAME,
             {
-                "format_version": "1",
+                "format_version": str(RECORDING_FORMAT_VERSION),
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
                 "sinewatch_version": __version__,
@@ -429,9 +436,8 @@ class McapRecorder:
     def _schema_id(self, name: str) -> int:
         sid = self._schemas.get(name)
         if sid is None:
-            if name == "sinewatch.SampleBlock.binary":
-                # the byte layout, as documented in the codec, travels with the data
-                sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
+            if name == INPUT_SCHEMA_NAME:
+                sid = self._w.register_schema(name, INPUT_SCHEMA_ENCODING, file_descriptor_set())
             else:
                 short = name.removeprefix("sinewatch.")
                 model = MESSAGE_MODELS[short] if short in MESSAGE_MODELS else PQ_MESSAGE_MODELS[short]
@@ -469,8 +475,13 @@ class McapRecorder:
         self._maybe_rotate()  # at an input: snapshots fall on block boundaries
         if not self.section.inputs:
             return
-        msg_enc, schema = mcap_encodings(encoding, payload)
-        self._write(self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns)
+        self._record_input(key, payload, encoding, log_time_ns)
+
+    def _record_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        """One input as an InputBlock record on its key's protobuf channel: the record carries
+        the message's own Zenoh encoding (the channel's ``zenoh_encoding`` is its first)."""
+        cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, INPUT_SCHEMA_NAME, "input", encoding or "zenoh/bytes")
+        self._write(cid, encode_input_record(payload, encoding), log_time_ns)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self.section.estimates:
@@ -496,4 +507,4 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
+__all__ = ["BLOCK_BINARY_ENCODING", "RECORDING_FORMAT_VERSION", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
