@@ -507,4 +507,11 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "RECORDING_FORMAT_VERSION", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
+__all__ = [
+    "BLOCK_BINARY_ENCODING",
+    "METADATA_NAME",
+    "RECORDING_FORMAT_VERSION",
+    "SNAPSHOT_NAME",
+    "FastWriter",
+    "McapRecorder",
+]

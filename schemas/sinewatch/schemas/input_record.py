@@ -79,7 +79,18 @@ message InputBlock {
 """
 
 # FieldDescriptorProto.Type and .Label values (google/protobuf/descriptor.proto)
-_DOUBLE, _FLOAT, _INT64, _FIXED64, _STRING, _MESSAGE, _BYTES, _UINT32, _SFIXED64, _INT32 = 1, 2, 3, 6, 9, 11, 12, 13, 16, 5
+_DOUBLE, _FLOAT, _INT64, _FIXED64, _STRING, _MESSAGE, _BYTES, _UINT32, _SFIXED64, _INT32 = (
+    1,
+    2,
+    3,
+    6,
+    9,
+    11,
+    12,
+    13,
+    16,
+    5,
+)
 _OPTIONAL, _REPEATED = 1, 3
 
 _TIME_FIELDS = (("sec", 1, _INT64, _OPTIONAL, ""), ("nsec", 2, _INT32, _OPTIONAL, ""))
