@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint node-readers test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: install demo test lint node-readers bench-input-encoding test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -101,3 +101,7 @@ node-readers:
 	mkdir -p .cache/node-mcap-readers
 	cp tests/readers/package.json tests/readers/decode_mcap.mjs .cache/node-mcap-readers/
 	cd .cache/node-mcap-readers && npm install --no-audit --no-fund --ignore-scripts && touch .installed-$$(sha256sum package.json | cut -c1-12)
+
+# Size and write cost of an input record in each well-known MCAP encoding (protobuf, jsonschema, flatbuffer).
+bench-input-encoding: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.input_encoding

@@ -21,7 +21,7 @@ The message (:data:`INPUT_PROTO` is its ``.proto`` text)::
       bytes raw = 13;                // otherwise: the payload as received
       Time timestamp = 14;           // t0_ns as {sec, nsec}
     }
-    message Time { int64 sec = 1; int32 nsec = 2; }
+    message Time { sfixed64 sec = 1; fixed32 nsec = 2; }
 
 A well-formed binary block (:mod:`sinewatch.schemas.codec`) is recorded as its fields, its
 samples copied as they are (little-endian IEEE 754 is protobuf's packed ``double``/``float``
@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import struct
+from typing import Any
 
 from sinewatch.schemas.codec import HEADER, MAGIC, decode_block
 from sinewatch.schemas.errors import InputError
@@ -54,8 +55,8 @@ package sinewatch;
 
 // time as whole seconds and nanoseconds since the epoch
 message Time {
-  int64 sec = 1;
-  int32 nsec = 2;
+  sfixed64 sec = 1;
+  fixed32 nsec = 2;
 }
 
 // One input as the daemon received it: its samples for any reader, and what replay needs to
@@ -79,21 +80,10 @@ message InputBlock {
 """
 
 # FieldDescriptorProto.Type and .Label values (google/protobuf/descriptor.proto)
-_DOUBLE, _FLOAT, _INT64, _FIXED64, _STRING, _MESSAGE, _BYTES, _UINT32, _SFIXED64, _INT32 = (
-    1,
-    2,
-    3,
-    6,
-    9,
-    11,
-    12,
-    13,
-    16,
-    5,
-)
+_DOUBLE, _FLOAT, _FIXED64, _FIXED32, _STRING, _MESSAGE, _BYTES, _UINT32, _SFIXED64 = 1, 2, 6, 7, 9, 11, 12, 13, 16
 _OPTIONAL, _REPEATED = 1, 3
 
-_TIME_FIELDS = (("sec", 1, _INT64, _OPTIONAL, ""), ("nsec", 2, _INT32, _OPTIONAL, ""))
+_TIME_FIELDS = (("sec", 1, _SFIXED64, _OPTIONAL, ""), ("nsec", 2, _FIXED32, _OPTIONAL, ""))
 _INPUT_FIELDS = (
     ("zenoh_encoding", 1, _STRING, _OPTIONAL, ""),
     ("channel", 2, _STRING, _OPTIONAL, ""),
@@ -115,7 +105,14 @@ _INPUT_FIELDS = (
 _VARINT, _I64, _LEN, _I32 = 0, 1, 2, 5
 
 
+_SMALL = [bytes((i,)) for i in range(0x80)]
+
+
 def _varint(n: int) -> bytes:
+    if 0 <= n < 0x80:
+        return _SMALL[n]
+    if 0 < n < 0x4000:  # two bytes: a block's sample bytes up to 16 KiB
+        return bytes(((n & 0x7F) | 0x80, n >> 7))
     out = bytearray()
     n &= (1 << 64) - 1  # negative int64: ten bytes, two's complement (protobuf's rule)
     while n >= 0x80:
@@ -132,6 +129,10 @@ def _key(field: int, wire_type: int) -> bytes:
 
 def _len_field(field: int, data: bytes) -> bytes:
     return _key(field, _LEN) + _varint(len(data)) + data
+
+
+#: The same few strings (encodings, channel names, units) on every block: encoded once each.
+_string_field = functools.lru_cache(maxsize=4096)(_len_field)
 
 
 def _field_descriptor(name: str, number: int, type_: int, label: int, type_name: str) -> bytes:
@@ -162,66 +163,80 @@ def file_descriptor_set() -> bytes:
 
 
 _DOUBLE_BYTES = struct.Struct("<d")
-_I64_BYTES = struct.Struct("<q")
 _U64_BYTES = struct.Struct("<Q")
+
+
+# field 14 (Time, 14 bytes long): sec = 1 (sfixed64), nsec = 2 (fixed32), in one pack
+_TIME = struct.Struct("<BBBqBI")
+_TIME_HEAD = (14 << 3 | _LEN, 14, 1 << 3 | _I64)
+_NSEC_KEY = 2 << 3 | _I32
+# fields 3, 4, 5: seq (fixed64), t0_ns (sfixed64), sample_rate_hz (double), keys and values in one pack
+_FIXED = struct.Struct("<BQBqBd")
+_SEQ_KEY, _T0_KEY, _FS_KEY = 3 << 3 | _I64, 4 << 3 | _I64, 5 << 3 | _I64
+_COLUMNS_KEY, _N_KEY, _VERSION_KEY, _FLAGS_KEY = (bytes((k << 3 | _VARINT,)) for k in (6, 7, 11, 12))
+_SAMPLES_KEY, _SAMPLES_F32_KEY = bytes((9 << 3 | _LEN,)), bytes((10 << 3 | _LEN,))
 
 
 def _time(ns: int) -> bytes:
     sec, nsec = divmod(ns, 1_000_000_000)
-    return _len_field(14, _key(1, _VARINT) + _varint(sec) + _key(2, _VARINT) + _varint(nsec))
+    return _TIME.pack(*_TIME_HEAD, sec, _NSEC_KEY, nsec)
 
 
 def _fields(
     channel: bytes, seq: int, t0_ns: int, fs: float, columns: int, n: int, unit: bytes, samples: bytes, f32: bool
 ) -> list[bytes]:
     """The block's fields, in field order (``samples`` as their little-endian bytes)."""
-    parts = [_len_field(2, channel)] if channel else []
+    parts = [_string_field(2, channel)] if channel else []
     parts += (
-        _key(3, _I64) + _U64_BYTES.pack(seq),
-        _key(4, _I64) + _I64_BYTES.pack(t0_ns),
-        _key(5, _I64) + _DOUBLE_BYTES.pack(fs),
-        _key(6, _VARINT) + _varint(columns),
-        _key(7, _VARINT) + _varint(n),
+        _FIXED.pack(_SEQ_KEY, seq, _T0_KEY, t0_ns, _FS_KEY, fs),
+        _COLUMNS_KEY,
+        _varint(columns),
+        _N_KEY,
+        _varint(n),
     )
     if unit:
-        parts.append(_len_field(8, unit))
+        parts.append(_string_field(8, unit))
     if samples:
-        parts += (_key(10 if f32 else 9, _LEN), _varint(len(samples)), samples)
+        parts += (_SAMPLES_F32_KEY if f32 else _SAMPLES_KEY, _varint(len(samples)), samples)
     return parts
 
 
-def _binary_layout(payload: bytes) -> tuple[int, ...] | None:
+_HEAD = HEADER.size
+
+
+def _binary_layout(payload: bytes) -> tuple[Any, ...] | None:
     """The header of a payload that is a complete binary block (any version but 0, any flags;
     channel and unit UTF-8), or None: exactly what :func:`encode_input_record` can rebuild."""
-    if len(payload) < HEADER.size or payload[:4] != MAGIC:
+    if len(payload) < _HEAD or payload[:4] != MAGIC:
         return None
-    _magic, version, dcode, columns, flags, seq, t0, fs, n, clen, ulen = HEADER.unpack_from(payload)
-    size = {1: 4, 2: 8}.get(dcode)
+    fields = HEADER.unpack_from(payload)
+    version, dcode, columns, n, clen, ulen = fields[1], fields[2], fields[3], fields[8], fields[9], fields[10]
     # no samples: which samples field is absent would not say the dtype; such a block goes raw
-    if version == 0 or size is None or n * columns == 0:
+    if version == 0 or not 1 <= dcode <= 2 or n * columns == 0:
         return None
-    if len(payload) != HEADER.size + clen + ulen + n * columns * size:
+    if len(payload) != _HEAD + clen + ulen + n * columns * (4 if dcode == 1 else 8):
         return None
-    try:  # protobuf strings are UTF-8: a channel or unit that is not goes raw
-        payload[HEADER.size : HEADER.size + clen].decode("utf-8")
-        payload[HEADER.size + clen : HEADER.size + clen + ulen].decode("utf-8")
-    except UnicodeDecodeError:
-        return None
-    return version, dcode, columns, flags, seq, t0, fs, n, clen, ulen
+    if not payload[_HEAD : _HEAD + clen + ulen].isascii():  # the usual case, cheaply; else UTF-8 (protobuf's strings)
+        try:
+            payload[_HEAD : _HEAD + clen].decode("utf-8")
+            payload[_HEAD + clen : _HEAD + clen + ulen].decode("utf-8")
+        except UnicodeDecodeError:
+            return None
+    return fields[1:]
 
 
 def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
     """The InputBlock record of one received input (any bytes, any encoding)."""
-    parts = [_len_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
+    parts = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
     layout = _binary_layout(payload)
     if layout is not None:
         version, dcode, columns, flags, seq, t0, fs, n, clen, ulen = layout
         start = HEADER.size + clen + ulen
         channel, unit = payload[HEADER.size : HEADER.size + clen], payload[HEADER.size + clen : start]
         parts += _fields(channel, seq, t0, fs, columns, n, unit, payload[start:], dcode == 1)
-        parts.append(_key(11, _VARINT) + _varint(version))
+        parts += (_VERSION_KEY, _varint(version))
         if flags:
-            parts.append(_key(12, _VARINT) + _varint(flags))
+            parts += (_FLAGS_KEY, _varint(flags))
         parts.append(_time(t0))
         return b"".join(parts)
     try:
