@@ -23,7 +23,8 @@ Clients of either subprotocol: the SDK's server (foxglove-sdk 0.30) accepts only
 :class:`SubprotocolRelay` listens on the configured one: it reads each client's HTTP
 upgrade request, names the subprotocol the SDK knows in it (and the client's own in the
 answer), then copies bytes both ways (WebSocket frames do not depend on the name).
-``sinewatch bench foxglove-relay`` measures what the relay costs against a direct client.
+``make bench-foxglove-relay`` (``python -m sinewatch.bench.foxglove_relay``) measures what the
+relay costs against a client of the SDK's own port.
 
 Each message's log time is the time the daemon received its input (the log time the MCAP
 recording uses), so a live session and a recording of it line up; the data time is the
