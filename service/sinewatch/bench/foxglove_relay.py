@@ -51,7 +51,7 @@ def estimate(i: int) -> bytes:
                 "reset": False,
                 "extras": {},
             },
-        }  # fmt: skip
+        }
     ).encode()
 
 
