@@ -127,12 +127,13 @@ def _port(text: str) -> int:
 
 
 def _count(text: str) -> int:
+    """``--workers N``: 1-256 processes, or 0 for one per core (as ``[workers] count``)."""
     try:
         n = int(text)
     except ValueError:
         n = -1
-    if not 1 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, got {text!r}")
+    if not 0 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, or 0 for one per core, got {text!r}")
     return n
 
 
@@ -574,7 +575,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=_count,
         metavar="N",
-        help="run the estimators in N worker processes ([workers] count; default 1: in this process)",
+        help="run the estimators in N worker processes, 0 for one per core ([workers] count; default 1: in this "
+        "process)",
     )
     s.add_argument(
         "--c37118",
