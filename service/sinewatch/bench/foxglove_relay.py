@@ -58,8 +58,10 @@ def estimate(i: int) -> bytes:
 async def one_run(sink: FoxgloveSink, port: int, subprotocol: str, n: int) -> tuple[float, float]:
     """(wall seconds, CPU seconds) until the client has received n messages."""
     import websockets  # the test extra's client
+    from websockets.typing import Subprotocol
 
-    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], max_size=None) as ws:
+    url = f"ws://127.0.0.1:{port}"
+    async with websockets.connect(url, subprotocols=[Subprotocol(subprotocol)], max_size=None) as ws:
         channel_id = None
         while channel_id is None:
             msg = json.loads(await ws.recv())
