@@ -246,17 +246,28 @@ def file_identity(path: Path) -> tuple[str, int]:
     raise ReplayError(f"{path}: no sinewatch metadata at its start; expected a file written by sinewatch")
 
 
+def _follows_outage(path: Path) -> bool:
+    """The file a recorder started after a failed write (a full disk): the one before it
+    lost its tail, so this file's snapshot, not replay's state, is where it starts."""
+    for kind, item in read_recording(path):
+        if kind == "metadata":
+            return bool(item.get("follows_outage") == "true")
+        if kind in ("message", "incomplete"):
+            break
+    return False
+
+
 def split_runs(paths: list[Path]) -> list[list[Path]]:
     """The runs among ``paths``: a daemon's files whose indices follow each other, in the
     order given. A file of another daemon (a worker process has an id of its own), or one
     whose index does not follow its daemon's previous file (a new run of it, e.g. a worker
-    restarted from its state), starts another run."""
+    restarted from its state), or one started after a failed write, starts another run."""
     runs: list[list[Path]] = []
     open_runs: dict[str, tuple[int, list[Path]]] = {}  # daemon id -> (its last file index, its run)
     for path in paths:
         daemon_id, index = file_identity(path)
         last = open_runs.get(daemon_id)
-        if last is not None and index == last[0] + 1:
+        if last is not None and index == last[0] + 1 and not _follows_outage(path):
             last[1].append(path)
             open_runs[daemon_id] = (index, last[1])
         else:
@@ -316,8 +327,13 @@ def _replay_run(
                         estimate_version = int(item.get("estimate_format_version", "1"))
                         pq_version = int(item.get("pq_format_version", "1"))
             elif kind == "snapshot":
-                if file_no == 0:
+                # A later file's snapshot is the state replay has reached by then, unless
+                # no input came before it: the files of a standby before its takeover hold
+                # status only, and the takeover's state is in this one.
+                if file_no == 0 or result.r.inputs == 0:
                     pending_snapshot = item
+                    if pipeline is not None:
+                        pipeline.restore(item)
             elif kind == "incomplete":
                 log.warning("%s ends early (%s): replayed its complete chunks", path, item)
                 result.r.incomplete_files.append(path)
