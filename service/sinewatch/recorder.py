@@ -501,8 +501,10 @@ class McapRecorder:
         self._record_input(key, payload, encoding, log_time_ns)
 
     def _record_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
-        """One input as an InputBlock record on its key's protobuf channel: the record carries
-        the message's own Zenoh encoding (the channel's ``zenoh_encoding`` is its first)."""
+        """One input as an InputBlock record on its key's protobuf channel (one per Zenoh
+        encoding, as every channel): the record carries the message's own Zenoh encoding too,
+        as it came (``""`` where the channel says ``zenoh/bytes``), so a reader needs nothing
+        else to feed the pipeline what it got."""
         cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, INPUT_SCHEMA_NAME, "input", encoding or "zenoh/bytes")
         self._write(cid, encode_input_record(payload, encoding), log_time_ns)
 
