@@ -91,7 +91,7 @@ def _check_decoded(out: dict, path: Path, sent: dict) -> None:
     was sent, estimates as the file holds them."""
     channels, counts = out["channels"], out["counts"]
     assert set(channels) == set(counts) and all(len(channels[c]["messages"]) == n for c, n in counts.items())
-    inputs: dict[str, list[dict]] = {}
+    inputs: dict[str, list[tuple[int, dict]]] = {}  # topic -> (log time, message): a channel per Zenoh encoding
     for ch in channels.values():
         if ch["metadata"]["role"] == "input":
             assert (ch["message_encoding"], ch["schema_name"], ch["schema_encoding"]) == (
@@ -99,11 +99,12 @@ def _check_decoded(out: dict, path: Path, sent: dict) -> None:
                 "sinewatch.InputBlock",
                 "protobuf",
             )
-            inputs.setdefault(ch["topic"], []).extend(ch["messages"])
+            inputs.setdefault(ch["topic"], []).extend(zip(ch["log_times"], ch["messages"], strict=True))
         else:
             assert (ch["message_encoding"], ch["schema_encoding"]) == ("json", "jsonschema")
     assert set(inputs) == set(sent)
-    for topic, messages in inputs.items():
+    for topic, timed in inputs.items():
+        messages = [m for _, m in sorted(timed, key=lambda tm: tm[0])]  # the order sent (log times rise)
         assert len(messages) == len(sent[topic])
         for msg, (payload, encoding, block) in zip(messages, sent[topic], strict=True):
             assert msg["zenoh_encoding"] == encoding

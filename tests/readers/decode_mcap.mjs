@@ -52,8 +52,10 @@ for await (const message of reader.readMessages()) {
     schema_encoding: schema.encoding,
     metadata: Object.fromEntries(channel.metadata),
     messages: [],
+    log_times: [],
   });
   out.messages.push(decoders.get(channel.id)(message.data));
+  out.log_times.push(Number(message.logTime));
 }
 const counts = {};
 for (const [id, n] of reader.statistics.channelMessageCounts) counts[id] = Number(n);

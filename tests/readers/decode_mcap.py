@@ -30,7 +30,7 @@ def main(path: str) -> None:
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[ProtobufDecoderFactory(), JsonDecoderFactory()], validate_crcs=True)
         summary = reader.get_summary()
-        for schema, channel, _message, decoded in reader.iter_decoded_messages(log_time_order=False):
+        for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
             out = channels.setdefault(
                 f"{channel.id}",
                 {
@@ -40,6 +40,7 @@ def main(path: str) -> None:
                     "schema_encoding": schema.encoding,
                     "metadata": dict(channel.metadata),
                     "messages": [],
+                    "log_times": [],
                 },
             )
             if channel.message_encoding == "protobuf":
@@ -54,6 +55,7 @@ def main(path: str) -> None:
             if schema.encoding == "jsonschema":
                 jsonschema.validate(msg, json.loads(schema.data))
             out["messages"].append(msg)
+            out["log_times"].append(message.log_time)
         counts = {str(k): v for k, v in summary.statistics.channel_message_counts.items()}
     json.dump({"channels": channels, "counts": counts}, sys.stdout)
 
