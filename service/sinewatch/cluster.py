@@ -244,7 +244,15 @@ class ClusterMember:
             self._loop.call_later(2 * self.daemon.config.cluster.snapshot_interval_s, self._check_takeover)
 
     def _on_snapshot(self, sample: zenoh.Sample) -> None:
-        self.latest_snapshot = sample.payload.to_bytes()
+        payload = sample.payload.to_bytes()
+        try:  # only a daemon may put here (the router's access control); still, keep only snapshots
+            ok = isinstance(json.loads(payload).get("channels"), list)
+        except (ValueError, AttributeError):
+            ok = False
+        if ok:
+            self.latest_snapshot = payload
+        else:
+            log.warning("cluster: %d bytes on %s are not a snapshot: ignored", len(payload), self.snapshot_key)
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
         try:
@@ -314,7 +322,12 @@ class ClusterMember:
         self._watch = []
         pipeline = self.daemon.pipeline
         if self.latest_snapshot is not None:
-            pipeline.restore(json.loads(self.latest_snapshot))
+            try:
+                pipeline.restore(json.loads(self.latest_snapshot))
+            except Exception:  # a snapshot that does not restore must not stop the takeover
+                log.exception("cluster: the snapshot of shard %s does not restore; serving from scratch", self.shard_id)
+                pipeline.channels.clear()
+                pipeline.resume_points.clear()
         for name, (seq, timestamp_ns) in self.published.items():
             ch = pipeline.channels.get(name)
             next_t0 = timestamp_ns + round(1e9 / ch.sample_rate_hz) if ch is not None else None

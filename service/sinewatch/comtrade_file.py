@@ -16,6 +16,8 @@ since a sinewatch channel keeps one rate (the first sample of a segment comes on
 of its own rate after the last of the one before, as python-comtrade reads it). A record
 with timestamps only (``samp`` = 0) is refused: a channel needs a fixed rate. Status
 (digital) channels are not estimated and are left out. The start time is read as UTC (the 1999 revision has no time zone field).
+The text files are read as UTF-8, or as Latin-1 when they are not valid UTF-8
+(:func:`text_encoding`: older relays write Latin-1 names).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.frame import Frame
 
 COMTRADE_SUFFIXES = (".cfg", ".cff")
 
@@ -71,6 +74,26 @@ def interleaved_blocks(record: ComtradeRecord, block_size: int) -> list[Block]:
     return [b for _, _, b in sorted(items, key=lambda item: (item[0], item[1]))]
 
 
+def interleaved_frames(record: ComtradeRecord, block_size: int) -> list[tuple[str, Frame]]:
+    """The record as multi-channel frames, in the order of their times: the analog channels
+    sampled together (one rate segment: same rate, start and length) go in one frame of
+    ``block_size`` samples each, named ``<first channel's prefix>.frame<k>`` with dots for
+    slashes (one key chunk). Returns (frame name, Frame) pairs; seq 0, 1, ... per frame."""
+    groups: dict[tuple[float, int, int], list[ComtradeChannel]] = {}
+    for ch in record.channels:
+        groups.setdefault((ch.sample_rate_hz, ch.t0_ns, len(ch.samples)), []).append(ch)
+    items = []
+    for k, ((fs, t0_ns, n), members) in enumerate(groups.items()):
+        name = f"{members[0].channel.rsplit('/', 1)[0].replace('/', '.')}.frame{k}"
+        names = tuple(ch.channel for ch in members)
+        data = np.stack([ch.samples for ch in members], axis=1)
+        for seq, start in enumerate(range(0, n, block_size)):
+            t0 = t0_ns + round(start * 1e9 / fs)
+            items.append((t0, k, name, Frame(names, seq, t0, fs, data[start : start + block_size])))
+    items.sort(key=lambda item: (item[0], item[1]))
+    return [(name, frame) for _, _, name, frame in items]
+
+
 def is_comtrade(path: Path) -> bool:
     return path.suffix.lower() in COMTRADE_SUFFIXES
 
@@ -103,7 +126,7 @@ def read_comtrade(path: Path, prefix: str = "comtrade") -> ComtradeRecord:
     lib = _library()
     record = lib.Comtrade(use_numpy_arrays=True, use_double_precision=True)
     try:
-        record.load(str(path))
+        record.load(str(path), encoding=text_encoding(path))
     except FileNotFoundError as exc:
         raise ComtradeError(f"{path}: expected its data file {exc.filename}, got no such file") from None
     except Exception as exc:  # noqa: BLE001 (the reader raises ValueError, IndexError, struct.error, ...)
@@ -136,6 +159,22 @@ def read_comtrade(path: Path, prefix: str = "comtrade") -> ComtradeRecord:
                 )
             )
     return ComtradeRecord(path, cfg.station_name.strip(), str(cfg.rev_year), str(cfg.ft).upper(), channels)
+
+
+def text_encoding(path: Path) -> str:
+    """The encoding of a record's text files (``.cfg`` and, beside it, ``.hdr`` and
+    ``.inf``): UTF-8 (C37.111-2013 clause 6; a byte-order mark is skipped) when they all
+    decode as UTF-8, else Latin-1, which older relays write (C37.111-1999 says ASCII and
+    their names carry o-umlauts and micro signs) and which decodes any byte. A ``.cff``
+    is read by the library as UTF-8 whatever this says."""
+    texts = [path, *(path.with_suffix(s) for s in (".hdr", ".inf", ".HDR", ".INF"))]
+    for p in texts:
+        if p.is_file():
+            try:
+                p.read_bytes().decode("utf-8")
+            except UnicodeDecodeError:
+                return "latin-1"
+    return "utf-8-sig"
 
 
 def _segments(cfg: Any, n: int, path: Path) -> list[tuple[float, int, int]]:

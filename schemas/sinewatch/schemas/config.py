@@ -128,7 +128,9 @@ class HarmonicsRule(_Section):
 
     match: str = Field(description="Key expression matched against the input key")
     nominal_frequency_hz: Literal[50, 60] = Field(50, description="50 Hz: 10-cycle windows; 60 Hz: 12-cycle windows")
-    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order reported and used in THD")
+    max_harmonic: int = Field(
+        50, ge=2, le=50, description="Highest harmonic order reported (THD stops at min(40, this), IEC 61000-4-7)"
+    )
     aggregate: bool = Field(True, description="Publish the 150/180-cycle and 10-min aggregates too")
 
 
@@ -297,6 +299,15 @@ class RecordingSection(_Section):
     rotate_seconds: float | None = Field(3600.0, gt=0, description="Start a new file after this long")
     flush_interval_s: float = Field(
         1.0, gt=0, description="Close the open chunk this often: a crash loses at most this much"
+    )
+    # 60 s: a window's warm-up is at most a minute of its channels' data, while each
+    # snapshot is built on the daemon's event loop (1.4 MB of JSON for 1000 ges-kalman
+    # channels): rarer snapshots keep that off the latency
+    snapshot_interval_s: float | None = Field(
+        60.0,
+        gt=0,
+        description="Also write the state of every channel this often (log time; at an input) so that a "
+        "window of the file replays from the snapshot before it; None: at file starts only",
     )
     inputs: bool = True
     estimates: bool = True
