@@ -6,13 +6,19 @@ Layout of a recording:
   replayed with the encoding it came with, whatever else came on its key), its metadata saying the role
   (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
   ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
-* inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
-  the same code; JSON messages with their JSON Schema embedded (``jsonschema``), so
-  Foxglove can plot estimates;
+* inputs as protobuf ``sinewatch.InputBlock`` records with their schema (a FileDescriptorSet)
+  in the file (:mod:`sinewatch.schemas.input_record`): any MCAP reader decodes a block's
+  samples, and replay rebuilds from each record the exact bytes and Zenoh encoding the
+  daemon received (rejected inputs included); recordings of earlier builds carry the raw
+  payloads (``sinewatch-block-v1`` or ``json``) and still replay;
+* JSON messages with their JSON Schema embedded (``jsonschema``), so Foxglove plots
+  estimates beside the samples;
 * a ``sinewatch`` metadata record at the start of each file: the effective config, the
   sinewatch version, the file's index in its run;
 * from the second file of a run on, a ``sinewatch.snapshot`` attachment: the state of
   every channel and estimator at the rotation point, so each file replays on its own;
+  and every ``snapshot_interval_s`` of log time another one between two inputs, so a
+  window of a file replays from the snapshot before it (``replay --start``);
 * chunked and compressed, rotated by size or duration, and flushed on a timer
   (``Writer.flush`` closes the open chunk) so that a crash loses at most one interval:
   ``sinewatch replay`` recovers the complete chunks of an unfinished file.
@@ -50,6 +56,13 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
 from sinewatch.schemas.frame import FRAME_MAGIC, is_frame
+from sinewatch.schemas.input_record import (
+    INPUT_MESSAGE_ENCODING,
+    INPUT_SCHEMA_ENCODING,
+    INPUT_SCHEMA_NAME,
+    encode_input_record,
+    file_descriptor_set,
+)
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
@@ -57,6 +70,9 @@ log = logging.getLogger("sinewatch.recorder")
 
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
+#: The recording's layout: 2 records inputs as protobuf InputBlock (1: raw payloads).
+RECORDING_FORMAT_VERSION = 2
+#: How builds before RECORDING_FORMAT_VERSION 2 recorded binary inputs (replay still reads them).
 BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
 BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
 FRAME_MESSAGE_ENCODING = "sinewatch-frame-v1"
@@ -310,6 +326,8 @@ class McapRecorder:
         self._channels: dict[tuple[str, str, str], int] = {}
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
+        self._last_snapshot_ns: int | None = None  # log time of the file's latest snapshot (or first input)
+        self.snapshots_written = 0
 
     @property
     def _w(self) -> Writer:
@@ -363,7 +381,7 @@ class McapRecorder:
         self._w.add_metadata(
             METADATA_NAME,
             {
-                "format_version": "1",
+                "format_version": str(RECORDING_FORMAT_VERSION),
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
                 "validity_rules_version": str(VALIDITY_RULES_VERSION),
@@ -375,9 +393,11 @@ class McapRecorder:
                 **({"follows_outage": "true"} if self._after_outage else {}),
             },
         )
+        self._last_snapshot_ns = None
         if (self.index > 0 or self.attach_first_snapshot) and self._snapshot is not None:
             now = time.time_ns()
             self._w.add_attachment(now, now, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode())
+            self.snapshots_written += 1
         log.info("recording to %s", path)
         return path
 
@@ -451,6 +471,45 @@ class McapRecorder:
             self.index += 1
             self.open()
 
+    def _maybe_snapshot(self, log_time_ns: int) -> None:
+        """Every ``snapshot_interval_s`` of log time (not wall time: a re-recording made by
+        replay puts its snapshots at the same inputs), at an input and before it, the state
+        of every channel, so that ``replay --start`` begins at the latest snapshot before its
+        window instead of the file's start. The open chunk is closed first: in file order
+        the snapshot then sits between the messages before it and those after it."""
+        interval = self.section.snapshot_interval_s
+        if interval is None or self._snapshot is None:
+            return
+        last = self._last_snapshot_ns
+        if last is None:  # the file's first input: its start (or its rotation snapshot) is the reference
+            self._last_snapshot_ns = log_time_ns
+            return
+        if log_time_ns - last < interval * 1e9:
+            return
+        self._last_snapshot_ns = log_time_ns
+        self._w.flush()
+        self._w.add_attachment(
+            time.time_ns(), log_time_ns, SNAPSHOT_NAME, "application/json", json.dumps(self._snapshot()).encode()
+        )
+        self.snapshots_written += 1
+
+    def record_json(
+        self, topic: str, role: str, schema_name: str, schema: bytes, payload: bytes, log_time_ns: int
+    ) -> None:
+        """A JSON message of a kind the pipeline does not produce (e.g. ``replay --track``'s
+        per-sample rows) on channel ``topic`` with ``role`` and its JSON Schema ``schema``."""
+        if self._writer is None:
+            self.open()
+        key = (topic, "json", "application/json")
+        cid = self._channels.get(key)
+        if cid is None:
+            sid = self._schemas.get(schema_name)
+            if sid is None:
+                sid = self._schemas[schema_name] = self._w.register_schema(schema_name, "jsonschema", schema)
+            cid = self._w.register_channel(topic, "json", sid, {"role": role, "zenoh_encoding": "application/json"})
+            self._channels[key] = cid
+        self._write(cid, payload, log_time_ns)
+
     def _size_on_file(self) -> int:
         """The file's size for rotation: FastWriter's is up to the chunk before the one in
         flight (the file's position moves on another thread, and rotation must fall on the
@@ -463,7 +522,9 @@ class McapRecorder:
     def _schema_id(self, name: str) -> int:
         sid = self._schemas.get(name)
         if sid is None:
-            if name == "sinewatch.SampleBlock.binary":
+            if name == INPUT_SCHEMA_NAME:
+                sid = self._w.register_schema(name, INPUT_SCHEMA_ENCODING, file_descriptor_set())
+            elif name == "sinewatch.SampleBlock.binary":
                 # the byte layout, as documented in the codec, travels with the data
                 sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
             elif name == "sinewatch.SampleFrame.binary":
@@ -505,10 +566,24 @@ class McapRecorder:
         if self._writer is None:
             self.open()
         self._maybe_rotate()  # at an input: snapshots fall on block boundaries
+        self._maybe_snapshot(log_time_ns)
         if not self.section.inputs:
             return
         msg_enc, schema = mcap_encodings(encoding, payload)
-        self._write(self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns)
+        if schema.startswith("sinewatch.SampleFrame"):  # a multi-channel frame: one message, its own layout
+            self._write(
+                self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns
+            )
+        else:
+            self._record_input(key, payload, encoding, log_time_ns)
+
+    def _record_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        """One input as an InputBlock record on its key's protobuf channel (one per Zenoh
+        encoding, as every channel): the record carries the message's own Zenoh encoding too,
+        as it came (``""`` where the channel says ``zenoh/bytes``), so a reader needs nothing
+        else to feed the pipeline what it got."""
+        cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, INPUT_SCHEMA_NAME, "input", encoding or "zenoh/bytes")
+        self._write(cid, encode_input_record(payload, encoding), log_time_ns)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self.section.estimates:
@@ -534,4 +609,11 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
+__all__ = [
+    "BLOCK_BINARY_ENCODING",
+    "METADATA_NAME",
+    "RECORDING_FORMAT_VERSION",
+    "SNAPSHOT_NAME",
+    "FastWriter",
+    "McapRecorder",
+]
