@@ -286,8 +286,10 @@ class TrackingPipeline(Pipeline):
 
         setattr(est, "update", update)  # noqa: B010 (an instance attribute shadowing the method, on purpose)
 
-    def _accept(self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool) -> None:
-        super()._accept(ch, block, gap_blocks, restart, reset)
+    def _accept(
+        self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
+    ) -> None:
+        super()._accept(ch, block, gap_blocks, restart, reset, jump)
         track = self._pending.pop(ch.name, None)
         if track is not None:
             self.writer.add(ch, block, track, self._log_time_ns)
