@@ -35,7 +35,7 @@ from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import SinewatchError
-from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, Fencing
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 
 log = logging.getLogger("sinewatch.replay")
@@ -316,6 +316,8 @@ def _replay_run(
             elif kind == "snapshot":
                 if file_no == 0:
                     pending_snapshot = item
+                elif pipeline is not None and "fencing" in item:  # a new term from this file on (a takeover)
+                    pipeline.set_fencing(Fencing.model_validate(item["fencing"]))
             elif kind == "incomplete":
                 log.warning("%s ends early (%s): replayed its complete chunks", path, item)
                 result.r.incomplete_files.append(path)
