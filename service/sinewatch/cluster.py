@@ -33,6 +33,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import re
 import time
 import zlib
@@ -66,7 +67,7 @@ class Host(Protocol):
     def session(self) -> zenoh.Session: ...
     @property
     def pipeline(self) -> Pipeline: ...
-    def start_intake(self) -> None: ...
+    def start_intake(self, history_blocks: int | None = None) -> None: ...
     async def stop_intake(self) -> None: ...
     def intake_counters(self) -> IntakeCount: ...
 
@@ -162,8 +163,8 @@ class ClusterMember:
         if cfg.cluster.etcd is not None:
             key = f"{admin}/election/{self.shard_id}"
             self.election = LeaseElection(cfg.cluster.etcd, key, cfg.daemon_id, cfg.cluster.lease_ttl_s)
-        # set on a Zenoh thread (one reference assignment each): (term, payload) of the newest snapshot
-        self.latest_snapshot: tuple[int, bytes] | None = None
+        # set on a Zenoh thread (one reference assignment each): (term, payload, monotonic arrival) of the newest
+        self.latest_snapshot: tuple[int, bytes, float] | None = None
         self.published: dict[str, tuple[int, int]] = {}  # channel -> (seq, timestamp_ns) the owner published
         self._loop: asyncio.AbstractEventLoop | None = None
         self._token: zenoh.LivelinessToken | None = None
@@ -208,9 +209,9 @@ class ClusterMember:
             await self._step_down()
 
     # ---- active ----------------------------------------------------------------------------------
-    def _activate(self) -> None:
+    def _activate(self, history_blocks: int | None = None) -> None:
         # Subscribed first: the token says "serving", and a publisher that sees it may send at once.
-        self.daemon.start_intake()
+        self.daemon.start_intake(history_blocks)
         self._set_token(self.active_key)
         self.role = "active"
         self._spawn(self._publish_snapshots())
@@ -274,7 +275,7 @@ class ClusterMember:
         term = int(sample.attachment.to_string()) if sample.attachment is not None else 0
         latest = self.latest_snapshot
         if latest is None or term >= latest[0]:  # an older term's late snapshot never replaces a newer one
-            self.latest_snapshot = (term, sample.payload.to_bytes())
+            self.latest_snapshot = (term, sample.payload.to_bytes(), time.monotonic())
             self._note_term(term)
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
@@ -299,6 +300,7 @@ class ClusterMember:
         """Restore the newest snapshot, mark where the previous owner left each channel,
         start a new recording file (with this state and ``term``) and serve the shard."""
         started = time.monotonic()
+        succeeds = self.latest_snapshot is not None or bool(self.published)  # not a cold start: someone served
         for sub in self._watch:
             sub.undeclare()
         self._watch = []
@@ -316,8 +318,8 @@ class ClusterMember:
         pipeline.set_fencing(Fencing(shard=self.shard_id, term=term) if term is not None else None)
         if self.daemon.recorder is not None:
             self.daemon.recorder.rotate()  # the new file carries this state and term: it replays on its own
-        self.takeovers += 1
-        self._activate()
+        self.takeovers += succeeds
+        self._activate(self._history_needed())
         log.warning(
             "cluster: took over shard %s (term %s): %d channel(s) from the snapshot, %d resume point(s), in %.0f ms",
             self.shard_id,
@@ -326,6 +328,18 @@ class ClusterMember:
             len(pipeline.resume_points),
             (time.monotonic() - started) * 1e3,
         )
+
+    def _history_needed(self) -> int | None:
+        """How many blocks of each publisher's cache a takeover needs: those since the
+        snapshot it restored (at each channel's block rate, doubled, plus a second's worth);
+        None (the whole cache) without a snapshot."""
+        latest = self.latest_snapshot
+        channels = self.daemon.pipeline.channels.values()
+        if latest is None or not channels:
+            return None
+        age_s = time.monotonic() - latest[2] + 1.0
+        rates = [ch.sample_rate_hz * ch.blocks / ch.samples for ch in channels if ch.blocks and ch.samples]
+        return max(16, math.ceil(2 * age_s * max(rates))) if rates else None
 
     # ---- admin -----------------------------------------------------------------------------------
     def admin_reply(self) -> dict[str, Any]:

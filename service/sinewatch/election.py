@@ -5,8 +5,8 @@ candidate grants a lease of ``ttl`` seconds and, in one transaction, creates the
 election key attached to it if the key does not exist. The one whose transaction created
 the key owns the shard; the key's create revision is the election's **term**, which grows
 with every election (etcd revisions never go back while its data is kept), so it serves
-as a fencing token. The others watch the key and try again when it is deleted, which etcd
-does when the owner's lease expires (or is revoked).
+as a fencing token. The others read the key every ``POLL_S`` and try again once it is gone,
+which etcd makes it when the owner's lease expires (or is revoked).
 
 The owner keeps its lease alive (a keep-alive every ``ttl / 6``) and may publish only
 while it can *prove* the lease alive: etcd restarts a lease's countdown when it receives a
@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -45,6 +46,9 @@ _GRPC_OPTIONS = {
 }
 
 
+POLL_S = 0.2  # how often a standby reads the election key while it is held
+
+
 @dataclass
 class Won:
     term: int  # the create revision of the election key: this election's fencing token
@@ -57,6 +61,11 @@ class LeaseElection:
     :meth:`campaign` returns once this candidate owns the shard; :meth:`hold` keeps the
     lease alive and returns when ownership can no longer be proven for a whole TTL (the
     lease expired, or etcd was out of reach that long); :meth:`may_publish` is the gate.
+
+    The etcd client runs on a thread of its own (its own event loop): a keep-alive must
+    not wait behind the daemon's work (a backlog of blocks, restoring a snapshot), which
+    on a loaded machine took longer than the TTL and deposed a healthy owner. The daemon's
+    loop awaits :meth:`campaign` and :meth:`hold` and reads the deadline (one float).
     """
 
     def __init__(self, endpoint: str, key: str, identity: str, ttl_s: int) -> None:
@@ -67,31 +76,57 @@ class LeaseElection:
         self.ttl_s = ttl_s
         self.guard_s = ttl_s / 4
         self.keepalive_s = ttl_s / 6
-        self.call_timeout_s = ttl_s / 3
+        self.call_timeout_s = ttl_s / 2
         self.deadline = 0.0  # monotonic: publish only before it
         self.owner = False
         self.won: Won | None = None
         self.keepalives = 0
-        self.gate_shut = 0  # times the gate shut while this daemon still owned the shard
         self._last_ack_sent = 0.0  # monotonic time the last acknowledged keep-alive was sent
-        self._changed = asyncio.Event()
+        self._changed: asyncio.Event | None = None  # on the daemon's loop
+        self._daemon_loop: asyncio.AbstractEventLoop | None = None
         self._client: Any = None
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="sinewatch-etcd", daemon=True)
+        self._thread.start()
 
-    # ---- the gate ------------------------------------------------------------------------------
+    # ---- the gate (daemon loop) -------------------------------------------------------------------
     def may_publish(self) -> bool:
         """True while the lease is proven alive (checked before every block)."""
         return self.owner and time.monotonic() < self.deadline
 
     async def wait_gate(self) -> bool:
         """Wait until the gate opens again (True) or ownership is lost (False)."""
+        changed = self._event()
         while self.owner:
             if time.monotonic() < self.deadline:
                 return True
-            self._changed.clear()
-            await self._changed.wait()
+            changed.clear()
+            await changed.wait()
         return False
 
-    # ---- etcd ------------------------------------------------------------------------------------
+    def _event(self) -> asyncio.Event:
+        if self._changed is None:
+            self._daemon_loop = asyncio.get_running_loop()
+            self._changed = asyncio.Event()
+        return self._changed
+
+    def _notify(self) -> None:
+        """From the etcd thread: wake the daemon's waiters (the deadline or ownership changed)."""
+        loop, event = self._daemon_loop, self._changed
+        if loop is not None and event is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(event.set)
+
+    async def _on_etcd(self, coro: Any) -> Any:
+        self._event()
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self._loop))
+
+    async def campaign(self) -> Won:
+        return await self._on_etcd(self._campaign())  # type: ignore[no-any-return]
+
+    async def hold(self) -> None:
+        await self._on_etcd(self._hold())
+
+    # ---- etcd (its thread) ---------------------------------------------------------------------
     def _etcd(self) -> Any:
         if self._client is None:
             import aetcd  # the cluster extra: imported only by a daemon configured with cluster.etcd
@@ -99,10 +134,10 @@ class LeaseElection:
             self._client = aetcd.Client(self.host, self.port, options=dict(_GRPC_OPTIONS))
         return self._client
 
-    async def _call(self, coro: Any) -> Any:
-        return await asyncio.wait_for(coro, self.call_timeout_s)
+    async def _call(self, coro: Any, timeout: float | None = None) -> Any:
+        return await asyncio.wait_for(coro, timeout or self.call_timeout_s)
 
-    async def campaign(self) -> Won:
+    async def _campaign(self) -> Won:
         """Until elected: try to create the key on a fresh lease; otherwise watch it go."""
         while True:
             try:
@@ -119,44 +154,44 @@ class LeaseElection:
     async def _try_once(self) -> tuple[Won | None, int]:
         client = self._etcd()
         sent = time.monotonic()
-        lease = await self._call(client.lease(self.ttl_s))
+        lease = await self._call(client.lease(self.ttl_s), self.ttl_s)
         tx = client.transactions
         ok, responses = await self._call(
             client.transaction(
                 compare=[tx.create(self.key) == 0],
                 success=[tx.put(self.key, self.identity, lease=lease.id), tx.get(self.key)],
                 failure=[tx.get(self.key)],
-            )
+            ),
+            self.ttl_s,
         )
         kvs = responses[-1]
         revision = kvs[0][1].header.revision if kvs else 0
         if ok:
             self.won = Won(term=kvs[0][1].create_revision, lease_id=lease.id)
-            self._ack(sent)
             self.owner = True
+            self._ack(sent)
             return self.won, revision
         self._spawn_revoke(lease.id)  # a lease nobody uses: gone at once rather than after its TTL
         return None, revision
 
     async def _wait_for_delete(self, revision: int) -> None:
-        """Until the key is deleted after ``revision`` (a watch from the next revision does not
-        miss a delete between the transaction and the watch), or a TTL passed (a watch lost
-        across an etcd restart costs at most that)."""
-        from aetcd.exceptions import WatchTimeoutError
-        from aetcd.rtypes import EventKind
-
-        with contextlib.suppress(WatchTimeoutError, asyncio.TimeoutError):
-            await asyncio.wait_for(
-                self._etcd().watch_once(self.key, start_revision=revision + 1, kind=EventKind.DELETE),
-                min(1.0, float(self.ttl_s)),
-            )
+        """Until the key is gone: a read every ``POLL_S`` (a range request, the cheapest call
+        etcd has). A watch would tell at once, but aetcd's ``watch_once`` was seen to hang
+        for good in its cancellation after the event had come (a standby that never took
+        over); a read cannot hang past its timeout."""
+        client = self._etcd()
+        while True:
+            await asyncio.sleep(POLL_S)
+            if await self._call(client.get(self.key)) is None:
+                log.info("election %s: the owner's key is gone (after revision %d)", self.key.decode(), revision)
+                return
 
     def _ack(self, sent: float) -> None:
         self._last_ack_sent = sent
         self.deadline = sent + self.ttl_s - self.guard_s
-        self._changed.set()
+        self._notify()
 
-    async def hold(self) -> None:
+    async def _hold(self) -> None:
         """Keep the lease alive while this daemon owns the shard; return when it is lost."""
         won = self.won
         assert won is not None
@@ -178,14 +213,11 @@ class LeaseElection:
                 elif time.monotonic() >= self._last_ack_sent + self.ttl_s:
                     log.warning("election %s: no keep-alive acknowledged for a TTL: stepping down", self.key.decode())
                     return
-                else:
-                    if time.monotonic() >= self.deadline:
-                        self.gate_shut += 1
-                await asyncio.sleep(self.keepalive_s)
+                await asyncio.sleep(max(0.0, sent + self.keepalive_s - time.monotonic()))
         finally:
             self.owner = False
             self.deadline = 0.0
-            self._changed.set()
+            self._notify()
             self._spawn_revoke(won.lease_id)  # if etcd still holds it, the successor need not wait for its TTL
 
     def _spawn_revoke(self, lease_id: int) -> None:
@@ -197,13 +229,8 @@ class LeaseElection:
         _background.add(task)
         task.add_done_callback(_background.discard)
 
-    async def close(self) -> None:
-        """Give the shard up now (a graceful stop): revoke the lease, so a successor need
-        not wait for its TTL."""
+    async def _close(self) -> None:
         won, self.won = self.won, None
-        self.owner = False
-        self.deadline = 0.0
-        self._changed.set()
         if self._client is not None:
             if won is not None:
                 with contextlib.suppress(Exception):
@@ -211,6 +238,18 @@ class LeaseElection:
             with contextlib.suppress(Exception):
                 await self._client.close()
             self._client = None
+
+    async def close(self) -> None:
+        """Give the shard up now (a graceful stop): revoke the lease, so a successor need
+        not wait for its TTL; then end the etcd thread."""
+        self.owner = False
+        self.deadline = 0.0
+        self._notify()
+        for task in asyncio.all_tasks(self._loop):  # a campaign or a hold still running there
+            self._loop.call_soon_threadsafe(task.cancel)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self._on_etcd(self._close()), self.ttl_s)
+        self._loop.call_soon_threadsafe(self._loop.stop)
 
 
 _background: set[asyncio.Task[None]] = set()

@@ -337,7 +337,7 @@ class ClusterSection(_Section):
         "owns its shard alone",
     )
     lease_ttl_s: int = Field(
-        2,
+        3,
         ge=2,
         le=60,
         description="TTL of the owner's etcd lease, whole seconds (etcd's unit; it grants no less than 2 with its "
