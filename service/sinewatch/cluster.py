@@ -33,7 +33,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import re
 import time
 import zlib
@@ -67,7 +66,7 @@ class Host(Protocol):
     def session(self) -> zenoh.Session: ...
     @property
     def pipeline(self) -> Pipeline: ...
-    def start_intake(self, history_blocks: int | None = None) -> None: ...
+    def start_intake(self) -> None: ...
     async def stop_intake(self) -> None: ...
     def intake_counters(self) -> IntakeCount: ...
 
@@ -209,9 +208,9 @@ class ClusterMember:
             await self._step_down()
 
     # ---- active ----------------------------------------------------------------------------------
-    def _activate(self, history_blocks: int | None = None) -> None:
+    def _activate(self) -> None:
         # Subscribed first: the token says "serving", and a publisher that sees it may send at once.
-        self.daemon.start_intake(history_blocks)
+        self.daemon.start_intake()
         self._set_token(self.active_key)
         self.role = "active"
         self._spawn(self._publish_snapshots())
@@ -319,7 +318,7 @@ class ClusterMember:
         if self.daemon.recorder is not None:
             self.daemon.recorder.rotate()  # the new file carries this state and term: it replays on its own
         self.takeovers += succeeds
-        self._activate(self._history_needed())
+        self._activate()
         log.warning(
             "cluster: took over shard %s (term %s): %d channel(s) from the snapshot, %d resume point(s), in %.0f ms",
             self.shard_id,
@@ -328,18 +327,6 @@ class ClusterMember:
             len(pipeline.resume_points),
             (time.monotonic() - started) * 1e3,
         )
-
-    def _history_needed(self) -> int | None:
-        """How many blocks of each publisher's cache a takeover needs: those since the
-        snapshot it restored (at each channel's block rate, doubled, plus a second's worth);
-        None (the whole cache) without a snapshot."""
-        latest = self.latest_snapshot
-        channels = self.daemon.pipeline.channels.values()
-        if latest is None or not channels:
-            return None
-        age_s = time.monotonic() - latest[2] + 1.0
-        rates = [ch.sample_rate_hz * ch.blocks / ch.samples for ch in channels if ch.blocks and ch.samples]
-        return max(16, math.ceil(2 * age_s * max(rates))) if rates else None
 
     # ---- admin -----------------------------------------------------------------------------------
     def admin_reply(self) -> dict[str, Any]:

@@ -84,7 +84,7 @@ Item = tuple[str, bytes, str, int]
 class Intake:
     """Zenoh subscriber + pump thread feeding the event loop in batches."""
 
-    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop, history_blocks: int | None = None) -> None:
+    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop) -> None:
         cfg = daemon.config
         self._daemon = daemon
         self._loop = loop
@@ -104,9 +104,7 @@ class Intake:
                 daemon.session,
                 cfg.keys.input,
                 fifo,
-                # a takeover asks only for the blocks since the snapshot it restored (``history_blocks``
-                # per publisher): the whole cache (1,024 blocks of every channel) took seconds to decode
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=history_blocks),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
                 recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
@@ -443,11 +441,10 @@ class Daemon:
             self.recorder.attach_first_snapshot = True
         log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
 
-    def start_intake(self, history_blocks: int | None = None) -> None:
-        """Subscribe to the inputs (at start, or when a standby takes over: then only the
-        last ``history_blocks`` of each publisher's cache are asked for)."""
+    def start_intake(self) -> None:
+        """Subscribe to the inputs (at start, or when a standby takes over)."""
         if self._intake is None:
-            self._intake = Intake(self, asyncio.get_running_loop(), history_blocks)
+            self._intake = Intake(self, asyncio.get_running_loop())
 
     async def stop_intake(self) -> None:
         """Unsubscribe from the inputs (an owner that lost its shard): what is queued is
