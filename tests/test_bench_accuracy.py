@@ -312,7 +312,10 @@ def test_pq_families_through_the_bench_scored_against_the_iec_limits(tmp_path, c
     from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
 
     # selection: pq is every power-quality scenario; the default run takes none of them
-    assert pq_accuracy.split_patterns(["pq"]) == ([], pq_names()) and len(pq_names()) == 44
+    assert pq_accuracy.split_patterns(["pq"]) == ([], pq_names()) and len(pq_names()) == 70
+    inter = pq_accuracy.split_patterns(["pq-interharmonics-60hz-*"])[1]
+    assert len(inter) == 9 and {pq_accuracy.family(n) for n in inter} == {"interharmonics 1-5 % with harmonics"}
+    assert pq_accuracy.family("pq-unbalance-50hz-u2-2pct-interharmonic-5pct") == "unbalance with a 5 % interharmonic"
     assert pq_accuracy.split_patterns(None) == (None, [])
     assert pq_accuracy.split_patterns(["tone-snr-40db", "pq-harmonics-60hz-low*"]) == (
         ["tone-snr-40db"],
@@ -347,7 +350,8 @@ def test_pq_families_through_the_bench_scored_against_the_iec_limits(tmp_path, c
     assert "single-channel tables" in text and text.count(pq_accuracy.DOCS_BEGIN) == 1
     assert f"| `{unb}` | u2 | IEC 61000-4-30 class A |" in text
     rows = [ln.split(" | ") for ln in text.split("#### Every")[1].splitlines() if ln.startswith("| `")]
-    assert len(rows) == 5 + 3 and all(r[5].endswith("PASS") for r in rows)  # sinewatch's ratio column
+    # unbalance: 4 harmonic/interharmonic groupings, THD/THDG/THDS, frequency, u2, u0; harmonics: no u2/u0
+    assert len(rows) == 10 + 8 and all(r[5].endswith("PASS") for r in rows)  # sinewatch's ratio column
     if pq_accuracy.pqopen_available():  # pqopen-lib on the same samples: its u2 is within class A too
         ref = {r["scenario"]: r["pqopen"] for r in data["power_quality"]}
         assert ref[unb]["u2"]["ratio"] < 1.0 and ref[low]["max_order"]["ratio"] == 41

@@ -36,23 +36,35 @@ A16 = AMPLITUDE / 30000  # V per count, 16-bit
 A32 = AMPLITUDE / 2e9  # V per count, 32-bit
 
 
-def counts(a: float) -> dict[str, np.ndarray]:
-    t = np.arange(N) / FS
+def counts(a: float, n: int = N) -> dict[str, np.ndarray]:
+    t = np.arange(n) / FS
     return {
         name: np.round((AMPLITUDE * np.sin(2 * np.pi * F * t + phi)) / a).astype(np.int64)
         for name, phi in PHASES.items()
     }
 
 
-def write_comtrade(directory: Path, rev: str, ft: str, *, cff: bool = False, name: str = "rec") -> Path:
+def write_comtrade(
+    directory: Path,
+    rev: str,
+    ft: str,
+    *,
+    cff: bool = False,
+    name: str = "rec",
+    n_samples: int = N,
+    station: str = "SUB STATION 1",
+    encoding: str = "utf-8",
+) -> Path:
     """A record of the three phases and one status channel, in revision ``rev`` (1999 or 2013)
-    and data format ``ft``; the .cfg path (or the .cff path)."""
+    and data format ``ft`` (``n_samples`` long, the .cfg in ``encoding``); the .cfg path (or
+    the .cff path)."""
+    N = n_samples  # the module's record length, here this record's
     a = {"FLOAT32": 1.0, "BINARY32": A32}.get(ft, A16)
-    x = counts(a) if ft != "FLOAT32" else dict.fromkeys(PHASES)
+    x = counts(a, N) if ft != "FLOAT32" else dict.fromkeys(PHASES)
     t = np.arange(N) / FS
     values = {k: AMPLITUDE * np.sin(2 * np.pi * F * t + PHASES[k]) for k in PHASES}
     status = (np.arange(N) >= N // 2).astype(np.int64)  # a breaker opening half way
-    lines = [f"SUB STATION 1,relay-7,{rev}", "4,3A,1D"]
+    lines = [f"{station},relay-7,{rev}", "4,3A,1D"]
     for i, k in enumerate(PHASES, 1):
         lo, hi = (-32767, 32767) if ft in ("ASCII", "BINARY") else (-(2**31) + 1, 2**31 - 1)
         if ft == "FLOAT32":
@@ -88,7 +100,7 @@ def write_comtrade(directory: Path, rev: str, ft: str, *, cff: bool = False, nam
             + dat
         )
         return path
-    (directory / f"{name}.cfg").write_text(cfg, newline="")
+    (directory / f"{name}.cfg").write_bytes(cfg.encode(encoding))
     (directory / f"{name}.dat").write_bytes(dat)
     return directory / f"{name}.cfg"
 
@@ -250,3 +262,41 @@ def test_each_sample_rate_segment_is_a_channel_at_its_rate_and_time(tmp_path):
 def test_a_record_without_a_sample_rate_is_told(tmp_path):
     with pytest.raises(ComtradeError, match=r"expected a sample rate \(samp > 0\), got samp = 0"):
         read_comtrade(two_rate_record(tmp_path, "0\n0,1500"))  # nrates 0: timestamps only
+
+
+def test_a_latin_1_cfg_is_read(tmp_path):
+    """Older relays write the .cfg in Latin-1 (a station 'Umspannwerk Köln', o-umlaut byte
+    0xF6, not UTF-8): it reads, its names decoded as Latin-1 (before: 'expected a COMTRADE
+    record, got UnicodeDecodeError'). A UTF-8 .cfg still reads as UTF-8."""
+    cfg = write_comtrade(tmp_path, "1999", "ASCII", station="Umspannwerk Köln", encoding="latin-1")
+    assert b"K\xf6ln" in cfg.read_bytes()
+    record = read_comtrade(cfg)
+    assert record.station == "Umspannwerk Köln"
+    assert [c.channel for c in record.channels] == [f"comtrade/Umspannwerk-K-ln/{k}" for k in PHASES]
+    want = expected_values("ASCII")
+    for c in record.channels:
+        np.testing.assert_allclose(c.samples, want[c.name], rtol=0, atol=1e-12)
+    utf8 = write_comtrade(tmp_path, "2013", "ASCII", station="Umspannwerk Köln", name="utf8")
+    assert read_comtrade(utf8).station == "Umspannwerk Köln"
+
+
+def test_a_record_shorter_than_the_estimator_window_is_told(tmp_path):
+    """300 samples (0.15 s at 2 kHz) against a 10-cycle ipdft (a 0.2 s window): before, the
+    replay exited 0 with every frequency NaN; now exit code 2 and a message naming the
+    window and the length, and the Python API raises. A record that is long enough for its
+    estimator still replays with exit code 0 (the test above)."""
+    from sinewatch.estimators import get as get_estimator
+    from sinewatch.replay import replay_comtrade
+    from sinewatch.schemas.config import EstimatorRule
+
+    need = get_estimator("ipdft")(FS, {"nominal_frequency_hz": 50, "window_cycles": 10}).memory_samples
+    assert need > 300
+    cfg = write_comtrade(tmp_path, "1999", "ASCII", n_samples=300)
+    r = subprocess.run(
+        sinewatch("replay", str(cfg), *IPDFT, "--no-progress"), capture_output=True, text=True, timeout=120, check=False
+    )
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"expected at least {need} samples (ipdft's window at 2000 Hz" in r.stderr and "got 300" in r.stderr
+    rule = EstimatorRule(match="**", estimator="ipdft", params={"nominal_frequency_hz": 50, "window_cycles": 10})
+    with pytest.raises(ComtradeError, match=r"VA: expected at least \d+ samples .*got 300.*no estimate can be valid"):
+        replay_comtrade(cfg, rules=[rule])

@@ -168,14 +168,19 @@ def test_live_daemon_groups_harmonics_aggregates_recorded_and_replayed(tmp_path)
     aggs = [m for kind, _, m in decoded if kind == "PqAggregate"]
     short = [a for a in aggs if a["interval"] == "150/180-cycle"]
     ten_min = [a for a in aggs if a["interval"] == "10-min"]
-    # the tick at 600 s closes a 10-min interval (incomplete: the stream started at 598 s) and
-    # the 150/180-cycle one in progress (overlap 2); after it, 15-window intervals complete;
-    # per phase and for the group
+    # the tick at 600 s closes a 10-min interval (incomplete: the stream started at 598 s); the
+    # 150/180-cycle one in progress goes on with the new stream's windows to its 15 (overlap 2)
+    # while new ones start at the tick; per phase and for the group
     assert {a["timestamp_ns"] for a in ten_min} == {600_000_000_000} and len(ten_min) == 4
     assert all(not a["complete"] for a in ten_min)
     complete = [a for a in short if a["complete"]]
-    assert {a["source"] for a in complete} == {*names, "feeder1"}
-    assert all(a["n_windows"] == 15 and a["start_ns"] >= 600_000_000_000 for a in complete)
+    assert all(a["n_windows"] == 15 for a in complete)
+    overlap_2 = [a for a in complete if a["start_ns"] < 600_000_000_000]
+    assert sorted(a["source"] for a in overlap_2) == sorted([*names, "feeder1"])
+    assert all(a["timestamp_ns"] > 600_000_000_000 for a in overlap_2)
+    assert {a["source"] for a in complete if a["start_ns"] == 600_000_000_000} == {*names, "feeder1"}
+    ten_s = [a for a in aggs if a["interval"] == "10-s"]  # 590..600 s, incomplete (from 598 s)
+    assert len(ten_s) == 4 and all(a["start_ns"] == 590_000_000_000 and not a["complete"] for a in ten_s)
     truth = get_pq(SCENARIO).pq_truth
     for a in complete:  # aggregated frequency (cycles / duration), THD and u2 (RMS of the window values)
         assert abs(a["values"]["frequency_hz"] - truth.frequency_hz) <= LIMITS["frequency_hz"]
@@ -375,10 +380,12 @@ def test_tail_prints_each_pq_message_on_one_line(tmp_path):
     assert f"{names[2]} harmonics f=47.5000Hz" in lines["HarmonicsReport"] and " h5=" in lines["HarmonicsReport"]
     assert "feeder1 three-phase f=47.5000Hz V1=1.0000 u2=2.000% u0=1.000%" in lines["ThreePhaseReport"]
     aggregates = [format_estimate(json.loads(p)) for kind, _, p in out.out if kind == "PqAggregate"]
-    # at the tick: the 150/180-cycle interval in progress (overlap 2), then the 10-min one
-    assert f"{names[0]} 150/180-cycle n=10 (incomplete) frequency_hz=47.5000" in aggregates[0]
-    assert "thd=6.2" in aggregates[0]
+    # at the tick: the 10-s frequency value, then the 10-min one; the 150/180-cycle interval in
+    # progress finishes later, with the new stream's windows (overlap 2)
+    assert f"600.0000 {names[0]} 10-s n=10 (incomplete) frequency_hz=47.5000" in aggregates[0]
     assert f"600.0000 {names[0]} 10-min n=10 (incomplete) frequency_hz=47.5000" in aggregates[1]
+    assert "thd=6.2" in aggregates[1]
+    assert any(f"{names[0]} 150/180-cycle n=15 frequency_hz=47.5000" in a and "thd=6.2" in a for a in aggregates)
 
 
 @pytest.mark.parametrize(

@@ -38,7 +38,9 @@ import json
 import logging
 import math
 import socket
+import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -97,8 +99,15 @@ def synchrophasor(est: dict[str, Any], nominal_hz: int) -> tuple[float, float] |
 class Station:
     """One PMU data stream: its configuration frames and the frames built from its channels."""
 
-    def __init__(self, cfg: C37118Station, time_base: int) -> None:
+    def __init__(self, cfg: C37118Station, time_base: int, clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
+        self._clock = clock
+        # the last frame built from estimates: its time and when (clock), and how many frames
+        # of invalid data have been sent since (keep_rate)
+        self._real_t: int | None = None
+        self._real_at = 0.0
+        self._filled = 0
+        self.invalid = 0
         self.id_code = cfg.id_code
         self.time_base = time_base
         self._index = {ch: i for i, ch in enumerate(cfg.channels)}
@@ -168,9 +177,34 @@ class Station:
             del self._pending[t]
             out.append(self._data_frame(t, got))
             self._last_sent = t
+        if out:
+            self._real_t, self._real_at, self._filled = self._last_sent, self._clock(), 0
         return out
 
-    def _data_frame(self, t_ns: int, got: dict[int, dict[str, Any]]) -> bytes:
+    def keep_rate(self) -> list[bytes]:
+        """The frames due while no estimate comes: a PMU keeps its reporting rate when its
+        inputs stop, with the data flagged invalid (STAT data error 11). Frame k after the
+        last one built from estimates is due k reporting periods plus ``max_skew_s`` after
+        it (the wait a late channel gets) and carries its time on the same grid."""
+        if self._real_t is None:
+            return []
+        rate = self.cfg.data_rate
+        due = math.floor((self._clock() - self._real_at - self.cfg.max_skew_s) * rate)
+        out = []
+        while self._filled < due:
+            self._filled += 1
+            t = self._real_t + round(self._filled * 1e9 / rate)
+            if self._last_sent is not None and t <= self._last_sent:
+                continue
+            for older in sorted(p for p in self._pending if p < t):  # partial frames first, in time order
+                out.append(self._data_frame(older, self._pending.pop(older)))
+            self._pending.pop(t, None)
+            out.append(self._data_frame(t, {}, stopped=True))
+            self._last_sent = t
+            self.invalid += 1
+        return out
+
+    def _data_frame(self, t_ns: int, got: dict[int, dict[str, Any]], stopped: bool = False) -> bytes:
         nan = math.nan
         phasors: list[tuple[float, float]] = []
         error = DataError.GOOD
@@ -191,7 +225,9 @@ class Station:
                 phasors.append(ph)
             else:
                 phasors.append((ph[0] * math.cos(ph[1]), ph[0] * math.sin(ph[1])))
-        if missing:
+        if stopped:  # no input at all: the values are not to be used
+            error = DataError.PMU_ERROR
+        elif missing:
             error = DataError.TEST_OR_ABSENT
             self.incomplete += 1
         first = got.get(0)
@@ -250,8 +286,6 @@ class C37118Server(NullSink):
     sink_name = "c37118"
 
     def __init__(self, config: C37118Section, clock_ns: Any = None) -> None:
-        import time
-
         self.config = config
         self._clock_ns = clock_ns or time.time_ns
         self.stations = {s.id_code: Station(s, config.time_base) for s in config.stations}
@@ -291,6 +325,8 @@ class C37118Server(NullSink):
             await self.stop()
             raise ConfigError(f"[c37118]: expected to listen on {where} (TCP and UDP), got: {exc.strerror}") from None
         self._udp = transport
+        ticker = asyncio.create_task(self._keep_rate(), name="c37118-keep-rate")
+        self._tasks.add(ticker)
         log.info(
             "C37.118.2 server on %s:%d (TCP and UDP): stations %s",
             self.config.host,
@@ -325,6 +361,16 @@ class C37118Server(NullSink):
         for station, idx in targets:
             for frame in station.add(idx, est):
                 self._broadcast(station.id_code, frame)
+
+    async def _keep_rate(self) -> None:
+        """Every reporting period, the frames of invalid data due for stations whose inputs
+        stopped (:meth:`Station.keep_rate`)."""
+        period = 1.0 / max(s.cfg.data_rate for s in self.stations.values()) if self.stations else 1.0
+        while True:
+            await asyncio.sleep(period)
+            for station in self.stations.values():
+                for frame in station.keep_rate():
+                    self._broadcast(station.id_code, frame)
 
     def _broadcast(self, id_code: int, frame: bytes) -> None:
         for c in self.clients:
@@ -377,8 +423,21 @@ class C37118Server(NullSink):
             self._tasks.add(task)
         log.info("C37.118.2 client %s connected", peer)
         splitter = FrameSplitter()
+        idle_s = self.config.idle_timeout_s
         try:
-            while data := await reader.read(4096):
+            while True:
+                if client.streaming:  # a PDC with data on need not say anything more
+                    data = await reader.read(4096)
+                else:
+                    try:
+                        data = await asyncio.wait_for(reader.read(4096), idle_s)
+                    except TimeoutError:
+                        self._reject(
+                            "idle", peer, f"expected a command within {idle_s:g} s, got none: connection closed"
+                        )
+                        break
+                if not data:
+                    break
                 for raw in splitter.feed(data):
                     for reply in self._command(raw, client):
                         self._reply(client, writer, reply)

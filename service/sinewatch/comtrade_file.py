@@ -16,6 +16,8 @@ since a sinewatch channel keeps one rate (the first sample of a segment comes on
 of its own rate after the last of the one before, as python-comtrade reads it). A record
 with timestamps only (``samp`` = 0) is refused: a channel needs a fixed rate. Status
 (digital) channels are not estimated and are left out. The start time is read as UTC (the 1999 revision has no time zone field).
+The text files are read as UTF-8, or as Latin-1 when they are not valid UTF-8
+(:func:`text_encoding`: older relays write Latin-1 names).
 """
 
 from __future__ import annotations
@@ -103,7 +105,7 @@ def read_comtrade(path: Path, prefix: str = "comtrade") -> ComtradeRecord:
     lib = _library()
     record = lib.Comtrade(use_numpy_arrays=True, use_double_precision=True)
     try:
-        record.load(str(path))
+        record.load(str(path), encoding=text_encoding(path))
     except FileNotFoundError as exc:
         raise ComtradeError(f"{path}: expected its data file {exc.filename}, got no such file") from None
     except Exception as exc:  # noqa: BLE001 (the reader raises ValueError, IndexError, struct.error, ...)
@@ -136,6 +138,22 @@ def read_comtrade(path: Path, prefix: str = "comtrade") -> ComtradeRecord:
                 )
             )
     return ComtradeRecord(path, cfg.station_name.strip(), str(cfg.rev_year), str(cfg.ft).upper(), channels)
+
+
+def text_encoding(path: Path) -> str:
+    """The encoding of a record's text files (``.cfg`` and, beside it, ``.hdr`` and
+    ``.inf``): UTF-8 (C37.111-2013 clause 6; a byte-order mark is skipped) when they all
+    decode as UTF-8, else Latin-1, which older relays write (C37.111-1999 says ASCII and
+    their names carry o-umlauts and micro signs) and which decodes any byte. A ``.cff``
+    is read by the library as UTF-8 whatever this says."""
+    texts = [path, *(path.with_suffix(s) for s in (".hdr", ".inf", ".HDR", ".INF"))]
+    for p in texts:
+        if p.is_file():
+            try:
+                p.read_bytes().decode("utf-8")
+            except UnicodeDecodeError:
+                return "latin-1"
+    return "utf-8-sig"
 
 
 def _segments(cfg: Any, n: int, path: Path) -> list[tuple[float, int, int]]:

@@ -46,6 +46,7 @@ from sinewatch.schemas.codec import (
     encode_error,
     encode_estimate_values,
     finite_or_none,
+    is_json_block,
     json_string,
 )
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
@@ -357,12 +358,15 @@ class Pipeline:
             self._accept(channel, block, gap_blocks, restart, reset)
             payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset)
         except InputError as exc:
+            self._forget_unborn(channel)
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
             return
         except SinewatchError as exc:  # e.g. parameters that do not fit this channel's rate
+            self._forget_unborn(channel)
             self._reject(key, block, channel, "estimator_error", str(exc), log_time_ns)
             return
         except Exception as exc:  # noqa: BLE001 (a bug in one channel's path must not stop the others)
+            self._forget_unborn(channel)
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
         out_key = channel.out_key
@@ -418,6 +422,13 @@ class Pipeline:
                 f"payload: expected at most {limits.max_payload_bytes} bytes, got {len(payload)}",
                 kind="oversized_block",
             )
+        if len(payload) > limits.max_json_payload_bytes and is_json_block(payload, encoding):
+            # refused unparsed: parsing holds the event loop (every channel) ~0.1 us a byte
+            raise InputError(
+                f"JSON payload: expected at most {limits.max_json_payload_bytes} bytes, got {len(payload)} "
+                "(send large blocks in the binary encoding)",
+                kind="oversized_block",
+            )
         block = decode_block(payload, encoding)
         if block.n_samples == 0:
             raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
@@ -458,6 +469,13 @@ class Pipeline:
         self.channels[block.channel] = ch
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
         return ch
+
+    def _forget_unborn(self, ch: Channel | None) -> None:
+        """A channel whose first block was refused has accepted nothing and holds no state:
+        it gives its slot back, so refused blocks (cheap to send, each on a new channel
+        name) cannot use up ``limits.max_channels``."""
+        if ch is not None and ch.last_seq is None and ch.name not in self.resume_points:
+            del self.channels[ch.name]
 
     def _catch_up(self, ch: Channel, block: Block) -> bool:
         """A block of a channel taken over from another daemon: True when it was taken into

@@ -2,7 +2,8 @@
 
 Layout of a recording:
 
-* one MCAP channel per Zenoh key (and message encoding), its metadata saying the role
+* one MCAP channel per Zenoh key, message encoding and Zenoh encoding (so each input is
+  replayed with the encoding it came with, whatever else came on its key), its metadata saying the role
   (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
   ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
 * inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
@@ -130,8 +131,11 @@ class FastWriter(Writer):
         # mcap keeps these private (name-mangled); FastWriter updates them as add_message would
         self._chunk_builder = _private(self, "chunk_builder")
         self._statistics = _private(self, "statistics")
-        self._maybe_finalize_chunk = _private(self, "maybe_finalize_chunk")
-        self._flush_records = vars(Writer)["_Writer__flush"].__get__(self)  # Writer's own (overridden here)
+        _private(self, "maybe_finalize_chunk")  # there (AttributeError: Writer is used instead)
+        # Writer's own __flush (overridden here), called as a plain function: a bound method
+        # kept on the instance is a reference cycle, which left every finished file's writer
+        # (its chunk and message indexes, its compressor) in memory until a full collection
+        self._flush_records = vars(Writer)["_Writer__flush"]
         self._stream: BinaryIO = _private(self, "stream")
         self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
@@ -169,7 +173,7 @@ class FastWriter(Writer):
         """Writer's ``__flush`` (the records buffered outside chunks, to the file), after the
         chunk in flight is on the file: every write of Writer's own goes through here first."""
         self.wait()
-        self._flush_records()
+        self._flush_records(self)
 
     def wait(self) -> None:
         """Wait for the chunk in flight; raise what writing it raised (e.g. a full disk)."""
@@ -254,7 +258,7 @@ class FastWriter(Writer):
         buf.write(head)
         buf.write(data)
         if buf.tell() > self._chunk_limit:
-            self._maybe_finalize_chunk()
+            self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
 
 
 def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:
@@ -289,11 +293,12 @@ class McapRecorder:
         self.index = 0
         self.paths: list[Path] = []
         self.attach_first_snapshot = False  # a resumed worker: its first file starts with the state too
+        self._after_outage = False  # the file being opened follows a failed write (recover)
         self._file: BinaryIO | None = None
         self._writer: Writer | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
-        self._channels: dict[tuple[str, str], int] = {}
+        self._channels: dict[tuple[str, str, str], int] = {}
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
 
@@ -329,7 +334,17 @@ class McapRecorder:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(path, "wb")
-        self._writer = _writer(self._file, self.section.chunk_size_bytes, _COMPRESSION[self.section.compression])
+        try:
+            return self._start(path)
+        except OSError:  # a full disk: nothing of this file stays behind
+            self._abandon()
+            if path in self.paths:
+                self.paths.remove(path)
+            path.unlink(missing_ok=True)
+            raise
+
+    def _start(self, path: Path) -> Path:
+        self._writer = _writer(self._f, self.section.chunk_size_bytes, _COMPRESSION[self.section.compression])
         self._w.start(profile="", library=f"sinewatch {__version__}")
         self._schemas.clear()
         self._channels.clear()
@@ -345,6 +360,9 @@ class McapRecorder:
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),
+                # after a failed write: the previous file lost its tail, this one's snapshot
+                # is the state (replay starts a new run here)
+                **({"follows_outage": "true"} if self._after_outage else {}),
             },
         )
         if (self.index > 0 or self.attach_first_snapshot) and self._snapshot is not None:
@@ -368,15 +386,21 @@ class McapRecorder:
         and leaves no new file behind, while the disk still refuses."""
         self._abandon()
         self.index += 1
-        path = self.open()
+        self._after_outage = True
         try:
-            self._w.flush()
-            self._f.flush()
+            path = self.open()
+            try:
+                self._w.flush()
+                self._f.flush()
+            except OSError:
+                self._abandon()
+                self.paths.remove(path)
+                path.unlink(missing_ok=True)
+                raise
         except OSError:
-            self._abandon()
-            self.paths.remove(path)
-            path.unlink(missing_ok=True)
+            self.index -= 1  # the next attempt takes the same name: no file, no gap in the indices
             raise
+        self._after_outage = False
 
     def _abandon(self) -> None:
         """Drop the open file without finishing it (its complete chunks stay readable)."""
@@ -441,7 +465,9 @@ class McapRecorder:
         return sid
 
     def _channel_id(self, topic: str, message_encoding: str, schema: str, role: str, zenoh_encoding: str) -> int:
-        key = (topic, message_encoding)
+        # The Zenoh encoding is part of the key: the decoder's verdict depends on it (a
+        # ``;v=2`` block is refused), and replay takes it from the channel's metadata.
+        key = (topic, message_encoding, zenoh_encoding)
         cid = self._channels.get(key)
         if cid is None:
             cid = self._w.register_channel(

@@ -29,7 +29,7 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from sinewatch.comtrade_file import interleaved_blocks, read_comtrade
+from sinewatch.comtrade_file import ComtradeError, ComtradeRecord, interleaved_blocks, read_comtrade
 from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
@@ -92,9 +92,13 @@ class ReplayResult:
     recorded_other: dict[str, int] = field(default_factory=dict)
     produced_other: dict[str, int] = field(default_factory=dict)
     matched_other: dict[str, int] = field(default_factory=dict)
+    # COMTRADE: channels shorter than their estimator's window (no estimate could be valid)
+    short_channels: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
+        if self.short_channels:
+            return False
         if not self.compared:
             return True
         return (
@@ -244,17 +248,28 @@ def file_identity(path: Path) -> tuple[str, int]:
     raise ReplayError(f"{path}: no sinewatch metadata at its start; expected a file written by sinewatch")
 
 
+def _follows_outage(path: Path) -> bool:
+    """The file a recorder started after a failed write (a full disk): the one before it
+    lost its tail, so this file's snapshot, not replay's state, is where it starts."""
+    for kind, item in read_recording(path):
+        if kind == "metadata":
+            return bool(item.get("follows_outage") == "true")
+        if kind in ("message", "incomplete"):
+            break
+    return False
+
+
 def split_runs(paths: list[Path]) -> list[list[Path]]:
     """The runs among ``paths``: a daemon's files whose indices follow each other, in the
     order given. A file of another daemon (a worker process has an id of its own), or one
     whose index does not follow its daemon's previous file (a new run of it, e.g. a worker
-    restarted from its state), starts another run."""
+    restarted from its state), or one started after a failed write, starts another run."""
     runs: list[list[Path]] = []
     open_runs: dict[str, tuple[int, list[Path]]] = {}  # daemon id -> (its last file index, its run)
     for path in paths:
         daemon_id, index = file_identity(path)
         last = open_runs.get(daemon_id)
-        if last is not None and index == last[0] + 1:
+        if last is not None and index == last[0] + 1 and not _follows_outage(path):
             last[1].append(path)
             open_runs[daemon_id] = (index, last[1])
         else:
@@ -314,8 +329,13 @@ def _replay_run(
                         estimate_version = int(item.get("estimate_format_version", "1"))
                         pq_version = int(item.get("pq_format_version", "1"))
             elif kind == "snapshot":
-                if file_no == 0:
+                # A later file's snapshot is the state replay has reached by then, unless
+                # no input came before it: the files of a standby before its takeover hold
+                # status only, and the takeover's state is in this one.
+                if file_no == 0 or result.r.inputs == 0:
                     pending_snapshot = item
+                    if pipeline is not None:
+                        pipeline.restore(item)
                 elif pipeline is not None and "fencing" in item:  # a new term from this file on (a takeover)
                     pipeline.set_fencing(Fencing.model_validate(item["fencing"]))
             elif kind == "incomplete":
@@ -362,7 +382,9 @@ def replay_comtrade(
     ``sinewatch feed --comtrade`` would send it to a daemon: each analog channel in blocks of
     ``block_size`` samples (float64) on ``sinewatch/in/CHANNEL``, with ``rules`` (default: the
     default config's). Nothing is compared (there is no recorded estimate); ``out`` records
-    inputs and outputs to a new MCAP file, which replays bit for bit."""
+    inputs and outputs to a new MCAP file, which replays bit for bit. A channel shorter than
+    its estimator's window is named in ``short_channels`` (the result is then not ``ok``);
+    when every channel is, :class:`ComtradeError` says so (after ``out`` is written)."""
     record = read_comtrade(path)
     config = SinewatchConfig(daemon_id="sinewatch-comtrade")
     if rules is not None:
@@ -384,7 +406,28 @@ def replay_comtrade(
         recorder.close()
         result.r.out_paths = list(recorder.paths)
     result.finish(comparator)
+    result.r.short_channels = _short_channels(record, pipeline)
+    if result.r.short_channels and len(result.r.short_channels) == len(record.channels):
+        raise ComtradeError(f"{path}: {'; '.join(result.r.short_channels)}: no estimate can be valid")
     return result.r
+
+
+def _short_channels(record: ComtradeRecord, pipeline: Pipeline) -> list[str]:
+    """The record's channels shorter than the window (``memory_samples``) of the estimator
+    the rules gave them, each as 'CHANNEL: expected at least N samples (ESTIMATOR's window
+    at RATE Hz), got M'."""
+    out = []
+    for c in record.channels:
+        ch = pipeline.channels.get(c.channel)
+        if ch is None:
+            continue
+        need = ch.estimator.memory_samples
+        if len(c.samples) < need:
+            out.append(
+                f"{c.channel}: expected at least {need} samples ({ch.estimator.name}'s window at "
+                f"{c.sample_rate_hz:g} Hz, {need / c.sample_rate_hz:.3g} s), got {len(c.samples)}"
+            )
+    return out
 
 
 class ResultBuilder:

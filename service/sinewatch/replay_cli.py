@@ -33,7 +33,9 @@ def run_replay(args: argparse.Namespace) -> int:
             raise ConfigError(f"replay of COMTRADE: expected one .cfg or .cff file, got {len(args.paths)} paths")
         result = replay_comtrade(args.paths[0], rules=rules, out=args.out)
         report(console, result)
-        return 0
+        for text in result.short_channels:
+            console.print(f"[red]too short: {text}: its estimates are not valid[/red]", soft_wrap=True)
+        return 0 if result.ok else 1
     for path in args.paths:
         check_recording(path)
     # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.

@@ -148,6 +148,16 @@ def decode_block(payload: bytes, encoding: str = "") -> Block:
         raise DecodeError(f"block: not decodable ({type(exc).__name__}: {str(exc)[:200]})") from exc
 
 
+def is_json_block(payload: bytes, encoding: str = "") -> bool:
+    """Whether :func:`decode_block` takes ``payload`` as JSON (its encoding says so, or it
+    is unlabelled and starts with ``{``): what a size limit for JSON applies to."""
+    if encoding.startswith("application/x-sinewatch-block"):
+        return False
+    if encoding.startswith(("application/json", "text/json")):
+        return True
+    return payload[:4] != MAGIC and payload[:1] == b"{"
+
+
 def _decode_any(payload: bytes, encoding: str) -> Block:
     if encoding.startswith("application/x-sinewatch-block"):
         return _decode_binary(payload, encoding)
@@ -215,7 +225,9 @@ def _decode_json(payload: bytes) -> Block:
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"][:2])
-        raise DecodeError(f"JSON block: {where}: {first['msg']}") from None
+        got = repr(first.get("input"))
+        got = got if len(got) <= 60 else got[:57] + "..."
+        raise DecodeError(f"JSON block: {where}: {first['msg']}, got {got}") from None
     samples = _json_samples(msg.samples, msg.columns)
     return Block(msg.channel, msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, msg.unit)
 

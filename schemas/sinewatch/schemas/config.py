@@ -128,7 +128,9 @@ class HarmonicsRule(_Section):
 
     match: str = Field(description="Key expression matched against the input key")
     nominal_frequency_hz: Literal[50, 60] = Field(50, description="50 Hz: 10-cycle windows; 60 Hz: 12-cycle windows")
-    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order reported and used in THD")
+    max_harmonic: int = Field(
+        50, ge=2, le=50, description="Highest harmonic order reported (THD stops at min(40, this), IEC 61000-4-7)"
+    )
     aggregate: bool = Field(True, description="Publish the 150/180-cycle and 10-min aggregates too")
 
 
@@ -249,6 +251,13 @@ class C37118Section(_Section):
     )
     max_clients: int = Field(
         32, ge=1, description="TCP connections and UDP streaming clients at once; more are refused and counted"
+    )
+    idle_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="A TCP client that sends no command for this long while no data is on for it is disconnected "
+        "(counted as rejected, reason idle): idle connections cannot hold every client slot",
     )
     client_buffer_bytes: int = Field(
         65536,
@@ -406,6 +415,13 @@ class WorkersSection(_Section):
 
 class LimitsSection(_Section):
     max_payload_bytes: int = Field(16 << 20, ge=64)
+    max_json_payload_bytes: int = Field(
+        256 << 10,
+        ge=64,
+        description="A JSON block larger than this is refused before it is parsed (oversized_block): parsing "
+        "holds the event loop, 50-180 ns a byte, so every channel would wait (a binary block costs nothing to "
+        "decode); 256 KiB is about 13,000 samples",
+    )
     max_block_samples: int = Field(1_000_000, ge=1)
     max_channels: int = Field(10_000, ge=1)
     queue_capacity: int = Field(8192, ge=1, description="Input blocks waiting for the estimators")

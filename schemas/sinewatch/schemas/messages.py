@@ -12,7 +12,7 @@ from __future__ import annotations
 from enum import Enum
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
 
 FORMAT_VERSION = 1  # SampleBlock, ErrorReport, Status
 ESTIMATE_FORMAT_VERSION = 4  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid, 4 fencing (see Estimate)
@@ -41,11 +41,15 @@ class SampleBlock(_Message):
     channel: str = Field(pattern=CHANNEL_PATTERN, max_length=256, description="Channel name")
     seq: int = Field(ge=0, lt=2**64, description="Sequence number of the block on its channel")
     t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
-    sample_rate_hz: float = Field(gt=0, description="Sample rate, Hz")
+    # strict and finite, as the binary header's float64: a string, a boolean, Infinity or
+    # 1e309 is refused here, not later as an estimator's error
+    sample_rate_hz: float = Field(gt=0, strict=True, allow_inf_nan=False, description="Sample rate, Hz")
     dtype: SampleDtype = Field(SampleDtype.float64, description="Sample type on the binary encoding")
     columns: int = Field(1, ge=1, le=255, description="Values per sample: 1, or 1 + number of inputs")
     unit: str | None = Field(None, max_length=64, description="Physical unit of column 0, e.g. V")
-    samples: list[float] | list[list[float]] = Field(description="Samples, oldest first")
+    samples: list[StrictFloat] | list[list[StrictFloat]] = Field(
+        description="Samples, oldest first"
+    )  # numbers only (no strings or booleans); NaN is a number, refused later as non_finite like a binary one
 
 
 class Time(_Message):

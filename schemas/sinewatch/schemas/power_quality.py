@@ -73,9 +73,9 @@ class HarmonicsReport(_Message):
     interharmonic_centred_subgroup_rms: list[OptFloat] = Field(
         description="Interharmonic centred subgroups C_isg,n, n = 0..H (IEC 61000-4-7 3.3)"
     )
-    thd: OptFloat = Field(description="Total harmonic distortion, components 2..H over C_1")
-    thdg: OptFloat = Field(description="Group total harmonic distortion, groups 2..H over G_g,1")
-    thds: OptFloat = Field(description="Subgroup total harmonic distortion, subgroups 2..H over G_sg,1")
+    thd: OptFloat = Field(description="Total harmonic distortion, components 2..40 over C_1 (IEC 61000-4-7)")
+    thdg: OptFloat = Field(description="Group total harmonic distortion, groups 2..40 over G_g,1")
+    thds: OptFloat = Field(description="Subgroup total harmonic distortion, subgroups 2..40 over G_sg,1")
 
 
 class SequencePhasor(_Message):
@@ -110,12 +110,18 @@ class PqAggregate(_Message):
 
     format_version: Literal[1, 2] = 2
     source: str = Field(description="Channel or group the values come from")
-    interval: Literal["150/180-cycle", "10-min"]
-    timestamp_ns: int = Field(description="End of the interval (the 10-min tick for 10-min values)")
+    interval: Literal["10-s", "150/180-cycle", "10-min", "2-h"] = Field(
+        description="10-s: the IEC 61000-4-30 frequency value (values: frequency_hz only); 150/180-cycle, 10-min, "
+        "2-h: aggregates of the 10/12-cycle values (2-h: of the twelve 10-min values)"
+    )
+    timestamp_ns: int = Field(description="End of the interval (the clock tick for 10-s, 10-min and 2-h values)")
     timestamp: Time | None = Field(None, description="timestamp_ns as {sec, nsec} (format version 2)")
     start_ns: int = Field(description="Start of the interval")
     n_windows: int = Field(ge=0, description="10/12-cycle values aggregated")
-    complete: bool = Field(description="150/180-cycle: 15 contiguous values; 10-min: no value missing")
+    complete: bool = Field(
+        description="150/180-cycle: 15 contiguous values; 10-min: no value missing; 2-h: twelve complete 10-min "
+        "values; 10-s: whole cycles from tick to tick, none missing"
+    )
     values: dict[str, OptFloat] = Field(default_factory=dict, description="Aggregated scalar quantities")
     arrays: dict[str, list[OptFloat]] = Field(default_factory=dict, description="Aggregated per-order quantities")
 

@@ -5,7 +5,8 @@ MCAP, no asyncio.
 * :class:`HarmonicAnalyser` (``harmonics``): 10/12-cycle windows synchronised to the
   measured fundamental, one :class:`HarmonicWindow` per window.
 * :func:`symmetrical_components` (``sequence``): Fortescue, u2 and u0.
-* :class:`Aggregator` (``aggregation``): 150/180-cycle and 10-min aggregates.
+* :class:`Aggregator` (``aggregation``): 10-s frequency, 150/180-cycle, 10-min and 2-h
+  aggregates.
 * ``reports``: windows to wire messages (:mod:`sinewatch.schemas.power_quality`).
 """
 

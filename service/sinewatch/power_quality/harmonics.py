@@ -20,6 +20,12 @@ certified instrument):
   function", Proc. IEEE ISCAS 1974, pp. 20-23 (the window of the interpolation kernel);
   [SM] J. O. Smith and P. Gossett, "A flexible sampling-rate conversion method", Proc.
   IEEE ICASSP 1984, pp. 19.4.1-19.4.4 (band-limited interpolation with a windowed sinc).
+* [RV] D. C. Rife and G. A. Vincent, "Use of the discrete Fourier transform in the
+  measurement of frequencies and levels of tones", Bell System Technical Journal 49(2),
+  197-228, 1970 (the class I cosine-sum windows, maximum sidelobe decay); [AS] D. Agrez,
+  "Weighted multipoint interpolated DFT to improve amplitude estimation of multifrequency
+  signal", IEEE Trans. Instrum. Meas. 51(2), 287-292, 2002 (the three-point interpolation
+  for those windows).
 
 The method, per window (one report per window):
 
@@ -40,15 +46,32 @@ The method, per window (one report per window):
      The kernel passes up to 0.4 f_s (the 51st harmonic of 69 Hz at 10 kHz is 0.35 f_s)
      and the images of that band lie above 0.6 f_s; measured error (tests): below 2e-6
      of the fundamental on the 50th harmonic.
-(F)  The fundamental is measured on the window itself, by fixed-point iteration from the
-     previous window's value: resample at ``f_a`` (W, I), take the fundamental phasor of
-     each of the N cycles, ``Z_i = sum_{q=0}^{Q-1} y_{iQ+q} exp(-j 2 pi q / Q)``
-     (``Q = M / N`` points per cycle; harmonics are orthogonal to it over one cycle),
-     fit the slope ``b`` of their unwrapped phase against ``i`` by least squares; the
-     phase advances ``2 pi (f_1 / f_a - 1)`` per cycle, so ``f_1 = f_a (1 + b / (2 pi))``.
-     Repeat from ``f_1`` until ``|f_1 - f_a| <= 1e-9 f_a`` (2-4 passes; at most 8; the
-     estimate is clamped to 0.85-1.15 f_nom, the range of [4-30] class A). The report's
-     window is the last resampling; its ``frequency_hz`` is the ``f_a`` it spans.
+(F)  The fundamental is measured on the whole window, by fixed-point iteration from the
+     previous window's value: resample at ``f_a`` (W, I); weight the M points with the
+     Rife-Vincent class I window of H = 4 terms [RV], ``w_m = sin^6(pi m / M)``
+     (cosine-sum coefficients 5/16, 15/32, 3/16, 1/32; sidelobes fall as ``d^-7`` with
+     the distance ``d`` in bins); take its DFT at the bins of the fundamental and its two
+     neighbours, ``W_{N+d} = sum_m w_m y_m exp(-j 2 pi (N + d) m / M)``, d = -1, 0, 1; the
+     fundamental lies ``delta`` bins above bin N, with the three-point interpolation of
+     [AS] for that window, ``delta = H (|W_{N+1}| - |W_{N-1}|) / (|W_{N-1}| + 2 |W_N| +
+     |W_{N+1}|)`` (exact for a lone tone to 2e-8 relative, measured), so
+     ``f_1 = f_a (1 + delta / N)``. Repeat from ``f_1`` until ``|f_1 - f_a| <= 1e-9 f_a``
+     (2-3 passes; at most 8; the estimate is clamped to 0.85-1.15 f_nom, the range of
+     [4-30] class A). The report's window is the last resampling; its ``frequency_hz``
+     is the ``f_a`` it spans.
+     Why over the whole window and windowed: at the fixed point every harmonic and the DC
+     sit on whole bins, where the cosine-sum window puts nothing into bins N-1..N+1
+     (its transform is zero at whole bins beyond 3), so they do not bias the estimate
+     whatever their level; an interharmonic ``d`` bins from the fundamental adds at most
+     about ``|sinc d| prod_{i=1}^{3} i^2 / (d^2 - i^2)`` of its amplitude to those bins:
+     1.3e-4 at d = 5.5 (an interharmonic at 1.55 f_1), 9e-7 at d = 10.5 (2.05 f_1)
+     (measured, 5 % interharmonics off the bins from 103.7 to 2471.9 Hz: the frequency
+     within 2.7e-6 Hz; tests). Within 4 bins of the fundamental (below about 1.4 f_1),
+     an interharmonic is inside the window's main lobe and does bias it: 5 % at 77.7 Hz
+     beside 60.2 Hz moves it by 42 mHz, at 77.7 Hz beside 50 Hz by 0.2 mHz. The
+     one-cycle phasors this replaces took in an interharmonic at 2.5 f_1 through the
+     one-cycle DFT's sidelobes (up to 1.5 mHz with 1.5 % of it, depending on its phase),
+     enough to smear 0.04 % of the fundamental into interharmonic group 1.
 (D)  DFT: ``X_k = (1/M) sum_m y_m exp(-j 2 pi k m / M)`` (numpy ``rfft``); the RMS value of
      spectral component k [4-7 cl. 3.2/3.3]: ``C_k = sqrt(2) |X_k|`` for k >= 1,
      ``C_0 = |X_0|`` (the DC value). Phase, sine convention like the rest of sinewatch
@@ -63,7 +86,9 @@ The method, per window (one report per window):
 (IS) Interharmonic centred subgroup [4-7 3.3, 5.5.1]: ``C_isg,n^2 = sum_{i=2}^{N-2}
      C_{nN+i}^2`` (the bins next to the harmonics are left to the harmonic subgroups).
 (T)  ``THD = sqrt(sum_{h=2}^{H} (C_h / C_1)^2)``, ``THDG`` the same with ``G_g,h``,
-     ``THDS`` the same with ``G_sg,h`` [4-7 3.2]; ``H = max_harmonic`` (50 by default).
+     ``THDS`` the same with ``G_sg,h`` [4-7 3.2]; ``H = 40``, the order [4-7] sets for
+     these ratios (``THD_MAX_ORDER``; lower when ``max_harmonic`` is lower), whatever the
+     highest order reported: a 1 % 45th harmonic is in ``harmonic_rms`` but not in THD.
      All are ratios (multiply by 100 for percent); null when the fundamental is zero.
 
 Order 0 of the harmonic arrays is the DC value ``C_0`` (groups and subgroups included:
@@ -83,8 +108,8 @@ Multi-channel input (``n_channels > 1``, one column per channel, e.g. the three 
 is analysed on one window grid synchronised to ``reference_channel``, so the phases of
 different channels compare (symmetrical components, :mod:`.sequence`).
 
-Cost: about three resamplings (``2 R`` multiply-adds per point) and one ``rfft`` of M
-points per channel and window; ``python -m sinewatch.power_quality.speed`` measures it
+Cost: about three resamplings (``2 R`` multiply-adds per point, plus 6 for the three
+windowed bins of (F)) and one ``rfft`` of M points per channel and window; ``python -m sinewatch.power_quality.speed`` measures it
 against a plain ``numpy.fft.rfft`` of the same windows.
 """
 
@@ -109,6 +134,8 @@ TABLE_PHASES = 2048  # P, rows of the polyphase kernel table of (I)
 FREQUENCY_RANGE = (0.85, 1.15)  # x f_nom, the clamp of (F)
 FREQUENCY_TOLERANCE = 1e-9  # relative, the stop test of (F)
 MAX_ITERATIONS = 8
+THD_MAX_ORDER = 40  # H of (T)
+SYNC_TERMS = 4  # H of the Rife-Vincent class I window of (F)
 NS_PER_S = 1_000_000_000
 
 
@@ -120,7 +147,9 @@ class HarmonicParams(BaseModel):
     nominal_frequency_hz: float = Field(
         50.0, description="Nominal supply frequency: 50 Hz (10-cycle windows) or 60 Hz (12-cycle windows)"
     )
-    max_harmonic: int = Field(50, ge=2, le=50, description="Highest harmonic order H reported and used in THD")
+    max_harmonic: int = Field(
+        50, ge=2, le=50, description="Highest harmonic order reported (THD, THDG, THDS stop at min(40, this))"
+    )
     n_channels: int = Field(1, ge=1, le=16, description="Columns analysed on one common window grid")
     reference_channel: int = Field(0, ge=0, description="Column whose fundamental synchronises the windows")
     resync_interval_s: float | None = Field(
@@ -185,8 +214,8 @@ class KernelConstants:
     resync_interval_ns: int  # 0: never
     capacity: int  # samples the state's buffer holds
     table: np.ndarray  # the polyphase kernel of (I), (P+1, 2R)
-    cycle_cos: np.ndarray  # cos(2 pi q / Q), q = 0..Q-1, for (F)
-    cycle_sin: np.ndarray
+    sync_re: np.ndarray  # (3, M) the windowed DFT rows of (F), real part
+    sync_im: np.ndarray  # imaginary part
 
 
 def kernel_table(beta: float = KAISER_BETA, phases: int = TABLE_PHASES, half_taps: int = HALF_TAPS) -> np.ndarray:
@@ -216,11 +245,10 @@ def make_constants(sample_rate_hz: float, params: HarmonicParams) -> KernelConst
         )
     l_max = n_cyc * fs / (FREQUENCY_RANGE[0] * f_nom)
     capacity = math.ceil(l_max) + 2 * HALF_TAPS + 8
-    cyc = 2.0 * np.pi * np.arange(q) / q
     resync = 0 if params.resync_interval_s is None else round(params.resync_interval_s * NS_PER_S)
     return KernelConstants(
         fs, f_nom, n_cyc, m, h, params.n_channels, params.reference_channel, resync, capacity,
-        kernel_table(), np.cos(cyc), np.sin(cyc),
+        kernel_table(), *sync_basis(n_cyc, m),
     )  # fmt: skip
 
 
@@ -282,36 +310,37 @@ def resample_window(
 
 
 @njit(cache=True, nogil=True)
-def cycle_phase_slope(y: np.ndarray, n_cycles: int, cos_q: np.ndarray, sin_q: np.ndarray) -> float:  # pragma: no cover
-    """(F): least-squares slope (rad per cycle) of the unwrapped phase of the one-cycle
-    fundamental phasors ``Z_i`` of ``y`` (N Q points); NaN when a phasor is zero."""
-    q = cos_q.shape[0]
-    phases = np.empty(n_cycles)
-    prev = 0.0
-    for i in range(n_cycles):
+def fundamental_bin_offset(y: np.ndarray, basis_re: np.ndarray, basis_im: np.ndarray) -> float:  # pragma: no cover
+    """(F): ``delta``, the fundamental's offset in bins from bin N of the resampled window
+    ``y`` (M points), from the windowed DFT at bins N-1, N, N+1 (``basis`` rows: the
+    window times ``exp(-j 2 pi (N + d) m / M)``); NaN when those bins are all zero."""
+    m0 = m1 = m2 = 0.0
+    for d in range(3):
         re = 0.0
         im = 0.0
-        for k in range(q):
-            v = y[i * q + k]
-            re += v * cos_q[k]
-            im -= v * sin_q[k]
-        if re == 0.0 and im == 0.0:
-            return math.nan
-        ph = math.atan2(im, re)
-        if i > 0:  # unwrap against the previous cycle
-            d = ph - prev
-            d -= 2.0 * math.pi * math.floor((d + math.pi) / (2.0 * math.pi))
-            ph = prev + d
-        phases[i] = ph
-        prev = ph
-    i_mean = 0.5 * (n_cycles - 1)
-    p_mean = phases.mean()
-    num = 0.0
-    den = 0.0
-    for i in range(n_cycles):
-        num += (i - i_mean) * (phases[i] - p_mean)
-        den += (i - i_mean) * (i - i_mean)
-    return num / den
+        for k in range(y.shape[0]):
+            re += y[k] * basis_re[d, k]
+            im += y[k] * basis_im[d, k]
+        mag = math.sqrt(re * re + im * im)
+        if d == 0:
+            m0 = mag
+        elif d == 1:
+            m1 = mag
+        else:
+            m2 = mag
+    den = m0 + 2.0 * m1 + m2
+    if den == 0.0:
+        return math.nan
+    return SYNC_TERMS * (m2 - m0) / den
+
+
+def sync_basis(n_cycles: int, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F): rows d = -1, 0, 1 of ``w_m exp(-j 2 pi (N + d) m / M)``, ``w`` the
+    Rife-Vincent class I window of SYNC_TERMS terms (``sin^6(pi m / M)``)."""
+    m = np.arange(n_points, dtype=np.float64)
+    w = np.sin(np.pi * m / n_points) ** (2 * (SYNC_TERMS - 1))
+    arg = 2.0 * np.pi * (n_cycles + np.arange(-1, 2, dtype=np.float64))[:, None] * m[None, :] / n_points
+    return np.ascontiguousarray(w * np.cos(arg)), np.ascontiguousarray(-w * np.sin(arg))
 
 
 def _time_ns(state_t0: int, index: float, fs: float) -> float:
@@ -345,9 +374,11 @@ def _analyse(y: np.ndarray, c: KernelConstants) -> dict[str, np.ndarray]:
     ig = np.sqrt(np.sum(c2[:, k[:, None] + np.arange(1, n)[None, :]], axis=2))  # (IG)
     isg = np.sqrt(np.sum(c2[:, k[:, None] + np.arange(2, n - 1)[None, :]], axis=2))  # (IS)
 
+    top = min(h, THD_MAX_ORDER)
+
     def ratio(a: np.ndarray) -> np.ndarray:  # (T)
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.sqrt(np.sum(a[:, 2:] ** 2, axis=1)) / a[:, 1]
+            r = np.sqrt(np.sum(a[:, 2 : top + 1] ** 2, axis=1)) / a[:, 1]
         return np.where(a[:, 1] > 0.0, r, np.nan)
 
     return {
@@ -407,10 +438,10 @@ def harmonic_kernel(
             if not resample_window(x_ref, avail, s_int - base, s_frac, length / m, m, c.table, y_ref):
                 ok = False
                 break
-            b = cycle_phase_slope(y_ref[:, 0], n, c.cycle_cos, c.cycle_sin)
-            if not math.isfinite(b):
+            delta = fundamental_bin_offset(y_ref[:, 0], c.sync_re, c.sync_im)
+            if not math.isfinite(delta):
                 break  # no fundamental: keep f_a
-            f_new = min(max(f_a * (1.0 + b / (2.0 * math.pi)), f_lo), f_hi)  # (F)
+            f_new = min(max(f_a * (1.0 + delta / n), f_lo), f_hi)  # (F)
             if abs(f_new - f_a) <= FREQUENCY_TOLERANCE * f_a:
                 converged = True
                 break

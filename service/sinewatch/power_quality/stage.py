@@ -9,7 +9,7 @@ published a block's Estimate; the stage returns the messages that block complete
 
 * ``PREFIX/harmonics/<channel>``: one HarmonicsReport per 10/12-cycle window of a channel
   whose input key matches a ``power_quality.harmonics`` rule (first match wins);
-* ``PREFIX/agg/<channel>``: the PqAggregates (150/180-cycle, 10-min) of those windows
+* ``PREFIX/agg/<channel>``: the PqAggregates (10-s, 150/180-cycle, 10-min, 2-h) of those windows
   (``aggregate = true``, the default): true and fundamental RMS, frequency, THD/THDG/THDS,
   harmonic and interharmonic subgroups;
 * ``PREFIX/agg/<group>``: with ``aggregate_nominal_frequency_hz`` set on a group, the
@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from sinewatch.estimators.base import Track, decode_array, encode_array
-from sinewatch.power_quality.aggregation import Aggregator, _Accumulator
+from sinewatch.power_quality.aggregation import Aggregator
 from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
 from sinewatch.power_quality.reports import (
     channel_window_values,
@@ -352,43 +352,12 @@ def warm_up() -> None:
         _warm = True
 
 
-def _accumulator_state(acc: _Accumulator) -> dict[str, Any]:
-    return {
-        "start_ns": acc.start_ns,
-        "end_ns": acc.end_ns,
-        "n_windows": acc.n_windows,
-        "broken": acc.broken,
-        "sums": acc.sums,
-        "counts": acc.counts,
-        "cycles": acc.cycles,
-        "array_sums": {k: encode_array(v) for k, v in acc.array_sums.items()},
-        "array_counts": {k: encode_array(v) for k, v in acc.array_counts.items()},
-    }
-
-
-def _set_accumulator_state(acc: _Accumulator, d: dict[str, Any]) -> None:
-    acc.start_ns, acc.end_ns, acc.n_windows, acc.broken = d["start_ns"], d["end_ns"], d["n_windows"], d["broken"]
-    acc.sums = {k: float(v) for k, v in d["sums"].items()}
-    acc.counts = {k: int(v) for k, v in d["counts"].items()}
-    acc.cycles = {k: float(v) for k, v in d["cycles"].items()}
-    acc.array_sums = {k: decode_array(v) for k, v in d["array_sums"].items()}
-    acc.array_counts = {k: decode_array(v) for k, v in d["array_counts"].items()}
-
-
 def _aggregator_state(agg: Aggregator) -> dict[str, Any]:
-    return {
-        "short": _accumulator_state(agg._short),
-        "long": _accumulator_state(agg._long),
-        "long_index": agg._long_index,
-        "last_end": agg._last_end,
-    }
+    return agg.get_state()
 
 
 def _set_aggregator_state(agg: Aggregator, d: dict[str, Any]) -> None:
-    _set_accumulator_state(agg._short, d["short"])
-    _set_accumulator_state(agg._long, d["long"])
-    agg._long_index = d["long_index"]
-    agg._last_end = d["last_end"]
+    agg.set_state(d)
 
 
 __all__ = ["Output", "PqStage", "warm_up"]

@@ -8,7 +8,7 @@ would read as known inputs. They have their own registry here (:func:`pq_names`,
 :func:`get_pq`) until the bench scores power-quality reports.
 
 Every scenario carries ``pq_truth`` (:class:`PqTruth`): the fundamental frequency, the
-RMS of every harmonic order 0..50 of each phase, THD, and the sequence phasors (complex
+RMS of every harmonic order 0..50 of each phase, THD (orders 2..40), and the sequence phasors (complex
 RMS, sine convention at t = 0), u2 and u0. The signals are stationary, so the truth holds
 at every window. The limits (:data:`LIMITS`) are those of IEC 61000-4-7 class I and
 IEC 61000-4-30 class A as recalled here: check the standards before quoting compliance.
@@ -24,14 +24,26 @@ Families (``f0`` = 50 or 60 Hz; ``df`` in percent of nominal: m5 = -5 %, p5 = +5
 * ``pq-harmonics-{50,60}hz-low[-m5|-p5]``: every harmonic 2..50 at 0.1-0.9 % (the range
   where the limit is 0.05 % of nominal);
 * ``pq-harmonic-{50,60}hz-single`` (factory arguments ``harmonic`` 2..50, ``level``,
-  ``df_pct``): one harmonic alone.
+  ``df_pct``): one harmonic alone;
+* ``pq-interharmonics-{50,60}hz-{1,3,5}pct[-m5|-p5]``: one phase, the 3rd, 5th, 7th and
+  11th harmonics and three interharmonics at the level (2.5 f, 13 + 2/N f, 49.5 f);
+* ``pq-unbalance-{50,60}hz-u2-2pct-interharmonic-5pct[-m5|-p5]``: u2 = 2 % with a 5 %
+  interharmonic at 2.5 f in every phase;
+* ``pq-interharmonic-{50,60}hz-single`` (factory arguments ``ratio``, ``level``, ``phase``,
+  ``df_pct``): one interharmonic alone.
+
+Interharmonics lie on the bins of the N-cycle window (their frequency a multiple of f/N,
+following the fundamental), so that their groups have an exact truth
+(:func:`grouped_truth`); one between bins spreads over its neighbours in any
+IEC 61000-4-7 instrument, and its groups are then a property of the method, not of the
+signal.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,10 +62,56 @@ class PqTruth:
     frequency_hz: float
     nominal_frequency_hz: float
     harmonic_rms: np.ndarray  # (P, 51): RMS of order 0..50 per phase
-    thd: np.ndarray  # (P,) over orders 2..50
+    thd: np.ndarray  # (P,) over orders 2..40 (IEC 61000-4-7)
     sequence_rms: tuple[complex, complex, complex] | None  # (V0, V1, V2), complex RMS
     u2: float | None
     u0: float | None
+    groups: dict[str, np.ndarray] = field(default_factory=dict)  # see :func:`grouped_truth`
+
+
+def n_cycles(nominal_frequency_hz: float) -> int:
+    """N of the IEC 61000-4-7 window: 10 cycles at 50 Hz, 12 at 60 Hz."""
+    return 10 if nominal_frequency_hz == 50.0 else 12
+
+
+def grouped_truth(
+    harmonic_rms: np.ndarray, interharmonics: tuple[tuple[float, float, float], ...], n: int
+) -> dict[str, np.ndarray]:
+    """The exact IEC 61000-4-7 groupings of a stationary signal whose components all lie on
+    the N-cycle window's bins (harmonic h at bin hN, an interharmonic of ratio r at bin rN),
+    per phase (P, 51), written from the standard's definitions component by component:
+
+    * harmonic subgroup of order m: the components within one bin of mN;
+    * harmonic group of order m: those within N/2 bins of mN, half the power of one
+      exactly N/2 away;
+    * interharmonic group n: those strictly between bins nN and (n+1)N;
+    * interharmonic centred subgroup n: those strictly between nN + 1 and (n+1)N - 1;
+
+    and THD, THDG, THDS over orders 2..40 (P,). Every interharmonic is in every phase
+    at its level."""
+    p = harmonic_rms.shape[0]
+    comps = [(h * n, harmonic_rms[:, h] ** 2) for h in range(1, MAX_ORDER + 1)]
+    comps += [(round(r * n), np.full(p, c * c)) for r, c, _ in interharmonics]
+    out = {k: np.zeros((p, MAX_ORDER + 1)) for k in ("subgroup", "group", "ig", "isg")}
+    for b, power in comps:
+        for m in range(1, MAX_ORDER + 1):
+            d = abs(b - m * n)
+            if d <= 1:
+                out["subgroup"][:, m] += power
+            if 2 * d < n:
+                out["group"][:, m] += power
+            elif 2 * d == n:
+                out["group"][:, m] += 0.5 * power
+        if b % n:
+            k = b // n
+            out["ig"][:, k] += power
+            if 1 < b - k * n < n - 1:
+                out["isg"][:, k] += power
+    res = {f"{k}_rms": np.sqrt(v) for k, v in out.items()}
+    for name, key in (("thdg", "group_rms"), ("thds", "subgroup_rms")):
+        g = res[key]
+        res[name] = np.sqrt(np.sum(g[:, 2:41] ** 2, axis=1)) / g[:, 1]
+    return res
 
 
 class PqScenario(Scenario):
@@ -73,6 +131,7 @@ class PqScenario(Scenario):
         harmonic_rms: np.ndarray,
         harmonic_phase: np.ndarray,
         tags: tuple[str, ...] = (),
+        interharmonics: tuple[tuple[float, float, float], ...] = (),
         **kwargs: Any,
     ) -> None:
         kwargs.setdefault("sample_rate_hz", SAMPLE_RATE_HZ)
@@ -87,15 +146,28 @@ class PqScenario(Scenario):
         self.harmonic_phase = np.atleast_2d(np.asarray(harmonic_phase, dtype=np.float64))
         if self.harmonic_rms.shape != self.harmonic_phase.shape or self.harmonic_rms.shape[1] != MAX_ORDER + 1:
             raise ParameterError(f"harmonics: expected two (P, {MAX_ORDER + 1}) arrays, got {self.harmonic_rms.shape}")
+        n = n_cycles(self.nominal_frequency_hz)
+        for ratio, _, _ in interharmonics:
+            if not (1.0 < ratio < MAX_ORDER + 1) or abs(ratio * n - round(ratio * n)) > 1e-9 or ratio == round(ratio):
+                raise ParameterError(
+                    f"interharmonic: expected a frequency ratio k / {n} between 1 and {MAX_ORDER + 1}, not whole "
+                    f"(on the {n}-cycle window's bins, where its groups are exact), got {ratio}"
+                )
+        self.interharmonics = tuple((float(r), float(c), float(ph)) for r, c, ph in interharmonics)
 
     @property
     def n_phases(self) -> int:
         return int(self.harmonic_rms.shape[0])
 
+    def interharmonic_phase(self, phase: int, phase_rad: float) -> float:
+        """An interharmonic's phase in phase ``phase`` of the scenario (three phases: the
+        given phase shifted by -2 pi p / 3, a positive-sequence set)."""
+        return phase_rad - 2.0 * np.pi * phase / 3.0 if self.n_phases == 3 else phase_rad
+
     @property
     def pq_truth(self) -> PqTruth:
         c = self.harmonic_rms
-        thd = np.sqrt(np.sum(c[:, 2:] ** 2, axis=1)) / c[:, 1]
+        thd = np.sqrt(np.sum(c[:, 2:41] ** 2, axis=1)) / c[:, 1]
         seq: tuple[complex, complex, complex] | None = None
         u2 = u0 = None
         if self.n_phases == 3:
@@ -103,7 +175,8 @@ class PqScenario(Scenario):
             sc = symmetrical_components(z[0], z[1], z[2])
             seq = (complex(sc.zero), complex(sc.positive), complex(sc.negative))
             u2, u0 = float(sc.u2), float(sc.u0)
-        return PqTruth(self.frequency_hz, self.nominal_frequency_hz, c.copy(), thd, seq, u2, u0)
+        groups = grouped_truth(c, self.interharmonics, n_cycles(self.nominal_frequency_hz))
+        return PqTruth(self.frequency_hz, self.nominal_frequency_hz, c.copy(), thd, seq, u2, u0, groups)
 
     def clean(self, t: np.ndarray) -> tuple[np.ndarray, Truth]:
         h = np.arange(MAX_ORDER + 1)
@@ -114,6 +187,9 @@ class PqScenario(Scenario):
             orders = h[1:][c[1:] != 0.0]
             arg = 2.0 * np.pi * self.frequency_hz * np.outer(t, orders) + self.harmonic_phase[p, orders]
             y[:, p] = dc + math.sqrt(2.0) * np.sin(arg) @ c[orders]
+            for ratio, rms, ph in self.interharmonics:
+                w = 2.0 * np.pi * ratio * self.frequency_hz
+                y[:, p] += math.sqrt(2.0) * rms * np.sin(w * t + self.interharmonic_phase(p, ph))
         phase_a = 2.0 * np.pi * self.frequency_hz * t + self.harmonic_phase[0, 1]
         n = t.shape[0]
         truth = Truth(
@@ -131,6 +207,8 @@ class PqScenario(Scenario):
     def describe(self) -> dict[str, Any]:
         d = super().describe()
         d.update(frequency_hz=self.frequency_hz, nominal_frequency_hz=self.nominal_frequency_hz, n_phases=self.n_phases)
+        if self.interharmonics:
+            d["interharmonics"] = [{"ratio": r, "rms": c, "phase_rad": ph} for r, c, ph in self.interharmonics]
         return d
 
 
@@ -163,15 +241,24 @@ def _balanced_harmonics(
 
 
 def unbalance(
-    f0: float = 50.0, u2: float = 0.02, df_pct: float = 0.0, harmonics: dict[int, float] | None = None, **kw: Any
+    f0: float = 50.0,
+    u2: float = 0.02,
+    df_pct: float = 0.0,
+    harmonics: dict[int, float] | None = None,
+    interharmonic: float = 0.0,
+    **kw: Any,
 ) -> PqScenario:
-    """V1 = 1 (RMS, angle 0.2 rad), V2 = u2 at angle 1.1 rad, V0 = u2/2 at angle -0.7 rad."""
+    """V1 = 1 (RMS, angle 0.2 rad), V2 = u2 at angle 1.1 rad, V0 = u2/2 at angle -0.7 rad;
+    ``interharmonic`` > 0: an interharmonic at 2.5 f of that level in every phase."""
     v1 = complex(np.exp(0.2j))
     v2 = u2 * complex(np.exp(1.1j))
     v0 = 0.5 * u2 * complex(np.exp(-0.7j))
     va, vb, vc = phases_from_sequence(v0, v1, v2)
     rms, ph = _balanced_harmonics((complex(va), complex(vb), complex(vc)), harmonics)
     label = f"u2 {100 * u2:g} %" + (" with harmonics" if harmonics else "") + (f", f {df_pct:+g} %" if df_pct else "")
+    if interharmonic:
+        label += f", interharmonic 2.5 f at {100 * interharmonic:g} %"
+        kw["interharmonics"] = ((2.5, interharmonic, 0.9),)
     return PqScenario(
         kw.pop("name", f"pq-unbalance-{int(f0)}hz"),
         f"three-phase unbalance {label} (IEC 61000-4-30 class A)",
@@ -210,6 +297,49 @@ def single_harmonic(
     rms[0, harmonic], ph[0, harmonic] = level, 1.0
     return _one_phase(
         f"pq-harmonic-{int(f0)}hz-single", f"harmonic {harmonic} at {100 * level:g} %", f0, df_pct, rms, ph, kw
+    )
+
+
+def interharmonic_positions(f0: float) -> tuple[float, ...]:
+    """Where :func:`interharmonics_family` puts its interharmonics (ratios to the
+    fundamental, on the window's bins): the middle of interharmonic group 2 (2.5 f), the
+    first bin of centred subgroup 13 (13 + 2/N), the middle of group 49 (49.5 f)."""
+    return (2.5, 13.0 + 2.0 / n_cycles(f0), 49.5)
+
+
+def interharmonics_family(f0: float = 50.0, level: float = 0.05, df_pct: float = 0.0, **kw: Any) -> PqScenario:
+    """One phase: fundamental 1 (RMS), the 5th (5 %), 7th (3 %), 11th (2 %) and 3rd (1 %)
+    harmonics, and interharmonics at :func:`interharmonic_positions` each at ``level``."""
+    rms = np.zeros((1, MAX_ORDER + 1))
+    ph = np.zeros((1, MAX_ORDER + 1))
+    rms[0, 1], ph[0, 1] = 1.0, 0.4
+    for h, lv in _MIXED.items():
+        rms[0, h], ph[0, h] = lv, 0.3 * h
+    kw.setdefault("interharmonics", tuple((r, level, 0.7 + i) for i, r in enumerate(interharmonic_positions(f0))))
+    return _one_phase(
+        f"pq-interharmonics-{int(f0)}hz",
+        f"interharmonics at {100 * level:g} % (2.5, 13 + 2/N, 49.5) with harmonics",
+        f0, df_pct, rms, ph, kw,
+    )  # fmt: skip
+
+
+def single_interharmonic(
+    f0: float = 50.0, ratio: float = 2.5, level: float = 0.05, phase: float = 0.7, df_pct: float = 0.0, **kw: Any
+) -> PqScenario:
+    """One phase: fundamental 1 (RMS) and one interharmonic at ``ratio`` x f (on the
+    window's bins: a multiple of 1/N) of RMS ``level``."""
+    rms = np.zeros((1, MAX_ORDER + 1))
+    ph = np.zeros((1, MAX_ORDER + 1))
+    rms[0, 1], ph[0, 1] = 1.0, 0.4
+    kw["interharmonics"] = ((ratio, level, phase),)
+    return _one_phase(
+        f"pq-interharmonic-{int(f0)}hz-single",
+        f"interharmonic {ratio:g} f at {100 * level:g} %",
+        f0,
+        df_pct,
+        rms,
+        ph,
+        kw,
     )
 
 
@@ -253,7 +383,20 @@ for _f0 in (50.0, 60.0):
         )
         _add(f"pq-harmonics-{_n}hz-all{_suffix}", harmonics_family, f0=_f0, df_pct=_df)
         _add(f"pq-harmonics-{_n}hz-low{_suffix}", harmonics_family, f0=_f0, df_pct=_df, low=0.001, high=0.009)
+        for _lvl in (0.01, 0.03, 0.05):
+            _add(
+                f"pq-interharmonics-{_n}hz-{100 * _lvl:g}pct{_suffix}",
+                interharmonics_family,
+                f0=_f0,
+                df_pct=_df,
+                level=_lvl,
+            )
+        _add(
+            f"pq-unbalance-{_n}hz-u2-2pct-interharmonic-5pct{_suffix}",
+            unbalance, f0=_f0, u2=0.02, df_pct=_df, interharmonic=0.05,
+        )  # fmt: skip
     _add(f"pq-harmonic-{_n}hz-single", single_harmonic, f0=_f0)
+    _add(f"pq-interharmonic-{_n}hz-single", single_interharmonic, f0=_f0)
 
 
 def pq_names() -> list[str]:
