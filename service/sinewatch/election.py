@@ -25,6 +25,7 @@ it (:class:`sinewatch.clients.Fence`).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import threading
@@ -85,6 +86,7 @@ class LeaseElection:
         self._changed: asyncio.Event | None = None  # on the daemon's loop
         self._daemon_loop: asyncio.AbstractEventLoop | None = None
         self._client: Any = None
+        self._running: set[concurrent.futures.Future[Any]] = set()
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="sinewatch-etcd", daemon=True)
         self._thread.start()
@@ -118,7 +120,10 @@ class LeaseElection:
 
     async def _on_etcd(self, coro: Any) -> Any:
         self._event()
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self._loop))
+        future = asyncio.run_coroutine_threadsafe(coro, self._loop)
+        self._running.add(future)
+        future.add_done_callback(self._running.discard)
+        return await asyncio.wrap_future(future)
 
     async def campaign(self) -> Won:
         return await self._on_etcd(self._campaign())  # type: ignore[no-any-return]
@@ -245,8 +250,8 @@ class LeaseElection:
         self.owner = False
         self.deadline = 0.0
         self._notify()
-        for task in asyncio.all_tasks(self._loop):  # a campaign or a hold still running there
-            self._loop.call_soon_threadsafe(task.cancel)
+        for future in list(self._running):  # a campaign or a hold still running there
+            future.cancel()  # thread-safe: cancels its task on the etcd thread's loop
         with contextlib.suppress(Exception):
             await asyncio.wait_for(self._on_etcd(self._close()), self.ttl_s)
         self._loop.call_soon_threadsafe(self._loop.stop)
