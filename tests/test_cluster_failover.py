@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from cluster_procs import daemon_config, etcd_server
+from cluster_procs import daemon_config, etcd_server, stop_all
 
 from sinewatch.clients import BlockPublisher, connect
 from sinewatch.clients.session import free_loopback_port
@@ -89,15 +89,6 @@ def daemon(tmp_path: Path, daemon_id: str, shard: str, role: str, port: int, rec
     return subprocess.Popen(
         [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
     )
-
-
-def stop_all(procs: dict[str, subprocess.Popen[str]]) -> None:
-    """SIGINT every daemon still running (each drains and finishes its file), then wait."""
-    for p in procs.values():
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs.values():
-        p.wait(timeout=WAIT)
 
 
 class Tokens:
