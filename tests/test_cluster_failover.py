@@ -305,8 +305,11 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
         finally:
             stop_all(procs)
 
-    print(f"router restart: estimates of every channel within {resumed_s:.3f} s of the router's return")
-    assert t_back - t_down < 5.0
+    # how long the test's own router took to start again is the harness's time, not the daemons' (5.2 s once,
+    # with a CPU burner and a second copy of this file running): printed, not asserted
+    print(
+        f"router restart: down {t_back - t_down:.3f} s; estimates of every channel within {resumed_s:.3f} s of its return"
+    )
     assert resumed_s < 5.0, resumed_s
     for c in CHANNELS:  # nothing twice; any loss flagged with its size (the cache usually covers it)
         _check_channel(estimates.by_channel[c], gateway.sent[c])
