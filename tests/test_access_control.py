@@ -17,15 +17,24 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from conftest import TIMEOUT
 from test_deploy import certs, secure_router, tls_section  # noqa: F401 (certs is a fixture)
 
+from sinewatch.clients import BlockPublisher
 from sinewatch.clients.session import free_loopback_port, open_session
 
 DAEMON, GATEWAY, READER, UNLISTED = "sinewatch-daemon", "gateway", "reader", "router"
@@ -237,3 +246,109 @@ def test_the_router_admin_space_is_closed(net, role):
         if r.ok and not str(r.ok.key_expr).startswith(own)
     ]
     assert foreign == [], f"{role} read {foreign[:3]}"
+
+
+# ---- the attack end to end: a reader's token on a shard, then the active daemon killed ----
+def _secure_daemon(tmp_path: Path, cert_dir: Path, daemon_id: str, role: str, port: int) -> subprocess.Popen[bytes]:
+    cfg = tmp_path / f"{daemon_id}.toml"
+    cfg.write_text(
+        f"""daemon_id = "{daemon_id}"
+status_interval_s = 0.5
+[zenoh]
+mode = "client"
+listen = []
+connect = ["tls/127.0.0.1:{port}"]
+[zenoh.raw]
+"transport/link/tls/root_ca_certificate" = "{cert_dir / "ca.pem"}"
+"transport/link/tls/connect_certificate" = "{cert_dir / "sinewatch-daemon.pem"}"
+"transport/link/tls/connect_private_key" = "{cert_dir / "sinewatch-daemon-key.pem"}"
+"transport/link/tls/enable_mtls" = true
+"transport/link/tls/verify_name_on_connect" = true
+[cluster]
+shard_id = "acl"
+role = "{role}"
+snapshot_interval_s = 0.5
+[recording]
+enabled = false
+[workers]
+count = 1
+"""
+    )
+    log = open(tmp_path / f"{daemon_id}.log", "a")
+    return subprocess.Popen(
+        [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
+    )
+
+
+def test_a_readers_forged_active_token_does_not_stop_failover(tmp_path, certs):  # noqa: F811
+    """The outside test's attack: a reader declares ``.../shard/<shard>/active/zz-evil-reader``;
+    the active daemon is SIGKILLed; the standby must still take over."""
+    port = free_loopback_port()
+    endpoint = f"tls/127.0.0.1:{port}"
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    with secure_router(certs, port):
+        reader = open_session(tls_section(certs, READER, endpoint))
+        gateway = open_session(tls_section(certs, GATEWAY, endpoint))
+        tokens: set[str] = set()
+        cond = threading.Condition()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            with cond:
+                (tokens.add if sample.kind == zenoh.SampleKind.PUT else tokens.discard)(str(sample.key_expr))
+                cond.notify_all()
+
+        arrivals: list[tuple[float, dict]] = []
+
+        def on_estimate(sample: zenoh.Sample) -> None:
+            with cond:
+                arrivals.append((time.monotonic(), json.loads(sample.payload.to_bytes())))
+                cond.notify_all()
+
+        watch = reader.liveliness().declare_subscriber("sinewatch/admin/shard/acl/**", on_token, history=True)
+        est = reader.declare_subscriber("sinewatch/est/**", on_estimate)
+        stop = threading.Event()
+        try:
+            procs["a1"] = _secure_daemon(tmp_path, certs, "a1", "active", port)
+            with cond:
+                assert cond.wait_for(lambda: "sinewatch/admin/shard/acl/active/a1" in tokens, TIMEOUT * 3), tokens
+            procs["s1"] = _secure_daemon(tmp_path, certs, "s1", "standby", port)
+            with cond:
+                assert cond.wait_for(lambda: "sinewatch/admin/shard/acl/standby/s1" in tokens, TIMEOUT * 3), tokens
+            evil = reader.liveliness().declare_token("sinewatch/admin/shard/acl/active/zz-evil-reader")
+            pub = BlockPublisher(gateway)
+            assert pub.wait_for_subscriber("acl/a", TIMEOUT)
+
+            def feed() -> None:
+                n = 0
+                while not stop.is_set():
+                    x = np.sin(2 * np.pi * 50.0 * (np.arange(100) + n * 100) / 1000.0)
+                    pub.publish("acl/a", x, sample_rate_hz=1000.0)
+                    n += 1
+                    stop.wait(0.1)  # the gateway's real-time pace
+
+            feeder = threading.Thread(target=feed)
+            feeder.start()
+            with cond:
+                assert cond.wait_for(lambda: len(arrivals) >= 5, TIMEOUT), "a1 never estimated"
+            procs["a1"].send_signal(signal.SIGKILL)
+            procs["a1"].wait()
+            killed = time.monotonic()
+            with cond:  # estimates again: the standby took over despite the reader's token
+                took_over = cond.wait_for(lambda: any(t > killed + 0.3 for t, _ in arrivals), TIMEOUT)
+                seen_tokens = set(tokens)
+            stop.set()
+            feeder.join()
+            evil.undeclare()
+        finally:
+            stop.set()
+            for p in procs.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+            for p in procs.values():
+                p.wait(timeout=TIMEOUT)
+            watch.undeclare()
+            est.undeclare()
+            reader.close()
+            gateway.close()
+    assert took_over, "no estimate after the active daemon was killed: the standby did not take over"
+    assert "sinewatch/admin/shard/acl/active/s1" in seen_tokens, seen_tokens

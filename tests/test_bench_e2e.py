@@ -93,3 +93,23 @@ def test_the_latency_probe_reads_what_json_reads_from_the_daemon_s_estimates(tmp
         gap = msg["diagnostics"]["gap_blocks"] if msg["diagnostics"]["gap"] else None
         assert probe_fields(payload) == (msg["timestamp_ns"], gap)
     assert [probe_fields(p)[1] for p in sink.payloads] == [None, None, None, 3, None]
+
+
+def test_frame_channels_runs_blocks_and_frames_into_one_table_with_the_daemon_s_cpu_per_sample(tmp_path):
+    """``--frame-channels 1,4``: the same 8 channels as single blocks, then as frames of 4,
+    every estimate back in each, the daemon's CPU per sample in the JSON and the table."""
+    out = tmp_path / "frames.json"
+    r = subprocess.run(
+        sinewatch("bench", "e2e", "--channels", "8", "--frame-channels", "1,4", "--duration", "2", "--json", str(out)),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    runs = json.loads(out.read_text())["runs"]
+    assert [(run["frame_channels"], run["messages_sent"]) for run in runs] == [(1, 8 * 19), (4, 2 * 19)]
+    for run in runs:
+        assert run["estimates_received"] == run["blocks_sent"] == 8 * 19 and run["missing_estimates"] == 0
+        assert run["daemon_cpu_ns_per_sample"] == pytest.approx(run["cpu_us_per_block"]["daemon"] * 1e3 / run["block"])
+    assert "per msg" in r.stdout and "daemon ns/sample" in r.stdout

@@ -3,10 +3,10 @@
 Properties, checked by Hypothesis with a fixed seed (the default run) and by a seeded
 mutation fuzzer over a million payloads (``make test-slow``):
 
-* the block decoder raises nothing but an InputError, whatever the bytes;
+* the block and frame decoder raises nothing but an InputError, whatever the bytes;
 * config loading (file and environment) raises nothing but a ConfigError;
 * the pipeline's intake never raises, counts every input as one estimate or one
-  ErrorReport, files each rejection under a known ``kind``, and never lets a bad payload
+  ErrorReport (a multi-channel frame: one per channel), files each rejection under a known ``kind``, and never lets a bad payload
   touch an estimator: a clean channel fed between bad payloads gives bit-identical
   estimates to a run without them.
 """
@@ -36,10 +36,30 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import EstimatorRule, LimitsSection, SinewatchConfig, load_config
 from sinewatch.schemas.errors import ConfigError, InputError
+from sinewatch.schemas.frame import (
+    FRAME_BINARY_ENCODING,
+    FRAME_HEADER,
+    FRAME_JSON_ENCODING,
+    FRAME_MAGIC,
+    Frame,
+    channel_key,
+    decode_input,
+    encode_frame_binary,
+    encode_frame_json,
+)
 from sinewatch.schemas.messages import ErrorKind
 
 FUZZ = settings(max_examples=300, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-ENCODINGS = ["", BLOCK_BINARY_ENCODING, BLOCK_JSON_ENCODING, "application/x-sinewatch-block;v=7", "zenoh/bytes"]
+ENCODINGS = [
+    "",
+    BLOCK_BINARY_ENCODING,
+    BLOCK_JSON_ENCODING,
+    "application/x-sinewatch-block;v=7",
+    "zenoh/bytes",
+    FRAME_BINARY_ENCODING,
+    FRAME_JSON_ENCODING,
+    "application/x-sinewatch-frame;v=9",
+]
 KINDS = {k.value for k in ErrorKind}
 
 # ---- generators -------------------------------------------------------------------------------
@@ -123,9 +143,58 @@ def binary_blocks(draw: st.DrawFn) -> bytes:
     return header + draw(st.binary(max_size=400))
 
 
+@st.composite
+def binary_frames(draw: st.DrawFn) -> bytes:
+    """Frame headers with every field drawn, names that may or may not fit, then random
+    bytes or exactly the samples the header announces."""
+    n_ch = draw(st.integers(0, 4))
+    names = draw(
+        st.one_of(
+            st.just("".join(f"fz/c{c}\n" for c in range(n_ch)).encode()),
+            st.binary(max_size=40),
+            st.just(b"fz/a\nfz/a\n"),
+        )
+    )
+    n = draw(st.integers(0, 6))
+    header = FRAME_HEADER.pack(
+        draw(st.sampled_from([FRAME_MAGIC, b"XXXX"])),
+        draw(st.sampled_from([1, 1, 0, 2, 255])),
+        draw(st.sampled_from([1, 2, 0, 3])),
+        n_ch,
+        draw(st.integers(0, 2**64 - 1)),
+        draw(st.integers(-(2**63), 2**63 - 1)),
+        draw(st.floats(width=64)),
+        draw(st.one_of(st.just(n), st.integers(0, 2**32 - 1))),
+        draw(st.one_of(st.just(len(names)), st.integers(0, 2**32 - 1))),
+    )
+    pad = b"\0" * ((-(len(header) + len(names))) % 8)
+    tail = draw(st.one_of(st.just(b"\0" * (8 * n * n_ch)), st.binary(max_size=200)))
+    return header + names + draw(st.sampled_from([pad, b"", b"\1" * len(pad)])) + tail
+
+
+frame_fields = st.fixed_dictionaries(
+    {},
+    optional={
+        "format_version": st.one_of(st.just(1), json_values),
+        "channels": st.one_of(st.just(["fz/a", "fz/b"]), st.lists(st.text(max_size=8), max_size=3), json_values),
+        "seq": st.one_of(st.integers(min_value=-5, max_value=2**65), json_values),
+        "sample_rate_hz": st.one_of(st.floats(), json_values),
+        "samples": st.one_of(st.lists(st.lists(st.floats(), max_size=3), max_size=5), json_values),
+    },
+)
+VALID_JSON_FRAME = {
+    "seq": 1,
+    "t0_ns": 0,
+    "sample_rate_hz": 1000.0,
+    "channels": ["fz/a", "fz/b"],
+    "samples": [[0.5, 1.0]],
+}
+
 payloads = st.one_of(
     st.binary(max_size=600),
     binary_blocks(),
+    binary_frames(),
+    frame_fields.map(lambda d: json.dumps({**VALID_JSON_FRAME, **d}).encode()),
     block_fields.map(lambda d: json.dumps(d).encode()),
     near_valid_json_blocks(),
     json_values.map(lambda v: json.dumps(v).encode()),
@@ -133,10 +202,24 @@ payloads = st.one_of(
 
 
 def _decode_or_reject(payload: bytes, encoding: str) -> None:
+    for decode in (decode_block, decode_input):
+        try:
+            decode(payload, encoding)
+        except InputError as exc:
+            assert exc.kind in KINDS and str(exc)
+
+
+def _outputs_of(key: str, payload: bytes, encoding: str) -> int:
+    """How many estimates or ErrorReports an input must give: one per channel of a frame
+    that decodes (on a key with a parent), else one."""
     try:
-        decode_block(payload, encoding)
-    except InputError as exc:
-        assert exc.kind in KINDS and str(exc)
+        decoded = decode_input(payload, encoding)
+        if isinstance(decoded, Frame) and decoded.n_samples and len(payload) <= 1 << 20:
+            channel_key(key, decoded.channels[0])
+            return decoded.n_channels
+    except InputError:
+        pass
+    return 1
 
 
 # ---- the decoder --------------------------------------------------------------------------------
@@ -214,19 +297,23 @@ def _check_intake(bad: list[tuple[str, bytes, str]], clean: list[bytes]) -> Coun
     keep_dirty, keep_clean = _Keep(), _Keep()
     dirty, reference = Pipeline(_config(), [keep_dirty]), Pipeline(_config(), [keep_clean])
     per_clean = max(1, len(bad) // len(clean))
-    inputs = 0
+    inputs = outputs = 0
     for i, payload in enumerate(clean):
         for key, junk, enc in bad[i * per_clean : (i + 1) * per_clean]:
             dirty.process(key, junk, enc, 0)
             inputs += 1
+            outputs += _outputs_of(key, junk, enc)
         dirty.process("sinewatch/in/clean", payload, BLOCK_BINARY_ENCODING, 0)
         reference.process("sinewatch/in/clean", payload, BLOCK_BINARY_ENCODING, 0)
         inputs += 1
+        outputs += 1
     for key, junk, enc in bad[len(clean) * per_clean :]:
         dirty.process(key, junk, enc, 0)
         inputs += 1
-    # every input is one estimate or one error, each error under a known kind
-    assert len(keep_dirty.estimates) + len(keep_dirty.errors) == inputs == dirty.counters.inputs
+        outputs += _outputs_of(key, junk, enc)
+    # every input (every channel of a frame) is one estimate or one error, each error under a known kind
+    assert inputs == dirty.counters.inputs
+    assert len(keep_dirty.estimates) + len(keep_dirty.errors) == outputs
     kinds = Counter(e["kind"] for e in keep_dirty.errors)
     assert set(kinds) <= KINDS and sum(kinds.values()) == dirty.counters.errors
     assert kinds == dirty.counters.by_kind
@@ -274,6 +361,10 @@ def _mutants(rng: random.Random, templates: list[bytes], n: int):
         elif op == 4:
             other = rng.choice(templates)
             data = data[: rng.randrange(len(data))] + other[rng.randrange(len(other)) :]
+        elif data[:4] == FRAME_MAGIC:
+            fmt, off = rng.choice([("<H", 6), ("<Q", 8), ("<d", 24), ("<I", 32), ("<I", 36)])
+            value = rng.choice(extremes) if fmt != "<d" else rng.choice([0.0, -1.0, float("inf"), float("nan")])
+            struct.pack_into(fmt, data, off, value % (2 ** (8 * struct.calcsize(fmt))) if fmt != "<d" else value)
         elif data[:4] == MAGIC:
             fmt, off = rng.choice([("<Q", 8), ("<q", 16), ("<d", 24), ("<I", 32), ("<H", 36), ("<H", 38)])
             value = rng.choice(extremes)
@@ -291,9 +382,16 @@ def _templates() -> list[bytes]:
         Block("fz/a", 3, 10**9, 1000.0, rng.standard_normal(16)),
         Block("fz/b", 4, -(10**9), 48_000.0, rng.standard_normal((8, 3)), "V"),
     ]
-    return [encode_block_binary(b, d) for b in blocks for d in ("float32", "float64")] + [
-        encode_block_json(b) for b in blocks
+    frames = [
+        Frame(("fz/a", "fz/b", "fz/c"), 3, 10**9, 1000.0, rng.standard_normal((16, 3))),
+        Frame(("fz/d",), 0, 0, 48_000.0, rng.standard_normal((5, 1))),
     ]
+    return (
+        [encode_block_binary(b, d) for b in blocks for d in ("float32", "float64")]
+        + [encode_block_json(b) for b in blocks]
+        + [encode_frame_binary(f, d) for f in frames for d in ("float32", "float64")]
+        + [encode_frame_json(f) for f in frames]
+    )
 
 
 @pytest.mark.slow

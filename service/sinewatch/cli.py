@@ -9,6 +9,8 @@ sinewatch feed [...]                publish simulated sample blocks
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
+sinewatch compare A.mcap B.mcap     two recordings of the same inputs, channel by channel
+sinewatch plot RUN.mcap [...]       one channel's input and estimates as a PNG
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios
@@ -135,6 +137,16 @@ def _count(text: str) -> int:
     return n
 
 
+def _frame_count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if not 1 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a number of channels per frame 1-65535, got {text!r}")
+    return n
+
+
 def enable_c37118(config: Any, port: int) -> None:
     """``serve --c37118 PORT``: the ``[c37118]`` section on, on PORT (its stations come from the config)."""
     from pydantic import ValidationError
@@ -202,12 +214,18 @@ def cmd_feed(args: argparse.Namespace) -> int:
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
-        if not pub.wait_for_subscriber(channels[0].channel, args.wait):
+        feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast, frame_channels=args.frame_channels)
+        first = feed.frames[0][0] if feed.frames else channels[0].channel
+        found = (
+            pub.wait_for_frame_subscriber(first, args.wait)
+            if feed.frames
+            else pub.wait_for_subscriber(first, args.wait)
+        )
+        if not found:
             raise ConfigError(
-                f"expected a subscriber on {pub.key(channels[0].channel)} within {args.wait} s, got none "
+                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
-        feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast)
         t0 = time.monotonic()
         try:
             sent = feed.run(args.duration)
@@ -217,8 +235,9 @@ def cmd_feed(args: argparse.Namespace) -> int:
         _settle(session)
         pub.close()
     n_samples = sum(c.blocks for c in channels) * args.block
+    what = f"frames of up to {args.frame_channels} channels" if feed.frames else "blocks"
     console.print(
-        f"published {sent} blocks ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
+        f"published {sent} {what} ({n_samples} samples) on {len(channels)} channels in {dt:.2f} s "
         f"({n_samples / max(dt, 1e-9):,.0f} samples/s)"
     )
     return 0
@@ -238,7 +257,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     from sinewatch.clients import BlockPublisher, connect
     from sinewatch.comtrade_file import read_comtrade
     from sinewatch.console import make_console
-    from sinewatch.feed import publish_comtrade
+    from sinewatch.feed import publish_comtrade, publish_comtrade_frames
 
     if args.scenario:
         raise ConfigError("--comtrade: expected instead of --scenario, got both")
@@ -246,15 +265,23 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     console = make_console(stderr=True)
     with connect(args.connect, timeout_s=args.wait) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float64")
-        first = record.channels[0].channel
-        if not pub.wait_for_subscriber(first, args.wait):
+        as_frames = args.frame_channels > 1
+        if as_frames:
+            from sinewatch.comtrade_file import interleaved_frames
+
+            first = interleaved_frames(record, args.block)[0][0]
+        else:
+            first = record.channels[0].channel
+        waiting = pub.wait_for_frame_subscriber if as_frames else pub.wait_for_subscriber
+        if not waiting(first, args.wait):
             raise ConfigError(
                 f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
             )
         t0 = time.monotonic()
         try:
-            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast)
+            send = publish_comtrade_frames if as_frames else publish_comtrade
+            sent = send(pub, record, block_size=args.block, realtime=not args.fast)
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0
@@ -262,7 +289,8 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
         pub.close()
     n_samples = sum(len(c.samples) for c in record.channels)
     console.print(
-        f"published {sent} blocks ({n_samples} samples) on {len(record.channels)} channels of {record.path} "
+        f"published {sent} {'frames' if as_frames else 'blocks'} ({n_samples} samples) on {len(record.channels)} "
+        f"channels of {record.path} "
         f"(COMTRADE {record.rev_year} {record.data_format}, {record.station}) in {dt:.2f} s",
         soft_wrap=True,
     )
@@ -506,6 +534,36 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return run_replay(args)
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from sinewatch.compare import run_compare
+
+    return run_compare(args)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from sinewatch.plot import run_plot
+
+    return run_plot(args)
+
+
+def _window_arguments(parser: argparse.ArgumentParser, *, channels: bool = True) -> None:
+    """``--start``, ``--end`` (and ``--channels``): the part of a recording a command reads
+    (syntax: :mod:`sinewatch.window`)."""
+    parser.add_argument(
+        "--start",
+        metavar="TIME",
+        help="from this log time: +SECONDS after the recording's start (+2.5s, +2500ms), ISO 8601, or ns since the epoch",
+    )
+    parser.add_argument("--end", metavar="TIME", help="up to (not including) this log time, as --start")
+    if channels:
+        parser.add_argument(
+            "--channels",
+            action="append",
+            metavar="GLOB",
+            help="channel names to take (repeatable; default all), e.g. 'demo/*'",
+        )
+
+
 # ---- parser ----------------------------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
     """argparse, with a usage mistake told on one line (exit code 2, as argparse's own)."""
@@ -614,6 +672,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--comtrade", metavar="FILE.cfg", help="publish the analog channels of a COMTRADE file (.cfg or .cff)"
     )
     f.add_argument("--channels", type=int, default=1, help="channels per scenario (default 1)")
+    f.add_argument(
+        "--frame-channels",
+        type=_frame_count,
+        default=1,
+        metavar="N",
+        help="send N channels (of one rate) per message as SampleFrames (default 1: one SampleBlock per channel); "
+        "with --comtrade, any N > 1 sends each rate segment's analog channels as one frame",
+    )
     f.add_argument("--rate", type=float, help="sample rate override, Hz")
     f.add_argument("--block", type=int, default=1000, help="samples per block (default 1000)")
     f.add_argument("--duration", type=float, default=10.0, help="seconds of signal (default 10)")
@@ -655,15 +721,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
+    _window_arguments(r)
+    r.add_argument(
+        "--track",
+        nargs="?",
+        const=True,
+        default=False,
+        metavar="FILE.parquet",
+        help="every sample's estimate and the estimator's internal signals, for the window and channels: "
+        "into the --out recording (sinewatch/track/CHANNEL), or into FILE.parquet",
+    )
     r.add_argument("--no-progress", action="store_true")
 
     e = _command(sub, "export", "write a recording's estimates (and samples) as CSV or Parquet tables", cmd_export)
     e.add_argument("path", help="MCAP recording")
     e.add_argument("--format", choices=["csv", "parquet"], default="csv", help="csv (default) or parquet (pyarrow)")
-    e.add_argument("--channels", default="*", metavar="GLOB", help="channels to export (default all), e.g. 'demo/*'")
+    _window_arguments(e)
     e.add_argument("--out", metavar="DIR", help="output directory (default: the recording's)")
     e.add_argument("--samples", action="store_true", help="also export the input samples")
     e.add_argument("--no-progress", action="store_true")
+
+    cm = _command(sub, "compare", "compare two recordings of the same inputs, channel by channel", cmd_compare)
+    cm.add_argument("a", type=Path, help="the first recording (e.g. the original)")
+    cm.add_argument("b", type=Path, help="the second recording (e.g. a re-run with another estimator)")
+    _window_arguments(cm)
+    cm.add_argument(
+        "--tolerance",
+        action="append",
+        type=parse_param,
+        default=[],
+        metavar="PARAM=VALUE",
+        help="divergence threshold of a parameter (repeatable), e.g. frequency_hz=0.001; "
+        "defaults: frequency_hz=0.01 amplitude=0.01 phase_rad=0.01 offset=0.01 rocof_hz_per_s=0.1",
+    )
+    cm.add_argument("--json", action="store_true", help="the comparison as JSON")
+
+    pl = _command(sub, "plot", "plot one channel of recordings: input, estimates, validity, gaps (PNG)", cmd_plot)
+    pl.add_argument("paths", nargs="+", type=Path, help="recordings of the same inputs (each in its own colour)")
+    pl.add_argument("--channel", required=True, help="the channel name, e.g. demo/demo-faulty-sensor")
+    _window_arguments(pl, channels=False)
+    pl.add_argument("--out", type=Path, help="the PNG (default: CHANNEL.png beside the first recording)")
+    pl.add_argument("--width", type=float, default=12.0, help="inches (default 12; 100 dpi)")
 
     st = _command(sub, "status", "ask every daemon which channels it owns (shards, standbys)", cmd_status)
     st.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")

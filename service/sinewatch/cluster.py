@@ -271,10 +271,18 @@ class ClusterMember:
         log.info("cluster: standby for shard %s", self.shard_id)
 
     def _on_snapshot(self, sample: zenoh.Sample) -> None:
-        term = int(sample.attachment.to_string()) if sample.attachment is not None else 0
+        payload = sample.payload.to_bytes()
+        try:  # only a daemon may put here (the router's access control); still, keep only snapshots
+            ok = isinstance(json.loads(payload).get("channels"), list)
+            term = int(sample.attachment.to_string()) if sample.attachment is not None else 0
+        except (ValueError, AttributeError):
+            ok = False
+        if not ok:
+            log.warning("cluster: %d bytes on %s are not a snapshot: ignored", len(payload), self.snapshot_key)
+            return
         latest = self.latest_snapshot
         if latest is None or term >= latest[0]:  # an older term's late snapshot never replaces a newer one
-            self.latest_snapshot = (term, sample.payload.to_bytes(), time.monotonic())
+            self.latest_snapshot = (term, payload, time.monotonic())
             self._note_term(term)
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
@@ -306,7 +314,12 @@ class ClusterMember:
         pipeline = self.daemon.pipeline
         latest = self.latest_snapshot
         if latest is not None:
-            pipeline.restore(json.loads(latest[1]))
+            try:
+                pipeline.restore(json.loads(latest[1]))
+            except Exception:  # a snapshot that does not restore must not stop the takeover
+                log.exception("cluster: the snapshot of shard %s does not restore; serving from scratch", self.shard_id)
+                pipeline.channels.clear()
+                pipeline.resume_points.clear()
         for name, (seq, timestamp_ns) in self.published.items():
             ch = pipeline.channels.get(name)
             next_t0 = timestamp_ns + round(1e9 / ch.sample_rate_hz) if ch is not None else None

@@ -33,6 +33,7 @@ import numpy as np
 
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.frame import Frame
 
 COMTRADE_SUFFIXES = (".cfg", ".cff")
 
@@ -71,6 +72,26 @@ def interleaved_blocks(record: ComtradeRecord, block_size: int) -> list[Block]:
     """Every channel's blocks in the order of their times (channels interleaved as sampled)."""
     items = [(b.t0_ns, i, b) for i, ch in enumerate(record.channels) for b in ch.blocks(block_size)]
     return [b for _, _, b in sorted(items, key=lambda item: (item[0], item[1]))]
+
+
+def interleaved_frames(record: ComtradeRecord, block_size: int) -> list[tuple[str, Frame]]:
+    """The record as multi-channel frames, in the order of their times: the analog channels
+    sampled together (one rate segment: same rate, start and length) go in one frame of
+    ``block_size`` samples each, named ``<first channel's prefix>.frame<k>`` with dots for
+    slashes (one key chunk). Returns (frame name, Frame) pairs; seq 0, 1, ... per frame."""
+    groups: dict[tuple[float, int, int], list[ComtradeChannel]] = {}
+    for ch in record.channels:
+        groups.setdefault((ch.sample_rate_hz, ch.t0_ns, len(ch.samples)), []).append(ch)
+    items = []
+    for k, ((fs, t0_ns, n), members) in enumerate(groups.items()):
+        name = f"{members[0].channel.rsplit('/', 1)[0].replace('/', '.')}.frame{k}"
+        names = tuple(ch.channel for ch in members)
+        data = np.stack([ch.samples for ch in members], axis=1)
+        for seq, start in enumerate(range(0, n, block_size)):
+            t0 = t0_ns + round(start * 1e9 / fs)
+            items.append((t0, k, name, Frame(names, seq, t0, fs, data[start : start + block_size])))
+    items.sort(key=lambda item: (item[0], item[1]))
+    return [(name, frame) for _, _, name, frame in items]
 
 
 def is_comtrade(path: Path) -> bool:

@@ -55,6 +55,7 @@ from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import ConfigError
+from sinewatch.schemas.frame import FRAME_MAGIC
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 from sinewatch.sdnotify import Notifier
 from sinewatch.signals import shutdown_signals
@@ -90,6 +91,7 @@ class Intake:
         self._loop = loop
         self._batch = cfg.limits.intake_batch
         self._policy = cfg.limits.queue_policy
+        self._capacity = cfg.limits.queue_capacity
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
@@ -153,18 +155,36 @@ class Intake:
         return (key, sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
+        """Take room for an input: one block, or one per channel of a multi-channel frame
+        (``queue_capacity`` counts blocks, so a backlog of frames holds as many samples as
+        one of blocks)."""
         self.counters.received += 1
-        if self._room.acquire(blocking=False):
+        weight = self.weight(item[1])
+        taken = 0
+        while taken < weight and self._room.acquire(blocking=False):
+            taken += 1
+        if taken == weight:
             return True
         if self._policy == "drop":
+            self.release(taken)
             self.counters.dropped += 1
             dropped[item[0]] += 1
             return False
         self.counters.backpressure_waits += 1
-        while not self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
-            if self._daemon.force_exit.is_set():
+        while taken < weight:
+            if self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
+                taken += 1
+            elif self._daemon.force_exit.is_set():
+                self.release(taken)
                 return False
         return True
+
+    def weight(self, payload: bytes) -> int:
+        """The room an input takes: a binary frame's channel count (its header's u16 at offset 6,
+        read without decoding; at most the whole queue), else 1."""
+        if payload[:4] == FRAME_MAGIC and len(payload) >= 8:
+            return max(1, min(int.from_bytes(payload[6:8], "little"), self._capacity))
+        return 1
 
     def release(self, n: int) -> None:
         if n:
@@ -253,7 +273,8 @@ class Daemon:
             finally:
                 self._queued -= len(batch)
                 if self._intake is not None:
-                    self._intake.release(len(batch))
+                    intake = self._intake
+                    intake.release(sum(intake.weight(item[1]) for item in batch))
             # Queue.get() does not yield while batches wait: without this, a backlog would keep
             # the heartbeat, status and flush timers from running until it is gone (a watchdog
             # or a supervisor would then take the busy daemon for a stuck one).

@@ -24,7 +24,6 @@ Parquet needs pyarrow: ``pip install 'sinewatch[export]'``.
 from __future__ import annotations
 
 import csv
-import fnmatch
 import json
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -34,8 +33,10 @@ from typing import Any, TextIO
 import numpy as np
 
 from sinewatch.replay import check_recording, read_recording
-from sinewatch.schemas.codec import decode_block
+from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import DecodeError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
+from sinewatch.window import ChannelFilter, Window
 
 FORMATS = ("csv", "parquet")
 BATCH_ROWS = 65_536  # rows per Parquet row group / CSV flush
@@ -133,8 +134,15 @@ def _at(values: list[Any] | None, k: int) -> Any:
 
 
 def sample_rows(payload: bytes, encoding: str) -> list[tuple[Any, ...]]:
-    """The rows of one recorded input block (DecodeError if it is not a block)."""
-    block = decode_block(payload, encoding)
+    """The rows of one recorded input block, or of each channel of a multi-channel frame
+    in turn (DecodeError if it is neither)."""
+    decoded = decode_input(payload, encoding)
+    if isinstance(decoded, Frame):
+        return [row for c in range(decoded.n_channels) for row in _block_rows(decoded.block(c))]
+    return _block_rows(decoded)
+
+
+def _block_rows(block: Block) -> list[tuple[Any, ...]]:
     samples = block.samples.reshape(block.n_samples, -1).astype(np.float64)
     n, columns = samples.shape
     offsets = np.round(np.arange(n) * (1e9 / block.sample_rate_hz)).astype(np.int64)
@@ -227,11 +235,16 @@ def export(
     out_dir: Path,
     *,
     fmt: str = "csv",
-    channels: str = "*",
+    channels: str | list[str] = "*",
     samples: bool = False,
     on_progress: Callable[[int], None] | None = None,
+    window: Window | None = None,
 ) -> ExportResult:
-    """Export the recording at ``path`` into ``out_dir``; see the module docstring."""
+    """Export the recording at ``path`` into ``out_dir``; see the module docstring.
+    ``channels``: globs of channel names (:mod:`sinewatch.window`); ``window``: only the
+    messages logged in it (reading stops at its end)."""
+    selected = ChannelFilter.of(channels)
+    window = window or Window()
     if fmt not in FORMATS:
         raise ExportError(f"--format: expected one of {list(FORMATS)}, got {fmt!r}")
     check_recording(path)
@@ -250,10 +263,15 @@ def export(
                 result.incomplete = True
             if kind != "message":
                 continue
+            window.anchor(item.log_time_ns)
+            if window.after(item.log_time_ns):
+                break
+            if window.before(item.log_time_ns):
+                continue
             if item.role == "estimate":
                 msg = json.loads(item.payload)
                 seen.add(msg["channel"])
-                if fnmatch.fnmatchcase(msg["channel"], channels):
+                if selected.matches(msg["channel"]):
                     tables["estimates"].add(estimate_rows(msg))
                     result.estimates += 1
             elif item.role == "input" and samples:
@@ -262,18 +280,21 @@ def export(
                 except DecodeError:
                     result.skipped_inputs += 1
                     continue
-                if rows and fnmatch.fnmatchcase(rows[0][0], channels):
+                if not selected.everything:  # a frame's rows are of several channels
+                    rows = [row for row in rows if selected.matches(row[0])]
+                if rows:
                     tables["samples"].add(rows)
                     result.inputs += 1
     finally:
         for table in tables.values():
             table.close()
     result.paths = [t.table.path for t in tables.values()]
-    if result.estimates == 0 and channels != "*" and seen:
+    if result.estimates == 0 and not selected.everything and seen:
         for p in result.paths:
             p.unlink()
         listed = ", ".join(sorted(seen)[:8]) + (", ..." if len(seen) > 8 else "")
-        raise ExportError(f"--channels: expected a pattern matching some of {listed}; got {channels!r}")
+        got = channels if isinstance(channels, str) else ", ".join(channels)
+        raise ExportError(f"--channels: expected a pattern matching some of {listed}; got {got!r}")
     result.estimate_rows = tables["estimates"].count
     result.sample_rows = tables["samples"].count if samples else 0
     return result
@@ -281,7 +302,8 @@ def export(
 
 # ---- the command -----------------------------------------------------------------------------
 def run_export(args: Any) -> int:
-    """``sinewatch export FILE.mcap --format csv|parquet [--channels GLOB] [--out DIR] [--samples]``."""
+    """``sinewatch export FILE.mcap --format csv|parquet [--channels GLOB ...] [--start T] [--end T]
+    [--out DIR] [--samples]``."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 
     from sinewatch.console import check_output_dir, make_console
@@ -304,9 +326,10 @@ def run_export(args: Any) -> int:
             path,
             out_dir,
             fmt=args.format,
-            channels=args.channels,
+            channels=args.channels or "*",
             samples=args.samples,
             on_progress=lambda pos: progress.update(task, completed=pos),
+            window=Window.parse(args.start, args.end),
         )
     if result.incomplete:
         print(f"{path} was not finished (writer killed?): its complete chunks were exported")

@@ -26,7 +26,7 @@ import numpy as np
 
 from sinewatch import scenarios
 from sinewatch.clients.publisher import BlockPublisher
-from sinewatch.comtrade_file import ComtradeRecord, interleaved_blocks
+from sinewatch.comtrade_file import ComtradeRecord, interleaved_blocks, interleaved_frames
 from sinewatch.scenarios import Scenario, ScenarioStream, Truth
 from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
 from sinewatch.schemas.config import EstimatorRule
@@ -114,14 +114,30 @@ def rules_for(channels: list[FeedChannel], key_prefix: str = "sinewatch/in") -> 
 
 
 class Feed:
+    """Publishes its channels' blocks round by round; with ``frame_channels`` > 1, the
+    channels (consecutive ones of one sample rate) go as SampleFrames of that many channels,
+    named ``<prefix>-f<k>`` where ``prefix`` is the first part of their names.
+
+    In frames, a scenario's transport faults stay per channel: ``nan`` puts the NaN in the
+    channel's column, ``drop`` leaves the channel out of that frame (the channel set
+    changes; the daemon flags the gap on the channel's next estimate), ``duplicate`` is
+    not injected (a frame cannot repeat one channel) and is not counted."""
+
     def __init__(
-        self, publisher: BlockPublisher, channels: list[FeedChannel], *, block_size: int = 1000, realtime: bool = True
+        self,
+        publisher: BlockPublisher,
+        channels: list[FeedChannel],
+        *,
+        block_size: int = 1000,
+        realtime: bool = True,
+        frame_channels: int = 1,
     ) -> None:
         self.publisher = publisher
         self.channels = channels
         self.block_size = block_size
         self.realtime = realtime
         self.stop = threading.Event()
+        self.frames = frame_groups(channels, frame_channels) if frame_channels > 1 else []
 
     def run(self, duration_s: float, on_block: Callable[[FeedChannel], None] | None = None) -> int:
         """Publish until ``duration_s`` of signal is sent (or ``stop`` is set); return the
@@ -141,11 +157,45 @@ class Feed:
                     break
             elif self.stop.is_set():
                 break
+            if self.frames:
+                for name, members in self.frames:
+                    sent += self._publish_frame(name, members)
+                    if on_block is not None:
+                        for ch in members:
+                            on_block(ch)
+                continue
             for ch in self.channels:
                 sent += self._publish(ch)
                 if on_block is not None:
                     on_block(ch)
         return sent
+
+    def _publish_frame(self, name: str, members: list[FeedChannel]) -> int:
+        """One frame of ``members`` (those not dropped this round); 1 if it went out."""
+        names, columns = [], []
+        for ch in members:
+            samples, truth = ch.stream.read(self._sizes[id(ch)])
+            ch.last_truth = truth.last()
+            fault = ch.scenario.faults.action(ch.blocks)
+            ch.blocks += 1
+            if fault == "nan":
+                samples = np.array(samples, copy=True)
+                samples.flat[len(samples) // 2] = np.nan
+            if fault in ("nan", "drop"):
+                ch.faults_injected[fault] = ch.faults_injected.get(fault, 0) + 1
+            if fault == "drop":
+                continue
+            names.append(ch.channel)
+            columns.append(samples)
+        fs = members[0].scenario.sample_rate_hz
+        if not names:  # every channel dropped: the frame is not sent (its seq and time are spent)
+            self.publisher.frame(name, [members[0].channel], np.zeros((self._sizes[id(members[0])], 1)), fs)
+            return 0
+        frame = self.publisher.frame(name, names, np.stack(columns, axis=1), fs)
+        for ch in members:
+            ch.last_seq = frame.seq
+        self.publisher.publish_frame_raw(name, self.publisher.encode_frame(frame))
+        return 1
 
     def _publish(self, ch: FeedChannel) -> int:
         samples, truth = ch.stream.read(self._sizes[id(ch)])
@@ -168,6 +218,51 @@ class Feed:
             self.publisher.publish_raw(ch.channel, payload)
             return 2
         return 1
+
+
+def frame_groups(channels: list[FeedChannel], per_frame: int) -> list[tuple[str, list[FeedChannel]]]:
+    """Consecutive channels of one sample rate, ``per_frame`` at a time, each group with its
+    frame's name: ``<first part of the first channel's name>-f<k>`` (one key chunk, beside
+    its channels' keys)."""
+    groups: list[tuple[str, list[FeedChannel]]] = []
+    current: list[FeedChannel] = []
+    for ch in channels:
+        if current and (len(current) == per_frame or ch.scenario.sample_rate_hz != current[0].scenario.sample_rate_hz):
+            groups.append(("", current))
+            current = []
+        current.append(ch)
+    if current:
+        groups.append(("", current))
+    return [(f"{members[0].channel.split('/', 1)[0]}-f{k}", members) for k, (_, members) in enumerate(groups)]
+
+
+def publish_comtrade_frames(
+    publisher: BlockPublisher,
+    record: ComtradeRecord,
+    *,
+    block_size: int = 1000,
+    realtime: bool = True,
+    stop: threading.Event | None = None,
+) -> int:
+    """:func:`publish_comtrade` with the analog channels sampled together sent as one
+    SampleFrame per ``block_size`` samples (:func:`sinewatch.comtrade_file.interleaved_frames`)."""
+    stop = stop or threading.Event()
+    frames = interleaved_frames(record, block_size)
+    if not frames:
+        return 0
+    first_ns = frames[0][1].t0_ns
+    start = time.monotonic()
+    sent = 0
+    for name, frame in frames:
+        if realtime:
+            end_s = (frame.t0_ns - first_ns) / 1e9 + frame.n_samples / frame.sample_rate_hz
+            if stop.wait(max(0.0, start + end_s - time.monotonic())):
+                break
+        elif stop.is_set():
+            break
+        publisher.publish_frame_raw(name, publisher.encode_frame(frame))
+        sent += 1
+    return sent
 
 
 def publish_comtrade(

@@ -51,9 +51,10 @@ from foxglove.messages import Log, LogLevel, Timestamp
 from foxglove.websocket import ServerListener
 
 from sinewatch.pipeline import NullSink
-from sinewatch.schemas.codec import decode_block
+from sinewatch.schemas.codec import Block, decode_block
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import InputError
+from sinewatch.schemas.frame import decode_frame, is_frame
 from sinewatch.schemas.messages import MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_MESSAGE_MODELS
 
@@ -100,10 +101,31 @@ _LEVELS = (
 )
 
 
+def summaries(payload: bytes, encoding: str, max_points: int) -> list[dict[str, Any]]:
+    """The ``sinewatch/samples/<channel>`` messages of one input: one for a block, one per
+    readable channel of a multi-channel frame (a NaN column is left out, as the pipeline
+    rejects that channel's block); InputError when nothing in it is readable."""
+    if not is_frame(payload, encoding):
+        return [summarise(payload, encoding, max_points)]
+    frame = decode_frame(payload, encoding)
+    out = []
+    for c in range(frame.n_channels):
+        try:
+            out.append(_summary(frame.block(c), max_points))
+        except InputError:
+            continue
+    if not out:
+        raise InputError("samples: expected a finite channel in the frame, got none")
+    return out
+
+
 def summarise(payload: bytes, encoding: str, max_points: int) -> dict[str, Any]:
     """The ``sinewatch/samples/<channel>`` message for one input block (raises
     :class:`InputError` for a block the pipeline rejects as well)."""
-    block = decode_block(payload, encoding)
+    return _summary(decode_block(payload, encoding), max_points)
+
+
+def _summary(block: Block, max_points: int) -> dict[str, Any]:
     x = block.samples if block.samples.ndim == 1 else block.samples[:, 0]
     if x.size == 0 or not np.isfinite(x).all():
         raise InputError("samples: expected finite values, got none or non-finite ones")
@@ -291,7 +313,7 @@ class FoxgloveSink(NullSink):
         while (item := self._queue.get()) is not None:
             key, payload, encoding, log_time_ns = item
             try:
-                msg = summarise(payload, encoding, self.section.input_points)
+                msgs = summaries(payload, encoding, self.section.input_points)
             except InputError:
                 self.counters.inputs_unreadable += 1
                 continue
@@ -300,15 +322,21 @@ class FoxgloveSink(NullSink):
                 if self.counters.inputs_unreadable <= 5:
                     log.exception("foxglove: input summary of %s failed", key)
                 continue
-            ch = self._samples_by_key.get(key)
+            for msg in msgs:
+                self._publish_summary(key if len(msgs) == 1 else f"{key}\n{msg['channel']}", msg, log_time_ns)
+
+    def _publish_summary(self, slot: str, msg: dict[str, Any], log_time_ns: int) -> None:
+        """One channel's summary on its topic (``slot``: the input key, and for a frame's
+        channel the channel's name after it)."""
+        ch = self._samples_by_key.get(slot)
+        if ch is None:
+            ch = self._topic(f"{SAMPLES_PREFIX}/{msg['channel']}", SUMMARY_SCHEMA_NAME, SUMMARY_SCHEMA.copy)
             if ch is None:
-                ch = self._topic(f"{SAMPLES_PREFIX}/{msg['channel']}", SUMMARY_SCHEMA_NAME, SUMMARY_SCHEMA.copy)
-                if ch is None:
-                    continue
-                self._samples_by_key[key] = ch
-            if ch.has_sinks():
-                ch.log(json.dumps(msg, separators=(",", ":")).encode(), log_time=log_time_ns)
-                self.counters.input_summaries += 1
+                return
+            self._samples_by_key[slot] = ch
+        if ch.has_sinks():
+            ch.log(json.dumps(msg, separators=(",", ":")).encode(), log_time=log_time_ns)
+            self.counters.input_summaries += 1
 
     def close(self) -> None:
         logging.getLogger("sinewatch").removeHandler(self._handler)
@@ -319,4 +347,4 @@ class FoxgloveSink(NullSink):
         self.server.stop()
 
 
-__all__ = ["LOG_TOPIC", "SAMPLES_PREFIX", "FoxgloveLogHandler", "FoxgloveSink", "summarise"]
+__all__ = ["LOG_TOPIC", "SAMPLES_PREFIX", "FoxgloveLogHandler", "FoxgloveSink", "summaries", "summarise"]

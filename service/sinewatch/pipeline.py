@@ -36,12 +36,12 @@ import numpy as np
 import zenoh
 
 from sinewatch.estimators import get as get_estimator
+from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.base import Estimator, Track, TrackStd
 from sinewatch.estimators.presence import SignalPresence
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
     Block,
-    decode_block,
     dumps,
     encode_error,
     encode_estimate_values,
@@ -51,6 +51,7 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
+from sinewatch.schemas.frame import Frame, channel_key, decode_input
 from sinewatch.schemas.messages import (
     ESTIMATE_FORMAT_VERSION,
     Diagnostics,
@@ -265,6 +266,18 @@ class Channel:
         }
 
 
+@dataclass(slots=True)
+class _Member:
+    """One accepted channel of a frame, waiting for its bank."""
+
+    channel: Channel
+    block: Block
+    column: int
+    gap_blocks: int
+    restart: bool
+    reset: bool
+
+
 @dataclass(frozen=True)
 class ResumePoint:
     """Where another daemon left a channel (hot standby, :mod:`sinewatch.cluster`): the
@@ -313,6 +326,7 @@ class Pipeline:
         self.counters = PipelineCounters()
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
+        self._frame_keys: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {}  # (frame key, names) -> channel keys
         self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
         self.fencing: Fencing | None = None  # the shard and term this daemon owns its channels under (cluster)
         self._fencing_json = "null"
@@ -338,7 +352,11 @@ class Pipeline:
         block: Block | None = None
         stage = "decode"
         try:
-            block = self._decode(payload, encoding)
+            decoded = self._decode(payload, encoding)
+            if isinstance(decoded, Frame):
+                self._process_frame(key, decoded, log_time_ns, received_ns)
+                return
+            block = decoded
             stage = "channel"
             channel = self._channel_for(key, block)
             if channel.name in self.resume_points and self._catch_up(channel, block):
@@ -381,6 +399,142 @@ class Pipeline:
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
 
+    # ---- multi-channel frames ----------------------------------------------------------------
+    def _process_frame(self, key: str, frame: Frame, log_time_ns: int, received_ns: int | None) -> None:
+        """One decoded frame (already recorded whole by the sinks' ``on_input``): each column
+        is checked as its channel's block would be, the accepted channels that share a rule
+        advance together through :func:`update_bank`, and each gets its own Estimate.
+
+        Everything that can go wrong goes wrong per channel: a NaN column, a duplicate, a
+        channel over the limit or with no rule is that channel's ErrorReport (on its own key),
+        and the others are estimated. The channel set may change from one frame to the next:
+        each channel is followed as if its column had been sent alone with the frame's seq,
+        so a channel that comes back after k frames without it is flagged as a gap of k
+        blocks, and a new one starts afresh."""
+        keys = self._frame_channel_keys(key, frame.channels)
+        x = frame.samples
+        if x.dtype != _F64:
+            x = x.astype(np.float64)  # once per frame: each column then is what its block would give
+            frame.samples = x
+        finite = np.isfinite(x).all(axis=0).tolist() if not _all_finite_2d(x) else None
+        banks: dict[tuple[int, str, float], list[_Member]] = {}
+        for c, ckey in enumerate(keys):
+            block = frame.block(c)
+            channel: Channel | None = None
+            try:
+                channel = self._channel_for(ckey, block)
+                if channel.name in self.resume_points and self._catch_up_checked(channel, block, finite, c):
+                    continue
+                member = self._frame_member(channel, block, c, finite)
+            except InputError as exc:
+                self._forget_unborn(channel)
+                self._reject(ckey, block, channel, exc.kind, str(exc), log_time_ns)
+                continue
+            except SinewatchError as exc:
+                self._forget_unborn(channel)
+                self._reject(ckey, block, channel, "estimator_error", str(exc), log_time_ns)
+                continue
+            except Exception as exc:  # noqa: BLE001 (one channel's fault, not the frame's)
+                self._forget_unborn(channel)
+                self._fault(ckey, block, channel, "channel", exc, log_time_ns)
+                continue
+            est = channel.estimator
+            banks.setdefault((id(self._rule_for(ckey)), est.name, est.sample_rate_hz), []).append(member)
+        n_all = len(keys)
+        for members in banks.values():
+            tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
+            for member, track in zip(members, tracks, strict=True):
+                if track is not None:
+                    self._frame_estimate(member, track, log_time_ns, received_ns)
+
+    def _frame_channel_keys(self, key: str, names: tuple[str, ...]) -> tuple[str, ...]:
+        """Each channel's key (:func:`sinewatch.schemas.frame.channel_key`), once per layout."""
+        cached = self._frame_keys.get((key, names))
+        if cached is None:
+            if len(self._frame_keys) > 4 * self.config.limits.max_channels:
+                self._frame_keys.clear()  # bounded: hostile senders may invent layouts
+            cached = self._frame_keys[(key, names)] = tuple(channel_key(key, name) for name in names)
+        return cached
+
+    def _frame_member(self, channel: Channel, block: Block, c: int, finite: list[bool] | None) -> _Member:
+        """Check column ``c`` as its channel's block (sequence, values, shape); raise InputError."""
+        last_seq = channel.last_seq
+        if last_seq is not None and block.seq == last_seq + 1:
+            gap_blocks, restart, reset = 0, False, False
+        else:
+            gap_blocks, restart = self._check_sequence(channel, block)
+            reset = (gap_blocks > 0 or restart) and self.config.on_gap == "reset"
+        if finite is not None and not finite[c]:
+            bad = int(np.count_nonzero(~np.isfinite(block.samples)))
+            raise InputError(f"samples: expected finite values, got {bad} NaN/Inf", kind="non_finite")
+        if channel.estimator.n_inputs != 1:
+            raise InputError(
+                f"samples: expected {channel.estimator.n_inputs} columns for {channel.estimator.name}, "
+                "got 1 (a frame's channel is one column)",
+                kind="shape_mismatch",
+            )
+        return _Member(channel, block, c, gap_blocks, restart, reset)
+
+    def _catch_up_checked(self, channel: Channel, block: Block, finite: list[bool] | None, c: int) -> bool:
+        if finite is not None and not finite[c]:
+            raise InputError("samples: expected finite values, got NaN/Inf", kind="non_finite")
+        return self._catch_up(channel, block)
+
+    def _run_bank(
+        self, members: list[_Member], x: np.ndarray, n_all: int, t0_ns: int, log_time_ns: int
+    ) -> list[Track | None]:
+        """Advance one rule's channels together; a bank that raises is rolled back (kernels
+        return new states, so the old ones are intact) and run channel by channel, so that
+        only the faulty channel's block is lost (``estimator_fault``)."""
+        ests = [m.channel.estimator for m in members]
+        for m in members:
+            if m.reset:
+                m.channel.estimator.reset()
+        cols = [m.column for m in members]
+        samples = x if len(cols) == n_all and cols == list(range(n_all)) else x[:, cols]
+        saved = [est._state for est in ests]
+        try:
+            return list(update_bank(ests, samples, last_only=True, t0_ns=t0_ns))
+        except Exception:  # noqa: BLE001 (isolated below, channel by channel)
+            for est, state in zip(ests, saved, strict=True):
+                est._state = state
+        tracks: list[Track | None] = []
+        for m in members:
+            try:
+                tracks.append(m.channel.estimator.update(m.block.samples, last_only=True, t0_ns=t0_ns))
+            except InputError as exc:
+                self._forget_unborn(m.channel)
+                self._reject(m.channel.key, m.block, m.channel, exc.kind, str(exc), log_time_ns)
+                tracks.append(None)
+            except Exception as exc:  # noqa: BLE001 (one channel's fault)
+                self._forget_unborn(m.channel)
+                self._fault(m.channel.key, m.block, m.channel, "estimator", exc, log_time_ns)
+                tracks.append(None)
+        return tracks
+
+    def _frame_estimate(self, m: _Member, track: Track, log_time_ns: int, received_ns: int | None) -> None:
+        """What :meth:`process` does after the estimator, for one channel of a frame."""
+        channel, block = m.channel, m.block
+        try:
+            self._presence(channel, block, m.reset)
+            self._accept(channel, block, m.gap_blocks, m.restart, m.reset)
+            payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset)
+        except Exception as exc:  # noqa: BLE001 (one channel's fault)
+            self._forget_unborn(channel)
+            self._fault(channel.key, block, channel, "estimate", exc, log_time_ns)
+            return
+        out_key = channel.out_key
+        if out_key is None:
+            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        for payload_out in payloads:
+            for sink in self.sinks:
+                sink.on_estimate(out_key, payload_out, log_time_ns)
+        self.counters.estimates += len(payloads)
+        if self.pq.enabled:
+            self._power_quality(channel.key, channel, block, track, m.reset, log_time_ns)
+        if received_ns is not None:
+            channel.last_latency_ns = time.monotonic_ns() - received_ns
+
     def _power_quality(
         self, key: str, channel: Channel, block: Block, track: Track, reset: bool, log_time_ns: int
     ) -> None:
@@ -415,7 +569,7 @@ class Pipeline:
         self._reject(f"sink/{sink_name}", None, None, "sink_error", message, time.time_ns())
 
     # ---- steps -----------------------------------------------------------------------------
-    def _decode(self, payload: bytes, encoding: str) -> Block:
+    def _decode(self, payload: bytes, encoding: str) -> Block | Frame:
         limits = self.config.limits
         if len(payload) > limits.max_payload_bytes:
             raise InputError(
@@ -424,12 +578,13 @@ class Pipeline:
             )
         if len(payload) > limits.max_json_payload_bytes and is_json_block(payload, encoding):
             # refused unparsed: parsing holds the event loop (every channel) ~0.1 us a byte
+            # (a JSON frame too: it starts with "{" as a JSON block does)
             raise InputError(
                 f"JSON payload: expected at most {limits.max_json_payload_bytes} bytes, got {len(payload)} "
                 "(send large blocks in the binary encoding)",
                 kind="oversized_block",
             )
-        block = decode_block(payload, encoding)
+        block = decode_input(payload, encoding)
         if block.n_samples == 0:
             raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
         if block.n_samples > limits.max_block_samples:
@@ -795,6 +950,11 @@ def _is_power_of_ten(n: int) -> bool:
 
 
 _F64 = np.dtype(np.float64)
+
+
+def _all_finite_2d(x: np.ndarray) -> bool:
+    """Whether every value of a frame is finite (the usual case: one pass, no per-column work)."""
+    return bool(np.isfinite(x.reshape(-1) if x.flags.c_contiguous else x).all())
 
 
 def _finite_list(row: np.ndarray) -> list[float | None]:

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
@@ -34,9 +35,12 @@ from sinewatch.pipeline import NullSink, Pipeline, Sink
 from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
-from sinewatch.schemas.errors import SinewatchError
+from sinewatch.schemas.errors import InputError, SinewatchError
+from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, Fencing
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
+from sinewatch.track import TRACK_ROLE, TrackingPipeline, TrackWriter
+from sinewatch.window import ChannelFilter, Window
 
 log = logging.getLogger("sinewatch.replay")
 
@@ -54,7 +58,7 @@ class RecordedMessage:
     log_time_ns: int
 
 
-NOT_COMPARED_ROLES = frozenset({"input", "error", "status", ""})  # every other role is an output
+NOT_COMPARED_ROLES = frozenset({"input", "error", "status", TRACK_ROLE, ""})  # every other role is an output
 
 
 @dataclass
@@ -94,6 +98,12 @@ class ReplayResult:
     matched_other: dict[str, int] = field(default_factory=dict)
     # COMTRADE: channels shorter than their estimator's window (no estimate could be valid)
     short_channels: list[str] = field(default_factory=list)
+    # a window or channel filter (_replay_window_run)
+    window: str = ""  # the window in words; "" for a whole replay
+    warmup_inputs: int = 0  # inputs run between the snapshot (or run start) and the window, not compared
+    started_from: str = ""  # "snapshot at +S s", "run start"
+    track_rows: int = 0
+    track_path: Path | None = None
 
     @property
     def ok(self) -> bool:
@@ -142,12 +152,24 @@ def check_recording(path: Path) -> None:
         raise ReplayError(f"{path}: expected an MCAP recording (starting {MCAP_MAGIC!r}), got {got}")
 
 
-def read_recording(path: Path, on_progress: Callable[[int], None] | None = None) -> Iterator[tuple[str, Any]]:
+def read_recording(
+    path: Path, on_progress: Callable[[int], None] | None = None, *, from_snapshot_before_ns: int | None = None
+) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
-    order; ("incomplete", reason) last if the file ends early."""
+    order; ("incomplete", reason) last if the file ends early.
+
+    ``from_snapshot_before_ns``: in a finished file (one with a summary), skip what comes
+    before its latest state snapshot logged at or before that time (:func:`seek_point`):
+    the metadata, then that snapshot and everything after it."""
     channels: dict[int, Channel] = {}
+    point = None if from_snapshot_before_ns is None else seek_point(path, from_snapshot_before_ns)
     with open(path, "rb") as f:
-        reader = StreamReader(f, validate_crcs=True)
+        if point is not None:
+            offset, channels, metadata = point
+            for item in metadata:
+                yield "metadata", item
+            f.seek(offset)
+        reader = StreamReader(f, skip_magic=point is not None, validate_crcs=True)
         try:
             for n, record in enumerate(reader.records):
                 if isinstance(record, DataEnd):
@@ -178,6 +200,39 @@ def read_recording(path: Path, on_progress: Callable[[int], None] | None = None)
             on_progress(f.tell())
 
 
+def seek_point(path: Path, before_ns: int) -> tuple[int, dict[int, Channel], list[dict[str, str]]] | None:
+    """Where to start reading a finished recording for a window from ``before_ns``: the
+    offset of its latest snapshot logged at or before then (the snapshots written every
+    ``recording.snapshot_interval_s`` are logged at the input they precede), the file's
+    channels and its sinewatch metadata, all from the summary; None without a summary or
+    such a snapshot (then the file is read from its start)."""
+    with open(path, "rb") as f:
+        try:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None:
+                return None
+            snapshots = [a for a in summary.attachment_indexes if a.name == SNAPSHOT_NAME and a.log_time <= before_ns]
+            if not snapshots:
+                return None
+            metadata = [dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA_NAME]
+        except (McapError, EOFError, ValueError, KeyError, struct.error):
+            return None
+    return max(snapshots, key=lambda a: a.offset).offset, dict(summary.channels), metadata
+
+
+def first_log_time(path: Path) -> int | None:
+    """The log time of a finished recording's first message (its summary's), else None."""
+    with open(path, "rb") as f:
+        try:
+            summary = make_reader(f).get_summary()
+        except (McapError, EOFError, ValueError, KeyError, struct.error):
+            return None
+    if summary is None or summary.statistics is None or not summary.statistics.message_count:
+        return None
+    return int(summary.statistics.message_start_time)
+
+
 class _Comparator(NullSink):
     """Collects what the replayed pipeline produces, per topic, in order: estimates and
     every other output (``on_output``, by the role its message kind is recorded under)."""
@@ -189,14 +244,21 @@ class _Comparator(NullSink):
         self.produced_other: dict[str, int] = defaultdict(int)
         self.errors = 0
         self.other_outputs = True  # False: the recording has none (recording.power_quality off)
+        self.active = True  # False: a window's warm-up, whose outputs are not compared
+        # the channels compared (a frame runs whole: its other channels' outputs are dropped)
+        self.select: ChannelFilter | None = None
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if not self.active or (self.select is not None and not self.select.matches_topic(key)):
+            return
         self.estimates[key].append(payload)
         self.roles[key] = "estimate"
         self.produced += 1
 
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
-        if not self.other_outputs:
+        if not self.other_outputs or not self.active:
+            return
+        if self.select is not None and not self.select.matches_topic(key):
             return
         role = PQ_ROLES.get(kind, kind)
         self.estimates[key].append(payload)
@@ -204,7 +266,8 @@ class _Comparator(NullSink):
         self.produced_other[role] += 1
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.errors += 1
+        if self.active:
+            self.errors += 1
 
 
 def replay(
@@ -214,15 +277,43 @@ def replay(
     out: Path | None = None,
     on_progress: Callable[[Path, int], None] | None = None,
     max_mismatches: int = 1000,
+    window: Window | None = None,
+    channels: ChannelFilter | None = None,
+    track: Path | bool = False,
 ) -> ReplayResult:
     """Replay recordings; see the module docstring. ``paths`` may hold several runs (the
     files of each worker process of ``serve --workers``, of a restarted worker, of other
     daemons): each run (:func:`split_runs`) replays through a pipeline of its own, as it was
     recorded, and the results add up. With ``out`` and several runs, run k > 1 is written
-    to ``out`` with ``-run<k>`` before its suffix."""
+    to ``out`` with ``-run<k>`` before its suffix.
+
+    ``window`` and ``channels`` narrow the replay to a time window and some channels
+    (:func:`_replay_window_run`); ``track`` also writes every sample's estimate of those
+    channels (:mod:`sinewatch.track`): ``True`` into ``out``, a path into a Parquet file."""
     for path in paths:
         check_recording(path)
     runs = split_runs(paths)
+    narrowed = (window is not None and window.bounded) or (channels is not None and not channels.everything)
+    if narrowed or track:
+        if len(runs) > 1 and (out is not None or isinstance(track, Path)):
+            raise ReplayError(
+                f"a window, channel filter or track of several runs: expected one run, got {len(runs)} "
+                "(replay each daemon's files on their own)"
+            )
+        results = [
+            _replay_window_run(
+                run,
+                rules=rules,
+                out=out,
+                on_progress=on_progress,
+                max_mismatches=max_mismatches,
+                window=Window(window.start, window.end) if window is not None else Window(),
+                channels=channels or ChannelFilter(),
+                track=track,
+            )
+            for run in runs
+        ]
+        return results[0] if len(results) == 1 else merge_results(paths, results)
     if len(runs) == 1:
         return _replay_run(paths, rules=rules, out=out, on_progress=on_progress, max_mismatches=max_mismatches)
     results = [
@@ -331,8 +422,9 @@ def _replay_run(
             elif kind == "snapshot":
                 # A later file's snapshot is the state replay has reached by then, unless
                 # no input came before it: the files of a standby before its takeover hold
-                # status only, and the takeover's state is in this one.
-                if file_no == 0 or result.r.inputs == 0:
+                # status only, and the takeover's state is in this one. So are the snapshots
+                # written every recording.snapshot_interval_s (for windows): not restored.
+                if (file_no == 0 and pipeline is None) or result.r.inputs == 0:
                     pending_snapshot = item
                     if pipeline is not None:
                         pipeline.restore(item)
@@ -369,6 +461,231 @@ def _replay_run(
         raise ReplayError("the recording has no inputs (recording.inputs was off?): nothing to replay")
     result.finish(comparator)
     return result.r
+
+
+class _Gate(NullSink):
+    """A sink that passes everything on to ``sink`` while :attr:`active` (a window's
+    recorder: the warm-up before the window is not recorded)."""
+
+    def __init__(self, sink: McapRecorder) -> None:
+        self.sink = sink
+        self.sink_name = sink.sink_name
+        self.active = False
+
+    def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        if self.active:
+            self.sink.on_input(key, payload, encoding, log_time_ns)
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self.active:
+            self.sink.on_estimate(key, payload, log_time_ns)
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self.active:
+            self.sink.on_error(key, payload, log_time_ns)
+
+    def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
+        if self.active:
+            self.sink.on_output(kind, key, payload, log_time_ns)
+
+
+class _InputChannels:
+    """The channel name of a recorded input (its block's), by topic: a key carries one
+    channel, so each topic is decoded once; an input that does not decode is taken by its
+    topic's tail."""
+
+    def __init__(self, channels: ChannelFilter) -> None:
+        self.filter = channels
+        self._by_topic: dict[str, bool] = {}
+
+    def selected(self, m: RecordedMessage) -> bool:
+        """A block of a selected channel, or a multi-channel frame with one among its
+        channels (the whole frame is run: its channels advance together)."""
+        if self.filter.everything:
+            return True
+        hit = self._by_topic.get(m.topic)
+        if hit is not None:
+            return hit
+        try:
+            decoded = decode_input(m.payload, m.zenoh_encoding)
+        except InputError:
+            return self.filter.matches_topic(m.topic)
+        if isinstance(decoded, Frame):  # a frame's layout may change from one to the next: not cached
+            return any(self.filter.matches(name) for name in decoded.channels)
+        hit = self._by_topic[m.topic] = self.filter.matches(decoded.channel)
+        return hit
+
+
+def _replay_window_run(
+    paths: list[Path],
+    *,
+    rules: list[EstimatorRule] | None,
+    out: Path | None,
+    on_progress: Callable[[Path, int], None] | None,
+    max_mismatches: int,
+    window: Window,
+    channels: ChannelFilter,
+    track: Path | bool,
+) -> ReplayResult:
+    """Replay the part of one run's files in ``window`` on the ``channels`` selected.
+
+    A check (no ``rules``) starts from the latest state snapshot at or before the window's
+    start (a file's start, or one written every ``recording.snapshot_interval_s``): the
+    inputs after it and before the window are kept, not run, until the window begins;
+    then the pipeline is restored from the snapshot and runs them (the warm-up: outputs
+    neither compared nor recorded), then the window, whose outputs are compared with the
+    recorded ones. A re-run with other ``rules`` cannot start from a snapshot of other
+    estimators: it runs the run from its start, the part before the window as warm-up.
+    The inputs of channels not selected are skipped, and so are the outputs recorded on
+    topics that do not end in a selected channel's name. Reading stops at the window's end.
+
+    ``out`` records the window only, its first file starting with the snapshot of the
+    window's start, so that it replays on its own."""
+    result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
+    comparator = _Comparator()
+    comparator.active = False
+    comparator.select = None if channels.everything else channels
+    inputs = _InputChannels(channels)
+    config: SinewatchConfig | None = None
+    estimate_version, pq_version = ESTIMATE_FORMAT_VERSION, PQ_FORMAT_VERSION
+    snapshot: dict[str, Any] | None = None
+    snapshot_at: int | None = None  # its log time: that of the first message after it
+    snapshot_pending = False
+    held: list[RecordedMessage] = []  # selected inputs since the snapshot, before the window
+    pipeline: Pipeline | None = None
+    gate: _Gate | None = None
+    recorder: McapRecorder | None = None
+    tracker: TrackWriter | None = None
+    in_window = False
+    done = False
+
+    def build() -> Pipeline:
+        nonlocal gate, recorder, tracker
+        assert config is not None
+        comparator.other_outputs = config.recording.power_quality
+        sinks: list[Sink] = [comparator]
+        built: list[Pipeline] = []
+        if out is not None:
+            rec_config = config if rules is None else config.model_copy(update={"rules": rules})
+            recorder = McapRecorder(rec_config, path=out, snapshot=lambda: built[0].snapshot())
+            recorder.attach_first_snapshot = True  # the window's first file replays on its own
+            gate = _Gate(recorder)
+            sinks.append(gate)
+        kwargs: dict[str, Any] = dict(rules=rules, estimate_version=estimate_version, pq_version=pq_version)
+        if track:
+            if track is True and recorder is None:
+                raise ReplayError("--track: expected --out (a recording to write the track into) or a .parquet path")
+            tracker = TrackWriter(recorder=recorder, parquet=track if isinstance(track, Path) else None)
+            made: Pipeline = TrackingPipeline(config, sinks, writer=tracker, channels=channels, **kwargs)
+        else:
+            made = Pipeline(config, sinks, **kwargs)
+        built.append(made)
+        return made
+
+    def enter_window(p: Pipeline) -> None:
+        nonlocal in_window
+        in_window = True
+        comparator.active = True
+        if gate is not None:
+            gate.active = True
+        if isinstance(p, TrackingPipeline):
+            p.active = True
+
+    for path in paths:
+        if done:
+            break
+        progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
+        if window.origin_ns is None and (first := first_log_time(path)) is not None:
+            window.anchor(first)
+        # a check skips what comes before the latest snapshot before its window, unread
+        seek = window.start_ns if rules is None and pipeline is None else None
+        for kind, item in read_recording(path, progress, from_snapshot_before_ns=seek):
+            if kind == "metadata":
+                if config is None:
+                    config = SinewatchConfig.model_validate(json.loads(item["config"]))
+                    if rules is None:
+                        estimate_version = int(item.get("estimate_format_version", "1"))
+                        pq_version = int(item.get("pq_format_version", "1"))
+            elif kind == "snapshot":
+                # a check before its window starts from the latest; a re-run from the run's first only
+                if pipeline is None and (rules is None or (snapshot is None and path == paths[0])):
+                    snapshot, snapshot_pending = item, True
+                    held.clear()
+            elif kind == "incomplete":
+                log.warning("%s ends early (%s): replayed its complete chunks", path, item)
+                result.r.incomplete_files.append(path)
+            elif kind == "message":
+                m: RecordedMessage = item
+                if config is None:
+                    raise ReplayError(
+                        f"{path}: no sinewatch metadata before the first message; expected a file written by sinewatch"
+                    )
+                window.anchor(m.log_time_ns)
+                if snapshot_pending:
+                    snapshot_at, snapshot_pending = m.log_time_ns, False
+                if window.after(m.log_time_ns):
+                    done = True
+                    break
+                if m.role == "input":
+                    if not inputs.selected(m):
+                        continue
+                elif not channels.everything and not channels.matches_topic(m.topic):
+                    continue
+                if window.before(m.log_time_ns):
+                    if m.role != "input":
+                        continue
+                    if rules is None:  # held until the window: a later snapshot may make them unneeded
+                        held.append(m)
+                        continue
+                    if pipeline is None:
+                        pipeline = _start(build(), snapshot)
+                    pipeline.process(m.topic, m.payload, m.zenoh_encoding, m.log_time_ns)
+                    result.r.warmup_inputs += 1
+                    continue
+                # the pipeline starts at the window's first input: a standby's status-only files
+                # before it leave the snapshot of its takeover to start from
+                if pipeline is None and m.role != "input":
+                    if m.role == "error":
+                        result.r.recorded_errors += 1
+                    continue
+                if pipeline is None:
+                    pipeline = _start(build(), snapshot)
+                if not in_window:
+                    for h in held:
+                        pipeline.process(h.topic, h.payload, h.zenoh_encoding, h.log_time_ns)
+                    result.r.warmup_inputs += len(held)
+                    held.clear()
+                    enter_window(pipeline)
+                    origin = window.origin_ns or 0
+                    result.r.started_from = (
+                        "run start"
+                        if snapshot is None
+                        else f"snapshot at +{((snapshot_at or origin) - origin) / 1e9:.3f} s"
+                    )
+                result.message(m, pipeline, comparator)
+    if recorder is not None:
+        recorder.close()
+        result.r.out_paths = list(recorder.paths)
+    if tracker is not None:
+        tracker.close()
+        result.r.track_rows = tracker.rows
+        result.r.track_path = tracker.parquet
+    if config is None:
+        raise ReplayError(f"{', '.join(map(str, paths))}: no sinewatch metadata; expected a file written by sinewatch")
+    if pipeline is None or not in_window:
+        raise ReplayError(
+            f"{', '.join(map(str, paths))}: expected inputs in the window ({window.describe()}) "
+            f"on the channels selected ({channels.describe()}), got none"
+        )
+    result.r.window = window.describe() if window.bounded else ""
+    result.finish(comparator)
+    return result.r
+
+
+def _start(pipeline: Pipeline, snapshot: dict[str, Any] | None) -> Pipeline:
+    if snapshot is not None:
+        pipeline.restore(snapshot)
+    return pipeline
 
 
 def replay_comtrade(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
@@ -16,6 +17,7 @@ from sinewatch.estimators import check_rules
 from sinewatch.replay import ReplayResult, check_recording, replay, replay_comtrade
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ConfigError
+from sinewatch.window import ChannelFilter, Window
 
 
 def run_replay(args: argparse.Namespace) -> int:
@@ -28,9 +30,17 @@ def run_replay(args: argparse.Namespace) -> int:
         raise ConfigError(f"--param: expected with --estimator, got {len(args.param)} without it")
     if args.out is not None:
         check_output_dir(args.out.parent, "--out")
+    window = Window.parse(getattr(args, "start", None), getattr(args, "end", None))
+    channels = ChannelFilter.of(getattr(args, "channels", None))
+    track = _track_target(args)
     if any(is_comtrade(p) for p in args.paths):
         if len(args.paths) > 1:
             raise ConfigError(f"replay of COMTRADE: expected one .cfg or .cff file, got {len(args.paths)} paths")
+        if window.bounded or not channels.everything or track:
+            raise ConfigError(
+                "--start, --end, --channels, --track: expected an MCAP recording, got COMTRADE "
+                "(replay it with --out first, then the recording)"
+            )
         result = replay_comtrade(args.paths[0], rules=rules, out=args.out)
         report(console, result)
         for text in result.short_channels:
@@ -57,12 +67,36 @@ def run_replay(args: argparse.Namespace) -> int:
             rules=rules,
             out=args.out,
             on_progress=lambda path, pos: progress.update(task, completed=done_before[path] + pos),
+            window=window,
+            channels=channels,
+            track=track,
         )
     report(console, result)
     return 0 if result.ok else 1
 
 
+def _track_target(args: argparse.Namespace) -> Path | bool:
+    """``--track``: True (into --out), a Parquet path, or False."""
+    track = getattr(args, "track", False)
+    if track is True:
+        if args.out is None:
+            raise ConfigError("--track: expected --out (the recording to write the track into) or --track FILE.parquet")
+        return True
+    if not track:
+        return False
+    path = Path(track)
+    if path.suffix != ".parquet":
+        raise ConfigError(f"--track: expected a .parquet path (or no value, with --out), got {track!r}")
+    check_output_dir(path.parent if str(path.parent) else Path("."), "--track")
+    return path
+
+
 def report(console: Console, r: ReplayResult) -> None:
+    if r.window:
+        console.print(
+            f"window: {r.window or 'whole recording'}; started from the {r.started_from or 'run start'}, "
+            f"{r.warmup_inputs} inputs before the window run, not compared"
+        )
     for path in r.incomplete_files:
         console.print(f"[yellow]{path} was not finished (writer killed?): its complete chunks were replayed[/yellow]")
     console.print(
@@ -100,6 +134,9 @@ def report(console: Console, r: ReplayResult) -> None:
         print_table(console, table)
     for path in r.out_paths:
         console.print(f"new recording: {path}")
+    if r.track_rows:
+        where = r.track_path or "the new recording (sinewatch/track/CHANNEL)"
+        console.print(f"track: {r.track_rows} rows (one per sample) in {where}")
 
 
 def _brief(payload: bytes | None) -> str:

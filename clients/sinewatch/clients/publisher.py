@@ -1,4 +1,4 @@
-"""Publishing SampleBlocks."""
+"""Publishing SampleBlocks and multi-channel SampleFrames."""
 
 from __future__ import annotations
 
@@ -16,6 +16,13 @@ from sinewatch.schemas.codec import (
     Block,
     encode_block_binary,
     encode_block_json,
+)
+from sinewatch.schemas.frame import (
+    FRAME_BINARY_ENCODING,
+    FRAME_JSON_ENCODING,
+    Frame,
+    encode_frame_binary,
+    encode_frame_json,
 )
 
 DEFAULT_HISTORY_BLOCKS = 1024
@@ -89,6 +96,7 @@ class BlockPublisher:
         self.history = history
         self._start_ns = time.time_ns() if t0_ns is None else t0_ns
         self._publishers: dict[str, _ChannelPublisher] = {}
+        self._frame_publishers: dict[str, _ChannelPublisher] = {}  # by frame name
         self._next_seq: dict[str, int] = {}
         self._next_t0: dict[str, int] = {}
         self.published = 0
@@ -103,6 +111,14 @@ class BlockPublisher:
             enc = BLOCK_BINARY_ENCODING if self.encoding == "binary" else BLOCK_JSON_ENCODING
             pub = _ChannelPublisher(self.session, self.key(channel), enc, self.history)
             self._publishers[channel] = pub
+        return pub
+
+    def _frame_publisher(self, name: str) -> _ChannelPublisher:
+        pub = self._frame_publishers.get(name)
+        if pub is None:
+            enc = FRAME_BINARY_ENCODING if self.encoding == "binary" else FRAME_JSON_ENCODING
+            pub = _ChannelPublisher(self.session, self.key(name), enc, self.history)
+            self._frame_publishers[name] = pub
         return pub
 
     def wait_for_subscriber(self, channel: str, timeout: float = 10.0) -> bool:
@@ -165,7 +181,73 @@ class BlockPublisher:
             pub.data.put(payload, encoding=zenoh.Encoding(encoding))
         self.published += 1
 
+    # ---- multi-channel frames ------------------------------------------------------------
+    def frame(
+        self,
+        name: str,
+        channels: list[str] | tuple[str, ...],
+        samples: np.ndarray,
+        sample_rate_hz: float,
+        *,
+        seq: int | None = None,
+        t0_ns: int | None = None,
+    ) -> Frame:
+        """The Frame that ``publish_frame`` would send (advances the frame's seq and time).
+        ``samples`` is (n, C): column c is ``channels[c]``."""
+        slot = "\n" + name  # a frame's own counters: no channel name holds a newline
+        seq = self._next_seq.get(slot, 0) if seq is None else seq
+        t0 = self._next_t0.get(slot, self._start_ns) if t0_ns is None else t0_ns
+        samples = np.asarray(samples)
+        if samples.ndim != 2 or samples.shape[1] != len(channels):
+            raise ValueError(
+                f"samples: expected shape (n, {len(channels)}) (one column per channel), got {samples.shape}"
+            )
+        self._next_seq[slot] = seq + 1
+        self._next_t0[slot] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
+        return Frame(tuple(channels), seq, t0, float(sample_rate_hz), samples)
+
+    def encode_frame(self, frame: Frame) -> bytes:
+        if self.encoding == "binary":
+            return encode_frame_binary(frame, self.dtype)
+        return encode_frame_json(frame)
+
+    def publish_frame(
+        self, name: str, channels: list[str] | tuple[str, ...], samples: np.ndarray, sample_rate_hz: float, **kw: Any
+    ) -> Frame:
+        """Publish C channels sampled at the same instants as one SampleFrame on
+        ``{prefix}/{name}``; each channel's key is ``{prefix}/{channel}`` for the daemon's
+        rules, estimates and errors, as if it had been published alone."""
+        frame = self.frame(name, channels, samples, sample_rate_hz, **kw)
+        self.publish_frame_raw(name, self.encode_frame(frame))
+        return frame
+
+    def publish_frame_raw(self, name: str, payload: bytes, encoding: str | None = None) -> None:
+        pub = self._frame_publisher(name)
+        if not pub.matching:
+            self.unmatched += 1
+        if encoding is None:
+            pub.data.put(payload)
+        else:
+            pub.data.put(payload, encoding=zenoh.Encoding(encoding))
+        self.published += 1
+
+    def wait_for_frame_subscriber(self, name: str, timeout: float = 10.0) -> bool:
+        """Block until something (the daemon) subscribes to this frame's key."""
+        pub = self._frame_publisher(name)
+        reached = threading.Event()
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                reached.set()
+
+        listener = pub.watch.declare_matching_listener(on_status)
+        try:
+            return pub.matching or reached.wait(timeout)
+        finally:
+            listener.undeclare()
+
     def close(self) -> None:
-        for pub in self._publishers.values():
+        for pub in (*self._publishers.values(), *self._frame_publishers.values()):
             pub.undeclare()
         self._publishers.clear()
+        self._frame_publishers.clear()

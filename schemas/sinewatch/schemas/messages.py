@@ -10,11 +10,11 @@ JSON has no NaN: an undefined estimate is ``null``.
 from __future__ import annotations
 
 from enum import Enum
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
 
-FORMAT_VERSION = 1  # SampleBlock, ErrorReport, Status
+FORMAT_VERSION = 1  # SampleBlock, SampleFrame, ErrorReport, Status
 ESTIMATE_FORMAT_VERSION = 4  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid, 4 fencing (see Estimate)
 
 CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
@@ -50,6 +50,36 @@ class SampleBlock(_Message):
     samples: list[StrictFloat] | list[list[StrictFloat]] = Field(
         description="Samples, oldest first"
     )  # numbers only (no strings or booleans); NaN is a number, refused later as non_finite like a binary one
+
+
+class SampleFrame(_Message):
+    """C channels sampled at the same n instants, in one message (a multi-channel frame:
+    what a DAQ card, an IEC 61850-9-2 merging unit or a COMTRADE record holds).
+
+    ``samples`` is sample-major: row i holds every channel's value at sample i, in the
+    order of ``channels``. Each channel is still a channel of its own everywhere else (its
+    estimator, estimates, errors, status): the frame's ``seq`` and ``t0_ns`` are each
+    channel's, as if its column had been sent alone as a SampleBlock.
+    """
+
+    format_version: Literal[1] = 1
+    seq: int = Field(ge=0, lt=2**64, description="Sequence number of the frame (each channel's block sequence)")
+    t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
+    # strict and finite, as SampleBlock's (a string, a boolean or Infinity is a decode error)
+    sample_rate_hz: float = Field(
+        gt=0, strict=True, allow_inf_nan=False, description="Sample rate of every channel, Hz"
+    )
+    dtype: SampleDtype = Field(SampleDtype.float64, description="Sample type on the binary encoding")
+    channels: list[Annotated[str, Field(pattern=CHANNEL_PATTERN, max_length=256)]] = Field(
+        min_length=1, max_length=65535, description="Channel names, one per column, distinct"
+    )
+    samples: list[list[StrictFloat]] = Field(description="Rows of one value per channel, oldest first")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> SampleFrame:
+        if len(set(self.channels)) != len(self.channels):
+            raise ValueError("channels: expected distinct names, got a repeated one")
+        return self
 
 
 class Time(_Message):
@@ -280,6 +310,7 @@ class Status(_Message):
 
 MESSAGE_MODELS: dict[str, type[BaseModel]] = {
     "SampleBlock": SampleBlock,
+    "SampleFrame": SampleFrame,
     "Estimate": Estimate,
     "ErrorReport": ErrorReport,
     "Status": Status,
@@ -287,6 +318,7 @@ MESSAGE_MODELS: dict[str, type[BaseModel]] = {
 
 MESSAGE_VERSIONS: dict[str, int] = {
     "SampleBlock": FORMAT_VERSION,
+    "SampleFrame": FORMAT_VERSION,
     "Estimate": ESTIMATE_FORMAT_VERSION,
     "ErrorReport": FORMAT_VERSION,
     "Status": FORMAT_VERSION,

@@ -61,6 +61,11 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ),
         ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
         ("pipeline", "in-process CPU cost per block of the pipeline, recording on and off", add_pipeline_arguments),
+        (
+            "estimate-puts",
+            "a frame's estimates on Zenoh: one put per channel vs one estimate frame, both sides' CPU",
+            add_estimate_puts_arguments,
+        ),
     )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
@@ -69,10 +74,23 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     return b
 
 
+def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--channels", type=int, default=8, help="channels per input frame (default 8)")
+    parser.add_argument("--frames", type=int, default=5000, help="input frames' estimates put (default 5000)")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
+
+
 def add_kernels_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimators", help="comma-separated names (default all)")
     parser.add_argument("--block", type=int, action="append", help="block size (repeatable; default 1024 and 4096)")
     parser.add_argument("--seconds", type=float, default=0.5, help="time per measurement (default 0.5)")
+    parser.add_argument(
+        "--bank",
+        type=int,
+        default=8,
+        metavar="N",
+        help="channels per estimator bank (one compiled call for N channels of a frame), beside one channel (default 8)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
@@ -103,9 +121,18 @@ def add_e2e_arguments(parser: argparse.ArgumentParser) -> None:
 def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
     add_e2e_arguments(parser)
     parser.add_argument(
-        "--sweep", action="store_true", help="measure at 1, 10, 100, 1000 and 5000 channels: a table and a plot"
+        "--sweep",
+        action="store_true",
+        help="measure at 1, 10, 100, 1000 and 5000 channels, then doubling while the daemon keeps up: a table and a plot",
     )
-    parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep")
+    parser.add_argument("--sweep-channels", metavar="N,N,...", help="the channel counts of --sweep (exactly these)")
+    parser.add_argument(
+        "--frame-channels",
+        default="1",
+        metavar="N[,N...]",
+        help="channels per message: 1 (default) sends one SampleBlock per channel, N > 1 SampleFrames of N "
+        "channels; several values run one after the other into one table (e.g. 1,8)",
+    )
     parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
 
 

@@ -250,7 +250,10 @@ def feeder_main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float)
     p.add_argument("--block", type=int)
     p.add_argument("--rounds", type=int)
+    p.add_argument("--frame-channels", type=int, default=1)
     a = p.parse_args(argv)
+    if a.frame_channels > 1:
+        return _feed_frames(a)
     fs, block, n_ch = a.rate, a.block, a.channels
     period = block / fs
     span_ns = round((block - 1) * 1e9 / fs)
@@ -291,33 +294,114 @@ def feeder_main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def frame_layout(n_channels: int, per_frame: int) -> list[list[str]]:
+    """The bench's channels ``bench/0000``... cut into frames of ``per_frame`` (the last may
+    hold fewer): frame k is published on ``sinewatch/in/f<k>``, so its channels' keys are
+    ``sinewatch/in/bench/<i>``, the keys they have as single blocks."""
+    names = [f"bench/{i:04d}" for i in range(n_channels)]
+    return [names[i : i + per_frame] for i in range(0, n_channels, per_frame)]
+
+
+def _feed_frames(a: argparse.Namespace) -> int:
+    """:func:`feeder_main` with SampleFrames of ``--frame-channels`` channels: the frames
+    staggered over a block period, each stamped as a block is."""
+    fs, block = a.rate, a.block
+    period = block / fs
+    span_ns = round((block - 1) * 1e9 / fs)
+    layout = frame_layout(a.channels, a.frame_channels)
+    t = np.arange(int(fs)) / fs
+    rng = np.random.default_rng(0)
+    base = [
+        np.stack(
+            [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size) for _ in names],
+            axis=1,
+        ).astype(np.float32)
+        for names in layout
+    ]  # (fs, C) float32 per frame, as sent
+    waiter = threading.Event()
+    late = 0
+    with connect([a.endpoint]) as session:
+        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
+        frames = [f"f{k:04d}" for k in range(len(layout))]
+        if not pub.wait_for_frame_subscriber(frames[0], 30.0):
+            return 2
+        start = time.monotonic()
+        cpu0 = time.process_time()
+        n_fr = len(frames)
+        for r in range(a.rounds):
+            idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
+            for k, name in enumerate(frames):
+                delay = start + (r + k / n_fr) * period - time.monotonic()
+                if delay > 0:
+                    waiter.wait(max(delay, FEEDER_TICK_S))
+                elif delay < -period:
+                    late += 1
+                fr = pub.frame(name, layout[k], base[k][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
+                pub.publish_frame_raw(name, pub.encode_frame(fr))
+        elapsed = time.monotonic() - start
+        cpu = time.process_time() - cpu0
+        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late, "cpu_s": cpu}), flush=True)
+        sys.stdin.read()
+        pub.close()
+    return 0
+
+
 SWEEP_CHANNELS = (1, 10, 100, 1000, 5000)
 SWEEP_DURATION_S = 20.0
 SINGLE_DURATION_S = 60.0
 
 
+def frame_channel_counts(args: argparse.Namespace) -> list[int]:
+    """``--frame-channels N[,N...]`` as a list (1: one SampleBlock per channel)."""
+    text = str(getattr(args, "frame_channels", "1"))
+    try:
+        counts = [int(v) for v in text.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        from sinewatch.schemas.errors import SinewatchError
+
+        raise SinewatchError(f"--frame-channels: expected N[,N...] with every N >= 1, got {text!r}")
+    return counts
+
+
 def run(args: argparse.Namespace) -> int:
     console = make_console()
+    counts = frame_channel_counts(args)
     if getattr(args, "sweep", False):
-        return run_sweep(args, console)
+        code = 0
+        for n in counts:
+            point = {"frame_channels": n}
+            if len(counts) > 1 and args.json:  # one JSON (and plot) per frame size
+                point["json"] = args.json.with_name(f"{args.json.stem}-frame{n}{args.json.suffix}")
+            code |= run_sweep(argparse.Namespace(**{**vars(args), **point}), console)
+        return code
     if args.duration is None:
         args.duration = SINGLE_DURATION_S
-    result = measure(args, console)
-    _print(console, result)
+    results = []
+    for n in counts:
+        result = measure(argparse.Namespace(**{**vars(args), "frame_channels": n}), console)
+        _print(console, result)
+        results.append(result)
+    if len(results) > 1:
+        print_table(console, sweep_table(results, "sinewatch bench e2e --frame-channels (recording on)"))
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-    ok = result["missing_estimates"] == 0 and result["daemon_dropped"] == 0
+        args.json.write_text(json.dumps(results[0] if len(results) == 1 else {"runs": results}, indent=2))
+    ok = all(r["missing_estimates"] == 0 and r["daemon_dropped"] == 0 for r in results)
     return 0 if ok else 1
 
 
 def run_sweep(args: argparse.Namespace, console: Console) -> int:
-    """``bench e2e --sweep``: the same measurement at 1, 10, 100, 1,000 and 5,000 channels
-    (``--sweep-channels``), a table, the JSON (``--json``) and a plot of sustained throughput
+    """``bench e2e --sweep``: the same measurement at 1, 10, 100, 1,000 and 5,000 channels,
+    and on, doubling, while the daemon still sustains the last point (or exactly at
+    ``--sweep-channels``), a table, the highest rate sustained, the JSON (``--json``) and a plot of sustained throughput
     and p99 latency against channels (``--plot``; needs matplotlib, the ``plots`` extra)."""
     counts = [int(c) for c in args.sweep_channels.split(",")] if args.sweep_channels else list(SWEEP_CHANNELS)
+    extend = not args.sweep_channels  # the default sweep goes on until the daemon saturates
     duration = args.duration if args.duration is not None else SWEEP_DURATION_S
     rows: list[dict[str, Any]] = []
-    for n in counts:
+    n = counts[0]
+    while n:
         point = argparse.Namespace(**{**vars(args), "channels": n, "duration": duration, "foxglove": False})
         row = measure(point, console)
         if rows:  # memory per channel: the slope from the point before (fixed costs cancel)
@@ -327,9 +411,24 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
             )
         _print(console, row)
         rows.append(row)
-    print_table(console, sweep_table(rows))
+        n = next_sweep_point(counts, rows, extend=extend)
+    highest = max((r for r in rows if sustained(r)), key=lambda r: r["offered_samples_per_s"], default=None)
+    table = sweep_table(rows, f"sinewatch bench e2e --sweep --frame-channels {frame_channels(args)} (recording on)")
+    print_table(console, table)
+    console.print(
+        "highest rate sustained (>= 99 % of offered, 0 missing): "
+        + ("none" if highest is None else f"{highest['offered_samples_per_s'] / 1e6:.3f} M samples/s")
+    )
     if args.json:
-        args.json.write_text(json.dumps({"sweep": rows}, indent=2))
+        args.json.write_text(
+            json.dumps(
+                {
+                    "sweep": rows,
+                    "highest_sustained_samples_per_s": None if highest is None else highest["offered_samples_per_s"],
+                },
+                indent=2,
+            )
+        )
     plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
     if plot is not None:
         try:
@@ -340,10 +439,35 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
-def sweep_table(rows: list[dict[str, Any]]) -> Table:
-    table = Table(title="sinewatch bench e2e --sweep (recording on)")
+SWEEP_MAX_CHANNELS = 64_000  # 640 M samples/s at 10 kHz: past any saturation on a few cores
+
+
+def sustained(row: dict[str, Any]) -> bool:
+    """The daemon kept up: every estimate came, at >= 99 % of the offered rate."""
+    return bool(row["missing_estimates"] == 0 and row["sustained_samples_per_s"] >= 0.99 * row["offered_samples_per_s"])
+
+
+def next_sweep_point(counts: list[int], rows: list[dict[str, Any]], *, extend: bool = True) -> int:
+    """The channel count after the last measured one: the next listed, then (``extend``, while
+    the daemon still sustains the last point) twice the last, until it saturates; 0 to stop."""
+    done = len(rows)
+    if done < len(counts):
+        return counts[done]
+    last = rows[-1]
+    if extend and sustained(last) and last["channels"] * 2 <= SWEEP_MAX_CHANNELS:
+        return int(last["channels"] * 2)
+    return 0
+
+
+def frame_channels(args: argparse.Namespace) -> int:
+    return int(getattr(args, "frame_channels", 1) or 1)
+
+
+def sweep_table(rows: list[dict[str, Any]], title: str = "sinewatch bench e2e --sweep (recording on)") -> Table:
+    table = Table(title=title)
     for col in (
         "channels",
+        "per msg",
         "offered M/s",
         "fed M/s",
         "sustained M/s",
@@ -352,6 +476,7 @@ def sweep_table(rows: list[dict[str, Any]]) -> Table:
         "p50 ms",
         "p99 ms",
         "CPU (cores)",
+        "daemon ns/sample",
         "CPU us/block daemon+feeder+probe",
         "cores needed at offered",
         "RSS MB",
@@ -361,6 +486,7 @@ def sweep_table(rows: list[dict[str, Any]]) -> Table:
     for r in rows:
         table.add_row(
             str(r["channels"]),
+            str(r.get("frame_channels", 1)),
             f"{r['offered_samples_per_s'] / 1e6:.3f}",
             f"{r['fed_samples_per_s'] / 1e6:.3f}",
             f"{r['sustained_samples_per_s'] / 1e6:.3f}",
@@ -369,6 +495,7 @@ def sweep_table(rows: list[dict[str, Any]]) -> Table:
             _ms(r["latency_ms_p50"]),
             _ms(r["latency_ms_p99"]),
             f"{r['daemon_cpu_fraction_of_one_core']:.2f}",
+            f"{r['daemon_cpu_ns_per_sample']:.0f}",
             "+".join(f"{v:.0f}" for v in r["cpu_us_per_block"].values()),
             f"{r['cores_needed_at_offered']:.2f} of {r['machine_cores']}",
             f"{r['daemon_rss_mb_end']:.0f}",
@@ -467,12 +594,12 @@ def running_daemon(
 
 
 def start_feeder(
-    endpoint: str, channels: int, rate: float, block: int, rounds: int
+    endpoint: str, channels: int, rate: float, block: int, rounds: int, frame_channels: int = 1
 ) -> tuple[subprocess.Popen[str], str]:
     """Start the bench feeder process and wait for its first line (what it published);
     the feeder keeps its session until its stdin is closed."""
     feeder = subprocess.Popen(
-        feeder_command(endpoint, channels, rate, block, rounds),
+        [*feeder_command(endpoint, channels, rate, block, rounds), "--frame-channels", str(frame_channels)],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -522,6 +649,7 @@ def _drive(
     args: argparse.Namespace, endpoint: str, daemon: subprocess.Popen[bytes], console: Console
 ) -> dict[str, Any]:
     fs, block, n_ch = args.rate, args.block, args.channels
+    per_msg = frame_channels(args)
     rounds = max(1, int(args.duration * fs / block))
     with connect([endpoint], timeout_s=30.0) as session:
         status = JsonSubscription(session, "sinewatch/status/**")
@@ -530,14 +658,15 @@ def _drive(
         probe.expected = rounds * n_ch
         fox = FoxgloveProbe(args.foxglove_port) if getattr(args, "foxglove", False) else None
         console.print(
-            f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks "
-            f"({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
+            f"offering {n_ch} channels x {fs:g} Hz in {block}-sample blocks"
+            + (f", {per_msg} channels a frame" if per_msg > 1 else "")
+            + f" ({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
         )
         cpu0 = _cpu_seconds(daemon.pid)
         rss0 = _rss_mb(daemon.pid)
         probe_cpu0 = time.process_time()  # this process: the probe's Zenoh threads and parsing
         t0 = time.monotonic()
-        feeder, line = start_feeder(endpoint, n_ch, fs, block, rounds)
+        feeder, line = start_feeder(endpoint, n_ch, fs, block, rounds, per_msg)
         fed = json.loads(line)
         probe.done.wait(30.0)
         stop_feeder(feeder)  # everything published has had its chance to arrive
@@ -561,6 +690,8 @@ def _drive(
     )
     return {
         "channels": n_ch,
+        "frame_channels": per_msg,
+        "messages_sent": rounds * len(frame_layout(n_ch, per_msg)),
         "sample_rate_hz": fs,
         "block": block,
         "duration_s": round(fed["elapsed_s"], 2),
@@ -593,6 +724,8 @@ def _drive(
         "foxglove_messages": dict(sorted(fox.messages.items())) if fox is not None else None,
         "foxglove_bytes": fox.bytes if fox is not None else None,
         "cpu_us_per_block": budget,
+        # the daemon's CPU (every thread) per sample estimated: comparable across frame sizes
+        "daemon_cpu_ns_per_sample": 1e9 * cpu / max(probe.received * block, 1),
         # the CPU the three processes need for the offered load at this run's cost per block
         "cores_needed_at_offered": sum(budget.values()) * n_ch * fs / block / 1e6,
         "machine_cores": len(os.sched_getaffinity(0)),
@@ -643,7 +776,8 @@ def latest_statuses(status: JsonSubscription, count: int) -> dict[str, int]:
 
 def _print(console: Console, r: dict[str, Any]) -> None:
     console.print(
-        f"sustained {r['sustained_samples_per_s'] / 1e6:.3f} M samples/s "
+        (f"frames of {r['frame_channels']} channels: " if r.get("frame_channels", 1) > 1 else "")
+        + f"sustained {r['sustained_samples_per_s'] / 1e6:.3f} M samples/s "
         f"(offered {r['offered_samples_per_s'] / 1e6:.3f} M, ratio {r['sustained_samples_per_s'] / r['offered_samples_per_s']:.3f}) "
         f"over {r['duration_s']} s; estimates {r['estimates_received']}/{r['blocks_sent']} "
         f"(missing {r['missing_estimates']}), daemon drops {r['daemon_dropped']}, errors {r['daemon_errors']}"
@@ -656,6 +790,7 @@ def _print(console: Console, r: dict[str, Any]) -> None:
     if r.get("cpu_us_per_block"):
         b = r["cpu_us_per_block"]
         console.print(
+            f"daemon CPU a sample: {r['daemon_cpu_ns_per_sample']:.0f} ns; "
             f"CPU a block: daemon {b['daemon']:.0f} us, feeder {b['feeder']:.0f} us, this bench's probe "
             f"{b['probe']:.0f} us; at the offered {r['offered_samples_per_s'] / r['block']:,.0f} blocks/s the three "
             f"need {r['cores_needed_at_offered']:.2f} cores, of {r['machine_cores']} on this machine"

@@ -104,10 +104,12 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
+import numba
 import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
+from sinewatch.estimators.bank import NO_BANK, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -163,6 +165,111 @@ class SogiFllParams(EstimatorParams):
     )
 
 
+@kernel(inline="always")
+def _sogi_fll_tan(w: float, consts: np.ndarray) -> float:
+    """(T) the pre-warped step's ``a = tan(omega' h / 2)``: one tan and the half-angle identities
+    instead of sin and cos (shorter loop-carried chain). Apart from :func:`_sogi_fll_step` so that
+    a bank computes it per lane with the library's scalar tan and vectorises the rest."""
+    return math.tan(0.5 * w * consts[0])
+
+
+@kernel(inline="always")
+def _sogi_fll_step(
+    vn: float,
+    a: float,
+    vp: float,
+    qv: float,
+    d: float,
+    w: float,
+    v_prev: float,
+    u_prev: float,
+    ms: float,
+    lu1: float,
+    lu: float,
+    pa: float,
+    consts: np.ndarray,
+) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float]:
+    """One sample ``vn`` of the SOGI-FLL from ``a`` (:func:`_sogi_fll_tan` of omega') and the
+    state ``(v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1, LPF(u) stage 2,
+    P)``; return the new state, then ``A^2`` and the one-step prediction error. The one
+    definition of the recursion, called by the single-channel kernel and by the bank (so the two
+    agree bit for bit by construction)."""
+    h, k, kd, gam = consts[0], consts[1], consts[2], consts[3]
+    w_min, w_max, a_min = consts[4], consts[5], consts[6]
+    alpha, alpha2, beta = consts[9], consts[10], consts[11]
+    a_min2 = a_min * a_min
+    gam2k_h = 2.0 * gam * k / h
+    a2 = a * a
+    inv1a2 = 1.0 / (1.0 + a2)
+    sn = 2.0 * a * inv1a2  # sin(omega' h)
+    cs = (1.0 - a2) * inv1a2  # cos(omega' h)
+    # one-step prediction from the state before v[n]
+    e_pred = vn - (d + vp * cs - qv * sn)
+    usum = vn + v_prev
+    r0 = vp + a * (k * (usum - vp - d) - qv)  # (I + aM) x[n-1] + a b (v[n] + v[n-1])
+    r1 = qv + a * vp
+    r2 = d + a * kd * (usum - vp - d)
+    akd1 = 1.0 + a * kd
+    g = 1.0 / akd1
+    # row 1 with rows 2-3 substituted, multiplied through by (1 + a k_dc)
+    vp = (akd1 * (r0 - a * r1) - a * k * r2) / (akd1 * (1.0 + a * k + a2) - a2 * k * kd)
+    qv = r1 + a * vp
+    d = g * (r2 - a * kd * vp)
+    ev = vn - vp - d  # (1)
+    amp2 = vp * vp + qv * qv
+    pa += beta * (amp2 - pa)  # (N) amplitude memory P = LPF(A^2)
+    # (F) normalised FLL, trapezoidal integration, held below min_amplitude;
+    # -Gamma k (sin(omega' h)/h) e qv / max(A^2, P), sin(omega' h) = 2a / (1 + a^2)
+    if amp2 > a_min2:
+        u = -gam2k_h * a * ev * qv / ((1.0 + a2) * max(amp2, 0.5 * pa))
+    else:
+        u = 0.0
+        if amp2 < 1e-200:  # silence: flush what decays to subnormals (slow arithmetic)
+            if amp2 < 1e-300:
+                vp = 0.0
+                qv = 0.0
+                amp2 = 0.0
+            if abs(d) < 1e-150:
+                d = 0.0
+            if abs(lu1) < 1e-150:
+                lu1 = 0.0
+            if pa < 1e-200:
+                pa = 0.0
+            if abs(lu) < 1e-150:
+                lu = 0.0
+            ms = 1.0  # no signal: the relative error restarts as on a fresh estimator
+    w = w + 0.5 * h * (u + u_prev)
+    if w < w_min:
+        w = w_min
+    elif w > w_max:
+        w = w_max
+    u_prev = u
+    v_prev = vn
+    # convergence filters
+    ms += alpha * (ev * ev / max(amp2, a_min2, 1e-300) - ms)
+    lu1 += alpha2 * (u - lu1)
+    lu += alpha2 * (lu1 - lu)
+    return vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa, amp2, e_pred
+
+
+@kernel(inline="always")
+def _sogi_fll_row(
+    vp: float, qv: float, d: float, w: float, ms: float, lu: float, amp2: float, consts: np.ndarray
+) -> tuple[float, float, float, float, float, float, float]:
+    """One output row from the state after a sample: the ``out`` columns of
+    :func:`sogi_fll_kernel` (frequency, amplitude, phase, offset, converged), then its extras
+    (relative error, rocof)."""
+    gam, a_min, rel_max, f_tol = consts[3], consts[6], consts[7], consts[8]
+    amp = math.sqrt(amp2)
+    rel = math.sqrt(ms)
+    if amp > a_min:
+        ok = rel < rel_max and abs(lu) / (2.0 * math.pi * gam) < f_tol
+        f, ph, conv = w / (2.0 * math.pi), math.atan2(vp, -qv), 1.0 if ok else 0.0
+    else:
+        f, ph, conv = np.nan, np.nan, 0.0
+    return f, amp, ph, d, conv, rel, lu / (2.0 * math.pi)
+
+
 @kernel
 def sogi_fll_kernel(
     v: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
@@ -181,89 +288,21 @@ def sogi_fll_kernel(
         state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7], state[8],
         state[9],
     )  # fmt: skip
-    h, k, kd, gam = consts[0], consts[1], consts[2], consts[3]
-    w_min, w_max, a_min = consts[4], consts[5], consts[6]
-    rel_max, f_tol, alpha, alpha2, beta = consts[7], consts[8], consts[9], consts[10], consts[11]
-    a_min2 = a_min * a_min
-    gam2k_h = 2.0 * gam * k / h
     n = v.shape[0]
     out = np.empty((1 if last_only else n, 5))
     ext = np.empty((1 if last_only else n, 2))
     sse = 0.0
     for j in range(n):
-        vn = v[j]
-        # (T) trapezoidal step with pre-warping, a = tan(omega' h / 2); one tan and the
-        # half-angle identities instead of sin and cos (shorter loop-carried chain)
-        a = math.tan(0.5 * w * h)
-        a2 = a * a
-        inv1a2 = 1.0 / (1.0 + a2)
-        sn = 2.0 * a * inv1a2  # sin(omega' h)
-        cs = (1.0 - a2) * inv1a2  # cos(omega' h)
-        # one-step prediction from the state before v[n]
-        e_pred = vn - (d + vp * cs - qv * sn)
+        vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa, amp2, e_pred = _sogi_fll_step(
+            v[j], _sogi_fll_tan(w, consts), vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa, consts
+        )
         sse += e_pred * e_pred
-        usum = vn + v_prev
-        r0 = vp + a * (k * (usum - vp - d) - qv)  # (I + aM) x[n-1] + a b (v[n] + v[n-1])
-        r1 = qv + a * vp
-        r2 = d + a * kd * (usum - vp - d)
-        akd1 = 1.0 + a * kd
-        g = 1.0 / akd1
-        # row 1 with rows 2-3 substituted, multiplied through by (1 + a k_dc)
-        vp = (akd1 * (r0 - a * r1) - a * k * r2) / (akd1 * (1.0 + a * k + a2) - a2 * k * kd)
-        qv = r1 + a * vp
-        d = g * (r2 - a * kd * vp)
-        ev = vn - vp - d  # (1)
-        amp2 = vp * vp + qv * qv
-        pa += beta * (amp2 - pa)  # (N) amplitude memory P = LPF(A^2)
-        # (F) normalised FLL, trapezoidal integration, held below min_amplitude;
-        # -Gamma k (sin(omega' h)/h) e qv / max(A^2, P), sin(omega' h) = 2a / (1 + a^2)
-        if amp2 > a_min2:
-            u = -gam2k_h * a * ev * qv / ((1.0 + a2) * max(amp2, 0.5 * pa))
-        else:
-            u = 0.0
-            if amp2 < 1e-200:  # silence: flush what decays to subnormals (slow arithmetic)
-                if amp2 < 1e-300:
-                    vp = 0.0
-                    qv = 0.0
-                    amp2 = 0.0
-                if abs(d) < 1e-150:
-                    d = 0.0
-                if abs(lu1) < 1e-150:
-                    lu1 = 0.0
-                if pa < 1e-200:
-                    pa = 0.0
-                if abs(lu) < 1e-150:
-                    lu = 0.0
-                ms = 1.0  # no signal: the relative error restarts as on a fresh estimator
-        w = w + 0.5 * h * (u + u_prev)
-        if w < w_min:
-            w = w_min
-        elif w > w_max:
-            w = w_max
-        u_prev = u
-        v_prev = vn
-        # convergence filters
-        ms += alpha * (ev * ev / max(amp2, a_min2, 1e-300) - ms)
-        lu1 += alpha2 * (u - lu1)
-        lu += alpha2 * (lu1 - lu)
         if last_only and j != n - 1:
             continue
         row = 0 if last_only else j
-        amp = math.sqrt(amp2)
-        out[row, 1] = amp
-        out[row, 3] = d
-        rel = math.sqrt(ms)
-        ext[row, 0] = rel
-        ext[row, 1] = lu / (2.0 * math.pi)
-        if amp > a_min:
-            out[row, 0] = w / (2.0 * math.pi)
-            out[row, 2] = math.atan2(vp, -qv)
-            ok = rel < rel_max and abs(lu) / (2.0 * math.pi * gam) < f_tol
-            out[row, 4] = 1.0 if ok else 0.0
-        else:
-            out[row, 0] = np.nan
-            out[row, 2] = np.nan
-            out[row, 4] = 0.0
+        out[row, 0], out[row, 1], out[row, 2], out[row, 3], out[row, 4], ext[row, 0], ext[row, 1] = _sogi_fll_row(
+            vp, qv, d, w, ms, lu, amp2, consts
+        )
     new_state = np.array([vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa])
     return out, ext, sse, new_state
 
@@ -283,6 +322,16 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
         "cannot overlap; the tan alone has ~28 ns of latency here and the chain ~45 ns, more "
         "than the FFT's ~33 ns per sample whatever the rest of the loop does (reordering the "
         "arithmetic to shorten it would change the outputs, which stay bit for bit)."
+    )
+
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank interleaves the channels' chains (about 1.5-1.8x one channel at 8 channels), but "
+        "every sample of every channel still takes one tan from the C library (~11 ns of "
+        "throughput on a Sapphire Rapids core; numba without Intel's SVML has no vectorised tan, and "
+        "one would round differently) and five "
+        "divisions; a variant whose channel loop the compiler vectorised (4 lanes, the tan kept "
+        "scalar per lane, the same bits) ran no faster, so the tan is the bound"
     )
 
     def _check_params(self) -> None:
@@ -343,3 +392,49 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
         extras = {"relative_error_rms": e[0], "rocof_hz_per_s": e[1]}
         # rocof first class too (Estimate v2), the extra kept
         return track_from_columns(out, sse, block.shape[0], extras, rocof_hz_per_s=ext[:, 1:2])
+
+
+# ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
+@kernel
+def sogi_fll_bank_kernel(
+    v: np.ndarray, state: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sogi_fll_kernel` for C channels at once: ``v`` (N, C), ``state`` (10, C) (each
+    column one channel's ``x``); returns ``out`` (C, rows, 5), ``extras`` (C, rows, 2), ``sse``
+    (C,) and the new state (10, C). Samples outer, channels inner: the C recursions are
+    independent, so the CPU overlaps their chains (each the same :func:`_sogi_fll_step`)."""
+    n, nc = v.shape
+    rows = 1 if last_only else n
+    out = np.empty((nc, rows, 5))
+    ext = np.empty((nc, rows, 2))
+    sse = np.zeros(nc)
+    x = state.copy()
+    ta = np.empty(nc)
+    a2s = np.empty(nc)
+    for j in range(n):
+        for c in range(nc):  # the library's scalar tan, lane by lane
+            ta[c] = _sogi_fll_tan(x[3, c], consts)
+        for c in range(nc):  # the rest: no library call, so the compiler may vectorise it
+            vp, qv, d, w, v_prev, u_prev, ms, lu1, lu, pa, amp2, e_pred = _sogi_fll_step(
+                v[j, c], ta[c], x[0, c], x[1, c], x[2, c], x[3, c], x[4, c], x[5, c], x[6, c], x[7, c], x[8, c],
+                x[9, c], consts,
+            )  # fmt: skip
+            sse[c] += e_pred * e_pred
+            x[0, c], x[1, c], x[2, c], x[3, c], x[4, c] = vp, qv, d, w, v_prev
+            x[5, c], x[6, c], x[7, c], x[8, c], x[9, c] = u_prev, ms, lu1, lu, pa
+            a2s[c] = amp2
+        if not last_only or j == n - 1:
+            row = 0 if last_only else j
+            for c in range(nc):
+                r = _sogi_fll_row(x[0, c], x[1, c], x[2, c], x[3, c], x[6, c], x[8, c], a2s[c], consts)
+                out[c, row, 0], out[c, row, 1], out[c, row, 2], out[c, row, 3], out[c, row, 4] = r[:5]
+                ext[c, row, 0], ext[c, row, 1] = r[5], r[6]
+    return out, ext, sse, x
+
+
+# With Intel's SVML installed, numba would vectorise the bank's tan loop with SVML's tan, which
+# rounds differently from the C library's that the single kernel calls: no bank then.
+if not getattr(numba.config, "USING_SVML", False):  # (absent from numba's type information)
+    register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3)
+else:  # pragma: no cover (numba without SVML, as tested)
+    NO_BANK["sogi-fll"] = "no compiled bank: numba uses SVML, whose vectorised tan rounds differently"

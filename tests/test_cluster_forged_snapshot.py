@@ -1,0 +1,64 @@
+"""Defence in depth behind the router's access control: a standby that receives a forged
+"snapshot" (not JSON, or JSON that does not restore) on its shard's snapshot key still
+takes over when the active daemon dies. A real router (`sinewatch router`, no access
+control), two `sinewatch serve` processes, a peer spamming the snapshot key, a SIGKILL."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+import numpy as np
+from test_cluster_failover import Estimates, Tokens, daemon, router, stop_all
+
+from sinewatch.clients import BlockPublisher, connect
+from sinewatch.clients.session import free_loopback_port
+from sinewatch.cluster import shard_id_of
+from sinewatch.schemas.config import SinewatchConfig
+
+FORGED = [b"not a snapshot", b'{"channels": [{"name": "x"}]}']
+
+
+def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
+    shard_id = shard_id_of(SinewatchConfig.model_validate({"cluster": {"shard": "1/1"}}))
+    snapshot_key = f"sinewatch/admin/shard/{shard_id}/snapshot"
+    port = free_loopback_port()
+    procs = {}
+    stop = threading.Event()
+    with router(port), connect([f"tcp/127.0.0.1:{port}"]) as session:
+        tokens, estimates = Tokens(session), Estimates(session)
+        try:
+            procs["a1"] = daemon(tmp_path, "a1", "1/1", "active", port, True)
+            tokens.wait_for("active/a1")
+            procs["s1"] = daemon(tmp_path, "s1", "1/1", "standby", port, True)
+            tokens.wait_for("standby/s1")
+            pub = BlockPublisher(session)
+            assert pub.wait_for_subscriber("fs/a", 30.0)
+
+            def feed() -> None:
+                n = 0
+                while not stop.is_set():
+                    pub.publish("fs/a", np.sin(2 * np.pi * 50.0 * (np.arange(100) + 100 * n) / 1000.0), 1000.0)
+                    n += 1
+                    stop.wait(0.1)  # real time
+
+            def forge() -> None:
+                n = 0
+                while not stop.is_set():
+                    session.put(snapshot_key, FORGED[n % 2])
+                    n += 1
+                    stop.wait(0.005)
+
+            threads = [threading.Thread(target=feed), threading.Thread(target=forge)]
+            for t in threads:
+                t.start()
+            estimates.wait(lambda e: len(e["fs/a"]) >= 10, "a1 estimates")
+            procs["a1"].send_signal(signal.SIGKILL)
+            procs["a1"].wait()
+            killed = time.monotonic()
+            estimates.wait(lambda e: any(m["_arrival"] > killed + 0.3 for m in e["fs/a"]), "s1 took over")
+            tokens.wait_for("active/s1")
+        finally:
+            stop.set()
+            stop_all(procs)

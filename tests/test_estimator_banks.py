@@ -1,0 +1,157 @@
+"""Estimator banks (``sinewatch.estimators.bank.update_bank``) against the single-channel path.
+
+The contract: after ``update_bank(ests, x)``, every ``ests[c]`` holds exactly the state, and
+``tracks[c]`` exactly the bits, of ``ests[c].update(x[:, c])``, whatever the bank's size and
+the channel's position in it. Each channel here has its own signal (its own seed) and its own
+history (channels joined the bank at different times), so a bank that mixed channels up, read
+a neighbour's state or rounded one step differently would show in some channel's bits.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sinewatch.estimators import available, get
+from sinewatch.estimators.bank import NO_BANK, bank_of, update_bank
+from sinewatch.estimators.base import Estimator, Track
+from sinewatch.schemas.errors import InputError
+
+NAMES = sorted(available())
+N = 240  # samples per channel: enough to cross windows and decimation steps, fast to check
+# blocks of uneven sizes (one of a single sample), alternately every row and the last row only
+BLOCKS = ((0, 97, False), (97, 98, True), (98, 170, True), (170, N, False))
+T0_NS = 1_700_000_000_000_000_000
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return (
+        a.shape == b.shape
+        and a.dtype == b.dtype
+        and np.ascontiguousarray(a).tobytes() == np.ascontiguousarray(b).tobytes()
+    )
+
+
+def assert_tracks_bitwise(a: Track, b: Track, where: str) -> None:
+    for f in ("frequency_hz", "amplitude", "phase_rad", "offset", "converged"):
+        assert _same_bits(getattr(a, f), getattr(b, f)), f"{where}: {f}"
+    assert np.float64(a.residual_rms).tobytes() == np.float64(b.residual_rms).tobytes(), f"{where}: residual_rms"
+    assert set(a.extras) == set(b.extras), where
+    for k in a.extras:
+        assert _same_bits(a.extras[k], b.extras[k]), f"{where}: extras[{k}]"
+    for f in ("rocof_hz_per_s",):
+        x, y = getattr(a, f), getattr(b, f)
+        assert (x is None) == (y is None) and (x is None or _same_bits(x, y)), f"{where}: {f}"
+    assert (a.std is None) == (b.std is None), where
+    if a.std is not None and b.std is not None:
+        for f in ("frequency_hz", "amplitude", "phase_rad", "offset"):
+            assert _same_bits(getattr(a.std, f), getattr(b.std, f)), f"{where}: std.{f}"
+    assert (a.reports is None) == (b.reports is None), where
+
+
+def assert_states_bitwise(a: Estimator, b: Estimator, where: str) -> None:
+    assert list(a._state) == list(b._state), where
+    for k in a._state:
+        assert _same_bits(a._state[k], b._state[k]), f"{where}: state {k}"
+
+
+def _channels(name: str, size: int) -> tuple[np.ndarray, list[Estimator], list[Estimator]]:
+    """``size`` channels, each with its own seed and its own history (channel c has been fed
+    c % 3 earlier blocks), as two identical sets of estimators: one for the single-channel path,
+    one for the bank."""
+    cls = get(name)
+    x = np.stack([cls.example_signal(N + 2 * 50, seed=100 + c) for c in range(size)], axis=1)
+    singles, banked = [], []
+    for c in range(size):
+        pair = [cls.example(), cls.example()]
+        for est in pair:
+            for b in range(c % 3):
+                est.update(np.ascontiguousarray(x[N + 50 * b : N + 50 * (b + 1), c]))
+        singles.append(pair[0])
+        banked.append(pair[1])
+    return np.ascontiguousarray(x[:N]), singles, banked
+
+
+@pytest.mark.parametrize("size", [1, 3, 8, 64])
+@pytest.mark.parametrize("name", NAMES)
+def test_bank_matches_single_channel_bit_for_bit(name: str, size: int) -> None:
+    x, singles, banked = _channels(name, size)
+    for a, b, last_only in BLOCKS:
+        t0 = T0_NS + a * 1_000_000
+        expected = [
+            est.update(np.ascontiguousarray(x[a:b, c]), last_only=last_only, t0_ns=t0) for c, est in enumerate(singles)
+        ]
+        got = update_bank(banked, x[a:b], last_only=last_only, t0_ns=t0)
+        assert len(got) == size
+        for c in range(size):  # every position in the bank
+            where = f"{name} bank {size} position {c} block {a}:{b} last_only={last_only}"
+            assert_tracks_bitwise(expected[c], got[c], where)
+            assert_states_bitwise(singles[c], banked[c], where)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_state_round_trips_after_a_bank_call(name: str) -> None:
+    """A snapshot taken after a bank call restores an estimator that continues exactly as the
+    banked one does (the scattered state arrays are each channel's own, complete)."""
+    x, _, banked = _channels(name, 3)
+    update_bank(banked, x[:150])
+    cls = get(name)
+    restored = [cls.from_state(json.loads(json.dumps(e.get_state()))) for e in banked]
+    after_bank = update_bank(banked, x[150:])
+    after_restore = [e.update(np.ascontiguousarray(x[150:, c])) for c, e in enumerate(restored)]
+    for c in range(3):
+        assert_tracks_bitwise(after_restore[c], after_bank[c], f"{name} channel {c}")
+        assert_states_bitwise(restored[c], banked[c], f"{name} channel {c}")
+
+
+def test_every_registered_estimator_has_a_bank_or_says_why() -> None:
+    missing = [n for n in NAMES if bank_of(get(n)) is None and not NO_BANK.get(n)]
+    assert not missing, f"estimators with neither a compiled bank nor a reason in NO_BANK: {missing}"
+    stale = [n for n in NO_BANK if n not in NAMES or bank_of(get(n)) is not None]
+    assert not stale, f"NO_BANK lists estimators that are not registered or have a bank: {stale}"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_non_finite_column_rejects_the_call_and_changes_no_channel(name: str) -> None:
+    x, _, banked = _channels(name, 3)
+    bad = x[:50].copy()
+    bad[7, 1] = np.nan
+    before = [{k: v.copy() for k, v in e._state.items()} for e in banked]
+    with pytest.raises(InputError) as info:
+        update_bank(banked, bad)
+    assert info.value.kind == "non_finite"
+    for e, s in zip(banked, before, strict=True):
+        assert all(_same_bits(e._state[k], s[k]) for k in s)
+
+
+def test_a_bank_of_different_parameters_is_refused() -> None:
+    cls = get("sogi-fll")
+    ests = [cls.example(), cls(cls.example_sample_rate_hz, {"nominal_frequency_hz": 60.0})]
+    with pytest.raises(ValueError, match=r"estimators\[1\]"):
+        update_bank(ests, np.zeros((8, 2)))
+
+
+def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_path, capsys) -> None:
+    """``sinewatch bench kernels --bank N``: every estimator's bank measured beside its single
+    channel and the streaming FFT, and every bank below the target says why (no timing asserted)."""
+    import argparse
+
+    from sinewatch.bench import kernels
+
+    out_json = tmp_path / "k.json"
+    names = ["sogi-fll", "pmu"]
+    args = argparse.Namespace(estimators=",".join(names), block=[256], seconds=0.02, bank=3, json=out_json)
+    assert kernels.run(args) == 0
+    printed = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
+    results = json.loads(out_json.read_text())
+    assert results["bank_channels"] == 3
+    for name in names:
+        r = results["estimators"][name]["256"]
+        assert r["bank3_bank"] > 0 and r["bank3_single"] > 0 and r["bank3_fft_stream"] > 0
+        if r["bank3_bank_vs_fft"] < kernels.BANK_TARGET:
+            why = NO_BANK.get(name) or get(name).bank_note
+            assert f"bank note: {name}'s bank 3" in printed
+            assert " ".join(why.split())[:60] in printed
