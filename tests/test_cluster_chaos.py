@@ -178,7 +178,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
     print("\n".join(str(r) for r in rows))
     # What the daemons published, from their recordings and the subscriber together: an estimate published
     # while the subscriber's own link was down (a router restart) is in a recording.
-    every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, list(DAEMONS)))
+    every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, list(DAEMONS)), estimates.fenced_off)
     lost = {c: check_channel(every[c], gateway.sent[c]) for c in CHANNELS}
     shard_channels = {s: [c for c in CHANNELS if shard_of(f"sinewatch/in/{c}", 2) == int(SHARDS[s][0])] for s in SHARDS}
     for row in rows:
