@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: etcd install demo test lint test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -102,3 +102,18 @@ schemas: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info sinewatch-runs bench-results
+
+# The standard Node MCAP readers (@mcap/core, @mcap/support, protobufjs) into .cache/, for
+# tests/test_recording_standard_readers.py (which runs the same step itself when needed).
+node-readers:
+	mkdir -p .cache/node-mcap-readers
+	cp tests/readers/package.json tests/readers/decode_mcap.mjs .cache/node-mcap-readers/
+	cd .cache/node-mcap-readers && npm install --no-audit --no-fund --ignore-scripts && touch .installed-$$(sha256sum package.json | cut -c1-12)
+
+# Size and write cost of an input record in each well-known MCAP encoding (protobuf, jsonschema, flatbuffer).
+bench-input-encoding: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.input_encoding
+
+# The live view's subprotocol relay (foxglove.websocket.v1 clients) against a client of the SDK's own port.
+bench-foxglove-relay: $(STAMP)
+	$(BIN)/python -m sinewatch.bench.foxglove_relay

@@ -204,7 +204,9 @@ def serve_feed_tail(
         tail = subprocess.Popen(
             sinewatch("tail", *tail_args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
-        assert tail.stderr is not None and tail.stderr.readline().startswith("tail: subscribed to")
+        assert tail.stderr is not None
+        # "tail: waiting for a Zenoh router ..." first, then "tail: subscribed to ..." once it is
+        assert any(line.startswith("tail: subscribed to") for line in iter(tail.stderr.readline, ""))
         feed = subprocess.run(
             sinewatch("feed", *feed_args, "--fast", "--wait", "60"),
             capture_output=True,

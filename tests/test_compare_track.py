@@ -18,6 +18,7 @@ from sinewatch.replay import replay
 from sinewatch.scenarios.demo import KALMAN_10K
 from sinewatch.schemas.codec import decode_block
 from sinewatch.schemas.config import EstimatorRule
+from sinewatch.schemas.input_record import decode_input_record
 from sinewatch.window import ChannelFilter, Window
 
 OTHER = EstimatorRule(match="sinewatch/in/**", estimator="ges-kalman", params={**KALMAN_10K, "r": 1e-2})
@@ -134,7 +135,7 @@ def test_track_rows_are_the_estimators_own_track(recording, tmp_path, capsys):
         for _, c, m in make_reader(f).iter_messages(log_time_order=False):
             if c.metadata["role"] != "input" or "faulty" not in c.topic:
                 continue
-            blk = decode_block(m.data, c.metadata["zenoh_encoding"])
+            blk = decode_block(*decode_input_record(m.data))  # an InputBlock: the bytes as received
             if blk.seq <= last_seq or not np.isfinite(blk.samples).all():
                 continue
             last_seq = blk.seq

@@ -35,10 +35,21 @@ threading.Event().wait()
 """
 
 
-def docker_available() -> bool:
-    if shutil.which("docker") is None:
-        return False
-    return subprocess.run(["docker", "info"], capture_output=True, check=False, timeout=60).returncode == 0
+def container_engine() -> tuple[str | None, str]:
+    """(the first of docker and podman whose engine answers ``info``, or None; why none does)."""
+    reasons = []
+    for engine in ("docker", "podman"):
+        if shutil.which(engine) is None:
+            reasons.append(f"{engine} is not installed")
+            continue
+        info = subprocess.run([engine, "info"], capture_output=True, text=True, check=False, timeout=60)
+        if info.returncode == 0:
+            return engine, ""
+        reasons.append(f"`{engine} info` fails ({(info.stderr.strip().splitlines() or ['no engine'])[-1][:120]})")
+    return None, "no container engine runs here: " + "; ".join(reasons)
+
+
+ENGINE, NO_ENGINE = container_engine()
 
 
 def test_the_image_config_is_a_client_of_the_compose_router():
@@ -52,6 +63,15 @@ def test_the_image_config_is_a_client_of_the_compose_router():
     assert re.search(r"^FROM python:\$\{PYTHON_VERSION\}-slim$", dockerfile, re.M)
     assert re.search(r"^USER sinewatch$", dockerfile, re.M)  # not root
     assert "COPY deploy/container.toml /etc/sinewatch/sinewatch.toml" in dockerfile
+    # the extras compose serves: metrics and the Foxglove live view, on the ports it publishes
+    assert re.search(r'pip install .*"\$\{wheel\}\[metrics,foxglove\]"', dockerfile)
+    assert (config.metrics.port, config.metrics.host, config.foxglove.port, config.foxglove.host) == (
+        9464,
+        "0.0.0.0",
+        8765,
+        "0.0.0.0",
+    )
+    assert '"127.0.0.1:9464:9464"' in compose and '"127.0.0.1:8765:8765"' in compose
 
 
 def test_the_container_config_serves_behind_a_router(tmp_path):
@@ -65,6 +85,11 @@ def test_the_container_config_serves_behind_a_router(tmp_path):
             SINEWATCH_CONFIG=str(DEPLOY / "container.toml"),
             SINEWATCH__ZENOH__CONNECT=json.dumps([endpoint]),  # the router service's address, here
             SINEWATCH__RECORDING__DIRECTORY=str(tmp_path / "runs"),
+            # the image's metrics and live view, on ports of the OS's choosing and loopback here
+            SINEWATCH__METRICS__PORT="0",
+            SINEWATCH__METRICS__HOST="127.0.0.1",
+            SINEWATCH__FOXGLOVE__PORT="0",
+            SINEWATCH__FOXGLOVE__HOST="127.0.0.1",
         )
         _, estimates, _ = serve_feed_tail(
             [],
@@ -80,25 +105,32 @@ def test_the_container_config_serves_behind_a_router(tmp_path):
     assert "OK: all 5 recorded estimates reproduced bit for bit" in replay_recording(tmp_path / "runs")
 
 
-@pytest.mark.skipif(not docker_available(), reason="no Docker daemon reachable (docker info fails)")
+@pytest.mark.skipif(ENGINE is None, reason=NO_ENGINE)
 def test_the_image_builds_and_its_cli_runs():
     tag = "sinewatch:test"
+    docker = str(ENGINE)
     build = subprocess.run(
-        ["docker", "build", "-f", str(DEPLOY / "Dockerfile"), "-t", tag, str(ROOT)],
+        [docker, "build", "-f", str(DEPLOY / "Dockerfile"), "-t", tag, str(ROOT)],
         capture_output=True,
         text=True,
         timeout=1800,
         check=False,
     )
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
-    run = subprocess.run(["docker", "run", "--rm", tag, "--help"], capture_output=True, text=True, check=False)
+    run = subprocess.run([docker, "run", "--rm", tag, "--help"], capture_output=True, text=True, check=False)
     assert run.returncode == 0, run.stderr
     assert run.stdout.startswith("usage: sinewatch")
     user = subprocess.run(
-        ["docker", "run", "--rm", "--entrypoint", "id", tag, "-u"], capture_output=True, text=True, check=False
+        [docker, "run", "--rm", "--entrypoint", "id", tag, "-u"], capture_output=True, text=True, check=False
     )
     assert user.stdout.strip() == "10001"  # not root
     config = subprocess.run(
-        ["docker", "run", "--rm", tag, "config", "check"], check=False, capture_output=True, text=True
+        [docker, "run", "--rm", tag, "config", "check"], check=False, capture_output=True, text=True
     )
     assert config.returncode == 0 and config.stdout.startswith("ok: 2 rule(s)"), config.stderr
+    extras = subprocess.run(
+        [docker, "run", "--rm", "--entrypoint", "python", tag, "-c",
+         "import foxglove, prometheus_client; print(foxglove.__name__, prometheus_client.__name__)"],
+        check=False, capture_output=True, text=True,
+    )  # fmt: skip
+    assert extras.stdout.strip() == "foxglove prometheus_client", extras.stderr

@@ -73,7 +73,7 @@ def test_blocks_in_estimates_out_recorded_and_replayed_bit_for_bit(tmp_path):
         schemas = {s.name: s.encoding for s in summary.schemas.values()}
     assert roles["input"] == sent and roles["estimate"] == len(estimates) and roles["error"] == len(errors)
     assert schemas["sinewatch.Estimate"] == "jsonschema"
-    assert schemas["sinewatch.SampleBlock.binary"] == "sinewatch-block-layout"
+    assert schemas["sinewatch.InputBlock"] == "protobuf"  # with its FileDescriptorSet: any reader decodes it
 
     result = replay([path])
     assert result.ok and result.matched == len(estimates) and result.inputs == sent

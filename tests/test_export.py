@@ -22,6 +22,7 @@ from rich.console import Console
 from sinewatch.demo import run_demo
 from sinewatch.export import ESTIMATE_COLUMNS, SAMPLE_COLUMNS
 from sinewatch.schemas.codec import decode_block
+from sinewatch.schemas.input_record import decode_input_record
 
 CHANNELS = ["demo-ramp", "demo-faulty-sensor", "multisine-demo"]  # a NaN block; a multi-component estimator
 
@@ -45,7 +46,10 @@ def recorded(path):
             if role == "estimate":
                 estimates.append(json.loads(message.data))
             elif role == "input":
-                blocks.append(decode_block(message.data, channel.metadata.get("zenoh_encoding", "")))
+                if channel.message_encoding == "protobuf":  # an InputBlock record
+                    blocks.append(decode_block(*decode_input_record(message.data)))
+                else:  # a recording of an earlier build: the payload as received
+                    blocks.append(decode_block(message.data, channel.metadata.get("zenoh_encoding", "")))
     return estimates, blocks
 
 

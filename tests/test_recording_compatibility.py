@@ -21,3 +21,17 @@ def test_a_recording_made_before_the_layering_replays_bit_for_bit():
     assert result.inputs == 96 and result.recorded_estimates == 96
     assert result.ok, [m.describe() for m in result.mismatches[:5]]
     assert result.matched == 96
+
+
+RAW_INPUTS = Path(__file__).parent / "data" / "recorded-sinewatch-block-v1.mcap"
+
+
+def test_a_recording_with_raw_inputs_replays_bit_for_bit_rejected_inputs_included():
+    """``data/recorded-sinewatch-block-v1.mcap`` was recorded by the build before inputs were
+    recorded as protobuf InputBlock records: its inputs are the raw payloads (binary blocks on
+    ``sinewatch-block-v1`` channels, float64 and float32; JSON blocks, some under an odd Zenoh
+    encoding; 6 inputs the daemon rejected), nls and sogi-fll estimating."""
+    result = replay([RAW_INPUTS])
+    assert result.inputs == 42 and result.recorded_estimates == 36
+    assert result.ok, [m.describe() for m in result.mismatches[:5]]
+    assert result.matched == 36 and result.recorded_errors == result.produced_errors == 6

@@ -9,7 +9,8 @@ from conftest import record_run
 from mcap.reader import make_reader
 
 from sinewatch.cli import main
-from sinewatch.replay import replay
+from sinewatch.replay import read_recording, replay
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING
 
 
 def test_rotation_writes_self_contained_files(tmp_path):
@@ -104,9 +105,9 @@ def test_replay_of_a_non_sinewatch_file_is_a_clear_error(tmp_path, capsys):
     assert "expected a file written by sinewatch" in capsys.readouterr().err
 
 
-def test_recorded_inputs_are_the_received_bytes(tmp_path):
+def test_recorded_inputs_give_back_the_received_bytes(tmp_path):
     [path], _ = record_run(tmp_path, n_blocks=3)
-    with open(path, "rb") as f:
-        inputs = [m for _, c, m in make_reader(f).iter_messages() if c.metadata["role"] == "input"]
-    blk = np.frombuffer(inputs[0].data, "<f8", offset=40 + len("rr/demo-biased"))
-    assert blk.shape == (400,) and inputs[0].data[:4] == b"SWSB"
+    inputs = [m for kind, m in read_recording(path) if kind == "message" and m.role == "input"]
+    assert inputs[0].zenoh_encoding == BLOCK_BINARY_ENCODING and inputs[0].payload[:4] == b"SWSB"
+    blk = np.frombuffer(inputs[0].payload, "<f8", offset=40 + len("rr/demo-biased"))
+    assert blk.shape == (400,)

@@ -8,6 +8,7 @@ width directly.
 from __future__ import annotations
 
 import fcntl
+import itertools
 import os
 import pty
 import re
@@ -16,6 +17,7 @@ import subprocess
 import termios
 from pathlib import Path
 
+import pytest
 from conftest import sinewatch
 from rich.cells import cell_len
 from rich.table import Table
@@ -56,33 +58,67 @@ def run_on_pty(args: list[str], columns: int, rows: int = 50) -> str:
     return b"".join(chunks).decode("utf-8", "replace")
 
 
-def test_demo_table_fits_a_narrow_terminal():
-    columns = 80
-    # live redraws move the cursor instead of starting new lines: an escape ends a line too
-    lines = screen_lines(run_on_pty(sinewatch(*DEMO), columns))
-    assert max(cell_len(line) for line in lines) <= columns, max(lines, key=cell_len)
-    header = next(line for line in lines if "f est Hz" in line)
-    assert "channel" in header and "A est" in header  # the columns that always stay
-    assert "off true" not in header  # the first to go: the full table needs about 128 columns
-    assert any("biased" in line and "│" in line for line in lines)  # a drawn table, one row per channel
+def _row_pairs(lines: list[str]) -> dict[str, tuple[list[str], list[str]]]:
+    """channel -> (its estimate line's cells, its truth line's cells), from drawn table lines
+    (the last drawing of the live table: its finished state)."""
+    cells = [[c.strip() for c in line.strip("│").split("│")] for line in lines if line.startswith("│")]
+    pairs = {}
+    for est, true in itertools.pairwise(cells):
+        if len(est) > 1 and est[1] == "est" and true[1] == "true":
+            pairs[est[0]] = (est, true)
+    return pairs
+
+
+@pytest.mark.parametrize("columns", [80, 100])
+def test_demo_table_fits_80_and_100_columns_with_truth_estimate_and_error(columns, tmp_path):
+    args = [*DEMO[:-1], DEMO[-1]]
+    args.remove("--no-record")
+    output = run_on_pty(sinewatch(*args, "--record-dir", str(tmp_path / "runs")), columns)
+    lines = screen_lines(output)
+    drawn = [line for line in lines if any(ch in line for ch in "│┃━─")]
+    assert drawn and max(cell_len(line) for line in drawn) <= columns, max(drawn, key=cell_len)
+    header = [c.strip() for c in next(line for line in lines if "f err" in line).strip("┃").split("┃")]
+    # the estimate, the truth (the line below it) and the error of frequency and amplitude, always
+    assert header[:7] == ["channel", "", "f Hz", "f err", "A", "A err", "offset"] and "conv" in header
+    if columns >= 100:  # and the phase error (the first of the three that go at 80, after bad in and est.)
+        assert "phase err°" in header
+    est, true = _row_pairs(lines)["biased"]
+    assert true[0] == "ges-kalman" and float(true[2]) == 120.0 and float(true[4]) == 2.0 and float(true[6]) == 0.5
+    assert float(est[3]) == pytest.approx(float(est[2]) - float(true[2]), abs=2e-3)  # f err = est - true
+    assert float(est[5]) == pytest.approx(float(est[4]) - float(true[4]), abs=2e-3)
+    assert abs(float(est[3])) < 0.5
+    # the replay command on one line however narrow the terminal (it wraps it on screen, softly)
+    [path] = (tmp_path / "runs").glob("*.mcap")
+    raw_lines = STYLE.sub("", output).replace("\r", "").split("\n")
+    assert any(line.endswith(f"replay {path}") and " " not in line.split(" replay ")[0] for line in raw_lines), [
+        line for line in raw_lines if "replay" in line
+    ]
 
 
 def test_demo_on_a_wide_terminal_shows_every_column():
     lines = screen_lines(run_on_pty(sinewatch(*DEMO), 200))
-    header = next(line for line in lines if "f est Hz" in line)
-    for col in ("estimator", "f true", "A true", "offset", "off true", "phase err°", "conv", "est.", "bad in"):
+    header = next(line for line in lines if "f err" in line)
+    for col in ("channel", "f Hz", "f err", "A", "A err", "offset", "phase err°", "conv", "est.", "bad in"):
         assert col in header
 
 
-def test_demo_piped_prints_plain_lines():
-    r = subprocess.run(sinewatch(*DEMO), capture_output=True, text=True, timeout=120, check=True)
+def test_demo_piped_prints_plain_lines_unpadded():
+    args = [*DEMO]
+    args[args.index("--duration") + 1] = "3"  # the faulty sensor's (seeded) drop comes at block 23
+    r = subprocess.run(sinewatch(*args), capture_output=True, text=True, timeout=120, check=True)
     lines = r.stdout.split("\n")
     assert not any(ch in r.stdout for ch in "│┃━─\x1b")  # no box drawing, no escapes
     i = next(i for i, line in enumerate(lines) if line.startswith("channel"))
-    assert lines[i].split()[:3] == ["channel", "estimator", "f"]
-    rows = {line.split()[0]: line.split() for line in lines[i + 1 : i + 3]}
-    assert set(rows) == {"biased", "faulty-sensor"}
-    assert rows["biased"][1] == "ges-kalman" and abs(float(rows["biased"][2]) - float(rows["biased"][3])) < 0.5
+    assert lines[i].split()[:4] == ["channel", "f", "Hz", "f"]
+    rows = [line.split() for line in lines[i + 1 : i + 5]]
+    assert [r[:2] for r in rows] == [["biased", "est"], ["ges-kalman", "true"], ["faulty-sensor", "est"],
+                                     [rows[3][0], "true"]]  # fmt: skip
+    assert abs(float(rows[0][2]) - float(rows[1][2])) < 0.5
+    # the faulty sensor's gap is logged: one plain line, as long as it is (not padded to a width)
+    logged = [line for line in (r.stdout + r.stderr).split("\n") if line.startswith("WARNING sinewatch")]
+    assert "WARNING sinewatch.pipeline: channel demo/demo-faulty-sensor: 1 block(s) missing before seq 23" in logged
+    assert all(line == line.rstrip() for line in logged)
+    assert all(line == line.rstrip() for line in lines)
 
 
 def _wide_table() -> Table:

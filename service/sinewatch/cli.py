@@ -6,6 +6,7 @@ sinewatch config show [--config F]  print the effective configuration
 sinewatch schemas export DIR        write the JSON Schemas
 sinewatch estimators                list estimators and their parameters
 sinewatch feed [...]                publish simulated sample blocks
+sinewatch gateway sv [...]          IEC 61850-9-2 sampled values (interface or pcap) as frames
 sinewatch tail [KEYEXPR]            print estimates as they arrive
 sinewatch replay RUN.mcap [...]     replay a recording (bit-exact check, or re-run)
 sinewatch export RUN.mcap [...]     the recording's estimates (and samples) as CSV or Parquet
@@ -13,7 +14,7 @@ sinewatch compare A.mcap B.mcap     two recordings of the same inputs, channel b
 sinewatch plot RUN.mcap [...]       one channel's input and estimates as a PNG
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
-sinewatch bench kernels|e2e|accuracy|scenarios
+sinewatch bench kernels|e2e|accuracy|scenarios|gateway|...
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import logging
 import re
 import sys
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, NoReturn, cast
 
@@ -128,12 +130,13 @@ def _port(text: str) -> int:
 
 
 def _count(text: str) -> int:
+    """``--workers N``: 1-256 processes, or 0 for one per core (as ``[workers] count``)."""
     try:
         n = int(text)
     except ValueError:
         n = -1
-    if not 1 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, got {text!r}")
+    if not 0 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, or 0 for one per core, got {text!r}")
     return n
 
 
@@ -200,7 +203,7 @@ def cmd_estimators(args: argparse.Namespace) -> int:
 
 
 def cmd_feed(args: argparse.Namespace) -> int:
-    from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.clients import BlockPublisher
     from sinewatch.console import make_console
     from sinewatch.feed import Feed, make_channels
     from sinewatch.scenarios.demo import DEMO_CHANNELS
@@ -212,16 +215,12 @@ def cmd_feed(args: argparse.Namespace) -> int:
     overrides = {"sample_rate_hz": args.rate} if args.rate else {}
     channels = make_channels(names, copies=args.channels, seed=args.seed, prefix=args.prefix, **overrides)
     console = make_console(stderr=True)
-    with connect(args.connect, timeout_s=args.wait) as session:
+    with _connect("feed", args) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast, frame_channels=args.frame_channels)
         first = feed.frames[0][0] if feed.frames else channels[0].channel
-        found = (
-            pub.wait_for_frame_subscriber(first, args.wait)
-            if feed.frames
-            else pub.wait_for_subscriber(first, args.wait)
-        )
-        if not found:
+        waiting = pub.wait_for_frame_subscriber if feed.frames else pub.wait_for_subscriber
+        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
             raise ConfigError(
                 f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
@@ -243,6 +242,31 @@ def cmd_feed(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_gateway_sv(args: argparse.Namespace) -> int:
+    from sinewatch.gateway import serve
+
+    return serve(args)
+
+
+def _connect(command: str, args: argparse.Namespace) -> Any:
+    """A client session to ``args.connect``, saying on stderr what it waits for while Zenoh
+    tries (up to ``args.wait`` seconds)."""
+    from sinewatch.clients import connect
+    from sinewatch.console import Waiting
+
+    with Waiting(command, f"a Zenoh router or daemon at {', '.join(args.connect)}", args.wait):
+        return connect(args.connect, timeout_s=args.wait)
+
+
+def _wait_for_daemon(command: str, key: str, wait: Any, wait_s: float) -> bool:
+    """``wait()`` (a publisher's wait for a subscriber on ``key``), saying on stderr what it
+    waits for."""
+    from sinewatch.console import Waiting
+
+    with Waiting(command, f"a daemon subscribed to {key}", wait_s):
+        return bool(wait())
+
+
 def _settle(session: Any, timeout_s: float = 5.0) -> None:
     """A round trip to the daemons' admin queryables before the session closes: blocks still
     in the session's send queue would be lost with it (``feed --fast`` ends right after its
@@ -254,7 +278,7 @@ def _settle(session: Any, timeout_s: float = 5.0) -> None:
 def _feed_comtrade(args: argparse.Namespace) -> int:
     """``feed --comtrade FILE.cfg``: each analog channel at its recorded rate (float64 samples
     unless --dtype says otherwise: COMTRADE values are scaled integers or floats)."""
-    from sinewatch.clients import BlockPublisher, connect
+    from sinewatch.clients import BlockPublisher
     from sinewatch.comtrade_file import read_comtrade
     from sinewatch.console import make_console
     from sinewatch.feed import publish_comtrade, publish_comtrade_frames
@@ -263,7 +287,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
         raise ConfigError("--comtrade: expected instead of --scenario, got both")
     record = read_comtrade(Path(args.comtrade), prefix=args.prefix if args.prefix != "sim" else "comtrade")
     console = make_console(stderr=True)
-    with connect(args.connect, timeout_s=args.wait) as session:
+    with _connect("feed", args) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float64")
         as_frames = args.frame_channels > 1
         if as_frames:
@@ -273,7 +297,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
         else:
             first = record.channels[0].channel
         waiting = pub.wait_for_frame_subscriber if as_frames else pub.wait_for_subscriber
-        if not waiting(first, args.wait):
+        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
             raise ConfigError(
                 f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
                 f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
@@ -302,12 +326,14 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
 def cmd_tail(args: argparse.Namespace) -> int:
     if args.c37118:
         return tail_c37118(args)
-    from sinewatch.clients import Fence, JsonSubscription, connect
+    from sinewatch.clients import Fence, JsonSubscription
 
     shown = 0
     fence = Fence()  # a deposed shard owner's late estimates are not shown
-    with connect(args.connect, timeout_s=args.wait) as session, JsonSubscription(session, args.keyexpr, fence) as sub:
-        print(f"tail: subscribed to {args.keyexpr}", file=sys.stderr, flush=True)
+    with _connect("tail", args) as session, JsonSubscription(session, args.keyexpr, fence) as sub:
+        limit = f"exits after {args.timeout:g} s without one; " if args.timeout else ""
+        print(f"tail: subscribed to {args.keyexpr}; waiting for messages ({limit}Ctrl-C to stop)", file=sys.stderr,
+              flush=True)  # fmt: skip
         try:
             for msg in sub.iter(timeout=args.timeout):
                 if args.json:
@@ -324,12 +350,16 @@ def cmd_tail(args: argparse.Namespace) -> int:
 def tail_c37118(args: argparse.Namespace) -> int:
     """``tail --c37118 HOST:PORT``: read CFG-2, turn data on, print each frame (one line per PMU)."""
     from sinewatch.clients.c37118 import C37118Reader, parse_host_port
+    from sinewatch.console import Waiting
 
     host, port = parse_host_port(args.c37118)
     shown = 0
+    limit = args.timeout or args.wait
     try:
-        with C37118Reader(host, port, id_code=args.id_code, timeout_s=args.timeout or args.wait) as pmu:
-            cfg = pmu.config()
+        with ExitStack() as stack:
+            with Waiting("tail", f"the C37.118.2 server at {host}:{port} and its configuration", limit):
+                pmu = stack.enter_context(C37118Reader(host, port, id_code=args.id_code, timeout_s=limit))
+                cfg = pmu.config()
             for p in cfg.pmus:
                 print(
                     f"tail: {host}:{port} station {p.station!r} ID {p.id_code}, {cfg.data_rate} frames/s, "
@@ -370,11 +400,12 @@ def format_c37118(row: dict[str, Any]) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from sinewatch.clients import connect
+    from sinewatch.console import Waiting
 
     replies: list[dict[str, Any]] = []
-    with connect(args.connect, timeout_s=args.wait) as session:
-        for reply in session.get(f"{args.admin_prefix.rstrip('/')}/*/channels", timeout=args.timeout):
+    key = f"{args.admin_prefix.rstrip('/')}/*/channels"
+    with _connect("status", args) as session, Waiting("status", f"the daemons' answers on {key}", args.timeout):
+        for reply in session.get(key, timeout=args.timeout):
             if reply.ok is not None:
                 replies.append(json.loads(reply.ok.payload.to_bytes()))
     replies.sort(key=lambda r: (r["shard_id"], r["role"] != "active", r["daemon_id"]))
@@ -637,7 +668,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=_count,
         metavar="N",
-        help="run the estimators in N worker processes ([workers] count; default 1: in this process)",
+        help="run the estimators in N worker processes, 0 for one per core ([workers] count; default 1: in this "
+        "process)",
     )
     s.add_argument(
         "--c37118",
@@ -697,6 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=60.0,
         help="seconds to wait for the daemon (default 60: a daemon starting its workers opens its endpoint once all serve)",
     )
+
+    _gateway_parser(sub)
 
     t = _command(sub, "tail", "print estimates (or any sinewatch JSON messages) as they arrive", cmd_tail)
     t.add_argument("keyexpr", nargs="?", default="sinewatch/est/**")
@@ -777,6 +811,43 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_parser(sub)
     return p
+
+
+def _gateway_parser(sub: _Subparsers[argparse.ArgumentParser]) -> None:
+    from sinewatch.schemas.config import DEFAULT_ENDPOINT
+
+    gsub = _subcommands(sub, "gateway", "bring field data in as sample frames", "gateway_command")
+    g = _command(gsub, "sv", "IEC 61850-9-2 (9-2LE) sampled values -> SampleFrames on Zenoh", cmd_gateway_sv)
+    g.add_argument("--pcap", metavar="FILE", help="read a pcap/pcapng capture (as fast as possible unless --realtime)")
+    g.add_argument("--iface", metavar="NAME", help="listen on a network interface (Linux; root or CAP_NET_RAW)")
+    g.add_argument("--realtime", action="store_true", help="with --pcap: at the capture's pace")
+    g.add_argument("--sv-id", action="append", metavar="SVID", help="only this svID (repeatable; default all)")
+    g.add_argument(
+        "--app-id", action="append", type=lambda t: int(t, 0), metavar="N", help="only this APPID (repeatable)"
+    )
+    g.add_argument("--dst-mac", action="append", metavar="MAC", help="only this destination MAC (repeatable)")
+    g.add_argument(
+        "--channels",
+        action="append",
+        metavar="SVID=IA,IB,...",
+        help="the 8 channel names of a stream (repeatable; default IA,IB,IC,IN,VA,VB,VC,VN), each <svID>/<name>",
+    )
+    g.add_argument(
+        "--rate", type=int, default=4000, help="samples per second of the streams (default 4000; 4800 at 60 Hz)"
+    )
+    g.add_argument("--samples", type=_count, default=80, help="samples per published frame (default 80: a 50 Hz cycle)")
+    g.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: the end/never)")
+    g.add_argument(
+        "--idle", type=float, default=0.0, help="with --iface: stop once the bus has been silent this many seconds"
+    )
+    g.add_argument("--connect", action="append", help=f"endpoint (repeatable; default {DEFAULT_ENDPOINT})")
+    g.add_argument("--key-prefix", default="sinewatch/in", help="key prefix (default sinewatch/in)")
+    g.add_argument(
+        "--status-prefix",
+        default="sinewatch/gateway/sv",
+        help="each stream's counts and synchronisation, JSON on PREFIX/<svID> once a second (default sinewatch/gateway/sv)",
+    )
+    g.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the daemon (default 60)")
 
 
 def main(argv: list[str] | None = None) -> int:

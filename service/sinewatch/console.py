@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -30,6 +32,41 @@ def make_console(stderr: bool = False) -> Console:
     if not console.is_terminal:
         console = Console(file=stream, width=PIPE_WIDTH)
     return console
+
+
+class Waiting:
+    """``with Waiting("tail", "a Zenoh router or daemon at tcp/...", 60):`` around a call that
+    blocks until a daemon or a peer answers: says at once on stderr what the command waits
+    for, for how long and how to stop it, then every ``every`` seconds how long it has
+    waited, until the block ends (a command that seems to hang is one a user kills)."""
+
+    def __init__(self, command: str, what: str, limit_s: float | None, *, every: float = 5.0) -> None:
+        self.command, self.what, self.limit_s, self.every = command, what, limit_s, every
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._started = 0.0
+
+    def _say(self, text: str) -> None:
+        print(f"{self.command}: {text}", file=sys.stderr, flush=True)
+
+    def __enter__(self) -> Waiting:
+        limit = f"up to {self.limit_s:g} s; " if self.limit_s is not None else ""
+        self._say(f"waiting for {self.what} ({limit}Ctrl-C to stop)")
+        self._started = time.monotonic()
+        self._thread = threading.Thread(target=self._progress, name="sinewatch-waiting", daemon=True)
+        self._thread.start()
+        return self
+
+    def _progress(self) -> None:
+        while not self._done.wait(self.every):
+            waited = time.monotonic() - self._started
+            of = f" of {self.limit_s:g} s" if self.limit_s is not None else ""
+            self._say(f"still waiting for {self.what} ({waited:.0f} s{of})")
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 def natural_width(table: Table) -> int:

@@ -75,47 +75,44 @@ def _short(channel: str) -> str:
     return channel.removeprefix(f"{PREFIX}/").removeprefix("demo-")
 
 
-# The columns a narrow terminal loses first, in order; channel, f est Hz and A est stay.
-DROP_ORDER = ("off true", "bad in", "est.", "offset", "A true", "estimator", "phase err°", "conv", "f true")
+# The columns a narrow terminal loses first, in order: at 100 columns the table is whole, at
+# 80 the channel, the estimate beside its truth, and the errors stay.
+DROP_ORDER = ("bad in", "est.", "phase err°")
+HEADERS = ("channel", "", "f Hz", "f err", "A", "A err", "offset", "phase err°", "conv", "est.", "bad in")
 
 
 def render(views: list[ChannelView], title: str, width: int | None = None) -> Table:
-    """The live table; with ``width``, fitted to it (:data:`DROP_ORDER`)."""
+    """The live table, two lines per channel: its name and the estimate, then its estimator
+    and the truth; the errors (estimate - truth) beside them. With ``width``, fitted to it
+    (:data:`DROP_ORDER`)."""
     t = Table(title=title, title_justify="left")
-    for col in (
-        "channel",
-        "estimator",
-        "f est Hz",
-        "f true",
-        "A est",
-        "A true",
-        "offset",
-        "off true",
-        "phase err°",
-        "conv",
-        "est.",
-        "bad in",
-    ):
-        t.add_column(col, justify="left" if col in ("channel", "estimator") else "right")
+    for col in HEADERS:
+        t.add_column(col, justify="left" if col in ("channel", "") else "right", no_wrap=True)
     for v in views:
         e = v.last
         tr = v.truth
+        name, bad = _short(v.feed.channel), str(sum(v.feed.faults_injected.get(k, 0) for k in ("nan", "duplicate")))
         if e is None or tr is None:
-            t.add_row(_short(v.feed.channel), "", *(["-"] * 8), "0", "0")
+            t.add_row(name, "est", *(["-"] * 6), "no", "0", bad)
+            t.add_row("", "true", *([""] * 9), style="dim")
             continue
+        f_est, a_est, off = e["frequency_hz"][0], e["amplitude"][0], e["offset"]
+        f_true, a_true, off_true = float(tr.frequency_hz[0, 0]), float(tr.amplitude[0, 0]), float(tr.offset[0])
         t.add_row(
-            _short(v.feed.channel),
-            e["estimator"],
-            _fmt(e["frequency_hz"][0]),
-            _fmt(float(tr.frequency_hz[0, 0])),
-            _fmt(e["amplitude"][0]),
-            _fmt(float(tr.amplitude[0, 0])),
-            _fmt(e["offset"]),
-            _fmt(float(tr.offset[0])),
-            _fmt(_phase_err_deg(e["phase_rad"][0], float(tr.phase_rad[0, 0])), ".2f"),
+            name,
+            "est",
+            _fmt(f_est),
+            _fmt(None if f_est is None else f_est - f_true, "+.3f"),
+            _fmt(a_est),
+            _fmt(None if a_est is None else a_est - a_true, "+.3f"),
+            _fmt(off),
+            _fmt(_phase_err_deg(e["phase_rad"][0], float(tr.phase_rad[0, 0])), "+.2f"),
             "yes" if e["diagnostics"]["converged"] else "no",
             str(v.estimates),
-            str(sum(v.feed.faults_injected.get(k, 0) for k in ("nan", "duplicate"))),
+            bad,
+        )
+        t.add_row(
+            e["estimator"], "true", _fmt(f_true), "", _fmt(a_true), "", _fmt(off_true), "", "", "", "", style="dim"
         )
     return t if width is None else fit_table(t, width, DROP_ORDER)
 
@@ -204,7 +201,12 @@ def _logs_through(console: Console) -> Iterator[None]:
     """Route sinewatch's log lines (rejected inputs, gaps) through the live display's
     console, so they print above the table instead of tearing it."""
     logger = logging.getLogger("sinewatch")
-    handler = RichHandler(console=console, show_path=False, show_time=False, markup=False)
+    handler: logging.Handler
+    if console.is_terminal:
+        handler = RichHandler(console=console, show_path=False, show_time=False, markup=False)
+    else:  # a pipe or a file: plain lines, as long as they are (RichHandler pads them to the width)
+        handler = logging.StreamHandler(console.file)
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     handler.setLevel(logging.WARNING)
     propagate = logger.propagate
     logger.addHandler(handler)
@@ -226,16 +228,19 @@ def _summary(console: Console, daemon: Daemon, views: list[ChannelView]) -> None
     for v in views:
         e, tr = v.last, v.truth
         if e is None or tr is None or e["frequency_hz"][0] is None:
-            console.print(f"  {v.feed.channel}: no converged estimate")
+            console.print(f"  {v.feed.channel}: no converged estimate", soft_wrap=True)
             continue
         console.print(
             f"  {_short(v.feed.channel):18s} |f err| {abs(e['frequency_hz'][0] - tr.frequency_hz[0, 0]):.4f} Hz"
             f"   |A err| {abs(e['amplitude'][0] - tr.amplitude[0, 0]):.4f}"
-            + (f"   faults injected: {v.feed.faults_injected}" if v.feed.faults_injected else "")
+            + (f"   faults injected: {v.feed.faults_injected}" if v.feed.faults_injected else ""),
+            soft_wrap=True,
         )
     for path in daemon.recording_paths:
-        console.print(f"\nMCAP recording: [bold]{path}[/bold]")
-        console.print(f"Replay it bit for bit:  {_cli_name()} replay {path}")
+        # soft_wrap: one line however narrow the terminal (it wraps it on screen), so it pastes
+        console.print(f"\nMCAP recording: [bold]{path}[/bold]", soft_wrap=True)
+        console.print("Replay it bit for bit:")
+        console.print(f"{_cli_name()} replay {path}", soft_wrap=True, highlight=False, markup=False)
 
 
 def _cli_name() -> str:

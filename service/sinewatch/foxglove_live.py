@@ -16,6 +16,16 @@ Schema, so the Plot panel offers the fields):
 * ``sinewatch/log`` (``foxglove.Log``): the daemon's log lines, from a logging handler on
   the ``sinewatch`` logger.
 
+Clients of either subprotocol: the SDK's server (foxglove-sdk 0.30) accepts only
+``foxglove.sdk.v1``; Lichtblick, PlotJuggler and Foxglove Studio releases before it ask for
+``foxglove.websocket.v1`` (the same protocol under its earlier name). So, unless
+``websocket_v1 = false``, the SDK's server listens on an ephemeral loopback port and
+:class:`SubprotocolRelay` listens on the configured one: it reads each client's HTTP
+upgrade request, names the subprotocol the SDK knows in it (and the client's own in the
+answer), then copies bytes both ways (WebSocket frames do not depend on the name).
+``make bench-foxglove-relay`` (``python -m sinewatch.bench.foxglove_relay``) measures what the
+relay costs against a client of the SDK's own port.
+
 Each message's log time is the time the daemon received its input (the log time the MCAP
 recording uses), so a live session and a recording of it line up; the data time is the
 message's ``timestamp``.
@@ -34,10 +44,12 @@ subscribed to everything, against the same run without.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
 import queue
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -220,6 +232,115 @@ class _Subscriptions(ServerListener):
             return self._changed.wait_for(lambda: all(self._active.get(t, 0) > 0 for t in topics), timeout)
 
 
+SDK_SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+_PROTOCOL_HEADER = re.compile(rb"(?im)^sec-websocket-protocol:[ \t]*([^\r\n]*)\r\n")
+_MAX_HANDSHAKE = 64 * 1024
+
+
+def offered_subprotocols(request: bytes) -> list[str]:
+    """The subprotocols an HTTP upgrade request offers (every Sec-WebSocket-Protocol header)."""
+    return [p.strip() for m in _PROTOCOL_HEADER.finditer(request) for p in m.group(1).decode("latin-1").split(",")]
+
+
+def _rename_subprotocol(head: bytes, old: str, new: str) -> bytes:
+    """``head`` with each Sec-WebSocket-Protocol header naming ``new`` where it named ``old``."""
+
+    def rename(m: re.Match[bytes]) -> bytes:
+        names = [p.strip() for p in m.group(1).decode("latin-1").split(",")]
+        return b"Sec-WebSocket-Protocol: " + ", ".join(new if p == old else p for p in names).encode() + b"\r\n"
+
+    return _PROTOCOL_HEADER.sub(rename, head)
+
+
+class SubprotocolRelay:
+    """A TCP listener in front of the SDK's WebSocket server, on a thread of its own (its
+    own event loop: the daemon's never carries a client's bytes). A client that offers
+    ``foxglove.websocket.v1`` and not ``foxglove.sdk.v1`` has its upgrade request renamed to
+    ``foxglove.sdk.v1`` and the server's answer renamed back; every other request goes as it
+    is (the SDK answers it as it would). After the handshake the bytes are copied unchanged."""
+
+    def __init__(self, host: str, port: int, upstream_port: int) -> None:
+        self._upstream = upstream_port
+        self._loop = asyncio.new_event_loop()
+        self._server: asyncio.Server | None = None
+        self._connections: set[asyncio.Task[None]] = set()
+        self.legacy_clients = 0  # connections that asked for foxglove.websocket.v1
+        started: asyncio.Future[int] = self._loop.create_future()
+        self._thread = threading.Thread(target=self._run, args=(host, port, started), daemon=True,
+                                        name="sinewatch-foxglove-relay")  # fmt: skip
+        self._thread.start()
+        self.port = asyncio.run_coroutine_threadsafe(self._wait(started), self._loop).result()
+
+    @staticmethod
+    async def _wait(started: asyncio.Future[int]) -> int:
+        return await started
+
+    def _run(self, host: str, port: int, started: asyncio.Future[int]) -> None:
+        asyncio.set_event_loop(self._loop)
+
+        async def listen() -> None:
+            try:
+                self._server = await asyncio.start_server(self._connection, host, port, limit=_MAX_HANDSHAKE)
+            except OSError as exc:
+                started.set_exception(exc)
+                return
+            started.set_result(self._server.sockets[0].getsockname()[1])
+
+        self._loop.run_until_complete(listen())
+        self._loop.run_forever()
+
+    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._connections.add(task)
+        upstream: asyncio.StreamWriter | None = None
+        try:
+            request = await reader.readuntil(b"\r\n\r\n")
+            offered = offered_subprotocols(request)
+            legacy = LEGACY_SUBPROTOCOL in offered and SDK_SUBPROTOCOL not in offered
+            if legacy:
+                self.legacy_clients += 1
+                request = _rename_subprotocol(request, LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL)
+            up_reader, upstream = await asyncio.open_connection("127.0.0.1", self._upstream, limit=_MAX_HANDSHAKE)
+            upstream.write(request)
+            answer = await up_reader.readuntil(b"\r\n\r\n")
+            if legacy:
+                answer = _rename_subprotocol(answer, SDK_SUBPROTOCOL, LEGACY_SUBPROTOCOL)
+            writer.write(answer)
+            await asyncio.gather(self._copy(reader, upstream), self._copy(up_reader, writer))
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError) as exc:
+            log.debug("foxglove relay: a connection ended: %s", exc)
+        finally:
+            for w in (writer, upstream):
+                if w is not None:
+                    w.close()
+            self._connections.discard(task)
+
+    @staticmethod
+    async def _copy(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
+        try:
+            while data := await src.read(256 * 1024):
+                dst.write(data)
+                await dst.drain()  # a slow reader holds its own connection back, and no other
+        finally:
+            if dst.can_write_eof():
+                dst.write_eof()
+
+    def close(self) -> None:
+        async def stop() -> None:
+            if self._server is not None:
+                self._server.close()
+            for task in list(self._connections):
+                task.cancel()
+            await asyncio.gather(*self._connections, return_exceptions=True)
+
+        asyncio.run_coroutine_threadsafe(stop(), self._loop).result()
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join()
+        self._loop.close()
+
+
 class FoxgloveSink(NullSink):
     """The pipeline sink behind ``--foxglove``: starts the WebSocket server on creation."""
 
@@ -236,15 +357,23 @@ class FoxgloveSink(NullSink):
         self.subscriptions = _Subscriptions(self.counters)
         self._tokens = self.section.input_rate_hz  # a token bucket: input_rate_hz, one second's burst
         self._refilled = time.monotonic()
+        relayed = self.section.websocket_v1
         self.server = foxglove.start_server(
             name=f"sinewatch {config.daemon_id}",
-            host=self.section.host,
-            port=port,
+            host="127.0.0.1" if relayed else self.section.host,
+            port=0 if relayed else port,
             context=self._context,
             message_backlog_size=self.section.backlog,
             server_listener=self.subscriptions,
         )
-        self.port = self.server.port
+        self.relay: SubprotocolRelay | None = None
+        if relayed:
+            try:
+                self.relay = SubprotocolRelay(self.section.host, port, self.server.port)
+            except OSError:
+                self.server.stop()
+                raise
+        self.port = self.relay.port if self.relay is not None else self.server.port
         self._log_channel = LogChannel(LOG_TOPIC, context=self._context)
         self._handler = FoxgloveLogHandler(self._log_channel, self.counters)
         logging.getLogger("sinewatch").addHandler(self._handler)
@@ -252,7 +381,12 @@ class FoxgloveSink(NullSink):
         if self.section.inputs:
             self._worker = threading.Thread(target=self._summaries, name="sinewatch-foxglove", daemon=True)
             self._worker.start()
-        log.info("foxglove: ws://%s:%d (Foxglove: Open connection)", self.section.host, self.port)
+        log.info(
+            "foxglove: ws://%s:%d (Foxglove: Open connection; subprotocols %s)",
+            self.section.host,
+            self.port,
+            f"{SDK_SUBPROTOCOL} and {LEGACY_SUBPROTOCOL}" if relayed else SDK_SUBPROTOCOL,
+        )
 
     # ---- topics ----------------------------------------------------------------------------
     def _topic(self, topic: str, schema_name: str, schema: Callable[[], dict[str, Any]]) -> foxglove.Channel | None:
@@ -344,7 +478,21 @@ class FoxgloveSink(NullSink):
             self._queue.put(None)  # after everything queued: the last summaries still go out
             self._worker.join()
             self._worker = None
+        if self.relay is not None:
+            self.relay.close()
+            self.relay = None
         self.server.stop()
 
 
-__all__ = ["LOG_TOPIC", "SAMPLES_PREFIX", "FoxgloveLogHandler", "FoxgloveSink", "summaries", "summarise"]
+__all__ = [
+    "LEGACY_SUBPROTOCOL",
+    "LOG_TOPIC",
+    "SAMPLES_PREFIX",
+    "SDK_SUBPROTOCOL",
+    "FoxgloveLogHandler",
+    "FoxgloveSink",
+    "SubprotocolRelay",
+    "offered_subprotocols",
+    "summaries",
+    "summarise",
+]

@@ -6,9 +6,13 @@ Layout of a recording:
   replayed with the encoding it came with, whatever else came on its key), its metadata saying the role
   (``input``, ``estimate``, ``error``, ``status``, and for the power-quality messages
   ``harmonics``, ``three_phase``, ``pq_aggregate``) and the Zenoh encoding;
-* inputs exactly as received (binary or JSON payload bytes), so replay decodes them with
-  the same code; JSON messages with their JSON Schema embedded (``jsonschema``), so
-  Foxglove can plot estimates;
+* inputs as protobuf ``sinewatch.InputBlock`` records with their schema (a FileDescriptorSet)
+  in the file (:mod:`sinewatch.schemas.input_record`): any MCAP reader decodes a block's
+  samples, and replay rebuilds from each record the exact bytes and Zenoh encoding the
+  daemon received (rejected inputs included); recordings of earlier builds carry the raw
+  payloads (``sinewatch-block-v1`` or ``json``) and still replay;
+* JSON messages with their JSON Schema embedded (``jsonschema``), so Foxglove plots
+  estimates beside the samples;
 * a ``sinewatch`` metadata record at the start of each file: the effective config, the
   sinewatch version, the file's index in its run;
 * from the second file of a run on, a ``sinewatch.snapshot`` attachment: the state of
@@ -51,6 +55,13 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
 from sinewatch.schemas.frame import FRAME_MAGIC, is_frame
+from sinewatch.schemas.input_record import (
+    INPUT_MESSAGE_ENCODING,
+    INPUT_SCHEMA_ENCODING,
+    INPUT_SCHEMA_NAME,
+    encode_input_record,
+    file_descriptor_set,
+)
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, MESSAGE_MODELS
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS, PQ_ROLES, json_encoding
 
@@ -58,6 +69,9 @@ log = logging.getLogger("sinewatch.recorder")
 
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
+#: The recording's layout: 2 records inputs as protobuf InputBlock (1: raw payloads).
+RECORDING_FORMAT_VERSION = 2
+#: How builds before RECORDING_FORMAT_VERSION 2 recorded binary inputs (replay still reads them).
 BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
 BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
 FRAME_MESSAGE_ENCODING = "sinewatch-frame-v1"
@@ -366,7 +380,7 @@ class McapRecorder:
         self._w.add_metadata(
             METADATA_NAME,
             {
-                "format_version": "1",
+                "format_version": str(RECORDING_FORMAT_VERSION),
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
                 "sinewatch_version": __version__,
@@ -506,7 +520,9 @@ class McapRecorder:
     def _schema_id(self, name: str) -> int:
         sid = self._schemas.get(name)
         if sid is None:
-            if name == "sinewatch.SampleBlock.binary":
+            if name == INPUT_SCHEMA_NAME:
+                sid = self._w.register_schema(name, INPUT_SCHEMA_ENCODING, file_descriptor_set())
+            elif name == "sinewatch.SampleBlock.binary":
                 # the byte layout, as documented in the codec, travels with the data
                 sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
             elif name == "sinewatch.SampleFrame.binary":
@@ -552,7 +568,20 @@ class McapRecorder:
         if not self.section.inputs:
             return
         msg_enc, schema = mcap_encodings(encoding, payload)
-        self._write(self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns)
+        if schema.startswith("sinewatch.SampleFrame"):  # a multi-channel frame: one message, its own layout
+            self._write(
+                self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns
+            )
+        else:
+            self._record_input(key, payload, encoding, log_time_ns)
+
+    def _record_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
+        """One input as an InputBlock record on its key's protobuf channel (one per Zenoh
+        encoding, as every channel): the record carries the message's own Zenoh encoding too,
+        as it came (``""`` where the channel says ``zenoh/bytes``), so a reader needs nothing
+        else to feed the pipeline what it got."""
+        cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, INPUT_SCHEMA_NAME, "input", encoding or "zenoh/bytes")
+        self._write(cid, encode_input_record(payload, encoding), log_time_ns)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self.section.estimates:
@@ -578,4 +607,11 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
 
-__all__ = ["BLOCK_BINARY_ENCODING", "METADATA_NAME", "SNAPSHOT_NAME", "FastWriter", "McapRecorder"]
+__all__ = [
+    "BLOCK_BINARY_ENCODING",
+    "METADATA_NAME",
+    "RECORDING_FORMAT_VERSION",
+    "SNAPSHOT_NAME",
+    "FastWriter",
+    "McapRecorder",
+]

@@ -37,6 +37,7 @@ from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, SinewatchError
 from sinewatch.schemas.frame import Frame, decode_input
+from sinewatch.schemas.input_record import INPUT_MESSAGE_ENCODING, decode_input_record
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, Fencing
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 from sinewatch.track import TRACK_ROLE, TrackingPipeline, TrackWriter
@@ -177,17 +178,7 @@ def read_recording(
                 if isinstance(record, Channel):
                     channels[record.id] = record
                 elif isinstance(record, Message):
-                    ch = channels[record.channel_id]
-                    yield (
-                        "message",
-                        RecordedMessage(
-                            ch.metadata.get("role", ""),
-                            ch.topic,
-                            ch.metadata.get("zenoh_encoding", ""),
-                            record.data,
-                            record.log_time,
-                        ),
-                    )
+                    yield "message", recorded_message(channels[record.channel_id], record)
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     yield "metadata", dict(record.metadata)
                 elif isinstance(record, Attachment) and record.name == SNAPSHOT_NAME:
@@ -198,6 +189,17 @@ def read_recording(
             yield "incomplete", f"{type(exc).__name__}: {exc}"
         if on_progress is not None:
             on_progress(f.tell())
+
+
+def recorded_message(channel: Channel, message: Message) -> RecordedMessage:
+    """A message as the daemon saw it: an input recorded as an InputBlock (protobuf) gives back
+    the bytes and the Zenoh encoding it arrived with; every other message (and an input of a
+    recording of an earlier build: its raw payload) is as recorded, under its channel's
+    Zenoh encoding."""
+    payload, encoding = message.data, channel.metadata.get("zenoh_encoding", "")
+    if channel.message_encoding == INPUT_MESSAGE_ENCODING:
+        payload, encoding = decode_input_record(payload)
+    return RecordedMessage(channel.metadata.get("role", ""), channel.topic, encoding, payload, message.log_time)
 
 
 def seek_point(path: Path, before_ns: int) -> tuple[int, dict[int, Channel], list[dict[str, str]]] | None:

@@ -468,6 +468,12 @@ class FoxgloveSection(_Section):
     )
     backlog: int = Field(1024, ge=1, description="Messages buffered per client; a slow client loses the oldest")
     max_topics: int = Field(4096, ge=1, description="Topics advertised at most (further ones are counted, not sent)")
+    websocket_v1: bool = Field(
+        True,
+        description="Also answer clients asking for subprotocol foxglove.websocket.v1 (Lichtblick, PlotJuggler, "
+        "Foxglove Studio before the SDK): a relay on the port in front of the SDK's server, which speaks only "
+        "foxglove.sdk.v1 (the same protocol, renamed); false: the SDK's server on the port itself",
+    )
 
 
 class MetricsSection(_Section):

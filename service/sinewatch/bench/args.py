@@ -67,6 +67,13 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
             add_estimate_puts_arguments,
         ),
     )
+    benches += (
+        (
+            "gateway",
+            "gateway sv: 9-2LE frames decoded and published per core vs 4000/4800 frames/s a stream",
+            add_gateway_arguments,
+        ),
+    )
     for name, help_text, add_arguments in benches:
         p = bsub.add_parser(name, help=help_text)
         add_arguments(p)
@@ -134,6 +141,14 @@ def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
         "channels; several values run one after the other into one table (e.g. 1,8)",
     )
     parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
+
+
+def add_gateway_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--streams", type=int, default=2, help="SV streams (merging units) at once (default 2)")
+    parser.add_argument("--seconds", type=int, default=3, help="seconds of traffic per stream (default 3)")
+    parser.add_argument("--rate", type=int, default=4000, help="frames/s per stream (default 4000; 4800 at 60 Hz)")
+    parser.add_argument("--samples", type=int, default=80, help="samples per published frame (default 80)")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 def add_fanout_arguments(parser: argparse.ArgumentParser) -> None:

@@ -164,14 +164,27 @@ def select_estimators(patterns: Iterable[str] | None) -> list[str]:
     return _matching("estimators", avail, pats, None) if pats else avail
 
 
+def listed_scenarios(patterns: list[str] | None) -> list[dict[str, Any]]:
+    """Every scenario ``sinewatch feed --scenario`` accepts that the patterns select (all
+    with none): the library's, then the power-quality ones (IEC 61000-4-7/-4-30 signals)."""
+    from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
+
+    pq = pq_names()
+    pq_tags = {nm: set(get_pq(nm).tags) for nm in pq}
+    library = sc_registry.names()
+    lib_tags = {nm: set(sc_registry.get(nm).tags) for nm in library}
+    names, tags = [*library, *pq], {**lib_tags, **pq_tags}
+    chosen = _matching("scenarios", names, list(patterns), tags) if patterns else names
+    return [(get_pq(nm) if nm in pq_tags else sc_registry.get(nm)).describe() for nm in chosen]
+
+
 def run(args: argparse.Namespace) -> int:
     """``sinewatch bench scenarios [NAME|GLOB|TAG ...] [--json]``."""
     try:
-        names = select_scenarios(args.patterns or None)
+        rows = listed_scenarios(args.patterns or None)
     except ParameterError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    rows = [sc_registry.get(nm).describe() for nm in names]
     if getattr(args, "json", False):
         print(json.dumps(rows, indent=1))
         return 0
