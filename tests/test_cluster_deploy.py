@@ -29,6 +29,10 @@ def test_compose_runs_a_router_two_shards_and_a_standby():
     assert len({c.daemon_id for c in configs.values()}) == 3
     for c in configs.values():
         assert c.zenoh.mode == "client" and c.zenoh.connect == ["tcp/router:7447"] and c.zenoh.listen == []
+        assert c.cluster.etcd == "etcd:2379"  # the shards' elections, beside the router
+    etcd = services["etcd"]
+    assert "--data-dir=/etcd-data" in etcd["command"] and etcd["volumes"] == ["etcd-data:/etcd-data"]
+    assert all("etcd" in s["depends_on"] for s in daemons.values())
 
 
 def test_kubernetes_statefulset_maps_pod_ordinals_to_shards_and_a_standby():
@@ -39,6 +43,9 @@ def test_kubernetes_statefulset_maps_pod_ordinals_to_shards_and_a_standby():
     router = docs["Deployment/zenoh-router"]["spec"]["template"]["spec"]["containers"][0]
     assert router["command"][:2] == ["sinewatch", "router"]
     assert docs["Service/zenoh-router"]["spec"]["ports"][0]["port"] == 7447
+    assert docs["Service/etcd"]["spec"]["ports"][0]["port"] == 2379
+    etcd = docs["StatefulSet/etcd"]["spec"]
+    assert etcd["replicas"] == 1 and etcd["volumeClaimTemplates"][0]["metadata"]["name"] == "etcd-data"
     sts = docs["StatefulSet/sinewatch"]["spec"]
     container = sts["template"]["spec"]["containers"][0]
     script = container["command"][2].replace("exec sinewatch serve", "env")  # print what serve would read
@@ -50,5 +57,6 @@ def test_kubernetes_statefulset_maps_pod_ordinals_to_shards_and_a_standby():
         pod_env = dict(line.split("=", 1) for line in out.splitlines() if line.startswith("SINEWATCH"))
         config = load_config(env=pod_env)
         assert config.daemon_id == f"sinewatch-{ordinal}" and config.zenoh.connect == ["tcp/zenoh-router:7447"]
+        assert config.cluster.etcd == "etcd:2379"
         seen.add((config.cluster.shard, config.cluster.role))
     assert seen == EXPECTED

@@ -17,9 +17,9 @@ from sinewatch.estimators.base import Track, TrackStd
 from sinewatch.pipeline import Channel, NullSink, Pipeline, estimate_model
 from sinewatch.schemas.codec import Block, encode_block_binary, encode_estimate, json_string
 from sinewatch.schemas.config import EstimatorRule
-from sinewatch.schemas.messages import Estimate
+from sinewatch.schemas.messages import Estimate, Fencing
 
-VERSIONS = (1, 2, 3)
+VERSIONS = (1, 2, 3, 4)
 
 
 def _reference(pipeline: Pipeline, ch: Channel, block: Block, track: Track, ts: int, t_last: int, gap, restart, reset):
@@ -32,7 +32,7 @@ def _reference(pipeline: Pipeline, ch: Channel, block: Block, track: Track, ts: 
             np.all(np.isfinite(track.frequency_hz[-1])) and np.all(np.isfinite(track.amplitude[-1]))
         )
         converged = converged and valid
-    model = estimate_model(ch, block, track, ts, converged, valid, gap, restart, reset)
+    model = estimate_model(ch, block, track, ts, converged, valid, gap, restart, reset, pipeline.fencing)
     return encode_estimate(model, pipeline.estimate_version), converged
 
 
@@ -91,6 +91,8 @@ def test_the_fast_bytes_are_the_models_bytes_over_many_random_estimates(tmp_path
         gap = int(rng.choice([0, 0, 3]))
         restart, reset = bool(rng.random() < 0.2), bool(rng.random() < 0.2)
         ts = t0 + int(rng.integers(0, 10**6))
+        # the fencing token of a clustered daemon (format 4), or none (a daemon that owns its keys alone)
+        pipeline.set_fencing(None if i % 4 == 0 else Fencing(shard=names[i % 3], term=int(rng.integers(1, 2**62))))
         fast, conv = pipeline._estimate_payload(ch, block, track, ts, ts + 5_000, gap, restart, reset)
         ref, ref_conv = _reference(pipeline, ch, block, track, ts, ts + 5_000, gap, restart, reset)
         assert fast == ref, (i, fast, ref)
@@ -98,6 +100,8 @@ def test_the_fast_bytes_are_the_models_bytes_over_many_random_estimates(tmp_path
         msg = json.loads(fast)
         assert msg["format_version"] == version
         seen_null += b"null" in fast
+        if version == 4:
+            assert msg["fencing"] == (None if i % 4 == 0 else pipeline.fencing.model_dump())
         if version == 3:
             seen_valid += msg["diagnostics"]["valid"]
             seen_invalid += not msg["diagnostics"]["valid"]

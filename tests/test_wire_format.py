@@ -21,7 +21,7 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.export import all_schemas
-from sinewatch.schemas.messages import Diagnostics, Estimate, Uncertainty
+from sinewatch.schemas.messages import Diagnostics, Estimate, Fencing, Uncertainty
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -131,10 +131,15 @@ def test_estimate_v3_carries_rocof_uncertainty_time_and_validity_and_earlier_ver
         rocof_hz_per_s=[0.5],
         std=Uncertainty(frequency_hz=[0.001], amplitude=[None], phase_rad=[0.01], offset=None),
     )
-    v3 = json.loads(encode_estimate(est))
+    v4 = json.loads(encode_estimate(est))
+    assert v4["format_version"] == 4 and v4["fencing"] is None  # a daemon that owns its keys without an election
+    fenced = json.loads(encode_estimate(est.model_copy(update={"fencing": Fencing(shard="s", term=7)})))
+    assert fenced["fencing"] == {"shard": "s", "term": 7} and list(fenced)[-1] == "fencing"
+    v3 = json.loads(encode_estimate(est, version=3))
+    assert "fencing" not in v3  # version 3 is what the builds before fencing wrote
     assert v3["format_version"] == 3 and v3["rocof_hz_per_s"] == [0.5] and v3["std"]["frequency_hz"] == [0.001]
     assert v3["diagnostics"]["valid"] is True
-    assert Estimate.model_validate(v3) == est
+    assert Estimate.model_validate(v4) == est
     # Version 2 and 1 are what earlier builds wrote: the same keys in the same order, nothing more.
     v2 = encode_estimate(est, version=2)
     assert v2 == (
@@ -151,7 +156,7 @@ def test_estimate_v3_carries_rocof_uncertainty_time_and_validity_and_earlier_ver
         b'"diagnostics":{"converged":true,"residual_rms":0.01,"gap":false,"gap_blocks":0,"restart":false,'
         b'"reset":false,"extras":{"k":1.5}}}'
     )
-    assert ESTIMATE_JSON_ENCODING.endswith("@3")
+    assert ESTIMATE_JSON_ENCODING.endswith("@4")
 
 
 @pytest.mark.parametrize("ns", [1_763_900_000_123_456_789, 2**63 - 1, -1, -(2**63), 0])

@@ -292,8 +292,9 @@ def test_a_backlog_does_not_keep_the_heartbeat_from_running(tmp_path):
     class Recording(Daemon):
         processed: ClassVar[list[int]] = []
 
-        def _process(self, batch: list[Any]) -> None:
+        def _process(self, batch: list[Any], start: int = 0) -> int:
             self.processed.append(len(batch))
+            return len(batch) - start
 
     async def main() -> int:
         daemon = Recording(_config(tmp_path), install_signal_handlers=False)

@@ -44,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from sinewatch.clients.subscriber import Fence
 from sinewatch.pipeline import NullSink
 from sinewatch.schemas.c37118 import (
     Command,
@@ -288,6 +289,7 @@ class C37118Server(NullSink):
         self.config = config
         self._clock_ns = clock_ns or time.time_ns
         self.stations = {s.id_code: Station(s, config.time_base) for s in config.stations}
+        self.fence = Fence()  # the newest election term per shard: frames only from the shard's owner
         self._by_channel: dict[str, list[tuple[Station, int]]] = {}
         for st in self.stations.values():
             for ch in st.cfg.channels:
@@ -354,6 +356,8 @@ class C37118Server(NullSink):
         if not targets:
             return
         est = json.loads(payload)
+        if not self.fence.accept(est):  # an older term than one already served: a deposed owner's
+            return
         for station, idx in targets:
             for frame in station.add(idx, est):
                 self._broadcast(station.id_code, frame)

@@ -326,10 +326,11 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
 def cmd_tail(args: argparse.Namespace) -> int:
     if args.c37118:
         return tail_c37118(args)
-    from sinewatch.clients import JsonSubscription
+    from sinewatch.clients import Fence, JsonSubscription
 
     shown = 0
-    with _connect("tail", args) as session, JsonSubscription(session, args.keyexpr) as sub:
+    fence = Fence()  # a deposed shard owner's late estimates are not shown
+    with _connect("tail", args) as session, JsonSubscription(session, args.keyexpr, fence) as sub:
         limit = f"exits after {args.timeout:g} s without one; " if args.timeout else ""
         print(f"tail: subscribed to {args.keyexpr}; waiting for messages ({limit}Ctrl-C to stop)", file=sys.stderr,
               flush=True)  # fmt: skip
@@ -420,20 +421,50 @@ def format_status(replies: list[dict[str, Any]], *, show_channels: bool = True) 
     with the time of its last estimate."""
     if not replies:
         return "no sinewatch daemon answered"
-    lines = [f"{'daemon':<20} {'shard':<28} {'role':<8} {'channels':>8} {'takeovers':>9}"]
+    lines = [f"{'shard':<28} {'term':>10} {'owner':<20} standbys"]
+    for shard_id, info in shard_owners(replies).items():
+        owner = info["owner"] or "-"
+        term = "-" if info["term"] is None else str(info["term"])
+        stale = f" (deposed, still answering: {', '.join(info['stale'])})" if info["stale"] else ""
+        lines.append(f"{shard_id:<28} {term:>10} {owner:<20} {', '.join(info['standbys']) or '-'}{stale}")
+    lines += ["", f"{'daemon':<20} {'shard':<28} {'role':<8} {'term':>10} {'channels':>8} {'takeovers':>9}"]
     for r in replies:
         shard = r["shard_id"] + (f" ({r['shard']})" if r["shard"] else "")
-        lines.append(f"{r['daemon_id']:<20} {shard:<28} {r['role']:<8} {len(r['channels']):>8} {r['takeovers']:>9}")
+        term = "-" if r.get("term") is None else str(r["term"])
+        lines.append(
+            f"{r['daemon_id']:<20} {shard:<28} {r['role']:<8} {term:>10} {len(r['channels']):>8} {r['takeovers']:>9}"
+        )
+    owners = {info["owner"] for info in shard_owners(replies).values()}
     if show_channels:
         lines += ["", f"{'channel':<32} {'owner':<20} {'last estimate (UTC)':<30} {'seq':>10}"]
         for r in replies:
-            if r["role"] != "active":
+            if r["role"] != "active" or r["daemon_id"] not in owners:
                 continue
             for c in r["channels"]:
                 lines.append(
                     f"{c['channel']:<32} {r['daemon_id']:<20} {_utc(c['last_estimate_ns']):<30} {c['last_seq']!s:>10}"
                 )
     return "\n".join(lines)
+
+
+def shard_owners(replies: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per shard: its newest term, the owner under it, its standbys, and any daemon that
+    still says active under an older term (a deposed owner that has not noticed yet)."""
+    shards: dict[str, dict[str, Any]] = {}
+    for r in replies:
+        info = shards.setdefault(r["shard_id"], {"term": None, "owner": None, "standbys": [], "stale": []})
+        for t in (r.get("term"), r.get("newest_term")):
+            if t is not None and (info["term"] is None or t > info["term"]):
+                info["term"] = t
+    for r in replies:
+        info = shards[r["shard_id"]]
+        if r["role"] != "active":
+            info["standbys"].append(r["daemon_id"])
+        elif r.get("term") is None or r.get("term") == info["term"]:
+            info["owner"] = r["daemon_id"]
+        else:
+            info["stale"].append(r["daemon_id"])
+    return dict(sorted(shards.items()))
 
 
 def _utc(ns: int | None) -> str:

@@ -1,28 +1,30 @@
-"""Beyond one daemon: key-space shards, an admin queryable, and hot standby over Zenoh.
+"""Beyond one daemon: key-space shards, an admin queryable, and shard ownership on etcd.
 
 Shards. A daemon owns the input keys of ``keys.input``, optionally cut by
 ``cluster.shard = "i/N"``: it keeps the keys whose CRC-32 (of the UTF-8 key) modulo N is
 i - 1 (:class:`Shard`), so N daemons with ``1/N`` .. ``N/N`` split the channels with no
 overlap and no gap, whatever the keys are. Every daemon answers the queryable
-``<admin>/<daemon_id>/channels`` (:meth:`ClusterMember.admin_reply`): its shard, its role
-and each channel it serves, with the time of its last estimate; ``sinewatch status`` asks
-them all.
+``<admin>/<daemon_id>/channels`` (:meth:`ClusterMember.admin_reply`): its shard, its role,
+its term and each channel it serves, with the time of its last estimate; ``sinewatch
+status`` asks them all.
 
-Hot standby. The daemons of one shard share a ``shard_id``. The active one holds the
-liveliness token ``<admin>/shard/<shard_id>/active/<daemon_id>`` and puts the state of its
-channels (the pipeline snapshot a rotated MCAP file starts with) on
-``<admin>/shard/<shard_id>/snapshot`` every ``snapshot_interval_s``. A standby holds
-``.../standby/<daemon_id>``, keeps the latest snapshot, notes the last estimate the active
-published per channel, and watches the active token. When it goes away (the daemon died,
-or its session did) and the standby still reaches the Zenoh network, the standby takes
-over: it restores the snapshot, marks where the active left each channel
-(:class:`sinewatch.pipeline.ResumePoint`), starts a new MCAP file (which carries that
-state, so it replays on its own) and subscribes to the inputs. Blocks Zenoh's history
-brings again up to the last published one update the state without being published a
-second time; the first block after it is published, its ``gap_blocks`` counting the
-blocks nobody estimated (none when the publishers' caches covered the outage). A daemon
-that starts while its shard already has an active one stands by, so a daemon that comes
-back after a failover never publishes beside its successor.
+Ownership. With ``cluster.etcd`` set, the daemons of one shard (one ``shard_id``) elect
+its owner on an etcd lease (:mod:`sinewatch.election`): the winner serves the shard and
+stamps every estimate and snapshot with the election's term (the fencing token); it
+publishes only while it can prove its lease alive (the daemon holds its inputs back
+while the gate is shut) and stands down when it cannot for a whole TTL. The others
+stand by: they keep the newest snapshot of the shard (``<admin>/shard/<shard_id>/snapshot``,
+put by the owner every ``snapshot_interval_s``, tagged with its term), note the last
+estimate published per channel, and campaign. The one elected next restores the
+snapshot, marks where the old owner left each channel (:class:`sinewatch.pipeline.ResumePoint`),
+starts a new MCAP file (which carries that state and the new term, so it replays on its
+own) and subscribes to the inputs. Blocks Zenoh's history brings again up to the last
+published one update the state without being published a second time; the first block
+after it is published, its ``gap_blocks`` counting the blocks nobody estimated.
+
+Zenoh liveliness tokens (``.../active/<daemon_id>``, ``.../standby/<daemon_id>``) only say
+who is there; they decide nothing. Without ``cluster.etcd`` a daemon owns its shard alone
+(a worker of ``serve --workers`` too: its supervisor restarts it from its snapshots).
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ import contextlib
 import json
 import logging
 import re
-import threading
 import time
 import zlib
 from dataclasses import dataclass
@@ -40,15 +41,15 @@ from typing import Any, Protocol
 
 import zenoh
 
+from sinewatch.election import LeaseElection
 from sinewatch.pipeline import Pipeline, ResumePoint
 from sinewatch.recorder import McapRecorder
 from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.messages import Fencing
 
 log = logging.getLogger("sinewatch.cluster")
 
 ADMIN_QUERY_TIMEOUT_S = 2.0
-TAKEOVER_RECHECK_S = 0.25  # while the network is unreachable, how often a standby looks again
-RECONNECT_GRACE_S = 5.0  # after that, how long it waits for the active daemon to come back too
 
 
 class IntakeCount(Protocol):
@@ -66,6 +67,7 @@ class Host(Protocol):
     @property
     def pipeline(self) -> Pipeline: ...
     def start_intake(self) -> None: ...
+    async def stop_intake(self) -> None: ...
     def intake_counters(self) -> IntakeCount: ...
 
 
@@ -151,50 +153,59 @@ class ClusterMember:
         self.admin_key = f"{admin}/{cfg.daemon_id}/channels"
         self.active_key = f"{base}/active/{cfg.daemon_id}"
         self.standby_key = f"{base}/standby/{cfg.daemon_id}"
-        self.active_expr = f"{base}/active/*"
-        self.standby_expr = f"{base}/standby/*"
         self.snapshot_key = f"{base}/snapshot"
         self.role = "starting"
         self.takeovers = 0
-        self.latest_snapshot: bytes | None = None  # set on a Zenoh thread (one reference assignment)
-        self.published: dict[str, tuple[int, int]] = {}  # channel -> (seq, timestamp_ns) the active published
+        self.term: int | None = None  # the term this daemon owns the shard under (None: no election)
+        self.newest_term: int | None = None  # the newest term of the shard seen (own, snapshots, estimates)
+        self.election: LeaseElection | None = None
+        if cfg.cluster.etcd is not None:
+            key = f"{admin}/election/{self.shard_id}"
+            self.election = LeaseElection(cfg.cluster.etcd, key, cfg.daemon_id, cfg.cluster.lease_ttl_s)
+        # set on a Zenoh thread (one reference assignment each): (term, payload, monotonic arrival) of the newest
+        self.latest_snapshot: tuple[int, bytes, float] | None = None
+        self.published: dict[str, tuple[int, int]] = {}  # channel -> (seq, timestamp_ns) the owner published
         self._loop: asyncio.AbstractEventLoop | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._watch: list[Any] = []  # the standby's subscribers
         self._queryable: Any = None
-        self._checking = False
         self._tasks: set[asyncio.Task[None]] = set()
-        self._actives_seen: set[str] = set()  # active tokens of the shard, as the standby's subscriber saw them
-        self._lock = threading.Lock()  # _actives_seen: written on a Zenoh thread
 
     # ---- start ---------------------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
         self._queryable = self.daemon.session.declare_queryable(self.admin_key, self._on_query)
-        if self.daemon.config.cluster.role == "standby" or self._other_active():
-            self._stand_by()
-        else:
-            self._activate()
+        if self.election is None:
+            self._activate()  # no election: this daemon owns its keys alone
+            return
+        self._stand_by()
+        self._spawn(self._elect_forever())
 
     def _session(self) -> zenoh.Session:
         return self.daemon.session
 
-    def _other_active(self) -> str | None:
-        """The daemon id of another active daemon of this shard, if the network knows one:
-        from the tokens the liveliness subscriber saw come and go, and from a liveliness
-        query (both: either alone was seen to miss a live token in a freshly opened session)."""
-        with self._lock:
-            seen = sorted(self._actives_seen - {self.active_key})
-        if seen:
-            return seen[0].rsplit("/", 1)[-1]
-        for reply in self._session().liveliness().get(self.active_expr, timeout=ADMIN_QUERY_TIMEOUT_S):
-            if reply.ok is not None and str(reply.ok.key_expr) != self.active_key:
-                return str(reply.ok.key_expr).rsplit("/", 1)[-1]
-        return None
+    def may_publish(self) -> bool:
+        """The gate the daemon checks before each input: always open without an election."""
+        return self.election is None or self.election.may_publish()
 
-    def _reachable(self) -> bool:
-        info = self._session().info
-        return bool(list(info.routers_zid()) or list(info.peers_zid()))
+    async def wait_gate(self) -> bool:
+        """Wait until this daemon may publish again (True) or has lost the shard (False)."""
+        return self.election is None or await self.election.wait_gate()
+
+    async def _elect_forever(self) -> None:
+        election = self.election
+        assert election is not None
+        if self.daemon.config.cluster.role == "standby":  # the intended owner wins a cold start
+            await asyncio.sleep(election.ttl_s)
+        while self.role != "stopped":
+            won = await election.campaign()
+            if self.role == "stopped":
+                return
+            self.take_over(won.term)
+            await election.hold()
+            if self.role == "stopped":
+                return
+            await self._step_down()
 
     # ---- active ----------------------------------------------------------------------------------
     def _activate(self) -> None:
@@ -203,31 +214,50 @@ class ClusterMember:
         self._set_token(self.active_key)
         self.role = "active"
         self._spawn(self._publish_snapshots())
-        log.info("cluster: active for shard %s (%s)", self.shard_id, self.shard or self.daemon.config.keys.input)
+        log.info(
+            "cluster: active for shard %s (%s), term %s",
+            self.shard_id,
+            self.shard or self.daemon.config.keys.input,
+            self.term,
+        )
 
     async def _publish_snapshots(self) -> None:
         """Every ``snapshot_interval_s``, the state of every channel for whoever takes over
         from this daemon: a standby, or the supervisor of a worker. None listening, none is
         built: at 1,000 channels a snapshot took ~7 % of the event loop's time, tens of
         milliseconds at a time (py-spy on the daemon during ``sinewatch bench e2e --channels
-        1000``)."""
+        1000``). Only while the lease is proven alive, tagged with the term (attachment)."""
         interval = self.daemon.config.cluster.snapshot_interval_s
         publisher = self._session().declare_publisher(self.snapshot_key, encoding=zenoh.Encoding("application/json"))
+        term = self.term
         try:
-            while self.role == "active":
+            while self.role == "active" and self.term == term:
                 await asyncio.sleep(interval)
                 try:
-                    if not publisher.matching_status.matching:  # type: ignore[attr-defined]
+                    if not publisher.matching_status.matching or not self.may_publish():  # type: ignore[attr-defined]
                         continue
                     # What the state covers is on disk first: a restart from it loses no recorded input.
                     self.daemon.pipeline.flush_sinks()
                     payload = json.dumps(self.daemon.pipeline.snapshot(), separators=(",", ":")).encode()
-                    publisher.put(payload)
+                    publisher.put(payload, attachment=str(term or 0))
                 except Exception:  # a failed put (session closing) must not end the timer
                     log.exception("cluster: snapshot not published")
         finally:
             with contextlib.suppress(zenoh.ZError):
                 publisher.undeclare()  # type: ignore[no-untyped-call]
+
+    async def _step_down(self) -> None:
+        """The lease is lost (or unprovable for a TTL): stop taking inputs, remember where
+        each channel was published up to, and stand by. What was held back behind the gate
+        is the successor's (it resumes after the last published estimate)."""
+        log.warning("cluster: no longer the owner of shard %s (term %s): standing by", self.shard_id, self.term)
+        self.role = "standby"
+        await self.daemon.stop_intake()
+        for ch in self.daemon.pipeline.channels.values():
+            if ch.last_seq is not None and ch.next_t0_ns is not None:
+                self.published[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
+        self.term = None
+        self._stand_by()
 
     # ---- standby ---------------------------------------------------------------------------------
     def _stand_by(self) -> None:
@@ -237,93 +267,55 @@ class ClusterMember:
         self._watch = [
             session.declare_subscriber(self.snapshot_key, self._on_snapshot),
             session.declare_subscriber(f"{self.daemon.config.keys.estimates_prefix}/**", self._on_estimate),
-            session.liveliness().declare_subscriber(self.active_expr, self._on_active_token, history=True),
         ]
         log.info("cluster: standby for shard %s", self.shard_id)
-        if self._loop is not None:  # no active daemon at all: after a grace (it may be starting), take over
-            self._loop.call_later(2 * self.daemon.config.cluster.snapshot_interval_s, self._check_takeover)
 
     def _on_snapshot(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
         try:  # only a daemon may put here (the router's access control); still, keep only snapshots
             ok = isinstance(json.loads(payload).get("channels"), list)
+            term = int(sample.attachment.to_string()) if sample.attachment is not None else 0
         except (ValueError, AttributeError):
             ok = False
-        if ok:
-            self.latest_snapshot = payload
-        else:
+        if not ok:
             log.warning("cluster: %d bytes on %s are not a snapshot: ignored", len(payload), self.snapshot_key)
+            return
+        latest = self.latest_snapshot
+        if latest is None or term >= latest[0]:  # an older term's late snapshot never replaces a newer one
+            self.latest_snapshot = (term, payload, time.monotonic())
+            self._note_term(term)
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
         try:
             msg = json.loads(sample.payload.to_bytes())
+            fencing = msg.get("fencing")
+            if fencing is not None:
+                if fencing["shard"] != self.shard_id:
+                    return  # another shard's channel: never ours to resume
+                if self.newest_term is not None and fencing["term"] < self.newest_term:
+                    return  # a deposed owner's late estimate: not what the shard's readers keep
+                self._note_term(int(fencing["term"]))
             self.published[msg["channel"]] = (int(msg["seq"]), int(msg["timestamp_ns"]))
         except (ValueError, KeyError, TypeError):
             return  # not an Estimate: nothing to note
 
-    def _on_active_token(self, sample: zenoh.Sample) -> None:
-        with self._lock:
-            (self._actives_seen.add if sample.kind == zenoh.SampleKind.PUT else self._actives_seen.discard)(
-                str(sample.key_expr)
-            )
-        if sample.kind == zenoh.SampleKind.DELETE:
-            log.warning("cluster: active daemon %s of shard %s is gone", str(sample.key_expr), self.shard_id)
-            self._call(self._check_takeover)
+    def _note_term(self, term: int) -> None:
+        if term and (self.newest_term is None or term > self.newest_term):
+            self.newest_term = term
 
-    def _check_takeover(self) -> None:
-        if self.role == "standby" and not self._checking:
-            self._checking = True
-            self._spawn(self._takeover_when_alone())
-
-    async def _takeover_when_alone(self) -> None:
-        """Take over once the network is reachable and has no active daemon for the shard;
-        standbys ranked by id go in turn, so only one of several takes over. After the
-        network was unreachable (a router restart), wait a grace period first: the active
-        daemon's token comes back with its session, not at once."""
-        # Zenoh retries a lost link after 1, 2, 4, 4 ... s: the active daemon may reach the
-        # network again up to 4 s after this one, with its token.
-        grace = max(2 * self.daemon.config.cluster.snapshot_interval_s, RECONNECT_GRACE_S)
-        was_cut_off = False
-        try:
-            while self.role == "standby":
-                if not await asyncio.to_thread(self._reachable):
-                    was_cut_off = True
-                    await asyncio.sleep(TAKEOVER_RECHECK_S)
-                    continue
-                if was_cut_off:
-                    was_cut_off = False
-                    await asyncio.sleep(grace)
-                    continue  # look again: still reachable?
-                if await asyncio.to_thread(self._other_active) is not None:
-                    return  # the active daemon is there (back, or never gone)
-                rank = await asyncio.to_thread(self._standby_rank)
-                if rank == 0:
-                    self.take_over()
-                    return
-                await asyncio.sleep(rank * self.daemon.config.cluster.snapshot_interval_s)
-        finally:
-            self._checking = False
-
-    def _standby_rank(self) -> int:
-        ids = sorted(
-            str(r.ok.key_expr).rsplit("/", 1)[-1]
-            for r in self._session().liveliness().get(self.standby_expr, timeout=ADMIN_QUERY_TIMEOUT_S)
-            if r.ok is not None
-        )
-        me = self.daemon.config.daemon_id
-        return ids.index(me) if me in ids else 0
-
-    def take_over(self) -> None:
-        """Restore the latest snapshot, mark where the active daemon left each channel,
-        start a new recording file and serve the shard."""
+    def take_over(self, term: int | None = None) -> None:
+        """Restore the newest snapshot, mark where the previous owner left each channel,
+        start a new recording file (with this state and ``term``) and serve the shard."""
         started = time.monotonic()
+        succeeds = self.latest_snapshot is not None or bool(self.published)  # not a cold start: someone served
         for sub in self._watch:
             sub.undeclare()
         self._watch = []
         pipeline = self.daemon.pipeline
-        if self.latest_snapshot is not None:
+        latest = self.latest_snapshot
+        if latest is not None:
             try:
-                pipeline.restore(json.loads(self.latest_snapshot))
+                pipeline.restore(json.loads(latest[1]))
             except Exception:  # a snapshot that does not restore must not stop the takeover
                 log.exception("cluster: the snapshot of shard %s does not restore; serving from scratch", self.shard_id)
                 pipeline.channels.clear()
@@ -333,13 +325,17 @@ class ClusterMember:
             next_t0 = timestamp_ns + round(1e9 / ch.sample_rate_hz) if ch is not None else None
             if ch is None or ch.last_seq is None or ch.last_seq < seq:
                 pipeline.resume_points[name] = ResumePoint(seq, next_t0)
+        self.term = term
+        self._note_term(term or 0)
+        pipeline.set_fencing(Fencing(shard=self.shard_id, term=term) if term is not None else None)
         if self.daemon.recorder is not None:
-            self.daemon.recorder.rotate()  # the new file carries this state: it replays on its own
-        self.takeovers += 1
+            self.daemon.recorder.rotate()  # the new file carries this state and term: it replays on its own
+        self.takeovers += succeeds
         self._activate()
         log.warning(
-            "cluster: took over shard %s: %d channel(s) from the snapshot, %d resume point(s), in %.0f ms",
+            "cluster: took over shard %s (term %s): %d channel(s) from the snapshot, %d resume point(s), in %.0f ms",
             self.shard_id,
+            term,
             len(pipeline.channels),
             len(pipeline.resume_points),
             (time.monotonic() - started) * 1e3,
@@ -363,7 +359,8 @@ class ClusterMember:
                 for ch in self.daemon.pipeline.channels.values()
             ]
         else:  # what it would take over: the channels of the latest snapshot, as last published
-            snapshot = json.loads(self.latest_snapshot) if self.latest_snapshot is not None else {"channels": []}
+            latest = self.latest_snapshot
+            snapshot = json.loads(latest[1]) if latest is not None else {"channels": []}
             channels = []
             for item in snapshot["channels"]:
                 seq, ts = self.published.get(item["name"], (item["last_seq"], None))
@@ -376,12 +373,16 @@ class ClusterMember:
                         "last_estimate_ns": ts,
                     }
                 )
+        election = self.election
         return {
             "daemon_id": cfg.daemon_id,
             "shard_id": self.shard_id,
             "shard": str(self.shard) if self.shard else None,
             "input": cfg.keys.input,
             "role": self.role,
+            "term": self.term,
+            "newest_term": self.newest_term,
+            "lease_proven": None if election is None else election.may_publish(),
             "takeovers": self.takeovers,
             "not_owned": self.daemon.intake_counters().not_owned,
             "channels": sorted(channels, key=lambda c: c["channel"]),
@@ -409,17 +410,19 @@ class ClusterMember:
             self._token.undeclare()  # type: ignore[no-untyped-call]
         self._token = self._session().liveliness().declare_token(key)
 
-    def _call(self, fn: Any) -> None:
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(fn)
-
     def _spawn(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._done)
 
-    def close(self) -> None:
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("cluster: task failed", exc_info=task.exception())
+
+    async def close(self) -> None:
+        """After the daemon's last estimate: give the shard up (the lease is revoked, so a
+        standby takes over at once rather than after the TTL)."""
         self.role = "stopped"
         for task in self._tasks:
             task.cancel()
@@ -431,3 +434,5 @@ class ClusterMember:
         if self._token is not None:
             self._token.undeclare()  # type: ignore[no-untyped-call]
             self._token = None
+        if self.election is not None:
+            await self.election.close()

@@ -215,6 +215,7 @@ class Daemon:
         self._started = time.monotonic()
         self._last_log_time = 0
         self.cluster: ClusterMember | None = None
+        self.handed_over = 0  # inputs received while owning a shard, left to the successor (lost the lease)
         self.notifier = Notifier()
         self.foxglove: FoxgloveSink | None = None
         self.metrics: MetricsServer | None = None
@@ -266,27 +267,47 @@ class Daemon:
             if batch is None:
                 return
             try:
-                self._process(batch)
+                await self._process_gated(batch)
             except Exception:  # the pipeline isolates faults; this is the last line of defence
                 log.exception("batch of %d inputs not fully processed", len(batch))
+            finally:
+                self._queued -= len(batch)
+                if self._intake is not None:
+                    intake = self._intake
+                    intake.release(sum(intake.weight(item[1]) for item in batch))
             # Queue.get() does not yield while batches wait: without this, a backlog would keep
             # the heartbeat, status and flush timers from running until it is gone (a watchdog
             # or a supervisor would then take the busy daemon for a stuck one).
             await asyncio.sleep(0)
 
-    def _process(self, batch: list[Item]) -> None:
-        try:
-            for key, payload, encoding, received in batch:
-                if self.force_exit.is_set():
+    async def _process_gated(self, batch: list[Item]) -> None:
+        """Process the batch, block by block, while this daemon may publish (an elected
+        owner: while its lease is proven alive). When the gate shuts, the rest waits for it
+        to open again; if the shard is lost meanwhile, the rest is the successor's."""
+        done = 0
+        cluster = self.cluster
+        while done < len(batch):
+            if cluster is not None and not cluster.may_publish():
+                if not await cluster.wait_gate():
+                    self.handed_over += len(batch) - done
                     return
-                self.pipeline.process(key, payload, encoding, self._log_time(), received)
-                if self._latency is not None:
-                    self._latency.observe_ns(time.monotonic_ns() - received)
-        finally:
-            self._queued -= len(batch)
-            if self._intake is not None:
-                intake = self._intake
-                intake.release(sum(intake.weight(item[1]) for item in batch))
+            done += self._process(batch, done)
+            if self.force_exit.is_set():
+                return
+
+    def _process(self, batch: list[Item], start: int = 0) -> int:
+        """Process ``batch[start:]`` until its end or the gate shuts; return how many."""
+        cluster = self.cluster
+        gated = cluster is not None and cluster.election is not None
+        n = 0
+        for key, payload, encoding, received in batch[start:]:
+            if self.force_exit.is_set() or (gated and not cluster.may_publish()):  # type: ignore[union-attr]
+                break
+            n += 1
+            self.pipeline.process(key, payload, encoding, self._log_time(), received)
+            if self._latency is not None:
+                self._latency.observe_ns(time.monotonic_ns() - received)
+        return n
 
     # ---- periodic tasks -------------------------------------------------------------------------
     def intake_counters(self) -> IntakeCounters:
@@ -446,6 +467,13 @@ class Daemon:
         if self._intake is None:
             self._intake = Intake(self, asyncio.get_running_loop())
 
+    async def stop_intake(self) -> None:
+        """Unsubscribe from the inputs (an owner that lost its shard): what is queued is
+        dropped by the consumer (the gate no longer opens), counted in ``handed_over``."""
+        if self._intake is not None:
+            await self._intake.stop()  # the consumer releases the room of what it drops meanwhile
+            self._intake = None
+
     def _start_operations(self) -> None:
         """The Foxglove server and the metrics server, when configured."""
         fox, met = self.config.foxglove, self.config.metrics
@@ -504,7 +532,7 @@ class Daemon:
         await consumer
         self.publish_status()
         if self.cluster is not None:  # only now: a standby takes over after our last estimate
-            self.cluster.close()
+            await self.cluster.close()
         c = self.pipeline.counters
         log.info(
             "%s: %d inputs, %d estimates, %d errors",

@@ -43,6 +43,7 @@ from sinewatch.estimators.presence import SignalPresence
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
     Block,
+    dumps,
     encode_error,
     encode_estimate_values,
     finite_or_none,
@@ -58,6 +59,7 @@ from sinewatch.schemas.messages import (
     ErrorKind,
     ErrorReport,
     Estimate,
+    Fencing,
     Uncertainty,
 )
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION
@@ -337,9 +339,17 @@ class Pipeline:
         self._rule_cache: dict[str, EstimatorRule | None] = {}
         self._frame_keys: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {}  # (frame key, names) -> channel keys
         self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
+        self.fencing: Fencing | None = None  # the shard and term this daemon owns its channels under (cluster)
+        self._fencing_json = "null"
         self.pq = PqStage(
             config, _key_matches, pq_version
         )  # power quality (harmonics, groups, aggregates): off unless configured
+
+    def set_fencing(self, fencing: Fencing | None) -> None:
+        """The shard and election term every estimate from now on carries (format 4): set
+        by the cluster when this daemon wins its shard's election, and by a snapshot."""
+        self.fencing = fencing
+        self._fencing_json = "null" if fencing is None else dumps(fencing.model_dump()).decode()
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(
@@ -835,6 +845,7 @@ class Pipeline:
             restart,
             reset,
             {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
+            self._fencing_json,
         )
         return payload, converged
 
@@ -911,9 +922,12 @@ class Pipeline:
                 else {}
             ),
             **({"power_quality": self.pq.snapshot()} if self.pq.enabled else {}),
+            **({"fencing": self.fencing.model_dump()} if self.fencing is not None else {}),
         }
 
     def restore(self, snapshot: dict[str, Any]) -> None:
+        if "fencing" in snapshot:  # the term the estimates after this state were published under
+            self.set_fencing(Fencing.model_validate(snapshot["fencing"]))
         for item in snapshot["channels"]:
             est = get_estimator(item["estimator"]["estimator"]).from_state(item["estimator"])
             ch = Channel(
@@ -1028,6 +1042,7 @@ def estimate_model(
     gap_blocks: int,
     restart: bool,
     reset: bool,
+    fencing: Fencing | None = None,
 ) -> Estimate:
     """The Estimate the pipeline's bytes encode, as the pydantic model: the schema's way of
     building it, what :meth:`Pipeline._estimate_payload` equals byte for byte (tests)."""
@@ -1053,6 +1068,7 @@ def estimate_model(
             reset=reset,
             extras={k: _last_value(v) for k, v in track.extras.items()},
         ),
+        fencing=fencing,
     )
 
 

@@ -39,7 +39,7 @@ from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, SinewatchError
 from sinewatch.schemas.frame import Frame, decode_input
 from sinewatch.schemas.input_record import INPUT_MESSAGE_ENCODING, decode_input_record
-from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, Fencing
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 from sinewatch.track import TRACK_ROLE, TrackingPipeline, TrackWriter
 from sinewatch.window import ChannelFilter, Window
@@ -433,6 +433,8 @@ def _replay_run(
                     pending_snapshot = item
                     if pipeline is not None:
                         pipeline.restore(item)
+                elif pipeline is not None and "fencing" in item:  # a new term from this file on (a takeover)
+                    pipeline.set_fencing(Fencing.model_validate(item["fencing"]))
             elif kind == "incomplete":
                 log.warning("%s ends early (%s): replayed its complete chunks", path, item)
                 result.r.incomplete_files.append(path)

@@ -14,11 +14,18 @@
 
 from sinewatch.clients.publisher import BlockPublisher
 from sinewatch.clients.session import DEFAULT_CONNECT, connect
-from sinewatch.clients.subscriber import JsonSubscription, subscribe_errors, subscribe_estimates, subscribe_status
+from sinewatch.clients.subscriber import (
+    Fence,
+    JsonSubscription,
+    subscribe_errors,
+    subscribe_estimates,
+    subscribe_status,
+)
 
 __all__ = [
     "DEFAULT_CONNECT",
     "BlockPublisher",
+    "Fence",
     "JsonSubscription",
     "connect",
     "subscribe_errors",

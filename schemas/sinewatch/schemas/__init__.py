@@ -13,6 +13,7 @@ from sinewatch.schemas.messages import (
     ErrorKind,
     ErrorReport,
     Estimate,
+    Fencing,
     SampleBlock,
     Status,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "ErrorKind",
     "ErrorReport",
     "Estimate",
+    "Fencing",
     "SampleBlock",
     "Status",
     "__version__",

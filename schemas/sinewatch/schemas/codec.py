@@ -279,9 +279,11 @@ def dumps(msg: dict[str, Any]) -> bytes:
 
 
 def encode_estimate(estimate: Estimate, version: int = ESTIMATE_FORMAT_VERSION) -> bytes:
-    """The Estimate's JSON bytes in wire-format ``version`` (3, or 2 or 1 for replaying
+    """The Estimate's JSON bytes in wire-format ``version`` (4, or 3, 2 or 1 for replaying
     recordings of earlier builds: the same bytes those builds wrote)."""
     exclude: dict[str, Any] = {}
+    if version < 4:
+        exclude.update(dict.fromkeys(Estimate.V4_FIELDS, True))
     if version < 3:
         exclude.update(dict.fromkeys(Estimate.V3_FIELDS, True))
         exclude["diagnostics"] = set(Estimate.V3_DIAGNOSTICS)
@@ -330,6 +332,7 @@ def encode_estimate_values(
     restart: bool,
     reset: bool,
     extras: dict[str, float | list[float | None] | None],
+    fencing_json: str = "null",
 ) -> bytes:
     """The same bytes as ``encode_estimate(Estimate(...), version)`` for these fields, without
     building the model (the pipeline's hot path: one estimate per block).
@@ -339,7 +342,8 @@ def encode_estimate_values(
     ``gap_blocks`` Python ints (``gap_blocks >= 0``), ``std`` as (frequency_hz, amplitude,
     phase_rad, offset); ``channel_json`` and ``estimator_json`` are :func:`json_string` of
     the names (callers cache them). tests/test_codec_estimate_fast.py proves the bytes equal
-    to the model's over every version, null values, std, rocof and extras."""
+    to the model's over every version, null values, std, rocof and extras. ``fencing_json``
+    is the ``fencing`` object as :func:`dumps` writes it (format 4; the caller caches it)."""
     sec, nsec = divmod(timestamp_ns, 1_000_000_000)
     head = (
         f'{{"format_version":{version},"channel":{channel_json},"seq":{seq},"timestamp_ns":{timestamp_ns},'
@@ -361,7 +365,8 @@ def encode_estimate_values(
         + (f'"valid":{"true" if valid else "false"},' if version >= 3 else "")
         + f'"residual_rms":{_number(residual_rms)},"gap":{"true" if gap else "false"},"gap_blocks":{gap_blocks},'
         f'"restart":{"true" if restart else "false"},"reset":{"true" if reset else "false"},'
-        f'"extras":{_ENCODER.encode(extras) if extras else "{}"}}}}}'
+        f'"extras":{_ENCODER.encode(extras) if extras else "{}"}}}'
+        + (f',"fencing":{fencing_json}}}' if version >= 4 else "}")
     )
     return (head + tail).encode("ascii")
 

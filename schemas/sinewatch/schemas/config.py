@@ -318,8 +318,11 @@ class RecordingSection(_Section):
 
 
 class ClusterSection(_Section):
-    """Several daemons behind Zenoh routers: each owns a shard of the channels; a standby
-    for a shard takes over when the active daemon's liveliness token goes away.
+    """Several daemons behind Zenoh routers: each owns a shard of the channels. With
+    ``etcd`` set, the daemons of one shard elect its owner on an etcd lease: the owner
+    publishes only while it can prove its lease alive, and every estimate carries the
+    election's term (the fencing token); the others stand by and take over when the
+    lease expires. Without ``etcd`` a daemon owns its shard alone (no standby).
 
     A shard is the key space the daemon subscribes to (``keys.input``, e.g.
     ``sinewatch/in/site1/**``), optionally cut further by ``shard = "i/N"``: the daemon then
@@ -342,10 +345,32 @@ class ClusterSection(_Section):
     )
     role: Literal["active", "standby"] = Field(
         "active",
-        description="active: serve the shard unless another daemon already does (then stand by); "
-        "standby: serve it only when its active daemon goes away",
+        description="active: campaign for the shard at once; standby: campaign once the shard has had an owner "
+        "for a lease TTL (so the intended owner wins a cold start); needs etcd",
     )
     snapshot_interval_s: float = Field(1.0, gt=0, description="How often the active daemon publishes its state")
+    etcd: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_.\-\[\]:]+:[0-9]+$",
+        description="host:port of the etcd server that elects each shard's owner; unset: no election, this daemon "
+        "owns its shard alone",
+    )
+    lease_ttl_s: int = Field(
+        3,
+        ge=2,
+        le=60,
+        description="TTL of the owner's etcd lease, whole seconds (etcd's unit; it grants no less than 2 with its "
+        "default timings). A deposed owner stops publishing within it; its successor takes over after it",
+    )
+
+    @model_validator(mode="after")
+    def _standby_needs_etcd(self) -> ClusterSection:
+        if self.role == "standby" and self.etcd is None:
+            raise ValueError(
+                "cluster.role: expected 'active' without cluster.etcd (a standby takes over through an etcd "
+                "election), got 'standby'"
+            )
+        return self
 
     @field_validator("shard")
     @classmethod

@@ -15,7 +15,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
 
 FORMAT_VERSION = 1  # SampleBlock, SampleFrame, ErrorReport, Status
-ESTIMATE_FORMAT_VERSION = 3  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid (see Estimate)
+ESTIMATE_FORMAT_VERSION = 4  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid, 4 fencing (see Estimate)
 
 CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 
@@ -141,18 +141,29 @@ class Uncertainty(_Message):
     offset: float | None
 
 
+class Fencing(_Message):
+    """Who published an estimate: the shard and the term of its owner's election (an etcd
+    revision, increasing with every election). A reader that has seen a newer term of a
+    shard drops what an older term publishes after it (a deposed owner that has not noticed
+    yet)."""
+
+    shard: str = Field(description="The shard's shard_id")
+    term: int = Field(ge=1, description="The election's term: the etcd revision that made this daemon the owner")
+
+
 class Estimate(_Message):
     """The estimate at the last sample of one input block.
 
     y = offset + sum_k amplitude[k] * sin(phase_rad[k]); phase at ``timestamp_ns``.
 
     Version 2 added ``rocof_hz_per_s`` and ``std``; version 3 ``timestamp`` (``{sec, nsec}``,
-    exact in JavaScript) and ``diagnostics.valid``. An earlier version is this message without
+    exact in JavaScript) and ``diagnostics.valid``; version 4 ``fencing`` (null from a daemon
+    that owns its channels without an election). An earlier version is this message without
     the later fields and with its own ``format_version``, byte for byte what earlier builds
     wrote: replay renders estimates in the version of the recording it checks.
     """
 
-    format_version: Literal[1, 2, 3] = 3
+    format_version: Literal[1, 2, 3, 4] = 4
     channel: str
     seq: int = Field(description="Sequence number of the input block")
     timestamp_ns: int = Field(
@@ -173,9 +184,13 @@ class Estimate(_Message):
     )
     std: Uncertainty | None = Field(None, description="Standard deviations of the estimates; null when unknown")
     diagnostics: Diagnostics
+    fencing: Fencing | None = Field(
+        None, description="The shard and election term of the daemon that published it (format version 4)"
+    )
 
     V2_FIELDS: ClassVar[frozenset[str]] = frozenset({"rocof_hz_per_s", "std"})
     V3_FIELDS: ClassVar[frozenset[str]] = frozenset({"timestamp"})
+    V4_FIELDS: ClassVar[frozenset[str]] = frozenset({"fencing"})
     V3_DIAGNOSTICS: ClassVar[frozenset[str]] = frozenset({"valid"})
 
     @model_validator(mode="after")

@@ -1,0 +1,260 @@
+"""Who owns a shard: an election on an etcd lease, and the local deadline that gates publishing.
+
+The recipe is etcd's own (``concurrency.Election`` of the Go client, on one key): a
+candidate grants a lease of ``ttl`` seconds and, in one transaction, creates the shard's
+election key attached to it if the key does not exist. The one whose transaction created
+the key owns the shard; the key's create revision is the election's **term**, which grows
+with every election (etcd revisions never go back while its data is kept), so it serves
+as a fencing token. The others read the key every ``POLL_S`` and try again once it is gone,
+which etcd makes it when the owner's lease expires (or is revoked).
+
+The owner keeps its lease alive (a keep-alive every ``ttl / 6``) and may publish only
+while it can *prove* the lease alive: etcd restarts a lease's countdown when it receives a
+keep-alive, so a keep-alive sent at local time ``t`` and acknowledged keeps the lease alive
+until at least ``t + ttl``. The deadline is ``t + ttl - guard`` (``guard = ttl / 4``),
+strictly inside the TTL: by the time a successor can have been elected, the old owner's
+own clock has told it to stop. What the gate holds back is not lost: the daemon stops
+taking inputs while the gate is shut and resumes when a keep-alive is acknowledged again
+(the lease, and so the key, was never gone), or hands them to its successor if the lease
+is lost (the successor restores the last snapshot and resumes after the last published
+estimate). A pause that strikes between the check and the put (a SIGSTOP, a long GC) can
+still let one estimate out late: its term is older than the successor's, and readers drop
+it (:class:`sinewatch.clients.Fence`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("sinewatch.election")
+
+# gRPC retries a lost connection after 1 s, then backs off to 120 s by default: an etcd
+# restart would then keep every daemon from its lease for far longer than the TTL.
+_GRPC_OPTIONS = {
+    "grpc.initial_reconnect_backoff_ms": 100,
+    "grpc.min_reconnect_backoff_ms": 100,
+    "grpc.max_reconnect_backoff_ms": 500,
+    "grpc.keepalive_time_ms": 1000,
+    "grpc.keepalive_timeout_ms": 1000,
+    "grpc.keepalive_permit_without_calls": 1,
+}
+
+
+POLL_S = 0.2  # how often a standby reads the election key while it is held
+
+
+@dataclass
+class Won:
+    term: int  # the create revision of the election key: this election's fencing token
+    lease_id: int
+
+
+class LeaseElection:
+    """One candidate for one shard (``key``), on one etcd endpoint (``host:port``).
+
+    :meth:`campaign` returns once this candidate owns the shard; :meth:`hold` keeps the
+    lease alive and returns when ownership can no longer be proven for a whole TTL (the
+    lease expired, or etcd was out of reach that long); :meth:`may_publish` is the gate.
+
+    The etcd client runs on a thread of its own (its own event loop): a keep-alive must
+    not wait behind the daemon's work (a backlog of blocks, restoring a snapshot), which
+    on a loaded machine took longer than the TTL and deposed a healthy owner. The daemon's
+    loop awaits :meth:`campaign` and :meth:`hold` and reads the deadline (one float).
+    """
+
+    def __init__(self, endpoint: str, key: str, identity: str, ttl_s: int) -> None:
+        host, _, port = endpoint.rpartition(":")
+        self.host, self.port = host.strip("[]"), int(port)
+        self.key = key.encode()
+        self.identity = identity.encode()
+        self.ttl_s = ttl_s
+        self.guard_s = ttl_s / 4
+        self.keepalive_s = ttl_s / 6
+        self.call_timeout_s = ttl_s / 2
+        self.deadline = 0.0  # monotonic: publish only before it
+        self.owner = False
+        self.won: Won | None = None
+        self.keepalives = 0
+        self._last_ack_sent = 0.0  # monotonic time the last acknowledged keep-alive was sent
+        self._changed: asyncio.Event | None = None  # on the daemon's loop
+        self._daemon_loop: asyncio.AbstractEventLoop | None = None
+        self._client: Any = None
+        self._running: set[concurrent.futures.Future[Any]] = set()
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="sinewatch-etcd", daemon=True)
+        self._thread.start()
+
+    # ---- the gate (daemon loop) -------------------------------------------------------------------
+    def may_publish(self) -> bool:
+        """True while the lease is proven alive (checked before every block)."""
+        return self.owner and time.monotonic() < self.deadline
+
+    async def wait_gate(self) -> bool:
+        """Wait until the gate opens again (True) or ownership is lost (False)."""
+        changed = self._event()
+        while self.owner:
+            if time.monotonic() < self.deadline:
+                return True
+            changed.clear()
+            await changed.wait()
+        return False
+
+    def _event(self) -> asyncio.Event:
+        if self._changed is None:
+            self._daemon_loop = asyncio.get_running_loop()
+            self._changed = asyncio.Event()
+        return self._changed
+
+    def _notify(self) -> None:
+        """From the etcd thread: wake the daemon's waiters (the deadline or ownership changed)."""
+        loop, event = self._daemon_loop, self._changed
+        if loop is not None and event is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(event.set)
+
+    async def _on_etcd(self, coro: Any) -> Any:
+        self._event()
+        future = asyncio.run_coroutine_threadsafe(coro, self._loop)
+        self._running.add(future)
+        future.add_done_callback(self._running.discard)
+        return await asyncio.wrap_future(future)
+
+    async def campaign(self) -> Won:
+        return await self._on_etcd(self._campaign())  # type: ignore[no-any-return]
+
+    async def hold(self) -> None:
+        await self._on_etcd(self._hold())
+
+    # ---- etcd (its thread) ---------------------------------------------------------------------
+    def _etcd(self) -> Any:
+        if self._client is None:
+            import aetcd  # the cluster extra: imported only by a daemon configured with cluster.etcd
+
+            self._client = aetcd.Client(self.host, self.port, options=dict(_GRPC_OPTIONS))
+        return self._client
+
+    async def _call(self, coro: Any, timeout: float | None = None) -> Any:
+        return await asyncio.wait_for(coro, timeout or self.call_timeout_s)
+
+    async def _campaign(self) -> Won:
+        """Until elected: try to create the key on a fresh lease; otherwise watch it go."""
+        while True:
+            try:
+                won, revision = await self._try_once()
+                if won is not None:
+                    return won
+                await self._wait_for_delete(revision)
+            except Exception as exc:  # noqa: BLE001 (etcd unreachable, restarting, a call cut short: try again)
+                log.info(
+                    "election %s: etcd not answering (%s: %s); trying again", self.key.decode(), type(exc).__name__, exc
+                )
+                await asyncio.sleep(min(0.25, self.keepalive_s))
+
+    async def _try_once(self) -> tuple[Won | None, int]:
+        client = self._etcd()
+        sent = time.monotonic()
+        lease = await self._call(client.lease(self.ttl_s), self.ttl_s)
+        tx = client.transactions
+        ok, responses = await self._call(
+            client.transaction(
+                compare=[tx.create(self.key) == 0],
+                success=[tx.put(self.key, self.identity, lease=lease.id), tx.get(self.key)],
+                failure=[tx.get(self.key)],
+            ),
+            self.ttl_s,
+        )
+        kvs = responses[-1]
+        revision = kvs[0][1].header.revision if kvs else 0
+        if ok:
+            self.won = Won(term=kvs[0][1].create_revision, lease_id=lease.id)
+            self.owner = True
+            self._ack(sent)
+            return self.won, revision
+        self._spawn_revoke(lease.id)  # a lease nobody uses: gone at once rather than after its TTL
+        return None, revision
+
+    async def _wait_for_delete(self, revision: int) -> None:
+        """Until the key is gone: a read every ``POLL_S`` (a range request, the cheapest call
+        etcd has). A watch would tell at once, but aetcd's ``watch_once`` was seen to hang
+        for good in its cancellation after the event had come (a standby that never took
+        over); a read cannot hang past its timeout."""
+        client = self._etcd()
+        while True:
+            await asyncio.sleep(POLL_S)
+            if await self._call(client.get(self.key)) is None:
+                log.info("election %s: the owner's key is gone (after revision %d)", self.key.decode(), revision)
+                return
+
+    def _ack(self, sent: float) -> None:
+        self._last_ack_sent = sent
+        self.deadline = sent + self.ttl_s - self.guard_s
+        self._notify()
+
+    async def _hold(self) -> None:
+        """Keep the lease alive while this daemon owns the shard; return when it is lost."""
+        won = self.won
+        assert won is not None
+        client = self._etcd()
+        try:
+            while True:
+                sent = time.monotonic()
+                reply: Any = None
+                try:
+                    reply = await self._call(client.refresh_lease(won.lease_id))
+                except Exception as exc:  # noqa: BLE001 (unreachable etcd: the deadline decides)
+                    log.debug("election %s: keep-alive failed: %s", self.key.decode(), exc)
+                if reply is not None and reply.TTL > 0:
+                    self.keepalives += 1
+                    self._ack(sent)
+                elif reply is not None:  # etcd says the lease is gone: so is the key
+                    log.warning("election %s: lease %x expired", self.key.decode(), won.lease_id)
+                    return
+                elif time.monotonic() >= self._last_ack_sent + self.ttl_s:
+                    log.warning("election %s: no keep-alive acknowledged for a TTL: stepping down", self.key.decode())
+                    return
+                await asyncio.sleep(max(0.0, sent + self.keepalive_s - time.monotonic()))
+        finally:
+            self.owner = False
+            self.deadline = 0.0
+            self._notify()
+            self._spawn_revoke(won.lease_id)  # if etcd still holds it, the successor need not wait for its TTL
+
+    def _spawn_revoke(self, lease_id: int) -> None:
+        async def revoke() -> None:
+            with contextlib.suppress(Exception):
+                await self._call(self._etcd().revoke_lease(lease_id))
+
+        task = asyncio.ensure_future(revoke())
+        _background.add(task)
+        task.add_done_callback(_background.discard)
+
+    async def _close(self) -> None:
+        won, self.won = self.won, None
+        if self._client is not None:
+            if won is not None:
+                with contextlib.suppress(Exception):
+                    await self._call(self._client.revoke_lease(won.lease_id))
+            with contextlib.suppress(Exception):
+                await self._client.close()
+            self._client = None
+
+    async def close(self) -> None:
+        """Give the shard up now (a graceful stop): revoke the lease, so a successor need
+        not wait for its TTL; then end the etcd thread."""
+        self.owner = False
+        self.deadline = 0.0
+        self._notify()
+        for future in list(self._running):  # a campaign or a hold still running there
+            future.cancel()  # thread-safe: cancels its task on the etcd thread's loop
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self._on_etcd(self._close()), self.ttl_s)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+
+
+_background: set[asyncio.Task[None]] = set()

@@ -1,0 +1,353 @@
+"""Processes of a sinewatch cluster for the cluster tests: an etcd server (the one `make
+etcd` installs), a Zenoh router (`sinewatch router`), `sinewatch serve` daemons, a TCP
+proxy that can cut one daemon off from etcd, a CPU burner, and a subscriber that records
+every estimate with its fencing token and arrival time."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from sinewatch.clients import Fence
+from sinewatch.clients.session import free_loopback_port
+
+WAIT = 60.0  # the longest any condition may take on a loaded 2-core machine
+
+
+def etcd_binary() -> str:
+    path = shutil.which("etcd")
+    if path is None:
+        pytest.fail("no etcd on PATH: `make etcd` installs Debian's etcd-server")
+    return path
+
+
+class Etcd:
+    """A single-member etcd on loopback, restartable on the same data and port."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.port = free_loopback_port()
+        self.peer_port = free_loopback_port()
+        self.data_dir = data_dir
+        self.proc: subprocess.Popen[str] | None = None
+        self.endpoint = f"127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        url, peer = f"http://127.0.0.1:{self.port}", f"http://127.0.0.1:{self.peer_port}"
+        self.proc = subprocess.Popen(
+            [etcd_binary(), "--name", "sw", "--data-dir", str(self.data_dir), "--listen-client-urls", url,
+             "--advertise-client-urls", url, "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
+             "--initial-cluster", f"sw={peer}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:  # its log, until it serves clients
+            if "ready to serve client requests" in line:
+                break
+        else:
+            raise AssertionError(f"etcd ended before serving (exit {self.proc.wait()})")
+        threading.Thread(target=self.proc.stderr.read, daemon=True).start()  # keep its pipe drained
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+            self.proc.wait()
+
+
+@contextlib.contextmanager
+def etcd_server(tmp_path: Path) -> Iterator[Etcd]:
+    server = Etcd(tmp_path / "etcd-data")
+    server.start()
+    try:
+        yield server
+    finally:
+        server.kill()
+
+
+class Router:
+    def __init__(self) -> None:
+        self.port = free_loopback_port()
+        self.proc: subprocess.Popen[str] | None = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "sinewatch", "router", "--listen", f"tcp/127.0.0.1:{self.port}"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert self.proc.stdout is not None and self.proc.stdout.readline().startswith("sinewatch router: listening")
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+            self.proc.wait()
+
+
+class Proxy:
+    """TCP between one daemon and etcd, which the test can sever (every connection closed,
+    new ones refused at once) and heal: an owner cut off from etcd but still on Zenoh."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target = target_port
+        self.cut = False
+        self._lock = threading.Lock()
+        self._conns: list[socket.socket] = []
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self._listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return
+            with self._lock:
+                if self.cut:
+                    client.close()
+                    continue
+                try:
+                    upstream = socket.create_connection(("127.0.0.1", self.target), timeout=2)
+                except OSError:
+                    client.close()
+                    continue
+                upstream.settimeout(None)
+                self._conns += [client, upstream]
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(src: socket.socket, dst: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := src.recv(65536):
+                dst.sendall(data)
+        for s in (src, dst):
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
+
+    def sever(self) -> None:
+        with self._lock:
+            self.cut = True
+            conns, self._conns = self._conns, []
+        for s in conns:
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
+            s.close()
+
+    def heal(self) -> None:
+        with self._lock:
+            self.cut = False
+
+    def close(self) -> None:
+        self.sever()
+        self._listener.close()
+
+
+def daemon_config(
+    tmp_path: Path, daemon_id: str, shard: str, role: str, router_port: int, etcd: str, recovery: bool = True
+) -> Path:
+    cfg = tmp_path / f"{daemon_id}.toml"
+    cfg.write_text(
+        f"""daemon_id = "{daemon_id}"
+status_interval_s = 0.5
+[zenoh]
+mode = "client"
+listen = []
+connect = ["tcp/127.0.0.1:{router_port}"]
+recovery = {str(recovery).lower()}
+[cluster]
+shard = "{shard}"
+role = "{role}"
+snapshot_interval_s = 0.5
+etcd = "{etcd}"
+lease_ttl_s = 3
+[recording]
+directory = "{tmp_path / daemon_id}"
+[workers]
+count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
+[[rules]]  # one estimate per block (the default rule reports on its own grid)
+match = "sinewatch/in/**"
+estimator = "ipdft"
+params = {{ nominal_frequency_hz = 50.0, window_cycles = 10.0 }}
+"""
+    )
+    return cfg
+
+
+def start_daemon(tmp_path: Path, daemon_id: str, cfg: Path) -> subprocess.Popen[str]:
+    log = open(tmp_path / f"{daemon_id}.log", "a")
+    return subprocess.Popen(
+        [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
+    )
+
+
+def stop_all(procs: dict[str, subprocess.Popen[str]]) -> None:
+    """SIGCONT and SIGINT every daemon still running (each drains and finishes its file), then wait."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGCONT)
+            p.send_signal(signal.SIGINT)
+    for p in procs.values():
+        try:
+            p.wait(timeout=WAIT)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+@contextlib.contextmanager
+def cpu_burner(n: int | None = None) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``n`` (default: twice the cores) processes spinning at 100 % for the whole block."""
+    n = n or 2 * (os.cpu_count() or 1)
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+class Tokens:
+    """The cluster's liveliness tokens as the network sees them (discovery: who is there)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.present: set[str] = set()
+        self._cond = threading.Condition()
+        self._sub = session.liveliness().declare_subscriber("sinewatch/admin/shard/**", self._on, history=True)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        name = "/".join(str(sample.key_expr).split("/")[-2:])  # "active/a1"
+        with self._cond:
+            (self.present.add if sample.kind == zenoh.SampleKind.PUT else self.present.discard)(name)
+            self._cond.notify_all()
+
+    def wait_count(self, role: str, n: int, timeout: float = WAIT) -> None:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: sum(p.startswith(role + "/") for p in self.present) >= n, timeout)
+            assert ok, self.present
+
+
+class Estimates:
+    """Every estimate published, in arrival order: raw, and as a fenced reader keeps them."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.raw: list[dict[str, Any]] = []
+        self.by_channel: dict[str, list[dict[str, Any]]] = defaultdict(list)  # fenced
+        self.fence = Fence()
+        self.fenced_off: set[tuple[str, int]] = set()  # (channel, seq) the fence dropped
+        self.first_of_term: dict[tuple[str, int], float] = {}  # (shard, term) -> arrival of its first estimate
+        self._cond = threading.Condition()
+        self._sub = session.declare_subscriber("sinewatch/est/**", self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        msg["_arrival"] = time.monotonic()
+        msg["_wall"] = time.time()
+        with self._cond:
+            self.raw.append(msg)
+            f = msg.get("fencing")
+            if f is not None:
+                self.first_of_term.setdefault((f["shard"], f["term"]), msg["_arrival"])
+            if self.fence.accept(msg):
+                self.by_channel[msg["channel"]].append(msg)
+            else:  # a deposed owner's late estimate, after its successor's first: readers drop it
+                self.fenced_off.add((msg["channel"], msg["seq"]))
+            self._cond.notify_all()
+
+    def wait(self, condition: Any, what: str, timeout: float = WAIT) -> None:
+        with self._cond:
+            assert self._cond.wait_for(lambda: condition(self.by_channel), timeout=timeout), what
+
+    def newest_term(self, shard_id: str) -> int | None:
+        with self._cond:
+            return self.fence.newest.get(shard_id)
+
+    def wait_for_new_term(self, shard_id: str, older: int, what: str) -> int:
+        with self._cond:
+            assert self._cond.wait_for(lambda: (self.fence.newest.get(shard_id) or 0) > older, timeout=WAIT), what
+            return self.fence.newest[shard_id]
+
+
+def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
+    """What each daemon published, from its own recordings (every file, a killed daemon's
+    cut short at its last complete chunk): independent of any subscriber's connection."""
+    from sinewatch.replay import read_recording
+
+    out: dict[str, list[dict[str, Any]]] = {}
+    for d in daemon_ids:
+        msgs = out[d] = []
+        for path in sorted((tmp_path / d).glob("*.mcap")):
+            for kind, item in read_recording(path):
+                if kind == "message" and item.role == "estimate":
+                    msgs.append(json.loads(item.payload))
+    return out
+
+
+def published_once_each(
+    observed: dict[str, list[dict[str, Any]]],
+    recorded: dict[str, list[dict[str, Any]]],
+    fenced_off: set[tuple[str, int]] = frozenset(),  # type: ignore[assignment]
+) -> dict[str, list[dict[str, Any]]]:
+    """Per channel, every estimate a fenced reader keeps (seen by the subscriber, or in a
+    recording when the subscriber's own link was down), by seq; asserts that no (channel,
+    seq) was published by two daemons (in two recordings, or seen under two terms). A
+    recorded estimate the subscriber saw the fence drop (a paused owner's put that left
+    after its successor's first estimate) is not what readers keep: the successor's gap
+    counts it."""
+    by_daemon: dict[tuple[str, int], set[str]] = defaultdict(set)
+    union: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
+    for d, msgs in recorded.items():
+        for m in msgs:
+            by_daemon[(m["channel"], m["seq"])].add(d)
+            if (m["channel"], m["seq"]) not in fenced_off:
+                union[m["channel"]].setdefault(m["seq"], m)
+    twice = {k: v for k, v in by_daemon.items() if len(v) > 1}
+    assert not twice, f"published by two daemons: {sorted(twice.items())[:20]}"
+    for ch, msgs in observed.items():
+        for m in msgs:
+            known = union[ch].setdefault(m["seq"], m)
+            assert known.get("fencing") == m.get("fencing"), f"{ch} seq {m['seq']} under two terms"
+    return {ch: [by_seq[s] for s in sorted(by_seq)] for ch, by_seq in union.items()}
+
+
+def admin(session: zenoh.Session) -> list[dict[str, Any]]:
+    return [
+        json.loads(r.ok.payload.to_bytes())
+        for r in session.get("sinewatch/admin/*/channels", timeout=5.0)
+        if r.ok is not None
+    ]
+
+
+def check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
+    """(gaps flagged, blocks lost) of one channel, checked against each other: each (seq)
+    at most once, in order, every seq up to ``sent`` either estimated or counted in the
+    gap_blocks of the estimate after it."""
+    seqs = [m["seq"] for m in msgs]
+    assert len(seqs) == len(set(seqs)), f"an estimate published twice: {seqs}"
+    assert seqs == sorted(seqs)
+    missing = sorted(set(range(sent)) - set(seqs))
+    flagged = [m for m in msgs if m["diagnostics"]["gap"]]
+    gaps = [(m["seq"], m["diagnostics"]["gap_blocks"], (m.get("fencing") or {}).get("term")) for m in flagged]
+    assert sum(m["diagnostics"]["gap_blocks"] for m in flagged) == len(missing), (
+        f"blocks missing {missing}, gaps flagged (seq, gap_blocks, term) {gaps}, "
+        f"terms {sorted({(m.get('fencing') or {}).get('term') for m in msgs})}"
+    )
+    for m in flagged:  # each gap counts exactly the seqs missing right before it
+        before = [s for s in missing if s < m["seq"] and all(s > o for o in seqs if o < m["seq"])]
+        assert m["diagnostics"]["gap_blocks"] == len(before)
+    return len(flagged), len(missing)
