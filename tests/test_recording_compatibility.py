@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mcap.reader import make_reader
+
 from sinewatch.replay import replay
 
 FIXTURE = Path(__file__).parent / "data" / "recorded-before-layering.mcap"
@@ -35,3 +37,23 @@ def test_a_recording_with_raw_inputs_replays_bit_for_bit_rejected_inputs_include
     assert result.inputs == 42 and result.recorded_estimates == 36
     assert result.ok, [m.describe() for m in result.mismatches[:5]]
     assert result.matched == 36 and result.recorded_errors == result.produced_errors == 6
+
+
+OLD_FRAMES = Path(__file__).parent / "data" / "recorded-sinewatch-frame-v1.mcap"
+
+
+def test_a_recording_with_frames_in_their_own_layout_replays_bit_for_bit():
+    """``data/recorded-sinewatch-frame-v1.mcap`` was recorded by the build before frames were
+    recorded as protobuf InputFrame records: binary frames as received on
+    ``sinewatch-frame-v1`` channels (3 channels float64, 2 channels float32 sniffed), JSON
+    frames on ``json`` channels (two Zenoh encodings), 6 rejected frames (cut short, a
+    non-zero pad byte, bad JSON) and single blocks beside them; nls and sogi-fll estimating."""
+    with open(OLD_FRAMES, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    encodings = {(c.topic, c.message_encoding) for c in summary.channels.values() if c.metadata["role"] == "input"}
+    assert ("sinewatch/in/f64/mu", "sinewatch-frame-v1") in encodings and ("sinewatch/in/js/mu", "json") in encodings
+    result = replay([OLD_FRAMES])
+    assert result.inputs == 30 and result.recorded_estimates == 48
+    assert result.ok, [m.describe() for m in result.mismatches[:5]]
+    assert result.matched == 48 and result.recorded_errors == result.produced_errors == 6
