@@ -26,6 +26,7 @@ from sinewatch.schemas.frame import (
     FRAME_BINARY_ENCODING,
     FRAME_HEADER,
     FRAME_JSON_ENCODING,
+    FRAME_MAGIC,
     Frame,
     channel_key,
     decode_frame,
@@ -33,6 +34,7 @@ from sinewatch.schemas.frame import (
     encode_frame_binary,
     encode_frame_json,
 )
+from sinewatch.schemas.input_record import decode_input_record, encode_frame_record
 
 FS = 10_000.0
 N = 256
@@ -143,6 +145,35 @@ def test_every_malformed_frame_is_a_typed_decode_error_saying_what_was_expected(
     with pytest.raises(error) as info:
         decode_input(payload, encoding)
     assert isinstance(info.value, ValueError) and "expected" in str(info.value)
+
+
+def test_every_frame_recorded_as_an_input_frame_gives_back_its_bytes():
+    """The InputFrame record (a well-formed binary frame as fields, anything else raw) gives
+    back every payload byte for byte: well-formed frames of 1-4 channels (every pad length),
+    float32 and float64, a NaN sample rate with payload bits, an unknown version; and the
+    same frames damaged (a byte flipped, cut, lengthened, a pad byte set), the malformed
+    frames above and JSON frames."""
+    rng = np.random.default_rng(2808)
+    payloads = [p for p, _, _ in MALFORMED.values()]
+    for n_ch in range(1, 5):
+        for dtype in ("float32", "float64"):
+            names = tuple(f"m/{'x' * (c + n_ch)}{c}" for c in range(n_ch))
+            frame = Frame(names, int(rng.integers(2**63)), -(10**18), 4000.0, rng.standard_normal((3, n_ch)))
+            good = encode_frame_binary(frame, dtype)
+            record = encode_frame_record(good, FRAME_BINARY_ENCODING)
+            assert FRAME_MAGIC not in record and len(record) < len(good) + 40 + 8 * n_ch  # as fields
+            payloads += [good, encode_frame_json(frame), good[:-1], good + b"\0", _set(bytearray(good), "<B", 4, 2)]
+            payloads.append(_set(bytearray(good), "<Q", 24, 0x7FF0_0000_0000_0001))  # a signalling NaN's bits
+            for _ in range(40):
+                damaged = bytearray(good)
+                damaged[int(rng.integers(len(good)))] ^= 1 << int(rng.integers(8))
+                payloads.append(bytes(damaged))
+            pad = 40 + len("".join(f"{c}\n" for c in names))
+            if pad % 8:
+                payloads.append(good[:pad] + b"\1" + good[pad + 1 :])
+    for payload in payloads:
+        for encoding in ("", FRAME_BINARY_ENCODING, FRAME_JSON_ENCODING):
+            assert decode_input_record(encode_frame_record(payload, encoding)) == (payload, encoding)
 
 
 def test_a_frame_s_channel_keys_sit_beside_the_frame_key():

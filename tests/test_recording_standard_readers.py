@@ -1,5 +1,5 @@
-"""A recording opens in any MCAP tool: every message of every channel, inputs included, is
-decoded by the standard readers and decoders with the schema the file carries, and no
+"""A recording opens in any MCAP tool: every message of every channel, inputs (single blocks
+and multi-channel frames) included, is decoded by the standard readers and decoders with the schema the file carries, and no
 sinewatch code (Python: ``mcap`` + ``mcap-protobuf-support``, in a subprocess that never
 imports sinewatch; Node: ``@mcap/core`` + ``@mcap/support`` + ``protobufjs``). The decoded
 samples are the very samples sent; a rejected input's bytes are there as they came; and
@@ -29,6 +29,13 @@ from sinewatch.schemas.codec import (
     encode_block_json,
 )
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
+from sinewatch.schemas.frame import (
+    FRAME_BINARY_ENCODING,
+    FRAME_JSON_ENCODING,
+    Frame,
+    encode_frame_binary,
+    encode_frame_json,
+)
 
 READERS = Path(__file__).parent / "readers"
 NODE_CACHE = Path(__file__).parent.parent / ".cache" / "node-mcap-readers"
@@ -44,8 +51,10 @@ def _sine(i: int, n: int, f: float, rng: np.random.Generator) -> np.ndarray:
 @pytest.fixture(scope="module")
 def fresh(tmp_path_factory):
     """A recording through the real pipeline and recorder: 1024-sample float64 and float32
-    binary blocks, JSON blocks (one channel under two Zenoh encodings), multi-column blocks,
-    and inputs the daemon rejects. Returns (path, sent: topic -> [(payload, encoding, block)])."""
+    binary blocks, JSON blocks (one channel under two Zenoh encodings), multi-channel frames
+    (binary float64 and float32, JSON under two Zenoh encodings), and inputs the daemon
+    rejects (blocks and frames). Returns (path, sent: topic -> [(payload, encoding, block or
+    frame, None if rejected)])."""
     d = tmp_path_factory.mktemp("standard-readers")
     config = SinewatchConfig(
         daemon_id="readers",
@@ -59,10 +68,10 @@ def fresh(tmp_path_factory):
     recorder = McapRecorder(config, path=path)
     pipeline = Pipeline(config, [recorder])
     rng = np.random.default_rng(28)
-    sent: dict[str, list[tuple[bytes, str, Block | None]]] = {}
+    sent: dict[str, list[tuple[bytes, str, Block | Frame | None]]] = {}
     t = 0
 
-    def send(topic: str, payload: bytes, encoding: str, block: Block | None) -> None:
+    def send(topic: str, payload: bytes, encoding: str, block: Block | Frame | None) -> None:
         nonlocal t
         t += 1
         sent.setdefault(topic, []).append((payload, encoding, block))
@@ -81,8 +90,20 @@ def fresh(tmp_path_factory):
             bad = bytearray(encode_block_binary(Block("a/v64", 99, 0, FS, np.zeros(8)), "float64"))
             bad[5] = 7
             send("sinewatch/in/a/v64", bytes(bad), BLOCK_BINARY_ENCODING, None)
+        f64 = Frame(("f/a", "f/b", "f/c"), i, t0, FS, np.stack([_sine(i, 1024, 50 + c, rng) for c in range(3)], 1))
+        send("sinewatch/in/f/mu", encode_frame_binary(f64, "float64"), FRAME_BINARY_ENCODING, f64)
+        f32 = Frame(("g/a", "g/b"), i, t0, FS, np.stack([_sine(i, 1024, 49 + c, rng) for c in range(2)], 1))
+        send("sinewatch/in/g/mu", encode_frame_binary(f32, "float32"), "", f32)
+        tj = T0 + round(i * 256 * 1e9 / FS)
+        fj = Frame(("h/a", "h/b"), i, tj, FS, np.stack([_sine(i, 256, 60 - c, rng) for c in range(2)], 1))
+        send("sinewatch/in/h/mu", encode_frame_json(fj), FRAME_JSON_ENCODING if i % 2 else "", fj)
+        if i % 4 == 1:  # rejected frames: cut short; a non-zero pad byte ("g/x\n" leaves 4)
+            send("sinewatch/in/f/mu", encode_frame_binary(f64)[:-5], FRAME_BINARY_ENCODING, None)
+            bad = bytearray(encode_frame_binary(Frame(("g/x",), 99, t0, FS, np.ones((8, 1))), "float32"))
+            bad[44 + i // 4] = 1
+            send("sinewatch/in/g/mu", bytes(bad), "", None)
     recorder.close()
-    assert pipeline.counters.errors == 4 and pipeline.counters.estimates == 24
+    assert pipeline.counters.errors == 8 and pipeline.counters.estimates == 24 + 56
     return path, sent
 
 
@@ -94,9 +115,10 @@ def _check_decoded(out: dict, path: Path, sent: dict) -> None:
     inputs: dict[str, list[tuple[int, dict]]] = {}  # topic -> (log time, message): a channel per Zenoh encoding
     for ch in channels.values():
         if ch["metadata"]["role"] == "input":
+            frames = ch["topic"].endswith("/mu")
             assert (ch["message_encoding"], ch["schema_name"], ch["schema_encoding"]) == (
                 "protobuf",
-                "sinewatch.InputBlock",
+                "sinewatch.InputFrame" if frames else "sinewatch.InputBlock",
                 "protobuf",
             )
             inputs.setdefault(ch["topic"], []).extend(zip(ch["log_times"], ch["messages"], strict=True))
@@ -110,6 +132,9 @@ def _check_decoded(out: dict, path: Path, sent: dict) -> None:
             assert msg["zenoh_encoding"] == encoding
             if block is None:  # rejected: its bytes as they came
                 assert bytes.fromhex(msg["raw"]) == payload
+                continue
+            if isinstance(block, Frame):
+                _check_frame(msg, payload, encoding, block)
                 continue
             assert msg["channel"] == block.channel and int(msg["seq"]) == block.seq
             assert int(msg["t0_ns"]) == block.t0_ns and msg["sample_rate_hz"] == block.sample_rate_hz
@@ -129,7 +154,27 @@ def _check_decoded(out: dict, path: Path, sent: dict) -> None:
         return m["channel"], m["seq"]
 
     # == on the parsed values (JavaScript writes 1.0 as 1: the same number)
-    assert len(estimates) == 24 and sorted(estimates, key=order) == sorted(truth, key=order)
+    assert len(estimates) == 80 and sorted(estimates, key=order) == sorted(truth, key=order)
+
+
+def _check_frame(msg: dict, payload: bytes, encoding: str, frame: Frame) -> None:
+    """A decoded InputFrame: the frame's channels, times and samples (n, C) sample-major; a
+    binary frame as fields alone, a JSON frame's text kept in ``raw`` as it came."""
+    assert msg["channels"] == list(frame.channels) and int(msg["seq"]) == frame.seq
+    assert int(msg["t0_ns"]) == frame.t0_ns and msg["sample_rate_hz"] == frame.sample_rate_hz
+    sec, nsec = divmod(frame.t0_ns, 1_000_000_000)
+    assert (int(msg["timestamp"]["sec"]), int(msg["timestamp"]["nsec"])) == (sec, nsec)
+    n, c = frame.samples.shape
+    assert msg["n_samples"] == n
+    if payload[:1] == b"{":  # JSON: the text as it came, the samples besides
+        assert bytes.fromhex(msg["raw"]) == payload and msg["frame_version"] == 0
+        assert np.array_equal(np.array(msg["samples"]).reshape(n, c), frame.samples)
+    elif encoding == "":  # the float32 frames: those very values
+        assert msg["raw"] == "" and msg["frame_version"] == 1 and msg["samples"] == []
+        assert np.array_equal(np.float32(msg["samples_f32"]).reshape(n, c), frame.samples.astype(np.float32))
+    else:
+        assert msg["raw"] == "" and msg["frame_version"] == 1 and msg["samples_f32"] == []
+        assert np.array_equal(np.array(msg["samples"]).reshape(n, c), frame.samples)
 
 
 def test_python_standard_readers_decode_every_message_without_sinewatch(fresh):
@@ -149,9 +194,9 @@ def test_python_standard_readers_decode_every_message_without_sinewatch(fresh):
 def test_the_recording_replays_bit_for_bit_rejected_inputs_included(fresh):
     path, sent = fresh
     result = replay([path])
-    assert result.ok and result.inputs == sum(map(len, sent.values())) == 28
-    assert result.matched == result.recorded_estimates == 24
-    assert result.recorded_errors == 4 and result.produced_errors == 4
+    assert result.ok and result.inputs == sum(map(len, sent.values())) == 28 + 24 + 4
+    assert result.matched == result.recorded_estimates == 80
+    assert result.recorded_errors == 8 and result.produced_errors == 8
     # what replay feeds the pipeline: the bytes and the Zenoh encodings received
     fed = [
         (m.topic, m.payload, m.zenoh_encoding) for k, m in read_recording(path) if k == "message" and m.role == "input"

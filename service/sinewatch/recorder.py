@@ -46,8 +46,7 @@ from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
 from sinewatch.continuity import VALIDITY_RULES_VERSION
-from sinewatch.schemas import __version__, codec
-from sinewatch.schemas import frame as frame_codec
+from sinewatch.schemas import __version__
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     ERROR_JSON_ENCODING,
@@ -55,11 +54,13 @@ from sinewatch.schemas.codec import (
     STATUS_JSON_ENCODING,
 )
 from sinewatch.schemas.config import RecordingSection, SinewatchConfig
-from sinewatch.schemas.frame import FRAME_MAGIC, is_frame
+from sinewatch.schemas.frame import is_frame
 from sinewatch.schemas.input_record import (
+    FRAME_SCHEMA_NAME,
     INPUT_MESSAGE_ENCODING,
     INPUT_SCHEMA_ENCODING,
     INPUT_SCHEMA_NAME,
+    encode_frame_record,
     encode_input_record,
     file_descriptor_set,
 )
@@ -70,26 +71,17 @@ log = logging.getLogger("sinewatch.recorder")
 
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
-#: The recording's layout: 2 records inputs as protobuf InputBlock (1: raw payloads).
-RECORDING_FORMAT_VERSION = 2
-#: How builds before RECORDING_FORMAT_VERSION 2 recorded binary inputs (replay still reads them).
+#: The recording's layout: 3 records frames as protobuf InputFrame (2: frames as received,
+#: single inputs as protobuf InputBlock; 1: every input as received).
+RECORDING_FORMAT_VERSION = 3
+#: How builds before RECORDING_FORMAT_VERSION 2 recorded binary blocks, and before 3 binary
+#: frames, as received (replay still reads them: a channel not ``protobuf`` is its payloads).
 BINARY_MESSAGE_ENCODING = "sinewatch-block-v1"
 BINARY_SCHEMA_ENCODING = "sinewatch-block-layout"
 FRAME_MESSAGE_ENCODING = "sinewatch-frame-v1"
 FRAME_SCHEMA_ENCODING = "sinewatch-frame-layout"
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-
-
-def mcap_encodings(zenoh_encoding: str, payload: bytes) -> tuple[str, str]:
-    """(MCAP message encoding, schema name) for a payload with this Zenoh encoding."""
-    if zenoh_encoding.startswith("application/x-sinewatch-block") or payload[:4] == b"SWSB":
-        return BINARY_MESSAGE_ENCODING, "sinewatch.SampleBlock.binary"
-    if is_frame(payload, zenoh_encoding):  # one message per frame, whatever its channel count
-        if zenoh_encoding.startswith("application/x-sinewatch-frame") or payload[:4] == FRAME_MAGIC:
-            return FRAME_MESSAGE_ENCODING, "sinewatch.SampleFrame.binary"
-        return "json", "sinewatch.SampleFrame"
-    return "json", "sinewatch.SampleBlock"
 
 
 # A Message record: opcode, record length, then channel_id u16, sequence u32, log_time u64,
@@ -323,7 +315,7 @@ class McapRecorder:
         self._writer: Writer | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
-        self._channels: dict[tuple[str, str, str], int] = {}
+        self._channels: dict[tuple[str, ...], int] = {}
         self._sequence: dict[int, int] = {}
         self.messages_written = 0
         self._last_snapshot_ns: int | None = None  # log time of the file's latest snapshot (or first input)
@@ -522,13 +514,8 @@ class McapRecorder:
     def _schema_id(self, name: str) -> int:
         sid = self._schemas.get(name)
         if sid is None:
-            if name == INPUT_SCHEMA_NAME:
+            if name in (INPUT_SCHEMA_NAME, FRAME_SCHEMA_NAME):  # one FileDescriptorSet holds both
                 sid = self._w.register_schema(name, INPUT_SCHEMA_ENCODING, file_descriptor_set())
-            elif name == "sinewatch.SampleBlock.binary":
-                # the byte layout, as documented in the codec, travels with the data
-                sid = self._w.register_schema(name, BINARY_SCHEMA_ENCODING, codec.__doc__.encode())
-            elif name == "sinewatch.SampleFrame.binary":
-                sid = self._w.register_schema(name, FRAME_SCHEMA_ENCODING, frame_codec.__doc__.encode())
             else:
                 short = name.removeprefix("sinewatch.")
                 model = MESSAGE_MODELS[short] if short in MESSAGE_MODELS else PQ_MESSAGE_MODELS[short]
@@ -539,8 +526,9 @@ class McapRecorder:
 
     def _channel_id(self, topic: str, message_encoding: str, schema: str, role: str, zenoh_encoding: str) -> int:
         # The Zenoh encoding is part of the key: the decoder's verdict depends on it (a
-        # ``;v=2`` block is refused), and replay takes it from the channel's metadata.
-        key = (topic, message_encoding, zenoh_encoding)
+        # ``;v=2`` block is refused), and replay takes it from the channel's metadata. So is
+        # the schema: blocks and frames sniffed on one key are InputBlock and InputFrame.
+        key = (topic, message_encoding, zenoh_encoding, schema)
         cid = self._channels.get(key)
         if cid is None:
             cid = self._w.register_channel(
@@ -569,21 +557,19 @@ class McapRecorder:
         self._maybe_snapshot(log_time_ns)
         if not self.section.inputs:
             return
-        msg_enc, schema = mcap_encodings(encoding, payload)
-        if schema.startswith("sinewatch.SampleFrame"):  # a multi-channel frame: one message, its own layout
-            self._write(
-                self._channel_id(key, msg_enc, schema, "input", encoding or "zenoh/bytes"), payload, log_time_ns
-            )
-        else:
-            self._record_input(key, payload, encoding, log_time_ns)
+        self._record_input(key, payload, encoding, log_time_ns)
 
     def _record_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None:
-        """One input as an InputBlock record on its key's protobuf channel (one per Zenoh
-        encoding, as every channel): the record carries the message's own Zenoh encoding too,
-        as it came (``""`` where the channel says ``zenoh/bytes``), so a reader needs nothing
-        else to feed the pipeline what it got."""
-        cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, INPUT_SCHEMA_NAME, "input", encoding or "zenoh/bytes")
-        self._write(cid, encode_input_record(payload, encoding), log_time_ns)
+        """One input as an InputBlock record, or a multi-channel frame as one InputFrame
+        record, on its key's protobuf channel (one per Zenoh encoding, as every channel): the
+        record carries the message's own Zenoh encoding too, as it came (``""`` where the
+        channel says ``zenoh/bytes``), so a reader needs nothing else to feed the pipeline
+        what it got."""
+        frame = is_frame(payload, encoding)
+        schema = FRAME_SCHEMA_NAME if frame else INPUT_SCHEMA_NAME
+        cid = self._channel_id(key, INPUT_MESSAGE_ENCODING, schema, "input", encoding or "zenoh/bytes")
+        record = encode_frame_record(payload, encoding) if frame else encode_input_record(payload, encoding)
+        self._write(cid, record, log_time_ns)
 
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self.section.estimates:

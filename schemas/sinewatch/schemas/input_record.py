@@ -23,12 +23,32 @@ The message (:data:`INPUT_PROTO` is its ``.proto`` text)::
     }
     message Time { sfixed64 sec = 1; fixed32 nsec = 2; }
 
-A well-formed binary block (:mod:`sinewatch.schemas.codec`) is recorded as its fields, its
+A multi-channel SampleFrame (:mod:`sinewatch.schemas.frame`) is recorded likewise as an
+``InputFrame``: the same field numbers where the meaning is InputBlock's, its own where it
+differs, so one reader (:func:`decode_input_record`) rebuilds either from its bytes alone::
+
+    message InputFrame {
+      string zenoh_encoding = 1;
+      fixed64 seq = 3;
+      sfixed64 t0_ns = 4;
+      double sample_rate_hz = 5;
+      uint32 n_samples = 7;
+      repeated double samples = 9;      // n_samples * len(channels), sample-major
+      repeated float samples_f32 = 10;
+      bytes raw = 13;
+      Time timestamp = 14;
+      repeated string channels = 15;
+      uint32 frame_version = 16;        // > 0: the binary frame layout of this version, rebuilt
+    }                                   //      from the fields; else the payload is in raw
+
+A well-formed binary block (:mod:`sinewatch.schemas.codec`) or frame is recorded as its fields, its
 samples copied as they are (little-endian IEEE 754 is protobuf's packed ``double``/``float``
 wire form), so the record is the payload's size plus about 60 bytes and costs one copy; the
-payload is rebuilt from it byte for byte. Anything else (a JSON block, a payload the daemon
-rejected) is recorded as ``raw`` with, when it decodes as a block, the same fields filled in,
-so a reader plots every block the daemon accepted. Either way ``zenoh_encoding`` is the
+payload is rebuilt from it byte for byte: only a payload whose every byte the fields
+determine is recorded so (a frame's pad bytes must be zero, its names end in a newline).
+Anything else (a JSON block or frame, a payload the daemon rejected) is recorded as ``raw``
+with, when it decodes, the same fields filled in, so a reader plots every block and frame
+the daemon accepted. Either way ``zenoh_encoding`` is the
 message's own, so replay feeds the pipeline exactly what it got live.
 
 Only the protobuf wire format is written and read here (a handful of fields), so sinewatch
@@ -45,8 +65,10 @@ from typing import Any
 
 from sinewatch.schemas.codec import HEADER, MAGIC, decode_block
 from sinewatch.schemas.errors import InputError
+from sinewatch.schemas.frame import FRAME_HEADER, FRAME_MAGIC, decode_frame, samples_offset
 
 INPUT_SCHEMA_NAME = "sinewatch.InputBlock"
+FRAME_SCHEMA_NAME = "sinewatch.InputFrame"
 INPUT_MESSAGE_ENCODING = "protobuf"
 INPUT_SCHEMA_ENCODING = "protobuf"
 
@@ -77,6 +99,22 @@ message InputBlock {
   bytes raw = 13;
   Time timestamp = 14;
 }
+
+// One multi-channel frame as the daemon received it (field numbers InputBlock's where the
+// meaning is the same): its samples sample-major, all channels at one instant side by side.
+message InputFrame {
+  string zenoh_encoding = 1;
+  fixed64 seq = 3;
+  sfixed64 t0_ns = 4;
+  double sample_rate_hz = 5;
+  uint32 n_samples = 7;
+  repeated double samples = 9;
+  repeated float samples_f32 = 10;
+  bytes raw = 13;
+  Time timestamp = 14;
+  repeated string channels = 15;
+  uint32 frame_version = 16;
+}
 """
 
 # FieldDescriptorProto.Type and .Label values (google/protobuf/descriptor.proto)
@@ -99,6 +137,19 @@ _INPUT_FIELDS = (
     ("binary_flags", 12, _UINT32, _OPTIONAL, ""),
     ("raw", 13, _BYTES, _OPTIONAL, ""),
     ("timestamp", 14, _MESSAGE, _OPTIONAL, ".sinewatch.Time"),
+)
+_FRAME_FIELDS = (
+    ("zenoh_encoding", 1, _STRING, _OPTIONAL, ""),
+    ("seq", 3, _FIXED64, _OPTIONAL, ""),
+    ("t0_ns", 4, _SFIXED64, _OPTIONAL, ""),
+    ("sample_rate_hz", 5, _DOUBLE, _OPTIONAL, ""),
+    ("n_samples", 7, _UINT32, _OPTIONAL, ""),
+    ("samples", 9, _DOUBLE, _REPEATED, ""),
+    ("samples_f32", 10, _FLOAT, _REPEATED, ""),
+    ("raw", 13, _BYTES, _OPTIONAL, ""),
+    ("timestamp", 14, _MESSAGE, _OPTIONAL, ".sinewatch.Time"),
+    ("channels", 15, _STRING, _REPEATED, ""),
+    ("frame_version", 16, _UINT32, _OPTIONAL, ""),
 )
 
 # wire types
@@ -153,11 +204,12 @@ def _message_descriptor(name: str, fields: tuple[tuple[str, int, int, int, str],
 @functools.cache
 def file_descriptor_set() -> bytes:
     """The schema as MCAP's protobuf profile wants it: a serialised FileDescriptorSet holding
-    ``sinewatch/input_block.proto`` (package ``sinewatch``, proto3)."""
+    ``sinewatch/input_block.proto`` (package ``sinewatch``, proto3; InputBlock and InputFrame)."""
     # FileDescriptorProto: name = 1, package = 2, message_type = 4, syntax = 12
     file = _len_field(1, b"sinewatch/input_block.proto") + _len_field(2, b"sinewatch")
     file += _len_field(4, _message_descriptor("Time", _TIME_FIELDS))
     file += _len_field(4, _message_descriptor("InputBlock", _INPUT_FIELDS))
+    file += _len_field(4, _message_descriptor("InputFrame", _FRAME_FIELDS))
     file += _len_field(12, b"proto3")
     return _len_field(1, file)  # FileDescriptorSet: file = 1
 
@@ -256,6 +308,85 @@ def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
     return b"".join(parts)
 
 
+# the frame header with the sample rate as its bits: a NaN's payload bits go through untouched
+_FRAME_HEADER_BITS = struct.Struct("<4sBBHQqQII")
+_FRAME_FIXED = struct.Struct("<BQBqBQ")
+_N_FRAME_KEY, _FRAME_VERSION_KEY = bytes((7 << 3 | _VARINT,)), _key(16, _VARINT)
+_FRAME_HEAD = FRAME_HEADER.size
+
+
+def _frame_layout(payload: bytes) -> tuple[Any, ...] | None:
+    """(version, f32, seq, t0_ns, rate bits, n_samples, channel names, samples start) of a
+    payload whose every byte those fields determine: a complete binary frame (any version but
+    0), zero pad bytes, UTF-8 names each ending in a newline; else None (it goes raw)."""
+    if len(payload) < _FRAME_HEAD or payload[:4] != FRAME_MAGIC:
+        return None
+    _, version, dcode, n_ch, seq, t0, fs_bits, n, names_len = _FRAME_HEADER_BITS.unpack_from(payload)
+    # no samples: which samples field is absent would not say the dtype; such a frame goes raw
+    if version == 0 or not 1 <= dcode <= 2 or n * n_ch == 0:
+        return None
+    start = samples_offset(names_len)
+    if len(payload) != start + n * n_ch * (4 if dcode == 1 else 8) or any(payload[_FRAME_HEAD + names_len : start]):
+        return None
+    names = payload[_FRAME_HEAD : _FRAME_HEAD + names_len]
+    if names[-1:] != b"\n":
+        return None
+    try:
+        names.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    channels = names[:-1].split(b"\n")
+    if len(channels) != n_ch:
+        return None
+    return version, dcode == 1, seq, t0, fs_bits, n, channels, start
+
+
+def _frame_fields(
+    channels: list[bytes], seq: int, t0_ns: int, fs_bits: int, n: int, samples: bytes, f32: bool
+) -> list[bytes]:
+    parts = [_FRAME_FIXED.pack(_SEQ_KEY, seq, _T0_KEY, t0_ns, _FS_KEY, fs_bits), _N_FRAME_KEY, _varint(n)]
+    parts += [_len_field(15, c) for c in channels]
+    if samples:
+        parts += (_SAMPLES_F32_KEY if f32 else _SAMPLES_KEY, _varint(len(samples)), samples)
+    return parts
+
+
+def encode_frame_record(payload: bytes, zenoh_encoding: str) -> bytes:
+    """The InputFrame record of one received frame (any bytes, any encoding)."""
+    parts = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
+    layout = _frame_layout(payload)
+    if layout is not None:
+        version, f32, seq, t0, fs_bits, n, channels, start = layout
+        parts += _frame_fields(channels, seq, t0, fs_bits, n, payload[start:], f32)
+        parts += (_FRAME_VERSION_KEY, _varint(version), _time(t0))
+        return b"".join(parts)
+    try:
+        frame = decode_frame(payload, zenoh_encoding)
+    except InputError:
+        frame = None  # a rejected frame: its bytes alone
+    if frame is not None:
+        samples = frame.samples.astype("<f8", copy=False).tobytes()  # (n, C) C-ordered: sample-major
+        fs_bits = _U64_BYTES.unpack(_DOUBLE_BYTES.pack(frame.sample_rate_hz))[0]
+        names = [c.encode() for c in frame.channels]
+        parts += _frame_fields(names, frame.seq, frame.t0_ns, fs_bits, frame.n_samples, samples, False)
+    parts.append(_len_field(13, payload))
+    if frame is not None:
+        parts.append(_time(frame.t0_ns))
+    return b"".join(parts)
+
+
+def _rebuild_frame(f: dict[int, int | bytes], channels: list[bytes]) -> bytes:
+    f32 = 10 in f
+    version, seq, t0, fs_bits, n = (_int(f, k) for k in (16, 3, 4, 5, 7))
+    t0 = t0 - (1 << 64) if t0 >= 1 << 63 else t0
+    names = b"".join(c + b"\n" for c in channels)
+    head = _FRAME_HEADER_BITS.pack(
+        FRAME_MAGIC, version, 1 if f32 else 2, len(channels), seq, t0, fs_bits, n, len(names)
+    )
+    pad = bytes(samples_offset(len(names)) - _FRAME_HEAD - len(names))
+    return b"".join((head, names, pad, _bytes(f, 10 if f32 else 9)))
+
+
 class InputRecordError(InputError):
     """A recorded InputBlock is not what :func:`encode_input_record` writes (a damaged file)."""
 
@@ -273,10 +404,12 @@ def _read_varint(data: memoryview, at: int) -> tuple[int, int]:
             return value, at
 
 
-def _parse(data: bytes) -> dict[int, int | bytes]:
-    """Field number -> its last value (int for varint and fixed, bytes for length-delimited)."""
+def _parse(data: bytes) -> tuple[dict[int, int | bytes], list[bytes]]:
+    """Field number -> its last value (int for varint and fixed, bytes for length-delimited),
+    and InputFrame's channels (the repeated field 15) in order."""
     view = memoryview(data)
     out: dict[int, int | bytes] = {}
+    channels: list[bytes] = []
     at = 0
     while at < len(view):
         key, at = _read_varint(view, at)
@@ -293,20 +426,25 @@ def _parse(data: bytes) -> dict[int, int | bytes]:
             n, at = _read_varint(view, at)
             if at + n > len(view):
                 raise InputRecordError(f"InputBlock field {field}: expected {n} bytes, got {len(view) - at}")
-            out[field] = bytes(view[at : at + n])
+            value = out[field] = bytes(view[at : at + n])
+            if field == 15:
+                channels.append(value)
             at += n
         else:
             raise InputRecordError(f"InputBlock: expected wire type 0, 1, 2 or 5, got {wire_type} (field {field})")
-    return out
+    return out, channels
 
 
 def decode_input_record(data: bytes) -> tuple[bytes, str]:
-    """(payload, Zenoh encoding) exactly as the daemon received them, from an InputBlock."""
+    """(payload, Zenoh encoding) exactly as the daemon received them, from an InputBlock or
+    an InputFrame."""
     try:
-        f = _parse(data)
+        f, channels = _parse(data)
     except struct.error as exc:
         raise InputRecordError(f"InputBlock: cut short ({exc})") from None
     encoding = _bytes(f, 1)
+    if _int(f, 16):  # a frame in the binary layout
+        return _rebuild_frame(f, channels), encoding.decode()
     if not _int(f, 11):  # not the binary layout: the bytes as received
         return _bytes(f, 13), encoding.decode()
     f32 = 10 in f
@@ -333,12 +471,14 @@ def _bytes(fields: dict[int, int | bytes], number: int) -> bytes:
 
 
 __all__ = [
+    "FRAME_SCHEMA_NAME",
     "INPUT_MESSAGE_ENCODING",
     "INPUT_PROTO",
     "INPUT_SCHEMA_ENCODING",
     "INPUT_SCHEMA_NAME",
     "InputRecordError",
     "decode_input_record",
+    "encode_frame_record",
     "encode_input_record",
     "file_descriptor_set",
 ]
