@@ -10,7 +10,8 @@ import threading
 import time
 
 import numpy as np
-from test_cluster_failover import Estimates, Tokens, daemon, router, stop_all
+import pytest
+from test_cluster_failover import Estimates, Tokens, daemon, etcd, router, stop_all  # noqa: F401 (etcd: fixture)
 
 from sinewatch.clients import BlockPublisher, connect
 from sinewatch.clients.session import free_loopback_port
@@ -20,6 +21,7 @@ from sinewatch.schemas.config import SinewatchConfig
 FORGED = [b"not a snapshot", b'{"channels": [{"name": "x"}]}']
 
 
+@pytest.mark.usefixtures("etcd")  # the shard's election
 def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
     shard_id = shard_id_of(SinewatchConfig.model_validate({"cluster": {"shard": "1/1"}}))
     snapshot_key = f"sinewatch/admin/shard/{shard_id}/snapshot"

@@ -6,6 +6,7 @@ wires it (here a router process on loopback stands in for the ``router`` service
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -18,7 +19,7 @@ import pytest
 from conftest import replay_recording, serve_feed_tail
 
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.schemas.config import load_config
+from sinewatch.schemas.config import DEFAULT_ESTIMATOR, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -64,7 +65,7 @@ def test_the_image_config_is_a_client_of_the_compose_router():
     assert re.search(r"^USER sinewatch$", dockerfile, re.M)  # not root
     assert "COPY deploy/container.toml /etc/sinewatch/sinewatch.toml" in dockerfile
     # the extras compose serves: metrics and the Foxglove live view, on the ports it publishes
-    assert re.search(r'pip install .*"\$\{wheel\}\[metrics,foxglove\]"', dockerfile)
+    assert re.search(r'pip install .*"\$\{wheel\}\[metrics,foxglove,cluster\]"', dockerfile)
     assert (config.metrics.port, config.metrics.host, config.foxglove.port, config.foxglove.host) == (
         9464,
         "0.0.0.0",
@@ -100,9 +101,11 @@ def test_the_container_config_serves_behind_a_router(tmp_path):
     finally:
         router.kill()
         router.wait(timeout=30)
-    assert [e["seq"] for e in estimates] == [0, 1, 2, 3, 4]
-    assert {e["estimator"] for e in estimates} == {"ipdft"}  # the default rule
-    assert "OK: all 5 recorded estimates reproduced bit for bit" in replay_recording(tmp_path / "runs")
+    # the default rule reports on its own grid (several a block, each at the instant it describes)
+    assert len(estimates) == 5 and {e["estimator"] for e in estimates} == {DEFAULT_ESTIMATOR}
+    seqs, times = [e["seq"] for e in estimates], [e["timestamp_ns"] for e in estimates]
+    assert seqs == sorted(seqs) and all(b > a for a, b in itertools.pairwise(times))
+    assert re.search(r"OK: all \d+ recorded estimates reproduced bit for bit", replay_recording(tmp_path / "runs"))
 
 
 @pytest.mark.skipif(ENGINE is None, reason=NO_ENGINE)
