@@ -48,8 +48,25 @@ def run_replay(args: argparse.Namespace) -> int:
         return 0 if result.ok else 1
     for path in args.paths:
         check_recording(path)
-    # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet.
-    logging.getLogger("sinewatch.pipeline").setLevel(logging.ERROR)
+    # The pipeline logs each rejected input; a replay repeats the recorded ones: keep it quiet,
+    # for this replay only (a caller in the same process, a daemon or a test, keeps its warnings).
+    pipeline_log = logging.getLogger("sinewatch.pipeline")
+    level = pipeline_log.level
+    pipeline_log.setLevel(logging.ERROR)
+    try:
+        return _replay_recordings(args, console, rules, window, channels, track)
+    finally:
+        pipeline_log.setLevel(level)
+
+
+def _replay_recordings(
+    args: argparse.Namespace,
+    console: Console,
+    rules: list[EstimatorRule] | None,
+    window: Window,
+    channels: ChannelFilter,
+    track: Path | bool,
+) -> int:
     total = sum(p.stat().st_size for p in args.paths)
     done_before = {p: sum(q.stat().st_size for q in args.paths[:i]) for i, p in enumerate(args.paths)}
     with Progress(
