@@ -399,17 +399,7 @@ class Pipeline:
             self._forget_unborn(channel)
             self._fault(key, block, channel, stage, exc, log_time_ns)
             return
-        out_key = channel.out_key
-        if out_key is None:
-            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
-        for payload_out in payloads:
-            for sink in self.sinks:
-                sink.on_estimate(out_key, payload_out, log_time_ns)
-        self.counters.estimates += len(payloads)
-        if self.pq.enabled:
-            self._power_quality(key, channel, block, track, reset, log_time_ns)
-        if received_ns is not None:
-            channel.last_latency_ns = time.monotonic_ns() - received_ns
+        self._hand_out(key, channel, block, track, payloads, reset, log_time_ns, received_ns)
 
     # ---- multi-channel frames ----------------------------------------------------------------
     def _process_frame(self, key: str, frame: Frame, log_time_ns: int, received_ns: int | None) -> None:
@@ -574,17 +564,7 @@ class Pipeline:
             self._forget_unborn(channel)
             self._fault(channel.key, block, channel, "estimate", exc, log_time_ns)
             return
-        out_key = channel.out_key
-        if out_key is None:
-            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
-        for payload_out in payloads:
-            for sink in self.sinks:
-                sink.on_estimate(out_key, payload_out, log_time_ns)
-        self.counters.estimates += len(payloads)
-        if self.pq.enabled:
-            self._power_quality(channel.key, channel, block, track, m.reset, log_time_ns)
-        if received_ns is not None:
-            channel.last_latency_ns = time.monotonic_ns() - received_ns
+        self._hand_out(channel.key, channel, block, track, payloads, m.reset, log_time_ns, received_ns)
 
     def _power_quality(
         self, key: str, channel: Channel, block: Block, track: Track, reset: bool, log_time_ns: int
@@ -675,6 +655,31 @@ class Pipeline:
         self.channels[block.channel] = ch
         log.info("channel %s on %s: %s at %g Hz", block.channel, key, rule.estimator, block.sample_rate_hz)
         return ch
+
+    def _hand_out(
+        self,
+        key: str,
+        channel: Channel,
+        block: Block,
+        track: Track,
+        payloads: list[bytes],
+        reset: bool,
+        log_time_ns: int,
+        received_ns: int | None,
+    ) -> None:
+        """An accepted block's estimates to the sinks, then its power-quality stage and the
+        channel's latency: the same for a single block and a frame's column."""
+        out_key = channel.out_key
+        if out_key is None:
+            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        for payload_out in payloads:
+            for sink in self.sinks:
+                sink.on_estimate(out_key, payload_out, log_time_ns)
+        self.counters.estimates += len(payloads)
+        if self.pq.enabled:
+            self._power_quality(key, channel, block, track, reset, log_time_ns)
+        if received_ns is not None:
+            channel.last_latency_ns = time.monotonic_ns() - received_ns
 
     def _forget_unborn(self, ch: Channel | None) -> None:
         """A channel whose first block was refused has accepted nothing and holds no state:
