@@ -173,7 +173,11 @@ def test_serve_c37118_frames_equal_the_zenoh_estimates(tmp_path):
             publish_interleaved(pub, per_channel)
             estimates = take(est, 3 * len(times))
             reader.join(TIMEOUT * 3)
-            last_status = status.get(timeout=TIMEOUT)
+            # the first Status that counts every frame read (one queued before them says fewer)
+            while (last_status := status.get(timeout=TIMEOUT)) is not None and last_status["c37118"][
+                "frames_built"
+            ] < len(times):
+                pass
         tail_out, tail_err = tail.communicate(timeout=60)
     finally:
         serve.send_signal(signal.SIGINT)
