@@ -102,11 +102,17 @@ class Intake:
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
             # from the publishers' caches; what is past their history is reported here.
+            # No late-publisher detection: its per-publisher history query races the live
+            # samples in zenoh-ext 1.10 (a live sample that arrives after the subscriber's
+            # own history query ended is delivered at once, and that publisher's history,
+            # still on its way, is then dropped as old, silently). Declared after this
+            # subscriber, a publisher's samples come live; before it, the history query
+            # fetches them, in order, ahead of the live ones.
             self._subscriber = zenoh.ext.declare_advanced_subscriber(
                 daemon.session,
                 cfg.keys.input,
                 fifo,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=False),
                 recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
