@@ -85,7 +85,7 @@ Item = tuple[str, bytes, str, int]
 class Intake:
     """Zenoh subscriber + pump thread feeding the event loop in batches."""
 
-    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop, history_blocks: int | None = None) -> None:
         cfg = daemon.config
         self._daemon = daemon
         self._loop = loop
@@ -112,7 +112,8 @@ class Intake:
                 daemon.session,
                 cfg.keys.input,
                 fifo,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=False),
+                # a takeover asks only for the newest ``history_blocks`` per key (what its snapshot lacks)
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=False, max_samples=history_blocks),
                 recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
@@ -468,10 +469,11 @@ class Daemon:
             self.recorder.attach_first_snapshot = True
         log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
 
-    def start_intake(self) -> None:
-        """Subscribe to the inputs (at start, or when a standby takes over)."""
+    def start_intake(self, history_blocks: int | None = None) -> None:
+        """Subscribe to the inputs (at start, or when a standby takes over: then the
+        publishers' history is asked for its newest ``history_blocks`` per key only)."""
         if self._intake is None:
-            self._intake = Intake(self, asyncio.get_running_loop())
+            self._intake = Intake(self, asyncio.get_running_loop(), history_blocks)
 
     async def stop_intake(self) -> None:
         """Unsubscribe from the inputs (an owner that lost its shard): what is queued is
