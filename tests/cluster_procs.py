@@ -78,6 +78,22 @@ def etcd_server(tmp_path: Path) -> Iterator[Etcd]:
         server.kill()
 
 
+def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
+    """(owner, term) of a shard as etcd has them: the election key's value and create revision."""
+    import asyncio
+
+    import aetcd
+
+    async def get() -> tuple[str, int]:
+        host, _, port = endpoint.rpartition(":")
+        async with aetcd.Client(host, int(port)) as client:
+            kv = await asyncio.wait_for(client.get(f"sinewatch/admin/election/{shard_id}".encode()), 30)
+            assert kv is not None, f"no election key for {shard_id}"
+            return kv.value.decode(), int(kv.create_revision)
+
+    return asyncio.run(get())
+
+
 class Router:
     def __init__(self) -> None:
         self.port = free_loopback_port()
@@ -285,7 +301,9 @@ class Estimates:
 
 def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
     """What each daemon published, from its own recordings (every file, a killed daemon's
-    cut short at its last complete chunk): independent of any subscriber's connection."""
+    cut short at its last complete chunk): independent of any subscriber's connection.
+    Each estimate gets ``_published_ns``: the wall time its daemon recorded it at, as it
+    published it (a subscriber on a loaded machine was seen to get one 5.5 s later)."""
     from sinewatch.replay import read_recording
 
     out: dict[str, list[dict[str, Any]]] = {}
@@ -294,7 +312,7 @@ def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[
         for path in sorted((tmp_path / d).glob("*.mcap")):
             for kind, item in read_recording(path):
                 if kind == "message" and item.role == "estimate":
-                    msgs.append(json.loads(item.payload))
+                    msgs.append({**json.loads(item.payload), "_published_ns": item.log_time_ns})
     return out
 
 

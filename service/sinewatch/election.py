@@ -160,6 +160,7 @@ class LeaseElection:
         client = self._etcd()
         sent = time.monotonic()
         lease = await self._call(client.lease(self.ttl_s), self.ttl_s)
+        granted = time.monotonic()
         tx = client.transactions
         ok, responses = await self._call(
             client.transaction(
@@ -175,6 +176,13 @@ class LeaseElection:
             self.won = Won(term=kvs[0][1].create_revision, lease_id=lease.id)
             self.owner = True
             self._ack(sent)
+            log.info(  # where a slow takeover's time went: etcd's two writes (each a commit and an fsync)
+                "election %s: won term %d (lease grant %.0f ms, transaction %.0f ms)",
+                self.key.decode(),
+                self.won.term,
+                (granted - sent) * 1e3,
+                (time.monotonic() - granted) * 1e3,
+            )
             return self.won, revision
         self._spawn_revoke(lease.id)  # a lease nobody uses: gone at once rather than after its TTL
         return None, revision
