@@ -173,6 +173,47 @@ class Proxy:
         self._listener.close()
 
 
+class ProxyProcess:
+    """A :class:`Proxy` in a process of its own, severed and healed on command: the daemons'
+    keep-alives then do not wait for this test process's interpreter, busy with the gateway
+    and every estimate (with the proxy's threads in here, owners nobody faulted lost their
+    leases when the machine's load average reached 30-40)."""
+
+    def __init__(self, target_port: int) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, __file__, "proxy", str(target_port)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert self.proc.stdout is not None
+        self.port = int(self.proc.stdout.readline())
+
+    def _command(self, what: str) -> None:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(what + "\n")
+        self.proc.stdin.flush()
+        assert self.proc.stdout.readline().strip() == what  # done
+
+    def sever(self) -> None:
+        self._command("sever")
+
+    def heal(self) -> None:
+        self._command("heal")
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+def _serve_proxy(target_port: int) -> None:
+    proxy = Proxy(target_port)
+    print(proxy.port, flush=True)
+    for line in sys.stdin:
+        getattr(proxy, line.strip())()
+        print(line.strip(), flush=True)
+
+
 def daemon_config(
     tmp_path: Path, daemon_id: str, shard: str, role: str, router_port: int, etcd: str, recovery: bool = True
 ) -> Path:
@@ -369,3 +410,7 @@ def check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
         before = [s for s in missing if s < m["seq"] and all(s > o for o in seqs if o < m["seq"])]
         assert m["diagnostics"]["gap_blocks"] == len(before)
     return len(flagged), len(missing)
+
+
+if __name__ == "__main__":  # ``python cluster_procs.py proxy PORT``: see ProxyProcess
+    _serve_proxy(int(sys.argv[2]))

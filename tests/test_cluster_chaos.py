@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 from cluster_procs import (
     Estimates,
-    Proxy,
+    ProxyProcess,
     Router,
     Tokens,
     check_channel,
@@ -93,7 +93,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
         router = Router()
         router.start()
         stack.callback(router.kill)
-        proxies = {d: Proxy(etcd.port) for d in DAEMONS}
+        proxies = {d: ProxyProcess(etcd.port) for d in DAEMONS}
         for p in proxies.values():
             stack.callback(p.close)
         configs = {
