@@ -166,6 +166,7 @@ class ClusterMember:
         # set on a Zenoh thread (one reference assignment each): (term, payload, monotonic arrival) of the newest
         self.latest_snapshot: tuple[int, bytes, float] | None = None
         self.published: dict[str, tuple[int, int]] = {}  # channel -> (seq, timestamp_ns) the owner published
+        self._stepped_down: float | None = None  # monotonic: when this daemon last stopped serving (its state's age)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._watch: list[Any] = []  # the standby's subscribers
@@ -258,6 +259,7 @@ class ClusterMember:
             if ch.last_seq is not None and ch.next_t0_ns is not None:
                 self.published[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
         self.term = None
+        self._stepped_down = time.monotonic()
         self._stand_by()
 
     # ---- standby ---------------------------------------------------------------------------------
@@ -347,14 +349,18 @@ class ClusterMember:
 
     def _history_needed(self) -> int | None:
         """How many of each key's newest blocks a takeover asks the publishers' caches for:
-        those since the snapshot it restored, twice over (None, all they hold, without one).
+        those since the snapshot it restored (or since it stood down, re-elected on its own
+        state), twice over (None, all they hold, with neither).
         The whole cache (1,024 blocks per key by default) would be read, recorded and
         skipped before the first new block is estimated: after a minute of 100 channels at
         10 blocks/s, that held a takeover's first estimate back by seconds under load."""
         latest = self.latest_snapshot
-        if latest is None:
+        if latest is not None:
+            since_s = time.monotonic() - latest[2] + self.daemon.config.cluster.snapshot_interval_s
+        elif self._stepped_down is not None:  # re-elected on its own state (no snapshot came since it stood down)
+            since_s = time.monotonic() - self._stepped_down
+        else:
             return None
-        since_s = time.monotonic() - latest[2] + self.daemon.config.cluster.snapshot_interval_s
         rates = [  # blocks per second of each channel, from its mean block length
             ch.sample_rate_hz * ch.blocks / ch.samples
             for ch in self.daemon.pipeline.channels.values()
