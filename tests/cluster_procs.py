@@ -363,24 +363,34 @@ def published_once_each(
     fenced_off: set[tuple[str, int]] = frozenset(),  # type: ignore[assignment]
 ) -> dict[str, list[dict[str, Any]]]:
     """Per channel, every estimate a fenced reader keeps (seen by the subscriber, or in a
-    recording when the subscriber's own link was down), by seq; asserts that no (channel,
-    seq) was published by two daemons (in two recordings, or seen under two terms). A
-    recorded estimate the subscriber saw the fence drop (a paused owner's put that left
-    after its successor's first estimate) is not what readers keep: the successor's gap
-    counts it."""
-    by_daemon: dict[tuple[str, int], set[str]] = defaultdict(set)
-    union: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
+    recording when the subscriber's own link was down), by seq. Asserts that no (channel,
+    seq) was published by two daemons under one term (two owners at once), and that where
+    two daemons recorded it under two terms (an owner paused between its gate and its put,
+    whose estimate left after its successor had published the same block) the reader kept
+    the newer term's only. A recorded estimate the subscriber saw the fence drop, and no
+    successor published, is not what readers keep: the successor's gap counts it."""
+    copies: dict[tuple[str, int], dict[str, dict[str, Any]]] = defaultdict(dict)
     for d, msgs in recorded.items():
         for m in msgs:
-            by_daemon[(m["channel"], m["seq"])].add(d)
-            if (m["channel"], m["seq"]) not in fenced_off:
-                union[m["channel"]].setdefault(m["seq"], m)
-    twice = {k: v for k, v in by_daemon.items() if len(v) > 1}
-    assert not twice, f"published by two daemons: {sorted(twice.items())[:20]}"
+            copies[(m["channel"], m["seq"])].setdefault(d, m)
+    union: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
+    twice, late = {}, []
+    for (ch, seq), by_daemon in copies.items():
+        terms = sorted(((m.get("fencing") or {}).get("term") or 0, d) for d, m in by_daemon.items())
+        if len(terms) > 1 and terms[-2][0] == terms[-1][0]:
+            twice[(ch, seq)] = terms
+        elif len(terms) > 1:
+            late.append((ch, seq, terms))
+        elif (ch, seq) in fenced_off:
+            continue
+        union[ch][seq] = by_daemon[terms[-1][1]]
+    assert not twice, f"published by two daemons under one term: {sorted(twice.items())[:20]}"
+    if late:
+        print(f"{len(late)} block(s) recorded by two daemons under two terms (a reader keeps the newer term's): {late[:10]}")
     for ch, msgs in observed.items():
         for m in msgs:
             known = union[ch].setdefault(m["seq"], m)
-            assert known.get("fencing") == m.get("fencing"), f"{ch} seq {m['seq']} under two terms"
+            assert known.get("fencing") == m.get("fencing"), f"{ch} seq {m['seq']} kept under an older term"
     return {ch: [by_seq[s] for s in sorted(by_seq)] for ch, by_seq in union.items()}
 
 
