@@ -308,7 +308,9 @@ def _decode_json(payload: bytes) -> Frame:
             f"JSON frame samples: expected rows of {n_ch} values (one per channel), got {sorted(widths)[:5]}"
         )
     samples = np.asarray(msg.samples, dtype=np.float64).reshape(-1, n_ch)
-    return Frame(tuple(msg.channels), msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, time_quality_of(msg.time_quality))
+    return Frame(
+        tuple(msg.channels), msg.seq, msg.t0_ns, msg.sample_rate_hz, samples, time_quality_of(msg.time_quality)
+    )
 
 
 def _check_names(names: tuple[str, ...] | list[str]) -> None:
