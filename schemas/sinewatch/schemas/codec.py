@@ -117,7 +117,7 @@ def time_quality_model(byte: int) -> TimeQuality | None:
     """The message form of a time-quality byte (None: not stated)."""
     if byte == TQ_NOT_STATED:
         return None
-    return TimeQuality(sync=SYNC_NAMES[byte & TQ_SYNC_MASK], holdover=bool(byte & TQ_HOLDOVER))  # type: ignore[arg-type]
+    return TimeQuality(sync=SYNC_NAMES[byte & TQ_SYNC_MASK], holdover=bool(byte & TQ_HOLDOVER))
 
 
 def time_quality_of(model: TimeQuality | None) -> int:

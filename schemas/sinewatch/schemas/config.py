@@ -222,8 +222,11 @@ class C37118Station(_Section):
         "(e.g. a merging unit's smpSynch) sets them itself",
     )
     pmu_time_quality: int = Field(
-        7, ge=0, le=7, description="STAT bits 8-6 (C37.118.2-2011 Table 7) while the time is locked: 7 = time error unknown "
-        "or > 10 ms"
+        7,
+        ge=0,
+        le=7,
+        description="STAT bits 8-6 (C37.118.2-2011 Table 7) while the time is locked: 7 = time error unknown "
+        "or > 10 ms",
     )
 
     @field_validator("channels")
