@@ -36,7 +36,7 @@ decoded ASDUs of each stream (one per svID) into frames of ``n`` consecutive sam
   rises again. The daemon passes it to every Estimate of the frame's channels and to the
   C37.118.2 STAT word; each change is logged.
 
-The counts and the stream's time quality now also go on a status key,
+The counts and each stream's time quality also go on a status key,
 ``sinewatch/gateway/sv/<svID>``, once a second and at the end.
 """
 
@@ -281,7 +281,7 @@ class SvGateway:
     """Ethernet frames in (``feed``), Frames out through ``emit(frame_name, frame)``. A
     frame that is not SV, or not decodable, is counted, never raised. A change of a
     stream's time quality goes to ``on_time_quality(svID, old byte, new byte, arrival_ns)``
-    (default: a log line, a warning when the synchronisation drops)."""
+    (default: :func:`log_time_quality`, a warning)."""
 
     def __init__(
         self,
