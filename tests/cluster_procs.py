@@ -386,7 +386,9 @@ def published_once_each(
         union[ch][seq] = by_daemon[terms[-1][1]]
     assert not twice, f"published by two daemons under one term: {sorted(twice.items())[:20]}"
     if late:
-        print(f"{len(late)} block(s) recorded by two daemons under two terms (a reader keeps the newer term's): {late[:10]}")
+        print(
+            f"{len(late)} block(s) recorded by two daemons under two terms (a reader keeps the newer term's): {late[:10]}"
+        )
     for ch, msgs in observed.items():
         for m in msgs:
             known = union[ch].setdefault(m["seq"], m)
