@@ -117,12 +117,16 @@ class Intake:
                 recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
-            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
         else:
             self._subscriber = daemon.session.declare_subscriber(cfg.keys.input, fifo)
         self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
         self._closed = threading.Event()
         self._thread.start()
+        # Only now, with the pump draining the FIFO: zenoh-ext hands the history to the FIFO
+        # holding the subscriber's lock, which registering a listener takes too; with the
+        # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
+        if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
 
     def _pump(self) -> None:
         handler = self._subscriber.handler
