@@ -51,6 +51,7 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("overload", "the daemon offered twice what it sustains, with each queue policy", add_overload_arguments),
         ("soak", "hours of load with recording rotation: RSS, fds, latency every interval", add_soak_arguments),
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
+        ("calibration", "reported std against the actual error, per estimator, parameter and SNR", _calibration_args),
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
         ("compliance", "IEEE C37.118.1 M-class tests of estimators reporting on a time grid", add_compliance_arguments),
@@ -79,6 +80,12 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         add_arguments(p)
         p.set_defaults(fn=_runner(_MODULES.get(name, name.replace("-", "_"))))
     return b
+
+
+def _calibration_args(parser: argparse.ArgumentParser) -> None:
+    from sinewatch.bench.calibration import add_arguments
+
+    add_arguments(parser)
 
 
 def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:

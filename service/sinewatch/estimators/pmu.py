@@ -122,6 +122,7 @@ from sinewatch.estimators.base import (
     EstimatorParams,
     GridReports,
     Track,
+    TrackStd,
     concat_tracks,
     cyclic_next,
     decode_array,
@@ -189,6 +190,9 @@ class Design:
     nu_pass0: float
     g_image: np.ndarray  # (D, 3, T) complex: the three kernels' responses on nu_image0 + i * step
     nu_image0: float
+    noise_gram: np.ndarray  # (D, 3, 3): (U) the kernels' raw-domain noise gram, per phase
+    probe_taper: np.ndarray  # (D, M): (U) the noise probes' taper, per phase
+    probe_gram: np.ndarray  # (D, 2): (U) the probes' gram terms S0, S1 per phase, with the triangle's R0, R1
 
     @property
     def n_taps(self) -> int:
@@ -364,6 +368,7 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     r1 = bank[:, 1] / bank[:, 0]
     a2_bias = np.ascontiguousarray(bank[:, 2] / bank[:, 0] - r1 * r1)
     g_img = _bank_response(kernels, m, d, fs, nu_img)
+    noise_gram, probe_taper, probe_gram = _noise_design(kernels, m, d, fs, window_s)
     return Design(
         fs=fs,
         f0=f0,
@@ -382,7 +387,42 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         nu_pass0=float(nu_pass[0]),
         g_image=g_img,
         nu_image0=float(nu_img[0]),
+        noise_gram=noise_gram,
+        probe_taper=probe_taper,
+        probe_gram=probe_gram,
     )
+
+
+def _triangle_autocorrelation(d: int) -> tuple[float, float]:
+    """(U) ``R0 = sum_i tri_i^2`` and ``R1 = sum_i tri_i tri_{i+D}`` of the triangle of (D):
+    the noise covariance of consecutive c_j (lags beyond D are zero)."""
+    i = np.arange(-(d - 1), d)
+    tri = (d - np.abs(i)) / (d * d)
+    r0 = float(np.sum(tri * tri))
+    r1 = float(np.sum(tri[d:] * tri[:-d])) if d > 1 else 0.0
+    return r0, r1
+
+
+def _noise_design(
+    kernels: np.ndarray, m: np.ndarray, d: int, fs: float, window_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(U) per input-sample phase rho: the gram ``Gamma_kl = sum_n h_k[n] h_l[n]`` of the three
+    kernels' raw-domain responses h_k (taps convolved with the triangle), the probes' Nuttall taper
+    on the kernels' tap times, and the probes' gram terms ``(R0 sum v_i^2, R1 sum v_i v_{i+1})``."""
+    r0, r1 = _triangle_autocorrelation(d)
+    n_rho, _, taps = kernels.shape
+    gram = np.empty((n_rho, 3, 3))
+    taper = np.empty((n_rho, taps))
+    pgram = np.empty((n_rho, 2))
+    for rho in range(n_rho):
+        k = kernels[rho]
+        lag1 = k[:, :-1] @ k[:, 1:].T
+        gram[rho] = r0 * (k @ k.T) + r1 * (lag1 + lag1.T)
+        t = (m * d + rho) / fs
+        v = _kernel(t, window_s, None)[0]
+        taper[rho] = v
+        pgram[rho] = (r0 * float(v @ v), r1 * float(v[:-1] @ v[1:]))
+    return np.ascontiguousarray(gram), np.ascontiguousarray(taper), np.ascontiguousarray(pgram)
 
 
 #: 'auto': the detection window (ten cycles of 50 Hz, twelve of 60) and how long a signal
@@ -438,6 +478,12 @@ def gain(d: Design, nu: float | np.ndarray) -> np.ndarray:
 # 13 converged, 14 cos theta, 15 sin theta (rotor at the current sample)
 N_ISTATE = 6
 N_FSTATE = 16
+#: (U) noise probes per report, and the time constant (s) of their average over reports
+N_PROBES = 4
+NOISE_TIME_CONSTANT_S = 1.0
+#: report rows: the 8 values, then (U) the standard deviations of frequency, ROCOF, amplitude,
+#: phase, offset and TVE
+N_REPORT_COLUMNS = 14
 
 
 @kernel
@@ -477,10 +523,17 @@ def _report(
     bias: np.ndarray,
     gc: np.ndarray,
     gi3: np.ndarray,
+    gram: np.ndarray,
+    taper: np.ndarray,
+    pgram: np.ndarray,
+    noise: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """(K)-(E) from the M decimated samples ring[start:start+M] (oldest first): fills
-    out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame)."""
+    out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame), then (U):
+    updates the noise average ``noise`` (in place) and fills out[6:12] = the standard
+    deviations of frequency, ROCOF, amplitude (peak), phase, offset and TVE (NaN when
+    undefined)."""
     M = kern.shape[1]
     f0, nu_p0, nu_i0, step = fconsts[0], fconsts[2], fconsts[3], fconsts[4]
     # taps run m = m_lo .. m_lo + M - 1 over c_{q - m}: newest sample first
@@ -534,6 +587,104 @@ def _report(
     out[3] = rocof
     out[4] = b
     out[5] = 1.0 if (math.isfinite(nu) and math.isfinite(rocof) and math.isfinite(abs(x))) else 0.0
+    for c in range(6, 12):
+        out[c] = np.nan
+    if out[5] == 0.0:
+        return
+    sig2 = _noise_update(ring, start, M, taper, pgram, f0 + nu, fconsts, noise)
+    dn = _interp(gp, nu_p0, step, nu) + 0.5 * a2 * _interp(gc, nu_p0, step, nu)
+    _report_std(q0, q1, q2, r1, dn, _interp(gc, nu_p0, step, nu), x, gram, sig2, out)
+
+
+@kernel
+def _noise_update(
+    ring: np.ndarray,
+    start: int,
+    M: int,
+    taper: np.ndarray,
+    pgram: np.ndarray,
+    f_hz: float,
+    fconsts: np.ndarray,
+    noise: np.ndarray,
+) -> float:
+    """(U) the noise variance sigma^2 of the raw samples: N_PROBES probes (the Nuttall taper
+    modulated to raw frequencies (i + 1/2) f, halfway between the signal's harmonics, relative
+    to the estimated f so that neither the tone nor its harmonics, the offset or the image
+    fall in their main lobes) read the noise beside the tone in this window; their power over
+    their gram, averaged over the probes and over reports (weights ``lambda^age``, the
+    average in ``noise`` = (weighted sum, sum of weights)), is sigma^2. Returns it."""
+    f_osc, fs, lam, dstep = fconsts[0], fconsts[1], fconsts[7], fconsts[8]
+    last = start + M - 1
+    acc = 0.0
+    for k in range(N_PROBES):
+        dk = (k + 0.5) * f_hz - f_osc  # the probe's frequency after demodulation
+        w = 2.0 * math.pi * dk * dstep  # radians per decimated sample
+        rot = complex(math.cos(w), math.sin(w))
+        e = complex(1.0, 0.0)
+        pr = complex(0.0, 0.0)
+        for i in range(M):
+            pr += taper[i] * e * complex(ring[last - i, 0], ring[last - i, 1])
+            e *= rot
+        g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
+        acc += (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    noise[0] = lam * noise[0] + acc / N_PROBES
+    noise[1] = lam * noise[1] + 1.0
+    sig2: float = noise[0] / noise[1]
+    return sig2
+
+
+@kernel(inline="always")
+def _qform(c0: complex, c1: complex, c2: complex, gram: np.ndarray) -> float:
+    """c^H Gamma c for a real symmetric 3x3 Gamma: the variance of Re(c^T e) (and of Im) per
+    unit sigma^2, for the kernels' noise e (E[e e^H] = 2 sigma^2 Gamma, E[e e^T] ~ 0)."""
+    v = (
+        gram[0, 0] * (c0.real * c0.real + c0.imag * c0.imag)
+        + gram[1, 1] * (c1.real * c1.real + c1.imag * c1.imag)
+        + gram[2, 2] * (c2.real * c2.real + c2.imag * c2.imag)
+        + 2.0 * gram[0, 1] * (c0.conjugate() * c1).real
+        + 2.0 * gram[0, 2] * (c0.conjugate() * c2).real
+        + 2.0 * gram[1, 2] * (c1.conjugate() * c2).real
+    )
+    return max(v, 0.0)
+
+
+@kernel
+def _report_std(
+    q0: complex,
+    q1: complex,
+    q2: complex,
+    r1: complex,
+    dn: complex,
+    gcv: complex,
+    x: complex,
+    gram: np.ndarray,
+    sig2: float,
+    out: np.ndarray,
+) -> None:
+    """(U) the estimates of (E) and (C) linearised in the kernels' noise (the image
+    cancellation's and the tables' own dependence on nu left out: second order): out[6:12] =
+    std of nu, ROCOF, amplitude (peak, sqrt 2 |X|), arg X, offset, and the RMS TVE
+    ``sqrt(E |dX|^2) / |X|``."""
+    inv = 1.0 / q0
+    two_pi = 2.0 * math.pi
+    # nu = Im(q1 / q0) / 2 pi
+    out[6] = math.sqrt(sig2 * _qform(-r1 * inv, inv, 0j, gram)) / two_pi
+    # a2 = q2/q0 - r1^2 - b: da2 = ca0 dq0 + ca1 dq1 + ca2 dq2; ROCOF = Im(a2) / 2 pi
+    ca0 = (2.0 * r1 * r1 - q2 * inv) * inv
+    ca1 = -2.0 * r1 * inv
+    ca2 = inv
+    out[7] = math.sqrt(sig2 * _qform(ca0, ca1, ca2, gram)) / two_pi
+    # X = q0 / dn, dn = G + a2 G2 / 2
+    s = -0.5 * gcv * q0 / (dn * dn)
+    cx0 = 1.0 / dn + s * ca0
+    cx1 = s * ca1
+    cx2 = s * ca2
+    mag = abs(x)
+    u = x.conjugate() / mag
+    out[8] = math.sqrt(2.0 * sig2 * _qform(u * cx0, u * cx1, u * cx2, gram))
+    out[9] = math.sqrt(sig2 * _qform(u * cx0, u * cx1, u * cx2, gram)) / mag
+    out[10] = math.sqrt(sig2 * gram[0, 0])  # b = sum_n h0[n] x_n: no sqrt 2, no demodulation
+    out[11] = math.sqrt(2.0 * sig2 * _qform(cx0, cx1, cx2, gram)) / mag
 
 
 @kernel
@@ -544,6 +695,7 @@ def pmu_kernel(
     istate: np.ndarray,
     fstate: np.ndarray,
     anchor: np.ndarray,
+    noise: np.ndarray,
     kernels: np.ndarray,
     osc: np.ndarray,
     weights: np.ndarray,
@@ -553,18 +705,24 @@ def pmu_kernel(
     a2_bias: np.ndarray,
     g_chirp: np.ndarray,
     g_image: np.ndarray,
+    noise_gram: np.ndarray,
+    probe_taper: np.ndarray,
+    probe_gram: np.ndarray,
     last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 8), sse,
-    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor) (``anchor``, the
-    time anchor the class keeps, passes through unchanged).
+) -> tuple[
+    np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 14), sse,
+    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor, new_noise) (``anchor``,
+    the time anchor the class keeps, passes through unchanged; ``noise``, the (U) average).
 
     ``ring`` (2L, 2) holds the decimated c_j twice (so any window is contiguous), dcring
     (2L,) the decimated raw samples; ``iconsts`` = (D, M, m_lo, L); ``fconsts`` = (f0, fs,
     nu_pass0, nu_image0, table step, samples per report fs/Fs, min_amplitude). Output
     columns: frequency_hz, amplitude, phase_rad, offset, converged, rocof. Report rows:
     k, f, rocof, RMS magnitude, synchrophasor angle, amplitude (peak), phase_rad (sine,
-    instantaneous), offset. Pure: no input is modified."""
+    instantaneous), offset, then the std of frequency, ROCOF, amplitude, phase, offset and
+    the RMS TVE (U). Pure: no input is modified."""
     D, M, m_lo, L = iconsts[0], iconsts[1], iconsts[2], iconsts[3]
     f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
     rg = ring.copy()
@@ -579,9 +737,10 @@ def pmu_kernel(
     n_in = x.shape[0]
     out = np.empty((1 if last_only else n_in, 6))
     cap = n_in // max(1, int(spr)) + 2
-    reps = np.empty((cap, 8))
+    reps = np.empty((cap, N_REPORT_COLUMNS))
     n_rep = 0
-    est = np.zeros(6)
+    est = np.zeros(12)
+    nz = noise.copy()
     Q = weights.shape[0]
     ph = n % Q  # sample phase (weights) and decimation phase of sample n, then counted
     rho = n % D
@@ -640,6 +799,10 @@ def pmu_kernel(
                     a2_bias[ph_r],
                     g_chirp[ph_r],
                     g_image[ph_r],
+                    noise_gram[ph_r],
+                    probe_taper[ph_r],
+                    probe_gram[ph_r],
+                    nz,
                     est,
                 )
                 held = 1
@@ -669,6 +832,8 @@ def pmu_kernel(
                         reps[n_rep, 5] = A
                         reps[n_rep, 6] = wrap_pi(theta_r)
                         reps[n_rep, 7] = B
+                        for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
+                            reps[n_rep, 8 + c] = est[6 + c]
                         n_rep += 1
                     # rotor at the current sample n (predicts sample n + 1 after a step)
                     th = theta_r + 2.0 * math.pi * f * (n - u) / fs
@@ -682,7 +847,7 @@ def pmu_kernel(
                     cth, sth = 1.0, 0.0
                     if n_rep < cap:
                         reps[n_rep, 0] = k_next
-                        for c in range(1, 8):
+                        for c in range(1, N_REPORT_COLUMNS):
                             reps[n_rep, c] = np.nan
                         n_rep += 1
                 k_next += 1
@@ -711,7 +876,7 @@ def pmu_kernel(
         rho = cyclic_next(rho, D)
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
-    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
+    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy(), nz
 
 
 @register
@@ -766,10 +931,13 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                 TABLE_STEP_HZ,
                 d.fs / d.reporting_rate,
                 self.params.min_amplitude,
+                math.exp(-1.0 / (NOISE_TIME_CONSTANT_S * d.reporting_rate)),  # (U) the reports' weight lambda
+                d.decimation / d.fs,  # (U) a decimated sample's duration (s)
             ]
         )
         self._constants = (
-            d.kernels, d.osc, d.weights, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image
+            d.kernels, d.osc, d.weights, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image,
+            d.noise_gram, d.probe_taper, d.probe_gram,
         )  # fmt: skip
 
     # ---- time anchor ----------------------------------------------------------------------
@@ -791,6 +959,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             "counters": istate,
             "values": fstate,
             "anchor_ns": np.array([anchor_ns, 0], dtype=np.int64),  # anchor, anchored by a t0 (0/1)
+            "noise": np.zeros(2),
         }
 
     def _initial_state(self) -> dict[str, np.ndarray]:
@@ -799,7 +968,8 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         samples since the anchor, next decimated index, next grid index, first grid index
         after the anchor, report held, report defined; ``values`` (16,): see ``N_FSTATE``;
         ``anchor_ns`` (2,) int64: the anchor (ns since the epoch) and whether a block's
-        time set it (1) or it is the default t = 0 (0)."""
+        time set it (1) or it is the default t = 0 (0); ``noise`` (2,): (U) the reports' noise
+        average, its weighted sum and the sum of its weights."""
         return self._anchor_state(0)
 
     def _expected_t0_ns(self, st: dict[str, np.ndarray]) -> int:
@@ -908,7 +1078,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     def _undefined(self, samples: np.ndarray, last_only: bool) -> Track:
         out = np.full((1 if last_only else samples.shape[0], 6), np.nan)
         out[:, 4] = 0.0
-        return self._track((out, np.empty((0, 8)), 0.0, 0), samples)
+        return self._track((out, np.empty((0, N_REPORT_COLUMNS)), 0.0, 0), samples)
 
     def _decide(self, f0: int) -> None:
         self._nominal = f0
@@ -935,6 +1105,11 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         return snap
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
+        """As :meth:`Estimator.set_state`; a snapshot from a build before the noise average
+        (U) existed is accepted, that average starting afresh."""
+        state = snapshot.get("state")
+        if isinstance(state, Mapping) and "ring" in state and "noise" not in state:
+            snapshot = {**snapshot, "state": {**state, "noise": encode_array(np.zeros(2))}}
         if not self.auto:
             super().set_state(snapshot)
             return
@@ -989,8 +1164,16 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                     offset=reps[:, 7],
                     converged=reps[:, 3] > self._fconsts[6],
                     residual_rms=residual,
-                    extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
+                    extras={
+                        "synchrophasor_magnitude": reps[:, 3],
+                        "synchrophasor_angle_rad": reps[:, 4],
+                        "std_rocof_hz_per_s": reps[:, 9],
+                        "std_tve": reps[:, 13],
+                    },
                     rocof_hz_per_s=reps[:, 2:3],
+                    std=TrackStd(
+                        frequency_hz=reps[:, 8:9], amplitude=reps[:, 10:11], phase_rad=reps[:, 11:12], offset=reps[:, 12]
+                    ),
                 ),
             ),
         )
