@@ -226,4 +226,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--json", type=Path, help="also write the rows as JSON")
-    parser.add_argument("--update-docs", type=Path, help="replace the table between the calibration markers of this file")
+    parser.add_argument(
+        "--update-docs", type=Path, help="replace the table between the calibration markers of this file"
+    )

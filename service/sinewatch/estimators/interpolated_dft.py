@@ -49,6 +49,20 @@ Every ``hop`` samples, once the ring buffer holds a full window of N samples
      offset ``B = mu + d``, phase at the newest sample ``theta_end = omega c + phi``, and
      the fit residual ``r = rms(u_n - a s_n - b c_n - d)``.
 
+(U)  standard deviations (derived here, not in [G], [A]): the noise variance is the fit's
+     residual, ``sigma^2 = r^2 N / (N - 3)`` (it includes whatever the model misses). The
+     frequency's is the interpolation (I3)/(I2) linearised in the noise (``d|X_k| = Re(conj(X_k)
+     dX_k) / |X_k|`` through the window's own DFT sums: :func:`std_tables`, per unit sigma^2 /
+     A^2 over the search band, averaged over the tone's phase) plus the RMS over the phase of
+     the interpolation's deterministic error on a real tone (the image's leakage: about 0.005
+     Hz at 4 cycles, larger than the noise's share above ~40 dB). Amplitude ``2 sigma^2 / N``,
+     offset ``sigma^2 / N`` (least squares at a known frequency [K, Section 8.6]); the phase at
+     the window's middle ``2 sigma^2 / (N A^2)``, plus ``(c + m)^2`` times the variance of
+     omega for a phase m samples after the window's last sample. The ROCOF's is that of the
+     difference of two windows a hop apart (their noise shares samples, and their deterministic
+     errors differ by the tone's phase turning over the hop), in ``extras``
+     (``std_rocof_hz_per_s``).
+
 Between hops the estimate is held and the phase advances at the held frequency:
 ``phase(m) = wrap(theta_end + omega m)`` m samples after the hop, so phase is
 instantaneous at every sample (the Track has one row per input sample). The estimate
@@ -546,9 +560,7 @@ def ipdft_kernel(
     iconsts: np.ndarray,
     fconsts: np.ndarray,
     last_only: bool,
-) -> tuple[
-    np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray
-]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run the sliding interpolated DFT over block ``x``; return
     ``(out, resid, rocof, age, sse, n_pred, new_buf, new_istate, new_fstate, new_rstate)``
     (``age``: samples since the last sample of the window each row's estimate is from).

@@ -82,6 +82,32 @@ decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutof
      ``X(t_r) = X e^{j 2 pi nu tau}``, ``f(t_r) = f + ROCOF tau`` (``|tau| <= 1 / 2 fs``).
      Absolute reference: ``phi = arg X - 2 pi f0 t_anchor`` (mod 2 pi, from integer ns).
 
+(U)  standard deviations (derived here, not in the papers), from the signal itself. The noise
+     variance sigma^2 of the raw samples is read by ``N_PROBES`` probes: the Nuttall taper of
+     the window (no sinc) modulated to the raw frequencies ``(i + 1/2) f``, i = 0..3, f the
+     estimated frequency, i.e. halfway between the tone's harmonics (and away from the offset
+     and the image), over the same decimated samples c_j as the report. Their power over
+     their exact gram (the taper convolved with the triangle of (D):
+     ``E |P|^2 = 2 sigma^2 (R0 sum v_i^2 + 2 R1 sum v_i v_{i+1} cos(2 pi d D / fs))``, R0, R1
+     the triangle's autocorrelation at lags 0 and D), averaged over the probes and over the
+     reports with weights ``lambda^age`` (time constant ``NOISE_TIME_CONSTANT_S``: consecutive
+     reports share most of their window, so a second of reports is a few independent windows,
+     ~100 degrees of freedom) is sigma^2; what a transient or an interharmonic puts in the
+     probes counts as noise, which is what the error bar should then cover. The outputs of (E)
+     and (C) are then linearised in the kernels' noise ``e = (dp, dp', dp'')``, whose
+     covariance is ``E[e e^H] = 2 sigma^2 Gamma``, ``Gamma_kl = sum_n h_k[n] h_l[n]`` the
+     raw-domain gram of the three kernels (tabulated per phase; ``E[e e^T]`` is the kernels'
+     response at 2 f0, nil): a reported y = Re or Im of ``c^T e`` has variance
+     ``sigma^2 c^H Gamma c``. With r1 = p'/p: ``dnu = Im(dp'/p - r1 dp/p) / 2 pi``; ``da2 =
+     dp''/p + (2 r1^2 - p''/p) dp/p - 2 r1 dp'/p``, ROCOF = Im(a2) / 2 pi;
+     ``dX = dp / Dn - (p G2 / 2 Dn^2) da2`` (Dn = G + a2 G2 / 2), amplitude ``sqrt 2 Re(conj(u)
+     dX)``, phase ``Im(conj(u) dX) / |X|`` (u = X / |X|), the RMS TVE ``sqrt(E |dX|^2) / |X|``;
+     the offset ``sum_n h0[n] x_n`` has variance ``sigma^2 Gamma_00``. The image cancellation
+     and the tables' own dependence on nu are left out (second order). The ROCOF's and TVE's
+     standard deviations are in the reports' ``extras`` (``std_rocof_hz_per_s``, ``std_tve``,
+     a fraction). P class (a three-cycle window, whose main lobe reaches the probes) is not
+     calibrated by ``sinewatch bench calibration``.
+
 Kernel choice per (class, f0, Fs): ``T = 9 / Fs`` (latency ``4.5 / Fs + 2 D / fs``, under the
 M-class ``5 / Fs``) and ``fc`` a fraction of ``Fs / 2``: 0.26 (50 Hz) and 0.22 (60 Hz) at
 Fs = f0, 0.375 below. The fractions were searched with the compliance bench (``sinewatch
@@ -613,7 +639,7 @@ def _noise_update(
     fall in their main lobes) read the noise beside the tone in this window; their power over
     their gram, averaged over the probes and over reports (weights ``lambda^age``, the
     average in ``noise`` = (weighted sum, sum of weights)), is sigma^2. Returns it."""
-    f_osc, fs, lam, dstep = fconsts[0], fconsts[1], fconsts[7], fconsts[8]
+    f_osc, lam, dstep = fconsts[0], fconsts[7], fconsts[8]
     last = start + M - 1
     acc = 0.0
     for k in range(N_PROBES):
@@ -709,9 +735,7 @@ def pmu_kernel(
     probe_taper: np.ndarray,
     probe_gram: np.ndarray,
     last_only: bool,
-) -> tuple[
-    np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
-]:
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 14), sse,
     n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor, new_noise) (``anchor``,
     the time anchor the class keeps, passes through unchanged; ``noise``, the (U) average).
@@ -1172,7 +1196,10 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                     },
                     rocof_hz_per_s=reps[:, 2:3],
                     std=TrackStd(
-                        frequency_hz=reps[:, 8:9], amplitude=reps[:, 10:11], phase_rad=reps[:, 11:12], offset=reps[:, 12]
+                        frequency_hz=reps[:, 8:9],
+                        amplitude=reps[:, 10:11],
+                        phase_rad=reps[:, 11:12],
+                        offset=reps[:, 12],
                     ),
                 ),
             ),
