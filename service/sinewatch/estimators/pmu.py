@@ -663,7 +663,7 @@ def _noise_update(
 def _qform(c0: complex, c1: complex, c2: complex, gram: np.ndarray) -> float:
     """c^H Gamma c for a real symmetric 3x3 Gamma: the variance of Re(c^T e) (and of Im) per
     unit sigma^2, for the kernels' noise e (E[e e^H] = 2 sigma^2 Gamma, E[e e^T] ~ 0)."""
-    v = (
+    v: float = (
         gram[0, 0] * (c0.real * c0.real + c0.imag * c0.imag)
         + gram[1, 1] * (c1.real * c1.real + c1.imag * c1.imag)
         + gram[2, 2] * (c2.real * c2.real + c2.imag * c2.imag)
@@ -671,7 +671,7 @@ def _qform(c0: complex, c1: complex, c2: complex, gram: np.ndarray) -> float:
         + 2.0 * gram[0, 2] * (c0.conjugate() * c2).real
         + 2.0 * gram[1, 2] * (c1.conjugate() * c2).real
     )
-    return max(v, 0.0)
+    return v if v > 0.0 else 0.0
 
 
 @kernel
