@@ -799,7 +799,8 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         sig2 = resid * resid * (n / (n - 3.0))  # the fit has 3 linear parameters
         amp = out[:, 1]
         lam = out[:, 0] * n / fs
-        rel = sig2 / (amp * amp)  # sigma^2 / A^2
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero amplitude: no std (inf or NaN)
+            rel = sig2 / (amp * amp)  # sigma^2 / A^2
         var_lam = rel * np.interp(lam, t.lam, t.var_lam) + np.interp(lam, t.lam, t.bias_lam) ** 2
         var_dlam = rel * np.interp(lam, t.lam, t.var_dlam) + np.interp(lam, t.lam, t.bias_dlam) ** 2
         omega_sd2 = (2.0 * np.pi / n) ** 2 * var_lam  # rad / sample
