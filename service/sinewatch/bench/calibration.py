@@ -28,13 +28,12 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sinewatch.bench.params import default_rule_estimator
-from sinewatch.estimators import create
-from sinewatch.estimators.base import Estimator, Track
+if TYPE_CHECKING:  # the estimators (and numba) load when a trial runs, not with the CLI's parser
+    from sinewatch.estimators.base import Estimator, Track
 
 SAMPLE_RATE_HZ = 5000.0
 DURATION_S = 2.0
@@ -49,6 +48,9 @@ DOCS_END = "<!-- calibration:end -->"
 
 def make_estimator(name: str, sample_rate_hz: float = SAMPLE_RATE_HZ) -> Estimator[Any]:
     """The estimator with every parameter at its default (the default rule's own parameters)."""
+    from sinewatch.bench.params import default_rule_estimator
+    from sinewatch.estimators import create
+
     if name == "default-rule":
         cls, params, _ = default_rule_estimator()
         return cls(sample_rate_hz, params)
