@@ -56,15 +56,6 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "ges-kalman": (
-        "no compiled bank: one was built (the single kernel's per-sample step over the channels, "
-        "bit for bit) and ran slower than one channel at a time (91 against 72 ns/sample at 8 "
-        "channels, same process). The single kernel is not waiting on its recursion but on its "
-        "arithmetic: it keeps the 46 per-sample quantities (x, P, T, U of (U1)-(U4)) in registers "
-        "and does ~220 flops a sample; interleaving channels adds a load and a store of each of them "
-        "per sample, and numba's LLVM did not vectorise the channel loop (it could not prove the "
-        "state rows independent of each other), which is what it would take"
-    ),
     "kkl": (
         "no compiled bank: one was built (the observer's per-sample step shared by the single "
         "kernel and a bank, bit for bit) and gained about 10 % over one channel at 8 channels, "
