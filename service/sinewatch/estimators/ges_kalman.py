@@ -572,7 +572,7 @@ _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-m
 
 @kernel(inline="always")
 def _bank_sample(
-    S: np.ndarray, lane: int, rs: int, q0: float, q1: float, q2: float, q3: float, R: float
+    S: np.ndarray, lane: int, rs: int, with_t: bool, q0: float, q1: float, q2: float, q3: float, R: float
 ) -> None:
     """One sample (row ``rs``) of lane ``lane`` of the work array ``S`` (rows ``_R*``, each
     ``LANES`` wide): the filter (:func:`_filter_step`), T (U3) and U (U4) advanced exactly as
@@ -596,38 +596,39 @@ def _bank_sample(
     S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L] = p12, p13, p22, p23, p33
     S[_RSSE * L + lane] += e * e
     h1 = k1 + x3_prior  # h = K + g_k (U2)
-    t = _RT * L + lane
-    t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
-    t10, t11, t12, t13 = S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L]
-    t20, t21, t22, t23 = S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L]
-    t30, t31, t32, t33 = S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L]
-    n00, n01, n02, n03, n10, n11, n12, n13, n20, n21, n22, n23, n30, n31, n32, n33 = _propagate_error(
-        t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33,
-        s, k0, k1, k2, k3, k0, h1, k2, k3, 0.0,
-    )  # fmt: skip
-    keep = t00 + t11 + t22 + t33 > T_NEGLIGIBLE  # (U3) as in ges_kalman_kernel
-    zero = (not keep) and t00 != 0.0
-    # T <- propagated if keep, 0 if zero, else as it was (the single kernel's if / elif)
-    t00 = n00 if keep else (0.0 if zero else t00)
-    t01 = n01 if keep else (0.0 if zero else t01)
-    t02 = n02 if keep else (0.0 if zero else t02)
-    t03 = n03 if keep else (0.0 if zero else t03)
-    t10 = n10 if keep else (0.0 if zero else t10)
-    t11 = n11 if keep else (0.0 if zero else t11)
-    t12 = n12 if keep else (0.0 if zero else t12)
-    t13 = n13 if keep else (0.0 if zero else t13)
-    t20 = n20 if keep else (0.0 if zero else t20)
-    t21 = n21 if keep else (0.0 if zero else t21)
-    t22 = n22 if keep else (0.0 if zero else t22)
-    t23 = n23 if keep else (0.0 if zero else t23)
-    t30 = n30 if keep else (0.0 if zero else t30)
-    t31 = n31 if keep else (0.0 if zero else t31)
-    t32 = n32 if keep else (0.0 if zero else t32)
-    t33 = n33 if keep else (0.0 if zero else t33)
-    S[t], S[t + L], S[t + 2 * L], S[t + 3 * L] = t00, t01, t02, t03
-    S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L] = t10, t11, t12, t13
-    S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L] = t20, t21, t22, t23
-    S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L] = t30, t31, t32, t33
+    if with_t:  # else no lane's T is propagated: the caller applies (U3)'s zeroing
+        t = _RT * L + lane
+        t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
+        t10, t11, t12, t13 = S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L]
+        t20, t21, t22, t23 = S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L]
+        t30, t31, t32, t33 = S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L]
+        n00, n01, n02, n03, n10, n11, n12, n13, n20, n21, n22, n23, n30, n31, n32, n33 = _propagate_error(
+            t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33,
+            s, k0, k1, k2, k3, k0, h1, k2, k3, 0.0,
+        )  # fmt: skip
+        keep = t00 + t11 + t22 + t33 > T_NEGLIGIBLE  # (U3) as in ges_kalman_kernel
+        zero = (not keep) and t00 != 0.0
+        # T <- propagated if keep, 0 if zero, else as it was (the single kernel's if / elif)
+        t00 = n00 if keep else (0.0 if zero else t00)
+        t01 = n01 if keep else (0.0 if zero else t01)
+        t02 = n02 if keep else (0.0 if zero else t02)
+        t03 = n03 if keep else (0.0 if zero else t03)
+        t10 = n10 if keep else (0.0 if zero else t10)
+        t11 = n11 if keep else (0.0 if zero else t11)
+        t12 = n12 if keep else (0.0 if zero else t12)
+        t13 = n13 if keep else (0.0 if zero else t13)
+        t20 = n20 if keep else (0.0 if zero else t20)
+        t21 = n21 if keep else (0.0 if zero else t21)
+        t22 = n22 if keep else (0.0 if zero else t22)
+        t23 = n23 if keep else (0.0 if zero else t23)
+        t30 = n30 if keep else (0.0 if zero else t30)
+        t31 = n31 if keep else (0.0 if zero else t31)
+        t32 = n32 if keep else (0.0 if zero else t32)
+        t33 = n33 if keep else (0.0 if zero else t33)
+        S[t], S[t + L], S[t + 2 * L], S[t + 3 * L] = t00, t01, t02, t03
+        S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L] = t10, t11, t12, t13
+        S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L] = t20, t21, t22, t23
+        S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L] = t30, t31, t32, t33
     v = _RU * L + lane
     u00, u01, u02, u03 = S[v], S[v + L], S[v + 2 * L], S[v + 3 * L]
     u10, u11, u12, u13 = S[v + 4 * L], S[v + 5 * L], S[v + 6 * L], S[v + 7 * L]
@@ -646,6 +647,29 @@ def _bank_sample(
 
 
 @kernel(inline="always")
+def _bank_t_live(S: np.ndarray) -> bool:
+    """Whether some lane of ``S`` propagates its T at the next sample (U3), as
+    :func:`ges_kalman_kernel` decides it. Once no lane does, none will again (T then stays
+    zero or as it was)."""
+    L = LANES
+    live = False
+    for lane in range(L):
+        t = _RT * L + lane
+        live |= S[t] + S[t + 5 * L] + S[t + 10 * L] + S[t + 15 * L] > T_NEGLIGIBLE
+    return live
+
+
+@kernel(inline="always")
+def _bank_t_zero(S: np.ndarray) -> None:
+    """The zeroing of T (U3) in lanes where no lane propagates it: 0 where ``T[0, 0] != 0``."""
+    L = LANES
+    for lane in range(L):
+        if S[_RT * L + lane] != 0.0:
+            for i in range(16):
+                S[(_RT + i) * L + lane] = 0.0
+
+
+@kernel(inline="always")
 def _bank_row(
     S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float,
     out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
@@ -659,6 +683,30 @@ def _bank_row(
     x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
     _parameter_std(x1, x2, x3, x4, T, U, s2, Ts, std, row)
     _write_estimates(out, row, x1, x2, x3, x4, S[(_RP + 7) * L + lane], Ts, rel_std)
+
+
+@kernel(inline="always")
+def _bank_means_lane(
+    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int, lane: int
+) -> None:
+    """:func:`_noise_means_of_log` over the block's u of lane ``lane``, in order."""
+    m_u, w, m_l, x_ref, e_ref = means[0, lane], means[1, lane], means[2, lane], refs[0, lane], refs[1, lane]
+    for k in range(n):
+        i = k * LANES + lane
+        w, m_u, m_l, x_ref, e_ref = _noise_means_of_log(us[i], logs[i], w, m_u, m_l, lam, x_ref, e_ref)
+    means[0, lane], means[1, lane], means[2, lane], refs[0, lane], refs[1, lane] = m_u, w, m_l, x_ref, e_ref
+
+
+@kernel(inline="always")
+def _bank_means(
+    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int
+) -> None:
+    """The noise means (U5)-(U5a) of the block's u, every lane (lanes past the last channel
+    run on their zeros harmlessly). Lane by lane, each an unbroken chain: run side by side as
+    one loop, the compiler vectorises the lanes and, taking exp for a pure function, calls it
+    for every lane on every sample, which undoes :func:`_noise_means`' skipping of it."""
+    for lane in range(LANES):
+        _bank_means_lane(us, logs, means, refs, lam, n, lane)
 
 
 @kernel
@@ -701,14 +749,16 @@ def ges_kalman_bank_kernel(
                 S[(_RP + i) * L + c] = xP[_P_IN_XP[i], g + c]
             for i in range(32):
                 S[(_RT + i) * L + c] = unc[i, g + c]
-            for k in range(n):
+        for k in range(n):  # row by row: y (N, C) is read in its own order
+            for c in range(width):
                 ys[k * L + c] = y[k, g + c]
-        means = np.empty((3, L))  # <u>, w, <log u>
+        means = np.zeros((3, L))  # <u>, w, <log u>
         refs = np.zeros((2, L))  # _noise_means' x_ref, e_ref
         for c in range(width):
             means[0, c], means[1, c], means[2, c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
         for lane in range(L):  # sample 0's row
             S[_RS * L + lane] = ys[lane]
+        t_live = True
         for k in range(n):
             # sample k + 1 into the row sample k does not read: written one step before it is
             # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
@@ -716,12 +766,23 @@ def ges_kalman_bank_kernel(
             rs_next = (_RS + 1 - k % 2) * L
             for lane in range(L):
                 S[rs_next + lane] = ys[nxt + lane]
-            if k % 2 == 0:  # rows as constants, so the compiler sees the lanes independent
+            if t_live:  # some lane's T is still propagated (U3): half the arithmetic
+                t_live = _bank_t_live(S)
+            if not t_live:  # none: the single kernel's zeroing of T, where it applies
+                _bank_t_zero(S)
+            # rows and the T switch as constants, so the compiler sees the lanes independent
+            if k % 2 == 0 and t_live:
                 for lane in range(L):  # literal trip count: one vector
-                    _bank_sample(S, lane, _RS, q0, q1, q2, q3, R)
+                    _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
+            elif t_live:
+                for lane in range(L):
+                    _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
+            elif k % 2 == 0:
+                for lane in range(L):
+                    _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
             else:
                 for lane in range(L):
-                    _bank_sample(S, lane, _RS + 1, q0, q1, q2, q3, R)
+                    _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
             for lane in range(L):
                 us[k * L + lane] = S[_RUO * L + lane]
             if not last_only:
@@ -734,13 +795,7 @@ def ges_kalman_bank_kernel(
         if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
             for i in range(n * L):  # the logs first: independent calls, which overlap
                 logs[i] = math.log(max(us[i], TINY))
-            for k in range(n):  # then the means, the lanes' chains side by side
-                for c in range(width):
-                    w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means_of_log(
-                        us[k * L + c], logs[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c],
-                        refs[1, c],
-                    )  # fmt: skip
-                    means[0, c], means[1, c], means[2, c] = m_u, w, m_l
+            _bank_means(us, logs, means, refs, lam, n)
             for c in range(width):
                 m_u, w = means[0, c], means[1, c]
                 _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, out[g + c], std[g + c], 0, T, U)
