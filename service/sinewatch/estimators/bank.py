@@ -22,6 +22,15 @@ calls per lane, the same calls the single-channel kernel makes, and a bank keeps
 in a loop of its own so that the rest of the step may vectorise; ``sqrt`` and the project's
 :func:`fma` are correctly rounded either way.
 
+What it takes for numba's LLVM to vectorise a channel loop (ges-kalman's bank, read in its
+assembly): a literal trip count (8 lanes, channels padded), and every load and store of the
+loop in ONE array at constant offsets (``S[row * 8 + lane]``): across two arrays LLVM needs a
+run-time overlap check, which it does not add to a loop of fewer than 16 iterations, so the
+loop stays scalar. A vector load of a row just written by scalar stores stalls (store
+forwarding fails): rows that the next step reads are written a step ahead. And a pure library
+call under a branch (an exp taken only sometimes) is speculated for every lane once the loop
+is vectorised, so such loops are kept out of the vectoriser's reach.
+
 A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
 outputs with the channel as the leading axis, then the new stacked state arrays. The

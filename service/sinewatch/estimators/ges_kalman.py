@@ -511,13 +511,25 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators ges-kalman``
     # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
     bench_note: ClassVar[str] = (
-        "ges-kalman is below the streaming FFT (about 0.6x at 1024-sample blocks): besides the "
+        "ges-kalman is below the streaming FFT (about 0.6-0.9x at 1024-sample blocks): besides the "
         "filter on (6) (~50 flops a sample), every sample propagates the actual error's covariance "
         "U (U4), 16 entries at ~9 flops each after M = A U A^T, and updates the noise means "
-        "(U5)-(U5a), one log and one exp per sample. With U and T in registers, the means in a "
-        "second pass and the last row written after the loop, the kernel runs at ~45 ns/sample "
-        "(~30 for the filter and U, ~14 for log and exp), each operation in the order that keeps "
-        "the outputs bit for bit; the FFT shares its work across a frame instead."
+        "(U5)-(U5a), one log a sample (the exp of the cap only where a bound on it does not already "
+        "show that the cap cannot bind). With U and T in registers, the means in a second pass and "
+        "the last row written after the loop, each operation in the order that keeps the outputs "
+        "bit for bit, the kernel is one dependent chain a sample (a division for the gain, another "
+        "for u); the FFT shares its work across a frame instead."
+    )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank advances 8 channels as one vector (lane-major state; the filter, T and U in "
+        "256-bit AVX registers, LLVM's preferred width here) at ~1.7-2x one channel, and still "
+        "takes, per sample of every channel, one log from the C library for the noise means (U5), "
+        "scalar per lane (~6.5 ns a call by throughput; a vectorised log would round differently): "
+        "about a third of the bank's time (perf). The rest is the filter and U (~255 flops a "
+        "sample, two divisions on the chain from one sample to the next, ~45 %) and the means' "
+        "recursion lane by lane (~20 %). Twice the 4096-sample FFT is ~16 ns a sample: it would "
+        "take a log vectorised with the C library's exact rounding"
     )
 
     def _setup(self) -> None:
@@ -697,17 +709,13 @@ def _bank_means_pair(
     for k in range(n):
         i = k * LANES + a
         w_a, m_ua, m_la, x_ra, e_ra = _noise_means_of_log(us[i], logs[i], w_a, m_ua, m_la, lam, x_ra, e_ra)
-        w_b, m_ub, m_lb, x_rb, e_rb = _noise_means_of_log(
-            us[i + 1], logs[i + 1], w_b, m_ub, m_lb, lam, x_rb, e_rb
-        )
+        w_b, m_ub, m_lb, x_rb, e_rb = _noise_means_of_log(us[i + 1], logs[i + 1], w_b, m_ub, m_lb, lam, x_rb, e_rb)
     means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a] = m_ua, w_a, m_la, x_ra, e_ra
     means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b] = m_ub, w_b, m_lb, x_rb, e_rb
 
 
 @kernel(inline="always")
-def _bank_means(
-    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int
-) -> None:
+def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int) -> None:
     """The noise means (U5)-(U5a) of the block's u, every lane (lanes past the last channel
     run on their zeros harmlessly), two lanes at a time. Not all lanes in one loop: the
     compiler would vectorise it and, taking exp for a pure function, call exp for every lane
