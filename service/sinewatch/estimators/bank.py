@@ -141,7 +141,14 @@ def update_bank(
     first = estimators[0]
     cls = type(first)
     bank = _BANKS.get(cls)
-    if bank is None or samples.shape[0] == 0 or samples.dtype != np.float64 or first.n_inputs != 1:
+    if (
+        bank is None
+        or samples.shape[0] == 0
+        or samples.dtype != np.float64
+        or first.n_inputs != 1
+        # an instance's own ``update`` (a caller routing it, e.g. replay's full track) must run
+        or any("update" in vars(est) for est in estimators)
+    ):
         return _one_by_one(estimators, samples, last_only, t0_ns)
     _check_alike(estimators, cls)
     x = np.ascontiguousarray(samples)
