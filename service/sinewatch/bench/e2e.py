@@ -495,6 +495,7 @@ def sweep_table(rows: list[dict[str, Any]], title: str = "sinewatch bench e2e --
         "p99 ms",
         "CPU (cores)",
         "daemon ns/sample",
+        "of which estimator",
         "CPU us/block daemon+feeder+probe",
         "cores needed at offered",
         "RSS MB",
@@ -514,6 +515,7 @@ def sweep_table(rows: list[dict[str, Any]], title: str = "sinewatch bench e2e --
             _ms(r["latency_ms_p99"]),
             f"{r['daemon_cpu_fraction_of_one_core']:.2f}",
             f"{r['daemon_cpu_ns_per_sample']:.0f}",
+            f"{r['kernel_ns_per_sample']:.0f}" if "kernel_ns_per_sample" in r else "-",
             "+".join(f"{v:.0f}" for v in r["cpu_us_per_block"].values()),
             f"{r['cores_needed_at_offered']:.2f} of {r['machine_cores']}",
             f"{r['daemon_rss_mb_end']:.0f}",
@@ -554,11 +556,50 @@ def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
 
 def measure(args: argparse.Namespace, console: Console) -> dict[str, Any]:
     """Run the daemon as its own process, feed it, and return the figures."""
+    kernel_ns = kernel_ns_per_sample(args.estimator, args.rate, args.block, frame_channels(args))
     with running_daemon(args) as (endpoint, daemon, tmp):
         result = _drive(args, endpoint, daemon, console)
     result["recorded_bytes"] = tmp.recorded_bytes
     result["daemon_exit_code"] = daemon.returncode
+    # what of the daemon's CPU is the estimator's arithmetic, and what is plumbing around it
+    result["kernel_ns_per_sample"] = kernel_ns
+    result["plumbing_ns_per_sample"] = result["daemon_cpu_ns_per_sample"] - kernel_ns
     return result
+
+
+KERNEL_REPEATS = 7
+
+
+def kernel_ns_per_sample(estimator: str, rate: float, block: int, per_msg: int) -> float:
+    """CPU nanoseconds a sample costs the estimator alone, as the daemon calls it: ``update``
+    (``last_only``) of one channel's block, or, for frames of ``per_msg`` channels, one
+    :func:`~sinewatch.estimators.bank.update_bank` call on the frame's float64 columns.
+    Measured here, before the daemon starts (the fastest of a few repeats of about 50 blocks
+    a channel, process CPU time), on the bench's own signal."""
+    from sinewatch.estimators import get
+    from sinewatch.estimators.bank import update_bank
+
+    cls = get(estimator)
+    params = _params(argparse.Namespace(estimator=estimator))
+    estimators = [cls(rate, params) for _ in range(per_msg)]
+    rng = np.random.default_rng(0)
+    t = np.arange(block) / rate
+    x = np.stack(
+        [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(block) for _ in estimators],
+        axis=1,
+    )
+    rounds = max(2, 50 // per_msg)
+    best = float("inf")
+    for repeat in range(KERNEL_REPEATS + 1):  # the first loads the compiled kernels
+        t0 = time.process_time()
+        for _ in range(rounds if repeat else 1):
+            if per_msg == 1:
+                estimators[0].update(x[:, 0], last_only=True)
+            else:
+                update_bank(estimators, x, last_only=True)
+        if repeat:
+            best = min(best, (time.process_time() - t0) / (rounds * block * per_msg))
+    return 1e9 * best
 
 
 class _Recording:
@@ -808,7 +849,13 @@ def _print(console: Console, r: dict[str, Any]) -> None:
     if r.get("cpu_us_per_block"):
         b = r["cpu_us_per_block"]
         console.print(
-            f"daemon CPU a sample: {r['daemon_cpu_ns_per_sample']:.0f} ns; "
+            f"daemon CPU a sample: {r['daemon_cpu_ns_per_sample']:.0f} ns"
+            + (
+                f" (the estimator {r['kernel_ns_per_sample']:.0f} ns, plumbing {r['plumbing_ns_per_sample']:.0f} ns)"
+                if "kernel_ns_per_sample" in r
+                else ""
+            )
+            + "; "
             f"CPU a block: daemon {b['daemon']:.0f} us, feeder {b['feeder']:.0f} us, this bench's probe "
             f"{b['probe']:.0f} us; at the offered {r['offered_samples_per_s'] / r['block']:,.0f} blocks/s the three "
             f"need {r['cores_needed_at_offered']:.2f} cores, of {r['machine_cores']} on this machine"
