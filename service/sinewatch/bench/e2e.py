@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -126,10 +127,16 @@ class LatencyProbe:
         self._thread.join(5.0)
 
 
+_TIMESTAMP_NS = re.compile(rb'"timestamp_ns":(-?[0-9]+)')
+
+
 def probe_fields(payload: bytes) -> tuple[int, int | None]:
     """An Estimate's ``timestamp_ns``, and its ``diagnostics.gap_blocks`` when it flags a
     gap (None when not), read from its JSON bytes as the daemon writes them."""
-    timestamp_ns = _json_int(payload, b'"timestamp_ns":')
+    match = _TIMESTAMP_NS.search(payload)  # one C call (a digit loop in Python was 3 us of ~5)
+    if match is None:
+        raise ValueError(f"estimate: expected a timestamp_ns, got {payload[:80]!r}")
+    timestamp_ns = int(match.group(1))
     diagnostics = payload.index(b'"diagnostics":')
     if payload.find(b'"gap":true', diagnostics) < 0:
         return timestamp_ns, None
