@@ -305,7 +305,7 @@ def feeder_main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def stamp_ns(due_ns: int, period_ns: float) -> int:
+def stamp_ns(due_ns: int, period_ns: float, now_ns: int | None = None) -> int:
     """The time a block's last sample is stamped with: its publish time (now), but never
     more than a quarter of a block period (at most 10 ms) after it was due. A sensor's
     clock does not wait for a backed-up network: a feeder held back by the daemon
@@ -313,7 +313,8 @@ def stamp_ns(due_ns: int, period_ns: float) -> int:
     time on by more than half a block between two blocks, which the daemon rightly takes
     for a time jump and starts the channel over for, every block. On time, the
     latency is measured from the publish; late, from the schedule, delay included."""
-    return min(time.monotonic_ns(), due_ns + round(min(0.25 * period_ns, 10e6)))
+    now = time.monotonic_ns() if now_ns is None else now_ns
+    return min(now, due_ns + round(min(0.25 * period_ns, 10e6)))
 
 
 def frame_layout(n_channels: int, per_frame: int) -> list[list[str]]:
@@ -399,6 +400,8 @@ def run(args: argparse.Namespace) -> int:
             point = {"frame_channels": n}
             if len(counts) > 1 and args.json:  # one JSON (and plot) per frame size
                 point["json"] = args.json.with_name(f"{args.json.stem}-frame{n}{args.json.suffix}")
+            if len(counts) > 1 and getattr(args, "plot", None):
+                point["plot"] = args.plot.with_name(f"{args.plot.stem}-frame{n}{args.plot.suffix}")
             code |= run_sweep(argparse.Namespace(**{**vars(args), **point}), console)
         return code
     if args.duration is None:
@@ -457,7 +460,7 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
     plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
     if plot is not None:
         try:
-            plot_sweep(rows, plot)
+            plot_sweep(rows, plot, frame_channels(args))
             console.print(f"plot: {plot}")
         except ModuleNotFoundError as exc:
             console.print(f"no plot ({exc.name} is not installed: pip install 'sinewatch[plots]')")
@@ -535,7 +538,7 @@ def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
+def plot_sweep(rows: list[dict[str, Any]], path: Path, per_msg: int = 1) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -555,7 +558,12 @@ def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
     lat.set_ylabel("p99 block-to-estimate latency, ms", color="tab:red")
     lines = [*ax.get_lines(), *lat.get_lines()]
     ax.legend(lines, [str(line.get_label()) for line in lines], loc="upper left", fontsize=8)
-    ax.set_title("sinewatch bench e2e --sweep", fontsize=9)
+    highest = max((r for r in rows if sustained(r)), key=lambda r: r["offered_samples_per_s"], default=None)
+    ax.set_title(
+        f"sinewatch bench e2e --sweep --frame-channels {per_msg}: highest sustained with 0 missing "
+        + ("none" if highest is None else f"{highest['offered_samples_per_s'] / 1e6:.2f} M samples/s"),
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
