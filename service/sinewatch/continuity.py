@@ -26,7 +26,8 @@ Version 3 holds every estimate back until the presence detector has read the cha
 signal its onset latency past the estimate
 (:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
 estimate whose window holds the start of an interruption is published valid (the pipeline's
-``_hold``). Files of version 2 replay without the hold.
+``_hold``), and ends an absence only at 0.12 of the reference level (a hysteresis).
+Files of version 2 replay without either.
 """
 
 from __future__ import annotations
