@@ -269,9 +269,9 @@ def test_no_estimate_is_valid_while_its_window_holds_an_interruption_on_a_live_d
     x = np.sin(2 * np.pi * 50.0 * t + 0.3) + np.random.default_rng(5).normal(0, 1e-3, t.size)
     t_on, t_off = 0.5235, 0.7235
     x[(t >= t_on) & (t < t_off)] *= 0.05
-    config = make_config(tmp_path)  # ges-kalman at 10 kHz
+    config = make_config(tmp_path, hold_estimates=True)  # ges-kalman at 10 kHz, estimates held (the default)
     if estimator == "pmu":  # the default rule
-        config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")])
+        config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")], hold_estimates=True)
     blocks = _live_blocks(x)
     estimates, daemon = _through_live_daemon(config, blocks)
     before_s, after_s = _window_s(daemon.pipeline, "v")
@@ -301,7 +301,7 @@ def test_pmu_converged_marks_a_phase_step_on_a_live_daemon(tmp_path):
     t = np.arange(round(2.0 * LIVE_FS)) / LIVE_FS
     t_step = 1.0123
     x = np.cos(2 * np.pi * 50.0 * t + 0.3 + np.radians(10.0) * (t >= t_step))
-    config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")])
+    config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")], hold_estimates=True)
     estimates, _ = _through_live_daemon(config, _live_blocks(x))
     rows = [((e["timestamp_ns"] - T00) / 1e9, e["diagnostics"]) for e in estimates]
     assert all(d["valid"] for ts, d in rows if 0.5 < ts)

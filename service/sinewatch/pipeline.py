@@ -753,8 +753,8 @@ class Pipeline:
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        Under validity rules version 3 they are held back (:meth:`_hold`) and what this block
-        releases is returned."""
+        Under validity rules version 3 (and ``hold_estimates``, the default) they are held back
+        (:meth:`_hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
         made: list[tuple[bytes, bool, bool, int]] = []  # payload, converged, valid, timestamp
@@ -782,7 +782,7 @@ class Pipeline:
                     ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
                 )
                 made.append((payload, converged, valid, t_ns))
-        if self.validity_version < 3 or self.estimate_version < 3:
+        if self.validity_version < 3 or self.estimate_version < 3 or not self.config.hold_estimates:
             if made:
                 ch.converged = made[-1][1]
             return [m[0] for m in made]
