@@ -750,26 +750,35 @@ def _fresh_transition() -> np.ndarray:
     return np.zeros(N_TRANSITION)
 
 
-def _transition_step(st: np.ndarray, mag: float, freq: float, rocof: float, fs_rep: int, n_hold: int) -> np.ndarray:
-    """(T) for one report (``st`` updated in place and returned; see :meth:`Pmu._converged`
-    for the layout). Slot 7 becomes whether the window has refilled since the last
-    transition; the caller adds the magnitude test."""
-    if not (math.isfinite(mag) and math.isfinite(freq) and math.isfinite(rocof)):
-        st[:] = 0.0  # an undefined report: start over
-        return st
-    if st[4] == 0.0:  # the first report: nothing to check it against
-        st[3] = n_hold - 1
-    else:
-        dm = abs(mag / st[0] - 1.0) if st[0] > 0.0 else math.inf
-        df = abs(freq - st[1] - st[2] / fs_rep)
-        tm = max(TRANSITION_MAG_FLOOR, TRANSITION_K * st[5])
-        tf = max(TRANSITION_FREQ_FLOOR_HZ, TRANSITION_K * st[6])
-        st[5] += TRANSITION_ALPHA * (min(dm, tm) - st[5])
-        st[6] += TRANSITION_ALPHA * (min(df, tf) - st[6])
-        st[3] = 0.0 if (dm > tm or df > tf) else min(st[3] + 1.0, float(n_hold))
-    st[0], st[1], st[2], st[4] = mag, freq, rocof, 1.0
-    st[7] = 1.0 if st[3] >= n_hold else 0.0
-    return st
+@kernel
+def transition_kernel(
+    mag: np.ndarray, freq: np.ndarray, rocof: np.ndarray, trans: np.ndarray, fs_rep: float, n_hold: int, min_amp: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T) over reports in order: their converged and the new state (``trans`` is not
+    modified; layout in :meth:`Pmu._converged`). Slot 7 is the last report's converged."""
+    st = trans.copy()
+    n = mag.shape[0]
+    conv = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        m, f, r = mag[i], freq[i], rocof[i]
+        if not (math.isfinite(m) and math.isfinite(f) and math.isfinite(r)):
+            for c in range(N_TRANSITION):
+                st[c] = 0.0  # an undefined report: start over
+            continue
+        if st[4] == 0.0:  # the first report: nothing to check it against
+            st[3] = n_hold - 1.0
+        else:
+            dm = abs(m / st[0] - 1.0) if st[0] > 0.0 else math.inf
+            df = abs(f - st[1] - st[2] / fs_rep)
+            tm = max(TRANSITION_MAG_FLOOR, TRANSITION_K * st[5])
+            tf = max(TRANSITION_FREQ_FLOOR_HZ, TRANSITION_K * st[6])
+            st[5] += TRANSITION_ALPHA * (min(dm, tm) - st[5])
+            st[6] += TRANSITION_ALPHA * (min(df, tf) - st[6])
+            st[3] = 0.0 if (dm > tm or df > tf) else min(st[3] + 1.0, float(n_hold))
+        st[0], st[1], st[2], st[4] = m, f, r, 1.0
+        conv[i] = st[3] >= n_hold and m > min_amp
+        st[7] = 1.0 if conv[i] else 0.0
+    return conv, st
 
 
 @register
@@ -804,6 +813,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             )
         self.reporting_rate = rate
         self.design = design(self.sample_rate_hz, f0, rate, p.performance_class)
+        self._n_hold = math.ceil(self.design.window_s * rate - 1e-9)  # (T): reports in one kernel length
 
     @property
     def memory_samples(self) -> int:
@@ -913,22 +923,22 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         a last report (0/1), the running scales of the magnitude's and the frequency's
         departures, the last report's converged (0/1)."""
         reports = track.reports
-        st = trans.copy()
+        st = trans
         if reports is not None and reports.n_reports:
             tr = reports.track
-            mag = tr.extras["synchrophasor_magnitude"]
             freq = tr.frequency_hz[:, 0]
             rocof = tr.rocof_hz_per_s[:, 0] if tr.rocof_hz_per_s is not None else np.zeros(freq.shape)
-            d = self.design
-            n_hold = math.ceil(d.window_s * self.reporting_rate - 1e-9)  # reports in one kernel length
-            conv = np.zeros(reports.n_reports, dtype=np.bool_)
-            for i in range(reports.n_reports):
-                st = _transition_step(st, float(mag[i]), float(freq[i]), float(rocof[i]), self.reporting_rate, n_hold)
-                conv[i] = bool(st[7]) and float(mag[i]) > self.params.min_amplitude
-                st[7] = 1.0 if conv[i] else 0.0
-            tr.converged = conv
-        if last_only:
-            track.converged = track.converged & bool(st[7])
+            tr.converged, st = transition_kernel(
+                np.ascontiguousarray(tr.extras["synchrophasor_magnitude"]),
+                np.ascontiguousarray(freq),
+                np.ascontiguousarray(rocof),
+                trans,
+                float(self.reporting_rate),
+                self._n_hold,
+                self.params.min_amplitude,
+            )
+        if last_only and st[7] == 0.0:
+            track.converged = np.zeros(track.converged.shape, dtype=np.bool_)
         return track, st
 
     def _run_decided(
