@@ -757,12 +757,12 @@ class Pipeline:
         (:meth:`_hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
-        made: list[tuple[bytes, bool, bool, int]] = []  # payload, converged, valid, timestamp
+        made: list[tuple[bytes, bool, int]] = []  # payload, converged, timestamp
         if grid is None:
-            payload, converged, valid = self._estimate_payload(
+            payload, converged = self._estimate_payload(
                 ch, block, track, t_last, t_last, gap_blocks, restart, reset, jump
             )
-            made.append((payload, converged, valid, t_last))
+            made.append((payload, converged, t_last))
         else:
             if self.validity_version >= 2:  # a block without a report passes its flags on to the next report
                 held = ch.held_flags
@@ -778,17 +778,17 @@ class Pipeline:
                     ch.held_flags = (gap_blocks, restart, reset, jump)
             for r, t_ns in enumerate(grid.timestamps_ns()):
                 row = grid.track.rows(slice(r, r + 1))
-                payload, converged, valid = self._estimate_payload(
+                payload, converged = self._estimate_payload(
                     ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
                 )
-                made.append((payload, converged, valid, t_ns))
+                made.append((payload, converged, t_ns))
         if self.validity_version < 3 or self.estimate_version < 3 or not self.config.hold_estimates:
             if made:
                 ch.converged = made[-1][1]
             return [m[0] for m in made]
         return self._hold(ch, t_last, made, reset)
 
-    def _hold(self, ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, bool, int]], reset: bool) -> list[bytes]:
+    def _hold(self, ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset: bool) -> list[bytes]:
         """Validity rules version 3: no estimate is published valid while its window may hold
         an event the presence detector has not read yet. Each estimate waits until the
         detector has seen ``onset_latency_samples`` past the last sample its window holds (the
@@ -811,7 +811,8 @@ class Pipeline:
         memory = ch.estimator.memory_samples
         fs = ch.sample_rate_hz
         ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
-        for payload, converged, valid, t_ns in made:
+        for payload, converged, t_ns in made:
+            valid = _DIAGNOSTICS_VALID[0] in payload or _DIAGNOSTICS_VALID[1] in payload
             lag = max(0, round((t_last_ns - t_ns) * fs / 1e9))
             end = n_now if ahead is None else min(n_now, n_now - lag + ahead)  # the window's last sample
             held.append((payload, end + latency, n_now - lag - memory if valid else -1, converged))
@@ -860,9 +861,9 @@ class Pipeline:
         restart: bool,
         reset: bool,
         jump: bool = False,
-    ) -> tuple[bytes, bool, bool]:
-        """The Estimate's bytes, its ``converged`` and its ``valid``. From format 3 on, an
-        estimate that is not valid is not converged either.
+    ) -> tuple[bytes, bool]:
+        """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
+        not valid is not converged either.
 
         The bytes are built without the pydantic model (:func:`encode_estimate_values`, the
         same bytes as ``encode_estimate(estimate_model(...))``; tests/test_codec_estimate_fast.py
@@ -909,7 +910,7 @@ class Pipeline:
             {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
             self._fencing_json,
         )
-        return payload, converged, valid
+        return payload, converged
 
     def _reject(
         self,
