@@ -47,9 +47,6 @@ def make_config(tmp_path: Path, **overrides) -> SinewatchConfig:
         recording=RecordingSection(directory=tmp_path / "rec", flush_interval_s=0.2),
         limits=LimitsSection(),
         status_interval_s=0.2,
-        # estimates published at once, one per block as these tests count them; the hold-back
-        # (the default) is tested where it is the subject (test_validity, test_pipeline)
-        hold_estimates=False,
     )
     kw.update(overrides)
     return SinewatchConfig(**kw)

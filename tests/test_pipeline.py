@@ -53,7 +53,7 @@ def _send(pipeline, seq, t0_ns, n=100, fs=10_000.0):
 
 def test_a_sender_that_restarts_its_count_is_accepted_and_flagged(tmp_path):
     sink = Keep()
-    pipeline = Pipeline(make_config(tmp_path, hold_estimates=True), [sink])  # the default
+    pipeline = Pipeline(make_config(tmp_path, hold_estimates=True), [sink])  # estimates held back
     step = 10_000_000  # 100 samples at 10 kHz
     for seq in range(5):
         _send(pipeline, seq, seq * step)

@@ -269,7 +269,7 @@ def test_no_estimate_is_valid_while_its_window_holds_an_interruption_on_a_live_d
     x = np.sin(2 * np.pi * 50.0 * t + 0.3) + np.random.default_rng(5).normal(0, 1e-3, t.size)
     t_on, t_off = 0.5235, 0.7235
     x[(t >= t_on) & (t < t_off)] *= 0.05
-    config = make_config(tmp_path, hold_estimates=True)  # ges-kalman at 10 kHz, estimates held (the default)
+    config = make_config(tmp_path, hold_estimates=True)  # ges-kalman at 10 kHz, estimates held
     if estimator == "pmu":  # the default rule
         config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")], hold_estimates=True)
     blocks = _live_blocks(x)
@@ -325,7 +325,7 @@ def test_held_estimates_survive_a_snapshot_bit_for_bit():
     x = np.sin(2 * np.pi * 50.0 * t)
     x[(t >= 0.3235) & (t < 0.4)] = 0.0
     blocks = _live_blocks(x)
-    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")])
+    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True)
     whole, first, second = Bytes(), Bytes(), Bytes()
     a = Pipeline(cfg, [whole])
     for b in blocks:

@@ -22,11 +22,12 @@ estimator's memory has refilled with the new stream. Version 1 (files recorded b
 builds) flagged a restart and let the estimator coast across it; replay keeps that rule for
 those files so that they reproduce bit for bit.
 
-Version 3 holds every estimate back until the presence detector has read the channel's
+Version 3, with ``hold_estimates`` on, holds every estimate back until the presence detector has read the channel's
 signal its onset latency past the estimate
 (:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
 estimate whose window holds the start of an interruption is published valid (the pipeline's
-``_hold``), and ends an absence only at 0.12 of the reference level (a hysteresis).
+``_hold``); with it on or off, version 3 ends an absence only at 0.12 of the reference
+level (a hysteresis).
 Files of version 2 replay without either.
 """
 

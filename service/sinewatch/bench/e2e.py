@@ -565,9 +565,6 @@ def running_daemon(
             "limits": {"queue_policy": args.queue_policy, "queue_capacity": args.queue_capacity},
             "workers": {"count": getattr(args, "workers", 1)},
             "status_interval_s": 1.0,
-            # one estimate per block, counted: held estimates (the default, see README's Estimate)
-            # would leave each channel's last ones for a block that never comes
-            "hold_estimates": False,
             **(extra or {}),
         }
         if getattr(args, "foxglove", False):

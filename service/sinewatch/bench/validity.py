@@ -177,7 +177,10 @@ def run(name: str, event: str, rules_version: int = VALIDITY_RULES_VERSION) -> R
         cls = est_registry.get(name)
         params, _ = estimator_params(cls, get_scenario(SINGLE_TONE_SCENARIO))
     x, truth = disturbance(event)
-    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator=cls.name, params=params)])
+    cfg = SinewatchConfig(
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator=cls.name, params=params)],
+        hold_estimates=rules_version >= 3,  # version 3 with the hold-back; 2: as earlier builds
+    )
     sink = _Keep()
     pipeline = Pipeline(cfg, [sink], validity_version=rules_version)
     restart_at = round(RESTART_S * FS) if event == "gateway-restart" else None

@@ -53,7 +53,7 @@ starts at 0, so the first estimates (before one memory of signal) are not valid 
 Onset latency: the level of a one-cycle window falls below 0.1 of R only once about 99 % of
 the window is the interruption, and it is read every half cycle, so the detector says so
 within one and a half nominal cycles (3 H samples) of the onset. An estimate made in that
-time would read as valid though its window holds the interruption: the pipeline holds every
+time would read as valid though its window holds the interruption: with ``hold_estimates`` the pipeline holds every
 estimate back by those 3 H samples of the channel's signal and judges it then (validity
 rules version 3, :attr:`SignalPresence.onset_latency_samples`).
 
