@@ -101,8 +101,8 @@ arrived: the latency is ``T / 2 + 2 D / fs``.
      transition has been seen for one kernel length (``ceil(T Fs)`` reports: the window of
      the report has refilled since). A report is a transition when it departs from the
      previous report's prediction (magnitude unchanged, frequency ``f + ROCOF / Fs``) by
-     more than ``max(floor, 4 s)``, s the running mean of those departures (each clipped to
-     the threshold, weight 0.05 a report), so that noise and sustained modulation raise the
+     more than ``max(floor, 6 s)``, s the running mean of those departures (each clipped to
+     the threshold; the plain mean of the first 20, then weight 0.05 a report), so that noise and sustained modulation raise the
      threshold with them while a step does not: floors 0.1 % of the magnitude and 0.006 Hz
      (module constants, from the C37.118.1 step tests: the first report of a step whose TVE
      exceeds 1 % already departs by more). The start, a restart on the grid (a gap in time,
@@ -175,7 +175,7 @@ N_IMAGE_PASSES = 2
 # steady, harmonic, ramp and out-of-band tests move < 0.06 % and < 0.0056 Hz.
 TRANSITION_MAG_FLOOR = 1e-3  # relative change of the RMS magnitude
 TRANSITION_FREQ_FLOOR_HZ = 6e-3
-TRANSITION_K = 4.0
+TRANSITION_K = 6.0
 TRANSITION_ALPHA = 0.05  # weight of each report in the running scale (~20 reports)
 
 
@@ -742,7 +742,7 @@ def pmu_kernel(
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
 
 
-N_TRANSITION = 8
+N_TRANSITION = 9
 
 
 def _fresh_transition() -> np.ndarray:
@@ -772,8 +772,10 @@ def transition_kernel(
             df = abs(f - st[1] - st[2] / fs_rep)
             tm = max(TRANSITION_MAG_FLOOR, TRANSITION_K * st[5])
             tf = max(TRANSITION_FREQ_FLOOR_HZ, TRANSITION_K * st[6])
-            st[5] += TRANSITION_ALPHA * (min(dm, tm) - st[5])
-            st[6] += TRANSITION_ALPHA * (min(df, tf) - st[6])
+            st[8] += 1.0
+            w = max(TRANSITION_ALPHA, 1.0 / st[8])  # the plain mean of the first reports, then a running one
+            st[5] += w * (min(dm, tm) - st[5])
+            st[6] += w * (min(df, tf) - st[6])
             st[3] = 0.0 if (dm > tm or df > tf) else min(st[3] + 1.0, float(n_hold))
         st[0], st[1], st[2], st[4] = m, f, r, 1.0
         conv[i] = st[3] >= n_hold and m > min_amp
@@ -918,10 +920,10 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
 
     def _converged(self, track: Track, trans: np.ndarray, last_only: bool) -> tuple[Track, np.ndarray]:
         """(T) over the block's reports, in order: their ``converged``, and the transition
-        state after them (``trans`` is not modified). ``trans`` (8,): the last report's RMS
+        state after them (``trans`` is not modified). ``trans`` (9,): the last report's RMS
         magnitude, frequency and ROCOF, reports since the last transition, whether there is
         a last report (0/1), the running scales of the magnitude's and the frequency's
-        departures, the last report's converged (0/1)."""
+        departures, the last report's converged (0/1), departures checked (the scales' weights)."""
         reports = track.reports
         st = trans
         if reports is not None and reports.n_reports:
