@@ -454,3 +454,57 @@ def test_harmonics_at_a_rate_too_low_are_refused_once_and_estimation_goes_on(tmp
     [err] = keep.errors
     assert err["kind"] == "estimator_error" and err["channel"] == "slow" and err["seq"] == 0
     assert "harmonics off for channel 'slow'" in err["message"] and "7331.25" in err["message"]
+
+
+def test_group_aggregates_at_a_rate_below_harmonic_range_come_from_the_fundamental(tmp_path):
+    """A three-phase group's aggregates (u2, u0, sequence magnitudes, frequency) need only the
+    fundamental: at 4 kHz, too slow for harmonics to the 50th, the group still aggregates, each
+    phase's estimate is published, and nothing is reported as an error; the per-channel harmonics
+    are refused once each, as above."""
+    fs, n = 4_000.0, 400  # 0.1 s blocks
+    truth = get_pq(SCENARIO).pq_truth
+    channels = make_channels([SCENARIO], prefix="slow", sample_rate_hz=fs)
+    names = [c.channel for c in channels]
+    config = make_config(
+        tmp_path,
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft", params=IPDFT_50)],
+        power_quality=PowerQualitySection(
+            groups=[ThreePhaseGroup(name="feeder1", phases=names, max_skew_s=0.25, aggregate_nominal_frequency_hz=50)],
+        ),
+    )
+
+    class Keep(Outputs):
+        def __init__(self) -> None:
+            super().__init__()
+            self.errors: list[dict] = []
+            self.estimates = 0
+
+        def on_error(self, key, payload, log_time_ns):
+            self.errors.append(json.loads(payload))
+
+        def on_estimate(self, key, payload, log_time_ns):
+            self.estimates += 1
+
+    keep = Keep()
+    pipeline = Pipeline(config, [keep])
+    for i in range(40):  # 4 s: 18 windows, one complete 150-cycle aggregate
+        for c in channels:
+            b = Block(c.channel, i, T0_NS + i * 100_000_000, fs, c.stream.read(n)[0])
+            pipeline.process(f"sinewatch/in/{c.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    assert keep.errors == [] and keep.estimates == 120
+    aggs = [json.loads(p) for kind, _, p in keep.out if kind == "PqAggregate"]
+    complete = [a for a in aggs if a["interval"] == "150/180-cycle" and a["complete"]]
+    assert complete and all(a["source"] == "feeder1" for a in complete)
+    for a in complete:
+        assert abs(a["values"]["u2"] - truth.u2) <= LIMITS["u2_absolute"]
+        assert abs(a["values"]["frequency_hz"] - truth.frequency_hz) <= LIMITS["frequency_hz"]
+
+
+def test_group_window_analysis_below_its_least_rate_is_a_parameter_error():
+    from sinewatch.power_quality.stage import _group_params
+    from sinewatch.schemas.errors import ParameterError
+
+    assert _group_params(50, 10_000.0).max_harmonic == 50  # unchanged where the rate carries the 50th
+    assert _group_params(50, 4_000.0).max_harmonic == 26  # (26 + 1) x 57.5 Hz <= 1600 Hz < 28 x 57.5
+    with pytest.raises(ParameterError, match=r"expected >= 431.25 Hz .* got 400"):
+        _group_params(50, 400.0)

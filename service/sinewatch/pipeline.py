@@ -42,6 +42,7 @@ from sinewatch.estimators.base import Estimator, Track, TrackStd
 from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
+    TIME_QUALITY_JSON,
     Block,
     dumps,
     encode_error,
@@ -49,6 +50,7 @@ from sinewatch.schemas.codec import (
     finite_or_none,
     is_json_block,
     json_string,
+    time_quality_model,
 )
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, ParameterError, SinewatchError
@@ -909,6 +911,8 @@ class Pipeline:
             reset,
             {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
             self._fencing_json,
+            # the input's time quality (a frame's is each of its columns'), passed through as stated
+            TIME_QUALITY_JSON[block.time_quality],
         )
         return payload, converged
 
@@ -1150,6 +1154,7 @@ def estimate_model(
             extras={k: _last_value(v) for k, v in track.extras.items()},
         ),
         fencing=fencing,
+        time_quality=time_quality_model(block.time_quality),
     )
 
 

@@ -229,6 +229,15 @@ def kernel_table(beta: float = KAISER_BETA, phases: int = TABLE_PHASES, half_tap
     return np.asarray(np.sinc(u) * np.i0(beta * np.sqrt(v)) / np.i0(beta))
 
 
+def highest_harmonic_order(sample_rate_hz: float, nominal_frequency_hz: float) -> int:
+    """The highest order H whose top bin, (H + 1) f_nom +15 %, the interpolator (I) passes
+    (up to 0.4 fs): the bound :func:`make_constants` checks."""
+    h = math.floor(0.4 * sample_rate_hz / (FREQUENCY_RANGE[1] * nominal_frequency_hz)) - 1
+    while h > 0 and (h + 1) * FREQUENCY_RANGE[1] * nominal_frequency_hz > 0.4 * sample_rate_hz:
+        h -= 1  # the floor of a rounded quotient can be one too high
+    return h
+
+
 def make_constants(sample_rate_hz: float, params: HarmonicParams) -> KernelConstants:
     fs = float(sample_rate_hz)
     f_nom = float(params.nominal_frequency_hz)

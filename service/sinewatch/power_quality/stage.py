@@ -63,7 +63,12 @@ import numpy as np
 
 from sinewatch.estimators.base import Track, decode_array, encode_array
 from sinewatch.power_quality.aggregation import Aggregator
-from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
+from sinewatch.power_quality.harmonics import (
+    FREQUENCY_RANGE,
+    HarmonicAnalyser,
+    HarmonicParams,
+    highest_harmonic_order,
+)
 from sinewatch.power_quality.reports import (
     channel_window_values,
     group_window_values,
@@ -112,6 +117,7 @@ class _Group:
     last_emitted_ns: int | None = None
     late: int = 0
     analyser: HarmonicAnalyser | None = None  # 3 columns, when the group is aggregated
+    aggregates_off: bool = False  # its rate carries no window analysis (said once)
     aggregator: Aggregator | None = None
 
     def add(self, phase: int, timestamp_ns: int, value: _PhaseValue) -> list[tuple[int, Slot]]:
@@ -162,7 +168,12 @@ class PqStage:
         cannot carry them (said once; that channel then goes without harmonics)."""
         out: list[Output] = []
         if channel in self._phase_of:
-            out.extend(self._group_values(channel, block, track))
+            try:
+                out.extend(self._group_values(channel, block, track))
+            except ParameterError as exc:
+                name = self._phase_of[channel][0]
+                self.groups[name].aggregates_off = True
+                return out, f"aggregates off for group {name!r}: {exc}"
         try:
             hc = self._harmonics_for(key, channel, block.sample_rate_hz)
         except ParameterError as exc:
@@ -225,7 +236,7 @@ class PqStage:
         with a phase missing is not fed: the analyser sees the time jump and restarts."""
         nominal = group.config.aggregate_nominal_frequency_hz
         values = [v for v in slot if v is not None and v.samples is not None]
-        if nominal is None or len(values) != 3:
+        if nominal is None or group.aggregates_off or len(values) != 3:
             return []
         first = values[0]
         assert first.samples is not None
@@ -236,7 +247,7 @@ class PqStage:
         ):
             return []  # same end, different blocks: not one grid
         if group.analyser is None:
-            group.analyser = HarmonicAnalyser(first.sample_rate_hz, _group_params(nominal))
+            group.analyser = HarmonicAnalyser(first.sample_rate_hz, _group_params(nominal, first.sample_rate_hz))
             group.aggregator = Aggregator(group.config.name)
         x = np.column_stack([v.samples for v in values if v.samples is not None])
         out: list[Output] = []
@@ -305,14 +316,24 @@ class PqStage:
             g.late = item["late"]
             nominal = g.config.aggregate_nominal_frequency_hz
             if item.get("analyser") is not None and nominal is not None:
-                g.analyser = HarmonicAnalyser(float(item["analyser"]["sample_rate_hz"]), _group_params(nominal))
+                fs = float(item["analyser"]["sample_rate_hz"])
+                g.analyser = HarmonicAnalyser(fs, _group_params(nominal, fs))
                 g.analyser.set_state(item["analyser"])
                 g.aggregator = Aggregator(name)
                 _set_aggregator_state(g.aggregator, item["aggregator"])
 
 
-def _group_params(nominal: int) -> HarmonicParams:
-    return HarmonicParams(nominal_frequency_hz=float(nominal), n_channels=3, reference_channel=0)
+def _group_params(nominal: int, sample_rate_hz: float) -> HarmonicParams:
+    """The group's window analysis: its aggregates (u2, u0, sequence magnitudes, frequency)
+    use only the fundamental, so a rate too slow for harmonics to the 50th analyses up to the
+    highest order it carries (the same windows and values at any rate that carries the 50th)."""
+    order = min(50, highest_harmonic_order(sample_rate_hz, float(nominal)))
+    if order < 2:  # the analyser's least
+        least = 3 * FREQUENCY_RANGE[1] * nominal / 0.4
+        raise ParameterError(
+            f"sample_rate_hz: expected >= {least:g} Hz for a {nominal} Hz window analysis, got {sample_rate_hz:g}"
+        )
+    return HarmonicParams(nominal_frequency_hz=float(nominal), n_channels=3, reference_channel=0, max_harmonic=order)
 
 
 def _value_state(v: _PhaseValue | None) -> dict[str, Any] | None:
