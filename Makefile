@@ -26,8 +26,12 @@ etcd:
 	  echo "installing Debian's etcd-server (apt-get; needs root)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends etcd-server; }
 
-# What CI runs: lint, format, import contracts and types first (seconds), then the tests.
-test: $(STAMP) etcd lint
+# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint (one
+# core each) the numba kernels the tests run are compiled into numba's cache (a fresh clone has
+# none), so that no test and no daemon the tests start compiles one: tests/compile_kernels.py.
+test: $(STAMP) etcd
+	$(BIN)/python tests/compile_kernels.py & kernels=$$!; \
+	  if $(MAKE) --no-print-directory lint; then wait $$kernels; else wait $$kernels; exit 1; fi
 	$(BIN)/python -m pytest
 
 # Lint, format, import contracts and types, from the three source roots (no install needed

@@ -39,8 +39,11 @@ from sinewatch.schemas.errors import ConfigError
 T = 1_700_000_000 * 10**9  # a whole second
 
 
-def estimate(channel: str, t_ns: int, *, mag=1.0, angle=0.5, f=50.01, rocof=0.02, valid=True, gap=False) -> dict:
+def estimate(
+    channel: str, t_ns: int, *, mag=1.0, angle=0.5, f=50.01, rocof=0.02, valid=True, gap=False, tq=None
+) -> dict:
     return {
+        "time_quality": tq,
         "channel": channel,
         "timestamp_ns": t_ns,
         "frequency_hz": [f],
@@ -87,6 +90,61 @@ def test_time_synchronised_station_says_so():
     frame, pmu = decode(st, frames[0])
     assert pmu.in_sync and (pmu.stat >> 4) & 0b11 == 0 and (pmu.stat >> 6) & 0b111 == 3
     assert frame.time_quality == 0 and frame.fraction == 20_000
+
+
+GLOBAL, LOCAL, NONE = ({"sync": s, "holdover": False} for s in ("global", "local", "none"))
+LOST = {"sync": "none", "holdover": True}
+
+
+def _time_bits(raw: bytes, st: Station) -> tuple[bool, int, int, int]:
+    """(in sync, FRACSEC time quality code, STAT bits 8-6, STAT bits 5-4) of a data frame."""
+    frame, pmu = decode(st, raw)
+    assert (pmu.stat >> 13) & 1 == (not pmu.in_sync)
+    return pmu.in_sync, frame.time_quality, (pmu.stat >> 6) & 0b111, (pmu.stat >> 4) & 0b11
+
+
+@pytest.mark.parametrize("declared", [False, True])
+def test_the_estimates_time_quality_sets_stat_and_fracsec_whatever_the_station_declares(declared):
+    """C37.118.2-2011: STAT bit 13 (sync), bits 8-6 (PMU time quality, Table 7), bits 5-4
+    (unlocked time, Table 6), FRACSEC bits 27-24 (time quality code, Tables 3 and 4) from the
+    estimates' time quality; the declaration only where no estimate states one."""
+    st = station(time_synchronised=declared, pmu_time_quality=2)
+    bits = []
+    for k, tq in enumerate([GLOBAL, LOCAL, NONE, None, GLOBAL]):
+        t = T + k * 20_000_000
+        [raw] = [f for i, ch in enumerate("abc") for f in st.add(i, estimate(ch, t, tq=tq))]
+        bits.append(_time_bits(raw, st))
+    not_traceable = (False, 0xF, 0b111, 0b11)  # never locked in this stream: unlocked > 1000 s
+    declared_bits = (True, 0x0, 2, 0b00) if declared else not_traceable
+    assert bits == [(True, 0x0, 2, 0b00), not_traceable, not_traceable, declared_bits, (True, 0x0, 2, 0b00)]
+    # the configuration frame's FRACSEC says the last data frame's code
+    assert decode_frame(st.config_frame(FrameType.CFG2, T)).time_quality == 0x0
+
+
+def test_a_lost_synchronisation_counts_its_unlocked_time_in_table_6_s_ranges():
+    st = station(time_synchronised=True, data_rate=1)
+    got = {}
+    for s in (0, 1, 9, 10, 99, 100, 1000, 1001):
+        t = T + s * 10**9
+        [raw] = [f for i, ch in enumerate("abc") for f in st.add(i, estimate(ch, t, tq=LOST))]
+        got[s] = _time_bits(raw, st)
+    # 00 below 10 s, 01 from 10 s to below 100 s, 10 from 100 s to 1000 s, 11 beyond
+    assert {s: b[3] for s, b in got.items()} == {0: 0, 1: 0, 9: 0, 10: 1, 99: 1, 100: 2, 1000: 2, 1001: 3}
+    assert {b[:3] for b in got.values()} == {(False, 0xF, 0b111)}
+    # locked again: in sync at once, and a new loss counts from its own start
+    t = T + 1002 * 10**9
+    [raw] = [f for i, ch in enumerate("abc") for f in st.add(i, estimate(ch, t, tq=GLOBAL))]
+    assert _time_bits(raw, st) == (True, 0x0, 7, 0b00)
+    [raw] = [f for i, ch in enumerate("abc") for f in st.add(i, estimate(ch, t + 10**9, tq=LOST))]
+    assert _time_bits(raw, st)[3] == 0b00
+
+
+def test_a_frame_says_the_worst_time_quality_of_its_channels():
+    st = station(time_synchronised=True)
+    frames = st.add(0, estimate("a", T, tq=GLOBAL)) + st.add(1, estimate("b", T, tq=LOST))
+    frames += st.add(2, estimate("c", T, tq=GLOBAL))
+    [raw] = frames
+    assert _time_bits(raw, st) == (False, 0xF, 0b111, 0b00)
 
 
 @pytest.mark.parametrize(

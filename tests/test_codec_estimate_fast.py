@@ -15,11 +15,11 @@ from conftest import make_config
 from sinewatch.estimators import available, get
 from sinewatch.estimators.base import Track, TrackStd
 from sinewatch.pipeline import Channel, NullSink, Pipeline, estimate_model
-from sinewatch.schemas.codec import Block, encode_block_binary, encode_estimate, json_string
+from sinewatch.schemas.codec import TIME_QUALITY_JSON, Block, encode_block_binary, encode_estimate, json_string
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.messages import Estimate, Fencing
 
-VERSIONS = (1, 2, 3, 4)
+VERSIONS = (1, 2, 3, 4, 5)
 
 
 def _reference(pipeline: Pipeline, ch: Channel, block: Block, track: Track, ts: int, t_last: int, gap, restart, reset):
@@ -81,12 +81,15 @@ def test_the_fast_bytes_are_the_models_bytes_over_many_random_estimates(tmp_path
     est = get("ges-kalman")(10_000.0, {"q": [1e-10, 1e-10, 1e-14, 1e-14], "r": 1e-4})
     names = ["a", "site-1/bus.2/V_a", "x" * 256]
     seen_null = seen_valid = seen_invalid = 0
+    qualities = sorted(TIME_QUALITY_JSON)  # not stated, and every stated time quality (format 5)
+    seen_quality: set[str] = set()
     for i in range(1500):
         ch = Channel(names[i % 3], "sinewatch/in/" + names[i % 3], est, 10_000.0)
         ch.presence.counters[2] = int(rng.choice([0, 10**9]))  # run length: absent, or long present
         seq = int(rng.choice([0, 7, 2**64 - 1]))
         t0 = int(rng.choice([0, -1, 1_763_900_000_123_456_789, 2**63 - 10**8, -(2**62)]))
-        block = Block(ch.name, seq, t0, 10_000.0, np.zeros(int(rng.integers(1, 2000))))
+        tq = qualities[i % len(qualities)]
+        block = Block(ch.name, seq, t0, 10_000.0, np.zeros(int(rng.integers(1, 2000))), None, tq)
         track = _track(rng)
         gap = int(rng.choice([0, 0, 3]))
         restart, reset = bool(rng.random() < 0.2), bool(rng.random() < 0.2)
@@ -100,13 +103,20 @@ def test_the_fast_bytes_are_the_models_bytes_over_many_random_estimates(tmp_path
         msg = json.loads(fast)
         assert msg["format_version"] == version
         seen_null += b"null" in fast
-        if version == 4:
+        if version >= 4:
             assert msg["fencing"] == (None if i % 4 == 0 else pipeline.fencing.model_dump())
+        if version >= 5:
+            assert json.dumps(msg["time_quality"], separators=(",", ":")) == TIME_QUALITY_JSON[tq]
+            seen_quality.add(TIME_QUALITY_JSON[tq])
+        else:
+            assert "time_quality" not in msg
         if version == 3:
             seen_valid += msg["diagnostics"]["valid"]
             seen_invalid += not msg["diagnostics"]["valid"]
             assert Estimate.model_validate(msg).model_dump(mode="json")["timestamp"] == msg["timestamp"]
     assert seen_null > 500  # the NaN/inf -> null path was exercised
+    if version >= 5:  # null and the six stated qualities, each as the model writes it
+        assert seen_quality == set(TIME_QUALITY_JSON.values()) and len(seen_quality) == 7
     if version == 3:
         assert seen_valid > 100 and seen_invalid > 100
 

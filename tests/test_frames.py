@@ -19,13 +19,23 @@ from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscri
 from sinewatch.export import export
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import read_recording, replay
-from sinewatch.schemas.codec import Block, encode_block_binary
+from sinewatch.schemas.codec import (
+    SYNC_NAMES,
+    TIME_QUALITY_JSON,
+    Block,
+    decode_block,
+    encode_block_binary,
+    encode_block_json,
+    time_quality_byte,
+)
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import DecodeError, InputError, UnsupportedVersionError
 from sinewatch.schemas.frame import (
     FRAME_BINARY_ENCODING,
+    FRAME_BINARY_ENCODING_V2,
     FRAME_HEADER,
     FRAME_JSON_ENCODING,
+    FRAME_JSON_ENCODING_V2,
     FRAME_MAGIC,
     Frame,
     channel_key,
@@ -33,8 +43,9 @@ from sinewatch.schemas.frame import (
     decode_input,
     encode_frame_binary,
     encode_frame_json,
+    frame_encoding,
 )
-from sinewatch.schemas.input_record import decode_input_record, encode_frame_record
+from sinewatch.schemas.input_record import decode_input_record, encode_frame_record, encode_input_record
 
 FS = 10_000.0
 N = 256
@@ -89,6 +100,12 @@ def _good() -> bytearray:
     return bytearray(encode_frame_binary(frame, "float64"))
 
 
+def _good_v2() -> bytearray:
+    """The same frame with a time quality (global): format version 2, names at 44, pad to 56."""
+    frame = Frame(("a/xy", "a/z"), 1, 0, 1000.0, np.ones((4, 2)), time_quality_byte("global"))
+    return bytearray(encode_frame_binary(frame, "float64"))
+
+
 def _raw_names(names: bytes, n_ch: int) -> bytes:
     """A frame of one sample per channel with these name bytes, as written by hand."""
     head = FRAME_HEADER.pack(b"SWFR", 1, 2, n_ch, 0, 0, 1000.0, 1, len(names))
@@ -104,8 +121,9 @@ MALFORMED = {
     "empty": (b"", "", DecodeError),
     "truncated header": (bytes(_good()[:30]), FRAME_BINARY_ENCODING, DecodeError),
     "bad magic": (_set(_good(), "<4s", 0, b"SWFX"), FRAME_BINARY_ENCODING, DecodeError),
-    "unknown version": (_set(_good(), "<B", 4, 2), "", UnsupportedVersionError),
-    "version in the encoding": (bytes(_good()), "application/x-sinewatch-frame;v=2", UnsupportedVersionError),
+    "unknown version": (_set(_good(), "<B", 4, 3), "", UnsupportedVersionError),
+    "version in the encoding": (bytes(_good()), "application/x-sinewatch-frame;v=3", UnsupportedVersionError),
+    "encoding's version not the header's": (bytes(_good()), "application/x-sinewatch-frame;v=2", DecodeError),
     "unknown dtype": (_set(_good(), "<B", 5, 9), "", DecodeError),
     "no channels": (_set(_good(), "<H", 6, 0), "", DecodeError),
     "channel count above the names": (_set(_good(), "<H", 6, 3), "", DecodeError),
@@ -132,9 +150,30 @@ MALFORMED = {
         DecodeError,
     ),
     "JSON version": (
-        b'{"format_version":2,"seq":0,"t0_ns":0,"sample_rate_hz":1.0,"channels":["a"],"samples":[[1]]}',
+        b'{"format_version":3,"seq":0,"t0_ns":0,"sample_rate_hz":1.0,"channels":["a"],"samples":[[1]]}',
         "",
         UnsupportedVersionError,
+    ),
+    # format version 2: the time-quality byte at 40, reserved bytes 41-43
+    "version 2 header cut short": (bytes(_good_v2()[:42]), "", DecodeError),
+    "time quality sync 3": (_set(_good_v2(), "<B", 40, 0x83), "", DecodeError),
+    "time quality without its stated bit": (_set(_good_v2(), "<B", 40, 0x02), "", DecodeError),
+    "time quality reserved bit": (_set(_good_v2(), "<B", 40, 0x8A), "", DecodeError),
+    "reserved byte 41": (_set(_good_v2(), "<B", 41, 1), "", DecodeError),
+    "reserved bytes 42-43": (_set(_good_v2(), "<H", 42, 0x100), "", DecodeError),
+    "version 2 pad": (_set(_good_v2(), "<B", 44 + 9, 1), "", DecodeError),
+    "version 2 payload, version 1 encoding": (bytes(_good_v2()), FRAME_BINARY_ENCODING, DecodeError),
+    "JSON time quality in a version 1 frame": (
+        b'{"format_version":1,"seq":0,"t0_ns":0,"sample_rate_hz":1.0,"channels":["a"],"samples":[[1]],'
+        b'"time_quality":{"sync":"global","holdover":false}}',
+        "",
+        DecodeError,
+    ),
+    "JSON unknown sync": (
+        b'{"format_version":2,"seq":0,"t0_ns":0,"sample_rate_hz":1.0,"channels":["a"],"samples":[[1]],'
+        b'"time_quality":{"sync":"utc"}}',
+        "",
+        DecodeError,
     ),
 }
 
@@ -163,6 +202,15 @@ def test_every_frame_recorded_as_an_input_frame_gives_back_its_bytes():
             record = encode_frame_record(good, FRAME_BINARY_ENCODING)
             assert FRAME_MAGIC not in record and len(record) < len(good) + 40 + 8 * n_ch  # as fields
             payloads += [good, encode_frame_json(frame), good[:-1], good + b"\0", _set(bytearray(good), "<B", 4, 2)]
+            frame.time_quality = time_quality_byte("local", holdover=n_ch % 2 == 1)
+            v2 = encode_frame_binary(frame, dtype)
+            payloads += [
+                v2,
+                encode_frame_json(frame),
+                _set(bytearray(v2), "<B", 41, 1),
+                _set(bytearray(v2), "<B", 4, 1),
+            ]
+            frame.time_quality = 0
             payloads.append(_set(bytearray(good), "<Q", 24, 0x7FF0_0000_0000_0001))  # a signalling NaN's bits
             for _ in range(40):
                 damaged = bytearray(good)
@@ -174,6 +222,86 @@ def test_every_frame_recorded_as_an_input_frame_gives_back_its_bytes():
     for payload in payloads:
         for encoding in ("", FRAME_BINARY_ENCODING, FRAME_JSON_ENCODING):
             assert decode_input_record(encode_frame_record(payload, encoding)) == (payload, encoding)
+
+
+# every stated time quality: (sync, holdover) -> the byte of the table in sinewatch.schemas.codec
+QUALITIES = {(s, h): 0x80 | (0x04 if h else 0) | code for code, s in enumerate(SYNC_NAMES) for h in (False, True)}
+
+
+@pytest.mark.parametrize(("sync", "holdover"), list(QUALITIES))
+def test_a_frame_with_a_time_quality_is_version_2_s_byte_table_and_decodes_back(sync, holdover):
+    byte = QUALITIES[(sync, holdover)]
+    assert time_quality_byte(sync, holdover) == byte
+    x = np.arange(6, dtype=np.float64).reshape(3, 2) / 4
+    frame = Frame(("mu1/ia", "mu1/va"), 7, -5, 4000.0, x, byte)
+    payload = encode_frame_binary(frame, "float32")
+    names = b"mu1/ia\nmu1/va\n"  # 14 bytes at 44: the samples start at 58 -> 64
+    expected = (
+        b"SWFR"
+        + bytes([2, 1])  # format_version 2, dtype float32
+        + struct.pack("<HQqdII", 2, 7, -5, 4000.0, 3, len(names))
+        + bytes([byte, 0, 0, 0])  # time_quality, reserved u8, reserved u16
+        + names
+        + b"\0" * 6  # pad to offset 64
+        + struct.pack("<6f", 0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
+    )
+    assert payload == expected
+    # the docstring's reader: the version byte says where the names start
+    p = payload
+    head = 44 if p[4] == 2 else 40
+    c, (n, names_len) = struct.unpack_from("<H", p, 6)[0], struct.unpack_from("<II", p, 32)
+    got = np.frombuffer(p, "<f4", offset=(head + names_len + 7) // 8 * 8).reshape(n, c)
+    assert p[head : head + names_len] == names and np.array_equal(got, x)
+    for dtype in ("float32", "float64"):
+        wire = encode_frame_binary(frame, dtype)
+        back = decode_frame(wire, FRAME_BINARY_ENCODING_V2)
+        assert back.time_quality == byte and back.version == 2 and np.array_equal(back.samples, x)
+        assert decode_input(wire).time_quality == byte  # sniffed without an encoding
+        # the InputFrame record: fields (field 17 the byte), and the payload back byte for byte
+        record = encode_frame_record(wire, FRAME_BINARY_ENCODING_V2)
+        # field 17's key (17 << 3 | varint: 0x88 0x01) and the byte as a varint (two bytes: >= 0x80)
+        assert FRAME_MAGIC not in record and record.endswith(bytes([0x88, 0x01, (byte & 0x7F) | 0x80, byte >> 7]))
+        assert decode_input_record(record) == (wire, FRAME_BINARY_ENCODING_V2)
+    assert frame_encoding(frame) == FRAME_BINARY_ENCODING_V2 and frame_encoding(frame, False) == FRAME_JSON_ENCODING_V2
+    j = encode_frame_json(frame)
+    msg = json.loads(j)
+    assert msg["format_version"] == 2 and msg["time_quality"] == {"sync": sync, "holdover": holdover}
+    back = decode_input(j, FRAME_JSON_ENCODING_V2)
+    assert back.time_quality == byte and np.array_equal(back.samples, x)
+    # each channel's block carries it: what the pipeline hands each estimate
+    assert {frame.block(k).time_quality for k in range(2)} == {byte}
+
+
+def test_a_frame_without_a_time_quality_stays_version_1_byte_for_byte():
+    x = np.arange(6, dtype=np.float64).reshape(3, 2)
+    frame = Frame(("mu1/ia", "mu1/va"), 7, -5, 4000.0, x)  # time_quality 0: not stated
+    assert frame.version == 1 and frame_encoding(frame) == FRAME_BINARY_ENCODING
+    payload = encode_frame_binary(frame)
+    assert payload[4] == 1 and payload[40:54] == b"mu1/ia\nmu1/va\n"
+    assert decode_frame(payload, FRAME_BINARY_ENCODING).time_quality == 0
+    assert (
+        "time_quality" not in json.loads(encode_frame_json(frame))
+        and json.loads(encode_frame_json(frame))["format_version"] == 1
+    )
+
+
+@pytest.mark.parametrize("byte", [0, *QUALITIES.values()])
+def test_a_binary_block_s_flags_byte_carries_the_time_quality(byte):
+    block = Block("daq/v", 3, 10**18, 10_000.0, np.arange(4.0), "V", byte)
+    payload = encode_block_binary(block)
+    assert payload[7] == byte  # the flags byte, reserved (0) before
+    assert decode_block(payload).time_quality == byte
+    record = encode_input_record(payload, "application/x-sinewatch-block;v=1")
+    assert decode_input_record(record) == (payload, "application/x-sinewatch-block;v=1")
+    assert decode_block(encode_block_json(block)).time_quality == 0  # JSON blocks do not state it
+
+
+@pytest.mark.parametrize("flags", [0x01, 0x40, 0x83, 0x88, 0xFF])
+def test_a_binary_block_with_flags_that_are_no_time_quality_is_a_decode_error(flags):
+    payload = bytearray(encode_block_binary(Block("daq/v", 3, 0, 10_000.0, np.arange(4.0))))
+    payload[7] = flags
+    with pytest.raises(DecodeError, match=r"expected 0 \(time quality not stated\)"):
+        decode_block(bytes(payload))
 
 
 def test_a_frame_s_channel_keys_sit_beside_the_frame_key():
@@ -229,6 +357,39 @@ def test_each_channel_of_a_frame_gets_the_bits_its_own_blocks_would_give(tmp_pat
     assert {json.loads(v[0])["estimator"] for v in keep.estimates.values()} == {"ges-kalman", "sogi-fll"}
     assert p.counters.inputs == 8 and p.counters.estimates == 40
     assert [s["blocks"] for s in p.channel_status()] == [8] * 5
+
+
+def test_every_estimate_of_a_frame_s_channels_carries_the_frame_s_time_quality(tmp_path):
+    """Frames of a merging unit that is synchronised globally, loses it, holds over and is
+    never stated: each estimate (Estimate format 5) carries its own frame's time quality, as
+    the byte said, and nothing else of it changes: the values are the bits a frame without
+    a time quality gives."""
+    names = [f"daq/ch{c}" for c in range(3)]
+    stated = (
+        [QUALITIES[("global", False)]] * 3 + [QUALITIES[("none", True)]] * 2 + [0] * 2 + [QUALITIES[("local", False)]]
+    )
+    keep, plain = Keep(), Keep()
+    p = Pipeline(make_config(tmp_path), [keep])
+    q = Pipeline(make_config(tmp_path), [plain])
+    for seq, tq in enumerate(stated):
+        frame = Frame(tuple(names), seq, seq * STEP_NS, FS, _signal(seq, 3), tq)
+        p.process("sinewatch/in/daq", encode_frame_binary(frame, "float32"), frame_encoding(frame), seq)
+        frame.time_quality = 0
+        q.process("sinewatch/in/daq", encode_frame_binary(frame, "float32"), FRAME_BINARY_ENCODING, seq)
+    assert not keep.errors and len(keep.estimates) == 3
+    for key, payloads in keep.estimates.items():
+        msgs = [json.loads(b) for b in payloads]
+        assert [m["format_version"] for m in msgs] == [5] * len(stated)
+        assert [json.dumps(m["time_quality"], separators=(",", ":")) for m in msgs] == [
+            TIME_QUALITY_JSON[tq] for tq in stated
+        ]
+        assert msgs[3]["time_quality"] == {"sync": "none", "holdover": True} and msgs[5]["time_quality"] is None
+        # the rest of every estimate is what the same frames without a time quality gave
+        for m, ref in zip(msgs, plain.estimates[key], strict=True):
+            r = json.loads(ref)
+            assert {k: v for k, v in m.items() if k != "time_quality"} == {
+                k: v for k, v in r.items() if k != "time_quality"
+            }
 
 
 def _two_rules() -> list[EstimatorRule]:

@@ -156,9 +156,10 @@ def binary_frames(draw: st.DrawFn) -> bytes:
         )
     )
     n = draw(st.integers(0, 6))
+    version = draw(st.sampled_from([1, 1, 0, 2, 2, 255]))
     header = FRAME_HEADER.pack(
         draw(st.sampled_from([FRAME_MAGIC, b"XXXX"])),
-        draw(st.sampled_from([1, 1, 0, 2, 255])),
+        version,
         draw(st.sampled_from([1, 2, 0, 3])),
         n_ch,
         draw(st.integers(0, 2**64 - 1)),
@@ -167,6 +168,10 @@ def binary_frames(draw: st.DrawFn) -> bytes:
         draw(st.one_of(st.just(n), st.integers(0, 2**32 - 1))),
         draw(st.one_of(st.just(len(names)), st.integers(0, 2**32 - 1))),
     )
+    if version == 2:  # the time-quality byte and the reserved bytes: valid, or any
+        header += draw(
+            st.one_of(st.sampled_from([b"\x82\0\0\0", b"\x84\0\0\0", b"\0\0\0\0"]), st.binary(min_size=4, max_size=4))
+        )
     pad = b"\0" * ((-(len(header) + len(names))) % 8)
     tail = draw(st.one_of(st.just(b"\0" * (8 * n * n_ch)), st.binary(max_size=200)))
     return header + names + draw(st.sampled_from([pad, b"", b"\1" * len(pad)])) + tail

@@ -128,6 +128,7 @@ def test_the_gateway_s_frames_carry_the_values_sent_at_the_times_of_their_sample
         "unsynchronised": RATE,
         "synch_changes": 2,
         "rejected": 0,
+        "time_quality": {"sync": "global", "holdover": False},  # at the end: synchronised again
     }
     assert all(
         f.channels == tuple(f"MU01/{c}" for c in ("IA", "IB", "IC", "IN", "VA", "VB", "VC", "VN")) for f in frames
@@ -177,6 +178,10 @@ def test_wrap_loss_repeat_and_unsynchronised_stretch_are_flagged_as_documented(d
         nxt = by_seq.get(f.seq + 1)
         if nxt is not None:
             assert nxt.t0_ns == f.t0_ns + f.n_samples * 250_000
+    # each frame carries its samples' smpSynch as a time quality: global (0x82), and in the
+    # unsynchronised second none with holdover (0x84: it was global before, the clock runs free)
+    assert {f.time_quality for f in frames if (f.t0_ns // 10**9) - START == UNSYNCED} == {0x84}
+    assert {f.time_quality for f in frames if (f.t0_ns // 10**9) - START != UNSYNCED} == {0x82}
     # synchronised frames sit on the UTC second's grid; the unsynchronised second is timed by
     # the capture's clock (its first sample's arrival), 120 us off that grid (to the 1 us
     # open61850's float capture times keep at this epoch)
@@ -187,6 +192,44 @@ def test_wrap_loss_repeat_and_unsynchronised_stretch_are_flagged_as_documented(d
             assert abs(offset - LATENCY_NS) < 1000, (f.seq, offset)
         else:
             assert offset == 0, (f.seq, second)
+
+
+def test_every_smp_synch_value_becomes_the_frames_time_quality_and_each_change_is_reported():
+    """smpSynch per IEC 61850-9-2 Ed. 2.1: 0 none, 1 local, 2 global, 5-254 a local clock by
+    its number, 3/4/255 reserved (none). A drop sets holdover, a rise clears it; a frame never
+    holds two time qualities; each change goes to the callback once."""
+    from sinewatch.gateway import StreamSpec, SvStreamDecoder, sync_code
+
+    assert [sync_code(v) for v in (0, 1, 2, 3, 4, 5, 254, 255)] == [0, 1, 2, 0, 0, 1, 1, 0]
+    dec = SvStreamDecoder(StreamSpec("MU9"), rate=RATE, n_samples=10)
+    stretches = [(0, 20), (1, 20), (2, 20), (0, 20), (5, 20), (2, 20), (3, 20)]
+    expected = [0x80, 0x81, 0x82, 0x84, 0x81, 0x82, 0x84]  # none, local, global, none since a drop, ...
+    frames, k = [], 0
+    for synch, count in stretches:
+        for _ in range(count):
+            frames += dec.push(START * 10**9 + k * 250_000, k % RATE, synch, bytes(64))
+            k += 1
+    frames += dec.flush()
+    assert [f.time_quality for f in frames] == [q for q in expected for _ in range(2)]  # 20 samples: 2 frames
+    assert dec.stats.synch_changes == 6 and dec.time_quality == 0x84
+    # each change ends a frame and skips a seq (a gap of one for the daemon), as a change of smpSynch always did
+    assert [b.seq - a.seq for a, b in itertools.pairwise(frames)] == [1, 2] * 6 + [1]
+    # through the gateway: the changes of the capture reported, as (svID, old byte, new byte)
+    capture_frames = []
+    changes = []
+    gw = SvGateway(GatewayOptions(rate=RATE, samples=N), lambda name, f: capture_frames.append(f),
+                   lambda sv_id, old, new, t: changes.append((sv_id, old, new, t)))  # fmt: skip
+    stream = _stream(sv.SMP_SYNCH_GLOBAL)
+    unsynced = _stream(sv.SMP_SYNCH_NONE)
+    templates = {0: svp.build_template(stream, 1, RATE), 2: svp.build_template(unsynced, 1, RATE)}
+    for s in range(3):
+        for c in range(0, RATE, 400):  # every 400th sample is enough to follow smpSynch (seen as lost ones)
+            st, tpl = (unsynced, templates[2]) if s == 1 else (stream, templates[0])
+            gw.feed(svp.render_frame(tpl, st, START + s, c, RATE), (START + s) * 10**9 + c * 250_000 + LATENCY_NS)
+    assert [(sv_id, old, new) for sv_id, old, new, _ in changes] == [
+        (SV_ID, 0x00, 0x82), (SV_ID, 0x82, 0x84), (SV_ID, 0x84, 0x82),
+    ]  # fmt: skip
+    assert changes[1][3] == (START + 1) * 10**9 + LATENCY_NS  # when: the first unsynchronised sample's arrival
 
 
 def test_frames_of_80_samples_and_a_filter_that_matches_nothing(capture):
@@ -248,8 +291,11 @@ def test_a_daemon_estimates_the_gateway_s_frames_from_the_pcap(tmp_path, capture
     assert (status["samples"], status["lost"], status["repeated"], status["synch_changes"]) == (
         SECONDS * RATE - 1, 1, 1, 2,
     )  # fmt: skip
-    assert status["synchronised"] is True
+    assert status["synchronised"] is True and status["time_quality"] == {"sync": "global", "holdover": False}
     assert r.returncode == 0, r.stderr
+    # each change of smpSynch reported by the gateway, on stderr by default
+    assert r.stderr.count("stream MU01: time quality") == 3, r.stderr
+    assert "{'sync': 'global', 'holdover': False} -> {'sync': 'none', 'holdover': True}" in r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["published"] == len(frames) and summary["streams"][0]["lost"] == 1
     assert code == 0 and len(got) == expected
@@ -261,6 +307,13 @@ def test_a_daemon_estimates_the_gateway_s_frames_from_the_pcap(tmp_path, capture
     assert sum(e["diagnostics"]["gap"] for e in va) == 5
     check_three_phase(got)
     check_three_phase(got, ("IA", "IB", "IC"), I_PEAK, (-I_LAG, -I_LAG - 120, -I_LAG - 240))
+    # smpSynch reaches every estimate: 2 as global, the second of 0 as none since a loss (holdover)
+    by_second: dict[int, set] = {}
+    for e in got:
+        assert e["format_version"] == 5
+        tq = e["time_quality"]
+        by_second.setdefault(e["timestamp_ns"] // 10**9 - START, set()).add((tq["sync"], tq["holdover"]))
+    assert by_second == {s: {("none", True)} if s == UNSYNCED else {("global", False)} for s in range(SECONDS)}
 
 
 # ---- live: open61850's publisher on one end of a veth pair, the gateway on the other --------
@@ -418,7 +471,26 @@ def test_the_deploy_example_serves_the_merging_unit_as_a_pmu_and_a_power_quality
     assert r.returncode == 0, r.stderr
     assert code == 0 and len(rows) == 150 and len(groups) == 100
     good = [row for row in rows if row["data_error"] == 0]
-    assert all(row["in_sync"] for row in rows)  # time_synchronised = true in the example
+    # STAT and FRACSEC from the merging unit's smpSynch (the estimates' time quality; the example's
+    # time_synchronised only for inputs that state none), in the frames the PDC socket read. Every
+    # row made of estimates (data error 00 or 01) is either in sync (bit 13 clear, FRACSEC code 0,
+    # unlocked 00, the station's PMU time quality) or not (bit 13 set, code 0xF: Table 4, time not
+    # reliable; PMU time quality 111: Table 7, unknown; unlocked 00: the loss was less than 10 s
+    # before, Table 6). A report takes the time quality of the block that completed it, so the
+    # pmu's reports up to its latency (< 0.2 s) before a change take the new one: the rows not in
+    # sync are those of the unsynchronised second, give or take that latency.
+    pmu_tq = example.c37118.stations[0].pmu_time_quality
+    measured = [row for row in rows if row["data_error"] in (0, 1)]
+    bits = {
+        (row["in_sync"], row["time_quality"], (row["stat"] >> 6) & 0b111, (row["stat"] >> 4) & 0b11) for row in measured
+    }
+    assert bits == {(True, 0, pmu_tq, 0b00), (False, 0xF, 0b111, 0b00)}, bits
+    s2 = (START + UNSYNCED) * 10**9
+    not_in_sync = [row["time_ns"] for row in measured if not row["in_sync"]]
+    in_sync = [row["time_ns"] for row in measured if row["in_sync"]]
+    assert all(s2 - 200_000_000 <= t < s2 + 10**9 for t in not_in_sync), not_in_sync
+    assert not any(s2 <= t < s2 + 800_000_000 for t in in_sync), in_sync
+    assert len(not_in_sync) > 10 and len(in_sync) > 10
     last = good[-1]
     mags = [last["phasors"][p][0] for p in ("VA", "VB", "VC")]
     angles = [math.degrees(last["phasors"][p][1]) for p in ("VA", "VB", "VC")]

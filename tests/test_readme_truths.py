@@ -18,7 +18,7 @@ from sinewatch.cli import build_parser, main
 from sinewatch.recorder import RECORDING_FORMAT_VERSION
 from sinewatch.scenarios.power_quality_iec import pq_names
 from sinewatch.schemas.config import SinewatchConfig
-from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, FORMAT_VERSION
+from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, FORMAT_VERSION, FRAME_FORMAT_VERSION
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION
 from sinewatch.workers import worker_count
 
@@ -34,6 +34,8 @@ def test_the_versions_the_readme_states_are_the_code_s():
         f"recordings layout version {RECORDING_FORMAT_VERSION}"
     ) in README
     assert f"`application/json;sinewatch/Estimate@{ESTIMATE_FORMAT_VERSION}`" in README
+    assert f"SampleFrame format version {FRAME_FORMAT_VERSION} (a frame that states no time quality" in README
+    assert f"`application/x-sinewatch-frame;v={FRAME_FORMAT_VERSION}`" in README
     assert "Wire format (version" not in README
 
 

@@ -92,7 +92,9 @@ def fresh(tmp_path_factory):
             send("sinewatch/in/a/v64", bytes(bad), BLOCK_BINARY_ENCODING, None)
         f64 = Frame(("f/a", "f/b", "f/c"), i, t0, FS, np.stack([_sine(i, 1024, 50 + c, rng) for c in range(3)], 1))
         send("sinewatch/in/f/mu", encode_frame_binary(f64, "float64"), FRAME_BINARY_ENCODING, f64)
-        f32 = Frame(("g/a", "g/b"), i, t0, FS, np.stack([_sine(i, 1024, 49 + c, rng) for c in range(2)], 1))
+        # every other one states a time quality (format version 2: InputFrame field 17)
+        tq = (0x82, 0x84)[i % 4 // 2] if i % 2 else 0
+        f32 = Frame(("g/a", "g/b"), i, t0, FS, np.stack([_sine(i, 1024, 49 + c, rng) for c in range(2)], 1), tq)
         send("sinewatch/in/g/mu", encode_frame_binary(f32, "float32"), "", f32)
         tj = T0 + round(i * 256 * 1e9 / FS)
         fj = Frame(("h/a", "h/b"), i, tj, FS, np.stack([_sine(i, 256, 60 - c, rng) for c in range(2)], 1))
@@ -169,8 +171,9 @@ def _check_frame(msg: dict, payload: bytes, encoding: str, frame: Frame) -> None
     if payload[:1] == b"{":  # JSON: the text as it came, the samples besides
         assert bytes.fromhex(msg["raw"]) == payload and msg["frame_version"] == 0
         assert np.array_equal(np.array(msg["samples"]).reshape(n, c), frame.samples)
-    elif encoding == "":  # the float32 frames: those very values
-        assert msg["raw"] == "" and msg["frame_version"] == 1 and msg["samples"] == []
+    elif encoding == "":  # the float32 frames: those very values, some of version 2 with a time quality
+        assert msg["raw"] == "" and msg["frame_version"] == frame.version and msg["samples"] == []
+        assert msg["time_quality"] == frame.time_quality
         assert np.array_equal(np.float32(msg["samples_f32"]).reshape(n, c), frame.samples.astype(np.float32))
     else:
         assert msg["raw"] == "" and msg["frame_version"] == 1 and msg["samples_f32"] == []

@@ -21,7 +21,7 @@ from sinewatch.schemas.codec import (
 )
 from sinewatch.schemas.errors import DecodeError, UnsupportedVersionError
 from sinewatch.schemas.export import all_schemas
-from sinewatch.schemas.messages import Diagnostics, Estimate, Fencing, Uncertainty
+from sinewatch.schemas.messages import Diagnostics, Estimate, Fencing, TimeQuality, Uncertainty
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -131,15 +131,21 @@ def test_estimate_v3_carries_rocof_uncertainty_time_and_validity_and_earlier_ver
         rocof_hz_per_s=[0.5],
         std=Uncertainty(frequency_hz=[0.001], amplitude=[None], phase_rad=[0.01], offset=None),
     )
-    v4 = json.loads(encode_estimate(est))
+    v5 = json.loads(encode_estimate(est))
+    assert v5["format_version"] == 5 and v5["time_quality"] is None and list(v5)[-1] == "time_quality"
+    stated = est.model_copy(update={"time_quality": TimeQuality(sync="none", holdover=True)})
+    assert json.loads(encode_estimate(stated))["time_quality"] == {"sync": "none", "holdover": True}
+    assert Estimate.model_validate(json.loads(encode_estimate(stated))) == stated
+    v4 = json.loads(encode_estimate(stated, version=4))
+    assert "time_quality" not in v4  # version 4 is what the builds before the time quality wrote
     assert v4["format_version"] == 4 and v4["fencing"] is None  # a daemon that owns its keys without an election
-    fenced = json.loads(encode_estimate(est.model_copy(update={"fencing": Fencing(shard="s", term=7)})))
+    fenced = json.loads(encode_estimate(est.model_copy(update={"fencing": Fencing(shard="s", term=7)}), version=4))
     assert fenced["fencing"] == {"shard": "s", "term": 7} and list(fenced)[-1] == "fencing"
     v3 = json.loads(encode_estimate(est, version=3))
     assert "fencing" not in v3  # version 3 is what the builds before fencing wrote
     assert v3["format_version"] == 3 and v3["rocof_hz_per_s"] == [0.5] and v3["std"]["frequency_hz"] == [0.001]
     assert v3["diagnostics"]["valid"] is True
-    assert Estimate.model_validate(v4) == est
+    assert Estimate.model_validate(v4) == est.model_copy(update={"format_version": 4})
     # Version 2 and 1 are what earlier builds wrote: the same keys in the same order, nothing more.
     v2 = encode_estimate(est, version=2)
     assert v2 == (
@@ -156,7 +162,7 @@ def test_estimate_v3_carries_rocof_uncertainty_time_and_validity_and_earlier_ver
         b'"diagnostics":{"converged":true,"residual_rms":0.01,"gap":false,"gap_blocks":0,"restart":false,'
         b'"reset":false,"extras":{"k":1.5}}}'
     )
-    assert ESTIMATE_JSON_ENCODING.endswith("@4")
+    assert ESTIMATE_JSON_ENCODING.endswith("@5")
 
 
 @pytest.mark.parametrize("ns", [1_763_900_000_123_456_789, 2**63 - 1, -1, -(2**63), 0])

@@ -74,7 +74,64 @@ log = logging.getLogger("sinewatch.c37118")
 
 TIME_QUALITY_LOCKED = 0x0  # Table 4: clock locked to a UTC-traceable source
 TIME_QUALITY_FAULT = 0xF  # Table 4: fault, clock failure, time not reliable
+PMU_TIME_QUALITY_UNKNOWN = 0b111  # Table 7: estimated maximum time error > 10 ms or unknown
 UNLOCKED_OVER_1000_S = 0b11
+
+
+@dataclass(frozen=True)
+class TimeBits:
+    """What a data frame says of its time: STAT bit 13 (``in_sync``), STAT bits 8-6 and 5-4,
+    and FRACSEC's time quality code (bits 27-24)."""
+
+    in_sync: bool
+    pmu_time_quality: int
+    unlocked: int
+    code: int
+
+    def worse(self, other: TimeBits) -> TimeBits:
+        """The frame's bits from two channels': each field at its worse value."""
+        return TimeBits(
+            self.in_sync and other.in_sync,
+            max(self.pmu_time_quality, other.pmu_time_quality),
+            max(self.unlocked, other.unlocked),
+            max(self.code, other.code),
+        )
+
+
+def unlocked_code(seconds: float) -> int:
+    """STAT bits 5-4 (C37.118.2-2011 Table 6): 00 locked or unlocked < 10 s, 01 10 s to
+    < 100 s, 10 100 s to 1000 s, 11 over 1000 s."""
+    if seconds < 10:
+        return 0b00
+    if seconds < 100:
+        return 0b01
+    return 0b10 if seconds <= 1000 else 0b11
+
+
+def time_quality_bits(tq: dict[str, Any] | None, cfg: C37118Station, unlocked_s: float = 0.0) -> TimeBits:
+    """The time bits of one channel's estimate from its ``time_quality`` (Estimate format 5).
+
+    * not stated (null, or an estimate of an earlier format): the operator's
+      ``time_synchronised`` declaration: in sync, ``pmu_time_quality``, locked, code 0; or not
+      in sync, unknown (Table 7: 111), unlocked over 1000 s, code 0xF (Table 4: clock failure,
+      time not reliable).
+    * ``global`` (smpSynch 2: locked to a UTC-traceable grandmaster): in sync, code 0 (Table 4:
+      locked to a UTC-traceable source); bits 8-6 the station's ``pmu_time_quality``, for
+      ``smpSynch`` says that the clock is locked, not how close (IEC 61869-9 leaves the
+      accuracy to the synchronisation's class).
+    * ``holdover`` (the reference was lost during the stream): not in sync, unknown, the
+      unlocked time since the loss (``unlocked_s``, Table 6's ranges), code 0xF.
+    * ``local`` or ``none`` (never UTC-traceable in this stream): not in sync, unknown,
+      unlocked over 1000 s, code 0xF; a local area clock is no UTC-traceable source."""
+    if tq is None:
+        if cfg.time_synchronised:
+            return TimeBits(True, cfg.pmu_time_quality, 0, TIME_QUALITY_LOCKED)
+        return TimeBits(False, PMU_TIME_QUALITY_UNKNOWN, UNLOCKED_OVER_1000_S, TIME_QUALITY_FAULT)
+    if tq.get("holdover"):
+        return TimeBits(False, PMU_TIME_QUALITY_UNKNOWN, unlocked_code(unlocked_s), TIME_QUALITY_FAULT)
+    if tq.get("sync") == "global":
+        return TimeBits(True, cfg.pmu_time_quality, 0, TIME_QUALITY_LOCKED)
+    return TimeBits(False, PMU_TIME_QUALITY_UNKNOWN, UNLOCKED_OVER_1000_S, TIME_QUALITY_FAULT)
 
 
 def synchrophasor(est: dict[str, Any], nominal_hz: int) -> tuple[float, float] | None:
@@ -119,6 +176,10 @@ class Station:
         self.incomplete = 0
         self.late = 0
         self.time_quality = TIME_QUALITY_LOCKED if cfg.time_synchronised else TIME_QUALITY_FAULT
+        # the last time quality an estimate stated (frames without estimates keep it), and the
+        # data time of the first frame in holdover since the last one that was not (unlocked time)
+        self._stated: list[dict[str, Any]] = []
+        self._holdover_since: int | None = None
         names = cfg.phasor_names or [ch.rsplit("/", 1)[-1] for ch in cfg.channels]
         current = cfg.phasor_type == "current"
         self.pmu = PmuConfig(
@@ -237,17 +298,34 @@ class Station:
             r = first.get("rocof_hz_per_s")
             freq = nan if f is None else f
             dfreq = nan if not r or r[0] is None else r[0]
-        synced = self.cfg.time_synchronised
-        stat = stat_word(
-            error,
-            in_sync=synced,
-            pmu_time_quality=self.cfg.pmu_time_quality,
-            unlocked=0 if synced else UNLOCKED_OVER_1000_S,
-        )
+        bits = self._time_bits(t_ns, got)
+        stat = stat_word(error, in_sync=bits.in_sync, pmu_time_quality=bits.pmu_time_quality, unlocked=bits.unlocked)
         soc, frac = soc_fraction(t_ns, self.time_base)
         self.built += 1
-        fracsec = fracsec_word(frac, self.time_quality)
+        self.time_quality = bits.code  # the configuration and header frames say it too
+        fracsec = fracsec_word(frac, bits.code)
         return encode_data(self.cfg2, soc, fracsec, [PmuData(stat, phasors, freq, dfreq)])
+
+    def _time_bits(self, t_ns: int, got: dict[int, dict[str, Any]]) -> TimeBits:
+        """The frame's time bits: the worst of its channels' stated time qualities (the last
+        frame's for a frame without estimates), else the configured declaration."""
+        stated = [tq for est in got.values() if (tq := est.get("time_quality")) is not None]
+        if got:
+            self._stated = stated
+        else:
+            stated = self._stated
+        if any(tq.get("holdover") for tq in stated):
+            if self._holdover_since is None:
+                self._holdover_since = t_ns
+        else:
+            self._holdover_since = None
+        unlocked_s = 0.0 if self._holdover_since is None else (t_ns - self._holdover_since) / 1e9
+        if not stated:
+            return time_quality_bits(None, self.cfg)
+        bits = time_quality_bits(stated[0], self.cfg, unlocked_s)
+        for tq in stated[1:]:
+            bits = bits.worse(time_quality_bits(tq, self.cfg, unlocked_s))
+        return bits
 
 
 @dataclass
@@ -580,4 +658,4 @@ def _channel_of(payload: bytes) -> str:
     return payload[i + 11 : j].decode("utf-8", "replace")
 
 
-__all__ = ["C37118Server", "Station", "synchrophasor"]
+__all__ = ["C37118Server", "Station", "TimeBits", "synchrophasor", "time_quality_bits", "unlocked_code"]

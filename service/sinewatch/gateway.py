@@ -26,9 +26,18 @@ decoded ASDUs of each stream (one per svID) into frames of ``n`` consecutive sam
   reserved or questionable) is never a value: it is NaN in its channel's column, so the
   daemon refuses that channel's block of the frame (a ``non_finite`` error, counted) and
   flags the channel's next block as a gap of one; the other channels go on.
+* **Time quality.** Every frame carries its stream's time quality (SampleFrame format
+  version 2, :class:`sinewatch.schemas.messages.TimeQuality`), taken from ``smpSynch``
+  (IEC 61850-9-2 Ed. 2.1 and IEC 61869-9: 0 not synchronised, 1 a local area clock, 2 a
+  global area clock, 5-254 a local clock identified by that number; 3, 4 and 255 reserved,
+  taken as not synchronised). A frame holds one time quality: any change ends the frame, as
+  above. ``holdover`` is set when the synchronisation drops during the stream (global to
+  local or none, local to none: the merging unit's clock runs free since) and cleared when it
+  rises again. The daemon passes it to every Estimate of the frame's channels and to the
+  C37.118.2 STAT word; each change is logged.
 
-What a frame cannot carry (the stream's synchronisation now, the counts) goes on a status
-key, ``sinewatch/gateway/sv/<svID>``, once a second and at the end.
+The counts and each stream's time quality also go on a status key,
+``sinewatch/gateway/sv/<svID>``, once a second and at the end.
 """
 
 from __future__ import annotations
@@ -45,13 +54,14 @@ from typing import Any
 
 import numpy as np
 
+from sinewatch.schemas.codec import SYNC_NAMES, TQ_HOLDOVER, TQ_NOT_STATED, TQ_SYNC_MASK, time_quality_byte
 from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.frame import Frame
 
 DEFAULT_CHANNELS = ("IA", "IB", "IC", "IN", "VA", "VB", "VC", "VN")
 # 9-2LE: currents in 1 mA, voltages in 10 mV per count
 LE_SCALES = (0.001, 0.001, 0.001, 0.001, 0.01, 0.01, 0.01, 0.01)
-SMP_SYNCH_GLOBAL = 2
+SMP_SYNCH_NONE, SMP_SYNCH_LOCAL, SMP_SYNCH_GLOBAL = 0, 1, 2
 ETHERTYPE_SV = 0x88BA
 _VALIDITY_MASK = 0x3  # 9-2LE quality bits 0-1: 00 good, 01 invalid, 10 reserved, 11 questionable
 _NAME_BAD = re.compile(r"[^A-Za-z0-9_.-]")
@@ -59,6 +69,24 @@ _NAME_BAD = re.compile(r"[^A-Za-z0-9_.-]")
 
 class GatewayError(ConfigError):
     """A gateway option that cannot be used (says what was expected)."""
+
+
+def sync_code(smp_synch: int) -> int:
+    """The sync code (0 none, 1 local, 2 global) of an ``smpSynch`` value: IEC 61850-9-2
+    Ed. 2.1 gives 0 not synchronised, 1 local area clock, 2 global area clock, 5-254 a local
+    clock identified by its number; 3, 4 and 255 are reserved and taken as not synchronised."""
+    if smp_synch == SMP_SYNCH_GLOBAL:
+        return SMP_SYNCH_GLOBAL
+    if smp_synch == SMP_SYNCH_LOCAL or 5 <= smp_synch <= 254:
+        return SMP_SYNCH_LOCAL
+    return SMP_SYNCH_NONE
+
+
+def describe_time_quality(byte: int) -> dict[str, Any] | None:
+    """A time-quality byte as the status key and the summary show it (the Estimate's form)."""
+    if byte == TQ_NOT_STATED:
+        return None
+    return {"sync": SYNC_NAMES[byte & TQ_SYNC_MASK], "holdover": bool(byte & TQ_HOLDOVER)}
 
 
 def channel_prefix(sv_id: str) -> str:
@@ -121,6 +149,8 @@ class SvStreamDecoder:
         self._last_cnt: int | None = None
         self._last_arrival_ns = 0
         self._synced = False
+        self._sync: int | None = None  # the sync code of the current stretch (sync_code)
+        self._holdover = False
         # the time base of the current stretch (see _start_stretch) and the samples since
         # (integers: a float of ns since the epoch has a 256-ns step)
         self._base_ns = 0
@@ -132,7 +162,8 @@ class SvStreamDecoder:
         if len(sample) != 8 * n_ch or not 0 <= smp_cnt < self.rate:
             self.stats.rejected += 1
             return []
-        synced = smp_synch == SMP_SYNCH_GLOBAL
+        code = sync_code(smp_synch)
+        synced = code == SMP_SYNCH_GLOBAL
         out: list[Frame] = []
         step = self._step(arrival_ns, smp_cnt)
         if step is not None and step <= 0:
@@ -143,11 +174,12 @@ class SvStreamDecoder:
             self.stats.lost += step - 1
             self.stats.lost_events += 1
             self._break(out, lost=step - 1)
-        if step is None or synced != self._synced:
-            if step is not None:
+        if step is None or code != self._sync:
+            if step is not None and self._sync is not None:
                 self.stats.synch_changes += 1
-                self._break(out)
-            self._synced = synced
+                self._break(out)  # a frame holds one time quality
+                self._holdover = code < self._sync  # a drop: the reference was lost; a rise: regained
+            self._sync, self._synced = code, synced
             self._start_stretch(arrival_ns, smp_cnt)
         else:
             self._k += step
@@ -169,6 +201,13 @@ class SvStreamDecoder:
     def synchronised(self) -> bool:
         """Whether the last sample said smpSynch = 2 (global)."""
         return self._synced
+
+    @property
+    def time_quality(self) -> int:
+        """The time-quality byte of the current stretch (0 before the first sample)."""
+        if self._sync is None:
+            return TQ_NOT_STATED
+        return time_quality_byte(self._sync, self._holdover)
 
     def flush(self) -> list[Frame]:
         """The partly filled frame, if any (at the end of a capture)."""
@@ -220,7 +259,7 @@ class SvStreamDecoder:
         if bad.any():
             samples[bad] = np.nan
             self.stats.bad_quality += int(np.count_nonzero(bad))
-        frame = Frame(self.names, self._seq, self._t0_ns, float(self.rate), samples)
+        frame = Frame(self.names, self._seq, self._t0_ns, float(self.rate), samples, self.time_quality)
         self._seq += 1
         self._fill = 0
         self.stats.frames += 1
@@ -240,9 +279,16 @@ class GatewayOptions:
 
 class SvGateway:
     """Ethernet frames in (``feed``), Frames out through ``emit(frame_name, frame)``. A
-    frame that is not SV, or not decodable, is counted, never raised."""
+    frame that is not SV, or not decodable, is counted, never raised. A change of a
+    stream's time quality goes to ``on_time_quality(svID, old byte, new byte, arrival_ns)``
+    (default: :func:`log_time_quality`, a warning)."""
 
-    def __init__(self, options: GatewayOptions, emit: Callable[[str, Frame], None]) -> None:
+    def __init__(
+        self,
+        options: GatewayOptions,
+        emit: Callable[[str, Frame], None],
+        on_time_quality: Callable[[str, int, int, int], None] | None = None,
+    ) -> None:
         from open61850 import sv  # the optional extra ``sinewatch[sv]``
 
         self._sv = sv
@@ -253,6 +299,7 @@ class SvGateway:
         self.undecodable = 0
         self.filtered = 0
         self._macs = {m.lower().replace("-", ":") for m in options.dst_macs}
+        self.on_time_quality = on_time_quality or log_time_quality
 
     def feed(self, raw: bytes, arrival_ns: int) -> None:
         try:
@@ -276,8 +323,11 @@ class SvGateway:
             # several ASDUs in one frame (IEC 61869-9) were sampled 1/rate apart; the frame
             # left with its last one, so the earlier ones "arrived" that much before it
             t = arrival_ns - round((len(pdu.asdus) - 1 - i) * 1e9 / o.rate)
+            before = stream.time_quality
             for frame in stream.push(t, asdu.smp_cnt, asdu.smp_synch, asdu.sample):
                 self.emit(channel_prefix(asdu.sv_id), frame)
+            if stream.time_quality != before:
+                self.on_time_quality(asdu.sv_id, before, stream.time_quality, t)
 
     def _stream(self, sv_id: str) -> SvStreamDecoder:
         spec = StreamSpec(sv_id, self.options.channels.get(sv_id, ()))
@@ -291,11 +341,29 @@ class SvGateway:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "streams": [asdict(s.stats) for s in self.streams.values()],
+            "streams": [
+                {**asdict(s.stats), "time_quality": describe_time_quality(s.time_quality)}
+                for s in self.streams.values()
+            ],
             "not_sv": self.not_sv,
             "undecodable": self.undecodable,
             "filtered": self.filtered,
         }
+
+
+def log_time_quality(sv_id: str, old: int, new: int, arrival_ns: int) -> None:
+    """A change of a stream's time quality, as one log line (a warning: shown by default, for
+    the operator must know when the time stamps stop, or start again, being traceable)."""
+    import logging
+
+    was, now = describe_time_quality(old), describe_time_quality(new)
+    logging.getLogger("sinewatch.gateway").warning(
+        "stream %s: time quality %s -> %s at %d ns",
+        sv_id,
+        was,
+        now,
+        arrival_ns,
+    )
 
 
 # ---- sources --------------------------------------------------------------------------------
@@ -393,7 +461,7 @@ def serve(args: Any) -> int:
                 waited.add(name)
                 if not pub.wait_for_frame_subscriber(name, args.wait):
                     log.warning("no subscriber on %s after %s s: publishing anyway", pub.key(name), args.wait)
-            pub.publish_frame_raw(name, pub.encode_frame(frame))
+            pub.publish_frame_raw(name, pub.encode_frame(frame), pub.frame_encoding(frame))
 
         gateway = SvGateway(options, emit)
         status = threading.Thread(
@@ -436,7 +504,11 @@ def _put_status(session: Any, prefix: str, gateway: SvGateway) -> None:
     import json
 
     for sv_id, stream in list(gateway.streams.items()):
-        msg = {**asdict(stream.stats), "synchronised": stream.synchronised}
+        msg = {
+            **asdict(stream.stats),
+            "synchronised": stream.synchronised,
+            "time_quality": describe_time_quality(stream.time_quality),
+        }
         session.put(f"{prefix}/{channel_prefix(sv_id)}", json.dumps(msg).encode())
 
 
@@ -491,9 +563,12 @@ __all__ = [
     "SvGateway",
     "SvStreamDecoder",
     "channel_prefix",
+    "describe_time_quality",
     "iface_frames",
+    "log_time_quality",
     "parse_channels",
     "parse_mac",
     "pcap_frames",
     "run",
+    "sync_code",
 ]

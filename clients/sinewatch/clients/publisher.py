@@ -23,6 +23,7 @@ from sinewatch.schemas.frame import (
     Frame,
     encode_frame_binary,
     encode_frame_json,
+    frame_encoding,
 )
 
 DEFAULT_HISTORY_BLOCKS = 1024
@@ -191,9 +192,11 @@ class BlockPublisher:
         *,
         seq: int | None = None,
         t0_ns: int | None = None,
+        time_quality: int = 0,
     ) -> Frame:
         """The Frame that ``publish_frame`` would send (advances the frame's seq and time).
-        ``samples`` is (n, C): column c is ``channels[c]``."""
+        ``samples`` is (n, C): column c is ``channels[c]``; ``time_quality`` the byte of
+        :func:`sinewatch.schemas.codec.time_quality_byte` (0: not stated, a version 1 frame)."""
         slot = "\n" + name  # a frame's own counters: no channel name holds a newline
         seq = self._next_seq.get(slot, 0) if seq is None else seq
         t0 = self._next_t0.get(slot, self._start_ns) if t0_ns is None else t0_ns
@@ -204,12 +207,17 @@ class BlockPublisher:
             )
         self._next_seq[slot] = seq + 1
         self._next_t0[slot] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
-        return Frame(tuple(channels), seq, t0, float(sample_rate_hz), samples)
+        return Frame(tuple(channels), seq, t0, float(sample_rate_hz), samples, time_quality)
 
     def encode_frame(self, frame: Frame) -> bytes:
         if self.encoding == "binary":
             return encode_frame_binary(frame, self.dtype)
         return encode_frame_json(frame)
+
+    def frame_encoding(self, frame: Frame) -> str:
+        """The Zenoh encoding ``encode_frame(frame)`` is sent with: format version 2 with a
+        time quality, else 1 (what the frame publisher is declared with)."""
+        return frame_encoding(frame, self.encoding == "binary")
 
     def publish_frame(
         self, name: str, channels: list[str] | tuple[str, ...], samples: np.ndarray, sample_rate_hz: float, **kw: Any
@@ -218,7 +226,8 @@ class BlockPublisher:
         ``{prefix}/{name}``; each channel's key is ``{prefix}/{channel}`` for the daemon's
         rules, estimates and errors, as if it had been published alone."""
         frame = self.frame(name, channels, samples, sample_rate_hz, **kw)
-        self.publish_frame_raw(name, self.encode_frame(frame))
+        encoding = None if frame.version == 1 else self.frame_encoding(frame)
+        self.publish_frame_raw(name, self.encode_frame(frame), encoding)
         return frame
 
     def publish_frame_raw(self, name: str, payload: bytes, encoding: str | None = None) -> None:

@@ -5,7 +5,7 @@ Every message announces its encoding in its Zenoh Encoding:
 =========================================  =============================================
 ``application/x-sinewatch-block;v=1``      SampleBlock, compact binary (layout below)
 ``application/json;sinewatch/SampleBlock@1``  SampleBlock, JSON (schemas/sinewatch/schemas/json/SampleBlock.json)
-``application/json;sinewatch/Estimate@3``      Estimate, JSON (``@1``/``@2`` in recordings of earlier builds)
+``application/json;sinewatch/Estimate@5``      Estimate, JSON (``@1``-``@4`` in recordings of earlier builds)
 ``application/json;sinewatch/ErrorReport@1``   ErrorReport, JSON
 ``application/json;sinewatch/Status@1``        Status, JSON
 =========================================  =============================================
@@ -20,7 +20,7 @@ Binary SampleBlock, all little-endian, no padding (``struct`` format ``<4sBBBBQq
     4      1    u8       format_version (1)
     5      1    u8       dtype: 1 = float32, 2 = float64
     6      1    u8       columns (>= 1): values per sample
-    7      1    u8       flags (0; reserved)
+    7      1    u8       flags: the time quality (0 = not stated; see below)
     8      8    u64      seq
     16     8    i64      t0_ns, time of the first sample, ns since the epoch
     24     8    f64      sample_rate_hz
@@ -34,6 +34,19 @@ Binary SampleBlock, all little-endian, no padding (``struct`` format ``<4sBBBBQq
 
 A reader decodes the samples with ``np.frombuffer(payload, "<f4" or "<f8",
 offset=40 + channel_len + unit_len)``.
+
+The time-quality byte (a SampleBlock's ``flags``, a SampleFrame's header from format version
+2; :class:`sinewatch.schemas.messages.TimeQuality`)::
+
+    0         not stated (what every sender wrote before the byte had a meaning)
+    bit 7     1: stated; then
+    bits 1-0  sync: 0 none, 1 local area clock, 2 global area clock (UTC-traceable): the
+              IEC 61850-9-2 ``smpSynch`` values; 3 is refused
+    bit 2     holdover: the time reference was lost during the stream, the clock runs free
+    bits 6-3  zero
+
+So 0x80 not synchronised, 0x81 local, 0x82 global, 0x84 not synchronised since a loss,
+0x86 global but holding over. Any other value is a DecodeError.
 """
 
 from __future__ import annotations
@@ -58,6 +71,7 @@ from sinewatch.schemas.messages import (
     Estimate,
     SampleBlock,
     Status,
+    TimeQuality,
 )
 
 BLOCK_BINARY_ENCODING = "application/x-sinewatch-block;v=1"
@@ -73,6 +87,51 @@ _DTYPE_CODES: dict[int, np.dtype[np.floating[Any]]] = {1: np.dtype("<f4"), 2: np
 _CODE_OF_DTYPE = {"float32": 1, "float64": 2}
 _CHANNEL_RE = re.compile(CHANNEL_PATTERN)
 
+# ---- time quality: one byte on the binary encodings (module docstring) -------------------
+TQ_NOT_STATED = 0
+TQ_STATED = 0x80
+TQ_HOLDOVER = 0x04
+TQ_SYNC_MASK = 0x03
+SYNC_NAMES = ("none", "local", "global")  # index = the sync code = IEC 61850-9-2 smpSynch
+_TQ_VALID = frozenset(TQ_STATED | h | s for h in (0, TQ_HOLDOVER) for s in range(3)) | {TQ_NOT_STATED}
+
+
+def time_quality_byte(sync: str | int, holdover: bool = False) -> int:
+    """The byte of a stated time quality (``sync`` a name of :data:`SYNC_NAMES` or its code)."""
+    code = SYNC_NAMES.index(sync) if isinstance(sync, str) else sync
+    if not 0 <= code <= 2:
+        raise InputError(f"time quality sync: expected none, local or global (0-2), got {sync!r}")
+    return TQ_STATED | (TQ_HOLDOVER if holdover else 0) | code
+
+
+def check_time_quality(byte: int, where: str) -> int:
+    """``byte`` if it is a valid time-quality byte, else a DecodeError saying so."""
+    if byte not in _TQ_VALID:
+        raise DecodeError(
+            f"{where}: expected 0 (time quality not stated) or 0x80 | holdover 0x04 | sync 0-2, got 0x{byte:02X}"
+        )
+    return byte
+
+
+def time_quality_model(byte: int) -> TimeQuality | None:
+    """The message form of a time-quality byte (None: not stated)."""
+    if byte == TQ_NOT_STATED:
+        return None
+    return TimeQuality(sync=SYNC_NAMES[byte & TQ_SYNC_MASK], holdover=bool(byte & TQ_HOLDOVER))
+
+
+def time_quality_of(model: TimeQuality | None) -> int:
+    return TQ_NOT_STATED if model is None else time_quality_byte(model.sync, model.holdover)
+
+
+#: each valid byte's JSON, as :func:`dumps` writes the Estimate's ``time_quality``
+TIME_QUALITY_JSON: dict[int, str] = {
+    b: "null"
+    if b == TQ_NOT_STATED
+    else f'{{"sync":"{SYNC_NAMES[b & TQ_SYNC_MASK]}","holdover":{"true" if b & TQ_HOLDOVER else "false"}}}'
+    for b in _TQ_VALID
+}
+
 
 @dataclass(slots=True)
 class Block:
@@ -84,6 +143,7 @@ class Block:
     sample_rate_hz: float
     samples: np.ndarray
     unit: str | None = None
+    time_quality: int = TQ_NOT_STATED  # the time-quality byte (module docstring)
 
     @property
     def n_samples(self) -> int:
@@ -107,7 +167,7 @@ def encode_block_binary(block: Block, dtype: str = "float64") -> bytes:
         FORMAT_VERSION,
         _CODE_OF_DTYPE[dtype],
         block.columns,
-        0,
+        check_time_quality(block.time_quality, "time_quality"),
         block.seq,
         block.t0_ns,
         block.sample_rate_hz,
@@ -179,7 +239,7 @@ def _decode_binary(payload: bytes, encoding: str) -> Block:
         raise UnsupportedVersionError(f"format version: expected {FORMAT_VERSION}, got {version} (from the encoding)")
     if len(payload) < HEADER.size:
         raise DecodeError(f"binary block: expected at least {HEADER.size} bytes, got {len(payload)}")
-    magic, ver, dcode, columns, _flags, seq, t0, fs, n, clen, ulen = HEADER.unpack_from(payload)
+    magic, ver, dcode, columns, flags, seq, t0, fs, n, clen, ulen = HEADER.unpack_from(payload)
     if magic != MAGIC:
         raise DecodeError(f"binary block: expected magic {MAGIC!r}, got {magic!r}")
     if ver != FORMAT_VERSION:
@@ -207,7 +267,7 @@ def _decode_binary(payload: bytes, encoding: str) -> Block:
     samples = np.frombuffer(payload, dtype=dtype, count=n * columns, offset=start)
     if columns > 1:
         samples = samples.reshape(n, columns)
-    return Block(channel, seq, t0, fs, samples, unit)
+    return Block(channel, seq, t0, fs, samples, unit, check_time_quality(flags, "binary block flags"))
 
 
 def _decode_json(payload: bytes) -> Block:
@@ -279,9 +339,11 @@ def dumps(msg: dict[str, Any]) -> bytes:
 
 
 def encode_estimate(estimate: Estimate, version: int = ESTIMATE_FORMAT_VERSION) -> bytes:
-    """The Estimate's JSON bytes in wire-format ``version`` (4, or 3, 2 or 1 for replaying
+    """The Estimate's JSON bytes in wire-format ``version`` (5, or 4, 3, 2 or 1 for replaying
     recordings of earlier builds: the same bytes those builds wrote)."""
     exclude: dict[str, Any] = {}
+    if version < 5:
+        exclude.update(dict.fromkeys(Estimate.V5_FIELDS, True))
     if version < 4:
         exclude.update(dict.fromkeys(Estimate.V4_FIELDS, True))
     if version < 3:
@@ -333,6 +395,7 @@ def encode_estimate_values(
     reset: bool,
     extras: dict[str, float | list[float | None] | None],
     fencing_json: str = "null",
+    time_quality_json: str = "null",
 ) -> bytes:
     """The same bytes as ``encode_estimate(Estimate(...), version)`` for these fields, without
     building the model (the pipeline's hot path: one estimate per block).
@@ -343,7 +406,8 @@ def encode_estimate_values(
     phase_rad, offset); ``channel_json`` and ``estimator_json`` are :func:`json_string` of
     the names (callers cache them). tests/test_codec_estimate_fast.py proves the bytes equal
     to the model's over every version, null values, std, rocof and extras. ``fencing_json``
-    is the ``fencing`` object as :func:`dumps` writes it (format 4; the caller caches it)."""
+    is the ``fencing`` object as :func:`dumps` writes it (format 4; the caller caches it);
+    ``time_quality_json`` the ``time_quality`` object (format 5; :data:`TIME_QUALITY_JSON`)."""
     sec, nsec = divmod(timestamp_ns, 1_000_000_000)
     head = (
         f'{{"format_version":{version},"channel":{channel_json},"seq":{seq},"timestamp_ns":{timestamp_ns},'
@@ -366,7 +430,8 @@ def encode_estimate_values(
         + f'"residual_rms":{_number(residual_rms)},"gap":{"true" if gap else "false"},"gap_blocks":{gap_blocks},'
         f'"restart":{"true" if restart else "false"},"reset":{"true" if reset else "false"},'
         f'"extras":{_ENCODER.encode(extras) if extras else "{}"}}}'
-        + (f',"fencing":{fencing_json}}}' if version >= 4 else "}")
+        + (f',"fencing":{fencing_json}' if version >= 4 else "")
+        + (f',"time_quality":{time_quality_json}}}' if version >= 5 else "}")
     )
     return (head + tail).encode("ascii")
 

@@ -216,11 +216,17 @@ class C37118Station(_Section):
     )
     time_synchronised: bool = Field(
         False,
-        description="The gateways' sample clocks are traceable to UTC (GPS/PTP): STAT sync bit 0 and FRACSEC "
-        "time quality 0; otherwise STAT bit 13 (not in sync), unlocked > 1000 s and time quality 0xF",
+        description="For estimates whose input stated no time quality (Estimate time_quality null): the "
+        "gateways' sample clocks are traceable to UTC (GPS/PTP): STAT sync bit 0 and FRACSEC time quality 0; "
+        "otherwise STAT bit 13 (not in sync), unlocked > 1000 s and time quality 0xF. A stated time quality "
+        "(e.g. a merging unit's smpSynch) sets them itself",
     )
     pmu_time_quality: int = Field(
-        7, ge=0, le=7, description="STAT bits 8-6 (C37.118.2 Table 8): 7 = time error unknown or > 10 ms"
+        7,
+        ge=0,
+        le=7,
+        description="STAT bits 8-6 (C37.118.2-2011 Table 7) while the time is locked: 7 = time error unknown "
+        "or > 10 ms",
     )
 
     @field_validator("channels")
@@ -501,6 +507,14 @@ class SinewatchConfig(_Section):
     on_gap: Literal["coast", "reset"] = Field(
         "coast",
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
+    )
+    hold_estimates: bool = Field(
+        False,
+        description="Hold each estimate until the signal-presence detector has read one and a half nominal "
+        "cycles past its window, so that no estimate whose window holds the start of an interruption is "
+        "published valid (costs 30 ms at 50 Hz plus up to one block of latency, and a stream's last "
+        "estimates wait for its next block). false (default): published at once, one per block; valid may "
+        "then be wrong in the 1.5 cycles before the detector reads an onset",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
     c37118: C37118Section = Field(default_factory=C37118Section)

@@ -39,7 +39,12 @@ differs, so one reader (:func:`decode_input_record`) rebuilds either from its by
       Time timestamp = 14;
       repeated string channels = 15;
       uint32 frame_version = 16;        // > 0: the binary frame layout of this version, rebuilt
-    }                                   //      from the fields; else the payload is in raw
+                                        //      from the fields; else the payload is in raw
+      uint32 time_quality = 17;         // the frame's time-quality byte (format version 2;
+    }                                   //      absent: 0, not stated, as in every version 1 frame)
+
+``time_quality`` was added with SampleFrame format version 2; a recording of version 1 frames
+has none and replays as before, byte for byte.
 
 A well-formed binary block (:mod:`sinewatch.schemas.codec`) or frame is recorded as its fields, its
 samples copied as they are (little-endian IEEE 754 is protobuf's packed ``double``/``float``
@@ -65,7 +70,14 @@ from typing import Any
 
 from sinewatch.schemas.codec import HEADER, MAGIC, decode_block
 from sinewatch.schemas.errors import InputError
-from sinewatch.schemas.frame import FRAME_HEADER, FRAME_MAGIC, decode_frame, samples_offset
+from sinewatch.schemas.frame import (
+    FRAME_HEADER,
+    FRAME_HEADER_TAIL,
+    FRAME_MAGIC,
+    decode_frame,
+    header_size,
+    samples_offset,
+)
 
 INPUT_SCHEMA_NAME = "sinewatch.InputBlock"
 FRAME_SCHEMA_NAME = "sinewatch.InputFrame"
@@ -114,6 +126,7 @@ message InputFrame {
   Time timestamp = 14;
   repeated string channels = 15;
   uint32 frame_version = 16;
+  uint32 time_quality = 17;
 }
 """
 
@@ -150,6 +163,7 @@ _FRAME_FIELDS = (
     ("timestamp", 14, _MESSAGE, _OPTIONAL, ".sinewatch.Time"),
     ("channels", 15, _STRING, _REPEATED, ""),
     ("frame_version", 16, _UINT32, _OPTIONAL, ""),
+    ("time_quality", 17, _UINT32, _OPTIONAL, ""),
 )
 
 # wire types
@@ -312,23 +326,33 @@ def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
 _FRAME_HEADER_BITS = struct.Struct("<4sBBHQqQII")
 _FRAME_FIXED = struct.Struct("<BQBqBQ")
 _N_FRAME_KEY, _FRAME_VERSION_KEY = bytes((7 << 3 | _VARINT,)), _key(16, _VARINT)
+_TIME_QUALITY_KEY = _key(17, _VARINT)
 _FRAME_HEAD = FRAME_HEADER.size
 
 
 def _frame_layout(payload: bytes) -> tuple[Any, ...] | None:
-    """(version, f32, seq, t0_ns, rate bits, n_samples, channel names, samples start) of a
-    payload whose every byte those fields determine: a complete binary frame (any version but
-    0), zero pad bytes, UTF-8 names each ending in a newline; else None (it goes raw)."""
+    """(version, f32, seq, t0_ns, rate bits, n_samples, channel names, samples start, time
+    quality) of a payload whose every byte those fields determine: a complete binary frame
+    (version 1, or 2 with zero reserved bytes; any later version goes raw, its header unknown
+    here), zero pad bytes, UTF-8 names each ending in a newline; else None (it goes raw)."""
     if len(payload) < _FRAME_HEAD or payload[:4] != FRAME_MAGIC:
         return None
     _, version, dcode, n_ch, seq, t0, fs_bits, n, names_len = _FRAME_HEADER_BITS.unpack_from(payload)
     # no samples: which samples field is absent would not say the dtype; such a frame goes raw
-    if version == 0 or not 1 <= dcode <= 2 or n * n_ch == 0:
+    if not 1 <= version <= 2 or not 1 <= dcode <= 2 or n * n_ch == 0:
         return None
-    start = samples_offset(names_len)
-    if len(payload) != start + n * n_ch * (4 if dcode == 1 else 8) or any(payload[_FRAME_HEAD + names_len : start]):
+    head, tq = _FRAME_HEAD, 0
+    if version == 2:
+        if len(payload) < header_size(2):
+            return None
+        tq, reserved8, reserved16 = FRAME_HEADER_TAIL.unpack_from(payload, _FRAME_HEAD)
+        if reserved8 or reserved16:
+            return None
+        head = header_size(2)
+    start = samples_offset(names_len, version)
+    if len(payload) != start + n * n_ch * (4 if dcode == 1 else 8) or any(payload[head + names_len : start]):
         return None
-    names = payload[_FRAME_HEAD : _FRAME_HEAD + names_len]
+    names = payload[head : head + names_len]
     if names[-1:] != b"\n":
         return None
     try:
@@ -338,7 +362,7 @@ def _frame_layout(payload: bytes) -> tuple[Any, ...] | None:
     channels = names[:-1].split(b"\n")
     if len(channels) != n_ch:
         return None
-    return version, dcode == 1, seq, t0, fs_bits, n, channels, start
+    return version, dcode == 1, seq, t0, fs_bits, n, channels, start, tq
 
 
 def _frame_fields(
@@ -356,9 +380,11 @@ def encode_frame_record(payload: bytes, zenoh_encoding: str) -> bytes:
     parts = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
     layout = _frame_layout(payload)
     if layout is not None:
-        version, f32, seq, t0, fs_bits, n, channels, start = layout
+        version, f32, seq, t0, fs_bits, n, channels, start, tq = layout
         parts += _frame_fields(channels, seq, t0, fs_bits, n, payload[start:], f32)
         parts += (_FRAME_VERSION_KEY, _varint(version), _time(t0))
+        if tq:  # field 17 after 14: protobuf readers take fields in any order
+            parts += (_TIME_QUALITY_KEY, _varint(tq))
         return b"".join(parts)
     try:
         frame = decode_frame(payload, zenoh_encoding)
@@ -372,6 +398,8 @@ def encode_frame_record(payload: bytes, zenoh_encoding: str) -> bytes:
     parts.append(_len_field(13, payload))
     if frame is not None:
         parts.append(_time(frame.t0_ns))
+        if frame.time_quality:
+            parts += (_TIME_QUALITY_KEY, _varint(frame.time_quality))
     return b"".join(parts)
 
 
@@ -383,7 +411,12 @@ def _rebuild_frame(f: dict[int, int | bytes], channels: list[bytes]) -> bytes:
     head = _FRAME_HEADER_BITS.pack(
         FRAME_MAGIC, version, 1 if f32 else 2, len(channels), seq, t0, fs_bits, n, len(names)
     )
-    pad = bytes(samples_offset(len(names)) - _FRAME_HEAD - len(names))
+    if version == 2:
+        tq = _int(f, 17)
+        if tq > 0xFF:
+            raise InputRecordError(f"InputFrame time_quality: expected one byte (0-255), got {tq}")
+        head += FRAME_HEADER_TAIL.pack(tq, 0, 0)
+    pad = bytes(samples_offset(len(names), version) - len(head) - len(names))
     return b"".join((head, names, pad, _bytes(f, 10 if f32 else 9)))
 
 

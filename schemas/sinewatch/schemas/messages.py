@@ -14,8 +14,10 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, model_validator
 
-FORMAT_VERSION = 1  # SampleBlock, SampleFrame, ErrorReport, Status
-ESTIMATE_FORMAT_VERSION = 4  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid, 4 fencing (see Estimate)
+FORMAT_VERSION = 1  # SampleBlock, ErrorReport, Status
+FRAME_FORMAT_VERSION = 2  # SampleFrame: 2 added time_quality (a frame without it is still written as 1)
+ESTIMATE_FORMAT_VERSION = 5  # Estimate: 2 added rocof_hz_per_s and std, 3 timestamp and valid, 4 fencing,
+# 5 time_quality (see Estimate)
 
 CHANNEL_PATTERN = r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$"
 
@@ -27,6 +29,26 @@ class _Message(BaseModel):
 class SampleDtype(str, Enum):
     float32 = "float32"
     float64 = "float64"
+
+
+class TimeQuality(_Message):
+    """How far the time stamps of an input can be trusted, as its source states it: what an
+    IEC 61850-9-2 merging unit says in ``smpSynch`` (IEC 61869-9), or a DAQ of its GPS lock.
+
+    On the binary encodings it is one byte (a SampleFrame's header from format version 2, a
+    SampleBlock's ``flags``): 0 = not stated; otherwise bit 7 set, bits 1-0 the ``sync``
+    code (0 none, 1 local, 2 global: the ``smpSynch`` values), bit 2 ``holdover``, bits 6-3
+    zero."""
+
+    sync: Literal["none", "local", "global"] = Field(
+        description="none: the sample clock is not synchronised; local: to a local area clock (not UTC-traceable); "
+        "global: to a global area clock (a UTC-traceable PTP/GPS grandmaster)"
+    )
+    holdover: bool = Field(
+        False,
+        description="The source lost the time reference it had during the stream and its clock runs free since "
+        "(with sync global or local: holding over; with none: past holdover, no longer traceable)",
+    )
 
 
 class SampleBlock(_Message):
@@ -62,7 +84,7 @@ class SampleFrame(_Message):
     channel's, as if its column had been sent alone as a SampleBlock.
     """
 
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = 1
     seq: int = Field(ge=0, lt=2**64, description="Sequence number of the frame (each channel's block sequence)")
     t0_ns: int = Field(ge=-(2**63), lt=2**63, description="Time of the first sample, ns since the epoch")
     # strict and finite, as SampleBlock's (a string, a boolean or Infinity is a decode error)
@@ -74,11 +96,18 @@ class SampleFrame(_Message):
         min_length=1, max_length=65535, description="Channel names, one per column, distinct"
     )
     samples: list[list[StrictFloat]] = Field(description="Rows of one value per channel, oldest first")
+    time_quality: TimeQuality | None = Field(
+        None,
+        description="The time quality of every sample of the frame, as its source states it; null or absent: not "
+        "stated (format version 2; a version 1 frame has none)",
+    )
 
     @model_validator(mode="after")
     def _distinct(self) -> SampleFrame:
         if len(set(self.channels)) != len(self.channels):
             raise ValueError("channels: expected distinct names, got a repeated one")
+        if self.time_quality is not None and self.format_version < 2:
+            raise ValueError("time_quality: expected format_version 2, got it in a version 1 frame")
         return self
 
 
@@ -158,12 +187,13 @@ class Estimate(_Message):
 
     Version 2 added ``rocof_hz_per_s`` and ``std``; version 3 ``timestamp`` (``{sec, nsec}``,
     exact in JavaScript) and ``diagnostics.valid``; version 4 ``fencing`` (null from a daemon
-    that owns its channels without an election). An earlier version is this message without
+    that owns its channels without an election); version 5 ``time_quality`` (the input's, null
+    when it stated none). An earlier version is this message without
     the later fields and with its own ``format_version``, byte for byte what earlier builds
     wrote: replay renders estimates in the version of the recording it checks.
     """
 
-    format_version: Literal[1, 2, 3, 4] = 4
+    format_version: Literal[1, 2, 3, 4, 5] = 5
     channel: str
     seq: int = Field(description="Sequence number of the input block")
     timestamp_ns: int = Field(
@@ -187,10 +217,17 @@ class Estimate(_Message):
     fencing: Fencing | None = Field(
         None, description="The shard and election term of the daemon that published it (format version 4)"
     )
+    time_quality: TimeQuality | None = Field(
+        None,
+        description="The time quality of the input block (or frame) the estimate was made from, as its source "
+        "stated it (a SampleFrame of format version 2, a binary SampleBlock's flags); null when it stated none "
+        "(format version 5)",
+    )
 
     V2_FIELDS: ClassVar[frozenset[str]] = frozenset({"rocof_hz_per_s", "std"})
     V3_FIELDS: ClassVar[frozenset[str]] = frozenset({"timestamp"})
     V4_FIELDS: ClassVar[frozenset[str]] = frozenset({"fencing"})
+    V5_FIELDS: ClassVar[frozenset[str]] = frozenset({"time_quality"})
     V3_DIAGNOSTICS: ClassVar[frozenset[str]] = frozenset({"valid"})
 
     @model_validator(mode="after")
@@ -318,7 +355,7 @@ MESSAGE_MODELS: dict[str, type[BaseModel]] = {
 
 MESSAGE_VERSIONS: dict[str, int] = {
     "SampleBlock": FORMAT_VERSION,
-    "SampleFrame": FORMAT_VERSION,
+    "SampleFrame": FRAME_FORMAT_VERSION,
     "Estimate": ESTIMATE_FORMAT_VERSION,
     "ErrorReport": FORMAT_VERSION,
     "Status": FORMAT_VERSION,

@@ -91,6 +91,12 @@ def _calibration_args(parser: argparse.ArgumentParser) -> None:
 def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channels", type=int, default=8, help="channels per input frame (default 8)")
     parser.add_argument("--frames", type=int, default=5000, help="input frames' estimates put (default 5000)")
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=1221.0,
+        help="input frames a second, paced (default 1221: 10 M samples/s in 1024-sample frames of 8; 0: as fast as it goes)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 

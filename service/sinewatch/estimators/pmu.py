@@ -123,10 +123,27 @@ half a sample (a gap in time) re-anchors the estimator: it restarts (its reports
 after one kernel length). Every report is computed once the kernel's last tap has
 arrived: the latency is ``T / 2 + 2 D / fs``.
 
+(T)  converged: a report is converged when its magnitude is above ``min_amplitude`` and no
+     transition has been seen for one kernel length (``ceil(T Fs)`` reports: the window of
+     the report has refilled since). A report is a transition when it departs from the
+     previous report's prediction (magnitude unchanged, frequency ``f + ROCOF / Fs``) by
+     more than ``max(floor, 6 s)``, s the running mean of those departures (each clipped to
+     the threshold; the plain mean of the first 20, then weight 0.05 a report), so that noise and sustained modulation raise the
+     threshold with them while a step does not: floors 0.1 % of the magnitude and 0.006 Hz
+     (module constants, from the C37.118.1 step tests: the first report of a step whose TVE
+     exceeds 1 % already departs by more). The start, a restart on the grid (a gap in time,
+     a reset) and an undefined report start it over; the first report after one is not
+     converged (there is nothing to check it against). Consequences: converged is false
+     from the first report a magnitude or phase step moves (before the step's instant, as
+     the window reaches it) until one window after the last such report; a modulation at
+     the edge of the measurement bandwidth reads as transitions until the scale has risen
+     to it (about 1 s).
+
 Per-sample outputs (the Track rows) hold the latest report, the phase advanced at its
 frequency (``y = offset + A sin(phase)``, A = sqrt 2 |X|); ``offset`` is the kernel's DC
 output on the raw samples. ``residual_rms`` is the one-step prediction error of that
-held model. The reports themselves (``Track.reports``, a GridReports) carry the same
+held model. A row's ``converged`` is the kernel's magnitude test; with ``last_only`` it is
+the latest report's (T). The reports themselves (``Track.reports``, a GridReports) carry the same
 fields at the report times, the ROCOF in ``rocof_hz_per_s`` and the synchrophasor in
 ``extras`` (``synchrophasor_magnitude``, RMS, and ``synchrophasor_angle_rad``).
 """
@@ -176,6 +193,17 @@ MIN_SAMPLES_PER_CYCLE = 10
 
 TABLE_STEP_HZ = 0.04
 N_IMAGE_PASSES = 2
+
+# converged (T): a report is a transition when it departs from the previous report's
+# prediction by more than max(floor, TRANSITION_K x the running scale of such departures).
+# Floors from the C37.118.1 step tests (``sinewatch bench compliance``): at the first report
+# whose TVE exceeds 1 % the magnitude has moved >= 0.12 % from the report before (10 %
+# steps) or the frequency >= 0.0075 Hz from its prediction (10 degree steps), where the
+# steady, harmonic, ramp and out-of-band tests move < 0.06 % and < 0.0056 Hz.
+TRANSITION_MAG_FLOOR = 1e-3  # relative change of the RMS magnitude
+TRANSITION_FREQ_FLOOR_HZ = 6e-3
+TRANSITION_K = 6.0
+TRANSITION_ALPHA = 0.05  # weight of each report in the running scale (~20 reports)
 
 
 class PmuParams(EstimatorParams):
@@ -903,6 +931,47 @@ def pmu_kernel(
     return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy(), nz
 
 
+N_TRANSITION = 9
+
+
+def _fresh_transition() -> np.ndarray:
+    """(T)'s state at the start: no last report."""
+    return np.zeros(N_TRANSITION)
+
+
+@kernel
+def transition_kernel(
+    mag: np.ndarray, freq: np.ndarray, rocof: np.ndarray, trans: np.ndarray, fs_rep: float, n_hold: int, min_amp: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T) over reports in order: their converged and the new state (``trans`` is not
+    modified; layout in :meth:`Pmu._converged`). Slot 7 is the last report's converged."""
+    st = trans.copy()
+    n = mag.shape[0]
+    conv = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        m, f, r = mag[i], freq[i], rocof[i]
+        if not (math.isfinite(m) and math.isfinite(f) and math.isfinite(r)):
+            for c in range(N_TRANSITION):
+                st[c] = 0.0  # an undefined report: start over
+            continue
+        if st[4] == 0.0:  # the first report: nothing to check it against
+            st[3] = n_hold - 1.0
+        else:
+            dm = abs(m / st[0] - 1.0) if st[0] > 0.0 else math.inf
+            df = abs(f - st[1] - st[2] / fs_rep)
+            tm = max(TRANSITION_MAG_FLOOR, TRANSITION_K * st[5])
+            tf = max(TRANSITION_FREQ_FLOOR_HZ, TRANSITION_K * st[6])
+            st[8] += 1.0
+            w = max(TRANSITION_ALPHA, 1.0 / st[8])  # the plain mean of the first reports, then a running one
+            st[5] += w * (min(dm, tm) - st[5])
+            st[6] += w * (min(df, tf) - st[6])
+            st[3] = 0.0 if (dm > tm or df > tf) else min(st[3] + 1.0, float(n_hold))
+        st[0], st[1], st[2], st[4] = m, f, r, 1.0
+        conv[i] = st[3] >= n_hold and m > min_amp
+        st[7] = 1.0 if conv[i] else 0.0
+    return conv, st
+
+
 @register
 class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     """C37.118.1 synchrophasor (RMS magnitude, phase vs nominal cosine), frequency and ROCOF on the reporting grid: demodulation + derivative filter bank + image cancellation (M or P class)"""
@@ -921,6 +990,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self._nominal = 0 if self.auto else int(p.nominal_frequency_hz)
         self._pending = np.zeros(0)
         self._pending_t0 = np.array([0, 0], dtype=np.int64)  # t0_ns of pending[0], known (0/1)
+        self._transition = _fresh_transition()  # (T), see _converged
         self._configure(self._nominal or 50)
 
     def _configure(self, f0: int) -> None:
@@ -934,6 +1004,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             )
         self.reporting_rate = rate
         self.design = design(self.sample_rate_hz, f0, rate, p.performance_class)
+        self._n_hold = math.ceil(self.design.window_s * rate - 1e-9)  # (T): reports in one kernel length
 
     @property
     def memory_samples(self) -> int:
@@ -941,6 +1012,12 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         report time, plus one decimation step of the triangle (D) before it."""
         d = self.design
         return math.ceil(0.5 * d.window_s * self.sample_rate_hz) + d.decimation
+
+    @property
+    def lookahead_samples(self) -> int:
+        """Samples after a report's time that the report depends on (its kernel's far half
+        and the triangle: ``design.latency_s``); the pipeline judges its validity up to there."""
+        return math.ceil(self.design.latency_s * self.sample_rate_hz - 1e-9)
 
     def _setup(self) -> None:
         d = self.design
@@ -1023,9 +1100,42 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     def _run_timed(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
     ) -> tuple[Track, dict[str, np.ndarray]]:
+        trans = self._transition
         if self._nominal == 0:
-            return self._run_undecided(samples, state, last_only, t0_ns)
-        return self._run_decided(samples, self._state_for_block(state, t0_ns), last_only)
+            track, new_state = self._run_undecided(samples, state, last_only, t0_ns)
+            trans = _fresh_transition()  # the estimator starts once the nominal frequency is found
+        else:
+            st = self._state_for_block(state, t0_ns)
+            if st is not state:  # anchored afresh (the first timed block, a gap in time): (T) starts over
+                trans = _fresh_transition()
+            track, new_state = self._run_decided(samples, st, last_only)
+        track, self._transition = self._converged(track, trans, last_only)
+        return track, new_state
+
+    def _converged(self, track: Track, trans: np.ndarray, last_only: bool) -> tuple[Track, np.ndarray]:
+        """(T) over the block's reports, in order: their ``converged``, and the transition
+        state after them (``trans`` is not modified). ``trans`` (9,): the last report's RMS
+        magnitude, frequency and ROCOF, reports since the last transition, whether there is
+        a last report (0/1), the running scales of the magnitude's and the frequency's
+        departures, the last report's converged (0/1), departures checked (the scales' weights)."""
+        reports = track.reports
+        st = trans
+        if reports is not None and reports.n_reports:
+            tr = reports.track
+            freq = tr.frequency_hz[:, 0]
+            rocof = tr.rocof_hz_per_s[:, 0] if tr.rocof_hz_per_s is not None else np.zeros(freq.shape)
+            tr.converged, st = transition_kernel(
+                np.ascontiguousarray(tr.extras["synchrophasor_magnitude"]),
+                np.ascontiguousarray(freq),
+                np.ascontiguousarray(rocof),
+                trans,
+                float(self.reporting_rate),
+                self._n_hold,
+                self.params.min_amplitude,
+            )
+        if last_only and st[7] == 0.0:
+            track.converged = np.zeros(track.converged.shape, dtype=np.bool_)
+        return track, st
 
     def _run_decided(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
@@ -1110,6 +1220,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self._setup()
 
     def reset(self) -> None:
+        self._transition = _fresh_transition()
         if self.auto:
             self._nominal = 0
             self._pending = np.zeros(0)
@@ -1120,6 +1231,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
 
     def get_state(self) -> dict[str, Any]:
         snap = super().get_state()
+        snap["transition"] = encode_array(self._transition)
         if self.auto:
             snap["auto"] = {
                 "nominal_frequency_hz": self._nominal,
@@ -1134,8 +1246,16 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         state = snapshot.get("state")
         if isinstance(state, Mapping) and "ring" in state and "noise" not in state:
             snapshot = {**snapshot, "state": {**state, "noise": encode_array(np.zeros(2))}}
+        trans = _fresh_transition()  # snapshots of earlier builds have none: (T) starts over
+        if "transition" in snapshot:
+            trans = decode_array(snapshot["transition"])
+            if trans.shape != (N_TRANSITION,) or trans.dtype != np.float64:
+                raise ParameterError(
+                    f"state transition: expected float64 ({N_TRANSITION},), got {trans.dtype}{trans.shape}"
+                )
         if not self.auto:
             super().set_state(snapshot)
+            self._transition = trans
             return
         auto = snapshot.get("auto")
         if not isinstance(auto, Mapping) or auto.get("nominal_frequency_hz") not in (0, 50, 60):
@@ -1155,6 +1275,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             self._nominal = before
             raise
         self._pending, self._pending_t0 = pending, pt0
+        self._transition = trans
 
     def _refer_to_nominal(self, reports: GridReports, anchor_ns: int) -> None:
         """The synchrophasor angle of reports made with an oscillator off f0 (a rate that is
