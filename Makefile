@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-calibration bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -83,6 +83,9 @@ bench-compliance: $(STAMP)
 	$(BIN)/sinewatch bench compliance --rates 50/50,60/60 --full
 
 # Power-quality families against IEC 61000-4-7 class I / 61000-4-30 class A (pqopen-lib beside, if installed).
+bench-calibration: $(STAMP)
+	$(BIN)/sinewatch bench calibration --trials 1000 --jobs 2
+
 bench-pq-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy --scenarios pq --update-docs docs/accuracy.md
 
