@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
+.PHONY: etcd install demo test lint node-readers bench-input-encoding bench-foxglove-relay test-slow bench bench-kernels bench-e2e bench-e2e-sweep bench-fanout bench-accuracy bench-startup bench-crlb bench-pq bench-overload bench-compliance bench-calibration bench-pq-accuracy bench-validity bench-c37118 soak schemas clean
 
 install: $(STAMP)
 
@@ -26,8 +26,12 @@ etcd:
 	  echo "installing Debian's etcd-server (apt-get; needs root)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends etcd-server; }
 
-# What CI runs: lint, format, import contracts and types first (seconds), then the tests.
-test: $(STAMP) etcd lint
+# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint (one
+# core each) the numba kernels the tests run are compiled into numba's cache (a fresh clone has
+# none), so that no test and no daemon the tests start compiles one: tests/compile_kernels.py.
+test: $(STAMP) etcd
+	$(BIN)/python tests/compile_kernels.py & kernels=$$!; \
+	  if $(MAKE) --no-print-directory lint; then wait $$kernels; else wait $$kernels; exit 1; fi
 	$(BIN)/python -m pytest
 
 # Lint, format, import contracts and types, from the three source roots (no install needed
@@ -79,6 +83,9 @@ bench-compliance: $(STAMP)
 	$(BIN)/sinewatch bench compliance --rates 50/50,60/60 --full
 
 # Power-quality families against IEC 61000-4-7 class I / 61000-4-30 class A (pqopen-lib beside, if installed).
+bench-calibration: $(STAMP)
+	$(BIN)/sinewatch bench calibration --trials 1000 --jobs 2
+
 bench-pq-accuracy: $(STAMP)
 	$(BIN)/sinewatch bench accuracy --scenarios pq --update-docs docs/accuracy.md
 

@@ -112,4 +112,43 @@ def test_frame_channels_runs_blocks_and_frames_into_one_table_with_the_daemon_s_
     for run in runs:
         assert run["estimates_received"] == run["blocks_sent"] == 8 * 19 and run["missing_estimates"] == 0
         assert run["daemon_cpu_ns_per_sample"] == pytest.approx(run["cpu_us_per_block"]["daemon"] * 1e3 / run["block"])
-    assert "per msg" in r.stdout and "daemon ns/sample" in r.stdout
+        # the estimator's share, measured in the bench process, and the rest: plumbing
+        assert run["kernel_ns_per_sample"] > 0
+        assert run["plumbing_ns_per_sample"] == pytest.approx(
+            run["daemon_cpu_ns_per_sample"] - run["kernel_ns_per_sample"]
+        )
+    assert "per msg" in r.stdout and "daemon ns/sample" in r.stdout and "of which estimator" in r.stdout
+
+
+def test_a_late_feeder_stamps_a_continuous_stream_that_the_daemon_does_not_take_for_time_jumps():
+    """The feeder held back by the daemon publishes its blocks seconds late; stamped with
+    their publish time, each channel's time would move on by far more than half a block
+    between two blocks, and the daemon would start every channel over at every block
+    (a time jump). Stamped by :func:`stamp_ns` the stream stays continuous; on time, a
+    block carries its publish time."""
+    from sinewatch.bench.e2e import stamp_ns
+    from sinewatch.continuity import CONTINUES, check_continuity
+
+    fs, block = 10_000.0, 1024
+    period_ns = block * 1e9 / fs
+    span_ns = round((block - 1) * 1e9 / fs)
+    start = 5_000_000_000
+    # a backlog: each block of a channel published 0.5 s after the one before (not 0.1024 s),
+    # so the feeder falls further behind its schedule with every round
+    publish = [start + r * 500_000_000 for r in range(6)]
+    due = [start + round(r * period_ns) for r in range(6)]
+    stamped = [stamp_ns(d, period_ns, now_ns=p) - span_ns for d, p in zip(due, publish, strict=True)]
+    by_publish_time = [p - span_ns for p in publish]
+
+    def verdicts(t0s: list[int]) -> list[object]:
+        out = []
+        for r in range(1, len(t0s)):
+            next_t0 = t0s[r - 1] + round(block * 1e9 / fs)
+            out.append(check_continuity(r - 1, next_t0, r, t0s[r], block, fs))
+        return out
+
+    assert all(v == CONTINUES for v in verdicts(stamped))
+    assert all(v != CONTINUES and v.time_jump_ns > 0 for v in verdicts(by_publish_time))  # the old stamping
+    # on time (published 3 ms after due): the publish time; late: at most 10 ms after due
+    assert stamp_ns(start, period_ns, now_ns=start + 3_000_000) == start + 3_000_000
+    assert stamp_ns(start, period_ns, now_ns=start + 4_000_000_000) == start + 10_000_000

@@ -193,7 +193,16 @@ def _check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
     return len(flagged), len(missing)
 
 
-@pytest.mark.parametrize("recovery", [True, False], ids=["zenoh-recovery", "no-recovery"])
+# Both variants run the same takeover (SIGSTOP, SIGKILL, lease expiry, fencing terms, status,
+# replay); they differ only in whether the standby fetches the outage's blocks from the gateway's
+# cache. The default run keeps the default (recovery) and its gap-or-nothing check; the gap
+# flagged with its size on every channel without recovery runs in `make test-slow` (the chaos
+# test checks every block estimated once or in exactly one gap in the default run).
+@pytest.mark.parametrize(
+    "recovery",
+    [True, pytest.param(False, marks=pytest.mark.slow)],
+    ids=["zenoh-recovery", "no-recovery"],
+)
 def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_path, recovery, etcd):
     port = free_loopback_port()
     with router(port), connect([f"tcp/127.0.0.1:{port}"]) as session:

@@ -155,3 +155,39 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
             why = NO_BANK.get(name) or get(name).bank_note
             assert f"bank note: {name}'s bank 3" in printed
             assert " ".join(why.split())[:60] in printed
+
+
+BANKED = [n for n in NAMES if bank_of(get(n)) is not None]
+
+
+@pytest.mark.parametrize("name", BANKED)
+def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name: str) -> None:
+    """Nine channels (a full group of lanes and one more, alone in the next) whose histories
+    differ by thousands of samples, so that within one call some channels are still in their
+    start transient and others settled: ges-kalman's bank then runs lanes whose start
+    covariance T (U3) is still propagated beside lanes where it is already zero, and the step
+    that switches between the two inside a block."""
+    cls = get(name)
+    size = 9
+    x = np.stack([cls.example_signal(20_000, seed=7 + c) for c in range(size)], axis=1)
+    singles, banked = [cls.example() for _ in range(size)], [cls.example() for _ in range(size)]
+    for c in range(1, size):
+        for est in (singles[c], banked[c]):
+            est.update(np.ascontiguousarray(x[: c * 1500, c]))
+    pos = 10_000
+    mixed = []  # per call: whether some channel's T (U3) is still live and another's zero
+    for n, last_only in ((3000, True), (2500, False), (4000, True), (500, False)):
+        expected = [
+            e.update(np.ascontiguousarray(x[pos : pos + n, c]), last_only=last_only) for c, e in enumerate(singles)
+        ]
+        got = update_bank(banked, x[pos : pos + n], last_only=last_only)
+        for c in range(size):
+            where = f"{name} channel {c} samples {pos}:{pos + n} last_only={last_only}"
+            assert_tracks_bitwise(expected[c], got[c], where)
+            assert_states_bitwise(singles[c], banked[c], where)
+        pos += n
+        if name == "ges-kalman":
+            traces = [e._state["unc"][0] + e._state["unc"][5] for e in banked]
+            mixed.append(any(t == 0.0 for t in traces) and any(t != 0.0 for t in traces))
+    if name == "ges-kalman":  # the case the test is for happened
+        assert mixed[0], "expected lanes with T live beside lanes with T zero after the first call"

@@ -53,13 +53,20 @@ def _send(pipeline, seq, t0_ns, n=100, fs=10_000.0):
 
 def test_a_sender_that_restarts_its_count_is_accepted_and_flagged(tmp_path):
     sink = Keep()
-    pipeline = Pipeline(make_config(tmp_path), [sink])
+    pipeline = Pipeline(make_config(tmp_path, hold_estimates=True), [sink])  # estimates held back
     step = 10_000_000  # 100 samples at 10 kHz
     for seq in range(5):
         _send(pipeline, seq, seq * step)
     _send(pipeline, 3, 3 * step)  # seq back, time back: a replayed old block
     _send(pipeline, 0, 9 * step)  # seq back to 0, time forward: the gateway restarted
     _send(pipeline, 1, 10 * step)
+    # estimates wait for three more blocks of signal (the presence detector's onset latency,
+    # 300 samples at 50 Hz): three more blocks bring the restarted pair out
+    assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4]
+    assert not any(e["diagnostics"]["valid"] for e in sink.estimates[2:])  # unconfirmed at the restart
+    for seq in (2, 3, 4):
+        _send(pipeline, seq, (9 + seq) * step)
+    assert len(sink.estimates) == 7
     assert [e["kind"] for e in sink.errors] == ["out_of_order"]
     d = [e["diagnostics"] for e in sink.estimates]
     assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4, 0, 1]

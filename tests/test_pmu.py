@@ -68,7 +68,8 @@ def test_off_nominal_tone_gives_the_exact_phasor_at_the_grid_times(f0, rate, f, 
     y_model = tr.amplitude[:, 0] * np.sin(tr.phase_rad[:, 0])
     y_true = xm * np.cos(2 * np.pi * f * tk + base + phi)
     assert np.max(np.abs(y_model - y_true)) < 1e-6
-    assert np.all(tr.converged)
+    # the start: the first report has nothing to be checked against, the others agree with it
+    assert not tr.converged[0] and np.all(tr.converged[1:])
 
 
 @pytest.mark.parametrize(("f0", "f"), [(50, 51.7), (60, 58.9)])
@@ -100,6 +101,7 @@ def test_reports_do_not_depend_on_the_blocks():
             np.testing.assert_array_equal(getattr(got.track, name), getattr(ref.track, name))
         for name in ref.track.extras:
             np.testing.assert_array_equal(got.track.extras[name], ref.track.extras[name])
+        np.testing.assert_array_equal(got.track.converged, ref.track.converged)
 
 
 def test_a_gap_in_time_restarts_on_the_grid():
@@ -116,6 +118,8 @@ def test_a_gap_in_time_restarts_on_the_grid():
     # the nominal-frequency cosine has the same phase at every grid point: angle stays put
     angles = second.track.extras["synchrophasor_angle_rad"]
     assert np.max(np.abs(angles - angles[0])) < 1e-6
+    # converged starts over with the grid: the first report after the restart is not
+    assert first.track.converged[-1] and not second.track.converged[0] and np.all(second.track.converged[1:])
 
 
 def test_steps_respond_within_the_m_class_limits():
@@ -299,3 +303,63 @@ def test_auto_state_round_trips_while_undecided_and_after():
     assert c.reporting_rate == 60
     a.reset()
     assert a.get_state()["auto"]["nominal_frequency_hz"] == 0
+
+
+def _reports_with_converged(test, params, block=250):
+    """The test signal through a fresh pmu in blocks: report times (s), TVE (%), FE (Hz), converged."""
+    est = create("pmu", test.sample_rate_hz, **params)
+    n = round(test.duration_s * test.sample_rate_hz)
+    x = test.signal(np.arange(n) / test.sample_rate_hz)
+    rep = run_blocks(est, x, T_EPOCH_NS, block)
+    times = rep.times_s(T_EPOCH_NS)
+    tr = rep.track
+    phasor = tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"])
+    x_true, f_true, _ = test.truth(times)
+    return times, 100 * np.abs(phasor - x_true) / np.abs(x_true), np.abs(tr.frequency_hz[:, 0] - f_true), tr.converged
+
+
+@pytest.mark.parametrize("f0", [50, 60])
+@pytest.mark.parametrize("family", ["step-magnitude", "step-phase"])
+def test_converged_is_false_for_a_steps_response_and_true_after(f0, family):
+    """C37.118.1 steps (+-10 %, +-10 degrees, at three fractions of the reporting interval):
+    no report outside the steady-state accuracy (TVE > 1 % or FE > 0.005 Hz) is converged,
+    and every report from one and a half windows after the step on is (the window has
+    refilled since the last report the step moved). With converged from the magnitude only,
+    every report of the response was converged."""
+    window_s = 9.0 / f0
+    for test in generate(family, f0, f0, full=False, settle_s=0.5, n_offsets=3):
+        times, tve, fe, conv = _reports_with_converged(test, {"nominal_frequency_hz": f0, "reporting_rate_hz": f0})
+        scored = times >= test.score_from_s
+        off = scored & ((tve > 1.0) | (fe > 0.005))
+        assert off.any() and not np.any(conv[off]), (test.label, times[off & conv] - test.step_time_s)
+        late = times >= test.step_time_s + 1.5 * window_s + 1.0 / f0
+        assert late.any() and np.all(conv[late]), (test.label, times[late & ~conv] - test.step_time_s)
+
+
+@pytest.mark.parametrize("f0", [50, 60])
+@pytest.mark.parametrize("family", ["steady-frequency", "steady-magnitude", "harmonic", "out-of-band", "ramp"])
+def test_converged_stays_true_where_the_signal_has_no_transition(f0, family):
+    """The steady, harmonic, out-of-band and ramp tests (whole range): every scored report is
+    converged (no false transition)."""
+    for test in generate(family, f0, f0, full=False, settle_s=0.5):
+        times, _, _, conv = _reports_with_converged(test, {"nominal_frequency_hz": f0, "reporting_rate_hz": f0})
+        scored = times >= test.score_from_s
+        assert np.all(conv[scored]), (test.label, times[scored & ~conv])
+
+
+def test_converged_state_round_trips_mid_step():
+    """Split in the middle of a step's response through get_state/set_state (JSON): the same
+    converged flags as one run."""
+    [test] = [t for t in generate("step-phase", 50, 50, full=False, settle_s=0.5, n_offsets=1) if t.step_size > 0]
+    params = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
+    n = round(test.duration_s * FS)
+    x = test.signal(np.arange(n) / FS)
+    whole = run_blocks(create("pmu", FS, **params), x, T_EPOCH_NS, n)
+    cut = round((test.step_time_s + 0.05) * FS)
+    first = create("pmu", FS, **params)
+    a = run_blocks(first, x[:cut], T_EPOCH_NS, cut)
+    second = create("pmu", FS, **params)
+    second.set_state(json.loads(json.dumps(first.get_state())))
+    b = run_blocks(second, x[cut:], T_EPOCH_NS + round(cut * 1e9 / FS), n - cut)
+    np.testing.assert_array_equal(np.concatenate([a.track.converged, b.track.converged]), whole.track.converged)
+    assert not whole.track.converged.all()

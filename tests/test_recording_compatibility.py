@@ -2,7 +2,10 @@
 
 ``data/recorded-before-layering.mcap`` was recorded by sinewatch at the commit before the
 source tree was reorganised into layers (every registered estimator at its example
-parameters, 12 blocks each, through the real pipeline and MCAP recorder). Any change
+parameters, 12 blocks each, through the real pipeline and MCAP recorder); its 12 ipdft
+estimates were later rewritten, byte for byte this build's, when ipdft began reporting its
+ROCOF's standard deviation in ``extras`` (the one field they gained; every other message is
+the earlier build's, and its Estimate format has no ``std``). Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """

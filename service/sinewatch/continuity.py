@@ -21,6 +21,14 @@ detector, the estimate says ``reset: true`` and ``gap: true``, and nothing is va
 estimator's memory has refilled with the new stream. Version 1 (files recorded by earlier
 builds) flagged a restart and let the estimator coast across it; replay keeps that rule for
 those files so that they reproduce bit for bit.
+
+Version 3, with ``hold_estimates`` on, holds every estimate back until the presence detector has read the channel's
+signal its onset latency past the estimate
+(:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
+estimate whose window holds the start of an interruption is published valid (the pipeline's
+``_hold``); with it on or off, version 3 ends an absence only at 0.12 of the reference
+level (a hysteresis).
+Files of version 2 replay without either.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from sinewatch.schemas.errors import InputError
 
 #: Recorded in every file's metadata (``validity_rules_version``); files of earlier builds
 #: have no key and replay under version 1.
-VALIDITY_RULES_VERSION = 2
+VALIDITY_RULES_VERSION = 3
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from math import isfinite
@@ -39,7 +39,7 @@ from sinewatch.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.base import Estimator, Track, TrackStd
-from sinewatch.estimators.presence import SignalPresence
+from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
@@ -257,13 +257,20 @@ class Channel:
     # gap, restart, reset, time jump of blocks that completed no report (grid estimators):
     # said by the next report
     held_flags: tuple[int, bool, bool, bool] | None = field(default=None, repr=False)
+    # estimates held back until the presence detector has seen its onset latency past them
+    # (validity rules version 3): (payload, release at sample count, window start or -1, converged), see _hold
+    held: deque[tuple[bytes, int, int, bool]] = field(default_factory=deque, repr=False)
+    last_run: np.ndarray | None = field(default=None, repr=False)  # the presence run of the last block
 
     validity_version: int = field(default=VALIDITY_RULES_VERSION, repr=False)  # the pipeline's rules
 
     def __post_init__(self) -> None:
         if self.presence is None:
             self.presence = SignalPresence(
-                self.sample_rate_hz, _cycle_frequency_hz(self.estimator), hold=self.validity_version >= 2
+                self.sample_rate_hz,
+                _cycle_frequency_hz(self.estimator),
+                hold=self.validity_version >= 2,
+                hysteresis=DEFAULT_HYSTERESIS if self.validity_version >= 3 else 0.0,
             )
 
     def snapshot(self) -> dict[str, Any]:
@@ -273,6 +280,7 @@ class Channel:
             **_attributes(self, "name", "key", "sample_rate_hz", *counters),
             "estimator": self.estimator.get_state(),
             "presence": self.presence.get_state(),
+            **({"held": [[p.decode("ascii"), r, w, c] for p, r, w, c in self.held]} if self.held else {}),
         }
 
 
@@ -722,7 +730,7 @@ class Pipeline:
         assert ch.presence is not None
         if reset:
             ch.presence.reset()
-        ch.presence.update(ch.estimator.presence_samples(block.samples))
+        ch.last_run = ch.presence.update(ch.estimator.presence_samples(block.samples))[0]
 
     def _accept(
         self, ch: Channel, block: Block, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
@@ -746,34 +754,84 @@ class Pipeline:
         self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
-        time grid, one per report the block completed (zero, one or several), at its time."""
+        time grid, one per report the block completed (zero, one or several), at its time.
+        Under validity rules version 3 with ``hold_estimates`` (off by default) they are held back
+        (:meth:`_hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
+        made: list[tuple[bytes, bool, int]] = []  # payload, converged, timestamp
         if grid is None:
-            payload, ch.converged = self._estimate_payload(
+            payload, converged = self._estimate_payload(
                 ch, block, track, t_last, t_last, gap_blocks, restart, reset, jump
             )
-            return [payload]
-        if self.validity_version >= 2:  # a block without a report passes its flags on to the next report
-            held = ch.held_flags
-            if held is not None:
-                gap_blocks, restart, reset, jump = (
-                    gap_blocks + held[0],
-                    restart or held[1],
-                    reset or held[2],
-                    jump or held[3],
+            made.append((payload, converged, t_last))
+        else:
+            if self.validity_version >= 2:  # a block without a report passes its flags on to the next report
+                held = ch.held_flags
+                if held is not None:
+                    gap_blocks, restart, reset, jump = (
+                        gap_blocks + held[0],
+                        restart or held[1],
+                        reset or held[2],
+                        jump or held[3],
+                    )
+                    ch.held_flags = None
+                if grid.n_reports == 0 and (gap_blocks or restart or reset or jump):
+                    ch.held_flags = (gap_blocks, restart, reset, jump)
+            for r, t_ns in enumerate(grid.timestamps_ns()):
+                row = grid.track.rows(slice(r, r + 1))
+                payload, converged = self._estimate_payload(
+                    ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
                 )
-                ch.held_flags = None
-            if grid.n_reports == 0 and (gap_blocks or restart or reset or jump):
-                ch.held_flags = (gap_blocks, restart, reset, jump)
-        payloads = []
-        for r, t_ns in enumerate(grid.timestamps_ns()):
-            row = grid.track.rows(slice(r, r + 1))
-            payload, ch.converged = self._estimate_payload(
-                ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
-            )
-            payloads.append(payload)
-        return payloads
+                made.append((payload, converged, t_ns))
+        if self.validity_version < 3 or self.estimate_version < 3 or not self.config.hold_estimates:
+            if made:
+                ch.converged = made[-1][1]
+            return [m[0] for m in made]
+        return self._hold(ch, t_last, made, reset)
+
+    def _hold(self, ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset: bool) -> list[bytes]:
+        """Validity rules version 3: no estimate is published valid while its window may hold
+        an event the presence detector has not read yet. Each estimate waits until the
+        detector has seen ``onset_latency_samples`` past the last sample its window holds (the
+        block's last, or a grid report's ``lookahead_samples`` after its time; counted in
+        samples, not wall time: replay reproduces it), and is then published valid only if
+        the signal was present at that sample throughout its window and since (the run of
+        presence there reaches back to the window's start). An estimate not valid when made
+        stays so; estimates held when the channel starts over (a reset) are published not
+        valid: the detector that was to confirm them starts afresh. Order is kept: an
+        estimate leaves after every estimate made before it."""
+        assert ch.presence is not None
+        out: list[bytes] = []
+        held = ch.held
+        if reset:
+            while held:
+                payload, _, window_start, _ = held.popleft()
+                out.append(_not_valid(payload) if window_start >= 0 else payload)
+        n_now = ch.samples
+        latency = ch.presence.onset_latency_samples
+        memory = ch.estimator.memory_samples
+        fs = ch.sample_rate_hz
+        ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
+        for payload, converged, t_ns in made:
+            valid = _DIAGNOSTICS_VALID[0] in payload or _DIAGNOSTICS_VALID[1] in payload
+            lag = max(0, round((t_last_ns - t_ns) * fs / 1e9))
+            end = n_now if ahead is None else min(n_now, n_now - lag + ahead)  # the window's last sample
+            held.append((payload, end + latency, n_now - lag - memory if valid else -1, converged))
+        run = ch.last_run
+        start = n_now if run is None else n_now - run.shape[0]  # the channel's sample count before this block
+        converged_out = None
+        while held and held[0][1] <= n_now:
+            payload, at, window_start, converged = held.popleft()
+            if window_start >= 0:
+                i = max(at - start - 1, 0)
+                if run is None or run[i] < start + 1 + i - window_start:  # absent somewhere since the window began
+                    payload, converged = _not_valid(payload), False
+            out.append(payload)
+            converged_out = converged
+        if converged_out is not None:
+            ch.converged = converged_out
+        return out
 
     def _valid(
         self,
@@ -947,6 +1005,7 @@ class Pipeline:
             if "presence" in item:  # snapshots of earlier builds have none: it starts afresh
                 assert ch.presence is not None
                 ch.presence.set_state(item["presence"])
+            ch.held.extend((p.encode("ascii"), int(r), int(w), bool(c)) for p, r, w, c in item.get("held", ()))
             self.channels[ch.name] = ch
         for key, kind, n in snapshot.get("error_counts", []):
             self._error_counts[(key, kind)] = n
@@ -972,6 +1031,23 @@ class Pipeline:
             }
             for ch in self.channels.values()
         ]
+
+
+_DIAGNOSTICS_VALID = (
+    b'"diagnostics":{"converged":true,"valid":true,',
+    b'"diagnostics":{"converged":false,"valid":true,',
+)
+_DIAGNOSTICS_NOT_VALID = b'"diagnostics":{"converged":false,"valid":false,'
+
+
+def _not_valid(payload: bytes) -> bytes:
+    """An Estimate's bytes (format 3 or later) with ``valid`` and ``converged`` false: the
+    diagnostics object's opening is unique in the message (names are JSON-escaped, so their
+    quotes never read as these bytes)."""
+    for flag in _DIAGNOSTICS_VALID:
+        if flag in payload:
+            return payload.replace(flag, _DIAGNOSTICS_NOT_VALID, 1)
+    return payload
 
 
 def _own_method(sink: Sink, name: str) -> Any:

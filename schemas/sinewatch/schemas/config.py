@@ -508,6 +508,14 @@ class SinewatchConfig(_Section):
         "coast",
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
+    hold_estimates: bool = Field(
+        False,
+        description="Hold each estimate until the signal-presence detector has read one and a half nominal "
+        "cycles past its window, so that no estimate whose window holds the start of an interruption is "
+        "published valid (costs 30 ms at 50 Hz plus up to one block of latency, and a stream's last "
+        "estimates wait for its next block). false (default): published at once, one per block; valid may "
+        "then be wrong in the 1.5 cycles before the detector reads an onset",
+    )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
     c37118: C37118Section = Field(default_factory=C37118Section)
     cluster: ClusterSection = Field(default_factory=ClusterSection)

@@ -51,6 +51,7 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("overload", "the daemon offered twice what it sustains, with each queue policy", add_overload_arguments),
         ("soak", "hours of load with recording rotation: RSS, fds, latency every interval", add_soak_arguments),
         ("accuracy", "seeded Monte Carlo of every estimator on every scenario vs the CRLB", add_accuracy_arguments),
+        ("calibration", "reported std against the actual error, per estimator, parameter and SNR", _calibration_args),
         ("scenarios", "list the scenario library", add_scenarios_arguments),
         ("startup", "wall time of short CLI commands vs the bare interpreter", add_startup_arguments),
         ("compliance", "IEEE C37.118.1 M-class tests of estimators reporting on a time grid", add_compliance_arguments),
@@ -81,9 +82,21 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     return b
 
 
+def _calibration_args(parser: argparse.ArgumentParser) -> None:
+    from sinewatch.bench.calibration import add_arguments
+
+    add_arguments(parser)
+
+
 def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channels", type=int, default=8, help="channels per input frame (default 8)")
     parser.add_argument("--frames", type=int, default=5000, help="input frames' estimates put (default 5000)")
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=1221.0,
+        help="input frames a second, paced (default 1221: 10 M samples/s in 1024-sample frames of 8; 0: as fast as it goes)",
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 

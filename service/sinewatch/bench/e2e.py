@@ -6,7 +6,8 @@ loopback port and recording to a temporary directory. This process publishes
 the channels staggered evenly over a block period (as independent sensors would be), and
 subscribes to the estimates. Latency is block-to-estimate: the feeder (its own process) stamps
 each block so that its last sample's time is its publish time on CLOCK_MONOTONIC, which
-is system-wide, and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
+is system-wide (or, for a block published more than a quarter period late, its scheduled
+time: :func:`stamp_ns`), and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
 daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU use.
 
 With ``--foxglove`` the daemon also serves its live Foxglove view and a client here
@@ -22,6 +23,7 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -125,10 +127,16 @@ class LatencyProbe:
         self._thread.join(5.0)
 
 
+_TIMESTAMP_NS = re.compile(rb'"timestamp_ns":(-?[0-9]+)')
+
+
 def probe_fields(payload: bytes) -> tuple[int, int | None]:
     """An Estimate's ``timestamp_ns``, and its ``diagnostics.gap_blocks`` when it flags a
     gap (None when not), read from its JSON bytes as the daemon writes them."""
-    timestamp_ns = _json_int(payload, b'"timestamp_ns":')
+    match = _TIMESTAMP_NS.search(payload)  # one C call (a digit loop in Python was 3 us of ~5)
+    if match is None:
+        raise ValueError(f"estimate: expected a timestamp_ns, got {payload[:80]!r}")
+    timestamp_ns = int(match.group(1))
     diagnostics = payload.index(b'"diagnostics":')
     if payload.find(b'"gap":true', diagnostics) < 0:
         return timestamp_ns, None
@@ -256,6 +264,7 @@ def feeder_main(argv: list[str] | None = None) -> int:
         return _feed_frames(a)
     fs, block, n_ch = a.rate, a.block, a.channels
     period = block / fs
+    period_ns = block * 1e9 / fs
     span_ns = round((block - 1) * 1e9 / fs)
     t = np.arange(int(fs)) / fs
     rng = np.random.default_rng(0)
@@ -270,7 +279,8 @@ def feeder_main(argv: list[str] | None = None) -> int:
         channels = [f"bench/{i:04d}" for i in range(n_ch)]
         if not pub.wait_for_subscriber(channels[0], 30.0):
             return 2
-        start = time.monotonic()
+        start_ns = time.monotonic_ns()
+        start = start_ns / 1e9
         cpu0 = time.process_time()
         for r in range(a.rounds):
             idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
@@ -282,7 +292,8 @@ def feeder_main(argv: list[str] | None = None) -> int:
                     waiter.wait(max(delay, FEEDER_TICK_S))
                 elif delay < -period:
                     late += 1
-                blk = pub.block(name, base[c][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
+                due_ns = start_ns + round((r + c / n_ch) * period_ns)
+                blk = pub.block(name, base[c][idx], fs, t0_ns=stamp_ns(due_ns, period_ns) - span_ns)
                 pub.publish_raw(name, pub.encode(blk))
         elapsed = time.monotonic() - start
         cpu = time.process_time() - cpu0
@@ -292,6 +303,18 @@ def feeder_main(argv: list[str] | None = None) -> int:
         sys.stdin.read()
         pub.close()
     return 0
+
+
+def stamp_ns(due_ns: int, period_ns: float, now_ns: int | None = None) -> int:
+    """The time a block's last sample is stamped with: its publish time (now), but never
+    more than a quarter of a block period (at most 10 ms) after it was due. A sensor's
+    clock does not wait for a backed-up network: a feeder held back by the daemon
+    (CongestionControl.BLOCK) that stamped its publish time would move each channel's
+    time on by more than half a block between two blocks, which the daemon rightly takes
+    for a time jump and starts the channel over for, every block. On time, the
+    latency is measured from the publish; late, from the schedule, delay included."""
+    now = time.monotonic_ns() if now_ns is None else now_ns
+    return min(now, due_ns + round(min(0.25 * period_ns, 10e6)))
 
 
 def frame_layout(n_channels: int, per_frame: int) -> list[list[str]]:
@@ -307,6 +330,7 @@ def _feed_frames(a: argparse.Namespace) -> int:
     staggered over a block period, each stamped as a block is."""
     fs, block = a.rate, a.block
     period = block / fs
+    period_ns = block * 1e9 / fs
     span_ns = round((block - 1) * 1e9 / fs)
     layout = frame_layout(a.channels, a.frame_channels)
     t = np.arange(int(fs)) / fs
@@ -325,7 +349,8 @@ def _feed_frames(a: argparse.Namespace) -> int:
         frames = [f"f{k:04d}" for k in range(len(layout))]
         if not pub.wait_for_frame_subscriber(frames[0], 30.0):
             return 2
-        start = time.monotonic()
+        start_ns = time.monotonic_ns()
+        start = start_ns / 1e9
         cpu0 = time.process_time()
         n_fr = len(frames)
         for r in range(a.rounds):
@@ -336,7 +361,8 @@ def _feed_frames(a: argparse.Namespace) -> int:
                     waiter.wait(max(delay, FEEDER_TICK_S))
                 elif delay < -period:
                     late += 1
-                fr = pub.frame(name, layout[k], base[k][idx], fs, t0_ns=time.monotonic_ns() - span_ns)
+                due_ns = start_ns + round((r + k / n_fr) * period_ns)
+                fr = pub.frame(name, layout[k], base[k][idx], fs, t0_ns=stamp_ns(due_ns, period_ns) - span_ns)
                 pub.publish_frame_raw(name, pub.encode_frame(fr))
         elapsed = time.monotonic() - start
         cpu = time.process_time() - cpu0
@@ -374,6 +400,8 @@ def run(args: argparse.Namespace) -> int:
             point = {"frame_channels": n}
             if len(counts) > 1 and args.json:  # one JSON (and plot) per frame size
                 point["json"] = args.json.with_name(f"{args.json.stem}-frame{n}{args.json.suffix}")
+            if len(counts) > 1 and getattr(args, "plot", None):
+                point["plot"] = args.plot.with_name(f"{args.plot.stem}-frame{n}{args.plot.suffix}")
             code |= run_sweep(argparse.Namespace(**{**vars(args), **point}), console)
         return code
     if args.duration is None:
@@ -432,7 +460,7 @@ def run_sweep(args: argparse.Namespace, console: Console) -> int:
     plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
     if plot is not None:
         try:
-            plot_sweep(rows, plot)
+            plot_sweep(rows, plot, frame_channels(args))
             console.print(f"plot: {plot}")
         except ModuleNotFoundError as exc:
             console.print(f"no plot ({exc.name} is not installed: pip install 'sinewatch[plots]')")
@@ -477,6 +505,7 @@ def sweep_table(rows: list[dict[str, Any]], title: str = "sinewatch bench e2e --
         "p99 ms",
         "CPU (cores)",
         "daemon ns/sample",
+        "of which estimator",
         "CPU us/block daemon+feeder+probe",
         "cores needed at offered",
         "RSS MB",
@@ -496,6 +525,7 @@ def sweep_table(rows: list[dict[str, Any]], title: str = "sinewatch bench e2e --
             _ms(r["latency_ms_p99"]),
             f"{r['daemon_cpu_fraction_of_one_core']:.2f}",
             f"{r['daemon_cpu_ns_per_sample']:.0f}",
+            f"{r['kernel_ns_per_sample']:.0f}" if "kernel_ns_per_sample" in r else "-",
             "+".join(f"{v:.0f}" for v in r["cpu_us_per_block"].values()),
             f"{r['cores_needed_at_offered']:.2f} of {r['machine_cores']}",
             f"{r['daemon_rss_mb_end']:.0f}",
@@ -508,7 +538,7 @@ def _ms(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
+def plot_sweep(rows: list[dict[str, Any]], path: Path, per_msg: int = 1) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -528,7 +558,12 @@ def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
     lat.set_ylabel("p99 block-to-estimate latency, ms", color="tab:red")
     lines = [*ax.get_lines(), *lat.get_lines()]
     ax.legend(lines, [str(line.get_label()) for line in lines], loc="upper left", fontsize=8)
-    ax.set_title("sinewatch bench e2e --sweep", fontsize=9)
+    highest = max((r for r in rows if sustained(r)), key=lambda r: r["offered_samples_per_s"], default=None)
+    ax.set_title(
+        f"sinewatch bench e2e --sweep --frame-channels {per_msg}: highest sustained with 0 missing "
+        + ("none" if highest is None else f"{highest['offered_samples_per_s'] / 1e6:.2f} M samples/s"),
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -536,11 +571,50 @@ def plot_sweep(rows: list[dict[str, Any]], path: Path) -> None:
 
 def measure(args: argparse.Namespace, console: Console) -> dict[str, Any]:
     """Run the daemon as its own process, feed it, and return the figures."""
+    kernel_ns = kernel_ns_per_sample(args.estimator, args.rate, args.block, frame_channels(args))
     with running_daemon(args) as (endpoint, daemon, tmp):
         result = _drive(args, endpoint, daemon, console)
     result["recorded_bytes"] = tmp.recorded_bytes
     result["daemon_exit_code"] = daemon.returncode
+    # what of the daemon's CPU is the estimator's arithmetic, and what is plumbing around it
+    result["kernel_ns_per_sample"] = kernel_ns
+    result["plumbing_ns_per_sample"] = result["daemon_cpu_ns_per_sample"] - kernel_ns
     return result
+
+
+KERNEL_REPEATS = 7
+
+
+def kernel_ns_per_sample(estimator: str, rate: float, block: int, per_msg: int) -> float:
+    """CPU nanoseconds a sample costs the estimator alone, as the daemon calls it: ``update``
+    (``last_only``) of one channel's block, or, for frames of ``per_msg`` channels, one
+    :func:`~sinewatch.estimators.bank.update_bank` call on the frame's float64 columns.
+    Measured here, before the daemon starts (the fastest of a few repeats of about 50 blocks
+    a channel, process CPU time), on the bench's own signal."""
+    from sinewatch.estimators import get
+    from sinewatch.estimators.bank import update_bank
+
+    cls = get(estimator)
+    params = _params(argparse.Namespace(estimator=estimator))
+    estimators = [cls(rate, params) for _ in range(per_msg)]
+    rng = np.random.default_rng(0)
+    t = np.arange(block) / rate
+    x = np.stack(
+        [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(block) for _ in estimators],
+        axis=1,
+    )
+    rounds = max(2, 50 // per_msg)
+    best = float("inf")
+    for repeat in range(KERNEL_REPEATS + 1):  # the first loads the compiled kernels
+        t0 = time.process_time()
+        for _ in range(rounds if repeat else 1):
+            if per_msg == 1:
+                estimators[0].update(x[:, 0], last_only=True)
+            else:
+                update_bank(estimators, x, last_only=True)
+        if repeat:
+            best = min(best, (time.process_time() - t0) / (rounds * block * per_msg))
+    return 1e9 * best
 
 
 class _Recording:
@@ -790,7 +864,13 @@ def _print(console: Console, r: dict[str, Any]) -> None:
     if r.get("cpu_us_per_block"):
         b = r["cpu_us_per_block"]
         console.print(
-            f"daemon CPU a sample: {r['daemon_cpu_ns_per_sample']:.0f} ns; "
+            f"daemon CPU a sample: {r['daemon_cpu_ns_per_sample']:.0f} ns"
+            + (
+                f" (the estimator {r['kernel_ns_per_sample']:.0f} ns, plumbing {r['plumbing_ns_per_sample']:.0f} ns)"
+                if "kernel_ns_per_sample" in r
+                else ""
+            )
+            + "; "
             f"CPU a block: daemon {b['daemon']:.0f} us, feeder {b['feeder']:.0f} us, this bench's probe "
             f"{b['probe']:.0f} us; at the offered {r['offered_samples_per_s'] / r['block']:,.0f} blocks/s the three "
             f"need {r['cores_needed_at_offered']:.2f} cores, of {r['machine_cores']} on this machine"

@@ -22,6 +22,15 @@ calls per lane, the same calls the single-channel kernel makes, and a bank keeps
 in a loop of its own so that the rest of the step may vectorise; ``sqrt`` and the project's
 :func:`fma` are correctly rounded either way.
 
+What it takes for numba's LLVM to vectorise a channel loop (ges-kalman's bank, read in its
+assembly): a literal trip count (8 lanes, channels padded), and every load and store of the
+loop in ONE array at constant offsets (``S[row * 8 + lane]``): across two arrays LLVM needs a
+run-time overlap check, which it does not add to a loop of fewer than 16 iterations, so the
+loop stays scalar. A vector load of a row just written by scalar stores stalls (store
+forwarding fails): rows that the next step reads are written a step ahead. And a pure library
+call under a branch (an exp taken only sometimes) is speculated for every lane once the loop
+is vectorised, so such loops are kept out of the vectoriser's reach.
+
 A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
 outputs with the channel as the leading axis, then the new stacked state arrays. The
@@ -56,15 +65,6 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "ges-kalman": (
-        "no compiled bank: one was built (the single kernel's per-sample step over the channels, "
-        "bit for bit) and ran slower than one channel at a time (91 against 72 ns/sample at 8 "
-        "channels, same process). The single kernel is not waiting on its recursion but on its "
-        "arithmetic: it keeps the 46 per-sample quantities (x, P, T, U of (U1)-(U4)) in registers "
-        "and does ~220 flops a sample; interleaving channels adds a load and a store of each of them "
-        "per sample, and numba's LLVM did not vectorise the channel loop (it could not prove the "
-        "state rows independent of each other), which is what it would take"
-    ),
     "kkl": (
         "no compiled bank: one was built (the observer's per-sample step shared by the single "
         "kernel and a bank, bit for bit) and gained about 10 % over one channel at 8 channels, "
@@ -141,7 +141,14 @@ def update_bank(
     first = estimators[0]
     cls = type(first)
     bank = _BANKS.get(cls)
-    if bank is None or samples.shape[0] == 0 or samples.dtype != np.float64 or first.n_inputs != 1:
+    if (
+        bank is None
+        or samples.shape[0] == 0
+        or samples.dtype != np.float64
+        or first.n_inputs != 1
+        # an instance's own ``update`` (a caller routing it, e.g. replay's full track) must run
+        or any("update" in vars(est) for est in estimators)
+    ):
         return _one_by_one(estimators, samples, last_only, t0_ns)
     _check_alike(estimators, cls)
     x = np.ascontiguousarray(samples)

@@ -126,6 +126,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from sinewatch.estimators import register
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -143,6 +144,9 @@ T_NEGLIGIBLE = 1e-100  # trace of T below which T (U3) is set to 0 and no longer
 LOG_CHI2_MEAN = -1.2703628454614782  # E[log z^2] for z ~ N(0, 1): psi(1/2) + log 2, (U5a)
 ROBUST_CAP = 4.0  # (U5a): <u> at most four times the log-mean's estimate of sigma^2
 TINY = 1e-300  # log(0) guard, (U5a)
+# _noise_means skips exp when <u> is below the cap's lower bound times this: 1e-12 is ~4,000
+# times the bound's worst relative rounding (a few 1e-16) plus exp's (< 1 ulp)
+EXP_SCREEN_MARGIN = 1.0 - 1e-12
 UNC_SIZE = 35  # T (16), U (16), <u>, the weight w, <log u>
 
 
@@ -171,6 +175,58 @@ class GesKalmanParams(EstimatorParams):
         if len(v) != 4 or not all(math.isfinite(x) for x in v):
             raise ValueError(f"expected 4 finite values, got {v}")
         return v
+
+
+@kernel(inline="always")
+def _filter_step(
+    s: float,
+    x1: float, x2: float, x3: float, x4: float,
+    p00: float, p01: float, p02: float, p03: float, p11: float,
+    p12: float, p13: float, p22: float, p23: float, p33: float,
+    q0: float, q1: float, q2: float, q3: float, R: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """One sample ``s = s(t_{k+1})`` of the Kalman filter on (6): the new ``(x1..x4, p00, p01,
+    p02, p03, p11, p12, p13, p22, p23, p33)``, then the innovation ``e`` and the gain
+    ``k0..k3``. The one definition, called by the single-channel kernel and by the bank."""
+    # prediction x(k+1|k) = A(k) x(k|k), eq. (6)
+    xp1 = x1 + x2
+    xp2 = x2 + s * x3 + x4
+    # P(k+1|k) = A(k) P A(k)^T + Q, written out (A = I + e01 + s e12 + e13)
+    m11 = p11 + s * p12 + p13
+    m12 = p12 + s * p22 + p23
+    m13 = p13 + s * p23 + p33
+    n00 = p00 + 2.0 * p01 + p11 + q0
+    n01 = p01 + p11 + s * (p02 + p12) + p03 + p13
+    n02 = p02 + p12
+    n03 = p03 + p13
+    n11 = m11 + s * m12 + m13 + q1
+    n12 = m12
+    n13 = m13
+    n22 = p22 + q2
+    n23 = p23
+    n33 = p33 + q3
+    # update with y(k+1) = C x(k+1): scalar innovation and gain K = P C^T / (C P C^T + R)
+    e = s - xp1
+    inv_S = 1.0 / (n00 + R)
+    k0 = n00 * inv_S
+    k1 = n01 * inv_S
+    k2 = n02 * inv_S
+    k3 = n03 * inv_S
+    x1 = xp1 + k0 * e
+    x2 = xp2 + k1 * e
+    x3 = x3 + k2 * e
+    x4 = x4 + k3 * e
+    # P(k+1|k+1) = P(k+1|k) - K S K^T (symmetric by construction)
+    return (
+        x1, x2, x3, x4,
+        n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n03 - k0 * n03,
+        n11 - k1 * n01, n12 - k1 * n02, n13 - k1 * n03,
+        n22 - k2 * n02, n23 - k2 * n03, n33 - k3 * n03,
+        e, k0, k1, k2, k3,
+    )  # fmt: skip
 
 
 @kernel(inline="always")
@@ -222,14 +278,37 @@ def _propagate_error(
 
 
 @kernel(inline="always")
-def _noise_means(u: float, w: float, m_u: float, m_l: float, lam: float) -> tuple[float, float, float]:
+def _noise_means(
+    u: float, w: float, m_u: float, m_l: float, lam: float, x_ref: float, e_ref: float
+) -> tuple[float, float, float, float, float]:
     """One step of the exponentially weighted means of (U5) and the cap (U5a): the new
-    ``(w, <u>, <log u>)``."""
+    ``(w, <u>, <log u>)``, then the new ``(x_ref, e_ref)``.
+
+    ``e_ref = exp(x_ref)`` is the last exp this step took (start a block with 0, 0). Since
+    ``exp(x) >= exp(x_ref) (1 + x - x_ref)``, a ``<u>`` below ``ROBUST_CAP w`` times that
+    bound (less a margin far above the rounding of exp and of the bound) is below the cap
+    (U5a) whatever exp's last bit, and ``min`` returns it: the exp is then skipped, with the
+    same result. On a stationary signal the cap rarely binds and the exponent drifts slowly,
+    so most samples take the log only."""
+    return _noise_means_of_log(u, math.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
+
+
+@kernel(inline="always")
+def _noise_means_of_log(
+    u: float, log_u: float, w: float, m_u: float, m_l: float, lam: float, x_ref: float, e_ref: float
+) -> tuple[float, float, float, float, float]:
+    """:func:`_noise_means` with ``log_u = log(max(u, TINY))`` given: a caller may take the
+    logs of a block's u in a loop of their own, where the calls overlap."""
     w = lam * w + (1.0 - lam)
     m_u = lam * m_u + (1.0 - lam) * u
-    m_l = lam * m_l + (1.0 - lam) * math.log(max(u, TINY))
-    m_u = min(m_u, ROBUST_CAP * w * math.exp(m_l / w - LOG_CHI2_MEAN))  # (U5a)
-    return w, m_u, m_l
+    m_l = lam * m_l + (1.0 - lam) * log_u
+    x = m_l / w - LOG_CHI2_MEAN
+    d1 = 1.0 + (x - x_ref)
+    if d1 > 0.5 and m_u <= ROBUST_CAP * w * e_ref * d1 * EXP_SCREEN_MARGIN:  # False on NaN
+        return w, m_u, m_l, x_ref, e_ref
+    e = math.exp(x)
+    m_u = min(m_u, ROBUST_CAP * w * e)  # (U5a)
+    return w, m_u, m_l, x, e
 
 
 @kernel(inline="always")
@@ -358,6 +437,7 @@ def ges_kalman_kernel(
     u00, u01, u02, u03, u10, u11, u12, u13 = unc[16], unc[17], unc[18], unc[19], unc[20], unc[21], unc[22], unc[23]
     u20, u21, u22, u23, u30, u31, u32, u33 = unc[24], unc[25], unc[26], unc[27], unc[28], unc[29], unc[30], unc[31]
     m_u, w, m_l = unc[32], unc[33], unc[34]
+    x_ref, e_ref = 0.0, 0.0  # _noise_means: no exp taken yet
     T = np.empty((4, 4))
     U = np.empty((4, 4))
     # last_only: the u of (U5) per sample, for a second pass that keeps log and exp (calls,
@@ -366,53 +446,17 @@ def ges_kalman_kernel(
     for k in range(n):
         s = y[k]  # s(t_{k+1}) enters A(k), eq. (6)
         x3_prior = x3
-        # prediction x(k+1|k) = A(k) x(k|k), eq. (6)
-        xp1 = x1 + x2
-        xp2 = x2 + s * x3 + x4
-        # P(k+1|k) = A(k) P A(k)^T + Q, written out (A = I + e01 + s e12 + e13)
-        m11 = p11 + s * p12 + p13
-        m12 = p12 + s * p22 + p23
-        m13 = p13 + s * p23 + p33
-        n00 = p00 + 2.0 * p01 + p11 + q0
-        n01 = p01 + p11 + s * (p02 + p12) + p03 + p13
-        n02 = p02 + p12
-        n03 = p03 + p13
-        n11 = m11 + s * m12 + m13 + q1
-        n12 = m12
-        n13 = m13
-        n22 = p22 + q2
-        n23 = p23
-        n33 = p33 + q3
-        # update with y(k+1) = C x(k+1): scalar innovation and gain K = P C^T / (C P C^T + R)
-        e = s - xp1
+        x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3 = _filter_step(
+            s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
+        )
         sse += e * e
-        inv_S = 1.0 / (n00 + R)
-        k0 = n00 * inv_S
-        k1 = n01 * inv_S
-        k2 = n02 * inv_S
-        k3 = n03 * inv_S
-        x1 = xp1 + k0 * e
-        x2 = xp2 + k1 * e
-        x3 = x3 + k2 * e
-        x4 = x4 + k3 * e
-        # P(k+1|k+1) = P(k+1|k) - K S K^T (symmetric by construction)
-        p00 = n00 - k0 * n00
-        p01 = n01 - k0 * n01
-        p02 = n02 - k0 * n02
-        p03 = n03 - k0 * n03
-        p11 = n11 - k1 * n01
-        p12 = n12 - k1 * n02
-        p13 = n13 - k1 * n03
-        p22 = n22 - k2 * n02
-        p23 = n23 - k2 * n03
-        p33 = n33 - k3 * n03
         # actual error covariance (U1-U5): innovation statistics from the predicted U,
         # then T <- F T F^T, U <- F U F^T + h h^T with F = (I - K C) A(k), h = K + g_k
         u = e * e / (1.0 + u00 + 2.0 * u01 + u11)  # (U5)
         if last_only:  # the means (U5)-(U5a) in a second pass (below), out of this loop
             u_seq[k] = u
         else:
-            w, m_u, m_l = _noise_means(u, w, m_u, m_l, lam)
+            w, m_u, m_l, x_ref, e_ref = _noise_means(u, w, m_u, m_l, lam, x_ref, e_ref)
         h1 = k1 + x3_prior  # h = K + g_k (U2); h0, h2, h3 = k0, k2, k3
         if t00 + t11 + t22 + t33 > T_NEGLIGIBLE:  # T decays geometrically (U3):
             t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33 = _propagate_error(
@@ -433,7 +477,7 @@ def ges_kalman_kernel(
             _write_estimates(out, k, x1, x2, x3, x4, p22, Ts, rel_std)
     if last_only:  # (U5)-(U5a) over the block's u, in order: the same values as in the loop
         for k in range(n):
-            w, m_u, m_l = _noise_means(u_seq[k], w, m_u, m_l, lam)
+            w, m_u, m_l, x_ref, e_ref = _noise_means(u_seq[k], w, m_u, m_l, lam, x_ref, e_ref)
         _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
         _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
         _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, 0)
@@ -467,13 +511,25 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators ges-kalman``
     # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
     bench_note: ClassVar[str] = (
-        "ges-kalman is below the streaming FFT (about 0.6x at 1024-sample blocks): besides the "
+        "ges-kalman is below the streaming FFT (about 0.6-0.9x at 1024-sample blocks): besides the "
         "filter on (6) (~50 flops a sample), every sample propagates the actual error's covariance "
         "U (U4), 16 entries at ~9 flops each after M = A U A^T, and updates the noise means "
-        "(U5)-(U5a), one log and one exp per sample. With U and T in registers, the means in a "
-        "second pass and the last row written after the loop, the kernel runs at ~45 ns/sample "
-        "(~30 for the filter and U, ~14 for log and exp), each operation in the order that keeps "
-        "the outputs bit for bit; the FFT shares its work across a frame instead."
+        "(U5)-(U5a), one log a sample (the exp of the cap only where a bound on it does not already "
+        "show that the cap cannot bind). With U and T in registers, the means in a second pass and "
+        "the last row written after the loop, each operation in the order that keeps the outputs "
+        "bit for bit, the kernel is one dependent chain a sample (a division for the gain, another "
+        "for u); the FFT shares its work across a frame instead."
+    )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank advances 8 channels as one vector (lane-major state; the filter, T and U in "
+        "256-bit AVX registers, LLVM's preferred width here) at ~1.7-2x one channel, and still "
+        "takes, per sample of every channel, one log from the C library for the noise means (U5), "
+        "scalar per lane (~6.5 ns a call by throughput; a vectorised log would round differently): "
+        "about a third of the bank's time (perf). The rest is the filter and U (~255 flops a "
+        "sample, two divisions on the chain from one sample to the next, ~45 %) and the means' "
+        "recursion lane by lane (~20 %). Twice the 4096-sample FFT is ~16 ns a sample: it would "
+        "take a log vectorised with the C library's exact rounding"
     )
 
     def _setup(self) -> None:
@@ -514,3 +570,261 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         track = track_from_columns(out, sse, block.shape[0])
         track.std = TrackStd(frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3])
         return track
+
+
+# ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
+LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
+# rows of the bank's lane-major work array: one row of LANES doubles per per-sample quantity
+# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out
+_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO = 0, 4, 14, 30, 46, 47, 49  # _RS: two rows, see the bank kernel
+_ROWS = 50
+_P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
+_P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
+
+
+@kernel(inline="always")
+def _bank_sample(
+    S: np.ndarray, lane: int, rs: int, with_t: bool, q0: float, q1: float, q2: float, q3: float, R: float
+) -> None:
+    """One sample (row ``rs``) of lane ``lane`` of the work array ``S`` (rows ``_R*``, each
+    ``LANES`` wide): the filter (:func:`_filter_step`), T (U3) and U (U4) advanced exactly as
+    :func:`ges_kalman_kernel` does (T's branches as selects: the propagation is computed and
+    kept or not), the sse summed, u of (U5) into row ``_RUO``. Straight-line arithmetic that
+    reads and writes one array at constant offsets only, so the compiler can prove the lanes
+    independent and run them as one vector (a second array would need a run-time overlap
+    check, which LLVM does not add to a loop of 8 iterations)."""
+    L = LANES
+    s = S[rs * L + lane]
+    x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
+    b = _RP * L + lane
+    p00, p01, p02, p03, p11 = S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L]
+    p12, p13, p22, p23, p33 = S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L]
+    x3_prior = x3
+    x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3 = _filter_step(
+        s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
+    )
+    S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane] = x1, x2, x3, x4
+    S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L] = p00, p01, p02, p03, p11
+    S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L] = p12, p13, p22, p23, p33
+    S[_RSSE * L + lane] += e * e
+    h1 = k1 + x3_prior  # h = K + g_k (U2)
+    if with_t:  # else no lane's T is propagated: the caller applies (U3)'s zeroing
+        t = _RT * L + lane
+        t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
+        t10, t11, t12, t13 = S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L]
+        t20, t21, t22, t23 = S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L]
+        t30, t31, t32, t33 = S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L]
+        n00, n01, n02, n03, n10, n11, n12, n13, n20, n21, n22, n23, n30, n31, n32, n33 = _propagate_error(
+            t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33,
+            s, k0, k1, k2, k3, k0, h1, k2, k3, 0.0,
+        )  # fmt: skip
+        keep = t00 + t11 + t22 + t33 > T_NEGLIGIBLE  # (U3) as in ges_kalman_kernel
+        zero = (not keep) and t00 != 0.0
+        # T <- propagated if keep, 0 if zero, else as it was (the single kernel's if / elif)
+        t00 = n00 if keep else (0.0 if zero else t00)
+        t01 = n01 if keep else (0.0 if zero else t01)
+        t02 = n02 if keep else (0.0 if zero else t02)
+        t03 = n03 if keep else (0.0 if zero else t03)
+        t10 = n10 if keep else (0.0 if zero else t10)
+        t11 = n11 if keep else (0.0 if zero else t11)
+        t12 = n12 if keep else (0.0 if zero else t12)
+        t13 = n13 if keep else (0.0 if zero else t13)
+        t20 = n20 if keep else (0.0 if zero else t20)
+        t21 = n21 if keep else (0.0 if zero else t21)
+        t22 = n22 if keep else (0.0 if zero else t22)
+        t23 = n23 if keep else (0.0 if zero else t23)
+        t30 = n30 if keep else (0.0 if zero else t30)
+        t31 = n31 if keep else (0.0 if zero else t31)
+        t32 = n32 if keep else (0.0 if zero else t32)
+        t33 = n33 if keep else (0.0 if zero else t33)
+        S[t], S[t + L], S[t + 2 * L], S[t + 3 * L] = t00, t01, t02, t03
+        S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L] = t10, t11, t12, t13
+        S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L] = t20, t21, t22, t23
+        S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L] = t30, t31, t32, t33
+    v = _RU * L + lane
+    u00, u01, u02, u03 = S[v], S[v + L], S[v + 2 * L], S[v + 3 * L]
+    u10, u11, u12, u13 = S[v + 4 * L], S[v + 5 * L], S[v + 6 * L], S[v + 7 * L]
+    u20, u21, u22, u23 = S[v + 8 * L], S[v + 9 * L], S[v + 10 * L], S[v + 11 * L]
+    u30, u31, u32, u33 = S[v + 12 * L], S[v + 13 * L], S[v + 14 * L], S[v + 15 * L]
+    u = e * e / (1.0 + u00 + 2.0 * u01 + u11)  # (U5), from the predicted U
+    u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33 = _propagate_error(
+        u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33,
+        s, k0, k1, k2, k3, k0, h1, k2, k3, 1.0,
+    )  # (U4)  # fmt: skip
+    S[v], S[v + L], S[v + 2 * L], S[v + 3 * L] = u00, u01, u02, u03
+    S[v + 4 * L], S[v + 5 * L], S[v + 6 * L], S[v + 7 * L] = u10, u11, u12, u13
+    S[v + 8 * L], S[v + 9 * L], S[v + 10 * L], S[v + 11 * L] = u20, u21, u22, u23
+    S[v + 12 * L], S[v + 13 * L], S[v + 14 * L], S[v + 15 * L] = u30, u31, u32, u33
+    S[_RUO * L + lane] = u
+
+
+@kernel(inline="always")
+def _bank_t_live(S: np.ndarray) -> bool:
+    """Whether some lane of ``S`` propagates its T at the next sample (U3), as
+    :func:`ges_kalman_kernel` decides it. Once no lane does, none will again (T then stays
+    zero or as it was)."""
+    L = LANES
+    live = False
+    for lane in range(L):
+        t = _RT * L + lane
+        live |= S[t] + S[t + 5 * L] + S[t + 10 * L] + S[t + 15 * L] > T_NEGLIGIBLE
+    return live
+
+
+@kernel(inline="always")
+def _bank_t_zero(S: np.ndarray) -> None:
+    """The zeroing of T (U3) in lanes where no lane propagates it: 0 where ``T[0, 0] != 0``."""
+    L = LANES
+    for lane in range(L):
+        if S[_RT * L + lane] != 0.0:
+            for i in range(16):
+                S[(_RT + i) * L + lane] = 0.0
+
+
+@kernel(inline="always")
+def _bank_row(
+    S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float,
+    out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
+) -> None:  # fmt: skip
+    """Row ``row`` of ``out`` and ``std`` (one channel's) from lane ``lane`` of ``S``, as
+    :func:`ges_kalman_kernel` writes it."""
+    L = LANES
+    for i in range(16):
+        T[i // 4, i % 4] = S[(_RT + i) * L + lane]
+        U[i // 4, i % 4] = S[(_RU + i) * L + lane]
+    x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
+    _parameter_std(x1, x2, x3, x4, T, U, s2, Ts, std, row)
+    _write_estimates(out, row, x1, x2, x3, x4, S[(_RP + 7) * L + lane], Ts, rel_std)
+
+
+@kernel(inline="always")
+def _bank_means_pair(
+    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int, a: int
+) -> None:
+    """:func:`_noise_means_of_log` over the block's u of lanes ``a`` and ``a + 1``, each in
+    order; the two chains side by side, so that each waits less on its own latency."""
+    b = a + 1
+    m_ua, w_a, m_la, x_ra, e_ra = means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a]
+    m_ub, w_b, m_lb, x_rb, e_rb = means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b]
+    for k in range(n):
+        i = k * LANES + a
+        w_a, m_ua, m_la, x_ra, e_ra = _noise_means_of_log(us[i], logs[i], w_a, m_ua, m_la, lam, x_ra, e_ra)
+        w_b, m_ub, m_lb, x_rb, e_rb = _noise_means_of_log(us[i + 1], logs[i + 1], w_b, m_ub, m_lb, lam, x_rb, e_rb)
+    means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a] = m_ua, w_a, m_la, x_ra, e_ra
+    means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b] = m_ub, w_b, m_lb, x_rb, e_rb
+
+
+@kernel(inline="always")
+def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int) -> None:
+    """The noise means (U5)-(U5a) of the block's u, every lane (lanes past the last channel
+    run on their zeros harmlessly), two lanes at a time. Not all lanes in one loop: the
+    compiler would vectorise it and, taking exp for a pure function, call exp for every lane
+    on every sample, which undoes :func:`_noise_means`' skipping of it."""
+    for a in range(0, LANES, 2):
+        _bank_means_pair(us, logs, means, refs, lam, n, a)
+
+
+@kernel
+def ges_kalman_bank_kernel(
+    y: np.ndarray, xP: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ges_kalman_kernel` for C channels at once: ``y`` (N, C), ``xP`` (20, C), ``unc``
+    (35, C), one channel per column; returns ``out`` (C, rows, 5), ``sse`` (C,), ``std``
+    (C, rows, 4) and the new ``xP`` and ``unc``. Channels go ``LANES`` at a time through a
+    lane-major work array (copied in and out once per block): the filter, T and U of the
+    ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
+    count over one array), then each channel's noise means (U5)-(U5a) take their log and
+    exp lane by lane, the C library's scalar calls that the single kernel makes."""
+    n, nc = y.shape
+    rows = 1 if last_only else n
+    out = np.empty((nc, rows, 5))
+    std = np.empty((nc, rows, 4))
+    sse = np.empty(nc)
+    new_xP = np.empty((20, nc))
+    new_unc = np.empty((UNC_SIZE, nc))
+    q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]
+    R, Ts, rel_std = consts[4], consts[5], consts[6]
+    lam = 1.0 - 1.0 / consts[7]  # (U5)
+    L = LANES
+    S = np.empty(_ROWS * L)
+    ys = np.empty(n * L)
+    us = np.empty(n * L)
+    logs = np.empty(n * L if last_only else 0)
+    T = np.empty((4, 4))
+    U = np.empty((4, 4))
+    for g in range(0, nc, L):
+        width = min(L, nc - g)
+        S[:] = 0.0  # lanes past the last channel run on zeros, their results dropped
+        if width < L:
+            ys[:] = 0.0
+        for c in range(width):
+            for i in range(4):
+                S[(_RX + i) * L + c] = xP[i, g + c]
+            for i in range(10):
+                S[(_RP + i) * L + c] = xP[_P_IN_XP[i], g + c]
+            for i in range(32):
+                S[(_RT + i) * L + c] = unc[i, g + c]
+        for k in range(n):  # row by row: y (N, C) is read in its own order
+            for c in range(width):
+                ys[k * L + c] = y[k, g + c]
+        means = np.zeros((3, L))  # <u>, w, <log u>
+        refs = np.zeros((2, L))  # _noise_means' x_ref, e_ref
+        for c in range(width):
+            means[0, c], means[1, c], means[2, c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
+        for lane in range(L):  # sample 0's row
+            S[_RS * L + lane] = ys[lane]
+        t_live = True
+        for k in range(n):
+            # sample k + 1 into the row sample k does not read: written one step before it is
+            # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
+            nxt = min(k + 1, n - 1) * L
+            rs_next = (_RS + 1 - k % 2) * L
+            for lane in range(L):
+                S[rs_next + lane] = ys[nxt + lane]
+            if t_live:  # some lane's T is still propagated (U3): half the arithmetic
+                t_live = _bank_t_live(S)
+            if not t_live:  # none: the single kernel's zeroing of T, where it applies
+                _bank_t_zero(S)
+            # rows and the T switch as constants, so the compiler sees the lanes independent
+            if k % 2 == 0 and t_live:
+                for lane in range(L):  # literal trip count: one vector
+                    _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
+            elif t_live:
+                for lane in range(L):
+                    _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
+            elif k % 2 == 0:
+                for lane in range(L):
+                    _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
+            else:
+                for lane in range(L):
+                    _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
+            for lane in range(L):
+                us[k * L + lane] = S[_RUO * L + lane]
+            if not last_only:
+                for c in range(width):  # the means and row k, lane by lane (log, exp: scalar)
+                    w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means(
+                        us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
+                    )
+                    means[0, c], means[1, c], means[2, c] = m_u, w, m_l
+                    _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, out[g + c], std[g + c], k, T, U)
+        if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
+            for i in range(n * L):  # the logs first: independent calls, which overlap
+                logs[i] = math.log(max(us[i], TINY))
+            _bank_means(us, logs, means, refs, lam, n)
+            for c in range(width):
+                m_u, w = means[0, c], means[1, c]
+                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, out[g + c], std[g + c], 0, T, U)
+        for c in range(width):
+            ch = g + c
+            sse[ch] = S[_RSSE * L + c]
+            for i in range(4):
+                new_xP[i, ch] = S[(_RX + i) * L + c]
+            for i in range(16):  # P's 16 entries (row-major) from its 10 distinct ones
+                new_xP[4 + i, ch] = S[(_RP + _P_OF_ENTRY[i]) * L + c]
+            for i in range(32):
+                new_unc[i, ch] = S[(_RT + i) * L + c]
+            new_unc[32, ch], new_unc[33, ch], new_unc[34, ch] = means[0, c], means[1, c], means[2, c]
+    return out, sse, std, new_xP, new_unc
+
+
+register_bank(GesKalman, ges_kalman_bank_kernel, n_outputs=3)

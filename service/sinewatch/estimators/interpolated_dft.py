@@ -49,6 +49,20 @@ Every ``hop`` samples, once the ring buffer holds a full window of N samples
      offset ``B = mu + d``, phase at the newest sample ``theta_end = omega c + phi``, and
      the fit residual ``r = rms(u_n - a s_n - b c_n - d)``.
 
+(U)  standard deviations (derived here, not in [G], [A]): the noise variance is the fit's
+     residual, ``sigma^2 = r^2 N / (N - 3)`` (it includes whatever the model misses). The
+     frequency's is the interpolation (I3)/(I2) linearised in the noise (``d|X_k| = Re(conj(X_k)
+     dX_k) / |X_k|`` through the window's own DFT sums: :func:`std_tables`, per unit sigma^2 /
+     A^2 over the search band, averaged over the tone's phase) plus the RMS over the phase of
+     the interpolation's deterministic error on a real tone (the image's leakage: about 0.005
+     Hz at 4 cycles, larger than the noise's share above ~40 dB). Amplitude ``2 sigma^2 / N``,
+     offset ``sigma^2 / N`` (least squares at a known frequency [K, Section 8.6]); the phase at
+     the window's middle ``2 sigma^2 / (N A^2)``, plus ``(c + m)^2`` times the variance of
+     omega for a phase m samples after the window's last sample. The ROCOF's is that of the
+     difference of two windows a hop apart (their noise shares samples, and their deterministic
+     errors differ by the tone's phase turning over the hop), in ``extras``
+     (``std_rocof_hz_per_s``).
+
 Between hops the estimate is held and the phase advances at the held frequency:
 ``phase(m) = wrap(theta_end + omega m)`` m samples after the hop, so phase is
 instantaneous at every sample (the Track has one row per input sample). The estimate
@@ -82,8 +96,10 @@ so the compiler vectorises them, where one window alone is a chain of dependent 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -96,6 +112,7 @@ from sinewatch.estimators.base import (
     NonNegativeFinite,
     PositiveFinite,
     Track,
+    TrackStd,
     encode_array,
     kernel,
     require_below_nyquist,
@@ -152,6 +169,91 @@ class IpdftParams(EstimatorParams):
                 f"({self.window_cycles} cycles, {self.window_samples} samples)"
             )
         return self
+
+
+# (U) the tables of the standard deviations: points over the search band, tone phases averaged
+STD_TABLE_POINTS = 240
+STD_TABLE_PHASES = 8
+
+
+@dataclass(frozen=True)
+class StdTables:
+    """(U) per unit sigma^2 / A^2, on the grid ``lam`` (bins): the variance of the interpolated
+    peak lambda and of the difference of two windows a hop apart (the ROCOF), linearised in the
+    noise; and the RMS over the tone's phase of their deterministic errors (the image's leakage,
+    the interpolation's model error), which the noise terms do not cover at high SNR."""
+
+    lam: np.ndarray
+    var_lam: np.ndarray
+    var_dlam: np.ndarray
+    bias_lam: np.ndarray
+    bias_dlam: np.ndarray
+
+
+def _peak_and_gradient(
+    x: np.ndarray, hann: np.ndarray, bins: np.ndarray, k_lo: int, k_hi: int, three_point: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """(M), (D), (P), (I3)/(I2), (F) in numpy for windows ``x`` (P, N): lambda (P,) and its
+    gradient with respect to the samples (P, N), d lambda = sum_n g_n dx_n (the Hann mean's own
+    noise left out: it reaches bin 1 only)."""
+    n = x.shape[1]
+    mu = (x @ hann) / hann.sum()
+    u = (x - mu[:, None]) * hann
+    e = np.exp(-2j * np.pi * np.outer(np.arange(n), bins) / n)  # (N, nb)
+    spec = u @ e  # (P, nb)
+    mags = np.abs(spec)
+    band = mags[:, 1:-1]
+    bp = 1 + np.argmax(band, axis=1)  # the first maximum, as the kernel
+    rows = np.arange(x.shape[0])
+    xm, x0, xp = mags[rows, bp - 1], mags[rows, bp], mags[rows, bp + 1]
+    if three_point:
+        s = xm + 2.0 * x0 + xp
+        delta = 2.0 * (xp - xm) / s
+        gm, g0, gp = -2.0 * (s + xp - xm) / s**2, -4.0 * (xp - xm) / s**2, 2.0 * (s - (xp - xm)) / s**2
+    else:
+        right = xp >= xm
+        xn = np.where(right, xp, xm)
+        sign = np.where(right, 1.0, -1.0)
+        alpha = xn / x0
+        delta = sign * (2.0 * alpha - 1.0) / (alpha + 1.0)
+        dd_da = sign * 3.0 / (alpha + 1.0) ** 2
+        gn, g0 = dd_da / x0, -dd_da * xn / x0**2
+        gm, gp = np.where(right, 0.0, gn), np.where(right, gn, 0.0)
+    lam = (k_lo - 1 + bp) + delta
+    grad = np.zeros(x.shape)
+    for off, g in ((-1, gm), (0, g0), (1, gp)):
+        col = spec[rows, bp + off]
+        c = g * np.conj(col) / np.abs(col)  # d|X_k| = Re(conj(X_k) dX_k) / |X_k|
+        grad += hann * np.real(c[:, None] * e[:, bp + off].T)
+    return lam, grad
+
+
+@functools.lru_cache(maxsize=16)
+def std_tables(n: int, hop: int, k_lo: int, k_hi: int, interpolation: str) -> StdTables:
+    """(U) the tables of :class:`StdTables` for a window of n samples, computed on unit-amplitude
+    tones over the search band (the window's own sums, not a formula for a continuous window)."""
+    three = interpolation == "3-point"
+    lam = np.linspace(k_lo - 0.5, k_hi + 0.5, STD_TABLE_POINTS)
+    phases = np.arange(STD_TABLE_PHASES) * (np.pi / STD_TABLE_PHASES)  # the image repeats every pi
+    hann = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(n) / n)
+    bins = np.arange(k_lo - 1, k_hi + 2)
+    t = np.arange(n + hop)
+    out = np.empty((5, lam.size))
+    for i, lm in enumerate(lam):
+        tone = np.cos(2.0 * np.pi * lm / n * t[None, :] + phases[:, None])  # (P, N + hop)
+        l1, g1 = _peak_and_gradient(tone[:, :n], hann, bins, k_lo, k_hi, three)
+        l2, g2 = _peak_and_gradient(tone[:, hop:], hann, bins, k_lo, k_hi, three)
+        diff = np.zeros((phases.size, n + hop))
+        diff[:, hop:] += g2
+        diff[:, :n] -= g1
+        out[:, i] = (
+            lm,
+            np.mean(np.sum(g1 * g1, axis=1)),
+            np.mean(np.sum(diff * diff, axis=1)),
+            math.sqrt(np.mean((l1 - lm) ** 2)),
+            math.sqrt(np.mean((l2 - l1) ** 2)),
+        )
+    return StdTables(*(np.ascontiguousarray(r) for r in out))
 
 
 CHUNK = 64  # windows estimated together (see _window_estimates): bounds the scratch to CHUNK x N
@@ -458,9 +560,10 @@ def ipdft_kernel(
     iconsts: np.ndarray,
     fconsts: np.ndarray,
     last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run the sliding interpolated DFT over block ``x``; return
-    ``(out, resid, rocof, sse, n_pred, new_buf, new_istate, new_fstate, new_rstate)``.
+    ``(out, resid, rocof, age, sse, n_pred, new_buf, new_istate, new_fstate, new_rstate)``
+    (``age``: samples since the last sample of the window each row's estimate is from).
 
     ROCOF is the difference of two consecutive windows' frequencies over the hop (Hz/s),
     held like the other outputs (``rstate`` = previous window's frequency in cycles/sample,
@@ -492,6 +595,7 @@ def ipdft_kernel(
     out = np.empty((1 if last_only else n_in, 5))
     rocof_out = np.empty(1 if last_only else n_in)
     resid = np.empty(1 if last_only else n_in)
+    age = np.empty(1 if last_only else n_in)  # (U) samples since the held window's last sample
     chunk = min(CHUNK, (n_in - 1) // hop + 1)  # at most one window per hop samples
     # the stream: the buffer's N samples, oldest first, then the block (window ending at
     # block sample j = seg[j + 1 : j + 1 + N])
@@ -572,10 +676,12 @@ def ipdft_kernel(
                 out[row, 4] = conv
                 resid[row] = r
                 rocof_out[row] = rocof if run >= 2.0 else np.nan
+                age[row] = m
             else:
                 undefined_row(out, row)
                 resid[row] = np.nan
                 rocof_out[row] = np.nan
+                age[row] = np.nan
         j0 = j1
     pos = (pos + n_in) % N  # the last N samples of the stream back into the ring, oldest at pos
     b = np.empty(N)
@@ -584,7 +690,7 @@ def ipdft_kernel(
     new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
     new_fstate = np.array([fcy, A, th, B, r, conv])
     new_rstate = np.array([f_prev, rocof, run])
-    return out, resid, rocof_out, sse, n_pred, b, new_istate, new_fstate, new_rstate
+    return out, resid, rocof_out, age, sse, n_pred, b, new_istate, new_fstate, new_rstate
 
 
 @register
@@ -679,7 +785,34 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         super().set_state(snapshot)
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
-        out, resid, rocof, sse, n_pred = outputs
+        out, resid, rocof, age, sse, n_pred = outputs
         track = track_from_columns(out, sse, n_pred, {"fit_residual_rms": resid})
         track.rocof_hz_per_s = rocof[:, None]
+        track.std, std_rocof = self._std(out, resid, age)
+        track.extras["std_rocof_hz_per_s"] = std_rocof
         return track
+
+    def _std(self, out: np.ndarray, resid: np.ndarray, age: np.ndarray) -> tuple[TrackStd, np.ndarray]:
+        """(U) one standard deviation of each output row, and of its ROCOF."""
+        n, fs, hop = self.window_samples, self.sample_rate_hz, self.hop_samples
+        t = self._std_tables
+        sig2 = resid * resid * (n / (n - 3.0))  # the fit has 3 linear parameters
+        amp = out[:, 1]
+        lam = out[:, 0] * n / fs
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero amplitude: no std (inf or NaN)
+            rel = sig2 / (amp * amp)  # sigma^2 / A^2
+        var_lam = rel * np.interp(lam, t.lam, t.var_lam) + np.interp(lam, t.lam, t.bias_lam) ** 2
+        var_dlam = rel * np.interp(lam, t.lam, t.var_dlam) + np.interp(lam, t.lam, t.bias_dlam) ** 2
+        omega_sd2 = (2.0 * np.pi / n) ** 2 * var_lam  # rad / sample
+        c = 0.5 * (n - 1)
+        std = TrackStd(
+            frequency_hz=(np.sqrt(var_lam) * fs / n)[:, None],
+            amplitude=np.sqrt(2.0 * sig2 / n)[:, None],
+            phase_rad=np.sqrt(2.0 * rel / n + (c + age) ** 2 * omega_sd2)[:, None],
+            offset=np.sqrt(sig2 / n),
+        )
+        return std, np.sqrt(var_dlam) * (fs / n) * (fs / hop)
+
+    @functools.cached_property
+    def _std_tables(self) -> StdTables:
+        return std_tables(self.window_samples, self.hop_samples, self.k_lo, self.k_hi, self.params.interpolation)

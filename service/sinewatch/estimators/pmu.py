@@ -82,6 +82,32 @@ decimation factor, ``fd = fs / D``, ``T`` kernel length (s), ``fc`` kernel cutof
      ``X(t_r) = X e^{j 2 pi nu tau}``, ``f(t_r) = f + ROCOF tau`` (``|tau| <= 1 / 2 fs``).
      Absolute reference: ``phi = arg X - 2 pi f0 t_anchor`` (mod 2 pi, from integer ns).
 
+(U)  standard deviations (derived here, not in the papers), from the signal itself. The noise
+     variance sigma^2 of the raw samples is read by ``N_PROBES`` probes: the Nuttall taper of
+     the window (no sinc) modulated to the raw frequencies ``(i + 1/2) f``, i = 0..3, f the
+     estimated frequency, i.e. halfway between the tone's harmonics (and away from the offset
+     and the image), over the same decimated samples c_j as the report. Their power over
+     their exact gram (the taper convolved with the triangle of (D):
+     ``E |P|^2 = 2 sigma^2 (R0 sum v_i^2 + 2 R1 sum v_i v_{i+1} cos(2 pi d D / fs))``, R0, R1
+     the triangle's autocorrelation at lags 0 and D), averaged over the probes and over the
+     reports with weights ``lambda^age`` (time constant ``NOISE_TIME_CONSTANT_S``: consecutive
+     reports share most of their window, so a second of reports is a few independent windows,
+     ~100 degrees of freedom) is sigma^2; what a transient or an interharmonic puts in the
+     probes counts as noise, which is what the error bar should then cover. The outputs of (E)
+     and (C) are then linearised in the kernels' noise ``e = (dp, dp', dp'')``, whose
+     covariance is ``E[e e^H] = 2 sigma^2 Gamma``, ``Gamma_kl = sum_n h_k[n] h_l[n]`` the
+     raw-domain gram of the three kernels (tabulated per phase; ``E[e e^T]`` is the kernels'
+     response at 2 f0, nil): a reported y = Re or Im of ``c^T e`` has variance
+     ``sigma^2 c^H Gamma c``. With r1 = p'/p: ``dnu = Im(dp'/p - r1 dp/p) / 2 pi``; ``da2 =
+     dp''/p + (2 r1^2 - p''/p) dp/p - 2 r1 dp'/p``, ROCOF = Im(a2) / 2 pi;
+     ``dX = dp / Dn - (p G2 / 2 Dn^2) da2`` (Dn = G + a2 G2 / 2), amplitude ``sqrt 2 Re(conj(u)
+     dX)``, phase ``Im(conj(u) dX) / |X|`` (u = X / |X|), the RMS TVE ``sqrt(E |dX|^2) / |X|``;
+     the offset ``sum_n h0[n] x_n`` has variance ``sigma^2 Gamma_00``. The image cancellation
+     and the tables' own dependence on nu are left out (second order). The ROCOF's and TVE's
+     standard deviations are in the reports' ``extras`` (``std_rocof_hz_per_s``, ``std_tve``,
+     a fraction). P class (a three-cycle window, whose main lobe reaches the probes) is not
+     calibrated by ``sinewatch bench calibration``.
+
 Kernel choice per (class, f0, Fs): ``T = 9 / Fs`` (latency ``4.5 / Fs + 2 D / fs``, under the
 M-class ``5 / Fs``) and ``fc`` a fraction of ``Fs / 2``: 0.26 (50 Hz) and 0.22 (60 Hz) at
 Fs = f0, 0.375 below. The fractions were searched with the compliance bench (``sinewatch
@@ -97,10 +123,27 @@ half a sample (a gap in time) re-anchors the estimator: it restarts (its reports
 after one kernel length). Every report is computed once the kernel's last tap has
 arrived: the latency is ``T / 2 + 2 D / fs``.
 
+(T)  converged: a report is converged when its magnitude is above ``min_amplitude`` and no
+     transition has been seen for one kernel length (``ceil(T Fs)`` reports: the window of
+     the report has refilled since). A report is a transition when it departs from the
+     previous report's prediction (magnitude unchanged, frequency ``f + ROCOF / Fs``) by
+     more than ``max(floor, 6 s)``, s the running mean of those departures (each clipped to
+     the threshold; the plain mean of the first 20, then weight 0.05 a report), so that noise and sustained modulation raise the
+     threshold with them while a step does not: floors 0.1 % of the magnitude and 0.006 Hz
+     (module constants, from the C37.118.1 step tests: the first report of a step whose TVE
+     exceeds 1 % already departs by more). The start, a restart on the grid (a gap in time,
+     a reset) and an undefined report start it over; the first report after one is not
+     converged (there is nothing to check it against). Consequences: converged is false
+     from the first report a magnitude or phase step moves (before the step's instant, as
+     the window reaches it) until one window after the last such report; a modulation at
+     the edge of the measurement bandwidth reads as transitions until the scale has risen
+     to it (about 1 s).
+
 Per-sample outputs (the Track rows) hold the latest report, the phase advanced at its
 frequency (``y = offset + A sin(phase)``, A = sqrt 2 |X|); ``offset`` is the kernel's DC
 output on the raw samples. ``residual_rms`` is the one-step prediction error of that
-held model. The reports themselves (``Track.reports``, a GridReports) carry the same
+held model. A row's ``converged`` is the kernel's magnitude test; with ``last_only`` it is
+the latest report's (T). The reports themselves (``Track.reports``, a GridReports) carry the same
 fields at the report times, the ROCOF in ``rocof_hz_per_s`` and the synchrophasor in
 ``extras`` (``synchrophasor_magnitude``, RMS, and ``synchrophasor_angle_rad``).
 """
@@ -122,6 +165,7 @@ from sinewatch.estimators.base import (
     EstimatorParams,
     GridReports,
     Track,
+    TrackStd,
     concat_tracks,
     cyclic_next,
     decode_array,
@@ -149,6 +193,17 @@ MIN_SAMPLES_PER_CYCLE = 10
 
 TABLE_STEP_HZ = 0.04
 N_IMAGE_PASSES = 2
+
+# converged (T): a report is a transition when it departs from the previous report's
+# prediction by more than max(floor, TRANSITION_K x the running scale of such departures).
+# Floors from the C37.118.1 step tests (``sinewatch bench compliance``): at the first report
+# whose TVE exceeds 1 % the magnitude has moved >= 0.12 % from the report before (10 %
+# steps) or the frequency >= 0.0075 Hz from its prediction (10 degree steps), where the
+# steady, harmonic, ramp and out-of-band tests move < 0.06 % and < 0.0056 Hz.
+TRANSITION_MAG_FLOOR = 1e-3  # relative change of the RMS magnitude
+TRANSITION_FREQ_FLOOR_HZ = 6e-3
+TRANSITION_K = 6.0
+TRANSITION_ALPHA = 0.05  # weight of each report in the running scale (~20 reports)
 
 
 class PmuParams(EstimatorParams):
@@ -189,6 +244,9 @@ class Design:
     nu_pass0: float
     g_image: np.ndarray  # (D, 3, T) complex: the three kernels' responses on nu_image0 + i * step
     nu_image0: float
+    noise_gram: np.ndarray  # (D, 3, 3): (U) the kernels' raw-domain noise gram, per phase
+    probe_taper: np.ndarray  # (D, M): (U) the noise probes' taper, per phase
+    probe_gram: np.ndarray  # (D, 2): (U) the probes' gram terms S0, S1 per phase, with the triangle's R0, R1
 
     @property
     def n_taps(self) -> int:
@@ -364,6 +422,7 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     r1 = bank[:, 1] / bank[:, 0]
     a2_bias = np.ascontiguousarray(bank[:, 2] / bank[:, 0] - r1 * r1)
     g_img = _bank_response(kernels, m, d, fs, nu_img)
+    noise_gram, probe_taper, probe_gram = _noise_design(kernels, m, d, fs, window_s)
     return Design(
         fs=fs,
         f0=f0,
@@ -382,7 +441,42 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
         nu_pass0=float(nu_pass[0]),
         g_image=g_img,
         nu_image0=float(nu_img[0]),
+        noise_gram=noise_gram,
+        probe_taper=probe_taper,
+        probe_gram=probe_gram,
     )
+
+
+def _triangle_autocorrelation(d: int) -> tuple[float, float]:
+    """(U) ``R0 = sum_i tri_i^2`` and ``R1 = sum_i tri_i tri_{i+D}`` of the triangle of (D):
+    the noise covariance of consecutive c_j (lags beyond D are zero)."""
+    i = np.arange(-(d - 1), d)
+    tri = (d - np.abs(i)) / (d * d)
+    r0 = float(np.sum(tri * tri))
+    r1 = float(np.sum(tri[d:] * tri[:-d])) if d > 1 else 0.0
+    return r0, r1
+
+
+def _noise_design(
+    kernels: np.ndarray, m: np.ndarray, d: int, fs: float, window_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(U) per input-sample phase rho: the gram ``Gamma_kl = sum_n h_k[n] h_l[n]`` of the three
+    kernels' raw-domain responses h_k (taps convolved with the triangle), the probes' Nuttall taper
+    on the kernels' tap times, and the probes' gram terms ``(R0 sum v_i^2, R1 sum v_i v_{i+1})``."""
+    r0, r1 = _triangle_autocorrelation(d)
+    n_rho, _, taps = kernels.shape
+    gram = np.empty((n_rho, 3, 3))
+    taper = np.empty((n_rho, taps))
+    pgram = np.empty((n_rho, 2))
+    for rho in range(n_rho):
+        k = kernels[rho]
+        lag1 = k[:, :-1] @ k[:, 1:].T
+        gram[rho] = r0 * (k @ k.T) + r1 * (lag1 + lag1.T)
+        t = (m * d + rho) / fs
+        v = _kernel(t, window_s, None)[0]
+        taper[rho] = v
+        pgram[rho] = (r0 * float(v @ v), r1 * float(v[:-1] @ v[1:]))
+    return np.ascontiguousarray(gram), np.ascontiguousarray(taper), np.ascontiguousarray(pgram)
 
 
 #: 'auto': the detection window (ten cycles of 50 Hz, twelve of 60) and how long a signal
@@ -438,6 +532,12 @@ def gain(d: Design, nu: float | np.ndarray) -> np.ndarray:
 # 13 converged, 14 cos theta, 15 sin theta (rotor at the current sample)
 N_ISTATE = 6
 N_FSTATE = 16
+#: (U) noise probes per report, and the time constant (s) of their average over reports
+N_PROBES = 4
+NOISE_TIME_CONSTANT_S = 1.0
+#: report rows: the 8 values, then (U) the standard deviations of frequency, ROCOF, amplitude,
+#: phase, offset and TVE
+N_REPORT_COLUMNS = 14
 
 
 @kernel
@@ -477,10 +577,17 @@ def _report(
     bias: np.ndarray,
     gc: np.ndarray,
     gi3: np.ndarray,
+    gram: np.ndarray,
+    taper: np.ndarray,
+    pgram: np.ndarray,
+    noise: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """(K)-(E) from the M decimated samples ring[start:start+M] (oldest first): fills
-    out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame)."""
+    out = (nu, Re X, Im X, rocof, B, defined) at input sample n_r (anchor frame), then (U):
+    updates the noise average ``noise`` (in place) and fills out[6:12] = the standard
+    deviations of frequency, ROCOF, amplitude (peak), phase, offset and TVE (NaN when
+    undefined)."""
     M = kern.shape[1]
     f0, nu_p0, nu_i0, step = fconsts[0], fconsts[2], fconsts[3], fconsts[4]
     # taps run m = m_lo .. m_lo + M - 1 over c_{q - m}: newest sample first
@@ -534,6 +641,104 @@ def _report(
     out[3] = rocof
     out[4] = b
     out[5] = 1.0 if (math.isfinite(nu) and math.isfinite(rocof) and math.isfinite(abs(x))) else 0.0
+    for c in range(6, 12):
+        out[c] = np.nan
+    if out[5] == 0.0:
+        return
+    sig2 = _noise_update(ring, start, M, taper, pgram, f0 + nu, fconsts, noise)
+    dn = _interp(gp, nu_p0, step, nu) + 0.5 * a2 * _interp(gc, nu_p0, step, nu)
+    _report_std(q0, q1, q2, r1, dn, _interp(gc, nu_p0, step, nu), x, gram, sig2, out)
+
+
+@kernel
+def _noise_update(
+    ring: np.ndarray,
+    start: int,
+    M: int,
+    taper: np.ndarray,
+    pgram: np.ndarray,
+    f_hz: float,
+    fconsts: np.ndarray,
+    noise: np.ndarray,
+) -> float:
+    """(U) the noise variance sigma^2 of the raw samples: N_PROBES probes (the Nuttall taper
+    modulated to raw frequencies (i + 1/2) f, halfway between the signal's harmonics, relative
+    to the estimated f so that neither the tone nor its harmonics, the offset or the image
+    fall in their main lobes) read the noise beside the tone in this window; their power over
+    their gram, averaged over the probes and over reports (weights ``lambda^age``, the
+    average in ``noise`` = (weighted sum, sum of weights)), is sigma^2. Returns it."""
+    f_osc, lam, dstep = fconsts[0], fconsts[7], fconsts[8]
+    last = start + M - 1
+    acc = 0.0
+    for k in range(N_PROBES):
+        dk = (k + 0.5) * f_hz - f_osc  # the probe's frequency after demodulation
+        w = 2.0 * math.pi * dk * dstep  # radians per decimated sample
+        rot = complex(math.cos(w), math.sin(w))
+        e = complex(1.0, 0.0)
+        pr = complex(0.0, 0.0)
+        for i in range(M):
+            pr += taper[i] * e * complex(ring[last - i, 0], ring[last - i, 1])
+            e *= rot
+        g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
+        acc += (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    noise[0] = lam * noise[0] + acc / N_PROBES
+    noise[1] = lam * noise[1] + 1.0
+    sig2: float = noise[0] / noise[1]
+    return sig2
+
+
+@kernel(inline="always")
+def _qform(c0: complex, c1: complex, c2: complex, gram: np.ndarray) -> float:
+    """c^H Gamma c for a real symmetric 3x3 Gamma: the variance of Re(c^T e) (and of Im) per
+    unit sigma^2, for the kernels' noise e (E[e e^H] = 2 sigma^2 Gamma, E[e e^T] ~ 0)."""
+    v: float = (
+        gram[0, 0] * (c0.real * c0.real + c0.imag * c0.imag)
+        + gram[1, 1] * (c1.real * c1.real + c1.imag * c1.imag)
+        + gram[2, 2] * (c2.real * c2.real + c2.imag * c2.imag)
+        + 2.0 * gram[0, 1] * (c0.conjugate() * c1).real
+        + 2.0 * gram[0, 2] * (c0.conjugate() * c2).real
+        + 2.0 * gram[1, 2] * (c1.conjugate() * c2).real
+    )
+    return v if v > 0.0 else 0.0
+
+
+@kernel
+def _report_std(
+    q0: complex,
+    q1: complex,
+    q2: complex,
+    r1: complex,
+    dn: complex,
+    gcv: complex,
+    x: complex,
+    gram: np.ndarray,
+    sig2: float,
+    out: np.ndarray,
+) -> None:
+    """(U) the estimates of (E) and (C) linearised in the kernels' noise (the image
+    cancellation's and the tables' own dependence on nu left out: second order): out[6:12] =
+    std of nu, ROCOF, amplitude (peak, sqrt 2 |X|), arg X, offset, and the RMS TVE
+    ``sqrt(E |dX|^2) / |X|``."""
+    inv = 1.0 / q0
+    two_pi = 2.0 * math.pi
+    # nu = Im(q1 / q0) / 2 pi
+    out[6] = math.sqrt(sig2 * _qform(-r1 * inv, inv, 0j, gram)) / two_pi
+    # a2 = q2/q0 - r1^2 - b: da2 = ca0 dq0 + ca1 dq1 + ca2 dq2; ROCOF = Im(a2) / 2 pi
+    ca0 = (2.0 * r1 * r1 - q2 * inv) * inv
+    ca1 = -2.0 * r1 * inv
+    ca2 = inv
+    out[7] = math.sqrt(sig2 * _qform(ca0, ca1, ca2, gram)) / two_pi
+    # X = q0 / dn, dn = G + a2 G2 / 2
+    s = -0.5 * gcv * q0 / (dn * dn)
+    cx0 = 1.0 / dn + s * ca0
+    cx1 = s * ca1
+    cx2 = s * ca2
+    mag = abs(x)
+    u = x.conjugate() / mag
+    out[8] = math.sqrt(2.0 * sig2 * _qform(u * cx0, u * cx1, u * cx2, gram))
+    out[9] = math.sqrt(sig2 * _qform(u * cx0, u * cx1, u * cx2, gram)) / mag
+    out[10] = math.sqrt(sig2 * gram[0, 0])  # b = sum_n h0[n] x_n: no sqrt 2, no demodulation
+    out[11] = math.sqrt(2.0 * sig2 * _qform(cx0, cx1, cx2, gram)) / mag
 
 
 @kernel
@@ -544,6 +749,7 @@ def pmu_kernel(
     istate: np.ndarray,
     fstate: np.ndarray,
     anchor: np.ndarray,
+    noise: np.ndarray,
     kernels: np.ndarray,
     osc: np.ndarray,
     weights: np.ndarray,
@@ -553,18 +759,22 @@ def pmu_kernel(
     a2_bias: np.ndarray,
     g_chirp: np.ndarray,
     g_image: np.ndarray,
+    noise_gram: np.ndarray,
+    probe_taper: np.ndarray,
+    probe_gram: np.ndarray,
     last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 8), sse,
-    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor) (``anchor``, the
-    time anchor the class keeps, passes through unchanged).
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run (D)-(R) over block ``x``. Returns (out (N or 1, 6), reports (R, 14), sse,
+    n_pred, new_ring, new_dcring, new_istate, new_fstate, new_anchor, new_noise) (``anchor``,
+    the time anchor the class keeps, passes through unchanged; ``noise``, the (U) average).
 
     ``ring`` (2L, 2) holds the decimated c_j twice (so any window is contiguous), dcring
     (2L,) the decimated raw samples; ``iconsts`` = (D, M, m_lo, L); ``fconsts`` = (f0, fs,
     nu_pass0, nu_image0, table step, samples per report fs/Fs, min_amplitude). Output
     columns: frequency_hz, amplitude, phase_rad, offset, converged, rocof. Report rows:
     k, f, rocof, RMS magnitude, synchrophasor angle, amplitude (peak), phase_rad (sine,
-    instantaneous), offset. Pure: no input is modified."""
+    instantaneous), offset, then the std of frequency, ROCOF, amplitude, phase, offset and
+    the RMS TVE (U). Pure: no input is modified."""
     D, M, m_lo, L = iconsts[0], iconsts[1], iconsts[2], iconsts[3]
     f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
     rg = ring.copy()
@@ -579,9 +789,10 @@ def pmu_kernel(
     n_in = x.shape[0]
     out = np.empty((1 if last_only else n_in, 6))
     cap = n_in // max(1, int(spr)) + 2
-    reps = np.empty((cap, 8))
+    reps = np.empty((cap, N_REPORT_COLUMNS))
     n_rep = 0
-    est = np.zeros(6)
+    est = np.zeros(12)
+    nz = noise.copy()
     Q = weights.shape[0]
     ph = n % Q  # sample phase (weights) and decimation phase of sample n, then counted
     rho = n % D
@@ -640,6 +851,10 @@ def pmu_kernel(
                     a2_bias[ph_r],
                     g_chirp[ph_r],
                     g_image[ph_r],
+                    noise_gram[ph_r],
+                    probe_taper[ph_r],
+                    probe_gram[ph_r],
+                    nz,
                     est,
                 )
                 held = 1
@@ -669,6 +884,8 @@ def pmu_kernel(
                         reps[n_rep, 5] = A
                         reps[n_rep, 6] = wrap_pi(theta_r)
                         reps[n_rep, 7] = B
+                        for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
+                            reps[n_rep, 8 + c] = est[6 + c]
                         n_rep += 1
                     # rotor at the current sample n (predicts sample n + 1 after a step)
                     th = theta_r + 2.0 * math.pi * f * (n - u) / fs
@@ -682,7 +899,7 @@ def pmu_kernel(
                     cth, sth = 1.0, 0.0
                     if n_rep < cap:
                         reps[n_rep, 0] = k_next
-                        for c in range(1, 8):
+                        for c in range(1, N_REPORT_COLUMNS):
                             reps[n_rep, c] = np.nan
                         n_rep += 1
                 k_next += 1
@@ -711,7 +928,48 @@ def pmu_kernel(
         rho = cyclic_next(rho, D)
     ist2 = np.array([n, j, k_next, k0, held, defined], dtype=np.int64)
     fst2 = np.array([delta0, beta, acr, aci, anr, ani, dcc, dcn, f, A, 0.0, B, rocof, conv, cth, sth])
-    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy()
+    return out, reps[:n_rep].copy(), sse, n_pred, rg, dr, ist2, fst2, anchor.copy(), nz
+
+
+N_TRANSITION = 9
+
+
+def _fresh_transition() -> np.ndarray:
+    """(T)'s state at the start: no last report."""
+    return np.zeros(N_TRANSITION)
+
+
+@kernel
+def transition_kernel(
+    mag: np.ndarray, freq: np.ndarray, rocof: np.ndarray, trans: np.ndarray, fs_rep: float, n_hold: int, min_amp: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T) over reports in order: their converged and the new state (``trans`` is not
+    modified; layout in :meth:`Pmu._converged`). Slot 7 is the last report's converged."""
+    st = trans.copy()
+    n = mag.shape[0]
+    conv = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        m, f, r = mag[i], freq[i], rocof[i]
+        if not (math.isfinite(m) and math.isfinite(f) and math.isfinite(r)):
+            for c in range(N_TRANSITION):
+                st[c] = 0.0  # an undefined report: start over
+            continue
+        if st[4] == 0.0:  # the first report: nothing to check it against
+            st[3] = n_hold - 1.0
+        else:
+            dm = abs(m / st[0] - 1.0) if st[0] > 0.0 else math.inf
+            df = abs(f - st[1] - st[2] / fs_rep)
+            tm = max(TRANSITION_MAG_FLOOR, TRANSITION_K * st[5])
+            tf = max(TRANSITION_FREQ_FLOOR_HZ, TRANSITION_K * st[6])
+            st[8] += 1.0
+            w = max(TRANSITION_ALPHA, 1.0 / st[8])  # the plain mean of the first reports, then a running one
+            st[5] += w * (min(dm, tm) - st[5])
+            st[6] += w * (min(df, tf) - st[6])
+            st[3] = 0.0 if (dm > tm or df > tf) else min(st[3] + 1.0, float(n_hold))
+        st[0], st[1], st[2], st[4] = m, f, r, 1.0
+        conv[i] = st[3] >= n_hold and m > min_amp
+        st[7] = 1.0 if conv[i] else 0.0
+    return conv, st
 
 
 @register
@@ -732,6 +990,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self._nominal = 0 if self.auto else int(p.nominal_frequency_hz)
         self._pending = np.zeros(0)
         self._pending_t0 = np.array([0, 0], dtype=np.int64)  # t0_ns of pending[0], known (0/1)
+        self._transition = _fresh_transition()  # (T), see _converged
         self._configure(self._nominal or 50)
 
     def _configure(self, f0: int) -> None:
@@ -745,6 +1004,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             )
         self.reporting_rate = rate
         self.design = design(self.sample_rate_hz, f0, rate, p.performance_class)
+        self._n_hold = math.ceil(self.design.window_s * rate - 1e-9)  # (T): reports in one kernel length
 
     @property
     def memory_samples(self) -> int:
@@ -752,6 +1012,12 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         report time, plus one decimation step of the triangle (D) before it."""
         d = self.design
         return math.ceil(0.5 * d.window_s * self.sample_rate_hz) + d.decimation
+
+    @property
+    def lookahead_samples(self) -> int:
+        """Samples after a report's time that the report depends on (its kernel's far half
+        and the triangle: ``design.latency_s``); the pipeline judges its validity up to there."""
+        return math.ceil(self.design.latency_s * self.sample_rate_hz - 1e-9)
 
     def _setup(self) -> None:
         d = self.design
@@ -766,10 +1032,13 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                 TABLE_STEP_HZ,
                 d.fs / d.reporting_rate,
                 self.params.min_amplitude,
+                math.exp(-1.0 / (NOISE_TIME_CONSTANT_S * d.reporting_rate)),  # (U) the reports' weight lambda
+                d.decimation / d.fs,  # (U) a decimated sample's duration (s)
             ]
         )
         self._constants = (
-            d.kernels, d.osc, d.weights, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image
+            d.kernels, d.osc, d.weights, self._iconsts, self._fconsts, d.g_pass, d.a2_bias, d.g_chirp, d.g_image,
+            d.noise_gram, d.probe_taper, d.probe_gram,
         )  # fmt: skip
 
     # ---- time anchor ----------------------------------------------------------------------
@@ -791,6 +1060,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             "counters": istate,
             "values": fstate,
             "anchor_ns": np.array([anchor_ns, 0], dtype=np.int64),  # anchor, anchored by a t0 (0/1)
+            "noise": np.zeros(2),
         }
 
     def _initial_state(self) -> dict[str, np.ndarray]:
@@ -799,7 +1069,8 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         samples since the anchor, next decimated index, next grid index, first grid index
         after the anchor, report held, report defined; ``values`` (16,): see ``N_FSTATE``;
         ``anchor_ns`` (2,) int64: the anchor (ns since the epoch) and whether a block's
-        time set it (1) or it is the default t = 0 (0)."""
+        time set it (1) or it is the default t = 0 (0); ``noise`` (2,): (U) the reports' noise
+        average, its weighted sum and the sum of its weights."""
         return self._anchor_state(0)
 
     def _expected_t0_ns(self, st: dict[str, np.ndarray]) -> int:
@@ -829,9 +1100,42 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     def _run_timed(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool, t0_ns: int | None
     ) -> tuple[Track, dict[str, np.ndarray]]:
+        trans = self._transition
         if self._nominal == 0:
-            return self._run_undecided(samples, state, last_only, t0_ns)
-        return self._run_decided(samples, self._state_for_block(state, t0_ns), last_only)
+            track, new_state = self._run_undecided(samples, state, last_only, t0_ns)
+            trans = _fresh_transition()  # the estimator starts once the nominal frequency is found
+        else:
+            st = self._state_for_block(state, t0_ns)
+            if st is not state:  # anchored afresh (the first timed block, a gap in time): (T) starts over
+                trans = _fresh_transition()
+            track, new_state = self._run_decided(samples, st, last_only)
+        track, self._transition = self._converged(track, trans, last_only)
+        return track, new_state
+
+    def _converged(self, track: Track, trans: np.ndarray, last_only: bool) -> tuple[Track, np.ndarray]:
+        """(T) over the block's reports, in order: their ``converged``, and the transition
+        state after them (``trans`` is not modified). ``trans`` (9,): the last report's RMS
+        magnitude, frequency and ROCOF, reports since the last transition, whether there is
+        a last report (0/1), the running scales of the magnitude's and the frequency's
+        departures, the last report's converged (0/1), departures checked (the scales' weights)."""
+        reports = track.reports
+        st = trans
+        if reports is not None and reports.n_reports:
+            tr = reports.track
+            freq = tr.frequency_hz[:, 0]
+            rocof = tr.rocof_hz_per_s[:, 0] if tr.rocof_hz_per_s is not None else np.zeros(freq.shape)
+            tr.converged, st = transition_kernel(
+                np.ascontiguousarray(tr.extras["synchrophasor_magnitude"]),
+                np.ascontiguousarray(freq),
+                np.ascontiguousarray(rocof),
+                trans,
+                float(self.reporting_rate),
+                self._n_hold,
+                self.params.min_amplitude,
+            )
+        if last_only and st[7] == 0.0:
+            track.converged = np.zeros(track.converged.shape, dtype=np.bool_)
+        return track, st
 
     def _run_decided(
         self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
@@ -908,7 +1212,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     def _undefined(self, samples: np.ndarray, last_only: bool) -> Track:
         out = np.full((1 if last_only else samples.shape[0], 6), np.nan)
         out[:, 4] = 0.0
-        return self._track((out, np.empty((0, 8)), 0.0, 0), samples)
+        return self._track((out, np.empty((0, N_REPORT_COLUMNS)), 0.0, 0), samples)
 
     def _decide(self, f0: int) -> None:
         self._nominal = f0
@@ -916,6 +1220,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         self._setup()
 
     def reset(self) -> None:
+        self._transition = _fresh_transition()
         if self.auto:
             self._nominal = 0
             self._pending = np.zeros(0)
@@ -926,6 +1231,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
 
     def get_state(self) -> dict[str, Any]:
         snap = super().get_state()
+        snap["transition"] = encode_array(self._transition)
         if self.auto:
             snap["auto"] = {
                 "nominal_frequency_hz": self._nominal,
@@ -935,8 +1241,21 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         return snap
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
+        """As :meth:`Estimator.set_state`; a snapshot from a build before the noise average
+        (U) existed is accepted, that average starting afresh."""
+        state = snapshot.get("state")
+        if isinstance(state, Mapping) and "ring" in state and "noise" not in state:
+            snapshot = {**snapshot, "state": {**state, "noise": encode_array(np.zeros(2))}}
+        trans = _fresh_transition()  # snapshots of earlier builds have none: (T) starts over
+        if "transition" in snapshot:
+            trans = decode_array(snapshot["transition"])
+            if trans.shape != (N_TRANSITION,) or trans.dtype != np.float64:
+                raise ParameterError(
+                    f"state transition: expected float64 ({N_TRANSITION},), got {trans.dtype}{trans.shape}"
+                )
         if not self.auto:
             super().set_state(snapshot)
+            self._transition = trans
             return
         auto = snapshot.get("auto")
         if not isinstance(auto, Mapping) or auto.get("nominal_frequency_hz") not in (0, 50, 60):
@@ -956,6 +1275,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
             self._nominal = before
             raise
         self._pending, self._pending_t0 = pending, pt0
+        self._transition = trans
 
     def _refer_to_nominal(self, reports: GridReports, anchor_ns: int) -> None:
         """The synchrophasor angle of reports made with an oscillator off f0 (a rate that is
@@ -989,8 +1309,19 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                     offset=reps[:, 7],
                     converged=reps[:, 3] > self._fconsts[6],
                     residual_rms=residual,
-                    extras={"synchrophasor_magnitude": reps[:, 3], "synchrophasor_angle_rad": reps[:, 4]},
+                    extras={
+                        "synchrophasor_magnitude": reps[:, 3],
+                        "synchrophasor_angle_rad": reps[:, 4],
+                        "std_rocof_hz_per_s": reps[:, 9],
+                        "std_tve": reps[:, 13],
+                    },
                     rocof_hz_per_s=reps[:, 2:3],
+                    std=TrackStd(
+                        frequency_hz=reps[:, 8:9],
+                        amplitude=reps[:, 10:11],
+                        phase_rad=reps[:, 11:12],
+                        offset=reps[:, 12],
+                    ),
                 ),
             ),
         )

@@ -30,6 +30,14 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      before the onset it is 0.099 and flagged, and R is frozen at that reference while the
      signal stays absent.
 
+(E)  (validity rules version 3) An absence ends only when the level is back to ``(ratio +
+     hysteresis) R`` (``DEFAULT_HYSTERESIS`` 0.02: IEC 61000-4-30 ends a dip or interruption
+     at its threshold plus a hysteresis, typically 2 % of the declared voltage). A one-cycle
+     window of the estimator's lowest expected frequency (40 Hz) over a 50 Hz signal is not a
+     whole number of its cycles, so its level ripples by a few per cent with the phase: a
+     fall to 0.099 pu read present again every 25 ms and, once the ripple let it through, for
+     its last 50 ms.
+
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
 change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
@@ -43,8 +51,11 @@ throughout the span of input the estimate depends on. At a channel's start the r
 starts at 0, so the first estimates (before one memory of signal) are not valid either.
 
 Onset latency: the level of a one-cycle window falls below 0.1 of R only once about 99 % of
-the window is the interruption, and it is read every half cycle, so valid turns false within
-one and a half nominal cycles of the onset.
+the window is the interruption, and it is read every half cycle, so the detector says so
+within one and a half nominal cycles (3 H samples) of the onset. An estimate made in that
+time would read as valid though its window holds the interruption: with ``hold_estimates`` the pipeline holds every
+estimate back by those 3 H samples of the channel's signal and judges it then (validity
+rules version 3, :attr:`SignalPresence.onset_latency_samples`).
 
 The sums are of two half cycles only, started afresh each half cycle (no running sum, so
 no accumulated rounding, and a state of a few numbers rather than a ring of samples); the
@@ -64,6 +75,7 @@ from sinewatch.schemas.errors import ParameterError
 PRESENCE_STATE_VERSION = 2  # 1: sums without R one and two half cycles back (read, padded)
 DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
+DEFAULT_HYSTERESIS = 0.02  # (E): an absence ends at 0.12 of the reference (validity rules version 3)
 RUN_CAP = 1 << 62
 _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
@@ -84,10 +96,12 @@ def presence_kernel(
     decay: float,
     ratio: float,
     hold: int,
+    hysteresis: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Run (L), (R), (A) over ``x``; return ``(run, level, new_sums, new_counters)``: per sample
     the run length of presence and the last level read (0 before the first). With ``hold``
-    (H) applies. Pure: the inputs are not modified."""
+    (H) applies; an absence ends only at ``ratio + hysteresis`` (E). Pure: the inputs are not
+    modified."""
     p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
     r1, r2 = sums[_R1], sums[_R2]
     count, halves, run, present = counters[_COUNT], counters[_HALVES], counters[_RUN], counters[_PRESENT]
@@ -113,7 +127,8 @@ def presence_kernel(
                 judge = ref
                 if hold:  # (H): the reference of two half cycles back, before an onset's readings
                     judge = max(ref, r1, r2)
-                present = 1 if (level > 0.0 and level >= ratio * judge) else 0  # strictly below: absent
+                need = ratio if present else ratio + hysteresis  # (E): an absence ends higher up
+                present = 1 if (level > 0.0 and level >= need * judge) else 0  # strictly below: absent
                 r2, r1 = r1, r
                 if present:
                     r = ref
@@ -144,6 +159,7 @@ class SignalPresence:
         ratio: float = DEFAULT_RATIO,
         tau_s: float = DEFAULT_TAU_S,
         hold: bool = True,
+        hysteresis: float = 0.0,
     ) -> None:
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
@@ -157,6 +173,9 @@ class SignalPresence:
         self.ratio = float(ratio)
         self.decay = math.exp(-self.half_cycle_samples / (tau_s * sample_rate_hz))
         self.hold = 1 if hold else 0  # (H); off: the rule of earlier builds (their recordings)
+        if not (0.0 <= hysteresis < 1.0 - ratio):
+            raise ParameterError(f"hysteresis: expected 0 <= hysteresis < {1.0 - ratio}, got {hysteresis}")
+        self.hysteresis = float(hysteresis)  # (E); 0: the rule of earlier builds
         self.reset()
 
     def reset(self) -> None:
@@ -174,9 +193,18 @@ class SignalPresence:
         if not (type(x) is np.ndarray and x.dtype in _KERNEL_DTYPES and x.flags.c_contiguous):
             x = np.ascontiguousarray(samples, dtype=np.float64)
         run, level, self.sums, self.counters = presence_kernel(
-            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio, self.hold
+            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio, self.hold, self.hysteresis
         )
         return run, level
+
+    @property
+    def onset_latency_samples(self) -> int:
+        """Samples from the first sample of an interruption to the reading that says so, at
+        most: the one-cycle window (2 H) must be all but filled with it (a fall to 0.099 of R
+        reads below 0.1 R only once more than 99.98 % of the window is the interruption), and
+        the next reading is up to H later. The pipeline holds estimates back by this much
+        (validity rules version 3)."""
+        return 3 * self.half_cycle_samples
 
     @property
     def run_samples(self) -> int:
@@ -211,4 +239,4 @@ class SignalPresence:
         self.sums, self.counters = sums, counters
 
 
-__all__ = ["DEFAULT_RATIO", "DEFAULT_TAU_S", "SignalPresence", "presence_kernel"]
+__all__ = ["DEFAULT_HYSTERESIS", "DEFAULT_RATIO", "DEFAULT_TAU_S", "SignalPresence", "presence_kernel"]

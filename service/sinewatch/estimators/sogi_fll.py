@@ -326,12 +326,13 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
 
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
-        "the bank interleaves the channels' chains (about 1.5-1.8x one channel at 8 channels), but "
-        "every sample of every channel still takes one tan from the C library (~11 ns of "
-        "throughput on a Sapphire Rapids core; numba without Intel's SVML has no vectorised tan, and "
-        "one would round differently) and five "
-        "divisions; a variant whose channel loop the compiler vectorised (4 lanes, the tan kept "
-        "scalar per lane, the same bits) ran no faster, so the tan is the bound"
+        "the bank interleaves the channels' chains (about 1.2-1.8x one channel at 8 channels), but "
+        "every sample of every channel still takes one tan from the C library (~13 ns a call by "
+        "throughput, measured in a loop of independent calls on a Sapphire Rapids core; numba "
+        "without Intel's SVML has no vectorised tan, and one would round differently) and five "
+        "divisions; twice the 4096-sample FFT leaves ~16 ns a sample. A variant whose channel loop "
+        "the compiler vectorised (4 lanes, the tan kept scalar per lane, the same bits) ran no "
+        "faster, so the tan is the bound"
     )
 
     def _check_params(self) -> None:

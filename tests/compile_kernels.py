@@ -1,0 +1,73 @@
+"""Compile (or load from numba's cache) the kernels the test suite runs, once, before it runs.
+
+A fresh clone has no numba cache: every ``cache=True`` kernel is compiled on its first call,
+inside whichever test (or daemon subprocess) calls it first, and two processes that call
+the same kernel before either has written the cache both compile it. ``make test`` runs
+this script beside ``make lint`` (one process each, on a 2-core machine) so that the
+suite starts with a warm cache. Nothing here is asserted: a kernel this script does not
+reach is compiled on demand as before, and a kernel that fails to compile fails here and
+in its tests alike.
+
+Reached: every registered estimator through a real :class:`Pipeline` (float64 and
+float32 blocks, whole blocks and the last sample only), with its example parameters and
+the default rule; the automatic adaptive multisine for one, two and three sinusoids and its
+explicit design; the power-quality stage's harmonic analyser.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sinewatch.estimators import available, get
+from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.power_quality.stage import warm_up
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
+from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
+
+
+def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
+    config = SinewatchConfig(
+        daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
+    )
+    pipeline = Pipeline(config, [NullSink()])
+    for dtype in ("float64", "float32"):
+        blk = Block(f"warm-{dtype}", 0, 0, rate, x)
+        pipeline.process(f"sinewatch/in/warm-{dtype}", encode_block_binary(blk, dtype), BLOCK_BINARY_ENCODING, 0)
+
+
+def _estimator(name: str, params: dict[str, Any] | None = None) -> None:
+    cls = get(name)
+    est = cls(cls.example_sample_rate_hz, dict(cls.example_params if params is None else params))
+    x = cls.example_signal(256)
+    est.update(x)
+    est.update(x, last_only=True)
+
+
+def main() -> int:
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in available():
+            cls = get(name)
+            _estimator(name)
+            x = cls.example_signal(1000)
+            if x.ndim == 1:
+                rule = EstimatorRule(estimator=name, params=dict(cls.example_params))
+                _through_pipeline(rule, cls.example_sample_rate_hz, x, Path(tmp))
+        _through_pipeline(EstimatorRule(), 10_000.0, get("pmu").example_signal(2000), Path(tmp))  # the default rule
+    band = {"band_hz": (5.0, 25.0)}
+    for n in (1, 3):
+        _estimator("adaptive-multisine", {"n_sinusoids": n, **band})
+    _estimator("adaptive-multisine", {"n_sinusoids": 2})  # no band: the explicit design
+    warm_up()
+    print(f"compile_kernels: {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
