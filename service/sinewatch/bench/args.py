@@ -82,10 +82,26 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
     return b
 
 
-def _calibration_args(parser: argparse.ArgumentParser) -> None:
-    from sinewatch.bench.calibration import add_arguments
+CALIBRATION_ESTIMATORS = ("pmu", "default-rule", "ipdft", "nls", "ges-kalman")
+CALIBRATION_FULL_TRIALS = 300
+CALIBRATION_QUICK_TRIALS = 40
 
-    add_arguments(parser)
+
+def _calibration_args(parser: argparse.ArgumentParser) -> None:
+    # here, not in bench.calibration: building the CLI's parser imports no bench module
+    parser.add_argument("--estimators", nargs="+", help=f"some of {', '.join(CALIBRATION_ESTIMATORS)} (default all)")
+    parser.add_argument(
+        "--trials",
+        type=int,
+        help=f"trials per cell (default {CALIBRATION_FULL_TRIALS}; --quick {CALIBRATION_QUICK_TRIALS})",
+    )
+    parser.add_argument("--quick", action="store_true", help=f"{CALIBRATION_QUICK_TRIALS} trials per cell")
+    parser.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--json", type=Path, help="also write the rows as JSON")
+    parser.add_argument(
+        "--update-docs", type=Path, help="replace the table between the calibration markers of this file"
+    )
 
 
 def add_estimate_puts_arguments(parser: argparse.ArgumentParser) -> None:

@@ -32,16 +32,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sinewatch.bench.args import CALIBRATION_ESTIMATORS, CALIBRATION_FULL_TRIALS, CALIBRATION_QUICK_TRIALS
+
 if TYPE_CHECKING:  # the estimators (and numba) load when a trial runs, not with the CLI's parser
     from sinewatch.estimators.base import Estimator, Track
 
 SAMPLE_RATE_HZ = 5000.0
 DURATION_S = 2.0
 SNRS_DB = (0.0, 10.0, 20.0, 40.0, 60.0)
-ESTIMATORS = ("pmu", "default-rule", "ipdft", "nls", "ges-kalman")
+ESTIMATORS = CALIBRATION_ESTIMATORS
 PARAMETERS = ("frequency_hz", "amplitude", "phase_rad", "offset", "rocof_hz_per_s", "tve")
-FULL_TRIALS = 300
-QUICK_TRIALS = 40
+FULL_TRIALS = CALIBRATION_FULL_TRIALS
+QUICK_TRIALS = CALIBRATION_QUICK_TRIALS
 DOCS_BEGIN = "<!-- calibration:begin -->"
 DOCS_END = "<!-- calibration:end -->"
 
@@ -219,15 +221,3 @@ def run(args: argparse.Namespace) -> int:
     if args.update_docs:
         _update_docs(args.update_docs, md)
     return 0
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimators", nargs="+", help=f"some of {', '.join(ESTIMATORS)} (default all)")
-    parser.add_argument("--trials", type=int, help=f"trials per cell (default {FULL_TRIALS}; --quick {QUICK_TRIALS})")
-    parser.add_argument("--quick", action="store_true", help=f"{QUICK_TRIALS} trials per cell")
-    parser.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
-    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--json", type=Path, help="also write the rows as JSON")
-    parser.add_argument(
-        "--update-docs", type=Path, help="replace the table between the calibration markers of this file"
-    )
