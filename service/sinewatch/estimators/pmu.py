@@ -142,8 +142,8 @@ arrived: the latency is ``T / 2 + 2 D / fs``.
 Per-sample outputs (the Track rows) hold the latest report, the phase advanced at its
 frequency (``y = offset + A sin(phase)``, A = sqrt 2 |X|); ``offset`` is the kernel's DC
 output on the raw samples. ``residual_rms`` is the one-step prediction error of that
-held model. A row's ``converged`` is the kernel's magnitude test; with ``last_only`` it is
-the latest report's (T). The reports themselves (``Track.reports``, a GridReports) carry the same
+held model. A row's ``converged`` is the kernel's magnitude test, whatever ``last_only``
+(a row is the same row either way); the reports' own ``converged`` is (T). The reports themselves (``Track.reports``, a GridReports) carry the same
 fields at the report times, the ROCOF in ``rocof_hz_per_s`` and the synchrophasor in
 ``extras`` (``synchrophasor_magnitude``, RMS, and ``synchrophasor_angle_rad``).
 """
@@ -1133,8 +1133,6 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
                 self._n_hold,
                 self.params.min_amplitude,
             )
-        if last_only and st[7] == 0.0:
-            track.converged = np.zeros(track.converged.shape, dtype=np.bool_)
         return track, st
 
     def _run_decided(
