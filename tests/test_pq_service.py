@@ -67,6 +67,21 @@ class Outputs(NullSink):
         self.out.append((kind, key, payload))
 
 
+class OutputsErrorsEstimates(Outputs):
+    """The power-quality outputs, the errors (decoded) and how many estimates."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.errors: list[dict] = []
+        self.estimates = 0
+
+    def on_error(self, key, payload, log_time_ns):
+        self.errors.append(json.loads(payload))
+
+    def on_estimate(self, key, payload, log_time_ns):
+        self.estimates += 1
+
+
 def phase_blocks(n_blocks: int, prefix: str = "pq") -> tuple[list[list[Block]], list[str]]:
     """Blocks of the three phases of SCENARIO (what `sinewatch feed` cuts), per round."""
     channels = make_channels([SCENARIO], prefix=prefix)
@@ -430,20 +445,8 @@ def test_stage_accuracy_at_60_hz_and_off_nominal(tmp_path, scenario):
 
 
 def test_harmonics_at_a_rate_too_low_are_refused_once_and_estimation_goes_on(tmp_path):
-    class Keep(Outputs):
-        def __init__(self) -> None:
-            super().__init__()
-            self.errors: list[dict] = []
-            self.estimates = 0
-
-        def on_error(self, key, payload, log_time_ns):
-            self.errors.append(json.loads(payload))
-
-        def on_estimate(self, key, payload, log_time_ns):
-            self.estimates += 1
-
     config = pq_config(tmp_path, ["x/a", "x/b", "x/c"])
-    keep = Keep()
+    keep = OutputsErrorsEstimates()
     pipeline = Pipeline(config, [keep])
     t = np.arange(500) / 5_000.0
     for i in range(5):  # 5 kHz: the 50th harmonic of 57.5 Hz is beyond 0.4 fs
@@ -473,19 +476,7 @@ def test_group_aggregates_at_a_rate_below_harmonic_range_come_from_the_fundament
         ),
     )
 
-    class Keep(Outputs):
-        def __init__(self) -> None:
-            super().__init__()
-            self.errors: list[dict] = []
-            self.estimates = 0
-
-        def on_error(self, key, payload, log_time_ns):
-            self.errors.append(json.loads(payload))
-
-        def on_estimate(self, key, payload, log_time_ns):
-            self.estimates += 1
-
-    keep = Keep()
+    keep = OutputsErrorsEstimates()
     pipeline = Pipeline(config, [keep])
     for i in range(40):  # 4 s: 18 windows, one complete 150-cycle aggregate
         for c in channels:
