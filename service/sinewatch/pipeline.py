@@ -382,15 +382,7 @@ class Pipeline:
             channel = self._channel_for(key, block)
             if channel.name in self.resume_points and self._catch_up(channel, block):
                 return
-            last_seq = channel.last_seq
-            if (
-                last_seq is not None
-                and block.seq == last_seq + 1
-                and (self.validity_version < 2 or _continues_in_time(channel, block))
-            ):  # the usual case, inline
-                gap_blocks, restart, jump, reset = 0, False, False, False
-            else:
-                gap_blocks, restart, jump, reset = self._continuity(channel, block)
+            gap_blocks, restart, jump, reset = self._continuity(channel, block)
             stage = "estimator"
             track = self._update(channel, block, reset)
             self._presence(channel, block, reset)
@@ -485,12 +477,19 @@ class Pipeline:
             raise
 
     def _continuity(self, channel: Channel, block: Block) -> tuple[int, bool, bool, bool]:
-        """(gap blocks, restart, time jump, reset) of a block that does not plainly continue its
-        channel (:func:`sinewatch.continuity.check_continuity`; raises InputError for a
-        duplicate or a block from the past). A restart or a time jump starts the channel over
+        """(gap blocks, restart, time jump, reset) of a block on its channel
+        (:func:`sinewatch.continuity.check_continuity`; raises InputError for a duplicate or a
+        block from the past). A restart or a time jump starts the channel over
         (validity rules version 2); a gap follows ``on_gap``."""
+        last_seq = channel.last_seq
+        if (
+            last_seq is not None
+            and block.seq == last_seq + 1
+            and (self.validity_version < 2 or _continues_in_time(channel, block))
+        ):  # the usual case, before the full check
+            return 0, False, False, False
         cont = check_continuity(
-            channel.last_seq,
+            last_seq,
             channel.next_t0_ns,
             block.seq,
             block.t0_ns,
@@ -506,15 +505,7 @@ class Pipeline:
 
     def _frame_member(self, channel: Channel, block: Block, c: int, finite: list[bool] | None) -> _Member:
         """Check column ``c`` as its channel's block (sequence, values, shape); raise InputError."""
-        last_seq = channel.last_seq
-        if (
-            last_seq is not None
-            and block.seq == last_seq + 1
-            and (self.validity_version < 2 or _continues_in_time(channel, block))
-        ):
-            gap_blocks, restart, jump, reset = 0, False, False, False
-        else:
-            gap_blocks, restart, jump, reset = self._continuity(channel, block)
+        gap_blocks, restart, jump, reset = self._continuity(channel, block)
         if finite is not None and not finite[c]:
             bad = int(np.count_nonzero(~np.isfinite(block.samples)))
             raise InputError(f"samples: expected finite values, got {bad} NaN/Inf", kind="non_finite")
