@@ -32,8 +32,8 @@ etcd:
 # (its total is printed; `.venv/bin/coverage report` lists each module afterwards).
 PYTEST_FAST := -n 2 --dist loadgroup --no-loadscope-reorder --cov --cov-report=
 
-# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint (one
-# core each) the numba kernels the tests run are compiled into numba's cache (a fresh clone has
+# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint the
+# numba kernels the tests run are compiled into numba's cache on two processes (a fresh clone has
 # none), so that no test and no daemon the tests start compiles one: tests/compile_kernels.py.
 test: $(STAMP) etcd
 	$(BIN)/python tests/compile_kernels.py & kernels=$$!; \

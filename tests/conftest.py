@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -294,44 +296,57 @@ def cli_without(module: str, argv: list[str]) -> subprocess.CompletedProcess[str
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
 
 
-# --- Running on two workers (``make test``: pytest-xdist, ``--dist loadgroup``) -------------
+# --- Running on two workers (``make test``: pytest-xdist, ``-n 2 --dist loadgroup``) ----------
 
 # Tests that start etcd and several daemon processes, and whose faults are timed against
 # leases (the chaos test runs its own CPU burner): one worker runs them one after another,
 # so that two of them never compete for the same cores at once.
-SERIAL_CLUSTER = ("test_cluster_", "test_election.py", "test_access_control.py")
-# The longest tests and groups (seconds on a quiet 2-core machine): dispatched first, so that
-# no worker is left with a long one while the other has finished.
+SERIAL_CLUSTER = ("tests/test_cluster_", "tests/test_election.py", "tests/test_access_control.py")
+# The longest tests and groups (tens of seconds each on a quiet 2-core machine): dispatched
+# first, so that no worker is left with a long one while the other has finished.
 LONG_FIRST = (
-    "test_cluster_",
-    "test_election.py",
-    "test_access_control.py",
-    "test_bench_e2e.py",
-    "test_compare_track.py",
-    "test_recording_compatibility.py",
+    *SERIAL_CLUSTER,
+    "tests/test_bench_e2e.py",
+    "tests/test_compare_track.py",
+    "tests/test_recording_compatibility.py",
 )
+_SHARED_FIXTURE = re.compile(r"""@pytest\.fixture\(.*scope=["'](module|class|package)["']""")
 
 
-def _group(item: pytest.Item) -> str | None:
-    """The xdist group of a test: the cluster tests share one; a module whose fixtures are
-    module- or class-scoped (a recording, a wheel, an npm install) stays on one worker, so
-    that they are built once and never by two workers in the same directory at once."""
-    name = item.path.name
-    if name.startswith(SERIAL_CLUSTER[0]) or name in SERIAL_CLUSTER[1:]:
+@functools.cache
+def _shares_fixtures(root: Path, path: str) -> bool:
+    """Whether a test module has module- or class-scoped fixtures (a recording, a wheel, an
+    npm install): its tests stay on one worker, so those are built once and never by two
+    workers in the same directory at once."""
+    try:
+        return _SHARED_FIXTURE.search((root / path).read_text(encoding="utf-8")) is not None
+    except OSError:
+        return False
+
+
+def xdist_scope(root: Path, nodeid: str) -> str:
+    """The unit of work one worker runs from start to end: the cluster tests together, a
+    module with shared fixtures whole, any other test alone."""
+    path = nodeid.split("::", 1)[0]
+    if path.startswith(SERIAL_CLUSTER):
         return "cluster"
-    info = getattr(item, "_fixtureinfo", None)
-    if info is None:
+    return path if _shares_fixtures(root, path) else nodeid
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own choice of scheduler
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` with the groups of ``xdist_scope``. (xdist 3.8 marks a group by
+    renaming the test's node id, which pytest 9.2's node ids no longer allow.)"""
+    if config.getvalue("dist") != "loadgroup":
         return None
-    for defs in info.name2fixturedefs.values():
-        if any(d.scope in ("module", "class", "package") for d in defs):
-            return name
-    return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Groups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_scope(config.rootpath, nodeid)
+
+    return Groups(config, log)
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        group = _group(item)
-        if group is not None and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(group))
-    items.sort(key=lambda item: not item.path.name.startswith(LONG_FIRST))
+    items.sort(key=lambda item: not item.nodeid.startswith(LONG_FIRST))
