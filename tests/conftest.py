@@ -333,7 +333,7 @@ def xdist_scope(root: Path, nodeid: str) -> str:
     return path if _shares_fixtures(root, path) else nodeid
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist's own choice of scheduler
+@pytest.hookimpl(tryfirst=True, optionalhook=True)  # before xdist's own choice; xdist may be absent
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """``--dist loadgroup`` with the groups of ``xdist_scope``. (xdist 3.8 marks a group by
     renaming the test's node id, which pytest 9.2's node ids no longer allow.)"""
