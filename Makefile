@@ -30,7 +30,9 @@ etcd:
 # module-scoped fixtures) run on one worker in turn, and the longest go first (tests/conftest.py).
 # Coverage of the suite's own processes, the run failing below [tool.coverage.report] fail_under
 # (its total is printed; `.venv/bin/coverage report` lists each module afterwards).
-PYTEST_FAST := -n 2 --dist loadgroup --no-loadscope-reorder --cov --cov-report=
+# The benches marked `alone` (tests/conftest.py) run last, by themselves, adding to the coverage.
+PYTEST_FAST := -n 2 --dist loadgroup --no-loadscope-reorder --cov --cov-report= --cov-fail-under=0 -m 'not slow and not alone'
+PYTEST_ALONE := -m 'alone and not slow' --cov --cov-append --cov-report=
 
 # What CI runs: lint, format, import contracts and types first, then the tests. Beside lint the
 # numba kernels the tests run are compiled into numba's cache on two processes (a fresh clone has
@@ -39,6 +41,7 @@ test: $(STAMP) etcd
 	$(BIN)/python tests/compile_kernels.py & kernels=$$!; \
 	  if $(MAKE) --no-print-directory lint; then wait $$kernels; else wait $$kernels; exit 1; fi
 	$(BIN)/python -m pytest $(PYTEST_FAST)
+	$(BIN)/python -m pytest $(PYTEST_ALONE)
 
 # Lint, format, import contracts and types, from the three source roots (no install needed
 # for the static tools to resolve sinewatch.*; the venv only provides the tools).

@@ -348,5 +348,15 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     return Groups(config, log)
 
 
+# Benches that measure what the machine sustains (tests/test_bench_e2e.py): `make test` runs
+# them alone, after the two workers, so that no other test shares their cores.
+ALONE = ("tests/test_bench_e2e.py",)
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    if item.nodeid.startswith(ALONE):
+        item.add_marker(pytest.mark.alone)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: not item.nodeid.startswith(LONG_FIRST))
