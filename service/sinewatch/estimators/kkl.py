@@ -127,7 +127,8 @@ from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
-from sinewatch.estimators.kkl_kernels import kkl_kernel
+from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.kkl_kernels import kkl_bank_kernel, kkl_kernel
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
@@ -496,3 +497,6 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
         have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
+
+
+register_bank(Kkl, kkl_bank_kernel, n_outputs=3)

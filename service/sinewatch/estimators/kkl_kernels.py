@@ -11,8 +11,13 @@ position in it.
 from __future__ import annotations
 
 import math
+from typing import Any
 
+import numba
 import numpy as np
+from llvmlite import ir as llvm_ir
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from sinewatch.estimators.base import kernel, undefined_row
 
@@ -23,6 +28,27 @@ JUMP_FLOOR = 4e-4  # ... and above (2 % of the RMS of y)^2: a jump, not converge
 
 #: values kept per sample for its row (:func:`record_sample`)
 RECORD_SIZE = 12
+
+
+@intrinsic
+def _sqrt_intrinsic(typingctx: Any, a: Any) -> Any:
+    sig = numba.types.float64(numba.types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        d = llvm_ir.DoubleType()
+        fn = cgutils.get_or_insert_function(builder.module, llvm_ir.FunctionType(d, [d]), "llvm.sqrt.f64")  # type: ignore[no-untyped-call]
+        return builder.call(fn, list(args))
+
+    return sig, codegen
+
+
+@kernel(inline="always", refcount=False)
+def sqrt(a: float) -> float:
+    """The square root, correctly rounded (IEEE 754) like the C library's, as the instruction
+    itself: ``math.sqrt`` compiles to the C library's call (kept for its errno on a negative
+    argument), which the compiler does not vectorise across a bank's lanes. The same bits for
+    every argument >= 0, the only ones whose root is used here."""
+    return _sqrt_intrinsic(a)  # type: ignore[call-arg]  # numba passes the typing context
 
 
 # ---- kernel pieces shared with kkl-biased (inlined: the same arithmetic in both) -----------
@@ -105,7 +131,8 @@ def record_sample(
 @kernel(inline="always")
 def count_good(good: bool, n_good: float, n_settle: float) -> float:
     """The run of good samples, counted up to n_settle (converged once it is reached)."""
-    return min(n_good + 1.0, n_settle) if good else 0.0
+    up = n_good + 1.0
+    return (n_settle if n_settle < up else up) if good else 0.0  # min(up, n_settle), as Python's min
 
 
 @kernel(inline="always")
@@ -212,8 +239,10 @@ def half_step(wts: float) -> tuple[float, float, float]:
 def half_step_of(half: float, sh: float) -> tuple[float, float, float]:
     """:func:`half_step` given ``sh = sin(half)``: a bank takes the sines in a loop of their
     own (C library calls, scalar per lane)."""
-    ch = math.sqrt(max(1.0 - sh * sh, 0.0))
-    return sh, ch, (half / sh) ** 2 if half > 1e-8 else 1.0
+    c2 = 1.0 - sh * sh
+    ch = sqrt(0.0 if 0.0 > c2 else c2)  # max(c2, 0.0), as Python's max
+    q = half / sh
+    return sh, ch, q * q if half > 1e-8 else 1.0
 
 
 @kernel(inline="always")
@@ -264,7 +293,8 @@ def inverse_map(
     r2 = -q2 * inv * inv
     # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
     det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
-    mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
+    mu = ell - 2.0 * det
+    mu = 0.0 if 0.0 > mu else mu  # (9) with |xi| = 1: max(mu, 0), as Python's max (a select)
     # Phi = L^T L + mu I, solved with its adjugate (8)
     a = s_ll + mu
     d = s_11 + mu
@@ -390,3 +420,229 @@ def kkl_kernel(
         write_samples(out, ext, rec, n_settle, Ts, ell)
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
+
+
+# ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
+LANES = 8  # channels advanced together
+# rows of the bank's lane-major work array S (one row of LANES doubles per quantity): the
+# state's scalars, the per-sample quantities, then the m filters' xi (rows _RXI + i) last, so
+# that every other row sits at a constant offset below them
+_RY, _RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES, _RSSE = range(12)
+_RS2, _RP0, _RP1, _RP2, _RP3, _RQ2 = range(12, 18)  # the sums of filter_sums
+_RINV, _RDET, _RMU, _RZ0, _RZ1, _RZ2, _RSQ, _RWTS, _RHALF, _RSH = range(18, 28)
+_RDEF, _RJUMP, _RASIN, _RACOS, _RRR, _RFF, _RGOOD, _RS, _RV = range(28, 37)
+_RXI = 37
+
+
+@kernel(inline="always")
+def _bank_front(
+    S: np.ndarray, lane: int, s_ll: float, s_l: float, s_11: float, ell: float, w_ref: float, Ts: float,
+    silence_ratio: float, env_decay: float, avg_gain: float, fast_gain: float, slow_gain: float,
+) -> None:  # fmt: skip
+    """Lane ``lane`` of one sample of :func:`kkl_kernel` after the filters, up to omega Ts:
+    the prediction error, the jump detector, the level of y, |xi|, the envelope and the
+    inverse map, each value kept or replaced as the single kernel's branches would (selects,
+    so that the lanes run as one vector)."""
+    L = LANES
+    yk = S[_RY * L + lane]
+    e2, sse, e2_avg = prediction_error(
+        yk, S[_RYPRED * L + lane], S[_RPV * L + lane], S[_RSSE * L + lane], S[_RE2 * L + lane], avg_gain
+    )
+    jump, e2_fast, e2_slow = jump_detector(
+        e2, S[_REF * L + lane], S[_RES * L + lane], fast_gain, slow_gain, S[_RLEV * L + lane]
+    )
+    lev = S[_RLEV * L + lane]
+    S[_RLEV * L + lane] = lev + avg_gain * (yk * yk - lev)
+    S[_RSSE * L + lane], S[_RE2 * L + lane], S[_REF * L + lane], S[_RES * L + lane] = sse, e2_avg, e2_fast, e2_slow
+    S[_RHP * L + lane] = 1.0
+    S[_RYP * L + lane] = yk
+    S[_RJUMP * L + lane] = 1.0 if jump else 0.0
+    s = sqrt(S[_RS2 * L + lane])
+    decayed = S[_RENV * L + lane] * env_decay
+    env = decayed if decayed > s else s  # max(s, decayed), as Python's max
+    S[_RENV * L + lane] = env
+    S[_RS * L + lane] = s
+    inv, det, mu, solved, z0, z1, z2 = inverse_map(
+        s_ll, s_l, s_11, S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane], S[_RP3 * L + lane],
+        S[_RQ2 * L + lane], s, ell,
+    )  # fmt: skip
+    live = s > ABS_FLOOR and s >= silence_ratio * env  # else "xi near 0": undefined
+    solved = live and solved
+    sq = sqrt(z2)  # (NaN where z2 < 0: not solved, not used)
+    wts = w_ref * sq * Ts if solved else 0.0
+    S[_RDEF * L + lane] = 1.0 if solved and wts < math.pi else 0.0
+    S[_RINV * L + lane], S[_RDET * L + lane], S[_RMU * L + lane] = inv, det if live else 0.0, mu
+    S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_RSQ * L + lane] = z0, z1, z2, sq
+    S[_RWTS * L + lane] = wts
+    S[_RHALF * L + lane] = 0.5 * wts
+    S[_RRR * L + lane] = 0.0
+    S[_RFF * L + lane] = 0.0
+
+
+@kernel(inline="always")
+def _bank_read_out(S: np.ndarray, lane: int, w_ref: float) -> None:
+    """Lane ``lane``: amplitude terms and prediction from the sine in row ``_RSH``, kept
+    where the sample is defined (else as :func:`undefined_sample` leaves them)."""
+    L = LANES
+    defined = S[_RDEF * L + lane] != 0.0
+    sh, ch, g = half_step_of(S[_RHALF * L + lane], S[_RSH * L + lane])
+    a_sin, a_cos, y_pred = read_out(
+        w_ref, S[_RS * L + lane], S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RSQ * L + lane], sh, ch, g
+    )
+    S[_RASIN * L + lane] = a_sin if defined else 0.0
+    S[_RACOS * L + lane] = a_cos if defined else 0.0
+    y_old = S[_RYPRED * L + lane]
+    S[_RYPRED * L + lane] = y_pred if defined else y_old
+    S[_RPV * L + lane] = 1.0 if defined else 0.0
+
+
+@kernel(inline="always")
+def _bank_good(
+    S: np.ndarray, lane: int, n_settle: float, max_fit2: float, max_pred2: float, wts_lo: float, wts_hi: float
+) -> None:
+    """Lane ``lane``: the fit residual's sums as the single kernel leaves them, ``good`` and
+    the run of good samples."""
+    L = LANES
+    defined = S[_RDEF * L + lane] != 0.0
+    rr, ff = S[_RRR * L + lane], S[_RFF * L + lane]  # loaded whatever the lane, then kept or not
+    rr = rr if defined else 0.0
+    ff = ff if defined else 1.0
+    S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff
+    good = defined and consistent(
+        S[_RMU * L + lane], rr, ff, max_fit2, S[_RE2 * L + lane], max_pred2, S[_RLEV * L + lane],
+        S[_RJUMP * L + lane] != 0.0, S[_RWTS * L + lane], wts_lo, wts_hi,
+    )  # fmt: skip
+    S[_RGOOD * L + lane] = 1.0 if good else 0.0
+    S[_RNG * L + lane] = count_good(good, S[_RNG * L + lane], n_settle)
+
+
+@kernel(inline="always")
+def _bank_lane_row(S: np.ndarray, lane: int) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
+    """Lane ``lane``'s values for :func:`record_row` / :func:`write_sample`: good, n_good,
+    defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level."""
+    L = LANES
+    defined = S[_RDEF * L + lane] != 0.0
+    return (
+        S[_RGOOD * L + lane] != 0.0, S[_RNG * L + lane], defined, S[_RWTS * L + lane], S[_RASIN * L + lane],
+        S[_RACOS * L + lane], 0.0 if defined else np.nan, S[_RDET * L + lane], S[_RRR * L + lane],
+        S[_RFF * L + lane], S[_RE2 * L + lane], S[_RLEV * L + lane],
+    )  # fmt: skip
+
+
+@kernel(inline="always", refcount=False)
+def _row_copy(S: np.ndarray, src: int, dst: int) -> None:
+    """Row ``src`` of ``S`` into row ``dst`` (offsets), written out: the lane loops then touch
+    rows at constant offsets only (xi's rows, at ``_RXI + i``, are not: LLVM would not prove
+    them apart from the others and would leave the loop scalar)."""
+    S[dst], S[dst + 1], S[dst + 2], S[dst + 3] = S[src], S[src + 1], S[src + 2], S[src + 3]
+    S[dst + 4], S[dst + 5], S[dst + 6], S[dst + 7] = S[src + 4], S[src + 5], S[src + 6], S[src + 7]
+
+
+_TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES)  # the state's tail, in order
+
+
+@kernel
+def kkl_bank_kernel(
+    y: np.ndarray, state: np.ndarray, lam: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray,
+    consts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`kkl_kernel` for C channels at once: ``y`` (N, C), ``state`` (m + 10, C), one
+    channel per column; returns ``out`` (C, rows, 5), ``extras`` (C, rows, 3), ``sse`` (C,)
+    and the new state (m + 10, C). Channels go ``LANES`` at a time through a lane-major work
+    array: each step of a sample is a loop over the lanes of literal trip count, over one
+    array at constant offsets (the filters, the inverse map, the read-out, the fit residual:
+    one vector each), except the sine of the first-order hold's correction, a C library
+    call per lane as in the single kernel. The rows are written after the block, channel by
+    channel, by the single kernel's own functions."""
+    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
+        observer_constants(consts)
+    )  # fmt: skip
+    n, nc = y.shape
+    m = lam.shape[0]
+    rows = 1 if last_only else n
+    out = np.empty((nc, rows, 5))
+    ext = np.empty((nc, rows, 3))
+    sse_out = np.empty(nc)
+    new_state = np.empty((m + 10, nc))
+    s_ll = 0.0  # constant entries of L^T L, as kkl_kernel sums them
+    s_l = 0.0
+    for i in range(m):
+        s_ll += lam[i] * lam[i]
+        s_l += lam[i]
+    s_11 = float(m)
+    L = LANES
+    S = np.empty((_RXI + m) * L)
+    ys = np.empty(n * L)
+    rec = np.empty((L, 0 if last_only else n, RECORD_SIZE))
+    for g in range(0, nc, L):
+        width = min(L, nc - g)
+        S[:] = 0.0  # lanes past the last channel run on zeros (never defined), their results dropped
+        ys[:] = 0.0
+        for c in range(width):
+            for i in range(m):
+                S[(_RXI + i) * L + c] = state[i, g + c]
+            for j in range(10):
+                S[_TAIL[j] * L + c] = state[m + j, g + c]
+        for k in range(n):
+            for c in range(width):
+                ys[k * L + c] = y[k, g + c]
+        for lane in range(L):
+            S[_RY * L + lane] = ys[lane]
+        for k in range(n):
+            for r in range(_RS2, _RQ2 + 1):
+                for lane in range(L):
+                    S[r * L + lane] = 0.0
+            for i in range(m):  # (12) and the sums over the filters, filter by filter
+                a, b0, b1, li = fa[i], fb0[i], fb1[i], lam[i]
+                xr = (_RXI + i) * L
+                _row_copy(S, xr, _RV * L)
+                for lane in range(L):
+                    xo = S[_RV * L + lane]
+                    yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
+                    v = filter_one(a, b0, b1, xo, yp, yk)
+                    v = v if hp != 0.0 else xo
+                    S[_RV * L + lane] = v
+                    (S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane],
+                     S[_RP3 * L + lane], S[_RQ2 * L + lane]) = filter_sums(
+                        li, v, S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane],
+                        S[_RP3 * L + lane], S[_RQ2 * L + lane],
+                    )  # fmt: skip
+                _row_copy(S, _RV * L, xr)
+            for lane in range(L):
+                _bank_front(S, lane, s_ll, s_l, s_11, ell, w_ref, Ts, silence_ratio, env_decay, avg_gain,
+                            fast_gain, slow_gain)  # fmt: skip
+            for lane in range(L):  # the sines: C library calls, lane by lane
+                S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+            for lane in range(L):
+                _bank_read_out(S, lane, w_ref)
+            for i in range(m):  # least-squares residual of (13), filter by filter
+                li = lam[i]
+                _row_copy(S, (_RXI + i) * L, _RV * L)
+                for lane in range(L):
+                    res, t = fit_residual(li, S[_RV * L + lane] * S[_RINV * L + lane], S[_RZ0 * L + lane],
+                                          S[_RZ1 * L + lane], S[_RZ2 * L + lane])  # fmt: skip
+                    S[_RRR * L + lane] += res * res
+                    S[_RFF * L + lane] += t * t
+            for lane in range(L):
+                _bank_good(S, lane, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
+            nxt = min(k + 1, n - 1) * L
+            for lane in range(L):  # the next sample, in place once this one is done with it
+                S[_RY * L + lane] = ys[nxt + lane]
+            if not last_only:
+                for c in range(width):
+                    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
+                    record_row(rec[c], k, good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev)
+        for c in range(width):
+            ch = g + c
+            if last_only:
+                good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
+                write_sample(out[ch], ext[ch], 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset,
+                             det, ell, rr, ff, e2_avg, lev)  # fmt: skip
+            else:
+                write_samples(out[ch], ext[ch], rec[c], n_settle, Ts, ell)
+            sse_out[ch] = S[_RSSE * L + c]
+            for i in range(m):
+                new_state[i, ch] = S[(_RXI + i) * L + c]
+            for j in range(10):
+                new_state[m + j, ch] = S[_TAIL[j] * L + c]
+    return out, ext, sse_out, new_state
