@@ -435,6 +435,45 @@ _RXI = 37
 
 
 @kernel(inline="always")
+def _bank_filters(
+    S: np.ndarray, lane: int, lam: tuple[float, ...], fa: tuple[float, ...], fb0: tuple[float, ...],
+    fb1: tuple[float, ...],
+) -> None:  # fmt: skip
+    """Lane ``lane``: the filters (12) over the sample in row ``_RY`` (as :func:`filter_step`,
+    not before the first sample) and the sums of :func:`filter_sums` into their rows. The
+    constants are tuples, whose length the compiler knows: the loop over the filters is
+    unrolled, so every row sits at a constant offset and the lanes run as one vector."""
+    L = LANES
+    yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
+    s2 = p0 = p1 = p2 = p3 = q2 = 0.0
+    for i in range(len(lam)):
+        r = (_RXI + i) * L + lane
+        xo = S[r]
+        v = filter_one(fa[i], fb0[i], fb1[i], xo, yp, yk)
+        v = v if hp != 0.0 else xo
+        S[r] = v
+        s2, p0, p1, p2, p3, q2 = filter_sums(lam[i], v, s2, p0, p1, p2, p3, q2)
+    S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane] = s2, p0, p1
+    S[_RP2 * L + lane], S[_RP3 * L + lane], S[_RQ2 * L + lane] = p2, p3, q2
+
+
+@kernel(inline="always")
+def _bank_fit(S: np.ndarray, lane: int, lam: tuple[float, ...]) -> None:
+    """Lane ``lane``: the least-squares residual of (13) and |F^2 xi/|xi||^2 summed over the
+    filters in their order (as :func:`kkl_kernel`), into rows ``_RRR`` and ``_RFF``."""
+    L = LANES
+    inv, z0, z1, z2 = S[_RINV * L + lane], S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane]
+    rr = 0.0
+    ff = 0.0
+    for i in range(len(lam)):
+        res, t = fit_residual(lam[i], S[(_RXI + i) * L + lane] * inv, z0, z1, z2)
+        rr += res * res
+        ff += t * t
+    S[_RRR * L + lane] = rr
+    S[_RFF * L + lane] = ff
+
+
+@kernel(inline="always")
 def _bank_front(
     S: np.ndarray, lane: int, s_ll: float, s_l: float, s_11: float, ell: float, w_ref: float, Ts: float,
     silence_ratio: float, env_decay: float, avg_gain: float, fast_gain: float, slow_gain: float,
@@ -475,8 +514,6 @@ def _bank_front(
     S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_RSQ * L + lane] = z0, z1, z2, sq
     S[_RWTS * L + lane] = wts
     S[_RHALF * L + lane] = 0.5 * wts
-    S[_RRR * L + lane] = 0.0
-    S[_RFF * L + lane] = 0.0
 
 
 @kernel(inline="always")
@@ -529,22 +566,23 @@ def _bank_lane_row(S: np.ndarray, lane: int) -> tuple[bool, float, bool, float, 
     )  # fmt: skip
 
 
-@kernel(inline="always", refcount=False)
-def _row_copy(S: np.ndarray, src: int, dst: int) -> None:
-    """Row ``src`` of ``S`` into row ``dst`` (offsets), written out: the lane loops then touch
-    rows at constant offsets only (xi's rows, at ``_RXI + i``, are not: LLVM would not prove
-    them apart from the others and would leave the loop scalar)."""
-    S[dst], S[dst + 1], S[dst + 2], S[dst + 3] = S[src], S[src + 1], S[src + 2], S[src + 3]
-    S[dst + 4], S[dst + 5], S[dst + 6], S[dst + 7] = S[src + 4], S[src + 5], S[src + 6], S[src + 7]
-
-
 _TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES)  # the state's tail, in order
 
 
-@kernel
 def kkl_bank_kernel(
     y: np.ndarray, state: np.ndarray, lam: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray,
     consts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`kkl_kernel` for C channels at once (:func:`_kkl_bank`), the filters' constants
+    passed as tuples: the compiled bank is specialised on their number m."""
+    return _kkl_bank(y, state, lam, tuple(lam.tolist()), tuple(fa.tolist()), tuple(fb0.tolist()),
+                     tuple(fb1.tolist()), consts, last_only)  # fmt: skip
+
+
+@kernel
+def _kkl_bank(
+    y: np.ndarray, state: np.ndarray, lam: np.ndarray, lam_t: tuple[float, ...], fa: tuple[float, ...],
+    fb0: tuple[float, ...], fb1: tuple[float, ...], consts: np.ndarray, last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`kkl_kernel` for C channels at once: ``y`` (N, C), ``state`` (m + 10, C), one
     channel per column; returns ``out`` (C, rows, 5), ``extras`` (C, rows, 3), ``sse`` (C,)
@@ -589,41 +627,15 @@ def kkl_bank_kernel(
         for lane in range(L):
             S[_RY * L + lane] = ys[lane]
         for k in range(n):
-            for r in range(_RS2, _RQ2 + 1):
-                for lane in range(L):
-                    S[r * L + lane] = 0.0
-            for i in range(m):  # (12) and the sums over the filters, filter by filter
-                a, b0, b1, li = fa[i], fb0[i], fb1[i], lam[i]
-                xr = (_RXI + i) * L
-                _row_copy(S, xr, _RV * L)
-                for lane in range(L):
-                    xo = S[_RV * L + lane]
-                    yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
-                    v = filter_one(a, b0, b1, xo, yp, yk)
-                    v = v if hp != 0.0 else xo
-                    S[_RV * L + lane] = v
-                    (S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane],
-                     S[_RP3 * L + lane], S[_RQ2 * L + lane]) = filter_sums(
-                        li, v, S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane],
-                        S[_RP3 * L + lane], S[_RQ2 * L + lane],
-                    )  # fmt: skip
-                _row_copy(S, _RV * L, xr)
-            for lane in range(L):
+            for lane in range(L):  # (12), the sums over the filters, the inverse map (8)-(9)
+                _bank_filters(S, lane, lam_t, fa, fb0, fb1)
                 _bank_front(S, lane, s_ll, s_l, s_11, ell, w_ref, Ts, silence_ratio, env_decay, avg_gain,
                             fast_gain, slow_gain)  # fmt: skip
             for lane in range(L):  # the sines: C library calls, lane by lane
                 S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
-            for lane in range(L):
+            for lane in range(L):  # read-out, fit residual of (13), converged
                 _bank_read_out(S, lane, w_ref)
-            for i in range(m):  # least-squares residual of (13), filter by filter
-                li = lam[i]
-                _row_copy(S, (_RXI + i) * L, _RV * L)
-                for lane in range(L):
-                    res, t = fit_residual(li, S[_RV * L + lane] * S[_RINV * L + lane], S[_RZ0 * L + lane],
-                                          S[_RZ1 * L + lane], S[_RZ2 * L + lane])  # fmt: skip
-                    S[_RRR * L + lane] += res * res
-                    S[_RFF * L + lane] += t * t
-            for lane in range(L):
+                _bank_fit(S, lane, lam_t)
                 _bank_good(S, lane, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
             nxt = min(k + 1, n - 1) * L
             for lane in range(L):  # the next sample, in place once this one is done with it
