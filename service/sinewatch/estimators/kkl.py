@@ -478,6 +478,19 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         "prediction) and the fit residual over the filters, about 200 flops in a dependency "
         "chain of ~250 cycles; with the rows written after the loop the kernel takes ~60 ns/sample."
     )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank advances 8 channels as one vector (lane-major state, the m filters unrolled; "
+        "the filters, the inverse map (8)-(9), the read-out and the fit residual in two loops over "
+        "the lanes that LLVM vectorises at 4 doubles, its preferred width here) at ~2.2x one "
+        "channel, and is bound by that arithmetic itself: per sample and channel ~200 flops, "
+        "three square roots and four divisions (vsqrtpd and vdivpd, long-latency and not fully "
+        "pipelined), plus one sine from the C library per lane (a vectorised sine would round "
+        "differently), which is 15 % of the bank's time (a loop of the same sines timed beside "
+        "it: ~6-7 ns of ~42-48 ns a channel-sample, at load ~25). Twice the FFT would need the "
+        "arithmetic at ~half its cost: 8 doubles a vector (AVX-512), which LLVM does not choose "
+        "for this loop"
+    )
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
