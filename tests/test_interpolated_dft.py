@@ -13,7 +13,7 @@ import pytest
 
 from sinewatch.estimators import create
 from sinewatch.estimators.base import wrap_pi
-from sinewatch.estimators.interpolated_dft import _one_window_estimate, _window_estimates
+from sinewatch.estimators.interpolated_dft_kernels import _one_window_estimate, _window_estimates
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
 
 FS = 1000.0

@@ -126,8 +126,8 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 from sinewatch.estimators.kkl_kernels import kkl_bank_kernel, kkl_kernel
 from sinewatch.schemas.errors import ParameterError
 

@@ -554,7 +554,9 @@ def _bank_good(
 
 
 @kernel(inline="always")
-def _bank_lane_row(S: np.ndarray, lane: int) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
+def _bank_lane_row(
+    S: np.ndarray, lane: int
+) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
     """Lane ``lane``'s values for :func:`record_row` / :func:`write_sample`: good, n_good,
     defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level."""
     L = LANES
