@@ -57,6 +57,8 @@ def _one_window_estimate(
     st: np.ndarray,
     ct: np.ndarray,
 ) -> None:
+    # The arguments of _window_estimates, whose every window this must reproduce bit for bit
+    # (a chunk of too few windows takes this path): the same inputs by design, not a copy.
     """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
     fewer than BATCH_MIN windows, where a loop over the windows has too few iterations to pay
     for itself): the same sums in the same order; the bins of (D) four at a time, so that
@@ -210,10 +212,8 @@ def _window_estimates(
             mags[bi, q] = math.hypot(acc1[q], acc2[q])
     # (P), (I3)/(I2), (F), then the start of the rotation recurrence of (LS)
     c = 0.5 * (N - 1)
-    lam = np.empty(Q)
-    omega = np.empty(Q)
-    cw = np.empty(Q)
-    sw = np.empty(Q)
+    rot = np.empty((4, Q))  # per window: lambda, omega and the rotation's cos and sin
+    lam, omega, cw, sw = rot[0], rot[1], rot[2], rot[3]
     for q in range(Q):
         lam[q] = _peak(mags, q, k_lo, k_hi, three_point)
         om = 2.0 * math.pi * lam[q] / N
@@ -227,14 +227,8 @@ def _window_estimates(
             s, co = sp[q], cp[q]
             sn[q] = s * cw[q] + co * sw[q]
             cn[q] = co * cw[q] - s * sw[q]
-    sss = np.zeros(Q)
-    scc = np.zeros(Q)
-    ssc = np.zeros(Q)
-    ss = np.zeros(Q)
-    sc = np.zeros(Q)
-    sus = np.zeros(Q)
-    suc = np.zeros(Q)
-    su = np.zeros(Q)
+    sums = np.zeros((8, Q))  # per window, the sums of (LS) below
+    sss, scc, ssc, ss, sc, sus, suc, su = sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6], sums[7]
     for n in range(N):
         sn = st[n]
         for q in range(Q):

@@ -73,11 +73,12 @@ def observer_head(
 ) -> tuple[np.ndarray, float, float, float, float, float, float, np.ndarray, np.ndarray]:
     """The state entries both kernels start with (a copy of xi_1..xi_m, then y_prev,
     have_prev, y_pred, pred_valid, n_good, env) and the ``out`` and ``extras`` arrays of a
-    block of ``n`` samples."""
+    block of ``n`` samples, and the ``rec`` array of :func:`record_sample` (per-sample values
+    for the rows, none when only the last row is wanted)."""
     rows = 1 if last_only else n
     return (
         state[:m].copy(), float(state[m]), state[m + 1], state[m + 2], state[m + 3], state[m + 4], state[m + 5],
-        np.empty((rows, 5)), np.empty((rows, 3)),
+        np.empty((rows, 5)), np.empty((rows, 3)), np.empty((0 if last_only else n, RECORD_SIZE)),
     )  # fmt: skip
 
 
@@ -156,6 +157,21 @@ def record_row(
 
 
 @kernel(inline="always")
+def write_rows(
+    out: np.ndarray, ext: np.ndarray, rec: np.ndarray, last_only: bool, good: bool, n_good: float,
+    n_settle: float, defined: bool, wts: float, Ts: float, a_sin: float, a_cos: float, offset: float, det: float,
+    ell: float, rr: float, ff: float, e2_avg: float, level: float,
+) -> None:  # fmt: skip
+    """After a block's loop: the last sample's row from the loop's final values, or every
+    sample's row from ``rec``."""
+    if last_only:
+        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, level)  # fmt: skip
+    else:
+        write_samples(out, ext, rec, n_settle, Ts, ell)
+
+
+@kernel(inline="always")
 def write_samples(
     out: np.ndarray, ext: np.ndarray, rec: np.ndarray, n_settle: float, Ts: float, ell: float
 ) -> None:  # fmt: skip
@@ -196,6 +212,19 @@ def filter_step(xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray
     FLUSH become 0 (no denormals in a long silence)."""
     for i in range(xi.shape[0]):
         xi[i] = filter_one(fa[i], fb0[i], fb1[i], xi[i], y_prev, yk)
+
+
+@kernel(inline="always")
+def next_sample(
+    y: np.ndarray, k: int, xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, have_prev: float,
+    y_prev: float,
+) -> float:  # fmt: skip
+    """Sample k of ``y``, after the filters (12) have advanced to it (from the previous
+    sample, if there was one)."""
+    yk = y[k]
+    if have_prev != 0.0:
+        filter_step(xi, fa, fb0, fb1, y_prev, yk)
+    return yk
 
 
 @kernel(inline="always")
@@ -359,7 +388,7 @@ def kkl_kernel(
         observer_constants(consts)
     )  # fmt: skip
     m, n = lam.shape[0], y.shape[0]
-    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
+    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext, rec = observer_head(state, m, n, last_only)
     e2_avg, y2_avg = state[m + 6], state[m + 7]
     e2_fast, e2_slow = state[m + 8], state[m + 9]
     # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
@@ -372,11 +401,8 @@ def kkl_kernel(
     sse = 0.0
     defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
     offset = np.nan
-    rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
-        yk = y[k]
-        if have_prev != 0.0:
-            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
+        yk = next_sample(y, k, xi, fa, fb0, fb1, have_prev, y_prev)  # (12)
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error and its running mean square, against that of y
@@ -413,11 +439,8 @@ def kkl_kernel(
         offset = 0.0 if defined else np.nan
         n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
                                rr, ff, e2_avg, y2_avg)  # fmt: skip
-    if last_only:  # the last sample's row, from the loop's final values
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, y2_avg)  # fmt: skip
-    else:  # the rows, after the loop
-        write_samples(out, ext, rec, n_settle, Ts, ell)
+    write_rows(out, ext, rec, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell,
+               rr, ff, e2_avg, y2_avg)  # fmt: skip
     tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
     return out, ext, sse, packed_state(xi, tail)
 
