@@ -70,7 +70,7 @@ def observer_constants(
 @kernel(inline="always")
 def observer_head(
     state: np.ndarray, m: int, n: int, last_only: bool
-) -> tuple[np.ndarray, float, float, float, float, float, float, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, float, float, float, float, float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The state entries both kernels start with (a copy of xi_1..xi_m, then y_prev,
     have_prev, y_pred, pred_valid, n_good, env) and the ``out`` and ``extras`` arrays of a
     block of ``n`` samples, and the ``rec`` array of :func:`record_sample` (per-sample values
@@ -221,7 +221,7 @@ def next_sample(
 ) -> float:  # fmt: skip
     """Sample k of ``y``, after the filters (12) have advanced to it (from the previous
     sample, if there was one)."""
-    yk = y[k]
+    yk = float(y[k])
     if have_prev != 0.0:
         filter_step(xi, fa, fb0, fb1, y_prev, yk)
     return yk
