@@ -482,7 +482,7 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
     bank_note: ClassVar[str] = (
         "the bank advances 8 channels as one vector (lane-major state, the m filters unrolled; "
         "the filters, the inverse map (8)-(9), the read-out and the fit residual in two loops over "
-        "the lanes that LLVM vectorises at 4 doubles, its preferred width here) at ~2.2x one "
+        "the lanes that LLVM vectorises at 4 doubles, its preferred width here) at 2.2-4.6x one "
         "channel, and is bound by that arithmetic itself: per sample and channel ~200 flops, "
         "three square roots and four divisions (vsqrtpd and vdivpd, long-latency and not fully "
         "pipelined), plus one sine from the C library per lane (a vectorised sine would round "
