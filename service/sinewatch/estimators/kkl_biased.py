@@ -290,6 +290,7 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
     """KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters and a static inverse map (extension of Praly, Marconi, Isidori)"""
 
     paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator" (extended)'
+    ell_label = "l_b"
     # the bench's note under its table (``sinewatch bench kernels --estimators kkl-biased``)
     bench_note: ClassVar[str] = (
         "kkl-biased is below the streaming FFT (about 0.3-0.4x at 1024-sample blocks): the work of "
@@ -297,7 +298,6 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
         "solve by its Schur complement in the eigenbasis of C^T C, every sample: ~80 ns/sample "
         "for the kernel with the rows written after the loop."
     )
-    ell_label = "l_b"
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
     def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
