@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import make_config, run_daemon, take
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
+from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates, subscribe_status
 from sinewatch.export import export
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import read_recording, replay
@@ -512,8 +512,15 @@ def test_a_daemon_fed_frames_and_single_blocks_at_once_records_what_replays_bit_
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             err = subscribe_errors(s)
+            status = subscribe_status(s)
             pub = BlockPublisher(s, dtype="float64")
             assert pub.wait_for_frame_subscriber("mu1", 20) and pub.wait_for_subscriber("solo", 20)
+            # The daemon's inputs are subscribed; its outputs reach this session only once the
+            # daemon has this session's subscriptions. They arrive over one link in the order
+            # declared: a Status received proves the estimates' and errors' ones (declared
+            # before it) are there too, so no estimate can go out to nobody.
+            assert status.get(timeout=20) is not None
+            status.close()
             for seq, frame in enumerate(frames):
                 pub.publish_frame_raw("mu1", encode_frame_binary(frame))
                 pub.publish("solo", _signal(seq, 1)[:, 0], FS)
