@@ -142,3 +142,73 @@ def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
     assert result["ratio_to_estimator"]["estimator"] == 1.0
     assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
     assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+
+
+def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
+    from sinewatch.estimators.base import Track, TrackStd
+
+    def rows(shape):
+        return rng.standard_normal(shape) * 10.0 ** rng.integers(-12, 12, size=shape)
+
+    tr = Track(
+        frequency_hz=50.0 + rows((3, k)),
+        amplitude=rows((3, k)),
+        phase_rad=rows((3, k)),
+        offset=rows((3,)),
+        converged=np.array([False, True, True]),
+        residual_rms=rms,
+        rocof_hz_per_s=rows((3, k)) if rocof else None,
+        std=TrackStd(rows((3, k)), rows((3, k)), rows((3, k)), rows((3,))) if std else None,
+    )
+    if bad is not None:  # a non-finite value: the general path writes it as null
+        getattr(tr, bad)[-1, ...] = np.nan
+    return tr
+
+
+def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path):
+    """Pipeline._fast_payload (one % formatting of a cached template) against the general path
+    (encode_estimate_values, itself proven equal to the pydantic model's bytes) over component
+    counts, std and rocof present or not, flags, fencing, time quality, every estimate format
+    from 3 on, and values of every magnitude; a non-finite value falls back to the general path."""
+    from sinewatch.estimators import get
+    from sinewatch.pipeline import Channel
+    from sinewatch.schemas.messages import Fencing
+
+    rng = np.random.default_rng(11)
+    cases = 0
+    for version in (3, 4, 5):
+        pipe = Pipeline(make_config(tmp_path), [NullSink()], estimate_version=version)
+        est = get("ges-kalman")(10_000.0, {})
+        ch = Channel("site/a-1.x", "sinewatch/in/site/a-1.x", est, 10_000.0)
+        assert ch.presence is not None
+        ch.presence.update(np.sin(np.arange(40_000) * 0.0314))  # a long run: estimates valid
+        for fencing in (None, Fencing(shard="s%1", term=3)):
+            pipe.set_fencing(fencing)
+            for k in (1, 3):
+                for std in (False, True):
+                    for rocof in (False, True):
+                        for tq in (0, 0x80 | 0x04 | 1):
+                            for gap_blocks, restart, reset, jump in ((0, False, False, False), (2, True, True, True)):
+                                blk = Block("site/a-1.x", 7, 10**18 + 123, 10_000.0, np.zeros(1024))
+                                blk.time_quality = tq
+                                tr = _track(rng, k, std=std, rocof=rocof)
+                                args = (ch, blk, tr, 10**18 + 5_000_123, 10**18 + 5_000_123, gap_blocks, restart, reset, jump)
+                                fast = pipe._fast_payload(*args)
+                                ch.template = None
+                                general = _general_payload(pipe, *args)
+                                assert fast == general, (version, k, std, rocof)
+                                cases += 1
+        for bad in ("frequency_hz", "offset", "amplitude"):
+            tr = _track(rng, 2, std=True, rocof=False, bad=bad)
+            assert pipe._fast_payload(ch, blk, tr, 10**18, 10**18, 0, False, False, False) is None
+    assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
+
+
+def _general_payload(pipe: Pipeline, *args) -> tuple[bytes, bool]:
+    """Pipeline._estimate_payload with the fast path off."""
+    fast = pipe._fast_payload
+    pipe._fast_payload = lambda *a: None  # type: ignore[method-assign]
+    try:
+        return pipe._estimate_payload(*args)
+    finally:
+        pipe._fast_payload = fast  # type: ignore[method-assign]
