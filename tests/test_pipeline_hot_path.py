@@ -212,3 +212,34 @@ def _general_payload(pipe: Pipeline, *args) -> tuple[bytes, bool]:
         return pipe._estimate_payload(*args)
     finally:
         pipe._fast_payload = fast  # type: ignore[method-assign]
+
+
+def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():
+    """update_presence_bank (one compiled call for a frame's channels) against each detector
+    run on its own column: the same runs and states, bit for bit, over interruptions, any
+    subset and order of the columns, and blocks of any size; detectors of other parameters
+    are left to the caller (None)."""
+    from sinewatch.estimators.presence import update_presence_bank
+
+    fs = 10_000.0
+    rng = np.random.default_rng(5)
+    t = np.arange(30_000) / fs
+    x = np.stack([np.sin(2 * np.pi * (50 + c) * t + c) + 0.05 * rng.standard_normal(t.size) for c in range(6)], axis=1)
+    x[8_000:11_000, 2] *= 0.01  # an interruption on one column
+    x[20_000:, 4] = 0.0  # a signal lost for good on another
+    columns = [5, 2, 0, 4]
+    alone = [SignalPresence(fs, hysteresis=0.02) for _ in columns]
+    bank = [SignalPresence(fs, hysteresis=0.02) for _ in columns]
+    lo = 0
+    for n in (1024, 333, 4096, 1, 2000, 7000, 15_546):
+        block = np.ascontiguousarray(x[lo : lo + n])
+        runs = update_presence_bank(bank, block, columns)
+        assert runs is not None and runs.shape == (len(columns), n)
+        for i, (det, c) in enumerate(zip(alone, columns, strict=True)):
+            run, _level = det.update(np.ascontiguousarray(block[:, c]))
+            assert np.array_equal(runs[i], run)
+            assert np.array_equal(bank[i].sums, det.sums) and np.array_equal(bank[i].counters, det.counters)
+        lo += n
+    assert lo == t.size and bank[1].run_samples > 0 and bank[3].run_samples == 0
+    other = [SignalPresence(fs), SignalPresence(fs, nominal_frequency_hz=60.0)]
+    assert update_presence_bank(other, x[:1024], [0, 1]) is None

@@ -39,7 +39,7 @@ from sinewatch.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.base import Estimator, Track, TrackStd
-from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence
+from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence, update_presence_bank
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
@@ -449,9 +449,10 @@ class Pipeline:
         n_all = len(keys)
         for members in banks.values():
             tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
+            presence_done = self._presence_bank(members, tracks, x)
             for member, track in zip(members, tracks, strict=True):
                 if track is not None:
-                    self._frame_estimate(member, track, log_time_ns, received_ns)
+                    self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
 
     def _frame_channel_keys(self, key: str, names: tuple[str, ...]) -> tuple[str, ...]:
         """Each channel's key (:func:`sinewatch.schemas.frame.channel_key`), once per layout."""
@@ -556,11 +557,41 @@ class Pipeline:
                 tracks.append(None)
         return tracks
 
-    def _frame_estimate(self, m: _Member, track: Track, log_time_ns: int, received_ns: int | None) -> None:
-        """What :meth:`process` does after the estimator, for one channel of a frame."""
+    @staticmethod
+    def _presence_bank(members: list[_Member], tracks: list[Track | None], x: np.ndarray) -> bool:
+        """The presence detectors of a bank's accepted channels in one compiled call
+        (:func:`update_presence_bank`: each detector's run and state exactly what
+        :meth:`_presence` gives it); False when it does not apply (then each channel's own
+        runs in :meth:`_frame_estimate`, which also isolates a fault to its channel)."""
+        live = [m for m, track in zip(members, tracks, strict=True) if track is not None]
+        if len(live) < 2 or any(
+            type(m.channel.estimator).presence_samples is not Estimator.presence_samples for m in live
+        ):
+            return False
+        detectors = [m.channel.presence for m in live]
+        for m, det in zip(live, detectors, strict=True):
+            assert det is not None
+            if m.reset:
+                det.reset()
+        try:
+            runs = update_presence_bank(detectors, x, [m.column for m in live])  # type: ignore[arg-type]
+        except Exception:  # noqa: BLE001 (the state is untouched: each channel runs its own, isolated)
+            return False
+        if runs is None:
+            return False
+        for m, run in zip(live, runs, strict=True):
+            m.channel.last_run = run
+        return True
+
+    def _frame_estimate(
+        self, m: _Member, track: Track, log_time_ns: int, received_ns: int | None, presence_done: bool = False
+    ) -> None:
+        """What :meth:`process` does after the estimator, for one channel of a frame (its
+        presence detector already run by :meth:`_presence_bank` when ``presence_done``)."""
         channel, block = m.channel, m.block
         try:
-            self._presence(channel, block, m.reset)
+            if not presence_done:
+                self._presence(channel, block, m.reset)
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
             payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset, m.jump)
         except Exception as exc:  # noqa: BLE001 (one channel's fault)
