@@ -971,7 +971,10 @@ class Pipeline:
         if std is not None:
             parts += (std.frequency_hz[-1], std.amplitude[-1], std.phase_rad[-1], std.offset[-1:])
         values = np.concatenate(parts)
-        if values.dtype != _F64 or not np.isfinite(values).all():
+        if values.dtype != _F64:
+            return None
+        floats = values.tolist()
+        if not isfinite(sum(floats)):  # a NaN or an infinity makes the sum one (so may an overflow: then the general path)
             return None
         k = track.frequency_hz.shape[-1]
         key = (version, k, rocof is not None, std is not None, self._fencing_json, block.time_quality)
@@ -994,7 +997,7 @@ class Pipeline:
             sec,
             nsec,
             block.n_samples,
-            *values.tolist(),
+            *floats,
             _TRUE_FALSE[converged],
             _TRUE_FALSE[valid],
             "null" if rms is None or not isfinite(rms) else repr(float(rms)),
