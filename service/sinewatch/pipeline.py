@@ -974,7 +974,8 @@ class Pipeline:
         if values.dtype != _F64:
             return None
         floats = values.tolist()
-        if not isfinite(sum(floats)):  # a NaN or an infinity makes the sum one (so may an overflow: then the general path)
+        # a NaN or an infinity makes the sum non-finite (so may an overflow: then the general path)
+        if not isfinite(sum(floats)):
             return None
         k = track.frequency_hz.shape[-1]
         key = (version, k, rocof is not None, std is not None, self._fencing_json, block.time_quality)

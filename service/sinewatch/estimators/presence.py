@@ -191,9 +191,7 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
         return None
     sums = np.stack([d.sums for d in detectors])
     counters = np.stack([d.counters for d in detectors])
-    runs, new_sums, new_counters = presence_bank_kernel(
-        x, np.asarray(columns, dtype=np.int64), sums, counters, *params
-    )
+    runs, new_sums, new_counters = presence_bank_kernel(x, np.asarray(columns, dtype=np.int64), sums, counters, *params)
     for i, d in enumerate(detectors):
         d.sums, d.counters = new_sums[i], new_counters[i]
     return runs
