@@ -97,23 +97,23 @@ with J = dp/dx at x_hat (written out in ``_parameter_std``)::
 The recursion only reads the filter's quantities (its state is the separate ``unc``
 array), so the estimates are bit for bit those of the filter without it.
 
-Calibration (sd of error / reported sd about its mean; default parameters; one value per
-trial at the end of 2 s, 1000 seeded trials: ``pytest -m slow
+Calibration (sd of error / reported sd about its mean; one value per trial at the end of
+2 s). With the paper's Q = 1e-6 I at 1 kHz (1000 seeded trials: ``pytest -m slow
 tests/test_ges_kalman_uncertainty.py``): 0.97 to 1.04 for frequency, amplitude, phase and
-offset at 25 and 50.5 Hz (1 kHz), SNR 10 to 40 dB. ``sinewatch bench accuracy
---estimators ges-kalman --scenarios tone-snr-10db tone-snr-20db tone-snr-30db tone-snr-40db
-paper000-tone --trials 30`` shows it per scenario (the bench's own tuning: see below).
+offset at 25 and 50.5 Hz, SNR 10 to 40 dB. At the defaults (Q scaled to the sample rate,
+:func:`default_q`; R = 1e-2) on 49.5-50.5 Hz tones of amplitude 0.5-2 at 5 kHz, 0 to 60 dB
+(``sinewatch bench calibration --estimators ges-kalman --trials 300``): sd 0.96-1.10, |mean|
+<= 0.2, but for the frequency's mean at 0 dB (+0.43).
 
 Where it does not hold: U1-U6 are first order in the noise, and the noise on the sample in
-A(k) biases x3_hat towards 0 (errors in variables: a noisy regressor attenuates its
-coefficient, the more the longer the filter's memory). Tuned with R = sigma^2 at 10 dB SNR
-the memory is long enough for a -1.9 Hz bias at 50.5 Hz (-3 reported sd; sd of the
-normalised error 0.66); the bench's tuning (R = sigma^2 / 100, floored at 1e-3 A^2:
-``sinewatch.bench.params``) keeps it short: calibration 0.95-1.08 for all four parameters
-on its tone scenarios from 0 to 60 dB (``sinewatch bench accuracy --estimators ges-kalman
---scenarios snr --trials 30``). With the default tuning at 100-200 Hz (5 to 10 samples per
-cycle) and SNR <= 20 dB, mean -1.5 to -8, sd 0.4-0.8; amplitude, phase and offset
-0.58-1.31 there (worst at 200 Hz).
+A(k) biases x3_hat (errors in variables: a noisy regressor attenuates its coefficient, the
+more the longer the filter's memory); so does a memory so short that x3_hat's own noise is
+large (the filter is nonlinear in it). The paper's Q unscaled at 5 kHz is the second case
+(mean error / sd +5.6 for frequency at 0 dB, +2.5 at 10 dB); R = sigma^2 at 10 dB SNR, 1 kHz,
+the first (a -1.9 Hz bias at 50.5 Hz, -3 reported sd). The accuracy bench's tuning (Q scaled
+at the scenario's nominal frequency, R = sigma^2 / 100 floored at 1e-3 A^2:
+``sinewatch.bench.params``) is calibrated 0.95-1.08 on its tone scenarios from 0 to 60 dB
+(``sinewatch bench accuracy --estimators ges-kalman --scenarios snr --trials 30``).
 """
 
 from __future__ import annotations
