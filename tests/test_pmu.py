@@ -375,7 +375,12 @@ def test_default_rule_passes_the_steady_55_hz_row_of_the_60_hz_suite(fs):
     from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
 
     rows = run_suite(
-        60, 60, estimator=DEFAULT_ESTIMATOR, params=dict(DEFAULT_PARAMS), families=("steady-frequency",), sample_rate_hz=fs
+        60,
+        60,
+        estimator=DEFAULT_ESTIMATOR,
+        params=dict(DEFAULT_PARAMS),
+        families=("steady-frequency",),
+        sample_rate_hz=fs,
     )
     steady = {r.metric: r for r in rows if r.family == "steady-frequency"}
     assert all(steady[m].passed for m in ("tve_pct", "fe_hz", "rfe_hz_per_s")), steady
