@@ -383,7 +383,9 @@ def test_a_draining_daemon_publishes_its_held_estimates_and_replays(tmp_path):
     recorded = [json.loads(m.payload) for kind, m in read_recording(path) if kind == "message" and m.role == "estimate"]
     assert len(recorded) == len(blocks)
     assert not recorded[-1]["diagnostics"]["valid"]
-    assert recorded[0]["timestamp_ns"] < recorded[-1]["timestamp_ns"] == blocks[-1].t0_ns + round(
-        (LIVE_BLOCK - 1) * 1e9 / LIVE_FS
+    assert (
+        recorded[0]["timestamp_ns"]
+        < recorded[-1]["timestamp_ns"]
+        == blocks[-1].t0_ns + round((LIVE_BLOCK - 1) * 1e9 / LIVE_FS)
     )
     assert replay([path]).ok
