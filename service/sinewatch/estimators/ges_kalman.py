@@ -538,6 +538,7 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
 
     paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_frequency_hz = 100.0  # the paper's Section IV
+    example_params: ClassVar[dict[str, Any]] = {"q": PAPER_Q}  # and its Q, at its own w Ts = 0.2 pi
     # defaults of recordings made before ESTIMATOR_DEFAULTS_VERSION 2 (replay sets them)
     defaults_before: ClassVar[dict[str, Any]] = LEGACY_DEFAULTS
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators ges-kalman``
