@@ -551,6 +551,7 @@ class Daemon:
             await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
+        self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
         self.publish_status()
         if self.cluster is not None:  # only now: a standby takes over after our last estimate
             await self.cluster.close()
