@@ -53,6 +53,8 @@ from sinewatch.cluster import ClusterMember, Ownership
 from sinewatch.pipeline import Pipeline, ResumePoint, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
+from sinewatch.schemas.codec import HEADER as BLOCK_HEADER
+from sinewatch.schemas.codec import MAGIC as BLOCK_MAGIC
 from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import ConfigError
@@ -108,6 +110,7 @@ class Intake:
         self._lock = threading.Lock()
         self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
         self._stopping = False
+        self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
             # from the publishers' caches (heartbeats tell what was missed); what is past their
@@ -138,6 +141,14 @@ class Intake:
         # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
         if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
             self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+            # each key's last block already in the state (restored from a snapshot or a file): the
+            # history up to it is dropped unread rather than decoded, recorded and skipped
+            keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
+            self._known = {
+                ch.key: ch.last_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.last_seq is not None and keys[ch.key] == 1
+            }
             selector = f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")
             threading.Thread(target=self._history, args=(selector,), name="sinewatch-history", daemon=True).start()
 
@@ -154,7 +165,7 @@ class Intake:
                 timeout=HISTORY_TIMEOUT_S,
             ):
                 sample = reply.ok
-                if sample is not None and (item := self._own(sample)) is not None:
+                if sample is not None and (item := self._own(sample)) is not None and not self._in_state(item[0]):
                     replies.append(item)
         except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
             log.warning("intake: history query failed: %s", exc)
@@ -172,6 +183,16 @@ class Intake:
                 return
             log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
             self._hand_over(interleaved + held)
+
+    def _in_state(self, item: Item) -> bool:
+        """A binary block whose seq (read from its header) is at or before its channel's last
+        block in the state: already taken in (a takeover's history reaches back past its
+        snapshot, twice what it lacks; most of it was in the snapshot)."""
+        key, payload = item[0], item[1]
+        last = self._known.get(key)
+        if last is None or payload[:4] != BLOCK_MAGIC or len(payload) < BLOCK_HEADER.size:
+            return False
+        return int.from_bytes(payload[8:16], "little") <= last
 
     def _own(self, sample: zenoh.Sample) -> tuple[Item, Any, int] | None:
         """(item, publisher, sequence number) of a sample of a key this process owns, else None."""
