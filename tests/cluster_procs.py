@@ -325,6 +325,12 @@ class Tokens:
             ok = self._cond.wait_for(lambda: sum(p.startswith(role + "/") for p in self.present) >= n, timeout)
             assert ok, f"{n} {role}: {self.present}{log_tails(self.logs)}"
 
+    def wait_daemons(self, daemon_ids: list[str], timeout: float = WAIT) -> None:
+        """Until every one of ``daemon_ids`` has a token, in either role."""
+        with self._cond:
+            ok = self._cond.wait_for(lambda: set(daemon_ids) <= {p.split("/")[-1] for p in self.present}, timeout)
+            assert ok, f"{daemon_ids}: {self.present}{log_tails(self.logs)}"
+
     def wait_for(self, *names: str, timeout: float = WAIT) -> None:
         with self._cond:
             ok = self._cond.wait_for(lambda: set(names) <= self.present, timeout)

@@ -149,30 +149,36 @@ class Intake:
                 for ch in daemon.pipeline.channels.values()
                 if ch.last_seq is not None and keys[ch.key] == 1
             }
-            selector = f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")
-            threading.Thread(target=self._history, args=(selector,), name="sinewatch-history", daemon=True).start()
+            if history_blocks and self._known:  # a takeover: its shard's keys only, not every key's history
+                selectors = [f"{key}/@adv/**?_max={history_blocks}" for key in self._known]
+            else:
+                selectors = [f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")]
+            threading.Thread(target=self._history, args=(selectors,), name="sinewatch-history", daemon=True).start()
 
-    def _history(self, selector: str) -> None:
+    def _history(self, selectors: list[str]) -> None:
         """The publishers' cached samples (each key's newest ``history_blocks``, or all) asked
         for once, after subscribing: handed over first, then what arrived live meanwhile
         (held back until now), each sample once; from then on the pump hands over directly."""
         replies: list[tuple[Item, Any, int]] = []
         try:
-            for reply in self._daemon.session.get(
-                selector,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                accept_replies=zenoh.ReplyKeyExpr.ANY,
-                timeout=HISTORY_TIMEOUT_S,
-            ):
-                sample = reply.ok
-                if sample is not None and (item := self._own(sample)) is not None and not self._in_state(item[0]):
-                    replies.append(item)
+            queries = [  # all sent at once, then read in turn
+                self._daemon.session.get(
+                    selector,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=HISTORY_TIMEOUT_S,
+                )
+                for selector in selectors
+            ]
+            for query in queries:
+                for reply in query:
+                    sample = reply.ok
+                    if sample is not None and (item := self._own(sample, history=True)) is not None:
+                        replies.append(item)
         except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
             log.warning("intake: history query failed: %s", exc)
-        # Each key's history in order, the keys taken in turn: a takeover's first estimate of every
-        # channel then waits for each channel's catch-up, not for every other channel's whole history
-        # (in reply order, key after key, the last channel's first estimate came ~1.4 s after the
-        # history arrived, 2,419 blocks of 50 channels, load average 10)
+        # Each key's history in order, the keys taken in turn: every channel's first estimate of a
+        # takeover then waits for each channel's catch-up, not for the other channels' whole history
         by_key: dict[str, list[tuple[Item, Any, int]]] = {}
         for reply_item in replies:
             by_key.setdefault(reply_item[0][0], []).append(reply_item)
@@ -184,26 +190,29 @@ class Intake:
             log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
             self._hand_over(interleaved + held)
 
-    def _in_state(self, item: Item) -> bool:
+    def _in_state(self, key: str, payload: bytes) -> bool:
         """A binary block whose seq (read from its header) is at or before its channel's last
         block in the state: already taken in (a takeover's history reaches back past its
         snapshot, twice what it lacks; most of it was in the snapshot)."""
-        key, payload = item[0], item[1]
         last = self._known.get(key)
         if last is None or payload[:4] != BLOCK_MAGIC or len(payload) < BLOCK_HEADER.size:
             return False
         return int.from_bytes(payload[8:16], "little") <= last
 
-    def _own(self, sample: zenoh.Sample) -> tuple[Item, Any, int] | None:
-        """(item, publisher, sequence number) of a sample of a key this process owns, else None."""
+    def _own(self, sample: zenoh.Sample, history: bool = False) -> tuple[Item, Any, int] | None:
+        """(item, publisher, sequence number) of a sample of a key this process owns, else None
+        (and None for a block of the history already in the state)."""
         key = str(sample.key_expr)
         # another daemon's or worker's keys: not ours to copy, decode, record or count
         if self._owner is not None and not self._owner.owns(key):
             self.counters.not_owned += 1
             return None
+        payload = sample.payload.to_bytes()
+        if history and self._in_state(key, payload):
+            return None
         info = sample.source_info
         source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
-        return self._take(key, sample), source, sn
+        return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
 
     def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
         """Admit and pass on, in batches, the samples not handed over before (per publisher,
@@ -253,10 +262,6 @@ class Intake:
         next block of that channel arrives); counted here, logged."""
         self.counters.unrecovered += miss.nb
         log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
-
-    @staticmethod
-    def _take(key: str, sample: zenoh.Sample) -> Item:
-        return (key, sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         """Take room for an input: one block, or one per channel of a multi-channel frame
