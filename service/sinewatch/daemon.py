@@ -301,8 +301,10 @@ class Intake:
 
     async def stop(self) -> None:
         """Stop intake: no new inputs; everything already received is handed over."""
-        with self._lock:
-            self._stopping = True
+        # Not under self._lock: the pump can hold it for as long as it waits for room in the
+        # queue, which only this event loop frees; taking it here deadlocked a deposed owner
+        # (it never stood by again, so its shard had no successor). One assignment: atomic.
+        self._stopping = True
         if self._miss_listener is not None:
             self._miss_listener.undeclare()
         self._subscriber.undeclare()
