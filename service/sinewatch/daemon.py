@@ -305,10 +305,18 @@ class Intake:
         # queue, which only this event loop frees; taking it here deadlocked a deposed owner
         # (it never stood by again, so its shard had no successor). One assignment: atomic.
         self._stopping = True
+        loop = asyncio.get_running_loop()
+        # Off the event loop too: undeclaring takes zenoh-ext's lock, which a Zenoh thread holds
+        # while it waits for room in the FIFO, which the pump frees once the event loop frees
+        # room in the queue; undeclared on the loop, two deposed owners hung for good when etcd
+        # restarted (no "standby" after "no longer the owner", no admin answers)
+        await loop.run_in_executor(None, self._undeclare)
+        await loop.run_in_executor(None, self._closed.wait)
+
+    def _undeclare(self) -> None:
         if self._miss_listener is not None:
             self._miss_listener.undeclare()
         self._subscriber.undeclare()
-        await asyncio.get_running_loop().run_in_executor(None, self._closed.wait)
 
 
 class Daemon:
