@@ -1026,6 +1026,156 @@ def _retune_responses(
     return h_old, h_new
 
 
+@kernel(inline="always")
+def _demodulate(
+    xi: float, b_prev: float, snap_valid: float, snap_a: float, lo: complex, bb: complex,
+    s0b0: float, s0b1: float, s0b2: float, s0a1: float, s0a2: float,
+    s1b0: float, s1b1: float, s1b2: float, s1a1: float, s1a2: float,
+    o1: float, o2: float, o3: float, o4: float, r1: float, r2: float, r3: float, r4: float,
+    q1: float, q2: float, q3: float, q4: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """One input sample of the real-input front end, branch-free: the one-step prediction
+    error of x(i) (for residual_rms), the offset B^ (the low-pass on x itself), and c = cr + j ci
+    (quadrature demodulation and low-pass); then the 12 new biquad delays. The one definition,
+    called by :func:`differential_rls_kernel` and, one lane per channel, by its bank."""
+    # one-step prediction of x(i) from the estimate so far
+    pred = b_prev + snap_a * (lo * bb).imag if snap_valid != 0.0 else b_prev
+    e = xi - pred
+    # offset: the same low-pass on x itself
+    y1, o1, o2 = _bq(xi, s0b0, s0b1, s0b2, s0a1, s0a2, o1, o2)
+    bh, o3, o4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, o3, o4)
+    # quadrature demodulation: m = 2j (x - B^) e^{-j psi}, so that LPF(m) = A e^{j phi_d}
+    # for x = B + A sin(psi + phi_d) (c = z + j y of eqs. 1-2)
+    d2 = 2.0 * (xi - bh)
+    y1, r1, r2 = _bq(d2 * lo.imag, s0b0, s0b1, s0b2, s0a1, s0a2, r1, r2)
+    cr, r3, r4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, r3, r4)
+    y1, q1, q2 = _bq(d2 * lo.real, s0b0, s0b1, s0b2, s0a1, s0a2, q1, q2)
+    ci, q3, q4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, q3, q4)
+    return e, bh, cr, ci, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4
+
+
+@kernel(inline="always")
+def _decimated_step(
+    cr: float, ci: float, u: float, core: np.ndarray, theta: np.ndarray, P: np.ndarray, tab: np.ndarray,
+    consts: np.ndarray, rr: np.ndarray, ri: np.ndarray, xr_: np.ndarray, xi_: np.ndarray, px: np.ndarray,
+    idx: np.ndarray, T: np.ndarray, b0: np.ndarray, work: np.ndarray, sos: np.ndarray, fe: np.ndarray,
+    wref: float, lref: float, r1: float, r2: float, r3: float, r4: float,
+    q1: float, q2: float, q3: float, q4: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float, float, float, float, float, complex, complex,
+]:  # fmt: skip
+    """One decimated sample c = cr + j ci (dt = u T0) of the real-input estimator:
+    :func:`core_step`, the periodic re-centring of the reference (with the low-pass state
+    moved to the new frequency) and the snapshot the outputs hold until the next one (written
+    into ``fe``). Returns the new reference frequency and ramp, the 8 delays of the
+    demodulator's low-pass, ``a^ / H * |H|^2`` (whose argument is the snapshot's phase) and
+    the prediction rotator and its step. The one definition, called by
+    :func:`differential_rls_kernel` and, lane by lane, by its bank."""
+    fs = consts[K_FS]
+    inv_fs = 1.0 / fs
+    T0 = consts[K_T0]
+    d0 = T0 * fs
+    w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
+    w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
+    recenter = consts[K_RECENTER] != 0.0
+    core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
+    w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+    if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+        dw = 0.0
+        dl = 0.0
+        if recenter and confident:
+            # periodic re-centring of the reference oscillator on the estimate (frequency
+            # and, with the derivative model, its ramp), clamped to the tracking range
+            wnew = wref + w / T0
+            lnew = lref + lsig / (T0 * T0)
+            if wnew > w_hi:
+                wnew = w_hi
+                lnew = 0.0
+            elif wnew < w_lo:
+                wnew = w_lo
+                lnew = 0.0
+            dw = (wnew - wref) * T0
+            dl = (lnew - lref) * T0 * T0
+            if dw != 0.0:
+                om_old = w / d0
+                om_new = (w - dw) / d0
+                a_now = complex(core[A_RE], core[A_IM])
+                fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
+                fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
+                h_old, h_new = _retune_responses(sos, fe, a_now, om_old, om_new)
+                r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
+                q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
+                g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
+                cp = complex(core[C_PREV_RE], core[C_PREV_IM]) * g
+                core[C_PREV_RE] = cp.real
+                core[C_PREV_IM] = cp.imag
+                a_now = a_now * g
+                core[A_RE] = a_now.real
+                core[A_IM] = a_now.imag
+                nh = complex(core[NH_RE], core[NH_IM]) * g
+                core[NH_RE] = nh.real
+                core[NH_IM] = nh.imag
+            wref = wnew
+            lref = lnew
+        rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
+        w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+    # snapshot, compensated for the low-pass response at the estimated baseband frequency
+    h = lowpass_response(sos, w / d0)
+    ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
+    habs2 = h.real * h.real + h.imag * h.imag
+    aah = abs(ah)
+    amp = aah / habs2  # |a^ / H|
+    val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
+    wb_s = w / T0
+    lb_s = lb / (T0 * T0)
+    # arg(a^ / H) = atan2(ah): only outputs read it, so it is taken when one is written
+    # (or the block ends), from the same ah: the same bits, one atan2 a block at last_only
+    ah_re = ah.real
+    ah_im = ah.imag
+    fe[F_SNAP_W] = wb_s
+    fe[F_SNAP_L] = lb_s
+    fe[F_SNAP_A] = amp
+    fe[F_SNAP_VALID] = 1.0 if val else 0.0
+    fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
+    fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
+    fe[F_SINCE] = 0.0
+    bb = ah / aah if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
+    a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
+    bs = complex(math.cos(a_), math.sin(a_))
+    return wref, lref, r1, r2, r3, r4, q1, q2, q3, q4, ah_re, ah_im, bb, bs
+
+
+@kernel(inline="always")
+def _write_outputs(
+    out: np.ndarray, ext: np.ndarray, j: int, fe: np.ndarray, b: float, psi: float, wref: float, lref: float,
+    ts: float,
+) -> None:
+    """Row ``j`` of the real-input outputs: the snapshot of the last decimated sample held,
+    its phase advanced by ``ts`` seconds at the estimated frequency; ``b`` the offset B^."""
+    if fe[F_SNAP_VALID] != 0.0:
+        wbb = fe[F_SNAP_W]
+        lbb = fe[F_SNAP_L]
+        out[j, 0] = (wref + wbb + lbb * ts) / TWO_PI
+        out[j, 1] = fe[F_SNAP_A]
+        out[j, 2] = _wrap(psi + fe[F_SNAP_PH] + (wbb + 0.5 * lbb * ts) * ts)
+        out[j, 3] = b
+        out[j, 4] = fe[F_SNAP_CONV]
+        ext[j, 0] = (lref + lbb) / TWO_PI
+        ext[j, 1] = fe[F_SNAP_STD] if fe[F_SNAP_STD] >= 0.0 else np.nan
+    else:
+        out[j, 0] = np.nan
+        out[j, 1] = np.nan
+        out[j, 2] = np.nan
+        out[j, 3] = b
+        out[j, 4] = 0.0
+        ext[j, 0] = np.nan
+        ext[j, 1] = np.nan
+    ext[j, 2] = wref / TWO_PI
+
+
 @kernel
 def differential_rls_kernel(
     x: np.ndarray,
@@ -1058,7 +1208,6 @@ def differential_rls_kernel(
     T0 = consts[K_T0]
     w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
     w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
-    recenter = consts[K_RECENTER] != 0.0
     warm = consts[K_WARM]
     ncyc = cyc.shape[0]
     d0 = T0 * fs
@@ -1095,25 +1244,12 @@ def differential_rls_kernel(
         xi = x[i]
         if ist[2] < warm:
             ist[2] += 1
-        # ---- one-step prediction of x(i) from the estimate so far (for residual_rms)
-        snap_valid = fe[F_SNAP_VALID] != 0.0
-        if snap_valid:
-            pred = fe[F_B] + fe[F_SNAP_A] * (lo * bb).imag
-        else:
-            pred = fe[F_B]
-        e = xi - pred
+        e, bh, cr, ci, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4 = _demodulate(
+            xi, fe[F_B], fe[F_SNAP_VALID], fe[F_SNAP_A], lo, bb, s0b0, s0b1, s0b2, s0a1, s0a2,
+            s1b0, s1b1, s1b2, s1a1, s1a2, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4,
+        )  # fmt: skip
         sse += e * e
-        # ---- offset: the same low-pass on x itself
-        y1, o1, o2 = _bq(xi, s0b0, s0b1, s0b2, s0a1, s0a2, o1, o2)
-        bh, o3, o4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, o3, o4)
         fe[F_B] = bh
-        # ---- quadrature demodulation: m = 2j (x - B^) e^{-j psi}, so that LPF(m) = A e^{j phi_d}
-        # for x = B + A sin(psi + phi_d) (c = z + j y of eqs. 1-2)
-        d2 = 2.0 * (xi - bh)
-        y1, r1, r2 = _bq(d2 * lo.imag, s0b0, s0b1, s0b2, s0a1, s0a2, r1, r2)
-        cr, r3, r4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, r3, r4)
-        y1, q1, q2 = _bq(d2 * lo.real, s0b0, s0b1, s0b2, s0a1, s0a2, q1, q2)
-        ci, q3, q4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, q3, q4)
         # ---- decimation with the cyclic intervals (nonuniform cyclic sampling, Section 5)
         ist[0] += 1
         stepped = False
@@ -1122,71 +1258,11 @@ def differential_rls_kernel(
             u = cyc[ist[1]] / d0
             ist[0] = 0
             ist[1] = (ist[1] + 1) % ncyc
-            core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
-            w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
-            if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
-                dw = 0.0
-                dl = 0.0
-                if recenter and confident:
-                    # periodic re-centring of the reference oscillator on the estimate (frequency
-                    # and, with the derivative model, its ramp), clamped to the tracking range
-                    wnew = wref + w / T0
-                    lnew = lref + lsig / (T0 * T0)
-                    if wnew > w_hi:
-                        wnew = w_hi
-                        lnew = 0.0
-                    elif wnew < w_lo:
-                        wnew = w_lo
-                        lnew = 0.0
-                    dw = (wnew - wref) * T0
-                    dl = (lnew - lref) * T0 * T0
-                    if dw != 0.0:
-                        om_old = w / d0
-                        om_new = (w - dw) / d0
-                        a_now = complex(core[A_RE], core[A_IM])
-                        fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
-                        fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
-                        h_old, h_new = _retune_responses(sos, fe, a_now, om_old, om_new)
-                        r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
-                        q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
-                        g = h_new / h_old  # c(k-1), a^, n^ as if filtered at the new frequency
-                        cp = complex(core[C_PREV_RE], core[C_PREV_IM]) * g
-                        core[C_PREV_RE] = cp.real
-                        core[C_PREV_IM] = cp.imag
-                        a_now = a_now * g
-                        core[A_RE] = a_now.real
-                        core[A_IM] = a_now.imag
-                        nh = complex(core[NH_RE], core[NH_IM]) * g
-                        core[NH_RE] = nh.real
-                        core[NH_IM] = nh.imag
-                    wref = wnew
-                    lref = lnew
-                rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
-                w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
-            # snapshot, compensated for the low-pass response at the estimated baseband frequency
-            h = lowpass_response(sos, w / d0)
-            ah = complex(core[A_RE], core[A_IM]) * h.conjugate()  # a^ / H * |H|^2
-            habs2 = h.real * h.real + h.imag * h.imag
-            aah = abs(ah)
-            amp = aah / habs2  # |a^ / H|
-            val = val and amp > consts[K_MIN_AMP] and math.isfinite(amp)
-            wb_s = w / T0
-            lb_s = lb / (T0 * T0)
-            # arg(a^ / H) = atan2(ah): only outputs read it, so it is taken when one is written
-            # (or the block ends), from the same ah: the same bits, one atan2 a block at last_only
-            ah_re = ah.real
-            ah_im = ah.imag
+            wref, lref, r1, r2, r3, r4, q1, q2, q3, q4, ah_re, ah_im, bb, bs = _decimated_step(
+                cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px, idx, T, b0, work, sos, fe,
+                wref, lref, r1, r2, r3, r4, q1, q2, q3, q4,
+            )  # fmt: skip
             ph_pending = True
-            fe[F_SNAP_W] = wb_s
-            fe[F_SNAP_L] = lb_s
-            fe[F_SNAP_A] = amp
-            fe[F_SNAP_VALID] = 1.0 if val else 0.0
-            fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
-            fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
-            fe[F_SINCE] = 0.0
-            bb = ah / aah if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
-            a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
-            bs = complex(math.cos(a_), math.sin(a_))
         else:
             fe[F_SINCE] += 1.0
         # ---- outputs at this input sample (hold the decimated estimate, phase propagated)
@@ -1196,25 +1272,7 @@ def differential_rls_kernel(
             if ph_pending:
                 fe[F_SNAP_PH] = math.atan2(ah_im, ah_re)
                 ph_pending = False
-            if fe[F_SNAP_VALID] != 0.0:
-                wbb = fe[F_SNAP_W]
-                lbb = fe[F_SNAP_L]
-                out[j, 0] = (wref + wbb + lbb * ts) / TWO_PI
-                out[j, 1] = fe[F_SNAP_A]
-                out[j, 2] = _wrap(psi + fe[F_SNAP_PH] + (wbb + 0.5 * lbb * ts) * ts)
-                out[j, 3] = fe[F_B]
-                out[j, 4] = fe[F_SNAP_CONV]
-                ext[j, 0] = (lref + lbb) / TWO_PI
-                ext[j, 1] = fe[F_SNAP_STD] if fe[F_SNAP_STD] >= 0.0 else np.nan
-            else:
-                out[j, 0] = np.nan
-                out[j, 1] = np.nan
-                out[j, 2] = np.nan
-                out[j, 3] = fe[F_B]
-                out[j, 4] = 0.0
-                ext[j, 0] = np.nan
-                ext[j, 1] = np.nan
-            ext[j, 2] = wref / TWO_PI
+            _write_outputs(out, ext, j, fe, fe[F_B], psi, wref, lref, ts)
         # ---- advance the baseband prediction rotator by one sample
         bb = bb * bs
         snap_l = fe[F_SNAP_L]
