@@ -944,7 +944,7 @@ def iq_kernel(
     return out, core, theta, P, ref
 
 
-@kernel
+@kernel(inline="always")
 def _cis_small(a: float) -> complex:
     """e^{j a} for a tiny angle (a chirp's per-sample step change), to 1e-22 relative."""
     a2 = a * a
@@ -1029,7 +1029,7 @@ def _retune_responses(
 
 @kernel(inline="always")
 def _demodulate(
-    xi: float, b_prev: float, snap_valid: float, snap_a: float, lo: complex, bb: complex,
+    xi: float, b_prev: float, snap_valid: float, snap_a: float, lo_re: float, lo_im: float, bb_re: float, bb_im: float,
     s0b0: float, s0b1: float, s0b2: float, s0a1: float, s0a2: float,
     s1b0: float, s1b1: float, s1b2: float, s1a1: float, s1a2: float,
     o1: float, o2: float, o3: float, o4: float, r1: float, r2: float, r3: float, r4: float,
@@ -1042,8 +1042,10 @@ def _demodulate(
     error of x(i) (for residual_rms), the offset B^ (the low-pass on x itself), and c = cr + j ci
     (quadrature demodulation and low-pass); then the 12 new biquad delays. The one definition,
     called by :func:`differential_rls_kernel` and, one lane per channel, by its bank."""
-    # one-step prediction of x(i) from the estimate so far
-    pred = b_prev + snap_a * (lo * bb).imag if snap_valid != 0.0 else b_prev
+    # one-step prediction of x(i) from the estimate so far (computed either way, then chosen:
+    # a select, which a bank's lanes run as one vector, where a branch would keep them apart)
+    held = b_prev + snap_a * (lo_re * bb_im + lo_im * bb_re)  # (lo bb).imag, as complex product computes it
+    pred = held if snap_valid != 0.0 else b_prev
     e = xi - pred
     # offset: the same low-pass on x itself
     y1, o1, o2 = _bq(xi, s0b0, s0b1, s0b2, s0a1, s0a2, o1, o2)
@@ -1051,9 +1053,9 @@ def _demodulate(
     # quadrature demodulation: m = 2j (x - B^) e^{-j psi}, so that LPF(m) = A e^{j phi_d}
     # for x = B + A sin(psi + phi_d) (c = z + j y of eqs. 1-2)
     d2 = 2.0 * (xi - bh)
-    y1, r1, r2 = _bq(d2 * lo.imag, s0b0, s0b1, s0b2, s0a1, s0a2, r1, r2)
+    y1, r1, r2 = _bq(d2 * lo_im, s0b0, s0b1, s0b2, s0a1, s0a2, r1, r2)
     cr, r3, r4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, r3, r4)
-    y1, q1, q2 = _bq(d2 * lo.real, s0b0, s0b1, s0b2, s0a1, s0a2, q1, q2)
+    y1, q1, q2 = _bq(d2 * lo_re, s0b0, s0b1, s0b2, s0a1, s0a2, q1, q2)
     ci, q3, q4 = _bq(y1, s1b0, s1b1, s1b2, s1a1, s1a2, q3, q4)
     return e, bh, cr, ci, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4
 
@@ -1248,7 +1250,7 @@ def differential_rls_kernel(
         if ist[2] < warm:
             ist[2] += 1
         e, bh, cr, ci, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4 = _demodulate(
-            xi, fe[F_B], fe[F_SNAP_VALID], fe[F_SNAP_A], lo, bb, s0b0, s0b1, s0b2, s0a1, s0a2,
+            xi, fe[F_B], fe[F_SNAP_VALID], fe[F_SNAP_A], lo.real, lo.imag, bb.real, bb.imag, s0b0, s0b1, s0b2, s0a1, s0a2,
             s1b0, s1b1, s1b2, s1a1, s1a2, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4,
         )  # fmt: skip
         sse += e * e
@@ -2007,10 +2009,9 @@ def _bank_front(
     constant offsets, so that the compiler runs the lanes as one vector."""
     L = LANES
     z = F_ZI * L + lane
-    lo = complex(S[F_LO_RE * L + lane], S[F_LO_IM * L + lane])
-    bb = complex(S[F_BB_RE * L + lane], S[F_BB_IM * L + lane])
     e, bh, cr, ci, o1, o2, o3, o4, r1, r2, r3, r4, q1, q2, q3, q4 = _demodulate(
-        S[_RX * L + lane], S[F_B * L + lane], S[F_SNAP_VALID * L + lane], S[F_SNAP_A * L + lane], lo, bb,
+        S[_RX * L + lane], S[F_B * L + lane], S[F_SNAP_VALID * L + lane], S[F_SNAP_A * L + lane],
+        S[F_LO_RE * L + lane], S[F_LO_IM * L + lane], S[F_BB_RE * L + lane], S[F_BB_IM * L + lane],
         s0b0, s0b1, s0b2, s0a1, s0a2, s1b0, s1b1, s1b2, s1a1, s1a2,
         S[z], S[z + L], S[z + 2 * L], S[z + 3 * L], S[z + 4 * L], S[z + 5 * L], S[z + 6 * L], S[z + 7 * L],
         S[z + 8 * L], S[z + 9 * L], S[z + 10 * L], S[z + 11 * L],
@@ -2025,43 +2026,68 @@ def _bank_front(
 
 
 @kernel(inline="always")
+def _cmul(a: float, b: float, c: float, d: float) -> tuple[float, float]:
+    """(a + j b)(c + j d) on floats, in the operations and order of numba's complex product
+    (ac - bd, ad + bc): the same bits, and no complex value, which keeps a bank's loop over its
+    lanes from being vectorised."""
+    return a * c - b * d, a * d + b * c
+
+
+@kernel(inline="always")
+def _cis_small_parts(a: float) -> tuple[float, float]:
+    """:func:`_cis_small` as two floats (the same operations)."""
+    a2 = a * a
+    return 1.0 - 0.5 * a2, a * (1.0 - a2 / 6.0)
+
+
+@kernel(inline="always")
 def _bank_advance(S: np.ndarray, lane: int, inv_fs: float, w_lo: float, w_hi: float) -> None:
     """The end of an input sample in :func:`differential_rls_kernel` on lane ``lane`` of ``S``,
-    branch-free: the prediction rotator and its chirp step, the reference oscillator's phase
-    (one wrap: more is flagged), frequency and ramp (clamped: flagged), its rotator advanced by
-    its step. A flagged lane and a lane that took a decimated step are finished by
-    :func:`_bank_fixup`, as the single kernel's branches do. A cached ``_cis_small`` there is
-    recomputed here: the same function of the same value, the same bits."""
+    branch-free and on floats: the prediction rotator and its chirp step, the reference
+    oscillator's phase (one wrap: more is flagged), frequency and ramp (clamped: flagged), its
+    rotator advanced by its step. A flagged lane and a lane that took a decimated step are
+    finished by :func:`_bank_fixup`, as the single kernel's branches do. A cached
+    ``_cis_small`` there is recomputed here: the same function of the same value, the same
+    bits. Every value is computed, then chosen (selects keep the lanes one vector)."""
     L = LANES
-    bb = complex(S[F_BB_RE * L + lane], S[F_BB_IM * L + lane])
-    bs = complex(S[F_BS_RE * L + lane], S[F_BS_IM * L + lane])
+    bbr, bbi = S[F_BB_RE * L + lane], S[F_BB_IM * L + lane]
+    bsr, bsi = S[F_BS_RE * L + lane], S[F_BS_IM * L + lane]
     snap_l = S[F_SNAP_L * L + lane]
-    bb = bb * bs
-    bs = bs * _cis_small(snap_l * inv_fs * inv_fs) if snap_l != 0.0 else bs
+    bbr, bbi = _cmul(bbr, bbi, bsr, bsi)
+    cr_, ci_ = _cis_small_parts(snap_l * inv_fs * inv_fs)
+    chr_, chi_ = _cmul(bsr, bsi, cr_, ci_)
+    chirp = snap_l != 0.0
+    bsr = chr_ if chirp else bsr
+    bsi = chi_ if chirp else bsi
     wref = S[F_WREF * L + lane]
     lref = S[F_LREF * L + lane]
     pre = S[F_PSI * L + lane] + (wref + 0.5 * lref * inv_fs) * inv_fs
-    psi = pre - TWO_PI if pre > math.pi else (pre + TWO_PI if pre <= -math.pi else pre)
+    down = pre - TWO_PI
+    up = pre + TWO_PI
+    psi = down if pre > math.pi else (up if pre <= -math.pi else pre)
     wref += lref * inv_fs
     hi = wref > w_hi
     low = wref < w_lo
-    clamped = hi or low
+    clamped = hi | low
     wref = w_hi if hi else (w_lo if low else wref)
     lref = 0.0 if clamped else lref
-    lo = complex(S[F_LO_RE * L + lane], S[F_LO_IM * L + lane])
-    ls = complex(S[F_LS_RE * L + lane], S[F_LS_IM * L + lane])
-    lo = lo * ls
-    ls = ls * _cis_small(lref * inv_fs * inv_fs) if lref != 0.0 else ls
-    wrap = not (-math.pi < psi <= math.pi)
+    lsr, lsi = S[F_LS_RE * L + lane], S[F_LS_IM * L + lane]
+    lor, loi = _cmul(S[F_LO_RE * L + lane], S[F_LO_IM * L + lane], lsr, lsi)
+    cr_, ci_ = _cis_small_parts(lref * inv_fs * inv_fs)
+    chr_, chi_ = _cmul(lsr, lsi, cr_, ci_)
+    chirp = lref != 0.0
+    lsr = chr_ if chirp else lsr
+    lsi = chi_ if chirp else lsi
+    wrap = (psi <= -math.pi) | (psi > math.pi) | (psi != psi)  # out of (-pi, pi], or NaN
     S[_RFIX * L + lane] = (_FIX_CLAMPED if clamped else 0.0) + (_FIX_WRAP if wrap else 0.0)
     S[_RPRE * L + lane] = pre
-    S[F_BB_RE * L + lane], S[F_BB_IM * L + lane] = bb.real, bb.imag
-    S[F_BS_RE * L + lane], S[F_BS_IM * L + lane] = bs.real, bs.imag
+    S[F_BB_RE * L + lane], S[F_BB_IM * L + lane] = bbr, bbi
+    S[F_BS_RE * L + lane], S[F_BS_IM * L + lane] = bsr, bsi
     S[F_PSI * L + lane] = psi
     S[F_WREF * L + lane] = wref
     S[F_LREF * L + lane] = lref
-    S[F_LO_RE * L + lane], S[F_LO_IM * L + lane] = lo.real, lo.imag
-    S[F_LS_RE * L + lane], S[F_LS_IM * L + lane] = ls.real, ls.imag
+    S[F_LO_RE * L + lane], S[F_LO_IM * L + lane] = lor, loi
+    S[F_LS_RE * L + lane], S[F_LS_IM * L + lane] = lsr, lsi
 
 
 @kernel(inline="always")
