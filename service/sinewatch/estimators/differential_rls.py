@@ -1798,6 +1798,19 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         "chain (~330 ns). The arithmetic order is fixed (recordings replay bit for bit), so the chain is "
         "neither reassociated nor vectorised."
     )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
+    bank_note: ClassVar[str] = (
+        "the bank vectorises the per-input-sample work across 8 channels (the demodulator's six biquads, the "
+        "prediction and the two rotators, packed vmulpd/vaddpd on ymm registers): timed alone (the bank kernel "
+        "with the decimated stage switched off, 1024-sample blocks, 8 channels), it costs 11 ns a sample and "
+        "channel against 25 for one channel at a time. The decimated stage is not vectorised: once every 10 "
+        "input samples each channel runs the RLS pair (12) on 5 parameters, the ELS recursion (13), the phase "
+        "stage (21)-(23), the re-centring and the low-pass compensation, one dependent chain with sin, cos, "
+        "atan2, hypot and sqrt from the C library (a vectorised version would round differently) and branches "
+        "that differ between channels; it is the same ~35 ns a sample and channel in the bank as alone, more "
+        "than the whole budget of 2x the streaming FFT (~17 ns a sample), so the bank stays near one channel's "
+        "rate (0.9-1.4x)"
+    )
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
