@@ -18,19 +18,17 @@ import numpy as np
 import pytest
 
 from sinewatch.estimators import create
-from sinewatch.estimators.base import concat_tracks, decode_array
-from sinewatch.estimators.differential_rls import (
-    _biquads,
-    _lowpass_retune,
+from sinewatch.estimators._differential_rls_core import (
     band_limited_iq_noise,
     baseband_estimate,
     cyclic_intervals,
-    lowpass_response,
     monomial_table,
     recenter_transform,
     regressor_coefficients,
     transform_scratch,
 )
+from sinewatch.estimators._differential_rls_front import _biquads, _lowpass_retune, lowpass_response
+from sinewatch.estimators.base import concat_tracks, decode_array
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.scenarios.papers import paper001_baseband
 from sinewatch.schemas.errors import InputError, ParameterError
