@@ -170,6 +170,8 @@ def _bank_fixup(S: np.ndarray, lane: int, stepped: bool, inv_fs: float) -> None:
         S[F_LS_RE * L + lane], S[F_LS_IM * L + lane] = ls.real, ls.imag
 
 
+# the arguments of differential_rls_kernel, by the bank's calling convention (sinewatch.estimators.bank):
+# the same list, each state array with a channel axis added
 @kernel
 def differential_rls_bank_kernel(
     x: np.ndarray,

@@ -564,6 +564,8 @@ def core_constants(
     return k
 
 
+# (its keyword-only parameters with defaults read like other measuring functions' lists: a shape,
+# not shared logic)
 def baseband_estimate(
     c: np.ndarray,
     dt: np.ndarray,

@@ -202,6 +202,34 @@ def _demodulate(
 
 
 @kernel(inline="always")
+def _store_reference(fe: np.ndarray, psi: float, w: float, lam: float, pred: complex, step: complex) -> None:
+    """The reference oscillator's phase, frequency and ramp and the prediction rotator and its
+    step into the state vector at the end of a block."""
+    fe[F_PSI] = psi
+    fe[F_WREF] = w
+    fe[F_LREF] = lam
+    fe[F_BB_RE] = pred.real
+    fe[F_BB_IM] = pred.imag
+    fe[F_BS_RE] = step.real
+    fe[F_BS_IM] = step.imag
+
+
+@kernel(inline="always")
+def _write_snapshot(
+    fe: np.ndarray, w: float, lam: float, amp: float, valid: bool, conv: bool, std: float, T0: float
+) -> None:
+    """The snapshot of a decimated sample that the outputs hold until the next one (frequency
+    offset rad/s, ramp rad/s^2, amplitude, validity, convergence, std in Hz), its age reset."""
+    fe[F_SNAP_W] = w
+    fe[F_SNAP_L] = lam
+    fe[F_SNAP_A] = amp
+    fe[F_SNAP_VALID] = 1.0 if valid else 0.0
+    fe[F_SNAP_CONV] = 1.0 if (conv and valid) else 0.0
+    fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
+    fe[F_SINCE] = 0.0
+
+
+@kernel(inline="always")
 def _decimated_step(
     cr: float, ci: float, u: float, core: np.ndarray, theta: np.ndarray, P: np.ndarray, tab: np.ndarray,
     consts: np.ndarray, rr: np.ndarray, ri: np.ndarray, xr_: np.ndarray, xi_: np.ndarray, px: np.ndarray,
@@ -279,13 +307,7 @@ def _decimated_step(
     # (or the block ends), from the same ah: the same bits, one atan2 a block at last_only
     ah_re = ah.real
     ah_im = ah.imag
-    fe[F_SNAP_W] = wb_s
-    fe[F_SNAP_L] = lb_s
-    fe[F_SNAP_A] = amp
-    fe[F_SNAP_VALID] = 1.0 if val else 0.0
-    fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
-    fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
-    fe[F_SINCE] = 0.0
+    _write_snapshot(fe, wb_s, lb_s, amp, val, conv, std, T0)
     bb = ah / aah if amp > 0.0 else complex(1.0, 0.0)  # e^{j ph0}
     a_ = (wb_s + 0.5 * lb_s * inv_fs) * inv_fs
     bs = complex(math.cos(a_), math.sin(a_))
@@ -331,6 +353,16 @@ def _write_outputs(
     ext[j, 2] = wref / TWO_PI
 
 
+@kernel(inline="always")
+def _kernel_start(
+    fe_in: np.ndarray, ist_in: np.ndarray, n: int, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The working copies of the front end's state (a kernel never writes its inputs) and the
+    outputs of a block of ``n`` samples: (fe, ist, out (N or 1, 5), extras (N or 1, 3))."""
+    nout = 1 if last_only else n
+    return fe_in.copy(), ist_in.copy(), np.empty((nout, 5)), np.empty((nout, 3))
+
+
 @kernel
 def differential_rls_kernel(
     x: np.ndarray,
@@ -351,13 +383,9 @@ def differential_rls_kernel(
 
     Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
     """
-    fe = fe_in.copy()
+    fe, ist, out, ext = _kernel_start(fe_in, ist_in, x.shape[0], last_only)
     core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
-    ist = ist_in.copy()
     n = x.shape[0]
-    nout = 1 if last_only else n
-    out = np.empty((nout, 5))
-    ext = np.empty((nout, 3))
     fs = consts[K_FS]
     inv_fs = 1.0 / fs
     T0 = consts[K_T0]
@@ -467,17 +495,11 @@ def differential_rls_kernel(
     fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3] = o1, o2, o3, o4
     fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7] = r1, r2, r3, r4
     fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11] = q1, q2, q3, q4
-    fe[F_PSI] = psi
-    fe[F_WREF] = wref
-    fe[F_LREF] = lref
+    _store_reference(fe, psi, wref, lref, bb, bs)
     fe[F_LO_RE] = lo.real
     fe[F_LO_IM] = lo.imag
     fe[F_LS_RE] = ls.real
     fe[F_LS_IM] = ls.imag
-    fe[F_BB_RE] = bb.real
-    fe[F_BB_IM] = bb.imag
-    fe[F_BS_RE] = bs.real
-    fe[F_BS_IM] = bs.imag
     return out, ext, sse, fe, core, theta, P, ist
 
 
@@ -505,18 +527,14 @@ def differential_rls_iq_kernel(
     the phase advanced at the estimated frequency. The one-step prediction error is that
     of the in-phase column (y = A sin(phase_rad), the output convention).
 
-    Returns (out (N or 1, 5), extras (N or 1, 3), sse, fe, core, theta, P, ist). Pure.
+    Returns what :func:`differential_rls_kernel` returns. Pure.
     """
-    fe = fe_in.copy()
+    fe, ist, out, ext = _kernel_start(fe_in, ist_in, x.shape[0], last_only)
     core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
-    ist = ist_in.copy()
     n = x.shape[0]
-    nout = 1 if last_only else n
-    out = np.empty((nout, 5))
-    ext = np.empty((nout, 3))
     fs = consts[K_FS]
-    inv_fs = 1.0 / fs
     T0 = consts[K_T0]
+    inv_fs = 1.0 / fs
     d0 = T0 * fs
     w_nom = consts[K_W_NOM]
     w_max = consts[K_W_RANGE] * T0  # the digital reference stays within +- the tracking range
@@ -579,14 +597,8 @@ def differential_rls_iq_kernel(
             wt = (w + w2) / T0  # offset from the external oscillator, rad/s
             lt = (lb + l2) / (T0 * T0)
             ph = _wrap(math.atan2(core[A_IM], core[A_RE]) + psi2)  # phi^(t_k), eq. (23)
-            fe[F_SNAP_W] = wt
-            fe[F_SNAP_L] = lt
             fe[F_SNAP_PH] = ph
-            fe[F_SNAP_A] = amp
-            fe[F_SNAP_VALID] = 1.0 if val else 0.0
-            fe[F_SNAP_CONV] = 1.0 if (conv and val) else 0.0
-            fe[F_SNAP_STD] = std / (TWO_PI * T0) if math.isfinite(std) else -1.0  # state stays finite
-            fe[F_SINCE] = 0.0
+            _write_snapshot(fe, wt, lt, amp, val, conv, std, T0)
             pp = complex(amp * math.cos(ph), amp * math.sin(ph)) if val else complex(0.0, 0.0)
             a_ = (wt + 0.5 * lt * inv_fs) * inv_fs
             ps = complex(math.cos(a_), math.sin(a_))
@@ -619,13 +631,7 @@ def differential_rls_iq_kernel(
         pp = pp * ps
         if fe[F_SNAP_L] != 0.0:
             ps = ps * _cis_small(fe[F_SNAP_L] * inv_fs * inv_fs)
-    fe[F_PSI] = psi2
-    fe[F_WREF] = w2
-    fe[F_LREF] = l2
-    fe[F_BB_RE] = pp.real
-    fe[F_BB_IM] = pp.imag
-    fe[F_BS_RE] = ps.real
-    fe[F_BS_IM] = ps.imag
+    _store_reference(fe, psi2, w2, l2, pp, ps)
     return out, ext, sse, fe, core, theta, P, ist
 
 
