@@ -23,7 +23,7 @@ from scipy.signal import place_poles
 
 from sinewatch import scenarios
 from sinewatch.estimators import create, get
-from sinewatch.estimators.adaptive_multisine import DESIGN, _gen_eig, _place
+from sinewatch.estimators._adaptive_multisine_auto import DESIGN, _gen_eig, _place
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import ParameterError
 
