@@ -145,38 +145,13 @@ from typing import Annotated, Any, ClassVar
 import numpy as np
 from pydantic import Field, model_validator
 
+from sinewatch.estimators import _adaptive_multisine_auto as auto
 from sinewatch.estimators import _adaptive_multisine_explicit as explicit
 from sinewatch.estimators import register
 from sinewatch.estimators._adaptive_multisine_auto import (
-    _DESIGN_KEYS,
-    _K_CALPHA,
-    _K_CTOL,
-    _K_DELAY,
-    _K_DHI,
-    _K_DLO,
-    _K_FADE,
-    _K_H,
-    _K_LALPHA,
-    _K_LCAP,
-    _K_MINA,
-    _K_MU,
-    _K_MUA,
-    _K_OMHI,
-    _K_OMLO,
-    _K_OMU,
-    _K_PALPHA,
-    _K_RC,
-    _K_RHO2,
-    _K_SEP,
-    _K_TBAR,
-    _K_XIFLOOR,
-    _K_ZMAX,
-    _N_K,
-    _N_S,
     DESIGN,
     EXPLICIT_ONLY,
     MIN_SAMPLES_PER_PERIOD,
-    _place,
     adaptive_multisine_kernel,
     auto_design,
 )
@@ -315,7 +290,7 @@ class AdaptiveMultisineParams(EstimatorParams):
                     "they belong to the explicit mode)"
                 )
         elif n != 2:
-            missing = [k for k in _DESIGN_KEYS if getattr(self, k) is None]
+            missing = [k for k in auto._DESIGN_KEYS if getattr(self, k) is None]
             if missing:
                 raise ValueError(
                     f"expected an explicit design for n_sinusoids={n} (the paper tunes n = 2), "
@@ -364,7 +339,7 @@ class AdaptiveMultisineParams(EstimatorParams):
         omega0 (list)."""
         base = PAPER_DESIGN[self.bias]
         out: dict[str, Any] = {}
-        for k in _DESIGN_KEYS:
+        for k in auto._DESIGN_KEYS:
             v = getattr(self, k)
             out[k] = (list(v) if isinstance(v, list) else v) if v is not None else base[k]
         return out
@@ -466,7 +441,7 @@ class AdaptiveMultisine(
         # (16): L_x by pole placement (Algorithm 1's initialisation), in the closed form the
         # kernel re-places it with (AD8); checked against the eigenvalues it gives
         tmp = np.concatenate([a, np.zeros(nx)])
-        _place(tmp, 0, n, poles, n, int(bias))
+        auto._place(tmp, 0, n, poles, n, int(bias))
         Lx = tmp[n:].copy()
         got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
         if not np.allclose(got, np.sort(poles), rtol=1e-3, atol=0.0):
@@ -475,33 +450,33 @@ class AdaptiveMultisine(
         # the ball of (19)-(21): with a re-centred (AD8) |thetah_i| stays below the band's span
         tbar = math.sqrt(n) * (w_hi * w_hi - w_lo * w_lo)
         h = d["w_ref"] / self.sample_rate_hz
-        consts = np.zeros(_N_K)
-        consts[_K_H] = h
-        consts[_K_MU] = d["mu"]
-        consts[_K_RHO2] = d["rho_rel"] ** 2
-        consts[_K_MUA] = d["mu_a"]
-        consts[_K_DHI] = p.delta_high
-        consts[_K_DLO] = p.delta_low
-        consts[_K_TBAR] = tbar
-        consts[_K_OMU] = d["w_ref"]
-        consts[_K_MINA] = p.min_amplitude
-        consts[_K_FADE] = p.fade_ratio
-        consts[_K_CALPHA] = -math.expm1(-h / d["convergence_time"])
-        consts[_K_CTOL] = p.convergence_tol
-        consts[_K_DELAY] = d["dwell"]
-        consts[_K_ZMAX] = 1e4
-        consts[_K_LALPHA] = -math.expm1(-h / d["level_time"])
-        consts[_K_OMLO] = w_lo * w_lo
-        consts[_K_OMHI] = w_hi * w_hi
-        consts[_K_RC] = DESIGN["recentre"]
-        consts[_K_SEP] = (1.0 + DESIGN["separation"]) ** 2
+        consts = np.zeros(auto._N_K)
+        consts[auto._K_H] = h
+        consts[auto._K_MU] = d["mu"]
+        consts[auto._K_RHO2] = d["rho_rel"] ** 2
+        consts[auto._K_MUA] = d["mu_a"]
+        consts[auto._K_DHI] = p.delta_high
+        consts[auto._K_DLO] = p.delta_low
+        consts[auto._K_TBAR] = tbar
+        consts[auto._K_OMU] = d["w_ref"]
+        consts[auto._K_MINA] = p.min_amplitude
+        consts[auto._K_FADE] = p.fade_ratio
+        consts[auto._K_CALPHA] = -math.expm1(-h / d["convergence_time"])
+        consts[auto._K_CTOL] = p.convergence_tol
+        consts[auto._K_DELAY] = d["dwell"]
+        consts[auto._K_ZMAX] = 1e4
+        consts[auto._K_LALPHA] = -math.expm1(-h / d["level_time"])
+        consts[auto._K_OMLO] = w_lo * w_lo
+        consts[auto._K_OMHI] = w_hi * w_hi
+        consts[auto._K_RC] = DESIGN["recentre"]
+        consts[auto._K_SEP] = (1.0 + DESIGN["separation"]) ** 2
         # |xi_i| ~ A / (omega p) for a tone of amplitude A at omega through poles p: the floor of
         # rho is min_amplitude's
         # the input's mean and AC power (signal presence, the guard) over one period of the
         # lowest initial frequency: shorter, they follow the waveform itself
-        consts[_K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
-        consts[_K_LCAP] = d["lambda_cap"]
-        consts[_K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
+        consts[auto._K_PALPHA] = -math.expm1(-h / (2.0 * math.pi / d["omega0"][0]))
+        consts[auto._K_LCAP] = d["lambda_cap"]
+        consts[auto._K_XIFLOOR] = (p.min_amplitude / (d["omega0"][0] * -max(d["poles"]))) ** 2
         self._cf = np.concatenate([consts, poles, np.asarray(d["filter_poles"]), np.asarray(d["filter_gains"])])
         self._ci = np.array([n, nx, nf, nz, 0, int(bias), 1], dtype=np.int64)
         self._small_n_kernel = {1: auto_kernel_n1, 2: auto_kernel_n2}.get(n)
@@ -534,8 +509,8 @@ class AdaptiveMultisine(
         if not self.automatic:
             return {"s": explicit.initial_state(n, nf, nz, self._theta0)}
         nx = nz - nf
-        s = np.zeros(nf + nz + nz * n + 5 * n + _N_S + n + nx)
-        oa = nf + nz + nz * n + 5 * n + _N_S
+        s = np.zeros(nf + nz + nz * n + 5 * n + auto._N_S + n + nx)
+        oa = nf + nz + nz * n + 5 * n + auto._N_S
         s[oa : oa + n] = self._a0
         s[oa + n :] = self.L_x
         return {"s": s}
