@@ -196,6 +196,8 @@ __all__ = [
 ]
 
 
+# Field declarations and the class attributes below (paper, example, notes) read like other
+# estimators' (a shape the duplicates tool pairs): declarations, not logic to share.
 class DifferentialRlsParams(EstimatorParams):
     input: Literal["real", "iq"] = Field(
         "real",
