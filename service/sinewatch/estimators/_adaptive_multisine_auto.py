@@ -108,6 +108,7 @@ def _gen_eig(G: np.ndarray, n: int) -> None:
             for k in range(i):
                 acc -= G[1, i, k] * G[2, k, j]
             G[2, i, j] = acc * inv
+    # the same substitution on the other side (columns, R transposed): two loops alike by nature
     for j in range(n):  # S <- S R^-T (forward substitution, column by column)
         inv = 1.0 / G[1, j, j]
         for i in range(n):
@@ -292,6 +293,7 @@ def auto_kernel(
     d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
     om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
     c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
+    # the state's offsets (its layout; the explicit mode's reads alike, with its own fields)
     oFf = _N_K + nx
     oBf = oFf + nf
     oz = nf

@@ -574,6 +574,8 @@ def differential_rls_iq_kernel(
             s0 = math.sin(psi2)
             cr = zi * c0 + yi * s0  # c e^{-j psi2}, c = z + j y (eqs. 1-2)
             ci = yi * c0 - zi * s0
+            # the order of _decimated_step (step, status, re-centring, status), with this kernel's own
+            # re-centring: a digital reference within +- the range, no low-pass to re-tune
             core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
             w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
             if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
