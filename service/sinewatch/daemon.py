@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+import numpy as np
 import zenoh
 import zenoh.ext
 
@@ -414,6 +415,8 @@ class Daemon:
         """Load (or compile) every configured estimator's kernels now, so that a
         channel's first block does not wait ~0.3-0.8 s for numba."""
         from sinewatch.estimators import check_rules, get
+        from sinewatch.estimators.bank import bank_of, update_bank
+        from sinewatch.estimators.presence import SignalPresence, update_presence_bank
 
         check_rules(self.config.rules)
         for name in sorted({rule.estimator for rule in self.config.rules}):
@@ -422,6 +425,12 @@ class Daemon:
             signal_ = cls.example_signal(64)
             est.update(signal_)
             est.update(signal_, last_only=True)
+            if est.n_inputs == 1:  # a frame's channels: the bank kernel, the presence detectors' bank
+                frame = np.stack([signal_, signal_], axis=1)
+                if bank_of(cls) is not None:
+                    update_bank([cls.example(), cls.example()], frame, last_only=True)
+                detectors = [SignalPresence(cls.example_sample_rate_hz) for _ in range(2)]
+                update_presence_bank(detectors, frame, [0, 1])
 
     def start(self) -> None:
         """Open the session and sinks and start intake (call from the event loop)."""
