@@ -715,6 +715,28 @@ class Pipeline:
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
 
+    def release_held(self, log_time_ns: int) -> int:
+        """The end of a finite input (the daemon's drain, a replay's last message): every
+        estimate still held back (``hold_estimates``) goes to the sinks, in order, so that
+        everything accepted is published. One that waited for the detector to confirm its
+        window is published not valid: the samples that would have confirmed it never come.
+        Returns how many were released."""
+        n = 0
+        for ch in self.channels.values():
+            if not ch.held:
+                continue
+            out_key = ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}"
+            ch.out_key = out_key
+            while ch.held:
+                payload, _, window_start, _ = ch.held.popleft()
+                payload = _not_valid(payload) if window_start >= 0 else payload
+                for sink in self.sinks:
+                    sink.on_estimate(out_key, payload, log_time_ns)
+                n += 1
+            ch.converged = False
+        self.counters.estimates += n
+        return n
+
     def _forget_unborn(self, ch: Channel | None) -> None:
         """A channel whose first block was refused has accepted nothing and holds no state:
         it gives its slot back, so refused blocks (cheap to send, each on a new channel

@@ -84,11 +84,6 @@ NO_BANK: dict[str, str] = {
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "differential-rls": (
-        "no compiled bank yet: most of its cost is the decimated RLS and phase stage (9 "
-        "sin/cos/hypot/sqrt calls a decimated sample, library calls that stay scalar per lane), "
-        "which a bank could interleave but not vectorise"
-    ),
     "ipdft": (
         "no compiled bank: a windowed estimator whose work is per window, not per sample, and "
         "already vectorised across the windows of a block (the windows of one channel fill the "
