@@ -40,11 +40,13 @@ import zlib
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
 import zenoh
 
 from sinewatch.election import LeaseElection
 from sinewatch.pipeline import Pipeline, ResumePoint
 from sinewatch.recorder import McapRecorder
+from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import Fencing
 
@@ -168,6 +170,8 @@ class ClusterMember:
         # of the newest
         self.latest_snapshot: tuple[int, bytes, float, dict[str, Any]] | None = None
         self._restored: tuple[int, bytes, float, dict[str, Any]] | None = None  # the snapshot in the pipeline now
+        self._warmed: set[str] = set()  # the channel kinds (estimator, params, rate, block length) run once here
+        self._warm_asked = False
         self.published: dict[str, tuple[int, int]] = {}  # channel -> (seq, timestamp_ns) the owner published
         self._stepped_down: float | None = None  # monotonic: when this daemon last stopped serving (its state's age)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -290,6 +294,10 @@ class ClusterMember:
         latest = self.latest_snapshot
         if latest is None or term >= latest[0]:  # an older term's late snapshot never replaces a newer one
             self.latest_snapshot = (term, payload, time.monotonic(), decoded)
+            loop = self._loop
+            if not self._warm_asked and loop is not None and not loop.is_closed():
+                self._warm_asked = True
+                loop.call_soon_threadsafe(self._warm, decoded)
             self._note_term(term)
 
     def _on_estimate(self, sample: zenoh.Sample) -> None:
@@ -310,6 +318,44 @@ class ClusterMember:
         if term and (self.newest_term is None or term > self.newest_term):
             self.newest_term = term
 
+    def _warm(self, snapshot: dict[str, Any]) -> None:
+        """Run one block through a throwaway pipeline for each kind of channel in ``snapshot``
+        not run here before (on the event loop, while standing by): what a channel's first
+        block costs once per process then is not paid at the takeover. ``warm_up`` at start
+        loads the estimators' kernels with example parameters only; a channel's own (e.g. the
+        interpolated DFT's uncertainty tables for its window: 0.12 s with its kernels, quiet)
+        came with the first block the new owner processed."""
+        started = time.monotonic()
+        kinds: dict[str, dict[str, Any]] = {}
+        for item in snapshot.get("channels", []):
+            length = round(item["samples"] / item["blocks"]) if item.get("blocks") else 0
+            kind = json.dumps(
+                [item["estimator"].get("estimator"), item["estimator"].get("params"), item["sample_rate_hz"], length]
+            )
+            if length > 0 and kind not in self._warmed:
+                kinds.setdefault(kind, item)
+        if not kinds:
+            return
+        rng = np.random.default_rng(0)  # seeded: the same throwaway block every time
+        for kind, item in kinds.items():
+            self._warmed.add(kind)
+            length = round(item["samples"] / item["blocks"])
+            scratch = Pipeline(self.daemon.config, [])
+            try:
+                scratch.restore({"channels": [item]})
+                seq = (item["last_seq"] or 0) + 1
+                block = Block(
+                    item["name"],
+                    seq,
+                    item["next_t0_ns"] or 0,
+                    float(item["sample_rate_hz"]),
+                    rng.standard_normal(length),
+                )
+                scratch.process(item["key"], encode_block_binary(block), "", time.time_ns())
+            except Exception:  # a warm-up that fails costs the takeover its time, nothing else
+                log.exception("cluster: warming up for %s failed", item.get("name"))
+        log.info("cluster: %d kind(s) of channel warmed up in %.0f ms", len(kinds), (time.monotonic() - started) * 1e3)
+
     def _prepare(self) -> None:
         """A warm standby: the owner's lease is running out (etcd says under a second left, no
         keep-alive since), so restore the newest snapshot into the pipeline now, while the lease
@@ -318,6 +364,7 @@ class ClusterMember:
         from it until this daemon is elected; a snapshot that comes later is restored then."""
         if self.role != "standby" or self.latest_snapshot is None or self.latest_snapshot is self._restored:
             return
+        self._warm(self.latest_snapshot[3])
         started = time.monotonic()
         self._restore(self.latest_snapshot)
         log.info(

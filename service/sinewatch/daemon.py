@@ -94,6 +94,32 @@ def _block_seq(payload: bytes) -> int | None:
     return int.from_bytes(payload[8:16], "little")
 
 
+def catch_up_order(replies: list[tuple[Item, Any, int]], published: dict[str, int]) -> list[tuple[Item, Any, int]]:
+    """A takeover's history (``(item, publisher, sn)``, each key's blocks in order) in the
+    order it goes to the pipeline; ``published``: each key's last seq the previous owner
+    published. First, key by key, each key's blocks up to its first one to publish (those up to
+    ``published`` only bring the state up to date), then the rest, the keys taken in turn.
+    Channel k's first estimate of a takeover then waits for the catch-up of k channels, not of
+    all of them: with the keys taken in turn from the start, no estimate came before every
+    channel's state was brought up to date (~5 blocks each at a snapshot interval of 0.5 s:
+    1.5 s under load in a chaos run's kill), and none before a whole key's history without turns."""
+    by_key: dict[str, list[tuple[Item, Any, int]]] = {}
+    for reply_item in replies:
+        by_key.setdefault(reply_item[0][0], []).append(reply_item)
+    first: list[tuple[Item, Any, int]] = []
+    rest: list[list[tuple[Item, Any, int]]] = []
+    for key, items in by_key.items():
+        last = published.get(key)
+        n = 0
+        if last is not None:  # up to and including the first block after ``last``
+            while n < len(items) and (_block_seq(items[n][0][1]) or 0) <= last:
+                n += 1
+            n = min(n + 1, len(items))
+        first += items[:n]
+        rest.append(items[n:])
+    return first + [it for turn in itertools.zip_longest(*rest) for it in turn if it is not None]
+
+
 class Intake:
     """Zenoh subscriber + pump thread feeding the event loop in batches."""
 
@@ -192,37 +218,13 @@ class Intake:
                         replies.append(item)
         except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
             log.warning("intake: history query failed: %s", exc)
-        interleaved = self._catch_up_order(replies)
+        interleaved = catch_up_order(replies, self._published)
         with self._lock:  # the pump waits here: nothing live goes ahead of the history
             held, self._held = self._held or [], None
             if self._stopping:  # unsubscribed meanwhile (a deposed owner): these are its successor's
                 return
             log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
             self._hand_over(interleaved + held)
-
-    def _catch_up_order(self, replies: list[tuple[Item, Any, int]]) -> list[tuple[Item, Any, int]]:
-        """The history's order for the pipeline: each key's blocks in order; first, key by key,
-        each key's blocks up to its first one to publish (those up to the previous owner's last
-        published estimate only bring the state up to date), then the rest, the keys taken in
-        turn. Channel k's first estimate of a takeover then waits for the catch-up of k channels,
-        not of all of them: taken in turn from the start (as before), no channel's first estimate
-        came before every channel's state was brought up to date (~5 blocks each at a snapshot
-        interval of 0.5 s), and none at all before a channel's whole history without turns."""
-        by_key: dict[str, list[tuple[Item, Any, int]]] = {}
-        for reply_item in replies:
-            by_key.setdefault(reply_item[0][0], []).append(reply_item)
-        first: list[tuple[Item, Any, int]] = []
-        rest: list[list[tuple[Item, Any, int]]] = []
-        for key, items in by_key.items():
-            published = self._published.get(key)
-            n = 0
-            if published is not None:  # up to and including the first block after ``published``
-                while n < len(items) and (_block_seq(items[n][0][1]) or 0) <= published:
-                    n += 1
-                n = min(n + 1, len(items))
-            first += items[:n]
-            rest.append(items[n:])
-        return first + [it for turn in itertools.zip_longest(*rest) for it in turn if it is not None]
 
     def _in_state(self, key: str, payload: bytes) -> bool:
         """A binary block whose seq (read from its header) is at or before its channel's last
