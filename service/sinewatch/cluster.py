@@ -15,8 +15,10 @@ publishes only while it can prove its lease alive (the daemon holds its inputs b
 while the gate is shut) and stands down when it cannot for a whole TTL. The others
 stand by: they keep the newest snapshot of the shard (``<admin>/shard/<shard_id>/snapshot``,
 put by the owner every ``snapshot_interval_s``, tagged with its term), note the last
-estimate published per channel, and campaign. The one elected next restores the
-snapshot, marks where the old owner left each channel (:class:`sinewatch.pipeline.ResumePoint`),
+estimate published per channel, and campaign; warm, they run one block of each kind of
+channel through a throwaway pipeline when the first snapshot comes, and restore the newest
+snapshot as soon as etcd says the owner's lease is running out. The one elected next
+restores the snapshot (unless restored ahead), marks where the old owner left each channel (:class:`sinewatch.pipeline.ResumePoint`),
 starts a new MCAP file (which carries that state and the new term, so it replays on its
 own) and subscribes to the inputs. Blocks Zenoh's history brings again up to the last
 published one update the state without being published a second time; the first block

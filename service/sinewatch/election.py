@@ -5,8 +5,9 @@ candidate grants a lease of ``ttl`` seconds and, in one transaction, creates the
 election key attached to it if the key does not exist. The one whose transaction created
 the key owns the shard; the key's create revision is the election's **term**, which grows
 with every election (etcd revisions never go back while its data is kept), so it serves
-as a fencing token. The others read the key every ``POLL_S`` and try again once it is gone,
-which etcd makes it when the owner's lease expires (or is revoked).
+as a fencing token. The others ask etcd how long the owner's lease has left every ``POLL_S``
+(every ``FAST_POLL_S`` they read the key once under a second is left) and try again once it
+is gone, which etcd makes it when the owner's lease expires (or is revoked).
 
 The owner keeps its lease alive (a keep-alive every ``ttl / 6``) and may publish only
 while it can *prove* the lease alive: etcd restarts a lease's countdown when it receives a
