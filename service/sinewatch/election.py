@@ -5,8 +5,9 @@ candidate grants a lease of ``ttl`` seconds and, in one transaction, creates the
 election key attached to it if the key does not exist. The one whose transaction created
 the key owns the shard; the key's create revision is the election's **term**, which grows
 with every election (etcd revisions never go back while its data is kept), so it serves
-as a fencing token. The others read the key every ``POLL_S`` and try again once it is gone,
-which etcd makes it when the owner's lease expires (or is revoked).
+as a fencing token. The others ask etcd how long the owner's lease has left every ``POLL_S``
+(every ``FAST_POLL_S`` they read the key once under a second is left) and try again once it
+is gone, which etcd makes it when the owner's lease expires (or is revoked).
 
 The owner keeps its lease alive (a keep-alive every ``ttl / 6``) and may publish only
 while it can *prove* the lease alive: etcd restarts a lease's countdown when it receives a
@@ -30,6 +31,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,7 +51,11 @@ _GRPC_OPTIONS = {
 }
 
 
-POLL_S = 0.2  # how often a standby reads the election key while it is held
+POLL_S = 0.2  # how often a standby reads the owner's lease while it is kept alive
+# How often it reads the election key once the owner's lease has less than a second left (etcd
+# states a lease's remaining TTL in whole seconds, truncated: 0 means expiring within the second,
+# or expired and not yet revoked, which etcd's lessor does on a tick of its own, every 500 ms in 3.4)
+FAST_POLL_S = 0.025
 
 
 @dataclass
@@ -86,6 +92,9 @@ class LeaseElection:
         self.keepalives = 0
         self._last_ack_sent = 0.0  # monotonic time the last acknowledged keep-alive was sent
         self._changed: asyncio.Event | None = None  # on the daemon's loop
+        # called on the daemon's loop when a standby sees the owner's lease stop being renewed
+        # (under a second left): a takeover may follow within the second; prepare for it
+        self.on_expiring: Callable[[], None] | None = None
         self._daemon_loop: asyncio.AbstractEventLoop | None = None
         self._client: Any = None
         self._running: set[concurrent.futures.Future[Any]] = set()
@@ -119,6 +128,12 @@ class LeaseElection:
         loop, event = self._daemon_loop, self._changed
         if loop is not None and event is not None and not loop.is_closed():
             loop.call_soon_threadsafe(event.set)
+
+    def _call_daemon(self, fn: Callable[[], None] | None) -> None:
+        """From the etcd thread: run ``fn`` on the daemon's loop."""
+        loop = self._daemon_loop
+        if fn is not None and loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(fn)
 
     async def _on_etcd(self, coro: Any) -> Any:
         self._event()
@@ -156,10 +171,10 @@ class LeaseElection:
                     sent = time.monotonic()
                     granted = await self._call(self._etcd().lease(self.ttl_s), self.ttl_s)
                     lease = (granted.id, sent)
-                won, revision = await self._try_once(lease[0])
+                won, revision, holder = await self._try_once(lease[0])
                 if won is not None:
                     return won
-                lease = await self._wait_for_delete(revision, *lease)
+                lease = await self._wait_for_delete(revision, holder, *lease)
             except Exception as exc:  # noqa: BLE001 (etcd unreachable, restarting, a call cut short, the lease gone)
                 log.info(
                     "election %s: etcd not answering (%s: %s); trying again", self.key.decode(), type(exc).__name__, exc
@@ -169,27 +184,32 @@ class LeaseElection:
                     lease = None
                 await asyncio.sleep(min(0.25, self.keepalive_s))
 
-    async def _try_once(self, lease_id: int) -> tuple[Won | None, int]:
+    async def _try_once(self, lease_id: int) -> tuple[Won | None, int, int]:
+        """One election transaction; (the win or None, the revision read, the holder's lease id)."""
         client = self._etcd()
         started = time.monotonic()
-        # a keep-alive first (the leader answers it without a disk write): a win starts the
-        # publish gate from this lease's last acknowledged keep-alive, and the one sent while
-        # standing by can be most of a keep-alive interval old on a loaded machine (a new
-        # owner's gate was seen shut 0.14 s after its win, for 1.75 s)
-        reply = await self._call(client.refresh_lease(lease_id))
-        if reply.TTL <= 0:
-            raise LookupError(f"lease {lease_id:x} expired while standing by")
         tx = client.transactions
-        ok, responses = await self._call(
-            client.transaction(
-                compare=[tx.create(self.key) == 0],
-                success=[tx.put(self.key, self.identity, lease=lease_id), tx.get(self.key)],
-                failure=[tx.get(self.key)],
+        # A keep-alive beside the transaction, not before it (one round trip, not two): a win
+        # starts the publish gate from this lease's last acknowledged keep-alive, and the one sent
+        # while standing by can be most of a keep-alive interval old on a loaded machine (a new
+        # owner's gate was seen shut 0.14 s after its win, for 1.75 s). Sent at ``started``, its
+        # acknowledgement keeps the lease until at least ``started + ttl`` on etcd's side.
+        reply, (ok, responses) = await asyncio.gather(
+            self._call(client.refresh_lease(lease_id)),
+            self._call(
+                client.transaction(
+                    compare=[tx.create(self.key) == 0],
+                    success=[tx.put(self.key, self.identity, lease=lease_id), tx.get(self.key)],
+                    failure=[tx.get(self.key)],
+                ),
+                self.ttl_s,
             ),
-            self.ttl_s,
         )
+        if reply.TTL <= 0:  # the transaction cannot have put the key on a lease etcd no longer has
+            raise LookupError(f"lease {lease_id:x} expired while standing by")
         kvs = responses[-1]
         revision = kvs[0][1].header.revision if kvs else 0
+        holder = int(kvs[0][1].lease) if kvs else 0
         if ok:
             self.won = Won(term=kvs[0][1].create_revision, lease_id=lease_id)
             self.owner = True
@@ -200,28 +220,46 @@ class LeaseElection:
                 self.won.term,
                 (time.monotonic() - started) * 1e3,
             )
-            return self.won, revision
-        return None, revision
+            return self.won, revision, holder
+        return None, revision, holder
 
-    async def _wait_for_delete(self, revision: int, lease_id: int, acked: float) -> tuple[int, float]:
-        """Until the key is gone: a read every ``POLL_S`` (a range request, the cheapest call
-        etcd has), and a keep-alive of this candidate's lease every ``ttl / 6``; returns the
-        lease with the send time of its last acknowledged keep-alive. A watch would tell at
-        once, but aetcd's ``watch_once`` was seen to hang for good in its cancellation after
-        the event had come (a standby that never took over); a read cannot hang past its
-        timeout."""
+    async def _wait_for_delete(self, revision: int, holder: int, lease_id: int, acked: float) -> tuple[int, float]:
+        """Until the key is gone; returns this candidate's lease with the send time of its last
+        acknowledged keep-alive (one every ``ttl / 6`` meanwhile).
+
+        While the holder keeps its lease alive, a time-to-live request on the holder's lease
+        every ``POLL_S`` (a read, answered without a disk write; -1 once etcd revoked it, which
+        deletes the key in the same commit). Once it says less than a second is left (0: the
+        holder stopped renewing), the key itself is read every ``FAST_POLL_S`` until it goes,
+        and the lease's time to live every ``POLL_S`` still (a holder that renews again, e.g.
+        etcd back in time, sends it back up). With a read of the key every 0.2 s throughout, a
+        takeover waited up to 0.2 s after the deletion. A watch would tell at once, but aetcd's
+        ``watch_once`` was seen to hang for good in its cancellation after the event had come (a
+        standby that never took over); a read cannot hang past its timeout."""
         client = self._etcd()
+        fast_until = 0.0  # monotonic: read the key (not the lease) until then
+        wake = time.monotonic() + POLL_S
         while True:
-            await asyncio.sleep(POLL_S)
+            await asyncio.sleep(max(0.0, wake - time.monotonic()))
             if time.monotonic() >= acked + self.keepalive_s:
                 sent = time.monotonic()
                 reply = await self._call(client.refresh_lease(lease_id))
                 if reply.TTL <= 0:
                     raise LookupError(f"lease {lease_id:x} expired while standing by")
                 acked = sent
-            if await self._call(client.get(self.key)) is None:
+            now = time.monotonic()
+            if now < fast_until or not holder:
+                gone = await self._call(client.get(self.key)) is None
+            else:
+                info = await self._call(client.get_lease_info(holder, keys=False))
+                gone = info.TTL < 0
+                if info.TTL == 0 and not fast_until:
+                    self._call_daemon(self.on_expiring)
+                fast_until = now + POLL_S if info.TTL == 0 else 0.0
+            if gone:
                 log.info("election %s: the owner's key is gone (after revision %d)", self.key.decode(), revision)
                 return lease_id, acked
+            wake = now + (FAST_POLL_S if now < fast_until else POLL_S)
 
     def _ack(self, sent: float) -> None:
         self._last_ack_sent = sent
