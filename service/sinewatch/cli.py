@@ -25,6 +25,7 @@ import logging
 import re
 import sys
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, NoReturn, cast
@@ -119,35 +120,26 @@ def _check_scenarios(names: list[str]) -> None:
             )
 
 
-def _port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        port = -1
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a TCP port 0-65535 (0: any free one), got {text!r}")
-    return port
+def _int_in(lo: int, hi: int, expected: str) -> Callable[[str], int]:
+    """An argparse type: an integer from ``lo`` to ``hi``; anything else is one line saying what
+    was expected and what came."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = lo - 1
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return n
+
+    return parse
 
 
-def _count(text: str) -> int:
-    """``--workers N``: 1-256 processes, or 0 for one per core (as ``[workers] count``)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if not 0 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, or 0 for one per core, got {text!r}")
-    return n
-
-
-def _frame_count(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if not 1 <= n <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a number of channels per frame 1-65535, got {text!r}")
-    return n
+_port = _int_in(0, 65535, "a TCP port 0-65535 (0: any free one)")
+# --workers N: 1-256 processes, or 0 for one per core (as [workers] count)
+_count = _int_in(0, 256, "a number of processes 1-256, or 0 for one per core")
+_frame_count = _int_in(1, 65535, "a number of channels per frame 1-65535")
 
 
 def enable_c37118(config: Any, port: int) -> None:
