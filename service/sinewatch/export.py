@@ -32,7 +32,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from sinewatch.replay import check_recording, read_recording
+from sinewatch.replay import check_recording, read_window
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import DecodeError, SinewatchError
 from sinewatch.schemas.frame import Frame, decode_input
@@ -258,15 +258,10 @@ def export(
     if samples:
         tables["samples"] = _Buffered(make(out_dir / f"{stem}.samples.{fmt}", SAMPLE_COLUMNS))
     try:
-        for kind, item in read_recording(path, on_progress):
+        for kind, item in read_window(path, window, on_progress):
             if kind == "incomplete":
                 result.incomplete = True
             if kind != "message":
-                continue
-            window.anchor(item.log_time_ns)
-            if window.after(item.log_time_ns):
-                break
-            if window.before(item.log_time_ns):
                 continue
             if item.role == "estimate":
                 msg = json.loads(item.payload)

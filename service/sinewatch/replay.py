@@ -192,6 +192,21 @@ def read_recording(
             on_progress(f.tell())
 
 
+
+def read_window(
+    path: Path, window: Window, on_progress: Callable[[int], None] | None = None
+) -> Iterator[tuple[str, Any]]:
+    """:func:`read_recording`'s items, the messages outside ``window`` left out; reading stops
+    at the first message past its end (``export``, ``compare`` and ``plot`` read this way)."""
+    for kind, item in read_recording(path, on_progress):
+        if kind == "message":
+            window.anchor(item.log_time_ns)
+            if window.after(item.log_time_ns):
+                return
+            if window.before(item.log_time_ns):
+                continue
+        yield kind, item
+
 def recorded_message(channel: Channel, message: Message) -> RecordedMessage:
     """A message as the daemon saw it: an input recorded as an InputBlock (protobuf) gives back
     the bytes and the Zenoh encoding it arrived with; every other message (and an input of a
