@@ -299,23 +299,13 @@ def export(
 def run_export(args: Any) -> int:
     """``sinewatch export FILE.mcap --format csv|parquet [--channels GLOB ...] [--start T] [--end T]
     [--out DIR] [--samples]``."""
-    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from sinewatch.console import check_output_dir, make_console
+    from sinewatch.console import byte_progress, check_output_dir, make_console
 
     path = Path(args.path)
     check_recording(path)
     out_dir = check_output_dir(Path(args.out) if args.out else path.parent, "--out")
     console = make_console(stderr=True)
-    with Progress(
-        TextColumn("exporting"),
-        BarColumn(),
-        DownloadColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=args.no_progress or not console.is_terminal,
-        transient=True,
-    ) as progress:
+    with byte_progress(console, "exporting", disable=args.no_progress or not console.is_terminal) as progress:
         task = progress.add_task("export", total=path.stat().st_size)
         result = export(
             path,
