@@ -65,7 +65,12 @@ def test_the_licence_file_is_the_apache_2_0_text_pyproject_names():
 
 @pytest.mark.parametrize(
     "path",
-    ["README.md", "CHANGELOG.md", "deploy/README.md", *[str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")]],
+    [
+        "README.md",
+        "CHANGELOG.md",
+        "deploy/README.md",
+        *[str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")],
+    ],
 )
 def test_figures_name_the_hardware_not_this_machine_or_an_issue(path):
     text = " ".join((ROOT / path).read_text().split())

@@ -15,6 +15,13 @@ sinewatch plot RUN.mcap [...]       one channel's input and estimates as a PNG
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios|gateway|...
+
+Why one module of about 900 lines: it is the table of contents of the command line. Each
+command here is a few lines that check its arguments and hand over to the module that does
+the work, imported when the command runs (so ``sinewatch config show`` loads no estimator);
+the parser beside them is one ``build_parser``. Split by command, the commands would need
+the connection and waiting helpers they share one layer down, which is the client library's
+place, not the CLI's.
 """
 
 from __future__ import annotations

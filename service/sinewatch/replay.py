@@ -12,6 +12,11 @@ algorithms can be compared on the same data.
 The reader is a single streaming pass (``mcap.stream_reader``), so a file whose writer
 was killed (no summary, no footer) still replays: every complete chunk is used and the
 result says the file was incomplete.
+
+Why one module of a little over 800 lines: reading a recording, comparing its outputs and
+the two replay loops (a whole run, and a window from the snapshot before it) share the
+recording's private conventions (roles, topics, the formats each file was written in);
+apart, each would need them exported to the others.
 """
 
 from __future__ import annotations
@@ -192,7 +197,6 @@ def read_recording(
             on_progress(f.tell())
 
 
-
 def read_window(
     path: Path, window: Window, on_progress: Callable[[int], None] | None = None
 ) -> Iterator[tuple[str, Any]]:
@@ -206,6 +210,7 @@ def read_window(
             if window.before(item.log_time_ns):
                 continue
         yield kind, item
+
 
 def recorded_message(channel: Channel, message: Message) -> RecordedMessage:
     """A message as the daemon saw it: an input recorded as an InputBlock (protobuf) gives back
@@ -541,6 +546,10 @@ class _InputChannels:
         return hit
 
 
+# _replay_window_run takes _replay_run's arguments and the window's. They stay two loops: a
+# window starts from the snapshot before it, holds the inputs in between and gates what is
+# compared and recorded, where a whole run feeds every input as it comes; one loop with both
+# behind flags would read as neither.
 def _replay_window_run(
     paths: list[Path],
     *,
