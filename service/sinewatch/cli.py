@@ -217,13 +217,7 @@ def cmd_feed(args: argparse.Namespace) -> int:
     with _connect("feed", args) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast, frame_channels=args.frame_channels)
-        first = feed.frames[0][0] if feed.frames else channels[0].channel
-        waiting = pub.wait_for_frame_subscriber if feed.frames else pub.wait_for_subscriber
-        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
-            raise ConfigError(
-                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
-                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
-            )
+        _wait_for_subscriber(pub, feed.frames[0][0] if feed.frames else channels[0].channel, bool(feed.frames), args)
         t0 = time.monotonic()
         try:
             sent = feed.run(args.duration)
@@ -266,6 +260,16 @@ def _wait_for_daemon(command: str, key: str, wait: Any, wait_s: float) -> bool:
         return bool(wait())
 
 
+def _wait_for_subscriber(pub: Any, first: str, frames: bool, args: argparse.Namespace) -> None:
+    """``feed`` waits until the daemon subscribes to its first message's key, saying so."""
+    waiting = pub.wait_for_frame_subscriber if frames else pub.wait_for_subscriber
+    if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
+        raise ConfigError(
+            f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
+            f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
+        )
+
+
 def _settle(session: Any, timeout_s: float = 5.0) -> None:
     """A round trip to the daemons' admin queryables before the session closes: blocks still
     in the session's send queue would be lost with it (``feed --fast`` ends right after its
@@ -280,7 +284,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     from sinewatch.clients import BlockPublisher
     from sinewatch.comtrade_file import read_comtrade
     from sinewatch.console import make_console
-    from sinewatch.feed import publish_comtrade, publish_comtrade_frames
+    from sinewatch.feed import publish_comtrade
 
     if args.scenario:
         raise ConfigError("--comtrade: expected instead of --scenario, got both")
@@ -295,16 +299,10 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
             first = interleaved_frames(record, args.block)[0][0]
         else:
             first = record.channels[0].channel
-        waiting = pub.wait_for_frame_subscriber if as_frames else pub.wait_for_subscriber
-        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
-            raise ConfigError(
-                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
-                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
-            )
+        _wait_for_subscriber(pub, first, as_frames, args)
         t0 = time.monotonic()
         try:
-            send = publish_comtrade_frames if as_frames else publish_comtrade
-            sent = send(pub, record, block_size=args.block, realtime=not args.fast)
+            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast, frames=as_frames)
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0

@@ -238,25 +238,6 @@ def frame_groups(channels: list[FeedChannel], per_frame: int) -> list[tuple[str,
     return [(f"{members[0].channel.split('/', 1)[0]}-f{k}", members) for k, (_, members) in enumerate(groups)]
 
 
-def publish_comtrade_frames(
-    publisher: BlockPublisher,
-    record: ComtradeRecord,
-    *,
-    block_size: int = 1000,
-    realtime: bool = True,
-    stop: threading.Event | None = None,
-) -> int:
-    """:func:`publish_comtrade` with the analog channels sampled together sent as one
-    SampleFrame per ``block_size`` samples (:func:`sinewatch.comtrade_file.interleaved_frames`)."""
-    frames = interleaved_frames(record, block_size)
-    return _paced(
-        [frame for _, frame in frames],
-        lambda k: publisher.publish_frame_raw(frames[k][0], publisher.encode_frame(frames[k][1])),
-        realtime,
-        stop,
-    )
-
-
 def publish_comtrade(
     publisher: BlockPublisher,
     record: ComtradeRecord,
@@ -264,11 +245,22 @@ def publish_comtrade(
     block_size: int = 1000,
     realtime: bool = True,
     stop: threading.Event | None = None,
+    frames: bool = False,
 ) -> int:
     """Publish every analog channel of a COMTRADE record in blocks of ``block_size``
     samples at its recorded rate, in the order of the blocks' times (channels interleaved as
-    they were sampled); in real time, each block when its last sample is due. Returns the
-    number of blocks published."""
+    they were sampled); in real time, each block when its last sample is due. With
+    ``frames`` the analog channels sampled together go as one SampleFrame per ``block_size``
+    samples (:func:`sinewatch.comtrade_file.interleaved_frames`). Returns the number of
+    messages published."""
+    if frames:
+        named = interleaved_frames(record, block_size)
+        return _paced(
+            [frame for _, frame in named],
+            lambda k: publisher.publish_frame_raw(named[k][0], publisher.encode_frame(named[k][1])),
+            realtime,
+            stop,
+        )
     blocks = interleaved_blocks(record, block_size)
     return _paced(
         blocks, lambda k: publisher.publish_raw(blocks[k].channel, publisher.encode(blocks[k])), realtime, stop
