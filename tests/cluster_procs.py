@@ -20,13 +20,31 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import zenoh
 
-from sinewatch.clients import Fence
+from sinewatch.clients import BlockPublisher, Fence
 from sinewatch.clients.session import free_loopback_port
 
 WAIT = 60.0  # the longest any condition may take on a loaded 2-core machine
+CHANNELS = [f"ch{i:03d}" for i in range(100)]
+FS = 1000.0
+BLOCK = 100  # 0.1 s per block: 10 blocks/s per channel, 1,000 blocks/s in all
+LOG_TAIL_LINES = 40
+
+
+def log_tails(directory: Path | None, lines: int = LOG_TAIL_LINES) -> str:
+    """The last ``lines`` of every daemon's log in ``directory``, for a failed wait's message:
+    why a cluster was not served is in its daemons' logs, and a run's temporary directory can
+    be gone (pytest keeps the last three) before anyone reads it."""
+    if directory is None:
+        return ""
+    parts = []
+    for path in sorted(directory.glob("*.log")):
+        tail = path.read_text(errors="replace").splitlines()[-lines:]
+        parts.append(f"\n--- {path.name}, last {len(tail)} lines ---\n" + "\n".join(tail))
+    return "".join(parts)
 
 
 def etcd_binary() -> str:
@@ -214,18 +232,25 @@ def _serve_proxy(target_port: int) -> None:
         print(line.strip(), flush=True)
 
 
+def config_head(daemon_id: str, router: str) -> str:
+    """The start of a test daemon's config file: its id, a status every 0.5 s, and Zenoh in
+    client mode on ``router`` alone (the ``[zenoh]`` table is left open for more keys)."""
+    return f"""daemon_id = "{daemon_id}"
+status_interval_s = 0.5
+[zenoh]
+mode = "client"
+listen = []
+connect = ["{router}"]
+"""
+
+
 def daemon_config(
     tmp_path: Path, daemon_id: str, shard: str, role: str, router_port: int, etcd: str, recovery: bool = True
 ) -> Path:
     cfg = tmp_path / f"{daemon_id}.toml"
     cfg.write_text(
-        f"""daemon_id = "{daemon_id}"
-status_interval_s = 0.5
-[zenoh]
-mode = "client"
-listen = []
-connect = ["tcp/127.0.0.1:{router_port}"]
-recovery = {str(recovery).lower()}
+        config_head(daemon_id, f"tcp/127.0.0.1:{router_port}")
+        + f"""recovery = {str(recovery).lower()}
 [cluster]
 shard = "{shard}"
 role = "{role}"
@@ -245,14 +270,15 @@ params = {{ nominal_frequency_hz = 50.0, window_cycles = 10.0 }}
     return cfg
 
 
-def start_daemon(tmp_path: Path, daemon_id: str, cfg: Path) -> subprocess.Popen[str]:
+def start_daemon(tmp_path: Path, daemon_id: str, cfg: Path) -> subprocess.Popen[bytes]:
+    """``sinewatch serve --config cfg``, its output appended to ``<tmp_path>/<daemon_id>.log``."""
     log = open(tmp_path / f"{daemon_id}.log", "a")
     return subprocess.Popen(
         [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
     )
 
 
-def stop_all(procs: dict[str, subprocess.Popen[str]]) -> None:
+def stop_all(procs: dict[str, subprocess.Popen[bytes]]) -> None:
     """SIGCONT and SIGINT every daemon still running (each drains and finishes its file), then wait."""
     for p in procs.values():
         if p.poll() is None:
@@ -282,8 +308,9 @@ def cpu_burner(n: int | None = None) -> Iterator[list[subprocess.Popen[bytes]]]:
 class Tokens:
     """The cluster's liveliness tokens as the network sees them (discovery: who is there)."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, session: zenoh.Session, logs: Path | None = None) -> None:
         self.present: set[str] = set()
+        self.logs = logs  # the daemons' logs, whose tails a failed wait shows
         self._cond = threading.Condition()
         self._sub = session.liveliness().declare_subscriber("sinewatch/admin/shard/**", self._on, history=True)
 
@@ -296,13 +323,25 @@ class Tokens:
     def wait_count(self, role: str, n: int, timeout: float = WAIT) -> None:
         with self._cond:
             ok = self._cond.wait_for(lambda: sum(p.startswith(role + "/") for p in self.present) >= n, timeout)
-            assert ok, self.present
+            assert ok, f"{n} {role}: {self.present}{log_tails(self.logs)}"
+
+    def wait_daemons(self, daemon_ids: list[str], timeout: float = WAIT) -> None:
+        """Until every one of ``daemon_ids`` has a token, in either role."""
+        with self._cond:
+            ok = self._cond.wait_for(lambda: set(daemon_ids) <= {p.split("/")[-1] for p in self.present}, timeout)
+            assert ok, f"{daemon_ids}: {self.present}{log_tails(self.logs)}"
+
+    def wait_for(self, *names: str, timeout: float = WAIT) -> None:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: set(names) <= self.present, timeout)
+            assert ok, f"{names}: {self.present}{log_tails(self.logs)}"
 
 
 class Estimates:
     """Every estimate published, in arrival order: raw, and as a fenced reader keeps them."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, session: zenoh.Session, logs: Path | None = None) -> None:
+        self.logs = logs  # the daemons' logs, whose tails a failed wait shows
         self.raw: list[dict[str, Any]] = []
         self.by_channel: dict[str, list[dict[str, Any]]] = defaultdict(list)  # fenced
         self.fence = Fence()
@@ -328,7 +367,13 @@ class Estimates:
 
     def wait(self, condition: Any, what: str, timeout: float = WAIT) -> None:
         with self._cond:
-            assert self._cond.wait_for(lambda: condition(self.by_channel), timeout=timeout), what
+            assert self._cond.wait_for(lambda: condition(self.by_channel), timeout=timeout), self._failed(what)
+
+    def _failed(self, what: str) -> str:
+        """What a failed wait says: the channels not served lately, and the daemons' logs."""
+        now = time.monotonic()
+        quiet = sorted(c for c in CHANNELS if not any(m["_arrival"] > now - 5 for m in self.by_channel[c][-3:]))
+        return f"{what}; channels without an estimate in 5 s: {len(quiet)} {quiet[:8]}{log_tails(self.logs)}"
 
     def newest_term(self, shard_id: str) -> int | None:
         with self._cond:
@@ -336,8 +381,42 @@ class Estimates:
 
     def wait_for_new_term(self, shard_id: str, older: int, what: str) -> int:
         with self._cond:
-            assert self._cond.wait_for(lambda: (self.fence.newest.get(shard_id) or 0) > older, timeout=WAIT), what
+            ok = self._cond.wait_for(lambda: (self.fence.newest.get(shard_id) or 0) > older, timeout=WAIT)
+            assert ok, self._failed(what)
             return self.fence.newest[shard_id]
+
+
+class Gateway(threading.Thread):
+    """``CHANNELS`` of a 50 Hz sine in real time (one block per channel every 0.1 s)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        super().__init__(daemon=True)
+        self.pub = BlockPublisher(session)
+        self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        t = np.arange(BLOCK) / FS
+        start = time.monotonic()
+        n = 0
+        while not self.stop.is_set():
+            for i, ch in enumerate(CHANNELS):
+                self.pub.publish(ch, np.sin(2 * np.pi * 50.0 * (t + n * BLOCK / FS) + i), sample_rate_hz=FS)
+                self.sent[ch] = n + 1
+            n += 1
+            self.stop.wait(max(0.0, start + n * BLOCK / FS - time.monotonic()))  # the gateway's real-time pace
+
+    def finish(self, estimates: Estimates, timeout: float = WAIT) -> None:
+        """Stop publishing, then wait for every channel's last block's estimate."""
+        self.stop.set()
+        self.join()
+        last = lambda e: all(e[c] and e[c][-1]["seq"] == self.sent[c] - 1 for c in CHANNELS)
+        estimates.wait(last, "the last blocks", timeout)
+
+
+def after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
+    """The estimates that arrived after monotonic time ``t``."""
+    return [m for m in msgs if m["_arrival"] > t]
 
 
 def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[dict[str, Any]]]:

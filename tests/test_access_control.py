@@ -21,7 +21,6 @@ import json
 import queue
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from cluster_procs import Etcd
+from cluster_procs import Etcd, config_head, start_daemon
 from conftest import TIMEOUT
 from test_deploy import certs, secure_router, tls_section  # noqa: F401 (certs is a fixture)
 
@@ -262,13 +261,8 @@ def _secure_daemon(
     cfg = tmp_path / f"{daemon_id}.toml"
     election = f'etcd = "{etcd}"\n' if etcd else ""  # the shard's owner is elected on etcd
     cfg.write_text(
-        f"""daemon_id = "{daemon_id}"
-status_interval_s = 0.5
-[zenoh]
-mode = "client"
-listen = []
-connect = ["tls/127.0.0.1:{port}"]
-[zenoh.raw]
+        config_head(daemon_id, f"tls/127.0.0.1:{port}")
+        + f"""[zenoh.raw]
 "transport/link/tls/root_ca_certificate" = "{cert_dir / "ca.pem"}"
 "transport/link/tls/connect_certificate" = "{cert_dir / "sinewatch-daemon.pem"}"
 "transport/link/tls/connect_private_key" = "{cert_dir / "sinewatch-daemon-key.pem"}"
@@ -284,10 +278,7 @@ enabled = false
 count = 1
 """
     )
-    log = open(tmp_path / f"{daemon_id}.log", "a")
-    return subprocess.Popen(
-        [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
-    )
+    return start_daemon(tmp_path, daemon_id, cfg)
 
 
 def test_a_readers_forged_active_token_does_not_stop_failover(tmp_path, certs):  # noqa: F811

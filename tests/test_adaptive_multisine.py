@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from adaptive_multisine_checks import assert_example_3_step, settle_time
 from scipy.linalg import eigh, expm
 from scipy.signal import place_poles
 
@@ -60,15 +61,6 @@ EXP = {
 
 def omega(tr) -> np.ndarray:
     return tr.frequency_hz * 2.0 * np.pi  # rad/s (omega_unit_rad_s = 1)
-
-
-def settle_time(t, w, target, rel_tol, t0=0.0) -> float:
-    """First time after which |w - target| <= rel_tol * target for good (from t0 on)."""
-    bad = ((np.abs(w - target) > rel_tol * target) | ~np.isfinite(w)) & (t >= t0)
-    idx = np.flatnonzero(bad)
-    if idx.size == 0:
-        return t0
-    return float(t[idx[-1] + 1]) if idx[-1] + 1 < t.size else math.inf
 
 
 def run(params, fs, seconds, signal, seed=1):
@@ -281,12 +273,7 @@ def test_section_v_example_3_frequency_steps():
 
     t, tr = run(EX1, FS_PAPER, 140.0, y)
     w = omega(tr)
-    pre, post = (t >= 55) & (t < 70), t >= 120
-    np.testing.assert_allclose(w[pre].mean(axis=0), [2.0, 5.0], atol=0.03)
-    np.testing.assert_allclose(w[post].mean(axis=0), [3.0, 4.5], atol=0.03)
-    after = [settle_time(t, w[:, i], v, 0.01, 70.0) - 70.0 for i, v in enumerate((3.0, 4.5))]
-    assert max(after) < 55.0
-    print(f"\nEX3: within 1 % {after} s after the step; errors after {w[post].mean(axis=0) - (3, 4.5)}")
+    assert_example_3_step(t, w, pre_from=55, post_from=120, atol_pre=0.03, rel_tol=0.01, within=55.0)
 
 
 def test_section_v_experiment_at_10_khz():

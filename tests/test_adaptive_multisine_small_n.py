@@ -1,8 +1,8 @@
 """adaptive-multisine's automatic mode for n = 1 and n = 2 runs kernels written out for one and
-two components (:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel_n1`,
-:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel_n2`: state in locals, the
+two components (:func:`~sinewatch.estimators._adaptive_multisine_small.auto_kernel_n1`,
+:func:`~sinewatch.estimators._adaptive_multisine_small.auto_kernel_n2`: state in locals, the
 eigenvalues of (23) and the switching test (25) in closed form). These tests hold them to the
-general kernel (:func:`~sinewatch.estimators.adaptive_multisine.auto_kernel`, any n) on the
+general kernel (:func:`~sinewatch.estimators._adaptive_multisine_auto.auto_kernel`, any n) on the
 same input and state, with and without the offset, through every branch the loop has: the
 law (22) with every direction on, with one of two and with none, the re-centring AD8, the
 signal lost and back (AD7), a component fading (n = 2), and the guard's restart. They differ
@@ -15,12 +15,8 @@ import numpy as np
 import pytest
 
 from sinewatch.estimators import create, get
-from sinewatch.estimators.adaptive_multisine import (
-    adaptive_multisine_kernel,
-    auto_kernel,
-    auto_kernel_n1,
-    auto_kernel_n2,
-)
+from sinewatch.estimators._adaptive_multisine_auto import adaptive_multisine_kernel, auto_kernel
+from sinewatch.estimators._adaptive_multisine_small import auto_kernel_n1, auto_kernel_n2
 
 NAME = "adaptive-multisine"
 FS = 750.0  # the class's example: tones at 15 and 10 Hz in a 5-25 Hz band

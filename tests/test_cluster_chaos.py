@@ -24,18 +24,19 @@ import random
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from cluster_procs import (
+    CHANNELS,
     Estimates,
+    Gateway,
     ProxyProcess,
     Router,
     Tokens,
+    after,
     check_channel,
     cpu_burner,
     daemon_config,
@@ -47,12 +48,9 @@ from cluster_procs import (
     stop_all,
 )
 
-from sinewatch.clients import BlockPublisher, connect
+from sinewatch.clients import connect
 from sinewatch.cluster import shard_of
 
-CHANNELS = [f"ch{i:03d}" for i in range(100)]
-FS = 1000.0
-BLOCK = 100  # 0.1 s per block: 10 blocks/s per channel
 SHARDS = {"sinewatch_in_1of2": "1/2", "sinewatch_in_2of2": "2/2"}  # shard_id -> shard
 DAEMONS = {"a1": ("1/2", "active"), "b1": ("1/2", "standby"), "a2": ("2/2", "active"), "b2": ("2/2", "standby")}
 KINDS = ("kill", "pause", "cut", "router", "etcd")
@@ -61,33 +59,10 @@ TAKEOVER_LIMIT_S = 2.0
 TTL_S = 3  # lease_ttl_s of the daemons (cluster_procs.daemon_config)
 
 
-class Gateway(threading.Thread):
-    def __init__(self, session: Any) -> None:
-        super().__init__(daemon=True)
-        self.pub = BlockPublisher(session)
-        self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
-        self.stop = threading.Event()
-
-    def run(self) -> None:
-        t = np.arange(BLOCK) / FS
-        start = time.monotonic()
-        n = 0
-        while not self.stop.is_set():
-            for i, ch in enumerate(CHANNELS):
-                self.pub.publish(ch, np.sin(2 * np.pi * 50.0 * (t + n * BLOCK / FS) + i), sample_rate_hz=FS)
-                self.sent[ch] = n + 1
-            n += 1
-            self.stop.wait(max(0.0, start + n * BLOCK / FS - time.monotonic()))
-
-
-def _after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
-    return [m for m in msgs if m["_arrival"] > t]
-
-
 def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
     rng = random.Random(SEED)
     rows: list[dict[str, Any]] = []
-    procs: dict[str, subprocess.Popen[str]] = {}
+    procs: dict[str, subprocess.Popen[bytes]] = {}
     with contextlib.ExitStack() as stack:
         etcd = stack.enter_context(etcd_server(tmp_path))
         router = Router()
@@ -101,9 +76,9 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
             for d, (shard, role) in DAEMONS.items()
         }
         session = stack.enter_context(connect([f"tcp/127.0.0.1:{router.port}"]))
-        estimates = Estimates(session)
+        estimates = Estimates(session, tmp_path)  # a failed wait shows the daemons' log tails
         try:
-            tokens = Tokens(session)
+            tokens = Tokens(session, tmp_path)
             for d in DAEMONS:
                 procs[d] = start_daemon(tmp_path, d, configs[d])
             tokens.wait_count("active", len(SHARDS), timeout=240)  # both shards elected (compiling takes a while)
@@ -121,8 +96,10 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                 if kind == "kill":
                     procs[owner].send_signal(signal.SIGKILL)
                     procs[owner].wait()
-                    new = estimates.wait_for_new_term(shard_id, term, f"fault {n}: no successor after a kill")
+                    # restarted at once (its start, ~25 s at load 10, overlaps the takeover): it campaigns on a new
+                    # lease, and stands by unless the old one has expired and it is elected before the standby
                     procs[owner] = start_daemon(tmp_path, owner, configs[owner])
+                    new = estimates.wait_for_new_term(shard_id, term, f"fault {n}: no successor after a kill")
                 elif kind == "pause":
                     procs[owner].send_signal(signal.SIGSTOP)
                     new = estimates.wait_for_new_term(shard_id, term, f"fault {n}: no successor after a pause")
@@ -147,19 +124,18 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                     row["new_term"] = new
                     row["seen_s"] = round(first - (t0 + TTL_S), 3)  # at this test's subscriber (printed only)
                 t_back = time.monotonic()
-                estimates.wait(lambda e, t=t_back: all(_after(e[c], t) for c in CHANNELS), f"fault {n}: all served")
+                estimates.wait(lambda e, t=t_back: all(after(e[c], t) for c in CHANNELS), f"fault {n}: all served")
                 row["resumed_s"] = round(
-                    max(_after(estimates.by_channel[c], t_back)[0]["_arrival"] for c in CHANNELS) - t_back, 3
+                    max(after(estimates.by_channel[c], t_back)[0]["_arrival"] for c in CHANNELS) - t_back, 3
                 )
                 rows.append(row)
                 print(f"fault {row}", flush=True)
                 t_settle = time.monotonic()  # a second of normal service before the next fault
-                estimates.wait(lambda e, t=t_settle: all(len(_after(e[c], t)) >= 10 for c in CHANNELS), "settled")
-            gateway.stop.set()
-            gateway.join()
-            estimates.wait(
-                lambda e: all(e[c] and e[c][-1]["seq"] == gateway.sent[c] - 1 for c in CHANNELS), "the last blocks"
-            )
+                estimates.wait(lambda e, t=t_settle: all(len(after(e[c], t)) >= 10 for c in CHANNELS), "settled")
+                if kind == "kill":  # the restarted daemon is up before the next fault: one that is still starting
+                    # when the router goes away cannot open its Zenoh session and exits (seen at load 15)
+                    tokens.wait_daemons(list(DAEMONS), timeout=240)
+            gateway.finish(estimates)
             status = subprocess.run(
                 [sys.executable, "-m", "sinewatch", "status", "--connect", f"tcp/127.0.0.1:{router.port}", "--summary"],
                 capture_output=True, text=True, timeout=60, check=False,

@@ -13,7 +13,7 @@ gateway's cache.
 Both failures once seen here are covered: two daemons publishing the same channels from
 the first block on (both took themselves for the active one: a liveliness query that
 missed the other's token on a loaded machine) cannot happen with one etcd key per shard
-(``_check_channel`` asserts no estimate twice, on every channel, in every test); the
+(``check_channel`` asserts no estimate twice, on every channel, in every test); the
 untouched shard losing blocks while the other's owner was stopped (the router's queue to
 the stopped daemon held the gateway back, and a liveliness-driven re-election on the
 stalled network) is asserted by ``(0, 0)`` on every shard-2 channel.
@@ -26,26 +26,31 @@ import json
 import signal
 import subprocess
 import sys
-import threading
 import time
-from collections import defaultdict
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
-import zenoh
-from cluster_procs import daemon_config, etcd_server, published_once_each, recorded_estimates, stop_all
+from cluster_procs import (
+    CHANNELS,
+    Estimates,
+    Gateway,
+    Router,
+    Tokens,
+    after,
+    check_channel,
+    daemon_config,
+    etcd_server,
+    published_once_each,
+    recorded_estimates,
+    start_daemon,
+    stop_all,
+)
 
-from sinewatch.clients import BlockPublisher, connect
-from sinewatch.clients.session import free_loopback_port
+from sinewatch.clients import connect
 from sinewatch.cluster import shard_of
 from sinewatch.replay import replay
 
-CHANNELS = [f"ch{i:03d}" for i in range(100)]
-FS = 1000.0
-BLOCK = 100  # 0.1 s per block: 10 blocks/s per channel, 1,000 blocks/s in all
 WAIT = 120.0  # the longest any condition may take on a loaded 2-core machine (a CPU burner, a second copy of this file)
 TTL_S = 3  # lease_ttl_s of the daemons (cluster_procs.daemon_config)
 pytestmark = pytest.mark.timeout(600)  # three processes starting on a loaded machine
@@ -57,23 +62,6 @@ def key(channel: str) -> str:
 
 SHARD_1 = [c for c in CHANNELS if shard_of(key(c), 2) == 1]
 SHARD_2 = [c for c in CHANNELS if shard_of(key(c), 2) == 2]
-
-
-@contextlib.contextmanager
-def router(port: int) -> Iterator[subprocess.Popen[str]]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sinewatch", "router", "--listen", f"tcp/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().startswith("sinewatch router: listening")
-        yield proc
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-
-
 ETCD = {"endpoint": ""}  # the running test's etcd (set by the etcd fixture)
 
 
@@ -84,113 +72,24 @@ def etcd(tmp_path):
         yield server
 
 
-def daemon(tmp_path: Path, daemon_id: str, shard: str, role: str, port: int, recovery: bool) -> subprocess.Popen[str]:
+def daemon(tmp_path: Path, daemon_id: str, shard: str, role: str, port: int, recovery: bool) -> subprocess.Popen[bytes]:
     cfg = daemon_config(tmp_path, daemon_id, shard, role, port, ETCD["endpoint"], recovery)
-    log = open(tmp_path / f"{daemon_id}.log", "a")
-    return subprocess.Popen(
-        [sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg)], stdout=log, stderr=subprocess.STDOUT
-    )
-
-
-class Tokens:
-    """The cluster's liveliness tokens as the network sees them (a liveliness subscriber)."""
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self.present: set[str] = set()
-        self._cond = threading.Condition()
-        self._sub = session.liveliness().declare_subscriber("sinewatch/admin/shard/**", self._on, history=True)
-
-    def _on(self, sample: zenoh.Sample) -> None:
-        name = "/".join(str(sample.key_expr).split("/")[-2:])  # "active/a1"
-        with self._cond:
-            (self.present.add if sample.kind == zenoh.SampleKind.PUT else self.present.discard)(name)
-            self._cond.notify_all()
-
-    def wait_for(self, *names: str) -> None:
-        with self._cond:
-            assert self._cond.wait_for(lambda: set(names) <= self.present, timeout=WAIT), self.present
-
-
-class Estimates:
-    """Every estimate published, with its arrival time."""
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self.by_channel: dict[str, list[dict[str, Any]]] = defaultdict(list)
-        self._cond = threading.Condition()
-        self._sub = session.declare_subscriber("sinewatch/est/**", self._on)
-
-    def _on(self, sample: zenoh.Sample) -> None:
-        msg = json.loads(sample.payload.to_bytes())
-        msg["_arrival"] = time.monotonic()
-        with self._cond:
-            self.by_channel[msg["channel"]].append(msg)
-            self._cond.notify_all()
-
-    def wait(self, condition: Any, what: str) -> None:
-        with self._cond:
-            assert self._cond.wait_for(lambda: condition(self.by_channel), timeout=WAIT), what
-
-
-class Gateway(threading.Thread):
-    """100 channels of a 50 Hz sine in real time (one block per channel every 0.1 s)."""
-
-    def __init__(self, session: zenoh.Session) -> None:
-        super().__init__(daemon=True)
-        self.pub = BlockPublisher(session)
-        self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
-        self.stop = threading.Event()
-
-    def run(self) -> None:
-        t = np.arange(BLOCK) / FS
-        start = time.monotonic()
-        n = 0
-        while not self.stop.is_set():
-            for i, ch in enumerate(CHANNELS):
-                x = np.sin(2 * np.pi * 50.0 * (t + n * BLOCK / FS) + i)
-                self.pub.publish(ch, x, sample_rate_hz=FS)
-                self.sent[ch] = n + 1
-            n += 1
-            self.stop.wait(max(0.0, start + n * BLOCK / FS - time.monotonic()))  # the gateway's real-time pace
+    return start_daemon(tmp_path, daemon_id, cfg)
 
 
 def start_cluster(
-    tmp_path: Path,
-    port: int,
-    recovery: bool,
-    procs: dict[str, subprocess.Popen[str]],
-    tokens: Tokens,
-    session: zenoh.Session,
+    tmp_path: Path, port: int, recovery: bool, procs: dict[str, subprocess.Popen[bytes]], tokens: Tokens, session: Any
 ) -> Gateway:
     """The two active daemons (a1: shard 1/2, a2: 2/2), then the standby of shard 1 (s1)
     once they serve, then the gateway; ``procs`` gets the daemons as they start."""
     procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, recovery)
     procs["a2"] = daemon(tmp_path, "a2", "2/2", "active", port, recovery)
-    tokens.wait_for("active/a1", "active/a2")
+    tokens.wait_for("active/a1", "active/a2", timeout=WAIT)
     procs["s1"] = daemon(tmp_path, "s1", "1/2", "standby", port, recovery)
-    tokens.wait_for("standby/s1")
+    tokens.wait_for("standby/s1", timeout=WAIT)
     gateway = Gateway(session)
     gateway.start()
     return gateway
-
-
-def _after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
-    return [m for m in msgs if m["_arrival"] > t]
-
-
-def _check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
-    """(gaps flagged, blocks lost) of one channel, checked against each other: each (seq)
-    at most once, in order, every seq up to ``sent`` either estimated or counted in the
-    gap_blocks of the estimate after it."""
-    seqs = [m["seq"] for m in msgs]
-    assert len(seqs) == len(set(seqs)), f"an estimate published twice: {seqs}"
-    assert seqs == sorted(seqs)
-    missing = sorted(set(range(sent)) - set(seqs))
-    flagged = [m for m in msgs if m["diagnostics"]["gap"]]
-    assert sum(m["diagnostics"]["gap_blocks"] for m in flagged) == len(missing)
-    for m in flagged:  # each gap counts exactly the seqs missing right before it
-        before = [s for s in missing if s < m["seq"] and all(s > o for o in seqs if o < m["seq"])]
-        assert m["diagnostics"]["gap_blocks"] == len(before)
-    return len(flagged), len(missing)
 
 
 # Both variants run the same takeover (SIGSTOP, SIGKILL, lease expiry, fencing terms, status,
@@ -204,35 +103,35 @@ def _check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
     ids=["zenoh-recovery", "no-recovery"],
 )
 def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_path, recovery, etcd):
-    port = free_loopback_port()
-    with router(port), connect([f"tcp/127.0.0.1:{port}"]) as session:
-        tokens, estimates = Tokens(session), Estimates(session)
-        procs: dict[str, subprocess.Popen[str]] = {}
+    rt = Router()
+    rt.start()
+    port = rt.port
+    with contextlib.ExitStack() as stack:
+        stack.callback(rt.kill)
+        session = stack.enter_context(connect([f"tcp/127.0.0.1:{port}"]))
+        tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)  # failed waits show the logs
+        procs: dict[str, subprocess.Popen[bytes]] = {}
         try:
             gateway = start_cluster(tmp_path, port, recovery, procs, tokens, session)
-            estimates.wait(lambda e: all(len(e[c]) >= 15 for c in CHANNELS), "every channel estimated")
+            estimates.wait(lambda e: all(len(e[c]) >= 15 for c in CHANNELS), "every channel estimated", WAIT)
 
             # the active daemon of shard 1 hangs (what it receives now, nobody estimates) ...
             procs["a1"].send_signal(signal.SIGSTOP)
             t_hang, t_hang_wall = time.monotonic(), time.time()
-            estimates.wait(lambda e: all(len(_after(e[c], t_hang)) >= 5 for c in SHARD_2), "half a second on")
+            estimates.wait(lambda e: all(len(after(e[c], t_hang)) >= 5 for c in SHARD_2), "half a second on", WAIT)
             procs["a1"].send_signal(signal.SIGKILL)  # ... and a watchdog kills it
             t_kill = time.monotonic()
             procs["a1"].wait()
-            estimates.wait(lambda e: all(_after(e[c], t_kill + 0.3) for c in SHARD_1), "shard 1 served again")
-            seen_s = max(_after(estimates.by_channel[c], t_kill)[0]["_arrival"] for c in SHARD_1) - (t_hang + TTL_S)
+            estimates.wait(lambda e: all(after(e[c], t_kill + 0.3) for c in SHARD_1), "shard 1 served again", WAIT)
+            seen_s = max(after(estimates.by_channel[c], t_kill)[0]["_arrival"] for c in SHARD_1) - (t_hang + TTL_S)
             t_back = time.monotonic()
-            estimates.wait(lambda e: all(len(_after(e[c], t_back)) >= 10 for c in CHANNELS), "a second more")
+            estimates.wait(lambda e: all(len(after(e[c], t_back)) >= 10 for c in CHANNELS), "a second more", WAIT)
             # the killed daemon comes back (same config, role active): it stands by
             procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, recovery)
-            tokens.wait_for("standby/a1")
+            tokens.wait_for("standby/a1", timeout=WAIT)
             t_again = time.monotonic()
-            estimates.wait(lambda e: all(len(_after(e[c], t_again)) >= 10 for c in CHANNELS), "a second more")
-            gateway.stop.set()
-            gateway.join()
-            estimates.wait(
-                lambda e: all(e[c] and e[c][-1]["seq"] == gateway.sent[c] - 1 for c in CHANNELS), "the last blocks"
-            )
+            estimates.wait(lambda e: all(len(after(e[c], t_again)) >= 10 for c in CHANNELS), "a second more", WAIT)
+            gateway.finish(estimates, WAIT)
             status = subprocess.run(
                 [sys.executable, "-m", "sinewatch", "status", "--connect", f"tcp/127.0.0.1:{port}", "--json"],
                 capture_output=True,
@@ -247,14 +146,11 @@ def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_pa
     # machine the subscriber's process lost estimates the daemons had published and recorded)
     every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, ["a1", "a2", "s1"]))
     for c in SHARD_2:  # the other shard never noticed
-        assert _check_channel(every[c], gateway.sent[c]) == (0, 0)
-    results = [_check_channel(every[c], gateway.sent[c]) for c in SHARD_1]
-    if recovery:  # the gateway's cache covers the outage, and the new owner's history query brings it back, in order,
-        # ahead of the live blocks, unless a publisher's heartbeat reaches it during that query: zenoh-ext (1.10) then
-        # queries that publisher on its own, and a live block delivered before that query ends makes it drop the
-        # history as old (docs/cluster.md). Then each channel has its one gap, flagged with its size, as without recovery
-        assert all((gaps, lost) == (0, 0) or (gaps == 1 and lost >= 1) for gaps, lost in results), results
-        print(f"recovered from the gateway's cache: {sum(r == (0, 0) for r in results)} of {len(results)} channels")
+        assert check_channel(every[c], gateway.sent[c]) == (0, 0)
+    results = [check_channel(every[c], gateway.sent[c]) for c in SHARD_1]
+    if recovery:  # the gateway's cache covers the outage: the new owner's own history query brings it back, in
+        # order, ahead of the live blocks (docs/cluster.md), and nothing is lost
+        assert all(r == (0, 0) for r in results), results
     else:  # what nobody estimated is flagged once per channel, with its size
         assert all(gaps == 1 and lost >= 1 for gaps, lost in results), results
 
@@ -298,32 +194,29 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
     daemon reconnects, estimates resume within 5 s, nothing is published twice, what was
     lost is flagged, and the standby does not take over a shard whose active daemon is
     still alive (its token comes back with the network)."""
-    port = free_loopback_port()
-    procs: dict[str, subprocess.Popen[str]] = {}
+    rt = Router()
+    rt.start()
+    port = rt.port
+    procs: dict[str, subprocess.Popen[bytes]] = {}
     with contextlib.ExitStack() as stack:
-        first = stack.enter_context(router(port))
+        stack.callback(rt.kill)
         session = stack.enter_context(connect([f"tcp/127.0.0.1:{port}"]))
-        tokens, estimates = Tokens(session), Estimates(session)
+        tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)
         try:
             gateway = start_cluster(tmp_path, port, True, procs, tokens, session)
-            estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated")
+            estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated", WAIT)
 
-            first.send_signal(signal.SIGKILL)
-            first.wait()
+            rt.kill()
             t_down = time.monotonic()
-            with router(port):
-                t_back = time.monotonic()
-                estimates.wait(lambda e: all(_after(e[c], t_back) for c in CHANNELS), "estimates resume")
-                resumed_s = max(_after(estimates.by_channel[c], t_back)[0]["_arrival"] for c in CHANNELS) - t_back
-                t_later = time.monotonic()
-                estimates.wait(lambda e: all(len(_after(e[c], t_later)) >= 10 for c in CHANNELS), "a second more")
-                gateway.stop.set()
-                gateway.join()
-                estimates.wait(
-                    lambda e: all(e[c] and e[c][-1]["seq"] == gateway.sent[c] - 1 for c in CHANNELS), "the last blocks"
-                )
-                tokens.wait_for("active/a1", "active/a2", "standby/s1")
-                roles = set(tokens.present)
+            rt.start()  # on the same port
+            t_back = time.monotonic()
+            estimates.wait(lambda e: all(after(e[c], t_back) for c in CHANNELS), "estimates resume", WAIT)
+            resumed_s = max(after(estimates.by_channel[c], t_back)[0]["_arrival"] for c in CHANNELS) - t_back
+            t_later = time.monotonic()
+            estimates.wait(lambda e: all(len(after(e[c], t_later)) >= 10 for c in CHANNELS), "a second more", WAIT)
+            gateway.finish(estimates, WAIT)
+            tokens.wait_for("active/a1", "active/a2", "standby/s1", timeout=WAIT)
+            roles = set(tokens.present)
         finally:
             stop_all(procs)
 
@@ -337,5 +230,5 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
     # this test's own session was still reconnecting to the new router never reached it: their recordings have it.
     every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, ["a1", "a2", "s1"]))
     for c in CHANNELS:
-        _check_channel(every[c], gateway.sent[c])
+        check_channel(every[c], gateway.sent[c])
     assert roles == {"active/a1", "active/a2", "standby/s1"}  # no takeover: a1 was never gone

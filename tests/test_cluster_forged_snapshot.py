@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 import pytest
-from test_cluster_failover import Estimates, Tokens, daemon, etcd, router, stop_all  # noqa: F401 (etcd: fixture)
+from cluster_procs import Estimates, Router, Tokens, stop_all
+from test_cluster_failover import daemon, etcd  # noqa: F401 (etcd: fixture)
 
 from sinewatch.clients import BlockPublisher, connect
-from sinewatch.clients.session import free_loopback_port
 from sinewatch.cluster import shard_id_of
 from sinewatch.schemas.config import SinewatchConfig
 
@@ -25,11 +25,13 @@ FORGED = [b"not a snapshot", b'{"channels": [{"name": "x"}]}']
 def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
     shard_id = shard_id_of(SinewatchConfig.model_validate({"cluster": {"shard": "1/1"}}))
     snapshot_key = f"sinewatch/admin/shard/{shard_id}/snapshot"
-    port = free_loopback_port()
+    rt = Router()
+    rt.start()
+    port = rt.port
     procs = {}
     stop = threading.Event()
-    with router(port), connect([f"tcp/127.0.0.1:{port}"]) as session:
-        tokens, estimates = Tokens(session), Estimates(session)
+    with connect([f"tcp/127.0.0.1:{port}"]) as session:
+        tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)  # failed waits show the logs
         try:
             procs["a1"] = daemon(tmp_path, "a1", "1/1", "active", port, True)
             tokens.wait_for("active/a1")
@@ -64,3 +66,4 @@ def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
         finally:
             stop.set()
             stop_all(procs)
+            rt.kill()

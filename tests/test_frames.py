@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import make_config, run_daemon, take
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
+from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates, subscribe_status
 from sinewatch.export import export
 from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.replay import read_recording, replay
@@ -465,6 +465,40 @@ def test_a_frame_whose_channel_set_changes_mid_stream(tmp_path):
     assert keep.estimates == _blocks_reference(tmp_path, sends)
 
 
+def test_a_lost_frame_and_its_late_redelivery_cost_one_refusal_per_channel_and_no_cascade(tmp_path):
+    """Frames 0..9 of 4 channels with frame 3 lost, then frame 3 and an older cache of
+    frames 0..5 arriving again after frame 6 (what a recovery that re-sends a publisher's
+    cache delivers), stamped as the bench's held-back feeder stamps them (a quarter period
+    late, then on time). Frame 4 is accepted as a gap of one block, every re-delivered
+    channel-block is refused once (out of order or duplicate), and every frame after them is
+    accepted: one lost frame cannot make the daemon refuse what follows."""
+    keep = Keep()
+    p = Pipeline(make_config(tmp_path), [keep])
+    names = ["mu/a", "mu/b", "mu/c", "mu/d"]
+    late = {4, 5, 8}  # stamped a quarter period after their time (stamp_ns's cap)
+
+    def send(seq: int) -> None:
+        t0 = seq * STEP_NS + (STEP_NS // 4 if seq in late else 0)
+        frame = Frame(tuple(names), seq, t0, FS, _signal(seq, 4))
+        p.process("sinewatch/in/mu", encode_frame_binary(frame, "float32"), "", seq)
+
+    for seq in (0, 1, 2, 4, 5, 6):
+        send(seq)
+    for seq in (3, 0, 1, 2, 3, 4, 5, 6):  # the lost one late, then a cache re-sent
+        send(seq)
+    for seq in (7, 8, 9):
+        send(seq)
+    refused = sorted((e["channel"], e["seq"], e["kind"]) for e in keep.errors)
+    assert refused == sorted(
+        (n, seq, "duplicate" if seq == 6 else "out_of_order") for n in names for seq in (3, 0, 1, 2, 3, 4, 5, 6)
+    )
+    for n in names:
+        got = [json.loads(e) for e in keep.estimates[f"sinewatch/est/{n}"]]
+        assert [e["seq"] for e in got] == [0, 1, 2, 4, 5, 6, 7, 8, 9]
+        assert [e["diagnostics"]["gap_blocks"] for e in got] == [0, 0, 0, 1, 0, 0, 0, 0, 0]
+        assert not any(e["diagnostics"]["reset"] for e in got)
+
+
 def test_a_frame_channel_whose_rule_needs_two_columns_is_rejected_alone(tmp_path):
     rules = [
         EstimatorRule(
@@ -512,8 +546,15 @@ def test_a_daemon_fed_frames_and_single_blocks_at_once_records_what_replays_bit_
         with connect([ep]) as s:
             est = subscribe_estimates(s)
             err = subscribe_errors(s)
+            status = subscribe_status(s)
             pub = BlockPublisher(s, dtype="float64")
             assert pub.wait_for_frame_subscriber("mu1", 20) and pub.wait_for_subscriber("solo", 20)
+            # The daemon's inputs are subscribed; its outputs reach this session only once the
+            # daemon has this session's subscriptions. They arrive over one link in the order
+            # declared: a Status received proves the estimates' and errors' ones (declared
+            # before it) are there too, so no estimate can go out to nobody.
+            assert status.get(timeout=20) is not None
+            status.close()
             for seq, frame in enumerate(frames):
                 pub.publish_frame_raw("mu1", encode_frame_binary(frame))
                 pub.publish("solo", _signal(seq, 1)[:, 0], FS)

@@ -13,7 +13,7 @@ import pytest
 
 from sinewatch.estimators import create
 from sinewatch.estimators.base import wrap_pi
-from sinewatch.estimators.interpolated_dft import _one_window_estimate, _window_estimates
+from sinewatch.estimators.interpolated_dft_kernels import _one_window_estimate, _window_estimates
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
 
 FS = 1000.0
@@ -274,6 +274,8 @@ def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_po
     c = 0.5 * (n_w - 1)  # (LS)
     cw, sw = math.cos(omega), math.sin(omega)
     s, co = math.sin(-omega * c), math.cos(-omega * c)
+    # the sums of (LS) in the kernel's order, written again here on purpose: this plain-Python
+    # reference is what the compiled kernel is checked against, so it must not call it
     sss = scc = ssc = ss = sc = sus = suc = su = 0.0
     sins, coss = [], []
     for n in range(n_w):

@@ -19,11 +19,11 @@ from sinewatch.estimators.kkl import (
     foh_coefficients,
     gamma_reference,
     kkl_ell,
-    kkl_kernel,
     paper_m_matrix,
     parameters_from_x,
 )
 from sinewatch.estimators.kkl_biased import gamma_biased_reference
+from sinewatch.estimators.kkl_kernels import kkl_kernel
 from sinewatch.schemas.errors import ParameterError
 
 PAPER_LAMBDA = np.array([1.0, 2.0, 3.0, 4.0])  # Section V: lambda_1..4 = 1, 2, 3, 4

@@ -5,6 +5,7 @@ failure, skip and recovery accounting, and the bench that measures them runs."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 
 import numpy as np
@@ -142,3 +143,102 @@ def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
     assert result["ratio_to_estimator"]["estimator"] == 1.0
     assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
     assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+
+
+def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
+    from sinewatch.estimators.base import Track, TrackStd
+
+    def rows(shape):
+        return rng.standard_normal(shape) * 10.0 ** rng.integers(-12, 12, size=shape)
+
+    tr = Track(
+        frequency_hz=50.0 + rows((3, k)),
+        amplitude=rows((3, k)),
+        phase_rad=rows((3, k)),
+        offset=rows((3,)),
+        converged=np.array([False, True, True]),
+        residual_rms=rms,
+        rocof_hz_per_s=rows((3, k)) if rocof else None,
+        std=TrackStd(rows((3, k)), rows((3, k)), rows((3, k)), rows((3,))) if std else None,
+    )
+    if bad is not None:  # a non-finite value: the general path writes it as null
+        getattr(tr, bad)[-1, ...] = np.nan
+    return tr
+
+
+def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path):
+    """Pipeline._fast_payload (one % formatting of a cached template) against the general path
+    (encode_estimate_values, itself proven equal to the pydantic model's bytes) over component
+    counts, std and rocof present or not, flags, fencing, time quality, every estimate format
+    from 3 on, and values of every magnitude; a non-finite value falls back to the general path."""
+    from sinewatch.estimators import get
+    from sinewatch.pipeline import Channel
+    from sinewatch.schemas.messages import Fencing
+
+    rng = np.random.default_rng(11)
+    cases = 0
+    flags = ((0, False, False, False), (2, True, True, True))
+    for version in (3, 4, 5):
+        pipe = Pipeline(make_config(tmp_path), [NullSink()], estimate_version=version)
+        est = get("ges-kalman")(10_000.0, {})
+        ch = Channel("site/a-1.x", "sinewatch/in/site/a-1.x", est, 10_000.0)
+        assert ch.presence is not None
+        ch.presence.update(np.sin(np.arange(40_000) * 0.0314))  # a long run: estimates valid
+        blk = Block("site/a-1.x", 7, 10**18 + 123, 10_000.0, np.zeros(1024))
+        t_ns = 10**18 + 5_000_123
+        for fencing, k, std, rocof, tq, flag in itertools.product(
+            (None, Fencing(shard="s%1", term=3)), (1, 3), (False, True), (False, True), (0, 0x80 | 0x04 | 1), flags
+        ):
+            pipe.set_fencing(fencing)
+            blk.time_quality = tq
+            tr = _track(rng, k, std=std, rocof=rocof)
+            args = (ch, blk, tr, t_ns, t_ns, *flag)
+            fast = pipe._fast_payload(*args)
+            ch.template = None
+            assert fast == _general_payload(pipe, *args), (version, k, std, rocof)
+            cases += 1
+        for bad in ("frequency_hz", "offset", "amplitude"):
+            tr = _track(rng, 2, std=True, rocof=False, bad=bad)
+            assert pipe._fast_payload(ch, blk, tr, 10**18, 10**18, 0, False, False, False) is None
+    assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
+
+
+def _general_payload(pipe: Pipeline, *args) -> tuple[bytes, bool]:
+    """Pipeline._estimate_payload with the fast path off."""
+    fast = pipe._fast_payload
+    pipe._fast_payload = lambda *a: None  # type: ignore[method-assign]
+    try:
+        return pipe._estimate_payload(*args)
+    finally:
+        pipe._fast_payload = fast  # type: ignore[method-assign]
+
+
+def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():
+    """update_presence_bank (one compiled call for a frame's channels) against each detector
+    run on its own column: the same runs and states, bit for bit, over interruptions, any
+    subset and order of the columns, and blocks of any size; detectors of other parameters
+    are left to the caller (None)."""
+    from sinewatch.estimators.presence import update_presence_bank
+
+    fs = 10_000.0
+    rng = np.random.default_rng(5)
+    t = np.arange(30_000) / fs
+    x = np.stack([np.sin(2 * np.pi * (50 + c) * t + c) + 0.05 * rng.standard_normal(t.size) for c in range(6)], axis=1)
+    x[8_000:11_000, 2] *= 0.01  # an interruption on one column
+    x[20_000:, 4] = 0.0  # a signal lost for good on another
+    columns = [5, 2, 0, 4]
+    alone = [SignalPresence(fs, hysteresis=0.02) for _ in columns]
+    bank = [SignalPresence(fs, hysteresis=0.02) for _ in columns]
+    lo = 0
+    for n in (1024, 333, 4096, 1, 2000, 7000, 15_546):
+        block = np.ascontiguousarray(x[lo : lo + n])
+        runs = update_presence_bank(bank, block, columns)
+        assert runs is not None and runs.shape == (len(columns), n)
+        for i, (det, c) in enumerate(zip(alone, columns, strict=True)):
+            run, _level = det.update(np.ascontiguousarray(block[:, c]))
+            assert np.array_equal(runs[i], run)
+            assert np.array_equal(bank[i].sums, det.sums) and np.array_equal(bank[i].counters, det.counters)
+        lo += n
+    assert lo == t.size and bank[1].run_samples > 0 and bank[3].run_samples == 0
+    other = [SignalPresence(fs), SignalPresence(fs, nominal_frequency_hz=60.0)]
+    assert update_presence_bank(other, x[:1024], [0, 1]) is None

@@ -363,3 +363,28 @@ def test_converged_state_round_trips_mid_step():
     b = run_blocks(second, x[cut:], T_EPOCH_NS + round(cut * 1e9 / FS), n - cut)
     np.testing.assert_array_equal(np.concatenate([a.track.converged, b.track.converged]), whole.track.converged)
     assert not whole.track.converged.all()
+
+
+@pytest.mark.parametrize("fs", [10_000.0, 9999.33])
+def test_default_rule_passes_the_steady_55_hz_row_of_the_60_hz_suite(fs):
+    """A steady 55 Hz is the edge of both M-class ranges; the default rule takes it as 50 + 5
+    and refers its synchrophasor to the 50 Hz cosine, as it declares (reports at 50/s). The
+    suite scores it against the nominal the estimator declares: within the steady-state limits
+    (it failed the 60 Hz suite's TVE when scored against the 60 Hz cosine)."""
+    from sinewatch.bench.compliance import declared_nominal_hz
+    from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
+
+    rows = run_suite(
+        60,
+        60,
+        estimator=DEFAULT_ESTIMATOR,
+        params=dict(DEFAULT_PARAMS),
+        families=("steady-frequency",),
+        sample_rate_hz=fs,
+    )
+    steady = {r.metric: r for r in rows if r.family == "steady-frequency"}
+    assert all(steady[m].passed for m in ("tve_pct", "fe_hz", "rfe_hz_per_s")), steady
+    est = create(DEFAULT_ESTIMATOR, fs, **DEFAULT_PARAMS)
+    t = np.arange(round(4.0 * fs)) / fs
+    est.update(np.cos(2 * np.pi * 55.0 * t), t0_ns=T_EPOCH_NS)
+    assert declared_nominal_hz(est, 60) == 50 and est.reporting_rate == 50

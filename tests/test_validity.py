@@ -342,3 +342,50 @@ def test_held_estimates_survive_a_snapshot_bit_for_bit():
         q.process("sinewatch/in/v", encode_block_binary(b), "", b.t0_ns)
     assert first.out + second.out == whole.out
     assert len(whole.out) < len(blocks)  # the last ones wait for signal that does not come
+
+
+def test_the_end_of_the_input_releases_every_held_estimate():
+    """With the hold-back a stream's last estimates wait for samples that never come; the end
+    of the input (Pipeline.release_held: the daemon's drain, a replay's end) publishes them,
+    in order, not valid (nothing confirmed their windows), so every accepted block's estimate
+    is out."""
+    t = np.arange(round(0.5 * LIVE_FS)) / LIVE_FS
+    blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t))
+    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True)
+    sink = Keep()
+    p = Pipeline(cfg, [sink])
+    for b in blocks:
+        p.process("sinewatch/in/v", encode_block_binary(b), "", b.t0_ns)
+    held = len(blocks) - len(sink.estimates)
+    assert held >= 1  # the last block's estimate waits for 1.5 cycles more
+    assert p.release_held(blocks[-1].t0_ns) == held
+    assert len(sink.estimates) == len(blocks) == p.counters.estimates
+    times = [e["timestamp_ns"] for e in sink.estimates]
+    assert times == sorted(times)
+    assert not any(e["diagnostics"]["valid"] or e["diagnostics"]["converged"] for e in sink.estimates[-held:])
+    assert sink.estimates[-held - 1]["diagnostics"]["valid"]  # the ones before were confirmed
+    assert p.release_held(blocks[-1].t0_ns) == 0
+
+
+def test_a_draining_daemon_publishes_its_held_estimates_and_replays(tmp_path):
+    """A live daemon with the hold-back, a finite feed, then SIGTERM's drain: its recording (a
+    real MCAP file) holds one estimate per block, the last ones not valid, and replays bit for
+    bit (replay releases them where the recording has them)."""
+    from conftest import make_config
+
+    from sinewatch.replay import read_recording, replay
+
+    t = np.arange(round(0.5 * LIVE_FS)) / LIVE_FS
+    blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t + 0.3))
+    config = make_config(tmp_path, hold_estimates=True)  # ges-kalman: one estimate per block
+    _, daemon = _through_live_daemon(config, blocks)
+    [path] = daemon.recording_paths
+    recorded = [json.loads(m.payload) for kind, m in read_recording(path) if kind == "message" and m.role == "estimate"]
+    assert len(recorded) == len(blocks)
+    assert not recorded[-1]["diagnostics"]["valid"]
+    assert (
+        recorded[0]["timestamp_ns"]
+        < recorded[-1]["timestamp_ns"]
+        == blocks[-1].t0_ns + round((LIVE_BLOCK - 1) * 1e9 / LIVE_FS)
+    )
+    assert replay([path]).ok

@@ -32,6 +32,7 @@ same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import signal
@@ -43,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+import numpy as np
 import zenoh
 import zenoh.ext
 
@@ -52,6 +54,8 @@ from sinewatch.cluster import ClusterMember, Ownership
 from sinewatch.pipeline import Pipeline, ResumePoint, Sink, sanitize_log_time
 from sinewatch.publisher import ZenohPublisherSink
 from sinewatch.recorder import McapRecorder
+from sinewatch.schemas.codec import HEADER as BLOCK_HEADER
+from sinewatch.schemas.codec import MAGIC as BLOCK_MAGIC
 from sinewatch.schemas.codec import encode_status
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import ConfigError
@@ -67,6 +71,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("sinewatch.daemon")
 
 HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at most this far apart
+HISTORY_TIMEOUT_S = 10.0  # how long the publishers' caches may take to answer a new subscriber's history query
 
 
 @dataclass
@@ -99,21 +104,31 @@ class Intake:
         fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
         self._miss_listener = None
         self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
+        # The newest sample handed over per publisher (its source id -> sequence number): the
+        # history this intake asks for itself and the samples zenoh-ext delivers overlap, and a
+        # recovery can deliver again what was delivered; each sample goes to the pipeline once.
+        self._last_sn: dict[Any, int] = {}
+        self._lock = threading.Lock()
+        self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
+        self._stopping = False
+        self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
-            # from the publishers' caches; what is past their history is reported here.
-            # No late-publisher detection: its per-publisher history query races the live
-            # samples in zenoh-ext 1.10 (a live sample that arrives after the subscriber's
-            # own history query ended is delivered at once, and that publisher's history,
-            # still on its way, is then dropped as old, silently). Declared after this
-            # subscriber, a publisher's samples come live; before it, the history query
-            # fetches them, in order, ahead of the live ones.
+            # from the publishers' caches (heartbeats tell what was missed); what is past their
+            # history is reported here. The publishers' history at subscription is asked for
+            # by this intake itself (History below), not by zenoh-ext's subscriber: in zenoh-ext
+            # (1.9-1.10) a live sample that arrives during the subscriber's history query
+            # starts a second query, for that publisher's whole cache; if the history query
+            # ends first, the next live sample is delivered at once and the history, still
+            # waiting on the second query, is dropped as older than it, with no miss reported
+            # (seen on 42 of 50 channels in one takeover); when the second query ends first,
+            # the whole cache (1,024 blocks a key) is delivered and had to be read and
+            # recorded before the first new estimate (takeovers of 3-4 s under load).
+            self._held = []
             self._subscriber = zenoh.ext.declare_advanced_subscriber(
                 daemon.session,
                 cfg.keys.input,
                 fifo,
-                # a takeover asks only for the newest ``history_blocks`` per key (what its snapshot lacks)
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=False, max_samples=history_blocks),
                 recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True,
             )
@@ -122,11 +137,104 @@ class Intake:
         self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
         self._closed = threading.Event()
         self._thread.start()
-        # Only now, with the pump draining the FIFO: zenoh-ext hands the history to the FIFO
-        # holding the subscriber's lock, which registering a listener takes too; with the
+        # Only now, with the pump draining the FIFO: zenoh-ext hands recovered samples to the
+        # FIFO holding the subscriber's lock, which registering a listener takes too; with the
         # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
         if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
             self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+            # each key's last block already in the state (restored from a snapshot or a file): the
+            # history up to it is dropped unread rather than decoded, recorded and skipped
+            keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
+            self._known = {
+                ch.key: ch.last_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.last_seq is not None and keys[ch.key] == 1
+            }
+            if history_blocks and self._known:  # a takeover: its shard's keys only, not every key's history
+                selectors = [f"{key}/@adv/**?_max={history_blocks}" for key in self._known]
+            else:
+                selectors = [f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")]
+            threading.Thread(target=self._history, args=(selectors,), name="sinewatch-history", daemon=True).start()
+
+    def _history(self, selectors: list[str]) -> None:
+        """The publishers' cached samples (each key's newest ``history_blocks``, or all) asked
+        for once, after subscribing: handed over first, then what arrived live meanwhile
+        (held back until now), each sample once; from then on the pump hands over directly."""
+        replies: list[tuple[Item, Any, int]] = []
+        try:
+            queries = [  # all sent at once, then read in turn
+                self._daemon.session.get(
+                    selector,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=HISTORY_TIMEOUT_S,
+                )
+                for selector in selectors
+            ]
+            for query in queries:
+                for reply in query:
+                    sample = reply.ok
+                    if sample is not None and (item := self._own(sample, history=True)) is not None:
+                        replies.append(item)
+        except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
+            log.warning("intake: history query failed: %s", exc)
+        # Each key's history in order, the keys taken in turn: every channel's first estimate of a
+        # takeover then waits for each channel's catch-up, not for the other channels' whole history
+        by_key: dict[str, list[tuple[Item, Any, int]]] = {}
+        for reply_item in replies:
+            by_key.setdefault(reply_item[0][0], []).append(reply_item)
+        interleaved = [it for turn in itertools.zip_longest(*by_key.values()) for it in turn if it is not None]
+        with self._lock:  # the pump waits here: nothing live goes ahead of the history
+            held, self._held = self._held or [], None
+            if self._stopping:  # unsubscribed meanwhile (a deposed owner): these are its successor's
+                return
+            log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
+            self._hand_over(interleaved + held)
+
+    def _in_state(self, key: str, payload: bytes) -> bool:
+        """A binary block whose seq (read from its header) is at or before its channel's last
+        block in the state: already taken in (a takeover's history reaches back past its
+        snapshot, twice what it lacks; most of it was in the snapshot)."""
+        last = self._known.get(key)
+        if last is None or payload[:4] != BLOCK_MAGIC or len(payload) < BLOCK_HEADER.size:
+            return False
+        return int.from_bytes(payload[8:16], "little") <= last
+
+    def _own(self, sample: zenoh.Sample, history: bool = False) -> tuple[Item, Any, int] | None:
+        """(item, publisher, sequence number) of a sample of a key this process owns, else None
+        (and None for a block of the history already in the state)."""
+        key = str(sample.key_expr)
+        # another daemon's or worker's keys: not ours to copy, decode, record or count
+        if self._owner is not None and not self._owner.owns(key):
+            self.counters.not_owned += 1
+            return None
+        payload = sample.payload.to_bytes()
+        if history and self._in_state(key, payload):
+            return None
+        info = sample.source_info
+        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
+        return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
+
+    def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
+        """Admit and pass on, in batches, the samples not handed over before (per publisher,
+        a sequence number past the last one handed over; a sample without one always)."""
+        last = self._last_sn
+        batch: list[Item] = []
+        dropped: Counter[str] = Counter()
+        for item, source, sn in items:
+            if source is not None:
+                if sn <= last.get(source, -1):
+                    continue
+                last[source] = sn
+            if self._admit(item, dropped):
+                batch.append(item)
+            if len(batch) >= self._batch:
+                self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+                batch = []
+        if batch:
+            self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+        if dropped:  # one report per key per batch: a flood of drops must not flood the loop
+            self._loop.call_soon_threadsafe(self._daemon.report_drops, dropped)
 
     def _pump(self) -> None:
         handler = self._subscriber.handler
@@ -135,21 +243,16 @@ class Intake:
                 sample = handler.recv()  # raises ZError once undeclared and drained
                 batch = []
                 while sample is not None:
-                    key = str(sample.key_expr)
-                    # another daemon's or worker's keys: not ours to copy, decode, record or count
-                    if self._owner is None or self._owner.owns(key):
-                        batch.append(self._take(key, sample))
-                    else:
-                        self.counters.not_owned += 1
+                    if (item := self._own(sample)) is not None:
+                        batch.append(item)
                     if len(batch) >= self._batch:
                         break
                     sample = handler.try_recv()
-                dropped: Counter[str] = Counter()
-                batch = [item for item in batch if self._admit(item, dropped)]
-                if batch:
-                    self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
-                if dropped:  # one report per key per batch: a flood of drops must not flood the loop
-                    self._loop.call_soon_threadsafe(self._daemon.report_drops, dropped)
+                with self._lock:
+                    if self._held is not None:  # the history is still on its way: these wait for it
+                        self._held += batch
+                    else:
+                        self._hand_over(batch)
         except zenoh.ZError:
             pass  # channel closed by stop(): intake is over
         finally:
@@ -160,10 +263,6 @@ class Intake:
         next block of that channel arrives); counted here, logged."""
         self.counters.unrecovered += miss.nb
         log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
-
-    @staticmethod
-    def _take(key: str, sample: zenoh.Sample) -> Item:
-        return (key, sample.payload.to_bytes(), str(sample.encoding), time.monotonic_ns())
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         """Take room for an input: one block, or one per channel of a multi-channel frame
@@ -203,10 +302,22 @@ class Intake:
 
     async def stop(self) -> None:
         """Stop intake: no new inputs; everything already received is handed over."""
+        # Not under self._lock: the pump can hold it for as long as it waits for room in the
+        # queue, which only this event loop frees; taking it here deadlocked a deposed owner
+        # (it never stood by again, so its shard had no successor). One assignment: atomic.
+        self._stopping = True
+        loop = asyncio.get_running_loop()
+        # Off the event loop too: undeclaring takes zenoh-ext's lock, which a Zenoh thread holds
+        # while it waits for room in the FIFO, which the pump frees once the event loop frees
+        # room in the queue; undeclared on the loop, two deposed owners hung for good when etcd
+        # restarted (no "standby" after "no longer the owner", no admin answers)
+        await loop.run_in_executor(None, self._undeclare)
+        await loop.run_in_executor(None, self._closed.wait)
+
+    def _undeclare(self) -> None:
         if self._miss_listener is not None:
             self._miss_listener.undeclare()
         self._subscriber.undeclare()
-        await asyncio.get_running_loop().run_in_executor(None, self._closed.wait)
 
 
 class Daemon:
@@ -414,6 +525,8 @@ class Daemon:
         """Load (or compile) every configured estimator's kernels now, so that a
         channel's first block does not wait ~0.3-0.8 s for numba."""
         from sinewatch.estimators import check_rules, get
+        from sinewatch.estimators.bank import bank_of, update_bank
+        from sinewatch.estimators.presence import SignalPresence, update_presence_bank
 
         check_rules(self.config.rules)
         for name in sorted({rule.estimator for rule in self.config.rules}):
@@ -422,6 +535,12 @@ class Daemon:
             signal_ = cls.example_signal(64)
             est.update(signal_)
             est.update(signal_, last_only=True)
+            if est.n_inputs == 1:  # a frame's channels: the bank kernel, the presence detectors' bank
+                frame = np.stack([signal_, signal_], axis=1)
+                if bank_of(cls) is not None:
+                    update_bank([cls.example(), cls.example()], frame, last_only=True)
+                detectors = [SignalPresence(cls.example_sample_rate_hz) for _ in range(2)]
+                update_presence_bank(detectors, frame, [0, 1])
 
     def start(self) -> None:
         """Open the session and sinks and start intake (call from the event loop)."""
@@ -542,6 +661,7 @@ class Daemon:
             await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
+        self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
         self.publish_status()
         if self.cluster is not None:  # only now: a standby takes over after our last estimate
             await self.cluster.close()

@@ -39,7 +39,7 @@ from sinewatch.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.base import Estimator, Track, TrackStd
-from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence
+from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence, update_presence_bank
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
@@ -261,6 +261,8 @@ class Channel:
     # (validity rules version 3): (payload, release at sample count, window start or -1, converged), see _hold
     held: deque[tuple[bytes, int, int, bool]] = field(default_factory=deque, repr=False)
     last_run: np.ndarray | None = field(default=None, repr=False)  # the presence run of the last block
+    # (key, template) of its Estimates' bytes in the usual case (Pipeline._fast_payload)
+    template: tuple[tuple[Any, ...], str] | None = field(default=None, repr=False)
 
     validity_version: int = field(default=VALIDITY_RULES_VERSION, repr=False)  # the pipeline's rules
 
@@ -447,9 +449,10 @@ class Pipeline:
         n_all = len(keys)
         for members in banks.values():
             tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
+            presence_done = self._presence_bank(members, tracks, x)
             for member, track in zip(members, tracks, strict=True):
                 if track is not None:
-                    self._frame_estimate(member, track, log_time_ns, received_ns)
+                    self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
 
     def _frame_channel_keys(self, key: str, names: tuple[str, ...]) -> tuple[str, ...]:
         """Each channel's key (:func:`sinewatch.schemas.frame.channel_key`), once per layout."""
@@ -554,11 +557,41 @@ class Pipeline:
                 tracks.append(None)
         return tracks
 
-    def _frame_estimate(self, m: _Member, track: Track, log_time_ns: int, received_ns: int | None) -> None:
-        """What :meth:`process` does after the estimator, for one channel of a frame."""
+    @staticmethod
+    def _presence_bank(members: list[_Member], tracks: list[Track | None], x: np.ndarray) -> bool:
+        """The presence detectors of a bank's accepted channels in one compiled call
+        (:func:`update_presence_bank`: each detector's run and state exactly what
+        :meth:`_presence` gives it); False when it does not apply (then each channel's own
+        runs in :meth:`_frame_estimate`, which also isolates a fault to its channel)."""
+        live = [m for m, track in zip(members, tracks, strict=True) if track is not None]
+        if len(live) < 2 or any(
+            type(m.channel.estimator).presence_samples is not Estimator.presence_samples for m in live
+        ):
+            return False
+        detectors = [m.channel.presence for m in live]
+        for m, det in zip(live, detectors, strict=True):
+            assert det is not None
+            if m.reset:
+                det.reset()
+        try:
+            runs = update_presence_bank(detectors, x, [m.column for m in live])  # type: ignore[arg-type]
+        except Exception:  # noqa: BLE001 (the state is untouched: each channel runs its own, isolated)
+            return False
+        if runs is None:
+            return False
+        for m, run in zip(live, runs, strict=True):
+            m.channel.last_run = run
+        return True
+
+    def _frame_estimate(
+        self, m: _Member, track: Track, log_time_ns: int, received_ns: int | None, presence_done: bool = False
+    ) -> None:
+        """What :meth:`process` does after the estimator, for one channel of a frame (its
+        presence detector already run by :meth:`_presence_bank` when ``presence_done``)."""
         channel, block = m.channel, m.block
         try:
-            self._presence(channel, block, m.reset)
+            if not presence_done:
+                self._presence(channel, block, m.reset)
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
             payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset, m.jump)
         except Exception as exc:  # noqa: BLE001 (one channel's fault)
@@ -681,6 +714,28 @@ class Pipeline:
             self._power_quality(key, channel, block, track, reset, log_time_ns)
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
+
+    def release_held(self, log_time_ns: int) -> int:
+        """The end of a finite input (the daemon's drain, a replay's last message): every
+        estimate still held back (``hold_estimates``) goes to the sinks, in order, so that
+        everything accepted is published. One that waited for the detector to confirm its
+        window is published not valid: the samples that would have confirmed it never come.
+        Returns how many were released."""
+        n = 0
+        for ch in self.channels.values():
+            if not ch.held:
+                continue
+            out_key = ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}"
+            ch.out_key = out_key
+            while ch.held:
+                payload, _, window_start, _ = ch.held.popleft()
+                payload = _not_valid(payload) if window_start >= 0 else payload
+                for sink in self.sinks:
+                    sink.on_estimate(out_key, payload, log_time_ns)
+                n += 1
+            ch.converged = False
+        self.counters.estimates += n
+        return n
 
     def _forget_unborn(self, ch: Channel | None) -> None:
         """A channel whose first block was refused has accepted nothing and holds no state:
@@ -861,6 +916,9 @@ class Pipeline:
         The bytes are built without the pydantic model (:func:`encode_estimate_values`, the
         same bytes as ``encode_estimate(estimate_model(...))``; tests/test_codec_estimate_fast.py
         proves it), one estimate per block being the pipeline's hot path."""
+        fast = self._fast_payload(ch, block, track, timestamp_ns, t_last_ns, gap_blocks, restart, reset, jump)
+        if fast is not None:
+            return fast
         converged = bool(track.converged[-1])
         frequency_hz = _finite_list(track.frequency_hz[-1])
         amplitude = _finite_list(track.amplitude[-1])
@@ -906,6 +964,72 @@ class Pipeline:
             TIME_QUALITY_JSON[block.time_quality],
         )
         return payload, converged
+
+    def _fast_payload(
+        self,
+        ch: Channel,
+        block: Block,
+        track: Track,
+        timestamp_ns: int,
+        t_last_ns: int,
+        gap_blocks: int,
+        restart: bool,
+        reset: bool,
+        jump: bool,
+    ) -> tuple[bytes, bool] | None:
+        """:meth:`_estimate_payload`'s bytes in the usual case (format 3 or later, every value
+        finite, no extras), built by one ``%`` formatting of a template cached on the channel
+        (:func:`_estimate_template`) with every float of the estimate gathered by one numpy
+        call: ``%r`` of a float is its ``repr``, which is what :func:`encode_estimate_values`
+        writes, so the bytes are the same (tests/test_pipeline_hot_path.py compares them). None
+        when the case is not the usual one (the general path then builds them)."""
+        version = self.estimate_version
+        if version < 3 or track.extras:
+            return None
+        std, rocof = track.std, track.rocof_hz_per_s
+        parts = [track.frequency_hz[-1], track.amplitude[-1], track.phase_rad[-1], track.offset[-1:]]
+        if rocof is not None:
+            parts.append(rocof[-1])
+        if std is not None:
+            parts += (std.frequency_hz[-1], std.amplitude[-1], std.phase_rad[-1], std.offset[-1:])
+        values = np.concatenate(parts)
+        if values.dtype != _F64:
+            return None
+        floats = values.tolist()
+        # a NaN or an infinity makes the sum non-finite (so may an overflow: then the general path)
+        if not isfinite(sum(floats)):
+            return None
+        k = track.frequency_hz.shape[-1]
+        key = (version, k, rocof is not None, std is not None, self._fencing_json, block.time_quality)
+        template = ch.template
+        if template is None or template[0] != key:
+            names = ch.json_names
+            if names is None:
+                names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
+            template = ch.template = (key, _estimate_template(names, *key))
+        lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
+        assert ch.presence is not None
+        valid = ch.presence.run_samples >= ch.estimator.memory_samples + lag  # _valid, every value finite
+        converged = valid and bool(track.converged[-1])
+        sec, nsec = divmod(int(timestamp_ns), 1_000_000_000)
+        rms = track.residual_rms
+        gap = gap_blocks > 0 or restart or jump
+        payload = template[1] % (
+            block.seq,
+            int(timestamp_ns),
+            sec,
+            nsec,
+            block.n_samples,
+            *floats,
+            _TRUE_FALSE[converged],
+            _TRUE_FALSE[valid],
+            "null" if rms is None or not isfinite(rms) else repr(float(rms)),
+            _TRUE_FALSE[gap],
+            gap_blocks,
+            _TRUE_FALSE[restart],
+            _TRUE_FALSE[reset],
+        )
+        return payload.encode("ascii"), converged
 
     def _reject(
         self,
@@ -1039,6 +1163,46 @@ def _not_valid(payload: bytes) -> bytes:
         if flag in payload:
             return payload.replace(flag, _DIAGNOSTICS_NOT_VALID, 1)
     return payload
+
+
+_TRUE_FALSE = ("false", "true")
+
+
+def _estimate_template(
+    names: tuple[str, str],
+    version: int,
+    k: int,
+    rocof: bool,
+    std: bool,
+    fencing_json: str,
+    time_quality: int,
+) -> str:
+    """The ``%`` template of an Estimate (format 3 or later, no extras) with ``k`` components:
+    :func:`encode_estimate_values`'s layout, field for field, with ``%d`` for seq,
+    timestamp_ns, sec, nsec, n_samples and gap_blocks, ``%r`` for each float (in the order
+    :meth:`Pipeline._fast_payload` gathers them) and ``%s`` for converged, valid,
+    residual_rms, gap, restart and reset. Constant text is escaped (``%`` doubled)."""
+
+    def const(text: str) -> str:
+        return text.replace("%", "%%")
+
+    floats = "[" + ",".join(["%r"] * k) + "]"
+    out = (
+        f'{{"format_version":{version},"channel":{const(names[0])},"seq":%d,"timestamp_ns":%d,'
+        f'"timestamp":{{"sec":%d,"nsec":%d}},"n_samples":%d,"estimator":{const(names[1])},'
+        f'"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%r,'
+        f'"rocof_hz_per_s":{floats if rocof else "null"},'
+        + (
+            f'"std":{{"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%r}},'
+            if std
+            else '"std":null,'
+        )
+        + '"diagnostics":{"converged":%s,"valid":%s,"residual_rms":%s,"gap":%s,"gap_blocks":%d,'
+        '"restart":%s,"reset":%s,"extras":{}}'
+        + (f',"fencing":{const(fencing_json)}' if version >= 4 else "")
+        + (f',"time_quality":{const(TIME_QUALITY_JSON[time_quality])}}}' if version >= 5 else "}")
+    )
+    return out
 
 
 def _own_method(sink: Sink, name: str) -> Any:

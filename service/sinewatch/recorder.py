@@ -69,6 +69,10 @@ from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS
 
 log = logging.getLogger("sinewatch.recorder")
 
+# 2: ges-kalman's default Q scaled to the sample rate (1: the paper's 1e-6 I at every rate).
+# Replay gives the rules of a file without the key (or with an older one) the defaults their
+# estimators had then (each estimator's ``defaults_before``), so that they replay bit for bit.
+ESTIMATOR_DEFAULTS_VERSION = 2
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
 #: The recording's layout: 3 records frames as protobuf InputFrame (2: frames as received,
@@ -377,6 +381,7 @@ class McapRecorder:
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
                 "validity_rules_version": str(VALIDITY_RULES_VERSION),
+                "estimator_defaults_version": str(ESTIMATOR_DEFAULTS_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),
                 "config": json.dumps(self.config.model_dump(mode="json")),

@@ -38,7 +38,7 @@ from mcap.stream_reader import StreamReader
 from sinewatch.comtrade_file import ComtradeError, ComtradeRecord, interleaved_blocks, read_comtrade
 from sinewatch.continuity import VALIDITY_RULES_VERSION
 from sinewatch.pipeline import NullSink, Pipeline, Sink
-from sinewatch.recorder import METADATA_NAME, SNAPSHOT_NAME, McapRecorder
+from sinewatch.recorder import ESTIMATOR_DEFAULTS_VERSION, METADATA_NAME, SNAPSHOT_NAME, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 from sinewatch.schemas.errors import InputError, SinewatchError
@@ -50,6 +50,28 @@ from sinewatch.track import TRACK_ROLE, TrackingPipeline, TrackWriter
 from sinewatch.window import ChannelFilter, Window
 
 log = logging.getLogger("sinewatch.replay")
+
+
+def recorded_config(metadata: dict[str, str]) -> SinewatchConfig:
+    """The config a recording was made with, each rule's ``params`` completed with the
+    defaults its estimator had then: a default an estimator changed since (its
+    ``defaults_before``, for files older than ``ESTIMATOR_DEFAULTS_VERSION``) is set
+    explicitly, so the file replays bit for bit."""
+    from sinewatch.estimators import get
+    from sinewatch.schemas.errors import UnknownEstimatorError
+
+    config = SinewatchConfig.model_validate(json.loads(metadata["config"]))
+    if int(metadata.get("estimator_defaults_version", "1")) >= ESTIMATOR_DEFAULTS_VERSION:
+        return config
+    rules = []
+    for rule in config.rules:
+        try:
+            before: dict[str, Any] = getattr(get(rule.estimator), "defaults_before", {})
+        except UnknownEstimatorError:  # refused where the pipeline builds the rule, as before
+            before = {}
+        missing = {k: v for k, v in before.items() if k not in rule.params}
+        rules.append(rule.model_copy(update={"params": {**missing, **rule.params}}) if missing else rule)
+    return config.model_copy(update={"rules": rules})
 
 
 class ReplayError(SinewatchError, ValueError):
@@ -438,7 +460,7 @@ def _replay_run(
         for kind, item in read_recording(path, progress):
             if kind == "metadata":
                 if config is None:
-                    config = SinewatchConfig.model_validate(json.loads(item["config"]))
+                    config = recorded_config(item)
                     # check in the recording's own format (files of earlier builds have no key: 1)
                     if rules is None:
                         estimate_version = int(item.get("estimate_format_version", "1"))
@@ -636,7 +658,7 @@ def _replay_window_run(
         for kind, item in read_recording(path, progress, from_snapshot_before_ns=seek):
             if kind == "metadata":
                 if config is None:
-                    config = SinewatchConfig.model_validate(json.loads(item["config"]))
+                    config = recorded_config(item)
                     if rules is None:
                         estimate_version = int(item.get("estimate_format_version", "1"))
                         pq_version = int(item.get("pq_format_version", "1"))
@@ -800,6 +822,10 @@ class ResultBuilder:
                 r.recorded_estimates += 1
             else:
                 r.recorded_other[m.role] = r.recorded_other.get(m.role, 0) + 1
+            if estimate and not comparator.estimates[m.topic]:
+                # recorded with nothing produced yet: only the daemon's drain publishes an
+                # estimate after the last input (Pipeline.release_held), so release here too
+                pipeline.release_held(m.log_time_ns)
             produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
             index = self.counts[m.topic]
             self.counts[m.topic] += 1

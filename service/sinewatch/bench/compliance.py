@@ -107,12 +107,28 @@ def run_signal(
     times = reports.times_s(T0_NS)
     tr = reports.track
     rocof = tr.rocof_hz_per_s[:, 0] if tr.rocof_hz_per_s is not None else np.full(times.shape, np.nan)
+    # the synchrophasor is referred to the nominal cosine of the nominal frequency the
+    # estimator declares (its reporting rate tells a receiver; C37.118.2's FNOM): one that
+    # finds it from the signal may take the other suite's (a steady 55 Hz is 50 + 5 and 60 - 5);
+    # the truth is then referred to that cosine too (declared_nominal_hz)
+    phasor = tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"])
+    declared = declared_nominal_hz(est, test.f0)
+    if declared != test.f0:
+        phasor = phasor * np.exp(2j * np.pi * (declared - test.f0) * times)
     fields = {
-        "phasor": tr.extras["synchrophasor_magnitude"] * np.exp(1j * tr.extras["synchrophasor_angle_rad"]),
+        "phasor": phasor,
         "frequency_hz": tr.frequency_hz[:, 0],
         "rocof_hz_per_s": rocof,
     }
     return times, fields, emit
+
+
+def declared_nominal_hz(est: Any, suite_f0: int) -> int:
+    """The nominal frequency the estimator's synchrophasors are referred to: its design's
+    (``pmu``), found from the signal when configured 'auto'; the suite's for any other."""
+    design = getattr(est, "design", None)
+    f0 = getattr(design, "f0", None)
+    return int(f0) if f0 in (50, 60) else suite_f0
 
 
 def errors(test: TestSignal, times: np.ndarray, rep: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

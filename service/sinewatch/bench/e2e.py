@@ -75,6 +75,18 @@ def _cpu_seconds(pid: int) -> float:
     return total
 
 
+def main_thread_times(pid: int) -> tuple[int, int]:
+    """Nanoseconds the process's main thread (the daemon's event loop) has run on a CPU and
+    waited in the run queue for one (``/proc/<pid>/schedstat``; (0, 0) where unreadable).
+    Over an interval of wall time, the rest is time it slept: blocked in a Zenoh put
+    (CongestionControl.BLOCK), waiting for the GIL, or idle with nothing to do."""
+    try:
+        run_ns, wait_ns, _slices = Path(f"/proc/{pid}/schedstat").read_text().split()
+    except (OSError, ValueError):
+        return 0, 0
+    return int(run_ns), int(wait_ns)
+
+
 def expected_daemons(args: argparse.Namespace) -> int:
     """How many daemons (worker processes) publish Status: ``--workers``, 0 = one per core."""
     workers = getattr(args, "workers", 1)
@@ -737,6 +749,7 @@ def _drive(
             + f" ({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
         )
         cpu0 = _cpu_seconds(daemon.pid)
+        sched0 = main_thread_times(daemon.pid)
         rss0 = _rss_mb(daemon.pid)
         probe_cpu0 = time.process_time()  # this process: the probe's Zenoh threads and parsing
         t0 = time.monotonic()
@@ -746,6 +759,7 @@ def _drive(
         stop_feeder(feeder)  # everything published has had its chance to arrive
         drained_s = time.monotonic() - t0
         cpu = _cpu_seconds(daemon.pid) - cpu0
+        sched1 = main_thread_times(daemon.pid)
         probe_cpu = time.process_time() - probe_cpu0
         rss1 = _rss_mb(daemon.pid)
         # Each daemon (worker) publishes Status every second: drop the backlog, then take a
@@ -787,6 +801,11 @@ def _drive(
         "latency_ms_p99": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_ms_max": float(lat.max()) if lat.size else None,
         "daemon_cpu_fraction_of_one_core": cpu / drained_s,
+        # the daemon's event loop over the run: on a CPU, ready but waiting for one (the machine
+        # is short of CPU), and the rest asleep (held back by a put, the GIL, or no input)
+        "daemon_loop_running_fraction": (sched1[0] - sched0[0]) / 1e9 / drained_s,
+        "daemon_loop_runqueue_fraction": (sched1[1] - sched0[1]) / 1e9 / drained_s,
+        "daemon_loop_asleep_fraction": 1.0 - (sched1[0] - sched0[0] + sched1[1] - sched0[1]) / 1e9 / drained_s,
         "queue_policy": args.queue_policy,
         "estimates_flagging_a_gap": probe.gaps,
         "gap_blocks_flagged": probe.gap_blocks,
@@ -861,6 +880,12 @@ def _print(console: Console, r: dict[str, Any]) -> None:
         f"max {r['latency_ms_max']:.2f} ms; daemon CPU {100 * r['daemon_cpu_fraction_of_one_core']:.0f} % of one core; "
         f"recorded {r['recorded_bytes'] / 1e6:.1f} MB"
     )
+    if "daemon_loop_running_fraction" in r:
+        console.print(
+            f"daemon event loop: running {100 * r['daemon_loop_running_fraction']:.0f} %, waiting for a CPU "
+            f"{100 * r['daemon_loop_runqueue_fraction']:.0f} %, asleep {100 * r['daemon_loop_asleep_fraction']:.0f} % "
+            "(blocked in a put, on the GIL, or without input)"
+        )
     if r.get("cpu_us_per_block"):
         b = r["cpu_us_per_block"]
         console.print(

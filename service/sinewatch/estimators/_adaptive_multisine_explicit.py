@@ -85,6 +85,11 @@ the amplitude correction).
 Defaults: the paper's tuning for n = 2 (Example 2 with bias, Example 1 without), in the
 paper's units; other n need an explicit design. Example 2's initial frequencies are not
 given: (3.5, 2.5) is ours, inside the band where its frozen observer is stable.
+
+Its length (a little over 800 lines) is one mode's whole kernel: the RK4 sub-step of the
+observer, filters and adaptation written out, with the symmetric eigen-solver and the
+Cholesky factor it calls at every sample; split further, its pieces would only be called
+from here.
 """
 
 from __future__ import annotations

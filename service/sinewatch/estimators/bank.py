@@ -65,36 +65,31 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "kkl": (
-        "no compiled bank: one was built (the observer's per-sample step shared by the single "
-        "kernel and a bank, bit for bit) and gained about 10 % over one channel at 8 channels, "
-        "while the single kernel, indexing its filter states as one column of a channel-major "
-        "array, ran ~1.5x slower; the observer is bound by its arithmetic (~200 flops, three "
-        "square roots, four divisions and a sine a sample), not by the recursion's latency, so "
-        "interleaving channels has little to overlap, and the sine (a C library call per lane) and "
-        "the branches of the inverse map keep the compiler from vectorising the channel loop"
-    ),
     "kkl-biased": (
-        "no compiled bank: the work of kkl (see its reason) with m = 5 filters and a 4 x 4 solve, "
-        "bound by its arithmetic in the same way"
+        "no compiled bank yet: kkl's bank (kkl_kernels.py: two vectorised loops over 8 lanes "
+        "around one sine per lane, 2.2x its single channel) applies as it stands to the filters, the "
+        "prediction and the read-out; its inverse map (the 4 x 4 Schur-complement solve in the "
+        "eigenbasis of C^T C, whose branch on mu = 0 would become a select) is still to be split "
+        "out of its kernel into a helper both can call. One channel at a time it runs at "
+        "~0.37x the FFT (m = 5 filters, ~80 ns a sample)"
     ),
     "grip-mixing": (
         "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "
-        "dhat: 421 values in the example) would have to be re-laid across channels and every "
-        "access of the per-sample step indexed by channel"
+        "dhat: 421 values in the example) would have to be re-laid across channels, and each "
+        "sample reads the delay lines at ring positions that only coincide across channels whose "
+        "sample counts do (gathers otherwise); its channels run one after the other, each at "
+        "~0.8-0.9x the FFT (the observer (7) is one dependent chain a sample)"
     ),
     "adaptive-multisine": (
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "differential-rls": (
-        "no compiled bank yet: most of its cost is the decimated RLS and phase stage (9 "
-        "sin/cos/hypot/sqrt calls a decimated sample, library calls that stay scalar per lane), "
-        "which a bank could interleave but not vectorise"
-    ),
     "ipdft": (
         "no compiled bank: a windowed estimator whose work is per window, not per sample, and "
-        "already vectorised across the windows of a block; its channels run one after the other"
+        "already vectorised across the windows of a block (the windows of one channel fill the "
+        "vectors as the channels of a bank would); it stays below the FFT because it estimates "
+        "13 times as often as the FFT frames (see its note: ~0.3-0.4x one channel at a time), "
+        "which no grouping of channels changes; its channels run one after the other"
     ),
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "

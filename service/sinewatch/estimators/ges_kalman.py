@@ -97,23 +97,23 @@ with J = dp/dx at x_hat (written out in ``_parameter_std``)::
 The recursion only reads the filter's quantities (its state is the separate ``unc``
 array), so the estimates are bit for bit those of the filter without it.
 
-Calibration (sd of error / reported sd about its mean; default parameters; one value per
-trial at the end of 2 s, 1000 seeded trials: ``pytest -m slow
+Calibration (sd of error / reported sd about its mean; one value per trial at the end of
+2 s). With the paper's Q = 1e-6 I at 1 kHz (1000 seeded trials: ``pytest -m slow
 tests/test_ges_kalman_uncertainty.py``): 0.97 to 1.04 for frequency, amplitude, phase and
-offset at 25 and 50.5 Hz (1 kHz), SNR 10 to 40 dB. ``sinewatch bench accuracy
---estimators ges-kalman --scenarios tone-snr-10db tone-snr-20db tone-snr-30db tone-snr-40db
-paper000-tone --trials 30`` shows it per scenario (the bench's own tuning: see below).
+offset at 25 and 50.5 Hz, SNR 10 to 40 dB. At the defaults (Q scaled to the sample rate,
+:func:`default_q`; R = 1e-2) on 49.5-50.5 Hz tones of amplitude 0.5-2 at 5 kHz, 0 to 60 dB
+(``sinewatch bench calibration --estimators ges-kalman --trials 300``): sd 0.96-1.10, |mean|
+<= 0.2, but for the frequency's mean at 0 dB (+0.43).
 
 Where it does not hold: U1-U6 are first order in the noise, and the noise on the sample in
-A(k) biases x3_hat towards 0 (errors in variables: a noisy regressor attenuates its
-coefficient, the more the longer the filter's memory). Tuned with R = sigma^2 at 10 dB SNR
-the memory is long enough for a -1.9 Hz bias at 50.5 Hz (-3 reported sd; sd of the
-normalised error 0.66); the bench's tuning (R = sigma^2 / 100, floored at 1e-3 A^2:
-``sinewatch.bench.params``) keeps it short: calibration 0.95-1.08 for all four parameters
-on its tone scenarios from 0 to 60 dB (``sinewatch bench accuracy --estimators ges-kalman
---scenarios snr --trials 30``). With the default tuning at 100-200 Hz (5 to 10 samples per
-cycle) and SNR <= 20 dB, mean -1.5 to -8, sd 0.4-0.8; amplitude, phase and offset
-0.58-1.31 there (worst at 200 Hz).
+A(k) biases x3_hat (errors in variables: a noisy regressor attenuates its coefficient, the
+more the longer the filter's memory); so does a memory so short that x3_hat's own noise is
+large (the filter is nonlinear in it). The paper's Q unscaled at 5 kHz is the second case
+(mean error / sd +5.6 for frequency at 0 dB, +2.5 at 10 dB); R = sigma^2 at 10 dB SNR, 1 kHz,
+the first (a -1.9 Hz bias at 50.5 Hz, -3 reported sd). The accuracy bench's tuning (Q scaled
+at the scenario's nominal frequency, R = sigma^2 / 100 floored at 1e-3 A^2:
+``sinewatch.bench.params``) is calibrated 0.95-1.08 on its tone scenarios from 0 to 60 dB
+(``sinewatch bench accuracy --estimators ges-kalman --scenarios snr --trials 30``).
 """
 
 from __future__ import annotations
@@ -150,18 +150,48 @@ EXP_SCREEN_MARGIN = 1.0 - 1e-12
 UNC_SIZE = 35  # T (16), U (16), <u>, the weight w, <log u>
 
 
+PAPER_Q = 1e-6  # Section IV: Q = 1e-6 I at fs = 1 kHz, 100 Hz (w Ts = 0.2 pi)
+PAPER_W_TS = 0.2 * math.pi
+LEGACY_DEFAULTS: dict[str, Any] = {"q": PAPER_Q}  # the defaults of recordings made before default_q
+
+
+def default_q(sample_rate_hz: float, reference_frequency_hz: float) -> list[float]:
+    """The default process noise (not in the paper): its Q = 1e-6 I, tuned at w Ts = 0.2 pi,
+    carried to another w Ts = 2 pi f_ref / fs. The states scale as x2 ~ A (w Ts) and x3, x4 ~
+    (w Ts)^2 (eq. 4, 5 and Section III-A), so a random walk of the same size relative to each
+    state is 1e-6 rho^2 for x1, x2 and 1e-6 rho^4 for x3, x4, rho = w Ts / (0.2 pi) = 10 f_ref /
+    fs (x1, the measured sample, as x2). The paper's own Q where w Ts = 0.2 pi (500 Hz at 50 Hz). The paper's
+    unscaled 1e-6 at 5 kHz lets x3 wander 25 % of its value a sample, so short a memory that
+    the errors-in-variables bias and the filter's nonlinearity dominate (frequency RMSE 119 Hz
+    at 50 Hz, 0 dB SNR; its error bars out of 0.9-1.1 up to 20 dB); scaled, every parameter
+    is calibrated from 0 to 60 dB (``sinewatch bench calibration --estimators ges-kalman``)."""
+    rho = (2.0 * math.pi * reference_frequency_hz / sample_rate_hz) / PAPER_W_TS
+    return [PAPER_Q * rho**2, PAPER_Q * rho**2, PAPER_Q * rho**4, PAPER_Q * rho**4]
+
+
 class GesKalmanParams(EstimatorParams):
-    q: float | list[float] = Field(
-        1e-6, description="Process noise covariance: one value for Q = q I, or the 4 diagonal entries"
+    q: float | list[float] | None = Field(
+        None,
+        description="Process noise covariance: one value for Q = q I, or the 4 diagonal entries; null "
+        "(default): the paper's Q = 1e-6 I at w Ts = 0.2 pi, scaled to this sample rate at "
+        "reference_frequency_hz (1e-6 rho^2 for x1, x2, 1e-6 rho^4 for x3, x4, rho = 10 f_ref / fs)",
     )
     r: float = Field(1e-2, gt=0, description="Measurement noise variance R")
+    reference_frequency_hz: float = Field(
+        50.0,
+        gt=0,
+        description="The frequency the default Q is scaled for (mains: 50; 60 gives a 1.44x larger Q "
+        "for x1, x2 and 2.07x for x3, x4). Unused when q is given",
+    )
     x0: list[float] = Field([0.0, 0.0, 0.0, 0.0], description="Initial state x1..x4")
     p0: float = Field(1.0, gt=0, description="Initial covariance P0 = p0 I")
     convergence_rel_std: float = Field(0.1, gt=0, description="converged once std(x3) < convergence_rel_std * |x3|")
 
     @field_validator("q")
     @classmethod
-    def _q_shape(cls, v: float | list[float]) -> float | list[float]:
+    def _q_shape(cls, v: float | list[float] | None) -> float | list[float] | None:
+        if v is None:
+            return v
         values = [v] if isinstance(v, (int, float)) else v
         if isinstance(v, list) and len(v) != 4:
             raise ValueError(f"expected 1 or 4 values, got {len(v)}")
@@ -508,6 +538,9 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
 
     paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_frequency_hz = 100.0  # the paper's Section IV
+    example_params: ClassVar[dict[str, Any]] = {"q": PAPER_Q}  # and its Q, at its own w Ts = 0.2 pi
+    # defaults of recordings made before ESTIMATOR_DEFAULTS_VERSION 2 (replay sets them)
+    defaults_before: ClassVar[dict[str, Any]] = LEGACY_DEFAULTS
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators ges-kalman``
     # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
     bench_note: ClassVar[str] = (
@@ -534,7 +567,8 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
 
     def _setup(self) -> None:
         p = self.params
-        q = p.q if isinstance(p.q, list) else [p.q] * 4
+        q = default_q(self.sample_rate_hz, p.reference_frequency_hz) if p.q is None else p.q
+        q = q if isinstance(q, list) else [q] * 4
         self._constants = (np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std, float(NOISE_MEMORY)]),)
 
     def _initial_state(self) -> dict[str, np.ndarray]:

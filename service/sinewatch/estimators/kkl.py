@@ -126,19 +126,17 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.base import Estimator, EstimatorParams, Track, kernel, track_from_columns, undefined_row
+from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
+from sinewatch.estimators.kkl_kernels import kkl_bank_kernel, kkl_kernel
 from sinewatch.schemas.errors import ParameterError
 
 #: The paper's lambda = (1, 2, 3, 4) rad/s for its 3 rad/s signal (Section V), as multiples
 #: of the reference angular frequency.
 PAPER_LAMBDA_FACTORS = (1.0 / 3.0, 2.0 / 3.0, 1.0, 4.0 / 3.0)
 
-ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
-FLUSH = 1e-250  # xi entries below this are set to 0 (no denormals in long silences)
 ENV_SLOWDOWN = 10.0  # the peak envelope decays at lambda_min / ENV_SLOWDOWN
 CONVERGED_RANGE_FACTOR = 1.25  # converged needs f in [f_min / 1.25, 1.25 f_max]
-JUMP_RATIO = 9.0  # prediction error: short-term mean square above 9x its long-term level
-JUMP_FLOOR = 4e-4  # ... and above (2 % of the RMS of y)^2: a jump, not converged
 
 
 # ---- design helpers (Python, run once at construction) ------------------------------------
@@ -411,9 +409,6 @@ def observer_consts(p: KklParams, ts: float, omega_ref: float, ell: float, lam_m
     )
 
 
-#: values kept per sample for its row (:func:`record_sample`)
-RECORD_SIZE = 12
-
 #: the kernels' ``extras`` columns, in order (module docstring, "extras")
 EXTRA_NAMES = ("manifold_margin", "fit_residual", "prediction_error")
 
@@ -425,326 +420,6 @@ def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
     return track_from_columns(
         out, sse, block.shape[0], {EXTRA_NAMES[0]: e[0], EXTRA_NAMES[1]: e[1], EXTRA_NAMES[2]: e[2]}
     )
-
-
-# ---- kernel pieces shared with kkl-biased (inlined: the same arithmetic in both) -----------
-
-
-@kernel(inline="always")
-def observer_constants(
-    consts: np.ndarray,
-) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float, float]:
-    """The 13 constants of :func:`observer_consts`, unpacked: Ts, omega_ref, l,
-    silence_ratio, env_decay, n_settle, max_fit_residual^2, max_prediction_error^2,
-    avg_gain, the omega Ts bounds of the converged range, the jump detector's gains."""
-    return (
-        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6] * consts[6],
-        consts[7] * consts[7], consts[8], consts[9], consts[10], consts[11], consts[12],
-    )  # fmt: skip
-
-
-@kernel(inline="always")
-def observer_head(
-    state: np.ndarray, m: int, n: int, last_only: bool
-) -> tuple[np.ndarray, float, float, float, float, float, float, np.ndarray, np.ndarray]:
-    """The state entries both kernels start with (a copy of xi_1..xi_m, then y_prev,
-    have_prev, y_pred, pred_valid, n_good, env) and the ``out`` and ``extras`` arrays of a
-    block of ``n`` samples."""
-    rows = 1 if last_only else n
-    return (
-        state[:m].copy(), float(state[m]), state[m + 1], state[m + 2], state[m + 3], state[m + 4], state[m + 5],
-        np.empty((rows, 5)), np.empty((rows, 3)),
-    )  # fmt: skip
-
-
-@kernel(inline="always")
-def prediction_error(
-    yk: float, y_pred: float, pred_valid: float, sse: float, e2_avg: float, avg_gain: float
-) -> tuple[float, float, float]:
-    """The squared one-step prediction error of sample ``yk`` (against 0 while there is no
-    prediction), the block's sum of squares and the running mean square, updated."""
-    e = yk - y_pred if pred_valid != 0.0 else yk
-    e2 = e * e
-    return e2, sse + e2, e2_avg + avg_gain * (e2 - e2_avg)
-
-
-@kernel(inline="always")
-def undefined_sample() -> tuple[bool, bool, float, float, float, float, float, float]:
-    """defined, good, det, A sin(theta), A cos(theta), omega Ts, and the squared fit residual
-    and its reference |F^2 xi|^2, for a sample where the estimate is undefined (until the
-    inverse map says otherwise)."""
-    return False, False, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0
-
-
-@kernel(inline="always")
-def consistent(
-    mu: float, rr: float, ff: float, max_fit2: float, e2_avg: float, max_pred2: float, level: float,
-    jump: bool, wts: float, wts_lo: float, wts_hi: float,
-) -> bool:  # fmt: skip
-    """ "Good" (module docstring, converged): mu = 0, the relative fit residual and the
-    running prediction error (against ``level``, the running mean square or variance of y)
-    within bounds, no jump, and omega Ts inside the converged range."""
-    return mu == 0.0 and rr <= max_fit2 * ff and e2_avg <= max_pred2 * level and not jump and wts_lo <= wts <= wts_hi
-
-
-@kernel(inline="always")
-def record_sample(
-    rec: np.ndarray, k: int, last_only: bool, good: bool, n_good: float, n_settle: float, defined: bool,
-    wts: float, a_sin: float, a_cos: float, offset: float, det: float, rr: float, ff: float, e2_avg: float,
-    level: float,
-) -> float:  # fmt: skip
-    """Count ``good`` samples (converged after n_settle in a row) and, unless only the last
-    is wanted, keep sample ``k``'s values in row k of ``rec`` for :func:`write_samples`:
-    the rows are written after the per-sample loop, because their calls (atan2 and the
-    like) in the loop, even on a branch taken once, slowed every sample. Returns the new
-    count."""
-    n_good = min(n_good + 1.0, n_settle) if good else 0.0
-    if not last_only:  # (last_only: the loop's final values are the row)
-        rec[k, 0] = 1.0 if good else 0.0
-        rec[k, 1] = n_good
-        rec[k, 2] = 1.0 if defined else 0.0
-        rec[k, 3] = wts
-        rec[k, 4] = a_sin
-        rec[k, 5] = a_cos
-        rec[k, 6] = offset
-        rec[k, 7] = det
-        rec[k, 8] = rr
-        rec[k, 9] = ff
-        rec[k, 10] = e2_avg
-        rec[k, 11] = level
-    return n_good
-
-
-@kernel(inline="always")
-def write_samples(
-    out: np.ndarray, ext: np.ndarray, rec: np.ndarray, n_settle: float, Ts: float, ell: float
-) -> None:  # fmt: skip
-    """The rows of the samples kept in ``rec`` by :func:`record_sample`."""
-    for k in range(rec.shape[0]):
-        write_sample(out, ext, k, rec[k, 0] != 0.0, rec[k, 1], n_settle, rec[k, 2] != 0.0, rec[k, 3], Ts,
-                     rec[k, 4], rec[k, 5], rec[k, 6], rec[k, 7], ell, rec[k, 8], rec[k, 9], rec[k, 10],
-                     rec[k, 11])  # fmt: skip
-
-
-@kernel(inline="always")
-def write_sample(
-    out: np.ndarray, ext: np.ndarray, j: int, good: bool, n_good: float, n_settle: float, defined: bool,
-    wts: float, Ts: float, a_sin: float, a_cos: float, offset: float, det: float, ell: float, rr: float,
-    ff: float, e2_avg: float, level: float,
-) -> None:  # fmt: skip
-    """Row ``j`` of a sample counted by :func:`record_sample`: frequency from omega Ts, the
-    margin 2 det / l, the relative fit residual, and the prediction error relative to
-    ``level``."""
-    ext[j, 2] = math.sqrt(e2_avg / level) if level > 0.0 else np.nan
-    write_row(out, ext, j, defined, wts / (2.0 * math.pi * Ts), a_sin, a_cos, offset,
-              good and n_good >= n_settle, 2.0 * det / ell, math.sqrt(rr / ff))  # fmt: skip
-
-
-@kernel(inline="always")
-def packed_state(xi: np.ndarray, tail: np.ndarray) -> np.ndarray:
-    """The new state array: xi, then the kernel's scalars ``tail``."""
-    m = xi.shape[0]
-    new_state = np.empty(m + tail.shape[0])
-    new_state[:m] = xi
-    new_state[m:] = tail
-    return new_state
-
-
-@kernel(inline="always")
-def filter_step(xi: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray, y_prev: float, yk: float) -> None:
-    """(12) over one sample, exact for y linear between samples (in place); entries below
-    FLUSH become 0 (no denormals in a long silence)."""
-    for i in range(xi.shape[0]):
-        v = fa[i] * xi[i] + fb0[i] * y_prev + fb1[i] * yk
-        xi[i] = v if abs(v) > FLUSH else 0.0
-
-
-@kernel(inline="always")
-def jump_detector(
-    e2: float, e2_fast: float, e2_slow: float, fast_gain: float, slow_gain: float, level: float
-) -> tuple[bool, float, float]:
-    """The squared prediction error's short-term mean against its long-term level, before
-    and after this sample: (jump, new e2_fast, new e2_slow)."""
-    jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level
-    e2_fast += fast_gain * (e2 - e2_fast)
-    e2_slow += slow_gain * (e2 - e2_slow)
-    return jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level, e2_fast, e2_slow
-
-
-@kernel(inline="always")
-def half_step(wts: float) -> tuple[float, float, float]:
-    """sin and cos of omega Ts / 2, and 1 / sinc^2(omega Ts / 2), the first-order hold's
-    amplitude correction."""
-    half = 0.5 * wts
-    sh = math.sin(half)
-    ch = math.sqrt(max(1.0 - sh * sh, 0.0))
-    return sh, ch, (half / sh) ** 2 if half > 1e-8 else 1.0
-
-
-@kernel(inline="always")
-def write_row(
-    out: np.ndarray,
-    ext: np.ndarray,
-    j: int,
-    defined: bool,
-    frequency_hz: float,
-    a_sin: float,
-    a_cos: float,
-    offset: float,
-    converged: bool,
-    margin: float,
-    fit: float,
-) -> None:
-    """Row ``j`` of the outputs and of the first two extras (module docstring, outputs)."""
-    if defined:
-        phase = math.atan2(a_sin, a_cos)  # x1 = A sin(theta), x2 = -A omega cos(theta)
-        out[j, 0] = frequency_hz
-        out[j, 1] = math.sqrt(a_sin * a_sin + a_cos * a_cos)
-        out[j, 2] = phase if phase > -math.pi else math.pi
-        out[j, 4] = 1.0 if converged else 0.0
-        ext[j, 0] = margin
-        ext[j, 1] = fit
-    else:
-        undefined_row(out, j)
-        ext[j, 0] = np.nan
-        ext[j, 1] = np.nan
-    out[j, 3] = offset
-
-
-# ---- kernel -------------------------------------------------------------------------------
-
-
-@kernel
-def kkl_kernel(
-    y: np.ndarray,
-    state: np.ndarray,
-    lam: np.ndarray,
-    fa: np.ndarray,
-    fb0: np.ndarray,
-    fb1: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Run the observer over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
-
-    ``lam`` holds lambda~_i = lambda_i / omega_ref; ``fa, fb0, fb1`` the exact first-order
-    hold coefficients of (12) (physical units). ``state`` is the ``xi_state`` array
-    (layout: :meth:`Kkl._initial_state`). ``consts`` packs Ts, omega_ref, l (in units of omega_ref^2), silence_ratio, env_decay,
-    n_settle, max_fit_residual, max_prediction_error, avg_gain, the omega Ts bounds of the
-    converged range, and the gains of the jump detector's fast and slow means. ``out``
-    columns: frequency_hz, amplitude, phase_rad, offset, converged; ``extras`` columns:
-    manifold_margin, fit_residual, prediction_error. Pure: the inputs are not modified.
-    """
-    Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
-        observer_constants(consts)
-    )  # fmt: skip
-    m, n = lam.shape[0], y.shape[0]
-    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
-    e2_avg, y2_avg = state[m + 6], state[m + 7]
-    e2_fast, e2_slow = state[m + 8], state[m + 9]
-    # constant entries of L^T L (L = (lambda 1 -xi), eq. 8)
-    s_ll = 0.0
-    s_l = 0.0
-    for i in range(m):
-        s_ll += lam[i] * lam[i]
-        s_l += lam[i]
-    s_11 = float(m)
-    sse = 0.0
-    defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
-    offset = np.nan
-    rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
-    for k in range(n):
-        yk = y[k]
-        if have_prev != 0.0:
-            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
-        have_prev = 1.0
-        y_prev = yk
-        # one-step prediction error and its running mean square, against that of y
-        e2, sse, e2_avg = prediction_error(yk, y_pred, pred_valid, sse, e2_avg, avg_gain)
-        jump, e2_fast, e2_slow = jump_detector(e2, e2_fast, e2_slow, fast_gain, slow_gain, y2_avg)
-        y2_avg += avg_gain * (yk * yk - y2_avg)
-        # sums over the filters
-        s2 = 0.0
-        p0 = 0.0
-        p1 = 0.0
-        p2 = 0.0
-        p3 = 0.0
-        q2 = 0.0
-        for i in range(m):
-            v = xi[i]
-            l2v = lam[i] * lam[i] * v
-            s2 += v * v
-            p0 += v
-            p1 += lam[i] * v
-            p2 += l2v
-            p3 += lam[i] * l2v
-            q2 += l2v * v
-        s = math.sqrt(s2)
-        env = max(s, env * env_decay)
-        pred_valid = 0.0
-        defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()
-        mu = 0.0
-        if s > ABS_FLOOR and s >= silence_ratio * env:  # else "xi near 0": undefined
-            inv = 1.0 / s
-            # L^T L = [[s_ll, s_l, b02], [s_l, s_11, b12], [b02, b12, 1]] and
-            # r = L^T F^2 xi, for the unit vector xi/|xi| (8)
-            b02 = -p1 * inv
-            b12 = -p0 * inv
-            r0 = p3 * inv
-            r1 = p2 * inv
-            r2 = -q2 * inv * inv
-            # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
-            det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
-            mu = max(ell - 2.0 * det, 0.0)  # (9) with |xi| = 1
-            # Phi = L^T L + mu I, solved with its adjugate (8)
-            a = s_ll + mu
-            d = s_11 + mu
-            f = 1.0 + mu
-            k00 = d * f - b12 * b12
-            k01 = b02 * b12 - s_l * f
-            k02 = s_l * b12 - d * b02
-            k11 = a * f - b02 * b02
-            k12 = s_l * b02 - a * b12
-            k22 = a * d - s_l * s_l
-            det_phi = a * k00 + s_l * k01 + b02 * k02
-            if det_phi > 1e-300:
-                idet = 1.0 / det_phi
-                # z = (x1 / |xi~|, x2 / (omega_ref |xi~|), x3 / omega_ref^2), xi~ = omega_ref xi
-                z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
-                z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
-                z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
-                if z2 > 0.0:
-                    sq = math.sqrt(z2)
-                    wts = w_ref * sq * Ts  # omega Ts
-                    if wts < math.pi:  # below Nyquist
-                        defined = True
-                        sh, ch, g = half_step(wts)
-                        a_sin = w_ref * s * z0 * g  # A sin(theta) = x1
-                        a_cos = -w_ref * s * z1 * g / sq  # A cos(theta) = -x2 / omega
-                        # y(k+1) predicted: A sin(theta + w Ts)
-                        y_pred = a_sin * (1.0 - 2.0 * sh * sh) + a_cos * (2.0 * sh * ch)
-                        pred_valid = 1.0
-                        # least-squares residual of (13), zero on T(O)
-                        ff = 0.0
-                        for i in range(m):
-                            xn = xi[i] * inv
-                            t = lam[i] * lam[i] * xn
-                            res = lam[i] * z0 + z1 - xn * z2 - t
-                            rr += res * res
-                            ff += t * t
-                        good = consistent(mu, rr, ff, max_fit2, e2_avg, max_pred2, y2_avg, jump, wts, wts_lo, wts_hi)
-        # converged after n_settle consecutive good samples; omega = omega_ref sqrt(x3~); the
-        # model has no offset: 0 whenever defined
-        offset = 0.0 if defined else np.nan
-        n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
-                               rr, ff, e2_avg, y2_avg)  # fmt: skip
-    if last_only:  # the last sample's row, from the loop's final values
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, y2_avg)  # fmt: skip
-    else:  # the rows, after the loop
-        write_samples(out, ext, rec, n_settle, Ts, ell)
-    tail = np.array([y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow])
-    return out, ext, sse, packed_state(xi, tail)
 
 
 # ---- estimator ----------------------------------------------------------------------------
@@ -803,6 +478,19 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         "prediction) and the fit residual over the filters, about 200 flops in a dependency "
         "chain of ~250 cycles; with the rows written after the loop the kernel takes ~60 ns/sample."
     )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank advances 8 channels as one vector (lane-major state, the m filters unrolled; "
+        "the filters, the inverse map (8)-(9), the read-out and the fit residual in two loops over "
+        "the lanes that LLVM vectorises at 4 doubles, its preferred width here) at 2.2-4.6x one "
+        "channel, and is bound by that arithmetic itself: per sample and channel ~200 flops, "
+        "three square roots and four divisions (vsqrtpd and vdivpd, long-latency and not fully "
+        "pipelined), plus one sine from the C library per lane (a vectorised sine would round "
+        "differently), which is 15 % of the bank's time (a loop of the same sines timed beside "
+        "it: ~6-7 ns of ~42-48 ns a channel-sample, at load ~25). Twice the FFT would need the "
+        "arithmetic at ~half its cost: 8 doubles a vector (AVX-512), which LLVM does not choose "
+        "for this loop"
+    )
 
     @classmethod
     def example_signal(cls, n: int, seed: int = 0) -> np.ndarray:
@@ -822,3 +510,6 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         """``xi_state`` (m + 10,): the filter states xi_1..xi_m of (12), then y_prev,
         have_prev, y_pred, pred_valid, n_good, env, e2_avg, y2_avg, e2_fast, e2_slow."""
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
+
+
+register_bank(Kkl, kkl_bank_kernel, n_outputs=3)

@@ -64,28 +64,28 @@ import numpy as np
 from sinewatch.estimators import register
 from sinewatch.estimators.base import kernel
 from sinewatch.estimators.kkl import (
-    ABS_FLOOR,
     PAPER_LAMBDA_FACTORS,
-    RECORD_SIZE,
     FilterBankObserver,
     KklParams,
-    consistent,
     ell_eq10,
-    filter_step,
-    half_step,
-    jump_detector,
     lambda_factors_field,
     max_fit_residual_field,
     max_prediction_error_field,
+    silence_ratio_field,
+)
+from sinewatch.estimators.kkl_kernels import (
+    ABS_FLOOR,
+    consistent,
+    half_step,
+    jump_detector,
+    next_sample,
     observer_constants,
     observer_head,
     packed_state,
     prediction_error,
     record_sample,
-    silence_ratio_field,
     undefined_sample,
-    write_sample,
-    write_samples,
+    write_rows,
 )
 
 BIASED_LAMBDA_FACTORS = (*PAPER_LAMBDA_FACTORS, 5.0 / 3.0)
@@ -166,7 +166,7 @@ def kkl_biased_kernel(
         observer_constants(consts)
     )  # fmt: skip
     m, n = lam.shape[0], y.shape[0]
-    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext = observer_head(state, m, n, last_only)
+    xi, y_prev, have_prev, y_pred, pred_valid, n_good, env, out, ext, rec = observer_head(state, m, n, last_only)
     e2_avg, y_avg, yv_avg, n_run = state[m + 6], state[m + 7], state[m + 8], state[m + 9]
     e2_fast, e2_slow = state[m + 10], state[m + 11]
     det_k0 = kk[0] * kk[1] * kk[2]  # det(C^T C)
@@ -175,13 +175,10 @@ def kkl_biased_kernel(
     sse = 0.0
     defined, good, det, a_sin, a_cos, wts, rr, ff = undefined_sample()  # (n >= 1: set by the loop)
     offset = np.nan
-    rec = np.empty((0 if last_only else n, RECORD_SIZE))  # per-sample values for the rows
     for k in range(n):
-        yk = y[k]
-        if have_prev != 0.0:
-            filter_step(xi, fa, fb0, fb1, y_prev, yk)  # (12)
-            if n_run < n_settle:
-                n_run += 1.0
+        yk = next_sample(y, k, xi, fa, fb0, fb1, have_prev, y_prev)  # (12)
+        if have_prev != 0.0 and n_run < n_settle:  # the filters have run one more sample
+            n_run += 1.0
         have_prev = 1.0
         y_prev = yk
         # one-step prediction error; running mean and variance of y
@@ -280,11 +277,8 @@ def kkl_biased_kernel(
         # the offset is reported even while the oscillation is undefined
         n_good = record_sample(rec, k, last_only, good, n_good, n_settle, defined, wts, a_sin, a_cos, offset, det,
                                rr, ff, e2_avg, yv_avg)  # fmt: skip
-    if last_only:  # the last sample's row, from the loop's final values
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, yv_avg)  # fmt: skip
-    else:  # the rows, after the loop
-        write_samples(out, ext, rec, n_settle, Ts, ell)
+    write_rows(out, ext, rec, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell,
+               rr, ff, e2_avg, yv_avg)  # fmt: skip
     tail = np.array(
         [y_prev, have_prev, y_pred, pred_valid, n_good, env, e2_avg, y_avg, yv_avg, n_run, e2_fast, e2_slow]
     )
@@ -296,15 +290,14 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
     """KKL observer of one sinusoid with a constant offset: m >= 5 first-order filters and a static inverse map (extension of Praly, Marconi, Isidori)"""
 
     paper = 'L. Praly, L. Marconi, A. Isidori, "A new observer for an unknown harmonic oscillator" (extended)'
-    # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators kkl-biased``
-    # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
+    ell_label = "l_b"
+    # the bench's note under its table (``sinewatch bench kernels --estimators kkl-biased``)
     bench_note: ClassVar[str] = (
         "kkl-biased is below the streaming FFT (about 0.3-0.4x at 1024-sample blocks): the work of "
         "kkl (see its note) with m = 5 filters, their centred part and the 4 x 4 regularised "
         "solve by its Schur complement in the eigenbasis of C^T C, every sample: ~80 ns/sample "
         "for the kernel with the rows written after the loop."
     )
-    ell_label = "l_b"
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
     def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:

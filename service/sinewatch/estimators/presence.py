@@ -148,6 +148,55 @@ def presence_kernel(
     return run_out, level_out, new_sums, new_counters
 
 
+@kernel
+def presence_bank_kernel(
+    x: np.ndarray,
+    columns: np.ndarray,
+    sums: np.ndarray,
+    counters: np.ndarray,
+    half: int,
+    decay: float,
+    ratio: float,
+    hold: int,
+    hysteresis: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`presence_kernel` on columns ``columns`` of ``x`` (n, C), detector i's state in
+    row i of ``sums`` (D, 8) and ``counters`` (D, 4): returns the runs (D, n) and the new
+    state rows. Each detector's are exactly presence_kernel's on its column alone: it is
+    that kernel, called per column (one call from Python for a frame's channels instead of
+    one each)."""
+    d = columns.shape[0]
+    runs = np.empty((d, x.shape[0]), dtype=np.int64)
+    new_sums = np.empty_like(sums)
+    new_counters = np.empty_like(counters)
+    for i in range(d):
+        run, _level, s, c = presence_kernel(
+            x[:, columns[i]], sums[i], counters[i], half, decay, ratio, hold, hysteresis
+        )
+        runs[i] = run
+        new_sums[i] = s
+        new_counters[i] = c
+    return runs, new_sums, new_counters
+
+
+def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns: list[int]) -> np.ndarray | None:
+    """Advance ``detectors[i]`` by column ``columns[i]`` of the float64 frame ``x`` (n, C):
+    the runs (len(detectors), n), each row what ``detectors[i].update(x[:, columns[i]])``
+    returns, and each detector's state as that call leaves it. None (nothing done) when the
+    detectors do not share their parameters or ``x`` is not float64: the caller then runs
+    them one by one."""
+    first = detectors[0]
+    params = first.params
+    if x.dtype != np.float64 or x.ndim != 2 or any(d.params != params for d in detectors):
+        return None
+    sums = np.stack([d.sums for d in detectors])
+    counters = np.stack([d.counters for d in detectors])
+    runs, new_sums, new_counters = presence_bank_kernel(x, np.asarray(columns, dtype=np.int64), sums, counters, *params)
+    for i, d in enumerate(detectors):
+        d.sums, d.counters = new_sums[i], new_counters[i]
+    return runs
+
+
 class SignalPresence:
     """The presence detector of one channel: owns the state, runs :func:`presence_kernel`."""
 
@@ -198,6 +247,11 @@ class SignalPresence:
         return run, level
 
     @property
+    def params(self) -> tuple[int, float, float, int, float]:
+        """The kernel's constants: (half, decay, ratio, hold, hysteresis)."""
+        return self.half_cycle_samples, self.decay, self.ratio, self.hold, self.hysteresis
+
+    @property
     def onset_latency_samples(self) -> int:
         """Samples from the first sample of an interruption to the reading that says so, at
         most: the one-cycle window (2 H) must be all but filled with it (a fall to 0.099 of R
@@ -239,4 +293,12 @@ class SignalPresence:
         self.sums, self.counters = sums, counters
 
 
-__all__ = ["DEFAULT_HYSTERESIS", "DEFAULT_RATIO", "DEFAULT_TAU_S", "SignalPresence", "presence_kernel"]
+__all__ = [
+    "DEFAULT_HYSTERESIS",
+    "DEFAULT_RATIO",
+    "DEFAULT_TAU_S",
+    "SignalPresence",
+    "presence_bank_kernel",
+    "presence_kernel",
+    "update_presence_bank",
+]

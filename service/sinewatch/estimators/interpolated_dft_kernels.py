@@ -1,0 +1,444 @@
+"""Compiled kernels of ``ipdft`` (the method and its error model: :mod:`sinewatch.estimators.interpolated_dft`).
+
+:func:`ipdft_kernel` buffers a block's samples into windows and estimates them,
+:func:`_window_estimates` many windows of a block at once (vectorised across windows),
+:func:`_one_window_estimate` one at a time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sinewatch.estimators.base import kernel, undefined_row, wrap_pi
+
+CHUNK = 64  # windows estimated together (see _window_estimates): bounds the scratch to CHUNK x N
+BATCH_MIN = 8  # fewer windows in a chunk are estimated one by one (_one_window_estimate)
+
+
+@kernel(inline="always")
+def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> float:
+    """(P), (I3)/(I2) and (F): ``lambda`` (bins) from the magnitudes ``mags[:, q]`` of
+    the bins k_lo-1 .. k_hi+1; NaN when there is no peak (an all-zero window)."""
+    bp = 1
+    for bb in range(2, k_hi - k_lo + 2):  # (P) peak in the band
+        if mags[bb, q] > mags[bp, q]:
+            bp = bb
+    xm, x0, xp = mags[bp - 1, q], mags[bp, q], mags[bp + 1, q]
+    if not (x0 > 0.0) or not math.isfinite(x0):
+        return np.nan
+    if three_point:  # (I3)
+        delta = 2.0 * (xp - xm) / (xm + 2.0 * x0 + xp)
+    else:  # (I2)
+        if xp >= xm:
+            alpha = xp / x0
+            delta = (2.0 * alpha - 1.0) / (alpha + 1.0)
+        else:
+            alpha = xm / x0
+            delta = -(2.0 * alpha - 1.0) / (alpha + 1.0)
+    lam: float = (k_lo - 1 + bp) + delta  # (F)
+    return lam
+
+
+@kernel
+def _one_window_estimate(
+    xt: np.ndarray,
+    q: int,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    est: np.ndarray,
+    wu: np.ndarray,
+    st: np.ndarray,
+    ct: np.ndarray,
+) -> None:
+    # The arguments of _window_estimates, whose every window this must reproduce bit for bit
+    # (a chunk of too few windows takes this path): the same inputs by design, not a copy.
+    """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
+    fewer than BATCH_MIN windows, where a loop over the windows has too few iterations to pay
+    for itself): the same sums in the same order; the bins of (D) four at a time, so that
+    eight independent sums overlap. ``wu``, ``st``, ``ct`` (N,) are scratch."""
+    N = xt.shape[0]
+    nb = k_hi - k_lo + 3
+    acc = 0.0  # (M) Hann-weighted mean
+    for n in range(N):
+        acc += hann[n] * xt[n, q]
+    mu = acc / hann_sum
+    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
+        wu[n] = hann[n] * (xt[n, q] - mu)
+    mags = np.empty(nb)
+    for b0 in range(0, nb, 4):  # (D) bins b0 .. b0 + 3 (the last group repeats its last bin)
+        b1, b2, b3 = min(b0 + 1, nb - 1), min(b0 + 2, nb - 1), min(b0 + 3, nb - 1)
+        k0, k1, k2, k3 = k_lo - 1 + b0, k_lo - 1 + b1, k_lo - 1 + b2, k_lo - 1 + b3
+        r0 = r1 = r2 = r3 = i0 = i1 = i2 = i3 = 0.0
+        j0 = j1 = j2 = j3 = 0
+        for n in range(N):
+            v = wu[n]
+            r0 += v * cos_tab[j0]
+            i0 -= v * sin_tab[j0]
+            r1 += v * cos_tab[j1]
+            i1 -= v * sin_tab[j1]
+            r2 += v * cos_tab[j2]
+            i2 -= v * sin_tab[j2]
+            r3 += v * cos_tab[j3]
+            i3 -= v * sin_tab[j3]
+            j0 = j0 + k0 if j0 + k0 < N else j0 + k0 - N
+            j1 = j1 + k1 if j1 + k1 < N else j1 + k1 - N
+            j2 = j2 + k2 if j2 + k2 < N else j2 + k2 - N
+            j3 = j3 + k3 if j3 + k3 < N else j3 + k3 - N
+        mags[b0] = math.hypot(r0, i0)
+        mags[b1] = math.hypot(r1, i1)
+        mags[b2] = math.hypot(r2, i2)
+        mags[b3] = math.hypot(r3, i3)
+    lam = _peak(mags.reshape((nb, 1)), 0, k_lo, k_hi, three_point)  # (P), (I3)/(I2), (F)
+    if math.isnan(lam):
+        est[q, 0] = 0.0
+        return
+    omega = 2.0 * math.pi * lam / N
+    # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
+    c = 0.5 * (N - 1)
+    cw, sw = math.cos(omega), math.sin(omega)
+    s, co = math.sin(-omega * c), math.cos(-omega * c)
+    sss = scc = ssc = ss = sc = 0.0
+    sus = suc = su = 0.0
+    for n in range(N):
+        u = xt[n, q] - mu
+        st[n] = s
+        ct[n] = co
+        sss += s * s
+        scc += co * co
+        ssc += s * co
+        ss += s
+        sc += co
+        sus += u * s
+        suc += u * co
+        su += u
+        s, co = s * cw + co * sw, co * cw - s * sw
+    # Cramer's rule on the symmetric 3x3 normal matrix [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]]
+    m00, m01, m02, m11, m12, m22 = sss, ssc, ss, scc, sc, float(N)
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    if not (abs(det) > 0.0) or not math.isfinite(det):
+        est[q, 0] = 0.0
+        return
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    a = (c00 * sus + c01 * suc + c02 * su) / det
+    b = (c01 * sus + c11 * suc + c12 * su) / det
+    d = (c02 * sus + c12 * suc + c22 * su) / det
+    sse = 0.0  # residual, second pass (one pass would cancel badly on large offsets)
+    for n in range(N):
+        e = xt[n, q] - mu - (a * st[n] + b * ct[n] + d)
+        sse += e * e
+    est[q, 0] = 1.0
+    est[q, 1] = lam / N
+    est[q, 2] = math.hypot(a, b)
+    est[q, 3] = wrap_pi(omega * c + math.atan2(b, a))
+    est[q, 4] = mu + d
+    est[q, 5] = math.sqrt(sse / N)
+
+
+@kernel
+def _window_estimates(
+    xt: np.ndarray,
+    n_win: int,
+    hann: np.ndarray,
+    hann_sum: float,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    k_lo: int,
+    k_hi: int,
+    three_point: bool,
+    est: np.ndarray,
+) -> None:
+    """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of window q, for
+    q < ``n_win``; ``xt[n, q]`` is sample n (oldest first) of window q.
+
+    The windows are independent, so every step runs over all of them at once, window index
+    innermost: each sum of each window is accumulated in its own slot, term by term in the
+    same order as for one window alone (the same roundings, bit for bit), but the loop over
+    the windows has no dependency from one iteration to the next, so the compiler vectorises
+    it and the CPU overlaps it, where one window alone is one long chain of dependent adds.
+    Loops touch few arrays each, so that the compiler's aliasing checks stay cheap."""
+    N = xt.shape[0]
+    Q = n_win
+    nb = k_hi - k_lo + 3
+    wu = np.empty((N, Q))  # w_n u_n
+    st = np.empty((N, Q))  # sin(omega t_n), cos(omega t_n) of (LS)
+    ct = np.empty((N, Q))
+    mags = np.empty((nb, Q))
+    mu = np.zeros(Q)
+    acc1 = np.zeros(Q)
+    acc2 = np.zeros(Q)
+    # (M) Hann-weighted mean
+    for n in range(N):
+        w = hann[n]
+        xn = xt[n]
+        for q in range(Q):
+            mu[q] += w * xn[q]
+    for q in range(Q):
+        mu[q] = mu[q] / hann_sum
+    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
+        w = hann[n]
+        xn = xt[n]
+        wn = wu[n]
+        for q in range(Q):
+            wn[q] = w * (xn[q] - mu[q])
+    # (D) the bins k_lo-1 .. k_hi+1
+    for bi in range(nb):
+        k = k_lo - 1 + bi
+        acc1[:] = 0.0
+        acc2[:] = 0.0
+        idx = 0
+        for n in range(N):
+            cv = cos_tab[idx]
+            sv = sin_tab[idx]
+            wn = wu[n]
+            for q in range(Q):
+                acc1[q] += wn[q] * cv
+                acc2[q] -= wn[q] * sv
+            idx += k
+            if idx >= N:
+                idx -= N
+        for q in range(Q):
+            mags[bi, q] = math.hypot(acc1[q], acc2[q])
+    # (P), (I3)/(I2), (F), then the start of the rotation recurrence of (LS)
+    c = 0.5 * (N - 1)
+    rot = np.empty((4, Q))  # per window: lambda, omega and the rotation's cos and sin
+    lam, omega, cw, sw = rot[0], rot[1], rot[2], rot[3]
+    for q in range(Q):
+        lam[q] = _peak(mags, q, k_lo, k_hi, three_point)
+        om = 2.0 * math.pi * lam[q] / N
+        omega[q] = om
+        cw[q], sw[q] = math.cos(om), math.sin(om)
+        st[0, q], ct[0, q] = math.sin(-om * c), math.cos(-om * c)
+    # (LS) u_n ~ a sin(omega t_n) + b cos(omega t_n) + d, t_n = n - c: sin/cos by rotation
+    for n in range(1, N):
+        sp, cp, sn, cn = st[n - 1], ct[n - 1], st[n], ct[n]
+        for q in range(Q):
+            s, co = sp[q], cp[q]
+            sn[q] = s * cw[q] + co * sw[q]
+            cn[q] = co * cw[q] - s * sw[q]
+    sums = np.zeros((8, Q))  # per window, the sums of (LS) below
+    sss, scc, ssc, ss, sc, sus, suc, su = sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6], sums[7]
+    for n in range(N):
+        sn = st[n]
+        for q in range(Q):
+            sss[q] += sn[q] * sn[q]
+            ss[q] += sn[q]
+    for n in range(N):
+        cn = ct[n]
+        for q in range(Q):
+            scc[q] += cn[q] * cn[q]
+            sc[q] += cn[q]
+    for n in range(N):
+        sn, cn = st[n], ct[n]
+        for q in range(Q):
+            ssc[q] += sn[q] * cn[q]
+    for n in range(N):
+        xn = xt[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            su[q] += u
+    for n in range(N):
+        xn, sn = xt[n], st[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            sus[q] += u * sn[q]
+    for n in range(N):
+        xn, cn = xt[n], ct[n]
+        for q in range(Q):
+            u = xn[q] - mu[q]
+            suc[q] += u * cn[q]
+    # Cramer's rule on the symmetric 3x3 normal matrix [[sss,ssc,ss],[ssc,scc,sc],[ss,sc,N]]
+    ok = np.empty(Q, dtype=np.bool_)
+    fa = np.zeros(Q)
+    fb = np.zeros(Q)
+    fd = np.zeros(Q)
+    for q in range(Q):
+        m00, m01, m02, m11, m12, m22 = sss[q], ssc[q], ss[q], scc[q], sc[q], float(N)
+        c00 = m11 * m22 - m12 * m12
+        c01 = m02 * m12 - m01 * m22
+        c02 = m01 * m12 - m02 * m11
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        ok[q] = (abs(det) > 0.0) and math.isfinite(det) and not math.isnan(lam[q])
+        if not ok[q]:
+            continue
+        c11 = m00 * m22 - m02 * m02
+        c12 = m01 * m02 - m00 * m12
+        c22 = m00 * m11 - m01 * m01
+        fa[q] = (c00 * sus[q] + c01 * suc[q] + c02 * su[q]) / det
+        fb[q] = (c01 * sus[q] + c11 * suc[q] + c12 * su[q]) / det
+        fd[q] = (c02 * sus[q] + c12 * suc[q] + c22 * su[q]) / det
+    # residual, second pass (one pass would cancel badly on large offsets)
+    acc1[:] = 0.0
+    for n in range(N):
+        xn, sn, cn = xt[n], st[n], ct[n]
+        for q in range(Q):
+            e = xn[q] - mu[q] - (fa[q] * sn[q] + fb[q] * cn[q] + fd[q])
+            acc1[q] += e * e
+    for q in range(Q):
+        if not ok[q]:
+            est[q, 0] = 0.0
+            continue
+        a, b = fa[q], fb[q]
+        est[q, 0] = 1.0
+        est[q, 1] = lam[q] / N
+        est[q, 2] = math.hypot(a, b)
+        est[q, 3] = wrap_pi(omega[q] * c + math.atan2(b, a))
+        est[q, 4] = mu[q] + fd[q]
+        est[q, 5] = math.sqrt(acc1[q] / N)
+
+
+@kernel
+def ipdft_kernel(
+    x: np.ndarray,
+    buf: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    rstate: np.ndarray,
+    hann: np.ndarray,
+    cos_tab: np.ndarray,
+    sin_tab: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run the sliding interpolated DFT over block ``x``; return
+    ``(out, resid, rocof, age, sse, n_pred, new_buf, new_istate, new_fstate, new_rstate)``
+    (``age``: samples since the last sample of the window each row's estimate is from).
+
+    ROCOF is the difference of two consecutive windows' frequencies over the hop (Hz/s),
+    held like the other outputs (``rstate`` = previous window's frequency in cycles/sample,
+    the held ROCOF, and how many consecutive windows were defined, up to 2: ROCOF is defined
+    from the second); it is as noisy as the frequency difference, so it is for slow
+    ramps, not for a single report.
+
+    ``buf``, ``istate`` and ``fstate`` are the ``buffer``, ``counters`` and ``estimate``
+    arrays (layout: :meth:`InterpolatedDft._initial_state`); ``iconsts`` = (hop, k_lo, k_hi, three_point); ``fconsts`` = (fs, min_amplitude,
+    max_relative_residual, sum of the Hann window). ``out`` columns are frequency_hz,
+    amplitude, phase_rad, offset, converged (0/1); ``resid`` is the fit residual r per
+    row. Pure: the inputs are not modified.
+
+    The block is run in chunks of up to CHUNK windows: first the ring buffer's counters
+    find the samples where a window is due and the windows are gathered from the stream
+    (the buffer, oldest first, then the block), then the chunk's windows are estimated
+    (a window's estimate depends on its samples only: together, :func:`_window_estimates`,
+    or one by one below BATCH_MIN, :func:`_one_window_estimate`), then the samples are run
+    again for the held estimates, the one-step predictions and the outputs; the buffer
+    ends as the stream's last N samples.
+    """
+    N = buf.shape[0]
+    hop, k_lo, k_hi, three_point = iconsts[0], iconsts[1], iconsts[2], iconsts[3] != 0
+    fs, min_amp, max_rel, hann_sum = fconsts[0], fconsts[1], fconsts[2], fconsts[3]
+    pos, fill, since, held, defined, m = istate[0], istate[1], istate[2], istate[3], istate[4], istate[5]
+    fcy, A, th, B, r, conv = fstate[0], fstate[1], fstate[2], fstate[3], fstate[4], fstate[5]
+    f_prev, rocof, run = rstate[0], rstate[1], rstate[2]
+    n_in = x.shape[0]
+    out = np.empty((1 if last_only else n_in, 5))
+    rocof_out = np.empty(1 if last_only else n_in)
+    resid = np.empty(1 if last_only else n_in)
+    age = np.empty(1 if last_only else n_in)  # (U) samples since the held window's last sample
+    chunk = min(CHUNK, (n_in - 1) // hop + 1)  # at most one window per hop samples
+    # the stream: the buffer's N samples, oldest first, then the block (window ending at
+    # block sample j = seg[j + 1 : j + 1 + N])
+    seg = np.empty(N + n_in)
+    for i in range(N):
+        seg[i] = buf[pos + i if pos + i < N else pos + i - N]
+    seg[N:] = x
+    xt = np.empty((N, chunk))  # the chunk's windows, xt[n, q]: sample n of window q
+    due_at = np.empty(chunk, dtype=np.int64)
+    wu1, st1, ct1 = np.empty(N), np.empty(N), np.empty(N)  # scratch of _one_window_estimate
+    est = np.zeros((chunk, 6))
+    sse = 0.0
+    n_pred = 0
+    j0 = 0
+    while j0 < n_in:
+        n_win = 0  # the ring buffer's counters over the samples, the windows due
+        j1 = j0
+        while j1 < n_in and n_win < chunk:
+            if fill < N:  # filling: sample by sample
+                fill += 1
+                if since < hop:
+                    since += 1
+                if fill == N and since >= hop:
+                    since = 0
+                    due_at[n_win] = j1
+                    n_win += 1
+                j1 += 1
+                continue
+            steps = hop - since if since < hop else 1  # full: the next window is due in steps samples
+            if j1 + steps > n_in:
+                since += n_in - j1
+                j1 = n_in
+            else:
+                j1 += steps
+                since = 0
+                due_at[n_win] = j1 - 1
+                n_win += 1
+        for n in range(N):
+            for q in range(n_win):
+                xt[n, q] = seg[due_at[q] + 1 + n]
+        if n_win >= BATCH_MIN:
+            _window_estimates(xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+        else:
+            for q in range(n_win):
+                _one_window_estimate(
+                    xt, q, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est, wu1, st1, ct1
+                )
+        q = 0
+        for j in range(j0, j1):
+            if held and defined:  # one-step prediction from the estimate held before x_j
+                e = x[j] - (B + A * math.sin(th + 2.0 * math.pi * fcy * (m + 1)))
+                sse += e * e
+                n_pred += 1
+            m += 1
+            if q < n_win and due_at[q] == j:  # a hop: the estimate of the window ending here
+                held = 1
+                m = 0
+                if est[q, 0] != 0.0:
+                    defined = 1
+                    fcy, A, th, B, r = est[q, 1], est[q, 2], est[q, 3], est[q, 4], est[q, 5]
+                    conv = 1.0 if (A > min_amp and r <= max_rel * A) else 0.0
+                    run = min(run + 1.0, 2.0)
+                    rocof = (fcy - f_prev) * fs * fs / hop if run >= 2.0 else 0.0
+                    f_prev = fcy
+                else:
+                    defined = 0
+                    fcy = A = th = B = r = conv = 0.0
+                    f_prev = rocof = run = 0.0
+                q += 1
+            if last_only and j != n_in - 1:
+                continue
+            row = 0 if last_only else j
+            if held and defined:
+                out[row, 0] = fcy * fs
+                out[row, 1] = A
+                out[row, 2] = wrap_pi(th + 2.0 * math.pi * fcy * m)
+                out[row, 3] = B
+                out[row, 4] = conv
+                resid[row] = r
+                rocof_out[row] = rocof if run >= 2.0 else np.nan
+                age[row] = m
+            else:
+                undefined_row(out, row)
+                resid[row] = np.nan
+                rocof_out[row] = np.nan
+                age[row] = np.nan
+        j0 = j1
+    pos = (pos + n_in) % N  # the last N samples of the stream back into the ring, oldest at pos
+    b = np.empty(N)
+    for i in range(N):
+        b[pos + i if pos + i < N else pos + i - N] = seg[n_in + i]
+    new_istate = np.array([pos, fill, since, held, defined, m], dtype=np.int64)
+    new_fstate = np.array([fcy, A, th, B, r, conv])
+    new_rstate = np.array([f_prev, rocof, run])
+    return out, resid, rocof_out, age, sse, n_pred, b, new_istate, new_fstate, new_rstate
