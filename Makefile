@@ -26,13 +26,22 @@ etcd:
 	  echo "installing Debian's etcd-server (apt-get; needs root)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends etcd-server; }
 
-# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint (one
-# core each) the numba kernels the tests run are compiled into numba's cache (a fresh clone has
+# Two workers (pytest-xdist): the tests of one group (the cluster tests; a module with
+# module-scoped fixtures) run on one worker in turn, and the longest go first (tests/conftest.py).
+# Coverage of the suite's own processes, the run failing below [tool.coverage.report] fail_under
+# (its total is printed; `.venv/bin/coverage report` lists each module afterwards).
+# The benches marked `alone` (tests/conftest.py) run last, by themselves, adding to the coverage.
+PYTEST_FAST := -n 2 --dist loadgroup --no-loadscope-reorder --cov --cov-report= --cov-fail-under=0 -m 'not slow and not alone'
+PYTEST_ALONE := -m 'alone and not slow' --cov --cov-append --cov-report=
+
+# What CI runs: lint, format, import contracts and types first, then the tests. Beside lint the
+# numba kernels the tests run are compiled into numba's cache on two processes (a fresh clone has
 # none), so that no test and no daemon the tests start compiles one: tests/compile_kernels.py.
 test: $(STAMP) etcd
 	$(BIN)/python tests/compile_kernels.py & kernels=$$!; \
 	  if $(MAKE) --no-print-directory lint; then wait $$kernels; else wait $$kernels; exit 1; fi
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_FAST)
+	$(BIN)/python -m pytest $(PYTEST_ALONE)
 
 # Lint, format, import contracts and types, from the three source roots (no install needed
 # for the static tools to resolve sinewatch.*; the venv only provides the tools).

@@ -1,12 +1,12 @@
 """Compile (or load from numba's cache) the kernels the test suite runs, once, before it runs.
 
 A fresh clone has no numba cache: every ``cache=True`` kernel is compiled on its first call,
-inside whichever test (or daemon subprocess) calls it first, and two processes that call
-the same kernel before either has written the cache both compile it. ``make test`` runs
-this script beside ``make lint`` (one process each, on a 2-core machine) so that the
-suite starts with a warm cache. Nothing here is asserted: a kernel this script does not
-reach is compiled on demand as before, and a kernel that fails to compile fails here and
-in its tests alike.
+inside whichever test (or daemon subprocess) calls it first, and two processes that call the
+same kernel before either has written the cache both compile it. ``make test`` runs this script
+beside ``make lint`` so that the suite starts with a warm cache, on two processes (one task per
+estimator): the lint is much shorter, and one process would leave a core idle meanwhile.
+Nothing here is asserted: a kernel this script does not reach is compiled on demand as before,
+and a kernel that fails to compile fails here and in its tests alike.
 
 Reached: every registered estimator through a real :class:`Pipeline` (float64 and
 float32 blocks, whole blocks and the last sample only), with its example parameters and
@@ -19,6 +19,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -49,22 +50,38 @@ def _estimator(name: str, params: dict[str, Any] | None = None) -> None:
     est.update(x, last_only=True)
 
 
-def main() -> int:
-    t0 = time.monotonic()
+def _one(name: str) -> str:
+    """Compile one estimator's kernels (alone, then through a pipeline), in a pool worker."""
     with tempfile.TemporaryDirectory() as tmp:
-        for name in available():
-            cls = get(name)
-            _estimator(name)
-            x = cls.example_signal(1000)
-            if x.ndim == 1:
-                rule = EstimatorRule(estimator=name, params=dict(cls.example_params))
-                _through_pipeline(rule, cls.example_sample_rate_hz, x, Path(tmp))
-        _through_pipeline(EstimatorRule(), 10_000.0, get("pmu").example_signal(2000), Path(tmp))  # the default rule
-    band = {"band_hz": (5.0, 25.0)}
-    for n in (1, 3):
-        _estimator("adaptive-multisine", {"n_sinusoids": n, **band})
-    _estimator("adaptive-multisine", {"n_sinusoids": 2})  # no band: the explicit design
+        cls = get(name)
+        _estimator(name)
+        x = cls.example_signal(1000)
+        if x.ndim == 1:
+            rule = EstimatorRule(estimator=name, params=dict(cls.example_params))
+            _through_pipeline(rule, cls.example_sample_rate_hz, x, Path(tmp))
+        if name == "pmu":  # the default rule
+            _through_pipeline(EstimatorRule(), 10_000.0, get("pmu").example_signal(2000), Path(tmp))
+        if name == "adaptive-multisine":
+            for n in (1, 3):
+                _estimator(name, {"n_sinusoids": n, "band_hz": (5.0, 25.0)})
+            _estimator(name, {"n_sinusoids": 2})  # no band: the explicit design
+    return name
+
+
+def _power_quality() -> str:
     warm_up()
+    return "power-quality"
+
+
+def main() -> int:
+    """One task per estimator (and the power-quality stage), on two processes: numba compiles
+    on one core, and ``make test`` runs this beside the much shorter lint, so a single process
+    would leave a core idle for most of the compilation."""
+    t0 = time.monotonic()
+    names = sorted(available(), key=lambda n: n != "adaptive-multisine")  # the longest first
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        for task in as_completed([pool.submit(_power_quality), *(pool.submit(_one, n) for n in names)]):
+            task.result()  # a kernel that fails to compile fails here
     print(f"compile_kernels: {time.monotonic() - t0:.1f} s", file=sys.stderr)
     return 0
 

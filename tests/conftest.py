@@ -8,11 +8,14 @@ Integration tests run a real daemon in-process (``run_daemon``) with its Zenoh p
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import functools
 import json
+import re
 import signal
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -90,6 +93,18 @@ def run_daemon(
     return asyncio.run(main())
 
 
+@contextlib.contextmanager
+def publishing(ep: str, channel: str, *subscribe: Callable[[Any], Any]) -> Iterator[tuple[BlockPublisher, list[Any]]]:
+    """A client session on ``ep``: the subscriptions ``subscribe`` make (estimates, errors,
+    status ...), made first so that nothing the daemon answers is missed, then a publisher
+    whose ``channel`` the daemon subscribes to (asserted, ``TIMEOUT`` at most)."""
+    with connect([ep]) as s:
+        subscriptions = [sub(s) for sub in subscribe]
+        pub = BlockPublisher(s)
+        assert pub.wait_for_subscriber(channel, TIMEOUT)
+        yield pub, subscriptions
+
+
 def serve_blocks(
     config: SinewatchConfig, channel: str, blocks: list[Block], n_messages: int
 ) -> tuple[list[Any], Daemon]:
@@ -99,10 +114,7 @@ def serve_blocks(
     message came."""
 
     def client(_daemon: Daemon, ep: str) -> list[Any]:
-        with connect([ep]) as s:
-            est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber(channel, 20)
+        with publishing(ep, channel, subscribe_estimates) as (pub, [est]):
             for blk in blocks:
                 pub.publish_raw(channel, encode_block_binary(blk, "float64"))
             return [est.get(timeout=20) for _ in range(n_messages)]
@@ -120,22 +132,31 @@ def take(subscription: Any, n: int, timeout: float = TIMEOUT) -> list[dict[str, 
     return out
 
 
+class KeepSink(NullSink):
+    """A pipeline sink that keeps every estimate and error message, decoded."""
+
+    estimates: list[dict[str, Any]]
+    errors: list[dict[str, Any]]
+
+    def __init__(self) -> None:
+        self.estimates, self.errors = [], []
+
+    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self.estimates.append(json.loads(payload))
+
+    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        self.errors.append(json.loads(payload))
+
+
 def clean_estimates(config: SinewatchConfig, key: str, blocks: list[Block]) -> list[dict[str, Any]]:
     """What a fresh pipeline says for exactly these blocks: the reference that shows a
     daemon's estimators never saw the bad inputs it rejected."""
 
-    class Keep(NullSink):
-        def __init__(self) -> None:
-            self.out: list[dict[str, Any]] = []
-
-        def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-            self.out.append(json.loads(payload))
-
-    keep = Keep()
+    keep = KeepSink()
     clean = Pipeline(config, [keep])
     for blk in blocks:
         clean.process(key, encode_block_binary(blk), BLOCK_BINARY_ENCODING, 0)
-    return keep.out
+    return keep.estimates
 
 
 class FakeClock:
@@ -232,3 +253,110 @@ def replay_recording(directory: Path) -> str:
     )
     assert r.returncode == 0, r.stdout + r.stderr
     return r.stdout
+
+
+def serve_config_feed_tail(
+    tmp_path: Path, config: SinewatchConfig, n_messages: int, feed_args: list[str]
+) -> tuple[str, list[dict[str, Any]], str]:
+    """``serve_feed_tail`` with ``config`` (written as JSON) served, ``tail --json`` taking
+    ``n_messages`` and ``feed`` publishing ``feed_args``; both clients connect to it."""
+    ep = endpoint(config)
+    cfg_file = tmp_path / "serve.json"
+    cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
+    return serve_feed_tail(
+        ["--config", str(cfg_file)],
+        ["--connect", ep, "--count", str(n_messages), "--json", "--timeout", "60", "--wait", "60"],
+        ["--connect", ep, *feed_args],
+    )
+
+
+def serve_comtrade(tmp_path: Path, cfg: Path, *feed_args: str, name: str = "daemon") -> tuple[str, list[dict]]:
+    """A COMTRADE record fed (``feed --comtrade cfg``, then ``feed_args``) to a daemon whose
+    one rule runs ipdft (50 Hz, 10 cycles) on it; feed's stderr and 12 estimates from tail."""
+    port = free_loopback_port()
+    config = tmp_path / f"{name}.toml"
+    config.write_text(
+        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\nenabled = false\n\n'
+        '[[rules]]\nmatch = "sinewatch/in/comtrade/**"\nestimator = "ipdft"\n'
+        "params = { nominal_frequency_hz = 50.0, window_cycles = 10 }\n"
+    )
+    ep = f"tcp/127.0.0.1:{port}"
+    feed_err, estimates, _ = serve_feed_tail(
+        ["--config", str(config)],
+        ["--connect", ep, "--json", "--count", "12"],
+        ["--connect", ep, "--comtrade", str(cfg), *feed_args],
+    )
+    return feed_err, estimates
+
+
+def cli_without(module: str, argv: list[str]) -> subprocess.CompletedProcess[str]:
+    """``sinewatch ARGV`` in a fresh interpreter in which ``module`` cannot be imported, as if
+    the optional package were not installed."""
+    code = f"import sys; sys.modules[{module!r}] = None\nfrom sinewatch.cli import main\nsys.exit(main({argv!r}))"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+
+
+# --- Running on two workers (``make test``: pytest-xdist, ``-n 2 --dist loadgroup``) ----------
+
+# Tests that start etcd and several daemon processes, and whose faults are timed against
+# leases (the chaos test runs its own CPU burner): one worker runs them one after another,
+# so that two of them never compete for the same cores at once.
+SERIAL_CLUSTER = ("tests/test_cluster_", "tests/test_election.py", "tests/test_access_control.py")
+# The longest tests and groups (tens of seconds each on a quiet 2-core machine): dispatched
+# first, so that no worker is left with a long one while the other has finished.
+LONG_FIRST = (
+    *SERIAL_CLUSTER,
+    "tests/test_bench_e2e.py",
+    "tests/test_compare_track.py",
+    "tests/test_recording_compatibility.py",
+)
+_SHARED_FIXTURE = re.compile(r"""@pytest\.fixture\(.*scope=["'](module|class|package)["']""")
+
+
+@functools.cache
+def _shares_fixtures(root: Path, path: str) -> bool:
+    """Whether a test module has module- or class-scoped fixtures (a recording, a wheel, an
+    npm install): its tests stay on one worker, so those are built once and never by two
+    workers in the same directory at once."""
+    try:
+        return _SHARED_FIXTURE.search((root / path).read_text(encoding="utf-8")) is not None
+    except OSError:
+        return False
+
+
+def xdist_scope(root: Path, nodeid: str) -> str:
+    """The unit of work one worker runs from start to end: the cluster tests together, a
+    module with shared fixtures whole, any other test alone."""
+    path = nodeid.split("::", 1)[0]
+    if path.startswith(SERIAL_CLUSTER):
+        return "cluster"
+    return path if _shares_fixtures(root, path) else nodeid
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)  # before xdist's own choice; xdist may be absent
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` with the groups of ``xdist_scope``. (xdist 3.8 marks a group by
+    renaming the test's node id, which pytest 9.2's node ids no longer allow.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Groups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_scope(config.rootpath, nodeid)
+
+    return Groups(config, log)
+
+
+# Benches that measure what the machine sustains (tests/test_bench_e2e.py): `make test` runs
+# them alone, after the two workers, so that no other test shares their cores.
+ALONE = ("tests/test_bench_e2e.py",)
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    if item.nodeid.startswith(ALONE):
+        item.add_marker(pytest.mark.alone)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    items.sort(key=lambda item: not item.nodeid.startswith(LONG_FIRST))

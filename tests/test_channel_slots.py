@@ -3,27 +3,14 @@ blocks that were refused, a legitimate new channel is still served."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
+from conftest import KeepSink as Keep
 from conftest import make_config
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.pipeline import Pipeline
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import LimitsSection
-
-
-class Keep(NullSink):
-    def __init__(self) -> None:
-        self.estimates: list[dict] = []
-        self.errors: list[dict] = []
-
-    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.estimates.append(json.loads(payload))
-
-    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.errors.append(json.loads(payload))
 
 
 def sine(n: int = 400, columns: int = 1) -> np.ndarray:

@@ -8,18 +8,13 @@ import os
 import subprocess
 from pathlib import Path
 
-from conftest import make_config, replay_recording, serve_feed_tail, sinewatch
+from conftest import make_config, replay_recording, serve_config_feed_tail, serve_feed_tail, sinewatch
 
 
 def test_serve_feed_tail_replay(tmp_path):
     config = make_config(tmp_path)
-    ep = config.zenoh.listen[0]
-    cfg_file = tmp_path / "serve.json"
-    cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
-    feed_err, lines, serve_err = serve_feed_tail(
-        ["--config", str(cfg_file)],
-        ["--connect", ep, "--count", "10", "--json", "--timeout", "60", "--wait", "60"],
-        ["--connect", ep, "--scenario", "demo-biased", "--channels", "2", "--duration", "2", "--block", "1000"],
+    feed_err, lines, serve_err = serve_config_feed_tail(
+        tmp_path, config, 10, ["--scenario", "demo-biased", "--channels", "2", "--duration", "2", "--block", "1000"]
     )
     assert "published 40 blocks" in feed_err
     assert len(lines) == 10 and {m["channel"] for m in lines} <= {"sim/demo-biased/0", "sim/demo-biased/1"}

@@ -107,22 +107,8 @@ def test_compare_of_a_window_counts_only_its_estimates(recording, rerun):
 
 def test_track_rows_are_the_estimators_own_track(recording, tmp_path, capsys):
     out = tmp_path / "track.parquet"
-    code = main(
-        [
-            "replay",
-            str(recording),
-            "--no-progress",
-            "--start",
-            "+1.2s",
-            "--end",
-            "+1.4s",
-            "--channels",
-            "*faulty*",
-            "--track",
-            str(out),
-        ]
-    )
-    assert code == 0
+    window = ["--start", "+1.2s", "--end", "+1.4s", "--channels", "*faulty*"]
+    assert main(["replay", str(recording), "--no-progress", *window, "--track", str(out)]) == 0
     text = capsys.readouterr().out
     assert "OK" in text and "track: 1600 rows" in text  # blocks 30-34 of 400 samples, 30 rejected (NaN)
     table = pq.read_table(out).to_pandas()

@@ -12,16 +12,14 @@ from __future__ import annotations
 import json
 import struct
 import subprocess
-import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import serve_feed_tail, sinewatch
+from conftest import cli_without, serve_comtrade, sinewatch
 from mcap.reader import make_reader
 
-from sinewatch.clients.session import free_loopback_port
 from sinewatch.comtrade_file import ComtradeError, read_comtrade
 
 FS = 2000.0
@@ -195,19 +193,7 @@ def test_replay_of_a_comtrade_file_estimates_it_and_records_a_replayable_run(tmp
 
 def test_feed_comtrade_to_a_daemon(tmp_path):
     cfg = write_comtrade(tmp_path, "1999", "BINARY")
-    port = free_loopback_port()
-    config = tmp_path / "daemon.toml"
-    config.write_text(
-        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\nenabled = false\n\n'
-        '[[rules]]\nmatch = "sinewatch/in/comtrade/**"\nestimator = "ipdft"\n'
-        "params = { nominal_frequency_hz = 50.0, window_cycles = 10 }\n"
-    )
-    endpoint = f"tcp/127.0.0.1:{port}"
-    feed_err, estimates, _ = serve_feed_tail(
-        ["--config", str(config)],
-        ["--connect", endpoint, "--json", "--count", "12"],
-        ["--connect", endpoint, "--comtrade", str(cfg)],
-    )
+    feed_err, estimates = serve_comtrade(tmp_path, cfg)
     assert "published 12 blocks (12000 samples) on 3 channels" in feed_err
     assert "COMTRADE 1999 BINARY" in feed_err
     assert {e["seq"] for e in estimates} == {0, 1, 2, 3}
@@ -218,12 +204,7 @@ def test_feed_comtrade_to_a_daemon(tmp_path):
 
 def test_without_the_comtrade_package_the_error_names_the_extra(tmp_path):
     cfg = write_comtrade(tmp_path, "1999", "ASCII")
-    code = (
-        "import sys; sys.modules['comtrade'] = None\n"  # as if the package were not installed
-        "from sinewatch.cli import main\n"
-        f"sys.exit(main(['replay', {str(cfg)!r}]))"
-    )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    r = cli_without("comtrade", ["replay", str(cfg)])
     assert r.returncode == 2
     assert r.stderr.splitlines() == [
         "sinewatch: error: COMTRADE: expected the comtrade package to be installed, got none "

@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
+from conftest import TIMEOUT, clean_estimates, make_config, publishing, run_daemon, take
 from mcap.reader import make_reader
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
@@ -147,10 +147,7 @@ def test_signal_stops_intake_drains_and_finishes_the_recording(tmp_path, sig):
     done = threading.Event()
 
     def client(_daemon, ep):
-        with connect([ep]) as s:
-            est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("h/a", TIMEOUT)
+        with publishing(ep, "h/a", subscribe_estimates) as (pub, [est]):
             for blk in blocks[:20]:
                 pub.publish_raw("h/a", encode_block_binary(blk))
             got = take(est, 20)
@@ -201,10 +198,7 @@ def test_status_reports_counters_and_validates(tmp_path):
     def client(_daemon, ep):
         from sinewatch.clients import subscribe_status
 
-        with connect([ep]) as s:
-            est, status = subscribe_estimates(s), subscribe_status(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("h/a", TIMEOUT)
+        with publishing(ep, "h/a", subscribe_estimates, subscribe_status) as (pub, [est, status]):
             for blk in blocks:
                 pub.publish_raw("h/a", encode_block_binary(blk))
             pub.publish_raw("h/a", b"junk")

@@ -9,13 +9,12 @@ Section 10 (w = 1 rad/s; "within a few percent in only a fraction of one period"
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
-from conftest import TIMEOUT, make_config, replay_recording, run_daemon, serve_feed_tail, take
+from conftest import make_config, publishing, replay_recording, run_daemon, serve_config_feed_tail, take
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
+from sinewatch.clients import subscribe_errors, subscribe_estimates
 from sinewatch.estimators import create
 from sinewatch.feed import make_channels, rules_for
 from sinewatch.replay import replay
@@ -41,10 +40,7 @@ def test_iq_channel_served_recorded_and_replayed(tmp_path):
     assert blocks[0].columns == 2 and one_column.columns == 1
 
     def client(_daemon, ep):
-        with connect([ep]) as s:
-            est, err = subscribe_estimates(s), subscribe_errors(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("iq/fig1", TIMEOUT)
+        with publishing(ep, "iq/fig1", subscribe_estimates, subscribe_errors) as (pub, [est, err]):
             for blk in blocks[:30]:
                 pub.publish_raw("iq/fig1", encode_block_binary(blk, "float64"))
             pub.publish_raw("iq/fig1", encode_block_binary(one_column, "float64"))
@@ -82,14 +78,8 @@ def test_serve_feed_replay_the_paper_scenarios(tmp_path):
     # process each) and `replay`, as a user runs them: blocks of 0.1 s, 5 s of signal
     names = ["rocof-demo", "paper001-iq-fig1"]
     config = make_config(tmp_path, rules=rules_for(make_channels(names)))
-    ep = config.zenoh.listen[0]
-    cfg_file = tmp_path / "serve.json"
-    cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
-    feed_err, lines, serve_err = serve_feed_tail(
-        ["--config", str(cfg_file)],
-        ["--connect", ep, "--count", "100", "--json", "--timeout", "60", "--wait", "60"],
-        ["--connect", ep, *(a for n in names for a in ("--scenario", n)), "--duration", "5", "--block", "1000"],
-    )
+    feed_args = [*(a for n in names for a in ("--scenario", n)), "--duration", "5", "--block", "1000"]
+    feed_err, lines, serve_err = serve_config_feed_tail(tmp_path, config, 100, feed_args)
     assert "published 100 blocks" in feed_err
     assert "drained: 100 inputs, 100 estimates, 0 errors" in serve_err
     by_channel = {n: [m for m in lines if m["channel"] == f"sim/{n}"] for n in names}

@@ -7,7 +7,6 @@ import asyncio
 import io
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +14,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from conftest import sinewatch
+from conftest import cli_without, sinewatch
 from mcap.reader import make_reader
 from rich.console import Console
 
@@ -158,12 +157,7 @@ def test_a_glob_matching_nothing_is_a_mistake_and_leaves_no_file(recording, tmp_
 
 
 def test_parquet_without_pyarrow_names_the_extra(recording, tmp_path):
-    code = (
-        "import sys; sys.modules['pyarrow'] = None\n"  # as if pyarrow were not installed
-        "from sinewatch.cli import main\n"
-        f"sys.exit(main(['export', {str(recording)!r}, '--format', 'parquet', '--out', {str(tmp_path)!r}]))"
-    )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    r = cli_without("pyarrow", ["export", str(recording), "--format", "parquet", "--out", str(tmp_path)])
     assert r.returncode == 2
     assert r.stderr.splitlines() == [
         "sinewatch: error: --format parquet: expected pyarrow to be installed, got no pyarrow "

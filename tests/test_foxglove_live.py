@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, make_config, run_daemon, take
+from conftest import TIMEOUT, make_config, publishing, run_daemon, take
 from mcap.reader import make_reader
 
 pytest.importorskip("foxglove", reason="the foxglove extra (pip install '.[foxglove]')")
 websockets = pytest.importorskip("websockets")
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_estimates  # noqa: E402
+from sinewatch.clients import subscribe_estimates  # noqa: E402
 from sinewatch.clients.session import free_loopback_port  # noqa: E402
 from sinewatch.foxglove_live import LOG_TOPIC, summarise  # noqa: E402
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary  # noqa: E402
@@ -108,10 +108,7 @@ def test_a_foxglove_client_receives_live_estimates_input_summaries_and_log_lines
     est_topic, samples_topic = "sinewatch/est/fox/a", "sinewatch/samples/fox/a"
 
     def client(daemon, ep):
-        with connect([ep]) as s:
-            zenoh_est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("fox/a", TIMEOUT)
+        with publishing(ep, "fox/a", subscribe_estimates) as (pub, [zenoh_est]):
 
             async def session() -> FoxgloveClient:
                 async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:

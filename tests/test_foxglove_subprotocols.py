@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, make_config, run_daemon, take
+from conftest import make_config, publishing, run_daemon, take
 
 pytest.importorskip("foxglove", reason="the foxglove extra (pip install '.[foxglove]')")
 websockets = pytest.importorskip("websockets")
@@ -20,7 +20,7 @@ jsonschema = pytest.importorskip("jsonschema")
 
 from test_foxglove_live import FoxgloveClient, last_seq  # noqa: E402
 
-from sinewatch.clients import BlockPublisher, connect, subscribe_estimates  # noqa: E402
+from sinewatch.clients import subscribe_estimates  # noqa: E402
 from sinewatch.clients.session import free_loopback_port  # noqa: E402
 from sinewatch.foxglove_live import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, offered_subprotocols  # noqa: E402
 from sinewatch.schemas.codec import Block, encode_block_binary  # noqa: E402
@@ -45,10 +45,7 @@ def test_a_client_of_either_subprotocol_gets_estimates_and_samples_matching_thei
     est_topic, samples_topic = "sinewatch/est/sp/a", "sinewatch/samples/sp/a"
 
     def client(daemon, ep):
-        with connect([ep]) as s:
-            zenoh_est = subscribe_estimates(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("sp/a", TIMEOUT)
+        with publishing(ep, "sp/a", subscribe_estimates) as (pub, [zenoh_est]):
 
             async def session() -> tuple[FoxgloveClient, str | None]:
                 async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[subprotocol]) as ws:

@@ -627,26 +627,14 @@ def test_feed_comtrade_as_frames_gives_the_estimates_of_its_blocks(tmp_path):
     """``feed --comtrade --frame-channels 8``: the record's three analog channels (one rate
     segment) go as one frame per block, and the estimates are those the same record fed as
     blocks gives (test_comtrade), bit for bit: the frame path changes no bits."""
-    from conftest import serve_feed_tail
+    from conftest import serve_comtrade
     from test_comtrade import PHASES, check_estimates, write_comtrade
-
-    from sinewatch.clients.session import free_loopback_port
 
     cfg = write_comtrade(tmp_path, "1999", "BINARY")
     results = {}
     for frame_channels in ("1", "8"):
-        port = free_loopback_port()
-        config = tmp_path / f"daemon{frame_channels}.toml"
-        config.write_text(
-            f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\nenabled = false\n\n'
-            '[[rules]]\nmatch = "sinewatch/in/comtrade/**"\nestimator = "ipdft"\n'
-            "params = { nominal_frequency_hz = 50.0, window_cycles = 10 }\n"
-        )
-        endpoint = f"tcp/127.0.0.1:{port}"
-        feed_err, estimates, _ = serve_feed_tail(
-            ["--config", str(config)],
-            ["--connect", endpoint, "--json", "--count", "12"],
-            ["--connect", endpoint, "--comtrade", str(cfg), "--frame-channels", frame_channels],
+        feed_err, estimates = serve_comtrade(
+            tmp_path, cfg, "--frame-channels", frame_channels, name=f"daemon{frame_channels}"
         )
         results[frame_channels] = (feed_err, sorted(estimates, key=lambda e: (e["channel"], e["seq"])))
     assert "published 4 frames (12000 samples) on 3 channels" in results["8"][0]

@@ -5,16 +5,16 @@ block costs nothing to decode), with the typed error ``oversized_block``."""
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 
 import numpy as np
 import pytest
 from conftest import TIMEOUT, make_config, run_daemon
+from conftest import KeepSink as Keep
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.pipeline import Pipeline
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,
@@ -23,18 +23,6 @@ from sinewatch.schemas.codec import (
     encode_block_json,
 )
 from sinewatch.schemas.config import EstimatorRule, LimitsSection, RecordingSection
-
-
-class Keep(NullSink):
-    def __init__(self) -> None:
-        self.errors: list[dict] = []
-        self.estimates: list[dict] = []
-
-    def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.errors.append(json.loads(payload))
-
-    def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.estimates.append(json.loads(payload))
 
 
 def big_json(n: int = 800_000) -> bytes:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, make_config, run_daemon, take
+from conftest import TIMEOUT, make_config, publishing, run_daemon, take
 
 prometheus_client = pytest.importorskip("prometheus_client", reason="the metrics extra (pip install '.[metrics]')")
 from prometheus_client.parser import text_string_to_metric_families  # noqa: E402
@@ -72,10 +72,7 @@ def test_metrics_count_what_the_daemon_did_and_healthz_says_ok(tmp_path):
     nan_block = Block("m/a", 20, blocks[-1].t0_ns + 50_000_000, 10_000.0, np.array([0.1, np.nan]))
 
     def client(daemon, ep):
-        with connect([ep]) as s:
-            est, err = subscribe_estimates(s), subscribe_errors(s)
-            pub = BlockPublisher(s)
-            assert pub.wait_for_subscriber("m/a", TIMEOUT)
+        with publishing(ep, "m/a", subscribe_estimates, subscribe_errors) as (pub, [est, err]):
             for blk in blocks:
                 pub.publish_raw("m/a", encode_block_binary(blk))
             pub.publish_raw("m/a", encode_block_binary(nan_block))  # non_finite

@@ -51,22 +51,8 @@ def test_replay_reports_a_changed_estimate_and_exits_non_zero(tmp_path, capsys):
 def test_replay_with_another_estimator_writes_a_new_recording(tmp_path, capsys):
     [path], _ = record_run(tmp_path, n_blocks=40)
     out = tmp_path / "alt.mcap"
-    code = main(
-        [
-            "replay",
-            str(path),
-            "--no-progress",
-            "--estimator",
-            "ges-kalman",
-            "--param",
-            "r=0.5",
-            "--param",
-            "q=[1e-10,1e-10,1e-14,1e-14]",
-            "--out",
-            str(out),
-        ]
-    )
-    assert code == 0
+    estimator = ["--estimator", "ges-kalman", "--param", "r=0.5", "--param", "q=[1e-10,1e-10,1e-14,1e-14]"]
+    assert main(["replay", str(path), "--no-progress", *estimator, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "recorded vs re-run" in text and str(out) in text
     again = replay([out])  # the new file is itself a faithful recording

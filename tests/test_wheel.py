@@ -119,6 +119,19 @@ def test_installed_wheel_serves_feeds_and_replays_outside_the_source_tree(wheel,
     (work / "sinewatch.toml").write_text(
         f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\ndirectory = "runs"\n'
     )
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        """``sinewatch ARGS`` from the wheel's environment, in the user's folder."""
+        return subprocess.run(
+            [str(bin_ / "sinewatch"), *args],
+            cwd=work,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+
     serve = subprocess.Popen(
         [str(bin_ / "sinewatch"), "serve", "--config", "sinewatch.toml"],
         cwd=work,
@@ -130,27 +143,10 @@ def test_installed_wheel_serves_feeds_and_replays_outside_the_source_tree(wheel,
         assert serve.stderr is not None
         started = next((line for line in serve.stderr if "sinewatch daemon" in line), None)
         assert started is not None  # the line the daemon logs once it is listening
-        feed = subprocess.run(
-            [
-                str(bin_ / "sinewatch"),
-                "feed",
-                "--connect",
-                f"tcp/127.0.0.1:{port}",
-                "--scenario",
-                "demo-ramp",
-                "--duration",
-                "0.5",
-                "--fast",
-                "--wait",
-                "30",
-            ],
-            cwd=work,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=False,
-        )
+        feed = run(
+            "feed", "--connect", f"tcp/127.0.0.1:{port}", "--scenario", "demo-ramp", "--duration", "0.5", "--fast",
+            "--wait", "30",
+        )  # fmt: skip
         assert feed.returncode == 0, feed.stderr
         assert "published 5 blocks" in feed.stderr
     finally:
@@ -159,14 +155,6 @@ def test_installed_wheel_serves_feeds_and_replays_outside_the_source_tree(wheel,
     assert serve.returncode == 0, err
     assert "drained: 5 inputs, 5 estimates, 0 errors" in err
     [recording] = (work / "runs").glob("*.mcap")
-    replay = subprocess.run(
-        [str(bin_ / "sinewatch"), "replay", str(recording), "--no-progress"],
-        cwd=work,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    replay = run("replay", str(recording), "--no-progress")
     assert replay.returncode == 0, replay.stdout + replay.stderr
     assert "OK: all 5 recorded estimates reproduced bit for bit" in replay.stdout
