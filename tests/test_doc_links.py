@@ -11,7 +11,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted(
-    [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "deploy" / "README.md", *(ROOT / "docs").rglob("*.md")]
+    [
+        *(ROOT / n for n in ("README.md", "CHANGELOG.md", "CONTRIBUTING.md", "deploy/README.md")),
+        *(ROOT / "docs").rglob("*.md"),
+    ]
 )
 FENCE = re.compile(r"^(```|~~~).*?^\1", re.M | re.S)
 INLINE_CODE = re.compile(r"`[^`\n]*`")
