@@ -183,7 +183,7 @@ def real_input():
 
 
 def timing():
-    print("## Speed (this machine, now; compare estimators with `sinewatch bench kernels`)\n")
+    print("## Speed (the machine this runs on, now; compare estimators with `sinewatch bench kernels`)\n")
     cls = get("differential-rls")
     for label, fs, extra in (("example: fs 1 kHz, decimation 10, p = 5", 1000.0, {}),
                              ("fs 10 kHz, decimation 100, p = 5", 10_000.0, {}),

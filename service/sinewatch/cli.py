@@ -15,6 +15,13 @@ sinewatch plot RUN.mcap [...]       one channel's input and estimates as a PNG
 sinewatch status                    which daemon owns which channels (shards, standbys)
 sinewatch router [--listen EP]      a Zenoh router (from the eclipse-zenoh wheel)
 sinewatch bench kernels|e2e|accuracy|scenarios|gateway|...
+
+Why one module of about 900 lines: it is the table of contents of the command line. Each
+command here is a few lines that check its arguments and hand over to the module that does
+the work, imported when the command runs (so ``sinewatch config show`` loads no estimator);
+the parser beside them is one ``build_parser``. Split by command, the commands would need
+the connection and waiting helpers they share one layer down, which is the client library's
+place, not the CLI's.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import logging
 import re
 import sys
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, NoReturn, cast
@@ -119,35 +127,26 @@ def _check_scenarios(names: list[str]) -> None:
             )
 
 
-def _port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        port = -1
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a TCP port 0-65535 (0: any free one), got {text!r}")
-    return port
+def _int_in(lo: int, hi: int, expected: str) -> Callable[[str], int]:
+    """An argparse type: an integer from ``lo`` to ``hi``; anything else is one line saying what
+    was expected and what came."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = lo - 1
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return n
+
+    return parse
 
 
-def _count(text: str) -> int:
-    """``--workers N``: 1-256 processes, or 0 for one per core (as ``[workers] count``)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if not 0 <= n <= 256:
-        raise argparse.ArgumentTypeError(f"expected a number of processes 1-256, or 0 for one per core, got {text!r}")
-    return n
-
-
-def _frame_count(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if not 1 <= n <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a number of channels per frame 1-65535, got {text!r}")
-    return n
+_port = _int_in(0, 65535, "a TCP port 0-65535 (0: any free one)")
+# --workers N: 1-256 processes, or 0 for one per core (as [workers] count)
+_count = _int_in(0, 256, "a number of processes 1-256, or 0 for one per core")
+_frame_count = _int_in(1, 65535, "a number of channels per frame 1-65535")
 
 
 def enable_c37118(config: Any, port: int) -> None:
@@ -218,13 +217,7 @@ def cmd_feed(args: argparse.Namespace) -> int:
     with _connect("feed", args) as session:
         pub = BlockPublisher(session, prefix=args.key_prefix, encoding=args.encoding, dtype=args.dtype or "float32")
         feed = Feed(pub, channels, block_size=args.block, realtime=not args.fast, frame_channels=args.frame_channels)
-        first = feed.frames[0][0] if feed.frames else channels[0].channel
-        waiting = pub.wait_for_frame_subscriber if feed.frames else pub.wait_for_subscriber
-        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
-            raise ConfigError(
-                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
-                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
-            )
+        _wait_for_subscriber(pub, feed.frames[0][0] if feed.frames else channels[0].channel, bool(feed.frames), args)
         t0 = time.monotonic()
         try:
             sent = feed.run(args.duration)
@@ -267,6 +260,16 @@ def _wait_for_daemon(command: str, key: str, wait: Any, wait_s: float) -> bool:
         return bool(wait())
 
 
+def _wait_for_subscriber(pub: Any, first: str, frames: bool, args: argparse.Namespace) -> None:
+    """``feed`` waits until the daemon subscribes to its first message's key, saying so."""
+    waiting = pub.wait_for_frame_subscriber if frames else pub.wait_for_subscriber
+    if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
+        raise ConfigError(
+            f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
+            f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
+        )
+
+
 def _settle(session: Any, timeout_s: float = 5.0) -> None:
     """A round trip to the daemons' admin queryables before the session closes: blocks still
     in the session's send queue would be lost with it (``feed --fast`` ends right after its
@@ -281,7 +284,7 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
     from sinewatch.clients import BlockPublisher
     from sinewatch.comtrade_file import read_comtrade
     from sinewatch.console import make_console
-    from sinewatch.feed import publish_comtrade, publish_comtrade_frames
+    from sinewatch.feed import publish_comtrade
 
     if args.scenario:
         raise ConfigError("--comtrade: expected instead of --scenario, got both")
@@ -296,16 +299,10 @@ def _feed_comtrade(args: argparse.Namespace) -> int:
             first = interleaved_frames(record, args.block)[0][0]
         else:
             first = record.channels[0].channel
-        waiting = pub.wait_for_frame_subscriber if as_frames else pub.wait_for_subscriber
-        if not _wait_for_daemon("feed", pub.key(first), lambda: waiting(first, args.wait), args.wait):
-            raise ConfigError(
-                f"expected a subscriber on {pub.key(first)} within {args.wait} s, got none "
-                f"(is the daemon running and reachable at {', '.join(args.connect)}?)"
-            )
+        _wait_for_subscriber(pub, first, as_frames, args)
         t0 = time.monotonic()
         try:
-            send = publish_comtrade_frames if as_frames else publish_comtrade
-            sent = send(pub, record, block_size=args.block, realtime=not args.fast)
+            sent = publish_comtrade(pub, record, block_size=args.block, realtime=not args.fast, frames=as_frames)
         except KeyboardInterrupt:
             sent = pub.published
         dt = time.monotonic() - t0

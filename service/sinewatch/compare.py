@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sinewatch.replay import check_recording, read_recording
+from sinewatch.replay import check_recording, read_window
 from sinewatch.schemas.errors import ConfigError
 from sinewatch.window import ChannelFilter, Window, WindowError
 
@@ -126,13 +126,8 @@ def read_estimates(
     ``timestamp_ns``; and the recording's first log time."""
     check_recording(path)
     out: dict[str, dict[int, _Estimate]] = {}
-    for kind, item in read_recording(path):
-        if kind != "message":
-            continue
-        window.anchor(item.log_time_ns)
-        if window.after(item.log_time_ns):
-            break
-        if item.role != "estimate" or window.before(item.log_time_ns):
+    for kind, item in read_window(path, window):
+        if kind != "message" or item.role != "estimate":
             continue
         msg = json.loads(item.payload)
         if not channels.matches(msg["channel"]):

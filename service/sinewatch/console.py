@@ -15,11 +15,15 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.console import Console
 from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 from sinewatch.schemas.errors import OutputError
 
@@ -134,3 +138,18 @@ def _reason(exc: OSError) -> str:
     if isinstance(exc, FileExistsError | NotADirectoryError):
         return "a file in the way"
     return (exc.strerror or type(exc).__name__).lower()
+
+
+def byte_progress(console: Console, label: str, *, disable: bool) -> Progress:
+    """A progress bar over the bytes of the files being read (replay, export), gone when done."""
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn(label),
+        BarColumn(),
+        DownloadColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=disable,
+        transient=True,
+    )

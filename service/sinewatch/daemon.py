@@ -735,12 +735,13 @@ def _size(path: Path) -> int:
 
 
 def _optional(module: str, package: str, dist: str, extra: str, what: str) -> Any:
-    """``sinewatch.<module>``, which needs ``package`` from the ``extra`` extra: a missing
-    package is one clear line (a ConfigError), not a traceback."""
+    """The module ``module`` (its full dotted path, so that it reads as an import), which needs
+    ``package`` from the ``extra`` extra: a missing package is one clear line (a ConfigError),
+    not a traceback."""
     import importlib
 
     try:
-        return importlib.import_module(f"sinewatch.{module}")
+        return importlib.import_module(module)
     except ModuleNotFoundError as exc:
         if exc.name != package and not (exc.name or "").startswith(f"{package}."):
             raise
@@ -751,11 +752,11 @@ def _optional(module: str, package: str, dist: str, extra: str, what: str) -> An
 
 
 def _foxglove_module() -> Any:
-    return _optional("foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]")
+    return _optional("sinewatch.foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]")
 
 
 def _metrics_module() -> Any:
-    return _optional("metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]")
+    return _optional("sinewatch.metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]")
 
 
 def check_extras(config: SinewatchConfig) -> None:

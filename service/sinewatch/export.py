@@ -32,7 +32,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from sinewatch.replay import check_recording, read_recording
+from sinewatch.replay import check_recording, read_window
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import DecodeError, SinewatchError
 from sinewatch.schemas.frame import Frame, decode_input
@@ -258,15 +258,10 @@ def export(
     if samples:
         tables["samples"] = _Buffered(make(out_dir / f"{stem}.samples.{fmt}", SAMPLE_COLUMNS))
     try:
-        for kind, item in read_recording(path, on_progress):
+        for kind, item in read_window(path, window, on_progress):
             if kind == "incomplete":
                 result.incomplete = True
             if kind != "message":
-                continue
-            window.anchor(item.log_time_ns)
-            if window.after(item.log_time_ns):
-                break
-            if window.before(item.log_time_ns):
                 continue
             if item.role == "estimate":
                 msg = json.loads(item.payload)
@@ -304,23 +299,13 @@ def export(
 def run_export(args: Any) -> int:
     """``sinewatch export FILE.mcap --format csv|parquet [--channels GLOB ...] [--start T] [--end T]
     [--out DIR] [--samples]``."""
-    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from sinewatch.console import check_output_dir, make_console
+    from sinewatch.console import byte_progress, check_output_dir, make_console
 
     path = Path(args.path)
     check_recording(path)
     out_dir = check_output_dir(Path(args.out) if args.out else path.parent, "--out")
     console = make_console(stderr=True)
-    with Progress(
-        TextColumn("exporting"),
-        BarColumn(),
-        DownloadColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=args.no_progress or not console.is_terminal,
-        transient=True,
-    ) as progress:
+    with byte_progress(console, "exporting", disable=args.no_progress or not console.is_terminal) as progress:
         task = progress.add_task("export", total=path.stat().st_size)
         result = export(
             path,

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -29,7 +29,9 @@ from sinewatch.clients.publisher import BlockPublisher
 from sinewatch.comtrade_file import ComtradeRecord, interleaved_blocks, interleaved_frames
 from sinewatch.scenarios import Scenario, ScenarioStream, Truth
 from sinewatch.scenarios.power_quality_iec import get_pq, pq_names
+from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule
+from sinewatch.schemas.frame import Frame
 
 
 class Readable(Protocol):
@@ -236,35 +238,6 @@ def frame_groups(channels: list[FeedChannel], per_frame: int) -> list[tuple[str,
     return [(f"{members[0].channel.split('/', 1)[0]}-f{k}", members) for k, (_, members) in enumerate(groups)]
 
 
-def publish_comtrade_frames(
-    publisher: BlockPublisher,
-    record: ComtradeRecord,
-    *,
-    block_size: int = 1000,
-    realtime: bool = True,
-    stop: threading.Event | None = None,
-) -> int:
-    """:func:`publish_comtrade` with the analog channels sampled together sent as one
-    SampleFrame per ``block_size`` samples (:func:`sinewatch.comtrade_file.interleaved_frames`)."""
-    stop = stop or threading.Event()
-    frames = interleaved_frames(record, block_size)
-    if not frames:
-        return 0
-    first_ns = frames[0][1].t0_ns
-    start = time.monotonic()
-    sent = 0
-    for name, frame in frames:
-        if realtime:
-            end_s = (frame.t0_ns - first_ns) / 1e9 + frame.n_samples / frame.sample_rate_hz
-            if stop.wait(max(0.0, start + end_s - time.monotonic())):
-                break
-        elif stop.is_set():
-            break
-        publisher.publish_frame_raw(name, publisher.encode_frame(frame))
-        sent += 1
-    return sent
-
-
 def publish_comtrade(
     publisher: BlockPublisher,
     record: ComtradeRecord,
@@ -272,25 +245,46 @@ def publish_comtrade(
     block_size: int = 1000,
     realtime: bool = True,
     stop: threading.Event | None = None,
+    frames: bool = False,
 ) -> int:
     """Publish every analog channel of a COMTRADE record in blocks of ``block_size``
     samples at its recorded rate, in the order of the blocks' times (channels interleaved as
-    they were sampled); in real time, each block when its last sample is due. Returns the
-    number of blocks published."""
-    stop = stop or threading.Event()
+    they were sampled); in real time, each block when its last sample is due. With
+    ``frames`` the analog channels sampled together go as one SampleFrame per ``block_size``
+    samples (:func:`sinewatch.comtrade_file.interleaved_frames`). Returns the number of
+    messages published."""
+    if frames:
+        named = interleaved_frames(record, block_size)
+        return _paced(
+            [frame for _, frame in named],
+            lambda k: publisher.publish_frame_raw(named[k][0], publisher.encode_frame(named[k][1])),
+            realtime,
+            stop,
+        )
     blocks = interleaved_blocks(record, block_size)
-    if not blocks:
+    return _paced(
+        blocks, lambda k: publisher.publish_raw(blocks[k].channel, publisher.encode(blocks[k])), realtime, stop
+    )
+
+
+def _paced(
+    messages: Sequence[Block | Frame], send: Callable[[int], None], realtime: bool, stop: threading.Event | None
+) -> int:
+    """``send(k)`` for each message in turn; in real time each when its last sample is due,
+    counted from the first message's time. Returns how many were sent before ``stop``."""
+    stop = stop or threading.Event()
+    if not messages:
         return 0
-    first_ns = blocks[0].t0_ns
+    first_ns = messages[0].t0_ns
     start = time.monotonic()
     sent = 0
-    for block in blocks:
+    for k, msg in enumerate(messages):
         if realtime:
-            end_s = (block.t0_ns - first_ns) / 1e9 + block.n_samples / block.sample_rate_hz
+            end_s = (msg.t0_ns - first_ns) / 1e9 + msg.n_samples / msg.sample_rate_hz
             if stop.wait(max(0.0, start + end_s - time.monotonic())):
                 break
         elif stop.is_set():
             break
-        publisher.publish_raw(block.channel, publisher.encode(block))
+        send(k)
         sent += 1
     return sent

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.replay import check_recording, read_recording
+from sinewatch.replay import check_recording, read_window
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.errors import InputError, SinewatchError
 from sinewatch.schemas.frame import Frame, decode_input
@@ -60,13 +60,8 @@ def read_series(path: Path, channel: str, window: Window) -> Series:
     """The channel's input blocks and estimates in ``window`` of the recording at ``path``."""
     check_recording(path)
     s = Series(path)
-    for kind, item in read_recording(path):
+    for kind, item in read_window(path, window):
         if kind != "message":
-            continue
-        window.anchor(item.log_time_ns)
-        if window.after(item.log_time_ns):
-            break
-        if window.before(item.log_time_ns):
             continue
         if item.role == "estimate":
             msg = json.loads(item.payload)

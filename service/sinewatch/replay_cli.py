@@ -8,11 +8,10 @@ import logging
 from pathlib import Path
 
 from rich.console import Console
-from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from sinewatch.comtrade_file import is_comtrade
-from sinewatch.console import check_output_dir, make_console, print_table
+from sinewatch.console import byte_progress, check_output_dir, make_console, print_table
 from sinewatch.estimators import check_rules
 from sinewatch.replay import ReplayResult, check_recording, replay, replay_comtrade
 from sinewatch.schemas.config import EstimatorRule
@@ -69,15 +68,7 @@ def _replay_recordings(
 ) -> int:
     total = sum(p.stat().st_size for p in args.paths)
     done_before = {p: sum(q.stat().st_size for q in args.paths[:i]) for i, p in enumerate(args.paths)}
-    with Progress(
-        TextColumn("replaying"),
-        BarColumn(),
-        DownloadColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=args.no_progress,
-        transient=True,
-    ) as progress:
+    with byte_progress(console, "replaying", disable=args.no_progress) as progress:
         task = progress.add_task("replay", total=total)
         result = replay(
             args.paths,

@@ -10,21 +10,10 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
-from sinewatch.schemas.codec import (
-    BLOCK_BINARY_ENCODING,
-    BLOCK_JSON_ENCODING,
-    Block,
-    encode_block_binary,
-    encode_block_json,
-)
-from sinewatch.schemas.frame import (
-    FRAME_BINARY_ENCODING,
-    FRAME_JSON_ENCODING,
-    Frame,
-    encode_frame_binary,
-    encode_frame_json,
-    frame_encoding,
-)
+from sinewatch.schemas import codec
+from sinewatch.schemas import frame as frames
+from sinewatch.schemas.codec import Block
+from sinewatch.schemas.frame import Frame
 
 DEFAULT_HISTORY_BLOCKS = 1024
 HEARTBEAT_S = 0.5
@@ -107,20 +96,38 @@ class BlockPublisher:
         return f"{self.prefix}/{channel}"
 
     def _publisher(self, channel: str) -> _ChannelPublisher:
-        pub = self._publishers.get(channel)
-        if pub is None:
-            enc = BLOCK_BINARY_ENCODING if self.encoding == "binary" else BLOCK_JSON_ENCODING
-            pub = _ChannelPublisher(self.session, self.key(channel), enc, self.history)
-            self._publishers[channel] = pub
-        return pub
+        return self._declared(self._publishers, channel, codec.BLOCK_BINARY_ENCODING, codec.BLOCK_JSON_ENCODING)
 
     def _frame_publisher(self, name: str) -> _ChannelPublisher:
-        pub = self._frame_publishers.get(name)
+        return self._declared(self._frame_publishers, name, frames.FRAME_BINARY_ENCODING, frames.FRAME_JSON_ENCODING)
+
+    def _declared(
+        self, publishers: dict[str, _ChannelPublisher], name: str, binary: str, json: str
+    ) -> _ChannelPublisher:
+        """``name``'s publisher on ``{prefix}/{name}``, declared on first use."""
+        pub = publishers.get(name)
         if pub is None:
-            enc = FRAME_BINARY_ENCODING if self.encoding == "binary" else FRAME_JSON_ENCODING
-            pub = _ChannelPublisher(self.session, self.key(name), enc, self.history)
-            self._frame_publishers[name] = pub
+            encoding = binary if self.encoding == "binary" else json
+            pub = publishers[name] = _ChannelPublisher(self.session, self.key(name), encoding, self.history)
         return pub
+
+    def _put(self, pub: _ChannelPublisher, payload: bytes, encoding: str | None) -> None:
+        if not pub.matching:
+            self.unmatched += 1
+        if encoding is None:
+            pub.data.put(payload)
+        else:
+            pub.data.put(payload, encoding=zenoh.Encoding(encoding))
+        self.published += 1
+
+    def _advance(self, slot: str, seq: int | None, t0_ns: int | None, n: int, sample_rate_hz: float) -> tuple[int, int]:
+        """The seq and first-sample time of ``slot``'s next message of ``n`` samples (given ones
+        win), and the counters moved on past it."""
+        seq = self._next_seq.get(slot, 0) if seq is None else seq
+        t0 = self._next_t0.get(slot, self._start_ns) if t0_ns is None else t0_ns
+        self._next_seq[slot] = seq + 1
+        self._next_t0[slot] = t0 + round(n * 1e9 / sample_rate_hz)
+        return seq, t0
 
     def wait_for_subscriber(self, channel: str, timeout: float = 10.0) -> bool:
         """Block until something (the daemon) subscribes to this channel's key."""
@@ -129,7 +136,10 @@ class BlockPublisher:
     def wait_for_matching(self, channel: str, matching: bool, timeout: float = 10.0) -> bool:
         """Block until Zenoh says a subscriber does (or no longer does) match this channel's
         key; False on timeout. A dead link is noticed when Zenoh sees it drop, not at once."""
-        pub = self._publisher(channel)
+        return self._wait(self._publisher(channel), matching, timeout)
+
+    @staticmethod
+    def _wait(pub: _ChannelPublisher, matching: bool, timeout: float) -> bool:
         reached = threading.Event()
 
         def on_status(status: zenoh.MatchingStatus) -> None:
@@ -153,17 +163,14 @@ class BlockPublisher:
         unit: str | None = None,
     ) -> Block:
         """The Block that ``publish`` would send (advances the channel's seq and time)."""
-        seq = self._next_seq.get(channel, 0) if seq is None else seq
-        t0 = self._next_t0.get(channel, self._start_ns) if t0_ns is None else t0_ns
         samples = np.asarray(samples)
-        self._next_seq[channel] = seq + 1
-        self._next_t0[channel] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
+        seq, t0 = self._advance(channel, seq, t0_ns, samples.shape[0], sample_rate_hz)
         return Block(channel, seq, t0, float(sample_rate_hz), samples, unit)
 
     def encode(self, block: Block) -> bytes:
         if self.encoding == "binary":
-            return encode_block_binary(block, self.dtype)
-        return encode_block_json(block)
+            return codec.encode_block_binary(block, self.dtype)
+        return codec.encode_block_json(block)
 
     def publish(self, channel: str, samples: np.ndarray, sample_rate_hz: float, **kw: Any) -> Block:
         block = self.block(channel, samples, sample_rate_hz, **kw)
@@ -173,14 +180,7 @@ class BlockPublisher:
     def publish_raw(self, channel: str, payload: bytes, encoding: str | None = None) -> None:
         """Send a payload as is, optionally with another Zenoh encoding than the
         publisher's (tests use it for hostile input)."""
-        pub = self._publisher(channel)
-        if not pub.matching:
-            self.unmatched += 1
-        if encoding is None:
-            pub.data.put(payload)
-        else:
-            pub.data.put(payload, encoding=zenoh.Encoding(encoding))
-        self.published += 1
+        self._put(self._publisher(channel), payload, encoding)
 
     # ---- multi-channel frames ------------------------------------------------------------
     def frame(
@@ -197,27 +197,24 @@ class BlockPublisher:
         """The Frame that ``publish_frame`` would send (advances the frame's seq and time).
         ``samples`` is (n, C): column c is ``channels[c]``; ``time_quality`` the byte of
         :func:`sinewatch.schemas.codec.time_quality_byte` (0: not stated, a version 1 frame)."""
-        slot = "\n" + name  # a frame's own counters: no channel name holds a newline
-        seq = self._next_seq.get(slot, 0) if seq is None else seq
-        t0 = self._next_t0.get(slot, self._start_ns) if t0_ns is None else t0_ns
         samples = np.asarray(samples)
         if samples.ndim != 2 or samples.shape[1] != len(channels):
             raise ValueError(
                 f"samples: expected shape (n, {len(channels)}) (one column per channel), got {samples.shape}"
             )
-        self._next_seq[slot] = seq + 1
-        self._next_t0[slot] = t0 + round(samples.shape[0] * 1e9 / sample_rate_hz)
+        slot = "\n" + name  # a frame's own counters: no channel name holds a newline
+        seq, t0 = self._advance(slot, seq, t0_ns, samples.shape[0], sample_rate_hz)
         return Frame(tuple(channels), seq, t0, float(sample_rate_hz), samples, time_quality)
 
     def encode_frame(self, frame: Frame) -> bytes:
         if self.encoding == "binary":
-            return encode_frame_binary(frame, self.dtype)
-        return encode_frame_json(frame)
+            return frames.encode_frame_binary(frame, self.dtype)
+        return frames.encode_frame_json(frame)
 
     def frame_encoding(self, frame: Frame) -> str:
         """The Zenoh encoding ``encode_frame(frame)`` is sent with: format version 2 with a
         time quality, else 1 (what the frame publisher is declared with)."""
-        return frame_encoding(frame, self.encoding == "binary")
+        return frames.frame_encoding(frame, self.encoding == "binary")
 
     def publish_frame(
         self, name: str, channels: list[str] | tuple[str, ...], samples: np.ndarray, sample_rate_hz: float, **kw: Any
@@ -231,29 +228,11 @@ class BlockPublisher:
         return frame
 
     def publish_frame_raw(self, name: str, payload: bytes, encoding: str | None = None) -> None:
-        pub = self._frame_publisher(name)
-        if not pub.matching:
-            self.unmatched += 1
-        if encoding is None:
-            pub.data.put(payload)
-        else:
-            pub.data.put(payload, encoding=zenoh.Encoding(encoding))
-        self.published += 1
+        self._put(self._frame_publisher(name), payload, encoding)
 
     def wait_for_frame_subscriber(self, name: str, timeout: float = 10.0) -> bool:
         """Block until something (the daemon) subscribes to this frame's key."""
-        pub = self._frame_publisher(name)
-        reached = threading.Event()
-
-        def on_status(status: zenoh.MatchingStatus) -> None:
-            if status.matching:
-                reached.set()
-
-        listener = pub.watch.declare_matching_listener(on_status)
-        try:
-            return pub.matching or reached.wait(timeout)
-        finally:
-            listener.undeclare()
+        return self._wait(self._frame_publisher(name), True, timeout)
 
     def close(self) -> None:
         for pub in (*self._publishers.values(), *self._frame_publishers.values()):

@@ -286,6 +286,9 @@ def _decode_binary(payload: bytes, encoding: str) -> Frame:
 
 
 def _decode_json(payload: bytes) -> Frame:
+    # The steps of codec's JSON block decoder (parse, an object, the version, the model), kept
+    # apart: each message names a frame, a frame has two format versions, and the rows then
+    # need their widths checked against the channels, which a block has no notion of.
     try:
         raw = json.loads(payload)
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:

@@ -114,6 +114,9 @@ message InputBlock {
 
 // One multi-channel frame as the daemon received it (field numbers InputBlock's where the
 // meaning is the same): its samples sample-major, all channels at one instant side by side.
+// Its fields repeat InputBlock's on purpose: a standard protobuf reader (Foxglove, the mcap
+// CLI) decodes each message from its own descriptor in the file and knows no shared base,
+// and the field numbers, fixed by recordings already written, must stay as they are.
 message InputFrame {
   string zenoh_encoding = 1;
   fixed64 seq = 3;
@@ -151,16 +154,9 @@ _INPUT_FIELDS = (
     ("raw", 13, _BYTES, _OPTIONAL, ""),
     ("timestamp", 14, _MESSAGE, _OPTIONAL, ".sinewatch.Time"),
 )
+# InputFrame: InputBlock's fields where the meaning is the same (same numbers, same order), then its own
 _FRAME_FIELDS = (
-    ("zenoh_encoding", 1, _STRING, _OPTIONAL, ""),
-    ("seq", 3, _FIXED64, _OPTIONAL, ""),
-    ("t0_ns", 4, _SFIXED64, _OPTIONAL, ""),
-    ("sample_rate_hz", 5, _DOUBLE, _OPTIONAL, ""),
-    ("n_samples", 7, _UINT32, _OPTIONAL, ""),
-    ("samples", 9, _DOUBLE, _REPEATED, ""),
-    ("samples_f32", 10, _FLOAT, _REPEATED, ""),
-    ("raw", 13, _BYTES, _OPTIONAL, ""),
-    ("timestamp", 14, _MESSAGE, _OPTIONAL, ".sinewatch.Time"),
+    *(f for f in _INPUT_FIELDS if f[0] not in {"channel", "columns", "unit", "binary_version", "binary_flags"}),
     ("channels", 15, _STRING, _REPEATED, ""),
     ("frame_version", 16, _UINT32, _OPTIONAL, ""),
     ("time_quality", 17, _UINT32, _OPTIONAL, ""),

@@ -120,13 +120,7 @@ class _Accumulator:
                 self.sums[name] += v * v  # (A1)
             self.counts[name] += 1
         for name, a in w.arrays.items():
-            a = np.asarray(a, dtype=np.float64)
-            ok = np.isfinite(a)
-            if name not in self.array_sums:
-                self.array_sums[name] = np.zeros(a.shape)
-                self.array_counts[name] = np.zeros(a.shape, dtype=np.int64)
-            self.array_sums[name] += np.where(ok, a * a, 0.0)
-            self.array_counts[name] += ok
+            self._add_squares(name, np.asarray(a, dtype=np.float64))
 
     def add_interval(self, acc: _Accumulator) -> None:
         """(A6): one closed interval's aggregate as one value (RMS quantities); cycles and
@@ -148,13 +142,16 @@ class _Accumulator:
                 self.sums[name] += v * v
             self.counts[name] += 1
         for name, vals in acc.arrays().items():
-            a = np.array([math.nan if v is None else v for v in vals], dtype=np.float64)
-            ok = np.isfinite(a)
-            if name not in self.array_sums:
-                self.array_sums[name] = np.zeros(a.shape)
-                self.array_counts[name] = np.zeros(a.shape, dtype=np.int64)
-            self.array_sums[name] += np.where(ok, a * a, 0.0)
-            self.array_counts[name] += ok
+            self._add_squares(name, np.array([math.nan if v is None else v for v in vals], dtype=np.float64))
+
+    def _add_squares(self, name: str, a: np.ndarray) -> None:
+        """(A1) per element of an array quantity: its square summed where it is finite, and counted."""
+        ok = np.isfinite(a)
+        if name not in self.array_sums:
+            self.array_sums[name] = np.zeros(a.shape)
+            self.array_counts[name] = np.zeros(a.shape, dtype=np.int64)
+        self.array_sums[name] += np.where(ok, a * a, 0.0)
+        self.array_counts[name] += ok
 
     def state(self) -> dict[str, Any]:
         return {

@@ -210,11 +210,22 @@ class ScenarioStream:
         t = (self.position + np.arange(n, dtype=np.float64)) / sc.sample_rate_hz
         samples, truth = sc.clean(t)
         if sc.noise_std > 0:
-            noise = sc.noise_std * self._rng.standard_normal(n)
-            if samples.ndim == 2:  # noise on the measured signal (column 0) only
-                samples = samples.copy()
-                samples[:, 0] += noise
-            else:
-                samples = samples + noise
+            samples = self._add_noise(samples, sc.noise_std)
         self.position += n
         return samples, truth
+
+    def _add_noise(self, samples: np.ndarray, std: float) -> np.ndarray:
+        noise = std * self._rng.standard_normal(samples.shape[0])
+        if samples.ndim == 2:  # noise on the measured signal (column 0) only
+            samples = samples.copy()
+            samples[:, 0] += noise
+            return samples
+        return samples + noise
+
+
+class NoiseOnEveryColumn(ScenarioStream):
+    """Noise on every column (drawn row by row, so block-wise reads equal one read): both
+    components of an I/Q pair, every phase of a three-phase set."""
+
+    def _add_noise(self, samples: np.ndarray, std: float) -> np.ndarray:
+        return samples + std * self._rng.standard_normal(samples.shape)

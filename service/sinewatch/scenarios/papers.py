@@ -50,7 +50,7 @@ import numpy as np
 from sinewatch.estimators.differential_rls import cyclic_intervals
 from sinewatch.scenarios import BenchInfo, Component, Event, Scenario, ScenarioStream, Truth, declare, register
 from sinewatch.scenarios._library import served_by
-from sinewatch.scenarios.base import wrap_phase
+from sinewatch.scenarios.base import NoiseOnEveryColumn, wrap_phase
 
 TWO_PI = 2.0 * math.pi
 
@@ -218,20 +218,7 @@ class Paper001IQ(Scenario):
         return iq, Truth(f[:, None], a[:, None], wrap_phase(ph)[:, None], np.zeros(t.size), rocof[:, None])
 
     def stream(self, seed: int = 0) -> ScenarioStream:
-        return _IQStream(self, seed)
-
-
-class _IQStream(ScenarioStream):
-    """Noise on both components (drawn row by row, so block-wise reads equal one read)."""
-
-    def read(self, n: int) -> tuple[np.ndarray, Truth]:
-        sc = self.scenario
-        t = (self.position + np.arange(n, dtype=np.float64)) / sc.sample_rate_hz
-        samples, truth = sc.clean(t)
-        if sc.noise_std > 0:
-            samples = samples + sc.noise_std * self._rng.standard_normal((n, 2))
-        self.position += n
-        return samples, truth
+        return NoiseOnEveryColumn(self, seed)  # noise on both components
 
 
 #: differential-rls on paper 001's I/Q at 50 Hz, Fig. 1: n = 4, decimation 30, 27 (dt = 0.6 s,

@@ -50,7 +50,7 @@ import numpy as np
 
 from sinewatch.power_quality.limits import LIMITS, class_i_limit
 from sinewatch.power_quality.sequence import phases_from_sequence, symmetrical_components
-from sinewatch.scenarios.base import Scenario, ScenarioStream, Truth, wrap_phase
+from sinewatch.scenarios.base import NoiseOnEveryColumn, Scenario, ScenarioStream, Truth, wrap_phase
 from sinewatch.schemas.errors import ParameterError
 
 MAX_ORDER = 50
@@ -202,7 +202,7 @@ class PqScenario(Scenario):
         return (y[:, 0] if self.n_phases == 1 else y), truth
 
     def stream(self, seed: int = 0) -> ScenarioStream:
-        return _AllPhasesNoise(self, seed)
+        return NoiseOnEveryColumn(self, seed)  # noise on every phase
 
     def describe(self) -> dict[str, Any]:
         d = super().describe()
@@ -210,17 +210,6 @@ class PqScenario(Scenario):
         if self.interharmonics:
             d["interharmonics"] = [{"ratio": r, "rms": c, "phase_rad": ph} for r, c, ph in self.interharmonics]
         return d
-
-
-class _AllPhasesNoise(ScenarioStream):
-    def read(self, n: int) -> tuple[np.ndarray, Truth]:
-        sc = self.scenario
-        t = (self.position + np.arange(n, dtype=np.float64)) / sc.sample_rate_hz
-        samples, truth = sc.clean(t)
-        if sc.noise_std > 0:
-            samples = samples + sc.noise_std * self._rng.standard_normal(samples.shape)
-        self.position += n
-        return samples, truth
 
 
 def _balanced_harmonics(
