@@ -81,11 +81,11 @@ soak: $(STAMP)
 
 # Windowed estimators (nls, ipdft) against their own window's exact CRLB, with calibration.
 bench-crlb: $(STAMP)
-	$(BIN)/python -m sinewatch.bench.crlb_window --estimators nls,ipdft --trials 1000
+	$(BIN)/python -m sinewatch.apps.bench.crlb_window --estimators nls,ipdft --trials 1000
 
 # The power-quality stage's cost per block against the estimator alone.
 bench-pq: $(STAMP)
-	$(BIN)/python -m sinewatch.bench.pq_stage
+	$(BIN)/python -m sinewatch.apps.bench.pq_stage
 
 # The IEEE C37.118.1 M-class suite (pmu), at 50 and 60 Hz at their highest reporting rates.
 bench-compliance: $(STAMP)
@@ -100,7 +100,7 @@ bench-pq-accuracy: $(STAMP)
 
 # Every estimator through third-party interruptions and sags (pypqd): valid, converged, recovery.
 bench-validity: $(STAMP)
-	$(BIN)/python -m sinewatch.bench.validity
+	$(BIN)/python -m sinewatch.apps.bench.validity
 
 # The C37.118.2 server's cost: latency with no client, a reading and a stalled PDC.
 bench-c37118: $(STAMP)
@@ -128,8 +128,8 @@ node-readers:
 
 # Size and write cost of an input record in each well-known MCAP encoding (protobuf, jsonschema, flatbuffer).
 bench-input-encoding: $(STAMP)
-	$(BIN)/python -m sinewatch.bench.input_encoding
+	$(BIN)/python -m sinewatch.apps.bench.input_encoding
 
 # The live view's subprotocol relay (foxglove.websocket.v1 clients) against a client of the SDK's own port.
 bench-foxglove-relay: $(STAMP)
-	$(BIN)/python -m sinewatch.bench.foxglove_relay
+	$(BIN)/python -m sinewatch.apps.bench.foxglove_relay

@@ -424,7 +424,7 @@ def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[
     cut short at its last complete chunk): independent of any subscriber's connection.
     Each estimate gets ``_published_ns``: the wall time its daemon recorded it at, as it
     published it (a subscriber on a loaded machine was seen to get one 5.5 s later)."""
-    from sinewatch.replay import read_recording
+    from sinewatch.runtime.replay import read_recording
 
     out: dict[str, list[dict[str, Any]]] = {}
     for d in daemon_ids:

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from sinewatch.core.pipeline import NullSink, Pipeline
 from sinewatch.estimators import available, get
-from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.power_quality.stage import warm_up
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig

@@ -21,12 +21,12 @@ from typing import Any, TypeVar
 
 import pytest
 
+from sinewatch.apps.feed import make_channels
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.daemon import Daemon
-from sinewatch.feed import make_channels
-from sinewatch.pipeline import NullSink, Pipeline
-from sinewatch.recorder import McapRecorder
+from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.daemon import Daemon
 from sinewatch.scenarios.demo import KALMAN_10K
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import (
@@ -292,7 +292,7 @@ def serve_comtrade(tmp_path: Path, cfg: Path, *feed_args: str, name: str = "daem
 def cli_without(module: str, argv: list[str]) -> subprocess.CompletedProcess[str]:
     """``sinewatch ARGV`` in a fresh interpreter in which ``module`` cannot be imported, as if
     the optional package were not installed."""
-    code = f"import sys; sys.modules[{module!r}] = None\nfrom sinewatch.cli import main\nsys.exit(main({argv!r}))"
+    code = f"import sys; sys.modules[{module!r}] = None\nfrom sinewatch.apps.cli import main\nsys.exit(main({argv!r}))"
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
 
 

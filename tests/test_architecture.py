@@ -64,7 +64,7 @@ def test_validating_a_config_loads_no_estimator_and_no_numba(tmp_path):
 
 def test_config_show_loads_no_estimator_and_no_numba():
     loaded = _modules_loaded_by(
-        "import contextlib, io\nfrom sinewatch.cli import main\n"
+        "import contextlib, io\nfrom sinewatch.apps.cli import main\n"
         "with contextlib.redirect_stdout(io.StringIO()): main(['config', 'show'])"
     )
     assert "numba" not in loaded and not any(m.startswith("sinewatch.estimators") for m in loaded)

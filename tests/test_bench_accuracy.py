@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from sinewatch import crlb, estimators, scenarios
-from sinewatch.bench import accuracy, report, runner
-from sinewatch.bench import scenarios as bench_scenarios
-from sinewatch.bench.args import add_accuracy_arguments, add_scenarios_arguments
-from sinewatch.bench.metrics import match_components, overshoot_pct, settle_time, tve, wrap
-from sinewatch.bench.params import NotApplicable, estimator_params, generic_params
-from sinewatch.bench.runner import evaluate
-from sinewatch.bench.scenarios import scenario_hints, select_scenarios
+from sinewatch.apps.bench import accuracy, report, runner
+from sinewatch.apps.bench import scenarios as bench_scenarios
+from sinewatch.apps.bench.args import add_accuracy_arguments, add_scenarios_arguments
+from sinewatch.apps.bench.metrics import match_components, overshoot_pct, settle_time, tve, wrap
+from sinewatch.apps.bench.params import NotApplicable, estimator_params, generic_params
+from sinewatch.apps.bench.runner import evaluate
+from sinewatch.apps.bench.scenarios import scenario_hints, select_scenarios
 from sinewatch.estimators.base import EstimatorParams
 from sinewatch.schemas.errors import ParameterError
 
@@ -308,7 +308,7 @@ def test_c37_rocof_comes_from_the_estimator_when_it_publishes_one(monkeypatch):
 
 
 def test_pq_families_through_the_bench_scored_against_the_iec_limits(tmp_path, capsys):
-    from sinewatch.bench import pq_accuracy
+    from sinewatch.apps.bench import pq_accuracy
     from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams
     from sinewatch.power_quality.limits import LIMITS
     from sinewatch.power_quality.reports import window_sequence
@@ -365,7 +365,7 @@ def test_pq_families_through_the_bench_scored_against_the_iec_limits(tmp_path, c
 
 
 def test_pq_scoring_fails_a_measurement_outside_the_class_i_limit():
-    from sinewatch.bench import pq_accuracy
+    from sinewatch.apps.bench import pq_accuracy
     from sinewatch.scenarios.power_quality_iec import get_pq
 
     # white noise of 1 % of nominal (seeded): the 0.1-0.9 % harmonics, held to 0.05 % of

@@ -10,8 +10,8 @@ import sys
 
 import pytest
 
-from sinewatch.bench import startup
-from sinewatch.bench.args import add_startup_arguments
+from sinewatch.apps.bench import startup
+from sinewatch.apps.bench.args import add_startup_arguments
 
 HEAVY = (
     "numba",
@@ -26,16 +26,16 @@ HEAVY = (
 
 
 def test_building_the_cli_parser_imports_no_bench_and_no_maths():
-    code = "import sys; from sinewatch.cli import build_parser; build_parser(); print('\\n'.join(sorted(sys.modules)))"
+    code = "import sys; from sinewatch.apps.cli import build_parser; build_parser(); print('\\n'.join(sorted(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert "sinewatch.bench.args" in out  # the check sees the parser's imports
-    bench = [m for m in out if m.startswith("sinewatch.bench.")]
-    assert bench == ["sinewatch.bench.args"]
+    assert "sinewatch.apps.bench.args" in out  # the check sees the parser's imports
+    bench = [m for m in out if m.startswith("sinewatch.apps.bench.")]
+    assert bench == ["sinewatch.apps.bench.args"]
     assert [m for m in out if m.split(".")[0] in HEAVY or m.startswith(HEAVY)] == []
 
 
 def test_every_bench_command_parses_and_resolves_to_its_module():
-    from sinewatch.cli import build_parser
+    from sinewatch.apps.cli import build_parser
 
     parser = build_parser()
     for argv, module in (

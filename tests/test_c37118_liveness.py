@@ -11,7 +11,7 @@ import math
 from conftest import TIMEOUT
 from test_c37118_station import T, estimate
 
-from sinewatch.c37118_server import C37118Server
+from sinewatch.outputs.c37118_server import C37118Server
 from sinewatch.schemas.c37118 import Command, DataError, decode_config, decode_data, decode_frame, encode_command
 from sinewatch.schemas.config import C37118Section, C37118Station
 

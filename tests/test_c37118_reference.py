@@ -13,7 +13,7 @@ import math
 import pytest
 from conftest import TIMEOUT, make_config, run_daemon
 
-from sinewatch.bench.pmu_reference import collect_estimates, read_reference, score
+from sinewatch.apps.bench.pmu_reference import collect_estimates, read_reference, score
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
 from sinewatch.clients.c37118 import C37118Reader
 from sinewatch.scenarios import get as get_scenario

@@ -13,10 +13,10 @@ import pytest
 from conftest import TIMEOUT, make_config, run_daemon
 from test_c37118_served import CHANNELS, ID, PARAMS, f32, publish_interleaved, report_times, station_blocks
 
-from sinewatch.c37118_server import C37118Server, Station, synchrophasor
-from sinewatch.cli import main as cli_main
+from sinewatch.apps.cli import main as cli_main
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.daemon import Daemon
+from sinewatch.outputs.c37118_server import C37118Server, Station, synchrophasor
+from sinewatch.runtime.daemon import Daemon
 from sinewatch.schemas.c37118 import (
     Command,
     DataError,

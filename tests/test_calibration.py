@@ -1,7 +1,7 @@
 """Reported standard deviations against the actual error, every setting at its default.
 
 The signals and the statistic are those of ``sinewatch bench calibration``
-(:mod:`sinewatch.bench.calibration`): one estimate per seeded trial, error / reported std.
+(:mod:`sinewatch.apps.bench.calibration`): one estimate per seeded trial, error / reported std.
 The default run uses few trials, so its bounds (sd 0.78-1.28, |mean| <= 0.4) are wider than
 the target (sd 0.9-1.1, |mean| <= 0.3), but a std off by a factor of 2 either way (sd 0.64 or
 less, 1.56 or more) fails them; the slow run checks the target itself on 300 trials per cell.
@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from sinewatch.bench.calibration import PARAMETERS, normalised_errors, run_calibration, trial_signal
+from sinewatch.apps.bench.calibration import PARAMETERS, normalised_errors, run_calibration, trial_signal
 from sinewatch.estimators import create
 
 QUICK_TRIALS = 60

@@ -8,7 +8,7 @@ import pytest
 from conftest import KeepSink as Keep
 from conftest import make_config
 
-from sinewatch.pipeline import Pipeline
+from sinewatch.core.pipeline import Pipeline
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import LimitsSection
 

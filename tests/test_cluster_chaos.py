@@ -49,7 +49,7 @@ from cluster_procs import (
 )
 
 from sinewatch.clients import connect
-from sinewatch.cluster import shard_of
+from sinewatch.runtime.cluster import shard_of
 
 SHARDS = {"sinewatch_in_1of2": "1/2", "sinewatch_in_2of2": "2/2"}  # shard_id -> shard
 DAEMONS = {"a1": ("1/2", "active"), "b1": ("1/2", "standby"), "a2": ("2/2", "active"), "b2": ("2/2", "standby")}

@@ -48,8 +48,8 @@ from cluster_procs import (
 )
 
 from sinewatch.clients import connect
-from sinewatch.cluster import shard_of
-from sinewatch.replay import replay
+from sinewatch.runtime.cluster import shard_of
+from sinewatch.runtime.replay import replay
 
 WAIT = 120.0  # the longest any condition may take on a loaded 2-core machine (a CPU burner, a second copy of this file)
 TTL_S = 3  # lease_ttl_s of the daemons (cluster_procs.daemon_config)

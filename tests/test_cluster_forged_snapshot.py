@@ -15,7 +15,7 @@ from cluster_procs import Estimates, Router, Tokens, stop_all
 from test_cluster_failover import daemon, etcd  # noqa: F401 (etcd: fixture)
 
 from sinewatch.clients import BlockPublisher, connect
-from sinewatch.cluster import shard_id_of
+from sinewatch.runtime.cluster import shard_id_of
 from sinewatch.schemas.config import SinewatchConfig
 
 FORGED = [b"not a snapshot", b'{"channels": [{"name": "x"}]}']

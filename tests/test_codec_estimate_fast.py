@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from conftest import make_config
 
+from sinewatch.core.pipeline import Channel, NullSink, Pipeline, estimate_model
 from sinewatch.estimators import available, get
 from sinewatch.estimators.base import Track, TrackStd
-from sinewatch.pipeline import Channel, NullSink, Pipeline, estimate_model
 from sinewatch.schemas.codec import TIME_QUALITY_JSON, Block, encode_block_binary, encode_estimate, json_string
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.messages import Estimate, Fencing

@@ -11,15 +11,15 @@ import pytest
 from mcap.reader import make_reader
 from test_replay_window import T0, messages, record
 
-from sinewatch.cli import main
-from sinewatch.compare import compare
+from sinewatch.apps.cli import main
+from sinewatch.apps.compare import compare
+from sinewatch.core.window import ChannelFilter, Window
 from sinewatch.estimators import get
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.scenarios.demo import KALMAN_10K
 from sinewatch.schemas.codec import decode_block
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.input_record import decode_input_record
-from sinewatch.window import ChannelFilter, Window
 
 OTHER = EstimatorRule(match="sinewatch/in/**", estimator="ges-kalman", params={**KALMAN_10K, "r": 1e-2})
 
@@ -180,8 +180,8 @@ def test_a_window_of_a_frame_recording_replays_and_tracks_its_channels(tmp_path)
     gives each selected channel's rows, as its estimator computes them."""
     from conftest import make_config
 
-    from sinewatch.pipeline import Pipeline
-    from sinewatch.recorder import McapRecorder
+    from sinewatch.core.pipeline import Pipeline
+    from sinewatch.outputs.recorder import McapRecorder
     from sinewatch.schemas.config import RecordingSection
     from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
 

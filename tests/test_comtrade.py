@@ -20,7 +20,7 @@ import pytest
 from conftest import cli_without, serve_comtrade, sinewatch
 from mcap.reader import make_reader
 
-from sinewatch.comtrade_file import ComtradeError, read_comtrade
+from sinewatch.core.comtrade_file import ComtradeError, read_comtrade
 
 FS = 2000.0
 F = 50.2
@@ -267,7 +267,7 @@ def test_a_record_shorter_than_the_estimator_window_is_told(tmp_path):
     window and the length, and the Python API raises. A record that is long enough for its
     estimator still replays with exit code 0 (the test above)."""
     from sinewatch.estimators import get as get_estimator
-    from sinewatch.replay import replay_comtrade
+    from sinewatch.runtime.replay import replay_comtrade
     from sinewatch.schemas.config import EstimatorRule
 
     need = get_estimator("ipdft")(FS, {"nominal_frequency_hz": 50, "window_cycles": 10}).memory_samples

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from sinewatch.cli import main
+from sinewatch.apps.cli import main
 from sinewatch.clients.session import zenoh_config
 from sinewatch.estimators import check_rules
 from sinewatch.schemas.config import load_config

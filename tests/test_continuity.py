@@ -10,8 +10,8 @@ import pytest
 from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.continuity import Continuity, check_continuity
-from sinewatch.replay import replay
+from sinewatch.core.continuity import Continuity, check_continuity
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.errors import InputError

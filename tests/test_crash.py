@@ -19,7 +19,7 @@ import numpy as np
 from conftest import TIMEOUT, make_config
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_estimates
-from sinewatch.replay import read_recording, replay
+from sinewatch.runtime.replay import read_recording, replay
 from sinewatch.schemas.config import RecordingSection
 
 FLUSH_S = 0.25

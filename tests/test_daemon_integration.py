@@ -13,10 +13,10 @@ import pytest
 from conftest import TIMEOUT, clean_estimates, make_config, publishing, run_daemon, take
 from mcap.reader import make_reader
 
+from sinewatch.apps.feed import Feed, make_channels
 from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates
-from sinewatch.daemon import Daemon
-from sinewatch.feed import Feed, make_channels
-from sinewatch.replay import replay
+from sinewatch.runtime.daemon import Daemon
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary, encode_block_json
 from sinewatch.schemas.config import LimitsSection
 from sinewatch.schemas.messages import ErrorReport, Estimate

@@ -7,8 +7,8 @@ import io
 
 from rich.console import Console
 
-from sinewatch.demo import run_demo
-from sinewatch.replay import replay
+from sinewatch.apps.demo import run_demo
+from sinewatch.runtime.replay import replay
 
 
 def test_demo_runs_end_to_end_and_its_recording_replays(tmp_path):
@@ -29,8 +29,8 @@ def test_demo_runs_end_to_end_and_its_recording_replays(tmp_path):
 
 def test_demo_serves_each_channel_with_its_scenarios_suggested_estimator(tmp_path):
     from sinewatch import scenarios
-    from sinewatch.demo import demo_config
-    from sinewatch.feed import make_channels
+    from sinewatch.apps.demo import demo_config
+    from sinewatch.apps.feed import make_channels
     from sinewatch.scenarios.demo import DEMO_CHANNELS
 
     assert len(DEMO_CHANNELS) == 8 and all("demo" in scenarios.get(n).tags for n in DEMO_CHANNELS)

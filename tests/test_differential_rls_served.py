@@ -14,10 +14,10 @@ import math
 import numpy as np
 from conftest import make_config, publishing, replay_recording, run_daemon, serve_config_feed_tail, take
 
+from sinewatch.apps.feed import make_channels, rules_for
 from sinewatch.clients import subscribe_errors, subscribe_estimates
 from sinewatch.estimators import create
-from sinewatch.feed import make_channels, rules_for
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule

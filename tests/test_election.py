@@ -10,7 +10,7 @@ import time
 import pytest
 from cluster_procs import Proxy, etcd_server
 
-from sinewatch.election import LeaseElection
+from sinewatch.runtime.election import LeaseElection
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.errors import ConfigError
 

@@ -139,7 +139,7 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
     channel and the streaming FFT, and every bank below the target says why (no timing asserted)."""
     import argparse
 
-    from sinewatch.bench import kernels
+    from sinewatch.apps.bench import kernels
 
     out_json = tmp_path / "k.json"
     names = ["sogi-fll", "pmu"]

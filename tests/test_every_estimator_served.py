@@ -8,7 +8,7 @@ import pytest
 from conftest import make_config, serve_blocks
 
 from sinewatch.estimators import available, get
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule
 from sinewatch.schemas.messages import Estimate

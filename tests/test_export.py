@@ -18,8 +18,8 @@ from conftest import cli_without, sinewatch
 from mcap.reader import make_reader
 from rich.console import Console
 
-from sinewatch.demo import run_demo
-from sinewatch.export import ESTIMATE_COLUMNS, SAMPLE_COLUMNS
+from sinewatch.apps.demo import run_demo
+from sinewatch.apps.export import ESTIMATE_COLUMNS, SAMPLE_COLUMNS
 from sinewatch.schemas.codec import decode_block
 from sinewatch.schemas.input_record import decode_input_record
 

@@ -20,9 +20,9 @@ import pytest
 from conftest import TIMEOUT, clean_estimates, make_config, run_daemon, take
 from mcap.reader import make_reader
 
+from sinewatch.apps.feed import make_channels
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_errors, subscribe_estimates
-from sinewatch.feed import make_channels
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 from sinewatch.schemas.messages import ErrorReport, SinkStatus, Status

@@ -27,7 +27,7 @@ websockets = pytest.importorskip("websockets")
 
 from sinewatch.clients import subscribe_estimates  # noqa: E402
 from sinewatch.clients.session import free_loopback_port  # noqa: E402
-from sinewatch.foxglove_live import LOG_TOPIC, summarise  # noqa: E402
+from sinewatch.outputs.foxglove_live import LOG_TOPIC, summarise  # noqa: E402
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary  # noqa: E402
 from sinewatch.schemas.config import FoxgloveSection  # noqa: E402
 
@@ -198,7 +198,9 @@ def test_without_the_foxglove_extra_serve_says_so_in_one_line(tmp_path):
         f'[zenoh]\nlisten = ["tcp/127.0.0.1:{free_loopback_port()}"]\n[recording]\nenabled = false\n'
         '[[rules]]\nestimator = "ipdft"\n'
     )
-    code = "import sys; sys.modules['foxglove'] = None; from sinewatch.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = (
+        "import sys; sys.modules['foxglove'] = None; from sinewatch.apps.cli import main; sys.exit(main(sys.argv[1:]))"
+    )
     r = subprocess.run(
         [sys.executable, "-c", code, "serve", "--config", str(cfg), "--foxglove", "0"],
         capture_output=True,
@@ -217,7 +219,7 @@ def test_without_the_foxglove_extra_serve_says_so_in_one_line(tmp_path):
 def test_input_summaries_past_the_rate_are_skipped_and_counted(tmp_path):
     """input_rate_hz below one a second: the bucket never holds a whole token, so every
     block is skipped on the event loop's side (counted), none reaches the worker."""
-    from sinewatch.foxglove_live import FoxgloveSink
+    from sinewatch.outputs.foxglove_live import FoxgloveSink
 
     config = make_config(tmp_path, foxglove=FoxgloveSection(port=0, input_rate_hz=0.5))
     sink = FoxgloveSink(config)

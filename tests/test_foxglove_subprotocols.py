@@ -22,7 +22,7 @@ from test_foxglove_live import FoxgloveClient, last_seq  # noqa: E402
 
 from sinewatch.clients import subscribe_estimates  # noqa: E402
 from sinewatch.clients.session import free_loopback_port  # noqa: E402
-from sinewatch.foxglove_live import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, offered_subprotocols  # noqa: E402
+from sinewatch.outputs.foxglove_live import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, offered_subprotocols  # noqa: E402
 from sinewatch.schemas.codec import Block, encode_block_binary  # noqa: E402
 from sinewatch.schemas.config import FoxgloveSection  # noqa: E402
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from conftest import make_config, run_daemon, take
 
+from sinewatch.apps.export import export
 from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates, subscribe_status
-from sinewatch.export import export
-from sinewatch.pipeline import NullSink, Pipeline
-from sinewatch.replay import read_recording, replay
+from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.runtime.replay import read_recording, replay
 from sinewatch.schemas.codec import (
     SYNC_NAMES,
     TIME_QUALITY_JSON,
@@ -600,7 +600,7 @@ def test_feed_sends_its_scenarios_as_frames_and_every_channel_is_estimated(tmp_p
     """``Feed(frame_channels=3)`` (``sinewatch feed --frame-channels 3``) over real Zenoh:
     five channels go as a frame of three and a frame of two, each channel estimated on its
     own key as if it had been fed alone."""
-    from sinewatch.feed import Feed, make_channels, rules_for
+    from sinewatch.apps.feed import Feed, make_channels, rules_for
 
     channels = make_channels(["demo-ramp"], copies=5, seed=3)
     config = make_config(tmp_path, rules=rules_for(channels))
@@ -674,7 +674,7 @@ def test_the_intake_queue_counts_a_frame_as_its_channels(tmp_path):
     import threading
     from collections import Counter
 
-    from sinewatch.daemon import Intake, IntakeCounters
+    from sinewatch.runtime.daemon import Intake, IntakeCounters
 
     intake = Intake.__new__(Intake)  # its queue logic only: no session, no thread
     intake._capacity, intake._policy = 10, "drop"
@@ -696,7 +696,7 @@ def test_the_intake_queue_counts_a_frame_as_its_channels(tmp_path):
 
 def test_foxglove_summarises_each_readable_channel_of_a_frame():
     pytest.importorskip("foxglove")
-    from sinewatch.foxglove_live import summaries
+    from sinewatch.outputs.foxglove_live import summaries
 
     x = _signal(0, 3)
     x[5, 1] = np.inf

@@ -7,9 +7,9 @@ from __future__ import annotations
 from conftest import make_config
 from test_fault_isolation import _blocks, _fill, _small_disk
 
-from sinewatch.cli import main
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import McapRecorder
+from sinewatch.apps.cli import main
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 

@@ -23,7 +23,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.core.pipeline import NullSink, Pipeline
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,

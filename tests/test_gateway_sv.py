@@ -27,7 +27,7 @@ sv = pytest.importorskip("open61850.sv", reason="the sv extra (open61850) is not
 pcap = pytest.importorskip("open61850.pcap")
 svp = pytest.importorskip("open61850.sv_publisher")
 
-from sinewatch.gateway import GatewayOptions, SvGateway  # noqa: E402
+from sinewatch.apps.gateway import GatewayOptions, SvGateway  # noqa: E402
 
 RATE = 4000
 START = 1_700_000_000  # the UTC second of the first sample
@@ -198,7 +198,7 @@ def test_every_smp_synch_value_becomes_the_frames_time_quality_and_each_change_i
     """smpSynch per IEC 61850-9-2 Ed. 2.1: 0 none, 1 local, 2 global, 5-254 a local clock by
     its number, 3/4/255 reserved (none). A drop sets holdover, a rise clears it; a frame never
     holds two time qualities; each change goes to the callback once."""
-    from sinewatch.gateway import StreamSpec, SvStreamDecoder, sync_code
+    from sinewatch.apps.gateway import StreamSpec, SvStreamDecoder, sync_code
 
     assert [sync_code(v) for v in (0, 1, 2, 3, 4, 5, 254, 255)] == [0, 1, 2, 0, 0, 1, 1, 0]
     dec = SvStreamDecoder(StreamSpec("MU9"), rate=RATE, n_samples=10)
@@ -420,7 +420,7 @@ def test_bench_gateway_runs_its_three_ways_and_zenoh_delivers_every_frame(tmp_pa
     and the subscriber counts every SampleFrame the gateway put (4000 samples / 80)."""
     import argparse
 
-    from sinewatch.bench.gateway import run
+    from sinewatch.apps.bench.gateway import run
 
     out = tmp_path / "bench.json"
     args = argparse.Namespace(streams=1, seconds=1, rate=RATE, samples=80, json=out)
@@ -531,7 +531,7 @@ def test_malformed_sv_is_counted_never_raised_and_other_streams_go_on(capture):
 def test_realtime_reads_the_same_frames_at_the_capture_s_pace(tmp_path, capture):
     import threading
 
-    from sinewatch.gateway import pcap_frames
+    from sinewatch.apps.gateway import pcap_frames
 
     short = _head(capture, tmp_path / "short.pcap", 400)  # 0.1 s of traffic
     stop = threading.Event()
@@ -599,7 +599,7 @@ def test_two_asdus_a_frame_at_4800_per_second_as_iec_61869_9_sends_them(tmp_path
     ],
 )
 def test_gateway_mistakes_are_one_line_saying_what_was_expected(capsys, argv, says):
-    from sinewatch.cli import main
+    from sinewatch.apps.cli import main
 
     assert main(["gateway", "sv", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()

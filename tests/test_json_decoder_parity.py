@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import make_config
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.core.pipeline import NullSink, Pipeline
 from sinewatch.schemas.codec import BLOCK_JSON_ENCODING, Block, decode_block, encode_block_binary
 from sinewatch.schemas.errors import DecodeError
 

@@ -14,7 +14,7 @@ from conftest import TIMEOUT, make_config, run_daemon
 from conftest import KeepSink as Keep
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.pipeline import Pipeline
+from sinewatch.core.pipeline import Pipeline
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,

@@ -3,7 +3,7 @@ Cramer-Rao bound (``sinewatch.crlb``), its reported standard deviations against 
 they describe, and its choice of the number of tones on the multitone scenarios and on the
 multi-sine examples of Chen, Pin, Ng, Hui and Parisini (paper 004).
 
-Monte Carlo trials (``sinewatch.bench.crlb_window``, which also prints the table) are
+Monte Carlo trials (``sinewatch.apps.bench.crlb_window``, which also prints the table) are
 seeded; each trial is one window of fresh noise, random phases and frequencies jittered by
 up to half a DFT bin, and one estimate at the window's last sample.
 """
@@ -15,7 +15,7 @@ import pytest
 
 from sinewatch import crlb
 from sinewatch import scenarios as sc_registry
-from sinewatch.bench import crlb_window
+from sinewatch.apps.bench import crlb_window
 from sinewatch.estimators import create
 
 FS = 1000.0
@@ -259,8 +259,8 @@ def test_warm_start_follows_a_frequency_jump():
 def test_accuracy_bench_reports_own_window_crlb_and_calibration():
     """``sinewatch bench accuracy`` records, for a windowed estimator, the dB over its own
     window's bound and, for one that reports sd, the calibration; none for the others."""
-    from sinewatch.bench.report import render_markdown
-    from sinewatch.bench.runner import evaluate
+    from sinewatch.apps.bench.report import render_markdown
+    from sinewatch.apps.bench.runner import evaluate
 
     rec = evaluate("nls", "tone-snr-40db", trials=4, seed=0)
     m = rec["metrics"]

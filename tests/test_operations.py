@@ -25,10 +25,10 @@ from prometheus_client.parser import text_string_to_metric_families  # noqa: E40
 
 from sinewatch.clients import BlockPublisher, connect, subscribe_errors, subscribe_estimates  # noqa: E402
 from sinewatch.clients.session import free_loopback_port  # noqa: E402
-from sinewatch.metrics import LATENCY_BUCKETS_S, LatencyHistogram, health  # noqa: E402
+from sinewatch.outputs.metrics import LATENCY_BUCKETS_S, LatencyHistogram, health  # noqa: E402
+from sinewatch.runtime.sdnotify import Notifier  # noqa: E402
 from sinewatch.schemas.codec import Block, encode_block_binary  # noqa: E402
 from sinewatch.schemas.config import MetricsSection, RecordingSection  # noqa: E402
-from sinewatch.sdnotify import Notifier  # noqa: E402
 
 
 def _get(url: str) -> tuple[int, str, str]:

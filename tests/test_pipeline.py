@@ -7,7 +7,7 @@ import logging
 
 from conftest import make_config
 
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.core.pipeline import NullSink, Pipeline
 
 
 class Collect(NullSink):
@@ -21,7 +21,7 @@ class Collect(NullSink):
 def test_a_flood_of_bad_input_is_counted_in_full_but_logged_sparingly(tmp_path, caplog):
     sink = Collect()
     pipeline = Pipeline(make_config(tmp_path), [sink])
-    with caplog.at_level(logging.WARNING, logger="sinewatch.pipeline"):
+    with caplog.at_level(logging.WARNING, logger="sinewatch.core.pipeline"):
         for i in range(2000):
             pipeline.process("sinewatch/in/x", b"\x00garbage", "", i)
     assert len(sink.errors) == 2000 and sink.errors[-1]["count"] == 2000

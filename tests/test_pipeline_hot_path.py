@@ -11,8 +11,8 @@ import json
 import numpy as np
 from conftest import make_config
 
+from sinewatch.core.pipeline import GuardedSink, NullSink, Pipeline
 from sinewatch.estimators.presence import SignalPresence
-from sinewatch.pipeline import GuardedSink, NullSink, Pipeline
 from sinewatch.schemas.codec import Block, encode_block_binary
 
 
@@ -129,7 +129,7 @@ def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
 
 
 def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
-    from sinewatch.bench.pipeline_cost import STEPS, run
+    from sinewatch.apps.bench.pipeline_cost import STEPS, run
 
     out = tmp_path / "bench.json"
     args = argparse.Namespace(
@@ -171,8 +171,8 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
     (encode_estimate_values, itself proven equal to the pydantic model's bytes) over component
     counts, std and rocof present or not, flags, fencing, time quality, every estimate format
     from 3 on, and values of every magnitude; a non-finite value falls back to the general path."""
+    from sinewatch.core.pipeline import Channel
     from sinewatch.estimators import get
-    from sinewatch.pipeline import Channel
     from sinewatch.schemas.messages import Fencing
 
     rng = np.random.default_rng(11)

@@ -9,10 +9,10 @@ import pytest
 from test_compare_track import OTHER
 from test_replay_window import record
 
-from sinewatch.cli import main
-from sinewatch.plot import COLOURS, GAP_COLOUR, INPUT_COLOUR, gap_spans, plot
-from sinewatch.replay import replay
-from sinewatch.window import Window
+from sinewatch.apps.cli import main
+from sinewatch.apps.plot import COLOURS, GAP_COLOUR, INPUT_COLOUR, gap_spans, plot
+from sinewatch.core.window import Window
+from sinewatch.runtime.replay import replay
 
 
 def rgb(hex_colour: str, alpha: float = 1.0) -> np.ndarray:

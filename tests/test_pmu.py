@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from sinewatch.bench.compliance import Row, run_suite, step_response
+from sinewatch.apps.bench.compliance import Row, run_suite, step_response
 from sinewatch.estimators import create
 from sinewatch.estimators.base import GridReports, concat_tracks
 from sinewatch.scenarios.c37118 import generate, limits
@@ -195,7 +195,7 @@ def test_accuracy_bench_scores_pmu_on_its_reports():
     """``sinewatch bench accuracy --scenarios c37.118`` reads a grid estimator's reports at
     their timestamps: a steady off-nominal tone is exact at the reporting instants, and a
     phase step passes the bench's response-time and overshoot limits."""
-    from sinewatch.bench.runner import evaluate
+    from sinewatch.apps.bench.runner import evaluate
 
     steady = evaluate("pmu", "c37-50hz-off-p5")["metrics"]["c37"]
     assert steady["tve_max_pct"] < 1e-3 and steady["fe_max_hz"] < 1e-4 and steady["undefined_instants"] == 0
@@ -371,7 +371,7 @@ def test_default_rule_passes_the_steady_55_hz_row_of_the_60_hz_suite(fs):
     and refers its synchrophasor to the 50 Hz cosine, as it declares (reports at 50/s). The
     suite scores it against the nominal the estimator declares: within the steady-state limits
     (it failed the 60 Hz suite's TVE when scored against the 60 Hz cosine)."""
-    from sinewatch.bench.compliance import declared_nominal_hz
+    from sinewatch.apps.bench.compliance import declared_nominal_hz
     from sinewatch.schemas.config import DEFAULT_ESTIMATOR, DEFAULT_PARAMS
 
     rows = run_suite(

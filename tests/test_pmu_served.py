@@ -9,7 +9,7 @@ import numpy as np
 from conftest import make_config, serve_blocks
 
 from sinewatch.estimators import create
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.scenarios import get as get_scenario
 from sinewatch.schemas.codec import Block
 from sinewatch.schemas.config import EstimatorRule

@@ -202,7 +202,7 @@ def test_an_interharmonic_off_the_bins_does_not_move_the_window(f0, f1):
 
 
 def worst_scores(name: str, **overrides) -> dict[str, float]:
-    from sinewatch.bench.pq_accuracy import sinewatch_scores
+    from sinewatch.apps.bench.pq_accuracy import sinewatch_scores
 
     sc = get_pq(name, **overrides)
     y, _ = sc.generate()

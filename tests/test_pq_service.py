@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 from conftest import TIMEOUT, FakeClock, make_config, replay_recording, run_daemon, serve_feed_tail
 
+from sinewatch.apps.feed import make_channels
 from sinewatch.clients import BlockPublisher, connect
-from sinewatch.feed import make_channels
-from sinewatch.pipeline import NullSink, Pipeline
+from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.power_quality.limits import LIMITS, class_i_limit
-from sinewatch.recorder import McapRecorder
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.scenarios.power_quality_iec import get_pq
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import (
@@ -382,7 +382,7 @@ def test_feed_serve_tail_processes_with_the_deploy_config(tmp_path):
 
 def test_tail_prints_each_pq_message_on_one_line(tmp_path):
     """`sinewatch tail 'sinewatch/pq/**'` without --json: one readable line per message."""
-    from sinewatch.cli import format_estimate
+    from sinewatch.apps.cli import format_estimate
 
     rounds, names = phase_blocks(40)
     out = Outputs()

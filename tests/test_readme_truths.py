@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 
 from sinewatch import scenarios
-from sinewatch.cli import build_parser, main
-from sinewatch.recorder import RECORDING_FORMAT_VERSION
+from sinewatch.apps.cli import build_parser, main
+from sinewatch.outputs.recorder import RECORDING_FORMAT_VERSION
+from sinewatch.runtime.workers import worker_count
 from sinewatch.scenarios.power_quality_iec import pq_names
 from sinewatch.schemas.config import SinewatchConfig
 from sinewatch.schemas.messages import ESTIMATE_FORMAT_VERSION, FORMAT_VERSION, FRAME_FORMAT_VERSION
 from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION
-from sinewatch.workers import worker_count
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,9 +12,9 @@ from conftest import make_config
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType, Writer
 
-from sinewatch.pipeline import NullSink, Pipeline
-from sinewatch.recorder import FastWriter, McapRecorder
-from sinewatch.replay import replay
+from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.outputs.recorder import FastWriter, McapRecorder
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 from sinewatch.schemas.input_record import decode_input_record
@@ -159,7 +159,7 @@ def test_a_writer_finished_after_its_chunk_thread_is_gone_writes_the_chunks_itse
     atexit handler's) is written on the calling thread, the same bytes."""
     from concurrent.futures import ThreadPoolExecutor
 
-    import sinewatch.recorder as recorder_module
+    import sinewatch.outputs.recorder as recorder_module
 
     gone = ThreadPoolExecutor(max_workers=1)
     gone.shutdown()

@@ -11,9 +11,9 @@ import weakref
 import numpy as np
 from conftest import make_config
 
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import McapRecorder
-from sinewatch.replay import replay
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 
 FIXTURE = Path(__file__).parent / "data" / "recorded-before-layering.mcap"
 

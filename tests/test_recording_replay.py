@@ -8,8 +8,8 @@ import numpy as np
 from conftest import record_run
 from mcap.reader import make_reader
 
-from sinewatch.cli import main
-from sinewatch.replay import read_recording, replay
+from sinewatch.apps.cli import main
+from sinewatch.runtime.replay import read_recording, replay
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING
 
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import McapRecorder
-from sinewatch.replay import read_recording, replay
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.replay import read_recording, replay
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,

@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 from conftest import FakeClock, make_config
 
-from sinewatch.cli import main
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import McapRecorder
-from sinewatch.replay import replay
+from sinewatch.apps.cli import main
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
     BLOCK_JSON_ENCODING,

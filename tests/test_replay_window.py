@@ -12,14 +12,14 @@ import pytest
 from conftest import make_config
 from mcap.reader import make_reader
 
-from sinewatch.cli import main
-from sinewatch.feed import make_channels
-from sinewatch.pipeline import Pipeline
-from sinewatch.recorder import SNAPSHOT_NAME, McapRecorder
-from sinewatch.replay import replay, seek_point
+from sinewatch.apps.cli import main
+from sinewatch.apps.feed import make_channels
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.core.window import ChannelFilter, Window, WindowError, parse_time
+from sinewatch.outputs.recorder import SNAPSHOT_NAME, McapRecorder
+from sinewatch.runtime.replay import replay, seek_point
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
-from sinewatch.window import ChannelFilter, Window, WindowError, parse_time
 
 T0 = 1_764_000_000_000_000_000  # log time of the first block, ns since the epoch
 BLOCK = 400  # samples at 10 kHz: 40 ms

@@ -23,7 +23,7 @@ from conftest import TIMEOUT, make_config, run_daemon
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.config import ZenohSection
 
 ROUTER = """

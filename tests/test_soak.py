@@ -7,9 +7,9 @@ import resource
 import pytest
 from conftest import make_config, run_daemon
 
+from sinewatch.apps.feed import Feed, make_channels
 from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-from sinewatch.feed import Feed, make_channels
-from sinewatch.replay import replay
+from sinewatch.runtime.replay import replay
 from sinewatch.scenarios.demo import DEMO_CHANNELS
 from sinewatch.schemas.config import RecordingSection
 

@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from sinewatch.cli import main
+from sinewatch.apps.cli import main
 
 ROTATE_S = 50.0
 ARGS = ["--channels", "200", "--rate", "2000", "--block", "1024", "--duration", "300", "--interval", "10"]

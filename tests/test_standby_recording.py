@@ -1,6 +1,6 @@
 """A promoted standby's recording directory replays as a whole: its first file, written while
 it stood by, holds status messages only; the file it starts at the takeover carries the
-state it took over (as :meth:`sinewatch.cluster.ClusterMember.take_over` does it)."""
+state it took over (as :meth:`sinewatch.runtime.cluster.ClusterMember.take_over` does it)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import json
 import numpy as np
 from conftest import FakeClock, make_config
 
-from sinewatch.cli import main
-from sinewatch.pipeline import NullSink, Pipeline, ResumePoint
-from sinewatch.recorder import McapRecorder
-from sinewatch.replay import replay
+from sinewatch.apps.cli import main
+from sinewatch.core.pipeline import NullSink, Pipeline, ResumePoint
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import RecordingSection
 

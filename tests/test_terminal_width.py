@@ -22,7 +22,7 @@ from conftest import sinewatch
 from rich.cells import cell_len
 from rich.table import Table
 
-from sinewatch.console import fit_table, natural_width, table_lines
+from sinewatch.apps.console import fit_table, natural_width, table_lines
 
 STYLE = re.compile(r"\x1b\[[0-9;]*m")  # colours and bold: nothing on screen
 CURSOR = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07|\r")  # moves: a live redraw
@@ -116,7 +116,9 @@ def test_demo_piped_prints_plain_lines_unpadded():
     assert abs(float(rows[0][2]) - float(rows[1][2])) < 0.5
     # the faulty sensor's gap is logged: one plain line, as long as it is (not padded to a width)
     logged = [line for line in (r.stdout + r.stderr).split("\n") if line.startswith("WARNING sinewatch")]
-    assert "WARNING sinewatch.pipeline: channel demo/demo-faulty-sensor: 1 block(s) missing before seq 23" in logged
+    assert (
+        "WARNING sinewatch.core.pipeline: channel demo/demo-faulty-sensor: 1 block(s) missing before seq 23" in logged
+    )
     assert all(line == line.rstrip() for line in logged)
     assert all(line == line.rstrip() for line in lines)
 

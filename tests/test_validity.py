@@ -3,7 +3,7 @@ not valid (and not converged), never a confident wild number, and every estimato
 within about one memory (its window, or its settling time) after the event.
 
 The disturbances come from a third-party generator, pypqd, through
-:mod:`sinewatch.bench.validity` (``python -m sinewatch.bench.validity`` prints the table in
+:mod:`sinewatch.apps.bench.validity` (``python -m sinewatch.apps.bench.validity`` prints the table in
 docs/validity.md from the same runs). The presence detector itself is checked against
 hand-made signals.
 """
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from sinewatch import estimators
-from sinewatch.bench import validity as bench
-from sinewatch.bench.scenarios import DEFAULT_RULE
+from sinewatch.apps.bench import validity as bench
+from sinewatch.apps.bench.scenarios import DEFAULT_RULE
+from sinewatch.core.pipeline import NullSink, Pipeline
 from sinewatch.estimators.presence import SignalPresence
-from sinewatch.pipeline import NullSink, Pipeline
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 
@@ -227,7 +227,7 @@ def _through_live_daemon(config: SinewatchConfig, blocks: list[Block]) -> tuple[
     from conftest import TIMEOUT, clean_estimates, run_daemon, take
 
     from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-    from sinewatch.replay import replay
+    from sinewatch.runtime.replay import replay
 
     n_expected = len(clean_estimates(config, f"sinewatch/in/{blocks[0].channel}", blocks))
 
@@ -373,7 +373,7 @@ def test_a_draining_daemon_publishes_its_held_estimates_and_replays(tmp_path):
     bit (replay releases them where the recording has them)."""
     from conftest import make_config
 
-    from sinewatch.replay import read_recording, replay
+    from sinewatch.runtime.replay import read_recording, replay
 
     t = np.arange(round(0.5 * LIVE_FS)) / LIVE_FS
     blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t + 0.3))

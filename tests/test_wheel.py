@@ -106,7 +106,11 @@ def test_installed_wheel_serves_feeds_and_replays_outside_the_source_tree(wheel,
     bin_ = venv / "bin"
 
     where = subprocess.run(
-        [str(bin_ / "python"), "-c", "import sinewatch.cli, sinewatch.schemas; print(sinewatch.cli.__file__)"],
+        [
+            str(bin_ / "python"),
+            "-c",
+            "import sinewatch.apps.cli, sinewatch.schemas; print(sinewatch.apps.cli.__file__)",
+        ],
         cwd=work,
         env=env,
         capture_output=True,

@@ -25,11 +25,11 @@ import pytest
 import zenoh
 from conftest import TIMEOUT, endpoint, make_config, sinewatch, take
 
-from sinewatch.bench.e2e import process_tree
+from sinewatch.apps.bench.e2e import process_tree
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.cluster import shard_id_of, worker_of
-from sinewatch.replay import file_identity, replay, split_runs
+from sinewatch.runtime.cluster import shard_id_of, worker_of
+from sinewatch.runtime.replay import file_identity, replay, split_runs
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import ClusterSection, EstimatorRule, MetricsSection, SinewatchConfig, WorkersSection
 
@@ -246,7 +246,7 @@ def test_a_killed_worker_is_restarted_from_its_state_and_flags_the_gap(tmp_path)
 def _supervise_until_ready_then(config: SinewatchConfig, then: Any) -> int:
     """Run a supervisor in this process (its signal handlers installed) until all its
     workers serve, call ``then(supervisor)`` on the event loop, and return its exit code."""
-    from sinewatch.workers import Supervisor
+    from sinewatch.runtime.workers import Supervisor
 
     async def main() -> int:
         supervisor = Supervisor(config, 2)
@@ -287,7 +287,7 @@ def test_a_second_sigint_forces_the_workers_and_says_130(tmp_path):
 def test_a_backlog_does_not_keep_the_heartbeat_from_running(tmp_path):
     """The consumer yields after each batch: with batches waiting, another task (the
     heartbeat that tells the supervisor the worker is alive) still runs between them."""
-    from sinewatch.daemon import Daemon
+    from sinewatch.runtime.daemon import Daemon
 
     class Recording(Daemon):
         processed: ClassVar[list[int]] = []

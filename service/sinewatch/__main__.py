@@ -1,3 +1,3 @@
-from sinewatch.cli import main
+from sinewatch.apps.cli import main
 
 raise SystemExit(main())

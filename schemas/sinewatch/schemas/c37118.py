@@ -1,6 +1,6 @@
 """IEEE C37.118.2-2011 frames (synchrophasor data transfer): encode and decode, by hand.
 
-The frame layer shared by the daemon's PMU server (:mod:`sinewatch.c37118_server`) and the
+The frame layer shared by the daemon's PMU server (:mod:`sinewatch.outputs.c37118_server`) and the
 reader in the client library (:mod:`sinewatch.clients.c37118`); pure Python (``struct``),
 no I/O. Why not a PyPI package: see docs/c37118.md (the candidates were evaluated; none is
 sound enough to put on the wire). Clause and table numbers below are the standard's.

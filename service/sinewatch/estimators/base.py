@@ -450,7 +450,7 @@ class Estimator(ABC, Generic[ParamsT]):
     example_params: ClassVar[dict[str, Any]] = {}
     example_frequency_hz: ClassVar[float] = 50.0
 
-    # Optional hook for the accuracy bench (sinewatch.bench.accuracy.estimator_params):
+    # Optional hook for the accuracy bench (sinewatch.apps.bench.accuracy.estimator_params):
     #   @classmethod
     #   def params_for(cls, sample_rate_hz: float, hints: dict) -> dict
     # hints: scenario, sample_rate_hz, nominal_frequency_hz (one per component),

@@ -112,7 +112,7 @@ large (the filter is nonlinear in it). The paper's Q unscaled at 5 kHz is the se
 (mean error / sd +5.6 for frequency at 0 dB, +2.5 at 10 dB); R = sigma^2 at 10 dB SNR, 1 kHz,
 the first (a -1.9 Hz bias at 50.5 Hz, -3 reported sd). The accuracy bench's tuning (Q scaled
 at the scenario's nominal frequency, R = sigma^2 / 100 floored at 1e-3 A^2:
-``sinewatch.bench.params``) is calibrated 0.95-1.08 on its tone scenarios from 0 to 60 dB
+``sinewatch.apps.bench.params``) is calibrated 0.95-1.08 on its tone scenarios from 0 to 60 dB
 (``sinewatch bench accuracy --estimators ges-kalman --scenarios snr --trials 30``).
 """
 

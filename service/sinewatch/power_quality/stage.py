@@ -1,7 +1,7 @@
 """The power-quality stage of the pipeline: per-channel IEC 61000-4-7 harmonics with their
 IEC 61000-4-30 aggregates, and three-phase groups, fed with each accepted block.
 
-The pipeline (:mod:`sinewatch.pipeline`) calls :meth:`PqStage.on_block` after it has
+The pipeline (:mod:`sinewatch.core.pipeline`) calls :meth:`PqStage.on_block` after it has
 published a block's Estimate; the stage returns the messages that block completes, as
 ``(kind, key, payload)`` with ``kind`` the message name of
 :mod:`sinewatch.schemas.power_quality`. Configuration: ``[power_quality]`` of

@@ -1,5 +1,5 @@
 """IEEE C37.118.1 M-class compliance signals and limits (test generators, not registered
-scenarios: ``sinewatch.bench.compliance`` runs and scores them).
+scenarios: ``sinewatch.apps.bench.compliance`` runs and scores them).
 
 Each :class:`TestSignal` is a noise-free signal ``x(t)`` (t in seconds from the test's
 start, which is a whole second since the epoch, so the nominal cosine has phase 0 there)

@@ -1,0 +1,262 @@
+"""``sinewatch bench pipeline``: the CPU cost of one block through the pipeline, in process.
+
+N channels (default 200) of float32 binary SampleBlocks (a 50 Hz sine with noise, seeded)
+go through :meth:`sinewatch.core.pipeline.Pipeline.process` with a null sink, once with
+recording off and once with an MCAP recorder (the config's compression and chunk size, to a
+temporary directory) beside it; no transport, so what is measured is the per-block cost of
+the pipeline itself, which bounds what one core sustains whatever the intake.
+
+The same blocks are also taken through each step alone, to break the cost down:
+
+* ``estimator``: the channel estimator's ``update`` (``last_only``) on decoded blocks: the
+  baseline, measured in the same run; every other figure is also given as a ratio to it;
+* ``decode``: the pipeline's decode and limits checks of the raw payload;
+* ``presence``: the signal-presence detector (``diagnostics.valid``);
+* ``encode``: the Estimate's JSON bytes from the estimator's track;
+* ``recorder``: the MCAP recorder's ``on_input`` and ``on_estimate`` for one block;
+* ``rest``: the pipeline's cost less the steps above (sequence checks, dispatch to the
+  sinks, counters).
+
+CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
+time, not wall time, so that other processes on the machine count less): each repeat takes
+``--rounds`` fresh blocks per channel through every step in turn; a figure is the step's
+fastest repeat (the least disturbed by other load on the machine), its median beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.table import Table
+
+from sinewatch.apps.console import make_console, print_table
+from sinewatch.core.pipeline import Channel, NullSink, Pipeline
+from sinewatch.estimators import get as get_estimator
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
+from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
+
+STEPS = ("estimator", "decode", "presence", "encode", "recorder")
+
+
+def _params(estimator: str) -> dict[str, Any]:
+    if estimator == "ges-kalman":
+        from sinewatch.scenarios.demo import KALMAN_10K
+
+        return KALMAN_10K
+    return {}
+
+
+class Feed:
+    """Float32 binary blocks of ``channels`` channels, sequence numbers running on across
+    calls, so that every measurement sees fresh, in-order blocks."""
+
+    def __init__(self, channels: int, block: int, rate_hz: float, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.names = [f"bench/c{i:04d}" for i in range(channels)]
+        self.block, self.rate_hz = block, rate_hz
+        t = np.arange(block * 8) / rate_hz
+        # eight blocks of signal per channel, reused cyclically (the estimator does not care)
+        self.signals = [
+            (np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 2 * np.pi)) + 0.01 * rng.standard_normal(t.size)).astype(
+                np.float32
+            )
+            for _ in range(channels)
+        ]
+        self.seq = 0
+        self.step_ns = round(block * 1e9 / rate_hz)
+
+    def rounds(self, n: int) -> list[list[tuple[str, bytes, Block]]]:
+        """``n`` rounds of one block per channel: (key, payload, decoded block)."""
+        out = []
+        for _ in range(n):
+            seq, k = self.seq, self.seq % 8
+            self.seq += 1
+            row = []
+            for name, sig in zip(self.names, self.signals, strict=True):
+                blk = Block(
+                    name,
+                    seq,
+                    1_700_000_000_000_000_000 + seq * self.step_ns,
+                    self.rate_hz,
+                    sig[k * self.block : (k + 1) * self.block],
+                )
+                payload = encode_block_binary(blk, "float32")
+                blk.samples = np.frombuffer(payload, dtype="<f4", offset=len(payload) - 4 * self.block)
+                row.append((f"sinewatch/in/{name}", payload, blk))
+            out.append(row)
+        return out
+
+
+Batch = list[list[tuple[str, bytes, Block]]]
+
+
+def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
+    return SinewatchConfig(
+        daemon_id="bench",
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator=args.estimator, params=_params(args.estimator))],
+        recording=RecordingSection(directory=directory, compression=args.compression),
+    )
+
+
+def _steps(
+    args: argparse.Namespace, directory: Path, names: list[str]
+) -> tuple[dict[str, Callable[[Batch], None]], list[Any]]:
+    """Every measured step, by name, each taking a batch of blocks; and what to close after."""
+    config = _config(args, directory)
+    off = Pipeline(config, [NullSink()])
+    recorder = McapRecorder(config)
+    on = Pipeline(_config(args, directory / "pipeline"), [NullSink(), recorder])
+    cls = get_estimator(args.estimator)
+    channels = {
+        name: Channel(name, f"sinewatch/in/{name}", cls(args.rate, _params(args.estimator)), args.rate)
+        for name in names
+    }
+    tracks: dict[str, Any] = {}
+    step_recorder = McapRecorder(_config(args, directory / "steps"))
+    estimates: dict[str, bytes] = {}
+
+    def pipeline(pipe: Pipeline) -> Callable[[Batch], None]:
+        def run(batch: Batch) -> None:
+            process = pipe.process
+            for row in batch:
+                for key, payload, blk in row:
+                    process(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
+
+        return run
+
+    def estimator(batch: Batch) -> None:
+        for row in batch:
+            for _key, _payload, blk in row:
+                tracks[blk.channel] = channels[blk.channel].estimator.update(
+                    blk.samples, last_only=True, t0_ns=blk.t0_ns
+                )
+
+    def decode(batch: Batch) -> None:
+        dec = off._decode
+        for row in batch:
+            for _key, payload, _blk in row:
+                dec(payload, BLOCK_BINARY_ENCODING)
+
+    def presence(batch: Batch) -> None:
+        pres = Pipeline._presence
+        for row in batch:
+            for _key, _payload, blk in row:
+                pres(channels[blk.channel], blk, False)
+
+    def encode(batch: Batch) -> None:  # the tracks of the estimator step on this batch
+        payloads = on._estimate_payloads
+        for row in batch:
+            for _key, _payload, blk in row:
+                estimates[blk.channel] = payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)[0]
+
+    def record(batch: Batch) -> None:  # the input, and the channel's estimate of the encode step
+        on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate
+        for row in batch:
+            for key, payload, blk in row:
+                on_input(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
+                on_estimate(key.replace("/in/", "/est/"), estimates[blk.channel], blk.t0_ns)
+
+    steps = {
+        "pipeline_on": pipeline(on),
+        "pipeline_off": pipeline(off),
+        "estimator": estimator,
+        "decode": decode,
+        "presence": presence,
+        "encode": encode,
+        "recorder": record,
+    }
+    return steps, [on, off, step_recorder]
+
+
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    """Every figure of the bench, as a dict (what ``--json`` writes).
+
+    Each repeat takes a fresh batch of ``rounds`` blocks per channel through every step in
+    turn (interleaved, so that a burst of load from elsewhere hits all steps alike); a step's
+    figure is its fastest repeat (the least disturbed), its median is given beside it."""
+    with tempfile.TemporaryDirectory(prefix="sinewatch-bench-pipeline-") as tmp:
+        feed = Feed(args.channels, args.block, args.rate)
+        steps, to_close = _steps(args, Path(tmp), feed.names)
+        times: dict[str, list[float]] = {name: [] for name in steps}
+        for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
+            batch = feed.rounds(args.rounds if repeat else 2)
+            for name, step in steps.items():
+                t0 = time.process_time()
+                step(batch)
+                if repeat:
+                    times[name].append((time.process_time() - t0) / (args.rounds * len(feed.names)) * 1e6)
+        on, off, step_recorder = to_close
+        on.close_sinks()
+        step_recorder.close()
+        if on.counters.errors or off.counters.errors:
+            raise RuntimeError(f"the bench's blocks were rejected: {on.counters.by_kind + off.counters.by_kind}")
+    us = {name: min(t) for name, t in times.items()}
+    median = {name: statistics.median(t) for name, t in times.items()}
+    base = us["estimator"]
+    us["rest_on"] = us["pipeline_on"] - sum(us[s] for s in STEPS)
+    us["rest_off"] = us["pipeline_off"] - sum(us[s] for s in STEPS if s != "recorder")
+    outside = {"recording_on": us["pipeline_on"] - base, "recording_off": us["pipeline_off"] - base}
+    return {
+        "channels": args.channels,
+        "block": args.block,
+        "rate_hz": args.rate,
+        "estimator": args.estimator,
+        "compression": args.compression,
+        "rounds": args.rounds,
+        "repeats": args.repeats,
+        "us_per_block": us,
+        "us_per_block_median": median,
+        "ratio_to_estimator": {k: v / base for k, v in us.items()},
+        "outside_estimator_us": outside,
+        "outside_estimator_ratio": {k: v / base for k, v in outside.items()},
+        "blocks_per_s_per_core": {"recording_on": 1e6 / us["pipeline_on"], "recording_off": 1e6 / us["pipeline_off"]},
+        "samples_per_s_per_core": {
+            "recording_on": 1e6 / us["pipeline_on"] * args.block,
+            "recording_off": 1e6 / us["pipeline_off"] * args.block,
+        },
+    }
+
+
+def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float | None, float]]:
+    us, median, ratio = result["us_per_block"], result["us_per_block_median"], result["ratio_to_estimator"]
+    for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
+        yield name, us[name], median.get(name), ratio[name]
+
+
+def run(args: argparse.Namespace) -> int:
+    console = make_console()
+    console.print(
+        f"{args.channels} channels, {args.estimator}, {args.block}-sample float32 blocks at {args.rate:g} Hz, "
+        f"{args.rounds} blocks per channel x {args.repeats} repeats ..."
+    )
+    result = measure(args)
+    table = Table(title="pipeline cost per block (fastest repeat; ratio to the estimator's update alone)")
+    table.add_column("step")
+    table.add_column("us/block", justify="right")
+    table.add_column("median", justify="right")
+    table.add_column("x estimator", justify="right")
+    for name, value, median, ratio in _rows(result):
+        table.add_row(name, f"{value:.1f}", "" if median is None else f"{median:.1f}", f"{ratio:.2f}")
+    print_table(console, table)
+    for mode in ("recording_on", "recording_off"):
+        console.print(
+            f"{mode.replace('_', ' ')}: {result['blocks_per_s_per_core'][mode]:,.0f} blocks/s per core "
+            f"({result['samples_per_s_per_core'][mode] / 1e6:.2f} M samples/s), "
+            f"{result['outside_estimator_us'][mode]:.1f} us per block outside the estimator "
+            f"({result['outside_estimator_ratio'][mode]:.2f} x the estimator)"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0
+
+
+__all__ = ["measure", "run"]

@@ -1,4 +1,0 @@
-"""Benchmarks: ``sinewatch bench kernels|e2e|accuracy|scenarios|startup``, one module
-each (the accuracy bench in several: see :mod:`sinewatch.bench.accuracy`); their command
-line is :mod:`sinewatch.bench.args`, which imports nothing heavy. Figures are reported as
-ratios against baselines measured in the same run, never asserted as timings in tests."""

@@ -1,0 +1,3 @@
+"""The pipeline: channel -> estimator -> sinks, the continuity of each channel's stream,
+windows of a recording, the COMTRADE reader. It knows no transport and no output format.
+"""

@@ -1,0 +1,3 @@
+"""Where estimates go: the MCAP recorder, the Zenoh publisher, the Foxglove live view,
+Prometheus metrics, the C37.118.2 server, the per-sample track.
+"""

@@ -1,0 +1,787 @@
+"""The asyncio daemon: Zenoh intake -> pipeline -> Zenoh publisher + MCAP recorder.
+
+Threading model. Zenoh delivers samples on its own threads into a bounded FIFO channel
+(never blocking a Zenoh callback on Python work). One *pump* thread drains that channel
+in batches (a blocking ``recv`` then ``try_recv`` up to ``limits.intake_batch``) and
+hands each batch to the event loop with one ``call_soon_threadsafe`` (a call per message
+would wake the loop once per message, which caps the intake well below what Zenoh
+delivers; ``sinewatch bench e2e`` measures the whole path). The event loop runs the
+pipeline, so estimator state is only ever touched by one thread.
+
+Backpressure. A counting semaphore bounds the inputs in flight (``limits.queue_capacity``).
+With ``queue_policy = "block"`` (default) the pump waits for room, so the Zenoh FIFO
+fills and Zenoh pushes back to publishers that use ``CongestionControl.BLOCK``: nothing
+is lost, and every wait is counted. With ``"drop"`` the newest input is dropped, counted
+and reported as a ``queue_overflow`` ErrorReport.
+
+Shutdown, as uvicorn does it: SIGINT/SIGTERM set ``should_exit``; the daemon stops
+intake (undeclares the subscriber, so the pump drains Zenoh's FIFO and ends), processes
+everything already accepted, publishes a last Status and finishes the MCAP file. A
+second SIGINT sets ``force_exit``: processing stops at the next input, the MCAP file is
+still finished, and ``run`` returns 130.
+
+Operations (each off unless configured): ``[foxglove]`` adds a sink that serves the
+Foxglove WebSocket protocol (:mod:`sinewatch.outputs.foxglove_live`); ``[metrics]`` serves
+Prometheus metrics and ``/healthz`` from a thread (:mod:`sinewatch.outputs.metrics`). Under systemd
+(``Type=notify``, :mod:`sinewatch.runtime.sdnotify`) the daemon sends ``READY=1`` once it is
+subscribed, ``WATCHDOG=1`` from a heartbeat task on the event loop (a stuck loop stops
+it, and systemd restarts the service), and ``STOPPING=1`` when it starts to drain. The
+same heartbeat is the "event loop turned" time that ``/healthz`` checks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+import zenoh
+import zenoh.ext
+
+from sinewatch.clients.session import open_session
+from sinewatch.core.pipeline import Pipeline, ResumePoint, Sink, sanitize_log_time
+from sinewatch.outputs.c37118_server import C37118Server
+from sinewatch.outputs.publisher import ZenohPublisherSink
+from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.runtime.cluster import ClusterMember, Ownership
+from sinewatch.runtime.sdnotify import Notifier
+from sinewatch.runtime.signals import shutdown_signals
+from sinewatch.schemas.codec import HEADER as BLOCK_HEADER
+from sinewatch.schemas.codec import MAGIC as BLOCK_MAGIC
+from sinewatch.schemas.codec import encode_status
+from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.errors import ConfigError
+from sinewatch.schemas.frame import FRAME_MAGIC
+from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
+
+if TYPE_CHECKING:
+    from sinewatch.outputs.foxglove_live import FoxgloveSink
+    from sinewatch.outputs.metrics import Health, LatencyHistogram, MetricsServer, Snapshot
+
+log = logging.getLogger("sinewatch.runtime.daemon")
+
+HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at most this far apart
+HISTORY_TIMEOUT_S = 10.0  # how long the publishers' caches may take to answer a new subscriber's history query
+
+
+@dataclass
+class IntakeCounters:
+    received: int = 0
+    dropped: int = 0
+    backpressure_waits: int = 0
+    unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
+    not_owned: int = 0  # inputs of keys another shard owns (cluster.shard), dropped unread
+
+
+# (key, payload, encoding, received monotonic ns)
+Item = tuple[str, bytes, str, int]
+
+
+def _block_seq(payload: bytes) -> int | None:
+    """A binary block's seq, read from its header without decoding (None: not a binary block)."""
+    if payload[:4] != BLOCK_MAGIC or len(payload) < BLOCK_HEADER.size:
+        return None
+    return int.from_bytes(payload[8:16], "little")
+
+
+def catch_up_order(replies: list[tuple[Item, Any, int]], published: dict[str, int]) -> list[tuple[Item, Any, int]]:
+    """A takeover's history (``(item, publisher, sn)``, each key's blocks in order) in the
+    order it goes to the pipeline; ``published``: each key's last seq the previous owner
+    published. First, key by key, each key's blocks up to its first one to publish (those up to
+    ``published`` only bring the state up to date), then the rest, the keys taken in turn.
+    Channel k's first estimate of a takeover then waits for the catch-up of k channels, not of
+    all of them: with the keys taken in turn from the start, no estimate came before every
+    channel's state was brought up to date (~5 blocks each at a snapshot interval of 0.5 s:
+    1.5 s under load in a chaos run's kill), and none before a whole key's history without turns."""
+    by_key: dict[str, list[tuple[Item, Any, int]]] = {}
+    for reply_item in replies:
+        by_key.setdefault(reply_item[0][0], []).append(reply_item)
+    first: list[tuple[Item, Any, int]] = []
+    rest: list[list[tuple[Item, Any, int]]] = []
+    for key, items in by_key.items():
+        last = published.get(key)
+        n = 0
+        if last is not None:  # up to and including the first block after ``last``
+            while n < len(items) and (_block_seq(items[n][0][1]) or 0) <= last:
+                n += 1
+            n = min(n + 1, len(items))
+        first += items[:n]
+        rest.append(items[n:])
+    return first + [it for turn in itertools.zip_longest(*rest) for it in turn if it is not None]
+
+
+class Intake:
+    """Zenoh subscriber + pump thread feeding the event loop in batches."""
+
+    def __init__(self, daemon: Daemon, loop: asyncio.AbstractEventLoop, history_blocks: int | None = None) -> None:
+        cfg = daemon.config
+        self._daemon = daemon
+        self._loop = loop
+        self._batch = cfg.limits.intake_batch
+        self._policy = cfg.limits.queue_policy
+        self._capacity = cfg.limits.queue_capacity
+        self._room = threading.Semaphore(cfg.limits.queue_capacity)
+        self.counters = IntakeCounters()
+        self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
+        # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
+        fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        self._miss_listener = None
+        self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
+        # The newest sample handed over per publisher (its source id -> sequence number): the
+        # history this intake asks for itself and the samples zenoh-ext delivers overlap, and a
+        # recovery can deliver again what was delivered; each sample goes to the pipeline once.
+        self._last_sn: dict[Any, int] = {}
+        self._lock = threading.Lock()
+        self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
+        self._stopping = False
+        self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
+        self._published: dict[str, int] = {}  # key -> the seq of its last block the previous owner published
+        if cfg.zenoh.recovery:
+            # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
+            # from the publishers' caches (heartbeats tell what was missed); what is past their
+            # history is reported here. The publishers' history at subscription is asked for
+            # by this intake itself (History below), not by zenoh-ext's subscriber: in zenoh-ext
+            # (1.9-1.10) a live sample that arrives during the subscriber's history query
+            # starts a second query, for that publisher's whole cache; if the history query
+            # ends first, the next live sample is delivered at once and the history, still
+            # waiting on the second query, is dropped as older than it, with no miss reported
+            # (seen on 42 of 50 channels in one takeover); when the second query ends first,
+            # the whole cache (1,024 blocks a key) is delivered and had to be read and
+            # recorded before the first new estimate (takeovers of 3-4 s under load).
+            self._held = []
+            self._subscriber = zenoh.ext.declare_advanced_subscriber(
+                daemon.session,
+                cfg.keys.input,
+                fifo,
+                recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True,
+            )
+        else:
+            self._subscriber = daemon.session.declare_subscriber(cfg.keys.input, fifo)
+        self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
+        self._closed = threading.Event()
+        self._thread.start()
+        # Only now, with the pump draining the FIFO: zenoh-ext hands recovered samples to the
+        # FIFO holding the subscriber's lock, which registering a listener takes too; with the
+        # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
+        if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+            # each key's last block already in the state (restored from a snapshot or a file): the
+            # history up to it is dropped unread rather than decoded, recorded and skipped
+            keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
+            self._known = {
+                ch.key: ch.last_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.last_seq is not None and keys[ch.key] == 1
+            }
+            resume = daemon.pipeline.resume_points
+            self._published = {
+                ch.key: resume[ch.name].published_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.name in resume and keys[ch.key] == 1
+            }
+            if history_blocks and self._known:  # a takeover: its shard's keys only, not every key's history
+                selectors = [f"{key}/@adv/**?_max={history_blocks}" for key in self._known]
+            else:
+                selectors = [f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")]
+            threading.Thread(target=self._history, args=(selectors,), name="sinewatch-history", daemon=True).start()
+
+    def _history(self, selectors: list[str]) -> None:
+        """The publishers' cached samples (each key's newest ``history_blocks``, or all) asked
+        for once, after subscribing: handed over first, then what arrived live meanwhile
+        (held back until now), each sample once; from then on the pump hands over directly."""
+        replies: list[tuple[Item, Any, int]] = []
+        try:
+            queries = [  # all sent at once, then read in turn
+                self._daemon.session.get(
+                    selector,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=HISTORY_TIMEOUT_S,
+                )
+                for selector in selectors
+            ]
+            for query in queries:
+                for reply in query:
+                    sample = reply.ok
+                    if sample is not None and (item := self._own(sample, history=True)) is not None:
+                        replies.append(item)
+        except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
+            log.warning("intake: history query failed: %s", exc)
+        interleaved = catch_up_order(replies, self._published)
+        with self._lock:  # the pump waits here: nothing live goes ahead of the history
+            held, self._held = self._held or [], None
+            if self._stopping:  # unsubscribed meanwhile (a deposed owner): these are its successor's
+                return
+            log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
+            self._hand_over(interleaved + held)
+
+    def _in_state(self, key: str, payload: bytes) -> bool:
+        """A binary block whose seq (read from its header) is at or before its channel's last
+        block in the state: already taken in (a takeover's history reaches back past its
+        snapshot, twice what it lacks; most of it was in the snapshot)."""
+        last = self._known.get(key)
+        seq = _block_seq(payload) if last is not None else None
+        return seq is not None and last is not None and seq <= last
+
+    def _own(self, sample: zenoh.Sample, history: bool = False) -> tuple[Item, Any, int] | None:
+        """(item, publisher, sequence number) of a sample of a key this process owns, else None
+        (and None for a block of the history already in the state)."""
+        key = str(sample.key_expr)
+        # another daemon's or worker's keys: not ours to copy, decode, record or count
+        if self._owner is not None and not self._owner.owns(key):
+            self.counters.not_owned += 1
+            return None
+        payload = sample.payload.to_bytes()
+        if history and self._in_state(key, payload):
+            return None
+        info = sample.source_info
+        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
+        return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
+
+    def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
+        """Admit and pass on, in batches, the samples not handed over before (per publisher,
+        a sequence number past the last one handed over; a sample without one always)."""
+        last = self._last_sn
+        batch: list[Item] = []
+        dropped: Counter[str] = Counter()
+        for item, source, sn in items:
+            if source is not None:
+                if sn <= last.get(source, -1):
+                    continue
+                last[source] = sn
+            if self._admit(item, dropped):
+                batch.append(item)
+            if len(batch) >= self._batch:
+                self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+                batch = []
+        if batch:
+            self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+        if dropped:  # one report per key per batch: a flood of drops must not flood the loop
+            self._loop.call_soon_threadsafe(self._daemon.report_drops, dropped)
+
+    def _pump(self) -> None:
+        handler = self._subscriber.handler
+        try:
+            while True:
+                sample = handler.recv()  # raises ZError once undeclared and drained
+                batch = []
+                while sample is not None:
+                    if (item := self._own(sample)) is not None:
+                        batch.append(item)
+                    if len(batch) >= self._batch:
+                        break
+                    sample = handler.try_recv()
+                with self._lock:
+                    if self._held is not None:  # the history is still on its way: these wait for it
+                        self._held += batch
+                    else:
+                        self._hand_over(batch)
+        except zenoh.ZError:
+            pass  # channel closed by stop(): intake is over
+        finally:
+            self._closed.set()
+
+    def _on_miss(self, miss: zenoh.ext.Miss) -> None:
+        """On a Zenoh thread: blocks lost for good (the pipeline flags the gap when the
+        next block of that channel arrives); counted here, logged."""
+        self.counters.unrecovered += miss.nb
+        log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
+
+    def _admit(self, item: Item, dropped: Counter[str]) -> bool:
+        """Take room for an input: one block, or one per channel of a multi-channel frame
+        (``queue_capacity`` counts blocks, so a backlog of frames holds as many samples as
+        one of blocks)."""
+        self.counters.received += 1
+        weight = self.weight(item[1])
+        taken = 0
+        while taken < weight and self._room.acquire(blocking=False):
+            taken += 1
+        if taken == weight:
+            return True
+        if self._policy == "drop":
+            self.release(taken)
+            self.counters.dropped += 1
+            dropped[item[0]] += 1
+            return False
+        self.counters.backpressure_waits += 1
+        while taken < weight:
+            if self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
+                taken += 1
+            elif self._daemon.force_exit.is_set():
+                self.release(taken)
+                return False
+        return True
+
+    def weight(self, payload: bytes) -> int:
+        """The room an input takes: a binary frame's channel count (its header's u16 at offset 6,
+        read without decoding; at most the whole queue), else 1."""
+        if payload[:4] == FRAME_MAGIC and len(payload) >= 8:
+            return max(1, min(int.from_bytes(payload[6:8], "little"), self._capacity))
+        return 1
+
+    def release(self, n: int) -> None:
+        if n:
+            self._room.release(n)
+
+    async def stop(self) -> None:
+        """Stop intake: no new inputs; everything already received is handed over."""
+        # Not under self._lock: the pump can hold it for as long as it waits for room in the
+        # queue, which only this event loop frees; taking it here deadlocked a deposed owner
+        # (it never stood by again, so its shard had no successor). One assignment: atomic.
+        self._stopping = True
+        loop = asyncio.get_running_loop()
+        # Off the event loop too: undeclaring takes zenoh-ext's lock, which a Zenoh thread holds
+        # while it waits for room in the FIFO, which the pump frees once the event loop frees
+        # room in the queue; undeclared on the loop, two deposed owners hung for good when etcd
+        # restarted (no "standby" after "no longer the owner", no admin answers)
+        await loop.run_in_executor(None, self._undeclare)
+        await loop.run_in_executor(None, self._closed.wait)
+
+    def _undeclare(self) -> None:
+        if self._miss_listener is not None:
+            self._miss_listener.undeclare()
+        self._subscriber.undeclare()
+
+
+class Daemon:
+    def __init__(self, config: SinewatchConfig, *, install_signal_handlers: bool = True) -> None:
+        self.config = config
+        self.install_signal_handlers = install_signal_handlers
+        self.should_exit = asyncio.Event()
+        self.force_exit = threading.Event()
+        self.ready = asyncio.Event()
+        self._session: zenoh.Session | None = None
+        self._pipeline: Pipeline | None = None
+        self.recorder: McapRecorder | None = None
+        self.c37118: C37118Server | None = None  # [c37118]: sinewatch as a PMU
+        self._intake: Intake | None = None
+        self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
+        self._queued = 0
+        self._started = time.monotonic()
+        self._last_log_time = 0
+        self.cluster: ClusterMember | None = None
+        self.handed_over = 0  # inputs received while owning a shard, left to the successor (lost the lease)
+        self.notifier = Notifier()
+        self.foxglove: FoxgloveSink | None = None
+        self.metrics: MetricsServer | None = None
+        self._latency: LatencyHistogram | None = None
+        self._beat = time.monotonic()  # the event loop's last heartbeat
+        self._running = False
+
+    # ---- what start() creates ------------------------------------------------------------------
+    @property
+    def session(self) -> zenoh.Session:
+        return _started(self._session, "session")
+
+    @property
+    def pipeline(self) -> Pipeline:
+        return _started(self._pipeline, "pipeline")
+
+    @property
+    def intake(self) -> Intake:
+        return _started(self._intake, "intake")
+
+    # ---- signals -------------------------------------------------------------------------------
+    def handle_signal(self, sig: int) -> None:
+        if sig == signal.SIGINT and self.should_exit.is_set():
+            log.warning("second SIGINT: forcing exit (MCAP file is still finished)")
+            self.force_exit.set()
+            return
+        log.info("%s received: stopping intake, draining", signal.Signals(sig).name)
+        self.should_exit.set()
+
+    # ---- intake -> pipeline ---------------------------------------------------------------------
+    def enqueue(self, batch: list[Item]) -> None:
+        self._queued += len(batch)
+        self._queue.put_nowait(batch)
+
+    def report_drops(self, dropped: Counter[str]) -> None:
+        """Inputs the intake dropped (drop policy), per key: one ErrorReport each, whose
+        ``count`` advances by the number dropped; the gap shows on the next estimate."""
+        for key, n in dropped.items():
+            message = f"intake queue full: {n} input(s) dropped"
+            self.pipeline.report_error(key, "queue_overflow", message, self._log_time(), count=n)
+
+    def _log_time(self) -> int:
+        self._last_log_time = sanitize_log_time(self._last_log_time, time.time_ns())
+        return self._last_log_time
+
+    async def _consume(self) -> None:
+        while True:
+            batch = await self._queue.get()
+            if batch is None:
+                return
+            try:
+                await self._process_gated(batch)
+            except Exception:  # the pipeline isolates faults; this is the last line of defence
+                log.exception("batch of %d inputs not fully processed", len(batch))
+            finally:
+                self._queued -= len(batch)
+                if self._intake is not None:
+                    intake = self._intake
+                    intake.release(sum(intake.weight(item[1]) for item in batch))
+            # Queue.get() does not yield while batches wait: without this, a backlog would keep
+            # the heartbeat, status and flush timers from running until it is gone (a watchdog
+            # or a supervisor would then take the busy daemon for a stuck one).
+            await asyncio.sleep(0)
+
+    async def _process_gated(self, batch: list[Item]) -> None:
+        """Process the batch, block by block, while this daemon may publish (an elected
+        owner: while its lease is proven alive). When the gate shuts, the rest waits for it
+        to open again; if the shard is lost meanwhile, the rest is the successor's."""
+        done = 0
+        cluster = self.cluster
+        while done < len(batch):
+            if cluster is not None and not cluster.may_publish():
+                if not await cluster.wait_gate():
+                    self.handed_over += len(batch) - done
+                    return
+            done += self._process(batch, done)
+            if self.force_exit.is_set():
+                return
+
+    def _process(self, batch: list[Item], start: int = 0) -> int:
+        """Process ``batch[start:]`` until its end or the gate shuts; return how many."""
+        cluster = self.cluster
+        gated = cluster is not None and cluster.election is not None
+        n = 0
+        for key, payload, encoding, received in batch[start:]:
+            if self.force_exit.is_set() or (gated and not cluster.may_publish()):  # type: ignore[union-attr]
+                break
+            n += 1
+            self.pipeline.process(key, payload, encoding, self._log_time(), received)
+            if self._latency is not None:
+                self._latency.observe_ns(time.monotonic_ns() - received)
+        return n
+
+    # ---- periodic tasks -------------------------------------------------------------------------
+    def intake_counters(self) -> IntakeCounters:
+        return self._intake.counters if self._intake else IntakeCounters()
+
+    def status_payload(self) -> bytes:
+        c = self.intake_counters()
+        p = self.pipeline
+        status = Status(
+            daemon_id=self.config.daemon_id,
+            uptime_s=round(time.monotonic() - self._started, 3),
+            blocks_received=c.received,
+            blocks_processed=p.counters.inputs,
+            dropped=c.dropped,
+            backpressure_waits=c.backpressure_waits,
+            unrecovered=c.unrecovered,
+            errors=p.counters.errors,
+            errors_by_kind=dict(sorted(p.counters.by_kind.items())),
+            queue_depth=self._queued,
+            recording=str(self.recorder.path) if self.recorder and self.recorder.path else None,
+            sinks=[SinkStatus(**s) for s in p.sink_status()],
+            channels=[ChannelStatus(**c) for c in p.channel_status()],
+            c37118=self.c37118.status() if self.c37118 is not None else None,
+        )
+        return encode_status(status)
+
+    def publish_status(self) -> None:
+        key = f"{self.config.keys.status_key}/{self.config.daemon_id}"
+        payload = self.status_payload()
+        for sink in self.pipeline.sinks:
+            sink.on_status(key, payload, self._log_time())
+
+    def heartbeat(self) -> None:
+        """The event loop is turning: note it (``/healthz``) and tell systemd's watchdog."""
+        self._beat = time.monotonic()
+        self.notifier.watchdog()
+
+    def _heartbeat_s(self) -> float:
+        periods = [HEARTBEAT_S, self.config.metrics.stall_s / 4]
+        if self.notifier.watchdog_s is not None:
+            periods.append(self.notifier.watchdog_s / 2)  # sd_watchdog_enabled(3): ping at half the timeout
+        return min(periods)
+
+    # ---- metrics and health (read on the metrics server's thread) -----------------------------
+    def metrics_snapshot(self) -> Snapshot:
+        from sinewatch.outputs.metrics import LatencyHistogram, Snapshot
+
+        c = self._intake.counters if self._intake else IntakeCounters()
+        p = self._pipeline
+        rec = self.recorder
+        return Snapshot(
+            blocks_received=c.received,
+            blocks_processed=p.counters.inputs if p else 0,
+            estimates=p.counters.estimates if p else 0,
+            rejections_by_kind=dict(p.counters.by_kind) if p else {},
+            dropped=c.dropped,
+            backpressure_waits=c.backpressure_waits,
+            unrecovered=c.unrecovered,
+            queue_depth=self._queued,
+            channels=len(p.channels) if p else 0,
+            recording_bytes=sum(_size(path) for path in list(rec.paths)) if rec else 0,
+            recording_messages=rec.messages_written if rec else 0,
+            sinks=p.sink_status() if p else [],
+            cpu_seconds_by_worker={"0": time.process_time()},  # one process today; workers come later
+            uptime_s=time.monotonic() - self._started,
+            loop_age_s=time.monotonic() - self._beat,
+            latency=self._latency or LatencyHistogram(),
+            foxglove=self.foxglove.counters.as_dict() if self.foxglove else {},
+        )
+
+    def health(self) -> Health:
+        from sinewatch.outputs.metrics import health
+
+        p = self._pipeline
+        return health(
+            running=self._running,
+            stopping=self.should_exit.is_set(),
+            loop_age_s=time.monotonic() - self._beat,
+            stall_s=self.config.metrics.stall_s,
+            sinks=p.sink_status() if p else [],
+        )
+
+    async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
+        while True:
+            await asyncio.sleep(seconds)
+            try:
+                fn()
+            except Exception:  # a failed tick must not end the timer
+                log.exception("periodic %s failed", getattr(fn, "__name__", fn))
+
+    # ---- lifecycle ------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Load (or compile) every configured estimator's kernels now, so that a
+        channel's first block does not wait ~0.3-0.8 s for numba."""
+        from sinewatch.estimators import check_rules, get
+        from sinewatch.estimators.bank import bank_of, update_bank
+        from sinewatch.estimators.presence import SignalPresence, update_presence_bank
+
+        check_rules(self.config.rules)
+        for name in sorted({rule.estimator for rule in self.config.rules}):
+            cls = get(name)
+            est = cls.example()
+            signal_ = cls.example_signal(64)
+            est.update(signal_)
+            est.update(signal_, last_only=True)
+            if est.n_inputs == 1:  # a frame's channels: the bank kernel, the presence detectors' bank
+                frame = np.stack([signal_, signal_], axis=1)
+                if bank_of(cls) is not None:
+                    update_bank([cls.example(), cls.example()], frame, last_only=True)
+                detectors = [SignalPresence(cls.example_sample_rate_hz) for _ in range(2)]
+                update_presence_bank(detectors, frame, [0, 1])
+
+    def start(self) -> None:
+        """Open the session and sinks and start intake (call from the event loop)."""
+        cfg = self.config
+        self.warm_up()
+        self._start_operations()  # before Zenoh: a port in use or a missing extra fails first
+        self._session = open_session(cfg.zenoh)
+        sinks: list[Sink] = [ZenohPublisherSink(self._session)]
+        if cfg.recording.enabled:
+            self.recorder = McapRecorder(cfg, snapshot=lambda: self.pipeline.snapshot())
+            sinks.append(self.recorder)
+        if self.foxglove is not None:
+            sinks.append(self.foxglove)
+        if cfg.c37118.enabled:
+            self.c37118 = C37118Server(cfg.c37118)
+            sinks.append(self.c37118)
+        self._pipeline = Pipeline(cfg, sinks)
+        if cfg.workers.resume_from:  # a worker process restarted by its supervisor
+            self._resume(Path(cfg.workers.resume_from))
+        self._pipeline.open_sinks()  # a recorder that cannot open is reported; estimation starts anyway
+        self.cluster = ClusterMember(self)
+        self.cluster.start(asyncio.get_running_loop())  # active: start_intake() now; standby: at takeover
+        self._beat = time.monotonic()
+        self._running = True  # serving or standing by: /healthz says ok from here
+        log.info(
+            "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
+            cfg.daemon_id,
+            cfg.zenoh.mode,
+            cfg.zenoh.listen,
+            cfg.zenoh.connect,
+            cfg.keys.input,
+            cfg.keys.estimates_prefix,
+        )
+
+    def _resume(self, path: Path) -> None:
+        """Restore the state a dead predecessor published last (``serve --workers``): each
+        channel resumes after its last block in that state. Blocks Zenoh brings again up to
+        there are taken as already in the state; later ones are estimated and published (those
+        between the snapshot and the death a second time, with the same bytes); blocks nobody
+        received are flagged as a gap on the channel's next estimate. The recording's first
+        file carries this state, so it replays on its own."""
+        snapshot = json.loads(path.read_text())
+        pipeline = self.pipeline
+        pipeline.restore(snapshot)
+        for ch in pipeline.channels.values():
+            if ch.last_seq is not None:
+                pipeline.resume_points[ch.name] = ResumePoint(ch.last_seq, ch.next_t0_ns)
+        if self.recorder is not None:
+            self.recorder.attach_first_snapshot = True
+        log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
+
+    def start_intake(self, history_blocks: int | None = None) -> None:
+        """Subscribe to the inputs (at start, or when a standby takes over: then the
+        publishers' history is asked for its newest ``history_blocks`` per key only)."""
+        if self._intake is None:
+            self._intake = Intake(self, asyncio.get_running_loop(), history_blocks)
+
+    async def stop_intake(self) -> None:
+        """Unsubscribe from the inputs (an owner that lost its shard): what is queued is
+        dropped by the consumer (the gate no longer opens), counted in ``handed_over``."""
+        if self._intake is not None:
+            await self._intake.stop()  # the consumer releases the room of what it drops meanwhile
+            self._intake = None
+
+    def _start_operations(self) -> None:
+        """The Foxglove server and the metrics server, when configured."""
+        fox, met = self.config.foxglove, self.config.metrics
+        if fox.port is not None:
+            module = _foxglove_module()
+            try:
+                self.foxglove = module.FoxgloveSink(self.config)
+            except Exception as exc:  # noqa: BLE001 (the SDK's errors have no common base: say what failed)
+                raise ConfigError(f"foxglove: expected to listen on {fox.host}:{fox.port}, got {exc}") from None
+        if met.port is not None:
+            module = _metrics_module()
+            self._latency = module.LatencyHistogram()
+            try:
+                self.metrics = module.MetricsServer(met.host, met.port, self.metrics_snapshot, self.health)
+            except OSError as exc:
+                raise ConfigError(f"metrics: expected to listen on {met.host}:{met.port}, got {exc}") from None
+            self.metrics.start()
+
+    async def run(self) -> int:
+        """Run until a signal (or ``should_exit``); return the exit code (0, or 130 if forced)."""
+        with shutdown_signals(self.handle_signal, enabled=self.install_signal_handlers):
+            try:
+                self.start()
+                if self.c37118 is not None:
+                    await self.c37118.start()
+            except BaseException:
+                self._close()  # what start() opened before it failed (ports, session)
+                raise
+            consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
+            periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
+            beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
+            if self.recorder is not None:
+                periodic.append(
+                    asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
+                )
+            self._beat = time.monotonic()  # the heartbeat task pings systemd from here on
+            self.ready.set()
+            self.notifier.ready(f"subscribed to {self.config.keys.input}")
+            try:
+                await self.should_exit.wait()
+                await self._shutdown(consumer, periodic)  # the heartbeat goes on while it drains
+            finally:
+                beat.cancel()
+                if self.c37118 is not None:
+                    await self.c37118.stop()
+                self._close()
+        return 130 if self.force_exit.is_set() else 0
+
+    async def _shutdown(self, consumer: asyncio.Task[None], periodic: list[asyncio.Task[None]]) -> None:
+        self.notifier.stopping("draining: intake stopped, finishing the queue and the recording")
+        for task in periodic:
+            task.cancel()
+        if self._intake is not None:
+            await self._intake.stop()  # no new inputs; the pump has handed over all it had
+        self._queue.put_nowait(None)  # the consumer ends after everything before it
+        await consumer
+        self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
+        self.publish_status()
+        if self.cluster is not None:  # only now: a standby takes over after our last estimate
+            await self.cluster.close()
+        c = self.pipeline.counters
+        log.info(
+            "%s: %d inputs, %d estimates, %d errors",
+            "forced exit" if self.force_exit.is_set() else "drained",
+            c.inputs,
+            c.estimates,
+            c.errors,
+        )
+
+    def _close(self) -> None:
+        if self._pipeline is not None:
+            self._pipeline.close_sinks()
+        elif self.foxglove is not None:  # started, but the pipeline never was
+            self.foxglove.close()
+        if self._session is not None:
+            self._session.close()
+        if self.metrics is not None:  # last: /healthz says "stopping" until the end
+            self.metrics.close()
+
+    @property
+    def recording_paths(self) -> list[Path]:
+        return list(self.recorder.paths) if self.recorder else []
+
+
+_T = TypeVar("_T")
+
+
+def _size(path: Path) -> int:
+    """Bytes on disk (0 for a file gone meanwhile: a scrape must not fail on it)."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _optional(module: str, package: str, dist: str, extra: str, what: str) -> Any:
+    """The module ``module`` (its full dotted path, so that it reads as an import), which needs
+    ``package`` from the ``extra`` extra: a missing package is one clear line (a ConfigError),
+    not a traceback."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name != package and not (exc.name or "").startswith(f"{package}."):
+            raise
+        raise ConfigError(
+            f"{what} needs the {extra!r} extra: pip install 'sinewatch[{extra}]' "
+            f"(expected the {dist} package, got no module {package!r})"
+        ) from None
+
+
+def _foxglove_module() -> Any:
+    return _optional(
+        "sinewatch.outputs.foxglove_live", "foxglove", "foxglove-sdk", "foxglove", "--foxglove / [foxglove]"
+    )
+
+
+def _metrics_module() -> Any:
+    return _optional(
+        "sinewatch.outputs.metrics", "prometheus_client", "prometheus-client", "metrics", "--metrics / [metrics]"
+    )
+
+
+def check_extras(config: SinewatchConfig) -> None:
+    """Raise ConfigError (one line) when ``[foxglove]`` or ``[metrics]`` is on without its
+    extra: ``serve --workers`` checks it before it starts any worker."""
+    if config.foxglove.port is not None:
+        _foxglove_module()
+    if config.metrics.port is not None:
+        _metrics_module()
+
+
+def _started(value: _T | None, what: str) -> _T:
+    if value is None:
+        raise RuntimeError(f"daemon {what}: expected a started daemon (call start() or run() first)")
+    return value
+
+
+def serve(config: SinewatchConfig) -> int:
+    """Run the daemon in the foreground until SIGINT/SIGTERM."""
+
+    async def main() -> int:
+        return await Daemon(config).run()
+
+    return asyncio.run(main())
