@@ -9,7 +9,8 @@ Nothing here is asserted: a kernel this script does not reach is compiled on dem
 and a kernel that fails to compile fails here and in its tests alike.
 
 Reached: every registered estimator through a real :class:`Pipeline` (float64 and
-float32 blocks, whole blocks and the last sample only), with its example parameters and
+float32 blocks, whole blocks and the last sample only, and a two-channel frame: its bank and
+the presence detectors' bank), with its example parameters and
 the default rule; the automatic adaptive multisine for one, two and three sinusoids and its
 explicit design; the power-quality stage's harmonic analyser.
 """
@@ -30,6 +31,7 @@ from sinewatch.estimators import available, get
 from sinewatch.power_quality.stage import warm_up
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
+from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
 
 
 def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
@@ -40,6 +42,17 @@ def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory
     for dtype in ("float64", "float32"):
         blk = Block(f"warm-{dtype}", 0, 0, rate, x)
         pipeline.process(f"sinewatch/in/warm-{dtype}", encode_block_binary(blk, dtype), BLOCK_BINARY_ENCODING, 0)
+
+
+def _through_frames(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
+    """Two channels in one frame: the estimator's bank kernel and the presence detectors' bank."""
+    config = SinewatchConfig(
+        daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
+    )
+    pipeline = Pipeline(config, [NullSink()])
+    columns = np.ascontiguousarray(np.stack([x, 0.5 * x], axis=1))
+    frame = Frame(("warm/a", "warm/b"), 0, 0, rate, columns)
+    pipeline.process("sinewatch/in/warm", encode_frame_binary(frame), FRAME_BINARY_ENCODING, 0)
 
 
 def _estimator(name: str, params: dict[str, Any] | None = None) -> None:
@@ -59,6 +72,7 @@ def _one(name: str) -> str:
         if x.ndim == 1:
             rule = EstimatorRule(estimator=name, params=dict(cls.example_params))
             _through_pipeline(rule, cls.example_sample_rate_hz, x, Path(tmp))
+            _through_frames(rule, cls.example_sample_rate_hz, x, Path(tmp))
         if name == "pmu":  # the default rule
             _through_pipeline(EstimatorRule(), 10_000.0, get("pmu").example_signal(2000), Path(tmp))
         if name == "adaptive-multisine":
