@@ -42,7 +42,7 @@ class Channel:
     # (validity rules version 3): (payload, release at sample count, window start or -1, converged), see sinewatch.core.hold
     held: deque[tuple[bytes, int, int, bool]] = field(default_factory=deque, repr=False)
     last_run: np.ndarray | None = field(default=None, repr=False)  # the presence run of the last block
-    # (key, template) of its Estimates' bytes in the usual case (sinewatch.core.estimate_bytes.fast_payload)
+    # (key, template) of its Estimates' bytes in the usual case (sinewatch.core.estimate_bytes.estimate_payload)
     template: tuple[tuple[Any, ...], str] | None = field(default=None, repr=False)
 
     validity_version: int = field(default=VALIDITY_RULES_VERSION, repr=False)  # the pipeline's rules

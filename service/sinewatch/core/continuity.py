@@ -26,7 +26,7 @@ Version 3, with ``hold_estimates`` on, holds every estimate back until the prese
 signal its onset latency past the estimate
 (:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
 estimate whose window holds the start of an interruption is published valid (the pipeline's
-``_hold``); with it on or off, version 3 ends an absence only at 0.12 of the reference
+:func:`sinewatch.core.hold.hold`); with it on or off, version 3 ends an absence only at 0.12 of the reference
 level (a hysteresis).
 Files of version 2 replay without either.
 """

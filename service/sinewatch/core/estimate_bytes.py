@@ -1,12 +1,13 @@
 """An Estimate's bytes as the pipeline publishes them, built without the pydantic model (one
-estimate per block is the pipeline's hot path): :func:`fast_payload` for the usual case (one
-``%`` formatting of a template cached on the channel), :func:`general_payload` for every
-case; both equal ``encode_estimate(estimate_model(...))`` byte for byte
+estimate per block is the pipeline's hot path): :func:`estimate_payload`, whose first branch
+is the usual case (one ``%`` formatting of a template cached on the channel) and whose
+second writes any case; both equal ``encode_estimate(estimate_model(...))`` byte for byte
 (tests/test_codec_estimate_fast.py, tests/test_pipeline_hot_path.py)."""
 
 from __future__ import annotations
 
 from math import isfinite
+from typing import Protocol
 
 import numpy as np
 
@@ -23,26 +24,15 @@ from sinewatch.schemas.codec import (
 from sinewatch.schemas.messages import Diagnostics, Estimate, Fencing, Uncertainty
 
 
-def estimate_valid(
-    ch: Channel,
-    timestamp_ns: int,
-    t_last_ns: int,
-    frequency_hz: list[float | None],
-    amplitude: list[float | None],
-) -> bool:
-    """``diagnostics.valid`` (format 3): the signal has been present (the presence
-    detector, :mod:`sinewatch.estimators.presence`) from the estimator's memory before
-    the estimate's time up to the block's last sample, and the estimate is finite
-    (``frequency_hz`` and ``amplitude`` as :func:`_finite_list` made them: None where
-    not finite)."""
-    assert ch.presence is not None
-    lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
-    if ch.presence.run_samples < ch.estimator.memory_samples + lag:
-        return False
-    return None not in frequency_hz and None not in amplitude
+class EstimateSettings(Protocol):
+    """What an Estimate's bytes take from the pipeline besides the channel and the block."""
+
+    estimate_version: int  # the Estimate format written (earlier ones reproduce earlier recordings)
+    fencing_json: str  # the shard and term the daemon publishes under, as JSON ("null": none)
 
 
-def general_payload(
+def estimate_payload(
+    settings: EstimateSettings,
     ch: Channel,
     block: Block,
     track: Track,
@@ -51,28 +41,56 @@ def general_payload(
     gap_blocks: int,
     restart: bool,
     reset: bool,
-    jump: bool,
-    version: int,
-    fencing_json: str,
+    jump: bool = False,
+    *,
+    fast: bool = True,
 ) -> tuple[bytes, bool]:
     """The Estimate's bytes, and its ``converged``. From format 3 on, an estimate that is
-    not valid is not converged either.
+    not valid (:func:`_present`, and every frequency and amplitude finite) is not converged
+    either.
 
-    The bytes are built without the pydantic model (:func:`encode_estimate_values`, the
-    same bytes as ``encode_estimate(estimate_model(...))``; tests/test_codec_estimate_fast.py
-    proves it), one estimate per block being the pipeline's hot path."""
+    The usual case (format 3 or later, every value a finite float64, no extras) is one ``%``
+    formatting of a template cached on the channel (:func:`_estimate_template`) with every
+    float gathered by one numpy call: ``%r`` of a float is its ``repr``, which is what
+    :func:`encode_estimate_values` writes. Any other case (or ``fast=False``, which tests
+    use to compare the two ways: tests/test_pipeline_hot_path.py) goes through
+    :func:`encode_estimate_values`, the same bytes as ``encode_estimate(estimate_model(...))``
+    (tests/test_codec_estimate_fast.py)."""
+    version = settings.estimate_version
+    gap = gap_blocks > 0 or restart or jump
+    if fast and version >= 3 and not track.extras:
+        floats = _usual_floats(track)
+        if floats is not None:  # the usual case: every value finite, so valid is presence alone
+            valid = _present(ch, timestamp_ns, t_last_ns)
+            converged = valid and bool(track.converged[-1])
+            sec, nsec = divmod(int(timestamp_ns), 1_000_000_000)
+            rms = track.residual_rms
+            payload = _template(settings, ch, block, track) % (
+                block.seq,
+                int(timestamp_ns),
+                sec,
+                nsec,
+                block.n_samples,
+                *floats,
+                _TRUE_FALSE[converged],
+                _TRUE_FALSE[valid],
+                "null" if rms is None or not isfinite(rms) else repr(float(rms)),
+                _TRUE_FALSE[gap],
+                gap_blocks,
+                _TRUE_FALSE[restart],
+                _TRUE_FALSE[reset],
+            )
+            return payload.encode("ascii"), converged
     converged = bool(track.converged[-1])
     frequency_hz = _finite_list(track.frequency_hz[-1])
     amplitude = _finite_list(track.amplitude[-1])
     valid = True
     if version >= 3:
-        valid = estimate_valid(ch, timestamp_ns, t_last_ns, frequency_hz, amplitude)
+        valid = _present(ch, timestamp_ns, t_last_ns) and None not in frequency_hz and None not in amplitude
         converged = converged and valid
     std = track.std
-    names = ch.json_names
-    if names is None:
-        names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
-    payload = encode_estimate_values(
+    names = _json_names(ch)
+    payload_bytes = encode_estimate_values(
         version,
         names[0],
         block.seq,
@@ -95,39 +113,30 @@ def general_payload(
         converged,
         valid,
         finite_or_none(track.residual_rms),
-        gap_blocks > 0 or restart or jump,
+        gap,
         gap_blocks,
         restart,
         reset,
         {k: _last_value(v) for k, v in track.extras.items()} if track.extras else {},
-        fencing_json,
+        settings.fencing_json,
         # the input's time quality (a frame's is each of its columns'), passed through as stated
         TIME_QUALITY_JSON[block.time_quality],
     )
-    return payload, converged
+    return payload_bytes, converged
 
 
-def fast_payload(
-    ch: Channel,
-    block: Block,
-    track: Track,
-    timestamp_ns: int,
-    t_last_ns: int,
-    gap_blocks: int,
-    restart: bool,
-    reset: bool,
-    jump: bool,
-    version: int,
-    fencing_json: str,
-) -> tuple[bytes, bool] | None:
-    """:func:`general_payload`'s bytes in the usual case (format 3 or later, every value
-    finite, no extras), built by one ``%`` formatting of a template cached on the channel
-    (:func:`_estimate_template`) with every float of the estimate gathered by one numpy
-    call: ``%r`` of a float is its ``repr``, which is what :func:`encode_estimate_values`
-    writes, so the bytes are the same (tests/test_pipeline_hot_path.py compares them). None
-    when the case is not the usual one (the general path then builds them)."""
-    if version < 3 or track.extras:
-        return None
+def _present(ch: Channel, timestamp_ns: int, t_last_ns: int) -> bool:
+    """The presence part of ``diagnostics.valid`` (format 3): the signal has been present (the
+    presence detector, :mod:`sinewatch.estimators.presence`) from the estimator's memory before
+    the estimate's time up to the block's last sample."""
+    assert ch.presence is not None
+    lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
+    return ch.presence.run_samples >= ch.estimator.memory_samples + lag
+
+
+def _usual_floats(track: Track) -> list[float] | None:
+    """Every float of the estimate at the track's last row, in the order the template takes
+    them; None when one is not a finite float64 (then the general way writes it)."""
     std, rocof = track.std, track.rocof_hz_per_s
     parts = [track.frequency_hz[-1], track.amplitude[-1], track.phase_rad[-1], track.offset[-1:]]
     if rocof is not None:
@@ -137,41 +146,35 @@ def fast_payload(
     values = np.concatenate(parts)
     if values.dtype != _F64:
         return None
-    floats = values.tolist()
-    # a NaN or an infinity makes the sum non-finite (so may an overflow: then the general path)
-    if not isfinite(sum(floats)):
-        return None
-    k = track.frequency_hz.shape[-1]
-    key = (version, k, rocof is not None, std is not None, fencing_json, block.time_quality)
+    floats: list[float] = values.tolist()
+    # a NaN or an infinity makes the sum non-finite (so may an overflow: then the general way)
+    return floats if isfinite(sum(floats)) else None
+
+
+def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
+    """The channel's cached template (:func:`_estimate_template`), made again when its layout
+    (format, components, rocof and std present, fencing, time quality) changes."""
+    rocof, std = track.rocof_hz_per_s is not None, track.std is not None
+    key = (
+        settings.estimate_version,
+        track.frequency_hz.shape[-1],
+        rocof,
+        std,
+        settings.fencing_json,
+        block.time_quality,
+    )
     template = ch.template
     if template is None or template[0] != key:
-        names = ch.json_names
-        if names is None:
-            names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
-        template = ch.template = (key, _estimate_template(names, *key))
-    lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
-    assert ch.presence is not None
-    valid = ch.presence.run_samples >= ch.estimator.memory_samples + lag  # _valid, every value finite
-    converged = valid and bool(track.converged[-1])
-    sec, nsec = divmod(int(timestamp_ns), 1_000_000_000)
-    rms = track.residual_rms
-    gap = gap_blocks > 0 or restart or jump
-    payload = template[1] % (
-        block.seq,
-        int(timestamp_ns),
-        sec,
-        nsec,
-        block.n_samples,
-        *floats,
-        _TRUE_FALSE[converged],
-        _TRUE_FALSE[valid],
-        "null" if rms is None or not isfinite(rms) else repr(float(rms)),
-        _TRUE_FALSE[gap],
-        gap_blocks,
-        _TRUE_FALSE[restart],
-        _TRUE_FALSE[reset],
-    )
-    return payload.encode("ascii"), converged
+        template = ch.template = (key, _estimate_template(_json_names(ch), *key))
+    return template[1]
+
+
+def _json_names(ch: Channel) -> tuple[str, str]:
+    """The channel's and its estimator's names as JSON strings, made once per channel."""
+    names = ch.json_names
+    if names is None:
+        names = ch.json_names = (json_string(ch.name), json_string(ch.estimator.name))
+    return names
 
 
 _TRUE_FALSE = ("false", "true")
@@ -189,7 +192,7 @@ def _estimate_template(
     """The ``%`` template of an Estimate (format 3 or later, no extras) with ``k`` components:
     :func:`encode_estimate_values`'s layout, field for field, with ``%d`` for seq,
     timestamp_ns, sec, nsec, n_samples and gap_blocks, ``%r`` for each float (in the order
-    :func:`fast_payload` gathers them) and ``%s`` for converged, valid,
+    :func:`_usual_floats` gathers them) and ``%s`` for converged, valid,
     residual_rms, gap, restart and reset. Constant text is escaped (``%`` doubled)."""
 
     def const(text: str) -> str:
@@ -237,7 +240,7 @@ def estimate_model(
     fencing: Fencing | None = None,
 ) -> Estimate:
     """The Estimate the pipeline's bytes encode, as the pydantic model: the schema's way of
-    building it, what :func:`general_payload` equals byte for byte (tests)."""
+    building it, what :func:`estimate_payload` equals byte for byte (tests)."""
     return Estimate(
         channel=ch.name,
         seq=block.seq,

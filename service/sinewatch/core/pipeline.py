@@ -34,7 +34,7 @@ import zenoh
 
 from sinewatch.core.channel import Channel, FrameMember, PipelineCounters, ResumePoint, continues_in_time
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
-from sinewatch.core.estimate_bytes import estimate_model, fast_payload, general_payload
+from sinewatch.core.estimate_bytes import estimate_model, estimate_payload
 from sinewatch.core.hold import hold, not_valid
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
@@ -84,7 +84,7 @@ class Pipeline:
         self._frame_keys: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {}  # (frame key, names) -> channel keys
         self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
         self.fencing: Fencing | None = None  # the shard and term this daemon owns its channels under (cluster)
-        self._fencing_json = "null"
+        self.fencing_json = "null"
         self.pq = PqStage(
             config, _key_matches, pq_version
         )  # power quality (harmonics, groups, aggregates): off unless configured
@@ -93,7 +93,7 @@ class Pipeline:
         """The shard and election term every estimate from now on carries (format 4): set
         by the cluster when this daemon wins its shard's election, and by a snapshot."""
         self.fencing = fencing
-        self._fencing_json = "null" if fencing is None else dumps(fencing.model_dump()).decode()
+        self.fencing_json = "null" if fencing is None else dumps(fencing.model_dump()).decode()
 
     # ---- the one entry point ---------------------------------------------------------------
     def process(
@@ -568,61 +568,9 @@ class Pipeline:
             return [m[0] for m in made]
         return hold(ch, t_last, made, reset)
 
-    def _estimate_payload(
-        self,
-        ch: Channel,
-        block: Block,
-        track: Track,
-        timestamp_ns: int,
-        t_last_ns: int,
-        gap_blocks: int,
-        restart: bool,
-        reset: bool,
-        jump: bool = False,
-    ) -> tuple[bytes, bool]:
-        """The Estimate's bytes, and its ``converged`` (:mod:`sinewatch.core.estimate_bytes`)."""
-        fast = self._fast_payload(ch, block, track, timestamp_ns, t_last_ns, gap_blocks, restart, reset, jump)
-        if fast is not None:
-            return fast
-        return general_payload(
-            ch,
-            block,
-            track,
-            timestamp_ns,
-            t_last_ns,
-            gap_blocks,
-            restart,
-            reset,
-            jump,
-            self.estimate_version,
-            self._fencing_json,
-        )
-
-    def _fast_payload(
-        self,
-        ch: Channel,
-        block: Block,
-        track: Track,
-        timestamp_ns: int,
-        t_last_ns: int,
-        gap_blocks: int,
-        restart: bool,
-        reset: bool,
-        jump: bool,
-    ) -> tuple[bytes, bool] | None:
-        return fast_payload(
-            ch,
-            block,
-            track,
-            timestamp_ns,
-            t_last_ns,
-            gap_blocks,
-            restart,
-            reset,
-            jump,
-            self.estimate_version,
-            self._fencing_json,
-        )
+    # An estimate's bytes from this pipeline's format and fencing (the function takes the
+    # pipeline as its settings: a method, so that a test's subclass may compare each one).
+    _estimate_payload = estimate_payload
 
     def _reject(
         self,
