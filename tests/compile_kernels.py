@@ -49,14 +49,17 @@ def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory
 
 
 def _through_frames(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
-    """Two channels in one frame: the estimator's bank kernel and the presence detectors' bank."""
+    """Two channels in one frame, float64 and float32: the estimator's bank kernel and the
+    presence detectors' bank, each for read-only and for writable samples."""
     config = SinewatchConfig(
         daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
     )
     pipeline = Pipeline(config, [NullSink()])
     columns = np.ascontiguousarray(np.stack([x, 0.5 * x], axis=1))
-    frame = Frame(("warm/a", "warm/b"), 0, 0, rate, columns)
-    pipeline.process("sinewatch/in/warm", encode_frame_binary(frame), FRAME_BINARY_ENCODING, 0)
+    for dtype in ("float64", "float32"):  # a read-only view of the payload; a writable converted copy
+        frame = Frame((f"warm-{dtype}/a", f"warm-{dtype}/b"), 0, 0, rate, columns)
+        payload = encode_frame_binary(frame, dtype)
+        pipeline.process(f"sinewatch/in/warm-{dtype}", payload, FRAME_BINARY_ENCODING, 0)
 
 
 def _estimator(name: str, params: dict[str, Any] | None = None) -> None:

@@ -370,14 +370,24 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     signal_ = cls.example_signal(64)
     if signal_.ndim == 1 and est.n_inputs > 1:  # e.g. I/Q: the kernel's types, not a meaningful signal
         signal_ = np.column_stack([signal_] * est.n_inputs)
-    est.update(signal_)
-    est.update(signal_, last_only=True)
+    for x in _as_received(signal_):
+        est.update(x)
+        est.update(x, last_only=True)
     if est.n_inputs == 1:
-        frame = np.stack([signal_, signal_], axis=1)
-        if bank_of(cls) is not None:
-            update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
-        detectors = [SignalPresence(rate) for _ in range(2)]
-        update_presence_bank(detectors, frame, [0, 1])
+        for frame in _as_received(np.stack([signal_, signal_], axis=1)):
+            if bank_of(cls) is not None:
+                update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
+            detectors = [SignalPresence(rate) for _ in range(2)]
+            update_presence_bank(detectors, frame, [0, 1])
+
+
+def _as_received(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` as the kernels receive samples: float64 samples decode to a read-only view of the
+    payload (``np.frombuffer``), float32 ones to a writable float64 copy, and numba compiles a
+    kernel once for each (a read-only array is another type)."""
+    frozen = x.copy()
+    frozen.setflags(write=False)
+    return x, frozen
 
 
 class Daemon:
