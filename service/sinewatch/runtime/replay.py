@@ -823,9 +823,10 @@ class ResultBuilder:
             else:
                 r.recorded_other[m.role] = r.recorded_other.get(m.role, 0) + 1
             if estimate and not comparator.estimates[m.topic]:
-                # recorded with nothing produced yet: only the daemon's drain publishes an
-                # estimate after the last input (Pipeline.release_held), so release here too
-                pipeline.release_held(m.log_time_ns)
+                # recorded with nothing produced yet: only the daemon's drain and its idle
+                # release publish an estimate after a channel's last input (Pipeline.release_held,
+                # release_idle), so release that channel here too
+                pipeline.release_held(m.log_time_ns, m.topic)
             produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
             index = self.counts[m.topic]
             self.counts[m.topic] += 1
