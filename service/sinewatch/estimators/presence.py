@@ -105,16 +105,19 @@ DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
 DEFAULT_HYSTERESIS = 0.02  # (E): an absence ends at 0.12 of the reference (validity rules version 3)
 FAST_RATIO = 0.35  # (F): absent when the quadrature magnitude falls below 0.35 of the last level's
-FAST_DC = 0.2  # (F) is off while the one-cycle mean is above 0.2 of the reference
+FAST_DC = 0.25  # (F) is off while the one-cycle mean is above 0.25 of the reference
+FAST_MAX_CORR = 0.5  # (F) is off while x_n and x_{n-Q} correlate more (far from quadrature)
 FAST_MAX_MEAN = 16  # (F): at most 16 values of P averaged (noise), fewer below 20 kHz at 50 Hz
 RUN_CAP = 1 << 62
 _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
 # slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R, the
-# last level squared, R as it was one and two half cycles back, the last one-cycle mean (mu),
-# and the running sum of P over the last m samples (F)
-_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM = 0, 1, 2, 3, 4, 6, 7, 8, 9
-_N_SUMS = 10
+# last level squared, R as it was one and two half cycles back; for (F): the one-cycle mean
+# in use (the reading before the last's), the running sum of P over the last m samples, the
+# last reading's mean, the level before the last, the previous and the current half cycle's
+# sum of x_n x_{n-Q}, the lag-Q correlation in use and the last reading's
+_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+_N_SUMS = 16
 # slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
 # length, present (0/1: the last decision), samples in the ring (up to its length), the
 # ring's next slot, armed (1: the running sum holds the last m values of P)
@@ -137,6 +140,13 @@ def _p_sum(ring: np.ndarray, pos: int, quarter: int, m: int, mu: float) -> float
 
 
 @kernel
+def _fast_usable(mu: float, cq: float, r: float) -> bool:
+    """(F) applies: a DC part at most FAST_DC of R and the pair close enough to quadrature
+    (lag-Q correlation at most FAST_MAX_CORR: the signal near the detector's frequency)."""
+    return abs(mu) <= FAST_DC * r and abs(cq) <= FAST_MAX_CORR
+
+
+@kernel
 def presence_kernel(
     x: np.ndarray, sums: np.ndarray, counters: np.ndarray, ring: np.ndarray, consts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -149,7 +159,8 @@ def presence_kernel(
     hold = consts[_K_HOLD] != 0.0
     quarter, m, fast = int(consts[_K_QUARTER]), int(consts[_K_MEAN]), consts[_K_FAST] != 0.0
     p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
-    r1, r2, mu, psum = sums[_R1], sums[_R2], sums[_MU], sums[_PSUM]
+    r1, r2, mu, psum, mu1, l1 = sums[_R1], sums[_R2], sums[_MU], sums[_PSUM], sums[_MU1], sums[_L1]
+    q1, q2, cq, cq1 = sums[_Q1], sums[_Q2], sums[_CQ], sums[_CQ1]
     count, halves, run, present = counters[_COUNT], counters[_HALVES], counters[_RUN], counters[_PRESENT]
     fill, pos, armed = counters[_FILL], counters[_POS], counters[_ARMED]
     ring = ring.copy()
@@ -159,15 +170,18 @@ def presence_kernel(
     run_out = np.empty(n, dtype=np.int64)
     level_out = np.empty(n)
     m_total = 2.0 * half
+    thresh = m * 2.0 * FAST_RATIO * FAST_RATIO * max(level, l1) ** 2  # (F), from the last two readings
     for j in range(n):
         xj = np.float64(x[j])  # float32 samples are summed in float64, as if converted first
         c1 += xj
         c2 += xj * xj
         count += 1
-        if fast:  # (F): the ring of the last Q + m samples and the running sum of P
+        if fast:  # (F): the ring of the last Q + m samples, the running sum of P, the lag-Q sums
+            xq = ring[(pos - quarter) % size]
+            q2 += xj * xq
             if armed:
                 a = xj - mu
-                b = ring[(pos - quarter) % size] - mu
+                b = xq - mu
                 c = ring[(pos - m) % size] - mu
                 d = ring[pos] - mu  # the sample Q + m back, leaving the ring
                 psum += a * a + b * b - c * c - d * d
@@ -181,6 +195,7 @@ def presence_kernel(
             if halves == 2:
                 mean = (p1 + c1) / m_total
                 ms = (p2 + c2) / m_total - mean * mean
+                l1 = level
                 level = math.sqrt(ms) if ms > 0.0 else 0.0
                 rd = r * decay
                 ref = level if level > rd else rd
@@ -194,15 +209,20 @@ def presence_kernel(
                     r = ref
                 elif hold:  # absent: frozen at the level from before the onset's readings
                     r = judge
-                if fast:  # (F): the sinusoid of this reading; P summed afresh with its mean
-                    mu = mean
+                if fast:
+                    # (F) takes the sinusoid of the reading before this one: a reading whose
+                    # window straddles an onset has a mean and a correlation that are neither
+                    mu, cq = mu1, cq1
+                    mu1 = mean
+                    cq1 = ((q1 + q2) / m_total - mean * mean) / ms if ms > 0.0 else 1.0
                     armed = 1 if fill == size else 0
                     psum = _p_sum(ring, pos, quarter, m, mu) if armed else 0.0
+                    thresh = m * 2.0 * FAST_RATIO * FAST_RATIO * max(level, l1) ** 2
             p1, p2, c1, c2 = c1, c2, 0.0, 0.0
+            q1, q2 = q2, 0.0
             count = 0
-        if fast and armed and present and abs(mu) <= FAST_DC * r:
-            if psum < m * 2.0 * FAST_RATIO * FAST_RATIO * level * level:  # (F): the magnitude fell
-                present = 0
+        if fast and armed and present and psum < thresh and _fast_usable(mu, cq, r):
+            present = 0  # (F): the magnitude fell within a quarter cycle
         if present:
             if run < RUN_CAP:
                 run += 1
@@ -210,7 +230,7 @@ def presence_kernel(
             run = 0
         run_out[j] = run
         level_out[j] = level
-    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2, mu, psum])
+    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2, mu, psum, mu1, l1, q1, q2, cq, cq1])
     new_counters = np.array([count, halves, run, present, fill, pos, armed], dtype=np.int64)
     return run_out, level_out, new_sums, new_counters, ring
 
@@ -295,11 +315,8 @@ class SignalPresence:
         self.reset()
 
     def reset(self) -> None:
-        """``sums`` (10,): the previous half cycle's sum of x and of x^2, the current one's,
-        the reference R, the last level squared, R one and two half cycles back, the last
-        one-cycle mean, the running sum of P; ``counters`` (7,) int64: samples in the current
-        half cycle, half cycles seen (up to 2), the run length, present (0/1), samples in the
-        ring, the ring's next slot, armed (0/1); ``ring`` (Q + m,): the last samples."""
+        """``sums`` (16,), ``counters`` (7,) int64: the slots listed at the top of this module;
+        ``ring`` (Q + m,): the last samples, for (F)."""
         self.sums = np.zeros(_N_SUMS)
         self.counters = np.zeros(_N_COUNTERS, dtype=np.int64)
         self.ring = np.zeros(self.quarter_cycle_samples + self.mean_samples)
@@ -338,9 +355,18 @@ class SignalPresence:
         more than 99.98 % of the window is the interruption), and the next reading is up to
         H later: 3 H. The quadrature test (F), when on and armed: all of its 2 m values in
         the interruption, ``Q + m - 1``. The pipeline holds estimates back by this much."""
-        if self.fast and self.counters[_ARMED] and abs(self.sums[_MU]) <= FAST_DC * self.sums[_R]:
+        s = self.sums
+        if (
+            self.fast
+            and self.counters[_ARMED]
+            and _fast_usable(s[_MU], s[_CQ], s[_R])
+            and _fast_usable(s[_MU1], s[_CQ1], s[_R])
+        ):
             return self.quarter_cycle_samples + self.mean_samples - 1
-        return 3 * self.half_cycle_samples
+        # the level test, read in a window that is not a whole number of the signal's cycles
+        # (a 40 Hz detector on 50 Hz, a 50 Hz one on 60 Hz), reads a fall to 0.099 up to about
+        # 4 H after it (its level ripples with the phase): 4 H from rules version 4 on
+        return (4 if self.fast else 3) * self.half_cycle_samples
 
     @property
     def run_samples(self) -> int:
