@@ -27,11 +27,11 @@ Version 3 ends an absence only at 0.12 of the reference level (a hysteresis); wi
 detector has read the channel's signal its onset latency past the estimate's window
 (:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
 estimate whose window holds the start of an interruption is published valid (the pipeline's
-``_hold``). Version 4 adds the detector's quarter-cycle onset test (the signal against the
-sinusoid of its last reading), which cuts that latency to about a third of a cycle, and holds
-estimates back by default. Files of version 2 replay without the hold and the hysteresis,
-files of version 3 with what their recorded config says of the hold and without the quarter-cycle
-test.
+:func:`sinewatch.core.hold.hold`). Version 4 adds the detector's quarter-cycle onset test (the
+signal against the sinusoid of its last reading), which cuts that latency to about a third of a
+cycle, and holds estimates back by default. Files of version 2 replay without the hold and the
+hysteresis, files of version 3 with what their recorded config says of the hold and without the
+quarter-cycle test.
 """
 
 from __future__ import annotations

@@ -116,7 +116,23 @@ _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel
 # in use (the reading before the last's), the running sum of P over the last m samples, the
 # last reading's mean, the level before the last, the previous and the current half cycle's
 # sum of x_n x_{n-Q}, the lag-Q correlation in use and the last reading's
-_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (
+    0,
+    1,
+    2,
+    3,
+    4,
+    6,
+    7,
+    8,
+    9,
+    10,
+    11,
+    12,
+    13,
+    14,
+    15,
+)
 _N_SUMS = 16
 # slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
 # length, present (0/1: the last decision), samples in the ring (up to its length), the

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.core.pipeline import _cycle_frequency_hz as cycle_frequency_hz
+from sinewatch.core.channel import cycle_frequency_hz
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.base import GridReports, concat_tracks
 from sinewatch.estimators.pmu import AMBIGUOUS_S, DETECTION_S
