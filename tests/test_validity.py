@@ -210,7 +210,13 @@ def test_a_sustained_lower_level_becomes_the_reference():
 
 @pytest.mark.parametrize(
     ("fs", "f_detector", "f_signal"),
-    [(10_000.0, 50.0, 50.0), (9_999.33, 50.0, 55.0), (12_800.0, 50.0, 60.0), (25_600.0, 60.0, 60.0), (10_000.0, 40.0, 50.0)],
+    [
+        (10_000.0, 50.0, 50.0),
+        (9_999.33, 50.0, 55.0),
+        (12_800.0, 50.0, 60.0),
+        (25_600.0, 60.0, 60.0),
+        (10_000.0, 40.0, 50.0),
+    ],
 )
 def test_the_detector_reads_an_interruption_within_the_latency_it_states(fs, f_detector, f_signal):
     """Rules version 4 (the quarter-cycle test): an interruption to 0, 0.05 or 0.099 pu, at 24
@@ -239,7 +245,13 @@ def test_the_detector_reads_an_interruption_within_the_latency_it_states(fs, f_d
 
 @pytest.mark.parametrize(
     ("f_detector", "f_signal", "snr_db", "harmonic"),
-    [(50.0, 45.0, 20.0, 0.0), (50.0, 55.0, 10.0, 0.0), (50.0, 50.0, 0.0, 0.0), (50.0, 50.0, 40.0, 0.5), (40.0, 65.0, 20.0, 0.0)],
+    [
+        (50.0, 45.0, 20.0, 0.0),
+        (50.0, 55.0, 10.0, 0.0),
+        (50.0, 50.0, 0.0, 0.0),
+        (50.0, 50.0, 40.0, 0.5),
+        (40.0, 65.0, 20.0, 0.0),
+    ],
 )
 def test_the_quarter_cycle_test_does_not_flag_a_steady_signal(f_detector, f_signal, snr_db, harmonic):
     """A steady signal off the detector's frequency, in noise down to 0 dB SNR, or with a 50 %
