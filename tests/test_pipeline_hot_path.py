@@ -115,7 +115,7 @@ def test_a_sink_without_on_input_still_recovers_at_the_next_input():
 def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
     sink = FlakySink()
     sink.broken = True
-    pipeline = Pipeline(make_config(tmp_path, sink_retry_s=3600.0), [sink])
+    pipeline = Pipeline(make_config(tmp_path, hold_estimates=False, sink_retry_s=3600.0), [sink])
     fs, n = 10_000.0, 256
     x = np.sin(2 * np.pi * 50 * np.arange(n * 5) / fs)
     for i in range(5):
