@@ -549,7 +549,10 @@ class Daemon:
     def release_idle(self) -> None:
         """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
         back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
-        1.5 ``idle_release_s``, not at the daemon's stop."""
+        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon may publish
+        (a standby's held estimates are its successor's)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            return
         self.pipeline.release_idle(self._log_time())
 
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
