@@ -499,3 +499,26 @@ def test_a_feed_that_pauses_gets_its_held_estimates_on_a_live_daemon(tmp_path):
     assert estimates[-2]["diagnostics"]["valid"] and not estimates[-1]["diagnostics"]["valid"]
     [path] = daemon.recording_paths
     assert replay([path]).ok
+
+
+def test_the_idle_release_publishes_only_the_channels_that_paused():
+    """Pipeline.release_idle (the daemon's timer): a channel whose last block came at least
+    ``idle_release_s`` before publishes what it holds, not valid; a channel still streaming
+    keeps its held estimate for its next block."""
+    t = np.arange(round(0.3 * LIVE_FS)) / LIVE_FS
+    x = np.sin(2 * np.pi * 50.0 * t)
+    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], idle_release_s=0.5)
+    sink = Keep()
+    p = Pipeline(cfg, [sink])
+    block_ns = 25_000_000
+    for i, b in enumerate(_live_blocks(x, "going")):  # 12 blocks, the last logged at 275 ms
+        if i < 6:  # "paused" stops after 6, the last logged at 125 ms
+            p.process("sinewatch/in/paused", encode_block_binary(_live_blocks(x, "paused")[i]), "", i * block_ns)
+        p.process("sinewatch/in/going", encode_block_binary(b), "", i * block_ns)
+    assert p.channels["paused"].held and p.channels["going"].held
+    assert p.release_idle(5 * block_ns + 499_999_999) == 0  # not idle long enough yet
+    before = len(sink.estimates)
+    assert p.release_idle(5 * block_ns + 500_000_000) == 1
+    released = sink.estimates[before:]
+    assert [e["channel"] for e in released] == ["paused"] and not released[0]["diagnostics"]["valid"]
+    assert p.channels["going"].held and not p.channels["paused"].held
