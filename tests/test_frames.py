@@ -334,7 +334,7 @@ def _frame(names, seq, x, fs=FS) -> bytes:
 def _blocks_reference(tmp_path: Path, sends: list[tuple[str, int, np.ndarray]]) -> dict[str, list[bytes]]:
     """What single blocks give: (channel, seq, samples) each sent alone, float32 as the frames."""
     keep = Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     for name, seq, x in sends:
         payload = encode_block_binary(Block(name, seq, seq * STEP_NS, FS, x), "float32")
         p.process(f"sinewatch/in/{name}", payload, "", seq)
@@ -405,7 +405,7 @@ def _two_rules() -> list[EstimatorRule]:
 
 def _blocks_reference_rules(tmp_path, sends):
     keep = Keep()
-    p = Pipeline(make_config(tmp_path, rules=_two_rules()), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False, rules=_two_rules()), [keep])
     for name, seq, x in sends:
         payload = encode_block_binary(Block(name, seq, seq * STEP_NS, FS, x), "float32")
         p.process(f"sinewatch/in/{name}", payload, "", seq)
