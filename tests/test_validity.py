@@ -295,15 +295,19 @@ def _live_blocks(x: np.ndarray, name: str = "v") -> list[Block]:
     ]
 
 
-def _through_live_daemon(config: SinewatchConfig, blocks: list[Block]) -> tuple[list[dict], object]:
-    """The blocks through a live daemon (real Zenoh on 127.0.0.1): its estimates (as many as a
-    fresh pipeline makes of them) and the daemon, whose recording replays bit for bit."""
+def _through_live_daemon(
+    config: SinewatchConfig, blocks: list[Block], n_expected: int | None = None
+) -> tuple[list[dict], object]:
+    """The blocks through a live daemon (real Zenoh on 127.0.0.1): its first ``n_expected``
+    estimates (default: as many as a fresh pipeline makes of them), taken while it runs, and
+    the daemon, whose recording replays bit for bit."""
     from conftest import TIMEOUT, clean_estimates, run_daemon, take
 
     from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
     from sinewatch.runtime.replay import replay
 
-    n_expected = len(clean_estimates(config, f"sinewatch/in/{blocks[0].channel}", blocks))
+    if n_expected is None:
+        n_expected = len(clean_estimates(config, f"sinewatch/in/{blocks[0].channel}", blocks))
 
     def client(daemon, ep):
         with connect([ep]) as s:
@@ -474,31 +478,17 @@ def test_a_feed_that_pauses_gets_its_held_estimates_on_a_live_daemon(tmp_path):
     a client waiting for one estimate per block (``sinewatch tail --count``) is not left
     waiting. The recording replays bit for bit: replay releases that channel where the
     recording has the estimate."""
-    from conftest import TIMEOUT, make_config, run_daemon, take
-
-    from sinewatch.clients import BlockPublisher, connect, subscribe_estimates
-    from sinewatch.runtime.replay import replay
+    from conftest import make_config
 
     t = np.arange(round(0.5 * LIVE_FS)) / LIVE_FS
     blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t + 0.3))
     config = make_config(tmp_path, idle_release_s=0.2)  # ges-kalman: one estimate per block
-
-    def client(daemon, ep):
-        with connect([ep]) as s:
-            est = subscribe_estimates(s)
-            pub = BlockPublisher(s, dtype="float64")
-            assert pub.wait_for_subscriber(blocks[0].channel, TIMEOUT)
-            for b in blocks:
-                pub.publish_raw(blocks[0].channel, encode_block_binary(b))
-            return take(est, len(blocks))  # the daemon still runs: the last comes from the idle release
-
-    estimates, daemon, code = run_daemon(config, client)
+    # taken while the daemon still runs: the last comes from the idle release
+    estimates, daemon = _through_live_daemon(config, blocks, n_expected=len(blocks))
     # all before the drain: it found nothing left to release
-    assert code == 0 and len(estimates) == daemon.pipeline.counters.estimates == len(blocks)
+    assert len(estimates) == daemon.pipeline.counters.estimates == len(blocks)
     assert [e["seq"] for e in estimates] == [b.seq for b in blocks]
     assert estimates[-2]["diagnostics"]["valid"] and not estimates[-1]["diagnostics"]["valid"]
-    [path] = daemon.recording_paths
-    assert replay([path]).ok
 
 
 def test_the_idle_release_publishes_only_the_channels_that_paused():
