@@ -38,30 +38,32 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      fall to 0.099 pu read present again every 25 ms and, once the ripple let it through, for
      its last 50 ms.
 
-(F)  (validity rules version 4) An onset is also read within a quarter cycle, by comparing the
-     signal with the sinusoid of the last reading: at the nominal frequency a sine and its
-     copy a quarter cycle (Q = max(1, round(fs / (4 f_nominal))) samples) earlier are in
+(F)  (validity rules version 4) An onset is also read within a third of a cycle, by comparing
+     the signal with the sinusoid of an earlier reading: at the nominal frequency a sine and
+     its copy a quarter cycle (Q = max(1, round(fs / (4 f_nominal))) samples) earlier are in
      quadrature, so ``P_n = (x_n - mu)^2 + (x_{n-Q} - mu)^2`` is its squared magnitude A^2 =
-     2 L^2 at every phase (mu the last reading's one-cycle mean, the DC part). The signal is
-     absent from sample n on when the mean of P over the last m = max(1, min(16, round(Q /
-     4))) samples falls below ``2 k^2 L^2`` (``FAST_RATIO`` k = 0.35, L the last reading's
-     level): the magnitude fell to below 0.35 of what it was half a cycle before. Away from
-     the nominal frequency the pair is not in quadrature (40 to 65 Hz in a 50 Hz detector:
-     P between 0.55 and 1.45 of 2 L^2), and a harmonic ripples it (a 50 % harmonic: P at
-     least 0.2 of it), all above 0.35^2 = 0.12; an interruption to 0.099 pu leaves at most
-     0.026 R^2 (noise included: the level test calls it absent only when noise and what
-     is left are below 0.1 R together), under the threshold even when a one-cycle reading
-     has come in between (its level is then still at least 0.71 R). The test reads an
-     onset once all of its 2 m samples are in the interruption: ``Q + m - 1`` samples after
-     it (6.1 ms at 50 Hz, 5.1 ms at 60 Hz at 10 kHz), the hold-back
-     (:attr:`SignalPresence.onset_latency_samples`). A DC part more than ``FAST_DC`` (0.2)
-     of R makes the test unreliable (mu is one cycle's mean, off by up to 0.15 L for 45 to
-     55 Hz in a 50 Hz window): the test is then off and the hold-back is the level test's
-     3 H. The level test still ends an absence (E), so a fast "absent" lasts until the
-     next half-cycle reading at least. What it also reads as an onset: a fall by more than
-     a factor of about three within a quarter cycle that the level test calls a deep sag
-     (0.1 to 0.35 pu), and a phase jump of about 60 degrees or more; the estimates across
-     them are then not valid for one memory.
+     2 L^2 at every phase (mu a one-cycle mean, the DC part). The signal is absent from sample
+     n on when the mean of P over the last m = max(1, min(16, round(Q / 4))) samples falls
+     below ``2 k^2 L^2`` (``FAST_RATIO`` k = 0.35, L the larger of the last two levels): the
+     magnitude fell to below 0.35 of what it was. mu is the mean of the reading before the
+     last, and L the larger of the last two levels, because a reading whose window straddles
+     the onset has neither the signal's mean nor its level. Away from the nominal frequency
+     the pair is not in quadrature (40 to 65 Hz in a 50 Hz detector: P between 0.55 and 1.45
+     of 2 L^2), and a harmonic ripples it (a 50 % third: P at least 0.2 of it), all above
+     0.35^2 = 0.12; an interruption to 0.099 pu leaves at most 0.026 R^2 (noise included: the
+     level test calls it absent only when noise and what is left are below 0.1 R together).
+     The test reads an onset once all of its 2 m samples are in the interruption: ``Q + m -
+     1`` samples after it (6.1 ms at 50 Hz, 5.1 ms at 60 Hz at 10 kHz), the hold-back
+     (:attr:`SignalPresence.onset_latency_samples`). It is off, and the hold-back is the level
+     test's (4 H), while it cannot be trusted: x_n and x_{n-Q} correlate by more than
+     ``FAST_MAX_CORR`` (0.5) over a cycle (the signal far from the detector's frequency), a DC
+     part above ``FAST_DC`` (0.25) of R (mu is one cycle's mean, off by up to 0.15 L for 45 to
+     55 Hz in a 50 Hz window), or before one cycle of signal since a start or a reset. The
+     level test still ends an absence (E), so a fast "absent" lasts until the next half-cycle
+     reading at least. What it also reads as an onset: a fall by more than a factor of about
+     three within a quarter cycle that the level test calls a deep sag (0.1 to 0.35 pu), a
+     phase jump of about 60 degrees or more, and in a 40 Hz detector on a 50 Hz signal the
+     onset of a sag to 0.5 pu; the estimates across them are then not valid for one memory.
 
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
