@@ -117,9 +117,17 @@ def test_a_reading_exactly_at_the_ratio_is_not_an_absence():
 
 @pytest.mark.parametrize("name", ["ipdft", "ges-kalman", "sogi-fll", "nls", DEFAULT_RULE])
 def test_a_sag_to_half_is_a_signal_not_an_absence(name):
-    """IEEE 1159 sags from 0.1 to 0.9 pu are measurements: valid throughout."""
+    """IEEE 1159 sags from 0.1 to 0.9 pu are measurements: valid throughout. But for one
+    thing, stated in docs/validity.md: a 40 Hz detector (``nls`` expects frequencies down to
+    40 Hz) on a 50 Hz signal reads the sag's onset as an onset in its quarter-cycle test
+    (validity rules version 4), so the estimates judged after it whose window holds it (from
+    two blocks before the onset, judged up to two cycles later where that test is off, to one
+    memory and two blocks after it) are not valid; every other one is."""
     run = bench.run(name, "sag-0.5pu")
-    assert all(r[2] for r in run.between(run.memory_s + BLOCK_S, math.inf))
+    onset = (bench.T_ON - 2 * BLOCK_S, bench.T_ON + run.memory_s + 2 * BLOCK_S) if name == "nls" else (0.0, 0.0)
+    rows = run.between(run.memory_s + BLOCK_S, math.inf)
+    assert all(r[2] for r in rows if not onset[0] <= r[0] < onset[1])
+    assert sum(not r[2] for r in rows) <= 6
 
 
 def test_the_bench_table_names_every_covered_estimator():
