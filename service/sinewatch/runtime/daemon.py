@@ -582,6 +582,15 @@ class Daemon:
             sinks=p.sink_status() if p else [],
         )
 
+    def release_idle(self) -> None:
+        """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
+        back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
+        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon may publish
+        (a standby's held estimates are its successor's)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            return
+        self.pipeline.release_idle(self._log_time())
+
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
             await asyncio.sleep(seconds)
@@ -704,6 +713,8 @@ class Daemon:
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
+            if self.config.hold_estimates:  # a paused feed's held estimates (Pipeline.release_idle)
+                periodic.append(asyncio.create_task(self._every(self.config.idle_release_s / 2, self.release_idle)))
             if self.recorder is not None:
                 periodic.append(
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))
