@@ -54,7 +54,9 @@ def test_a_large_json_block_is_refused_before_it_is_parsed(tmp_path):
 
 def test_the_limit_is_configurable(tmp_path):
     keep = Keep()
-    pipeline = Pipeline(make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_json_payload_bytes=16 << 20)), [keep])
+    pipeline = Pipeline(
+        make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_json_payload_bytes=16 << 20)), [keep]
+    )
     pipeline.process("sinewatch/in/big/a", big_json(), BLOCK_JSON_ENCODING, 1)
     assert keep.errors == [] and len(keep.estimates) == 1
 
