@@ -191,3 +191,54 @@ def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name
             mixed.append(any(t == 0.0 for t in traces) and any(t != 0.0 for t in traces))
     if name == "ges-kalman":  # the case the test is for happened
         assert mixed[0], "expected lanes with T live beside lanes with T zero after the first call"
+
+
+def _regimes(seed: int, n: int, fs: float) -> np.ndarray:
+    """A signal that takes kkl-biased through every branch of its inverse map: a tone with an
+    offset (converged), a step in frequency and offset (a jump), the offset alone (undefined,
+    the settled mean reported), silence, a vanishing tone, and noise; each channel's pieces in
+    its own order and lengths."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    pieces = [
+        0.5 + np.sin(2 * np.pi * 50 * t + 0.3) + 0.01 * rng.standard_normal(n),
+        -1.0 + 2.0 * np.sin(2 * np.pi * 61 * t),
+        np.full(n, 0.7),
+        np.zeros(n),
+        1e-200 * np.sin(2 * np.pi * 50 * t),
+        rng.standard_normal(n),
+    ]
+    order = rng.permutation(len(pieces))
+    lengths = rng.integers(n // 8, n // 3, size=len(pieces))
+    return np.concatenate([pieces[i][: lengths[i]] for i in order])[:n]
+
+
+def test_kkl_biased_bank_matches_single_channel_through_every_branch_of_the_inverse_map() -> None:
+    """kkl-biased's bank evaluates every step for all lanes and selects where the single
+    kernel branches (mu = 0 or not, the Schur complement, x3 > 0, below Nyquist, the settled
+    offset while undefined): nine channels, each through those regimes at its own times, bit
+    for bit; the single path is checked to have visited converged, defined-but-not-converged,
+    offset-only and fully undefined samples, so the branches the test is for were taken."""
+    cls = get("kkl-biased")
+    fs, n, size = cls.example_sample_rate_hz, 24_000, 9
+    x = np.stack([_regimes(300 + c, n, fs) for c in range(size)], axis=1)
+    singles, banked = [cls.example() for _ in range(size)], [cls.example() for _ in range(size)]
+    seen = {"converged": 0, "defined": 0, "offset only": 0, "undefined": 0}
+    pos = 0
+    for step, last_only in ((5000, False), (3000, True), (7000, False), (9000, False)):
+        expected = [
+            e.update(np.ascontiguousarray(x[pos : pos + step, c]), last_only=last_only) for c, e in enumerate(singles)
+        ]
+        got = update_bank(banked, x[pos : pos + step], last_only=last_only)
+        for c in range(size):
+            where = f"kkl-biased channel {c} samples {pos}:{pos + step} last_only={last_only}"
+            assert_tracks_bitwise(expected[c], got[c], where)
+            assert_states_bitwise(singles[c], banked[c], where)
+            tr = expected[c]
+            freq_ok, off_ok = np.isfinite(tr.frequency_hz), np.isfinite(tr.offset)
+            seen["converged"] += int(tr.converged.sum())
+            seen["defined"] += int((freq_ok & ~tr.converged).sum())
+            seen["offset only"] += int((~freq_ok & off_ok).sum())
+            seen["undefined"] += int((~freq_ok & ~off_ok).sum())
+        pos += step
+    assert all(v > 0 for v in seen.values()), seen

@@ -65,14 +65,6 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "kkl-biased": (
-        "no compiled bank yet: kkl's bank (kkl_kernels.py: two vectorised loops over 8 lanes "
-        "around one sine per lane, 2.2x its single channel) applies as it stands to the filters, the "
-        "prediction and the read-out; its inverse map (the 4 x 4 Schur-complement solve in the "
-        "eigenbasis of C^T C, whose branch on mu = 0 would become a select) is still to be split "
-        "out of its kernel into a helper both can call. One channel at a time it runs at "
-        "~0.37x the FFT (m = 5 filters, ~80 ns a sample)"
-    ),
     "grip-mixing": (
         "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "
         "dhat: 421 values in the example) would have to be re-laid across channels, and each "

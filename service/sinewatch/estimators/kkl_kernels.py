@@ -594,6 +594,75 @@ def _bank_lane_row(
 _TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES)  # the state's tail, in order
 
 
+@kernel(inline="always")
+def bank_load(
+    S: np.ndarray, ys: np.ndarray, y: np.ndarray, state: np.ndarray, g: int, width: int, tail: tuple[int, ...],
+    rxi: int, ry: int,
+) -> None:  # fmt: skip
+    """Channels g .. g + width - 1 into the lanes of a bank's work array ``S``: the filters'
+    xi into rows ``rxi + i``, the state's scalars into the rows ``tail`` (in the state's
+    order), their samples into ``ys`` (lane-major) and the first sample into row ``ry``.
+    Lanes past the last channel run on zeros (never defined); their results are dropped."""
+    L = LANES
+    m = state.shape[0] - len(tail)
+    S[:] = 0.0
+    ys[:] = 0.0
+    for c in range(width):
+        for i in range(m):
+            S[(rxi + i) * L + c] = state[i, g + c]
+        for j in range(len(tail)):
+            S[tail[j] * L + c] = state[m + j, g + c]
+    for k in range(y.shape[0]):
+        for c in range(width):
+            ys[k * L + c] = y[k, g + c]
+    for lane in range(L):
+        S[ry * L + lane] = ys[lane]
+
+
+@kernel(inline="always")
+def bank_store(
+    S: np.ndarray, new_state: np.ndarray, sse_out: np.ndarray, g: int, width: int, tail: tuple[int, ...],
+    rxi: int, rsse: int,
+) -> None:  # fmt: skip
+    """The inverse of :func:`bank_load` after the block: each lane's state back into its
+    channel's column of ``new_state``, its sum of squared prediction errors into ``sse_out``."""
+    L = LANES
+    m = new_state.shape[0] - len(tail)
+    for c in range(width):
+        sse_out[g + c] = S[rsse * L + c]
+        for i in range(m):
+            new_state[i, g + c] = S[(rxi + i) * L + c]
+        for j in range(len(tail)):
+            new_state[m + j, g + c] = S[tail[j] * L + c]
+
+
+@kernel(inline="always")
+def bank_write(
+    out: np.ndarray, ext: np.ndarray, rec: np.ndarray, last_only: bool,
+    row: tuple[bool, float, bool, float, float, float, float, float, float, float, float, float], n_settle: float,
+    Ts: float, ell: float,
+) -> None:  # fmt: skip
+    """One channel's rows after a bank's block, by the single kernel's own functions: the
+    last sample's from its lane's final values ``row``, or every sample's from ``rec``."""
+    if last_only:
+        good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
+        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
+                     e2_avg, lev)  # fmt: skip
+    else:
+        write_samples(out, ext, rec, n_settle, Ts, ell)
+
+
+@kernel(inline="always")
+def bank_record(
+    rec: np.ndarray,
+    k: int,
+    row: tuple[bool, float, bool, float, float, float, float, float, float, float, float, float],
+) -> None:
+    """Sample k's row of one lane (its values ``row``) kept in ``rec``, as :func:`record_sample`."""
+    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
+    record_row(rec, k, good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev)
+
+
 def kkl_bank_kernel(
     y: np.ndarray, state: np.ndarray, lam: np.ndarray, fa: np.ndarray, fb0: np.ndarray, fb1: np.ndarray,
     consts: np.ndarray, last_only: bool,
@@ -639,18 +708,7 @@ def _kkl_bank(
     rec = np.empty((L, 0 if last_only else n, RECORD_SIZE))
     for g in range(0, nc, L):
         width = min(L, nc - g)
-        S[:] = 0.0  # lanes past the last channel run on zeros (never defined), their results dropped
-        ys[:] = 0.0
-        for c in range(width):
-            for i in range(m):
-                S[(_RXI + i) * L + c] = state[i, g + c]
-            for j in range(10):
-                S[_TAIL[j] * L + c] = state[m + j, g + c]
-        for k in range(n):
-            for c in range(width):
-                ys[k * L + c] = y[k, g + c]
-        for lane in range(L):
-            S[_RY * L + lane] = ys[lane]
+        bank_load(S, ys, y, state, g, width, _TAIL, _RXI, _RY)
         for k in range(n):
             for lane in range(L):  # (12), the sums over the filters, the inverse map (8)-(9)
                 _bank_filters(S, lane, lam_t, fa, fb0, fb1)
@@ -667,19 +725,8 @@ def _kkl_bank(
                 S[_RY * L + lane] = ys[nxt + lane]
             if not last_only:
                 for c in range(width):
-                    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
-                    record_row(rec[c], k, good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev)
+                    bank_record(rec[c], k, _bank_lane_row(S, c))
         for c in range(width):
-            ch = g + c
-            if last_only:
-                good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
-                write_sample(out[ch], ext[ch], 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset,
-                             det, ell, rr, ff, e2_avg, lev)  # fmt: skip
-            else:
-                write_samples(out[ch], ext[ch], rec[c], n_settle, Ts, ell)
-            sse_out[ch] = S[_RSSE * L + c]
-            for i in range(m):
-                new_state[i, ch] = S[(_RXI + i) * L + c]
-            for j in range(10):
-                new_state[m + j, ch] = S[_TAIL[j] * L + c]
+            bank_write(out[g + c], ext[g + c], rec[c], last_only, _bank_lane_row(S, c), n_settle, Ts, ell)
+        bank_store(S, new_state, sse_out, g, width, _TAIL, _RXI, _RSSE)
     return out, ext, sse_out, new_state
