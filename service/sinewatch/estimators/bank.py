@@ -59,6 +59,10 @@ class BankKernel:
 
     kernel: Callable[..., tuple[Any, ...]]
     n_outputs: int
+    #: the channels' Tracks from the stacked outputs in one pass (``tracks(first estimator,
+    #: outputs, samples)``), for a class whose ``_track`` does numpy work that a whole frame
+    #: can share; None: each channel's ``_track`` on its slice of the outputs
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None
 
 
 _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
@@ -76,13 +80,6 @@ NO_BANK: dict[str, str] = {
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "ipdft": (
-        "no compiled bank: a windowed estimator whose work is per window, not per sample, and "
-        "already vectorised across the windows of a block (the windows of one channel fill the "
-        "vectors as the channels of a bank would); it stays below the FFT because it estimates "
-        "13 times as often as the FFT frames (see its note: ~0.3-0.4x one channel at a time), "
-        "which no grouping of channels changes; its channels run one after the other"
-    ),
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
@@ -95,9 +92,15 @@ NO_BANK: dict[str, str] = {
 }
 
 
-def register_bank(cls: type[Estimator[Any]], kernel: Callable[..., tuple[Any, ...]], n_outputs: int) -> None:
-    """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses)."""
-    _BANKS[cls] = BankKernel(kernel, n_outputs)
+def register_bank(
+    cls: type[Estimator[Any]],
+    kernel: Callable[..., tuple[Any, ...]],
+    n_outputs: int,
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None,
+) -> None:
+    """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses);
+    ``tracks``: see :class:`BankKernel`."""
+    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks)
     NO_BANK.pop(cls.name, None)
 
 
@@ -146,9 +149,11 @@ def update_bank(
     stacked = [np.stack([e._state[k] for e in estimators], axis=-1) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
-    tracks = []
+    if bank.tracks is not None:
+        tracks = bank.tracks(first, outputs, x)
+    else:
+        tracks = [est._track(tuple(o[c] for o in outputs), x[:, c]) for c, est in enumerate(estimators)]
     for c, est in enumerate(estimators):
-        tracks.append(est._track(tuple(o[c] for o in outputs), x[:, c]))
         est._state = {k: np.ascontiguousarray(s[..., c]) for k, s in zip(keys, new_state, strict=True)}
     return tracks
 
