@@ -80,11 +80,6 @@ NO_BANK: dict[str, str] = {
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "nls": (
-        "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
-        "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
-        "numbers of steps and do not advance in lock step); its channels run one after the other"
-    ),
     "pmu": (
         "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "
         "the block's time before its kernel runs; its channels run one after the other"

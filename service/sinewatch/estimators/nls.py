@@ -29,6 +29,7 @@ from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
 from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS, window_estimate
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -200,6 +201,54 @@ def nls_kernel(
     return out_k, out_g, sse, n_pred, b, new_istate, tones, glob
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def nls_bank_kernel(
+    y: Arr,
+    buf: Arr,
+    istate: Arr,
+    tones: Arr,
+    glob: Arr,
+    iconsts: Arr,
+    fconsts: Arr,
+    cos_tab: Arr,
+    sin_tab: Arr,
+    last_only: bool,
+) -> tuple[Arr, Arr, Arr, Arr, Arr, Arr, Arr, Arr]:
+    """:func:`nls_kernel` for the C channels of a frame in one compiled call (the bank of
+    :mod:`sinewatch.estimators.bank`): ``y`` (N, C) and the state arrays stacked along a last
+    channel axis; returns the outputs with the channel first and the new state stacked
+    likewise. Each channel runs through :func:`nls_kernel` itself, on its own column and
+    state, so its bits are the single channel's: a window's fit iterates until it converges,
+    a different number of steps in each channel, so the channels cannot advance in lock
+    step; what a bank saves is the Python around each channel's call."""
+    nc = y.shape[1]
+    r = nls_kernel(
+        np.ascontiguousarray(y[:, 0]), np.ascontiguousarray(buf[:, 0]), np.ascontiguousarray(istate[:, 0]),
+        np.ascontiguousarray(tones[:, :, 0]), np.ascontiguousarray(glob[:, 0]), iconsts, fconsts, cos_tab, sin_tab,
+        last_only,
+    )  # fmt: skip
+    out_k = np.empty((nc, *r[0].shape))
+    out_g = np.empty((nc, *r[1].shape))
+    sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
+    new_buf, new_i, new_t, new_g = np.empty_like(buf), np.empty_like(istate), np.empty_like(tones), np.empty_like(glob)
+    for c in range(nc):
+        if c > 0:
+            r = nls_kernel(
+                np.ascontiguousarray(y[:, c]), np.ascontiguousarray(buf[:, c]), np.ascontiguousarray(istate[:, c]),
+                np.ascontiguousarray(tones[:, :, c]), np.ascontiguousarray(glob[:, c]), iconsts, fconsts, cos_tab,
+                sin_tab, last_only,
+            )  # fmt: skip
+        out_k[c] = r[0]
+        out_g[c] = r[1]
+        sse[c] = r[2]
+        n_pred[c] = r[3]
+        new_buf[:, c] = r[4]
+        new_i[:, c] = r[5]
+        new_t[:, :, c] = r[6]
+        new_g[:, c] = r[7]
+    return out_k, out_g, sse, n_pred, new_buf, new_i, new_t, new_g
+
+
 @register
 class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
     """Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"""
@@ -330,3 +379,6 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
             "hop_samples": max(1, n // 4),
             "zero_pad": 4,
         }
+
+
+register_bank(Nls, nls_bank_kernel, n_outputs=4)
