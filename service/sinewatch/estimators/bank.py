@@ -69,13 +69,6 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "grip-mixing": (
-        "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "
-        "dhat: 421 values in the example) would have to be re-laid across channels, and each "
-        "sample reads the delay lines at ring positions that only coincide across channels whose "
-        "sample counts do (gathers otherwise); its channels run one after the other, each at "
-        "~0.8-0.9x the FFT (the observer (7) is one dependent chain a sample)"
-    ),
     "adaptive-multisine": (
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
