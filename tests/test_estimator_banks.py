@@ -160,6 +160,20 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
 BANKED = [n for n in NAMES if bank_of(get(n)) is not None]
 
 
+def _step_alike(
+    name: str, singles: list[Estimator], banked: list[Estimator], x: np.ndarray, last_only: bool
+) -> list[Track]:
+    """Block ``x`` (one column a channel) through each single estimator and through the bank,
+    compared bit for bit (tracks and states); the single path's tracks."""
+    expected = [e.update(np.ascontiguousarray(x[:, c]), last_only=last_only) for c, e in enumerate(singles)]
+    got = update_bank(banked, x, last_only=last_only)
+    for c in range(len(singles)):
+        where = f"{name} channel {c} of {len(singles)}, {x.shape[0]} samples, last_only={last_only}"
+        assert_tracks_bitwise(expected[c], got[c], where)
+        assert_states_bitwise(singles[c], banked[c], where)
+    return expected
+
+
 @pytest.mark.parametrize("name", BANKED)
 def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name: str) -> None:
     """Nine channels (a full group of lanes and one more, alone in the next) whose histories
@@ -177,14 +191,7 @@ def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name
     pos = 10_000
     mixed = []  # per call: whether some channel's T (U3) is still live and another's zero
     for n, last_only in ((3000, True), (2500, False), (4000, True), (500, False)):
-        expected = [
-            e.update(np.ascontiguousarray(x[pos : pos + n, c]), last_only=last_only) for c, e in enumerate(singles)
-        ]
-        got = update_bank(banked, x[pos : pos + n], last_only=last_only)
-        for c in range(size):
-            where = f"{name} channel {c} samples {pos}:{pos + n} last_only={last_only}"
-            assert_tracks_bitwise(expected[c], got[c], where)
-            assert_states_bitwise(singles[c], banked[c], where)
+        _step_alike(name, singles, banked, x[pos : pos + n], last_only)
         pos += n
         if name == "ges-kalman":
             traces = [e._state["unc"][0] + e._state["unc"][5] for e in banked]
@@ -226,15 +233,7 @@ def test_kkl_biased_bank_matches_single_channel_through_every_branch_of_the_inve
     seen = {"converged": 0, "defined": 0, "offset only": 0, "undefined": 0}
     pos = 0
     for step, last_only in ((5000, False), (3000, True), (7000, False), (9000, False)):
-        expected = [
-            e.update(np.ascontiguousarray(x[pos : pos + step, c]), last_only=last_only) for c, e in enumerate(singles)
-        ]
-        got = update_bank(banked, x[pos : pos + step], last_only=last_only)
-        for c in range(size):
-            where = f"kkl-biased channel {c} samples {pos}:{pos + step} last_only={last_only}"
-            assert_tracks_bitwise(expected[c], got[c], where)
-            assert_states_bitwise(singles[c], banked[c], where)
-            tr = expected[c]
+        for tr in _step_alike("kkl-biased", singles, banked, x[pos : pos + step], last_only):
             freq_ok, off_ok = np.isfinite(tr.frequency_hz), np.isfinite(tr.offset)
             seen["converged"] += int(tr.converged.sum())
             seen["defined"] += int((freq_ok & ~tr.converged).sum())

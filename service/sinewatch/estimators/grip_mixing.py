@@ -609,4 +609,4 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
         )
 
 
-register_bank(GripMixing, grip_mixing_bank_kernel, n_outputs=2)
+register_bank(GripMixing, grip_mixing_bank_kernel, n_outputs=2, channel_first=True)

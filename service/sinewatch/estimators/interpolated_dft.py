@@ -403,4 +403,4 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         return std_tables(self.window_samples, self.hop_samples, self.k_lo, self.k_hi, self.params.interpolation)
 
 
-register_bank(InterpolatedDft, ipdft_bank_kernel, n_outputs=6, tracks=InterpolatedDft._bank_tracks)
+register_bank(InterpolatedDft, ipdft_bank_kernel, n_outputs=6, tracks=InterpolatedDft._bank_tracks, channel_first=True)

@@ -446,45 +446,28 @@ def ipdft_kernel(
 
 @kernel
 def ipdft_bank_kernel(
-    y: np.ndarray,
-    buf: np.ndarray,
-    istate: np.ndarray,
-    fstate: np.ndarray,
-    rstate: np.ndarray,
-    hann: np.ndarray,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    iconsts: np.ndarray,
-    fconsts: np.ndarray,
-    last_only: bool,
+    y: np.ndarray, buf: np.ndarray, istate: np.ndarray, fstate: np.ndarray, rstate: np.ndarray, hann: np.ndarray,
+    cos_tab: np.ndarray, sin_tab: np.ndarray, iconsts: np.ndarray, fconsts: np.ndarray, last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`ipdft_kernel` for the C channels of a frame in one compiled call (the bank of
-    :mod:`sinewatch.estimators.bank`): ``y`` (N, C) and the state arrays stacked along a last
-    channel axis; returns the outputs with the channel first and the new state stacked
-    likewise. Each channel runs through :func:`ipdft_kernel` itself, on its own column and
-    state, so its bits are the single channel's: the kernel's work is per window and already
-    vectorised across the windows of a block, and what a bank saves is the Python around
-    each channel's call."""
-    nc = y.shape[1]
-    first = ipdft_kernel(
-        np.ascontiguousarray(y[:, 0]), np.ascontiguousarray(buf[:, 0]), np.ascontiguousarray(istate[:, 0]),
-        np.ascontiguousarray(fstate[:, 0]), np.ascontiguousarray(rstate[:, 0]), hann, cos_tab, sin_tab, iconsts,
-        fconsts, last_only,
-    )  # fmt: skip
-    rows = first[1].shape[0]
+    :mod:`sinewatch.estimators.bank`, channel first): ``y`` (C, N) and the state arrays
+    stacked along a first channel axis; returns the outputs and the new state likewise. Each
+    channel runs through :func:`ipdft_kernel` itself, on its own row and state, so its bits
+    are the single channel's: the kernel's work is per window and already vectorised across
+    the windows of a block, and what a bank saves is the Python around each channel's call."""
+    nc = y.shape[0]
+    r = ipdft_kernel(y[0], buf[0], istate[0], fstate[0], rstate[0], hann, cos_tab, sin_tab, iconsts, fconsts, last_only)
+    rows = r[1].shape[0]
     out = np.empty((nc, rows, 5))
     resid, rocof, age = np.empty((nc, rows)), np.empty((nc, rows)), np.empty((nc, rows))
     sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
     new_buf, new_i = np.empty_like(buf), np.empty_like(istate)
     new_f, new_r = np.empty_like(fstate), np.empty_like(rstate)
-    r = first
     for c in range(nc):
         if c > 0:
             r = ipdft_kernel(
-                np.ascontiguousarray(y[:, c]), np.ascontiguousarray(buf[:, c]), np.ascontiguousarray(istate[:, c]),
-                np.ascontiguousarray(fstate[:, c]), np.ascontiguousarray(rstate[:, c]), hann, cos_tab, sin_tab,
-                iconsts, fconsts, last_only,
-            )  # fmt: skip
+                y[c], buf[c], istate[c], fstate[c], rstate[c], hann, cos_tab, sin_tab, iconsts, fconsts, last_only
+            )
         out[c], resid[c], rocof[c], age[c], sse[c], n_pred[c] = r[0], r[1], r[2], r[3], r[4], r[5]
-        new_buf[:, c], new_i[:, c], new_f[:, c], new_r[:, c] = r[6], r[7], r[8], r[9]
+        new_buf[c], new_i[c], new_f[c], new_r[c] = r[6], r[7], r[8], r[9]
     return out, resid, rocof, age, sse, n_pred, new_buf, new_i, new_f, new_r

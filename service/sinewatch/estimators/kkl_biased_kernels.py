@@ -17,15 +17,46 @@ import numpy as np
 
 from sinewatch.estimators.base import kernel
 from sinewatch.estimators.kkl_kernels import (
+    _RACOS,
+    _RASIN,
+    _RDEF,
+    _RDET,
+    _RE2,
+    _REF,
+    _RENV,
+    _RES,
+    _RFF,
+    _RHALF,
+    _RHP,
+    _RINV,
+    _RJUMP,
+    _RLEV,
+    _RMU,
+    _RNG,
+    _RPV,
+    _RRR,
+    _RS,
+    _RSH,
+    _RSQ,
+    _RSSE,
+    _RWTS,
+    _RXI,
+    _RY,
+    _RYP,
+    _RYPRED,
+    _RZ0,
+    _RZ1,
+    _RZ2,
     ABS_FLOOR,
     LANES,
-    RECORD_SIZE,
+    bank_arrays,
+    bank_good,
+    bank_lane_row,
     bank_load,
     bank_record,
     bank_store,
     bank_write,
     consistent,
-    count_good,
     filter_one,
     half_step,
     half_step_of,
@@ -261,13 +292,12 @@ def kkl_biased_kernel(
 
 
 # ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
-# rows of the bank's lane-major work array S (one row of LANES doubles per quantity): the
-# state's scalars, the per-sample quantities, then the m filters' xi (rows _XI + i) last
-_Y, _YP, _HP, _YPRED, _PV, _NG, _ENV, _E2, _YA, _YV, _NR, _EF, _ES, _SSE = range(14)
-_S, _EB, _INV, _DET, _MU, _Z0, _Z1, _Z2, _Z3, _SQ, _WTS, _HALF, _SH = range(14, 27)
-_DEF, _JUMP, _ASIN, _ACOS, _OFF, _RR, _FF, _GOOD = range(27, 35)
-_XI = 35
-_TAIL = (_YP, _HP, _YPRED, _PV, _NG, _ENV, _E2, _YA, _YV, _NR, _EF, _ES)  # the state's tail, in order
+# rows of the bank's lane-major work array S (one row of LANES doubles per quantity): kkl's
+# (kkl_kernels: its rows' names, so that its helpers serve both), five more, then the m
+# filters' xi (rows _XI + i) last
+_YA, _NR, _EB, _Z3, _OFF = range(_RXI, _RXI + 5)  # beyond kkl's rows: y_avg, n_run, eta_bar, z3, offset
+_XI = _RXI + 5
+_TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _YA, _RLEV, _NR, _REF, _RES)  # the state's tail, in order
 
 
 @kernel(inline="always")
@@ -283,7 +313,7 @@ def _bank_front(
     (selects, so that the lanes run as one vector)."""
     Ts, w_ref, ell, silence_ratio, env_decay, n_settle, avg_gain, fast_gain, slow_gain = consts
     L = LANES
-    yp, yk, hp = S[_YP * L + lane], S[_Y * L + lane], S[_HP * L + lane]
+    yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
     eta_bar = 0.0
     for i in range(len(lam)):
         r = (_XI + i) * L + lane
@@ -294,34 +324,34 @@ def _bank_front(
         eta_bar += lp[i] * v
     eta_bar *= inv_m
     S[_NR * L + lane] = run_step(S[_NR * L + lane], hp, n_settle)
-    S[_HP * L + lane] = 1.0
-    S[_YP * L + lane] = yk
+    S[_RHP * L + lane] = 1.0
+    S[_RYP * L + lane] = yk
     e2, sse, e2_avg = prediction_error(
-        yk, S[_YPRED * L + lane], S[_PV * L + lane], S[_SSE * L + lane], S[_E2 * L + lane], avg_gain
+        yk, S[_RYPRED * L + lane], S[_RPV * L + lane], S[_RSSE * L + lane], S[_RE2 * L + lane], avg_gain
     )
-    y_avg, yv_avg = level_step(yk, S[_YA * L + lane], S[_YV * L + lane], avg_gain)
-    jump, e2_fast, e2_slow = jump_detector(e2, S[_EF * L + lane], S[_ES * L + lane], fast_gain, slow_gain, yv_avg)
-    S[_SSE * L + lane], S[_E2 * L + lane], S[_YA * L + lane], S[_YV * L + lane] = sse, e2_avg, y_avg, yv_avg
-    S[_EF * L + lane], S[_ES * L + lane] = e2_fast, e2_slow
-    S[_JUMP * L + lane] = 1.0 if jump else 0.0
+    y_avg, yv_avg = level_step(yk, S[_YA * L + lane], S[_RLEV * L + lane], avg_gain)
+    jump, e2_fast, e2_slow = jump_detector(e2, S[_REF * L + lane], S[_RES * L + lane], fast_gain, slow_gain, yv_avg)
+    S[_RSSE * L + lane], S[_RE2 * L + lane], S[_YA * L + lane], S[_RLEV * L + lane] = sse, e2_avg, y_avg, yv_avg
+    S[_REF * L + lane], S[_RES * L + lane] = e2_fast, e2_slow
+    S[_RJUMP * L + lane] = 1.0 if jump else 0.0
     s2 = a1 = a2 = a3 = a4 = q2 = 0.0
     for i in range(len(lam)):
         c = lp[i] * S[(_XI + i) * L + lane] - eta_bar
         s2, a1, a2, a3, a4, q2 = centred_sums(lam[i], c, s2, a1, a2, a3, a4, q2)
     s = sqrt(s2)
-    decayed = S[_ENV * L + lane] * env_decay
+    decayed = S[_RENV * L + lane] * env_decay
     env = decayed if decayed > s else s  # max(s, decayed), as Python's max
-    S[_ENV * L + lane] = env
+    S[_RENV * L + lane] = env
     inv, det, mu, solved, z0, z1, z2, z3 = biased_inverse_map(a1, a2, a3, a4, q2, s, kvt, kk, ik, det_k0, ell)
     live = live_oscillation(s, eta_bar, env, silence_ratio)
     solved = live and solved
     sq = sqrt(z3)  # (NaN where z3 < 0: not solved, not used)
     wts = w_ref * sq * Ts if solved else 0.0
-    S[_DEF * L + lane] = 1.0 if solved and wts < math.pi else 0.0
-    S[_S * L + lane], S[_EB * L + lane], S[_INV * L + lane] = s, eta_bar, inv
-    S[_DET * L + lane], S[_MU * L + lane] = det if live else 0.0, mu
-    S[_Z0 * L + lane], S[_Z1 * L + lane], S[_Z2 * L + lane], S[_Z3 * L + lane] = z0, z1, z2, z3
-    S[_SQ * L + lane], S[_WTS * L + lane], S[_HALF * L + lane] = sq, wts, 0.5 * wts
+    S[_RDEF * L + lane] = 1.0 if solved and wts < math.pi else 0.0
+    S[_RS * L + lane], S[_EB * L + lane], S[_RINV * L + lane] = s, eta_bar, inv
+    S[_RDET * L + lane], S[_RMU * L + lane] = det if live else 0.0, mu
+    S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_Z3 * L + lane] = z0, z1, z2, z3
+    S[_RSQ * L + lane], S[_RWTS * L + lane], S[_RHALF * L + lane] = sq, wts, 0.5 * wts
 
 
 @kernel(inline="always")
@@ -329,51 +359,31 @@ def _bank_back(
     S: np.ndarray, lane: int, lam: tuple[float, ...], lp: tuple[float, ...], n_settle: float, max_fit2: float,
     max_pred2: float, wts_lo: float, wts_hi: float,
 ) -> None:  # fmt: skip
-    """Lane ``lane``: the read-out from the sine in row ``_SH``, the fit residual, the offset
+    """Lane ``lane``: the read-out from the sine in row ``_RSH``, the fit residual, the offset
     and prediction (the settled mean while undefined), ``good`` and the run of good samples."""
     L = LANES
-    defined = S[_DEF * L + lane] != 0.0
+    defined = S[_RDEF * L + lane] != 0.0
     settled = S[_NR * L + lane] >= n_settle
-    s, eta_bar, inv = S[_S * L + lane], S[_EB * L + lane], S[_INV * L + lane]
-    z0, z1, z2, z3 = S[_Z0 * L + lane], S[_Z1 * L + lane], S[_Z2 * L + lane], S[_Z3 * L + lane]
-    sh, ch, g = half_step_of(S[_HALF * L + lane], S[_SH * L + lane])
-    offset, a_sin, a_cos, y_pred = biased_read_out(s, eta_bar, z0, z1, z2, z3, S[_SQ * L + lane], sh, ch, g)
+    s, eta_bar, inv = S[_RS * L + lane], S[_EB * L + lane], S[_RINV * L + lane]
+    z0, z1, z2, z3 = S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_Z3 * L + lane]
+    sh, ch, g = half_step_of(S[_RHALF * L + lane], S[_RSH * L + lane])
+    offset, a_sin, a_cos, y_pred = biased_read_out(s, eta_bar, z0, z1, z2, z3, S[_RSQ * L + lane], sh, ch, g)
     rr = 0.0
     ff = 0.0
     for i in range(len(lam)):
         res, t = biased_fit_residual(lam[i], lp[i], S[(_XI + i) * L + lane], eta_bar, inv, z0, z1, z2, z3)
         rr += res * res
         ff += t * t
-    rr = rr if defined else 0.0
-    ff = ff if defined else 1.0
-    S[_RR * L + lane], S[_FF * L + lane] = rr, ff
-    S[_ASIN * L + lane] = a_sin if defined else 0.0
-    S[_ACOS * L + lane] = a_cos if defined else 0.0
+    S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff  # (bank_good keeps them where defined)
+    S[_RASIN * L + lane] = a_sin if defined else 0.0
+    S[_RACOS * L + lane] = a_cos if defined else 0.0
     fallback = eta_bar if settled else np.nan
     S[_OFF * L + lane] = offset if defined else fallback
-    y_old = S[_YPRED * L + lane]
+    y_old = S[_RYPRED * L + lane]
     kept = eta_bar if settled else y_old
-    S[_YPRED * L + lane] = y_pred if defined else kept
-    S[_PV * L + lane] = 1.0 if defined or settled else 0.0
-    good = defined and settled and consistent(
-        S[_MU * L + lane], rr, ff, max_fit2, S[_E2 * L + lane], max_pred2, S[_YV * L + lane],
-        S[_JUMP * L + lane] != 0.0, S[_WTS * L + lane], wts_lo, wts_hi,
-    )  # fmt: skip
-    S[_GOOD * L + lane] = 1.0 if good else 0.0
-    S[_NG * L + lane] = count_good(good, S[_NG * L + lane], n_settle)
-
-
-@kernel(inline="always")
-def _bank_lane_row(
-    S: np.ndarray, lane: int
-) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
-    """Lane ``lane``'s values for :func:`record_row` / :func:`write_sample`."""
-    L = LANES
-    return (
-        S[_GOOD * L + lane] != 0.0, S[_NG * L + lane], S[_DEF * L + lane] != 0.0, S[_WTS * L + lane],
-        S[_ASIN * L + lane], S[_ACOS * L + lane], S[_OFF * L + lane], S[_DET * L + lane], S[_RR * L + lane],
-        S[_FF * L + lane], S[_E2 * L + lane], S[_YV * L + lane],
-    )  # fmt: skip
+    S[_RYPRED * L + lane] = y_pred if defined else kept
+    S[_RPV * L + lane] = 1.0 if defined or settled else 0.0
+    bank_good(S, lane, settled, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
 
 
 def kkl_biased_bank_kernel(
@@ -407,32 +417,25 @@ def _kkl_biased_bank(
     m = len(lam)
     kvt, kkt, ikt, det_k0 = eigen_tuples(kv, kk)
     inv_m = 1.0 / m
-    rows = 1 if last_only else n
-    out = np.empty((nc, rows, 5))
-    ext = np.empty((nc, rows, 3))
-    sse_out = np.empty(nc)
-    new_state = np.empty((m + len(_TAIL), nc))
     L = LANES
-    S = np.empty((_XI + m) * L)
-    ys = np.empty(n * L)
-    rec = np.empty((L, 0 if last_only else n, RECORD_SIZE))
+    out, ext, sse_out, new_state, S, ys, rec = bank_arrays(n, nc, m, len(_TAIL), _XI, last_only)
     for g in range(0, nc, L):
         width = min(L, nc - g)
-        bank_load(S, ys, y, state, g, width, _TAIL, _XI, _Y)
+        bank_load(S, ys, y, state, g, width, _TAIL, _XI, _RY)
         for k in range(n):
             for lane in range(L):  # (12), eta_bar, the sums over the filters, the inverse map
                 _bank_front(S, lane, lam, lp, fa, fb0, fb1, front, kvt, kkt, ikt, det_k0, inv_m)
             for lane in range(L):  # the sines: C library calls, lane by lane
-                S[_SH * L + lane] = math.sin(S[_HALF * L + lane])
+                S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
             for lane in range(L):  # read-out, fit residual, offset, converged
                 _bank_back(S, lane, lam, lp, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
             nxt = min(k + 1, n - 1) * L
             for lane in range(L):  # the next sample, in place once this one is done with it
-                S[_Y * L + lane] = ys[nxt + lane]
+                S[_RY * L + lane] = ys[nxt + lane]
             if not last_only:
                 for c in range(width):
-                    bank_record(rec[c], k, _bank_lane_row(S, c))
+                    bank_record(rec[c], k, bank_lane_row(S, c, _OFF))
         for c in range(width):
-            bank_write(out[g + c], ext[g + c], rec[c], last_only, _bank_lane_row(S, c), n_settle, Ts, ell)
-        bank_store(S, new_state, sse_out, g, width, _TAIL, _XI, _SSE)
+            bank_write(out[g + c], ext[g + c], rec[c], last_only, bank_lane_row(S, c, _OFF), n_settle, Ts, ell)
+        bank_store(S, new_state, sse_out, g, width, _TAIL, _XI, _RSSE)
     return out, ext, sse_out, new_state

@@ -557,18 +557,19 @@ def _bank_read_out(S: np.ndarray, lane: int, w_ref: float) -> None:
 
 
 @kernel(inline="always")
-def _bank_good(
-    S: np.ndarray, lane: int, n_settle: float, max_fit2: float, max_pred2: float, wts_lo: float, wts_hi: float
-) -> None:
-    """Lane ``lane``: the fit residual's sums as the single kernel leaves them, ``good`` and
-    the run of good samples."""
+def bank_good(
+    S: np.ndarray, lane: int, settled: bool, n_settle: float, max_fit2: float, max_pred2: float, wts_lo: float,
+    wts_hi: float,
+) -> None:  # fmt: skip
+    """Lane ``lane``: the fit residual's sums as the single kernel leaves them, ``good`` (also
+    ``settled``: kkl-biased waits for its filters) and the run of good samples."""
     L = LANES
     defined = S[_RDEF * L + lane] != 0.0
     rr, ff = S[_RRR * L + lane], S[_RFF * L + lane]  # loaded whatever the lane, then kept or not
     rr = rr if defined else 0.0
     ff = ff if defined else 1.0
     S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff
-    good = defined and consistent(
+    good = defined and settled and consistent(
         S[_RMU * L + lane], rr, ff, max_fit2, S[_RE2 * L + lane], max_pred2, S[_RLEV * L + lane],
         S[_RJUMP * L + lane] != 0.0, S[_RWTS * L + lane], wts_lo, wts_hi,
     )  # fmt: skip
@@ -577,21 +578,37 @@ def _bank_good(
 
 
 @kernel(inline="always")
-def _bank_lane_row(
-    S: np.ndarray, lane: int
+def bank_lane_row(
+    S: np.ndarray, lane: int, roff: int
 ) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
     """Lane ``lane``'s values for :func:`record_row` / :func:`write_sample`: good, n_good,
-    defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level."""
+    defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level. The offset from row
+    ``roff``; ``roff < 0``: a model without one (0 where defined)."""
     L = LANES
     defined = S[_RDEF * L + lane] != 0.0
+    offset = (0.0 if defined else np.nan) if roff < 0 else S[roff * L + lane]
     return (
         S[_RGOOD * L + lane] != 0.0, S[_RNG * L + lane], defined, S[_RWTS * L + lane], S[_RASIN * L + lane],
-        S[_RACOS * L + lane], 0.0 if defined else np.nan, S[_RDET * L + lane], S[_RRR * L + lane],
-        S[_RFF * L + lane], S[_RE2 * L + lane], S[_RLEV * L + lane],
+        S[_RACOS * L + lane], offset, S[_RDET * L + lane], S[_RRR * L + lane], S[_RFF * L + lane],
+        S[_RE2 * L + lane], S[_RLEV * L + lane],
     )  # fmt: skip
 
 
 _TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES)  # the state's tail, in order
+
+
+@kernel(inline="always")
+def bank_arrays(
+    n: int, nc: int, m: int, n_tail: int, rxi: int, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A bank's arrays for ``nc`` channels of ``n`` samples, ``m`` filters: ``out`` (nc, rows,
+    5), ``extras`` (nc, rows, 3), ``sse`` (nc,), the new state (m + n_tail, nc), the work
+    array S (rows up to ``rxi``, then the filters'), the lanes' samples and their rows."""
+    rows = 1 if last_only else n
+    return (
+        np.empty((nc, rows, 5)), np.empty((nc, rows, 3)), np.empty(nc), np.empty((m + n_tail, nc)),
+        np.empty((rxi + m) * LANES), np.empty(n * LANES), np.empty((LANES, 0 if last_only else n, RECORD_SIZE)),
+    )  # fmt: skip
 
 
 @kernel(inline="always")
@@ -644,12 +661,9 @@ def bank_write(
 ) -> None:  # fmt: skip
     """One channel's rows after a bank's block, by the single kernel's own functions: the
     last sample's from its lane's final values ``row``, or every sample's from ``rec``."""
-    if last_only:
-        good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
-        write_sample(out, ext, 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell, rr, ff,
-                     e2_avg, lev)  # fmt: skip
-    else:
-        write_samples(out, ext, rec, n_settle, Ts, ell)
+    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
+    write_rows(out, ext, rec, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell,
+               rr, ff, e2_avg, lev)  # fmt: skip
 
 
 @kernel(inline="always")
@@ -691,11 +705,6 @@ def _kkl_bank(
     )  # fmt: skip
     n, nc = y.shape
     m = lam.shape[0]
-    rows = 1 if last_only else n
-    out = np.empty((nc, rows, 5))
-    ext = np.empty((nc, rows, 3))
-    sse_out = np.empty(nc)
-    new_state = np.empty((m + 10, nc))
     s_ll = 0.0  # constant entries of L^T L, as kkl_kernel sums them
     s_l = 0.0
     for i in range(m):
@@ -703,9 +712,7 @@ def _kkl_bank(
         s_l += lam[i]
     s_11 = float(m)
     L = LANES
-    S = np.empty((_RXI + m) * L)
-    ys = np.empty(n * L)
-    rec = np.empty((L, 0 if last_only else n, RECORD_SIZE))
+    out, ext, sse_out, new_state, S, ys, rec = bank_arrays(n, nc, m, len(_TAIL), _RXI, last_only)
     for g in range(0, nc, L):
         width = min(L, nc - g)
         bank_load(S, ys, y, state, g, width, _TAIL, _RXI, _RY)
@@ -719,14 +726,14 @@ def _kkl_bank(
             for lane in range(L):  # read-out, fit residual of (13), converged
                 _bank_read_out(S, lane, w_ref)
                 _bank_fit(S, lane, lam_t)
-                _bank_good(S, lane, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
+                bank_good(S, lane, True, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
             nxt = min(k + 1, n - 1) * L
             for lane in range(L):  # the next sample, in place once this one is done with it
                 S[_RY * L + lane] = ys[nxt + lane]
             if not last_only:
                 for c in range(width):
-                    bank_record(rec[c], k, _bank_lane_row(S, c))
+                    bank_record(rec[c], k, bank_lane_row(S, c, -1))
         for c in range(width):
-            bank_write(out[g + c], ext[g + c], rec[c], last_only, _bank_lane_row(S, c), n_settle, Ts, ell)
+            bank_write(out[g + c], ext[g + c], rec[c], last_only, bank_lane_row(S, c, -1), n_settle, Ts, ell)
         bank_store(S, new_state, sse_out, g, width, _TAIL, _RXI, _RSSE)
     return out, ext, sse_out, new_state

@@ -215,37 +215,23 @@ def nls_bank_kernel(
     last_only: bool,
 ) -> tuple[Arr, Arr, Arr, Arr, Arr, Arr, Arr, Arr]:
     """:func:`nls_kernel` for the C channels of a frame in one compiled call (the bank of
-    :mod:`sinewatch.estimators.bank`): ``y`` (N, C) and the state arrays stacked along a last
-    channel axis; returns the outputs with the channel first and the new state stacked
-    likewise. Each channel runs through :func:`nls_kernel` itself, on its own column and
-    state, so its bits are the single channel's: a window's fit iterates until it converges,
-    a different number of steps in each channel, so the channels cannot advance in lock
-    step; what a bank saves is the Python around each channel's call."""
-    nc = y.shape[1]
-    r = nls_kernel(
-        np.ascontiguousarray(y[:, 0]), np.ascontiguousarray(buf[:, 0]), np.ascontiguousarray(istate[:, 0]),
-        np.ascontiguousarray(tones[:, :, 0]), np.ascontiguousarray(glob[:, 0]), iconsts, fconsts, cos_tab, sin_tab,
-        last_only,
-    )  # fmt: skip
+    :mod:`sinewatch.estimators.bank`, channel first): ``y`` (C, N) and the state arrays
+    stacked along a first channel axis; returns the outputs and the new state likewise. Each
+    channel runs through :func:`nls_kernel` itself, on its own row and state, so its bits are
+    the single channel's: a window's fit iterates until it converges, a different number of
+    steps in each channel, so the channels cannot advance in lock step; what a bank saves is
+    the Python around each channel's call."""
+    nc = y.shape[0]
+    r = nls_kernel(y[0], buf[0], istate[0], tones[0], glob[0], iconsts, fconsts, cos_tab, sin_tab, last_only)
     out_k = np.empty((nc, *r[0].shape))
     out_g = np.empty((nc, *r[1].shape))
     sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
     new_buf, new_i, new_t, new_g = np.empty_like(buf), np.empty_like(istate), np.empty_like(tones), np.empty_like(glob)
     for c in range(nc):
         if c > 0:
-            r = nls_kernel(
-                np.ascontiguousarray(y[:, c]), np.ascontiguousarray(buf[:, c]), np.ascontiguousarray(istate[:, c]),
-                np.ascontiguousarray(tones[:, :, c]), np.ascontiguousarray(glob[:, c]), iconsts, fconsts, cos_tab,
-                sin_tab, last_only,
-            )  # fmt: skip
-        out_k[c] = r[0]
-        out_g[c] = r[1]
-        sse[c] = r[2]
-        n_pred[c] = r[3]
-        new_buf[:, c] = r[4]
-        new_i[:, c] = r[5]
-        new_t[:, :, c] = r[6]
-        new_g[:, c] = r[7]
+            r = nls_kernel(y[c], buf[c], istate[c], tones[c], glob[c], iconsts, fconsts, cos_tab, sin_tab, last_only)
+        out_k[c], out_g[c], sse[c], n_pred[c] = r[0], r[1], r[2], r[3]
+        new_buf[c], new_i[c], new_t[c], new_g[c] = r[4], r[5], r[6], r[7]
     return out_k, out_g, sse, n_pred, new_buf, new_i, new_t, new_g
 
 
@@ -381,4 +367,4 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
         }
 
 
-register_bank(Nls, nls_bank_kernel, n_outputs=4)
+register_bank(Nls, nls_bank_kernel, n_outputs=4, channel_first=True)
