@@ -65,9 +65,9 @@ class BankKernel:
     tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None
     #: a bank that runs each channel through the single kernel in turn (a windowed estimator)
     #: takes the samples as (C, N) and the state arrays stacked channel first, (C, *shape):
-    #: each channel's column and state are then contiguous rows, gathered and scattered by
-    #: plain copies (stacked channel last, a 1024-sample ring buffer cost ~12 ns a sample to
-    #: gather and ~8 to scatter, measured: more than the Python the bank saves)
+    #: each channel's row and state are then contiguous, gathered by one copy a state array
+    #: and scattered as views (stacked channel last, nls's 1024-sample ring buffers cost ~12
+    #: ns a sample to gather and ~8 to scatter, measured: more than the Python a bank saves)
     channel_first: bool = False
 
 
@@ -78,6 +78,28 @@ NO_BANK: dict[str, str] = {
     "adaptive-multisine": (
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
+    ),
+    "grip-mixing": (
+        "no compiled bank: its state (observer, the two z copies, the delay lines of y, u and "
+        "dhat: 421 values in the example) would have to be re-laid across channels for a "
+        "lane-major bank, and each sample reads the delay lines at ring positions that coincide "
+        "across channels only where their sample counts do (gathers otherwise). Tried and left "
+        "out: one compiled call running each channel through the single kernel in turn (bit for "
+        "bit), 0.93-0.97x the channels one by one (`sinewatch bench kernels --bank 8`, and the "
+        "same 8 signals both ways, load 12-28): the kernel is ~75 of the ~95 ns a sample, one "
+        "dependent chain per sample (the observer (7)), and the Python a bank saves is less than "
+        "its gathering of the states; its channels run one after the other, each at ~0.7-0.9x "
+        "the FFT"
+    ),
+    "nls": (
+        "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
+        "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
+        "numbers of steps and do not advance in lock step). Tried and left out: one compiled call "
+        "running each channel through the single kernel in turn (bit for bit), 0.77-0.90x the "
+        "channels one by one (`sinewatch bench kernels --bank 8`, and the same 8 signals both "
+        "ways, load 12-28): the kernel is ~30 of ~45 ns a sample either way and the bank's "
+        "gathering and scattering of the 1024-sample ring buffers costs more than the Python it "
+        "saves; its channels run one after the other, at 1.2-1.6x the FFT"
     ),
     "pmu": (
         "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "

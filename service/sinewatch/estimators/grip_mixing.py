@@ -138,9 +138,8 @@ import scipy.signal
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
-from sinewatch.estimators.grip_mixing_kernels import grip_mixing_bank_kernel, grip_mixing_kernel
+from sinewatch.estimators.grip_mixing_kernels import grip_mixing_kernel
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
@@ -607,6 +606,3 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
             math.sqrt(sse / block.shape[0]),  # residual_rms
             {"x_hat": out[xh], "d_hat": out[dh]},
         )
-
-
-register_bank(GripMixing, grip_mixing_bank_kernel, n_outputs=2, channel_first=True)

@@ -244,34 +244,3 @@ def grip_mixing_kernel(
     count = np.empty(1, dtype=np.int64)
     count[0] = k
     return out, sse, new_state, count
-
-
-@kernel
-def grip_mixing_bank_kernel(
-    y: np.ndarray,
-    state: np.ndarray,
-    count0: np.ndarray,
-    fconst: np.ndarray,
-    iconst: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`grip_mixing_kernel` for the C channels of a frame in one compiled call (the bank
-    of :mod:`sinewatch.estimators.bank`, channel first, estimators without inputs u): ``y``
-    (C, N) and the state arrays stacked along a first channel axis; returns ``out`` (C, rows,
-    columns), ``sse`` (C,) and the new state likewise. Each channel runs through
-    :func:`grip_mixing_kernel` itself on its own row (as the (N, 1) block the single path
-    gives it), so its bits are the single channel's; why not lane by lane: the estimator's
-    ``bank_note``."""
-    nc, n = y.shape
-    new_state, count = np.empty_like(state), np.empty_like(count0)
-    sse = np.empty(nc)
-    o, sse[0], new_state[0], count[0] = grip_mixing_kernel(
-        y[0].reshape((n, 1)), state[0], count0[0], fconst, iconst, last_only
-    )
-    out = np.empty((nc, o.shape[0], o.shape[1]))
-    out[0] = o
-    for c in range(1, nc):
-        out[c], sse[c], new_state[c], count[c] = grip_mixing_kernel(
-            y[c].reshape((n, 1)), state[c], count0[c], fconst, iconst, last_only
-        )
-    return out, sse, new_state, count

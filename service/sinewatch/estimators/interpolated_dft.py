@@ -271,6 +271,18 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         "sample. The windows of a block are estimated together, vectorised across windows."
     )
 
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
+    bank_note: ClassVar[str] = (
+        "the bank runs each channel through the single kernel in one compiled call (bit for bit) "
+        "and computes the standard deviations (U) once over all channels' rows: 1.2-1.25x the "
+        "channels one by one (`sinewatch bench kernels --bank 8`, load 12-28), the per-channel "
+        "Python it saves. What bounds it is the kernel: 51 windows per 1024-sample block, each "
+        "a weighted mean, the band's DFT bins and a least-squares fit (~60 ns a sample of the "
+        "bank's ~80-100, under load), already vectorised across a channel's windows; "
+        "grouping channels adds no work to share. Twice the FFT would need the estimates 13x "
+        "less often (a hop of a window instead of a quarter) or a cheaper fit per window"
+    )
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz

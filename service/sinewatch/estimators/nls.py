@@ -29,7 +29,6 @@ from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
 from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS, window_estimate
-from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -201,40 +200,6 @@ def nls_kernel(
     return out_k, out_g, sse, n_pred, b, new_istate, tones, glob
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def nls_bank_kernel(
-    y: Arr,
-    buf: Arr,
-    istate: Arr,
-    tones: Arr,
-    glob: Arr,
-    iconsts: Arr,
-    fconsts: Arr,
-    cos_tab: Arr,
-    sin_tab: Arr,
-    last_only: bool,
-) -> tuple[Arr, Arr, Arr, Arr, Arr, Arr, Arr, Arr]:
-    """:func:`nls_kernel` for the C channels of a frame in one compiled call (the bank of
-    :mod:`sinewatch.estimators.bank`, channel first): ``y`` (C, N) and the state arrays
-    stacked along a first channel axis; returns the outputs and the new state likewise. Each
-    channel runs through :func:`nls_kernel` itself, on its own row and state, so its bits are
-    the single channel's: a window's fit iterates until it converges, a different number of
-    steps in each channel, so the channels cannot advance in lock step; what a bank saves is
-    the Python around each channel's call."""
-    nc = y.shape[0]
-    r = nls_kernel(y[0], buf[0], istate[0], tones[0], glob[0], iconsts, fconsts, cos_tab, sin_tab, last_only)
-    out_k = np.empty((nc, *r[0].shape))
-    out_g = np.empty((nc, *r[1].shape))
-    sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
-    new_buf, new_i, new_t, new_g = np.empty_like(buf), np.empty_like(istate), np.empty_like(tones), np.empty_like(glob)
-    for c in range(nc):
-        if c > 0:
-            r = nls_kernel(y[c], buf[c], istate[c], tones[c], glob[c], iconsts, fconsts, cos_tab, sin_tab, last_only)
-        out_k[c], out_g[c], sse[c], n_pred[c] = r[0], r[1], r[2], r[3]
-        new_buf[c], new_i[c], new_t[c], new_g[c] = r[4], r[5], r[6], r[7]
-    return out_k, out_g, sse, n_pred, new_buf, new_i, new_t, new_g
-
-
 @register
 class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
     """Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"""
@@ -365,6 +330,3 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
             "hop_samples": max(1, n // 4),
             "zero_pad": 4,
         }
-
-
-register_bank(Nls, nls_bank_kernel, n_outputs=4, channel_first=True)
