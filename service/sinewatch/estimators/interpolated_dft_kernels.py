@@ -43,20 +43,9 @@ def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> 
 
 @kernel
 def _one_window_estimate(
-    xt: np.ndarray,
-    q: int,
-    hann: np.ndarray,
-    hann_sum: float,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    k_lo: int,
-    k_hi: int,
-    three_point: bool,
-    est: np.ndarray,
-    wu: np.ndarray,
-    st: np.ndarray,
-    ct: np.ndarray,
-) -> None:
+    xt: np.ndarray, q: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray, k_lo: int,
+    k_hi: int, three_point: bool, est: np.ndarray, wu: np.ndarray, st: np.ndarray, ct: np.ndarray,
+) -> None:  # fmt: skip
     # The arguments of _window_estimates, whose every window this must reproduce bit for bit
     # (a chunk of too few windows takes this path): the same inputs by design, not a copy.
     """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
@@ -148,17 +137,9 @@ def _one_window_estimate(
 
 @kernel
 def _window_estimates(
-    xt: np.ndarray,
-    n_win: int,
-    hann: np.ndarray,
-    hann_sum: float,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    k_lo: int,
-    k_hi: int,
-    three_point: bool,
-    est: np.ndarray,
-) -> None:
+    xt: np.ndarray, n_win: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray,
+    k_lo: int, k_hi: int, three_point: bool, est: np.ndarray,
+) -> None:  # fmt: skip
     """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of window q, for
     q < ``n_win``; ``xt[n, q]`` is sample n (oldest first) of window q.
 

@@ -50,14 +50,15 @@ from sinewatch.estimators.kkl_kernels import (
     ABS_FLOOR,
     LANES,
     bank_arrays,
+    bank_filter,
     bank_good,
     bank_lane_row,
     bank_load,
-    bank_record,
+    bank_next_sample,
+    bank_sines,
     bank_store,
     bank_write,
     consistent,
-    filter_one,
     half_step,
     half_step_of,
     jump_detector,
@@ -316,12 +317,7 @@ def _bank_front(
     yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
     eta_bar = 0.0
     for i in range(len(lam)):
-        r = (_XI + i) * L + lane
-        xo = S[r]
-        v = filter_one(fa[i], fb0[i], fb1[i], xo, yp, yk)
-        v = v if hp != 0.0 else xo
-        S[r] = v
-        eta_bar += lp[i] * v
+        eta_bar += lp[i] * bank_filter(S, (_XI + i) * L + lane, fa[i], fb0[i], fb1[i], yp, yk, hp)
     eta_bar *= inv_m
     S[_NR * L + lane] = run_step(S[_NR * L + lane], hp, n_settle)
     S[_RHP * L + lane] = 1.0
@@ -386,6 +382,23 @@ def _bank_back(
     bank_good(S, lane, settled, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
 
 
+@kernel(inline="always")
+def _bank_sample(
+    S: np.ndarray, lam: tuple[float, ...], lp: tuple[float, ...], fa: tuple[float, ...], fb0: tuple[float, ...],
+    fb1: tuple[float, ...], front: tuple[float, ...],
+    kvt: tuple[float, float, float, float, float, float, float, float, float], kk: tuple[float, float, float],
+    ik: tuple[float, float, float], det_k0: float, inv_m: float, back: tuple[float, float, float, float, float],
+) -> None:  # fmt: skip
+    """One sample of every lane: two loops over the lanes that LLVM vectorises and between
+    them the sines, C library calls lane by lane."""
+    n_settle, max_fit2, max_pred2, wts_lo, wts_hi = back
+    for lane in range(LANES):  # (12), eta_bar, the sums over the filters, the inverse map
+        _bank_front(S, lane, lam, lp, fa, fb0, fb1, front, kvt, kk, ik, det_k0, inv_m)
+    bank_sines(S)
+    for lane in range(LANES):  # read-out, fit residual, offset, converged
+        _bank_back(S, lane, lam, lp, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
+
+
 def kkl_biased_bank_kernel(
     y: np.ndarray, state: np.ndarray, lam: np.ndarray, lam_phys: np.ndarray, fa: np.ndarray, fb0: np.ndarray,
     fb1: np.ndarray, kv: np.ndarray, kk: np.ndarray, consts: np.ndarray, last_only: bool,
@@ -413,6 +426,7 @@ def _kkl_biased_bank(
         observer_constants(consts)
     )  # fmt: skip
     front = (Ts, w_ref, ell, silence_ratio, env_decay, n_settle, avg_gain, fast_gain, slow_gain)
+    back = (n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
     n, nc = y.shape
     m = len(lam)
     kvt, kkt, ikt, det_k0 = eigen_tuples(kv, kk)
@@ -420,21 +434,10 @@ def _kkl_biased_bank(
     L = LANES
     out, ext, sse_out, new_state, S, ys, rec = bank_arrays(n, nc, m, len(_TAIL), _XI, last_only)
     for g in range(0, nc, L):
-        width = min(L, nc - g)
-        bank_load(S, ys, y, state, g, width, _TAIL, _XI, _RY)
+        width = bank_load(S, ys, y, state, g, _TAIL, _XI, _RY)
         for k in range(n):
-            for lane in range(L):  # (12), eta_bar, the sums over the filters, the inverse map
-                _bank_front(S, lane, lam, lp, fa, fb0, fb1, front, kvt, kkt, ikt, det_k0, inv_m)
-            for lane in range(L):  # the sines: C library calls, lane by lane
-                S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
-            for lane in range(L):  # read-out, fit residual, offset, converged
-                _bank_back(S, lane, lam, lp, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
-            nxt = min(k + 1, n - 1) * L
-            for lane in range(L):  # the next sample, in place once this one is done with it
-                S[_RY * L + lane] = ys[nxt + lane]
-            if not last_only:
-                for c in range(width):
-                    bank_record(rec[c], k, bank_lane_row(S, c, _OFF))
+            _bank_sample(S, lam, lp, fa, fb0, fb1, front, kvt, kkt, ikt, det_k0, inv_m, back)
+            bank_next_sample(S, ys, rec, k, width, last_only, _OFF)
         for c in range(width):
             bank_write(out[g + c], ext[g + c], rec[c], last_only, bank_lane_row(S, c, _OFF), n_settle, Ts, ell)
         bank_store(S, new_state, sse_out, g, width, _TAIL, _XI, _RSSE)

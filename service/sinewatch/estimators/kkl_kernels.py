@@ -458,6 +458,17 @@ _RXI = 37
 
 
 @kernel(inline="always")
+def bank_filter(S: np.ndarray, r: int, a: float, b0: float, b1: float, yp: float, yk: float, hp: float) -> float:
+    """One filter of (12) in entry ``r`` of a bank's work array (as :func:`filter_one`, not
+    before the first sample, ``hp`` = 0): its new value."""
+    xo = S[r]
+    v = filter_one(a, b0, b1, xo, yp, yk)
+    v = v if hp != 0.0 else xo
+    S[r] = v
+    return v
+
+
+@kernel(inline="always")
 def _bank_filters(
     S: np.ndarray, lane: int, lam: tuple[float, ...], fa: tuple[float, ...], fb0: tuple[float, ...],
     fb1: tuple[float, ...],
@@ -470,11 +481,7 @@ def _bank_filters(
     yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
     s2 = p0 = p1 = p2 = p3 = q2 = 0.0
     for i in range(len(lam)):
-        r = (_RXI + i) * L + lane
-        xo = S[r]
-        v = filter_one(fa[i], fb0[i], fb1[i], xo, yp, yk)
-        v = v if hp != 0.0 else xo
-        S[r] = v
+        v = bank_filter(S, (_RXI + i) * L + lane, fa[i], fb0[i], fb1[i], yp, yk, hp)
         s2, p0, p1, p2, p3, q2 = filter_sums(lam[i], v, s2, p0, p1, p2, p3, q2)
     S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane] = s2, p0, p1
     S[_RP2 * L + lane], S[_RP3 * L + lane], S[_RQ2 * L + lane] = p2, p3, q2
@@ -613,14 +620,16 @@ def bank_arrays(
 
 @kernel(inline="always")
 def bank_load(
-    S: np.ndarray, ys: np.ndarray, y: np.ndarray, state: np.ndarray, g: int, width: int, tail: tuple[int, ...],
-    rxi: int, ry: int,
-) -> None:  # fmt: skip
+    S: np.ndarray, ys: np.ndarray, y: np.ndarray, state: np.ndarray, g: int, tail: tuple[int, ...], rxi: int,
+    ry: int,
+) -> int:  # fmt: skip
     """Channels g .. g + width - 1 into the lanes of a bank's work array ``S``: the filters'
     xi into rows ``rxi + i``, the state's scalars into the rows ``tail`` (in the state's
     order), their samples into ``ys`` (lane-major) and the first sample into row ``ry``.
-    Lanes past the last channel run on zeros (never defined); their results are dropped."""
+    Lanes past the last channel run on zeros (never defined); their results are dropped.
+    Returns ``width``: the channels loaded, up to LANES."""
     L = LANES
+    width = min(L, y.shape[1] - g)
     m = state.shape[0] - len(tail)
     S[:] = 0.0
     ys[:] = 0.0
@@ -634,6 +643,33 @@ def bank_load(
             ys[k * L + c] = y[k, g + c]
     for lane in range(L):
         S[ry * L + lane] = ys[lane]
+    return width
+
+
+@kernel(inline="always")
+def bank_sines(S: np.ndarray) -> None:
+    """The sine of the first-order hold's correction for every lane: C library calls, lane by
+    lane (a vectorised sine would round differently), in a loop of their own so that the
+    loops around them vectorise."""
+    L = LANES
+    for lane in range(L):
+        S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+
+
+@kernel(inline="always")
+def bank_next_sample(
+    S: np.ndarray, ys: np.ndarray, rec: np.ndarray, k: int, width: int, last_only: bool, roff: int
+) -> None:
+    """After sample ``k`` of a bank's block: its rows kept (unless only the last is wanted;
+    the offset from row ``roff``, see :func:`bank_lane_row`), then the next sample into row
+    ``_RY``, in place once this one is done with it."""
+    L = LANES
+    if not last_only:
+        for c in range(width):
+            bank_record(rec[c], k, bank_lane_row(S, c, roff))
+    nxt = min(k + 1, ys.shape[0] // L - 1) * L
+    for lane in range(L):
+        S[_RY * L + lane] = ys[nxt + lane]
 
 
 @kernel(inline="always")
@@ -714,25 +750,18 @@ def _kkl_bank(
     L = LANES
     out, ext, sse_out, new_state, S, ys, rec = bank_arrays(n, nc, m, len(_TAIL), _RXI, last_only)
     for g in range(0, nc, L):
-        width = min(L, nc - g)
-        bank_load(S, ys, y, state, g, width, _TAIL, _RXI, _RY)
+        width = bank_load(S, ys, y, state, g, _TAIL, _RXI, _RY)
         for k in range(n):
             for lane in range(L):  # (12), the sums over the filters, the inverse map (8)-(9)
                 _bank_filters(S, lane, lam_t, fa, fb0, fb1)
                 _bank_front(S, lane, s_ll, s_l, s_11, ell, w_ref, Ts, silence_ratio, env_decay, avg_gain,
                             fast_gain, slow_gain)  # fmt: skip
-            for lane in range(L):  # the sines: C library calls, lane by lane
-                S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+            bank_sines(S)
             for lane in range(L):  # read-out, fit residual of (13), converged
                 _bank_read_out(S, lane, w_ref)
                 _bank_fit(S, lane, lam_t)
                 bank_good(S, lane, True, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
-            nxt = min(k + 1, n - 1) * L
-            for lane in range(L):  # the next sample, in place once this one is done with it
-                S[_RY * L + lane] = ys[nxt + lane]
-            if not last_only:
-                for c in range(width):
-                    bank_record(rec[c], k, bank_lane_row(S, c, -1))
+            bank_next_sample(S, ys, rec, k, width, last_only, -1)
         for c in range(width):
             bank_write(out[g + c], ext[g + c], rec[c], last_only, bank_lane_row(S, c, -1), n_settle, Ts, ell)
         bank_store(S, new_state, sse_out, g, width, _TAIL, _RXI, _RSSE)
