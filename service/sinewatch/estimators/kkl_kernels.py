@@ -629,7 +629,7 @@ def bank_load(
     Lanes past the last channel run on zeros (never defined); their results are dropped.
     Returns ``width``: the channels loaded, up to LANES."""
     L = LANES
-    width = min(L, y.shape[1] - g)
+    width = int(min(L, y.shape[1] - g))
     m = state.shape[0] - len(tail)
     S[:] = 0.0
     ys[:] = 0.0
