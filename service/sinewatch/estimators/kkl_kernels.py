@@ -5,7 +5,9 @@ kernel (inlined: the same arithmetic in both), and :func:`kkl_bank_kernel`, the 
 :mod:`sinewatch.estimators.bank`: the same observer for 8 channels at once, each operation of
 a sample written once in a helper that both the single kernel and the bank call, so that
 every channel's bits are the single kernel's whatever the bank's size and the channel's
-position in it.
+position in it. The bank's work-array rows and its plumbing (``bank_*``: loading, the filter
+step, the sines, converged, the rows) serve ``kkl-biased``'s bank too
+(:mod:`sinewatch.estimators.kkl_biased_kernels`).
 """
 
 from __future__ import annotations
