@@ -133,11 +133,14 @@ class Router:
 
 class Proxy:
     """TCP between one daemon and etcd, which the test can sever (every connection closed,
-    new ones refused at once) and heal: an owner cut off from etcd but still on Zenoh."""
+    new ones refused at once) and heal: an owner cut off from etcd but still on Zenoh.
+    ``handshake_delay_s`` holds etcd's first bytes on each new connection back that long: a
+    connection set up over a slow path, or to a peer on a loaded machine."""
 
     def __init__(self, target_port: int) -> None:
         self.target = target_port
         self.cut = False
+        self.handshake_delay_s = 0.0
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
         self._listener = socket.create_server(("127.0.0.1", 0))
@@ -161,13 +164,18 @@ class Proxy:
                     continue
                 upstream.settimeout(None)
                 self._conns += [client, upstream]
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+            for a, b, delay in ((client, upstream, 0.0), (upstream, client, self.handshake_delay_s)):
+                threading.Thread(target=self._pump, args=(a, b, delay), daemon=True).start()
 
     @staticmethod
-    def _pump(src: socket.socket, dst: socket.socket) -> None:
+    def _pump(src: socket.socket, dst: socket.socket, delay_s: float = 0.0) -> None:
         with contextlib.suppress(OSError):
-            while data := src.recv(65536):
+            first = src.recv(65536)
+            if first and delay_s:
+                time.sleep(delay_s)  # a slow path's latency, simulated (not a wait for anything)
+            if first:
+                dst.sendall(first)
+            while first and (data := src.recv(65536)):
                 dst.sendall(data)
         for s in (src, dst):
             with contextlib.suppress(OSError):
