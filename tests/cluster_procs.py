@@ -355,8 +355,21 @@ class Estimates:
         self.fence = Fence()
         self.fenced_off: set[tuple[str, int]] = set()  # (channel, seq) the fence dropped
         self.first_of_term: dict[tuple[str, int], float] = {}  # (shard, term) -> arrival of its first estimate
+        # channel -> blocks reported lost in transport for good: the largest `count` of its `unrecovered`
+        # ErrorReports (a daemon's count so far; one daemon's, when several owned the channel in turn: a lower
+        # bound). The record of a stream's last blocks lost, which no later estimate can flag as a gap.
+        self.unrecovered: dict[str, int] = defaultdict(int)
         self._cond = threading.Condition()
         self._sub = session.declare_subscriber("sinewatch/est/**", self._on)
+        self._err = session.declare_subscriber("sinewatch/err/**", self._on_error)
+
+    def _on_error(self, sample: zenoh.Sample) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        if msg.get("kind") == "unrecovered":
+            with self._cond:
+                channel = msg["key"].rsplit("/", 1)[-1]
+                self.unrecovered[channel] = max(self.unrecovered[channel], msg["count"])
+                self._cond.notify_all()
 
     def _on(self, sample: zenoh.Sample) -> None:
         msg = json.loads(sample.payload.to_bytes())
@@ -418,7 +431,14 @@ class Gateway(threading.Thread):
         """Stop publishing, then wait for every channel's last block's estimate."""
         self.stop.set()
         self.join()
-        last = lambda e: all(e[c] and e[c][-1]["seq"] == self.sent[c] - 1 for c in CHANNELS)
+
+        def last(e: dict[str, list[dict[str, Any]]]) -> bool:
+            """Every channel's last block estimated, or the blocks after its last estimate
+            reported lost in transport for good (no later block can flag them as a gap)."""
+            return all(
+                self.sent[c] - 1 - (e[c][-1]["seq"] if e[c] else -1) <= estimates.unrecovered[c] for c in CHANNELS
+            )
+
         estimates.wait(last, "the last blocks", timeout)
 
 
@@ -491,14 +511,17 @@ def admin(session: zenoh.Session) -> list[dict[str, Any]]:
     ]
 
 
-def check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
+def check_channel(msgs: list[dict[str, Any]], sent: int, lost_for_good: int = 0) -> tuple[int, int]:
     """(gaps flagged, blocks lost) of one channel, checked against each other: each (seq)
     at most once, in order, every seq up to ``sent`` either estimated or counted in the
-    gap_blocks of the estimate after it."""
+    gap_blocks of the estimate after it; the blocks after the last estimate (none can flag
+    them) at most the ``lost_for_good`` the daemons reported (``unrecovered`` ErrorReports)."""
     seqs = [m["seq"] for m in msgs]
     assert len(seqs) == len(set(seqs)), f"an estimate published twice: {seqs}"
     assert seqs == sorted(seqs)
-    missing = sorted(set(range(sent)) - set(seqs))
+    trailing = sent - 1 - (seqs[-1] if seqs else -1)
+    assert trailing <= lost_for_good, f"{trailing} last block(s) neither estimated nor reported lost"
+    missing = sorted(set(range(sent - trailing)) - set(seqs))
     flagged = [m for m in msgs if m["diagnostics"]["gap"]]
     gaps = [(m["seq"], m["diagnostics"]["gap_blocks"], (m.get("fencing") or {}).get("term")) for m in flagged]
     assert sum(m["diagnostics"]["gap_blocks"] for m in flagged) == len(missing), (
@@ -508,7 +531,7 @@ def check_channel(msgs: list[dict[str, Any]], sent: int) -> tuple[int, int]:
     for m in flagged:  # each gap counts exactly the seqs missing right before it
         before = [s for s in missing if s < m["seq"] and all(s > o for o in seqs if o < m["seq"])]
         assert m["diagnostics"]["gap_blocks"] == len(before)
-    return len(flagged), len(missing)
+    return len(flagged), len(missing) + trailing
 
 
 if __name__ == "__main__":  # ``python cluster_procs.py proxy PORT``: see ProxyProcess
