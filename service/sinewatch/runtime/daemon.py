@@ -32,6 +32,7 @@ same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import logging
@@ -304,8 +305,9 @@ class Intake:
         self.counters.unrecovered += miss.nb
         key = self._key_of.get(str(miss.source))
         log.warning("intake: %d block(s) of %s could not be recovered", miss.nb, key or f"publisher {miss.source}")
-        if key is not None and not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._daemon.report_unrecovered, key, miss.nb)
+        if key is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the daemon is gone
+                self._loop.call_soon_threadsafe(self._daemon.report_unrecovered, key, miss.nb)
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         """Take room for an input: one block, or one per channel of a multi-channel frame
