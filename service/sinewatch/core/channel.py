@@ -41,6 +41,7 @@ class Channel:
     # estimates held back until the presence detector has seen its onset latency past them
     # (validity rules version 3): (payload, release at sample count, window start or -1, converged), see sinewatch.core.hold
     held: deque[tuple[bytes, int, int, bool]] = field(default_factory=deque, repr=False)
+    last_log_ns: int = field(default=0, repr=False)  # log time of its last accepted block (release_idle)
     last_run: np.ndarray | None = field(default=None, repr=False)  # the presence run of the last block
     # (key, template) of its Estimates' bytes in the usual case (sinewatch.core.estimate_bytes.estimate_payload)
     template: tuple[tuple[Any, ...], str] | None = field(default=None, repr=False)
@@ -54,6 +55,7 @@ class Channel:
                 cycle_frequency_hz(self.estimator),
                 hold=self.validity_version >= 2,
                 hysteresis=DEFAULT_HYSTERESIS if self.validity_version >= 3 else 0.0,
+                fast=self.validity_version >= 4,
             )
 
     def snapshot(self) -> dict[str, Any]:

@@ -1,5 +1,5 @@
-"""Estimates held back until the presence detector has read past their windows (validity
-rules version 3 with ``hold_estimates``): :func:`hold` takes a block's estimates and gives
+"""Estimates held back until the presence detector has read past their windows
+(``hold_estimates``: on by default from validity rules version 4, off by default in version 3): :func:`hold` takes a block's estimates and gives
 what may leave now; :func:`not_valid` marks one that could not be confirmed."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from sinewatch.core.channel import Channel
 
 
 def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset: bool) -> list[bytes]:
-    """Validity rules version 3: no estimate is published valid while its window may hold
+    """No estimate is published valid while its window may hold
     an event the presence detector has not read yet. Each estimate waits until the
     detector has seen ``onset_latency_samples`` past the last sample its window holds (the
     block's last, or a grid report's ``lookahead_samples`` after its time; counted in

@@ -66,6 +66,9 @@ class Pipeline:
         self.config = config
         self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
         self.validity_version = validity_version  # likewise (sinewatch.core.continuity)
+        # hold estimates back (_hold): version 3 only where its config asked (its default was off)
+        holds = config.hold_estimates and (validity_version >= 4 or "hold_estimates" in config.model_fields_set)
+        self._holds = holds and validity_version >= 3 and estimate_version >= 3
         self.sinks = [
             GuardedSink(
                 sink,
@@ -438,6 +441,7 @@ class Pipeline:
         out_key = channel.out_key
         if out_key is None:
             out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        channel.last_log_ns = log_time_ns
         for payload_out in payloads:
             for sink in self.sinks:
                 sink.on_estimate(out_key, payload_out, log_time_ns)
@@ -447,26 +451,43 @@ class Pipeline:
         if received_ns is not None:
             channel.last_latency_ns = time.monotonic_ns() - received_ns
 
-    def release_held(self, log_time_ns: int) -> int:
+    def release_held(self, log_time_ns: int, out_key: str | None = None) -> int:
         """The end of a finite input (the daemon's drain, a replay's last message): every
         estimate still held back (``hold_estimates``) goes to the sinks, in order, so that
-        everything accepted is published. One that waited for the detector to confirm its
-        window is published not valid: the samples that would have confirmed it never come.
-        Returns how many were released."""
+        everything accepted is published; with ``out_key``, only the channel publishing there
+        (a replay meeting the idle release of :meth:`release_idle`). One that waited for the
+        detector to confirm its window is published not valid: the samples that would have
+        confirmed it never came. Returns how many were released."""
         n = 0
         for ch in self.channels.values():
             if not ch.held:
                 continue
-            out_key = ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}"
-            ch.out_key = out_key
+            key = ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}"
+            if out_key is not None and key != out_key:
+                continue
+            ch.out_key = key
             while ch.held:
                 payload, _, window_start, _ = ch.held.popleft()
                 payload = not_valid(payload) if window_start >= 0 else payload
                 for sink in self.sinks:
-                    sink.on_estimate(out_key, payload, log_time_ns)
+                    sink.on_estimate(key, payload, log_time_ns)
                 n += 1
             ch.converged = False
         self.counters.estimates += n
+        return n
+
+    def release_idle(self, now_ns: int) -> int:
+        """A feed that pauses: the estimates of every channel whose last block came at least
+        ``idle_release_s`` before ``now_ns`` are released as at the input's end
+        (:meth:`release_held`), so that a paused or finished stream's last estimates do not
+        wait for a block that may never come. Their windows stay unconfirmed: not valid. A
+        replay meets them as recorded estimates with nothing produced yet and releases that
+        channel there, so it reproduces them bit for bit. Returns how many were released."""
+        idle_ns = round(self.config.idle_release_s * 1e9)
+        n = 0
+        for ch in self.channels.values():
+            if ch.held and now_ns - ch.last_log_ns >= idle_ns:
+                n += self.release_held(now_ns, ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}")
         return n
 
     def _forget_unborn(self, ch: Channel | None) -> None:
@@ -533,7 +554,7 @@ class Pipeline:
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        Under validity rules version 3 with ``hold_estimates`` (off by default) they are held back
+        With ``hold_estimates`` (on by default from validity rules version 4) they are held back
         (:func:`sinewatch.core.hold.hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
@@ -562,7 +583,7 @@ class Pipeline:
                     ch, block, row, t_ns, t_last, gap_blocks, restart, reset, jump
                 )
                 made.append((payload, converged, t_ns))
-        if self.validity_version < 3 or self.estimate_version < 3 or not self.config.hold_estimates:
+        if not self._holds:
             if made:
                 ch.converged = made[-1][1]
             return [m[0] for m in made]

@@ -32,6 +32,7 @@ same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import logging
@@ -65,6 +66,7 @@ from sinewatch.schemas.frame import FRAME_MAGIC
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 
 if TYPE_CHECKING:
+    from sinewatch.estimators.base import Estimator
     from sinewatch.outputs.foxglove_live import FoxgloveSink
     from sinewatch.outputs.metrics import Health, LatencyHistogram, MetricsServer, Snapshot
 
@@ -145,6 +147,7 @@ class Intake:
         self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
         self._stopping = False
         self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
+        self._key_of: dict[str, str] = {}  # publisher (source id) -> its key: which channel a miss belongs to
         self._published: dict[str, int] = {}  # key -> the seq of its last block the previous owner published
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
@@ -242,11 +245,13 @@ class Intake:
         if self._owner is not None and not self._owner.owns(key):
             self.counters.not_owned += 1
             return None
+        info = sample.source_info
+        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
+        if source is not None:
+            self._key_of[source] = key
         payload = sample.payload.to_bytes()
         if history and self._in_state(key, payload):
             return None
-        info = sample.source_info
-        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
         return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
 
     def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
@@ -293,10 +298,17 @@ class Intake:
             self._closed.set()
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
-        """On a Zenoh thread: blocks lost for good (the pipeline flags the gap when the
-        next block of that channel arrives); counted here, logged."""
+        """On a Zenoh thread: blocks lost for good. Counted here, and reported at once as an
+        ``unrecovered`` ErrorReport on the publisher's key: the pipeline flags the gap on the
+        channel's next estimate, but the last blocks of a stream that ends (or pauses) have
+        no next estimate, and their loss must still be told (a failover test waited for the
+        estimate of a lost last block)."""
         self.counters.unrecovered += miss.nb
-        log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
+        key = self._key_of.get(str(miss.source))
+        log.warning("intake: %d block(s) of %s could not be recovered", miss.nb, key or f"publisher {miss.source}")
+        if key is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the daemon is gone
+                self._loop.call_soon_threadsafe(self._daemon.report_unrecovered, key, miss.nb)
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         """Take room for an input: one block, or one per channel of a multi-channel frame
@@ -352,6 +364,41 @@ class Intake:
         if self._miss_listener is not None:
             self._miss_listener.undeclare()
         self._subscriber.undeclare()
+
+
+def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
+    """One rule's kernels: the estimator's on whole blocks and on the last sample only, and
+    for a one-input estimator a frame's (its bank kernel, the presence detectors' bank)."""
+    from sinewatch.estimators.bank import bank_of, update_bank
+    from sinewatch.estimators.presence import SignalPresence, update_presence_bank
+
+    rate = cls.example_sample_rate_hz
+    try:
+        cls(rate, params)
+    except ValueError:  # ParameterError, or pydantic's ValidationError: valid at another rate only
+        params = dict(cls.example_params)
+    est = cls(rate, params)
+    signal_ = cls.example_signal(64)
+    if signal_.ndim == 1 and est.n_inputs > 1:  # e.g. I/Q: the kernel's types, not a meaningful signal
+        signal_ = np.column_stack([signal_] * est.n_inputs)
+    for x in _as_received(signal_):
+        est.update(x)
+        est.update(x, last_only=True)
+    if est.n_inputs == 1:
+        for frame in _as_received(np.stack([signal_, signal_], axis=1)):
+            if bank_of(cls) is not None:
+                update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
+            detectors = [SignalPresence(rate) for _ in range(2)]
+            update_presence_bank(detectors, frame, [0, 1])
+
+
+def _as_received(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` as the kernels receive samples: float64 samples decode to a read-only view of the
+    payload (``np.frombuffer``), float32 ones to a writable float64 copy, and numba compiles a
+    kernel once for each (a read-only array is another type)."""
+    frozen = x.copy()
+    frozen.setflags(write=False)
+    return x, frozen
 
 
 class Daemon:
@@ -412,6 +459,12 @@ class Daemon:
         for key, n in dropped.items():
             message = f"intake queue full: {n} input(s) dropped"
             self.pipeline.report_error(key, "queue_overflow", message, self._log_time(), count=n)
+
+    def report_unrecovered(self, key: str, n: int) -> None:
+        """``n`` blocks of ``key`` lost in transport that Zenoh's recovery could not fetch again:
+        one ErrorReport whose ``count`` advances by ``n``."""
+        message = f"{n} block(s) lost in transport and not in the publisher's cache: a gap on the next estimate"
+        self.pipeline.report_error(key, "unrecovered", message, self._log_time(), count=n)
 
     def _log_time(self) -> int:
         self._last_log_time = sanitize_log_time(self._last_log_time, time.time_ns())
@@ -546,6 +599,15 @@ class Daemon:
             sinks=p.sink_status() if p else [],
         )
 
+    def release_idle(self) -> None:
+        """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
+        back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
+        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon may publish
+        (a standby's held estimates are its successor's)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            return
+        self.pipeline.release_idle(self._log_time())
+
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
             await asyncio.sleep(seconds)
@@ -556,25 +618,23 @@ class Daemon:
 
     # ---- lifecycle ------------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """Load (or compile) every configured estimator's kernels now, so that a
-        channel's first block does not wait ~0.3-0.8 s for numba."""
+        """Load (or compile) the kernels every configured rule will run now, so that a
+        channel's first block does not wait ~0.3-0.8 s for numba (seconds on a busy machine).
+
+        Each rule's own params, not the estimator's example ones: a param can choose another
+        kernel (differential-rls with ``input = "iq"`` runs its I/Q kernel, on two columns).
+        The sample rate is the estimator's example one (a block brings the real one; the
+        kernels' types do not depend on it); params that are invalid there fall back to the
+        example params (the rule's kernel then compiles on its first block, as it would)."""
         from sinewatch.estimators import check_rules, get
-        from sinewatch.estimators.bank import bank_of, update_bank
-        from sinewatch.estimators.presence import SignalPresence, update_presence_bank
 
         check_rules(self.config.rules)
-        for name in sorted({rule.estimator for rule in self.config.rules}):
-            cls = get(name)
-            est = cls.example()
-            signal_ = cls.example_signal(64)
-            est.update(signal_)
-            est.update(signal_, last_only=True)
-            if est.n_inputs == 1:  # a frame's channels: the bank kernel, the presence detectors' bank
-                frame = np.stack([signal_, signal_], axis=1)
-                if bank_of(cls) is not None:
-                    update_bank([cls.example(), cls.example()], frame, last_only=True)
-                detectors = [SignalPresence(cls.example_sample_rate_hz) for _ in range(2)]
-                update_presence_bank(detectors, frame, [0, 1])
+        warmed: set[tuple[str, str]] = set()
+        for rule in self.config.rules:
+            key = (rule.estimator, json.dumps(rule.params, sort_keys=True, default=str))
+            if key not in warmed:
+                warmed.add(key)
+                _warm_up_rule(get(rule.estimator), rule.params)
 
     def start(self) -> None:
         """Open the session and sinks and start intake (call from the event loop)."""
@@ -670,6 +730,8 @@ class Daemon:
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
+            if self.config.hold_estimates:  # a paused feed's held estimates (Pipeline.release_idle)
+                periodic.append(asyncio.create_task(self._every(self.config.idle_release_s / 2, self.release_idle)))
             if self.recorder is not None:
                 periodic.append(
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))

@@ -482,6 +482,7 @@ def _replay_run(run: _Run) -> ReplayResult:
     pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
     versions = _CURRENT_VERSIONS
+    last_log_ns = 0
     for file_no, path in enumerate(paths):
         progress = run.progress(path)
         for kind, item in read_recording(path, progress):
@@ -525,6 +526,10 @@ def _replay_run(run: _Run) -> ReplayResult:
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)
+                last_log_ns = item.log_time_ns
+    if rules is not None and pipeline is not None:
+        # re-estimated: the input's end, as a daemon's drain, publishes what is still held back
+        pipeline.release_held(last_log_ns)
     if recorder is not None:
         recorder.close()
         result.r.out_paths = list(recorder.paths)
@@ -838,9 +843,10 @@ class ResultBuilder:
             else:
                 r.recorded_other[m.role] = r.recorded_other.get(m.role, 0) + 1
             if estimate and not comparator.estimates[m.topic]:
-                # recorded with nothing produced yet: only the daemon's drain publishes an
-                # estimate after the last input (Pipeline.release_held), so release here too
-                pipeline.release_held(m.log_time_ns)
+                # recorded with nothing produced yet: only the daemon's drain and its idle
+                # release publish an estimate after a channel's last input (Pipeline.release_held,
+                # release_idle), so release that channel here too
+                pipeline.release_held(m.log_time_ns, m.topic)
             produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
             index = self.counts[m.topic]
             self.counts[m.topic] += 1
