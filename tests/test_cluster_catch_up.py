@@ -1,4 +1,4 @@
-"""The order a takeover's history goes to the pipeline (``sinewatch.runtime.daemon.catch_up_order``),
+"""The order a takeover's history goes to the pipeline (``sinewatch.runtime.intake.catch_up_order``),
 on real binary blocks as the gateways publish them: each key's blocks stay in order; every
 key's catch-up (its blocks up to the previous owner's last published one, then its first
 block to publish) comes before any key's rest, so channel k's first estimate waits for k
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sinewatch.runtime.daemon import catch_up_order
+from sinewatch.runtime.intake import catch_up_order
 from sinewatch.schemas.codec import Block, encode_block_binary
 
 

@@ -674,7 +674,7 @@ def test_the_intake_queue_counts_a_frame_as_its_channels(tmp_path):
     import threading
     from collections import Counter
 
-    from sinewatch.runtime.daemon import Intake, IntakeCounters
+    from sinewatch.runtime.intake import Intake, IntakeCounters
 
     intake = Intake.__new__(Intake)  # its queue logic only: no session, no thread
     intake._capacity, intake._policy = 10, "drop"

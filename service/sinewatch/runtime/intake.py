@@ -1,0 +1,344 @@
+"""The daemon's intake: a Zenoh subscriber and a pump thread that hand the event loop its inputs
+in batches, and the order a takeover's history goes to the pipeline.
+
+Why a thread: Zenoh delivers samples on its own threads into a bounded FIFO channel (never
+blocking a Zenoh callback on Python work); the pump drains it in batches and hands each batch
+to the event loop with one ``call_soon_threadsafe`` (:mod:`sinewatch.runtime.daemon` says how
+backpressure and shutdown use it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import zenoh
+import zenoh.ext
+
+from sinewatch.core.pipeline import Pipeline
+from sinewatch.runtime.cluster import Ownership
+from sinewatch.schemas.codec import HEADER as BLOCK_HEADER
+from sinewatch.schemas.codec import MAGIC as BLOCK_MAGIC
+from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.frame import FRAME_MAGIC
+
+log = logging.getLogger("sinewatch.runtime.daemon")  # the daemon's log: operators filter on one name
+
+HISTORY_TIMEOUT_S = 10.0  # how long the publishers' caches may take to answer a new subscriber's history query
+
+
+@dataclass
+class IntakeCounters:
+    received: int = 0
+    dropped: int = 0
+    backpressure_waits: int = 0
+    unrecovered: int = 0  # blocks Zenoh reported missed for good (past the publishers' history)
+    not_owned: int = 0  # inputs of keys another shard owns (cluster.shard), dropped unread
+
+
+# (key, payload, encoding, received monotonic ns)
+Item = tuple[str, bytes, str, int]
+
+
+def _block_seq(payload: bytes) -> int | None:
+    """A binary block's seq, read from its header without decoding (None: not a binary block)."""
+    if payload[:4] != BLOCK_MAGIC or len(payload) < BLOCK_HEADER.size:
+        return None
+    return int.from_bytes(payload[8:16], "little")
+
+
+def catch_up_order(replies: list[tuple[Item, Any, int]], published: dict[str, int]) -> list[tuple[Item, Any, int]]:
+    """A takeover's history (``(item, publisher, sn)``, each key's blocks in order) in the
+    order it goes to the pipeline; ``published``: each key's last seq the previous owner
+    published. First, key by key, each key's blocks up to its first one to publish (those up to
+    ``published`` only bring the state up to date), then the rest, the keys taken in turn.
+    Channel k's first estimate of a takeover then waits for the catch-up of k channels, not of
+    all of them: with the keys taken in turn from the start, no estimate came before every
+    channel's state was brought up to date (~5 blocks each at a snapshot interval of 0.5 s:
+    1.5 s under load in a chaos run's kill), and none before a whole key's history without turns."""
+    by_key: dict[str, list[tuple[Item, Any, int]]] = {}
+    for reply_item in replies:
+        by_key.setdefault(reply_item[0][0], []).append(reply_item)
+    first: list[tuple[Item, Any, int]] = []
+    rest: list[list[tuple[Item, Any, int]]] = []
+    for key, items in by_key.items():
+        last = published.get(key)
+        n = 0
+        if last is not None:  # up to and including the first block after ``last``
+            while n < len(items) and (_block_seq(items[n][0][1]) or 0) <= last:
+                n += 1
+            n = min(n + 1, len(items))
+        first += items[:n]
+        rest.append(items[n:])
+    return first + [it for turn in itertools.zip_longest(*rest) for it in turn if it is not None]
+
+
+class IntakeHost(Protocol):
+    """What the intake needs of its daemon (:class:`sinewatch.runtime.daemon.Daemon`): the intake
+    sits below it and calls back only through these, on the event loop."""
+
+    config: SinewatchConfig
+    force_exit: threading.Event
+
+    @property
+    def session(self) -> zenoh.Session: ...
+
+    @property
+    def pipeline(self) -> Pipeline: ...
+
+    def enqueue(self, batch: list[Item]) -> None: ...
+
+    def report_drops(self, dropped: Counter[str]) -> None: ...
+
+    def report_unrecovered(self, key: str, n: int) -> None: ...
+
+
+class Intake:
+    """Zenoh subscriber + pump thread feeding the event loop in batches."""
+
+    def __init__(self, daemon: IntakeHost, loop: asyncio.AbstractEventLoop, history_blocks: int | None = None) -> None:
+        cfg = daemon.config
+        self._daemon = daemon
+        self._loop = loop
+        self._batch = cfg.limits.intake_batch
+        self._policy = cfg.limits.queue_policy
+        self._capacity = cfg.limits.queue_capacity
+        self._room = threading.Semaphore(cfg.limits.queue_capacity)
+        self.counters = IntakeCounters()
+        self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
+        # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
+        fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        self._miss_listener = None
+        self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
+        # The newest sample handed over per publisher (its source id -> sequence number): the
+        # history this intake asks for itself and the samples zenoh-ext delivers overlap, and a
+        # recovery can deliver again what was delivered; each sample goes to the pipeline once.
+        self._last_sn: dict[Any, int] = {}
+        self._lock = threading.Lock()
+        self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
+        self._stopping = False
+        self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
+        self._key_of: dict[str, str] = {}  # publisher (source id) -> its key: which channel a miss belongs to
+        self._published: dict[str, int] = {}  # key -> the seq of its last block the previous owner published
+        if cfg.zenoh.recovery:
+            # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
+            # from the publishers' caches (heartbeats tell what was missed); what is past their
+            # history is reported here. The publishers' history at subscription is asked for
+            # by this intake itself (History below), not by zenoh-ext's subscriber: in zenoh-ext
+            # (1.9-1.10) a live sample that arrives during the subscriber's history query
+            # starts a second query, for that publisher's whole cache; if the history query
+            # ends first, the next live sample is delivered at once and the history, still
+            # waiting on the second query, is dropped as older than it, with no miss reported
+            # (seen on 42 of 50 channels in one takeover); when the second query ends first,
+            # the whole cache (1,024 blocks a key) is delivered and had to be read and
+            # recorded before the first new estimate (takeovers of 3-4 s under load).
+            self._held = []
+            self._subscriber = zenoh.ext.declare_advanced_subscriber(
+                daemon.session,
+                cfg.keys.input,
+                fifo,
+                recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True,
+            )
+        else:
+            self._subscriber = daemon.session.declare_subscriber(cfg.keys.input, fifo)
+        self._thread = threading.Thread(target=self._pump, name="sinewatch-intake", daemon=True)
+        self._closed = threading.Event()
+        self._thread.start()
+        # Only now, with the pump draining the FIFO: zenoh-ext hands recovered samples to the
+        # FIFO holding the subscriber's lock, which registering a listener takes too; with the
+        # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
+        if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+            # each key's last block already in the state (restored from a snapshot or a file): the
+            # history up to it is dropped unread rather than decoded, recorded and skipped
+            keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
+            self._known = {
+                ch.key: ch.last_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.last_seq is not None and keys[ch.key] == 1
+            }
+            resume = daemon.pipeline.resume_points
+            self._published = {
+                ch.key: resume[ch.name].published_seq
+                for ch in daemon.pipeline.channels.values()
+                if ch.name in resume and keys[ch.key] == 1
+            }
+            if history_blocks and self._known:  # a takeover: its shard's keys only, not every key's history
+                selectors = [f"{key}/@adv/**?_max={history_blocks}" for key in self._known]
+            else:
+                selectors = [f"{cfg.keys.input}/@adv/**" + (f"?_max={history_blocks}" if history_blocks else "")]
+            threading.Thread(target=self._history, args=(selectors,), name="sinewatch-history", daemon=True).start()
+
+    def _history(self, selectors: list[str]) -> None:
+        """The publishers' cached samples (each key's newest ``history_blocks``, or all) asked
+        for once, after subscribing: handed over first, then what arrived live meanwhile
+        (held back until now), each sample once; from then on the pump hands over directly."""
+        replies: list[tuple[Item, Any, int]] = []
+        try:
+            queries = [  # all sent at once, then read in turn
+                self._daemon.session.get(
+                    selector,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=HISTORY_TIMEOUT_S,
+                )
+                for selector in selectors
+            ]
+            for query in queries:
+                for reply in query:
+                    sample = reply.ok
+                    if sample is not None and (item := self._own(sample, history=True)) is not None:
+                        replies.append(item)
+        except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
+            log.warning("intake: history query failed: %s", exc)
+        interleaved = catch_up_order(replies, self._published)
+        with self._lock:  # the pump waits here: nothing live goes ahead of the history
+            held, self._held = self._held or [], None
+            if self._stopping:  # unsubscribed meanwhile (a deposed owner): these are its successor's
+                return
+            log.info("intake: %d block(s) of history, then %d received meanwhile", len(replies), len(held))
+            self._hand_over(interleaved + held)
+
+    def _in_state(self, key: str, payload: bytes) -> bool:
+        """A binary block whose seq (read from its header) is at or before its channel's last
+        block in the state: already taken in (a takeover's history reaches back past its
+        snapshot, twice what it lacks; most of it was in the snapshot)."""
+        last = self._known.get(key)
+        seq = _block_seq(payload) if last is not None else None
+        return seq is not None and last is not None and seq <= last
+
+    def _own(self, sample: zenoh.Sample, history: bool = False) -> tuple[Item, Any, int] | None:
+        """(item, publisher, sequence number) of a sample of a key this process owns, else None
+        (and None for a block of the history already in the state)."""
+        key = str(sample.key_expr)
+        # another daemon's or worker's keys: not ours to copy, decode, record or count
+        if self._owner is not None and not self._owner.owns(key):
+            self.counters.not_owned += 1
+            return None
+        info = sample.source_info
+        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
+        if source is not None:
+            self._key_of[source] = key
+        payload = sample.payload.to_bytes()
+        if history and self._in_state(key, payload):
+            return None
+        return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
+
+    def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
+        """Admit and pass on, in batches, the samples not handed over before (per publisher,
+        a sequence number past the last one handed over; a sample without one always)."""
+        last = self._last_sn
+        batch: list[Item] = []
+        dropped: Counter[str] = Counter()
+        for item, source, sn in items:
+            if source is not None:
+                if sn <= last.get(source, -1):
+                    continue
+                last[source] = sn
+            if self._admit(item, dropped):
+                batch.append(item)
+            if len(batch) >= self._batch:
+                self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+                batch = []
+        if batch:
+            self._loop.call_soon_threadsafe(self._daemon.enqueue, batch)
+        if dropped:  # one report per key per batch: a flood of drops must not flood the loop
+            self._loop.call_soon_threadsafe(self._daemon.report_drops, dropped)
+
+    def _pump(self) -> None:
+        handler = self._subscriber.handler
+        try:
+            while True:
+                sample = handler.recv()  # raises ZError once undeclared and drained
+                batch = []
+                while sample is not None:
+                    if (item := self._own(sample)) is not None:
+                        batch.append(item)
+                    if len(batch) >= self._batch:
+                        break
+                    sample = handler.try_recv()
+                with self._lock:
+                    if self._held is not None:  # the history is still on its way: these wait for it
+                        self._held += batch
+                    else:
+                        self._hand_over(batch)
+        except zenoh.ZError:
+            pass  # channel closed by stop(): intake is over
+        finally:
+            self._closed.set()
+
+    def _on_miss(self, miss: zenoh.ext.Miss) -> None:
+        """On a Zenoh thread: blocks lost for good. Counted here, and reported at once as an
+        ``unrecovered`` ErrorReport on the publisher's key: the pipeline flags the gap on the
+        channel's next estimate, but the last blocks of a stream that ends (or pauses) have
+        no next estimate, and their loss must still be told (a failover test waited for the
+        estimate of a lost last block)."""
+        self.counters.unrecovered += miss.nb
+        key = self._key_of.get(str(miss.source))
+        log.warning("intake: %d block(s) of %s could not be recovered", miss.nb, key or f"publisher {miss.source}")
+        if key is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the daemon is gone
+                self._loop.call_soon_threadsafe(self._daemon.report_unrecovered, key, miss.nb)
+
+    def _admit(self, item: Item, dropped: Counter[str]) -> bool:
+        """Take room for an input: one block, or one per channel of a multi-channel frame
+        (``queue_capacity`` counts blocks, so a backlog of frames holds as many samples as
+        one of blocks)."""
+        self.counters.received += 1
+        weight = self.weight(item[1])
+        taken = 0
+        while taken < weight and self._room.acquire(blocking=False):
+            taken += 1
+        if taken == weight:
+            return True
+        if self._policy == "drop":
+            self.release(taken)
+            self.counters.dropped += 1
+            dropped[item[0]] += 1
+            return False
+        self.counters.backpressure_waits += 1
+        while taken < weight:
+            if self._room.acquire(timeout=0.5):  # wake up to notice a forced exit
+                taken += 1
+            elif self._daemon.force_exit.is_set():
+                self.release(taken)
+                return False
+        return True
+
+    def weight(self, payload: bytes) -> int:
+        """The room an input takes: a binary frame's channel count (its header's u16 at offset 6,
+        read without decoding; at most the whole queue), else 1."""
+        if payload[:4] == FRAME_MAGIC and len(payload) >= 8:
+            return max(1, min(int.from_bytes(payload[6:8], "little"), self._capacity))
+        return 1
+
+    def release(self, n: int) -> None:
+        if n:
+            self._room.release(n)
+
+    async def stop(self) -> None:
+        """Stop intake: no new inputs; everything already received is handed over."""
+        # Not under self._lock: the pump can hold it for as long as it waits for room in the
+        # queue, which only this event loop frees; taking it here deadlocked a deposed owner
+        # (it never stood by again, so its shard had no successor). One assignment: atomic.
+        self._stopping = True
+        loop = asyncio.get_running_loop()
+        # Off the event loop too: undeclaring takes zenoh-ext's lock, which a Zenoh thread holds
+        # while it waits for room in the FIFO, which the pump frees once the event loop frees
+        # room in the queue; undeclared on the loop, two deposed owners hung for good when etcd
+        # restarted (no "standby" after "no longer the owner", no admin answers)
+        await loop.run_in_executor(None, self._undeclare)
+        await loop.run_in_executor(None, self._closed.wait)
+
+    def _undeclare(self) -> None:
+        if self._miss_listener is not None:
+            self._miss_listener.undeclare()
+        self._subscriber.undeclare()
