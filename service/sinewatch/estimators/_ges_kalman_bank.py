@@ -11,13 +11,17 @@ import math
 import numpy as np
 
 from sinewatch.estimators._ges_kalman_kernels import (
+    BIAS_SIZE,
     T_NEGLIGIBLE,
     TINY,
+    UNC_BASE,
     UNC_SIZE,
+    _corrected,
     _filter_step,
     _noise_means,
     _noise_means_of_log,
     _parameter_std,
+    _propagate_bias,
     _propagate_error,
     _write_estimates,
 )
@@ -25,16 +29,16 @@ from sinewatch.estimators.base import kernel
 
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
 # rows of the bank's lane-major work array: one row of LANES doubles per per-sample quantity
-# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out
-_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO = 0, 4, 14, 30, 46, 47, 49  # _RS: two rows, see the bank kernel
-_ROWS = 50
+# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out; M and b (B2-B3)
+_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO, _RG = 0, 4, 14, 30, 46, 47, 49, 50  # _RS: two rows, see the bank kernel
+_ROWS = 50 + BIAS_SIZE
 _P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
 _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
 
 
 @kernel(inline="always")
 def _bank_sample(
-    S: np.ndarray, lane: int, rs: int, with_t: bool, q0: float, q1: float, q2: float, q3: float, R: float
+    S: np.ndarray, lane: int, rs: int, with_t: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
 ) -> None:
     """One sample (row ``rs``) of lane ``lane`` of the work array ``S`` (rows ``_R*``, each
     ``LANES`` wide): the filter (:func:`_filter_step`), T (U3) and U (U4) advanced exactly as
@@ -50,7 +54,8 @@ def _bank_sample(
     p00, p01, p02, p03, p11 = S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L]
     p12, p13, p22, p23, p33 = S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L]
     x3_prior = x3
-    x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3 = _filter_step(
+    r00, r01, r02, r03, r11, r12, r13, r22, r23, r33 = p00, p01, p02, p03, p11, p12, p13, p22, p23, p33
+    x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3, inv_S = _filter_step(
         s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
     )
     S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane] = x1, x2, x3, x4
@@ -58,6 +63,10 @@ def _bank_sample(
     S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L] = p12, p13, p22, p23, p33
     S[_RSSE * L + lane] += e * e
     h1 = k1 + x3_prior  # h = K + g_k (U2)
+    if corr:  # (B2)-(B3), as ges_kalman_kernel
+        _propagate_bias(
+            S, _RG * L + lane, L, s, k0, k1, k2, k3, h1, inv_S, r00, r01, r02, r03, r11, r12, r13, r22, r23, r33
+        )
     if with_t:  # else no lane's T is propagated: the caller applies (U3)'s zeroing
         t = _RT * L + lane
         t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
@@ -133,7 +142,7 @@ def _bank_t_zero(S: np.ndarray) -> None:
 
 @kernel(inline="always")
 def _bank_row(
-    S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float,
+    S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float, corr: bool,
     out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
 ) -> None:  # fmt: skip
     """Row ``row`` of ``out`` and ``std`` (one channel's) from lane ``lane`` of ``S``, as
@@ -143,6 +152,7 @@ def _bank_row(
         T[i // 4, i % 4] = S[(_RT + i) * L + lane]
         U[i // 4, i % 4] = S[(_RU + i) * L + lane]
     x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
+    x1, x2, x3, x4 = _corrected(x1, x2, x3, x4, S, _RG * L + lane, L, s2, corr)  # (B4)
     _parameter_std(x1, x2, x3, x4, T, U, s2, Ts, std, row)
     _write_estimates(out, row, x1, x2, x3, x4, S[(_RP + 7) * L + lane], Ts, rel_std)
 
@@ -174,6 +184,27 @@ def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.nd
         _bank_means_pair(us, logs, means, refs, lam, n, a)
 
 
+@kernel(inline="always")
+def _bank_lanes(
+    S: np.ndarray, k: int, t_live: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
+) -> None:
+    """Sample ``k`` of every lane (:func:`_bank_sample`); the sample's row and the T and bias
+    switches as constants in each loop, so the compiler sees the lanes independent."""
+    L = LANES
+    if k % 2 == 0 and t_live:
+        for lane in range(L):  # literal trip count: one vector
+            _bank_sample(S, lane, _RS, True, corr, q0, q1, q2, q3, R)
+    elif t_live:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS + 1, True, corr, q0, q1, q2, q3, R)
+    elif k % 2 == 0:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS, False, corr, q0, q1, q2, q3, R)
+    else:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS + 1, False, corr, q0, q1, q2, q3, R)
+
+
 @kernel
 def ges_kalman_bank_kernel(
     y: np.ndarray, xP: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
@@ -195,6 +226,7 @@ def ges_kalman_bank_kernel(
     q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]
     R, Ts, rel_std = consts[4], consts[5], consts[6]
     lam = 1.0 - 1.0 / consts[7]  # (U5)
+    corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
     L = LANES
     S = np.empty(_ROWS * L)
     ys = np.empty(n * L)
@@ -214,6 +246,8 @@ def ges_kalman_bank_kernel(
                 S[(_RP + i) * L + c] = xP[_P_IN_XP[i], g + c]
             for i in range(32):
                 S[(_RT + i) * L + c] = unc[i, g + c]
+            for i in range(BIAS_SIZE):
+                S[(_RG + i) * L + c] = unc[UNC_BASE + i, g + c]
         for k in range(n):  # row by row: y (N, C) is read in its own order
             for c in range(width):
                 ys[k * L + c] = y[k, g + c]
@@ -236,18 +270,10 @@ def ges_kalman_bank_kernel(
             if not t_live:  # none: the single kernel's zeroing of T, where it applies
                 _bank_t_zero(S)
             # rows and the T switch as constants, so the compiler sees the lanes independent
-            if k % 2 == 0 and t_live:
-                for lane in range(L):  # literal trip count: one vector
-                    _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
-            elif t_live:
-                for lane in range(L):
-                    _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
-            elif k % 2 == 0:
-                for lane in range(L):
-                    _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
+            if corr:
+                _bank_lanes(S, k, t_live, True, q0, q1, q2, q3, R)
             else:
-                for lane in range(L):
-                    _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
+                _bank_lanes(S, k, t_live, False, q0, q1, q2, q3, R)
             for lane in range(L):
                 us[k * L + lane] = S[_RUO * L + lane]
             if not last_only:
@@ -256,14 +282,14 @@ def ges_kalman_bank_kernel(
                         us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
                     )
                     means[0, c], means[1, c], means[2, c] = m_u, w, m_l
-                    _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, out[g + c], std[g + c], k, T, U)
+                    _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
         if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
             for i in range(n * L):  # the logs first: independent calls, which overlap
                 logs[i] = math.log(max(us[i], TINY))
             _bank_means(us, logs, means, refs, lam, n)
             for c in range(width):
                 m_u, w = means[0, c], means[1, c]
-                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, out[g + c], std[g + c], 0, T, U)
+                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U)
         for c in range(width):
             ch = g + c
             sse[ch] = S[_RSSE * L + c]
@@ -274,4 +300,6 @@ def ges_kalman_bank_kernel(
             for i in range(32):
                 new_unc[i, ch] = S[(_RT + i) * L + c]
             new_unc[32, ch], new_unc[33, ch], new_unc[34, ch] = means[0, c], means[1, c], means[2, c]
+            for i in range(BIAS_SIZE):
+                new_unc[UNC_BASE + i, ch] = S[(_RG + i) * L + c]
     return out, sse, std, new_xP, new_unc

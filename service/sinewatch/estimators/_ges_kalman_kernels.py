@@ -71,7 +71,9 @@ TINY = 1e-300  # log(0) guard, (U5a)
 # _noise_means skips exp when <u> is below the cap's lower bound times this: 1e-12 is ~4,000
 # times the bound's worst relative rounding (a few 1e-16) plus exp's (< 1 ulp)
 EXP_SCREEN_MARGIN = 1.0 - 1e-12
-UNC_SIZE = 35  # T (16), U (16), <u>, the weight w, <log u>
+UNC_BASE = 35  # T (16), U (16), <u>, the weight w, <log u>
+BIAS_SIZE = 44  # the bias recursion (B2)-(B3): M (40), b (4)
+UNC_SIZE = UNC_BASE + BIAS_SIZE
 
 
 @kernel(inline="always")
@@ -83,11 +85,11 @@ def _filter_step(
     q0: float, q1: float, q2: float, q3: float, R: float,
 ) -> tuple[
     float, float, float, float, float, float, float, float, float, float,
-    float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float, float,
 ]:  # fmt: skip
     """One sample ``s = s(t_{k+1})`` of the Kalman filter on (6): the new ``(x1..x4, p00, p01,
-    p02, p03, p11, p12, p13, p22, p23, p33)``, then the innovation ``e`` and the gain
-    ``k0..k3``. The one definition, called by the single-channel kernel and by the bank."""
+    p02, p03, p11, p12, p13, p22, p23, p33)``, then the innovation ``e``, the gain
+    ``k0..k3`` and ``1 / (C P(k+1|k) C^T + R)``. The one definition, called by the single-channel kernel and by the bank."""
     # prediction x(k+1|k) = A(k) x(k|k), eq. (6)
     xp1 = x1 + x2
     xp2 = x2 + s * x3 + x4
@@ -122,7 +124,7 @@ def _filter_step(
         n00 - k0 * n00, n01 - k0 * n01, n02 - k0 * n02, n03 - k0 * n03,
         n11 - k1 * n01, n12 - k1 * n02, n13 - k1 * n03,
         n22 - k2 * n02, n23 - k2 * n03, n33 - k3 * n03,
-        e, k0, k1, k2, k3,
+        e, k0, k1, k2, k3, inv_S,
     )  # fmt: skip
 
 
@@ -221,6 +223,152 @@ def _store4x4(
     Z[1, 0], Z[1, 1], Z[1, 2], Z[1, 3] = z10, z11, z12, z13
     Z[2, 0], Z[2, 1], Z[2, 2], Z[2, 3] = z20, z21, z22, z23
     Z[3, 0], Z[3, 1], Z[3, 2], Z[3, 3] = z30, z31, z32, z33
+
+
+@kernel(inline="always")
+def _propagate_bias(
+    G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, h1: float, inv_s: float,
+    p00: float, p01: float, p02: float, p03: float, p11: float, p12: float, p13: float, p22: float, p23: float, p33: float,
+) -> None:  # fmt: skip
+    """One sample of the bias recursion (B1)-(B4) on ``G[o + i st]``, i = 0..43: M (B2), 40 entries
+    ``M[a, b, c]`` at ``4 pair(a, b) + c`` (pairs a <= b in P's order 00 01 02 03 11 12 13 22 23 33),
+    then b (B3), 4 entries. ``p..`` is P(k|k) before the step, ``k..`` the gain, ``h1`` = k1 +
+    x3_hat (U2), ``inv_s`` = 1 / (C P(k+1|k) C^T + R). Straight-line, constant offsets times a
+    stride: the single kernel runs it on its own array (stride 1), the bank lane-major."""
+    # m_a = sum over b, c in {0, 1} of M[a, b, c]: dK's factor A dP A^T C^T and C A e(k) (B3)
+    m0 = G[o] + G[o + 1 * st] + G[o + 4 * st] + G[o + 5 * st]
+    m1 = G[o + 4 * st] + G[o + 5 * st] + G[o + 16 * st] + G[o + 17 * st]
+    m2 = G[o + 8 * st] + G[o + 9 * st] + G[o + 20 * st] + G[o + 21 * st]
+    m3 = G[o + 12 * st] + G[o + 13 * st] + G[o + 24 * st] + G[o + 25 * st]
+    # b <- (I - K C) (A b - A m / S) + e1 (p02 + p12) / S, (B3)
+    b0, b1, b2, b3 = G[o + 40 * st], G[o + 41 * st], G[o + 42 * st], G[o + 43 * st]
+    c0 = (b0 + b1) - (m0 + m1) * inv_s
+    c1 = (b1 + s * b2 + b3) - (m1 + s * m2 + m3) * inv_s
+    c2 = b2 - m2 * inv_s
+    c3 = b3 - m3 * inv_s
+    G[o + 40 * st] = c0 - k0 * c0
+    G[o + 41 * st] = c1 - k1 * c0 + (p02 + p12) * inv_s
+    G[o + 42 * st] = c2 - k2 * c0
+    G[o + 43 * st] = c3 - k3 * c0
+    # dN/ds, N = A P A^T + Q (eq. 6): the entries that hold s; then Dv = (I - K C) dN (I - K C)^T (B2)
+    d01 = p02 + p12
+    d11 = 2.0 * (p12 + s * p22 + p23)
+    d12, d13 = p22, p23
+    v00 = 0.0
+    v01 = d01 - k0 * d01
+    v02 = 0.0
+    v03 = 0.0
+    v11 = d11 - k1 * d01 - d01 * k1
+    v12 = d12 - d01 * k2
+    v13 = d13 - d01 * k3
+    v22 = 0.0
+    v23 = 0.0
+    v33 = 0.0
+    # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2): first index c
+    w0, w1 = G[o] + G[o + 1 * st], G[o + 1 * st] + s * G[o + 2 * st] + G[o + 3 * st]
+    r00_0, r00_1, r00_2, r00_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 2 * st] - k2 * w0, G[o + 3 * st] - k3 * w0
+    w0, w1 = G[o + 4 * st] + G[o + 5 * st], G[o + 5 * st] + s * G[o + 6 * st] + G[o + 7 * st]
+    r01_0, r01_1, r01_2, r01_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 6 * st] - k2 * w0, G[o + 7 * st] - k3 * w0
+    w0, w1 = G[o + 8 * st] + G[o + 9 * st], G[o + 9 * st] + s * G[o + 10 * st] + G[o + 11 * st]
+    r02_0, r02_1, r02_2, r02_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 10 * st] - k2 * w0, G[o + 11 * st] - k3 * w0
+    w0, w1 = G[o + 12 * st] + G[o + 13 * st], G[o + 13 * st] + s * G[o + 14 * st] + G[o + 15 * st]
+    r03_0, r03_1, r03_2, r03_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 14 * st] - k2 * w0, G[o + 15 * st] - k3 * w0
+    w0, w1 = G[o + 16 * st] + G[o + 17 * st], G[o + 17 * st] + s * G[o + 18 * st] + G[o + 19 * st]
+    r11_0, r11_1, r11_2, r11_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 18 * st] - k2 * w0, G[o + 19 * st] - k3 * w0
+    w0, w1 = G[o + 20 * st] + G[o + 21 * st], G[o + 21 * st] + s * G[o + 22 * st] + G[o + 23 * st]
+    r12_0, r12_1, r12_2, r12_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 22 * st] - k2 * w0, G[o + 23 * st] - k3 * w0
+    w0, w1 = G[o + 24 * st] + G[o + 25 * st], G[o + 25 * st] + s * G[o + 26 * st] + G[o + 27 * st]
+    r13_0, r13_1, r13_2, r13_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 26 * st] - k2 * w0, G[o + 27 * st] - k3 * w0
+    w0, w1 = G[o + 28 * st] + G[o + 29 * st], G[o + 29 * st] + s * G[o + 30 * st] + G[o + 31 * st]
+    r22_0, r22_1, r22_2, r22_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 30 * st] - k2 * w0, G[o + 31 * st] - k3 * w0
+    w0, w1 = G[o + 32 * st] + G[o + 33 * st], G[o + 33 * st] + s * G[o + 34 * st] + G[o + 35 * st]
+    r23_0, r23_1, r23_2, r23_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 34 * st] - k2 * w0, G[o + 35 * st] - k3 * w0
+    w0, w1 = G[o + 36 * st] + G[o + 37 * st], G[o + 37 * st] + s * G[o + 38 * st] + G[o + 39 * st]
+    r33_0, r33_1, r33_2, r33_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 38 * st] - k2 * w0, G[o + 39 * st] - k3 * w0
+    # then (a, b) for each c: A Z A^T written out as in _filter_step, then (I - K C) . (I - K C)^T
+    m11 = r11_0 + s * r12_0 + r13_0
+    m12 = r12_0 + s * r22_0 + r23_0
+    m13 = r13_0 + s * r23_0 + r33_0
+    n00 = r00_0 + 2.0 * r01_0 + r11_0
+    n01 = r01_0 + r11_0 + s * (r02_0 + r12_0) + r03_0 + r13_0
+    n02, n03 = r02_0 + r12_0, r03_0 + r13_0
+    n11 = m11 + s * m12 + m13
+    n12, n13, n22, n23, n33 = m12, m13, r22_0, r23_0, r33_0
+    G[o] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k0
+    G[o + 4 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k0
+    G[o + 8 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k0
+    G[o + 12 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k0
+    G[o + 16 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k0
+    G[o + 20 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k0
+    G[o + 24 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k0
+    G[o + 28 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k0
+    G[o + 32 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k0
+    G[o + 36 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k0
+    m11 = r11_1 + s * r12_1 + r13_1
+    m12 = r12_1 + s * r22_1 + r23_1
+    m13 = r13_1 + s * r23_1 + r33_1
+    n00 = r00_1 + 2.0 * r01_1 + r11_1
+    n01 = r01_1 + r11_1 + s * (r02_1 + r12_1) + r03_1 + r13_1
+    n02, n03 = r02_1 + r12_1, r03_1 + r13_1
+    n11 = m11 + s * m12 + m13
+    n12, n13, n22, n23, n33 = m12, m13, r22_1, r23_1, r33_1
+    G[o + 1 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * h1
+    G[o + 5 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * h1
+    G[o + 9 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * h1
+    G[o + 13 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * h1
+    G[o + 17 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * h1
+    G[o + 21 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * h1
+    G[o + 25 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * h1
+    G[o + 29 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * h1
+    G[o + 33 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * h1
+    G[o + 37 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * h1
+    m11 = r11_2 + s * r12_2 + r13_2
+    m12 = r12_2 + s * r22_2 + r23_2
+    m13 = r13_2 + s * r23_2 + r33_2
+    n00 = r00_2 + 2.0 * r01_2 + r11_2
+    n01 = r01_2 + r11_2 + s * (r02_2 + r12_2) + r03_2 + r13_2
+    n02, n03 = r02_2 + r12_2, r03_2 + r13_2
+    n11 = m11 + s * m12 + m13
+    n12, n13, n22, n23, n33 = m12, m13, r22_2, r23_2, r33_2
+    G[o + 2 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k2
+    G[o + 6 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k2
+    G[o + 10 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k2
+    G[o + 14 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k2
+    G[o + 18 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k2
+    G[o + 22 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k2
+    G[o + 26 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k2
+    G[o + 30 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k2
+    G[o + 34 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k2
+    G[o + 38 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k2
+    m11 = r11_3 + s * r12_3 + r13_3
+    m12 = r12_3 + s * r22_3 + r23_3
+    m13 = r13_3 + s * r23_3 + r33_3
+    n00 = r00_3 + 2.0 * r01_3 + r11_3
+    n01 = r01_3 + r11_3 + s * (r02_3 + r12_3) + r03_3 + r13_3
+    n02, n03 = r02_3 + r12_3, r03_3 + r13_3
+    n11 = m11 + s * m12 + m13
+    n12, n13, n22, n23, n33 = m12, m13, r22_3, r23_3, r33_3
+    G[o + 3 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k3
+    G[o + 7 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k3
+    G[o + 11 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k3
+    G[o + 15 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k3
+    G[o + 19 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k3
+    G[o + 23 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k3
+    G[o + 27 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k3
+    G[o + 31 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k3
+    G[o + 35 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k3
+    G[o + 39 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k3
+
+
+@kernel(inline="always")
+def _corrected(
+    x1: float, x2: float, x3: float, x4: float, G: np.ndarray, o: int, st: int, s2: float, on: bool
+) -> tuple[float, float, float, float]:  # fmt: skip
+    """The state less its bias, x_hat - sigma_hat^2 b (B4), when ``on``; else x_hat as it is."""
+    if not on:
+        return x1, x2, x3, x4
+    b = o + 40 * st
+    return x1 - s2 * G[b], x2 - s2 * G[b + st], x3 - s2 * G[b + 2 * st], x4 - s2 * G[b + 3 * st]
 
 
 @kernel(inline="always")
@@ -324,6 +472,7 @@ def ges_kalman_kernel(
     q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]
     R, Ts, rel_std = consts[4], consts[5], consts[6]
     lam = 1.0 - 1.0 / consts[7]  # (U5)
+    corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
     n = y.shape[0]
     out = np.empty((1 if last_only else n, 5))
     std = np.empty((1 if last_only else n, 4))
@@ -334,6 +483,7 @@ def ges_kalman_kernel(
     u00, u01, u02, u03, u10, u11, u12, u13 = unc[16], unc[17], unc[18], unc[19], unc[20], unc[21], unc[22], unc[23]
     u20, u21, u22, u23, u30, u31, u32, u33 = unc[24], unc[25], unc[26], unc[27], unc[28], unc[29], unc[30], unc[31]
     m_u, w, m_l = unc[32], unc[33], unc[34]
+    G = unc[UNC_BASE:].copy()  # M and b (B2)-(B3)
     x_ref, e_ref = 0.0, 0.0  # _noise_means: no exp taken yet
     T = np.empty((4, 4))
     U = np.empty((4, 4))
@@ -343,7 +493,8 @@ def ges_kalman_kernel(
     for k in range(n):
         s = y[k]  # s(t_{k+1}) enters A(k), eq. (6)
         x3_prior = x3
-        x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3 = _filter_step(
+        r00, r01, r02, r03, r11, r12, r13, r22, r23, r33 = p00, p01, p02, p03, p11, p12, p13, p22, p23, p33
+        x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3, inv_S = _filter_step(
             s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
         )
         sse += e * e
@@ -355,6 +506,8 @@ def ges_kalman_kernel(
         else:
             w, m_u, m_l, x_ref, e_ref = _noise_means(u, w, m_u, m_l, lam, x_ref, e_ref)
         h1 = k1 + x3_prior  # h = K + g_k (U2); h0, h2, h3 = k0, k2, k3
+        if corr:  # (B2)-(B3), from P(k|k) before the step
+            _propagate_bias(G, 0, 1, s, k0, k1, k2, k3, h1, inv_S, r00, r01, r02, r03, r11, r12, r13, r22, r23, r33)
         if t00 + t11 + t22 + t33 > T_NEGLIGIBLE:  # T decays geometrically (U3):
             t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33 = _propagate_error(
                 t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33,
@@ -370,15 +523,19 @@ def ges_kalman_kernel(
         if not last_only:  # row k (last_only: the last row, after the loop)
             _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
             _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
-            _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, k)
-            _write_estimates(out, k, x1, x2, x3, x4, p22, Ts, rel_std)
+            s2 = m_u / w if w > 0.0 else R
+            c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, 0, 1, s2, corr)  # (B4)
+            _parameter_std(c1, c2, c3, c4, T, U, s2, Ts, std, k)
+            _write_estimates(out, k, c1, c2, c3, c4, p22, Ts, rel_std)
     if last_only:  # (U5)-(U5a) over the block's u, in order: the same values as in the loop
         for k in range(n):
             w, m_u, m_l, x_ref, e_ref = _noise_means(u_seq[k], w, m_u, m_l, lam, x_ref, e_ref)
         _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
         _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
-        _parameter_std(x1, x2, x3, x4, T, U, m_u / w if w > 0.0 else R, Ts, std, 0)
-        _write_estimates(out, 0, x1, x2, x3, x4, p22, Ts, rel_std)
+        s2 = m_u / w if w > 0.0 else R
+        c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, 0, 1, s2, corr)  # (B4)
+        _parameter_std(c1, c2, c3, c4, T, U, s2, Ts, std, 0)
+        _write_estimates(out, 0, c1, c2, c3, c4, p22, Ts, rel_std)
     new_state = np.array(
         [x1, x2, x3, x4,
          p00, p01, p02, p03,
@@ -396,4 +553,5 @@ def ges_kalman_kernel(
     new_unc[32] = m_u
     new_unc[33] = w
     new_unc[34] = m_l
+    new_unc[UNC_BASE:] = G
     return out, sse, std, new_state, new_unc

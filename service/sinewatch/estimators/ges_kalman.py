@@ -85,10 +85,12 @@ from pydantic import Field, field_validator
 from sinewatch.estimators import register
 from sinewatch.estimators._ges_kalman_bank import ges_kalman_bank_kernel
 from sinewatch.estimators._ges_kalman_kernels import (
+    BIAS_SIZE,
     LOG_CHI2_MEAN,
     NOISE_MEMORY,
     ROBUST_CAP,
     TINY,
+    UNC_BASE,
     UNC_SIZE,
     _noise_means,
     _parameter_std,
@@ -108,6 +110,8 @@ from sinewatch.estimators.base import (
 PAPER_Q = 1e-6  # Section IV: Q = 1e-6 I at fs = 1 kHz, 100 Hz (w Ts = 0.2 pi)
 PAPER_W_TS = 0.2 * math.pi
 LEGACY_DEFAULTS: dict[str, Any] = {"q": PAPER_Q}  # the defaults of recordings made before default_q
+# per ESTIMATOR_DEFAULTS_VERSION v, the defaults of recordings older than v (replay sets them)
+DEFAULTS_BY_VERSION: dict[int, dict[str, Any]] = {2: LEGACY_DEFAULTS, 3: {"bias_correction": False}}
 
 
 def default_q(sample_rate_hz: float, reference_frequency_hz: float) -> list[float]:
@@ -141,6 +145,12 @@ class GesKalmanParams(EstimatorParams):
     x0: list[float] = Field([0.0, 0.0, 0.0, 0.0], description="Initial state x1..x4")
     p0: float = Field(1.0, gt=0, description="Initial covariance P0 = p0 I")
     convergence_rel_std: float = Field(0.1, gt=0, description="converged once std(x3) < convergence_rel_std * |x3|")
+    bias_correction: bool = Field(
+        True,
+        description="Report the parameters of x_hat less its second-order bias sigma_hat^2 b (eq. B1-B4, not "
+        "in the paper: the gains are computed from the same noisy samples as the state, which biases "
+        "the frequency up at low SNR); false: the paper's x_hat as it is, and ~2x less work a sample",
+    )
 
     @field_validator("q")
     @classmethod
@@ -169,8 +179,10 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
     paper = '"A globally exponentially stable (GES) discrete-time observer for the parameters of a biased sinusoid"'
     example_frequency_hz = 100.0  # the paper's Section IV
     example_params: ClassVar[dict[str, Any]] = {"q": PAPER_Q}  # and its Q, at its own w Ts = 0.2 pi
-    # defaults of recordings made before ESTIMATOR_DEFAULTS_VERSION 2 (replay sets them)
+    # defaults of recordings made before ESTIMATOR_DEFAULTS_VERSION 2 (replay sets them), and
+    # per version v those of recordings older than v
     defaults_before: ClassVar[dict[str, Any]] = LEGACY_DEFAULTS
+    defaults_by_version: ClassVar[dict[int, dict[str, Any]]] = DEFAULTS_BY_VERSION
     # Printed by ``sinewatch bench kernels`` under its table. Its ratio and ns/sample: ``sinewatch bench kernels --block 1024 --estimators ges-kalman``
     # (the kernel alone: that ns/sample less the per-block call, ~5-7 us / 1024).
     bench_note: ClassVar[str] = (
@@ -199,34 +211,43 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         p = self.params
         q = default_q(self.sample_rate_hz, p.reference_frequency_hz) if p.q is None else p.q
         q = q if isinstance(q, list) else [q] * 4
-        self._constants = (np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std, float(NOISE_MEMORY)]),)
+        bias = 1.0 if p.bias_correction else 0.0
+        self._constants = (
+            np.array([*q, p.r, 1.0 / self.sample_rate_hz, p.convergence_rel_std, float(NOISE_MEMORY), bias]),
+        )
 
     def _initial_state(self) -> dict[str, np.ndarray]:
         """``xP`` (20,): the state estimate x1..x4, then the 16 entries of its covariance P
-        (row-major). ``unc`` (35,): the actual error covariance's parts T (16, row-major,
+        (row-major). ``unc`` (79,): the actual error covariance's parts T (16, row-major,
         from p0 I) and U (16, from 0), then the exponentially weighted sums <u>, w and
-        <log u> (from 0), eq. (U1)-(U5a)."""
+        <log u> (from 0), eq. (U1)-(U5a), then the bias recursion's M (40) and b (4) (from 0),
+        eq. (B2)-(B3)."""
         P0 = np.eye(4) * self.params.p0
         return {
             "xP": np.concatenate([np.asarray(self.params.x0, dtype=np.float64), P0.ravel()]),
-            "unc": np.concatenate([P0.ravel(), np.zeros(16), np.zeros(3)]),
+            "unc": np.concatenate([P0.ravel(), np.zeros(16), np.zeros(3), np.zeros(BIAS_SIZE)]),
         }
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:
         """As :meth:`Estimator.set_state`; snapshots of earlier builds are accepted: one
-        without ``unc`` (only ``xP``) starts ``unc`` afresh (the estimates themselves do not
-        depend on it; the reported sd settles within a few N_sigma samples), one whose
-        ``unc`` ends in the former (<e^2>, <1 + C U C^T>) pair continues from their ratio."""
+        without ``unc`` (only ``xP``) starts ``unc`` afresh (the filter's state does not
+        depend on it; the reported sd settles within a few N_sigma samples, the bias
+        correction within the filter's memory), one whose ``unc`` ends in the former
+        (<e^2>, <1 + C U C^T>) pair continues from their ratio, one without the bias
+        recursion's M and b (35 entries) starts them from 0."""
         state = snapshot.get("state")
         if isinstance(state, Mapping) and "xP" in state and "unc" not in state:
             fresh = self._initial_state()["unc"]
             snapshot = {**snapshot, "state": {**state, "unc": encode_array(fresh)}}
         elif isinstance(state, Mapping) and "unc" in state:
             unc = decode_array(state["unc"])
-            if unc.shape == (UNC_SIZE - 1,):  # (T, U, <e^2>, <1 + C U C^T>)
+            if unc.shape == (UNC_BASE - 1,):  # (T, U, <e^2>, <1 + C U C^T>)
                 s2 = unc[32] / unc[33] if unc[33] > 0 else self.params.r
                 tail = [s2, 1.0, math.log(max(s2, TINY)) + LOG_CHI2_MEAN]  # <u>, w = 1, <log u>
-                snapshot = {**snapshot, "state": {**state, "unc": encode_array(np.concatenate([unc[:32], tail]))}}
+                unc = np.concatenate([unc[:32], tail])
+            if unc.shape == (UNC_BASE,):  # without M and b (B2)-(B3)
+                unc = np.concatenate([unc, np.zeros(BIAS_SIZE)])
+                snapshot = {**snapshot, "state": {**state, "unc": encode_array(unc)}}
         super().set_state(snapshot)
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
@@ -246,6 +267,7 @@ __all__ = [
     "PAPER_Q",
     "ROBUST_CAP",
     "TINY",
+    "UNC_BASE",
     "UNC_SIZE",
     "GesKalman",
     "GesKalmanParams",
