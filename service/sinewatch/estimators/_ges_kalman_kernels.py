@@ -2,7 +2,8 @@
 recovery of the parameters from its state (eq. 20-21, Section III-E, and the amplitude and
 phase derived in :mod:`sinewatch.estimators.ges_kalman`, whose docstring states the paper's
 model, eq. 1 and 4-6), and the actual-error covariance behind the reported standard
-deviations (U1-U6, below). Pure functions: block + state -> outputs + new state. The thin
+deviations (U1-U6, below), and the second-order bias that the reported parameters are
+corrected for (B1-B4, below). Pure functions: block + state -> outputs + new state. The thin
 class and its parameters are :mod:`sinewatch.estimators.ges_kalman`; the bank of channels
 :mod:`sinewatch.estimators._ges_kalman_bank`.
 
@@ -47,12 +48,48 @@ heavier-tailed noise is not cut::
 
 The reported parameters p = (f, A, theta, B) are the functions of x_hat of eq. (21),
 Section III-E and the amplitude and phase recovery of :mod:`sinewatch.estimators.ges_kalman`;
-their covariance follows by the delta method with J = dp/dx at x_hat (written out in ``_parameter_std``)::
+their covariance follows by the delta method with J = dp/dx at the reported state (x_hat
+less its bias, B4; written out in ``_parameter_std``)::
 
     sd(p_i) = sqrt( (J (T + sigma_hat^2 U) J^T)_ii )                             (U6)
 
 The recursion only reads the filter's quantities (its state is the separate ``unc``
-array), so the estimates are bit for bit those of the filter without it.
+array): the filter's state is bit for bit that of the filter without it.
+
+Bias of the reported parameters (derived here, not in the paper)
+----------------------------------------------------------------
+U1-U6 treat the gains K(k) as given. They are not: P, and so K, is computed from the same
+noisy samples as the state (the sample s enters A(k) in P's prediction, eq. 6), so the gain
+and the error are correlated and the update's mean ``E[K(k) (y(k+1) - C x_pred)]`` is not
+zero at second order in the noise. At 0 dB SNR (5 kHz, 50 Hz, the default Q) this biases the
+frequency up by 0.38-0.43 of its reported sd (``sinewatch bench calibration --estimators
+ges-kalman``; gains computed from the clean signal, or from an independent noise of the same
+level, leave 0.13). To first order, ``P(k|k) = P_bar + sum_j dP_j v_j`` and
+``e(k) = sum_j e_j v_j`` (U2); the derivative of the Riccati update at its optimal gain is
+``(I - K C) dN (I - K C)^T``, so with N = A(k) P A(k)^T + Q::
+
+    dP(k+1) = F(k) dP(k) F(k)^T + Dv(k) v(k+1),
+    Dv(k) = (I - K C) (e12 P A(k)^T + A(k) P e21) (I - K C)^T    (P = P(k|k))       (B1)
+
+Their cross moment per unit sigma^2, the 4 x 4 x 4 tensor ``M = sum_j dP_j (x) e_j``
+(symmetric in its first two indices: 40 entries), follows from (U2) and (B1)::
+
+    M(k+1) = (F(k) x F(k) x F(k)) M(k) + Dv(k) (x) h(k),        M(0) = 0              (B2)
+
+The gain's deviation ``dK = (I - K C) A dP A^T C^T / S`` (S = C P(k+1|k) C^T + R) meets the
+innovation's error ``-C A(k) e(k)``, and the gain's own dependence on the sample,
+``d k1 / ds = (p02 + p12) / S``, meets its noise v(k+1); the mean error per unit sigma^2::
+
+    b(k+1) = F(k) b(k) - (I - K C) A(k) m(k) / S + e1 (p02 + p12) / S,    b(0) = 0,
+    m_a = sum over b, c in {0, 1} of M[a, b, c]                                   (B3)
+
+and the parameters are reported at the state less its bias, sigma_hat^2 from (U5)::
+
+    x_reported = x_hat - sigma_hat^2 b                                            (B4)
+
+Left out: the curvature of the recovery (eq. 21: -sd_f^2 / (2 f), 0.02 Hz at 0 dB) and terms
+of third order. (B2) costs ~550 flops a sample (the filter and U ~255), so
+``bias_correction = false`` skips (B1)-(B4) and reports x_hat as it is.
 """
 
 from __future__ import annotations
