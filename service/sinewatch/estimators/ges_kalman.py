@@ -52,25 +52,27 @@ While ``x3_hat`` lies outside (-4, 0) every output is NaN and ``converged`` is F
 Reported standard deviations (``Track.std``; derived here, not in the paper): the actual
 error of the state propagated to first order in the noise with the filter's own gains, the
 noise variance read from the innovations (eq. U1-U6 in
-:mod:`sinewatch.estimators._ges_kalman_kernels`, where the kernels are).
+:mod:`sinewatch.estimators._ges_kalman_kernels`, where the kernels are). Reported parameters
+(beyond the paper, ``bias_correction``, on by default): those of x_hat less its second-order
+bias sigma_hat^2 b (eq. B1-B4 there). The paper's gains are computed from the same noisy
+samples as the state, and that correlation biases x_hat; the filter itself (its state, its
+residual) is the paper's, bit for bit, either way.
 
 Calibration (sd of error / reported sd about its mean; one value per trial at the end of
 2 s). With the paper's Q = 1e-6 I at 1 kHz (1000 seeded trials: ``pytest -m slow
 tests/test_ges_kalman_uncertainty.py``): 0.97 to 1.04 for frequency, amplitude, phase and
 offset at 25 and 50.5 Hz, SNR 10 to 40 dB. At the defaults (Q scaled to the sample rate,
-:func:`default_q`; R = 1e-2) on 49.5-50.5 Hz tones of amplitude 0.5-2 at 5 kHz, 0 to 60 dB
-(``sinewatch bench calibration --estimators ges-kalman --trials 300``): sd 0.96-1.10, |mean|
-<= 0.2, but for the frequency's mean at 0 dB (+0.43).
+:func:`default_q`; R = 1e-2; the bias correction) on 49.5-50.5 Hz tones of amplitude 0.5-2 at
+5 kHz, 0 to 60 dB (``sinewatch bench calibration --estimators ges-kalman --trials 1000``, the
+table in docs/accuracy.md): sd and |mean| in band for every parameter; without the
+correction the frequency's mean at 0 dB is +0.38 sd.
 
-Where it does not hold: U1-U6 are first order in the noise, and the noise on the sample in
-A(k) biases x3_hat (errors in variables: a noisy regressor attenuates its coefficient, the
-more the longer the filter's memory); so does a memory so short that x3_hat's own noise is
-large (the filter is nonlinear in it). The paper's Q unscaled at 5 kHz is the second case
-(mean error / sd +5.6 for frequency at 0 dB, +2.5 at 10 dB); R = sigma^2 at 10 dB SNR, 1 kHz,
-the first (a -1.9 Hz bias at 50.5 Hz, -3 reported sd). The accuracy bench's tuning (Q scaled
-at the scenario's nominal frequency, R = sigma^2 / 100 floored at 1e-3 A^2:
-``sinewatch.apps.bench.params``) is calibrated 0.95-1.08 on its tone scenarios from 0 to 60 dB
-(``sinewatch bench accuracy --estimators ges-kalman --scenarios snr --trials 30``).
+Where it does not hold: U1-U6 and B1-B4 are expansions in the noise (first and second
+order), so a memory so short that x3_hat's own noise is large breaks them (the filter is
+nonlinear in it): the paper's Q unscaled at 5 kHz (mean error / sd +5.6 for frequency at
+0 dB, +2.5 at 10 dB, measured without the correction). Model error (a ramp, harmonics) reads
+as noise in the innovations: it widens the reported sd and scales the correction with it,
+which then describes the noise it assumes, not the model error.
 """
 
 from __future__ import annotations
@@ -193,7 +195,9 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         "show that the cap cannot bind). With U and T in registers, the means in a second pass and "
         "the last row written after the loop, each operation in the order that keeps the outputs "
         "bit for bit, the kernel is one dependent chain a sample (a division for the gain, another "
-        "for u); the FFT shares its work across a frame instead."
+        "for u); the FFT shares its work across a frame instead. The bias correction (B1-B4, on by "
+        "default) adds the 40-entry tensor M and b, ~550 flops a sample: bias_correction = false "
+        "runs without it"
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
