@@ -9,9 +9,9 @@ older recordings replaying with the defaults they were made with.
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
+from test_ges_kalman_uncertainty import _recover
 
 from sinewatch.apps.bench.calibration import SAMPLE_RATE_HZ, trial_signal
 from sinewatch.estimators import create
@@ -67,15 +67,6 @@ def test_the_kernel_runs_b1_to_b3_as_written() -> None:
         np.testing.assert_allclose(m_kernel[i], m[c, a], rtol=1e-9, atol=1e-12 * np.abs(m).max())  # symmetric
     np.testing.assert_allclose(unc[UNC_BASE + 40 :], b, rtol=1e-9)
     assert np.abs(b).max() > 0.0
-
-
-def _recover(x: np.ndarray, ts: float) -> np.ndarray:
-    x1, x2, x3, x4 = x
-    sh, ch = math.sqrt(-x3 / 4), math.sqrt(1 + x3 / 4)
-    off = -x4 / x3
-    a_s = x1 - off
-    a_c = (x2 / (2 * sh) + a_s * sh) / ch
-    return np.array([math.asin(sh) / (math.pi * ts), math.hypot(a_s, a_c), math.atan2(a_s, a_c), off])
 
 
 def test_the_filter_is_the_papers_and_the_report_is_its_state_less_the_bias() -> None:

@@ -263,15 +263,72 @@ def _store4x4(
 
 
 @kernel(inline="always")
+def _store_column(
+    G: np.ndarray,
+    o: int,
+    st: int,
+    c: int,
+    y: tuple[float, ...],
+    v01: float,
+    v11: float,
+    v12: float,
+    v13: float,
+    h: float,
+) -> None:
+    """Column ``c`` of M (B2), ``M[., ., c] = y + Dv h_c`` with ``y`` from :func:`_sandwich`; Dv
+    is 0 but at 01, 11, 12 and 13."""
+    G[o + c * st] = y[0]
+    G[o + (4 + c) * st] = y[1] + v01 * h
+    G[o + (8 + c) * st] = y[2]
+    G[o + (12 + c) * st] = y[3]
+    G[o + (16 + c) * st] = y[4] + v11 * h
+    G[o + (20 + c) * st] = y[5] + v12 * h
+    G[o + (24 + c) * st] = y[6] + v13 * h
+    G[o + (28 + c) * st] = y[7]
+    G[o + (32 + c) * st] = y[8]
+    G[o + (36 + c) * st] = y[9]
+
+
+@kernel(inline="always")
+def _sandwich(
+    z00: float, z01: float, z02: float, z03: float, z11: float, z12: float, z13: float, z22: float, z23: float,
+    z33: float, s: float, k0: float, k1: float, k2: float, k3: float,
+) -> tuple[float, float, float, float, float, float, float, float, float, float]:  # fmt: skip
+    """``F Z F^T`` on the 10 distinct entries of a symmetric Z (order 00 01 02 03 11 12 13 22 23
+    33), F = (I - K C) A(k): A Z A^T written out as in :func:`_filter_step`, then
+    ``(I - K C) . (I - K C)^T``, (B2)."""
+    m11 = z11 + s * z12 + z13
+    m12 = z12 + s * z22 + z23
+    m13 = z13 + s * z23 + z33
+    n00 = z00 + 2.0 * z01 + z11
+    n01 = z01 + z11 + s * (z02 + z12) + z03 + z13
+    n02, n03 = z02 + z12, z03 + z13
+    n11 = m11 + s * m12 + m13
+    n12, n13, n22, n23, n33 = m12, m13, z22, z23, z33
+    return (
+        n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00,
+        n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00,
+        n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00,
+        n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00,
+        n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00,
+        n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00,
+        n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00,
+        n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00,
+        n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00,
+        n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00,
+    )
+
+
+@kernel(inline="always")
 def _propagate_bias(
     G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, h1: float, inv_s: float,
     p00: float, p01: float, p02: float, p03: float, p11: float, p12: float, p13: float, p22: float, p23: float, p33: float,
 ) -> None:  # fmt: skip
-    """One sample of the bias recursion (B1)-(B4) on ``G[o + i st]``, i = 0..43: M (B2), 40 entries
+    """One sample of the bias recursion (B1)-(B3) on ``G[o + i st]``, i = 0..43: M (B2), 40 entries
     ``M[a, b, c]`` at ``4 pair(a, b) + c`` (pairs a <= b in P's order 00 01 02 03 11 12 13 22 23 33),
     then b (B3), 4 entries. ``p..`` is P(k|k) before the step, ``k..`` the gain, ``h1`` = k1 +
-    x3_hat (U2), ``inv_s`` = 1 / (C P(k+1|k) C^T + R). Straight-line, constant offsets times a
-    stride: the single kernel runs it on its own array (stride 1), the bank lane-major."""
+    x3_hat (U2), ``inv_s`` = 1 / (C P(k+1|k) C^T + R). Constant offsets times a stride: the
+    single kernel runs it on its own array (stride 1), the bank lane-major."""
     # m_a = sum over b, c in {0, 1} of M[a, b, c]: dK's factor A dP A^T C^T and C A e(k) (B3)
     m0 = G[o] + G[o + 1 * st] + G[o + 4 * st] + G[o + 5 * st]
     m1 = G[o + 4 * st] + G[o + 5 * st] + G[o + 16 * st] + G[o + 17 * st]
@@ -287,21 +344,16 @@ def _propagate_bias(
     G[o + 41 * st] = c1 - k1 * c0 + (p02 + p12) * inv_s
     G[o + 42 * st] = c2 - k2 * c0
     G[o + 43 * st] = c3 - k3 * c0
-    # dN/ds, N = A P A^T + Q (eq. 6): the entries that hold s; then Dv = (I - K C) dN (I - K C)^T (B2)
+    # dN/ds, N = A P A^T + Q (eq. 6): the entries that hold s; Dv = (I - K C) dN (I - K C)^T (B1);
+    # its entries 00, 02, 03, 22, 23, 33 are 0
     d01 = p02 + p12
     d11 = 2.0 * (p12 + s * p22 + p23)
-    d12, d13 = p22, p23
-    v00 = 0.0
     v01 = d01 - k0 * d01
-    v02 = 0.0
-    v03 = 0.0
     v11 = d11 - k1 * d01 - d01 * k1
-    v12 = d12 - d01 * k2
-    v13 = d13 - d01 * k3
-    v22 = 0.0
-    v23 = 0.0
-    v33 = 0.0
-    # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2): first index c
+    v12 = p22 - d01 * k2
+    v13 = p23 - d01 * k3
+    # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2): first the index c,
+    # pair by pair (A, then I - K C), then the pair's two indices for each c (_sandwich)
     w0, w1 = G[o] + G[o + 1 * st], G[o + 1 * st] + s * G[o + 2 * st] + G[o + 3 * st]
     r00_0, r00_1, r00_2, r00_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 2 * st] - k2 * w0, G[o + 3 * st] - k3 * w0
     w0, w1 = G[o + 4 * st] + G[o + 5 * st], G[o + 5 * st] + s * G[o + 6 * st] + G[o + 7 * st]
@@ -322,79 +374,14 @@ def _propagate_bias(
     r23_0, r23_1, r23_2, r23_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 34 * st] - k2 * w0, G[o + 35 * st] - k3 * w0
     w0, w1 = G[o + 36 * st] + G[o + 37 * st], G[o + 37 * st] + s * G[o + 38 * st] + G[o + 39 * st]
     r33_0, r33_1, r33_2, r33_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 38 * st] - k2 * w0, G[o + 39 * st] - k3 * w0
-    # then (a, b) for each c: A Z A^T written out as in _filter_step, then (I - K C) . (I - K C)^T
-    m11 = r11_0 + s * r12_0 + r13_0
-    m12 = r12_0 + s * r22_0 + r23_0
-    m13 = r13_0 + s * r23_0 + r33_0
-    n00 = r00_0 + 2.0 * r01_0 + r11_0
-    n01 = r01_0 + r11_0 + s * (r02_0 + r12_0) + r03_0 + r13_0
-    n02, n03 = r02_0 + r12_0, r03_0 + r13_0
-    n11 = m11 + s * m12 + m13
-    n12, n13, n22, n23, n33 = m12, m13, r22_0, r23_0, r33_0
-    G[o] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k0
-    G[o + 4 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k0
-    G[o + 8 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k0
-    G[o + 12 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k0
-    G[o + 16 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k0
-    G[o + 20 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k0
-    G[o + 24 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k0
-    G[o + 28 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k0
-    G[o + 32 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k0
-    G[o + 36 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k0
-    m11 = r11_1 + s * r12_1 + r13_1
-    m12 = r12_1 + s * r22_1 + r23_1
-    m13 = r13_1 + s * r23_1 + r33_1
-    n00 = r00_1 + 2.0 * r01_1 + r11_1
-    n01 = r01_1 + r11_1 + s * (r02_1 + r12_1) + r03_1 + r13_1
-    n02, n03 = r02_1 + r12_1, r03_1 + r13_1
-    n11 = m11 + s * m12 + m13
-    n12, n13, n22, n23, n33 = m12, m13, r22_1, r23_1, r33_1
-    G[o + 1 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * h1
-    G[o + 5 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * h1
-    G[o + 9 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * h1
-    G[o + 13 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * h1
-    G[o + 17 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * h1
-    G[o + 21 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * h1
-    G[o + 25 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * h1
-    G[o + 29 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * h1
-    G[o + 33 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * h1
-    G[o + 37 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * h1
-    m11 = r11_2 + s * r12_2 + r13_2
-    m12 = r12_2 + s * r22_2 + r23_2
-    m13 = r13_2 + s * r23_2 + r33_2
-    n00 = r00_2 + 2.0 * r01_2 + r11_2
-    n01 = r01_2 + r11_2 + s * (r02_2 + r12_2) + r03_2 + r13_2
-    n02, n03 = r02_2 + r12_2, r03_2 + r13_2
-    n11 = m11 + s * m12 + m13
-    n12, n13, n22, n23, n33 = m12, m13, r22_2, r23_2, r33_2
-    G[o + 2 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k2
-    G[o + 6 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k2
-    G[o + 10 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k2
-    G[o + 14 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k2
-    G[o + 18 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k2
-    G[o + 22 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k2
-    G[o + 26 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k2
-    G[o + 30 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k2
-    G[o + 34 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k2
-    G[o + 38 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k2
-    m11 = r11_3 + s * r12_3 + r13_3
-    m12 = r12_3 + s * r22_3 + r23_3
-    m13 = r13_3 + s * r23_3 + r33_3
-    n00 = r00_3 + 2.0 * r01_3 + r11_3
-    n01 = r01_3 + r11_3 + s * (r02_3 + r12_3) + r03_3 + r13_3
-    n02, n03 = r02_3 + r12_3, r03_3 + r13_3
-    n11 = m11 + s * m12 + m13
-    n12, n13, n22, n23, n33 = m12, m13, r22_3, r23_3, r33_3
-    G[o + 3 * st] = n00 - k0 * n00 - n00 * k0 + k0 * k0 * n00 + v00 * k3
-    G[o + 7 * st] = n01 - k0 * n01 - n00 * k1 + k0 * k1 * n00 + v01 * k3
-    G[o + 11 * st] = n02 - k0 * n02 - n00 * k2 + k0 * k2 * n00 + v02 * k3
-    G[o + 15 * st] = n03 - k0 * n03 - n00 * k3 + k0 * k3 * n00 + v03 * k3
-    G[o + 19 * st] = n11 - k1 * n01 - n01 * k1 + k1 * k1 * n00 + v11 * k3
-    G[o + 23 * st] = n12 - k1 * n02 - n01 * k2 + k1 * k2 * n00 + v12 * k3
-    G[o + 27 * st] = n13 - k1 * n03 - n01 * k3 + k1 * k3 * n00 + v13 * k3
-    G[o + 31 * st] = n22 - k2 * n02 - n02 * k2 + k2 * k2 * n00 + v22 * k3
-    G[o + 35 * st] = n23 - k2 * n03 - n02 * k3 + k2 * k3 * n00 + v23 * k3
-    G[o + 39 * st] = n33 - k3 * n03 - n03 * k3 + k3 * k3 * n00 + v33 * k3
+    y = _sandwich(r00_0, r01_0, r02_0, r03_0, r11_0, r12_0, r13_0, r22_0, r23_0, r33_0, s, k0, k1, k2, k3)
+    _store_column(G, o, st, 0, y, v01, v11, v12, v13, k0)
+    y = _sandwich(r00_1, r01_1, r02_1, r03_1, r11_1, r12_1, r13_1, r22_1, r23_1, r33_1, s, k0, k1, k2, k3)
+    _store_column(G, o, st, 1, y, v01, v11, v12, v13, h1)
+    y = _sandwich(r00_2, r01_2, r02_2, r03_2, r11_2, r12_2, r13_2, r22_2, r23_2, r33_2, s, k0, k1, k2, k3)
+    _store_column(G, o, st, 2, y, v01, v11, v12, v13, k2)
+    y = _sandwich(r00_3, r01_3, r02_3, r03_3, r11_3, r12_3, r13_3, r22_3, r23_3, r33_3, s, k0, k1, k2, k3)
+    _store_column(G, o, st, 3, y, v01, v11, v12, v13, k3)
 
 
 @kernel(inline="always")
