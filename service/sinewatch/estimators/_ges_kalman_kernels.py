@@ -352,36 +352,22 @@ def _propagate_bias(
     v11 = d11 - k1 * d01 - d01 * k1
     v12 = p22 - d01 * k2
     v13 = p23 - d01 * k3
-    # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2): first the index c,
-    # pair by pair (A, then I - K C), then the pair's two indices for each c (_sandwich)
-    w0, w1 = G[o] + G[o + 1 * st], G[o + 1 * st] + s * G[o + 2 * st] + G[o + 3 * st]
-    r00_0, r00_1, r00_2, r00_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 2 * st] - k2 * w0, G[o + 3 * st] - k3 * w0
-    w0, w1 = G[o + 4 * st] + G[o + 5 * st], G[o + 5 * st] + s * G[o + 6 * st] + G[o + 7 * st]
-    r01_0, r01_1, r01_2, r01_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 6 * st] - k2 * w0, G[o + 7 * st] - k3 * w0
-    w0, w1 = G[o + 8 * st] + G[o + 9 * st], G[o + 9 * st] + s * G[o + 10 * st] + G[o + 11 * st]
-    r02_0, r02_1, r02_2, r02_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 10 * st] - k2 * w0, G[o + 11 * st] - k3 * w0
-    w0, w1 = G[o + 12 * st] + G[o + 13 * st], G[o + 13 * st] + s * G[o + 14 * st] + G[o + 15 * st]
-    r03_0, r03_1, r03_2, r03_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 14 * st] - k2 * w0, G[o + 15 * st] - k3 * w0
-    w0, w1 = G[o + 16 * st] + G[o + 17 * st], G[o + 17 * st] + s * G[o + 18 * st] + G[o + 19 * st]
-    r11_0, r11_1, r11_2, r11_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 18 * st] - k2 * w0, G[o + 19 * st] - k3 * w0
-    w0, w1 = G[o + 20 * st] + G[o + 21 * st], G[o + 21 * st] + s * G[o + 22 * st] + G[o + 23 * st]
-    r12_0, r12_1, r12_2, r12_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 22 * st] - k2 * w0, G[o + 23 * st] - k3 * w0
-    w0, w1 = G[o + 24 * st] + G[o + 25 * st], G[o + 25 * st] + s * G[o + 26 * st] + G[o + 27 * st]
-    r13_0, r13_1, r13_2, r13_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 26 * st] - k2 * w0, G[o + 27 * st] - k3 * w0
-    w0, w1 = G[o + 28 * st] + G[o + 29 * st], G[o + 29 * st] + s * G[o + 30 * st] + G[o + 31 * st]
-    r22_0, r22_1, r22_2, r22_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 30 * st] - k2 * w0, G[o + 31 * st] - k3 * w0
-    w0, w1 = G[o + 32 * st] + G[o + 33 * st], G[o + 33 * st] + s * G[o + 34 * st] + G[o + 35 * st]
-    r23_0, r23_1, r23_2, r23_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 34 * st] - k2 * w0, G[o + 35 * st] - k3 * w0
-    w0, w1 = G[o + 36 * st] + G[o + 37 * st], G[o + 37 * st] + s * G[o + 38 * st] + G[o + 39 * st]
-    r33_0, r33_1, r33_2, r33_3 = w0 - k0 * w0, w1 - k1 * w0, G[o + 38 * st] - k2 * w0, G[o + 39 * st] - k3 * w0
-    y = _sandwich(r00_0, r01_0, r02_0, r03_0, r11_0, r12_0, r13_0, r22_0, r23_0, r33_0, s, k0, k1, k2, k3)
-    _store_column(G, o, st, 0, y, v01, v11, v12, v13, k0)
-    y = _sandwich(r00_1, r01_1, r02_1, r03_1, r11_1, r12_1, r13_1, r22_1, r23_1, r33_1, s, k0, k1, k2, k3)
-    _store_column(G, o, st, 1, y, v01, v11, v12, v13, h1)
-    y = _sandwich(r00_2, r01_2, r02_2, r03_2, r11_2, r12_2, r13_2, r22_2, r23_2, r33_2, s, k0, k1, k2, k3)
-    _store_column(G, o, st, 2, y, v01, v11, v12, v13, k2)
-    y = _sandwich(r00_3, r01_3, r02_3, r03_3, r11_3, r12_3, r13_3, r22_3, r23_3, r33_3, s, k0, k1, k2, k3)
-    _store_column(G, o, st, 3, y, v01, v11, v12, v13, k3)
+    # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2), in place (m and b
+    # above have read M): first the index c, pair by pair (A, then I - K C) ...
+    for p in range(10):
+        i = o + 4 * p * st
+        z0, z1, z2, z3 = G[i], G[i + st], G[i + 2 * st], G[i + 3 * st]
+        w0, w1 = z0 + z1, z1 + s * z2 + z3
+        G[i], G[i + st], G[i + 2 * st], G[i + 3 * st] = w0 - k0 * w0, w1 - k1 * w0, z2 - k2 * w0, z3 - k3 * w0
+    # ... then the pair's two indices, column c by column, plus Dv h_c; h = (k0, h1, k2, k3)
+    for c in range(4):
+        i = o + c * st
+        y = _sandwich(
+            G[i], G[i + 4 * st], G[i + 8 * st], G[i + 12 * st], G[i + 16 * st],
+            G[i + 20 * st], G[i + 24 * st], G[i + 28 * st], G[i + 32 * st], G[i + 36 * st],
+            s, k0, k1, k2, k3,
+        )  # fmt: skip
+        _store_column(G, o, st, c, y, v01, v11, v12, v13, k0 if c == 0 else (h1 if c == 1 else (k2 if c == 2 else k3)))
 
 
 @kernel(inline="always")
