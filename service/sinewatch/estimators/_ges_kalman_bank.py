@@ -270,10 +270,7 @@ def ges_kalman_bank_kernel(
             if not t_live:  # none: the single kernel's zeroing of T, where it applies
                 _bank_t_zero(S)
             # rows and the T switch as constants, so the compiler sees the lanes independent
-            if corr:
-                _bank_lanes(S, k, t_live, True, q0, q1, q2, q3, R)
-            else:
-                _bank_lanes(S, k, t_live, False, q0, q1, q2, q3, R)
+            _bank_lanes(S, k, t_live, corr, q0, q1, q2, q3, R)  # one copy: compile time
             for lane in range(L):
                 us[k * L + lane] = S[_RUO * L + lane]
             if not last_only:

@@ -319,7 +319,9 @@ def _sandwich(
     )
 
 
-@kernel(inline="always")
+# compiled once and called (not inlined by numba at the IR level: the bank has eight call sites,
+# and copying its IR into each made the bank take minutes to compile); LLVM may still inline it
+@kernel(refcount=False)
 def _propagate_bias(
     G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, h1: float, inv_s: float,
     p00: float, p01: float, p02: float, p03: float, p11: float, p12: float, p13: float, p22: float, p23: float, p33: float,
