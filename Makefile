@@ -30,9 +30,10 @@ etcd:
 # module-scoped fixtures) run on one worker in turn, and the longest go first (tests/conftest.py).
 # Coverage of the suite's own processes, the run failing below [tool.coverage.report] fail_under
 # (its total is printed; `.venv/bin/coverage report` lists each module afterwards).
-# The benches marked `alone` (tests/conftest.py) run last, by themselves, adding to the coverage.
+# The benches marked `alone` (the files of ALONE in tests/conftest.py) run last, by themselves,
+# adding to the coverage; only their files are collected (collecting the suite takes seconds).
 PYTEST_FAST := -n 2 --dist loadgroup --no-loadscope-reorder --cov --cov-report= --cov-fail-under=0 -m 'not slow and not alone'
-PYTEST_ALONE := -m 'alone and not slow' --cov --cov-append --cov-report=
+PYTEST_ALONE := tests/test_bench_e2e.py -m 'alone and not slow' --cov --cov-append --cov-report=
 
 # What CI runs: lint, format, import contracts and types first, then the tests. Beside lint the
 # numba kernels the tests run are compiled into numba's cache on two processes (a fresh clone has

@@ -10,13 +10,15 @@ and a kernel that fails to compile fails here and in its tests alike.
 
 Reached: every registered estimator through a real :class:`Pipeline` (float64 and
 float32 blocks, whole blocks and the last sample only, and a two-channel frame: its bank and
-the presence detectors' bank), with its example parameters and
-the default rule; the automatic adaptive multisine for one, two and three sinusoids and its
-explicit design; the power-quality stage's harmonic analyser.
+the presence detectors' bank), with its example parameters, the default rule and every
+scenario's suggested parameters at the scenario's sample rate; the automatic adaptive
+multisine for one, two and three sinusoids and its explicit design; the power-quality
+stage's harmonic analyser; and the recordings in ``tests/data`` replayed.
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import tempfile
 import time
@@ -29,6 +31,8 @@ import numpy as np
 from sinewatch.core.pipeline import NullSink, Pipeline
 from sinewatch.estimators import available, get
 from sinewatch.power_quality.stage import warm_up
+from sinewatch.scenarios import get as get_scenario
+from sinewatch.scenarios import names as scenario_names
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
 from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
@@ -45,14 +49,17 @@ def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory
 
 
 def _through_frames(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
-    """Two channels in one frame: the estimator's bank kernel and the presence detectors' bank."""
+    """Two channels in one frame, float64 and float32: the estimator's bank kernel and the
+    presence detectors' bank, each for read-only and for writable samples."""
     config = SinewatchConfig(
         daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
     )
     pipeline = Pipeline(config, [NullSink()])
     columns = np.ascontiguousarray(np.stack([x, 0.5 * x], axis=1))
-    frame = Frame(("warm/a", "warm/b"), 0, 0, rate, columns)
-    pipeline.process("sinewatch/in/warm", encode_frame_binary(frame), FRAME_BINARY_ENCODING, 0)
+    for dtype in ("float64", "float32"):  # a read-only view of the payload; a writable converted copy
+        frame = Frame((f"warm-{dtype}/a", f"warm-{dtype}/b"), 0, 0, rate, columns)
+        payload = encode_frame_binary(frame, dtype)
+        pipeline.process(f"sinewatch/in/warm-{dtype}", payload, FRAME_BINARY_ENCODING, 0)
 
 
 def _estimator(name: str, params: dict[str, Any] | None = None) -> None:
@@ -75,6 +82,8 @@ def _one(name: str) -> str:
             _through_frames(rule, cls.example_sample_rate_hz, x, Path(tmp))
         if name == "pmu":  # the default rule
             _through_pipeline(EstimatorRule(), 10_000.0, get("pmu").example_signal(2000), Path(tmp))
+        for rate, params, x in _scenario_settings(name):  # params that can choose other kernels
+            _through_pipeline(EstimatorRule(estimator=name, params=params), rate, x, Path(tmp))
         if name == "adaptive-multisine":
             for n in (1, 3):
                 _estimator(name, {"n_sinusoids": n, "band_hz": (5.0, 25.0)})
@@ -82,9 +91,33 @@ def _one(name: str) -> str:
     return name
 
 
+def _scenario_settings(name: str) -> list[tuple[float, dict[str, Any], np.ndarray]]:
+    """Each distinct ``suggested_params`` the scenario library gives ``name`` (the tests and
+    ``sinewatch feed`` serve scenarios with them; differential-rls's ``input = "iq"`` runs
+    another kernel on two columns), with 2000 samples of the scenario at its sample rate."""
+    seen: dict[str, tuple[float, dict[str, Any], np.ndarray]] = {}
+    for scenario_name in scenario_names():
+        sc = get_scenario(scenario_name)
+        key = json.dumps(sc.suggested_params, sort_keys=True)
+        if sc.suggested_estimator == name and key not in seen:
+            seen[key] = (sc.sample_rate_hz, dict(sc.suggested_params), sc.generate(n=2000)[0])
+    return list(seen.values())
+
+
 def _power_quality() -> str:
     warm_up()
     return "power-quality"
+
+
+def _recordings() -> str:
+    """Replay the recordings the tests replay (``tests/data``): an older build's files run
+    their estimators with the params of that time (``defaults_before``), which can be another
+    signature of a kernel (adaptive-multisine's, in the one recorded before the layering)."""
+    from sinewatch.runtime.replay import replay
+
+    for path in sorted((Path(__file__).parent / "data").glob("*.mcap")):
+        replay([path])
+    return "recordings"
 
 
 def main() -> int:
@@ -94,7 +127,9 @@ def main() -> int:
     t0 = time.monotonic()
     names = sorted(available(), key=lambda n: n != "adaptive-multisine")  # the longest first
     with ProcessPoolExecutor(max_workers=2) as pool:
-        for task in as_completed([pool.submit(_power_quality), *(pool.submit(_one, n) for n in names)]):
+        for task in as_completed(
+            [pool.submit(_power_quality), *(pool.submit(_one, n) for n in names), pool.submit(_recordings)]
+        ):
             task.result()  # a kernel that fails to compile fails here
     print(f"compile_kernels: {time.monotonic() - t0:.1f} s", file=sys.stderr)
     return 0

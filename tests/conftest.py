@@ -302,12 +302,22 @@ def cli_without(module: str, argv: list[str]) -> subprocess.CompletedProcess[str
 # leases (the chaos test runs its own CPU burner): one worker runs them one after another,
 # so that two of them never compete for the same cores at once.
 SERIAL_CLUSTER = ("tests/test_cluster_", "tests/test_election.py", "tests/test_access_control.py")
-# The longest tests and groups (tens of seconds each on a quiet 2-core machine): dispatched
-# first, so that no worker is left with a long one while the other has finished.
+# The longest tests and groups (tens of seconds each on a quiet 2-core machine, longest
+# first): dispatched first, in this order, so that no worker is left with a long one while
+# the other has finished. (``pytest --durations=25`` lists the longest of a run.)
 LONG_FIRST = (
     *SERIAL_CLUSTER,
-    "tests/test_bench_e2e.py",
+    "tests/test_demo.py",
+    "tests/test_workers.py",
+    "tests/test_default_rule.py",
     "tests/test_compare_track.py",
+    "tests/test_fuzz.py",
+    "tests/test_pq_service.py",
+    "tests/test_container.py",
+    "tests/test_frames.py",
+    "tests/test_differential_rls_served.py",
+    "tests/test_cli_processes.py",
+    "tests/test_adaptive_multisine_auto.py",
     "tests/test_recording_compatibility.py",
 )
 _SHARED_FIXTURE = re.compile(r"""@pytest\.fixture\(.*scope=["'](module|class|package)["']""")
@@ -358,5 +368,10 @@ def pytest_itemcollected(item: pytest.Item) -> None:
         item.add_marker(pytest.mark.alone)
 
 
+def _dispatch_rank(nodeid: str) -> int:
+    """Where a test's module stands in ``LONG_FIRST`` (any other test after all of them)."""
+    return next((i for i, prefix in enumerate(LONG_FIRST) if nodeid.startswith(prefix)), len(LONG_FIRST))
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    items.sort(key=lambda item: not item.nodeid.startswith(LONG_FIRST))
+    items.sort(key=lambda item: _dispatch_rank(item.nodeid))  # stable: collection order within a rank

@@ -12,17 +12,17 @@ import pytest
 from conftest import sinewatch
 
 
+def bench(*args: str) -> str:
+    """``sinewatch bench ARGS`` as a process; its stdout, after asserting that it exited 0."""
+    r = subprocess.run(sinewatch("bench", *args), capture_output=True, text=True, timeout=300, check=False)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return r.stdout
+
+
 def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "sweep.json"
-    r = subprocess.run(
-        sinewatch("bench", "e2e", "--sweep", "--sweep-channels", "1,4", "--duration", "2", "--json", str(out)),
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert r.returncode == 0, r.stdout + r.stderr
+    stdout = bench("e2e", "--sweep", "--sweep-channels", "1,4", "--duration", "2", "--json", str(out))
     rows = json.loads(out.read_text())["sweep"]
     assert [row["channels"] for row in rows] == [1, 4]
     for row in rows:
@@ -39,7 +39,7 @@ def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
         assert row["cores_needed_at_offered"] == pytest.approx(sum(budget.values()) * blocks_per_s / 1e6)
         assert row["machine_cores"] >= 1
     assert "daemon_rss_mb_per_channel" in rows[1]
-    assert "sustained M/s" in r.stdout and "p99 ms" in r.stdout and "cores needed" in r.stdout
+    assert "sustained M/s" in stdout and "p99 ms" in stdout and "cores needed" in stdout
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -47,14 +47,7 @@ def test_fanout_delivers_every_block_both_ways(tmp_path):
     """``sinewatch bench fanout``: every block reaches its worker through Zenoh and through
     the shared-memory rings; the JSON has both ways' CPU per block."""
     out = tmp_path / "fanout.json"
-    r = subprocess.run(
-        sinewatch("bench", "fanout", "--channels", "20", "--blocks", "400", "--json", str(out)),
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert r.returncode == 0, r.stdout + r.stderr
+    bench("fanout", "--channels", "20", "--blocks", "400", "--json", str(out))
     rows = {row["way"]: row for row in json.loads(out.read_text())}
     assert set(rows) == {"zenoh", "shm"}
     for row in rows.values():
@@ -99,14 +92,7 @@ def test_frame_channels_runs_blocks_and_frames_into_one_table_with_the_daemon_s_
     """``--frame-channels 1,4``: the same 8 channels as single blocks, then as frames of 4,
     every estimate back in each, the daemon's CPU per sample in the JSON and the table."""
     out = tmp_path / "frames.json"
-    r = subprocess.run(
-        sinewatch("bench", "e2e", "--channels", "8", "--frame-channels", "1,4", "--duration", "2", "--json", str(out)),
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert r.returncode == 0, r.stdout + r.stderr
+    stdout = bench("e2e", "--channels", "8", "--frame-channels", "1,4", "--duration", "2", "--json", str(out))
     runs = json.loads(out.read_text())["runs"]
     assert [(run["frame_channels"], run["messages_sent"]) for run in runs] == [(1, 8 * 19), (4, 2 * 19)]
     for run in runs:
@@ -117,7 +103,7 @@ def test_frame_channels_runs_blocks_and_frames_into_one_table_with_the_daemon_s_
         assert run["plumbing_ns_per_sample"] == pytest.approx(
             run["daemon_cpu_ns_per_sample"] - run["kernel_ns_per_sample"]
         )
-    assert "per msg" in r.stdout and "daemon ns/sample" in r.stdout and "of which estimator" in r.stdout
+    assert "per msg" in stdout and "daemon ns/sample" in stdout and "of which estimator" in stdout
 
 
 def test_a_late_feeder_stamps_a_continuous_stream_that_the_daemon_does_not_take_for_time_jumps():

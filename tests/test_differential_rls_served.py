@@ -10,6 +10,8 @@ Section 10 (w = 1 rad/s; "within a few percent in only a fraction of one period"
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 from conftest import make_config, publishing, replay_recording, run_daemon, serve_config_feed_tail, take
@@ -71,6 +73,30 @@ def test_iq_channel_served_recorded_and_replayed(tmp_path):
     assert last["rocof_hz_per_s"] is None  # rocof_model off in Fig. 1
     result = replay(daemon.recording_paths)
     assert result.ok and result.matched == 60
+
+
+def test_the_daemon_s_warm_up_loads_the_iq_kernel_its_rule_runs(tmp_path):
+    """A rule with ``input = "iq"`` runs the I/Q kernel, not the real-input one of the
+    estimator's example params: the daemon's warm-up (before it is ready) loads or compiles
+    that one, so the first block's estimate does not wait for numba (seconds on a loaded
+    machine, past a client's wait). In a fresh interpreter: no test has run the kernel."""
+    sc = get_scenario("paper001-iq-fig1")
+    config = make_config(tmp_path, rules=[EstimatorRule(estimator=NAME, params=sc.suggested_params)])
+    code = (
+        "import sys\n"
+        "from sinewatch.estimators._differential_rls_front import differential_rls_iq_kernel as k\n"
+        "from sinewatch.runtime.daemon import Daemon\n"
+        "from sinewatch.schemas.config import SinewatchConfig\n"
+        "before = len(k.signatures)\n"
+        "Daemon(SinewatchConfig.model_validate_json(sys.stdin.read())).warm_up()\n"
+        "print(before, len(k.signatures))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], input=config.model_dump_json(), capture_output=True, text=True, check=False
+    )
+    assert r.returncode == 0, r.stderr
+    before, after = map(int, r.stdout.split())
+    assert before == 0 and after >= 1
 
 
 def test_serve_feed_replay_the_paper_scenarios(tmp_path):

@@ -38,23 +38,34 @@ def test_presence_on_float32_samples_is_presence_on_them_as_float64():
     assert np.array_equal(strided.update(y)[0], c.update(x.astype(np.float64))[0])
 
 
-class FlakySink(NullSink):
-    """Fails ``on_estimate`` while ``broken``; records what it got."""
+class FailingEstimates(NullSink):
+    """Fails ``on_estimate`` with ``error`` while ``broken``; counts the estimates it got and
+    its ``recover()`` calls; with ``heals``, ``recover()`` ends the failure (a publisher whose
+    session is back). Leaves ``on_input`` as NullSink's, as the Zenoh publisher does."""
 
-    def __init__(self):
-        self.broken = False
-        self.inputs, self.estimates, self.recovered = 0, 0, 0
-
-    def on_input(self, key, payload, encoding, log_time_ns):
-        self.inputs += 1
+    def __init__(self, error: Exception, *, broken: bool = False, heals: bool = False):
+        self.error, self.broken, self.heals = error, broken, heals
+        self.estimates, self.recovered = 0, 0
 
     def on_estimate(self, key, payload, log_time_ns):
         if self.broken:
-            raise OSError("disk full")
+            raise self.error
         self.estimates += 1
 
     def recover(self):
         self.recovered += 1
+        self.broken = self.broken and not self.heals
+
+
+class FlakySink(FailingEstimates):
+    """A recorder whose disk fills while ``broken``; also counts its inputs."""
+
+    def __init__(self):
+        super().__init__(OSError("disk full"))
+        self.inputs = 0
+
+    def on_input(self, key, payload, encoding, log_time_ns):
+        self.inputs += 1
 
 
 class Clock:
@@ -88,20 +99,7 @@ def test_a_sink_without_on_input_still_recovers_at_the_next_input():
     """A sink that leaves on_input as NullSink's (the Zenoh publisher) is not called for
     inputs while ok, but an input is still where it comes back after a failure."""
 
-    class Publisher(NullSink):
-        def __init__(self):
-            self.fail, self.got, self.recovered = True, 0, 0
-
-        def on_estimate(self, key, payload, log_time_ns):
-            if self.fail:
-                raise ConnectionError("session closed")
-            self.got += 1
-
-        def recover(self):
-            self.recovered += 1
-            self.fail = False
-
-    sink, clock = Publisher(), Clock()
+    sink, clock = FailingEstimates(ConnectionError("session closed"), broken=True, heals=True), Clock()
     g = GuardedSink(sink, "zenoh", lambda name, msg: None, retry_s=0.5, clock=clock)
     g.on_input("k", b"", "", 1)
     g.on_estimate("k", b"{}", 1)
@@ -109,7 +107,7 @@ def test_a_sink_without_on_input_still_recovers_at_the_next_input():
     clock.t = 1.0
     g.on_input("k", b"", "", 2)
     g.on_estimate("k", b"{}", 2)
-    assert g.ok and sink.recovered == 1 and sink.got == 1
+    assert g.ok and sink.recovered == 1 and sink.estimates == 1
 
 
 def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):

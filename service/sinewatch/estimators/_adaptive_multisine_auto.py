@@ -275,6 +275,48 @@ def _component_outputs(
     return True, num, A, wb, dv, dv <= 2.0 * c_tol * wb
 
 
+@kernel(inline="always")
+def auto_gains(
+    cf: np.ndarray,
+) -> tuple[
+    float, float, float, float, float, float, float, float, float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """The automatic mode's gains and thresholds from ``cf``, read in one place for
+    :func:`auto_kernel` and its written-out n = 1, 2 forms: (h, mu, rho^2 relative, mu_a,
+    delta_high, delta_low, Tbar, omega_u, min amplitude, fade, c_alpha, c_tol, delay, z_max,
+    l_alpha)."""
+    return (
+        cf[_K_H], cf[_K_MU], cf[_K_RHO2], cf[_K_MUA], cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR], cf[_K_OMU], cf[_K_MINA],
+        cf[_K_FADE], cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA],
+    )  # fmt: skip
+
+
+@kernel(inline="always")
+def auto_bounds(cf: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
+    """The band and the level constants from ``cf``: (omega_lo, omega_hi, rc, separation, the
+    floor of Xi's smoothed size, p_alpha, the cap of L)."""
+    return cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP], cf[_K_XIFLOOR], cf[_K_PALPHA], cf[_K_LCAP]
+
+
+@kernel(inline="always")
+def auto_offsets(n: int, nf: int, nz: int) -> tuple[int, int, int, int, int, int, int, int, int, int]:
+    """The automatic mode's state layout, after the output filter's ``nf`` states: the offsets of
+    zh (nz), Xi (nz x n), thetah, A, psi, omega_bar, the dwell, the scalars (``_N_S``), a (n,
+    re-centred, AD8) and L_x (re-placed with a). The one definition for :func:`auto_kernel` and
+    its written-out forms (the explicit mode's state has its own)."""
+    oth = nf + nz + nz * n  # zh and Xi first
+    osc = oth + 5 * n  # five blocks of n: thetah, A, psi, omega_bar, dwell
+    oa_c = osc + _N_S
+    return nf, nf + nz, oth, oth + n, oth + 2 * n, oth + 3 * n, oth + 4 * n, osc, oa_c, oa_c + n
+
+
+@kernel(inline="always")
+def level_state(s: np.ndarray, osc: int) -> tuple[float, float, float, float, float, float]:
+    """The scalars of the input level and the observer's clock at ``osc`` in the state: (clock,
+    mean, AC power, started, Xi's smoothed size, the power's slow mean)."""
+    return s[osc + _S_CLOCK], s[osc + _S_MEAN], s[osc + _S_POW], s[osc + _S_STARTED], s[osc + _S_XI], s[osc + _S_POWL]
+
+
 @kernel
 def auto_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
@@ -288,28 +330,11 @@ def auto_kernel(
     helper taking arrays is called per sample: numba counts a reference (an atomic operation)
     per array passed, which cost about 20 % of the loop."""
     n, nx, nf, nz, bias = ci[0], ci[1], ci[2], ci[3], ci[5]
-    h = cf[_K_H]
-    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
-    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
-    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
-    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
-    # the state's offsets (its layout; the explicit mode's reads alike, with its own fields)
-    oFf = _N_K + nx
+    h, mu, rho2rel, mu_a, d_hi, d_lo, tbar, om_u, min_a, fade, c_alpha, c_tol, delay, zmax, l_alpha = auto_gains(cf)
+    om_lo, om_hi, rc, sep, xi_floor, p_alpha, lcap = auto_bounds(cf)
+    oFf = _N_K + nx  # the output filter's F_f and B_f in cf
     oBf = oFf + nf
-    oz = nf
-    oxi = oz + nz
-    oth = oxi + nz * n
-    oA = oth + n
-    ops = oA + n
-    owb = ops + n
-    odv = owb + n
-    osc = odv + n
-    oa_c = osc + _N_S  # a (n), re-centred (AD8)
-    oL = oa_c + n  # L_x (nx), re-placed with a
-    om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
-    xi_floor = cf[_K_XIFLOOR]
-    p_alpha = cf[_K_PALPHA]
-    lcap = cf[_K_LCAP]
+    oz, oxi, oth, oA, ops, owb, odv, osc, oa_c, oL = auto_offsets(n, nf, nz)
     poles = cf[_N_K : _N_K + nx]
     s = state.copy()
     nrow = 1 if last_only else y.shape[0]

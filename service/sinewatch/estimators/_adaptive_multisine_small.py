@@ -12,30 +12,7 @@ import math
 import numpy as np
 
 from sinewatch.estimators._adaptive_multisine_auto import (
-    _K_CALPHA,
-    _K_CTOL,
-    _K_DELAY,
-    _K_DHI,
-    _K_DLO,
-    _K_FADE,
-    _K_H,
-    _K_LALPHA,
-    _K_LCAP,
-    _K_MINA,
-    _K_MU,
-    _K_MUA,
-    _K_OMHI,
-    _K_OMLO,
-    _K_OMU,
-    _K_PALPHA,
-    _K_RC,
-    _K_RHO2,
-    _K_SEP,
-    _K_TBAR,
-    _K_XIFLOOR,
-    _K_ZMAX,
     _N_K,
-    _N_S,
     _S_CLOCK,
     _S_MEAN,
     _S_POW,
@@ -45,6 +22,10 @@ from sinewatch.estimators._adaptive_multisine_auto import (
     _component_outputs,
     _frequency_and_phase,
     _input_level,
+    auto_bounds,
+    auto_gains,
+    auto_offsets,
+    level_state,
 )
 from sinewatch.estimators.base import fma, kernel
 
@@ -75,22 +56,10 @@ def auto_kernel_n1(
     (23) and (25) compares ``Phi_Xi`` with ``delta M``. Agrees with :func:`auto_kernel` to
     rounding (tests/test_adaptive_multisine_small_n.py)."""
     nx, bias = ci[1], ci[5]
-    h = cf[_K_H]
-    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
-    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
-    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
-    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
-    om_lo, om_hi, rc = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC]
-    xi_floor, p_alpha, lcap = cf[_K_XIFLOOR], cf[_K_PALPHA], cf[_K_LCAP]
+    h, mu, rho2rel, mu_a, d_hi, d_lo, tbar, om_u, min_a, fade, c_alpha, c_tol, delay, zmax, l_alpha = auto_gains(cf)
+    om_lo, om_hi, rc, _, xi_floor, p_alpha, lcap = auto_bounds(cf)
     poles = cf[_N_K : _N_K + nx]
-    # offsets as in auto_kernel (nf = 0, nz = nx)
-    oz = 0
-    oxi = nx
-    oth = 2 * nx
-    oA, ops, owb, odv = oth + 1, oth + 2, oth + 3, oth + 4
-    osc = oth + 5
-    oa_c = osc + _N_S
-    oL = oa_c + 1
+    oz, oxi, oth, oA, ops, owb, odv, osc, oa_c, oL = auto_offsets(1, 0, nx)  # nf = 0, nz = nx
     s = state.copy()
     # ---- the state as locals: zh = [x_1, x_2, A0], xi_1 likewise (17)
     z1, z2 = s[oz], s[oz + 1]
@@ -98,14 +67,7 @@ def auto_kernel_n1(
     p1, p2 = s[oxi], s[oxi + 1]
     p0 = s[oxi + 2] if bias else 0.0
     th1, A1, ps1, wb1, dv1 = s[oth], s[oA], s[ops], s[owb], s[odv]
-    clock, mean, pw, started, sxi, pwl = (
-        s[osc + _S_CLOCK],
-        s[osc + _S_MEAN],
-        s[osc + _S_POW],
-        s[osc + _S_STARTED],
-        s[osc + _S_XI],
-        s[osc + _S_POWL],
-    )
+    clock, mean, pw, started, sxi, pwl = level_state(s, osc)
     a1 = s[oa_c]
     L1, L2 = s[oL], s[oL + 1]
     L0 = s[oL + 2] if bias else 0.0
@@ -257,25 +219,13 @@ def auto_kernel_n2(
     ``bias=False`` the A0 state, its sensitivities and its gain are held at zero, which adds exact
     zeros."""
     n, nx, bias = 2, ci[1], ci[5]
-    h = cf[_K_H]
-    mu, rho2rel, mu_a = cf[_K_MU], cf[_K_RHO2], cf[_K_MUA]
-    d_hi, d_lo, tbar = cf[_K_DHI], cf[_K_DLO], cf[_K_TBAR]
-    om_u, min_a, fade = cf[_K_OMU], cf[_K_MINA], cf[_K_FADE]
-    c_alpha, c_tol, delay, zmax, l_alpha = cf[_K_CALPHA], cf[_K_CTOL], cf[_K_DELAY], cf[_K_ZMAX], cf[_K_LALPHA]
-    om_lo, om_hi, rc, sep = cf[_K_OMLO], cf[_K_OMHI], cf[_K_RC], cf[_K_SEP]
-    xi_floor, p_alpha, lcap = cf[_K_XIFLOOR], cf[_K_PALPHA], cf[_K_LCAP]
+    h, mu, rho2rel, mu_a, d_hi, d_lo, tbar, om_u, min_a, fade, c_alpha, c_tol, delay, zmax, l_alpha = auto_gains(cf)
+    om_lo, om_hi, rc, sep, xi_floor, p_alpha, lcap = auto_bounds(cf)
     Ff = cf[_N_K + nx]  # F_f and B_f of (12), n_f = 1
     Bf = cf[_N_K + nx + 1]
     poles = cf[_N_K : _N_K + nx]
-    # offsets as in auto_kernel (nf = 1, nz = nx + 1)
     nz = nx + 1
-    oz = 1
-    oxi = oz + nz
-    oth = oxi + 2 * nz
-    oA, ops, owb, odv = oth + 2, oth + 4, oth + 6, oth + 8
-    osc = oth + 10
-    oa_c = osc + _N_S
-    oL = oa_c + 2
+    oz, oxi, oth, oA, ops, owb, odv, osc, oa_c, oL = auto_offsets(n, 1, nz)  # nf = 1
     s = state.copy()
     # ---- the state as locals: yf (12); zh = [x_1 .. x_4, A0, yfh]; xi_1, xi_2 likewise (17)
     yf = s[0]
@@ -294,14 +244,7 @@ def auto_kernel_n2(
     ps1, ps2 = s[ops], s[ops + 1]
     wb1, wb2 = s[owb], s[owb + 1]
     dv1, dv2 = s[odv], s[odv + 1]
-    clock, mean, pw, started, sxi, pwl = (
-        s[osc + _S_CLOCK],
-        s[osc + _S_MEAN],
-        s[osc + _S_POW],
-        s[osc + _S_STARTED],
-        s[osc + _S_XI],
-        s[osc + _S_POWL],
-    )
+    clock, mean, pw, started, sxi, pwl = level_state(s, osc)
     a1, a2 = s[oa_c], s[oa_c + 1]
     L1, L2, L3, L4 = s[oL], s[oL + 1], s[oL + 2], s[oL + 3]
     L0 = s[oL + 4] if bias else 0.0

@@ -11,10 +11,6 @@ import numpy as np
 
 from sinewatch.estimators._differential_rls_core import (
     CORE_SIZE,
-    K_FS,
-    K_T0,
-    K_W_NOM,
-    K_W_RANGE,
     K_WARM,
     TWO_PI,
     _wrap,
@@ -45,8 +41,10 @@ from sinewatch.estimators._differential_rls_front import (
     _decimated_step,
     _demodulate,
     _write_outputs,
+    front_constants,
+    lowpass_coefficients,
 )
-from sinewatch.estimators.base import kernel
+from sinewatch.estimators.base import bank_outputs, kernel
 
 # ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
@@ -171,21 +169,13 @@ def _bank_fixup(S: np.ndarray, lane: int, stepped: bool, inv_fs: float) -> None:
 
 
 # the arguments of differential_rls_kernel, by the bank's calling convention (sinewatch.estimators.bank):
-# the same list, each state array with a channel axis added
+# the same list (it must be: the bank calls one with the other's arguments), each state array with a
+# channel axis added
 @kernel
 def differential_rls_bank_kernel(
-    x: np.ndarray,
-    fe_in: np.ndarray,
-    core_in: np.ndarray,
-    theta_in: np.ndarray,
-    P_in: np.ndarray,
-    ist_in: np.ndarray,
-    sos: np.ndarray,
-    tab: np.ndarray,
-    cyc: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    x: np.ndarray, fe_in: np.ndarray, core_in: np.ndarray, theta_in: np.ndarray, P_in: np.ndarray,
+    ist_in: np.ndarray, sos: np.ndarray, tab: np.ndarray, cyc: np.ndarray, consts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`differential_rls_kernel` for C channels at once: ``x`` (N, C), the state arrays
     stacked with the channel last (``fe`` (FE_SIZE, C), ``core`` (CORE_SIZE, C), ``theta``
     (p, C), ``P`` (p, p, C), ``ist`` (3, C)); returns ``out`` (C, rows, 5), ``ext`` (C, rows, 3),
@@ -196,24 +186,16 @@ def differential_rls_bank_kernel(
     library calls) and the output rows run lane by lane, as the single kernel runs them."""
     n, nc = x.shape
     p = theta_in.shape[0]
-    nout = 1 if last_only else n
-    out = np.empty((nc, nout, 5))
-    ext = np.empty((nc, nout, 3))
-    sse = np.empty(nc)
+    out, ext, sse = bank_outputs(nc, n, last_only, 3)
     new_fe = np.empty((FE_SIZE, nc))
     new_core = np.empty((CORE_SIZE, nc))
     new_theta = np.empty((p, nc))
     new_P = np.empty((p, p, nc))
     new_ist = np.empty((3, nc), dtype=np.int64)
-    fs = consts[K_FS]
-    inv_fs = 1.0 / fs
-    d0 = consts[K_T0] * fs
-    w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
-    w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
+    inv_fs, _, d0, w_lo, w_hi = front_constants(consts)
     warm = consts[K_WARM]
     ncyc = cyc.shape[0]
-    s0b0, s0b1, s0b2, s0a1, s0a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
-    s1b0, s1b1, s1b2, s1a1, s1a2 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
+    s0b0, s0b1, s0b2, s0a1, s0a2, s1b0, s1b1, s1b2, s1a1, s1a2 = lowpass_coefficients(sos)
     L = LANES
     S = np.empty(_ROWS * L)
     fel = np.empty(FE_SIZE)  # one lane's fe, for the decimated step

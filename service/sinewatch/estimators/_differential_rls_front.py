@@ -230,6 +230,38 @@ def _write_snapshot(
 
 
 @kernel(inline="always")
+def front_constants(consts: np.ndarray) -> tuple[float, float, float, float, float]:
+    """``(1 / fs, T0, d0 = T0 fs, w_lo, w_hi)``: the sample interval, the decimated interval T0
+    (s) and its length in input samples, and the reference's tracking range (rad/s), read from
+    ``consts`` once: every kernel of the front end and its bank starts from them."""
+    fs = consts[K_FS]
+    T0 = consts[K_T0]
+    return 1.0 / fs, T0, T0 * fs, consts[K_W_NOM] - consts[K_W_RANGE], consts[K_W_NOM] + consts[K_W_RANGE]
+
+
+@kernel(inline="always")
+def lowpass_coefficients(
+    sos: np.ndarray,
+) -> tuple[float, float, float, float, float, float, float, float, float, float]:
+    """The two biquads' coefficients (b0, b1, b2, a1, a2 of each; a0 = 1) as floats, so that the
+    low-pass of :func:`_demodulate` runs from registers."""
+    return sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5], sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
+
+
+@kernel(inline="always")
+def _step_status(
+    cr: float, ci: float, u: float, core: np.ndarray, theta: np.ndarray, P: np.ndarray, tab: np.ndarray,
+    consts: np.ndarray, rr: np.ndarray, ri: np.ndarray, xr_: np.ndarray, xi_: np.ndarray, px: np.ndarray,
+) -> tuple[float, float, float, bool, bool, bool, float, bool]:  # fmt: skip
+    """The start of every decimated step, real or I/Q input: :func:`core_step` on c = cr + j ci,
+    :func:`core_status` after it, and whether a re-centring is due (last: every
+    ``K_REBASE_EVERY`` decimated samples)."""
+    core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
+    w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
+    return w, lb, std, val, confident, conv, lsig, core[SINCE_REBASE] >= consts[K_REBASE_EVERY]
+
+
+@kernel(inline="always")
 def _decimated_step(
     cr: float, ci: float, u: float, core: np.ndarray, theta: np.ndarray, P: np.ndarray, tab: np.ndarray,
     consts: np.ndarray, rr: np.ndarray, ri: np.ndarray, xr_: np.ndarray, xi_: np.ndarray, px: np.ndarray,
@@ -246,16 +278,12 @@ def _decimated_step(
     demodulator's low-pass, ``a^ / H * |H|^2`` (whose argument is the snapshot's phase) and
     the prediction rotator and its step. The one definition, called by
     :func:`differential_rls_kernel` and, lane by lane, by its bank."""
-    fs = consts[K_FS]
-    inv_fs = 1.0 / fs
-    T0 = consts[K_T0]
-    d0 = T0 * fs
-    w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
-    w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
+    inv_fs, T0, d0, w_lo, w_hi = front_constants(consts)
     recenter = consts[K_RECENTER] != 0.0
-    core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
-    w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
-    if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
+    w, lb, std, val, confident, conv, lsig, due = _step_status(
+        cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px
+    )
+    if due:
         dw = 0.0
         dl = 0.0
         if recenter and confident:
@@ -365,18 +393,9 @@ def _kernel_start(
 
 @kernel
 def differential_rls_kernel(
-    x: np.ndarray,
-    fe_in: np.ndarray,
-    core_in: np.ndarray,
-    theta_in: np.ndarray,
-    P_in: np.ndarray,
-    ist_in: np.ndarray,
-    sos: np.ndarray,
-    tab: np.ndarray,
-    cyc: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    x: np.ndarray, fe_in: np.ndarray, core_in: np.ndarray, theta_in: np.ndarray, P_in: np.ndarray, ist_in: np.ndarray,
+    sos: np.ndarray, tab: np.ndarray, cyc: np.ndarray, consts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Real input -> quadrature demodulation against the reference oscillator -> low-pass
     (two biquads, ``sos``) -> decimation by the cyclic intervals ``cyc`` (input samples)
     -> :func:`core_step` at every decimated sample; outputs at every input sample.
@@ -386,14 +405,9 @@ def differential_rls_kernel(
     fe, ist, out, ext = _kernel_start(fe_in, ist_in, x.shape[0], last_only)
     core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     n = x.shape[0]
-    fs = consts[K_FS]
-    inv_fs = 1.0 / fs
-    T0 = consts[K_T0]
-    w_lo = consts[K_W_NOM] - consts[K_W_RANGE]
-    w_hi = consts[K_W_NOM] + consts[K_W_RANGE]
+    inv_fs, _, d0, w_lo, w_hi = front_constants(consts)
     warm = consts[K_WARM]
     ncyc = cyc.shape[0]
-    d0 = T0 * fs
     sse = 0.0
     psi = fe[F_PSI]
     wref = fe[F_WREF]
@@ -418,8 +432,7 @@ def differential_rls_kernel(
     if ist[2] == 0:  # first sample ever: start the offset low-pass in steady state at x(0)
         _biquads_steady(x[0], sos, fe, F_ZI)
     # the low-pass coefficients and the 12 delays of its three channels live in registers
-    s0b0, s0b1, s0b2, s0a1, s0a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
-    s1b0, s1b1, s1b2, s1a1, s1a2 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
+    s0b0, s0b1, s0b2, s0a1, s0a2, s1b0, s1b1, s1b2, s1a1, s1a2 = lowpass_coefficients(sos)
     o1, o2, o3, o4 = fe[F_ZI], fe[F_ZI + 1], fe[F_ZI + 2], fe[F_ZI + 3]
     r1, r2, r3, r4 = fe[F_ZI + 4], fe[F_ZI + 5], fe[F_ZI + 6], fe[F_ZI + 7]
     q1, q2, q3, q4 = fe[F_ZI + 8], fe[F_ZI + 9], fe[F_ZI + 10], fe[F_ZI + 11]
@@ -503,19 +516,34 @@ def differential_rls_kernel(
     return out, ext, sse, fe, core, theta, P, ist
 
 
+@kernel(inline="always")
+def _iq_recenter(
+    move: bool, w: float, lsig: float, w2: float, l2: float, w_max: float
+) -> tuple[float, float, float, float]:
+    """The I/Q kernel's periodic re-centring of its digital reference on the estimate (Section 10),
+    when ``move`` (re-centring on, the estimate confident): ``(dw, dl, w2, l2)``, the shift of the
+    baseband model (rad/T0, rad/T0^2) and the reference's new offset and ramp, clamped to the
+    tracking range +- ``w_max``; no shift otherwise."""
+    dw = 0.0
+    dl = 0.0
+    if move:
+        dw = w
+        dl = lsig
+        wnew = w2 + dw
+        if wnew > w_max or wnew < -w_max:  # clamped to the tracking range
+            wnew = w_max if wnew > 0.0 else -w_max
+            dw = wnew - w2
+            dl = -l2
+        w2 = wnew
+        l2 += dl
+    return dw, dl, w2, l2
+
+
 @kernel
 def differential_rls_iq_kernel(
-    x: np.ndarray,
-    fe_in: np.ndarray,
-    core_in: np.ndarray,
-    theta_in: np.ndarray,
-    P_in: np.ndarray,
-    ist_in: np.ndarray,
-    tab: np.ndarray,
-    cyc: np.ndarray,
-    consts: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    x: np.ndarray, fe_in: np.ndarray, core_in: np.ndarray, theta_in: np.ndarray, P_in: np.ndarray, ist_in: np.ndarray,
+    tab: np.ndarray, cyc: np.ndarray, consts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """In-phase/quadrature input (the paper's own setting, eqs. 1-2): ``x`` is (N, 2), column
     0 the in-phase y = A sin(w t + phi), column 1 the quadrature z = A cos(w t + phi), taken
     against an external oscillator at consts[K_W_NOM]. c(k) = z + j y is taken every
@@ -532,10 +560,7 @@ def differential_rls_iq_kernel(
     fe, ist, out, ext = _kernel_start(fe_in, ist_in, x.shape[0], last_only)
     core, theta, P, rr, ri, xr_, xi_, px, idx, T, b0, work = working_core(core_in, theta_in, P_in, tab)
     n = x.shape[0]
-    fs = consts[K_FS]
-    T0 = consts[K_T0]
-    inv_fs = 1.0 / fs
-    d0 = T0 * fs
+    inv_fs, T0, d0, _, _ = front_constants(consts)
     w_nom = consts[K_W_NOM]
     w_max = consts[K_W_RANGE] * T0  # the digital reference stays within +- the tracking range
     recenter = consts[K_RECENTER] != 0.0
@@ -576,22 +601,11 @@ def differential_rls_iq_kernel(
             ci = yi * c0 - zi * s0
             # the order of _decimated_step (step, status, re-centring, status), with this kernel's own
             # re-centring: a digital reference within +- the range, no low-pass to re-tune
-            core_step(cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px)
-            w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
-            if core[SINCE_REBASE] >= consts[K_REBASE_EVERY]:
-                dw = 0.0
-                dl = 0.0
-                if recenter and confident:
-                    # periodic re-centring of the reference on the estimate (Section 10)
-                    dw = w
-                    dl = lsig
-                    wnew = w2 + dw
-                    if wnew > w_max or wnew < -w_max:  # clamped to the tracking range
-                        wnew = w_max if wnew > 0.0 else -w_max
-                        dw = wnew - w2
-                        dl = -l2
-                    w2 = wnew
-                    l2 += dl
+            w, lb, std, val, confident, conv, lsig, due = _step_status(
+                cr, ci, u, core, theta, P, tab, consts, rr, ri, xr_, xi_, px
+            )
+            if due:
+                dw, dl, w2, l2 = _iq_recenter(recenter and confident, w, lsig, w2, l2, w_max)
                 rebase(core, theta, P, tab, consts, dw, dl, idx, T, b0, work)
                 w, lb, std, val, confident, conv, lsig = core_status(core, theta, P, consts)
             amp = math.hypot(core[A_RE], core[A_IM])  # A^ = |a^|, eq. (23)

@@ -56,7 +56,8 @@ def _rls_pair5(
     """The two scalar updates of :func:`core_step` (xr with forgetting f, then xi without),
     as :func:`_rls_scalar` computes them, for p = 5 (n = 2 with the derivative model, the
     default): P (symmetric: its upper triangle), theta and x in registers; the same
-    operations in the same order, hence the same bits."""
+    operations in the same order, hence the same bits. Written out because numba keeps no
+    loop's array in registers; a change to the update goes here and in _rls_scalar."""
     p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = (
         P[0, 0], P[0, 1], P[0, 2], P[0, 3], P[0, 4], P[1, 1], P[1, 2], P[1, 3], P[1, 4], P[2, 2], P[2, 3], P[2, 4], P[3, 3], P[3, 4], P[4, 4],
     )  # fmt: skip
@@ -137,6 +138,7 @@ def _rls_pair5(
         t4 += q4 * ge
         pa = q4 / den
         p44 = (p44 - pa * q4) * inv_f
+    # the second update (xi, f = 1) repeats the first line for line: the unrolling (module top), not a copy
     x0, x1, x2, x3, x4 = xi[0], xi[1], xi[2], xi[3], xi[4]
     den = 1.0
     e = yi

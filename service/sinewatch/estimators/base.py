@@ -713,6 +713,15 @@ def undefined_row(out: np.ndarray, j: int) -> None:
     out[j, 4] = 0.0
 
 
+@kernel(inline="always")
+def bank_outputs(nc: int, n: int, last_only: bool, n_extras: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bank kernel's outputs for ``nc`` channels and a block of ``n`` samples, by the bank's
+    calling convention (``sinewatch.estimators.bank``): ``out`` (nc, rows, 5), ``extras`` (nc,
+    rows, n_extras) and ``sse`` (nc,), rows = 1 with ``last_only``."""
+    rows = 1 if last_only else n
+    return np.empty((nc, rows, 5)), np.empty((nc, rows, n_extras)), np.empty(nc)
+
+
 def empty_outputs(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """NaN-filled output arrays (frequency, amplitude, phase, offset) and a False mask."""
     nan2 = np.full((n, k), np.nan)

@@ -197,7 +197,8 @@ __all__ = [
 
 
 # Field declarations and the class attributes below (paper, example, notes) read like other
-# estimators' (a shape the duplicates tool pairs): declarations, not logic to share.
+# estimators' (a shape the duplicates tool pairs): declarations, not logic to share. Likewise the
+# validators: each checks its own range and says so in its own words (expected vs got).
 class DifferentialRlsParams(EstimatorParams):
     input: Literal["real", "iq"] = Field(
         "real",
@@ -347,16 +348,17 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
     example_frequency_hz = 50.3
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "bandwidth_hz": 5.0}
     # Printed by ``sinewatch bench kernels`` under its table.
-    bench_note: ClassVar[str] = (
-        "differential-rls is below the streaming FFT (about 0.55x: ~60 ns/sample against ~34 at 1024-sample "
-        "blocks, `sinewatch bench kernels --estimators differential-rls`): it is one recursion, sample after "
-        "sample, with nothing a block transform could share. Every input sample steps the reference "
-        "oscillator, the quadrature demodulator's three channels of two cascaded biquads and the one-step "
-        "prediction (~26 ns); every decimated sample (every 10th in the example) runs the pair of RLS "
-        "updates (12) on 5 parameters, the ELS noise recursion (13), the phase stage (21)-(23) and the "
-        "low-pass compensation, with 9 sin/cos/hypot/sqrt calls and 4 complex divisions in one dependency "
-        "chain (~330 ns). The arithmetic order is fixed (recordings replay bit for bit), so the chain is "
-        "neither reassociated nor vectorised."
+    bench_note: ClassVar[str] = " ".join(
+        """
+        differential-rls is below the streaming FFT (about 0.55x: ~60 ns/sample against ~34 at 1024-sample
+        blocks, `sinewatch bench kernels --estimators differential-rls`): it is one recursion, sample after
+        sample, with nothing a block transform could share. Every input sample steps the reference oscillator,
+        the quadrature demodulator's three channels of two cascaded biquads and the one-step prediction (~26
+        ns); every decimated sample (every 10th in the example) runs the pair of RLS updates (12) on 5
+        parameters, the ELS noise recursion (13), the phase stage (21)-(23) and the low-pass compensation, with
+        9 sin/cos/hypot/sqrt calls and 4 complex divisions in one dependency chain (~330 ns). The arithmetic
+        order is fixed (recordings replay bit for bit), so the chain is neither reassociated nor vectorised.
+        """.split()
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
     bank_note: ClassVar[str] = (

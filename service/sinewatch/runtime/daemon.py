@@ -65,6 +65,7 @@ from sinewatch.schemas.frame import FRAME_MAGIC
 from sinewatch.schemas.messages import ChannelStatus, SinkStatus, Status
 
 if TYPE_CHECKING:
+    from sinewatch.estimators.base import Estimator
     from sinewatch.outputs.foxglove_live import FoxgloveSink
     from sinewatch.outputs.metrics import Health, LatencyHistogram, MetricsServer, Snapshot
 
@@ -354,6 +355,41 @@ class Intake:
         self._subscriber.undeclare()
 
 
+def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
+    """One rule's kernels: the estimator's on whole blocks and on the last sample only, and
+    for a one-input estimator a frame's (its bank kernel, the presence detectors' bank)."""
+    from sinewatch.estimators.bank import bank_of, update_bank
+    from sinewatch.estimators.presence import SignalPresence, update_presence_bank
+
+    rate = cls.example_sample_rate_hz
+    try:
+        cls(rate, params)
+    except ValueError:  # ParameterError, or pydantic's ValidationError: valid at another rate only
+        params = dict(cls.example_params)
+    est = cls(rate, params)
+    signal_ = cls.example_signal(64)
+    if signal_.ndim == 1 and est.n_inputs > 1:  # e.g. I/Q: the kernel's types, not a meaningful signal
+        signal_ = np.column_stack([signal_] * est.n_inputs)
+    for x in _as_received(signal_):
+        est.update(x)
+        est.update(x, last_only=True)
+    if est.n_inputs == 1:
+        for frame in _as_received(np.stack([signal_, signal_], axis=1)):
+            if bank_of(cls) is not None:
+                update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
+            detectors = [SignalPresence(rate) for _ in range(2)]
+            update_presence_bank(detectors, frame, [0, 1])
+
+
+def _as_received(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` as the kernels receive samples: float64 samples decode to a read-only view of the
+    payload (``np.frombuffer``), float32 ones to a writable float64 copy, and numba compiles a
+    kernel once for each (a read-only array is another type)."""
+    frozen = x.copy()
+    frozen.setflags(write=False)
+    return x, frozen
+
+
 class Daemon:
     def __init__(self, config: SinewatchConfig, *, install_signal_handlers: bool = True) -> None:
         self.config = config
@@ -556,25 +592,23 @@ class Daemon:
 
     # ---- lifecycle ------------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """Load (or compile) every configured estimator's kernels now, so that a
-        channel's first block does not wait ~0.3-0.8 s for numba."""
+        """Load (or compile) the kernels every configured rule will run now, so that a
+        channel's first block does not wait ~0.3-0.8 s for numba (seconds on a busy machine).
+
+        Each rule's own params, not the estimator's example ones: a param can choose another
+        kernel (differential-rls with ``input = "iq"`` runs its I/Q kernel, on two columns).
+        The sample rate is the estimator's example one (a block brings the real one; the
+        kernels' types do not depend on it); params that are invalid there fall back to the
+        example params (the rule's kernel then compiles on its first block, as it would)."""
         from sinewatch.estimators import check_rules, get
-        from sinewatch.estimators.bank import bank_of, update_bank
-        from sinewatch.estimators.presence import SignalPresence, update_presence_bank
 
         check_rules(self.config.rules)
-        for name in sorted({rule.estimator for rule in self.config.rules}):
-            cls = get(name)
-            est = cls.example()
-            signal_ = cls.example_signal(64)
-            est.update(signal_)
-            est.update(signal_, last_only=True)
-            if est.n_inputs == 1:  # a frame's channels: the bank kernel, the presence detectors' bank
-                frame = np.stack([signal_, signal_], axis=1)
-                if bank_of(cls) is not None:
-                    update_bank([cls.example(), cls.example()], frame, last_only=True)
-                detectors = [SignalPresence(cls.example_sample_rate_hz) for _ in range(2)]
-                update_presence_bank(detectors, frame, [0, 1])
+        warmed: set[tuple[str, str]] = set()
+        for rule in self.config.rules:
+            key = (rule.estimator, json.dumps(rule.params, sort_keys=True, default=str))
+            if key not in warmed:
+                warmed.add(key)
+                _warm_up_rule(get(rule.estimator), rule.params)
 
     def start(self) -> None:
         """Open the session and sinks and start intake (call from the event loop)."""
