@@ -62,7 +62,7 @@ def test_the_latency_probe_reads_what_json_reads_from_the_daemon_s_estimates(tmp
     import numpy as np
     from conftest import make_config
 
-    from sinewatch.apps.bench.e2e import probe_fields
+    from sinewatch.apps.bench.e2e_probes import probe_fields
     from sinewatch.core.pipeline import NullSink, Pipeline
     from sinewatch.schemas.codec import Block, encode_block_binary
 
@@ -112,7 +112,7 @@ def test_a_late_feeder_stamps_a_continuous_stream_that_the_daemon_does_not_take_
     between two blocks, and the daemon would start every channel over at every block
     (a time jump). Stamped by :func:`stamp_ns` the stream stays continuous; on time, a
     block carries its publish time."""
-    from sinewatch.apps.bench.e2e import stamp_ns
+    from sinewatch.apps.bench.e2e_feeder import stamp_ns
     from sinewatch.core.continuity import CONTINUES, check_continuity
 
     fs, block = 10_000.0, 1024

@@ -26,7 +26,7 @@ def sine(n: int = 400, columns: int = 1) -> np.ndarray:
     ],
 )
 def test_refused_blocks_leave_the_channel_slots_free(tmp_path, bad):
-    config = make_config(tmp_path, limits=LimitsSection(max_channels=20))
+    config = make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_channels=20))
     keep = Keep()
     pipeline = Pipeline(config, [keep])
     for i in range(40):  # twice the limit, each on a channel of its own
@@ -41,7 +41,7 @@ def test_refused_blocks_leave_the_channel_slots_free(tmp_path, bad):
 
 
 def test_the_limit_still_holds_for_accepted_channels(tmp_path):
-    config = make_config(tmp_path, limits=LimitsSection(max_channels=3))
+    config = make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_channels=3))
     keep = Keep()
     pipeline = Pipeline(config, [keep])
     for i in range(4):

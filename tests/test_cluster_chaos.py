@@ -159,7 +159,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                 if m.get("fencing") == {"shard": row["shard"], "term": row["new_term"]}
             )
             row["takeover_s"] = round(first_ns / 1e9 - (row["t0_wall"] + TTL_S), 3)
-    lost = {c: check_channel(every[c], gateway.sent[c]) for c in CHANNELS}
+    lost = {c: check_channel(every[c], gateway.sent[c], estimates.unrecovered[c]) for c in CHANNELS}
     shard_channels = {s: [c for c in CHANNELS if shard_of(f"sinewatch/in/{c}", 2) == int(SHARDS[s][0])] for s in SHARDS}
     for row in rows:
         row["lost_blocks"] = sum(lost[c][1] for c in shard_channels[row["shard"]])

@@ -146,8 +146,8 @@ def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_pa
     # machine the subscriber's process lost estimates the daemons had published and recorded)
     every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, ["a1", "a2", "s1"]))
     for c in SHARD_2:  # the other shard never noticed
-        assert check_channel(every[c], gateway.sent[c]) == (0, 0)
-    results = [check_channel(every[c], gateway.sent[c]) for c in SHARD_1]
+        assert check_channel(every[c], gateway.sent[c], estimates.unrecovered[c]) == (0, 0)
+    results = [check_channel(every[c], gateway.sent[c], estimates.unrecovered[c]) for c in SHARD_1]
     if recovery:  # the gateway's cache covers the outage: the new owner's own history query brings it back, in
         # order, ahead of the live blocks (docs/cluster.md), and nothing is lost
         assert all(r == (0, 0) for r in results), results
@@ -230,5 +230,5 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
     # this test's own session was still reconnecting to the new router never reached it: their recordings have it.
     every = published_once_each(estimates.by_channel, recorded_estimates(tmp_path, ["a1", "a2", "s1"]))
     for c in CHANNELS:
-        check_channel(every[c], gateway.sent[c])
+        check_channel(every[c], gateway.sent[c], estimates.unrecovered[c])
     assert roles == {"active/a1", "active/a2", "standby/s1"}  # no takeover: a1 was never gone

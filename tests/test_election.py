@@ -72,3 +72,38 @@ def test_one_owner_the_gate_shuts_inside_the_ttl_and_the_successor_waits_for_the
     assert t["shut"] < TTL
     assert t["deadline"] < t["elected"]
     assert t["elected"] < TTL + 2.0  # b took over within 2 s of the lease's latest expiry
+
+
+def test_an_owner_cut_off_wins_again_once_the_partition_heals_over_a_slow_link(tmp_path):
+    """After a partition heals, the etcd channel connects again even when a connection's
+    handshake is slow (a loaded machine, a long path). Seen in the 50-fault chaos run at load
+    ~30: gRPC gave each connection attempt ~0.1-0.6 s (its minimum connect timeout is
+    ``grpc.min_reconnect_backoff_ms``, set to 100 ms then), every attempt through the healed
+    proxies "timed out before receiving SETTINGS frame", the owners stepped down and no
+    standby could be elected. Here etcd's first bytes on each new connection come 1 s late."""
+
+    async def scenario(endpoint: str, proxy: Proxy) -> float:
+        a = LeaseElection(endpoint, "sinewatch/admin/election/slow", "a", TTL)
+        await asyncio.wait_for(a.campaign(), 30)
+        hold = asyncio.ensure_future(a.hold())
+        proxy.sever()
+        await asyncio.wait_for(hold, 30)  # a stands down: no keep-alive acknowledged for a TTL
+        assert not a.may_publish()
+        proxy.handshake_delay_s = 1.0
+        proxy.heal()
+        healed = time.monotonic()
+        won = await asyncio.wait_for(a.campaign(), 30)  # its old lease expires meanwhile: the key goes with it
+        elected = time.monotonic() - healed
+        hold = asyncio.ensure_future(a.hold())
+        assert won.term > 0 and a.may_publish()
+        await a.close()
+        hold.cancel()
+        return elected
+
+    with etcd_server(tmp_path) as etcd:
+        proxy = Proxy(etcd.port)
+        try:
+            elected = asyncio.run(scenario(f"127.0.0.1:{proxy.port}", proxy))
+        finally:
+            proxy.close()
+    print(f"elected again {elected:.2f} s after the partition healed")

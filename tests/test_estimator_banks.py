@@ -160,6 +160,20 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
 BANKED = [n for n in NAMES if bank_of(get(n)) is not None]
 
 
+def _step_alike(
+    name: str, singles: list[Estimator], banked: list[Estimator], x: np.ndarray, last_only: bool
+) -> list[Track]:
+    """Block ``x`` (one column a channel) through each single estimator and through the bank,
+    compared bit for bit (tracks and states); the single path's tracks."""
+    expected = [e.update(np.ascontiguousarray(x[:, c]), last_only=last_only) for c, e in enumerate(singles)]
+    got = update_bank(banked, x, last_only=last_only)
+    for c in range(len(singles)):
+        where = f"{name} channel {c} of {len(singles)}, {x.shape[0]} samples, last_only={last_only}"
+        assert_tracks_bitwise(expected[c], got[c], where)
+        assert_states_bitwise(singles[c], banked[c], where)
+    return expected
+
+
 @pytest.mark.parametrize("name", BANKED)
 def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name: str) -> None:
     """Nine channels (a full group of lanes and one more, alone in the next) whose histories
@@ -177,17 +191,53 @@ def test_compiled_bank_matches_single_channel_over_long_staggered_histories(name
     pos = 10_000
     mixed = []  # per call: whether some channel's T (U3) is still live and another's zero
     for n, last_only in ((3000, True), (2500, False), (4000, True), (500, False)):
-        expected = [
-            e.update(np.ascontiguousarray(x[pos : pos + n, c]), last_only=last_only) for c, e in enumerate(singles)
-        ]
-        got = update_bank(banked, x[pos : pos + n], last_only=last_only)
-        for c in range(size):
-            where = f"{name} channel {c} samples {pos}:{pos + n} last_only={last_only}"
-            assert_tracks_bitwise(expected[c], got[c], where)
-            assert_states_bitwise(singles[c], banked[c], where)
+        _step_alike(name, singles, banked, x[pos : pos + n], last_only)
         pos += n
         if name == "ges-kalman":
             traces = [e._state["unc"][0] + e._state["unc"][5] for e in banked]
             mixed.append(any(t == 0.0 for t in traces) and any(t != 0.0 for t in traces))
     if name == "ges-kalman":  # the case the test is for happened
         assert mixed[0], "expected lanes with T live beside lanes with T zero after the first call"
+
+
+def _regimes(seed: int, n: int, fs: float) -> np.ndarray:
+    """A signal that takes kkl-biased through every branch of its inverse map: a tone with an
+    offset (converged), a step in frequency and offset (a jump), the offset alone (undefined,
+    the settled mean reported), silence, a vanishing tone, and noise; each channel's pieces in
+    its own order and lengths."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    pieces = [
+        0.5 + np.sin(2 * np.pi * 50 * t + 0.3) + 0.01 * rng.standard_normal(n),
+        -1.0 + 2.0 * np.sin(2 * np.pi * 61 * t),
+        np.full(n, 0.7),
+        np.zeros(n),
+        1e-200 * np.sin(2 * np.pi * 50 * t),
+        rng.standard_normal(n),
+    ]
+    order = rng.permutation(len(pieces))
+    lengths = rng.integers(n // 8, n // 3, size=len(pieces))
+    return np.concatenate([pieces[i][: lengths[i]] for i in order])[:n]
+
+
+def test_kkl_biased_bank_matches_single_channel_through_every_branch_of_the_inverse_map() -> None:
+    """kkl-biased's bank evaluates every step for all lanes and selects where the single
+    kernel branches (mu = 0 or not, the Schur complement, x3 > 0, below Nyquist, the settled
+    offset while undefined): nine channels, each through those regimes at its own times, bit
+    for bit; the single path is checked to have visited converged, defined-but-not-converged,
+    offset-only and fully undefined samples, so the branches the test is for were taken."""
+    cls = get("kkl-biased")
+    fs, n, size = cls.example_sample_rate_hz, 24_000, 9
+    x = np.stack([_regimes(300 + c, n, fs) for c in range(size)], axis=1)
+    singles, banked = [cls.example() for _ in range(size)], [cls.example() for _ in range(size)]
+    seen = {"converged": 0, "defined": 0, "offset only": 0, "undefined": 0}
+    pos = 0
+    for step, last_only in ((5000, False), (3000, True), (7000, False), (9000, False)):
+        for tr in _step_alike("kkl-biased", singles, banked, x[pos : pos + step], last_only):
+            freq_ok, off_ok = np.isfinite(tr.frequency_hz), np.isfinite(tr.offset)
+            seen["converged"] += int(tr.converged.sum())
+            seen["defined"] += int((freq_ok & ~tr.converged).sum())
+            seen["offset only"] += int((~freq_ok & off_ok).sum())
+            seen["undefined"] += int((~freq_ok & ~off_ok).sum())
+        pos += step
+    assert all(v > 0 for v in seen.values()), seen

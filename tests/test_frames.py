@@ -334,7 +334,7 @@ def _frame(names, seq, x, fs=FS) -> bytes:
 def _blocks_reference(tmp_path: Path, sends: list[tuple[str, int, np.ndarray]]) -> dict[str, list[bytes]]:
     """What single blocks give: (channel, seq, samples) each sent alone, float32 as the frames."""
     keep = Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     for name, seq, x in sends:
         payload = encode_block_binary(Block(name, seq, seq * STEP_NS, FS, x), "float32")
         p.process(f"sinewatch/in/{name}", payload, "", seq)
@@ -344,7 +344,7 @@ def _blocks_reference(tmp_path: Path, sends: list[tuple[str, int, np.ndarray]]) 
 def test_each_channel_of_a_frame_gets_the_bits_its_own_blocks_would_give(tmp_path):
     names = [f"daq/ch{c}" for c in range(5)]
     keep = Keep()
-    p = Pipeline(make_config(tmp_path, rules=_two_rules()), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False, rules=_two_rules()), [keep])
     sends = []
     for seq in range(8):
         x = _signal(seq, 5)
@@ -369,8 +369,8 @@ def test_every_estimate_of_a_frame_s_channels_carries_the_frame_s_time_quality(t
         [QUALITIES[("global", False)]] * 3 + [QUALITIES[("none", True)]] * 2 + [0] * 2 + [QUALITIES[("local", False)]]
     )
     keep, plain = Keep(), Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
-    q = Pipeline(make_config(tmp_path), [plain])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
+    q = Pipeline(make_config(tmp_path, hold_estimates=False), [plain])
     for seq, tq in enumerate(stated):
         frame = Frame(tuple(names), seq, seq * STEP_NS, FS, _signal(seq, 3), tq)
         p.process("sinewatch/in/daq", encode_frame_binary(frame, "float32"), frame_encoding(frame), seq)
@@ -405,7 +405,7 @@ def _two_rules() -> list[EstimatorRule]:
 
 def _blocks_reference_rules(tmp_path, sends):
     keep = Keep()
-    p = Pipeline(make_config(tmp_path, rules=_two_rules()), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False, rules=_two_rules()), [keep])
     for name, seq, x in sends:
         payload = encode_block_binary(Block(name, seq, seq * STEP_NS, FS, x), "float32")
         p.process(f"sinewatch/in/{name}", payload, "", seq)
@@ -415,7 +415,7 @@ def _blocks_reference_rules(tmp_path, sends):
 def test_one_nan_column_is_that_channel_s_error_and_the_others_are_estimated(tmp_path):
     names = ["daq/a", "daq/b", "daq/c"]
     keep = Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     sends = []
     for seq in range(4):
         x = _signal(seq, 3)
@@ -443,7 +443,7 @@ def test_a_frame_whose_channel_set_changes_mid_stream(tmp_path):
     channel that first appears in frame 3 starts afresh; the order of the columns may
     change; the others go on untouched."""
     keep = Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     layouts = {
         0: ["daq/a", "daq/b"],
         1: ["daq/a", "daq/b"],
@@ -473,7 +473,7 @@ def test_a_lost_frame_and_its_late_redelivery_cost_one_refusal_per_channel_and_n
     channel-block is refused once (out of order or duplicate), and every frame after them is
     accepted: one lost frame cannot make the daemon refuse what follows."""
     keep = Keep()
-    p = Pipeline(make_config(tmp_path), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     names = ["mu/a", "mu/b", "mu/c", "mu/d"]
     late = {4, 5, 8}  # stamped a quarter period after their time (stamp_ns's cap)
 
@@ -506,10 +506,10 @@ def test_a_frame_channel_whose_rule_needs_two_columns_is_rejected_alone(tmp_path
             estimator="differential-rls",
             params={"input": "iq", "nominal_frequency_hz": 0.0},
         ),
-        *make_config(tmp_path).rules,
+        *make_config(tmp_path, hold_estimates=False).rules,
     ]
     keep = Keep()
-    p = Pipeline(make_config(tmp_path, rules=rules), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False, rules=rules), [keep])
     p.process("sinewatch/in/daq", _frame(["daq/iq", "daq/v"], 0, _signal(0, 2)), "", 0)
     assert [(e["kind"], e["channel"]) for e in keep.errors] == [("shape_mismatch", "daq/iq")]
     assert list(keep.estimates) == ["sinewatch/est/daq/v"]
@@ -714,7 +714,7 @@ def test_refused_columns_of_frames_leave_the_channel_slots_free(tmp_path):
     from sinewatch.schemas.config import LimitsSection
 
     keep = Keep()
-    p = Pipeline(make_config(tmp_path, limits=LimitsSection(max_channels=6)), [keep])
+    p = Pipeline(make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_channels=6)), [keep])
     for i in range(5):  # 20 hostile channels, 4 a frame, beside one good channel
         x = _signal(i, 5)
         x[3, 1:] = np.nan

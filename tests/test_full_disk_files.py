@@ -45,6 +45,7 @@ def test_a_full_disk_leaves_no_empty_files_and_the_directory_replays(tmp_path):
         assert not mcap.ok and mcap.failures > 10, (mcap.ok, mcap.failures)
         filler.unlink()
         send(5)
+        pipeline.release_held(t + 1)  # the input's end, as the daemon's drain
         recorder.close()
         assert pipeline.counters.estimates == 25 * CHANNELS  # estimation never needed the disk
         files = sorted(disk.glob("*.mcap"))

@@ -316,6 +316,8 @@ def _check_intake(bad: list[tuple[str, bytes, str]], clean: list[bytes]) -> Coun
         dirty.process(key, junk, enc, 0)
         inputs += 1
         outputs += _outputs_of(key, junk, enc)
+    dirty.release_held(0)  # the input's end: estimates held back for the presence detector come out
+    reference.release_held(0)
     # every input (every channel of a frame) is one estimate or one error, each error under a known kind
     assert inputs == dirty.counters.inputs
     assert len(keep_dirty.estimates) + len(keep_dirty.errors) == outputs

@@ -280,14 +280,8 @@ def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_po
     sins, coss = [], []
     for n in range(n_w):
         u = xw[n] - mu
-        sss += s * s
-        scc += co * co
-        ssc += s * co
-        ss += s
-        sc += co
-        sus += u * s
-        suc += u * co
-        su += u
+        sss, scc, ssc, ss, sc = sss + s * s, scc + co * co, ssc + s * co, ss + s, sc + co
+        sus, suc, su = sus + u * s, suc + u * co, su + u
         sins.append(s)
         coss.append(co)
         s, co = s * cw + co * sw, co * cw - s * sw

@@ -32,7 +32,7 @@ def big_json(n: int = 800_000) -> bytes:
 
 def test_a_large_json_block_is_refused_before_it_is_parsed(tmp_path):
     keep = Keep()
-    pipeline = Pipeline(make_config(tmp_path), [keep])
+    pipeline = Pipeline(make_config(tmp_path, hold_estimates=False), [keep])
     payload = big_json()
     assert 15_000_000 < len(payload) < 16 << 20  # under max_payload_bytes (16 MiB)
     for encoding in (BLOCK_JSON_ENCODING, "zenoh/bytes"):  # labelled, or sniffed
@@ -54,7 +54,9 @@ def test_a_large_json_block_is_refused_before_it_is_parsed(tmp_path):
 
 def test_the_limit_is_configurable(tmp_path):
     keep = Keep()
-    pipeline = Pipeline(make_config(tmp_path, limits=LimitsSection(max_json_payload_bytes=16 << 20)), [keep])
+    pipeline = Pipeline(
+        make_config(tmp_path, hold_estimates=False, limits=LimitsSection(max_json_payload_bytes=16 << 20)), [keep]
+    )
     pipeline.process("sinewatch/in/big/a", big_json(), BLOCK_JSON_ENCODING, 1)
     assert keep.errors == [] and len(keep.estimates) == 1
 

@@ -60,15 +60,17 @@ def test_a_sender_that_restarts_its_count_is_accepted_and_flagged(tmp_path):
     _send(pipeline, 3, 3 * step)  # seq back, time back: a replayed old block
     _send(pipeline, 0, 9 * step)  # seq back to 0, time forward: the gateway restarted
     _send(pipeline, 1, 10 * step)
-    # estimates wait for three more blocks of signal (the presence detector's onset latency,
-    # 300 samples at 50 Hz): three more blocks bring the restarted pair out
+    # estimates wait for the presence detector's onset latency: after a reset its quarter-cycle
+    # test is not armed for its first cycle, so the restarted block 0 waits 2 cycles (400
+    # samples), the blocks after it a third of a cycle (61 samples): four come out with
+    # three more blocks, in order
     assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4]
     assert not any(e["diagnostics"]["valid"] for e in sink.estimates[2:])  # unconfirmed at the restart
     for seq in (2, 3, 4):
         _send(pipeline, seq, (9 + seq) * step)
-    assert len(sink.estimates) == 7
+    assert len(sink.estimates) == 9
     assert [e["kind"] for e in sink.errors] == ["out_of_order"]
     d = [e["diagnostics"] for e in sink.estimates]
-    assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4, 0, 1]
-    assert [x["restart"] for x in d] == [False] * 5 + [True, False]
+    assert [e["seq"] for e in sink.estimates] == [0, 1, 2, 3, 4, 0, 1, 2, 3]
+    assert [x["restart"] for x in d] == [False] * 5 + [True, False, False, False]
     assert d[5]["gap"] and d[5]["gap_blocks"] == 0 and not d[6]["gap"]

@@ -113,7 +113,7 @@ def test_a_sink_without_on_input_still_recovers_at_the_next_input():
 def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
     sink = FlakySink()
     sink.broken = True
-    pipeline = Pipeline(make_config(tmp_path, sink_retry_s=3600.0), [sink])
+    pipeline = Pipeline(make_config(tmp_path, hold_estimates=False, sink_retry_s=3600.0), [sink])
     fs, n = 10_000.0, 256
     x = np.sin(2 * np.pi * 50 * np.arange(n * 5) / fs)
     for i in range(5):
@@ -165,10 +165,12 @@ def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: 
 
 
 def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path):
-    """Pipeline._fast_payload (one % formatting of a cached template) against the general path
-    (encode_estimate_values, itself proven equal to the pydantic model's bytes) over component
-    counts, std and rocof present or not, flags, fencing, time quality, every estimate format
-    from 3 on, and values of every magnitude; a non-finite value falls back to the general path."""
+    """estimate_payload's first branch (one % formatting of a cached template) against its
+    general way (encode_estimate_values, itself proven equal to the pydantic model's bytes) over
+    component counts, std and rocof present or not, flags, fencing, time quality, every estimate
+    format from 3 on, and values of every magnitude; a non-finite value takes the general way
+    (no template is made for it)."""
+    from sinewatch.core.estimate_bytes import estimate_payload
     from sinewatch.core.pipeline import Channel
     from sinewatch.estimators import get
     from sinewatch.schemas.messages import Fencing
@@ -191,24 +193,18 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
             blk.time_quality = tq
             tr = _track(rng, k, std=std, rocof=rocof)
             args = (ch, blk, tr, t_ns, t_ns, *flag)
-            fast = pipe._fast_payload(*args)
             ch.template = None
-            assert fast == _general_payload(pipe, *args), (version, k, std, rocof)
+            fast = estimate_payload(pipe, *args)
+            assert ch.template is not None  # the template made these bytes
+            assert fast == estimate_payload(pipe, *args, fast=False), (version, k, std, rocof)
             cases += 1
         for bad in ("frequency_hz", "offset", "amplitude"):
             tr = _track(rng, 2, std=True, rocof=False, bad=bad)
-            assert pipe._fast_payload(ch, blk, tr, 10**18, 10**18, 0, False, False, False) is None
+            ch.template = None
+            args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
+            assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
+            assert ch.template is None  # the general way wrote them
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
-
-
-def _general_payload(pipe: Pipeline, *args) -> tuple[bytes, bool]:
-    """Pipeline._estimate_payload with the fast path off."""
-    fast = pipe._fast_payload
-    pipe._fast_payload = lambda *a: None  # type: ignore[method-assign]
-    try:
-        return pipe._estimate_payload(*args)
-    finally:
-        pipe._fast_payload = fast  # type: ignore[method-assign]
 
 
 def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():

@@ -230,6 +230,7 @@ def record_and_replay(config, recorder, rounds):
     for i, blocks in enumerate(rounds):
         for b in blocks:
             pipeline.process(f"sinewatch/in/{b.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, i + 1)
+    pipeline.release_held(len(rounds) + 1)  # the input's end, as the daemon's drain
     recorder.close()
     return replay(recorder.paths)
 
@@ -453,6 +454,7 @@ def test_harmonics_at_a_rate_too_low_are_refused_once_and_estimation_goes_on(tmp
         x = np.sin(2 * np.pi * 50.0 * (t + i * 0.1))
         b = Block("slow", i, T0_NS + i * 100_000_000, 5_000.0, x)
         pipeline.process("sinewatch/in/slow", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    pipeline.release_held(0)  # the input's end: the estimates held back for the presence detector
     assert keep.estimates == 5 and keep.out == []
     [err] = keep.errors
     assert err["kind"] == "estimator_error" and err["channel"] == "slow" and err["seq"] == 0
@@ -482,6 +484,7 @@ def test_group_aggregates_at_a_rate_below_harmonic_range_come_from_the_fundament
         for c in channels:
             b = Block(c.channel, i, T0_NS + i * 100_000_000, fs, c.stream.read(n)[0])
             pipeline.process(f"sinewatch/in/{c.channel}", encode_block_binary(b), BLOCK_BINARY_ENCODING, 0)
+    pipeline.release_held(0)  # the input's end: the estimates held back for the presence detector
     assert keep.errors == [] and keep.estimates == 120
     aggs = [json.loads(p) for kind, _, p in keep.out if kind == "PqAggregate"]
     complete = [a for a in aggs if a["interval"] == "150/180-cycle" and a["complete"]]

@@ -89,6 +89,7 @@ def test_a_pipeline_recording_reads_back_with_crcs_and_replays_bit_for_bit(tmp_p
             payloads.append(payload)
             pipeline.process(f"sinewatch/in/{ch}", payload, "", t0)
     assert type(recorder._writer) is FastWriter  # this mcap's internals are the ones FastWriter knows
+    pipeline.release_held(t0 + 1)  # the input's end, as the daemon's drain: every held estimate out
     pipeline.close_sinks()
     (path,) = recorder.paths
     with open(path, "rb") as f:
@@ -138,6 +139,7 @@ def _rotating_recording(tmp_path, name: str) -> list[int]:
         t0 = 1_763_900_000_000_000_000 + round(i * 1024 * 1e5)
         payload = encode_block_binary(Block("a", i, t0, 10_000.0, x[i * 1024 : (i + 1) * 1024]), "float32")
         pipeline.process("sinewatch/in/a", payload, "", t0)
+    pipeline.release_held(t0 + 1)  # the input's end, as the daemon's drain
     pipeline.close_sinks()
     counts = []
     for path in recorder.paths:

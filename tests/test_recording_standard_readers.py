@@ -104,6 +104,7 @@ def fresh(tmp_path_factory):
             bad = bytearray(encode_frame_binary(Frame(("g/x",), 99, t0, FS, np.ones((8, 1))), "float32"))
             bad[44 + i // 4] = 1
             send("sinewatch/in/g/mu", bytes(bad), "", None)
+    pipeline.release_held(t + 1)  # the input's end, as the daemon's drain
     recorder.close()
     assert pipeline.counters.errors == 8 and pipeline.counters.estimates == 24 + 56
     return path, sent

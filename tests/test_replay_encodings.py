@@ -45,6 +45,7 @@ def record(tmp_path, inputs):
     pipeline = Pipeline(config, [recorder])
     for t, (payload, encoding) in enumerate(inputs, start=1):
         pipeline.process(KEY, payload, encoding, t)
+    pipeline.release_held(len(inputs) + 1)  # the input's end, as the daemon's drain
     recorder.close()
     return recorder.paths, pipeline
 

@@ -203,3 +203,29 @@ def test_a_rerun_of_a_window_is_that_window_of_the_whole_rerun(recording, tmp_pa
     got = messages(tmp_path / "win.mcap")
     assert got == expected and len(got) == part.produced_estimates > 15
     assert json.loads(got[0][2])["estimator"] == "ipdft"
+
+
+def test_a_window_of_a_recording_made_under_earlier_validity_rules_replays_under_them(tmp_path, monkeypatch):
+    """A file recorded under validity rules version 1 (as an earlier build wrote it: the
+    recorder states version 1, the pipeline coasts across a sender's restart) replays bit for
+    bit whole and in a window: both loops rebuild the pipeline with the file's rules (under
+    today's, the restart would reset the estimator and every estimate after it differ)."""
+    import sinewatch.outputs.recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "VALIDITY_RULES_VERSION", 1)
+    config = make_config(tmp_path, recording=RecordingSection(directory=tmp_path / "v1", rotate_seconds=None))
+    recorder = McapRecorder(config, snapshot=lambda: pipeline.snapshot())
+    pipeline = Pipeline(config, [recorder], validity_version=1)
+    [stream] = make_channels(["demo-biased"], prefix="v1")
+    for i in range(60):
+        x, _ = stream.stream.read(BLOCK)
+        seq = i if i < 30 else i - 30  # the sender restarts its count; its time goes on
+        payload = encode_block_binary(Block(stream.channel, seq, i * 40_000_000, 10_000.0, x))
+        pipeline.process(f"sinewatch/in/{stream.channel}", payload, BLOCK_BINARY_ENCODING, T0 + (i + 1) * 40_000_000)
+    recorder.close()
+    [path] = recorder.paths
+    whole = replay([path])
+    assert whole.ok and whole.matched == 60
+    windowed = replay([path], window=Window.parse("+0.4s", None))
+    assert windowed.ok, [m.describe() for m in windowed.mismatches[:3]]
+    assert windowed.matched > 40

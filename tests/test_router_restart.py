@@ -11,6 +11,7 @@ gap_blocks) and counted in Status (unrecovered).
 from __future__ import annotations
 
 import contextlib
+import json
 import signal
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from conftest import TIMEOUT, make_config, run_daemon
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
-from sinewatch.runtime.replay import replay
+from sinewatch.runtime.replay import read_recording, replay
 from sinewatch.schemas.config import ZenohSection
 
 ROUTER = """
@@ -108,4 +109,10 @@ def test_a_router_restart_loses_nothing_within_the_history(tmp_path, history, du
         assert ch.last_seq == len(blocks) - 1 and ch.gaps >= 1
         assert before + after <= ch.blocks <= before + history + after
         assert last["unrecovered"] == len(blocks) - ch.blocks
+        # ... and told on the key at once, in an ErrorReport whose count is the blocks lost so far: the record of
+        # a loss that no later block follows (a stream's last blocks)
+        recorded = [m for path in daemon.recording_paths for kind, m in read_recording(path) if kind == "message"]
+        reports = [json.loads(m.payload) for m in recorded if m.role == "error"]
+        counts = [r["count"] for r in reports if r.get("kind") == "unrecovered" and r["key"] == "sinewatch/in/rr/a"]
+        assert counts and counts[-1] == last["unrecovered"], counts
     assert replay(daemon.recording_paths).ok

@@ -25,7 +25,7 @@ import pytest
 import zenoh
 from conftest import TIMEOUT, endpoint, make_config, sinewatch, take
 
-from sinewatch.apps.bench.e2e import process_tree
+from sinewatch.apps.bench.e2e_probes import process_tree
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_estimates
 from sinewatch.clients.session import free_loopback_port
 from sinewatch.runtime.cluster import shard_id_of, worker_of

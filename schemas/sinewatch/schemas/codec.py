@@ -283,8 +283,7 @@ def _decode_json(payload: bytes) -> Block:
     try:
         msg = SampleBlock.model_validate(raw)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"][:2])
+        where, first = first_error(exc)
         got = repr(first.get("input"))
         got = got if len(got) <= 60 else got[:57] + "..."
         raise DecodeError(f"JSON block: {where}: {first['msg']}, got {got}") from None
@@ -443,3 +442,10 @@ def encode_error(report: ErrorReport) -> bytes:
 def encode_status(status: Status) -> bytes:
     # c37118 is left out when the server is off: the message stays what earlier builds wrote
     return dumps(status.model_dump(mode="json", exclude={"c37118"} if status.c37118 is None else None))
+
+
+def first_error(exc: ValidationError) -> tuple[str, Any]:
+    """Where a JSON message's first validation error is (its first two path parts, dotted), and
+    the error (pydantic's dict): what a decode error names."""
+    first = exc.errors()[0]
+    return ".".join(str(p) for p in first["loc"][:2]), first

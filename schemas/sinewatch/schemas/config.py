@@ -509,12 +509,20 @@ class SinewatchConfig(_Section):
         description="After a sequence gap: coast (keep the state, flag the gap) or reset the estimator",
     )
     hold_estimates: bool = Field(
-        False,
-        description="Hold each estimate until the signal-presence detector has read one and a half nominal "
-        "cycles past its window, so that no estimate whose window holds the start of an interruption is "
-        "published valid (costs 30 ms at 50 Hz plus up to one block of latency, and a stream's last "
-        "estimates wait for its next block). false (default): published at once, one per block; valid may "
-        "then be wrong in the 1.5 cycles before the detector reads an onset",
+        True,
+        description="Hold each estimate until the signal-presence detector has read its onset latency past "
+        "the estimate's window (a third of a nominal cycle: 6.1 ms at 50 Hz, 5.1 ms at 60 Hz at 10 kHz), so that "
+        "no estimate whose window holds the start of an interruption is published valid. An estimate at a "
+        "block's last sample then leaves with the channel's next block, or idle_release_s after it (not "
+        "valid: unconfirmed). false: published at once; valid may then be wrong in the third of a cycle "
+        "before the detector reads an onset",
+    )
+    idle_release_s: float = Field(
+        0.5,
+        gt=0,
+        le=3600,
+        description="With hold_estimates: a channel with no block for this long publishes the estimates it "
+        "holds, not valid (nothing confirmed their windows): a feed that pauses or ends is not left waiting",
     )
     power_quality: PowerQualitySection = Field(default_factory=PowerQualitySection)
     c37118: C37118Section = Field(default_factory=C37118Section)

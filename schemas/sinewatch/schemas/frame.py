@@ -75,6 +75,7 @@ from sinewatch.schemas.codec import (
     _encoding_version,
     check_time_quality,
     decode_block,
+    first_error,
     time_quality_model,
     time_quality_of,
 )
@@ -301,8 +302,7 @@ def _decode_json(payload: bytes) -> Frame:
     try:
         msg = SampleFrame.model_validate(raw)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"][:2])
+        where, first = first_error(exc)
         raise DecodeError(f"JSON frame {where}: expected a valid value, got {first['msg'].lower()}") from None
     n_ch = len(msg.channels)
     widths = {len(r) for r in msg.samples}

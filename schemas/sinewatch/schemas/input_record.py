@@ -66,7 +66,8 @@ from __future__ import annotations
 
 import functools
 import struct
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from sinewatch.schemas.codec import HEADER, MAGIC, decode_block
 from sinewatch.schemas.errors import InputError
@@ -79,59 +80,12 @@ from sinewatch.schemas.frame import (
     samples_offset,
 )
 
+_T = TypeVar("_T")
+
 INPUT_SCHEMA_NAME = "sinewatch.InputBlock"
 FRAME_SCHEMA_NAME = "sinewatch.InputFrame"
 INPUT_MESSAGE_ENCODING = "protobuf"
 INPUT_SCHEMA_ENCODING = "protobuf"
-
-INPUT_PROTO = """syntax = "proto3";
-package sinewatch;
-
-// time as whole seconds and nanoseconds since the epoch
-message Time {
-  sfixed64 sec = 1;
-  fixed32 nsec = 2;
-}
-
-// One input as the daemon received it: its samples for any reader, and what replay needs to
-// rebuild the received bytes (the binary layout from the fields, or raw) and their encoding.
-message InputBlock {
-  string zenoh_encoding = 1;
-  string channel = 2;
-  fixed64 seq = 3;
-  sfixed64 t0_ns = 4;
-  double sample_rate_hz = 5;
-  uint32 columns = 6;
-  uint32 n_samples = 7;
-  string unit = 8;
-  repeated double samples = 9;
-  repeated float samples_f32 = 10;
-  uint32 binary_version = 11;
-  uint32 binary_flags = 12;
-  bytes raw = 13;
-  Time timestamp = 14;
-}
-
-// One multi-channel frame as the daemon received it (field numbers InputBlock's where the
-// meaning is the same): its samples sample-major, all channels at one instant side by side.
-// Its fields repeat InputBlock's on purpose: a standard protobuf reader (Foxglove, the mcap
-// CLI) decodes each message from its own descriptor in the file and knows no shared base,
-// and the field numbers, fixed by recordings already written, must stay as they are.
-message InputFrame {
-  string zenoh_encoding = 1;
-  fixed64 seq = 3;
-  sfixed64 t0_ns = 4;
-  double sample_rate_hz = 5;
-  uint32 n_samples = 7;
-  repeated double samples = 9;
-  repeated float samples_f32 = 10;
-  bytes raw = 13;
-  Time timestamp = 14;
-  repeated string channels = 15;
-  uint32 frame_version = 16;
-  uint32 time_quality = 17;
-}
-"""
 
 # FieldDescriptorProto.Type and .Label values (google/protobuf/descriptor.proto)
 _DOUBLE, _FLOAT, _FIXED64, _FIXED32, _STRING, _MESSAGE, _BYTES, _UINT32, _SFIXED64 = 1, 2, 6, 7, 9, 11, 12, 13, 16
@@ -160,6 +114,49 @@ _FRAME_FIELDS = (
     ("channels", 15, _STRING, _REPEATED, ""),
     ("frame_version", 16, _UINT32, _OPTIONAL, ""),
     ("time_quality", 17, _UINT32, _OPTIONAL, ""),
+)
+
+_PROTO_TYPES = {
+    _DOUBLE: "double",
+    _FLOAT: "float",
+    _FIXED64: "fixed64",
+    _FIXED32: "fixed32",
+    _STRING: "string",
+    _BYTES: "bytes",
+    _UINT32: "uint32",
+    _SFIXED64: "sfixed64",
+}
+
+
+def _proto_message(comment: str, name: str, fields: tuple[tuple[str, int, int, int, str], ...]) -> str:
+    """One message of :data:`INPUT_PROTO`, written from the same field table as its descriptor."""
+    lines = [f"// {line}" for line in comment.splitlines()] + [f"message {name} {{"]
+    for field_name, number, type_, label, type_name in fields:
+        spelled = type_name.rsplit(".", 1)[1] if type_ == _MESSAGE else _PROTO_TYPES[type_]
+        lines.append(f"  {'repeated ' if label == _REPEATED else ''}{spelled} {field_name} = {number};")
+    return "\n".join(lines) + "\n}\n"
+
+
+#: The schema as ``.proto`` text (what :func:`file_descriptor_set` serialises), for readers.
+INPUT_PROTO = 'syntax = "proto3";\npackage sinewatch;\n\n' + "\n".join(
+    (
+        _proto_message("time as whole seconds and nanoseconds since the epoch", "Time", _TIME_FIELDS),
+        _proto_message(
+            "One input as the daemon received it: its samples for any reader, and what replay needs to\n"
+            "rebuild the received bytes (the binary layout from the fields, or raw) and their encoding.",
+            "InputBlock",
+            _INPUT_FIELDS,
+        ),
+        _proto_message(
+            "One multi-channel frame as the daemon received it (field numbers InputBlock's where the\n"
+            "meaning is the same): its samples sample-major, all channels at one instant side by side.\n"
+            "Its fields repeat InputBlock's on purpose: a standard protobuf reader (Foxglove, the mcap\n"
+            "CLI) decodes each message from its own descriptor in the file and knows no shared base,\n"
+            "and the field numbers, fixed by recordings already written, must stay as they are.",
+            "InputFrame",
+            _FRAME_FIELDS,
+        ),
+    )
 )
 
 # wire types
@@ -301,10 +298,7 @@ def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
             parts += (_FLAGS_KEY, _varint(flags))
         parts.append(_time(t0))
         return b"".join(parts)
-    try:
-        block = decode_block(payload, zenoh_encoding)
-    except InputError:
-        block = None  # a rejected input: its bytes alone
+    block = _accepted(decode_block, payload, zenoh_encoding)
     if block is not None:
         samples = block.samples.astype("<f8", copy=False).tobytes()
         unit = (block.unit or "").encode()
@@ -316,6 +310,14 @@ def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
     if block is not None:
         parts.append(_time(block.t0_ns))
     return b"".join(parts)
+
+
+def _accepted(decode: Callable[[bytes, str], _T], payload: bytes, zenoh_encoding: str) -> _T | None:
+    """The payload decoded, or None for one the daemon rejected (recorded as its bytes alone)."""
+    try:
+        return decode(payload, zenoh_encoding)
+    except InputError:
+        return None
 
 
 # the frame header with the sample rate as its bits: a NaN's payload bits go through untouched
@@ -382,10 +384,7 @@ def encode_frame_record(payload: bytes, zenoh_encoding: str) -> bytes:
         if tq:  # field 17 after 14: protobuf readers take fields in any order
             parts += (_TIME_QUALITY_KEY, _varint(tq))
         return b"".join(parts)
-    try:
-        frame = decode_frame(payload, zenoh_encoding)
-    except InputError:
-        frame = None  # a rejected frame: its bytes alone
+    frame = _accepted(decode_frame, payload, zenoh_encoding)
     if frame is not None:
         samples = frame.samples.astype("<f8", copy=False).tobytes()  # (n, C) C-ordered: sample-major
         fs_bits = _U64_BYTES.unpack(_DOUBLE_BYTES.pack(frame.sample_rate_hz))[0]

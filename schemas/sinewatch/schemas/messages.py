@@ -250,6 +250,7 @@ class ErrorKind(str, Enum):
     no_rule = "no_rule"
     estimator_error = "estimator_error"
     queue_overflow = "queue_overflow"
+    unrecovered = "unrecovered"  # lost in transport, past the publisher's cache (Zenoh's recovery)
     channel_limit = "channel_limit"
     estimator_fault = "estimator_fault"
     sink_error = "sink_error"

@@ -603,6 +603,11 @@ class _Parser(argparse.ArgumentParser):
 _Subparsers = argparse._SubParsersAction  # the type of add_subparsers()' result
 
 
+def _pairs_argument(parser: argparse.ArgumentParser, flag: str, metavar: str, help_text: str) -> None:
+    """A repeatable ``NAME=VALUE`` option (:func:`parse_param`), collected into a list."""
+    parser.add_argument(flag, action="append", type=parse_param, default=[], metavar=metavar, help=help_text)
+
+
 def _config_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML or JSON config file (default: $SINEWATCH_CONFIG or built-in defaults)")
 
@@ -742,14 +747,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = _command(sub, "replay", "replay recordings through fresh estimators", cmd_replay)
     r.add_argument("paths", nargs="+", type=Path, help="MCAP file(s) of one run, in order")
     r.add_argument("--estimator", help="re-run with this estimator instead of checking the recording")
-    r.add_argument(
-        "--param",
-        action="append",
-        type=parse_param,
-        default=[],
-        metavar="KEY=VALUE",
-        help="estimator parameter (repeatable; value parsed as JSON when it parses)",
-    )
+    _pairs_argument(r, "--param", "KEY=VALUE", "estimator parameter (repeatable; value parsed as JSON when it parses)")
     r.add_argument("--match", default="**", help="with --estimator: input keys it applies to (default all)")
     r.add_argument("--out", type=Path, help="write a new recording")
     _window_arguments(r)
@@ -776,13 +774,11 @@ def build_parser() -> argparse.ArgumentParser:
     cm.add_argument("a", type=Path, help="the first recording (e.g. the original)")
     cm.add_argument("b", type=Path, help="the second recording (e.g. a re-run with another estimator)")
     _window_arguments(cm)
-    cm.add_argument(
+    _pairs_argument(
+        cm,
         "--tolerance",
-        action="append",
-        type=parse_param,
-        default=[],
-        metavar="PARAM=VALUE",
-        help="divergence threshold of a parameter (repeatable), e.g. frequency_hz=0.001; "
+        "PARAM=VALUE",
+        "divergence threshold of a parameter (repeatable), e.g. frequency_hz=0.001; "
         "defaults: frequency_hz=0.01 amplitude=0.01 phase_rad=0.01 offset=0.01 rocof_hz_per_s=0.1",
     )
     cm.add_argument("--json", action="store_true", help="the comparison as JSON")

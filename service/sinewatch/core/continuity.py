@@ -22,13 +22,16 @@ estimator's memory has refilled with the new stream. Version 1 (files recorded b
 builds) flagged a restart and let the estimator coast across it; replay keeps that rule for
 those files so that they reproduce bit for bit.
 
-Version 3, with ``hold_estimates`` on, holds every estimate back until the presence detector has read the channel's
-signal its onset latency past the estimate
+Version 3 ends an absence only at 0.12 of the reference level (a hysteresis); with
+``hold_estimates`` on (off by default then) it holds every estimate back until the presence
+detector has read the channel's signal its onset latency past the estimate's window
 (:attr:`sinewatch.estimators.presence.SignalPresence.onset_latency_samples`), so that no
 estimate whose window holds the start of an interruption is published valid (the pipeline's
-``_hold``); with it on or off, version 3 ends an absence only at 0.12 of the reference
-level (a hysteresis).
-Files of version 2 replay without either.
+:func:`sinewatch.core.hold.hold`). Version 4 adds the detector's quarter-cycle onset test (the
+signal against the sinusoid of its last reading), which cuts that latency to about a third of a
+cycle, and holds estimates back by default. Files of version 2 replay without the hold and the
+hysteresis, files of version 3 with what their recorded config says of the hold and without the
+quarter-cycle test.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from sinewatch.schemas.errors import InputError
 
 #: Recorded in every file's metadata (``validity_rules_version``); files of earlier builds
 #: have no key and replay under version 1.
-VALIDITY_RULES_VERSION = 3
+VALIDITY_RULES_VERSION = 4
 
 
 @dataclass(frozen=True, slots=True)

@@ -59,42 +59,47 @@ class BankKernel:
 
     kernel: Callable[..., tuple[Any, ...]]
     n_outputs: int
+    #: the channels' Tracks from the stacked outputs in one pass (``tracks(first estimator,
+    #: outputs, samples)``), for a class whose ``_track`` does numpy work that a whole frame
+    #: can share; None: each channel's ``_track`` on its slice of the outputs
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None
+    #: a bank that runs each channel through the single kernel in turn (a windowed estimator)
+    #: takes the samples as (C, N) and the state arrays stacked channel first, (C, *shape):
+    #: each channel's row and state are then contiguous, gathered by one copy a state array
+    #: and scattered as views (stacked channel last, nls's 1024-sample ring buffers cost ~12
+    #: ns a sample to gather and ~8 to scatter, measured: more than the Python a bank saves)
+    channel_first: bool = False
 
 
 _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "kkl-biased": (
-        "no compiled bank yet: kkl's bank (kkl_kernels.py: two vectorised loops over 8 lanes "
-        "around one sine per lane, 2.2x its single channel) applies as it stands to the filters, the "
-        "prediction and the read-out; its inverse map (the 4 x 4 Schur-complement solve in the "
-        "eigenbasis of C^T C, whose branch on mu = 0 would become a select) is still to be split "
-        "out of its kernel into a helper both can call. One channel at a time it runs at "
-        "~0.37x the FFT (m = 5 filters, ~80 ns a sample)"
-    ),
-    "grip-mixing": (
-        "no compiled bank yet: its state (observer, the two z copies, the delay lines of y, u and "
-        "dhat: 421 values in the example) would have to be re-laid across channels, and each "
-        "sample reads the delay lines at ring positions that only coincide across channels whose "
-        "sample counts do (gathers otherwise); its channels run one after the other, each at "
-        "~0.8-0.9x the FFT (the observer (7) is one dependent chain a sample)"
-    ),
     "adaptive-multisine": (
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "ipdft": (
-        "no compiled bank: a windowed estimator whose work is per window, not per sample, and "
-        "already vectorised across the windows of a block (the windows of one channel fill the "
-        "vectors as the channels of a bank would); it stays below the FFT because it estimates "
-        "13 times as often as the FFT frames (see its note: ~0.3-0.4x one channel at a time), "
-        "which no grouping of channels changes; its channels run one after the other"
+    "grip-mixing": (
+        "no compiled bank: its state (observer, the two z copies, the delay lines of y, u and "
+        "dhat: 421 values in the example) would have to be re-laid across channels for a "
+        "lane-major bank, and each sample reads the delay lines at ring positions that coincide "
+        "across channels only where their sample counts do (gathers otherwise). Tried and left "
+        "out: one compiled call running each channel through the single kernel in turn (bit for "
+        "bit), 0.93-0.97x the channels one by one (`sinewatch bench kernels --bank 8`, and the "
+        "same 8 signals both ways, load 12-28): the kernel is ~75 of the ~95 ns a sample, one "
+        "dependent chain per sample (the observer (7)), and the Python a bank saves is less than "
+        "its gathering of the states; its channels run one after the other, each at ~0.7-0.9x "
+        "the FFT"
     ),
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
-        "numbers of steps and do not advance in lock step); its channels run one after the other"
+        "numbers of steps and do not advance in lock step). Tried and left out: one compiled call "
+        "running each channel through the single kernel in turn (bit for bit), 0.77-0.90x the "
+        "channels one by one (`sinewatch bench kernels --bank 8`, and the same 8 signals both "
+        "ways, load 12-28): the kernel is ~30 of ~45 ns a sample either way and the bank's "
+        "gathering and scattering of the 1024-sample ring buffers costs more than the Python it "
+        "saves; its channels run one after the other, at 1.2-1.6x the FFT"
     ),
     "pmu": (
         "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "
@@ -103,9 +108,16 @@ NO_BANK: dict[str, str] = {
 }
 
 
-def register_bank(cls: type[Estimator[Any]], kernel: Callable[..., tuple[Any, ...]], n_outputs: int) -> None:
-    """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses)."""
-    _BANKS[cls] = BankKernel(kernel, n_outputs)
+def register_bank(
+    cls: type[Estimator[Any]],
+    kernel: Callable[..., tuple[Any, ...]],
+    n_outputs: int,
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None,
+    channel_first: bool = False,
+) -> None:
+    """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses);
+    ``tracks`` and ``channel_first``: see :class:`BankKernel`."""
+    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first)
     NO_BANK.pop(cls.name, None)
 
 
@@ -151,13 +163,27 @@ def update_bank(
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
     keys = list(first._state)
-    stacked = [np.stack([e._state[k] for e in estimators], axis=-1) for k in keys]
+    if bank.channel_first:
+        x = np.ascontiguousarray(x.T)  # row c: channel c's samples
+        n = len(estimators)
+        # one C call a state array (np.stack costs ~5x as much: a Python loop over the arrays)
+        stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
+    else:
+        stacked = [np.stack([e._state[k] for e in estimators], axis=-1) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
-    tracks = []
-    for c, est in enumerate(estimators):
-        tracks.append(est._track(tuple(o[c] for o in outputs), x[:, c]))
-        est._state = {k: np.ascontiguousarray(s[..., c]) for k, s in zip(keys, new_state, strict=True)}
+    if bank.tracks is not None:
+        tracks = bank.tracks(first, outputs, x)
+    else:
+        cols = x if bank.channel_first else x.T
+        tracks = [est._track(tuple(o[c] for o in outputs), cols[c]) for c, est in enumerate(estimators)]
+    if bank.channel_first:  # row c of each new array is channel c's, contiguous: kept as a view
+        rows = [list(s) for s in new_state]
+        for c, est in enumerate(estimators):
+            est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
+    else:
+        for c, est in enumerate(estimators):
+            est._state = {k: np.ascontiguousarray(s[..., c]) for k, s in zip(keys, new_state, strict=True)}
     return tracks
 
 
@@ -169,7 +195,11 @@ def _check_alike(estimators: Sequence[Estimator[Any]], cls: type[Estimator[Any]]
                 f"estimators[{c}]: expected {cls.__name__} like estimators[0], got {type(est).__name__}"
             )
         if est.sample_rate_hz != first.sample_rate_hz or (
-            est.params is not first.params and est.params != first.params
+            # the fields' dict first: one C-level comparison (~0.3 us) against the model's own
+            # __eq__ (~5 us a channel, measured); a difference is then confirmed by __eq__
+            est.params is not first.params
+            and est.params.__dict__ != first.params.__dict__
+            and est.params != first.params
         ):
             raise ParameterError(
                 f"estimators[{c}]: expected the sample rate and parameters of estimators[0] "

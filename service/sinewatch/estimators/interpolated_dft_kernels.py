@@ -43,20 +43,9 @@ def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> 
 
 @kernel
 def _one_window_estimate(
-    xt: np.ndarray,
-    q: int,
-    hann: np.ndarray,
-    hann_sum: float,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    k_lo: int,
-    k_hi: int,
-    three_point: bool,
-    est: np.ndarray,
-    wu: np.ndarray,
-    st: np.ndarray,
-    ct: np.ndarray,
-) -> None:
+    xt: np.ndarray, q: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray, k_lo: int,
+    k_hi: int, three_point: bool, est: np.ndarray, wu: np.ndarray, st: np.ndarray, ct: np.ndarray,
+) -> None:  # fmt: skip
     # The arguments of _window_estimates, whose every window this must reproduce bit for bit
     # (a chunk of too few windows takes this path): the same inputs by design, not a copy.
     """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
@@ -148,17 +137,9 @@ def _one_window_estimate(
 
 @kernel
 def _window_estimates(
-    xt: np.ndarray,
-    n_win: int,
-    hann: np.ndarray,
-    hann_sum: float,
-    cos_tab: np.ndarray,
-    sin_tab: np.ndarray,
-    k_lo: int,
-    k_hi: int,
-    three_point: bool,
-    est: np.ndarray,
-) -> None:
+    xt: np.ndarray, n_win: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray,
+    k_lo: int, k_hi: int, three_point: bool, est: np.ndarray,
+) -> None:  # fmt: skip
     """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of window q, for
     q < ``n_win``; ``xt[n, q]`` is sample n (oldest first) of window q.
 
@@ -442,3 +423,32 @@ def ipdft_kernel(
     new_fstate = np.array([fcy, A, th, B, r, conv])
     new_rstate = np.array([f_prev, rocof, run])
     return out, resid, rocof_out, age, sse, n_pred, b, new_istate, new_fstate, new_rstate
+
+
+@kernel
+def ipdft_bank_kernel(
+    y: np.ndarray, buf: np.ndarray, istate: np.ndarray, fstate: np.ndarray, rstate: np.ndarray, hann: np.ndarray,
+    cos_tab: np.ndarray, sin_tab: np.ndarray, iconsts: np.ndarray, fconsts: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`ipdft_kernel` for the C channels of a frame in one compiled call (the bank of
+    :mod:`sinewatch.estimators.bank`, channel first): ``y`` (C, N) and the state arrays
+    stacked along a first channel axis; returns the outputs and the new state likewise. Each
+    channel runs through :func:`ipdft_kernel` itself, on its own row and state, so its bits
+    are the single channel's: the kernel's work is per window and already vectorised across
+    the windows of a block, and what a bank saves is the Python around each channel's call."""
+    nc = y.shape[0]
+    r = ipdft_kernel(y[0], buf[0], istate[0], fstate[0], rstate[0], hann, cos_tab, sin_tab, iconsts, fconsts, last_only)
+    rows = r[1].shape[0]
+    out = np.empty((nc, rows, 5))
+    resid, rocof, age = np.empty((nc, rows)), np.empty((nc, rows)), np.empty((nc, rows))
+    sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
+    new_buf, new_i = np.empty_like(buf), np.empty_like(istate)
+    new_f, new_r = np.empty_like(fstate), np.empty_like(rstate)
+    for c in range(nc):
+        if c > 0:
+            r = ipdft_kernel(
+                y[c], buf[c], istate[c], fstate[c], rstate[c], hann, cos_tab, sin_tab, iconsts, fconsts, last_only
+            )
+        out[c], resid[c], rocof[c], age[c], sse[c], n_pred[c] = r[0], r[1], r[2], r[3], r[4], r[5]
+        new_buf[c], new_i[c], new_f[c], new_r[c] = r[6], r[7], r[8], r[9]
+    return out, resid, rocof, age, sse, n_pred, new_buf, new_i, new_f, new_r

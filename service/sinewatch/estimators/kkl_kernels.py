@@ -5,7 +5,9 @@ kernel (inlined: the same arithmetic in both), and :func:`kkl_bank_kernel`, the 
 :mod:`sinewatch.estimators.bank`: the same observer for 8 channels at once, each operation of
 a sample written once in a helper that both the single kernel and the bank call, so that
 every channel's bits are the single kernel's whatever the bank's size and the channel's
-position in it.
+position in it. The bank's work-array rows and its plumbing (``bank_*``: loading, the filter
+step, the sines, converged, the rows) serve ``kkl-biased``'s bank too
+(:mod:`sinewatch.estimators.kkl_biased_kernels`).
 """
 
 from __future__ import annotations
@@ -458,6 +460,17 @@ _RXI = 37
 
 
 @kernel(inline="always")
+def bank_filter(S: np.ndarray, r: int, a: float, b0: float, b1: float, yp: float, yk: float, hp: float) -> float:
+    """One filter of (12) in entry ``r`` of a bank's work array (as :func:`filter_one`, not
+    before the first sample, ``hp`` = 0): its new value."""
+    xo = S[r]
+    v = filter_one(a, b0, b1, xo, yp, yk)
+    v = v if hp != 0.0 else xo
+    S[r] = v
+    return v
+
+
+@kernel(inline="always")
 def _bank_filters(
     S: np.ndarray, lane: int, lam: tuple[float, ...], fa: tuple[float, ...], fb0: tuple[float, ...],
     fb1: tuple[float, ...],
@@ -470,11 +483,7 @@ def _bank_filters(
     yp, yk, hp = S[_RYP * L + lane], S[_RY * L + lane], S[_RHP * L + lane]
     s2 = p0 = p1 = p2 = p3 = q2 = 0.0
     for i in range(len(lam)):
-        r = (_RXI + i) * L + lane
-        xo = S[r]
-        v = filter_one(fa[i], fb0[i], fb1[i], xo, yp, yk)
-        v = v if hp != 0.0 else xo
-        S[r] = v
+        v = bank_filter(S, (_RXI + i) * L + lane, fa[i], fb0[i], fb1[i], yp, yk, hp)
         s2, p0, p1, p2, p3, q2 = filter_sums(lam[i], v, s2, p0, p1, p2, p3, q2)
     S[_RS2 * L + lane], S[_RP0 * L + lane], S[_RP1 * L + lane] = s2, p0, p1
     S[_RP2 * L + lane], S[_RP3 * L + lane], S[_RQ2 * L + lane] = p2, p3, q2
@@ -557,18 +566,19 @@ def _bank_read_out(S: np.ndarray, lane: int, w_ref: float) -> None:
 
 
 @kernel(inline="always")
-def _bank_good(
-    S: np.ndarray, lane: int, n_settle: float, max_fit2: float, max_pred2: float, wts_lo: float, wts_hi: float
-) -> None:
-    """Lane ``lane``: the fit residual's sums as the single kernel leaves them, ``good`` and
-    the run of good samples."""
+def bank_good(
+    S: np.ndarray, lane: int, settled: bool, n_settle: float, max_fit2: float, max_pred2: float, wts_lo: float,
+    wts_hi: float,
+) -> None:  # fmt: skip
+    """Lane ``lane``: the fit residual's sums as the single kernel leaves them, ``good`` (also
+    ``settled``: kkl-biased waits for its filters) and the run of good samples."""
     L = LANES
     defined = S[_RDEF * L + lane] != 0.0
     rr, ff = S[_RRR * L + lane], S[_RFF * L + lane]  # loaded whatever the lane, then kept or not
     rr = rr if defined else 0.0
     ff = ff if defined else 1.0
     S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff
-    good = defined and consistent(
+    good = defined and settled and consistent(
         S[_RMU * L + lane], rr, ff, max_fit2, S[_RE2 * L + lane], max_pred2, S[_RLEV * L + lane],
         S[_RJUMP * L + lane] != 0.0, S[_RWTS * L + lane], wts_lo, wts_hi,
     )  # fmt: skip
@@ -577,21 +587,132 @@ def _bank_good(
 
 
 @kernel(inline="always")
-def _bank_lane_row(
-    S: np.ndarray, lane: int
+def bank_lane_row(
+    S: np.ndarray, lane: int, roff: int
 ) -> tuple[bool, float, bool, float, float, float, float, float, float, float, float, float]:
     """Lane ``lane``'s values for :func:`record_row` / :func:`write_sample`: good, n_good,
-    defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level."""
+    defined, omega Ts, A sin, A cos, offset, det, rr, ff, e2_avg, level. The offset from row
+    ``roff``; ``roff < 0``: a model without one (0 where defined)."""
     L = LANES
     defined = S[_RDEF * L + lane] != 0.0
+    offset = (0.0 if defined else np.nan) if roff < 0 else S[roff * L + lane]
     return (
         S[_RGOOD * L + lane] != 0.0, S[_RNG * L + lane], defined, S[_RWTS * L + lane], S[_RASIN * L + lane],
-        S[_RACOS * L + lane], 0.0 if defined else np.nan, S[_RDET * L + lane], S[_RRR * L + lane],
-        S[_RFF * L + lane], S[_RE2 * L + lane], S[_RLEV * L + lane],
+        S[_RACOS * L + lane], offset, S[_RDET * L + lane], S[_RRR * L + lane], S[_RFF * L + lane],
+        S[_RE2 * L + lane], S[_RLEV * L + lane],
     )  # fmt: skip
 
 
 _TAIL = (_RYP, _RHP, _RYPRED, _RPV, _RNG, _RENV, _RE2, _RLEV, _REF, _RES)  # the state's tail, in order
+
+
+@kernel(inline="always")
+def bank_arrays(
+    n: int, nc: int, m: int, n_tail: int, rxi: int, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A bank's arrays for ``nc`` channels of ``n`` samples, ``m`` filters: ``out`` (nc, rows,
+    5), ``extras`` (nc, rows, 3), ``sse`` (nc,), the new state (m + n_tail, nc), the work
+    array S (rows up to ``rxi``, then the filters'), the lanes' samples and their rows."""
+    rows = 1 if last_only else n
+    return (
+        np.empty((nc, rows, 5)), np.empty((nc, rows, 3)), np.empty(nc), np.empty((m + n_tail, nc)),
+        np.empty((rxi + m) * LANES), np.empty(n * LANES), np.empty((LANES, 0 if last_only else n, RECORD_SIZE)),
+    )  # fmt: skip
+
+
+@kernel(inline="always")
+def bank_load(
+    S: np.ndarray, ys: np.ndarray, y: np.ndarray, state: np.ndarray, g: int, tail: tuple[int, ...], rxi: int,
+    ry: int,
+) -> int:  # fmt: skip
+    """Channels g .. g + width - 1 into the lanes of a bank's work array ``S``: the filters'
+    xi into rows ``rxi + i``, the state's scalars into the rows ``tail`` (in the state's
+    order), their samples into ``ys`` (lane-major) and the first sample into row ``ry``.
+    Lanes past the last channel run on zeros (never defined); their results are dropped.
+    Returns ``width``: the channels loaded, up to LANES."""
+    L = LANES
+    width = int(min(L, y.shape[1] - g))
+    m = state.shape[0] - len(tail)
+    S[:] = 0.0
+    ys[:] = 0.0
+    for c in range(width):
+        for i in range(m):
+            S[(rxi + i) * L + c] = state[i, g + c]
+        for j in range(len(tail)):
+            S[tail[j] * L + c] = state[m + j, g + c]
+    for k in range(y.shape[0]):
+        for c in range(width):
+            ys[k * L + c] = y[k, g + c]
+    for lane in range(L):
+        S[ry * L + lane] = ys[lane]
+    return width
+
+
+@kernel(inline="always")
+def bank_sines(S: np.ndarray) -> None:
+    """The sine of the first-order hold's correction for every lane: C library calls, lane by
+    lane (a vectorised sine would round differently), in a loop of their own so that the
+    loops around them vectorise."""
+    L = LANES
+    for lane in range(L):
+        S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+
+
+@kernel(inline="always")
+def bank_next_sample(
+    S: np.ndarray, ys: np.ndarray, rec: np.ndarray, k: int, width: int, last_only: bool, roff: int
+) -> None:
+    """After sample ``k`` of a bank's block: its rows kept (unless only the last is wanted;
+    the offset from row ``roff``, see :func:`bank_lane_row`), then the next sample into row
+    ``_RY``, in place once this one is done with it."""
+    L = LANES
+    if not last_only:
+        for c in range(width):
+            bank_record(rec[c], k, bank_lane_row(S, c, roff))
+    nxt = min(k + 1, ys.shape[0] // L - 1) * L
+    for lane in range(L):
+        S[_RY * L + lane] = ys[nxt + lane]
+
+
+@kernel(inline="always")
+def bank_store(
+    S: np.ndarray, new_state: np.ndarray, sse_out: np.ndarray, g: int, width: int, tail: tuple[int, ...],
+    rxi: int, rsse: int,
+) -> None:  # fmt: skip
+    """The inverse of :func:`bank_load` after the block: each lane's state back into its
+    channel's column of ``new_state``, its sum of squared prediction errors into ``sse_out``."""
+    L = LANES
+    m = new_state.shape[0] - len(tail)
+    for c in range(width):
+        sse_out[g + c] = S[rsse * L + c]
+        for i in range(m):
+            new_state[i, g + c] = S[(rxi + i) * L + c]
+        for j in range(len(tail)):
+            new_state[m + j, g + c] = S[tail[j] * L + c]
+
+
+@kernel(inline="always")
+def bank_write(
+    out: np.ndarray, ext: np.ndarray, rec: np.ndarray, last_only: bool,
+    row: tuple[bool, float, bool, float, float, float, float, float, float, float, float, float], n_settle: float,
+    Ts: float, ell: float,
+) -> None:  # fmt: skip
+    """One channel's rows after a bank's block, by the single kernel's own functions: the
+    last sample's from its lane's final values ``row``, or every sample's from ``rec``."""
+    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
+    write_rows(out, ext, rec, last_only, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset, det, ell,
+               rr, ff, e2_avg, lev)  # fmt: skip
+
+
+@kernel(inline="always")
+def bank_record(
+    rec: np.ndarray,
+    k: int,
+    row: tuple[bool, float, bool, float, float, float, float, float, float, float, float, float],
+) -> None:
+    """Sample k's row of one lane (its values ``row``) kept in ``rec``, as :func:`record_sample`."""
+    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = row
+    record_row(rec, k, good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev)
 
 
 def kkl_bank_kernel(
@@ -622,11 +743,6 @@ def _kkl_bank(
     )  # fmt: skip
     n, nc = y.shape
     m = lam.shape[0]
-    rows = 1 if last_only else n
-    out = np.empty((nc, rows, 5))
-    ext = np.empty((nc, rows, 3))
-    sse_out = np.empty(nc)
-    new_state = np.empty((m + 10, nc))
     s_ll = 0.0  # constant entries of L^T L, as kkl_kernel sums them
     s_l = 0.0
     for i in range(m):
@@ -634,52 +750,21 @@ def _kkl_bank(
         s_l += lam[i]
     s_11 = float(m)
     L = LANES
-    S = np.empty((_RXI + m) * L)
-    ys = np.empty(n * L)
-    rec = np.empty((L, 0 if last_only else n, RECORD_SIZE))
+    out, ext, sse_out, new_state, S, ys, rec = bank_arrays(n, nc, m, len(_TAIL), _RXI, last_only)
     for g in range(0, nc, L):
-        width = min(L, nc - g)
-        S[:] = 0.0  # lanes past the last channel run on zeros (never defined), their results dropped
-        ys[:] = 0.0
-        for c in range(width):
-            for i in range(m):
-                S[(_RXI + i) * L + c] = state[i, g + c]
-            for j in range(10):
-                S[_TAIL[j] * L + c] = state[m + j, g + c]
-        for k in range(n):
-            for c in range(width):
-                ys[k * L + c] = y[k, g + c]
-        for lane in range(L):
-            S[_RY * L + lane] = ys[lane]
+        width = bank_load(S, ys, y, state, g, _TAIL, _RXI, _RY)
         for k in range(n):
             for lane in range(L):  # (12), the sums over the filters, the inverse map (8)-(9)
                 _bank_filters(S, lane, lam_t, fa, fb0, fb1)
                 _bank_front(S, lane, s_ll, s_l, s_11, ell, w_ref, Ts, silence_ratio, env_decay, avg_gain,
                             fast_gain, slow_gain)  # fmt: skip
-            for lane in range(L):  # the sines: C library calls, lane by lane
-                S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+            bank_sines(S)
             for lane in range(L):  # read-out, fit residual of (13), converged
                 _bank_read_out(S, lane, w_ref)
                 _bank_fit(S, lane, lam_t)
-                _bank_good(S, lane, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
-            nxt = min(k + 1, n - 1) * L
-            for lane in range(L):  # the next sample, in place once this one is done with it
-                S[_RY * L + lane] = ys[nxt + lane]
-            if not last_only:
-                for c in range(width):
-                    good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
-                    record_row(rec[c], k, good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev)
+                bank_good(S, lane, True, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
+            bank_next_sample(S, ys, rec, k, width, last_only, -1)
         for c in range(width):
-            ch = g + c
-            if last_only:
-                good, n_good, defined, wts, a_sin, a_cos, offset, det, rr, ff, e2_avg, lev = _bank_lane_row(S, c)
-                write_sample(out[ch], ext[ch], 0, good, n_good, n_settle, defined, wts, Ts, a_sin, a_cos, offset,
-                             det, ell, rr, ff, e2_avg, lev)  # fmt: skip
-            else:
-                write_samples(out[ch], ext[ch], rec[c], n_settle, Ts, ell)
-            sse_out[ch] = S[_RSSE * L + c]
-            for i in range(m):
-                new_state[i, ch] = S[(_RXI + i) * L + c]
-            for j in range(10):
-                new_state[m + j, ch] = S[_TAIL[j] * L + c]
+            bank_write(out[g + c], ext[g + c], rec[c], last_only, bank_lane_row(S, c, -1), n_settle, Ts, ell)
+        bank_store(S, new_state, sse_out, g, width, _TAIL, _RXI, _RSSE)
     return out, ext, sse_out, new_state

@@ -38,10 +38,37 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      fall to 0.099 pu read present again every 25 ms and, once the ripple let it through, for
      its last 50 ms.
 
+(F)  (validity rules version 4) An onset is also read within a third of a cycle, by comparing
+     the signal with the sinusoid of an earlier reading: at the nominal frequency a sine and
+     its copy a quarter cycle (Q = max(1, round(fs / (4 f_nominal))) samples) earlier are in
+     quadrature, so ``P_n = (x_n - mu)^2 + (x_{n-Q} - mu)^2`` is its squared magnitude A^2 =
+     2 L^2 at every phase (mu a one-cycle mean, the DC part). The signal is absent from sample
+     n on when the mean of P over the last m = max(1, min(16, round(Q / 4))) samples falls
+     below ``2 k^2 L^2`` (``FAST_RATIO`` k = 0.35, L the larger of the last two levels): the
+     magnitude fell to below 0.35 of what it was. mu is the mean of the reading before the
+     last, and L the larger of the last two levels, because a reading whose window straddles
+     the onset has neither the signal's mean nor its level. Away from the nominal frequency
+     the pair is not in quadrature (40 to 65 Hz in a 50 Hz detector: P between 0.55 and 1.45
+     of 2 L^2), and a harmonic ripples it (a 50 % third: P at least 0.2 of it), all above
+     0.35^2 = 0.12; an interruption to 0.099 pu leaves at most 0.026 R^2 (noise included: the
+     level test calls it absent only when noise and what is left are below 0.1 R together).
+     The test reads an onset once all of its 2 m samples are in the interruption: ``Q + m -
+     1`` samples after it (6.1 ms at 50 Hz, 5.1 ms at 60 Hz at 10 kHz), the hold-back
+     (:attr:`SignalPresence.onset_latency_samples`). It is off, and the hold-back is the level
+     test's (4 H), while it cannot be trusted: x_n and x_{n-Q} correlate by more than
+     ``FAST_MAX_CORR`` (0.5) over a cycle (the signal far from the detector's frequency), a DC
+     part above ``FAST_DC`` (0.25) of R (mu is one cycle's mean, off by up to 0.15 L for 45 to
+     55 Hz in a 50 Hz window), or before one cycle of signal since a start or a reset. The
+     level test still ends an absence (E), so a fast "absent" lasts until the next half-cycle
+     reading at least. What it also reads as an onset: a fall by more than a factor of about
+     three within a quarter cycle that the level test calls a deep sag (0.1 to 0.35 pu), a
+     phase jump of about 60 degrees or more, and in a 40 Hz detector on a 50 Hz signal the
+     onset of a sag to 0.5 pu; the estimates across them are then not valid for one memory.
+
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
 change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
-a signal (valid); its transitions are what ``converged`` is for.
+a signal (valid) for the level test; its transitions are what ``converged`` is for.
 
 Each sample's output is the run length: the number of consecutive samples, up to and
 including this one, at which the signal was present by the last decision (capped at 2^62). The pipeline calls an
@@ -51,15 +78,18 @@ throughout the span of input the estimate depends on. At a channel's start the r
 starts at 0, so the first estimates (before one memory of signal) are not valid either.
 
 Onset latency: the level of a one-cycle window falls below 0.1 of R only once about 99 % of
-the window is the interruption, and it is read every half cycle, so the detector says so
-within one and a half nominal cycles (3 H samples) of the onset. An estimate made in that
-time would read as valid though its window holds the interruption: with ``hold_estimates`` the pipeline holds every
-estimate back by those 3 H samples of the channel's signal and judges it then (validity
-rules version 3, :attr:`SignalPresence.onset_latency_samples`).
+the window is the interruption, and it is read every half cycle, so the level test says so
+within one and a half nominal cycles (3 H samples) of the onset; the quadrature test (F)
+within ``Q + m - 1``. An estimate made in that time would read as valid though its window
+holds the interruption: the pipeline holds every estimate back by the detector's latency
+and judges it then (``hold_estimates``, on by default from validity rules version 4,
+:attr:`SignalPresence.onset_latency_samples`).
 
-The sums are of two half cycles only, started afresh each half cycle (no running sum, so
-no accumulated rounding, and a state of a few numbers rather than a ring of samples); the
-outputs depend only on the samples, not on how they are cut into blocks.
+The level's sums are of two half cycles only, started afresh each half cycle (no running
+sum, so no accumulated rounding); the quadrature test's running sum of m values of P is
+summed afresh at every half-cycle reading. The state is a few numbers and a ring of the
+last Q + m samples; the outputs depend only on the samples, not on how they are cut into
+blocks.
 """
 
 from __future__ import annotations
@@ -72,55 +102,118 @@ import numpy as np
 from sinewatch.estimators.base import decode_array, encode_array, kernel
 from sinewatch.schemas.errors import ParameterError
 
-PRESENCE_STATE_VERSION = 2  # 1: sums without R one and two half cycles back (read, padded)
+PRESENCE_STATE_VERSION = 3  # 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
 DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
 DEFAULT_HYSTERESIS = 0.02  # (E): an absence ends at 0.12 of the reference (validity rules version 3)
+FAST_RATIO = 0.35  # (F): absent when the quadrature magnitude falls below 0.35 of the last level's
+FAST_DC = 0.25  # (F) is off while the one-cycle mean is above 0.25 of the reference
+FAST_MAX_CORR = 0.5  # (F) is off while x_n and x_{n-Q} correlate more (far from quadrature)
+FAST_MAX_MEAN = 16  # (F): at most 16 values of P averaged (noise), fewer below 20 kHz at 50 Hz
 RUN_CAP = 1 << 62
 _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
 # slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R, the
-# last level squared, and R as it was one and two half cycles back
-_P1, _P2, _C1, _C2, _R, _R1, _R2 = 0, 1, 2, 3, 4, 6, 7
+# last level squared, R as it was one and two half cycles back; for (F): the one-cycle mean
+# in use (the reading before the last's), the running sum of P over the last m samples, the
+# last reading's mean, the level before the last, the previous and the current half cycle's
+# sum of x_n x_{n-Q}, the lag-Q correlation in use and the last reading's
+_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (
+    0,
+    1,
+    2,
+    3,
+    4,
+    6,
+    7,
+    8,
+    9,
+    10,
+    11,
+    12,
+    13,
+    14,
+    15,
+)
+_N_SUMS = 16
 # slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
-# length, present (0/1: the last decision)
-_COUNT, _HALVES, _RUN, _PRESENT = 0, 1, 2, 3
+# length, present (0/1: the last decision), samples in the ring (up to its length), the
+# ring's next slot, armed (1: the running sum holds the last m values of P)
+_COUNT, _HALVES, _RUN, _PRESENT, _FILL, _POS, _ARMED = 0, 1, 2, 3, 4, 5, 6
+_N_COUNTERS = 7
+# slots of the kernel's constants (one float array: the single and the bank kernel take the same)
+_K_HALF, _K_DECAY, _K_RATIO, _K_HOLD, _K_HYST, _K_QUARTER, _K_MEAN, _K_FAST = range(8)
+
+
+@kernel
+def _p_sum(ring: np.ndarray, pos: int, quarter: int, m: int, mu: float) -> float:
+    """Sum of P over the m samples before ring slot ``pos`` (the next to write), afresh."""
+    size = ring.shape[0]
+    total = 0.0
+    for k in range(1, m + 1):
+        a = ring[(pos - k) % size] - mu
+        b = ring[(pos - k - quarter) % size] - mu
+        total += a * a + b * b
+    return total
+
+
+@kernel
+def _fast_usable(mu: float, cq: float, r: float) -> bool:
+    """(F) applies: a DC part at most FAST_DC of R and the pair close enough to quadrature
+    (lag-Q correlation at most FAST_MAX_CORR: the signal near the detector's frequency)."""
+    return abs(mu) <= FAST_DC * r and abs(cq) <= FAST_MAX_CORR
 
 
 @kernel
 def presence_kernel(
-    x: np.ndarray,
-    sums: np.ndarray,
-    counters: np.ndarray,
-    half: int,
-    decay: float,
-    ratio: float,
-    hold: int,
-    hysteresis: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Run (L), (R), (A) over ``x``; return ``(run, level, new_sums, new_counters)``: per sample
-    the run length of presence and the last level read (0 before the first). With ``hold``
-    (H) applies; an absence ends only at ``ratio + hysteresis`` (E). Pure: the inputs are not
-    modified."""
+    x: np.ndarray, sums: np.ndarray, counters: np.ndarray, ring: np.ndarray, consts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run (L), (R), (A), and (F) when ``consts`` says so, over ``x``; return ``(run, level,
+    new_sums, new_counters, new_ring)``: per sample the run length of presence and the last
+    level read (0 before the first). ``consts``: :meth:`SignalPresence.params`. Pure: the
+    inputs are not modified."""
+    half = int(consts[_K_HALF])
+    decay, ratio, hysteresis = consts[_K_DECAY], consts[_K_RATIO], consts[_K_HYST]
+    hold = consts[_K_HOLD] != 0.0
+    quarter, m, fast = int(consts[_K_QUARTER]), int(consts[_K_MEAN]), consts[_K_FAST] != 0.0
     p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
-    r1, r2 = sums[_R1], sums[_R2]
+    r1, r2, mu, psum, mu1, l1 = sums[_R1], sums[_R2], sums[_MU], sums[_PSUM], sums[_MU1], sums[_L1]
+    q1, q2, cq, cq1 = sums[_Q1], sums[_Q2], sums[_CQ], sums[_CQ1]
     count, halves, run, present = counters[_COUNT], counters[_HALVES], counters[_RUN], counters[_PRESENT]
+    fill, pos, armed = counters[_FILL], counters[_POS], counters[_ARMED]
+    ring = ring.copy()
+    size = ring.shape[0]
     level = math.sqrt(sums[5])  # the last level read (its square, kept for the outputs)
     n = x.shape[0]
     run_out = np.empty(n, dtype=np.int64)
     level_out = np.empty(n)
     m_total = 2.0 * half
+    thresh = m * 2.0 * FAST_RATIO * FAST_RATIO * max(level, l1) ** 2  # (F), from the last two readings
     for j in range(n):
         xj = np.float64(x[j])  # float32 samples are summed in float64, as if converted first
         c1 += xj
         c2 += xj * xj
         count += 1
+        if fast:  # (F): the ring of the last Q + m samples, the running sum of P, the lag-Q sums
+            xq = ring[(pos - quarter) % size]
+            q2 += xj * xq
+            if armed:
+                a = xj - mu
+                b = xq - mu
+                c = ring[(pos - m) % size] - mu
+                d = ring[pos] - mu  # the sample Q + m back, leaving the ring
+                psum += a * a + b * b - c * c - d * d
+            ring[pos] = xj
+            pos = (pos + 1) % size
+            if fill < size:
+                fill += 1
         if count == half:  # a half-cycle boundary: read the last cycle
             if halves < 2:
                 halves += 1
             if halves == 2:
                 mean = (p1 + c1) / m_total
                 ms = (p2 + c2) / m_total - mean * mean
+                l1 = level
                 level = math.sqrt(ms) if ms > 0.0 else 0.0
                 rd = r * decay
                 ref = level if level > rd else rd
@@ -134,8 +227,20 @@ def presence_kernel(
                     r = ref
                 elif hold:  # absent: frozen at the level from before the onset's readings
                     r = judge
+                if fast:
+                    # (F) takes the sinusoid of the reading before this one: a reading whose
+                    # window straddles an onset has a mean and a correlation that are neither
+                    mu, cq = mu1, cq1
+                    mu1 = mean
+                    cq1 = ((q1 + q2) / m_total - mean * mean) / ms if ms > 0.0 else 1.0
+                    armed = 1 if fill == size else 0
+                    psum = _p_sum(ring, pos, quarter, m, mu) if armed else 0.0
+                    thresh = m * 2.0 * FAST_RATIO * FAST_RATIO * max(level, l1) ** 2
             p1, p2, c1, c2 = c1, c2, 0.0, 0.0
+            q1, q2 = q2, 0.0
             count = 0
+        if fast and armed and present and psum < thresh and _fast_usable(mu, cq, r):
+            present = 0  # (F): the magnitude fell within a quarter cycle
         if present:
             if run < RUN_CAP:
                 run += 1
@@ -143,40 +248,32 @@ def presence_kernel(
             run = 0
         run_out[j] = run
         level_out[j] = level
-    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2])
-    new_counters = np.array([count, halves, run, present], dtype=np.int64)
-    return run_out, level_out, new_sums, new_counters
+    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2, mu, psum, mu1, l1, q1, q2, cq, cq1])
+    new_counters = np.array([count, halves, run, present, fill, pos, armed], dtype=np.int64)
+    return run_out, level_out, new_sums, new_counters, ring
 
 
 @kernel
 def presence_bank_kernel(
-    x: np.ndarray,
-    columns: np.ndarray,
-    sums: np.ndarray,
-    counters: np.ndarray,
-    half: int,
-    decay: float,
-    ratio: float,
-    hold: int,
-    hysteresis: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x: np.ndarray, columns: np.ndarray, sums: np.ndarray, counters: np.ndarray, rings: np.ndarray, consts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`presence_kernel` on columns ``columns`` of ``x`` (n, C), detector i's state in
-    row i of ``sums`` (D, 8) and ``counters`` (D, 4): returns the runs (D, n) and the new
-    state rows. Each detector's are exactly presence_kernel's on its column alone: it is
-    that kernel, called per column (one call from Python for a frame's channels instead of
-    one each)."""
+    row i of ``sums``, ``counters`` and ``rings``: returns the runs (D, n) and the new state
+    rows. Each detector's are exactly presence_kernel's on its column alone: it is that
+    kernel, called per column (one call from Python for a frame's channels instead of one
+    each)."""
     d = columns.shape[0]
     runs = np.empty((d, x.shape[0]), dtype=np.int64)
     new_sums = np.empty_like(sums)
     new_counters = np.empty_like(counters)
+    new_rings = np.empty_like(rings)
     for i in range(d):
-        run, _level, s, c = presence_kernel(
-            x[:, columns[i]], sums[i], counters[i], half, decay, ratio, hold, hysteresis
-        )
+        run, _level, s, c, g = presence_kernel(x[:, columns[i]], sums[i], counters[i], rings[i], consts)
         runs[i] = run
         new_sums[i] = s
         new_counters[i] = c
-    return runs, new_sums, new_counters
+        new_rings[i] = g
+    return runs, new_sums, new_counters, new_rings
 
 
 def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns: list[int]) -> np.ndarray | None:
@@ -191,9 +288,12 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
         return None
     sums = np.stack([d.sums for d in detectors])
     counters = np.stack([d.counters for d in detectors])
-    runs, new_sums, new_counters = presence_bank_kernel(x, np.asarray(columns, dtype=np.int64), sums, counters, *params)
+    rings = np.stack([d.ring for d in detectors])
+    runs, new_sums, new_counters, new_rings = presence_bank_kernel(
+        x, np.asarray(columns, dtype=np.int64), sums, counters, rings, first.consts
+    )
     for i, d in enumerate(detectors):
-        d.sums, d.counters = new_sums[i], new_counters[i]
+        d.sums, d.counters, d.ring = new_sums[i], new_counters[i], new_rings[i]
     return runs
 
 
@@ -209,6 +309,7 @@ class SignalPresence:
         tau_s: float = DEFAULT_TAU_S,
         hold: bool = True,
         hysteresis: float = 0.0,
+        fast: bool = False,
     ) -> None:
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
@@ -219,20 +320,24 @@ class SignalPresence:
         self.sample_rate_hz = float(sample_rate_hz)
         self.nominal_frequency_hz = float(nominal_frequency_hz)
         self.half_cycle_samples = max(1, round(sample_rate_hz / (2.0 * nominal_frequency_hz)))
+        self.quarter_cycle_samples = max(1, round(sample_rate_hz / (4.0 * nominal_frequency_hz)))  # (F)'s Q
+        self.mean_samples = max(1, min(FAST_MAX_MEAN, round(self.quarter_cycle_samples / 4)))  # (F)'s m
         self.ratio = float(ratio)
         self.decay = math.exp(-self.half_cycle_samples / (tau_s * sample_rate_hz))
         self.hold = 1 if hold else 0  # (H); off: the rule of earlier builds (their recordings)
         if not (0.0 <= hysteresis < 1.0 - ratio):
             raise ParameterError(f"hysteresis: expected 0 <= hysteresis < {1.0 - ratio}, got {hysteresis}")
         self.hysteresis = float(hysteresis)  # (E); 0: the rule of earlier builds
+        self.fast = 1 if fast else 0  # (F); off: the rules of earlier builds (validity rules version 3 and before)
+        self.consts = np.array(self.params, dtype=np.float64)
         self.reset()
 
     def reset(self) -> None:
-        """``sums`` (8,): the previous half cycle's sum of x and of x^2, the current one's,
-        the reference R, the last level squared, R one and two half cycles back; ``counters`` (4,) int64: samples in the
-        current half cycle, half cycles seen (up to 2), the run length, present (0/1)."""
-        self.sums = np.zeros(8)
-        self.counters = np.zeros(4, dtype=np.int64)
+        """``sums`` (16,), ``counters`` (7,) int64: the slots listed at the top of this module;
+        ``ring`` (Q + m,): the last samples, for (F)."""
+        self.sums = np.zeros(_N_SUMS)
+        self.counters = np.zeros(_N_COUNTERS, dtype=np.int64)
+        self.ring = np.zeros(self.quarter_cycle_samples + self.mean_samples)
 
     def update(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-sample (run length of presence, level) over ``samples`` (1-D; float32 or
@@ -241,24 +346,45 @@ class SignalPresence:
         x = samples
         if not (type(x) is np.ndarray and x.dtype in _KERNEL_DTYPES and x.flags.c_contiguous):
             x = np.ascontiguousarray(samples, dtype=np.float64)
-        run, level, self.sums, self.counters = presence_kernel(
-            x, self.sums, self.counters, self.half_cycle_samples, self.decay, self.ratio, self.hold, self.hysteresis
+        run, level, self.sums, self.counters, self.ring = presence_kernel(
+            x, self.sums, self.counters, self.ring, self.consts
         )
         return run, level
 
     @property
-    def params(self) -> tuple[int, float, float, int, float]:
-        """The kernel's constants: (half, decay, ratio, hold, hysteresis)."""
-        return self.half_cycle_samples, self.decay, self.ratio, self.hold, self.hysteresis
+    def params(self) -> tuple[int, float, float, int, float, int, int, int]:
+        """The kernel's constants: (half, decay, ratio, hold, hysteresis, quarter, mean, fast)."""
+        return (
+            self.half_cycle_samples,
+            self.decay,
+            self.ratio,
+            self.hold,
+            self.hysteresis,
+            self.quarter_cycle_samples,
+            self.mean_samples,
+            self.fast,
+        )
 
     @property
     def onset_latency_samples(self) -> int:
-        """Samples from the first sample of an interruption to the reading that says so, at
-        most: the one-cycle window (2 H) must be all but filled with it (a fall to 0.099 of R
-        reads below 0.1 R only once more than 99.98 % of the window is the interruption), and
-        the next reading is up to H later. The pipeline holds estimates back by this much
-        (validity rules version 3)."""
-        return 3 * self.half_cycle_samples
+        """Samples from the first sample of an interruption to the sample at which the
+        detector says so, at most, as things stand now. The level test: the one-cycle window
+        (2 H) must be all but filled with it (a fall to 0.099 of R reads below 0.1 R only once
+        more than 99.98 % of the window is the interruption), and the next reading is up to
+        H later: 3 H. The quadrature test (F), when on and armed: all of its 2 m values in
+        the interruption, ``Q + m - 1``. The pipeline holds estimates back by this much."""
+        s = self.sums
+        if (
+            self.fast
+            and self.counters[_ARMED]
+            and _fast_usable(s[_MU], s[_CQ], s[_R])
+            and _fast_usable(s[_MU1], s[_CQ1], s[_R])
+        ):
+            return self.quarter_cycle_samples + self.mean_samples - 1
+        # the level test, read in a window that is not a whole number of the signal's cycles
+        # (a 40 Hz detector on 50 Hz, a 50 Hz one on 60 Hz), reads a fall to 0.099 up to about
+        # 4 H after it (its level ripples with the phase): 4 H from rules version 4 on
+        return (4 if self.fast else 3) * self.half_cycle_samples
 
     @property
     def run_samples(self) -> int:
@@ -271,32 +397,39 @@ class SignalPresence:
             "half_cycle_samples": self.half_cycle_samples,
             "sums": encode_array(self.sums),
             "counters": encode_array(self.counters),
+            "ring": encode_array(self.ring),
         }
 
     def set_state(self, snapshot: dict[str, Any]) -> None:
-        if snapshot.get("format_version") not in (1, PRESENCE_STATE_VERSION):
-            raise ParameterError(
-                f"presence format_version: expected {PRESENCE_STATE_VERSION}, got {snapshot.get('format_version')!r}"
-            )
+        version = snapshot.get("format_version")
+        if version not in (1, 2, PRESENCE_STATE_VERSION):
+            raise ParameterError(f"presence format_version: expected {PRESENCE_STATE_VERSION}, got {version!r}")
         if snapshot.get("half_cycle_samples") != self.half_cycle_samples:
             raise ParameterError(
                 f"presence half_cycle_samples: expected {self.half_cycle_samples}, "
                 f"got {snapshot.get('half_cycle_samples')!r}"
             )
         sums, counters = decode_array(snapshot["sums"]), decode_array(snapshot["counters"])
-        if snapshot["format_version"] == 1 and sums.shape == (6,):  # earlier builds: R back then is R
+        ring = decode_array(snapshot["ring"]) if "ring" in snapshot else np.zeros_like(self.ring)
+        if version == 1 and sums.shape == (6,):  # earlier builds: R back then is R
             sums = np.concatenate([sums, sums[_R : _R + 1], sums[_R : _R + 1]])
-        if sums.shape != (8,) or counters.shape != (4,):
+        if version in (1, 2) and sums.shape == (8,) and counters.shape == (4,):  # (F) not armed yet
+            sums = np.concatenate([sums, np.zeros(_N_SUMS - 8)])
+            counters = np.concatenate([counters, np.zeros(_N_COUNTERS - 4, dtype=np.int64)])
+        if sums.shape != (_N_SUMS,) or counters.shape != (_N_COUNTERS,) or ring.shape != self.ring.shape:
             raise ParameterError(
-                f"presence state: expected shapes (8,) and (4,), got {sums.shape} and {counters.shape}"
+                f"presence state: expected shapes ({_N_SUMS},), ({_N_COUNTERS},) and {self.ring.shape}, "
+                f"got {sums.shape}, {counters.shape} and {ring.shape}"
             )
-        self.sums, self.counters = sums, counters
+        self.sums, self.counters, self.ring = sums, counters, ring
 
 
 __all__ = [
     "DEFAULT_HYSTERESIS",
     "DEFAULT_RATIO",
     "DEFAULT_TAU_S",
+    "FAST_DC",
+    "FAST_RATIO",
     "SignalPresence",
     "presence_bank_kernel",
     "presence_kernel",

@@ -46,26 +46,7 @@ from typing import Any
 
 from sinewatch.clients.subscriber import Fence
 from sinewatch.core.pipeline import NullSink
-from sinewatch.schemas.c37118 import (
-    Command,
-    ConfigFrame,
-    DataError,
-    DataFormat,
-    FrameError,
-    FrameSplitter,
-    FrameType,
-    PhasorScale,
-    PmuConfig,
-    PmuData,
-    decode_command,
-    decode_frame,
-    encode_config,
-    encode_data,
-    encode_header,
-    fracsec_word,
-    soc_fraction,
-    stat_word,
-)
+from sinewatch.schemas import c37118 as wire
 from sinewatch.schemas.config import C37118Section, C37118Station
 from sinewatch.schemas.errors import ConfigError
 from sinewatch.schemas.messages import C37118ClientStatus, C37118Status
@@ -182,43 +163,43 @@ class Station:
         self._holdover_since: int | None = None
         names = cfg.phasor_names or [ch.rsplit("/", 1)[-1] for ch in cfg.channels]
         current = cfg.phasor_type == "current"
-        self.pmu = PmuConfig(
+        self.pmu = wire.PmuConfig(
             station=cfg.name,
             id_code=cfg.id_code,
-            format=DataFormat(polar=cfg.phasor_format == "polar"),
+            format=wire.DataFormat(polar=cfg.phasor_format == "polar"),
             phasor_names=names,
             phunit=[(1 << 24 if current else 0)] * len(names),  # float data: the scale is not used
             nominal_frequency_hz=cfg.nominal_frequency_hz,
-            phscale=[PhasorScale(type_code=0b1000 if current else 0)] * len(names),
+            phscale=[wire.PhasorScale(type_code=0b1000 if current else 0)] * len(names),
             service_class="M",
         )
-        self.cfg2 = ConfigFrame(FrameType.CFG2, cfg.id_code, time_base, [self.pmu], cfg.data_rate)
+        self.cfg2 = wire.ConfigFrame(wire.FrameType.CFG2, cfg.id_code, time_base, [self.pmu], cfg.data_rate)
 
     def channel_of(self, channel: str) -> int | None:
         return self._index.get(channel)
 
-    def config_frame(self, frame_type: FrameType, t_ns: int) -> bytes:
-        soc, frac = soc_fraction(t_ns, self.time_base)
-        cfg = ConfigFrame(
+    def config_frame(self, frame_type: wire.FrameType, t_ns: int) -> bytes:
+        soc, frac = wire.soc_fraction(t_ns, self.time_base)
+        cfg = wire.ConfigFrame(
             frame_type,
             self.id_code,
             self.time_base,
             [self.pmu],
             self.cfg.data_rate,
             soc,
-            fracsec_word(frac, self.time_quality),
+            wire.fracsec_word(frac, self.time_quality),
         )
-        return encode_config(cfg)
+        return wire.encode_config(cfg)
 
     def header_frame(self, t_ns: int) -> bytes:
-        soc, frac = soc_fraction(t_ns, self.time_base)
+        soc, frac = wire.soc_fraction(t_ns, self.time_base)
         text = (
             f"sinewatch PMU {self.cfg.name}: channels {', '.join(self.cfg.channels)}; "
             f"{self.cfg.nominal_frequency_hz} Hz nominal, {self.cfg.data_rate} frames/s; "
             f"phasors RMS, angle referred to the nominal cosine (C37.118.1); FREQ and DFREQ of "
             f"{self.cfg.channels[0]}; clock {'UTC-traceable' if self.cfg.time_synchronised else 'not UTC-traceable'}"
         )
-        return encode_header(self.id_code, text, soc, fracsec_word(frac, self.time_quality))
+        return wire.encode_header(self.id_code, text, soc, wire.fracsec_word(frac, self.time_quality))
 
     def add(self, index: int, est: dict[str, Any]) -> list[bytes]:
         """Take one channel's estimate; return the data frames now complete, oldest first."""
@@ -268,7 +249,7 @@ class Station:
     def _data_frame(self, t_ns: int, got: dict[int, dict[str, Any]], stopped: bool = False) -> bytes:
         nan = math.nan
         phasors: list[tuple[float, float]] = []
-        error = DataError.GOOD
+        error = wire.DataError.GOOD
         missing = False
         for i in range(len(self._index)):
             est = got.get(i)
@@ -279,17 +260,17 @@ class Station:
                 continue
             d = est["diagnostics"]
             if not d.get("valid", True):
-                error = DataError.PMU_ERROR
-            elif d.get("gap") and error is DataError.GOOD:
-                error = DataError.PMU_ERROR_NO_INFO
+                error = wire.DataError.PMU_ERROR
+            elif d.get("gap") and error is wire.DataError.GOOD:
+                error = wire.DataError.PMU_ERROR_NO_INFO
             if self.pmu.format.polar:
                 phasors.append(ph)
             else:
                 phasors.append((ph[0] * math.cos(ph[1]), ph[0] * math.sin(ph[1])))
         if stopped:  # no input at all: the values are not to be used
-            error = DataError.PMU_ERROR
+            error = wire.DataError.PMU_ERROR
         elif missing:
-            error = DataError.TEST_OR_ABSENT
+            error = wire.DataError.TEST_OR_ABSENT
             self.incomplete += 1
         first = got.get(0)
         freq = dfreq = nan
@@ -299,12 +280,14 @@ class Station:
             freq = nan if f is None else f
             dfreq = nan if not r or r[0] is None else r[0]
         bits = self._time_bits(t_ns, got)
-        stat = stat_word(error, in_sync=bits.in_sync, pmu_time_quality=bits.pmu_time_quality, unlocked=bits.unlocked)
-        soc, frac = soc_fraction(t_ns, self.time_base)
+        stat = wire.stat_word(
+            error, in_sync=bits.in_sync, pmu_time_quality=bits.pmu_time_quality, unlocked=bits.unlocked
+        )
+        soc, frac = wire.soc_fraction(t_ns, self.time_base)
         self.built += 1
         self.time_quality = bits.code  # the configuration and header frames say it too
-        fracsec = fracsec_word(frac, bits.code)
-        return encode_data(self.cfg2, soc, fracsec, [PmuData(stat, phasors, freq, dfreq)])
+        fracsec = wire.fracsec_word(frac, bits.code)
+        return wire.encode_data(self.cfg2, soc, fracsec, [wire.PmuData(stat, phasors, freq, dfreq)])
 
     def _time_bits(self, t_ns: int, got: dict[int, dict[str, Any]]) -> TimeBits:
         """The frame's time bits: the worst of its channels' stated time qualities (the last
@@ -500,7 +483,7 @@ class C37118Server(NullSink):
         if task is not None:
             self._tasks.add(task)
         log.info("C37.118.2 client %s connected", peer)
-        splitter = FrameSplitter()
+        splitter = wire.FrameSplitter()
         idle_s = self.config.idle_timeout_s
         try:
             while True:
@@ -562,7 +545,7 @@ class C37118Server(NullSink):
         except (ConnectionError, OSError):
             return
 
-    def _count_skipped(self, splitter: FrameSplitter, peer: str) -> None:
+    def _count_skipped(self, splitter: wire.FrameSplitter, peer: str) -> None:
         if splitter.skipped:
             self._reject("sync", peer, f"{splitter.skipped} byte(s) that do not start a frame (SYNC 0xAA) skipped")
             splitter.skipped = 0
@@ -589,9 +572,9 @@ class C37118Server(NullSink):
     def _command(self, raw: bytes, client: Client) -> list[bytes]:
         """Act on one command frame; return the frames to answer with."""
         try:
-            frame = decode_frame(raw)
-            cmd, _ = decode_command(frame)
-        except FrameError as exc:
+            frame = wire.decode_frame(raw)
+            cmd, _ = wire.decode_command(frame)
+        except wire.FrameError as exc:
             self._reject(exc.kind, client.peer, str(exc))
             return []
         station = self.stations.get(frame.id_code)
@@ -604,16 +587,18 @@ class C37118Server(NullSink):
             return []
         now = self._clock_ns()
         replies: list[bytes] = []
-        if cmd == Command.DATA_ON:
+        if cmd == wire.Command.DATA_ON:
             client.streaming.add(station.id_code)
-        elif cmd == Command.DATA_OFF:
+        elif cmd == wire.Command.DATA_OFF:
             client.streaming.discard(station.id_code)
-        elif cmd == Command.SEND_HDR:
+        elif cmd == wire.Command.SEND_HDR:
             replies.append(station.header_frame(now))
-        elif cmd in (Command.SEND_CFG1, Command.SEND_CFG2, Command.SEND_CFG3):
-            kind = {1: FrameType.CFG1, 2: FrameType.CFG2, 3: FrameType.CFG3}[cmd - Command.SEND_CFG1 + 1]
+        elif cmd in (wire.Command.SEND_CFG1, wire.Command.SEND_CFG2, wire.Command.SEND_CFG3):
+            kind = {1: wire.FrameType.CFG1, 2: wire.FrameType.CFG2, 3: wire.FrameType.CFG3}[
+                cmd - wire.Command.SEND_CFG1 + 1
+            ]
             replies.append(station.config_frame(kind, now))
-        elif cmd == Command.EXTENDED:
+        elif cmd == wire.Command.EXTENDED:
             pass  # user information: nothing to do
         else:
             self._reject("command", client.peer, f"CMD: expected 1-6 or 8 (Table 15), got 0x{cmd:04X}")

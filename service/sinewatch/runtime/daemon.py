@@ -32,6 +32,7 @@ same heartbeat is the "event loop turned" time that ``/healthz`` checks.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import logging
@@ -146,6 +147,7 @@ class Intake:
         self._held: list[tuple[Item, Any, int]] | None = None  # live samples waiting for the history
         self._stopping = False
         self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
+        self._key_of: dict[str, str] = {}  # publisher (source id) -> its key: which channel a miss belongs to
         self._published: dict[str, int] = {}  # key -> the seq of its last block the previous owner published
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
@@ -243,11 +245,13 @@ class Intake:
         if self._owner is not None and not self._owner.owns(key):
             self.counters.not_owned += 1
             return None
+        info = sample.source_info
+        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
+        if source is not None:
+            self._key_of[source] = key
         payload = sample.payload.to_bytes()
         if history and self._in_state(key, payload):
             return None
-        info = sample.source_info
-        source, sn = (str(info.source_id), info.source_sn) if info is not None else (None, 0)
         return (key, payload, str(sample.encoding), time.monotonic_ns()), source, sn
 
     def _hand_over(self, items: list[tuple[Item, Any, int]]) -> None:
@@ -294,10 +298,17 @@ class Intake:
             self._closed.set()
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
-        """On a Zenoh thread: blocks lost for good (the pipeline flags the gap when the
-        next block of that channel arrives); counted here, logged."""
+        """On a Zenoh thread: blocks lost for good. Counted here, and reported at once as an
+        ``unrecovered`` ErrorReport on the publisher's key: the pipeline flags the gap on the
+        channel's next estimate, but the last blocks of a stream that ends (or pauses) have
+        no next estimate, and their loss must still be told (a failover test waited for the
+        estimate of a lost last block)."""
         self.counters.unrecovered += miss.nb
-        log.warning("intake: %d block(s) from publisher %s could not be recovered", miss.nb, miss.source)
+        key = self._key_of.get(str(miss.source))
+        log.warning("intake: %d block(s) of %s could not be recovered", miss.nb, key or f"publisher {miss.source}")
+        if key is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the daemon is gone
+                self._loop.call_soon_threadsafe(self._daemon.report_unrecovered, key, miss.nb)
 
     def _admit(self, item: Item, dropped: Counter[str]) -> bool:
         """Take room for an input: one block, or one per channel of a multi-channel frame
@@ -449,6 +460,12 @@ class Daemon:
             message = f"intake queue full: {n} input(s) dropped"
             self.pipeline.report_error(key, "queue_overflow", message, self._log_time(), count=n)
 
+    def report_unrecovered(self, key: str, n: int) -> None:
+        """``n`` blocks of ``key`` lost in transport that Zenoh's recovery could not fetch again:
+        one ErrorReport whose ``count`` advances by ``n``."""
+        message = f"{n} block(s) lost in transport and not in the publisher's cache: a gap on the next estimate"
+        self.pipeline.report_error(key, "unrecovered", message, self._log_time(), count=n)
+
     def _log_time(self) -> int:
         self._last_log_time = sanitize_log_time(self._last_log_time, time.time_ns())
         return self._last_log_time
@@ -582,6 +599,15 @@ class Daemon:
             sinks=p.sink_status() if p else [],
         )
 
+    def release_idle(self) -> None:
+        """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
+        back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
+        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon may publish
+        (a standby's held estimates are its successor's)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            return
+        self.pipeline.release_idle(self._log_time())
+
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
             await asyncio.sleep(seconds)
@@ -704,6 +730,8 @@ class Daemon:
             consumer = asyncio.create_task(self._consume(), name="sinewatch-consumer")
             periodic = [asyncio.create_task(self._every(self.config.status_interval_s, self.publish_status))]
             beat = asyncio.create_task(self._every(self._heartbeat_s(), self.heartbeat), name="sinewatch-heartbeat")
+            if self.config.hold_estimates:  # a paused feed's held estimates (Pipeline.release_idle)
+                periodic.append(asyncio.create_task(self._every(self.config.idle_release_s / 2, self.release_idle)))
             if self.recorder is not None:
                 periodic.append(
                     asyncio.create_task(self._every(self.config.recording.flush_interval_s, self.pipeline.flush_sinks))

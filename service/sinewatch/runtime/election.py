@@ -41,7 +41,6 @@ log = logging.getLogger("sinewatch.runtime.election")
 # restart would then keep every daemon from its lease for far longer than the TTL.
 _GRPC_OPTIONS = {
     "grpc.initial_reconnect_backoff_ms": 100,
-    "grpc.min_reconnect_backoff_ms": 100,
     "grpc.max_reconnect_backoff_ms": 500,
     # a ping every 5 s: etcd's own floor (--grpc-keepalive-min-time); pinged every 1 s, it answered
     # GOAWAY "too_many_pings" and dropped the connection, and with it any keep-alive under way
@@ -49,6 +48,21 @@ _GRPC_OPTIONS = {
     "grpc.keepalive_timeout_ms": 1000,
     "grpc.keepalive_permit_without_calls": 1,
 }
+
+
+def grpc_options(ttl_s: float) -> dict[str, int]:
+    """The etcd channel's options for a lease of ``ttl_s``.
+
+    gRPC core takes ``grpc.min_reconnect_backoff_ms`` as the least time a connection attempt
+    (TCP, then the HTTP/2 settings exchange) may take before it is abandoned (the attempt's
+    deadline is the later of that and the next backoff: here at most 0.5 s). Set to 100 ms
+    once, no attempt whose handshake took longer than ~0.6 s could ever succeed: after a
+    partition healed on a loaded machine, daemons' channels failed with "connection attempt
+    timed out before receiving SETTINGS frame" for good, every owner lost its lease and no
+    standby could win one. An attempt gets two TTLs: a handshake slower than that could not
+    keep a lease anyway, and a refused connection (etcd restarting) still fails at once and
+    is retried after the short backoff above."""
+    return {**_GRPC_OPTIONS, "grpc.min_reconnect_backoff_ms": int(2000 * ttl_s)}
 
 
 POLL_S = 0.2  # how often a standby reads the owner's lease while it is kept alive
@@ -153,7 +167,7 @@ class LeaseElection:
         if self._client is None:
             import aetcd  # the cluster extra: imported only by a daemon configured with cluster.etcd
 
-            self._client = aetcd.Client(self.host, self.port, options=dict(_GRPC_OPTIONS))
+            self._client = aetcd.Client(self.host, self.port, options=grpc_options(self.ttl_s))
         return self._client
 
     async def _call(self, coro: Any, timeout: float | None = None) -> Any:
@@ -271,6 +285,7 @@ class LeaseElection:
         won = self.won
         assert won is not None
         client = self._etcd()
+        failing = False  # the keep-alives fail (logged once per run of failures)
         try:
             while True:
                 sent = time.monotonic()
@@ -278,9 +293,15 @@ class LeaseElection:
                 try:
                     reply = await self._call(client.refresh_lease(won.lease_id))
                 except Exception as exc:  # noqa: BLE001 (unreachable etcd: the deadline decides)
-                    log.debug("election %s: keep-alive failed: %s", self.key.decode(), exc)
+                    # the first failure of a run is logged: why an owner stepped down shows in
+                    # its log (a chaos run's owners once went silent before losing their leases)
+                    (log.debug if failing else log.info)(
+                        "election %s: keep-alive failed (%s: %s)", self.key.decode(), type(exc).__name__, exc
+                    )
+                    failing = True
                 if reply is not None and reply.TTL > 0:
                     self.keepalives += 1
+                    failing = False
                     self._ack(sent)
                 elif reply is not None:  # etcd says the lease is gone: so is the key
                     log.warning("election %s: lease %x expired", self.key.decode(), won.lease_id)

@@ -128,9 +128,9 @@ class ReplayResult:
     recorded_estimates: int = 0
     produced_estimates: int = 0
     matched: int = 0
+    mismatches: list[Mismatch] = field(default_factory=list)  # the first max_mismatches
     recorded_errors: int = 0
     produced_errors: int = 0
-    mismatches: list[Mismatch] = field(default_factory=list)
     incomplete_files: list[Path] = field(default_factory=list)
     compared: bool = True
     uncompared_tail: int = 0  # estimates past the end of an incomplete recording
@@ -362,11 +362,7 @@ def replay(
             )
         results = [
             _replay_window_run(
-                run,
-                rules=rules,
-                out=out,
-                on_progress=on_progress,
-                max_mismatches=max_mismatches,
+                _Run(run, rules, out, on_progress, max_mismatches),
                 window=Window(window.start, window.end) if window is not None else Window(),
                 channels=channels or ChannelFilter(),
                 track=track,
@@ -375,15 +371,9 @@ def replay(
         ]
         return results[0] if len(results) == 1 else merge_results(paths, results)
     if len(runs) == 1:
-        return _replay_run(paths, rules=rules, out=out, on_progress=on_progress, max_mismatches=max_mismatches)
+        return _replay_run(_Run(paths, rules, out, on_progress, max_mismatches))
     results = [
-        _replay_run(
-            run,
-            rules=rules,
-            out=None if out is None else out if k == 1 else out.with_name(f"{out.stem}-run{k}{out.suffix}"),
-            on_progress=on_progress,
-            max_mismatches=max_mismatches,
-        )
+        _replay_run(_Run(run, rules, _run_out(out, k), on_progress, max_mismatches))
         for k, run in enumerate(runs, start=1)
     ]
     return merge_results(paths, results)
@@ -452,35 +442,69 @@ def merge_results(paths: list[Path], results: list[ReplayResult]) -> ReplayResul
     return merged
 
 
-def _replay_run(
-    paths: list[Path],
-    *,
-    rules: list[EstimatorRule] | None,
-    out: Path | None,
-    on_progress: Callable[[Path, int], None] | None,
-    max_mismatches: int,
-) -> ReplayResult:
+_CURRENT_VERSIONS = {
+    "estimate_version": ESTIMATE_FORMAT_VERSION,
+    "pq_version": PQ_FORMAT_VERSION,
+    "validity_version": VALIDITY_RULES_VERSION,
+}
+
+
+def _recorded_versions(metadata: dict[str, str], rules: list[EstimatorRule] | None) -> dict[str, int]:
+    """The Pipeline's version arguments for a file: a check runs in the recording's own
+    formats and validity rules (files of earlier builds have no key: 1); a re-run with other
+    ``rules`` in today's."""
+    if rules is not None:
+        return _CURRENT_VERSIONS
+    return {
+        "estimate_version": int(metadata.get("estimate_format_version", "1")),
+        "pq_version": int(metadata.get("pq_format_version", "1")),
+        "validity_version": int(metadata.get("validity_rules_version", "1")),
+    }
+
+
+def _run_out(out: Path | None, k: int) -> Path | None:
+    """Where run ``k`` (from 1) of several is written: ``out``, then ``out`` with ``-run<k>``."""
+    return None if out is None else out if k == 1 else out.with_name(f"{out.stem}-run{k}{out.suffix}")
+
+
+@dataclass(frozen=True)
+class _Run:
+    """One run's files and what both replay loops take with them: the rules to re-run with
+    (None: check the recording), where to write, progress, and how many mismatches to keep."""
+
+    paths: list[Path]
+    rules: list[EstimatorRule] | None
+    out: Path | None
+    on_progress: Callable[[Path, int], None] | None
+    max_mismatches: int
+
+    def result(self) -> ResultBuilder:
+        return ResultBuilder(self.paths, compare=self.rules is None, max_mismatches=self.max_mismatches)
+
+    def progress(self, path: Path) -> Callable[[int], None] | None:
+        """``on_progress`` for one of the run's files (None: no progress wanted)."""
+        on_progress = self.on_progress
+        return None if on_progress is None else lambda pos: on_progress(path, pos)
+
+
+def _replay_run(run: _Run) -> ReplayResult:
     """Replay one run's files, in order."""
-    result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
+    paths, rules, out = run.paths, run.rules, run.out
+    result = run.result()
     pipeline: Pipeline | None = None
     recorder: McapRecorder | None = None
     comparator = _Comparator()
     pending_snapshot: dict[str, Any] | None = None
     config: SinewatchConfig | None = None
-    estimate_version = ESTIMATE_FORMAT_VERSION
-    pq_version = PQ_FORMAT_VERSION
-    validity_version = VALIDITY_RULES_VERSION
+    versions = _CURRENT_VERSIONS
+    last_log_ns = 0
     for file_no, path in enumerate(paths):
-        progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
+        progress = run.progress(path)
         for kind, item in read_recording(path, progress):
             if kind == "metadata":
                 if config is None:
                     config = recorded_config(item)
-                    # check in the recording's own format (files of earlier builds have no key: 1)
-                    if rules is None:
-                        estimate_version = int(item.get("estimate_format_version", "1"))
-                        pq_version = int(item.get("pq_format_version", "1"))
-                        validity_version = int(item.get("validity_rules_version", "1"))
+                    versions = _recorded_versions(item, rules)
             elif kind == "snapshot":
                 # A later file's snapshot is the state replay has reached by then, unless
                 # no input came before it: the files of a standby before its takeover hold
@@ -512,13 +536,15 @@ def _replay_run(
                         config,
                         sinks,
                         rules=rules,
-                        estimate_version=estimate_version,
-                        pq_version=pq_version,
-                        validity_version=validity_version,
+                        **versions,
                     )
                     if pending_snapshot is not None:
                         pipeline.restore(pending_snapshot)
                 result.message(item, pipeline, comparator)
+                last_log_ns = item.log_time_ns
+    if rules is not None and pipeline is not None:
+        # re-estimated: the input's end, as a daemon's drain, publishes what is still held back
+        pipeline.release_held(last_log_ns)
     if recorder is not None:
         recorder.close()
         result.r.out_paths = list(recorder.paths)
@@ -583,17 +609,12 @@ class _InputChannels:
         return hit
 
 
-# _replay_window_run takes _replay_run's arguments and the window's. They stay two loops: a
-# window starts from the snapshot before it, holds the inputs in between and gates what is
-# compared and recorded, where a whole run feeds every input as it comes; one loop with both
-# behind flags would read as neither.
+# _replay_window_run and _replay_run stay two loops: a window starts from the snapshot before
+# it, holds the inputs in between and gates what is compared and recorded, where a whole run
+# feeds every input as it comes; one loop with both behind flags would read as neither.
 def _replay_window_run(
-    paths: list[Path],
+    run: _Run,
     *,
-    rules: list[EstimatorRule] | None,
-    out: Path | None,
-    on_progress: Callable[[Path, int], None] | None,
-    max_mismatches: int,
     window: Window,
     channels: ChannelFilter,
     track: Path | bool,
@@ -612,13 +633,14 @@ def _replay_window_run(
 
     ``out`` records the window only, its first file starting with the snapshot of the
     window's start, so that it replays on its own."""
-    result = ResultBuilder(paths, compare=rules is None, max_mismatches=max_mismatches)
+    paths, rules, out = run.paths, run.rules, run.out
+    result = run.result()
     comparator = _Comparator()
     comparator.active = False
     comparator.select = None if channels.everything else channels
     inputs = _InputChannels(channels)
     config: SinewatchConfig | None = None
-    estimate_version, pq_version = ESTIMATE_FORMAT_VERSION, PQ_FORMAT_VERSION
+    versions = _CURRENT_VERSIONS
     snapshot: dict[str, Any] | None = None
     snapshot_at: int | None = None  # its log time: that of the first message after it
     snapshot_pending = False
@@ -642,7 +664,7 @@ def _replay_window_run(
             recorder.attach_first_snapshot = True  # the window's first file replays on its own
             gate = _Gate(recorder)
             sinks.append(gate)
-        kwargs: dict[str, Any] = dict(rules=rules, estimate_version=estimate_version, pq_version=pq_version)
+        kwargs: dict[str, Any] = dict(rules=rules, **versions)
         if track:
             if track is True and recorder is None:
                 raise ReplayError("--track: expected --out (a recording to write the track into) or a .parquet path")
@@ -665,7 +687,7 @@ def _replay_window_run(
     for path in paths:
         if done:
             break
-        progress = (lambda pos, p=path: on_progress(p, pos)) if on_progress else None
+        progress = run.progress(path)
         if window.origin_ns is None and (first := first_log_time(path)) is not None:
             window.anchor(first)
         # a check skips what comes before the latest snapshot before its window, unread
@@ -674,9 +696,7 @@ def _replay_window_run(
             if kind == "metadata":
                 if config is None:
                     config = recorded_config(item)
-                    if rules is None:
-                        estimate_version = int(item.get("estimate_format_version", "1"))
-                        pq_version = int(item.get("pq_format_version", "1"))
+                    versions = _recorded_versions(item, rules)
             elif kind == "snapshot":
                 # a check before its window starts from the latest; a re-run from the run's first only
                 if pipeline is None and (rules is None or (snapshot is None and path == paths[0])):
@@ -838,9 +858,10 @@ class ResultBuilder:
             else:
                 r.recorded_other[m.role] = r.recorded_other.get(m.role, 0) + 1
             if estimate and not comparator.estimates[m.topic]:
-                # recorded with nothing produced yet: only the daemon's drain publishes an
-                # estimate after the last input (Pipeline.release_held), so release here too
-                pipeline.release_held(m.log_time_ns)
+                # recorded with nothing produced yet: only the daemon's drain and its idle
+                # release publish an estimate after a channel's last input (Pipeline.release_held,
+                # release_idle), so release that channel here too
+                pipeline.release_held(m.log_time_ns, m.topic)
             produced = comparator.estimates[m.topic].popleft() if comparator.estimates[m.topic] else None
             index = self.counts[m.topic]
             self.counts[m.topic] += 1

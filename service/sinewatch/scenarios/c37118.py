@@ -223,17 +223,9 @@ def _ramp(f0: int, fs_report: int, rate: float, settle: float) -> TestSignal:
         return SQRT_HALF * np.exp(1j * ph), f, rocof
 
     excl = 7.0 / fs_report
-    return TestSignal(
-        "ramp",
-        f"{rate:+g} Hz/s, {f_start:g} -> {f_start + rate * (t2 - t1):g} Hz",
-        f0,
-        fs_report,
-        dur,
-        signal,
-        truth,
-        settle,
-        excluded=((t1 - excl, t1 + excl), (t2 - excl, t2 + excl)),
-    )
+    excluded = ((t1 - excl, t1 + excl), (t2 - excl, t2 + excl))
+    label = f"{rate:+g} Hz/s, {f_start:g} -> {f_start + rate * (t2 - t1):g} Hz"
+    return TestSignal("ramp", label, f0, fs_report, dur, signal, truth, settle, excluded=excluded)
 
 
 def _step(f0: int, fs_report: int, kind: str, sign: float, offset_frac: float, settle: float) -> TestSignal:

@@ -25,7 +25,9 @@ from typing import Any
 import numpy as np
 from rich.table import Table
 
-from sinewatch.apps.bench.e2e import LatencyProbe, running_daemon, start_feeder, stop_feeder
+from sinewatch.apps.bench.e2e import running_daemon
+from sinewatch.apps.bench.e2e_feeder import start_feeder, stop_feeder
+from sinewatch.apps.bench.e2e_probes import LatencyProbe
 from sinewatch.apps.console import make_console
 from sinewatch.clients import JsonSubscription, connect
 from sinewatch.clients.c37118 import C37118Reader

@@ -7,11 +7,11 @@ the channels staggered evenly over a block period (as independent sensors would 
 subscribes to the estimates. Latency is block-to-estimate: the feeder (its own process) stamps
 each block so that its last sample's time is its publish time on CLOCK_MONOTONIC, which
 is system-wide (or, for a block published more than a quarter period late, its scheduled
-time: :func:`stamp_ns`), and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
+time: :func:`sinewatch.apps.bench.e2e_feeder.stamp_ns`), and the estimate's arrival is measured on the same clock. Reported: offered and sustained samples/s, estimates missing, the
 daemon's own drop and error counters, latency p50/p99/max, and the daemon's CPU use.
 
 With ``--foxglove`` the daemon also serves its live Foxglove view and a client here
-(:class:`FoxgloveProbe`, the protocol over ``websockets``) subscribes to every topic it
+(:class:`sinewatch.apps.bench.e2e_probes.FoxgloveProbe`, the protocol over ``websockets``) subscribes to every topic it
 advertises (estimates, input summaries, status, log): the cost of a watched daemon. Run it
 with and without the flag at an offer above what the daemon sustains (``--channels``) to
 compare throughput.
@@ -23,365 +23,30 @@ import argparse
 import contextlib
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 from rich.console import Console
 from rich.table import Table
 
+from sinewatch.apps.bench.e2e_feeder import frame_layout, start_feeder, stop_feeder
+from sinewatch.apps.bench.e2e_probes import FoxgloveProbe, LatencyProbe, cpu_seconds, main_thread_times, rss_mb
 from sinewatch.apps.console import make_console, print_table
-from sinewatch.clients import BlockPublisher, JsonSubscription, connect
+from sinewatch.clients import JsonSubscription, connect
 from sinewatch.clients.session import free_loopback_port
-
-
-def process_tree(pid: int) -> list[int]:
-    """``pid`` and its descendants (a ``serve`` supervisor and its worker processes)."""
-    pids = [pid]
-    for p in pids:
-        for task in Path(f"/proc/{p}/task").glob("*/children"):
-            with contextlib.suppress(OSError):
-                pids.extend(int(c) for c in task.read_text().split())
-    return pids
-
-
-def _rss_mb(pid: int) -> float:
-    """Resident memory of the process and its children (the workers), MB."""
-    total = 0.0
-    for p in process_tree(pid):
-        with contextlib.suppress(OSError):
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024
-    return total
-
-
-def _cpu_seconds(pid: int) -> float:
-    """CPU time of the process and its living children (the workers), seconds."""
-    total = 0.0
-    for p in process_tree(pid):
-        with contextlib.suppress(OSError):
-            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
-
-
-def main_thread_times(pid: int) -> tuple[int, int]:
-    """Nanoseconds the process's main thread (the daemon's event loop) has run on a CPU and
-    waited in the run queue for one (``/proc/<pid>/schedstat``; (0, 0) where unreadable).
-    Over an interval of wall time, the rest is time it slept: blocked in a Zenoh put
-    (CongestionControl.BLOCK), waiting for the GIL, or idle with nothing to do."""
-    try:
-        run_ns, wait_ns, _slices = Path(f"/proc/{pid}/schedstat").read_text().split()
-    except (OSError, ValueError):
-        return 0, 0
-    return int(run_ns), int(wait_ns)
 
 
 def expected_daemons(args: argparse.Namespace) -> int:
     """How many daemons (worker processes) publish Status: ``--workers``, 0 = one per core."""
     workers = getattr(args, "workers", 1)
     return workers if workers > 0 else max(1, len(os.sched_getaffinity(0)))
-
-
-class LatencyProbe:
-    """Estimate subscriber: latency = arrival - the estimate's timestamp, which the bench
-    feeder sets to the block's publish time (CLOCK_MONOTONIC, system-wide on Linux).
-
-    The probe shares the machine with the daemon it measures, so it costs as little as it
-    can: the estimates are drained from a Zenoh FIFO by one thread, many per wake-up (a
-    callback takes the GIL once per estimate), and only the three fields it needs are read
-    from the JSON as the daemon writes it (compact, ``"timestamp_ns":`` before
-    ``"diagnostics"``), not the whole message parsed: 40 -> 29 us an estimate at 1,000
-    channels (``sinewatch bench e2e --channels 1000``, the ``cpu_us_per_block`` field)."""
-
-    def __init__(self, session: Any, key: str) -> None:
-        self.latencies_ns: list[int] = []
-        self.received = 0
-        self.gaps = 0  # estimates that say blocks were missing before them
-        self.gap_blocks = 0
-        self.done = threading.Event()
-        self.expected: int | None = None
-        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(4096))
-        self._thread = threading.Thread(target=self._drain, name="bench-latency-probe", daemon=True)
-        self._thread.start()
-
-    def _drain(self) -> None:
-        handler = self._sub.handler
-        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained: the probe is over
-            while True:
-                sample = handler.recv()
-                while sample is not None:
-                    self._on(sample.payload.to_bytes(), time.monotonic_ns())
-                    sample = handler.try_recv()
-
-    def _on(self, payload: bytes, now_ns: int) -> None:
-        timestamp_ns, gap_blocks = probe_fields(payload)
-        self.latencies_ns.append(now_ns - timestamp_ns)
-        self.received += 1
-        if gap_blocks is not None:
-            self.gaps += 1
-            self.gap_blocks += gap_blocks
-        if self.expected is not None and self.received >= self.expected:
-            self.done.set()
-
-    def close(self) -> None:
-        self._sub.undeclare()
-        self._thread.join(5.0)
-
-
-_TIMESTAMP_NS = re.compile(rb'"timestamp_ns":(-?[0-9]+)')
-
-
-def probe_fields(payload: bytes) -> tuple[int, int | None]:
-    """An Estimate's ``timestamp_ns``, and its ``diagnostics.gap_blocks`` when it flags a
-    gap (None when not), read from its JSON bytes as the daemon writes them."""
-    match = _TIMESTAMP_NS.search(payload)  # one C call (a digit loop in Python was 3 us of ~5)
-    if match is None:
-        raise ValueError(f"estimate: expected a timestamp_ns, got {payload[:80]!r}")
-    timestamp_ns = int(match.group(1))
-    diagnostics = payload.index(b'"diagnostics":')
-    if payload.find(b'"gap":true', diagnostics) < 0:
-        return timestamp_ns, None
-    return timestamp_ns, _json_int(payload, b'"gap_blocks":', diagnostics)
-
-
-def _json_int(payload: bytes, key: bytes, start: int = 0) -> int:
-    """The integer after ``key`` (``"name":``) in compact JSON: its first occurrence from ``start``."""
-    start = payload.index(key, start) + len(key)
-    end = start
-    while payload[end] in b"-0123456789":
-        end += 1
-    return int(payload[start:end])
-
-
-class FoxgloveProbe:
-    """A Foxglove WebSocket client, run as its own process (:func:`foxglove_probe_main`) so
-    that reading the stream cannot slow this process's Zenoh subscriber (which would push
-    back on the daemon through CongestionControl.BLOCK and be mistaken for the daemon's
-    cost): subscribes to every channel the daemon advertises and counts the messages (and
-    bytes) per topic kind."""
-
-    SUBPROTOCOL = "foxglove.sdk.v1"
-
-    def __init__(self, port: int) -> None:
-        import importlib.util
-
-        from sinewatch.schemas.errors import SinewatchError
-
-        if importlib.util.find_spec("websockets") is None:
-            raise SinewatchError(
-                "bench e2e --foxglove: expected the websockets package for its client "
-                "(pip install 'sinewatch[test]'), got none installed"
-            )
-        code = "import sys; from sinewatch.apps.bench.e2e import foxglove_probe_main; sys.exit(foxglove_probe_main(sys.argv[1]))"
-        self._proc = subprocess.Popen(
-            [sys.executable, "-c", code, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-        )
-        assert self._proc.stdout is not None
-        if self._proc.stdout.readline().strip() != "connected":
-            raise RuntimeError("the daemon's Foxglove server did not accept the probe")
-        self.messages: dict[str, int] = {}
-        self.bytes = 0
-
-    def close(self) -> None:
-        out, _ = self._proc.communicate(timeout=60)  # stdin closed: the probe reports and exits
-        counts = json.loads(out)
-        self.messages, self.bytes = counts["messages"], counts["bytes"]
-
-
-def foxglove_probe_main(port: str) -> int:
-    import asyncio
-
-    messages: dict[str, int] = {}
-    total = [0]
-    asyncio.run(_foxglove_probe(int(port), messages, total))
-    print(json.dumps({"messages": dict(sorted(messages.items())), "bytes": total[0]}), flush=True)
-    return 0
-
-
-async def _foxglove_probe(port: int, messages: dict[str, int], total: list[int]) -> None:
-    import asyncio
-    import struct
-
-    import websockets
-    from websockets.typing import Subprotocol
-
-    loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), loop.call_soon_threadsafe(stop.set)), daemon=True).start()
-    topics: dict[int, str] = {}  # channel id -> topic
-    subs: dict[int, str] = {}  # subscription id -> topic kind
-    async with websockets.connect(
-        f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(FoxgloveProbe.SUBPROTOCOL)]
-    ) as ws:
-        print("connected", flush=True)
-
-        async def subscribe(ids: list[int]) -> None:
-            batch = []
-            for cid in ids:
-                sid = len(subs) + 1
-                subs[sid] = "/".join(topics[cid].split("/")[:2])  # sinewatch/est, sinewatch/samples, ...
-                batch.append({"id": sid, "channelId": cid})
-            await ws.send(json.dumps({"op": "subscribe", "subscriptions": batch}))
-
-        stopped = asyncio.ensure_future(stop.wait())
-        while not stop.is_set():
-            recv = asyncio.ensure_future(ws.recv())
-            await asyncio.wait([recv, stopped], return_when=asyncio.FIRST_COMPLETED)
-            if not recv.done():
-                recv.cancel()
-                break
-            frame = recv.result()
-            if isinstance(frame, bytes):
-                (sid,) = struct.unpack_from("<I", frame, 1)
-                messages[subs[sid]] = messages.get(subs[sid], 0) + 1
-                total[0] += len(frame)
-                continue
-            msg = json.loads(frame)
-            if msg["op"] == "advertise":
-                for ch in msg["channels"]:
-                    topics[ch["id"]] = ch["topic"]
-                await subscribe([ch["id"] for ch in msg["channels"]])
-            elif msg["op"] == "status" and "Unknown channel ID" in msg["message"]:
-                # foxglove-sdk 0.30 may not know a channel it has just advertised: ask again
-                await subscribe([int(msg["message"].rsplit(":", 1)[1])])
-
-
-FEEDER_TICK_S = 0.001
-
-
-def feeder_main(argv: list[str] | None = None) -> int:
-    """The bench's publisher, run as its own process so that publishing and measuring do
-    not share a GIL: real-time pacing, channels staggered over a block period, and each
-    block stamped so that its last sample's time is its publish time (monotonic clock)."""
-    p = argparse.ArgumentParser()
-    p.add_argument("endpoint")
-    p.add_argument("--channels", type=int)
-    p.add_argument("--rate", type=float)
-    p.add_argument("--block", type=int)
-    p.add_argument("--rounds", type=int)
-    p.add_argument("--frame-channels", type=int, default=1)
-    a = p.parse_args(argv)
-    if a.frame_channels > 1:
-        return _feed_frames(a)
-    fs, block, n_ch = a.rate, a.block, a.channels
-    period = block / fs
-    period_ns = block * 1e9 / fs
-    span_ns = round((block - 1) * 1e9 / fs)
-    t = np.arange(int(fs)) / fs
-    rng = np.random.default_rng(0)
-    base = [
-        (np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size)).astype(np.float32)
-        for _ in range(n_ch)
-    ]  # float32, as sent: no conversion per block
-    waiter = threading.Event()
-    late = 0
-    with connect([a.endpoint]) as session:
-        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
-        channels = [f"bench/{i:04d}" for i in range(n_ch)]
-        if not pub.wait_for_subscriber(channels[0], 30.0):
-            return 2
-        start_ns = time.monotonic_ns()
-        start = start_ns / 1e9
-        cpu0 = time.process_time()
-        for r in range(a.rounds):
-            idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
-            for c, name in enumerate(channels):
-                delay = start + (r + c / n_ch) * period - time.monotonic()
-                if (
-                    delay > 0
-                ):  # blocks due within a tick go out together: a wake-up per block costs more CPU than the block
-                    waiter.wait(max(delay, FEEDER_TICK_S))
-                elif delay < -period:
-                    late += 1
-                due_ns = start_ns + round((r + c / n_ch) * period_ns)
-                blk = pub.block(name, base[c][idx], fs, t0_ns=stamp_ns(due_ns, period_ns) - span_ns)
-                pub.publish_raw(name, pub.encode(blk))
-        elapsed = time.monotonic() - start
-        cpu = time.process_time() - cpu0
-        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late, "cpu_s": cpu}), flush=True)
-        # Stay connected until told: blocks still in this session's send queue would be lost
-        # with it, and counted against the daemon.
-        sys.stdin.read()
-        pub.close()
-    return 0
-
-
-def stamp_ns(due_ns: int, period_ns: float, now_ns: int | None = None) -> int:
-    """The time a block's last sample is stamped with: its publish time (now), but never
-    more than a quarter of a block period (at most 10 ms) after it was due. A sensor's
-    clock does not wait for a backed-up network: a feeder held back by the daemon
-    (CongestionControl.BLOCK) that stamped its publish time would move each channel's
-    time on by more than half a block between two blocks, which the daemon rightly takes
-    for a time jump and starts the channel over for, every block. On time, the
-    latency is measured from the publish; late, from the schedule, delay included."""
-    now = time.monotonic_ns() if now_ns is None else now_ns
-    return min(now, due_ns + round(min(0.25 * period_ns, 10e6)))
-
-
-def frame_layout(n_channels: int, per_frame: int) -> list[list[str]]:
-    """The bench's channels ``bench/0000``... cut into frames of ``per_frame`` (the last may
-    hold fewer): frame k is published on ``sinewatch/in/f<k>``, so its channels' keys are
-    ``sinewatch/in/bench/<i>``, the keys they have as single blocks."""
-    names = [f"bench/{i:04d}" for i in range(n_channels)]
-    return [names[i : i + per_frame] for i in range(0, n_channels, per_frame)]
-
-
-def _feed_frames(a: argparse.Namespace) -> int:
-    """:func:`feeder_main` with SampleFrames of ``--frame-channels`` channels: the frames
-    staggered over a block period, each stamped as a block is."""
-    fs, block = a.rate, a.block
-    period = block / fs
-    period_ns = block * 1e9 / fs
-    span_ns = round((block - 1) * 1e9 / fs)
-    layout = frame_layout(a.channels, a.frame_channels)
-    t = np.arange(int(fs)) / fs
-    rng = np.random.default_rng(0)
-    base = [
-        np.stack(
-            [np.sin(2 * np.pi * 50.0 * t + rng.uniform(0, 6.28)) + 0.01 * rng.standard_normal(t.size) for _ in names],
-            axis=1,
-        ).astype(np.float32)
-        for names in layout
-    ]  # (fs, C) float32 per frame, as sent
-    waiter = threading.Event()
-    late = 0
-    with connect([a.endpoint]) as session:
-        pub = BlockPublisher(session, prefix="sinewatch/in", dtype="float32")
-        frames = [f"f{k:04d}" for k in range(len(layout))]
-        if not pub.wait_for_frame_subscriber(frames[0], 30.0):
-            return 2
-        start_ns = time.monotonic_ns()
-        start = start_ns / 1e9
-        cpu0 = time.process_time()
-        n_fr = len(frames)
-        for r in range(a.rounds):
-            idx = ((r * block) % int(fs) + np.arange(block)) % int(fs)
-            for k, name in enumerate(frames):
-                delay = start + (r + k / n_fr) * period - time.monotonic()
-                if delay > 0:
-                    waiter.wait(max(delay, FEEDER_TICK_S))
-                elif delay < -period:
-                    late += 1
-                due_ns = start_ns + round((r + k / n_fr) * period_ns)
-                fr = pub.frame(name, layout[k], base[k][idx], fs, t0_ns=stamp_ns(due_ns, period_ns) - span_ns)
-                pub.publish_frame_raw(name, pub.encode_frame(fr))
-        elapsed = time.monotonic() - start
-        cpu = time.process_time() - cpu0
-        print(json.dumps({"elapsed_s": elapsed, "late_blocks": late, "cpu_s": cpu}), flush=True)
-        sys.stdin.read()
-        pub.close()
-    return 0
 
 
 SWEEP_CHANNELS = (1, 10, 100, 1000, 5000)
@@ -679,50 +344,6 @@ def running_daemon(
             rec.recorded_bytes = sum(f.stat().st_size for f in (Path(tmp) / "rec").glob("*.mcap"))
 
 
-def start_feeder(
-    endpoint: str, channels: int, rate: float, block: int, rounds: int, frame_channels: int = 1
-) -> tuple[subprocess.Popen[str], str]:
-    """Start the bench feeder process and wait for its first line (what it published);
-    the feeder keeps its session until its stdin is closed."""
-    feeder = subprocess.Popen(
-        [*feeder_command(endpoint, channels, rate, block, rounds), "--frame-channels", str(frame_channels)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert feeder.stdin is not None and feeder.stdout is not None
-    line = feeder.stdout.readline()
-    if not line:
-        raise RuntimeError(f"bench feeder failed: {feeder.communicate()[1][-2000:]}")
-    return feeder, line
-
-
-def stop_feeder(feeder: subprocess.Popen[str]) -> None:
-    """Let the feeder close its session (it waits on its stdin) and end."""
-    assert feeder.stdin is not None
-    feeder.stdin.close()
-    feeder.wait()
-
-
-def feeder_command(endpoint: str, channels: int, rate: float, block: int, rounds: int) -> list[str]:
-    """The bench feeder (:func:`feeder_main`) as its own process."""
-    return [
-        sys.executable,
-        "-c",
-        "import sys; from sinewatch.apps.bench.e2e import feeder_main; sys.exit(feeder_main(sys.argv[1:]))",
-        endpoint,
-        "--channels",
-        str(channels),
-        "--rate",
-        str(rate),
-        "--block",
-        str(block),
-        "--rounds",
-        str(rounds),
-    ]
-
-
 def _params(args: argparse.Namespace) -> dict[str, Any]:
     if args.estimator == "ges-kalman":
         from sinewatch.scenarios.demo import KALMAN_10K
@@ -748,9 +369,9 @@ def _drive(
             + (f", {per_msg} channels a frame" if per_msg > 1 else "")
             + f" ({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
         )
-        cpu0 = _cpu_seconds(daemon.pid)
+        cpu0 = cpu_seconds(daemon.pid)
         sched0 = main_thread_times(daemon.pid)
-        rss0 = _rss_mb(daemon.pid)
+        rss0 = rss_mb(daemon.pid)
         probe_cpu0 = time.process_time()  # this process: the probe's Zenoh threads and parsing
         t0 = time.monotonic()
         feeder, line = start_feeder(endpoint, n_ch, fs, block, rounds, per_msg)
@@ -758,10 +379,10 @@ def _drive(
         probe.done.wait(30.0)
         stop_feeder(feeder)  # everything published has had its chance to arrive
         drained_s = time.monotonic() - t0
-        cpu = _cpu_seconds(daemon.pid) - cpu0
+        cpu = cpu_seconds(daemon.pid) - cpu0
         sched1 = main_thread_times(daemon.pid)
         probe_cpu = time.process_time() - probe_cpu0
-        rss1 = _rss_mb(daemon.pid)
+        rss1 = rss_mb(daemon.pid)
         # Each daemon (worker) publishes Status every second: drop the backlog, then take a
         # fresh one from each and add them up.
         while status.get(timeout=0) is not None:

@@ -153,10 +153,13 @@ def _steps(
                 pres(channels[blk.channel], blk, False)
 
     def encode(batch: Batch) -> None:  # the tracks of the estimator step on this batch
-        payloads = on._estimate_payloads
+        payload = on._estimate_payload  # one Estimate's bytes (holding it back, by default, is in "rest")
         for row in batch:
             for _key, _payload, blk in row:
-                estimates[blk.channel] = payloads(channels[blk.channel], blk, tracks[blk.channel], 0, False, False)[0]
+                t_last = blk.t0_ns + round((blk.n_samples - 1) * 1e9 / blk.sample_rate_hz)
+                estimates[blk.channel] = payload(
+                    channels[blk.channel], blk, tracks[blk.channel], t_last, t_last, 0, False, False
+                )[0]
 
     def record(batch: Batch) -> None:  # the input, and the channel's estimate of the encode step
         on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate

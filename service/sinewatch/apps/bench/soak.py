@@ -26,7 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.apps.bench.e2e import LatencyProbe, _rss_mb, feeder_command, running_daemon
+from sinewatch.apps.bench.e2e import running_daemon
+from sinewatch.apps.bench.e2e_feeder import feeder_command
+from sinewatch.apps.bench.e2e_probes import LatencyProbe, rss_mb
 from sinewatch.apps.console import make_console
 from sinewatch.clients import JsonSubscription, connect
 from sinewatch.schemas.errors import ConfigError
@@ -73,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             seen += window.size
             sample = {
                 "t_s": round(time.monotonic() - start, 1),
-                "rss_mb": _rss_mb(daemon.pid),
+                "rss_mb": rss_mb(daemon.pid),
                 "open_fds": len(os.listdir(f"/proc/{daemon.pid}/fd")),
                 "estimates": int(window.size),
                 "latency_ms_p50": float(np.percentile(window, 50)) if window.size else None,

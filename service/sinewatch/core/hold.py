@@ -1,0 +1,68 @@
+"""Estimates held back until the presence detector has read past their windows
+(``hold_estimates``: on by default from validity rules version 4, off by default in version 3): :func:`hold` takes a block's estimates and gives
+what may leave now; :func:`not_valid` marks one that could not be confirmed."""
+
+from __future__ import annotations
+
+from sinewatch.core.channel import Channel
+
+
+def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset: bool) -> list[bytes]:
+    """No estimate is published valid while its window may hold
+    an event the presence detector has not read yet. Each estimate waits until the
+    detector has seen ``onset_latency_samples`` past the last sample its window holds (the
+    block's last, or a grid report's ``lookahead_samples`` after its time; counted in
+    samples, not wall time: replay reproduces it), and is then published valid only if
+    the signal was present at that sample throughout its window and since (the run of
+    presence there reaches back to the window's start). An estimate not valid when made
+    stays so; estimates held when the channel starts over (a reset) are published not
+    valid: the detector that was to confirm them starts afresh. Order is kept: an
+    estimate leaves after every estimate made before it."""
+    assert ch.presence is not None
+    out: list[bytes] = []
+    held = ch.held
+    if reset:
+        while held:
+            payload, _, window_start, _ = held.popleft()
+            out.append(not_valid(payload) if window_start >= 0 else payload)
+    n_now = ch.samples
+    latency = ch.presence.onset_latency_samples
+    memory = ch.estimator.memory_samples
+    fs = ch.sample_rate_hz
+    ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
+    for payload, converged, t_ns in made:
+        valid = DIAGNOSTICS_VALID[0] in payload or DIAGNOSTICS_VALID[1] in payload
+        lag = max(0, round((t_last_ns - t_ns) * fs / 1e9))
+        end = n_now if ahead is None else min(n_now, n_now - lag + ahead)  # the window's last sample
+        held.append((payload, end + latency, n_now - lag - memory if valid else -1, converged))
+    run = ch.last_run
+    start = n_now if run is None else n_now - run.shape[0]  # the channel's sample count before this block
+    converged_out = None
+    while held and held[0][1] <= n_now:
+        payload, at, window_start, converged = held.popleft()
+        if window_start >= 0:
+            i = max(at - start - 1, 0)
+            if run is None or run[i] < start + 1 + i - window_start:  # absent somewhere since the window began
+                payload, converged = not_valid(payload), False
+        out.append(payload)
+        converged_out = converged
+    if converged_out is not None:
+        ch.converged = converged_out
+    return out
+
+
+DIAGNOSTICS_VALID = (
+    b'"diagnostics":{"converged":true,"valid":true,',
+    b'"diagnostics":{"converged":false,"valid":true,',
+)
+DIAGNOSTICS_NOT_VALID = b'"diagnostics":{"converged":false,"valid":false,'
+
+
+def not_valid(payload: bytes) -> bytes:
+    """An Estimate's bytes (format 3 or later) with ``valid`` and ``converged`` false: the
+    diagnostics object's opening is unique in the message (names are JSON-escaped, so their
+    quotes never read as these bytes)."""
+    for flag in DIAGNOSTICS_VALID:
+        if flag in payload:
+            return payload.replace(flag, DIAGNOSTICS_NOT_VALID, 1)
+    return payload
