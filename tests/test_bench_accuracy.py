@@ -190,9 +190,10 @@ def test_scenario_suggestion_wins_for_its_own_estimator():
     sc = scenarios.get("paper000-tone")
     params, source = estimator_params(estimators.get("ges-kalman"), sc)
     # the paper's Q and R win; the generic hint's reference frequency only scales a default Q
-    # (q = null), so with the paper's q given it changes nothing
+    # (q = null), so with the paper's q given it changes nothing; the bench's tuning keeps the
+    # bias correction off
     assert {k: params[k] for k in ("q", "r")} == {"q": 1e-6, "r": 1e-2} and source.endswith("scenario")
-    assert set(params) <= {"q", "r", "reference_frequency_hz"}
+    assert set(params) <= {"q", "r", "reference_frequency_hz", "bias_correction"}
 
 
 def test_metric_helpers():

@@ -105,16 +105,31 @@ def test_pmu_restores_a_snapshot_from_before_the_noise_average() -> None:
 
 @pytest.mark.slow
 def test_ges_kalman_calibration_from_0_to_60_db() -> None:
-    """ges-kalman at its defaults, 300 trials per cell, 0 to 60 dB: sd 0.9-1.1 (1.12 allowed:
-    300 trials know the sd to +-4 %) and |mean| <= 0.3, but for the frequency's mean at 0 dB
-    (+0.43 measured, the errors-in-variables bias left at that SNR: at most 0.5 here)."""
+    """ges-kalman at its defaults (the bias correction, B1-B4, included), 300 trials per cell,
+    0 to 60 dB: |mean| <= 0.3 (the frequency's mean at 0 dB: +0.11 measured, +0.43 without the
+    correction) and sd 0.9-1.1, 1.12 allowed: an sd over 300 trials is known to +-0.042, and the
+    phase at 20 dB reads 1.104 over these 300 signals, 1.04 over 1000 (the test below)."""
     rows = run_calibration(["ges-kalman"], [0.0, 10.0, 20.0, 40.0, 60.0], 300, 0, 2)
     bad = []
     for row in rows:
         for k in ("frequency_hz", "amplitude", "phase_rad", "offset"):
             c = row[k]
-            mean_limit = 0.5 if (k == "frequency_hz" and row["snr_db"] == 0.0) else 0.3
-            if not (0.9 <= c["sd"] <= 1.12 and abs(c["mean"]) <= mean_limit):
+            if not (0.9 <= c["sd"] <= 1.12 and abs(c["mean"]) <= 0.3):
+                bad.append((row["snr_db"], k, round(c["sd"], 3), round(c["mean"], 3)))
+    assert not bad
+
+
+@pytest.mark.slow
+def test_ges_kalman_calibration_within_target_over_1000_trials() -> None:
+    """The cells nearest the edge at 300 trials, over 1000 (sd known to +-0.023): the target
+    itself, sd 0.9-1.1 and |mean| <= 0.3 (measured: 0 dB 0.97-1.01, |mean| <= 0.08; 20 dB
+    1.00-1.04, |mean| <= 0.06)."""
+    rows = run_calibration(["ges-kalman"], [0.0, 20.0], 1000, 0, 2)
+    bad = []
+    for row in rows:
+        for k in ("frequency_hz", "amplitude", "phase_rad", "offset"):
+            c = row[k]
+            if not (0.9 <= c["sd"] <= 1.1 and abs(c["mean"]) <= 0.3):
                 bad.append((row["snr_db"], k, round(c["sd"], 3), round(c["mean"], 3)))
     assert not bad
 

@@ -9,7 +9,8 @@ from sinewatch.estimators import create
 
 FS = 1000.0  # Section IV: fs = 1 kHz
 NOISE = 0.01  # zero-mean Gaussian, std 1e-2
-PAPER = dict(q=1e-6, r=1e-2, x0=[0.0, 0.0, 0.0, 0.0])  # Q = 1e-6 I, R = 1e-2, zero initial state
+# Q = 1e-6 I, R = 1e-2, a zero initial state, and the paper's x_hat as it is (no bias correction, B4)
+PAPER = dict(q=1e-6, r=1e-2, x0=[0.0, 0.0, 0.0, 0.0], bias_correction=False)
 
 
 def constant_tone(seconds: float, seed: int = 2026):

@@ -15,6 +15,7 @@ import pytest
 
 from sinewatch.estimators import create
 from sinewatch.estimators.base import decode_array, encode_array
+from sinewatch.estimators.ges_kalman import UNC_BASE, UNC_SIZE
 
 FS = 1000.0
 N = 2000  # 2 s
@@ -87,23 +88,29 @@ def test_the_reported_sd_scales_with_the_noise() -> None:
     np.testing.assert_allclose(sds[0] / sds[1], np.sqrt(10.0), rtol=0.1)
 
 
-def test_the_uncertainty_does_not_touch_the_estimates_and_old_snapshots_load() -> None:
-    """The estimates from a snapshot without ``unc`` (as an earlier build wrote it) are
-    bit for bit those of the estimator that kept running."""
+@pytest.mark.parametrize("bias_correction", [False, True])
+def test_the_uncertainty_does_not_touch_the_filter_and_old_snapshots_load(bias_correction: bool) -> None:
+    """From a snapshot without ``unc`` (as an earlier build wrote it) the filter's state and
+    residual are bit for bit those of the estimator that kept running; so are the reported
+    estimates without the bias correction (B4), which reads ``unc``'s b."""
     rng = np.random.default_rng(11)
     y = 1.0 + np.sin(2 * np.pi * 100.0 * np.arange(3000) / FS) + 0.01 * rng.standard_normal(3000)
-    a = create("ges-kalman", FS)
+    a = create("ges-kalman", FS, bias_correction=bias_correction)
     a.update(y[:1500])
     snap = a.get_state()
     assert set(snap["state"]) == {"xP", "unc"}
     old = {**snap, "state": {"xP": snap["state"]["xP"]}}
-    b = create("ges-kalman", FS)
+    b = create("ges-kalman", FS, bias_correction=bias_correction)
     b.set_state(old)
     assert b.get_state()["state"]["unc"] == encode_array(create("ges-kalman", FS)._initial_state()["unc"])
     ta, tb = a.update(y[1500:]), b.update(y[1500:])
-    for f in ("frequency_hz", "amplitude", "phase_rad", "offset"):
-        assert getattr(ta, f).tobytes() == getattr(tb, f).tobytes()
+    assert a.get_state()["state"]["xP"] == b.get_state()["state"]["xP"]
     assert ta.residual_rms == tb.residual_rms
+    for f in ("frequency_hz", "amplitude", "phase_rad", "offset"):
+        if bias_correction:  # b restarts from 0: at 40 dB here the correction is ~1e-6 Hz
+            np.testing.assert_allclose(getattr(ta, f)[-1], getattr(tb, f)[-1], rtol=1e-5, atol=1e-7)
+        else:
+            assert getattr(ta, f).tobytes() == getattr(tb, f).tobytes()
 
 
 def test_a_snapshot_with_the_former_noise_means_continues_from_their_ratio() -> None:
@@ -120,10 +127,11 @@ def test_a_snapshot_with_the_former_noise_means_continues_from_their_ratio() -> 
     b = create("ges-kalman", FS)
     b.set_state({**snap, "state": {**snap["state"], "unc": encode_array(former)}})
     loaded = decode_array(b.get_state()["state"]["unc"])
-    assert loaded.shape == (35,) and np.array_equal(loaded[:32], unc[:32])
+    assert loaded.shape == (UNC_SIZE,) and np.array_equal(loaded[:32], unc[:32])
     assert loaded[32] / loaded[33] == pytest.approx(s2, rel=1e-12)
+    assert np.all(loaded[UNC_BASE:] == 0.0)  # the bias recursion (B2)-(B3) starts afresh
     ta, tb = a.update(y[1500:]), b.update(y[1500:])
-    assert ta.frequency_hz.tobytes() == tb.frequency_hz.tobytes()  # estimates never depend on unc
+    assert a.get_state()["state"]["xP"] == b.get_state()["state"]["xP"]  # the filter never depends on unc
     assert np.allclose(tb.std.frequency_hz[-1], ta.std.frequency_hz[-1], rtol=0.05)
 
 

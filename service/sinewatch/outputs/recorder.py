@@ -70,9 +70,11 @@ from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_MESSAGE_MODELS
 log = logging.getLogger("sinewatch.outputs.recorder")
 
 # 2: ges-kalman's default Q scaled to the sample rate (1: the paper's 1e-6 I at every rate).
+# 3: ges-kalman's bias correction on by default (2: off).
 # Replay gives the rules of a file without the key (or with an older one) the defaults their
-# estimators had then (each estimator's ``defaults_before``), so that they replay bit for bit.
-ESTIMATOR_DEFAULTS_VERSION = 2
+# estimators had then (each estimator's ``defaults_by_version`` or ``defaults_before``), so
+# that they replay bit for bit.
+ESTIMATOR_DEFAULTS_VERSION = 3
 METADATA_NAME = "sinewatch"
 SNAPSHOT_NAME = "sinewatch.snapshot"
 #: The recording's layout: 3 records frames as protobuf InputFrame (2: frames as received,

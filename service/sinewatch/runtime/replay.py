@@ -52,6 +52,20 @@ from sinewatch.schemas.power_quality import PQ_FORMAT_VERSION, PQ_ROLES
 log = logging.getLogger("sinewatch.runtime.replay")
 
 
+def _defaults_then(cls: type, version: int) -> dict[str, Any]:
+    """The defaults an estimator had in a file of defaults version ``version`` that differ from
+    today's: its ``defaults_by_version`` (per version v, the defaults of files older than v;
+    the oldest wins where two name one key), else ``defaults_before`` (files older than 2)."""
+    table: dict[int, dict[str, Any]] = getattr(cls, "defaults_by_version", None) or {
+        2: getattr(cls, "defaults_before", {})
+    }
+    then: dict[str, Any] = {}
+    for v in sorted(table, reverse=True):  # newest first, so that an older value overrides
+        if version < v:
+            then.update(table[v])
+    return then
+
+
 def recorded_config(metadata: dict[str, str]) -> SinewatchConfig:
     """The config a recording was made with, each rule's ``params`` completed with the
     defaults its estimator had then: a default an estimator changed since (its
@@ -61,12 +75,13 @@ def recorded_config(metadata: dict[str, str]) -> SinewatchConfig:
     from sinewatch.schemas.errors import UnknownEstimatorError
 
     config = SinewatchConfig.model_validate(json.loads(metadata["config"]))
-    if int(metadata.get("estimator_defaults_version", "1")) >= ESTIMATOR_DEFAULTS_VERSION:
+    version = int(metadata.get("estimator_defaults_version", "1"))
+    if version >= ESTIMATOR_DEFAULTS_VERSION:
         return config
     rules = []
     for rule in config.rules:
         try:
-            before: dict[str, Any] = getattr(get(rule.estimator), "defaults_before", {})
+            before = _defaults_then(get(rule.estimator), version)
         except UnknownEstimatorError:  # refused where the pipeline builds the rule, as before
             before = {}
         missing = {k: v for k, v in before.items() if k not in rule.params}

@@ -1,0 +1,302 @@
+"""``ges-kalman``'s compiled bank (:mod:`sinewatch.estimators.bank`): the channels of a frame
+through one kernel call, each channel's outputs and state bit for bit those of
+:func:`~sinewatch.estimators._ges_kalman_kernels.ges_kalman_kernel` run on it alone (same
+equations, same order of operations; eq. numbers as in that module).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sinewatch.estimators._ges_kalman_kernels import (
+    BIAS_SIZE,
+    T_NEGLIGIBLE,
+    TINY,
+    UNC_BASE,
+    UNC_SIZE,
+    _corrected,
+    _filter_step,
+    _noise_means,
+    _noise_means_of_log,
+    _parameter_std,
+    _propagate_bias,
+    _propagate_error,
+    _write_estimates,
+)
+from sinewatch.estimators.base import kernel
+
+LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
+# rows of the bank's lane-major work array: one row of LANES doubles per per-sample quantity
+# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out; M and b (B2-B3)
+_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO, _RG = 0, 4, 14, 30, 46, 47, 49, 50  # _RS: two rows, see the bank kernel
+_ROWS = 50 + BIAS_SIZE
+_P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
+_P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
+
+
+@kernel(inline="always")
+def _bank_sample(
+    S: np.ndarray, lane: int, rs: int, with_t: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
+) -> None:
+    """One sample (row ``rs``) of lane ``lane`` of the work array ``S`` (rows ``_R*``, each
+    ``LANES`` wide): the filter (:func:`_filter_step`), T (U3) and U (U4) advanced exactly as
+    :func:`ges_kalman_kernel` does (T's branches as selects: the propagation is computed and
+    kept or not), the sse summed, u of (U5) into row ``_RUO``. Straight-line arithmetic that
+    reads and writes one array at constant offsets only, so the compiler can prove the lanes
+    independent and run them as one vector (a second array would need a run-time overlap
+    check, which LLVM does not add to a loop of 8 iterations)."""
+    L = LANES
+    s = S[rs * L + lane]
+    x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
+    b = _RP * L + lane
+    p00, p01, p02, p03, p11 = S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L]
+    p12, p13, p22, p23, p33 = S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L]
+    x3_prior = x3
+    r00, r01, r02, r03, r11, r12, r13, r22, r23, r33 = p00, p01, p02, p03, p11, p12, p13, p22, p23, p33
+    x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3, inv_S = _filter_step(
+        s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
+    )
+    S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane] = x1, x2, x3, x4
+    S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L] = p00, p01, p02, p03, p11
+    S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L] = p12, p13, p22, p23, p33
+    S[_RSSE * L + lane] += e * e
+    h1 = k1 + x3_prior  # h = K + g_k (U2)
+    if corr:  # (B2)-(B3), as ges_kalman_kernel
+        _propagate_bias(
+            S, _RG * L + lane, L, s, k0, k1, k2, k3, h1, inv_S, r00, r01, r02, r03, r11, r12, r13, r22, r23, r33
+        )
+    if with_t:  # else no lane's T is propagated: the caller applies (U3)'s zeroing
+        t = _RT * L + lane
+        t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
+        t10, t11, t12, t13 = S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L]
+        t20, t21, t22, t23 = S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L]
+        t30, t31, t32, t33 = S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L]
+        n00, n01, n02, n03, n10, n11, n12, n13, n20, n21, n22, n23, n30, n31, n32, n33 = _propagate_error(
+            t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33,
+            s, k0, k1, k2, k3, k0, h1, k2, k3, 0.0,
+        )  # fmt: skip
+        keep = t00 + t11 + t22 + t33 > T_NEGLIGIBLE  # (U3) as in ges_kalman_kernel
+        zero = (not keep) and t00 != 0.0
+        # T <- propagated if keep, 0 if zero, else as it was (the single kernel's if / elif)
+        t00 = n00 if keep else (0.0 if zero else t00)
+        t01 = n01 if keep else (0.0 if zero else t01)
+        t02 = n02 if keep else (0.0 if zero else t02)
+        t03 = n03 if keep else (0.0 if zero else t03)
+        t10 = n10 if keep else (0.0 if zero else t10)
+        t11 = n11 if keep else (0.0 if zero else t11)
+        t12 = n12 if keep else (0.0 if zero else t12)
+        t13 = n13 if keep else (0.0 if zero else t13)
+        t20 = n20 if keep else (0.0 if zero else t20)
+        t21 = n21 if keep else (0.0 if zero else t21)
+        t22 = n22 if keep else (0.0 if zero else t22)
+        t23 = n23 if keep else (0.0 if zero else t23)
+        t30 = n30 if keep else (0.0 if zero else t30)
+        t31 = n31 if keep else (0.0 if zero else t31)
+        t32 = n32 if keep else (0.0 if zero else t32)
+        t33 = n33 if keep else (0.0 if zero else t33)
+        S[t], S[t + L], S[t + 2 * L], S[t + 3 * L] = t00, t01, t02, t03
+        S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L] = t10, t11, t12, t13
+        S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L] = t20, t21, t22, t23
+        S[t + 12 * L], S[t + 13 * L], S[t + 14 * L], S[t + 15 * L] = t30, t31, t32, t33
+    v = _RU * L + lane
+    u00, u01, u02, u03 = S[v], S[v + L], S[v + 2 * L], S[v + 3 * L]
+    u10, u11, u12, u13 = S[v + 4 * L], S[v + 5 * L], S[v + 6 * L], S[v + 7 * L]
+    u20, u21, u22, u23 = S[v + 8 * L], S[v + 9 * L], S[v + 10 * L], S[v + 11 * L]
+    u30, u31, u32, u33 = S[v + 12 * L], S[v + 13 * L], S[v + 14 * L], S[v + 15 * L]
+    u = e * e / (1.0 + u00 + 2.0 * u01 + u11)  # (U5), from the predicted U
+    u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33 = _propagate_error(
+        u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33,
+        s, k0, k1, k2, k3, k0, h1, k2, k3, 1.0,
+    )  # (U4)  # fmt: skip
+    S[v], S[v + L], S[v + 2 * L], S[v + 3 * L] = u00, u01, u02, u03
+    S[v + 4 * L], S[v + 5 * L], S[v + 6 * L], S[v + 7 * L] = u10, u11, u12, u13
+    S[v + 8 * L], S[v + 9 * L], S[v + 10 * L], S[v + 11 * L] = u20, u21, u22, u23
+    S[v + 12 * L], S[v + 13 * L], S[v + 14 * L], S[v + 15 * L] = u30, u31, u32, u33
+    S[_RUO * L + lane] = u
+
+
+@kernel(inline="always")
+def _bank_t_live(S: np.ndarray) -> bool:
+    """Whether some lane of ``S`` propagates its T at the next sample (U3), as
+    :func:`ges_kalman_kernel` decides it. Once no lane does, none will again (T then stays
+    zero or as it was)."""
+    L = LANES
+    live = False
+    for lane in range(L):
+        t = _RT * L + lane
+        live |= S[t] + S[t + 5 * L] + S[t + 10 * L] + S[t + 15 * L] > T_NEGLIGIBLE
+    return live
+
+
+@kernel(inline="always")
+def _bank_t_zero(S: np.ndarray) -> None:
+    """The zeroing of T (U3) in lanes where no lane propagates it: 0 where ``T[0, 0] != 0``."""
+    L = LANES
+    for lane in range(L):
+        if S[_RT * L + lane] != 0.0:
+            for i in range(16):
+                S[(_RT + i) * L + lane] = 0.0
+
+
+@kernel(inline="always")
+def _bank_row(
+    S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float, corr: bool,
+    out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
+) -> None:  # fmt: skip
+    """Row ``row`` of ``out`` and ``std`` (one channel's) from lane ``lane`` of ``S``, as
+    :func:`ges_kalman_kernel` writes it."""
+    L = LANES
+    for i in range(16):
+        T[i // 4, i % 4] = S[(_RT + i) * L + lane]
+        U[i // 4, i % 4] = S[(_RU + i) * L + lane]
+    x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
+    x1, x2, x3, x4 = _corrected(x1, x2, x3, x4, S, _RG * L + lane, L, s2, corr)  # (B4)
+    _parameter_std(x1, x2, x3, x4, T, U, s2, Ts, std, row)
+    _write_estimates(out, row, x1, x2, x3, x4, S[(_RP + 7) * L + lane], Ts, rel_std)
+
+
+@kernel(inline="always")
+def _bank_means_pair(
+    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int, a: int
+) -> None:
+    """:func:`_noise_means_of_log` over the block's u of lanes ``a`` and ``a + 1``, each in
+    order; the two chains side by side, so that each waits less on its own latency."""
+    b = a + 1
+    m_ua, w_a, m_la, x_ra, e_ra = means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a]
+    m_ub, w_b, m_lb, x_rb, e_rb = means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b]
+    for k in range(n):
+        i = k * LANES + a
+        w_a, m_ua, m_la, x_ra, e_ra = _noise_means_of_log(us[i], logs[i], w_a, m_ua, m_la, lam, x_ra, e_ra)
+        w_b, m_ub, m_lb, x_rb, e_rb = _noise_means_of_log(us[i + 1], logs[i + 1], w_b, m_ub, m_lb, lam, x_rb, e_rb)
+    means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a] = m_ua, w_a, m_la, x_ra, e_ra
+    means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b] = m_ub, w_b, m_lb, x_rb, e_rb
+
+
+@kernel(inline="always")
+def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int) -> None:
+    """The noise means (U5)-(U5a) of the block's u, every lane (lanes past the last channel
+    run on their zeros harmlessly), two lanes at a time. Not all lanes in one loop: the
+    compiler would vectorise it and, taking exp for a pure function, call exp for every lane
+    on every sample, which undoes :func:`_noise_means`' skipping of it."""
+    for a in range(0, LANES, 2):
+        _bank_means_pair(us, logs, means, refs, lam, n, a)
+
+
+@kernel(inline="always")
+def _bank_lanes(
+    S: np.ndarray, k: int, t_live: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
+) -> None:
+    """Sample ``k`` of every lane (:func:`_bank_sample`); the sample's row and the T and bias
+    switches as constants in each loop, so the compiler sees the lanes independent."""
+    L = LANES
+    if k % 2 == 0 and t_live:
+        for lane in range(L):  # literal trip count: one vector
+            _bank_sample(S, lane, _RS, True, corr, q0, q1, q2, q3, R)
+    elif t_live:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS + 1, True, corr, q0, q1, q2, q3, R)
+    elif k % 2 == 0:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS, False, corr, q0, q1, q2, q3, R)
+    else:
+        for lane in range(L):
+            _bank_sample(S, lane, _RS + 1, False, corr, q0, q1, q2, q3, R)
+
+
+@kernel
+def ges_kalman_bank_kernel(
+    y: np.ndarray, xP: np.ndarray, unc: np.ndarray, consts: np.ndarray, last_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ges_kalman_kernel` for C channels at once: ``y`` (N, C), ``xP`` (20, C), ``unc``
+    (35, C), one channel per column; returns ``out`` (C, rows, 5), ``sse`` (C,), ``std``
+    (C, rows, 4) and the new ``xP`` and ``unc``. Channels go ``LANES`` at a time through a
+    lane-major work array (copied in and out once per block): the filter, T and U of the
+    ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
+    count over one array), then each channel's noise means (U5)-(U5a) take their log and
+    exp lane by lane, the C library's scalar calls that the single kernel makes."""
+    n, nc = y.shape
+    rows = 1 if last_only else n
+    out = np.empty((nc, rows, 5))
+    std = np.empty((nc, rows, 4))
+    sse = np.empty(nc)
+    new_xP = np.empty((20, nc))
+    new_unc = np.empty((UNC_SIZE, nc))
+    q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]
+    R, Ts, rel_std = consts[4], consts[5], consts[6]
+    lam = 1.0 - 1.0 / consts[7]  # (U5)
+    corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
+    L = LANES
+    S = np.empty(_ROWS * L)
+    ys = np.empty(n * L)
+    us = np.empty(n * L)
+    logs = np.empty(n * L if last_only else 0)
+    T = np.empty((4, 4))
+    U = np.empty((4, 4))
+    for g in range(0, nc, L):
+        width = min(L, nc - g)
+        S[:] = 0.0  # lanes past the last channel run on zeros, their results dropped
+        if width < L:
+            ys[:] = 0.0
+        for c in range(width):
+            for i in range(4):
+                S[(_RX + i) * L + c] = xP[i, g + c]
+            for i in range(10):
+                S[(_RP + i) * L + c] = xP[_P_IN_XP[i], g + c]
+            for i in range(32):
+                S[(_RT + i) * L + c] = unc[i, g + c]
+            for i in range(BIAS_SIZE):
+                S[(_RG + i) * L + c] = unc[UNC_BASE + i, g + c]
+        for k in range(n):  # row by row: y (N, C) is read in its own order
+            for c in range(width):
+                ys[k * L + c] = y[k, g + c]
+        means = np.zeros((3, L))  # <u>, w, <log u>
+        refs = np.zeros((2, L))  # _noise_means' x_ref, e_ref
+        for c in range(width):
+            means[0, c], means[1, c], means[2, c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
+        for lane in range(L):  # sample 0's row
+            S[_RS * L + lane] = ys[lane]
+        t_live = True
+        for k in range(n):
+            # sample k + 1 into the row sample k does not read: written one step before it is
+            # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
+            nxt = min(k + 1, n - 1) * L
+            rs_next = (_RS + 1 - k % 2) * L
+            for lane in range(L):
+                S[rs_next + lane] = ys[nxt + lane]
+            if t_live:  # some lane's T is still propagated (U3): half the arithmetic
+                t_live = _bank_t_live(S)
+            if not t_live:  # none: the single kernel's zeroing of T, where it applies
+                _bank_t_zero(S)
+            # rows and the T switch as constants, so the compiler sees the lanes independent
+            _bank_lanes(S, k, t_live, corr, q0, q1, q2, q3, R)  # one copy: compile time
+            for lane in range(L):
+                us[k * L + lane] = S[_RUO * L + lane]
+            if not last_only:
+                for c in range(width):  # the means and row k, lane by lane (log, exp: scalar)
+                    w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means(
+                        us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
+                    )
+                    means[0, c], means[1, c], means[2, c] = m_u, w, m_l
+                    _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
+        if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
+            for i in range(n * L):  # the logs first: independent calls, which overlap
+                logs[i] = math.log(max(us[i], TINY))
+            _bank_means(us, logs, means, refs, lam, n)
+            for c in range(width):
+                m_u, w = means[0, c], means[1, c]
+                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U)
+        for c in range(width):
+            ch = g + c
+            sse[ch] = S[_RSSE * L + c]
+            for i in range(4):
+                new_xP[i, ch] = S[(_RX + i) * L + c]
+            for i in range(16):  # P's 16 entries (row-major) from its 10 distinct ones
+                new_xP[4 + i, ch] = S[(_RP + _P_OF_ENTRY[i]) * L + c]
+            for i in range(32):
+                new_unc[i, ch] = S[(_RT + i) * L + c]
+            new_unc[32, ch], new_unc[33, ch], new_unc[34, ch] = means[0, c], means[1, c], means[2, c]
+            for i in range(BIAS_SIZE):
+                new_unc[UNC_BASE + i, ch] = S[(_RG + i) * L + c]
+    return out, sse, std, new_xP, new_unc
