@@ -45,7 +45,7 @@ class ChannelView:
     feed: FeedChannel
     truth_by_seq: dict[int, Any] = field(default_factory=dict)
     order: deque[int] = field(default_factory=lambda: deque(maxlen=TRUTHS_KEPT))
-    last: dict[str, Any] | None = None
+    last: dict[str, Any] | None = None  # the newest valid estimate (the newest of any while none is valid)
     truth: Any = None
     estimates: int = 0
 
@@ -165,9 +165,13 @@ async def run_demo(
             v = views.get(msg["channel"])
             if v is None:
                 continue
-            v.last = msg
             v.estimates += 1
-            v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
+            # The table shows the newest estimate that is a measurement: at the drain the daemon
+            # publishes what it still held back, not valid (nothing confirmed those windows), and
+            # showing those would turn every channel's last row to "not converged".
+            if msg["diagnostics"]["valid"] or v.last is None or not v.last["diagnostics"]["valid"]:
+                v.last = msg
+                v.truth = v.truth_by_seq.get(msg["seq"], v.truth)
 
     title = f"sinewatch demo: {len(channels)} channels, {duration_s:g} s (Ctrl-C stops early)"
     # On a terminal a live table fitted to its width; elsewhere (a pipe, a log) plain lines at the end.
