@@ -343,7 +343,7 @@ def _window_s(pipeline: Pipeline, name: str) -> tuple[float, float]:
 
 @pytest.mark.parametrize("estimator", ["ges-kalman", "pmu"])
 def test_no_estimate_is_valid_while_its_window_holds_an_interruption_on_a_live_daemon(tmp_path, estimator):
-    """With the defaults (no setting about validity): an interruption to 0.05 pu that starts
+    """With the hold on (``hold_estimates = true``, the other settings at their defaults): an interruption to 0.05 pu that starts
     1.5 ms before a block ends: the estimate at that block's end already holds it, and the
     presence detector reads it only up to a third of a cycle later (its quarter-cycle test).
     Every estimate waits for the detector's latency (in samples) before it is published: not
@@ -356,10 +356,9 @@ def test_no_estimate_is_valid_while_its_window_holds_an_interruption_on_a_live_d
     x = np.sin(2 * np.pi * 50.0 * t + 0.3) + np.random.default_rng(5).normal(0, 1e-3, t.size)
     t_on, t_off = 0.5235, 0.7235
     x[(t >= t_on) & (t < t_off)] *= 0.05
-    config = make_config(tmp_path)  # ges-kalman at 10 kHz, the defaults otherwise
+    config = make_config(tmp_path, hold_estimates=True)  # ges-kalman at 10 kHz, the defaults otherwise
     if estimator == "pmu":  # the default rule
-        config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")])
-    assert config.hold_estimates  # the default
+        config = make_config(tmp_path, rules=[EstimatorRule(match="sinewatch/in/**")], hold_estimates=True)
     blocks = _live_blocks(x)
     estimates, daemon = _through_live_daemon(config, blocks)
     before_s, after_s = _window_s(daemon.pipeline, "v")
@@ -373,7 +372,7 @@ def test_no_estimate_is_valid_while_its_window_holds_an_interruption_on_a_live_d
     assert any(e["diagnostics"]["valid"] for e in estimates if (e["timestamp_ns"] - T00) / 1e9 > t_off + 0.3)
     if estimator == "ges-kalman":  # the blind spot this closes: rules version 3's defaults published it valid
         sink = Keep()
-        v3 = Pipeline(config, [sink], validity_version=3)
+        v3 = Pipeline(config.model_copy(update={"hold_estimates": False}), [sink], validity_version=3)
         for b in blocks:
             v3.process("sinewatch/in/v", encode_block_binary(b), "", b.t0_ns)
         assert any(overlaps(e) and e["diagnostics"]["valid"] for e in sink.estimates)
@@ -490,7 +489,7 @@ def test_a_feed_that_pauses_gets_its_held_estimates_on_a_live_daemon(tmp_path):
 
     t = np.arange(round(0.5 * LIVE_FS)) / LIVE_FS
     blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t + 0.3))
-    config = make_config(tmp_path, idle_release_s=0.2)  # ges-kalman: one estimate per block
+    config = make_config(tmp_path, hold_estimates=True, idle_release_s=0.2)  # ges-kalman: one estimate per block
     # taken while the daemon still runs: the last comes from the idle release
     estimates, daemon = _through_live_daemon(config, blocks, n_expected=len(blocks))
     # all before the drain: it found nothing left to release
@@ -505,7 +504,9 @@ def test_the_idle_release_publishes_only_the_channels_that_paused():
     keeps its held estimate for its next block."""
     t = np.arange(round(0.3 * LIVE_FS)) / LIVE_FS
     x = np.sin(2 * np.pi * 50.0 * t)
-    cfg = SinewatchConfig(rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], idle_release_s=0.5)
+    cfg = SinewatchConfig(
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True, idle_release_s=0.5
+    )
     sink = Keep()
     p = Pipeline(cfg, [sink])
     block_ns = 25_000_000

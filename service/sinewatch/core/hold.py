@@ -1,5 +1,5 @@
 """Estimates held back until the presence detector has read past their windows
-(``hold_estimates``: on by default from validity rules version 4, off by default in version 3): :func:`hold` takes a block's estimates and gives
+(``hold_estimates``, off by default: docs/validity.md says why): :func:`hold` takes a block's estimates and gives
 what may leave now; :func:`not_valid` marks one that could not be confirmed."""
 
 from __future__ import annotations

@@ -82,7 +82,7 @@ the window is the interruption, and it is read every half cycle, so the level te
 within one and a half nominal cycles (3 H samples) of the onset; the quadrature test (F)
 within ``Q + m - 1``. An estimate made in that time would read as valid though its window
 holds the interruption: the pipeline holds every estimate back by the detector's latency
-and judges it then (``hold_estimates``, on by default from validity rules version 4,
+and judges it then (``hold_estimates``, off by default, docs/validity.md says why;
 :attr:`SignalPresence.onset_latency_samples`).
 
 The level's sums are of two half cycles only, started afresh each half cycle (no running
