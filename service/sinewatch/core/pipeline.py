@@ -66,9 +66,8 @@ class Pipeline:
         self.config = config
         self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
         self.validity_version = validity_version  # likewise (sinewatch.core.continuity)
-        # hold estimates back (_hold): version 3 only where its config asked (its default was off)
-        holds = config.hold_estimates and (validity_version >= 4 or "hold_estimates" in config.model_fields_set)
-        self._holds = holds and validity_version >= 3 and estimate_version >= 3
+        # hold estimates back (_hold) where the config asks, from validity rules version 3 on
+        self._holds = config.hold_estimates and validity_version >= 3 and estimate_version >= 3
         self.sinks = [
             GuardedSink(
                 sink,
@@ -438,9 +437,7 @@ class Pipeline:
     ) -> None:
         """An accepted block's estimates to the sinks, then its power-quality stage and the
         channel's latency: the same for a single block and a frame's column."""
-        out_key = channel.out_key
-        if out_key is None:
-            out_key = channel.out_key = f"{self.config.keys.estimates_prefix}/{channel.name}"
+        out_key = self._out_key(channel)
         channel.last_log_ns = log_time_ns
         for payload_out in payloads:
             for sink in self.sinks:
@@ -458,23 +455,11 @@ class Pipeline:
         (a replay meeting the idle release of :meth:`release_idle`). One that waited for the
         detector to confirm its window is published not valid: the samples that would have
         confirmed it never came. Returns how many were released."""
-        n = 0
-        for ch in self.channels.values():
-            if not ch.held:
-                continue
-            key = ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}"
-            if out_key is not None and key != out_key:
-                continue
-            ch.out_key = key
-            while ch.held:
-                payload, _, window_start, _ = ch.held.popleft()
-                payload = not_valid(payload) if window_start >= 0 else payload
-                for sink in self.sinks:
-                    sink.on_estimate(key, payload, log_time_ns)
-                n += 1
-            ch.converged = False
-        self.counters.estimates += n
-        return n
+        return sum(
+            self._release(ch, log_time_ns)
+            for ch in self.channels.values()
+            if ch.held and (out_key is None or self._out_key(ch) == out_key)
+        )
 
     def release_idle(self, now_ns: int) -> int:
         """A feed that pauses: the estimates of every channel whose last block came at least
@@ -484,11 +469,29 @@ class Pipeline:
         replay meets them as recorded estimates with nothing produced yet and releases that
         channel there, so it reproduces them bit for bit. Returns how many were released."""
         idle_ns = round(self.config.idle_release_s * 1e9)
-        n = 0
-        for ch in self.channels.values():
-            if ch.held and now_ns - ch.last_log_ns >= idle_ns:
-                n += self.release_held(now_ns, ch.out_key or f"{self.config.keys.estimates_prefix}/{ch.name}")
+        return sum(
+            self._release(ch, now_ns) for ch in self.channels.values() if ch.held and now_ns - ch.last_log_ns >= idle_ns
+        )
+
+    def _release(self, ch: Channel, log_time_ns: int) -> int:
+        """Publish every estimate ``ch`` holds, in order; one that waited for the detector to
+        confirm its window goes out not valid. Returns how many."""
+        key = self._out_key(ch)
+        n = len(ch.held)
+        while ch.held:
+            payload, _, window_start, _ = ch.held.popleft()
+            payload = not_valid(payload) if window_start >= 0 else payload
+            for sink in self.sinks:
+                sink.on_estimate(key, payload, log_time_ns)
+        ch.converged = False
+        self.counters.estimates += n
         return n
+
+    def _out_key(self, ch: Channel) -> str:
+        """The key ``ch``'s estimates are published on (kept on the channel once made)."""
+        if ch.out_key is None:
+            ch.out_key = f"{self.config.keys.estimates_prefix}/{ch.name}"
+        return ch.out_key
 
     def _forget_unborn(self, ch: Channel | None) -> None:
         """A channel whose first block was refused has accepted nothing and holds no state:
