@@ -32,6 +32,9 @@ CHANNELS = [f"ch{i:03d}" for i in range(100)]
 FS = 1000.0
 BLOCK = 100  # 0.1 s per block: 10 blocks/s per channel, 1,000 blocks/s in all
 LOG_TAIL_LINES = 40
+# This process's own Zenoh log (the gateway's and subscribers' session): its errors, e.g. a link
+# it closed because the router took nothing for `wait_before_close`, on stdout (`pytest -s`)
+zenoh.init_log_from_env_or("error")
 
 
 def log_tails(directory: Path | None, lines: int = LOG_TAIL_LINES) -> str:
@@ -113,8 +116,13 @@ def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
 
 
 class Router:
-    def __init__(self) -> None:
+    """``sinewatch router`` on a port from the OS, restartable on it; its output (Zenoh's
+    log: a link it closed is the record of what it lost in flight) appended to
+    ``<logs>/router.log``, whose tail a failed wait shows with the daemons'."""
+
+    def __init__(self, logs: Path | None = None) -> None:
         self.port = free_loopback_port()
+        self.logs = logs
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> None:
@@ -123,7 +131,21 @@ class Router:
             stdout=subprocess.PIPE,
             text=True,
         )
-        assert self.proc.stdout is not None and self.proc.stdout.readline().startswith("sinewatch router: listening")
+        assert self.proc.stdout is not None
+        first = self.proc.stdout.readline()
+        assert first.startswith("sinewatch router: listening"), first
+        threading.Thread(target=self._drain, args=(self.proc.stdout,), daemon=True).start()
+
+    def _drain(self, out: Any) -> None:
+        """Keep the router's pipe drained (a full pipe would stop it), into its log file."""
+        sink = open(self.logs / "router.log", "a") if self.logs is not None else None  # noqa: SIM115
+        with contextlib.suppress(ValueError, OSError):
+            for line in out:
+                if sink is not None:
+                    sink.write(line)
+                    sink.flush()
+        if sink is not None:
+            sink.close()
 
     def kill(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
@@ -361,6 +383,7 @@ class Estimates:
         self.unrecovered: dict[str, int] = defaultdict(int)
         self._cond = threading.Condition()
         self._sub = session.declare_subscriber("sinewatch/est/**", self._on)
+        print(f"the test's Zenoh session: {session.info.zid()}", flush=True)  # as Zenoh's logs name it
         self._err = session.declare_subscriber("sinewatch/err/**", self._on_error)
 
     def _on_error(self, sample: zenoh.Sample) -> None:

@@ -65,7 +65,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
     procs: dict[str, subprocess.Popen[bytes]] = {}
     with contextlib.ExitStack() as stack:
         etcd = stack.enter_context(etcd_server(tmp_path))
-        router = Router()
+        router = Router(tmp_path)
         router.start()
         stack.callback(router.kill)
         proxies = {d: ProxyProcess(etcd.port) for d in DAEMONS}

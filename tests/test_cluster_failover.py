@@ -103,7 +103,7 @@ def start_cluster(
     ids=["zenoh-recovery", "no-recovery"],
 )
 def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_path, recovery, etcd):
-    rt = Router()
+    rt = Router(tmp_path)
     rt.start()
     port = rt.port
     with contextlib.ExitStack() as stack:
@@ -194,7 +194,7 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
     daemon reconnects, estimates resume within 5 s, nothing is published twice, what was
     lost is flagged, and the standby does not take over a shard whose active daemon is
     still alive (its token comes back with the network)."""
-    rt = Router()
+    rt = Router(tmp_path)
     rt.start()
     port = rt.port
     procs: dict[str, subprocess.Popen[bytes]] = {}

@@ -49,6 +49,15 @@ def _setup_logging(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def zenoh_log() -> None:
+    """Zenoh's own log on stdout: ``RUST_LOG`` when set, else its errors, among them a link
+    it closes because a peer took no data for ``wait_before_close`` (docs/cluster.md): the
+    one record of blocks lost in flight."""
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+
+
 def parse_param(text: str) -> tuple[str, Any]:
     """``k=v`` with v parsed as JSON when it parses (numbers, lists, true), else a string."""
     if "=" not in text:
@@ -88,6 +97,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         enable_c37118(config, args.c37118)
     check_rules(config.rules)
     _check_recording_dir(config)
+    zenoh_log()
     logging.getLogger("sinewatch").setLevel(logging.INFO if args.verbose == 0 else logging.DEBUG)
     from sinewatch.runtime.workers import end_with_parent, supervise, worker_count
 
@@ -483,7 +493,13 @@ def cmd_router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    section = ZenohSection(mode="router", listen=args.listen or ["tcp/127.0.0.1:7447"], connect=args.connect or [])
+    zenoh_log()
+    section = ZenohSection(
+        mode="router",
+        listen=args.listen or ["tcp/127.0.0.1:7447"],
+        connect=args.connect or [],
+        raw=dict(args.zenoh or []),
+    )
     with open_session(section):
         print(f"sinewatch router: listening on {', '.join(section.listen)}", flush=True)
         stop.wait()
@@ -801,6 +817,14 @@ def build_parser() -> argparse.ArgumentParser:
     ro = _command(sub, "router", "run a Zenoh router (for several daemons and gateways)", cmd_router)
     ro.add_argument("--listen", action="append", help="endpoint (repeatable; default tcp/127.0.0.1:7447)")
     ro.add_argument("--connect", action="append", help="other routers to connect to (repeatable)")
+    ro.add_argument(
+        "--zenoh",
+        action="append",
+        type=parse_param,
+        metavar="PATH=JSON",
+        help="a raw Zenoh config key (JSON5 path, repeatable), as [zenoh] raw sets it for a daemon, e.g. "
+        "transport/link/tx/queue/congestion_control/block/wait_before_close=5000000",
+    )
 
     add_bench_parser(sub)
     return p

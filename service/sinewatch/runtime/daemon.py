@@ -364,9 +364,10 @@ class Daemon:
         self._beat = time.monotonic()
         self._running = True  # serving or standing by: /healthz says ok from here
         log.info(
-            "sinewatch daemon %s: zenoh %s listen=%s connect=%s, input %s, estimates %s/*",
+            "sinewatch daemon %s: zenoh %s %s listen=%s connect=%s, input %s, estimates %s/*",
             cfg.daemon_id,
             cfg.zenoh.mode,
+            self._session.info.zid(),  # the id Zenoh's own log (a router's included) names this session by
             cfg.zenoh.listen,
             cfg.zenoh.connect,
             cfg.keys.input,
