@@ -107,3 +107,46 @@ def test_an_owner_cut_off_wins_again_once_the_partition_heals_over_a_slow_link(t
         finally:
             proxy.close()
     print(f"elected again {elected:.2f} s after the partition healed")
+
+
+def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
+    """The keep-alives run on a thread of their own, so that a busy event loop does not depose
+    a healthy owner; but an owner whose loop is stuck (a callback that never returns, in a live
+    process: not a SIGSTOP, which stops the keep-alive thread too) serves nothing. Its
+    keep-alives stop once its loop has not run for ``loop_stall_s`` (two TTLs), so its lease
+    expires and the other candidate is elected while the stuck loop is still stuck."""
+    import threading
+
+    stuck_for = 2 * TTL + TTL + 2.5  # longer than the stall limit, a TTL and the 2 s a takeover may take
+
+    async def scenario(endpoint: str) -> tuple[float, float]:
+        a = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "a", TTL)
+        b = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "b", TTL)
+        loop_a = asyncio.new_event_loop()  # a's daemon loop, in a thread of its own
+        threading.Thread(target=loop_a.run_forever, daemon=True).start()
+        on_a = asyncio.run_coroutine_threadsafe
+        await asyncio.wrap_future(on_a(asyncio.wait_for(a.campaign(), 30), loop_a))
+        hold_a = on_a(a.hold(), loop_a)
+        campaign_b = asyncio.ensure_future(b.campaign())
+        await asyncio.sleep(TTL * 1.5)  # a keeps its lease while its loop runs
+        assert not campaign_b.done() and a.may_publish()
+        resumed = threading.Event()
+        stuck = time.monotonic()
+        loop_a.call_soon_threadsafe(lambda: (time.sleep(stuck_for), resumed.set()))  # a's loop stuck
+        won_b = await asyncio.wait_for(campaign_b, 30)
+        elected = time.monotonic() - stuck
+        hold_b = asyncio.ensure_future(b.hold())
+        assert not resumed.is_set() and b.may_publish()  # elected while a's loop was still stuck
+        await asyncio.wrap_future(hold_a)  # once a's loop runs again, it finds it has stood down
+        assert not a.may_publish() and won_b.term > 0
+        await b.close()
+        hold_b.cancel()
+        await asyncio.wrap_future(on_a(a.close(), loop_a))
+        loop_a.call_soon_threadsafe(loop_a.stop)
+        return elected, a.loop_stall_s
+
+    with etcd_server(tmp_path) as etcd:
+        elected, stall_s = asyncio.run(scenario(etcd.endpoint))
+    print(f"elected {elected:.2f} s after the owner's loop got stuck (stall limit {stall_s} s, TTL {TTL} s)")
+    # the last keep-alive went out before the stall limit; the lease expires at most a TTL after it
+    assert stall_s <= elected < stall_s + TTL + 2.0

@@ -9,7 +9,9 @@ as a fencing token. The others ask etcd how long the owner's lease has left ever
 (every ``FAST_POLL_S`` they read the key once under a second is left) and try again once it
 is gone, which etcd makes it when the owner's lease expires (or is revoked).
 
-The owner keeps its lease alive (a keep-alive every ``ttl / 6``) and may publish only
+The owner keeps its lease alive (a keep-alive every ``ttl / 6``, on a thread of its own, and
+only while the daemon's event loop keeps running: a loop stuck for ``LOOP_STALL_TTLS`` TTLs
+lets the lease go, so a successor serves the shard) and may publish only
 while it can *prove* the lease alive: etcd restarts a lease's countdown when it receives a
 keep-alive, so a keep-alive sent at local time ``t`` and acknowledged keeps the lease alive
 until at least ``t + ttl``. The deadline is ``t + ttl - guard`` (``guard = ttl / 4``),
@@ -70,6 +72,11 @@ POLL_S = 0.2  # how often a standby reads the owner's lease while it is kept ali
 # states a lease's remaining TTL in whole seconds, truncated: 0 means expiring within the second,
 # or expired and not yet revoked, which etcd's lessor does on a tick of its own, every 500 ms in 3.4)
 FAST_POLL_S = 0.025
+# How long the daemon's event loop may go without running before the owner stops renewing its
+# lease, in TTLs. The keep-alives run on a thread of their own, so a loop stuck in a callback
+# (a deadlock, a runaway computation) kept its lease and served nothing, with no successor. Two
+# TTLs: a loop busy with a long batch or restore on a loaded machine must not be deposed for it.
+LOOP_STALL_TTLS = 2
 
 
 @dataclass
@@ -105,6 +112,8 @@ class LeaseElection:
         self.won: Won | None = None
         self.keepalives = 0
         self._last_ack_sent = 0.0  # monotonic time the last acknowledged keep-alive was sent
+        self.loop_stall_s = LOOP_STALL_TTLS * ttl_s
+        self.loop_tick = 0.0  # monotonic: the daemon's loop last ran (the keep-alives need it recent)
         self._changed: asyncio.Event | None = None  # on the daemon's loop
         # called on the daemon's loop when a standby sees the owner's lease stop being renewed
         # (under a second left): a takeover may follow within the second; prepare for it
@@ -160,7 +169,19 @@ class LeaseElection:
         return await self._on_etcd(self._campaign())  # type: ignore[no-any-return]
 
     async def hold(self) -> None:
-        await self._on_etcd(self._hold())
+        """Keep the lease alive (on the etcd thread) while this loop keeps running: it ticks
+        every keep-alive interval, and the keep-alives stop once it has not for ``loop_stall_s``."""
+        self.loop_tick = time.monotonic()
+        ticker = asyncio.ensure_future(self._tick())
+        try:
+            await self._on_etcd(self._hold())
+        finally:
+            ticker.cancel()
+
+    async def _tick(self) -> None:
+        while True:
+            self.loop_tick = time.monotonic()
+            await asyncio.sleep(self.keepalive_s)
 
     # ---- etcd (its thread) ---------------------------------------------------------------------
     def _etcd(self) -> Any:
@@ -291,6 +312,8 @@ class LeaseElection:
                 sent = time.monotonic()
                 reply: Any = None
                 try:
+                    if sent - self.loop_tick > self.loop_stall_s:  # its loop stuck, the owner serves nothing
+                        raise TimeoutError(f"the daemon's event loop has not run for {sent - self.loop_tick:.1f} s")
                     reply = await self._call(client.refresh_lease(won.lease_id))
                 except Exception as exc:  # noqa: BLE001 (unreachable etcd: the deadline decides)
                     # the first failure of a run is logged: why an owner stepped down shows in
