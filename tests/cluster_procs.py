@@ -28,6 +28,7 @@ from sinewatch.clients import BlockPublisher, Fence
 from sinewatch.clients.session import free_loopback_port
 
 WAIT = 60.0  # the longest any condition may take on a loaded 2-core machine
+OBSERVER_FIFO = 60_000  # estimates the test's subscriber may fall behind by (a minute of the cluster's)
 CHANNELS = [f"ch{i:03d}" for i in range(100)]
 FS = 1000.0
 BLOCK = 100  # 0.1 s per block: 10 blocks/s per channel, 1,000 blocks/s in all
@@ -138,7 +139,7 @@ class Router:
 
     def _drain(self, out: Any) -> None:
         """Keep the router's pipe drained (a full pipe would stop it), into its log file."""
-        sink = open(self.logs / "router.log", "a") if self.logs is not None else None  # noqa: SIM115
+        sink = open(self.logs / "router.log", "a") if self.logs is not None else None
         with contextlib.suppress(ValueError, OSError):
             for line in out:
                 if sink is not None:
@@ -382,9 +383,19 @@ class Estimates:
         # bound). The record of a stream's last blocks lost, which no later estimate can flag as a gap.
         self.unrecovered: dict[str, int] = defaultdict(int)
         self._cond = threading.Condition()
-        self._sub = session.declare_subscriber("sinewatch/est/**", self._on)
-        print(f"the test's Zenoh session: {session.info.zid()}", flush=True)  # as Zenoh's logs name it
+        # A deep FIFO drained by a thread of this process, not a callback: Zenoh hands a Python callback
+        # its samples through a channel of 256, and when this process (the loaded machine's busiest Python
+        # process) fell behind, Zenoh's receiving thread waited on it, the router could not push estimates
+        # to this session for its `wait_before_close` (5 s) and closed it (router.log of the 50-fault run)
+        self._sub = session.declare_subscriber("sinewatch/est/**", zenoh.handlers.FifoChannel(OBSERVER_FIFO))
+        threading.Thread(target=self._drain, daemon=True).start()
         self._err = session.declare_subscriber("sinewatch/err/**", self._on_error)
+        print(f"the test's Zenoh session: {session.info.zid()}", flush=True)  # as Zenoh's logs name it
+
+    def _drain(self) -> None:
+        with contextlib.suppress(zenoh.ZError):  # raised once the session closes
+            while True:
+                self._on(self._sub.handler.recv())
 
     def _on_error(self, sample: zenoh.Sample) -> None:
         msg = json.loads(sample.payload.to_bytes())
@@ -431,11 +442,18 @@ class Estimates:
 
 
 class Gateway(threading.Thread):
-    """``CHANNELS`` of a 50 Hz sine in real time (one block per channel every 0.1 s)."""
+    """``CHANNELS`` of a 50 Hz sine in real time (one block per channel every 0.1 s), on a
+    Zenoh session of its own (``router_port``), as a gateway process has: on the test's
+    observing session, a router that closed that session for reading too slowly (5 s, Zenoh's
+    ``wait_before_close``) closed the gateway's link with it, and every channel lost the
+    blocks in flight at once (the untouched shard's losses in the loaded failover runs)."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, router_port: int) -> None:
         super().__init__(daemon=True)
-        self.pub = BlockPublisher(session)
+        from sinewatch.clients import connect
+
+        self.session = connect([f"tcp/127.0.0.1:{router_port}"])
+        self.pub = BlockPublisher(self.session)
         self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
         self.stop = threading.Event()
 
@@ -463,6 +481,12 @@ class Gateway(threading.Thread):
             )
 
         estimates.wait(last, "the last blocks", timeout)
+
+    def close(self) -> None:
+        self.stop.set()
+        if self.is_alive():
+            self.join()
+        self.session.close()
 
 
 def after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:

@@ -28,7 +28,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 from cluster_procs import (
@@ -78,16 +77,16 @@ def daemon(tmp_path: Path, daemon_id: str, shard: str, role: str, port: int, rec
 
 
 def start_cluster(
-    tmp_path: Path, port: int, recovery: bool, procs: dict[str, subprocess.Popen[bytes]], tokens: Tokens, session: Any
+    tmp_path: Path, port: int, recovery: bool, procs: dict[str, subprocess.Popen[bytes]], tokens: Tokens
 ) -> Gateway:
     """The two active daemons (a1: shard 1/2, a2: 2/2), then the standby of shard 1 (s1)
-    once they serve, then the gateway; ``procs`` gets the daemons as they start."""
+    once they serve, then the gateway (its own Zenoh session); ``procs`` gets the daemons as they start."""
     procs["a1"] = daemon(tmp_path, "a1", "1/2", "active", port, recovery)
     procs["a2"] = daemon(tmp_path, "a2", "2/2", "active", port, recovery)
     tokens.wait_for("active/a1", "active/a2", timeout=WAIT)
     procs["s1"] = daemon(tmp_path, "s1", "1/2", "standby", port, recovery)
     tokens.wait_for("standby/s1", timeout=WAIT)
-    gateway = Gateway(session)
+    gateway = Gateway(port)
     gateway.start()
     return gateway
 
@@ -112,7 +111,8 @@ def test_standby_takes_over_a_killed_shard_within_2_s_of_its_lease_expiry(tmp_pa
         tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)  # failed waits show the logs
         procs: dict[str, subprocess.Popen[bytes]] = {}
         try:
-            gateway = start_cluster(tmp_path, port, recovery, procs, tokens, session)
+            gateway = start_cluster(tmp_path, port, recovery, procs, tokens)
+            stack.callback(gateway.close)
             estimates.wait(lambda e: all(len(e[c]) >= 15 for c in CHANNELS), "every channel estimated", WAIT)
 
             # the active daemon of shard 1 hangs (what it receives now, nobody estimates) ...
@@ -203,7 +203,8 @@ def test_standby_stays_standby_across_a_router_restart(tmp_path, etcd):
         session = stack.enter_context(connect([f"tcp/127.0.0.1:{port}"]))
         tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)
         try:
-            gateway = start_cluster(tmp_path, port, True, procs, tokens, session)
+            gateway = start_cluster(tmp_path, port, True, procs, tokens)
+            stack.callback(gateway.close)
             estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated", WAIT)
 
             rt.kill()
