@@ -36,6 +36,17 @@ def connect(endpoints: list[str] | None = None, *, timeout_s: float = 10.0, mode
 RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2.0}
 
 
+#: How long a client's put with CongestionControl.BLOCK may wait for room before Zenoh closes
+#: the client's link (``transport/link/tx/queue/congestion_control/block/wait_before_close``,
+#: microseconds). Zenoh's 5 s is a router's own bound on a subscriber that takes nothing: a
+#: router waiting that out for one stalled daemon stops reading its other links meanwhile, so
+#: its publishers' puts waited as long, and with the same 5 s they closed their own links too,
+#: losing every key's samples in flight to every subscriber (the gateway of the 50-fault chaos
+#: run did, twice). A client's only link is its router's: it waits longer than the router
+#: does; a router that is gone, not stalled, is found by the link's lease (10 s) all the same.
+CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
+
+
 def zenoh_config(section: ZenohSection) -> zenoh.Config:
     conf = zenoh.Config()
     _insert(conf, "mode", section.mode)
@@ -48,6 +59,8 @@ def zenoh_config(section: ZenohSection) -> zenoh.Config:
     # daemon and its feeder each waiting out their own back-off left estimation stopped for up
     # to 9.5 s after a router came back); `raw` can set its own
     _insert(conf, "connect/retry", RECONNECT_RETRY)
+    if section.mode == "client":
+        _insert(conf, "transport/link/tx/queue/congestion_control/block/wait_before_close", CLIENT_WAIT_BEFORE_CLOSE_US)
     for path, value in section.raw.items():
         _insert(conf, path, value)
     return conf
