@@ -100,6 +100,7 @@ class PipelineCounters:
     estimates: int = 0
     errors: int = 0
     caught_up: int = 0  # blocks taken into the state without publishing (after a takeover)
+    held_dropped: int = 0  # held estimates dropped at a change of ownership (the other term's to publish)
     by_kind: Counter[str] = field(default_factory=Counter)
 
 

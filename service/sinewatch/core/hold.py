@@ -4,6 +4,8 @@ what may leave now; :func:`not_valid` marks one that could not be confirmed."""
 
 from __future__ import annotations
 
+import json
+
 from sinewatch.core.channel import Channel
 
 
@@ -66,3 +68,48 @@ def not_valid(payload: bytes) -> bytes:
         if flag in payload:
             return payload.replace(flag, DIAGNOSTICS_NOT_VALID, 1)
     return payload
+
+
+_FENCING = b',"fencing":'
+_DECODER = json.JSONDecoder()
+
+
+def take_over(ch: Channel, published_ns: int | None, fencing_json: str) -> int:
+    """A change of ownership (a takeover, or a restart from a predecessor's state): the
+    estimates ``ch`` holds were made under the term of the daemon whose state this is. One whose
+    time is at or before ``published_ns`` (the last estimate of the channel the previous owner
+    was seen to publish; None: none seen) is its, already out: dropped. The rest were never
+    published: they keep their place and get ``fencing_json``, the term that now publishes
+    them, so that no estimate leaves under a term this daemon does not hold. Returns how
+    many were dropped."""
+    kept = []
+    for payload, at, window_start, converged in ch.held:
+        if published_ns is not None and json.loads(payload)["timestamp_ns"] <= published_ns:
+            continue
+        kept.append((restamp(payload, fencing_json), at, window_start, converged))
+    dropped = len(ch.held) - len(kept)
+    ch.held.clear()
+    ch.held.extend(kept)
+    return dropped
+
+
+def drop(ch: Channel) -> int:
+    """A deposed owner: what ``ch`` holds is its successor's to publish (from its snapshot, or
+    the inputs again), never this daemon's under a term it lost. Returns how many."""
+    n = len(ch.held)
+    ch.held.clear()
+    return n
+
+
+def restamp(payload: bytes, fencing_json: str) -> bytes:
+    """An Estimate's bytes with its ``fencing`` (format 4 or later) replaced by
+    ``fencing_json``; earlier formats have none and are returned as they are. The member is the
+    message's last ``,"fencing":`` (names and extras' strings are JSON-escaped, so their quotes
+    never read as these bytes; extras sit inside diagnostics, before it)."""
+    at = payload.rfind(_FENCING)
+    if at < 0:
+        return payload
+    start = at + len(_FENCING)
+    tail = payload[start:].decode("utf-8")
+    _, n = _DECODER.raw_decode(tail)  # the old value's length, in characters
+    return payload[:start] + fencing_json.encode("utf-8") + tail[n:].encode("utf-8")
