@@ -21,7 +21,7 @@ from sinewatch import estimators
 from sinewatch.apps.bench import validity as bench
 from sinewatch.apps.bench.scenarios import DEFAULT_RULE
 from sinewatch.core.pipeline import NullSink, Pipeline
-from sinewatch.estimators.presence import SignalPresence
+from sinewatch.estimators.presence import EDGE_RATIO, SignalPresence
 from sinewatch.schemas.codec import Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
 
@@ -273,19 +273,53 @@ def test_the_quarter_cycle_test_does_not_flag_a_steady_signal(f_detector, f_sign
     run, _ = SignalPresence(fs, f_detector, hysteresis=0.02, fast=True).update(x)
     first = np.flatnonzero(run)[0]
     assert first <= 2 * round(fs / f_detector) and np.all(run[first:] > 0)
+    # nor the edge test (G, rules version 5): not one step of the level in 20 s, the run unbroken
+    run, _ = SignalPresence(fs, f_detector, hysteresis=0.02, fast=True, edge=EDGE_RATIO).update(x)
+    first = np.flatnonzero(run)[0]
+    assert np.array_equal(run[first:], np.arange(1, run.size - first + 1))
+
+
+@pytest.mark.parametrize("fs", [10_000.0, 9_999.33, 12_800.0])
+@pytest.mark.parametrize("f_detector", [50.0, 40.0])
+@pytest.mark.parametrize(
+    ("step", "is_edge"), [(0.5, True), (0.6, True), (1.5, True), (2.0, True), (0.9, False), (1.1, False)]
+)
+def test_a_step_of_the_level_is_an_edge_a_c37_magnitude_step_is_not(fs, f_detector, step, is_edge):
+    """(G), validity rules version 5: a level below 0.8, or above 1.25, of the cycle before
+    starts the run over (the signal stays present: nothing is absent). A step to 0.6 or 1.5 of
+    the level, or beyond, is read within a cycle and a half, at any phase (one between 0.6 and
+    0.8 only at some phases: no reading then compares a whole cycle of each level); C37.118.1's
+    +-10 % magnitude step is not an edge, nor is the
+    steady signal before it. A sag to 0.5 pu and its end are such steps: the estimates
+    across them are not valid until the estimator's memory holds none of the old level."""
+    rng = np.random.default_rng(12)
+    for phase in np.linspace(0.0, 2 * np.pi, 12, endpoint=False):
+        n_on = round(0.4 * fs) + round(phase * 9)
+        x = np.sin(2 * np.pi * 50.0 * np.arange(round(0.7 * fs)) / fs + phase)
+        x[n_on:] *= step
+        x += rng.normal(0.0, 1e-3, x.size)
+        run, _ = SignalPresence(fs, f_detector, hysteresis=0.02, fast=True, edge=EDGE_RATIO).update(x)
+        first = np.flatnonzero(run)[0]
+        breaks = np.flatnonzero(np.diff(run[first:]) != 1) + first + 1  # where the run starts over
+        assert np.all(run[first:] > 0) or step < 1  # never absent (a 40 Hz detector may read a fall's onset)
+        if is_edge:
+            assert breaks.size and n_on <= breaks[0] <= n_on + 3 * round(fs / (2 * f_detector)), (phase, breaks[:3])
+        else:
+            assert not breaks.size, (phase, breaks[:3])
 
 
 def test_the_quarter_cycle_test_does_not_depend_on_how_the_stream_is_cut():
     fs = 10_000.0
     x = _sine(fs, 1.0) + np.random.default_rng(4).normal(0, 0.01, 10_000)
     x[3000:4000] *= 0.05
-    whole = SignalPresence(fs, fast=True, hysteresis=0.02)
+    x[6000:] *= 0.5  # and a step of the level (G)
+    whole = SignalPresence(fs, fast=True, hysteresis=0.02, edge=EDGE_RATIO)
     run_whole, _ = whole.update(x)
-    parts = SignalPresence(fs, fast=True, hysteresis=0.02)
+    parts = SignalPresence(fs, fast=True, hysteresis=0.02, edge=EDGE_RATIO)
     cuts = [0, 1, 7, 64, 65, 3001, 3050, 3051, 10_000]
     got = np.concatenate([parts.update(x[a:b])[0] for a, b in itertools.pairwise(cuts)])
     assert np.array_equal(got, run_whole) and np.array_equal(parts.ring, whole.ring)
-    restored = SignalPresence(fs, fast=True, hysteresis=0.02)
+    restored = SignalPresence(fs, fast=True, hysteresis=0.02, edge=EDGE_RATIO)
     restored.set_state(json.loads(json.dumps(whole.get_state())))
     assert np.array_equal(restored.update(x[:700])[0], whole.update(x[:700])[0])
 

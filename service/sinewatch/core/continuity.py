@@ -42,7 +42,7 @@ from sinewatch.schemas.errors import InputError
 
 #: Recorded in every file's metadata (``validity_rules_version``); files of earlier builds
 #: have no key and replay under version 1.
-VALIDITY_RULES_VERSION = 4
+VALIDITY_RULES_VERSION = 5
 
 
 @dataclass(frozen=True, slots=True)

@@ -29,7 +29,7 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
             out.append(not_valid(payload) if window_start >= 0 else payload)
     n_now = ch.samples
     latency = ch.presence.onset_latency_samples
-    memory = ch.estimator.memory_samples
+    memory = ch.valid_memory_samples
     fs = ch.sample_rate_hz
     ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
     for payload, converged, t_ns in made:
@@ -43,7 +43,10 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     while held and held[0][1] <= n_now:
         payload, at, window_start, converged = held.popleft()
         if window_start >= 0:
-            i = max(at - start - 1, 0)
+            # the run where the detector has read its latency past the window; from validity
+            # rules version 5 at the block's last sample: an edge of the level (or an onset the
+            # slower level test reads) found by then counts too
+            i = max(at - start - 1, 0) if ch.validity_version < 5 or run is None else run.shape[0] - 1
             if run is None or run[i] < start + 1 + i - window_start:  # absent somewhere since the window began
                 payload, converged = not_valid(payload), False
         out.append(payload)
