@@ -1,6 +1,7 @@
 """Estimates held back until the presence detector has read past their windows
-(``hold_estimates``, off by default: docs/validity.md says why): :func:`hold` takes a block's estimates and gives
-what may leave now; :func:`not_valid` marks one that could not be confirmed."""
+(``hold_estimates``, on by default: docs/validity.md says what it costs): :func:`hold` takes a block's estimates
+and gives what may leave now; :func:`not_valid` marks one that could not be confirmed; :func:`take_over` and
+:func:`drop` are what a change of ownership does to what a channel holds."""
 
 from __future__ import annotations
 
@@ -16,7 +17,9 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     block's last, or a grid report's ``lookahead_samples`` after its time; counted in
     samples, not wall time: replay reproduces it), and is then published valid only if
     the signal was present at that sample throughout its window and since (the run of
-    presence there reaches back to the window's start). An estimate not valid when made
+    presence there reaches back to the window's start, which from validity rules version 5
+    is ``Channel.valid_memory_samples`` before its end; and the run is read at the
+    releasing block's last sample: an edge or a slower onset read by then counts too). An estimate not valid when made
     stays so; estimates held when the channel starts over (a reset) are published not
     valid: the detector that was to confirm them starts afresh. Order is kept: an
     estimate leaves after every estimate made before it."""

@@ -584,7 +584,7 @@ class Pipeline:
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        With ``hold_estimates`` (off by default) they are held back
+        With ``hold_estimates`` (on by default) they are held back
         (:func:`sinewatch.core.hold.hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)

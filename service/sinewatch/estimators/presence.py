@@ -65,6 +65,17 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      phase jump of about 60 degrees or more, and in a 40 Hz detector on a 50 Hz signal the
      onset of a sag to 0.5 pu; the estimates across them are then not valid for one memory.
 
+(G)  (validity rules version 5) An edge: at a reading, a level below ``EDGE_RATIO`` (0.8) of
+     the level two readings back (the cycle just before this reading's, not overlapping it),
+     or above 1 / 0.8 of it, starts the run over (the signal stays present). A sag to 0.5 pu
+     and its end are edges; an observer's state still holds the old level across them
+     (``kkl`` 12 Hz, ``kkl-biased`` 22 Hz, ``sogi-fll`` 1.2 Hz, ``ges-kalman`` 0.32 Hz off while
+     valid under version 4), so no estimate is valid until the estimator's memory holds none of
+     it. A step to 0.6 or 1.5 of the level, or beyond, is read within 3 H at any phase; one
+     between 0.6 and 0.8 only at some phases (no reading compares a whole cycle of each level
+     then). C37.118.1's +-10 % magnitude step, amplitude modulation, noise down to 0 dB SNR
+     and harmonics are not edges (``tests/test_validity.py``).
+
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
 change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
@@ -82,7 +93,7 @@ the window is the interruption, and it is read every half cycle, so the level te
 within one and a half nominal cycles (3 H samples) of the onset; the quadrature test (F)
 within ``Q + m - 1``. An estimate made in that time would read as valid though its window
 holds the interruption: the pipeline holds every estimate back by the detector's latency
-and judges it then (``hold_estimates``, off by default, docs/validity.md says why;
+and judges it then (``hold_estimates``, on by default; docs/validity.md says what it costs;
 :attr:`SignalPresence.onset_latency_samples`).
 
 The level's sums are of two half cycles only, started afresh each half cycle (no running

@@ -120,6 +120,7 @@ class Run:
     memory_s: float
     rows: list[tuple[float, float, bool, bool, float]]
     wait_s: list[float]
+    refill_s: float  # the signal an estimate needs behind it to be valid: memory_s, twice for a recursive one (rules 5)
 
     def error(self, f: float) -> float:
         return abs(f - self.truth_hz)
@@ -226,8 +227,8 @@ def run(name: str, event: str, rules_version: int = VALIDITY_RULES_VERSION) -> R
                 math.nan if sd[0] is None else float(sd[0]),
             )
         )
-    memory_s = pipeline.channels["d"].estimator.memory_samples / FS
-    return Run(name, event, truth, memory_s, rows, wait)
+    ch = pipeline.channels["d"]
+    return Run(name, event, truth, ch.estimator.memory_samples / FS, rows, wait, ch.valid_memory_samples / FS)
 
 
 def _idle(pipeline: Pipeline, sink: _Keep, t0_ns: int) -> None:
