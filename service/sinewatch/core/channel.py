@@ -12,7 +12,7 @@ import numpy as np
 
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION
 from sinewatch.estimators.base import Estimator
-from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, SignalPresence
+from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, EDGE_RATIO, SignalPresence
 from sinewatch.schemas.codec import Block
 
 
@@ -56,7 +56,16 @@ class Channel:
                 hold=self.validity_version >= 2,
                 hysteresis=DEFAULT_HYSTERESIS if self.validity_version >= 3 else 0.0,
                 fast=self.validity_version >= 4,
+                edge=EDGE_RATIO if self.validity_version >= 5 else 0.0,
             )
+
+    @property
+    def valid_memory_samples(self) -> int:
+        """How many samples of present signal an estimate needs behind its window's end to be
+        valid: the estimator's memory, twice for a recursive one from validity rules version
+        5 on (``Estimator.REFILL_MEMORIES``: its settling time counts from a state near the truth)."""
+        memory = self.estimator.memory_samples
+        return memory * self.estimator.REFILL_MEMORIES if self.validity_version >= 5 else memory
 
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
@@ -100,6 +109,7 @@ class PipelineCounters:
     estimates: int = 0
     errors: int = 0
     caught_up: int = 0  # blocks taken into the state without publishing (after a takeover)
+    held_dropped: int = 0  # held estimates dropped at a change of ownership (the other term's to publish)
     by_kind: Counter[str] = field(default_factory=Counter)
 
 

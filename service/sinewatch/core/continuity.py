@@ -29,9 +29,13 @@ detector has read the channel's signal its onset latency past the estimate's win
 estimate whose window holds the start of an interruption is published valid (the pipeline's
 :func:`sinewatch.core.hold.hold`). Version 4 adds the detector's quarter-cycle onset test (the
 signal against the sinusoid of its last reading), which cuts that latency to about a third of a
-cycle, and holds estimates back by default. Files of version 2 replay without the hold and the
-hysteresis, files of version 3 with what their recorded config says of the hold and without the
-quarter-cycle test.
+cycle. Version 5 calls a step of the level an edge (a sag's start and end: the presence run
+starts over, presence (G)), wants two memories of signal behind a recursive estimator's estimate
+(``Estimator.REFILL_MEMORIES``; one for a window) and judges a held estimate on the run at its
+releasing block's end; ``hold_estimates`` is on by default from this version. Files of version 2
+replay without the hold and the hysteresis, files of versions 3 and 4 with what their recorded
+config says of the hold (version 3 without the quarter-cycle test), and without the edges and
+the second memory.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from sinewatch.schemas.errors import InputError
 
 #: Recorded in every file's metadata (``validity_rules_version``); files of earlier builds
 #: have no key and replay under version 1.
-VALIDITY_RULES_VERSION = 4
+VALIDITY_RULES_VERSION = 5
 
 
 @dataclass(frozen=True, slots=True)

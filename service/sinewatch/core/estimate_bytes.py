@@ -131,7 +131,7 @@ def _present(ch: Channel, timestamp_ns: int, t_last_ns: int) -> bool:
     the estimate's time up to the block's last sample."""
     assert ch.presence is not None
     lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
-    return ch.presence.run_samples >= ch.estimator.memory_samples + lag
+    return ch.presence.run_samples >= ch.valid_memory_samples + lag
 
 
 def _usual_floats(track: Track) -> list[float] | None:

@@ -1,8 +1,11 @@
 """Estimates held back until the presence detector has read past their windows
-(``hold_estimates``, off by default: docs/validity.md says why): :func:`hold` takes a block's estimates and gives
-what may leave now; :func:`not_valid` marks one that could not be confirmed."""
+(``hold_estimates``, on by default: docs/validity.md says what it costs): :func:`hold` takes a block's estimates
+and gives what may leave now; :func:`not_valid` marks one that could not be confirmed; :func:`take_over` and
+:func:`drop` are what a change of ownership does to what a channel holds."""
 
 from __future__ import annotations
+
+import json
 
 from sinewatch.core.channel import Channel
 
@@ -14,7 +17,9 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     block's last, or a grid report's ``lookahead_samples`` after its time; counted in
     samples, not wall time: replay reproduces it), and is then published valid only if
     the signal was present at that sample throughout its window and since (the run of
-    presence there reaches back to the window's start). An estimate not valid when made
+    presence there reaches back to the window's start, which from validity rules version 5
+    is ``Channel.valid_memory_samples`` before its end; and the run is read at the
+    releasing block's last sample: an edge or a slower onset read by then counts too). An estimate not valid when made
     stays so; estimates held when the channel starts over (a reset) are published not
     valid: the detector that was to confirm them starts afresh. Order is kept: an
     estimate leaves after every estimate made before it."""
@@ -27,7 +32,7 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
             out.append(not_valid(payload) if window_start >= 0 else payload)
     n_now = ch.samples
     latency = ch.presence.onset_latency_samples
-    memory = ch.estimator.memory_samples
+    memory = ch.valid_memory_samples
     fs = ch.sample_rate_hz
     ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
     for payload, converged, t_ns in made:
@@ -41,7 +46,10 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     while held and held[0][1] <= n_now:
         payload, at, window_start, converged = held.popleft()
         if window_start >= 0:
-            i = max(at - start - 1, 0)
+            # the run where the detector has read its latency past the window; from validity
+            # rules version 5 at the block's last sample: an edge of the level (or an onset the
+            # slower level test reads) found by then counts too
+            i = max(at - start - 1, 0) if ch.validity_version < 5 or run is None else run.shape[0] - 1
             if run is None or run[i] < start + 1 + i - window_start:  # absent somewhere since the window began
                 payload, converged = not_valid(payload), False
         out.append(payload)
@@ -66,3 +74,48 @@ def not_valid(payload: bytes) -> bytes:
         if flag in payload:
             return payload.replace(flag, DIAGNOSTICS_NOT_VALID, 1)
     return payload
+
+
+_FENCING = b',"fencing":'
+_DECODER = json.JSONDecoder()
+
+
+def take_over(ch: Channel, published_ns: int | None, fencing_json: str) -> int:
+    """A change of ownership (a takeover, or a restart from a predecessor's state): the
+    estimates ``ch`` holds were made under the term of the daemon whose state this is. One whose
+    time is at or before ``published_ns`` (the last estimate of the channel the previous owner
+    was seen to publish; None: none seen) is its, already out: dropped. The rest were never
+    published: they keep their place and get ``fencing_json``, the term that now publishes
+    them, so that no estimate leaves under a term this daemon does not hold. Returns how
+    many were dropped."""
+    kept = []
+    for payload, at, window_start, converged in ch.held:
+        if published_ns is not None and json.loads(payload)["timestamp_ns"] <= published_ns:
+            continue
+        kept.append((restamp(payload, fencing_json), at, window_start, converged))
+    dropped = len(ch.held) - len(kept)
+    ch.held.clear()
+    ch.held.extend(kept)
+    return dropped
+
+
+def drop(ch: Channel) -> int:
+    """A deposed owner: what ``ch`` holds is its successor's to publish (from its snapshot, or
+    the inputs again), never this daemon's under a term it lost. Returns how many."""
+    n = len(ch.held)
+    ch.held.clear()
+    return n
+
+
+def restamp(payload: bytes, fencing_json: str) -> bytes:
+    """An Estimate's bytes with its ``fencing`` (format 4 or later) replaced by
+    ``fencing_json``; earlier formats have none and are returned as they are. The member is the
+    message's last ``,"fencing":`` (names and extras' strings are JSON-escaped, so their quotes
+    never read as these bytes; extras sit inside diagnostics, before it)."""
+    at = payload.rfind(_FENCING)
+    if at < 0:
+        return payload
+    start = at + len(_FENCING)
+    tail = payload[start:].decode("utf-8")
+    _, n = _DECODER.raw_decode(tail)  # the old value's length, in characters
+    return payload[:start] + fencing_json.encode("utf-8") + tail[n:].encode("utf-8")

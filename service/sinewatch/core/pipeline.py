@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,7 @@ import zenoh
 from sinewatch.core.channel import Channel, FrameMember, PipelineCounters, ResumePoint, continues_in_time
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.core.estimate_bytes import estimate_model, estimate_payload
-from sinewatch.core.hold import hold, not_valid
+from sinewatch.core.hold import drop, hold, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
@@ -473,6 +474,32 @@ class Pipeline:
             self._release(ch, now_ns) for ch in self.channels.values() if ch.held and now_ns - ch.last_log_ns >= idle_ns
         )
 
+    def take_over_held(self, published: Mapping[str, tuple[int, int]]) -> int:
+        """A change of ownership, once the new term is set (:meth:`set_fencing`): the estimates
+        the restored state holds were made under its previous owner's term. Those it was seen
+        to publish (``published``: channel -> (seq, timestamp_ns) of its last estimate) are
+        dropped, the rest carry this daemon's term from now on (:func:`sinewatch.core.hold.take_over`):
+        an estimate never leaves under a term this daemon does not hold. Returns how many were dropped."""
+        dropped = 0
+        for ch in self.channels.values():
+            if ch.held:
+                seen = published.get(ch.name)
+                dropped += take_over(ch, None if seen is None else seen[1], self.fencing_json)
+        self.counters.held_dropped += dropped
+        if dropped:
+            log.warning("takeover: %d held estimate(s) the previous owner published dropped", dropped)
+        return dropped
+
+    def drop_held(self) -> int:
+        """A deposed owner (or a standby stopping with a state restored ahead): what every
+        channel holds is dropped, not released: it was made under a term this daemon no longer
+        holds, and its successor publishes it. Returns how many."""
+        dropped = sum(drop(ch) for ch in self.channels.values() if ch.held)
+        self.counters.held_dropped += dropped
+        if dropped:
+            log.warning("no longer the owner: %d held estimate(s) dropped (the successor's)", dropped)
+        return dropped
+
     def _release(self, ch: Channel, log_time_ns: int) -> int:
         """Publish every estimate ``ch`` holds, in order; one that waited for the detector to
         confirm its window goes out not valid. Returns how many."""
@@ -557,7 +584,7 @@ class Pipeline:
     ) -> list[bytes]:
         """One Estimate at the block's last sample; or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        With ``hold_estimates`` (off by default) they are held back
+        With ``hold_estimates`` (on by default) they are held back
         (:func:`sinewatch.core.hold.hold`) and what this block releases is returned."""
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)

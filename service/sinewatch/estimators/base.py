@@ -522,6 +522,13 @@ class Estimator(ABC, Generic[ParamsT]):
     #: The memory of an estimator that does not say (a recursive one without a settling time
     #: of its own): 0.1 s, five cycles at 50 Hz.
     DEFAULT_MEMORY_S: ClassVar[float] = 0.1
+    #: How many memories of present signal an estimate needs behind it to be valid (validity
+    #: rules version 5): a window holds nothing of the past once it has refilled (1); a
+    #: recursive estimator's settling time is counted from a state near the truth, and after a
+    #: start, an interruption or a step of the level its state is far off (tens of hertz, or
+    #: the old amplitude), so it needs its memory twice (2: kkl, ges-kalman still 1.1-1.5x their
+    #: target one memory after an interruption, docs/validity.md).
+    REFILL_MEMORIES: ClassVar[int] = 2
 
     @property
     def memory_samples(self) -> int:

@@ -259,6 +259,7 @@ def std_tables(n: int, hop: int, k_lo: int, k_hi: int, interpolation: str) -> St
 class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft"):
     """Sliding-window Hann interpolated DFT + least-squares amplitude/phase/offset (FFT baseline)"""
 
+    REFILL_MEMORIES: ClassVar[int] = 1  # its memory is its window (validity rules version 5)
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50.0, "window_cycles": 4.0}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (

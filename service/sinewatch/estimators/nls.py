@@ -209,6 +209,7 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
         'problems whose variables separate", 1973 (variable projection)'
     )
     # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
+    REFILL_MEMORIES: ClassVar[int] = 1  # its memory is its window (validity rules version 5)
     example_params: ClassVar[dict[str, Any]] = {
         "min_frequency_hz": 20.0,
         "window_samples": 1024,

@@ -115,6 +115,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
     reports_on_grid = True
     paper = None
     example_sample_rate_hz = 10_000.0
+    REFILL_MEMORIES: ClassVar[int] = 1  # its memory is its window (validity rules version 5)
     example_params: ClassVar[dict[str, Any]] = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}
 
     def _check_params(self) -> None:

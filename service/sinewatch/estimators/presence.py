@@ -65,6 +65,17 @@ with time constant ``tau`` while the signal is present and is frozen while it is
      phase jump of about 60 degrees or more, and in a 40 Hz detector on a 50 Hz signal the
      onset of a sag to 0.5 pu; the estimates across them are then not valid for one memory.
 
+(G)  (validity rules version 5) An edge: at a reading, a level below ``EDGE_RATIO`` (0.8) of
+     the level two readings back (the cycle just before this reading's, not overlapping it),
+     or above 1 / 0.8 of it, starts the run over (the signal stays present). A sag to 0.5 pu
+     and its end are edges; an observer's state still holds the old level across them
+     (``kkl`` 12 Hz, ``kkl-biased`` 22 Hz, ``sogi-fll`` 1.2 Hz, ``ges-kalman`` 0.32 Hz off while
+     valid under version 4), so no estimate is valid until the estimator's memory holds none of
+     it. A step to 0.6 or 1.5 of the level, or beyond, is read within 3 H at any phase; one
+     between 0.6 and 0.8 only at some phases (no reading compares a whole cycle of each level
+     then). C37.118.1's +-10 % magnitude step, amplitude modulation, noise down to 0 dB SNR
+     and harmonics are not edges (``tests/test_validity.py``).
+
 Freezing R while absent keeps a lost signal absent however long it stays lost (noise at 30 dB
 below the signal never becomes "the signal"); letting it decay while present lets a sustained
 change of operating level become the new reference within a few ``tau``. A sag to 0.3 pu is
@@ -82,7 +93,7 @@ the window is the interruption, and it is read every half cycle, so the level te
 within one and a half nominal cycles (3 H samples) of the onset; the quadrature test (F)
 within ``Q + m - 1``. An estimate made in that time would read as valid though its window
 holds the interruption: the pipeline holds every estimate back by the detector's latency
-and judges it then (``hold_estimates``, off by default, docs/validity.md says why;
+and judges it then (``hold_estimates``, on by default; docs/validity.md says what it costs;
 :attr:`SignalPresence.onset_latency_samples`).
 
 The level's sums are of two half cycles only, started afresh each half cycle (no running
@@ -102,7 +113,7 @@ import numpy as np
 from sinewatch.estimators.base import decode_array, encode_array, kernel
 from sinewatch.schemas.errors import ParameterError
 
-PRESENCE_STATE_VERSION = 3  # 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
+PRESENCE_STATE_VERSION = 4  # 3: no level two readings back (G); 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
 DEFAULT_RATIO = 0.1  # IEEE 1159: below 0.1 pu is an interruption
 DEFAULT_TAU_S = 1.0  # decay of the reference level while the signal is present
 DEFAULT_HYSTERESIS = 0.02  # (E): an absence ends at 0.12 of the reference (validity rules version 3)
@@ -110,6 +121,9 @@ FAST_RATIO = 0.35  # (F): absent when the quadrature magnitude falls below 0.35 
 FAST_DC = 0.25  # (F) is off while the one-cycle mean is above 0.25 of the reference
 FAST_MAX_CORR = 0.5  # (F) is off while x_n and x_{n-Q} correlate more (far from quadrature)
 FAST_MAX_MEAN = 16  # (F): at most 16 values of P averaged (noise), fewer below 20 kHz at 50 Hz
+EDGE_RATIO = (
+    0.8  # (G): a level below 0.8, or above 1 / 0.8, of the cycle before it is an edge (validity rules version 5)
+)
 RUN_CAP = 1 << 62
 _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
@@ -118,7 +132,7 @@ _KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel
 # in use (the reading before the last's), the running sum of P over the last m samples, the
 # last reading's mean, the level before the last, the previous and the current half cycle's
 # sum of x_n x_{n-Q}, the lag-Q correlation in use and the last reading's
-_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (
+_P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1, _L2 = (
     0,
     1,
     2,
@@ -134,15 +148,16 @@ _P1, _P2, _C1, _C2, _R, _R1, _R2, _MU, _PSUM, _MU1, _L1, _Q1, _Q2, _CQ, _CQ1 = (
     13,
     14,
     15,
+    16,
 )
-_N_SUMS = 16
+_N_SUMS = 17  # slot 16: the level two readings back (G), the cycle before the last one read
 # slots of "counters": samples in the current half cycle, half cycles seen (up to 2), run
 # length, present (0/1: the last decision), samples in the ring (up to its length), the
 # ring's next slot, armed (1: the running sum holds the last m values of P)
 _COUNT, _HALVES, _RUN, _PRESENT, _FILL, _POS, _ARMED = 0, 1, 2, 3, 4, 5, 6
 _N_COUNTERS = 7
 # slots of the kernel's constants (one float array: the single and the bank kernel take the same)
-_K_HALF, _K_DECAY, _K_RATIO, _K_HOLD, _K_HYST, _K_QUARTER, _K_MEAN, _K_FAST = range(8)
+_K_HALF, _K_DECAY, _K_RATIO, _K_HOLD, _K_HYST, _K_QUARTER, _K_MEAN, _K_FAST, _K_EDGE = range(9)
 
 
 @kernel
@@ -176,6 +191,8 @@ def presence_kernel(
     decay, ratio, hysteresis = consts[_K_DECAY], consts[_K_RATIO], consts[_K_HYST]
     hold = consts[_K_HOLD] != 0.0
     quarter, m, fast = int(consts[_K_QUARTER]), int(consts[_K_MEAN]), consts[_K_FAST] != 0.0
+    edge = consts[_K_EDGE]  # (G): 0 off
+    l2 = sums[_L2]
     p1, p2, c1, c2, r = sums[_P1], sums[_P2], sums[_C1], sums[_C2], sums[_R]
     r1, r2, mu, psum, mu1, l1 = sums[_R1], sums[_R2], sums[_MU], sums[_PSUM], sums[_MU1], sums[_L1]
     q1, q2, cq, cq1 = sums[_Q1], sums[_Q2], sums[_CQ], sums[_CQ1]
@@ -213,7 +230,7 @@ def presence_kernel(
             if halves == 2:
                 mean = (p1 + c1) / m_total
                 ms = (p2 + c2) / m_total - mean * mean
-                l1 = level
+                l2, l1 = l1, level
                 level = math.sqrt(ms) if ms > 0.0 else 0.0
                 rd = r * decay
                 ref = level if level > rd else rd
@@ -222,6 +239,8 @@ def presence_kernel(
                     judge = max(ref, r1, r2)
                 need = ratio if present else ratio + hysteresis  # (E): an absence ends higher up
                 present = 1 if (level > 0.0 and level >= need * judge) else 0  # strictly below: absent
+                if edge > 0.0 and l2 > 0.0 and (level < edge * l2 or edge * level > l2):
+                    run = 0  # (G): the level stepped since the cycle before: the run starts over
                 r2, r1 = r1, r
                 if present:
                     r = ref
@@ -248,7 +267,7 @@ def presence_kernel(
             run = 0
         run_out[j] = run
         level_out[j] = level
-    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2, mu, psum, mu1, l1, q1, q2, cq, cq1])
+    new_sums = np.array([p1, p2, c1, c2, r, level * level, r1, r2, mu, psum, mu1, l1, q1, q2, cq, cq1, l2])
     new_counters = np.array([count, halves, run, present, fill, pos, armed], dtype=np.int64)
     return run_out, level_out, new_sums, new_counters, ring
 
@@ -310,6 +329,7 @@ class SignalPresence:
         hold: bool = True,
         hysteresis: float = 0.0,
         fast: bool = False,
+        edge: float = 0.0,
     ) -> None:
         if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
             raise ParameterError(f"sample_rate_hz: expected a finite value > 0, got {sample_rate_hz}")
@@ -329,11 +349,14 @@ class SignalPresence:
             raise ParameterError(f"hysteresis: expected 0 <= hysteresis < {1.0 - ratio}, got {hysteresis}")
         self.hysteresis = float(hysteresis)  # (E); 0: the rule of earlier builds
         self.fast = 1 if fast else 0  # (F); off: the rules of earlier builds (validity rules version 3 and before)
+        if not (edge == 0.0 or 0.0 < edge < 1.0):
+            raise ParameterError(f"edge: expected 0 (off) or 0 < edge < 1, got {edge}")
+        self.edge = float(edge)  # (G); 0: the rules of earlier builds (validity rules version 4 and before)
         self.consts = np.array(self.params, dtype=np.float64)
         self.reset()
 
     def reset(self) -> None:
-        """``sums`` (16,), ``counters`` (7,) int64: the slots listed at the top of this module;
+        """``sums`` (17,), ``counters`` (7,) int64: the slots listed at the top of this module;
         ``ring`` (Q + m,): the last samples, for (F)."""
         self.sums = np.zeros(_N_SUMS)
         self.counters = np.zeros(_N_COUNTERS, dtype=np.int64)
@@ -352,8 +375,8 @@ class SignalPresence:
         return run, level
 
     @property
-    def params(self) -> tuple[int, float, float, int, float, int, int, int]:
-        """The kernel's constants: (half, decay, ratio, hold, hysteresis, quarter, mean, fast)."""
+    def params(self) -> tuple[int, float, float, int, float, int, int, int, float]:
+        """The kernel's constants: (half, decay, ratio, hold, hysteresis, quarter, mean, fast, edge)."""
         return (
             self.half_cycle_samples,
             self.decay,
@@ -363,6 +386,7 @@ class SignalPresence:
             self.quarter_cycle_samples,
             self.mean_samples,
             self.fast,
+            self.edge,
         )
 
     @property
@@ -402,7 +426,7 @@ class SignalPresence:
 
     def set_state(self, snapshot: dict[str, Any]) -> None:
         version = snapshot.get("format_version")
-        if version not in (1, 2, PRESENCE_STATE_VERSION):
+        if version not in (1, 2, 3, PRESENCE_STATE_VERSION):
             raise ParameterError(f"presence format_version: expected {PRESENCE_STATE_VERSION}, got {version!r}")
         if snapshot.get("half_cycle_samples") != self.half_cycle_samples:
             raise ParameterError(
@@ -416,6 +440,8 @@ class SignalPresence:
         if version in (1, 2) and sums.shape == (8,) and counters.shape == (4,):  # (F) not armed yet
             sums = np.concatenate([sums, np.zeros(_N_SUMS - 8)])
             counters = np.concatenate([counters, np.zeros(_N_COUNTERS - 4, dtype=np.int64)])
+        if version == 3 and sums.shape == (_N_SUMS - 1,):  # no level two readings back: the last one's
+            sums = np.concatenate([sums, sums[_L1 : _L1 + 1]])
         if sums.shape != (_N_SUMS,) or counters.shape != (_N_COUNTERS,) or ring.shape != self.ring.shape:
             raise ParameterError(
                 f"presence state: expected shapes ({_N_SUMS},), ({_N_COUNTERS},) and {self.ring.shape}, "
@@ -428,6 +454,7 @@ __all__ = [
     "DEFAULT_HYSTERESIS",
     "DEFAULT_RATIO",
     "DEFAULT_TAU_S",
+    "EDGE_RATIO",
     "FAST_DC",
     "FAST_RATIO",
     "SignalPresence",

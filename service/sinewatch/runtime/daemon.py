@@ -395,6 +395,9 @@ class Daemon:
         """Subscribe to the inputs (at start, or when a standby takes over: then the
         publishers' history is asked for its newest ``history_blocks`` per key only)."""
         if self._intake is None:
+            # the state's held estimates were made under its previous owner's term: those it
+            # published are dropped, the rest carry this daemon's (set before this is called)
+            self.pipeline.take_over_held(self.cluster.published if self.cluster is not None else {})
             self._intake = Intake(self, asyncio.get_running_loop(), history_blocks)
 
     async def stop_intake(self) -> None:
@@ -403,6 +406,7 @@ class Daemon:
         if self._intake is not None:
             await self._intake.stop()  # the consumer releases the room of what it drops meanwhile
             self._intake = None
+        self.pipeline.drop_held()  # made under the lost term: the successor's to publish, never ours
 
     def _start_operations(self) -> None:
         """The Foxglove server and the metrics server, when configured."""
@@ -462,7 +466,10 @@ class Daemon:
             await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
-        self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
+        if self.cluster is None or (self.cluster.role == "active" and self.cluster.may_publish()):
+            self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
+        else:  # a standby (its state restored ahead) or a deposed owner: not its term to publish under
+            self.pipeline.drop_held()
         self.publish_status()
         if self.cluster is not None:  # only now: a standby takes over after our last estimate
             await self.cluster.close()
