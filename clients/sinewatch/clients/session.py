@@ -45,6 +45,14 @@ RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increas
 #: run did, twice). A client's only link is its router's: it waits longer than the router
 #: does; a router that is gone, not stalled, is found by the link's lease (10 s) all the same.
 CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
+#: The same bound on a router (``sinewatch router``): 15 s, not Zenoh's 5 s. With 5 s the router
+#: closed the link of a daemon that had read nothing for 5 s while it caught up after a takeover
+#: on a loaded machine, losing what was queued to it, which zenoh-ext's recovery then could not
+#: fetch again in time (153 blocks of each of its 50 channels, in a failover test beside four CPU
+#: burners); waiting holds the publishers back instead (their puts block: nothing is lost). A
+#: subscriber that is gone is still found by its link's lease (10 s). Shorter than a client's, so
+#: the router gives up on a stalled subscriber before any publisher gives up on the router.
+ROUTER_WAIT_BEFORE_CLOSE_US = 15_000_000
 
 
 def zenoh_config(section: ZenohSection) -> zenoh.Config:
@@ -59,8 +67,9 @@ def zenoh_config(section: ZenohSection) -> zenoh.Config:
     # daemon and its feeder each waiting out their own back-off left estimation stopped for up
     # to 9.5 s after a router came back); `raw` can set its own
     _insert(conf, "connect/retry", RECONNECT_RETRY)
-    if section.mode == "client":
-        _insert(conf, "transport/link/tx/queue/congestion_control/block/wait_before_close", CLIENT_WAIT_BEFORE_CLOSE_US)
+    wait = {"client": CLIENT_WAIT_BEFORE_CLOSE_US, "router": ROUTER_WAIT_BEFORE_CLOSE_US}.get(section.mode)
+    if wait is not None:
+        _insert(conf, "transport/link/tx/queue/congestion_control/block/wait_before_close", wait)
     for path, value in section.raw.items():
         _insert(conf, path, value)
     return conf
