@@ -84,3 +84,62 @@ def test_with_zenoh_s_5_s_the_publisher_closes_its_own_link_and_samples_are_lost
     )
     print(f"{sent} samples put, {len(got)} received")
     assert len(got) < sent
+
+
+SUBSCRIBER = """
+import sys, threading
+from sinewatch.clients.session import client_section, open_session
+seqs, cond = [], threading.Condition()
+def on(sample):
+    with cond:
+        seqs.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
+        cond.notify_all()
+with open_session(client_section([sys.argv[1]])) as session:
+    sub = session.declare_subscriber("stall/test", on)
+    print("ready", flush=True)
+    n = int(sys.stdin.readline())  # the samples put: report once they are all here, or after 30 s
+    with cond:
+        cond.wait_for(lambda: len(seqs) >= n, timeout=30)
+        print(len(seqs), seqs == list(range(len(seqs))), flush=True)
+"""
+
+
+def test_a_router_waits_for_a_subscriber_that_reads_nothing_for_7_s(tmp_path):
+    """The router's side: a subscriber that reads nothing for 7 s (here its process is stopped;
+    a daemon catching up after a takeover on a loaded machine did the same) keeps its link, and
+    gets every sample once it reads again, the publisher held back meanwhile. With Zenoh's 5 s
+    the router closed that daemon's link and what was queued to it was lost."""
+    import subprocess
+    import sys
+
+    router = Router(tmp_path)
+    router.start()
+    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+    sub = subprocess.Popen(
+        [sys.executable, "-c", SUBSCRIBER, endpoint[0]], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert sub.stdout is not None and sub.stdin is not None and sub.stdout.readline().strip() == "ready"
+        with open_session(client_section(endpoint)) as session:
+            pub = session.declare_publisher("stall/test", congestion_control=zenoh.CongestionControl.BLOCK)
+            matched = threading.Event()
+            listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
+            assert matched.wait(30)
+            listener.undeclare()
+            sub.send_signal(signal.SIGSTOP)
+            stopped = time.monotonic()
+            threading.Timer(STALL_S, sub.send_signal, (signal.SIGCONT,)).start()  # the puts below block meanwhile
+            sent = 0
+            while time.monotonic() < stopped + STALL_S + 0.5:
+                pub.put(sent.to_bytes(8, "little") + bytes(PAYLOAD - 8))
+                sent += 1
+            sub.stdin.write(f"{sent}\n")
+            sub.stdin.flush()
+            count, in_order = sub.stdout.readline().split()
+    finally:
+        sub.send_signal(signal.SIGCONT)
+        sub.kill()
+        sub.wait()
+        router.kill()
+    print(f"{sent} samples put, {count} received by the subscriber stopped {STALL_S} s")
+    assert int(count) == sent and in_order == "True"
