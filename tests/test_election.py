@@ -113,14 +113,15 @@ def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
     """The keep-alives run on a thread of their own, so that a busy event loop does not depose
     a healthy owner; but an owner whose loop is stuck (a callback that never returns, in a live
     process: not a SIGSTOP, which stops the keep-alive thread too) serves nothing. Its
-    keep-alives stop once its loop has not run for ``loop_stall_s`` (two TTLs), so its lease
+    keep-alives stop once its loop has not run for ``loop_stall_s`` (ten TTLs; two here), so its lease
     expires and the other candidate is elected while the stuck loop is still stuck."""
     import threading
 
-    stuck_for = 2 * TTL + TTL + 2.5  # longer than the stall limit, a TTL and the 2 s a takeover may take
+    stall_s = 2 * TTL  # the daemon's limit is ten TTLs (30 s at its default TTL): shorter here, the same path
+    stuck_for = stall_s + TTL + 2.5  # longer than the stall limit, a TTL and the 2 s a takeover may take
 
     async def scenario(endpoint: str) -> tuple[float, float]:
-        a = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "a", TTL)
+        a = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "a", TTL, loop_stall_s=stall_s)
         b = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "b", TTL)
         loop_a = asyncio.new_event_loop()  # a's daemon loop, in a thread of its own
         threading.Thread(target=loop_a.run_forever, daemon=True).start()

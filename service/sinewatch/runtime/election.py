@@ -74,9 +74,11 @@ POLL_S = 0.2  # how often a standby reads the owner's lease while it is kept ali
 FAST_POLL_S = 0.025
 # How long the daemon's event loop may go without running before the owner stops renewing its
 # lease, in TTLs. The keep-alives run on a thread of their own, so a loop stuck in a callback
-# (a deadlock, a runaway computation) kept its lease and served nothing, with no successor. Two
-# TTLs: a loop busy with a long batch or restore on a loaded machine must not be deposed for it.
-LOOP_STALL_TTLS = 2
+# (a deadlock, a runaway computation) kept its lease and served nothing, with no successor. Ten
+# TTLs: a loop busy with a long batch, a restore, or a put the router holds back (up to its 15 s)
+# on a loaded machine must not be deposed for it; with two, healthy owners lost their leases
+# ("the daemon's event loop has not run for 6.2 s") beside four CPU burners at load ~20.
+LOOP_STALL_TTLS = 10
 
 
 @dataclass
@@ -98,7 +100,7 @@ class LeaseElection:
     loop awaits :meth:`campaign` and :meth:`hold` and reads the deadline (one float).
     """
 
-    def __init__(self, endpoint: str, key: str, identity: str, ttl_s: int) -> None:
+    def __init__(self, endpoint: str, key: str, identity: str, ttl_s: int, loop_stall_s: float | None = None) -> None:
         host, _, port = endpoint.rpartition(":")
         self.host, self.port = host.strip("[]"), int(port)
         self.key = key.encode()
@@ -112,7 +114,7 @@ class LeaseElection:
         self.won: Won | None = None
         self.keepalives = 0
         self._last_ack_sent = 0.0  # monotonic time the last acknowledged keep-alive was sent
-        self.loop_stall_s = LOOP_STALL_TTLS * ttl_s
+        self.loop_stall_s = LOOP_STALL_TTLS * ttl_s if loop_stall_s is None else loop_stall_s
         self.loop_tick = 0.0  # monotonic: the daemon's loop last ran (the keep-alives need it recent)
         self._changed: asyncio.Event | None = None  # on the daemon's loop
         # called on the daemon's loop when a standby sees the owner's lease stop being renewed
