@@ -497,7 +497,7 @@ class Pipeline:
         dropped = sum(drop(ch) for ch in self.channels.values() if ch.held)
         self.counters.held_dropped += dropped
         if dropped:
-            log.warning("no longer the owner: %d held estimate(s) dropped (the successor's)", dropped)
+            log.warning("%d held estimate(s) dropped: made under an ownership this daemon no longer holds", dropped)
         return dropped
 
     def _release(self, ch: Channel, log_time_ns: int) -> int:

@@ -386,6 +386,10 @@ class Daemon:
         for ch in pipeline.channels.values():
             if ch.last_seq is not None:
                 pipeline.resume_points[ch.name] = ResumePoint(ch.last_seq, ch.next_t0_ns)
+        # The resume points count every block of that state published; so are its held estimates
+        # (hold_estimates): its next block or its idle release published them, unless it died
+        # within that (then they are lost with it). Dropped, not published a second time.
+        pipeline.drop_held()
         if self.recorder is not None:
             self.recorder.attach_first_snapshot = True
         log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
