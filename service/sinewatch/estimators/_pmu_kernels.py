@@ -51,7 +51,7 @@ TRANSITION_ALPHA = 0.05  # weight of each report in the running scale (~20 repor
 N_ISTATE = 6
 N_FSTATE = 16
 #: (U) noise probes per report, and the time constant (s) of their average over reports
-N_PROBES = 4
+N_PROBES = 4  # written out as four chains in _noise_update
 NOISE_TIME_CONSTANT_S = 1.0
 #: report rows: the 8 values, then (U) the standard deviations of frequency, ROCOF, amplitude,
 #: phase, offset and TVE
@@ -187,22 +187,55 @@ def _noise_update(
     average in ``noise`` = (weighted sum, sum of weights)), is sigma^2. Returns it."""
     f_osc, lam, dstep = fconsts[0], fconsts[7], fconsts[8]
     last = start + M - 1
+    # the four probes are independent chains (each rotor e waits on its previous value): they
+    # advance together, one tap at a time, so the CPU overlaps them; each probe's operations
+    # are those of a loop over its taps alone, in the same order (the same bits)
+    w0 = _probe_w(0, f_hz, f_osc, dstep)
+    w1 = _probe_w(1, f_hz, f_osc, dstep)
+    w2 = _probe_w(2, f_hz, f_osc, dstep)
+    w3 = _probe_w(3, f_hz, f_osc, dstep)
+    rot0 = complex(math.cos(w0), math.sin(w0))
+    rot1 = complex(math.cos(w1), math.sin(w1))
+    rot2 = complex(math.cos(w2), math.sin(w2))
+    rot3 = complex(math.cos(w3), math.sin(w3))
+    e0 = e1 = e2 = e3 = complex(1.0, 0.0)
+    pr0 = pr1 = pr2 = pr3 = complex(0.0, 0.0)
+    for i in range(M):
+        c = complex(ring[last - i, 0], ring[last - i, 1])
+        t = taper[i]
+        pr0 += t * e0 * c
+        pr1 += t * e1 * c
+        pr2 += t * e2 * c
+        pr3 += t * e3 * c
+        e0 *= rot0
+        e1 *= rot1
+        e2 *= rot2
+        e3 *= rot3
     acc = 0.0
-    for k in range(N_PROBES):
-        dk = (k + 0.5) * f_hz - f_osc  # the probe's frequency after demodulation
-        w = 2.0 * math.pi * dk * dstep  # radians per decimated sample
-        rot = complex(math.cos(w), math.sin(w))
-        e = complex(1.0, 0.0)
-        pr = complex(0.0, 0.0)
-        for i in range(M):
-            pr += taper[i] * e * complex(ring[last - i, 0], ring[last - i, 1])
-            e *= rot
-        g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
-        acc += (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    acc += _probe_power(pr0, w0, pgram)
+    acc += _probe_power(pr1, w1, pgram)
+    acc += _probe_power(pr2, w2, pgram)
+    acc += _probe_power(pr3, w3, pgram)
     noise[0] = lam * noise[0] + acc / N_PROBES
     noise[1] = lam * noise[1] + 1.0
     sig2: float = noise[0] / noise[1]
     return sig2
+
+
+@kernel(inline="always")
+def _probe_w(k: int, f_hz: float, f_osc: float, dstep: float) -> float:
+    """(U) probe k's frequency after demodulation, in radians per decimated sample."""
+    dk = (k + 0.5) * f_hz - f_osc
+    w: float = 2.0 * math.pi * dk * dstep
+    return w
+
+
+@kernel(inline="always")
+def _probe_power(pr: complex, w: float, pgram: np.ndarray) -> float:
+    """(U) a probe's power over its gram (the noise variance it reads)."""
+    g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
+    p: float = (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    return p
 
 
 @kernel(inline="always")
