@@ -69,6 +69,11 @@ class BankKernel:
     #: and scattered as views (stacked channel last, nls's 1024-sample ring buffers cost ~12
     #: ns a sample to gather and ~8 to scatter, measured: more than the Python a bank saves)
     channel_first: bool = False
+    #: a bank that runs the frame itself (``run(estimators, samples (N, C), last_only, t0_ns)``,
+    #: the samples validated): an estimator whose per-block Python (pmu's time anchor, its (T)
+    #: test over the reports) is part of the call; it returns the Tracks, or None for channels
+    #: that cannot share one call (they then run one by one)
+    run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None
 
 
 _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
@@ -101,10 +106,6 @@ NO_BANK: dict[str, str] = {
         "gathering and scattering of the 1024-sample ring buffers costs more than the Python it "
         "saves; its channels run one after the other, at 1.2-1.6x the FFT"
     ),
-    "pmu": (
-        "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "
-        "the block's time before its kernel runs; its channels run one after the other"
-    ),
 }
 
 
@@ -114,10 +115,11 @@ def register_bank(
     n_outputs: int,
     tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None,
     channel_first: bool = False,
+    run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None,
 ) -> None:
     """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses);
-    ``tracks`` and ``channel_first``: see :class:`BankKernel`."""
-    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first)
+    ``tracks``, ``channel_first`` and ``run``: see :class:`BankKernel`."""
+    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first, run)
     NO_BANK.pop(cls.name, None)
 
 
@@ -162,6 +164,9 @@ def update_bank(
     if not _all_finite(x.reshape(-1)):
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+    if bank.run is not None:
+        ran = bank.run(estimators, x, last_only, t0_ns)
+        return _one_by_one(estimators, x, last_only, t0_ns) if ran is None else ran
     keys = list(first._state)
     if bank.channel_first:
         x = np.ascontiguousarray(x.T)  # row c: channel c's samples

@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
+from sinewatch.estimators._pmu_bank import grid_track, pmu_bank_kernel, run_pmu_bank
 from sinewatch.estimators._pmu_design import (
     AMBIGUOUS_S,
     DETECTION_S,
@@ -62,16 +63,15 @@ from sinewatch.estimators._pmu_kernels import (
     pmu_kernel,
     transition_kernel,
 )
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
     GridReports,
     Track,
-    TrackStd,
     concat_tracks,
     decode_array,
     encode_array,
-    track_from_columns,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -427,38 +427,8 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, reps, sse, n_pred = outputs
-        residual = math.sqrt(sse / n_pred) if n_pred else math.nan
-        return track_from_columns(
-            out,
-            sse,
-            n_pred,
-            rocof_hz_per_s=out[:, 5:6],
-            reports=GridReports(
-                index=reps[:, 0].astype(np.int64),
-                reporting_rate_hz=self.reporting_rate,
-                track=Track(
-                    frequency_hz=reps[:, 1:2],
-                    amplitude=reps[:, 5:6],
-                    phase_rad=reps[:, 6:7],
-                    offset=reps[:, 7],
-                    converged=reps[:, 3] > self._fconsts[6],
-                    residual_rms=residual,
-                    extras={
-                        "synchrophasor_magnitude": reps[:, 3],
-                        "synchrophasor_angle_rad": reps[:, 4],
-                        "std_rocof_hz_per_s": reps[:, 9],
-                        "std_tve": reps[:, 13],
-                    },
-                    rocof_hz_per_s=reps[:, 2:3],
-                    std=TrackStd(
-                        frequency_hz=reps[:, 8:9],
-                        amplitude=reps[:, 10:11],
-                        phase_rad=reps[:, 11:12],
-                        offset=reps[:, 12],
-                    ),
-                ),
-            ),
-        )
+        # the reports' converged: the magnitude test until (T) replaces it (_converged)
+        return grid_track(self.reporting_rate, out, reps, sse, n_pred, reps[:, 3] > self._fconsts[6])
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
@@ -471,3 +441,6 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         if rate not in M_CLASS_RATES[f0]:
             rate = f0
         return {"nominal_frequency_hz": f0, "reporting_rate_hz": rate}
+
+
+register_bank(Pmu, pmu_bank_kernel, n_outputs=6, run=run_pmu_bank)
