@@ -24,8 +24,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sinewatch.estimators._pmu_kernels import N_REPORT_COLUMNS, N_TRANSITION, pmu_kernel, transition_kernel
-from sinewatch.estimators.base import GridReports, Track, TrackStd, kernel, track_from_columns
+from sinewatch.estimators._pmu_kernels import (
+    N_REPORT_COLUMNS,
+    N_TRANSITION,
+    _held_model,
+    _out_row,
+    _report,
+    transition_kernel,
+)
+from sinewatch.estimators.base import GridReports, Track, TrackStd, cyclic_next, kernel, track_from_columns
 
 if TYPE_CHECKING:
     from sinewatch.estimators.pmu import Pmu
@@ -41,6 +48,7 @@ def pmu_bank_kernel(
     anchor: np.ndarray,
     noise: np.ndarray,
     trans: np.ndarray,
+    active: np.ndarray,
     kernels: np.ndarray,
     osc: np.ndarray,
     weights: np.ndarray,
@@ -58,38 +66,35 @@ def pmu_bank_kernel(
     last_only: bool,
 ) -> tuple[
     np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
 ]:  # fmt: skip
-    """Channel c (row c of ``x`` (C, N) and of every stacked state array) through
-    :func:`pmu_kernel` and (T) over its reports. Returns (out (C, rows, 6), reports (C, cap,
-    14), reports per channel (C,), sse (C,), n_pred (C,), the reports' converged (C, cap),
-    then the new ring, dc_ring, counters, values, anchor, noise and transition state, each
-    stacked channel first). Pure: no input is modified."""
-    nc, n_in = x.shape
+    """The channels of ``x`` (N, C), C = LANES x groups, in groups of LANES lanes (group g's
+    first ``active[g]`` lanes are channels, the rest pad it) through :func:`_lanes`, then
+    (T) over each channel's reports. Returns (out (C, rows, 6), reports (C, cap, 14),
+    reports per channel (C,), sse (C,), n_pred (C,), the reports' converged (C, cap), then
+    the new ring, dc_ring, counters, values, anchor, noise and transition state, each stacked
+    channel first). Pure: no input is modified."""
+    n_in, nc = x.shape
     rows = 1 if last_only else n_in
     cap = n_in // max(1, int(fconsts[5])) + 2  # pmu_kernel's own bound on a block's reports
     min_amp = fconsts[6]
     out = np.empty((nc, rows, 6))
     reps = np.empty((nc, cap, N_REPORT_COLUMNS))
     n_rep = np.zeros(nc, dtype=np.int64)
-    sse = np.empty(nc)
+    sse = np.zeros(nc)
     n_pred = np.zeros(nc, dtype=np.int64)
     conv = np.zeros((nc, cap), dtype=np.bool_)
-    rg2, dr2, ist2, fst2 = np.empty_like(ring), np.empty_like(dcring), np.empty_like(istate), np.empty_like(fstate)
-    anc2, nz2, tr2 = np.empty_like(anchor), np.empty_like(noise), np.empty_like(trans)
-    for c in range(nc):
-        o, r, s, npd, rg, dr, ist, fst, anc, nz = pmu_kernel(
-            x[c], ring[c], dcring[c], istate[c], fstate[c], anchor[c], noise[c], kernels, osc, weights, iconsts,
-            fconsts, g_pass, a2_bias, g_chirp, g_image, noise_gram, probe_taper, probe_gram, last_only,
+    rg2, dr2, ist2, fst2 = ring.copy(), dcring.copy(), istate.copy(), fstate.copy()
+    anc2, nz2, tr2 = anchor.copy(), noise.copy(), trans.copy()
+    for g in range(nc // LANES):
+        _lanes(
+            x, g * LANES, active[g], rg2, dr2, ist2, fst2, nz2, kernels, osc, weights, iconsts, fconsts, g_pass,
+            a2_bias, g_chirp, g_image, noise_gram, probe_taper, probe_gram, last_only, out, reps, n_rep, sse, n_pred,
         )  # fmt: skip
-        k = r.shape[0]
-        out[c] = o
-        reps[c, :k] = r
-        n_rep[c] = k
-        sse[c] = s
-        n_pred[c] = npd
-        rg2[c], dr2[c], ist2[c], fst2[c], anc2[c], nz2[c] = rg, dr, ist, fst, anc, nz
+    for c in range(nc):
+        k = n_rep[c]
         if k:  # (T) as Pmu._converged calls it: contiguous columns of the reports
+            r = reps[c, :k]
             cv, st = transition_kernel(
                 np.ascontiguousarray(r[:, 3]),
                 np.ascontiguousarray(r[:, 1]),
@@ -101,9 +106,186 @@ def pmu_bank_kernel(
             )
             conv[c, :k] = cv
             tr2[c] = st
-        else:
-            tr2[c] = trans[c]
     return out, reps, n_rep, sse, n_pred, conv, rg2, dr2, ist2, fst2, anc2, nz2, tr2
+
+
+#: channels advanced together by the lane-major kernel (the inner loops' literal trip count)
+LANES = 8
+
+
+@kernel
+def _lanes(
+    x: np.ndarray,
+    b: int,
+    active: int,
+    ring: np.ndarray,
+    dcring: np.ndarray,
+    istate: np.ndarray,
+    fstate: np.ndarray,
+    noise: np.ndarray,
+    kernels: np.ndarray,
+    osc: np.ndarray,
+    weights: np.ndarray,
+    iconsts: np.ndarray,
+    fconsts: np.ndarray,
+    g_pass: np.ndarray,
+    a2_bias: np.ndarray,
+    g_chirp: np.ndarray,
+    g_image: np.ndarray,
+    noise_gram: np.ndarray,
+    probe_taper: np.ndarray,
+    probe_gram: np.ndarray,
+    last_only: bool,
+    out: np.ndarray,
+    reps: np.ndarray,
+    n_rep: np.ndarray,
+    sse_out: np.ndarray,
+    n_pred_out: np.ndarray,
+) -> None:
+    """:func:`pmu_kernel` for channels ``b .. b + LANES - 1`` (columns of ``x``, rows of the
+    state arrays, which are updated in place), whose sample counts, decimation and report
+    schedule agree (counters 0-4 and the grid offset ``values[0]``): the per-sample work
+    (the held model's prediction, (D)'s demodulation, the rotor) runs across the lanes, each
+    lane's operations those of :func:`pmu_kernel` in the same order; reports are made per
+    lane by the single kernel's own functions, for the first ``active`` lanes only (the
+    others pad the group)."""
+    D, m_lo, L = iconsts[0], iconsts[2], iconsts[3]
+    M = kernels.shape[2]
+    f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
+    n, j, k_next, k0, held = istate[b, 0], istate[b, 1], istate[b, 2], istate[b, 3], istate[b, 4]
+    delta0 = fstate[b, 0]
+    n_in = x.shape[0]
+    acr, aci, anr, ani = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
+    dcc, dcn, f, A, B = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
+    rocof, conv, cth, sth = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
+    cstep, sstep, sse = np.empty(LANES), np.empty(LANES), np.empty(LANES)
+    beta = np.empty(LANES)
+    defined = np.empty(LANES, dtype=np.int64)
+    n_pred = np.zeros(LANES, dtype=np.int64)
+    est = np.zeros((LANES, 12))
+    for ln in range(LANES):
+        c = b + ln
+        beta[ln] = fstate[c, 1]
+        acr[ln], aci[ln], anr[ln], ani[ln], dcc[ln], dcn[ln] = (
+            fstate[c, 2], fstate[c, 3], fstate[c, 4], fstate[c, 5], fstate[c, 6], fstate[c, 7],
+        )  # fmt: skip
+        f[ln], A[ln], B[ln], rocof[ln], conv[ln] = (
+            fstate[c, 8],
+            fstate[c, 9],
+            fstate[c, 11],
+            fstate[c, 12],
+            fstate[c, 13],
+        )
+        cth[ln], sth[ln] = fstate[c, 14], fstate[c, 15]
+        defined[ln] = istate[c, 5]
+        sse[ln] = 0.0
+        cstep[ln] = 1.0
+        sstep[ln] = 0.0
+        if held and defined[ln]:
+            cstep[ln] = math.cos(2.0 * math.pi * f[ln] / fs)
+            sstep[ln] = math.sin(2.0 * math.pi * f[ln] / fs)
+    Q = weights.shape[0]
+    ph = n % Q
+    rho = n % D
+    for i in range(n_in):
+        w0, w1, w2, w3, w4, w5 = (
+            weights[ph, 0],
+            weights[ph, 1],
+            weights[ph, 2],
+            weights[ph, 3],
+            weights[ph, 4],
+            weights[ph, 5],
+        )
+        for ln in range(LANES):  # the held model's prediction and (D), lane by lane
+            xi = x[i, b + ln]
+            live = held and defined[ln]
+            e = xi - (B[ln] + A[ln] * sth[ln])
+            sse[ln] = sse[ln] + e * e if live else sse[ln]
+            n_pred[ln] += 1 if live else 0
+            acr[ln] += xi * w0
+            aci[ln] += xi * w1
+            anr[ln] += xi * w2
+            ani[ln] += xi * w3
+            dcc[ln] += xi * w4
+            dcn[ln] += xi * w5
+        if rho == D - 1:  # c_j complete, in every lane
+            slot = j % L
+            for ln in range(LANES):
+                c = b + ln
+                ring[c, slot, 0] = acr[ln]
+                ring[c, slot, 1] = aci[ln]
+                ring[c, slot + L, 0] = acr[ln]
+                ring[c, slot + L, 1] = aci[ln]
+                dcring[c, slot] = dcc[ln]
+                dcring[c, slot + L] = dcc[ln]
+                acr[ln], aci[ln], dcc[ln] = anr[ln], ani[ln], dcn[ln]
+                anr[ln] = ani[ln] = dcn[ln] = 0.0
+            while True:  # the report schedule, common to the lanes (pmu_kernel's loop)
+                u = delta0 + (k_next - k0) * spr
+                n_r = math.floor(u + 0.5)
+                q = n_r // D
+                newest = q - m_lo
+                oldest = newest - M + 1
+                if newest > j:
+                    break
+                if oldest < 1 or newest < j:
+                    k_next += 1
+                    continue
+                ph_r = n_r - q * D
+                held = 1
+                for ln in range(active):
+                    c = b + ln
+                    _report(
+                        ring[c], dcring[c], oldest % L, kernels[ph_r], osc, n_r, fconsts, g_pass[ph_r],
+                        a2_bias[ph_r], g_chirp[ph_r], g_image[ph_r], noise_gram[ph_r], probe_taper[ph_r],
+                        probe_gram[ph_r], noise[c], est[ln],
+                    )  # fmt: skip
+                    (
+                        defined[ln],
+                        f[ln],
+                        A[ln],
+                        B[ln],
+                        rocof[ln],
+                        conv[ln],
+                        cth[ln],
+                        sth[ln],
+                        cstep[ln],
+                        sstep[ln],
+                        k,
+                    ) = _held_model(
+                        est[ln], u, n_r, n, k_next, beta[ln], f0, fs, min_amp, reps[c], n_rep[c], cstep[ln], sstep[ln]
+                    )
+                    n_rep[c] = k
+                k_next += 1
+            j += 1
+        if not (last_only and i != n_in - 1):
+            for ln in range(active):
+                _out_row(
+                    out[b + ln], 0 if last_only else i, held and defined[ln], f[ln], A[ln], B[ln], conv[ln], rocof[ln],
+                    cth[ln], sth[ln],
+                )  # fmt: skip
+        for ln in range(LANES):  # advance the rotor to sample n + 1
+            live = held and defined[ln]
+            c2 = cth[ln] * cstep[ln] - sth[ln] * sstep[ln]
+            s2 = sth[ln] * cstep[ln] + cth[ln] * sstep[ln]
+            cth[ln] = c2 if live else cth[ln]
+            sth[ln] = s2 if live else sth[ln]
+        n += 1
+        ph = cyclic_next(ph, Q)
+        rho = cyclic_next(rho, D)
+    for ln in range(active):
+        c = b + ln
+        istate[c, 0], istate[c, 1], istate[c, 2], istate[c, 3], istate[c, 4], istate[c, 5] = (
+            n, j, k_next, k0, held, defined[ln],
+        )  # fmt: skip
+        fstate[c, 0], fstate[c, 1] = delta0, beta[ln]
+        fstate[c, 2], fstate[c, 3], fstate[c, 4], fstate[c, 5], fstate[c, 6], fstate[c, 7] = (
+            acr[ln], aci[ln], anr[ln], ani[ln], dcc[ln], dcn[ln],
+        )  # fmt: skip
+        fstate[c, 8], fstate[c, 9], fstate[c, 10], fstate[c, 11] = f[ln], A[ln], 0.0, B[ln]
+        fstate[c, 12], fstate[c, 13], fstate[c, 14], fstate[c, 15] = rocof[ln], conv[ln], cth[ln], sth[ln]
+        sse_out[c] = sse[ln]
+        n_pred_out[c] = n_pred[ln]
 
 
 _STATE_KEYS = ("ring", "dc_ring", "counters", "values", "anchor_ns", "noise")
@@ -113,38 +295,89 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
     """The bank of ``ests`` (Pmu instances of one rule) over ``x`` (N, C), validated by
     ``update_bank``; None when the channels cannot share one call (an 'auto' channel still
     undecided, or channels that decided different nominal frequencies): they then run one by
-    one."""
+    one. Channels whose schedules agree (a frame's, anchored together) share groups of lanes;
+    each group is padded to LANES lanes with copies of its first channel."""
     first: Pmu = ests[0]
     nominal = first._nominal
     if nominal == 0 or any(e._nominal != nominal for e in ests):
         return None
-    nc = len(ests)
-    states, fresh = [], []
-    for e in ests:  # the time anchor, per channel as Pmu._run_timed does it
+    states, trans, groups = [], [], {}
+    for c, e in enumerate(ests):  # the time anchor, per channel as Pmu._run_timed does it
         st = e._state if t0_ns is None else e._state_for_block(e._state, t0_ns)
         states.append(st)
-        fresh.append(st is not e._state)  # anchored afresh: (T) starts over
-    # one C call a state array (as update_bank's channel-first banks)
-    stacked = [np.concatenate([st[k] for st in states]).reshape((nc, *states[0][k].shape)) for k in _STATE_KEYS]
-    trans = np.concatenate([np.zeros(N_TRANSITION) if f else e._transition for e, f in zip(ests, fresh, strict=True)])
-    xt = np.ascontiguousarray(x.T)
+        trans.append(e._transition if st is e._state else np.zeros(N_TRANSITION))  # anchored afresh: (T) over
+        # lanes advance in lock step: the same sample count, decimation, grid index and report
+        key = st["counters"][:5].tobytes() + st["values"][:1].tobytes()
+        groups.setdefault(key, []).append(c)
+    order, active = [], []
+    for members in groups.values():
+        for s in range(0, len(members), LANES):
+            part = members[s : s + LANES]
+            order += part + [part[0]] * (LANES - len(part))
+            active.append(len(part))
+    slot = {c: i for i, c in enumerate(order) if i % LANES < active[i // LANES]}  # channel -> its lane
+    last = getattr(first, "_bank_last", None)
+    if last is not None and last.fits(ests, order, slot, states, trans):
+        # the steady state of a frame: every channel's state is still its row of the last
+        # call's stacked arrays, in the same lanes; the kernel copies them (it is pure)
+        stacked, trans_in = last.stacked, last.trans
+    else:  # one C call a state array
+        stacked = [
+            np.concatenate([states[c][k] for c in order]).reshape((len(order), *states[0][k].shape))
+            for k in _STATE_KEYS
+        ]
+        trans_in = np.concatenate([trans[c] for c in order]).reshape(len(order), N_TRANSITION)
+    xg = x if order == list(range(x.shape[1])) else np.ascontiguousarray(x[:, order])
     out, reps, n_rep, sse, n_pred, conv, *new = pmu_bank_kernel(
-        xt, *stacked, trans.reshape(nc, N_TRANSITION), *first._constants,
+        xg, *stacked, trans_in, np.array(active, dtype=np.int64), *first._constants,
         float(first.reporting_rate), first._n_hold, last_only,
     )  # fmt: skip
-    new_trans = list(new.pop())
-    rows = [list(s) for s in new]
+    new_trans = new.pop()
     refer = first.design.f_osc != first.design.f0
+    after = _LastCall(order, new, new_trans)
     tracks = []
     for c, e in enumerate(ests):
-        e._state = dict(zip(_STATE_KEYS, (r[c] for r in rows), strict=True))
-        e._transition = new_trans[c]
-        k = int(n_rep[c])
-        track = grid_track(e.reporting_rate, out[c], reps[c, :k], float(sse[c]), int(n_pred[c]), conv[c, :k])
+        i = slot[c]
+        e._state = after.states[i] = {k: a[i] for k, a in zip(_STATE_KEYS, new, strict=True)}
+        e._transition = after.transitions[i] = new_trans[i]
+        e._bank_last = after
+        k = int(n_rep[i])
+        track = grid_track(e.reporting_rate, out[i], reps[i, :k], float(sse[i]), int(n_pred[i]), conv[i, :k])
         if refer and k:
             e._refer_to_nominal(track.reports, int(e._state["anchor_ns"][0]))
         tracks.append(track)
     return tracks
+
+
+class _LastCall:
+    """A bank call's stacked new state, kept so that the next call of the same channels in the
+    same lanes can pass it on without gathering each channel's arrays again (~8 us a channel)."""
+
+    __slots__ = ("order", "stacked", "states", "trans", "transitions")
+
+    def __init__(self, order: list[int], stacked: list[np.ndarray], trans: np.ndarray) -> None:
+        self.order, self.stacked, self.trans = order, stacked, trans
+        self.states: dict[int, dict[str, np.ndarray]] = {}
+        self.transitions: dict[int, np.ndarray] = {}
+
+    def fits(
+        self,
+        ests: Sequence[Any],
+        order: list[int],
+        slot: dict[int, int],
+        states: list[dict[str, np.ndarray]],
+        trans: list[np.ndarray],
+    ) -> bool:
+        """Whether channel c's state and (T) state are still the very arrays this call left in
+        its lane (nothing re-anchored, restored or reset them since), for every channel."""
+        if order != self.order:
+            return False
+        return all(
+            getattr(e, "_bank_last", None) is self
+            and states[c] is self.states.get(slot[c])
+            and trans[c] is self.transitions.get(slot[c])
+            for c, e in enumerate(ests)
+        )
 
 
 def grid_track(

@@ -292,6 +292,87 @@ def _report_std(
     out[11] = math.sqrt(2.0 * sig2 * _qform(cx0, cx1, cx2, gram)) / mag
 
 
+@kernel(inline="always")
+def _held_model(
+    est: np.ndarray,
+    u: float,
+    n_r: int,
+    n: int,
+    k_next: int,
+    beta: float,
+    f0: float,
+    fs: float,
+    min_amp: float,
+    reps: np.ndarray,
+    n_rep: int,
+    cstep: float,
+    sstep: float,
+) -> tuple[int, float, float, float, float, float, float, float, float, float, int]:
+    """The report ``est`` (from :func:`_report`, made at input sample ``n_r`` for the grid
+    point at fractional sample ``u``) as grid report row ``n_rep`` of ``reps`` (when there is
+    room) and as the held model the rows after it report: returns (defined, f, A, B, rocof,
+    converged, cos theta, sin theta at the current sample ``n``, the rotor's step, the next
+    row). Shared by :func:`pmu_kernel` and the lane-major bank (the same operations)."""
+    cap = reps.shape[0]
+    tau = (u - n_r) / fs
+    if est[5] != 0.0:
+        nu = est[0]
+        xr = complex(est[1], est[2]) * complex(math.cos(2 * math.pi * nu * tau), math.sin(2 * math.pi * nu * tau))
+        mag = abs(xr)
+        rocof = est[3]
+        f = f0 + nu + rocof * tau
+        B = est[4]
+        conv = 1.0 if mag > min_amp else 0.0
+        arg = math.atan2(xr.imag, xr.real)
+        # phase of the nominal oscillator at u: 2 pi f0 u / fs (mod 2 pi)
+        nom = 2.0 * math.pi * ((f0 * u / fs) - math.floor(f0 * u / fs))
+        theta_r = arg + nom + 0.5 * math.pi  # sine convention
+        A = math.sqrt(2.0) * mag
+        if n_rep < cap:
+            reps[n_rep, 0] = k_next
+            reps[n_rep, 1] = f
+            reps[n_rep, 2] = rocof
+            reps[n_rep, 3] = mag
+            reps[n_rep, 4] = wrap_pi(arg - beta)
+            reps[n_rep, 5] = A
+            reps[n_rep, 6] = wrap_pi(theta_r)
+            reps[n_rep, 7] = B
+            for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
+                reps[n_rep, 8 + c] = est[6 + c]
+            n_rep += 1
+        # rotor at the current sample n (predicts sample n + 1 after a step)
+        th = theta_r + 2.0 * math.pi * f * (n - u) / fs
+        cstep = math.cos(2.0 * math.pi * f / fs)
+        sstep = math.sin(2.0 * math.pi * f / fs)
+        return 1, f, A, B, rocof, conv, math.cos(th), math.sin(th), cstep, sstep, n_rep
+    if n_rep < cap:
+        reps[n_rep, 0] = k_next
+        for c in range(1, N_REPORT_COLUMNS):
+            reps[n_rep, c] = np.nan
+        n_rep += 1
+    return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, cstep, sstep, n_rep
+
+
+@kernel(inline="always")
+def _out_row(
+    out: np.ndarray, row: int, live: bool, f: float, A: float, B: float, conv: float, rocof: float, cth: float, sth: float
+) -> None:
+    """Output row ``row``: the held model at the current sample (``live``: a defined report
+    is held), else undefined."""
+    if live:
+        out[row, 0] = f
+        out[row, 1] = A
+        out[row, 2] = math.atan2(sth, cth)
+        out[row, 3] = B
+        out[row, 4] = conv
+        out[row, 5] = rocof
+    else:
+        for c in range(4):
+            out[row, c] = np.nan
+        out[row, 4] = 0.0
+        out[row, 5] = np.nan
+
+
 @kernel
 def pmu_kernel(
     x: np.ndarray,
@@ -409,66 +490,13 @@ def pmu_kernel(
                     est,
                 )
                 held = 1
-                tau = (u - n_r) / fs
-                if est[5] != 0.0:
-                    nu = est[0]
-                    xr = complex(est[1], est[2]) * complex(
-                        math.cos(2 * math.pi * nu * tau), math.sin(2 * math.pi * nu * tau)
-                    )
-                    mag = abs(xr)
-                    rocof = est[3]
-                    f = f0 + nu + rocof * tau
-                    B = est[4]
-                    defined = 1
-                    conv = 1.0 if mag > min_amp else 0.0
-                    arg = math.atan2(xr.imag, xr.real)
-                    # phase of the nominal oscillator at u: 2 pi f0 u / fs (mod 2 pi)
-                    nom = 2.0 * math.pi * ((f0 * u / fs) - math.floor(f0 * u / fs))
-                    theta_r = arg + nom + 0.5 * math.pi  # sine convention
-                    A = math.sqrt(2.0) * mag
-                    if n_rep < cap:
-                        reps[n_rep, 0] = k_next
-                        reps[n_rep, 1] = f
-                        reps[n_rep, 2] = rocof
-                        reps[n_rep, 3] = mag
-                        reps[n_rep, 4] = wrap_pi(arg - beta)
-                        reps[n_rep, 5] = A
-                        reps[n_rep, 6] = wrap_pi(theta_r)
-                        reps[n_rep, 7] = B
-                        for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
-                            reps[n_rep, 8 + c] = est[6 + c]
-                        n_rep += 1
-                    # rotor at the current sample n (predicts sample n + 1 after a step)
-                    th = theta_r + 2.0 * math.pi * f * (n - u) / fs
-                    cth = math.cos(th)
-                    sth = math.sin(th)
-                    cstep = math.cos(2.0 * math.pi * f / fs)
-                    sstep = math.sin(2.0 * math.pi * f / fs)
-                else:
-                    defined = 0
-                    f = A = B = rocof = conv = 0.0
-                    cth, sth = 1.0, 0.0
-                    if n_rep < cap:
-                        reps[n_rep, 0] = k_next
-                        for c in range(1, N_REPORT_COLUMNS):
-                            reps[n_rep, c] = np.nan
-                        n_rep += 1
+                defined, f, A, B, rocof, conv, cth, sth, cstep, sstep, n_rep = _held_model(
+                    est, u, n_r, n, k_next, beta, f0, fs, min_amp, reps, n_rep, cstep, sstep
+                )
                 k_next += 1
             j += 1
         if not (last_only and i != n_in - 1):
-            row = 0 if last_only else i
-            if held and defined:
-                out[row, 0] = f
-                out[row, 1] = A
-                out[row, 2] = math.atan2(sth, cth) if (not last_only or i == n_in - 1) else 0.0
-                out[row, 3] = B
-                out[row, 4] = conv
-                out[row, 5] = rocof
-            else:
-                for c in range(4):
-                    out[row, c] = np.nan
-                out[row, 4] = 0.0
-                out[row, 5] = np.nan
+            _out_row(out, 0 if last_only else i, held and defined, f, A, B, conv, rocof, cth, sth)
         # advance the rotor to sample n + 1
         if held and defined:
             c2 = cth * cstep - sth * sstep
