@@ -111,6 +111,59 @@ def pmu_bank_kernel(
 
 #: channels advanced together by the lane-major kernel (the inner loops' literal trip count)
 LANES = 8
+# the rows of _lanes's work array
+_ACR = 0 * LANES
+_ACI = 1 * LANES
+_ANR = 2 * LANES
+_ANI = 3 * LANES
+_DCC = 4 * LANES
+_DCN = 5 * LANES
+_F = 6 * LANES
+_A = 7 * LANES
+_B = 8 * LANES
+_ROCOF = 9 * LANES
+_CONV = 10 * LANES
+_CTH = 11 * LANES
+_STH = 12 * LANES
+_CSTEP = 13 * LANES
+_SSTEP = 14 * LANES
+_SSE = 15 * LANES
+_BETA = 16 * LANES
+_DEFINED = 17 * LANES
+_N_PRED = 18 * LANES
+_LIVE = 19 * LANES  # held and defined (0/1)
+_X0 = 20 * LANES  # the samples, rows alternating: the next written while this one is read
+_X1 = 21 * LANES
+_W_ROWS = 22
+
+
+@kernel(inline="always")
+def _lane_sample(
+    w: np.ndarray, ln: int, xrow: int, w0: float, w1: float, w2: float, w3: float, w4: float, w5: float
+) -> None:
+    """Lane ``ln``'s sample (row ``xrow`` of ``w``): the held model's prediction and (D), the
+    operations of :func:`pmu_kernel` in its order, the branch on the held model a select."""
+    xi = w[xrow + ln]
+    live = w[_LIVE + ln] != 0.0
+    e = xi - (w[_B + ln] + w[_A + ln] * w[_STH + ln])
+    w[_SSE + ln] = w[_SSE + ln] + e * e if live else w[_SSE + ln]
+    w[_N_PRED + ln] = w[_N_PRED + ln] + 1.0 if live else w[_N_PRED + ln]
+    w[_ACR + ln] += xi * w0
+    w[_ACI + ln] += xi * w1
+    w[_ANR + ln] += xi * w2
+    w[_ANI + ln] += xi * w3
+    w[_DCC + ln] += xi * w4
+    w[_DCN + ln] += xi * w5
+
+
+@kernel(inline="always")
+def _lane_rotor(w: np.ndarray, ln: int) -> None:
+    """Lane ``ln``'s rotor advanced to the next sample where a defined report is held."""
+    live = w[_LIVE + ln] != 0.0
+    c2 = w[_CTH + ln] * w[_CSTEP + ln] - w[_STH + ln] * w[_SSTEP + ln]
+    s2 = w[_STH + ln] * w[_CSTEP + ln] + w[_CTH + ln] * w[_SSTEP + ln]
+    w[_CTH + ln] = c2 if live else w[_CTH + ln]
+    w[_STH + ln] = s2 if live else w[_STH + ln]
 
 
 @kernel
@@ -155,35 +208,34 @@ def _lanes(
     n, j, k_next, k0, held = istate[b, 0], istate[b, 1], istate[b, 2], istate[b, 3], istate[b, 4]
     delta0 = fstate[b, 0]
     n_in = x.shape[0]
-    acr, aci, anr, ani = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
-    dcc, dcn, f, A, B = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
-    rocof, conv, cth, sth = np.empty(LANES), np.empty(LANES), np.empty(LANES), np.empty(LANES)
-    cstep, sstep, sse = np.empty(LANES), np.empty(LANES), np.empty(LANES)
-    beta = np.empty(LANES)
-    defined = np.empty(LANES, dtype=np.int64)
-    n_pred = np.zeros(LANES, dtype=np.int64)
+    # every lane variable a row of ONE work array, at constant offsets (what LLVM needs to
+    # vectorise the lane loops without run-time overlap checks)
+    w = np.zeros(_W_ROWS * LANES)
     est = np.zeros((LANES, 12))
     for ln in range(LANES):
         c = b + ln
-        beta[ln] = fstate[c, 1]
-        acr[ln], aci[ln], anr[ln], ani[ln], dcc[ln], dcn[ln] = (
+        w[_BETA + ln] = fstate[c, 1]
+        w[_ACR + ln], w[_ACI + ln], w[_ANR + ln], w[_ANI + ln], w[_DCC + ln], w[_DCN + ln] = (
             fstate[c, 2], fstate[c, 3], fstate[c, 4], fstate[c, 5], fstate[c, 6], fstate[c, 7],
         )  # fmt: skip
-        f[ln], A[ln], B[ln], rocof[ln], conv[ln] = (
+        w[_F + ln], w[_A + ln], w[_B + ln], w[_ROCOF + ln], w[_CONV + ln] = (
             fstate[c, 8],
             fstate[c, 9],
             fstate[c, 11],
             fstate[c, 12],
             fstate[c, 13],
         )
-        cth[ln], sth[ln] = fstate[c, 14], fstate[c, 15]
-        defined[ln] = istate[c, 5]
-        sse[ln] = 0.0
-        cstep[ln] = 1.0
-        sstep[ln] = 0.0
-        if held and defined[ln]:
-            cstep[ln] = math.cos(2.0 * math.pi * f[ln] / fs)
-            sstep[ln] = math.sin(2.0 * math.pi * f[ln] / fs)
+        w[_CTH + ln], w[_STH + ln] = fstate[c, 14], fstate[c, 15]
+        w[_DEFINED + ln] = istate[c, 5]
+        w[_SSE + ln] = 0.0
+        w[_CSTEP + ln] = 1.0
+        w[_SSTEP + ln] = 0.0
+        w[_LIVE + ln] = 1.0 if (held and w[_DEFINED + ln] != 0.0) else 0.0
+        if held and w[_DEFINED + ln] != 0.0:
+            w[_CSTEP + ln] = math.cos(2.0 * math.pi * w[_F + ln] / fs)
+            w[_SSTEP + ln] = math.sin(2.0 * math.pi * w[_F + ln] / fs)
+    for ln in range(LANES):  # sample 0's row
+        w[_X0 + ln] = x[0, b + ln]
     Q = weights.shape[0]
     ph = n % Q
     rho = n % D
@@ -196,30 +248,28 @@ def _lanes(
             weights[ph, 4],
             weights[ph, 5],
         )
-        for ln in range(LANES):  # the held model's prediction and (D), lane by lane
-            xi = x[i, b + ln]
-            live = held and defined[ln]
-            e = xi - (B[ln] + A[ln] * sth[ln])
-            sse[ln] = sse[ln] + e * e if live else sse[ln]
-            n_pred[ln] += 1 if live else 0
-            acr[ln] += xi * w0
-            aci[ln] += xi * w1
-            anr[ln] += xi * w2
-            ani[ln] += xi * w3
-            dcc[ln] += xi * w4
-            dcn[ln] += xi * w5
+        # sample i + 1 into the row sample i does not read, a step before it is read as a vector
+        xnext = _X1 if i % 2 == 0 else _X0
+        for ln in range(LANES):
+            w[xnext + ln] = x[min(i + 1, n_in - 1), b + ln]
+        if i % 2 == 0:  # the rows as constants, so the compiler sees the lanes independent
+            for ln in range(LANES):
+                _lane_sample(w, ln, _X0, w0, w1, w2, w3, w4, w5)
+        else:
+            for ln in range(LANES):
+                _lane_sample(w, ln, _X1, w0, w1, w2, w3, w4, w5)
         if rho == D - 1:  # c_j complete, in every lane
             slot = j % L
             for ln in range(LANES):
                 c = b + ln
-                ring[c, slot, 0] = acr[ln]
-                ring[c, slot, 1] = aci[ln]
-                ring[c, slot + L, 0] = acr[ln]
-                ring[c, slot + L, 1] = aci[ln]
-                dcring[c, slot] = dcc[ln]
-                dcring[c, slot + L] = dcc[ln]
-                acr[ln], aci[ln], dcc[ln] = anr[ln], ani[ln], dcn[ln]
-                anr[ln] = ani[ln] = dcn[ln] = 0.0
+                ring[c, slot, 0] = w[_ACR + ln]
+                ring[c, slot, 1] = w[_ACI + ln]
+                ring[c, slot + L, 0] = w[_ACR + ln]
+                ring[c, slot + L, 1] = w[_ACI + ln]
+                dcring[c, slot] = w[_DCC + ln]
+                dcring[c, slot + L] = w[_DCC + ln]
+                w[_ACR + ln], w[_ACI + ln], w[_DCC + ln] = w[_ANR + ln], w[_ANI + ln], w[_DCN + ln]
+                w[_ANR + ln] = w[_ANI + ln] = w[_DCN + ln] = 0.0
             while True:  # the report schedule, common to the lanes (pmu_kernel's loop)
                 u = delta0 + (k_next - k0) * spr
                 n_r = math.floor(u + 0.5)
@@ -241,51 +291,65 @@ def _lanes(
                         probe_gram[ph_r], noise[c], est[ln],
                     )  # fmt: skip
                     (
-                        defined[ln],
-                        f[ln],
-                        A[ln],
-                        B[ln],
-                        rocof[ln],
-                        conv[ln],
-                        cth[ln],
-                        sth[ln],
-                        cstep[ln],
-                        sstep[ln],
+                        w[_DEFINED + ln],
+                        w[_F + ln],
+                        w[_A + ln],
+                        w[_B + ln],
+                        w[_ROCOF + ln],
+                        w[_CONV + ln],
+                        w[_CTH + ln],
+                        w[_STH + ln],
+                        w[_CSTEP + ln],
+                        w[_SSTEP + ln],
                         k,
                     ) = _held_model(
-                        est[ln], u, n_r, n, k_next, beta[ln], f0, fs, min_amp, reps[c], n_rep[c], cstep[ln], sstep[ln]
+                        est[ln],
+                        u,
+                        n_r,
+                        n,
+                        k_next,
+                        w[_BETA + ln],
+                        f0,
+                        fs,
+                        min_amp,
+                        reps[c],
+                        n_rep[c],
+                        w[_CSTEP + ln],
+                        w[_SSTEP + ln],
                     )
                     n_rep[c] = k
+                    w[_LIVE + ln] = 1.0 if w[_DEFINED + ln] != 0.0 else 0.0  # held now
                 k_next += 1
             j += 1
         if not (last_only and i != n_in - 1):
             for ln in range(active):
                 _out_row(
-                    out[b + ln], 0 if last_only else i, held and defined[ln], f[ln], A[ln], B[ln], conv[ln], rocof[ln],
-                    cth[ln], sth[ln],
+                    out[b + ln], 0 if last_only else i, held != 0 and w[_DEFINED + ln] != 0.0, w[_F + ln], w[_A + ln], w[_B + ln], w[_CONV + ln], w[_ROCOF + ln],
+                    w[_CTH + ln], w[_STH + ln],
                 )  # fmt: skip
         for ln in range(LANES):  # advance the rotor to sample n + 1
-            live = held and defined[ln]
-            c2 = cth[ln] * cstep[ln] - sth[ln] * sstep[ln]
-            s2 = sth[ln] * cstep[ln] + cth[ln] * sstep[ln]
-            cth[ln] = c2 if live else cth[ln]
-            sth[ln] = s2 if live else sth[ln]
+            _lane_rotor(w, ln)
         n += 1
         ph = cyclic_next(ph, Q)
         rho = cyclic_next(rho, D)
     for ln in range(active):
         c = b + ln
         istate[c, 0], istate[c, 1], istate[c, 2], istate[c, 3], istate[c, 4], istate[c, 5] = (
-            n, j, k_next, k0, held, defined[ln],
+            n, j, k_next, k0, held, int(w[_DEFINED + ln]),
         )  # fmt: skip
-        fstate[c, 0], fstate[c, 1] = delta0, beta[ln]
+        fstate[c, 0], fstate[c, 1] = delta0, w[_BETA + ln]
         fstate[c, 2], fstate[c, 3], fstate[c, 4], fstate[c, 5], fstate[c, 6], fstate[c, 7] = (
-            acr[ln], aci[ln], anr[ln], ani[ln], dcc[ln], dcn[ln],
+            w[_ACR + ln], w[_ACI + ln], w[_ANR + ln], w[_ANI + ln], w[_DCC + ln], w[_DCN + ln],
         )  # fmt: skip
-        fstate[c, 8], fstate[c, 9], fstate[c, 10], fstate[c, 11] = f[ln], A[ln], 0.0, B[ln]
-        fstate[c, 12], fstate[c, 13], fstate[c, 14], fstate[c, 15] = rocof[ln], conv[ln], cth[ln], sth[ln]
-        sse_out[c] = sse[ln]
-        n_pred_out[c] = n_pred[ln]
+        fstate[c, 8], fstate[c, 9], fstate[c, 10], fstate[c, 11] = w[_F + ln], w[_A + ln], 0.0, w[_B + ln]
+        fstate[c, 12], fstate[c, 13], fstate[c, 14], fstate[c, 15] = (
+            w[_ROCOF + ln],
+            w[_CONV + ln],
+            w[_CTH + ln],
+            w[_STH + ln],
+        )
+        sse_out[c] = w[_SSE + ln]
+        n_pred_out[c] = int(w[_N_PRED + ln])
 
 
 _STATE_KEYS = ("ring", "dc_ring", "counters", "values", "anchor_ns", "noise")
