@@ -355,7 +355,16 @@ def _held_model(
 
 @kernel(inline="always")
 def _out_row(
-    out: np.ndarray, row: int, live: bool, f: float, A: float, B: float, conv: float, rocof: float, cth: float, sth: float
+    out: np.ndarray,
+    row: int,
+    live: bool,
+    f: float,
+    A: float,
+    B: float,
+    conv: float,
+    rocof: float,
+    cth: float,
+    sth: float,
 ) -> None:
     """Output row ``row``: the held model at the current sample (``live``: a defined report
     is held), else undefined."""

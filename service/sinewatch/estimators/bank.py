@@ -99,12 +99,13 @@ NO_BANK: dict[str, str] = {
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
-        "numbers of steps and do not advance in lock step). Tried and left out: one compiled call "
-        "running each channel through the single kernel in turn (bit for bit), 0.77-0.90x the "
-        "channels one by one (`sinewatch bench kernels --bank 8`, and the same 8 signals both "
-        "ways, load 12-28): the kernel is ~30 of ~45 ns a sample either way and the bank's "
-        "gathering and scattering of the 1024-sample ring buffers costs more than the Python it "
-        "saves; its channels run one after the other, at 1.2-1.6x the FFT"
+        "numbers of steps and do not advance in lock step). What bounds it is the fit: its kernel "
+        "alone runs at 1.73-1.81x the streaming FFT and is ~80 % of update's CPU time (1024-sample "
+        "blocks, one estimate a block, paired medians, load 12-20), so even a bank that removed "
+        "all the Python would stay below 2x. A channel-first bank (each channel through nls_kernel "
+        "in one compiled call, the states stacked channel first, bit for bit) measured 0.85-0.97x "
+        "the channels one by one (`sinewatch bench kernels --bank 8`, load 12-20): left out; its "
+        "channels run one after the other"
     ),
 }
 
