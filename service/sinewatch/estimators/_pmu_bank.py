@@ -391,7 +391,10 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
             for k in _STATE_KEYS
         ]
         trans_in = np.concatenate([trans[c] for c in order]).reshape(len(order), N_TRANSITION)
-    xg = x if order == list(range(x.shape[1])) else np.ascontiguousarray(x[:, order])
+    # the samples as the kernel is compiled for them (writable, C order): a frame's read-only
+    # payload view would compile it a second time
+    in_order = order == list(range(x.shape[1]))
+    xg = (x if x.flags.writeable else x.copy()) if in_order else np.ascontiguousarray(x[:, order])
     out, reps, n_rep, sse, n_pred, conv, *new = pmu_bank_kernel(
         xg, *stacked, trans_in, np.array(active, dtype=np.int64), *first._constants,
         float(first.reporting_rate), first._n_hold, last_only,
