@@ -365,7 +365,9 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
     nominal = first._nominal
     if nominal == 0 or any(e._nominal != nominal for e in ests):
         return None
-    states, trans, groups = [], [], {}
+    states: list[dict[str, np.ndarray]] = []
+    trans: list[np.ndarray] = []
+    groups: dict[bytes, list[int]] = {}
     for c, e in enumerate(ests):  # the time anchor, per channel as Pmu._run_timed does it
         st = e._state if t0_ns is None else e._state_for_block(e._state, t0_ns)
         states.append(st)
@@ -395,10 +397,11 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
     # payload view would compile it a second time
     in_order = order == list(range(x.shape[1]))
     xg = (x if x.flags.writeable else x.copy()) if in_order else np.ascontiguousarray(x[:, order])
-    out, reps, n_rep, sse, n_pred, conv, *new = pmu_bank_kernel(
+    args: tuple[Any, ...] = (
         xg, *stacked, trans_in, np.array(active, dtype=np.int64), *first._constants,
         float(first.reporting_rate), first._n_hold, last_only,
     )  # fmt: skip
+    out, reps, n_rep, sse, n_pred, conv, *new = pmu_bank_kernel(*args)
     new_trans = new.pop()
     refer = first.design.f_osc != first.design.f0
     after = _LastCall(order, new, new_trans)
