@@ -28,6 +28,7 @@ from sinewatch.estimators._pmu_kernels import (
     N_REPORT_COLUMNS,
     N_TRANSITION,
     _held_model,
+    _next_report,
     _out_row,
     _report,
     transition_kernel,
@@ -38,42 +39,25 @@ if TYPE_CHECKING:
     from sinewatch.estimators.pmu import Pmu
 
 
+# fmt: off
 @kernel
 def pmu_bank_kernel(
-    x: np.ndarray,
-    ring: np.ndarray,
-    dcring: np.ndarray,
-    istate: np.ndarray,
-    fstate: np.ndarray,
-    anchor: np.ndarray,
-    noise: np.ndarray,
-    trans: np.ndarray,
-    active: np.ndarray,
-    kernels: np.ndarray,
-    osc: np.ndarray,
-    weights: np.ndarray,
-    iconsts: np.ndarray,
-    fconsts: np.ndarray,
-    g_pass: np.ndarray,
-    a2_bias: np.ndarray,
-    g_chirp: np.ndarray,
-    g_image: np.ndarray,
-    noise_gram: np.ndarray,
-    probe_taper: np.ndarray,
-    probe_gram: np.ndarray,
-    fs_rep: float,
-    n_hold: int,
-    last_only: bool,
+    x: np.ndarray, ring: np.ndarray, dcring: np.ndarray, istate: np.ndarray, fstate: np.ndarray, anchor: np.ndarray,
+    noise: np.ndarray, trans: np.ndarray, active: np.ndarray, design: tuple[np.ndarray, ...], fs_rep: float,
+    n_hold: int, last_only: bool,
 ) -> tuple[
     np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
     np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-]:  # fmt: skip
-    """The channels of ``x`` (N, C), C = LANES x groups, in groups of LANES lanes (group g's
+]:
+    # fmt: on
+    """The channels of ``x`` (N, C), C = LANES x groups (``design``: the class's constants, as
+    :func:`pmu_kernel` takes them one by one), in groups of LANES lanes (group g's
     first ``active[g]`` lanes are channels, the rest pad it) through :func:`_lanes`, then
     (T) over each channel's reports. Returns (out (C, rows, 6), reports (C, cap, 14),
     reports per channel (C,), sse (C,), n_pred (C,), the reports' converged (C, cap), then
     the new ring, dc_ring, counters, values, anchor, noise and transition state, each stacked
     channel first). Pure: no input is modified."""
+    fconsts = design[4]
     n_in, nc = x.shape
     rows = 1 if last_only else n_in
     cap = n_in // max(1, int(fconsts[5])) + 2  # pmu_kernel's own bound on a block's reports
@@ -88,8 +72,7 @@ def pmu_bank_kernel(
     anc2, nz2, tr2 = anchor.copy(), noise.copy(), trans.copy()
     for g in range(nc // LANES):
         _lanes(
-            x, g * LANES, active[g], rg2, dr2, ist2, fst2, nz2, kernels, osc, weights, iconsts, fconsts, g_pass,
-            a2_bias, g_chirp, g_image, noise_gram, probe_taper, probe_gram, last_only, out, reps, n_rep, sse, n_pred,
+            x, g * LANES, active[g], rg2, dr2, ist2, fst2, nz2, design, last_only, out, reps, n_rep, sse, n_pred,
         )  # fmt: skip
     for c in range(nc):
         k = n_rep[c]
@@ -176,18 +159,7 @@ def _lanes(
     istate: np.ndarray,
     fstate: np.ndarray,
     noise: np.ndarray,
-    kernels: np.ndarray,
-    osc: np.ndarray,
-    weights: np.ndarray,
-    iconsts: np.ndarray,
-    fconsts: np.ndarray,
-    g_pass: np.ndarray,
-    a2_bias: np.ndarray,
-    g_chirp: np.ndarray,
-    g_image: np.ndarray,
-    noise_gram: np.ndarray,
-    probe_taper: np.ndarray,
-    probe_gram: np.ndarray,
+    design: tuple[np.ndarray, ...],
     last_only: bool,
     out: np.ndarray,
     reps: np.ndarray,
@@ -202,6 +174,9 @@ def _lanes(
     lane's operations those of :func:`pmu_kernel` in the same order; reports are made per
     lane by the single kernel's own functions, for the first ``active`` lanes only (the
     others pad the group)."""
+    kernels, osc, weights, iconsts, fconsts, g_pass, a2_bias, g_chirp, g_image, noise_gram, probe_taper, probe_gram = (
+        design
+    )
     D, m_lo, L = iconsts[0], iconsts[2], iconsts[3]
     M = kernels.shape[2]
     f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
@@ -271,17 +246,12 @@ def _lanes(
                 w[_ACR + ln], w[_ACI + ln], w[_DCC + ln] = w[_ANR + ln], w[_ANI + ln], w[_DCN + ln]
                 w[_ANR + ln] = w[_ANI + ln] = w[_DCN + ln] = 0.0
             while True:  # the report schedule, common to the lanes (pmu_kernel's loop)
-                u = delta0 + (k_next - k0) * spr
-                n_r = math.floor(u + 0.5)
-                q = n_r // D
-                newest = q - m_lo
-                oldest = newest - M + 1
-                if newest > j:
+                due, u, n_r, ph_r, oldest = _next_report(delta0, k_next, k0, spr, D, m_lo, M, j)
+                if due == 0:
                     break
-                if oldest < 1 or newest < j:
+                if due == 1:
                     k_next += 1
                     continue
-                ph_r = n_r - q * D
                 held = 1
                 for ln in range(active):
                     c = b + ln
@@ -398,7 +368,7 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
     in_order = order == list(range(x.shape[1]))
     xg = (x if x.flags.writeable else x.copy()) if in_order else np.ascontiguousarray(x[:, order])
     args: tuple[Any, ...] = (
-        xg, *stacked, trans_in, np.array(active, dtype=np.int64), *first._constants,
+        xg, *stacked, trans_in, np.array(active, dtype=np.int64), first._constants,
         float(first.reporting_rate), first._n_hold, last_only,
     )  # fmt: skip
     out, reps, n_rep, sse, n_pred, conv, *new = pmu_bank_kernel(*args)

@@ -293,6 +293,26 @@ def _report_std(
 
 
 @kernel(inline="always")
+def _next_report(
+    delta0: float, k_next: int, k0: int, spr: float, D: int, m_lo: int, M: int, j: int
+) -> tuple[int, float, int, int, int]:
+    """Grid report ``k_next`` against the newest decimated sample ``j``: (due, u, n_r, ph_r,
+    oldest): due 0, not yet (its newest tap is after c_j); 1, never (its window reaches
+    before the anchor, or past c_j); 2, now. ``u``: its fractional input sample, ``n_r`` the
+    nearest, ``ph_r`` that sample's decimation phase, ``oldest`` its oldest tap's index."""
+    u = delta0 + (k_next - k0) * spr
+    n_r = math.floor(u + 0.5)
+    q = n_r // D
+    newest = q - m_lo
+    oldest = newest - M + 1
+    if newest > j:
+        return 0, u, n_r, 0, oldest
+    if oldest < 1 or newest < j:
+        return 1, u, n_r, 0, oldest
+    return 2, u, n_r, n_r - q * D, oldest
+
+
+@kernel(inline="always")
 def _held_model(
     est: np.ndarray,
     u: float,
@@ -469,17 +489,12 @@ def pmu_kernel(
             anr = ani = dcn = 0.0
             # reports whose newest tap is c_j (or that can never be made)
             while True:
-                u = delta0 + (k_next - k0) * spr
-                n_r = math.floor(u + 0.5)
-                q = n_r // D
-                newest = q - m_lo
-                oldest = newest - M + 1
-                if newest > j:
+                due, u, n_r, ph_r, oldest = _next_report(delta0, k_next, k0, spr, D, m_lo, M, j)
+                if due == 0:
                     break
-                if oldest < 1 or newest < j:  # window reaches before the anchor: skip
+                if due == 1:  # window reaches before the anchor: skip
                     k_next += 1
                     continue
-                ph_r = n_r - q * D
                 _report(
                     rg,
                     dr,
