@@ -724,8 +724,6 @@ def _is_power_of_ten(n: int) -> bool:
     return n == 1
 
 
-
-
 def _all_finite_2d(x: np.ndarray) -> bool:
     """Whether every value of a frame is finite (the usual case: one pass, no per-column work)."""
     return bool(np.isfinite(x.reshape(-1) if x.flags.c_contiguous else x).all())
