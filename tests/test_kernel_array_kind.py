@@ -60,7 +60,8 @@ def test_blocks_and_frames_of_either_sample_type_reach_kernels_as_one_kind(tmp_p
             pipeline.process(f"sinewatch/in/b-{unit}", encode_block_binary(block, dtype), BLOCK_BINARY_ENCODING, 0)
         frame = Frame(("f/a", "f/b", "f/c"), seq, round(seq * 1024 * 1e9 / rate), rate, np.stack([x, -x, 0.5 * x], 1))
         pipeline.process("sinewatch/in/f", encode_frame_binary(frame, dtype), FRAME_BINARY_ENCODING, 0)
-    assert pipeline.counters.estimates == 2 * (3 + 3), "every block and every frame's channel estimated"
+    # every block and every frame's channel accepted (pmu reports on a time grid: not one a block)
+    assert pipeline.counters.errors == 0 and pipeline.counters.estimates >= (6 if estimator == "pmu" else 12)
     odd = {
         name: kinds
         for name, disp in _sinewatch_kernels().items()
