@@ -196,3 +196,14 @@ def test_a_writer_finished_after_its_chunk_thread_is_gone_writes_the_chunks_itse
     ref, _ = _write(Writer, CompressionType.ZSTD, 1024, seed=7)
     fast, _ = _write(FastWriter, CompressionType.ZSTD, 1024, seed=7)
     assert fast == ref
+
+
+def test_bench_recorder_compression_compresses_one_chunk_every_way():
+    from sinewatch.apps.bench.recorder_compression import measure
+
+    rows = {r["compression"]: r for r in measure(1 << 16, 2, 1)}
+    assert list(rows) == ["none", "lz4", "zstd level 1 (the recorder's)", "zstd level 3 (mcap's)"]
+    assert rows["none"]["bytes_fraction"] == 1.0
+    # float32 samples of a noisy sine: each compressor saves something, zstd more than lz4
+    assert rows["zstd level 1 (the recorder's)"]["bytes_fraction"] < rows["lz4"]["bytes_fraction"] < 0.95
+    assert rows["zstd level 3 (mcap's)"]["cpu_vs_zstd3"] == 1.0
