@@ -49,6 +49,7 @@ def expected_daemons(args: argparse.Namespace) -> int:
     return workers if workers > 0 else max(1, len(os.sched_getaffinity(0)))
 
 
+DAEMON_START_S = 120.0  # how long the daemon may take to listen (start, warm-up) before the run fails
 SWEEP_CHANNELS = (1, 10, 100, 1000, 5000)
 SWEEP_DURATION_S = 20.0
 SINGLE_DURATION_S = 60.0
@@ -358,7 +359,9 @@ def _drive(
     fs, block, n_ch = args.rate, args.block, args.channels
     per_msg = frame_channels(args)
     rounds = max(1, int(args.duration * fs / block))
-    with connect([endpoint], timeout_s=30.0) as session:
+    # The daemon listens once it has started and warmed up its kernels: on a loaded machine
+    # (the benches run beside other work) that took over 30 s, and the run failed to connect.
+    with connect([endpoint], timeout_s=DAEMON_START_S) as session:
         status = JsonSubscription(session, "sinewatch/status/**")
         wait_for_daemons(status, expected_daemons(args))
         probe = LatencyProbe(session, "sinewatch/est/**")
