@@ -71,8 +71,9 @@ HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at 
 
 
 def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
-    """One rule's kernels: the estimator's on whole blocks and on the last sample only, and
-    for a one-input estimator a frame's (its bank kernel, the presence detectors' bank)."""
+    """One rule's kernels: the estimator's on whole blocks and on the last sample only, the
+    presence detector's, and for a one-input estimator a frame's (its bank kernel, the
+    presence detectors' bank)."""
     from sinewatch.estimators.bank import bank_of, update_bank
     from sinewatch.estimators.base import kernel_samples
     from sinewatch.estimators.presence import SignalPresence, update_presence_bank
@@ -92,6 +93,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     x = kernel_samples(signal_)
     est.update(x)
     est.update(x, last_only=True)
+    SignalPresence(rate).update(est.presence_samples(x))  # a single block's detector (a frame's: below)
     if est.n_inputs == 1:
         frame = kernel_samples(np.stack([signal_, signal_], axis=1))
         if bank_of(cls) is not None:

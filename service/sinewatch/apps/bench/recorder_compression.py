@@ -81,7 +81,7 @@ def chunk(chunk_bytes: int, per_frame: int, block: int = 1024, rate: float = 10_
 
 def compressors() -> dict[str, Callable[[bytes], bytes]]:
     """The recorder's ways, with the very modules mcap's writer imports."""
-    import lz4.frame
+    import lz4.frame  # type: ignore[import-untyped]
     import zstandard
 
     return {
