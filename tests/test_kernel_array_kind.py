@@ -86,37 +86,45 @@ def test_kernel_samples_copies_only_what_is_not_of_the_kernels_kind():
     assert kernel_samples(strided).flags.c_contiguous and np.array_equal(kernel_samples(strided), -x)
 
 
+# Run in a fresh interpreter: the daemon's warm-up, then a float64 and a float32 block and frame
+# through a pipeline; prints the kernels' signature counts after each, the estimates, the errors.
+_AFTER_WARM_UP = """
+import sys, numba, numpy as np
+from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.estimators import get
+from sinewatch.runtime.daemon import Daemon
+from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
+from sinewatch.schemas.config import SinewatchConfig
+from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
+
+def count():
+    mods = [m for name, m in list(sys.modules.items()) if name.startswith("sinewatch.") and m is not None]
+    return sum(len(v.signatures) for m in mods for v in vars(m).values() if isinstance(v, numba.core.registry.CPUDispatcher))
+
+config = SinewatchConfig.model_validate_json(sys.stdin.read())
+Daemon(config).warm_up()
+warm = count()
+cls = get("kkl")
+rate, x = cls.example_sample_rate_hz, cls.example_signal(1024)
+p = Pipeline(config, [NullSink()])
+for seq, dtype in enumerate(("float64", "float32")):
+    t0 = round(seq * 1024 * 1e9 / rate)
+    p.process("sinewatch/in/b", encode_block_binary(Block("b", seq, t0, rate, x), dtype), BLOCK_BINARY_ENCODING, 0)
+    f = Frame(("f/a", "f/b"), seq, t0, rate, np.stack([x, -x], 1))
+    p.process("sinewatch/in/f", encode_frame_binary(f, dtype), FRAME_BINARY_ENCODING, 0)
+print(warm, count(), p.counters.estimates, p.counters.errors)
+"""
+
+
 def test_the_daemon_s_warm_up_compiles_what_blocks_and_frames_of_either_type_run(tmp_path):
     """After the daemon's warm-up (one kind of samples), float64 and float32 blocks and
     frames compile nothing more. In a fresh interpreter: no test has run a kernel there."""
     config = make_config(tmp_path, rules=[EstimatorRule(estimator="kkl", params=dict(get("kkl").example_params))])
-    code = (
-        "import sys, numba, numpy as np\n"
-        "from sinewatch.core.pipeline import NullSink, Pipeline\n"
-        "from sinewatch.estimators import get\n"
-        "from sinewatch.runtime.daemon import Daemon\n"
-        "from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary\n"
-        "from sinewatch.schemas.config import SinewatchConfig\n"
-        "from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary\n"
-        "def count():\n"
-        "    return sum(len(v.signatures) for name, m in list(sys.modules.items()) if name.startswith('sinewatch.')\n"
-        "               and m is not None for v in vars(m).values() if isinstance(v, numba.core.registry.CPUDispatcher))\n"
-        "config = SinewatchConfig.model_validate_json(sys.stdin.read())\n"
-        "Daemon(config).warm_up()\n"
-        "warm = count()\n"
-        "cls = get('kkl'); rate = cls.example_sample_rate_hz; x = cls.example_signal(1024)\n"
-        "p = Pipeline(config, [NullSink()])\n"
-        "for seq, dtype in enumerate(('float64', 'float32')):\n"
-        "    t0 = round(seq * 1024 * 1e9 / rate)\n"
-        "    p.process('sinewatch/in/b', encode_block_binary(Block('b', seq, t0, rate, x), dtype), BLOCK_BINARY_ENCODING, 0)\n"
-        "    f = Frame(('f/a', 'f/b'), seq, t0, rate, np.stack([x, -x], 1))\n"
-        "    p.process('sinewatch/in/f', encode_frame_binary(f, dtype), FRAME_BINARY_ENCODING, 0)\n"
-        "print(warm, count(), p.counters.estimates, p.counters.errors)\n"
+    stdin = config.model_dump_json()
+    child = subprocess.run(
+        [sys.executable, "-c", _AFTER_WARM_UP], input=stdin, capture_output=True, text=True, check=False
     )
-    r = subprocess.run(
-        [sys.executable, "-c", code], input=config.model_dump_json(), capture_output=True, text=True, check=False
-    )
-    assert r.returncode == 0, r.stderr
-    warm, after, estimates, errors = map(int, r.stdout.split())
+    assert child.returncode == 0, child.stderr
+    warm, after, estimates, errors = map(int, child.stdout.split())
     assert (estimates, errors) == (6, 0)
     assert warm > 0 and after == warm, f"{after - warm} kernel signature(s) compiled after the warm-up"
