@@ -90,7 +90,7 @@ FRAME_SCHEMA_ENCODING = "sinewatch-frame-layout"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 # zstd's level for recordings. Level 1 against mcap's own 3 (``zstandard.compress``'s default):
 # on what a daemon records (float32 frames of a noisy sine and their estimates' JSON) it costs
-# about two thirds of level 3's CPU for about 1 % more bytes, and lz4, cheaper still, leaves
+# about four fifths of level 3's CPU for 0.1-0.2 % more bytes, and lz4, cheaper still, leaves
 # about 11 % more bytes (docs/benchmarks.md, "The recorder's compression"). Any level decodes alike.
 RECORDING_ZSTD_LEVEL = 1
 _MCAP_ZSTD_LEVEL = 3  # what mcap's Writer compresses with
