@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import Estimator, Track, _all_finite
+from sinewatch.estimators.base import Estimator, Track, _all_finite, kernel_samples
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -161,7 +161,7 @@ def update_bank(
     ):
         return _one_by_one(estimators, samples, last_only, t0_ns)
     _check_alike(estimators, cls)
-    x = np.ascontiguousarray(samples)
+    x = kernel_samples(samples)  # one numba type per bank kernel
     if not _all_finite(x.reshape(-1)):
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
