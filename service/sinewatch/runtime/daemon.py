@@ -71,9 +71,11 @@ HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at 
 
 
 def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
-    """One rule's kernels: the estimator's on whole blocks and on the last sample only, and
-    for a one-input estimator a frame's (its bank kernel, the presence detectors' bank)."""
+    """One rule's kernels: the estimator's on whole blocks and on the last sample only, the
+    presence detector's, and for a one-input estimator a frame's (its bank kernel, the
+    presence detectors' bank)."""
     from sinewatch.estimators.bank import bank_of, update_bank
+    from sinewatch.estimators.base import kernel_samples
     from sinewatch.estimators.presence import SignalPresence, update_presence_bank
 
     rate = cls.example_sample_rate_hz
@@ -85,24 +87,19 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     signal_ = cls.example_signal(64)
     if signal_.ndim == 1 and est.n_inputs > 1:  # e.g. I/Q: the kernel's types, not a meaningful signal
         signal_ = np.column_stack([signal_] * est.n_inputs)
-    for x in _as_received(signal_):
-        est.update(x)
-        est.update(x, last_only=True)
+    # one kind of samples: the pipeline hands every kernel float64, C-contiguous, writable
+    # arrays whatever the payload's sample type (``kernel_samples``), so one call compiles
+    # (or loads) the signature every block of this rule will use
+    x = kernel_samples(signal_)
+    est.update(x)
+    est.update(x, last_only=True)
+    SignalPresence(rate).update(est.presence_samples(x))  # a single block's detector (a frame's: below)
     if est.n_inputs == 1:
-        for frame in _as_received(np.stack([signal_, signal_], axis=1)):
-            if bank_of(cls) is not None:
-                update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
-            detectors = [SignalPresence(rate) for _ in range(2)]
-            update_presence_bank(detectors, frame, [0, 1])
-
-
-def _as_received(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``x`` as the kernels receive samples: float64 samples decode to a read-only view of the
-    payload (``np.frombuffer``), float32 ones to a writable float64 copy, and numba compiles a
-    kernel once for each (a read-only array is another type)."""
-    frozen = x.copy()
-    frozen.setflags(write=False)
-    return x, frozen
+        frame = kernel_samples(np.stack([signal_, signal_], axis=1))
+        if bank_of(cls) is not None:
+            update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
+        detectors = [SignalPresence(rate) for _ in range(2)]
+        update_presence_bank(detectors, frame, [0, 1])
 
 
 class Daemon:
