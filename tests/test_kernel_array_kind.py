@@ -48,7 +48,7 @@ def _sinewatch_kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
     return found
 
 
-@pytest.mark.parametrize("estimator", ["kkl", "pmu"])  # one with a bank kernel, one without
+@pytest.mark.parametrize("estimator", ["kkl", "pmu", "nls"])  # two with a bank kernel, one without
 def test_blocks_and_frames_of_either_sample_type_reach_kernels_as_one_kind(tmp_path, estimator):
     cls: type[Estimator] = get(estimator)
     rate = cls.example_sample_rate_hz
