@@ -77,6 +77,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     from sinewatch.estimators.bank import bank_of, update_bank
     from sinewatch.estimators.base import kernel_samples
     from sinewatch.estimators.presence import SignalPresence, update_presence_bank
+    from sinewatch.estimators.presence import _fast_usable as fast_usable
 
     rate = cls.example_sample_rate_hz
     try:
@@ -94,6 +95,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     est.update(x)
     est.update(x, last_only=True)
     SignalPresence(rate).update(est.presence_samples(x))  # a single block's detector (a frame's: below)
+    fast_usable(0.0, 0.0, 1.0)  # what the hold (on by default) asks of a detector per block, from Python
     if est.n_inputs == 1:
         frame = kernel_samples(np.stack([signal_, signal_], axis=1))
         if bank_of(cls) is not None:
