@@ -8,9 +8,10 @@ estimator): the lint is much shorter, and one process would leave a core idle me
 Nothing here is asserted: a kernel this script does not reach is compiled on demand as before,
 and a kernel that fails to compile fails here and in its tests alike.
 
-Reached: every registered estimator through a real :class:`Pipeline` (float64 and
-float32 blocks, whole blocks and the last sample only, and a two-channel frame: its bank and
-the presence detectors' bank), with its example parameters, the default rule and every
+Reached: every registered estimator through a real :class:`Pipeline` (a block, whole
+blocks and the last sample only, and a two-channel frame: its bank and the presence detectors'
+bank; one sample type is enough, the pipeline hands every kernel the same kind of array,
+:func:`sinewatch.estimators.base.kernel_samples`), with its example parameters, the default rule and every
 scenario's suggested parameters at the scenario's sample rate; the automatic adaptive
 multisine for one, two and three sinusoids and its explicit design; the power-quality
 stage's harmonic analyser; and the recordings in ``tests/data`` replayed.
@@ -43,23 +44,19 @@ def _through_pipeline(rule: EstimatorRule, rate: float, x: np.ndarray, directory
         daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
     )
     pipeline = Pipeline(config, [NullSink()])
-    for dtype in ("float64", "float32"):
-        blk = Block(f"warm-{dtype}", 0, 0, rate, x)
-        pipeline.process(f"sinewatch/in/warm-{dtype}", encode_block_binary(blk, dtype), BLOCK_BINARY_ENCODING, 0)
+    blk = Block("warm", 0, 0, rate, x)
+    pipeline.process("sinewatch/in/warm", encode_block_binary(blk, "float64"), BLOCK_BINARY_ENCODING, 0)
 
 
 def _through_frames(rule: EstimatorRule, rate: float, x: np.ndarray, directory: Path) -> None:
-    """Two channels in one frame, float64 and float32: the estimator's bank kernel and the
-    presence detectors' bank, each for read-only and for writable samples."""
+    """Two channels in one frame: the estimator's bank kernel and the presence detectors' bank."""
     config = SinewatchConfig(
         daemon_id="compile-kernels", rules=[rule], recording=RecordingSection(directory=directory, enabled=False)
     )
     pipeline = Pipeline(config, [NullSink()])
     columns = np.ascontiguousarray(np.stack([x, 0.5 * x], axis=1))
-    for dtype in ("float64", "float32"):  # a read-only view of the payload; a writable converted copy
-        frame = Frame((f"warm-{dtype}/a", f"warm-{dtype}/b"), 0, 0, rate, columns)
-        payload = encode_frame_binary(frame, dtype)
-        pipeline.process(f"sinewatch/in/warm-{dtype}", payload, FRAME_BINARY_ENCODING, 0)
+    frame = Frame(("warm/a", "warm/b"), 0, 0, rate, columns)
+    pipeline.process("sinewatch/in/warm", encode_frame_binary(frame, "float64"), FRAME_BINARY_ENCODING, 0)
 
 
 def _estimator(name: str, params: dict[str, Any] | None = None) -> None:

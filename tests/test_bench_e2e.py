@@ -38,6 +38,7 @@ def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
         blocks_per_s = row["offered_samples_per_s"] / row["block"]
         assert row["cores_needed_at_offered"] == pytest.approx(sum(budget.values()) * blocks_per_s / 1e6)
         assert row["machine_cores"] >= 1
+        assert row["load_average_start"] >= 0 and row["load_average_end"] >= 0  # what a loaded run is read with
     assert "daemon_rss_mb_per_channel" in rows[1]
     assert "sustained M/s" in stdout and "p99 ms" in stdout and "cores needed" in stdout
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -241,3 +241,70 @@ def test_kkl_biased_bank_matches_single_channel_through_every_branch_of_the_inve
             seen["undefined"] += int((~freq_ok & ~off_ok).sum())
         pos += step
     assert all(v > 0 for v in seen.values()), seen
+
+
+def _pmu_signal(seed: int, n: int, fs: float) -> np.ndarray:
+    """A tone near 50 Hz (its own frequency, phase, amplitude, offset, ramp and noise per
+    seed) that steps in magnitude and phase part way, so that (T) sees transitions."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    f = 49.5 + rng.uniform(0, 1.0) + rng.uniform(-0.2, 0.2) * t
+    phase = 2 * np.pi * np.cumsum(f) / fs + rng.uniform(0, 2 * np.pi)
+    step = np.where(t > rng.uniform(0.4, 0.8) * t[-1], 1.1, 1.0)
+    x = rng.uniform(0.5, 2.0) * step * np.sin(phase + 0.1 * (step - 1.0)) + rng.uniform(-0.1, 0.1)
+    return x + 0.01 * rng.standard_normal(n)
+
+
+@pytest.mark.parametrize(
+    ("params", "fs"),
+    [
+        ({"nominal_frequency_hz": 50, "reporting_rate_hz": 50}, 10_000.0),
+        # an oscillator off f0 (the reports' angles turned back to the nominal cosine)
+        ({"nominal_frequency_hz": 50, "reporting_rate_hz": 25}, 9_999.33),
+        # 'auto': undecided channels run one by one, decided ones in the bank
+        ({"nominal_frequency_hz": "auto", "performance_class": "P"}, 10_000.0),
+    ],
+)
+def test_pmu_bank_matches_single_channel_on_its_grid(params: dict, fs: float) -> None:
+    """pmu's lane-major bank, bit for bit with the single path, with reports in every call:
+    eleven channels, of which seven started together (lanes in lock step: one group of
+    eight padded by one) and four joined one at a time (each a group of its own); timed
+    blocks of uneven sizes, one of them after a gap in time (every channel re-anchors and
+    (T) starts over), the last one untimed."""
+    cls = get("pmu")
+    size, n = 11, 40_000
+    x = np.stack([_pmu_signal(500 + c, n, fs) for c in range(size)], axis=1)
+    singles, banked = [cls(fs, params) for _ in range(size)], [cls(fs, params) for _ in range(size)]
+    t_start = T0_NS + 123_456
+    for c in range(7, size):  # joined earlier, each at its own time: a history of its own
+        for est in (singles[c], banked[c]):
+            est.update(np.ascontiguousarray(x[: 997 * (c - 6), c]), t0_ns=t_start - 997 * (c - 6) * round(1e9 / fs))
+    pos, t0, reports = 0, t_start, 0
+    for step, last_only, gap_ns in (
+        (4000, True, 0),
+        (3001, False, 0),
+        (9000, True, 0),
+        (8000, True, 2 * 10**9),
+        (7000, False, 0),
+        (4500, True, None),
+    ):
+        t0 = None if gap_ns is None else t0 + gap_ns
+        blk = x[pos : pos + step]
+        expected = [
+            e.update(np.ascontiguousarray(blk[:, c]), last_only=last_only, t0_ns=t0) for c, e in enumerate(singles)
+        ]
+        got = update_bank(banked, blk, last_only=last_only, t0_ns=t0)
+        for c in range(size):
+            where = f"pmu {params} channel {c}, samples {pos}:{pos + step}"
+            assert_tracks_bitwise(expected[c], got[c], where)
+            assert expected[c].reports is not None and got[c].reports is not None
+            assert _same_bits(expected[c].reports.index, got[c].reports.index), where
+            assert_tracks_bitwise(expected[c].reports.track, got[c].reports.track, where + " reports")
+            assert_states_bitwise(singles[c], banked[c], where)
+            assert _same_bits(singles[c]._transition, banked[c]._transition), where + " (T)"
+            reports += expected[c].reports.n_reports
+        pos += step
+        if t0 is not None:
+            t0 += round(step * 1e9 / fs)
+    assert reports > 20 * size  # the reports the test is for were made
+    assert any(bool(np.any(e.reports.track.converged)) for e in expected)

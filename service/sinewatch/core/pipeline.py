@@ -40,7 +40,7 @@ from sinewatch.core.hold import drop, hold, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
-from sinewatch.estimators.base import Estimator, Track
+from sinewatch.estimators.base import Estimator, Track, kernel_samples
 from sinewatch.estimators.presence import update_presence_bank
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import Block, dumps, encode_error, is_json_block
@@ -153,10 +153,7 @@ class Pipeline:
         so a channel that comes back after k frames without it is flagged as a gap of k
         blocks, and a new one starts afresh."""
         keys = self._frame_channel_keys(key, frame.channels)
-        x = frame.samples
-        if x.dtype != _F64:
-            x = x.astype(np.float64)  # once per frame: each column then is what its block would give
-            frame.samples = x
+        x = frame.samples  # of the kernels' kind (``_decode``): each column what its block would give
         finite = np.isfinite(x).all(axis=0).tolist() if not _all_finite_2d(x) else None
         banks: dict[tuple[int, str, float], list[FrameMember]] = {}
         for c, ckey in enumerate(keys):
@@ -385,6 +382,10 @@ class Pipeline:
                 kind="oversized_block",
             )
         block = decode_input(payload, encoding)
+        # the samples as every kernel takes them, once here for the estimator, its bank, the
+        # presence detector and the power-quality stage alike (``kernel_samples``: a float64
+        # payload decodes to a read-only view, another numba type than a writable array)
+        block.samples = kernel_samples(block.samples)
         if block.n_samples == 0:
             raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
         if block.n_samples > limits.max_block_samples:
@@ -497,7 +498,7 @@ class Pipeline:
         dropped = sum(drop(ch) for ch in self.channels.values() if ch.held)
         self.counters.held_dropped += dropped
         if dropped:
-            log.warning("no longer the owner: %d held estimate(s) dropped (the successor's)", dropped)
+            log.warning("%d held estimate(s) dropped: made under an ownership this daemon no longer holds", dropped)
         return dropped
 
     def _release(self, ch: Channel, log_time_ns: int) -> int:
@@ -748,9 +749,6 @@ def _is_power_of_ten(n: int) -> bool:
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1
-
-
-_F64 = np.dtype(np.float64)
 
 
 def _all_finite_2d(x: np.ndarray) -> bool:

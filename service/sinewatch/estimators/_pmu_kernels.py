@@ -51,7 +51,7 @@ TRANSITION_ALPHA = 0.05  # weight of each report in the running scale (~20 repor
 N_ISTATE = 6
 N_FSTATE = 16
 #: (U) noise probes per report, and the time constant (s) of their average over reports
-N_PROBES = 4
+N_PROBES = 4  # written out as four chains in _noise_update
 NOISE_TIME_CONSTANT_S = 1.0
 #: report rows: the 8 values, then (U) the standard deviations of frequency, ROCOF, amplitude,
 #: phase, offset and TVE
@@ -187,22 +187,55 @@ def _noise_update(
     average in ``noise`` = (weighted sum, sum of weights)), is sigma^2. Returns it."""
     f_osc, lam, dstep = fconsts[0], fconsts[7], fconsts[8]
     last = start + M - 1
+    # the four probes are independent chains (each rotor e waits on its previous value): they
+    # advance together, one tap at a time, so the CPU overlaps them; each probe's operations
+    # are those of a loop over its taps alone, in the same order (the same bits)
+    w0 = _probe_w(0, f_hz, f_osc, dstep)
+    w1 = _probe_w(1, f_hz, f_osc, dstep)
+    w2 = _probe_w(2, f_hz, f_osc, dstep)
+    w3 = _probe_w(3, f_hz, f_osc, dstep)
+    rot0 = complex(math.cos(w0), math.sin(w0))
+    rot1 = complex(math.cos(w1), math.sin(w1))
+    rot2 = complex(math.cos(w2), math.sin(w2))
+    rot3 = complex(math.cos(w3), math.sin(w3))
+    e0 = e1 = e2 = e3 = complex(1.0, 0.0)
+    pr0 = pr1 = pr2 = pr3 = complex(0.0, 0.0)
+    for i in range(M):
+        c = complex(ring[last - i, 0], ring[last - i, 1])
+        t = taper[i]
+        pr0 += t * e0 * c
+        pr1 += t * e1 * c
+        pr2 += t * e2 * c
+        pr3 += t * e3 * c
+        e0 *= rot0
+        e1 *= rot1
+        e2 *= rot2
+        e3 *= rot3
     acc = 0.0
-    for k in range(N_PROBES):
-        dk = (k + 0.5) * f_hz - f_osc  # the probe's frequency after demodulation
-        w = 2.0 * math.pi * dk * dstep  # radians per decimated sample
-        rot = complex(math.cos(w), math.sin(w))
-        e = complex(1.0, 0.0)
-        pr = complex(0.0, 0.0)
-        for i in range(M):
-            pr += taper[i] * e * complex(ring[last - i, 0], ring[last - i, 1])
-            e *= rot
-        g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
-        acc += (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    acc += _probe_power(pr0, w0, pgram)
+    acc += _probe_power(pr1, w1, pgram)
+    acc += _probe_power(pr2, w2, pgram)
+    acc += _probe_power(pr3, w3, pgram)
     noise[0] = lam * noise[0] + acc / N_PROBES
     noise[1] = lam * noise[1] + 1.0
     sig2: float = noise[0] / noise[1]
     return sig2
+
+
+@kernel(inline="always")
+def _probe_w(k: int, f_hz: float, f_osc: float, dstep: float) -> float:
+    """(U) probe k's frequency after demodulation, in radians per decimated sample."""
+    dk = (k + 0.5) * f_hz - f_osc
+    w: float = 2.0 * math.pi * dk * dstep
+    return w
+
+
+@kernel(inline="always")
+def _probe_power(pr: complex, w: float, pgram: np.ndarray) -> float:
+    """(U) a probe's power over its gram (the noise variance it reads)."""
+    g = pgram[0] + 2.0 * pgram[1] * math.cos(w)
+    p: float = (pr.real * pr.real + pr.imag * pr.imag) / (2.0 * g)
+    return p
 
 
 @kernel(inline="always")
@@ -257,6 +290,116 @@ def _report_std(
     out[9] = math.sqrt(sig2 * _qform(u * cx0, u * cx1, u * cx2, gram)) / mag
     out[10] = math.sqrt(sig2 * gram[0, 0])  # b = sum_n h0[n] x_n: no sqrt 2, no demodulation
     out[11] = math.sqrt(2.0 * sig2 * _qform(cx0, cx1, cx2, gram)) / mag
+
+
+@kernel(inline="always")
+def _next_report(
+    delta0: float, k_next: int, k0: int, spr: float, D: int, m_lo: int, M: int, j: int
+) -> tuple[int, float, int, int, int]:
+    """Grid report ``k_next`` against the newest decimated sample ``j``: (due, u, n_r, ph_r,
+    oldest): due 0, not yet (its newest tap is after c_j); 1, never (its window reaches
+    before the anchor, or past c_j); 2, now. ``u``: its fractional input sample, ``n_r`` the
+    nearest, ``ph_r`` that sample's decimation phase, ``oldest`` its oldest tap's index."""
+    u = delta0 + (k_next - k0) * spr
+    n_r = math.floor(u + 0.5)
+    q = n_r // D
+    newest = q - m_lo
+    oldest = newest - M + 1
+    if newest > j:
+        return 0, u, n_r, 0, oldest
+    if oldest < 1 or newest < j:
+        return 1, u, n_r, 0, oldest
+    return 2, u, n_r, n_r - q * D, oldest
+
+
+@kernel(inline="always")
+def _held_model(
+    est: np.ndarray,
+    u: float,
+    n_r: int,
+    n: int,
+    k_next: int,
+    beta: float,
+    f0: float,
+    fs: float,
+    min_amp: float,
+    reps: np.ndarray,
+    n_rep: int,
+    cstep: float,
+    sstep: float,
+) -> tuple[int, float, float, float, float, float, float, float, float, float, int]:
+    """The report ``est`` (from :func:`_report`, made at input sample ``n_r`` for the grid
+    point at fractional sample ``u``) as grid report row ``n_rep`` of ``reps`` (when there is
+    room) and as the held model the rows after it report: returns (defined, f, A, B, rocof,
+    converged, cos theta, sin theta at the current sample ``n``, the rotor's step, the next
+    row). Shared by :func:`pmu_kernel` and the lane-major bank (the same operations)."""
+    cap = reps.shape[0]
+    tau = (u - n_r) / fs
+    if est[5] != 0.0:
+        nu = est[0]
+        xr = complex(est[1], est[2]) * complex(math.cos(2 * math.pi * nu * tau), math.sin(2 * math.pi * nu * tau))
+        mag = abs(xr)
+        rocof = est[3]
+        f = f0 + nu + rocof * tau
+        B = est[4]
+        conv = 1.0 if mag > min_amp else 0.0
+        arg = math.atan2(xr.imag, xr.real)
+        # phase of the nominal oscillator at u: 2 pi f0 u / fs (mod 2 pi)
+        nom = 2.0 * math.pi * ((f0 * u / fs) - math.floor(f0 * u / fs))
+        theta_r = arg + nom + 0.5 * math.pi  # sine convention
+        A = math.sqrt(2.0) * mag
+        if n_rep < cap:
+            reps[n_rep, 0] = k_next
+            reps[n_rep, 1] = f
+            reps[n_rep, 2] = rocof
+            reps[n_rep, 3] = mag
+            reps[n_rep, 4] = wrap_pi(arg - beta)
+            reps[n_rep, 5] = A
+            reps[n_rep, 6] = wrap_pi(theta_r)
+            reps[n_rep, 7] = B
+            for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
+                reps[n_rep, 8 + c] = est[6 + c]
+            n_rep += 1
+        # rotor at the current sample n (predicts sample n + 1 after a step)
+        th = theta_r + 2.0 * math.pi * f * (n - u) / fs
+        cstep = math.cos(2.0 * math.pi * f / fs)
+        sstep = math.sin(2.0 * math.pi * f / fs)
+        return 1, f, A, B, rocof, conv, math.cos(th), math.sin(th), cstep, sstep, n_rep
+    if n_rep < cap:
+        reps[n_rep, 0] = k_next
+        for c in range(1, N_REPORT_COLUMNS):
+            reps[n_rep, c] = np.nan
+        n_rep += 1
+    return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, cstep, sstep, n_rep
+
+
+@kernel(inline="always")
+def _out_row(
+    out: np.ndarray,
+    row: int,
+    live: bool,
+    f: float,
+    A: float,
+    B: float,
+    conv: float,
+    rocof: float,
+    cth: float,
+    sth: float,
+) -> None:
+    """Output row ``row``: the held model at the current sample (``live``: a defined report
+    is held), else undefined."""
+    if live:
+        out[row, 0] = f
+        out[row, 1] = A
+        out[row, 2] = math.atan2(sth, cth)
+        out[row, 3] = B
+        out[row, 4] = conv
+        out[row, 5] = rocof
+    else:
+        for c in range(4):
+            out[row, c] = np.nan
+        out[row, 4] = 0.0
+        out[row, 5] = np.nan
 
 
 @kernel
@@ -346,17 +489,12 @@ def pmu_kernel(
             anr = ani = dcn = 0.0
             # reports whose newest tap is c_j (or that can never be made)
             while True:
-                u = delta0 + (k_next - k0) * spr
-                n_r = math.floor(u + 0.5)
-                q = n_r // D
-                newest = q - m_lo
-                oldest = newest - M + 1
-                if newest > j:
+                due, u, n_r, ph_r, oldest = _next_report(delta0, k_next, k0, spr, D, m_lo, M, j)
+                if due == 0:
                     break
-                if oldest < 1 or newest < j:  # window reaches before the anchor: skip
+                if due == 1:  # window reaches before the anchor: skip
                     k_next += 1
                     continue
-                ph_r = n_r - q * D
                 _report(
                     rg,
                     dr,
@@ -376,66 +514,13 @@ def pmu_kernel(
                     est,
                 )
                 held = 1
-                tau = (u - n_r) / fs
-                if est[5] != 0.0:
-                    nu = est[0]
-                    xr = complex(est[1], est[2]) * complex(
-                        math.cos(2 * math.pi * nu * tau), math.sin(2 * math.pi * nu * tau)
-                    )
-                    mag = abs(xr)
-                    rocof = est[3]
-                    f = f0 + nu + rocof * tau
-                    B = est[4]
-                    defined = 1
-                    conv = 1.0 if mag > min_amp else 0.0
-                    arg = math.atan2(xr.imag, xr.real)
-                    # phase of the nominal oscillator at u: 2 pi f0 u / fs (mod 2 pi)
-                    nom = 2.0 * math.pi * ((f0 * u / fs) - math.floor(f0 * u / fs))
-                    theta_r = arg + nom + 0.5 * math.pi  # sine convention
-                    A = math.sqrt(2.0) * mag
-                    if n_rep < cap:
-                        reps[n_rep, 0] = k_next
-                        reps[n_rep, 1] = f
-                        reps[n_rep, 2] = rocof
-                        reps[n_rep, 3] = mag
-                        reps[n_rep, 4] = wrap_pi(arg - beta)
-                        reps[n_rep, 5] = A
-                        reps[n_rep, 6] = wrap_pi(theta_r)
-                        reps[n_rep, 7] = B
-                        for c in range(6):  # (U): frequency, ROCOF, amplitude, phase, offset, TVE
-                            reps[n_rep, 8 + c] = est[6 + c]
-                        n_rep += 1
-                    # rotor at the current sample n (predicts sample n + 1 after a step)
-                    th = theta_r + 2.0 * math.pi * f * (n - u) / fs
-                    cth = math.cos(th)
-                    sth = math.sin(th)
-                    cstep = math.cos(2.0 * math.pi * f / fs)
-                    sstep = math.sin(2.0 * math.pi * f / fs)
-                else:
-                    defined = 0
-                    f = A = B = rocof = conv = 0.0
-                    cth, sth = 1.0, 0.0
-                    if n_rep < cap:
-                        reps[n_rep, 0] = k_next
-                        for c in range(1, N_REPORT_COLUMNS):
-                            reps[n_rep, c] = np.nan
-                        n_rep += 1
+                defined, f, A, B, rocof, conv, cth, sth, cstep, sstep, n_rep = _held_model(
+                    est, u, n_r, n, k_next, beta, f0, fs, min_amp, reps, n_rep, cstep, sstep
+                )
                 k_next += 1
             j += 1
         if not (last_only and i != n_in - 1):
-            row = 0 if last_only else i
-            if held and defined:
-                out[row, 0] = f
-                out[row, 1] = A
-                out[row, 2] = math.atan2(sth, cth) if (not last_only or i == n_in - 1) else 0.0
-                out[row, 3] = B
-                out[row, 4] = conv
-                out[row, 5] = rocof
-            else:
-                for c in range(4):
-                    out[row, c] = np.nan
-                out[row, 4] = 0.0
-                out[row, 5] = np.nan
+            _out_row(out, 0 if last_only else i, held and defined, f, A, B, conv, rocof, cth, sth)
         # advance the rotor to sample n + 1
         if held and defined:
             c2 = cth * cstep - sth * sstep

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import Estimator, Track, _all_finite
+from sinewatch.estimators.base import Estimator, Track, _all_finite, kernel_samples
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -69,6 +69,11 @@ class BankKernel:
     #: and scattered as views (stacked channel last, nls's 1024-sample ring buffers cost ~12
     #: ns a sample to gather and ~8 to scatter, measured: more than the Python a bank saves)
     channel_first: bool = False
+    #: a bank that runs the frame itself (``run(estimators, samples (N, C), last_only, t0_ns)``,
+    #: the samples validated): an estimator whose per-block Python (pmu's time anchor, its (T)
+    #: test over the reports) is part of the call; it returns the Tracks, or None for channels
+    #: that cannot share one call (they then run one by one)
+    run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None
 
 
 _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
@@ -94,16 +99,13 @@ NO_BANK: dict[str, str] = {
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
-        "numbers of steps and do not advance in lock step). Tried and left out: one compiled call "
-        "running each channel through the single kernel in turn (bit for bit), 0.77-0.90x the "
-        "channels one by one (`sinewatch bench kernels --bank 8`, and the same 8 signals both "
-        "ways, load 12-28): the kernel is ~30 of ~45 ns a sample either way and the bank's "
-        "gathering and scattering of the 1024-sample ring buffers costs more than the Python it "
-        "saves; its channels run one after the other, at 1.2-1.6x the FFT"
-    ),
-    "pmu": (
-        "no compiled bank: it reports on a time grid (t0_ns), each block's state re-anchored to "
-        "the block's time before its kernel runs; its channels run one after the other"
+        "numbers of steps and do not advance in lock step). What bounds it is the fit: its kernel "
+        "alone runs at 1.73-1.81x the streaming FFT and is ~80 % of update's CPU time (1024-sample "
+        "blocks, one estimate a block, paired medians, load 12-20), so even a bank that removed "
+        "all the Python would stay below 2x. A channel-first bank (each channel through nls_kernel "
+        "in one compiled call, the states stacked channel first, bit for bit) measured 0.85-0.97x "
+        "the channels one by one (`sinewatch bench kernels --bank 8`, load 12-20): left out; its "
+        "channels run one after the other"
     ),
 }
 
@@ -114,10 +116,11 @@ def register_bank(
     n_outputs: int,
     tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None,
     channel_first: bool = False,
+    run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None,
 ) -> None:
     """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses);
-    ``tracks`` and ``channel_first``: see :class:`BankKernel`."""
-    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first)
+    ``tracks``, ``channel_first`` and ``run``: see :class:`BankKernel`."""
+    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first, run)
     NO_BANK.pop(cls.name, None)
 
 
@@ -158,10 +161,13 @@ def update_bank(
     ):
         return _one_by_one(estimators, samples, last_only, t0_ns)
     _check_alike(estimators, cls)
-    x = np.ascontiguousarray(samples)
+    x = kernel_samples(samples)  # one numba type per bank kernel
     if not _all_finite(x.reshape(-1)):
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+    if bank.run is not None:
+        ran = bank.run(estimators, x, last_only, t0_ns)
+        return _one_by_one(estimators, x, last_only, t0_ns) if ran is None else ran
     keys = list(first._state)
     if bank.channel_first:
         x = np.ascontiguousarray(x.T)  # row c: channel c's samples

@@ -162,6 +162,22 @@ def fma(a: float, b: float, c: float) -> float:
     return _fma_intrinsic(a, b, c)  # type: ignore[call-arg]  # numba passes the typing context
 
 
+def kernel_samples(samples: np.ndarray) -> np.ndarray:
+    """``samples`` as every kernel takes them: float64, C-contiguous, aligned and writable; a
+    copy (one memcpy, or the float32 -> float64 conversion) only when they are not already.
+
+    numba compiles a kernel once per argument type, and an array's type includes whether it is
+    writable, aligned and C-contiguous: a read-only ``np.frombuffer`` view of a payload, or a
+    view at an odd offset into it, is another type than the arrays the kernels make themselves,
+    and every kernel would be compiled (and cached, and warmed up) once for each. Handing them
+    one kind keeps one signature per kernel; the values, hence every output bit, are the same
+    (float32 widens to float64 exactly)."""
+    f = samples.flags
+    if samples.dtype is _F64 and f.c_contiguous and f.writeable and f.aligned:
+        return samples
+    return np.array(samples, dtype=np.float64, order="C")
+
+
 def require_below_nyquist(field: str, value: float, sample_rate_hz: float) -> float:
     """The Nyquist frequency 0.5 * sample_rate_hz; ParameterError unless ``value`` (the
     parameter ``field``, Hz) is below it."""
@@ -642,8 +658,9 @@ class Estimator(ABC, Generic[ParamsT]):
     def _as_block(self, samples: Any) -> np.ndarray:
         # The common case first, in as few Python operations as possible (this runs once per
         # block and per channel): a float64 numpy array of shape (N,) with N > 0 for a
-        # one-input estimator, used as is when C-contiguous (kernels never write to their
-        # input). Everything else takes the general path below, which raises the typed errors.
+        # one-input estimator, used as is when of the kernels' kind (``kernel_samples``;
+        # kernels never write to their input). Everything else takes the general path
+        # below, which raises the typed errors.
         if (
             type(samples) is np.ndarray
             and samples.dtype is _F64
@@ -651,7 +668,7 @@ class Estimator(ABC, Generic[ParamsT]):
             and samples.shape[0]
             and self.n_inputs == 1
         ):
-            x = samples if samples.flags.c_contiguous else np.ascontiguousarray(samples)
+            x = kernel_samples(samples)
             if _all_finite(x):
                 return x
             bad = int(np.count_nonzero(~np.isfinite(x)))
@@ -672,8 +689,8 @@ class Estimator(ABC, Generic[ParamsT]):
             raise InputError(f"samples: expected shape (N, {want}), got {samples.shape}", kind="shape_mismatch")
         if samples.shape[0] == 0:
             raise InputError("samples: expected at least one sample, got 0", kind="empty_block")
-        # Kernels never write to their input, so a float64 C-contiguous block is used as is.
-        x = np.ascontiguousarray(samples, dtype=np.float64)
+        # Kernels never write to their input, so a block already of the kernels' kind is used as is.
+        x = kernel_samples(samples)
         if not _all_finite(x.reshape(-1)):
             bad = int(np.count_nonzero(~np.isfinite(x)))
             raise InputError(f"samples: expected finite values, got {bad} NaN/Inf", kind="non_finite")

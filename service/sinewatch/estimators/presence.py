@@ -110,7 +110,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import decode_array, encode_array, kernel
+from sinewatch.estimators.base import decode_array, encode_array, kernel, kernel_samples
 from sinewatch.schemas.errors import ParameterError
 
 PRESENCE_STATE_VERSION = 4  # 3: no level two readings back (G); 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
@@ -125,7 +125,6 @@ EDGE_RATIO = (
     0.8  # (G): a level below 0.8, or above 1 / 0.8, of the cycle before it is an edge (validity rules version 5)
 )
 RUN_CAP = 1 << 62
-_KERNEL_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))  # what the kernel takes as is
 
 # slots of "sums": the previous half cycle's S1, S2, the current one's S1, S2, then R, the
 # last level squared, R as it was one and two half cycles back; for (F): the one-cycle mean
@@ -305,6 +304,7 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
     params = first.params
     if x.dtype != np.float64 or x.ndim != 2 or any(d.params != params for d in detectors):
         return None
+    x = kernel_samples(x)
     sums = np.stack([d.sums for d in detectors])
     counters = np.stack([d.counters for d in detectors])
     rings = np.stack([d.ring for d in detectors])
@@ -363,12 +363,10 @@ class SignalPresence:
         self.ring = np.zeros(self.quarter_cycle_samples + self.mean_samples)
 
     def update(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-sample (run length of presence, level) over ``samples`` (1-D; float32 or
-        float64 as they come, anything else converted to float64: the kernel sums in float64
-        either way, so the outputs are the same as for the samples converted to float64)."""
-        x = samples
-        if not (type(x) is np.ndarray and x.dtype in _KERNEL_DTYPES and x.flags.c_contiguous):
-            x = np.ascontiguousarray(samples, dtype=np.float64)
+        """Per-sample (run length of presence, level) over ``samples`` (1-D; converted to
+        float64 unless they are the kernels' kind already (``kernel_samples``): the kernel
+        sums in float64, so float32 samples give the same outputs either way)."""
+        x = kernel_samples(np.asarray(samples))
         run, level, self.sums, self.counters, self.ring = presence_kernel(
             x, self.sums, self.counters, self.ring, self.consts
         )

@@ -88,6 +88,12 @@ FRAME_MESSAGE_ENCODING = "sinewatch-frame-v1"
 FRAME_SCHEMA_ENCODING = "sinewatch-frame-layout"
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+# zstd's level for recordings. Level 1 against mcap's own 3 (``zstandard.compress``'s default):
+# on what a daemon records (float32 frames of a noisy sine and their estimates' JSON) it costs
+# about four fifths of level 3's CPU for 0.1-0.2 % more bytes, and lz4, cheaper still, leaves
+# about 11 % more bytes (docs/benchmarks.md, "The recorder's compression"). Any level decodes alike.
+RECORDING_ZSTD_LEVEL = 1
+_MCAP_ZSTD_LEVEL = 3  # what mcap's Writer compresses with
 
 
 # A Message record: opcode, record length, then channel_id u16, sequence u32, log_time u64,
@@ -145,7 +151,9 @@ class FastWriter(Writer):
     Only what the recorder uses is supported: chunked, every index, CRCs of the chunks and
     the summary, none of the data section (mcap's defaults)."""
 
-    def __init__(self, output: BinaryIO, *, chunk_size: int, compression: CompressionType) -> None:
+    def __init__(
+        self, output: BinaryIO, *, chunk_size: int, compression: CompressionType, zstd_level: int = _MCAP_ZSTD_LEVEL
+    ) -> None:
         super().__init__(output, chunk_size=chunk_size, compression=compression)
         if not isinstance(_private(self, "chunk_builder"), ChunkBuilder) or not isinstance(
             _private(self, "statistics"), Statistics
@@ -163,6 +171,7 @@ class FastWriter(Writer):
         self._chunk_indices: list[ChunkIndex] = _private(self, "chunk_indices")
         self._chunk_limit = chunk_size
         self._compression = compression
+        self._zstd_level = zstd_level
         self._zstd: Any = None
         self._in_flight: Future[None] | None = None  # the chunk _CHUNK_THREAD is writing
         self.bytes_on_file = 0  # the file's size before the chunk in flight (rotation by size reads it)
@@ -211,7 +220,7 @@ class FastWriter(Writer):
             compression, data = b"lz4", _MCAP_MODULES["lz4"].frame.compress(chunk_data)
         elif self._compression == CompressionType.ZSTD:
             if self._zstd is None:  # what zstandard.compress (Writer's call) builds each time, kept
-                self._zstd = _MCAP_MODULES["zstandard"].ZstdCompressor(level=3)
+                self._zstd = _MCAP_MODULES["zstandard"].ZstdCompressor(level=self._zstd_level)
             compression, data = b"zstd", self._zstd.compress(chunk_data)
         else:
             compression, data = b"", chunk_data
@@ -285,10 +294,11 @@ class FastWriter(Writer):
 
 
 def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:
-    """A FastWriter; mcap's own Writer (the same file, slower) under an mcap release whose
-    private internals FastWriter does not find."""
+    """A FastWriter (zstd at :data:`RECORDING_ZSTD_LEVEL`); mcap's own Writer (the same
+    messages, zstd at its level 3, slower) under an mcap release whose private internals
+    FastWriter does not find."""
     try:
-        return FastWriter(file, chunk_size=chunk_size, compression=compression)
+        return FastWriter(file, chunk_size=chunk_size, compression=compression, zstd_level=RECORDING_ZSTD_LEVEL)
     except (AttributeError, TypeError) as exc:
         log.warning("mcap %s: its Writer's internals changed (%s); recording with Writer itself", _MCAP_VERSION, exc)
         return Writer(file, chunk_size=chunk_size, compression=compression)

@@ -71,10 +71,13 @@ HEARTBEAT_S = 0.5  # the event loop's heartbeat (and systemd watchdog ping), at 
 
 
 def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
-    """One rule's kernels: the estimator's on whole blocks and on the last sample only, and
-    for a one-input estimator a frame's (its bank kernel, the presence detectors' bank)."""
+    """One rule's kernels: the estimator's on whole blocks and on the last sample only, the
+    presence detector's, and for a one-input estimator a frame's (its bank kernel, the
+    presence detectors' bank)."""
     from sinewatch.estimators.bank import bank_of, update_bank
+    from sinewatch.estimators.base import kernel_samples
     from sinewatch.estimators.presence import SignalPresence, update_presence_bank
+    from sinewatch.estimators.presence import _fast_usable as fast_usable
 
     rate = cls.example_sample_rate_hz
     try:
@@ -85,24 +88,20 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     signal_ = cls.example_signal(64)
     if signal_.ndim == 1 and est.n_inputs > 1:  # e.g. I/Q: the kernel's types, not a meaningful signal
         signal_ = np.column_stack([signal_] * est.n_inputs)
-    for x in _as_received(signal_):
-        est.update(x)
-        est.update(x, last_only=True)
+    # one kind of samples: the pipeline hands every kernel float64, C-contiguous, writable
+    # arrays whatever the payload's sample type (``kernel_samples``), so one call compiles
+    # (or loads) the signature every block of this rule will use
+    x = kernel_samples(signal_)
+    est.update(x)
+    est.update(x, last_only=True)
+    SignalPresence(rate).update(est.presence_samples(x))  # a single block's detector (a frame's: below)
+    fast_usable(0.0, 0.0, 1.0)  # what the hold (on by default) asks of a detector per block, from Python
     if est.n_inputs == 1:
-        for frame in _as_received(np.stack([signal_, signal_], axis=1)):
-            if bank_of(cls) is not None:
-                update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
-            detectors = [SignalPresence(rate) for _ in range(2)]
-            update_presence_bank(detectors, frame, [0, 1])
-
-
-def _as_received(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``x`` as the kernels receive samples: float64 samples decode to a read-only view of the
-    payload (``np.frombuffer``), float32 ones to a writable float64 copy, and numba compiles a
-    kernel once for each (a read-only array is another type)."""
-    frozen = x.copy()
-    frozen.setflags(write=False)
-    return x, frozen
+        frame = kernel_samples(np.stack([signal_, signal_], axis=1))
+        if bank_of(cls) is not None:
+            update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)
+        detectors = [SignalPresence(rate) for _ in range(2)]
+        update_presence_bank(detectors, frame, [0, 1])
 
 
 class Daemon:
@@ -387,6 +386,10 @@ class Daemon:
         for ch in pipeline.channels.values():
             if ch.last_seq is not None:
                 pipeline.resume_points[ch.name] = ResumePoint(ch.last_seq, ch.next_t0_ns)
+        # The resume points count every block of that state published; so are its held estimates
+        # (hold_estimates): its next block or its idle release published them, unless it died
+        # within that (then they are lost with it). Dropped, not published a second time.
+        pipeline.drop_held()
         if self.recorder is not None:
             self.recorder.attach_first_snapshot = True
         log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)

@@ -56,6 +56,7 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         ("pmu-reference", "a real PMU's C37.118.2 stream as the reference for a channel", add_pmu_reference_arguments),
         ("pipeline", "in-process CPU cost per block of the pipeline, recording on and off", add_pipeline_arguments),
         ("estimate-puts", "a frame's estimates: a put per channel vs an estimate frame", add_estimate_puts_arguments),
+        ("recorder-compression", "the recorder's compressions: CPU per sample and bytes", _compression_args),
         ("gateway", "gateway sv: 9-2LE frames decoded and published per core", add_gateway_arguments),
     )
     for name, help_text, add_arguments in benches:
@@ -63,6 +64,13 @@ def add_bench_parser(sub: Any) -> argparse.ArgumentParser:
         add_arguments(p)
         p.set_defaults(fn=_runner(_MODULES.get(name, name.replace("-", "_"))))
     return b
+
+
+def _compression_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frame-channels", type=int, default=8, help="channels a recorded frame (default 8)")
+    parser.add_argument("--chunk-bytes", type=int, default=1 << 20, help="the chunk compressed (default 1 MiB)")
+    parser.add_argument("--repeats", type=int, default=9, help="each way's fastest of this many (default 9)")
+    parser.add_argument("--json", type=Path, help="also write results as JSON")
 
 
 CALIBRATION_ESTIMATORS = ("pmu", "default-rule", "ipdft", "nls", "ges-kalman")

@@ -49,6 +49,7 @@ def expected_daemons(args: argparse.Namespace) -> int:
     return workers if workers > 0 else max(1, len(os.sched_getaffinity(0)))
 
 
+DAEMON_START_S = 120.0  # how long the daemon may take to listen (start, warm-up) before the run fails
 SWEEP_CHANNELS = (1, 10, 100, 1000, 5000)
 SWEEP_DURATION_S = 20.0
 SINGLE_DURATION_S = 60.0
@@ -358,7 +359,9 @@ def _drive(
     fs, block, n_ch = args.rate, args.block, args.channels
     per_msg = frame_channels(args)
     rounds = max(1, int(args.duration * fs / block))
-    with connect([endpoint], timeout_s=30.0) as session:
+    # The daemon listens once it has started and warmed up its kernels: on a loaded machine
+    # (the benches run beside other work) that took over 30 s, and the run failed to connect.
+    with connect([endpoint], timeout_s=DAEMON_START_S) as session:
         status = JsonSubscription(session, "sinewatch/status/**")
         wait_for_daemons(status, expected_daemons(args))
         probe = LatencyProbe(session, "sinewatch/est/**")
@@ -369,6 +372,7 @@ def _drive(
             + (f", {per_msg} channels a frame" if per_msg > 1 else "")
             + f" ({n_ch * fs / 1e6:.2f} M samples/s) for {rounds * block / fs:.1f} s ..."
         )
+        load0 = os.getloadavg()[0]  # the machine's load: what a loaded run's figures must be read with
         cpu0 = cpu_seconds(daemon.pid)
         sched0 = main_thread_times(daemon.pid)
         rss0 = rss_mb(daemon.pid)
@@ -443,6 +447,9 @@ def _drive(
         # the CPU the three processes need for the offered load at this run's cost per block
         "cores_needed_at_offered": sum(budget.values()) * n_ch * fs / block / 1e6,
         "machine_cores": len(os.sched_getaffinity(0)),
+        # the 1-minute load average as the feeding started and as the estimates drained
+        "load_average_start": load0,
+        "load_average_end": os.getloadavg()[0],
     }
 
 
@@ -520,6 +527,11 @@ def _print(console: Console, r: dict[str, Any]) -> None:
             f"CPU a block: daemon {b['daemon']:.0f} us, feeder {b['feeder']:.0f} us, this bench's probe "
             f"{b['probe']:.0f} us; at the offered {r['offered_samples_per_s'] / r['block']:,.0f} blocks/s the three "
             f"need {r['cores_needed_at_offered']:.2f} cores, of {r['machine_cores']} on this machine"
+            + (
+                f" (load average {r['load_average_start']:.1f} -> {r['load_average_end']:.1f})"
+                if "load_average_start" in r
+                else ""
+            )
         )
     if r.get("foxglove_messages") is not None:
         kinds = ", ".join(f"{k} {n}" for k, n in r["foxglove_messages"].items())
