@@ -161,3 +161,39 @@ def test_restamp_replaces_the_fencing_member_only(name):
     assert json.loads(restamp(payload.encode(), "null"))["fencing"] is None
     old = json.dumps(body, separators=(",", ":")).encode()
     assert restamp(old, "null") == old
+
+
+class _ElectionJustWon:
+    """The election at the instant a campaign returns: the lease is held, so the gate is open,
+    and the takeover (re-stamp or drop the held estimates, then serve) has not run yet."""
+
+    def may_publish(self) -> bool:
+        return True
+
+
+def test_the_idle_release_waits_for_the_takeover_not_for_the_won_election():
+    """A standby that restored its owner's snapshot ahead holds the owner's held estimates,
+    stamped with the owner's term. The 5-fault chaos test saw one daemon publish them under that
+    term in the instant between winning the election and taking over: the idle-release timer ran
+    while the gate was already open (about 50 channel-blocks published by two daemons under one
+    term). Now the timer (and the drain) release only once the daemon serves the shard."""
+    from sinewatch.runtime.cluster import ClusterMember
+    from sinewatch.runtime.daemon import Daemon
+
+    blocks = _blocks(12)
+    _, snapshot = _owner(blocks, 10, 10)
+    daemon = Daemon(_config(), install_signal_handlers=False)
+    daemon._pipeline = Pipeline(_config(), [sink := Keep()])
+    daemon._pipeline.restore(snapshot)  # restored ahead, as the owner's lease runs out
+    member = ClusterMember(daemon)
+    member.election = _ElectionJustWon()  # type: ignore[assignment]
+    member.role = "standby"
+    daemon.cluster = member
+    daemon._last_log_time = T00 + 10**12  # long after the channel's last block: idle
+    daemon.release_idle()
+    assert sink.out == [], "nothing leaves before the takeover has re-stamped what the state holds"
+    daemon.pipeline.set_fencing(Fencing(shard="s", term=2))
+    daemon.pipeline.take_over_held({})
+    member.role = "active"
+    daemon.release_idle()
+    assert [m["fencing"]["term"] for m in sink.messages()] == [2]

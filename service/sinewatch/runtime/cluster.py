@@ -199,6 +199,14 @@ class ClusterMember:
         """The gate the daemon checks before each input: always open without an election."""
         return self.election is None or self.election.may_publish()
 
+    def may_release_held(self) -> bool:
+        """Whether the estimates the pipeline holds back are this daemon's to publish: only once
+        it serves the shard (``active``: a takeover has re-stamped or dropped its predecessor's
+        held estimates, :meth:`Daemon.start_intake`) and while its lease is proven. The gate alone
+        is not enough: it opens the moment the election is won, before the takeover has run, and a
+        standby's restored state holds estimates stamped with the previous owner's term."""
+        return self.role == "active" and self.may_publish()
+
     async def wait_gate(self) -> bool:
         """Wait until this daemon may publish again (True) or has lost the shard (False)."""
         return self.election is None or await self.election.wait_gate()

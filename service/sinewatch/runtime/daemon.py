@@ -305,9 +305,10 @@ class Daemon:
     def release_idle(self) -> None:
         """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
         back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
-        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon may publish
-        (a standby's held estimates are its successor's)."""
-        if self.cluster is not None and not self.cluster.may_publish():
+        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon serves its shard
+        (:meth:`ClusterMember.may_release_held`): a standby's held estimates, and a new owner's before
+        its takeover has run, carry another term."""
+        if self.cluster is not None and not self.cluster.may_release_held():
             return
         self.pipeline.release_idle(self._log_time())
 
@@ -469,7 +470,7 @@ class Daemon:
             await self._intake.stop()  # no new inputs; the pump has handed over all it had
         self._queue.put_nowait(None)  # the consumer ends after everything before it
         await consumer
-        if self.cluster is None or (self.cluster.role == "active" and self.cluster.may_publish()):
+        if self.cluster is None or self.cluster.may_release_held():
             self.pipeline.release_held(time.time_ns())  # hold_estimates: the inputs' end, publish what waits
         else:  # a standby (its state restored ahead) or a deposed owner: not its term to publish under
             self.pipeline.drop_held()
