@@ -28,7 +28,7 @@ def _reference(pipeline: Pipeline, ch: Channel, block: Block, track: Track, ts: 
     valid = True
     if pipeline.estimate_version >= 3:
         lag = max(0, round((t_last - ts) * ch.sample_rate_hz / 1e9))
-        valid = ch.presence.run_samples >= ch.estimator.memory_samples + lag and bool(
+        valid = ch.presence.run_samples >= ch.valid_memory_samples + lag and bool(  # the rules in force
             np.all(np.isfinite(track.frequency_hz[-1])) and np.all(np.isfinite(track.amplitude[-1]))
         )
         converged = converged and valid
