@@ -149,13 +149,16 @@ class KeepSink(NullSink):
 
 
 def clean_estimates(config: SinewatchConfig, key: str, blocks: list[Block]) -> list[dict[str, Any]]:
-    """What a fresh pipeline says for exactly these blocks: the reference that shows a
-    daemon's estimators never saw the bad inputs it rejected."""
+    """What a fresh pipeline says for exactly these blocks, up to the input's end (the
+    estimates still held back for the presence detector released, not valid, as a daemon's idle
+    release or drain releases them): the reference that shows a daemon's estimators never saw the
+    bad inputs it rejected."""
 
     keep = KeepSink()
     clean = Pipeline(config, [keep])
     for blk in blocks:
         clean.process(key, encode_block_binary(blk), BLOCK_BINARY_ENCODING, 0)
+    clean.release_held(0)
     return keep.estimates
 
 
