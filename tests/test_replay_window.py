@@ -53,6 +53,7 @@ def record(tmp_path: Path, n_blocks: int = 100, snapshot_interval_s: float | Non
             pipeline.process(f"sinewatch/in/{ch.channel}", payload, BLOCK_BINARY_ENCODING, log_time)
             if ch.channel.endswith("faulty-sensor") and i % 37 == 36:  # duplicated: rejected
                 pipeline.process(f"sinewatch/in/{ch.channel}", payload, BLOCK_BINARY_ENCODING, log_time + 5)
+    pipeline.release_held(T0 + (n_blocks + 1) * 40_000_000)  # the input's end, as a daemon's drain
     recorder.close()
     [path] = recorder.paths
     return path
