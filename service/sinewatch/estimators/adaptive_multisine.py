@@ -359,6 +359,11 @@ class AdaptiveMultisine(
     # compressed: the tones are at 15 and 10 Hz; the automatic design from n = 2 and a band.
     example_sample_rate_hz = 750.0
     example_frequency_hz = 15.0
+    # In automatic mode its memory is already a settling bound from a cold start (the design's
+    # settling dwell, AD7, plus the convergence test's smoothing), as grip-mixing's is: one memory
+    # of signal (validity rules 5). With two, the paper's Example 2 served for 30 s (tones at 2 and
+    # 3 rad/s, a memory of 5.7 s) ended without a valid estimate.
+    REFILL_MEMORIES: ClassVar[int] = 1
     example_params: ClassVar[dict[str, Any]] = {"n_sinusoids": 2, "band_hz": (5.0, 25.0)}
     # Printed by ``sinewatch bench kernels`` under its table.
     bench_note: ClassVar[str] = (
