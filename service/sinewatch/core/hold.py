@@ -1,7 +1,7 @@
 """Estimates held back until the presence detector has read past their windows
 (``hold_estimates``, on by default: docs/validity.md says what it costs): :func:`hold` takes a block's estimates
-and gives what may leave now; :func:`not_valid` marks one that could not be confirmed; :func:`take_over` and
-:func:`drop` are what a change of ownership does to what a channel holds."""
+and gives what may leave now; :func:`not_valid` marks one that could not be confirmed; :func:`take_over` is what a change of
+ownership does to what a channel holds (a deposed owner drops it: ``Pipeline.drop_held``)."""
 
 from __future__ import annotations
 
@@ -97,14 +97,6 @@ def take_over(ch: Channel, published_ns: int | None, fencing_json: str) -> int:
     ch.held.clear()
     ch.held.extend(kept)
     return dropped
-
-
-def drop(ch: Channel) -> int:
-    """A deposed owner: what ``ch`` holds is its successor's to publish (from its snapshot, or
-    the inputs again), never this daemon's under a term it lost. Returns how many."""
-    n = len(ch.held)
-    ch.held.clear()
-    return n
 
 
 def restamp(payload: bytes, fencing_json: str) -> bytes:

@@ -36,7 +36,7 @@ import zenoh
 from sinewatch.core.channel import Channel, FrameMember, PipelineCounters, ResumePoint, continues_in_time
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.core.estimate_bytes import estimate_model, estimate_payload
-from sinewatch.core.hold import drop, hold, not_valid, take_over
+from sinewatch.core.hold import hold, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
@@ -486,19 +486,25 @@ class Pipeline:
             if ch.held:
                 seen = published.get(ch.name)
                 dropped += take_over(ch, None if seen is None else seen[1], self.fencing_json)
-        self.counters.held_dropped += dropped
-        if dropped:
-            log.warning("takeover: %d held estimate(s) the previous owner published dropped", dropped)
-        return dropped
+        return self._held_dropped(dropped, "takeover: %d held estimate(s) the previous owner published dropped")
 
     def drop_held(self) -> int:
         """A deposed owner (or a standby stopping with a state restored ahead): what every
         channel holds is dropped, not released: it was made under a term this daemon no longer
         holds, and its successor publishes it. Returns how many."""
-        dropped = sum(drop(ch) for ch in self.channels.values() if ch.held)
+        dropped = 0
+        for ch in self.channels.values():
+            dropped += len(ch.held)
+            ch.held.clear()
+        return self._held_dropped(
+            dropped, "%d held estimate(s) dropped: made under an ownership this daemon no longer holds"
+        )
+
+    def _held_dropped(self, dropped: int, message: str) -> int:
+        """Count (and log, when any) ``dropped`` held estimates; returns it."""
         self.counters.held_dropped += dropped
         if dropped:
-            log.warning("%d held estimate(s) dropped: made under an ownership this daemon no longer holds", dropped)
+            log.warning(message, dropped)
         return dropped
 
     def _release(self, ch: Channel, log_time_ns: int) -> int:
