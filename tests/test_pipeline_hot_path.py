@@ -9,6 +9,7 @@ import itertools
 import json
 
 import numpy as np
+import pytest
 from conftest import make_config
 
 from sinewatch.core.pipeline import GuardedSink, NullSink, Pipeline
@@ -127,20 +128,48 @@ def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
 
 
 def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
-    from sinewatch.apps.bench.pipeline_cost import STEPS, run
+    from sinewatch.apps.bench.pipeline_cost import FRAME_STEPS, STEPS, run
 
-    out = tmp_path / "bench.json"
-    args = argparse.Namespace(
-        channels=3, rate=10_000.0, block=256, estimator="ges-kalman", compression="zstd", rounds=2, repeats=2, json=out
+    for per, steps in ((1, STEPS), (3, FRAME_STEPS)):  # blocks, and frames of 3 (the last frame of 2)
+        out = tmp_path / f"bench-{per}.json"
+        args = argparse.Namespace(
+            channels=5, rate=10_000.0, block=256, estimator="ges-kalman", compression="zstd", rounds=2, repeats=2,
+            frame_channels=per, json=out,
+        )  # fmt: skip
+        assert run(args) == 0
+        result = json.loads(out.read_text())
+        assert result["frame_channels"] == per
+        for name in ("pipeline_on", "pipeline_off", *steps, "rest_on", "rest_off"):
+            assert result["us_per_block"][name] == result["us_per_block"][name]  # a number, not NaN
+            assert name in result["ratio_to_estimator"]
+            assert result["ns_per_sample"][name] == pytest.approx(1e3 * result["us_per_block"][name] / 256)
+        assert result["ratio_to_estimator"]["estimator"] == 1.0
+        assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
+        assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+
+
+def test_the_status_channels_built_unvalidated_are_the_validated_models_byte_for_byte(tmp_path):
+    """``channel_statuses`` skips pydantic's validation of each ChannelStatus: its bytes must be
+    the validated models' for channels of blocks, of a frame (one refused) and restored ones."""
+    from sinewatch.runtime.daemon import channel_statuses
+    from sinewatch.schemas.codec import dumps
+    from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
+    from sinewatch.schemas.messages import ChannelStatus
+
+    p = Pipeline(make_config(tmp_path), [NullSink()])
+    x = np.sin(2 * np.pi * 50 * np.arange(512) / 10_000.0)
+    p.process("sinewatch/in/a", encode_block_binary(Block("a", 0, 0, 10_000.0, x)), "", 0, received_ns=1)
+    y = np.stack([x, -x, x], axis=1)
+    y[5, 2] = np.nan  # channel f/c refused
+    p.process(
+        "sinewatch/in/f", encode_frame_binary(Frame(("f/a", "f/b", "f/c"), 3, 0, 10_000.0, y)), FRAME_BINARY_ENCODING, 1
     )
-    assert run(args) == 0
-    result = json.loads(out.read_text())
-    for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
-        assert result["us_per_block"][name] == result["us_per_block"][name]  # a number, not NaN
-        assert name in result["ratio_to_estimator"]
-    assert result["ratio_to_estimator"]["estimator"] == 1.0
-    assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
-    assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+    restored = Pipeline(make_config(tmp_path), [NullSink()])
+    restored.restore(json.loads(json.dumps(p.snapshot())))
+    for pipe in (p, restored):
+        fast = [dumps(c.model_dump(mode="json")) for c in channel_statuses(pipe)]
+        slow = [dumps(ChannelStatus(**c).model_dump(mode="json")) for c in pipe.channel_status()]
+        assert fast == slow and len(fast) == 3
 
 
 def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
