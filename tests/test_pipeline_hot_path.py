@@ -148,30 +148,6 @@ def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
         assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
 
 
-def test_the_status_channels_built_unvalidated_are_the_validated_models_byte_for_byte(tmp_path):
-    """``channel_statuses`` skips pydantic's validation of each ChannelStatus: its bytes must be
-    the validated models' for channels of blocks, of a frame (one refused) and restored ones."""
-    from sinewatch.runtime.daemon import channel_statuses
-    from sinewatch.schemas.codec import dumps
-    from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
-    from sinewatch.schemas.messages import ChannelStatus
-
-    p = Pipeline(make_config(tmp_path), [NullSink()])
-    x = np.sin(2 * np.pi * 50 * np.arange(512) / 10_000.0)
-    p.process("sinewatch/in/a", encode_block_binary(Block("a", 0, 0, 10_000.0, x)), "", 0, received_ns=1)
-    y = np.stack([x, -x, x], axis=1)
-    y[5, 2] = np.nan  # channel f/c refused
-    p.process(
-        "sinewatch/in/f", encode_frame_binary(Frame(("f/a", "f/b", "f/c"), 3, 0, 10_000.0, y)), FRAME_BINARY_ENCODING, 1
-    )
-    restored = Pipeline(make_config(tmp_path), [NullSink()])
-    restored.restore(json.loads(json.dumps(p.snapshot())))
-    for pipe in (p, restored):
-        fast = [dumps(c.model_dump(mode="json")) for c in channel_statuses(pipe)]
-        slow = [dumps(ChannelStatus(**c).model_dump(mode="json")) for c in pipe.channel_status()]
-        assert fast == slow and len(fast) == 3
-
-
 def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
     from sinewatch.estimators.base import Track, TrackStd
 
