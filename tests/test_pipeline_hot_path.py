@@ -203,12 +203,17 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
             assert ch.template is not None  # the template made these bytes
             assert fast == estimate_payload(pipe, *args, fast=False), (version, k, std, rocof)
             cases += 1
-        for bad in ("frequency_hz", "offset", "amplitude"):
-            tr = _track(rng, 2, std=True, rocof=False, bad=bad)
+        for k, bad in itertools.product((1, 2), ("frequency_hz", "offset", "amplitude")):
+            tr = _track(rng, k, std=True, rocof=k == 1, bad=bad)
             ch.template = None
             args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
             assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
             assert ch.template is None  # the general way wrote them
+        for name in ("amplitude", "offset"):  # one float32 array: not the one-component reading, same bytes
+            tr = _track(rng, 1, std=True, rocof=True)
+            setattr(tr, name, getattr(tr, name).astype(np.float32))
+            args = (ch, blk, tr, t_ns, t_ns, 0, False, False, False)
+            assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
 
 
