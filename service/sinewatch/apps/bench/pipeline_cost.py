@@ -112,6 +112,19 @@ class Feed:
 Batch = list[list[tuple[str, bytes, Block]]]
 
 
+def _through(pipe: Pipeline, encoding: str) -> Callable[[Any], None]:
+    """The step that takes a batch (rows of (key, payload, decoded input)) through ``pipe``,
+    each input logged at its first sample's time."""
+
+    def run(batch: Any) -> None:
+        process = pipe.process
+        for row in batch:
+            for key, payload, item in row:
+                process(key, payload, encoding, item.t0_ns)
+
+    return run
+
+
 class FrameFeed(Feed):
     """The same channels' signals as SampleFrames of ``per`` channels (float32, the layout
     of ``sinewatch bench e2e --frame-channels``): frame k on ``sinewatch/in/f<k>``, its
@@ -162,15 +175,6 @@ def _frame_steps(
     estimates: dict[str, bytes] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
 
-    def pipeline(pipe: Pipeline) -> Callable[[FrameBatch], None]:
-        def run(batch: FrameBatch) -> None:
-            process = pipe.process
-            for row in batch:
-                for key, payload, frame in row:
-                    process(key, payload, FRAME_BINARY_ENCODING, frame.t0_ns)
-
-        return run
-
     def estimator(batch: FrameBatch) -> None:
         for row in batch:
             for (_key, _payload, frame), ests in zip(row, banks, strict=True):
@@ -220,8 +224,8 @@ def _frame_steps(
                     on_estimate(f"sinewatch/est/{name}", estimates[name], frame.t0_ns)
 
     steps = {
-        "pipeline_on": pipeline(on),
-        "pipeline_off": pipeline(off),
+        "pipeline_on": _through(on, FRAME_BINARY_ENCODING),
+        "pipeline_off": _through(off, FRAME_BINARY_ENCODING),
         "estimator": estimator,
         "decode": decode,
         "presence": presence,
@@ -256,15 +260,6 @@ def _steps(
     tracks: dict[str, Any] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
     estimates: dict[str, bytes] = {}
-
-    def pipeline(pipe: Pipeline) -> Callable[[Batch], None]:
-        def run(batch: Batch) -> None:
-            process = pipe.process
-            for row in batch:
-                for key, payload, blk in row:
-                    process(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
-
-        return run
 
     def estimator(batch: Batch) -> None:
         for row in batch:
@@ -302,8 +297,8 @@ def _steps(
                 on_estimate(key.replace("/in/", "/est/"), estimates[blk.channel], blk.t0_ns)
 
     steps = {
-        "pipeline_on": pipeline(on),
-        "pipeline_off": pipeline(off),
+        "pipeline_on": _through(on, BLOCK_BINARY_ENCODING),
+        "pipeline_off": _through(off, BLOCK_BINARY_ENCODING),
         "estimator": estimator,
         "decode": decode,
         "presence": presence,
