@@ -98,7 +98,7 @@ from sinewatch.estimators._ges_kalman_kernels import (
     _parameter_std,
     ges_kalman_kernel,
 )
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -260,8 +260,13 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         track.std = TrackStd(frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3])
         return track
 
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`ges_kalman_bank_kernel`'s outputs)."""
+        out, sse, std = outputs
+        return column_tracks(out, sse, block.shape[0], std=std)
 
-register_bank(GesKalman, ges_kalman_bank_kernel, n_outputs=3)
+
+register_bank(GesKalman, ges_kalman_bank_kernel, n_outputs=3, tracks=GesKalman._bank_tracks)
 
 # the names other modules and tests import from here (the kernels live in _ges_kalman_kernels)
 __all__ = [
