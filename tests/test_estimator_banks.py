@@ -255,6 +255,25 @@ def _pmu_signal(seed: int, n: int, fs: float) -> np.ndarray:
     return x + 0.01 * rng.standard_normal(n)
 
 
+def _pmu_step_alike(
+    singles: list[Estimator], banked: list[Estimator], blk: np.ndarray, last_only: bool, t0: int | None, where: str
+) -> list[Track]:
+    """Block ``blk`` (one column a channel, first sample at ``t0``) through each single pmu and
+    through the bank, compared bit for bit: tracks, reports, states and (T); the single path's
+    tracks."""
+    expected = [e.update(np.ascontiguousarray(blk[:, c]), last_only=last_only, t0_ns=t0) for c, e in enumerate(singles)]
+    got = update_bank(banked, blk, last_only=last_only, t0_ns=t0)
+    for c, (a, b) in enumerate(zip(expected, got, strict=True)):
+        at = f"{where} channel {c}"
+        assert_tracks_bitwise(a, b, at)
+        assert a.reports is not None and b.reports is not None, at
+        assert _same_bits(a.reports.index, b.reports.index), at
+        assert_tracks_bitwise(a.reports.track, b.reports.track, at + " reports")
+        assert_states_bitwise(singles[c], banked[c], at)
+        assert _same_bits(singles[c]._transition, banked[c]._transition), at + " (T)"
+    return expected
+
+
 @pytest.mark.parametrize(
     ("params", "fs"),
     [
@@ -289,22 +308,34 @@ def test_pmu_bank_matches_single_channel_on_its_grid(params: dict, fs: float) ->
         (4500, True, None),
     ):
         t0 = None if gap_ns is None else t0 + gap_ns
-        blk = x[pos : pos + step]
-        expected = [
-            e.update(np.ascontiguousarray(blk[:, c]), last_only=last_only, t0_ns=t0) for c, e in enumerate(singles)
-        ]
-        got = update_bank(banked, blk, last_only=last_only, t0_ns=t0)
-        for c in range(size):
-            where = f"pmu {params} channel {c}, samples {pos}:{pos + step}"
-            assert_tracks_bitwise(expected[c], got[c], where)
-            assert expected[c].reports is not None and got[c].reports is not None
-            assert _same_bits(expected[c].reports.index, got[c].reports.index), where
-            assert_tracks_bitwise(expected[c].reports.track, got[c].reports.track, where + " reports")
-            assert_states_bitwise(singles[c], banked[c], where)
-            assert _same_bits(singles[c]._transition, banked[c]._transition), where + " (T)"
-            reports += expected[c].reports.n_reports
+        expected = _pmu_step_alike(singles, banked, x[pos : pos + step], last_only, t0, f"pmu {params}, {pos}:")
+        reports += sum(e.reports.n_reports for e in expected if e.reports is not None)
         pos += step
         if t0 is not None:
             t0 += round(step * 1e9 / fs)
     assert reports > 20 * size  # the reports the test is for were made
     assert any(bool(np.any(e.reports.track.converged)) for e in expected)
+
+
+def test_pmu_bank_of_a_frame_in_lock_step_builds_its_tracks_at_once(monkeypatch) -> None:
+    """A frame's channels, anchored together, share one group of lanes and the same number of
+    reports: their Tracks are built by ``grid_tracks`` for the whole frame (checked: it ran in
+    every call), each bit for bit the single path's, reports included (an oscillator off f0 at
+    9999.33 Hz: the reports' angles are also referred to the nominal cosine per channel)."""
+    from sinewatch.estimators import _pmu_bank
+
+    calls = []
+    batch = _pmu_bank.grid_tracks
+    monkeypatch.setattr(_pmu_bank, "grid_tracks", lambda *a: calls.append(1) or batch(*a))
+    cls = get("pmu")
+    params, fs = {"nominal_frequency_hz": 50, "reporting_rate_hz": 50}, 9_999.33
+    size = 8
+    x = np.stack([_pmu_signal(700 + c, 5000, fs) for c in range(size)], axis=1)
+    singles, banked = [cls(fs, params) for _ in range(size)], [cls(fs, params) for _ in range(size)]
+    pos, t0, reports = 0, T0_NS + 777, 0
+    for step, last_only in ((1500, True), (1200, False), (2300, True)):
+        expected = _pmu_step_alike(singles, banked, x[pos : pos + step], last_only, t0, f"pmu at {fs} Hz, {pos}:")
+        reports += sum(e.reports.n_reports for e in expected if e.reports is not None)
+        pos += step
+        t0 += round(step * 1e9 / fs)
+    assert len(calls) == 3 and reports > 8 * size

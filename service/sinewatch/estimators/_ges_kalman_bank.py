@@ -16,12 +16,14 @@ from sinewatch.estimators._ges_kalman_kernels import (
     TINY,
     UNC_BASE,
     UNC_SIZE,
+    _bias_column,
+    _bias_head,
+    _bias_pair,
     _corrected,
     _filter_step,
     _noise_means,
     _noise_means_of_log,
     _parameter_std,
-    _propagate_bias,
     _propagate_error,
     _write_estimates,
 )
@@ -29,21 +31,26 @@ from sinewatch.estimators.base import kernel
 
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
 # rows of the bank's lane-major work array: one row of LANES doubles per per-sample quantity
-# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out; M and b (B2-B3)
+# x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out; M and b (B2-B3);
+# the bias recursion's inputs from the filter's step (_RB: s, k0..k3, h1, 1/S, the prior p02, p12,
+# p22, p23) and its Dv entries (_RV: v01, v11, v12, v13)
 _RX, _RP, _RT, _RU, _RSSE, _RS, _RUO, _RG = 0, 4, 14, 30, 46, 47, 49, 50  # _RS: two rows, see the bank kernel
-_ROWS = 50 + BIAS_SIZE
+_RB = _RG + BIAS_SIZE
+_RV = _RB + 11
+_ROWS = _RV + 4
 _P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
 _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
 
 
 @kernel(inline="always")
 def _bank_sample(
-    S: np.ndarray, lane: int, rs: int, with_t: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
+    S: np.ndarray, lane: int, rs: int, with_t: bool, q0: float, q1: float, q2: float, q3: float, R: float
 ) -> None:
     """One sample (row ``rs``) of lane ``lane`` of the work array ``S`` (rows ``_R*``, each
     ``LANES`` wide): the filter (:func:`_filter_step`), T (U3) and U (U4) advanced exactly as
     :func:`ges_kalman_kernel` does (T's branches as selects: the propagation is computed and
-    kept or not), the sse summed, u of (U5) into row ``_RUO``. Straight-line arithmetic that
+    kept or not), the sse summed, u of (U5) into row ``_RUO`` and the bias recursion's inputs into
+    rows ``_RB`` (:func:`_bank_bias` runs it after the lanes' step). Straight-line arithmetic that
     reads and writes one array at constant offsets only, so the compiler can prove the lanes
     independent and run them as one vector (a second array would need a run-time overlap
     check, which LLVM does not add to a loop of 8 iterations)."""
@@ -54,7 +61,7 @@ def _bank_sample(
     p00, p01, p02, p03, p11 = S[b], S[b + L], S[b + 2 * L], S[b + 3 * L], S[b + 4 * L]
     p12, p13, p22, p23, p33 = S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L]
     x3_prior = x3
-    r00, r01, r02, r03, r11, r12, r13, r22, r23, r33 = p00, p01, p02, p03, p11, p12, p13, p22, p23, p33
+    r02, r12, r22, r23 = p02, p12, p22, p23  # P(k|k) before the step, for (B1)-(B3)
     x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, e, k0, k1, k2, k3, inv_S = _filter_step(
         s, x1, x2, x3, x4, p00, p01, p02, p03, p11, p12, p13, p22, p23, p33, q0, q1, q2, q3, R
     )
@@ -63,10 +70,9 @@ def _bank_sample(
     S[b + 5 * L], S[b + 6 * L], S[b + 7 * L], S[b + 8 * L], S[b + 9 * L] = p12, p13, p22, p23, p33
     S[_RSSE * L + lane] += e * e
     h1 = k1 + x3_prior  # h = K + g_k (U2)
-    if corr:  # (B2)-(B3), as ges_kalman_kernel
-        _propagate_bias(
-            S, _RG * L + lane, L, s, k0, k1, k2, k3, h1, inv_S, r00, r01, r02, r03, r11, r12, r13, r22, r23, r33
-        )
+    i = _RB * L + lane  # (B2)-(B3)'s inputs: P(k|k) before the step, the gain, h1 and 1/S
+    S[i], S[i + L], S[i + 2 * L], S[i + 3 * L], S[i + 4 * L], S[i + 5 * L] = s, k0, k1, k2, k3, h1
+    S[i + 6 * L], S[i + 7 * L], S[i + 8 * L], S[i + 9 * L], S[i + 10 * L] = inv_S, r02, r12, r22, r23
     if with_t:  # else no lane's T is propagated: the caller applies (U3)'s zeroing
         t = _RT * L + lane
         t00, t01, t02, t03 = S[t], S[t + L], S[t + 2 * L], S[t + 3 * L]
@@ -115,6 +121,37 @@ def _bank_sample(
     S[v + 8 * L], S[v + 9 * L], S[v + 10 * L], S[v + 11 * L] = u20, u21, u22, u23
     S[v + 12 * L], S[v + 13 * L], S[v + 14 * L], S[v + 15 * L] = u30, u31, u32, u33
     S[_RUO * L + lane] = u
+
+
+@kernel(refcount=False)
+def _bank_bias(S: np.ndarray) -> None:
+    """One sample of the bias recursion (B1)-(B3) for every lane of ``S``: the three steps of
+    :func:`~sinewatch.estimators._ges_kalman_kernels._propagate_bias` (the same helpers, each
+    lane's operations in the single kernel's order), each a loop over the lanes at constant
+    offsets in one array, which the compiler vectorises. Inside the lanes' step (one lane's
+    whole recursion, 10 + 4 inner loops and a call) it kept the step scalar: the bank ran at
+    half the speed of one channel."""
+    L = LANES
+    for lane in range(L):
+        i = _RB * L + lane
+        s, k0, k1, k2, k3 = S[i], S[i + L], S[i + 2 * L], S[i + 3 * L], S[i + 4 * L]
+        inv_s, p02, p12, p22, p23 = S[i + 6 * L], S[i + 7 * L], S[i + 8 * L], S[i + 9 * L], S[i + 10 * L]
+        v01, v11, v12, v13 = _bias_head(S, _RG * L + lane, L, s, k0, k1, k2, k3, inv_s, p02, p12, p22, p23)
+        v = _RV * L + lane
+        S[v], S[v + L], S[v + 2 * L], S[v + 3 * L] = v01, v11, v12, v13
+        # the pairs in the same lane loop: in a loop of their own over the lanes, the body is
+        # small enough that LLVM unrolls the 8 lanes as scalars instead of vectorising them
+        for p in range(10):
+            _bias_pair(S, (_RG + 4 * p) * L + lane, L, s, k0, k1, k2, k3)
+    for c in range(4):
+        hr = _RB + (1 if c == 0 else (5 if c == 1 else c + 1))  # h = (k0, h1, k2, k3)
+        for lane in range(L):
+            i = _RB * L + lane
+            s, k0, k1, k2, k3 = S[i], S[i + L], S[i + 2 * L], S[i + 3 * L], S[i + 4 * L]
+            v = _RV * L + lane
+            _bias_column(
+                S, _RG * L + lane, L, c, s, k0, k1, k2, k3, S[v], S[v + L], S[v + 2 * L], S[v + 3 * L], S[hr * L + lane]
+            )
 
 
 @kernel(inline="always")
@@ -185,24 +222,22 @@ def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.nd
 
 
 @kernel(inline="always")
-def _bank_lanes(
-    S: np.ndarray, k: int, t_live: bool, corr: bool, q0: float, q1: float, q2: float, q3: float, R: float
-) -> None:
+def _bank_lanes(S: np.ndarray, k: int, t_live: bool, q0: float, q1: float, q2: float, q3: float, R: float) -> None:
     """Sample ``k`` of every lane (:func:`_bank_sample`); the sample's row and the T and bias
     switches as constants in each loop, so the compiler sees the lanes independent."""
     L = LANES
     if k % 2 == 0 and t_live:
         for lane in range(L):  # literal trip count: one vector
-            _bank_sample(S, lane, _RS, True, corr, q0, q1, q2, q3, R)
+            _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
     elif t_live:
         for lane in range(L):
-            _bank_sample(S, lane, _RS + 1, True, corr, q0, q1, q2, q3, R)
+            _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
     elif k % 2 == 0:
         for lane in range(L):
-            _bank_sample(S, lane, _RS, False, corr, q0, q1, q2, q3, R)
+            _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
     else:
         for lane in range(L):
-            _bank_sample(S, lane, _RS + 1, False, corr, q0, q1, q2, q3, R)
+            _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
 
 
 @kernel
@@ -270,7 +305,9 @@ def ges_kalman_bank_kernel(
             if not t_live:  # none: the single kernel's zeroing of T, where it applies
                 _bank_t_zero(S)
             # rows and the T switch as constants, so the compiler sees the lanes independent
-            _bank_lanes(S, k, t_live, corr, q0, q1, q2, q3, R)  # one copy: compile time
+            _bank_lanes(S, k, t_live, q0, q1, q2, q3, R)  # one copy: compile time
+            if corr:  # (B2)-(B3), as ges_kalman_kernel
+                _bank_bias(S)
             for lane in range(L):
                 us[k * L + lane] = S[_RUO * L + lane]
             if not last_only:

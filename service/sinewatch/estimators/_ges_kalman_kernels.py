@@ -319,18 +319,13 @@ def _sandwich(
     )
 
 
-# compiled once and called (not inlined by numba at the IR level: the bank has eight call sites,
-# and copying its IR into each made the bank take minutes to compile); LLVM may still inline it
-@kernel(refcount=False)
-def _propagate_bias(
-    G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, h1: float, inv_s: float,
-    p00: float, p01: float, p02: float, p03: float, p11: float, p12: float, p13: float, p22: float, p23: float, p33: float,
-) -> None:  # fmt: skip
-    """One sample of the bias recursion (B1)-(B3) on ``G[o + i st]``, i = 0..43: M (B2), 40 entries
-    ``M[a, b, c]`` at ``4 pair(a, b) + c`` (pairs a <= b in P's order 00 01 02 03 11 12 13 22 23 33),
-    then b (B3), 4 entries. ``p..`` is P(k|k) before the step, ``k..`` the gain, ``h1`` = k1 +
-    x3_hat (U2), ``inv_s`` = 1 / (C P(k+1|k) C^T + R). Constant offsets times a stride: the
-    single kernel runs it on its own array (stride 1), the bank lane-major."""
+@kernel(inline="always")
+def _bias_head(
+    G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, inv_s: float,
+    p02: float, p12: float, p22: float, p23: float,
+) -> tuple[float, float, float, float]:  # fmt: skip
+    """The first part of :func:`_propagate_bias`: b (B3) from M as it was, and the entries of Dv
+    (B1) that are not 0, returned as (v01, v11, v12, v13)."""
     # m_a = sum over b, c in {0, 1} of M[a, b, c]: dK's factor A dP A^T C^T and C A e(k) (B3)
     m0 = G[o] + G[o + 1 * st] + G[o + 4 * st] + G[o + 5 * st]
     m1 = G[o + 4 * st] + G[o + 5 * st] + G[o + 16 * st] + G[o + 17 * st]
@@ -354,22 +349,54 @@ def _propagate_bias(
     v11 = d11 - k1 * d01 - d01 * k1
     v12 = p22 - d01 * k2
     v13 = p23 - d01 * k3
+    return v01, v11, v12, v13
+
+
+@kernel(inline="always")
+def _bias_pair(G: np.ndarray, i: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float) -> None:
+    """M's index c of one pair (a, b) at ``G[i + c st]``: A, then I - K C (B2)."""
+    z0, z1, z2, z3 = G[i], G[i + st], G[i + 2 * st], G[i + 3 * st]
+    w0, w1 = z0 + z1, z1 + s * z2 + z3
+    G[i], G[i + st], G[i + 2 * st], G[i + 3 * st] = w0 - k0 * w0, w1 - k1 * w0, z2 - k2 * w0, z3 - k3 * w0
+
+
+@kernel(inline="always")
+def _bias_column(
+    G: np.ndarray, o: int, st: int, c: int, s: float, k0: float, k1: float, k2: float, k3: float,
+    v01: float, v11: float, v12: float, v13: float, h: float,
+) -> None:  # fmt: skip
+    """Column ``c`` of M: F . F^T on the pair's two indices, plus Dv h_c (B2)."""
+    i = o + c * st
+    y = _sandwich(
+        G[i], G[i + 4 * st], G[i + 8 * st], G[i + 12 * st], G[i + 16 * st],
+        G[i + 20 * st], G[i + 24 * st], G[i + 28 * st], G[i + 32 * st], G[i + 36 * st],
+        s, k0, k1, k2, k3,
+    )  # fmt: skip
+    _store_column(G, o, st, c, y, v01, v11, v12, v13, h)
+
+
+# compiled once and called (not inlined by numba at the IR level, to keep the kernel's compile
+# time down); LLVM may still inline it. The bank runs the same three steps lane-major, each a
+# loop over the lanes that the compiler vectorises (_ges_kalman_bank._bank_bias).
+@kernel(refcount=False)
+def _propagate_bias(
+    G: np.ndarray, o: int, st: int, s: float, k0: float, k1: float, k2: float, k3: float, h1: float, inv_s: float,
+    p00: float, p01: float, p02: float, p03: float, p11: float, p12: float, p13: float, p22: float, p23: float, p33: float,
+) -> None:  # fmt: skip
+    """One sample of the bias recursion (B1)-(B3) on ``G[o + i st]``, i = 0..43: M (B2), 40 entries
+    ``M[a, b, c]`` at ``4 pair(a, b) + c`` (pairs a <= b in P's order 00 01 02 03 11 12 13 22 23
+    33), then b (B3), 4 entries. ``p..`` is P(k|k) before the step, ``k..`` the gain, ``h1`` = k1 +
+    x3_hat (U2), ``inv_s`` = 1 / (C P(k+1|k) C^T + R). Constant offsets times a stride: the
+    single kernel runs it on its own array (stride 1)."""
+    v01, v11, v12, v13 = _bias_head(G, o, st, s, k0, k1, k2, k3, inv_s, p02, p12, p22, p23)
     # M <- (F x F x F) M + Dv x h, F = (I - K C) A(k) on each index (B2), in place (m and b
     # above have read M): first the index c, pair by pair (A, then I - K C) ...
     for p in range(10):
-        i = o + 4 * p * st
-        z0, z1, z2, z3 = G[i], G[i + st], G[i + 2 * st], G[i + 3 * st]
-        w0, w1 = z0 + z1, z1 + s * z2 + z3
-        G[i], G[i + st], G[i + 2 * st], G[i + 3 * st] = w0 - k0 * w0, w1 - k1 * w0, z2 - k2 * w0, z3 - k3 * w0
+        _bias_pair(G, o + 4 * p * st, st, s, k0, k1, k2, k3)
     # ... then the pair's two indices, column c by column, plus Dv h_c; h = (k0, h1, k2, k3)
     for c in range(4):
-        i = o + c * st
-        y = _sandwich(
-            G[i], G[i + 4 * st], G[i + 8 * st], G[i + 12 * st], G[i + 16 * st],
-            G[i + 20 * st], G[i + 24 * st], G[i + 28 * st], G[i + 32 * st], G[i + 36 * st],
-            s, k0, k1, k2, k3,
-        )  # fmt: skip
-        _store_column(G, o, st, c, y, v01, v11, v12, v13, k0 if c == 0 else (h1 if c == 1 else (k2 if c == 2 else k3)))
+        h = k0 if c == 0 else (h1 if c == 1 else (k2 if c == 2 else k3))
+        _bias_column(G, o, st, c, s, k0, k1, k2, k3, v01, v11, v12, v13, h)
 
 
 @kernel(inline="always")

@@ -375,6 +375,13 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
     new_trans = new.pop()
     refer = first.design.f_osc != first.design.f0
     after = _LastCall(order, new, new_trans)
+    nc = len(ests)
+    k0 = int(n_rep[0])
+    # a frame's channels in lanes 0..C-1 with as many reports each (lock step): their Tracks
+    # with one numpy call a field (grid_track, a channel at a time, makes ~30 views each)
+    same = all(slot[c] == c for c in range(nc)) and bool(np.all(n_rep[:nc] == k0))
+    rate = first.reporting_rate
+    batch = grid_tracks(rate, out[:nc], reps[:nc, :k0], sse[:nc], n_pred[:nc], conv[:nc, :k0]) if same else None
     tracks = []
     for c, e in enumerate(ests):
         i = slot[c]
@@ -382,7 +389,10 @@ def run_pmu_bank(ests: Sequence[Any], x: np.ndarray, last_only: bool, t0_ns: int
         e._transition = after.transitions[i] = new_trans[i]
         e._bank_last = after
         k = int(n_rep[i])
-        track = grid_track(e.reporting_rate, out[i], reps[i, :k], float(sse[i]), int(n_pred[i]), conv[i, :k])
+        if batch is not None:
+            track = batch[c]
+        else:
+            track = grid_track(rate, out[i], reps[i, :k], float(sse[i]), int(n_pred[i]), conv[i, :k])
         if refer and k:
             e._refer_to_nominal(track.reports, int(e._state["anchor_ns"][0]))
         tracks.append(track)
@@ -457,3 +467,33 @@ def grid_track(
             ),
         ),
     )
+
+
+def grid_tracks(
+    reporting_rate: int, out: np.ndarray, reps: np.ndarray, sse: np.ndarray, n_pred: np.ndarray, conv: np.ndarray
+) -> list[Track]:
+    """:func:`grid_track` of C channels with as many reports each: channel c's Track is exactly
+    the one ``grid_track`` makes of row c of ``out`` (C, rows, 6), ``reps`` (C, k, 14), ``sse``,
+    ``n_pred`` (C,) and ``conv`` (C, k), built with one numpy call a field for all channels
+    (element-wise: the residual's division and square root round as ``math``'s do)."""
+    nc = out.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rms = np.where(n_pred > 0, np.sqrt(sse / n_pred), math.nan).tolist()
+    col = {j: list(out[:, :, j : j + 1]) for j in (0, 1, 2, 5)}
+    offset, o_conv = list(out[:, :, 3]), list(out[:, :, 4].astype(np.bool_))
+    index, r_conv = list(reps[:, :, 0].astype(np.int64)), list(conv)
+    rc = {j: list(reps[:, :, j : j + 1]) for j in (1, 2, 5, 6, 8, 10, 11)}
+    rv = {j: list(reps[:, :, j]) for j in (3, 4, 7, 9, 12, 13)}
+    tracks = []
+    for c in range(nc):
+        extras = {
+            "synchrophasor_magnitude": rv[3][c],
+            "synchrophasor_angle_rad": rv[4][c],
+            "std_rocof_hz_per_s": rv[9][c],
+            "std_tve": rv[13][c],
+        }
+        std = TrackStd(rc[8][c], rc[10][c], rc[11][c], rv[12][c])
+        rtrack = Track(rc[1][c], rc[5][c], rc[6][c], rv[7][c], r_conv[c], rms[c], extras, rc[2][c], std)
+        reports = GridReports(index[c], reporting_rate, rtrack)
+        tracks.append(Track(col[0][c], col[1][c], col[2][c], offset[c], o_conv[c], rms[c], {}, col[5][c], None, reports))
+    return tracks

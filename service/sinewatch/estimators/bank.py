@@ -35,19 +35,23 @@ A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
 outputs with the channel as the leading axis, then the new stacked state arrays. The
 estimators' state is gathered into the stacked arrays before the call and scattered back
-after it (a copy per channel and state array, ~1 us: small against a 1024-sample block).
+after it: one copy a state array each way (``np.array`` of the channels' arrays, then each
+channel's row of the new array as a contiguous view), ~2 us a state array at 8 channels. A
+class whose ``_track`` is :func:`~sinewatch.estimators.base.track_from_columns` passes
+``tracks`` built by :func:`column_tracks`: one numpy call a field for the whole frame.
 A class without one runs each channel's own kernel in turn; :data:`NO_BANK` says why.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import Estimator, Track, _all_finite, kernel_samples
+from sinewatch.estimators.base import Estimator, Track, TrackStd, _all_finite, kernel_samples
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -174,8 +178,8 @@ def update_bank(
         n = len(estimators)
         # one C call a state array (np.stack costs ~5x as much: a Python loop over the arrays)
         stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
-    else:
-        stacked = [np.stack([e._state[k] for e in estimators], axis=-1) for k in keys]
+    else:  # (C, *shape) in one C call, then channel last (np.stack: ~3x the Python)
+        stacked = [_channel_last(np.array([e._state[k] for e in estimators])) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
     if bank.tracks is not None:
@@ -187,9 +191,56 @@ def update_bank(
         rows = [list(s) for s in new_state]
         for c, est in enumerate(estimators):
             est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
-    else:
+    else:  # one transposing copy a state array; row c of it is channel c's, contiguous
+        rows = [list(_channel_first(s)) for s in new_state]
         for c, est in enumerate(estimators):
-            est._state = {k: np.ascontiguousarray(s[..., c]) for k, s in zip(keys, new_state, strict=True)}
+            est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
+    return tracks
+
+
+def _channel_last(a: np.ndarray) -> np.ndarray:
+    """``a`` (C, *shape) as a C-contiguous (*shape, C): the lane-major kernels' stacked state."""
+    return np.ascontiguousarray(a.transpose(*range(1, a.ndim), 0))
+
+
+def _channel_first(a: np.ndarray) -> np.ndarray:
+    """``a`` (*shape, C) as a C-contiguous (C, *shape): each channel's state one contiguous row,
+    of the kernels' array kind (a view per channel, no copy each)."""
+    return np.ascontiguousarray(a.transpose(a.ndim - 1, *range(a.ndim - 1)))
+
+
+def column_tracks(
+    out: np.ndarray,
+    sse: np.ndarray,
+    n_samples: int,
+    extras: dict[str, np.ndarray] | None = None,
+    rocof: np.ndarray | None = None,
+    std: np.ndarray | None = None,
+) -> list[Track]:
+    """The Tracks of a bank's channels, each exactly what
+    :func:`~sinewatch.estimators.base.track_from_columns` makes of that channel's outputs, built
+    with one numpy call a field for the whole bank instead of one a field and channel
+    (1.3-1.4x faster at 8 channels, ~10 us a frame, measured). ``out`` (C, rows, 5) and ``sse`` (C,) as a bank
+    kernel returns them; ``extras``: name -> (C, rows) or (C, rows, m); ``rocof``: (C, rows, 1);
+    ``std``: (C, rows, 4), the standard deviations of frequency, amplitude, phase and offset.
+    Element-wise throughout (the residual's ``sse / n`` and square root are correctly rounded
+    in numpy as in ``math``), so each channel's bits do not depend on the channels beside it."""
+    nc = out.shape[0]
+    freq, amp, phase = list(out[:, :, 0:1]), list(out[:, :, 1:2]), list(out[:, :, 2:3])
+    offset, conv = list(out[:, :, 3]), list(out[:, :, 4].astype(np.bool_))
+    rms = np.sqrt(sse / n_samples).tolist() if n_samples else [math.nan] * nc
+    names = list(extras) if extras else []
+    cols = [list(v) for v in extras.values()] if extras else []
+    roc: list[np.ndarray | None] = list(rocof) if rocof is not None else [None] * nc
+    pairs = list(zip(names, cols, strict=True))
+    tracks = [
+        Track(freq[c], amp[c], phase[c], offset[c], conv[c], rms[c], {k: col[c] for k, col in pairs}, roc[c])
+        for c in range(nc)
+    ]
+    if std is not None:
+        sf, sa, sp, so = list(std[:, :, 0:1]), list(std[:, :, 1:2]), list(std[:, :, 2:3]), list(std[:, :, 3])
+        for c, track in enumerate(tracks):
+            track.std = TrackStd(sf[c], sa[c], sp[c], so[c])
     return tracks
 
 

@@ -179,7 +179,7 @@ from sinewatch.estimators._differential_rls_front import (
     lowpass_noise_correlation,
     settling_samples,
 )
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 from sinewatch.schemas.errors import InputError, ParameterError
 
@@ -565,5 +565,16 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
             track.rocof_hz_per_s = rocof[:, None]
         return track
 
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`differential_rls_bank_kernel`'s outputs)."""
+        out, ext, sse = outputs
+        on = self.params.rocof_model
+        extras = {
+            "rocof_hz_per_s": ext[:, :, 0] if on else np.full(ext.shape[:2], np.nan),
+            "frequency_std_hz": ext[:, :, 1],
+            "reference_frequency_hz": ext[:, :, 2],
+        }
+        return column_tracks(out, sse, block.shape[0], extras, rocof=ext[:, :, 0:1] if on else None)
 
-register_bank(DifferentialRls, differential_rls_bank_kernel, n_outputs=3)
+
+register_bank(DifferentialRls, differential_rls_bank_kernel, n_outputs=3, tracks=DifferentialRls._bank_tracks)

@@ -98,7 +98,7 @@ from sinewatch.estimators._ges_kalman_kernels import (
     _parameter_std,
     ges_kalman_kernel,
 )
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -201,14 +201,16 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
-        "the bank advances 8 channels as one vector (lane-major state; the filter, T and U in "
-        "256-bit AVX registers, LLVM's preferred width here) at ~1.7-2x one channel, and still "
-        "takes, per sample of every channel, one log from the C library for the noise means (U5), "
-        "scalar per lane (~6.5 ns a call by throughput; a vectorised log would round differently): "
-        "about a third of the bank's time (perf). The rest is the filter and U (~255 flops a "
-        "sample, two divisions on the chain from one sample to the next, ~45 %) and the means' "
-        "recursion lane by lane (~20 %). Twice the 4096-sample FFT is ~16 ns a sample: it would "
-        "take a log vectorised with the C library's exact rounding"
+        "the bank advances 8 channels as one vector (lane-major state; the filter, T, U and the "
+        "bias recursion (B1)-(B3) in 256-bit AVX registers, LLVM's preferred width here) at "
+        "~1.7-2.5x one channel, and still takes, per sample of every channel, one log from the C "
+        "library for the noise means (U5), scalar per lane (~6.5 ns a call by throughput; a "
+        "vectorised log would round differently). The bias correction, on by default, is ~550 "
+        "flops a sample and channel, more than the filter, T and U together: the bank 55-64 ns a "
+        "sample with it against 32-52 without (8 channels of 1024 samples, CPU time, load 7-12). "
+        "Twice the FFT is ~15 ns a sample on an idle core: it would take the arithmetic at 8 "
+        "doubles a vector (AVX-512, which LLVM does not choose for these loops) and a log "
+        "vectorised with the C library's exact rounding"
     )
 
     def _setup(self) -> None:
@@ -260,8 +262,13 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         track.std = TrackStd(frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3])
         return track
 
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`ges_kalman_bank_kernel`'s outputs)."""
+        out, sse, std = outputs
+        return column_tracks(out, sse, block.shape[0], std=std)
 
-register_bank(GesKalman, ges_kalman_bank_kernel, n_outputs=3)
+
+register_bank(GesKalman, ges_kalman_bank_kernel, n_outputs=3, tracks=GesKalman._bank_tracks)
 
 # the names other modules and tests import from here (the kernels live in _ges_kalman_kernels)
 __all__ = [

@@ -126,7 +126,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track, track_from_columns
 from sinewatch.estimators.kkl_kernels import kkl_bank_kernel, kkl_kernel
 from sinewatch.schemas.errors import ParameterError
@@ -422,6 +422,13 @@ def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
     )
 
 
+def observer_bank_tracks(_first: Any, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+    """:func:`observer_track` of every channel of a bank (outputs channel first, ``block`` (N, C))."""
+    out, ext, sse = outputs
+    extras = {EXTRA_NAMES[0]: ext[:, :, 0], EXTRA_NAMES[1]: ext[:, :, 1], EXTRA_NAMES[2]: ext[:, :, 2]}
+    return column_tracks(out, sse, block.shape[0], extras)
+
+
 # ---- estimator ----------------------------------------------------------------------------
 
 
@@ -512,4 +519,4 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
         return {"xi_state": np.zeros(self.lam_n.size + 10)}
 
 
-register_bank(Kkl, kkl_bank_kernel, n_outputs=3)
+register_bank(Kkl, kkl_bank_kernel, n_outputs=3, tracks=observer_bank_tracks)

@@ -70,6 +70,7 @@ from sinewatch.estimators.kkl import (
     lambda_factors_field,
     max_fit_residual_field,
     max_prediction_error_field,
+    observer_bank_tracks,
     silence_ratio_field,
 )
 from sinewatch.estimators.kkl_biased_kernels import DC_FLOOR, kkl_biased_bank_kernel, kkl_biased_kernel
@@ -171,4 +172,4 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
         return {"xi_state": np.zeros(self.lam_n.size + 12)}
 
 
-register_bank(KklBiased, kkl_biased_bank_kernel, n_outputs=3)
+register_bank(KklBiased, kkl_biased_bank_kernel, n_outputs=3, tracks=observer_bank_tracks)

@@ -395,13 +395,12 @@ class SignalPresence:
         more than 99.98 % of the window is the interruption), and the next reading is up to
         H later: 3 H. The quadrature test (F), when on and armed: all of its 2 m values in
         the interruption, ``Q + m - 1``. The pipeline holds estimates back by this much."""
-        s = self.sums
-        if (
-            self.fast
-            and self.counters[_ARMED]
-            and _fast_usable(s[_MU], s[_CQ], s[_R])
-            and _fast_usable(s[_MU1], s[_CQ1], s[_R])
-        ):
+        # the hold reads this for every estimate: the test's own Python (``py_func``) on Python
+        # floats, the same doubles and comparisons as the compiled one, without two numba
+        # dispatches: 0.7 us instead of 1.6-2.5 (timeit, under load)
+        usable = _fast_usable.py_func  # type: ignore[attr-defined]  # (numba's, not in its stubs)
+        s = self.sums.tolist() if self.fast and self.counters[_ARMED] else None
+        if s is not None and usable(s[_MU], s[_CQ], s[_R]) and usable(s[_MU1], s[_CQ1], s[_R]):
             return self.quarter_cycle_samples + self.mean_samples - 1
         # the level test, read in a window that is not a whole number of the signal's cycles
         # (a 40 Hz detector on 50 Hz, a 50 Hz one on 60 Hz), reads a fall to 0.099 up to about

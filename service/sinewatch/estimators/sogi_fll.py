@@ -109,7 +109,7 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import NO_BANK, register_bank
+from sinewatch.estimators.bank import NO_BANK, column_tracks, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -394,6 +394,12 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
         # rocof first class too (Estimate v2), the extra kept
         return track_from_columns(out, sse, block.shape[0], extras, rocof_hz_per_s=ext[:, 1:2])
 
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`sogi_fll_bank_kernel`'s outputs)."""
+        out, ext, sse = outputs
+        extras = {"relative_error_rms": ext[:, :, 0], "rocof_hz_per_s": ext[:, :, 1]}
+        return column_tracks(out, sse, block.shape[0], extras, rocof=ext[:, :, 1:2])
+
 
 # ---- bank: the channels of a frame together (sinewatch.estimators.bank) -------------------
 @kernel
@@ -436,6 +442,6 @@ def sogi_fll_bank_kernel(
 # With Intel's SVML installed, numba would vectorise the bank's tan loop with SVML's tan, which
 # rounds differently from the C library's that the single kernel calls: no bank then.
 if not getattr(numba.config, "USING_SVML", False):  # (absent from numba's type information)
-    register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3)
+    register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3, tracks=SogiFll._bank_tracks)
 else:  # pragma: no cover (numba without SVML, as tested)
     NO_BANK["sogi-fll"] = "no compiled bank: numba uses SVML, whose vectorised tan rounds differently"
