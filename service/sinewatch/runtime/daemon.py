@@ -52,7 +52,7 @@ from sinewatch.outputs.c37118_server import C37118Server
 from sinewatch.outputs.publisher import ZenohPublisherSink
 from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.runtime.cluster import ClusterMember
-from sinewatch.runtime.intake import Intake, IntakeCounters, Item
+from sinewatch.runtime.intake import Intake, IntakeCounters, Item, KeyTurns
 from sinewatch.runtime.sdnotify import Notifier
 from sinewatch.runtime.signals import shutdown_signals
 from sinewatch.schemas.codec import encode_status
@@ -174,23 +174,33 @@ class Daemon:
         return self._last_log_time
 
     async def _consume(self) -> None:
+        waiting = KeyTurns()  # a burst (a router's return, a catch-up) is processed the keys in turn
+        ending = False
         while True:
-            batch = await self._queue.get()
-            if batch is None:
+            while not ending and (not waiting or not self._queue.empty()):
+                batch = await self._queue.get()
+                if batch is None:
+                    ending = True
+                else:
+                    waiting.add(batch)
+            if not waiting:
                 return
-            try:
-                await self._process_gated(batch)
-            except Exception:  # the pipeline isolates faults; this is the last line of defence
-                log.exception("batch of %d inputs not fully processed", len(batch))
-            finally:
-                self._queued -= len(batch)
-                if self._intake is not None:
-                    intake = self._intake
-                    intake.release(sum(intake.weight(item[1]) for item in batch))
-            # Queue.get() does not yield while batches wait: without this, a backlog would keep
-            # the heartbeat, status and flush timers from running until it is gone (a watchdog
-            # or a supervisor would then take the busy daemon for a stuck one).
-            await asyncio.sleep(0)
+            await self._consume_batch(waiting.take(self.config.limits.intake_batch))
+
+    async def _consume_batch(self, batch: list[Item]) -> None:
+        try:
+            await self._process_gated(batch)
+        except Exception:  # the pipeline isolates faults; this is the last line of defence
+            log.exception("batch of %d inputs not fully processed", len(batch))
+        finally:
+            self._queued -= len(batch)
+            if self._intake is not None:
+                intake = self._intake
+                intake.release(sum(intake.weight(item[1]) for item in batch))
+        # Queue.get() does not yield while batches wait: without this, a backlog would keep
+        # the heartbeat, status and flush timers from running until it is gone (a watchdog
+        # or a supervisor would then take the busy daemon for a stuck one).
+        await asyncio.sleep(0)
 
     async def _process_gated(self, batch: list[Item]) -> None:
         """Process the batch, block by block, while this daemon may publish (an elected
