@@ -279,7 +279,14 @@ connect = ["{router}"]
 
 
 def daemon_config(
-    tmp_path: Path, daemon_id: str, shard: str, role: str, router_port: int, etcd: str, recovery: bool = True
+    tmp_path: Path,
+    daemon_id: str,
+    shard: str,
+    role: str,
+    router_port: int,
+    etcd: str,
+    recovery: bool = True,
+    ttl_s: int = 3,
 ) -> Path:
     cfg = tmp_path / f"{daemon_id}.toml"
     cfg.write_text(
@@ -290,7 +297,7 @@ shard = "{shard}"
 role = "{role}"
 snapshot_interval_s = 0.5
 etcd = "{etcd}"
-lease_ttl_s = 3
+lease_ttl_s = {ttl_s}
 [recording]
 directory = "{tmp_path / daemon_id}"
 [workers]
@@ -510,7 +517,7 @@ def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[
     for d in daemon_ids:
         msgs = out[d] = []
         for path in sorted((tmp_path / d).glob("*.mcap")):
-            for kind, item in read_recording(path):
+            for kind, item in read_recording(path, roles=frozenset({"estimate"})):
                 if kind == "message" and item.role == "estimate":
                     msgs.append({**json.loads(item.payload), "_published_ns": item.log_time_ns})
     return out
@@ -605,7 +612,7 @@ def recorded_inputs(tmp_path: Path, daemon_id: str) -> list[tuple[str, int, int]
 
     out = []
     for path in sorted((tmp_path / daemon_id).glob("*.mcap")):
-        for kind, item in read_recording(path):
+        for kind, item in read_recording(path, roles=frozenset({"input"})):
             if kind == "message" and item.role == "input" and len(item.payload) >= 16:
                 out.append(
                     (item.topic.rsplit("/", 1)[-1], int.from_bytes(item.payload[8:16], "little"), item.log_time_ns)
