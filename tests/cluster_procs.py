@@ -725,6 +725,25 @@ def admin(session: zenoh.Session) -> list[dict[str, Any]]:
     ]
 
 
+def wait_warm(session: zenoh.Session, daemon_id: str, shard_id: str, timeout: float = WAIT) -> None:
+    """Until ``daemon_id``, a standby of ``shard_id``, holds a snapshot of its shard (its admin
+    reply lists the snapshot's channels), asked at each snapshot its shard's owner puts: a
+    standby that has none yet (just restarted) asks the caches for everything they hold at a
+    takeover (13,312 blocks, 30 s to its first estimate beside the chaos test's burners)."""
+    snapshot = threading.Event()
+    sub = session.declare_subscriber(f"sinewatch/admin/shard/{shard_id}/snapshot", lambda _: snapshot.set())
+    deadline = time.monotonic() + timeout
+    try:
+        while snapshot.wait(max(0.0, deadline - time.monotonic())):
+            snapshot.clear()
+            replies = session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0)
+            if any(json.loads(r.ok.payload.to_bytes())["channels"] for r in replies if r.ok is not None):
+                return
+        raise AssertionError(f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s")
+    finally:
+        sub.undeclare()
+
+
 def check_channel(msgs: list[dict[str, Any]], sent: int, lost_for_good: int = 0) -> tuple[int, int]:
     """(gaps flagged, blocks lost) of one channel, checked against each other: each (seq)
     at most once, in order, every seq up to ``sent`` either estimated or counted in the

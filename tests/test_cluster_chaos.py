@@ -47,6 +47,7 @@ from cluster_procs import (
     start_daemon,
     stop_all,
     takeover_timeline,
+    wait_warm,
 )
 
 from sinewatch.clients import connect
@@ -54,6 +55,7 @@ from sinewatch.runtime.cluster import shard_of
 
 SHARDS = {"sinewatch_in_1of2": "1/2", "sinewatch_in_2of2": "2/2"}  # shard_id -> shard
 DAEMONS = {"a1": ("1/2", "active"), "b1": ("1/2", "standby"), "a2": ("2/2", "active"), "b2": ("2/2", "standby")}
+SHARD_IDS = {d: f"sinewatch_in_{shard.replace('/', 'of')}" for d, (shard, _) in DAEMONS.items()}
 KINDS = ("kill", "pause", "cut", "router", "etcd")
 SEED = 20261126
 TAKEOVER_LIMIT_S = 2.0
@@ -89,13 +91,14 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
             gateway.start()
             estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated")
             stack.enter_context(cpu_burner())
-            restarted = False  # a killed owner was restarted and may still be starting
+            restarted: str | None = None  # a killed owner, restarted: it may still be starting
             for n, kind in enumerate(faults):
-                if restarted and kind != "etcd":  # its start (~10 s under the burners) overlaps an etcd restart only:
-                    # a daemon still starting when the router goes away cannot open its Zenoh session and exits (seen
-                    # at load 15), and a shard faulted meanwhile would have no warm standby
+                if restarted is not None and kind != "etcd":  # its start (~10-20 s under the burners) overlaps an
+                    # etcd restart only: a daemon still starting when the router goes away cannot open its Zenoh
+                    # session and exits (seen at load 15), and a shard faulted meanwhile would have no warm standby
                     tokens.wait_daemons(list(DAEMONS), timeout=240)
-                    restarted = False
+                    wait_warm(session, restarted, SHARD_IDS[restarted])
+                    restarted = None
                 shard_id = rng.choice(sorted(SHARDS))
                 term = estimates.newest_term(shard_id) or 0
                 owner, _ = election_key(etcd.endpoint, shard_id)  # etcd's word: an admin query can go unanswered
@@ -107,7 +110,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                     # restarted at once (its start, ~25 s at load 10, overlaps the takeover): it campaigns on a new
                     # lease, and stands by unless the old one has expired and it is elected before the standby
                     procs[owner] = start_daemon(tmp_path, owner, configs[owner])
-                    restarted = True
+                    restarted = owner
                     new = estimates.wait_for_new_term(shard_id, term, f"fault {n}: no successor after a kill")
                 elif kind == "pause":
                     procs[owner].send_signal(signal.SIGSTOP)
