@@ -142,8 +142,8 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                 )
                 rows.append(row)
                 print(f"fault {row}", flush=True)
-                t_settle = time.monotonic()  # half a second of normal service before the next fault
-                estimates.wait(lambda e, t=t_settle: all(len(after(e[c], t)) >= 5 for c in CHANNELS), "settled")
+                t_settle = time.monotonic()  # a second of normal service before the next fault
+                estimates.wait(lambda e, t=t_settle: all(len(after(e[c], t)) >= 10 for c in CHANNELS), "settled")
             gateway.finish(estimates)
             tokens.wait_daemons(list(DAEMONS), timeout=240)  # status names every standby
             status = subprocess.run(
