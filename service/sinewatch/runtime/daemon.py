@@ -174,18 +174,31 @@ class Daemon:
         return self._last_log_time
 
     async def _consume(self) -> None:
-        waiting = KeyTurns()  # a burst (a router's return, a catch-up) is processed the keys in turn
+        size = self.config.limits.intake_batch
+        turns = KeyTurns()  # a backlog of more than a batch (a router's return, a catch-up): the keys in turn
         ending = False
         while True:
-            while not ending and (not waiting or not self._queue.empty()):
-                batch = await self._queue.get()
+            batches: list[list[Item]] = []
+            if not turns:
+                if ending:
+                    return
+                first = await self._queue.get()
+                if first is None:
+                    return
+                batches.append(first)
+            while not ending and not self._queue.empty():
+                batch = self._queue.get_nowait()
                 if batch is None:
                     ending = True
                 else:
-                    waiting.add(batch)
-            if not waiting:
-                return
-            await self._consume_batch(waiting.take(self.config.limits.intake_batch))
+                    batches.append(batch)
+            if not turns and sum(map(len, batches)) <= size:  # no backlog: in arrival order
+                for batch in batches:
+                    await self._consume_batch(batch)
+                continue
+            for batch in batches:
+                turns.add(batch)
+            await self._consume_batch(turns.take(size))
 
     async def _consume_batch(self, batch: list[Item]) -> None:
         try:

@@ -89,7 +89,9 @@ class KeyTurns:
     recovered blocks at once, as its query is answered, so in arrival order the last key's first
     block waited for every other key's whole outage (50 keys of 19 blocks: every channel served
     again 1.1 s after the first, and 12-14 s beside four CPU burners). Taken in turns, each key's
-    next block waits for one of each other key's, whenever it came."""
+    next block waits for one of each other key's, whenever it came. The daemon takes a backlog of
+    more than one batch this way only; otherwise inputs go on in arrival order (the order of
+    ErrorReports across keys, for one, is the order the inputs came in)."""
 
     def __init__(self) -> None:
         self._by_key: dict[str, collections.deque[Item]] = {}  # its order: the keys' turns
