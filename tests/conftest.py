@@ -362,8 +362,13 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 
 
 # Benches that measure what the machine sustains (tests/test_bench_e2e.py): `make test` runs
-# them alone, after the two workers, so that no other test shares their cores.
-ALONE = ("tests/test_bench_e2e.py",)
+# them alone, after the two workers, so that no other test shares their cores. The file's
+# in-process tests (the probe's parsing, the feeder's stamps) run with the others.
+ALONE = (
+    "tests/test_bench_e2e.py::test_sweep_",
+    "tests/test_bench_e2e.py::test_fanout_",
+    "tests/test_bench_e2e.py::test_frame_channels_",
+)
 
 
 def pytest_itemcollected(item: pytest.Item) -> None:

@@ -22,7 +22,7 @@ def bench(*args: str) -> str:
 def test_sweep_writes_every_point_the_table_and_the_plot(tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "sweep.json"
-    stdout = bench("e2e", "--sweep", "--sweep-channels", "1,4", "--duration", "2", "--json", str(out))
+    stdout = bench("e2e", "--sweep", "--sweep-channels", "1,4", "--duration", "1", "--json", str(out))
     rows = json.loads(out.read_text())["sweep"]
     assert [row["channels"] for row in rows] == [1, 4]
     for row in rows:
@@ -94,11 +94,11 @@ def test_frame_channels_runs_blocks_and_frames_into_one_table_with_the_daemon_s_
     """``--frame-channels 1,4``: the same 8 channels as single blocks, then as frames of 4,
     every estimate back in each, the daemon's CPU per sample in the JSON and the table."""
     out = tmp_path / "frames.json"
-    stdout = bench("e2e", "--channels", "8", "--frame-channels", "1,4", "--duration", "2", "--json", str(out))
+    stdout = bench("e2e", "--channels", "8", "--frame-channels", "1,4", "--duration", "1", "--json", str(out))
     runs = json.loads(out.read_text())["runs"]
-    assert [(run["frame_channels"], run["messages_sent"]) for run in runs] == [(1, 8 * 19), (4, 2 * 19)]
+    assert [(run["frame_channels"], run["messages_sent"]) for run in runs] == [(1, 8 * 9), (4, 2 * 9)]
     for run in runs:
-        assert run["estimates_received"] == run["blocks_sent"] == 8 * 19 and run["missing_estimates"] == 0
+        assert run["estimates_received"] == run["blocks_sent"] == 8 * 9 and run["missing_estimates"] == 0
         assert run["daemon_cpu_ns_per_sample"] == pytest.approx(run["cpu_us_per_block"]["daemon"] * 1e3 / run["block"])
         # the estimator's share, measured in the bench process, and the rest: plumbing
         assert run["kernel_ns_per_sample"] > 0

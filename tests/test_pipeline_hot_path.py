@@ -9,6 +9,7 @@ import itertools
 import json
 
 import numpy as np
+import pytest
 from conftest import make_config
 
 from sinewatch.core.pipeline import GuardedSink, NullSink, Pipeline
@@ -127,20 +128,24 @@ def test_a_failing_sink_does_not_stop_the_pipeline(tmp_path):
 
 
 def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
-    from sinewatch.apps.bench.pipeline_cost import STEPS, run
+    from sinewatch.apps.bench.pipeline_cost import FRAME_STEPS, STEPS, run
 
-    out = tmp_path / "bench.json"
-    args = argparse.Namespace(
-        channels=3, rate=10_000.0, block=256, estimator="ges-kalman", compression="zstd", rounds=2, repeats=2, json=out
-    )
-    assert run(args) == 0
-    result = json.loads(out.read_text())
-    for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
-        assert result["us_per_block"][name] == result["us_per_block"][name]  # a number, not NaN
-        assert name in result["ratio_to_estimator"]
-    assert result["ratio_to_estimator"]["estimator"] == 1.0
-    assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
-    assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+    for per, steps in ((1, STEPS), (3, FRAME_STEPS)):  # blocks, and frames of 3 (the last frame of 2)
+        out = tmp_path / f"bench-{per}.json"
+        args = argparse.Namespace(
+            channels=5, rate=10_000.0, block=256, estimator="ges-kalman", compression="zstd", rounds=2, repeats=2,
+            frame_channels=per, json=out,
+        )  # fmt: skip
+        assert run(args) == 0
+        result = json.loads(out.read_text())
+        assert result["frame_channels"] == per
+        for name in ("pipeline_on", "pipeline_off", *steps, "rest_on", "rest_off"):
+            assert result["us_per_block"][name] == result["us_per_block"][name]  # a number, not NaN
+            assert name in result["ratio_to_estimator"]
+            assert result["ns_per_sample"][name] == pytest.approx(1e3 * result["us_per_block"][name] / 256)
+        assert result["ratio_to_estimator"]["estimator"] == 1.0
+        assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
+        assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
 
 
 def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
@@ -198,12 +203,17 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
             assert ch.template is not None  # the template made these bytes
             assert fast == estimate_payload(pipe, *args, fast=False), (version, k, std, rocof)
             cases += 1
-        for bad in ("frequency_hz", "offset", "amplitude"):
-            tr = _track(rng, 2, std=True, rocof=False, bad=bad)
+        for k, bad in itertools.product((1, 2), ("frequency_hz", "offset", "amplitude")):
+            tr = _track(rng, k, std=True, rocof=k == 1, bad=bad)
             ch.template = None
             args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
             assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
             assert ch.template is None  # the general way wrote them
+        for name in ("amplitude", "offset"):  # one float32 array: not the one-component reading, same bytes
+            tr = _track(rng, 1, std=True, rocof=True)
+            setattr(tr, name, getattr(tr, name).astype(np.float32))
+            args = (ch, blk, tr, t_ns, t_ns, 0, False, False, False)
+            assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
 
 

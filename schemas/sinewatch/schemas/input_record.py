@@ -241,11 +241,23 @@ def _time(ns: int) -> bytes:
     return _TIME.pack(*_TIME_HEAD, sec, _NSEC_KEY, nsec)
 
 
+#: a piece of a record: bytes, or a view of a payload's samples (joined without a copy first)
+_Part = bytes | memoryview
+
+
 def _fields(
-    channel: bytes, seq: int, t0_ns: int, fs: float, columns: int, n: int, unit: bytes, samples: bytes, f32: bool
-) -> list[bytes]:
+    channel: bytes,
+    seq: int,
+    t0_ns: int,
+    fs: float,
+    columns: int,
+    n: int,
+    unit: bytes,
+    samples: _Part,
+    f32: bool,
+) -> list[_Part]:
     """The block's fields, in field order (``samples`` as their little-endian bytes)."""
-    parts = [_string_field(2, channel)] if channel else []
+    parts: list[_Part] = [_string_field(2, channel)] if channel else []
     parts += (
         _FIXED.pack(_SEQ_KEY, seq, _T0_KEY, t0_ns, _FS_KEY, fs),
         _COLUMNS_KEY,
@@ -286,13 +298,13 @@ def _binary_layout(payload: bytes) -> tuple[Any, ...] | None:
 
 def encode_input_record(payload: bytes, zenoh_encoding: str) -> bytes:
     """The InputBlock record of one received input (any bytes, any encoding)."""
-    parts = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
+    parts: list[_Part] = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
     layout = _binary_layout(payload)
     if layout is not None:
         version, dcode, columns, flags, seq, t0, fs, n, clen, ulen = layout
         start = HEADER.size + clen + ulen
         channel, unit = payload[HEADER.size : HEADER.size + clen], payload[HEADER.size + clen : start]
-        parts += _fields(channel, seq, t0, fs, columns, n, unit, payload[start:], dcode == 1)
+        parts += _fields(channel, seq, t0, fs, columns, n, unit, memoryview(payload)[start:], dcode == 1)
         parts += (_VERSION_KEY, _varint(version))
         if flags:
             parts += (_FLAGS_KEY, _varint(flags))
@@ -364,9 +376,9 @@ def _frame_layout(payload: bytes) -> tuple[Any, ...] | None:
 
 
 def _frame_fields(
-    channels: list[bytes], seq: int, t0_ns: int, fs_bits: int, n: int, samples: bytes, f32: bool
-) -> list[bytes]:
-    parts = [_FRAME_FIXED.pack(_SEQ_KEY, seq, _T0_KEY, t0_ns, _FS_KEY, fs_bits), _N_FRAME_KEY, _varint(n)]
+    channels: list[bytes], seq: int, t0_ns: int, fs_bits: int, n: int, samples: _Part, f32: bool
+) -> list[_Part]:
+    parts: list[_Part] = [_FRAME_FIXED.pack(_SEQ_KEY, seq, _T0_KEY, t0_ns, _FS_KEY, fs_bits), _N_FRAME_KEY, _varint(n)]
     parts += [_len_field(15, c) for c in channels]
     if samples:
         parts += (_SAMPLES_F32_KEY if f32 else _SAMPLES_KEY, _varint(len(samples)), samples)
@@ -375,11 +387,12 @@ def _frame_fields(
 
 def encode_frame_record(payload: bytes, zenoh_encoding: str) -> bytes:
     """The InputFrame record of one received frame (any bytes, any encoding)."""
-    parts = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
+    parts: list[_Part] = [_string_field(1, zenoh_encoding.encode())] if zenoh_encoding else []
     layout = _frame_layout(payload)
     if layout is not None:
         version, f32, seq, t0, fs_bits, n, channels, start, tq = layout
-        parts += _frame_fields(channels, seq, t0, fs_bits, n, payload[start:], f32)
+        # a view, not a slice: the samples are copied once, by the join (a frame is tens of kB)
+        parts += _frame_fields(channels, seq, t0, fs_bits, n, memoryview(payload)[start:], f32)
         parts += (_FRAME_VERSION_KEY, _varint(version), _time(t0))
         if tq:  # field 17 after 14: protobuf readers take fields in any order
             parts += (_TIME_QUALITY_KEY, _varint(tq))

@@ -47,6 +47,8 @@ class Channel:
     template: tuple[tuple[Any, ...], str] | None = field(default=None, repr=False)
 
     validity_version: int = field(default=VALIDITY_RULES_VERSION, repr=False)  # the pipeline's rules
+    # valid_memory_samples, kept once known to be fixed (an estimator with the default memory)
+    _valid_memory: int | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.presence is None:
@@ -64,8 +66,16 @@ class Channel:
         """How many samples of present signal an estimate needs behind its window's end to be
         valid: the estimator's memory, twice for a recursive one from validity rules version
         5 on (``Estimator.REFILL_MEMORIES``: its settling time counts from a state near the truth)."""
+        if self._valid_memory is not None:
+            return self._valid_memory
         memory = self.estimator.memory_samples
-        return memory * self.estimator.REFILL_MEMORIES if self.validity_version >= 5 else memory
+        value = memory * self.estimator.REFILL_MEMORIES if self.validity_version >= 5 else memory
+        # read twice an estimate (its valid flag and its hold): kept where it cannot change, the
+        # default memory being a function of the estimator's class and sample rate alone (others
+        # may follow a design the signal chooses, e.g. pmu's 'auto')
+        if type(self.estimator).memory_samples is Estimator.memory_samples:
+            self._valid_memory = value
+        return value
 
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")

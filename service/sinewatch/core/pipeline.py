@@ -296,9 +296,8 @@ class Pipeline:
         :meth:`_presence` gives it); False when it does not apply (then each channel's own
         runs in :meth:`_frame_estimate`, which also isolates a fault to its channel)."""
         live = [m for m, track in zip(members, tracks, strict=True) if track is not None]
-        if len(live) < 2 or any(
-            type(m.channel.estimator).presence_samples is not Estimator.presence_samples for m in live
-        ):
+        # a bank's channels share one estimator class (its rule's): asked of the first
+        if len(live) < 2 or type(live[0].channel.estimator).presence_samples is not Estimator.presence_samples:
             return False
         detectors = [m.channel.presence for m in live]
         for m, det in zip(live, detectors, strict=True):

@@ -98,7 +98,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.signal import place_poles
 
 from sinewatch.estimators.base import kernel
 from sinewatch.schemas.errors import ParameterError
@@ -736,6 +735,8 @@ def setup(p: Any, sample_rate_hz: float) -> dict[str, Any]:
     Fx, Cx = observer_matrices(a, bias)
     # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation)
     poles = np.asarray(d["poles"], dtype=np.float64)
+    from scipy.signal import place_poles  # here, not with the module: listing the estimators need not import it
+
     try:
         res = place_poles(Fx.T, Cx[:, None], poles)
     except (ValueError, np.linalg.LinAlgError) as exc:

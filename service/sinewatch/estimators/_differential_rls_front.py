@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal as _sig
 
 from sinewatch.estimators._differential_rls_core import (
     A_IM,
@@ -657,7 +656,9 @@ def settling_samples(sos: np.ndarray, fs: float, bandwidth_hz: float, tol: float
     n = math.ceil(40.0 * fs / bandwidth_hz) + 8
     imp = np.zeros(n)
     imp[0] = 1.0
-    h = np.abs(_sig.sosfilt(sos, imp))
+    from scipy import signal  # here, not with the module: listing the estimators need not import it (~1 s CPU)
+
+    h = np.abs(signal.sosfilt(sos, imp))
     tail = np.cumsum(h[::-1])[::-1]
     return int(np.argmax(tail < tol * tail[0]))
 
@@ -668,7 +669,9 @@ def lowpass_noise_correlation(sos: np.ndarray, fs: float, bandwidth_hz: float, l
     n = math.ceil(40.0 * fs / bandwidth_hz) + lag + 8
     imp = np.zeros(n)
     imp[0] = 1.0
-    h = _sig.sosfilt(sos, imp)
+    from scipy import signal  # here, not with the module (see settling_samples)
+
+    h = signal.sosfilt(sos, imp)
     return float(np.dot(h[:-lag], h[lag:]) / np.dot(h, h)) if lag < n else 0.0
 
 

@@ -242,18 +242,25 @@ def _w_transform(nu: np.ndarray, window_s: float, cutoff_hz: float | None) -> np
     return out
 
 
-def _bank_response(kernels: np.ndarray, m: np.ndarray, d: int, fs: float, nu: np.ndarray) -> np.ndarray:
+def _bank_response(
+    kernels: np.ndarray, m: np.ndarray, d: int, fs: float, nu: np.ndarray, *more: np.ndarray
+) -> list[np.ndarray]:
     """(D, K, len(nu)) complex: the exact response of the sampled kernels (after the CIC2)
     to a tone at nu, per input-sample phase rho: sum_m K[rho, k, m] e^{-j 2 pi nu t_m} A(nu).
     Exact (not the continuous W): deep in the stopband, where the image lies, the sampled
-    kernels' aliases are comparable to W itself and the derivative relations of (K') fail."""
-    out = np.empty((kernels.shape[0], kernels.shape[1], nu.size), dtype=np.complex128)
+    kernels' aliases are comparable to W itself and the derivative relations of (K') fail.
+    One array for ``kernels`` and one for each of ``more`` (other kernels on the same taps):
+    the complex exponentials, most of the design's time (seconds at 50 kHz), are computed once
+    for all of them."""
+    banks = (kernels, *more)
+    outs = [np.empty((k.shape[0], k.shape[1], nu.size), dtype=np.complex128) for k in banks]
     a = _cic2(nu, d, fs)
     for rho in range(kernels.shape[0]):
         t = (m * d + rho) / fs
         e = np.exp(-2j * np.pi * np.outer(t, nu))
-        out[rho] = (kernels[rho] @ e) * a
-    return np.ascontiguousarray(out)
+        for k, out in zip(banks, outs, strict=True):
+            out[rho] = (k[rho] @ e) * a
+    return [np.ascontiguousarray(out) for out in outs]
 
 
 def _cic2(nu: np.ndarray, d: int, fs: float) -> np.ndarray:
@@ -336,13 +343,13 @@ def design(fs: float, f0: int, reporting_rate: int, performance_class: str) -> D
     span = 0.5 * reporting_rate + 1.0
     nu_pass = np.arange(-span, span + TABLE_STEP_HZ / 2, TABLE_STEP_HZ)
     nu_img = -2.0 * f_osc + nu_pass
-    bank = _bank_response(kernels, m, d, fs, nu_pass)
     t2 = np.stack([((m * d + rho) / fs) ** 2 for rho in range(d)])  # t_m^2 per phase
-    g_chirp = np.ascontiguousarray(_bank_response(kernels[:, :1] * t2[:, None, :], m, d, fs, nu_pass)[:, 0])
+    bank, chirp = _bank_response(kernels, m, d, fs, nu_pass, kernels[:, :1] * t2[:, None, :])
+    g_chirp = np.ascontiguousarray(chirp[:, 0])
     g_pass = np.ascontiguousarray(bank[:, 0])
     r1 = bank[:, 1] / bank[:, 0]
     a2_bias = np.ascontiguousarray(bank[:, 2] / bank[:, 0] - r1 * r1)
-    g_img = _bank_response(kernels, m, d, fs, nu_img)
+    [g_img] = _bank_response(kernels, m, d, fs, nu_img)
     noise_gram, probe_taper, probe_gram = _noise_design(kernels, m, d, fs, window_s)
     return Design(
         fs=fs,

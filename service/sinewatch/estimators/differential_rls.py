@@ -148,7 +148,6 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
-from scipy import signal as _sig
 
 from sinewatch.estimators import register
 from sinewatch.estimators._differential_rls_bank import differential_rls_bank_kernel
@@ -486,7 +485,9 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
         self._tab = monomial_table(p.n_terms, p.rocof_model)
         n_par = self._tab.shape[0]
         # the demodulator's low-pass (real input; passed but unused with I/Q input)
-        self._sos = np.ascontiguousarray(_sig.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
+        from scipy import signal  # here, not with the module: listing the estimators need not import it (~1 s CPU)
+
+        self._sos = np.ascontiguousarray(signal.butter(4, p.bandwidth_hz, fs=fs, output="sos"))
         rng = p.bandwidth_hz if p.tracking_range_hz is None else p.tracking_range_hz
         if p.noise_correlation is not None:
             r1 = p.noise_correlation

@@ -133,8 +133,6 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-import scipy.linalg
-import scipy.signal
 from pydantic import Field
 
 from sinewatch.estimators import register
@@ -250,6 +248,8 @@ def check_theorem1(A: np.ndarray, C: np.ndarray, T: float) -> None:
 
 def _place(Amat: np.ndarray, c: np.ndarray, poles: np.ndarray, what: str) -> np.ndarray:
     """Observer gain l with eig(Amat - l c) = poles, by scipy.signal.place_poles on the dual."""
+    import scipy.signal  # here, not with the module: listing the estimators need not import it (~1 s CPU)
+
     n = Amat.shape[0]
     try:
         res = scipy.signal.place_poles(Amat.T, c.reshape(n, 1), poles)
@@ -287,6 +287,8 @@ def _foh(A: np.ndarray, B: np.ndarray, Ts: float) -> tuple[np.ndarray, np.ndarra
     big[:n, :n] = A * Ts
     big[:n, n : n + m] = B * Ts
     big[n : n + m, n + m :] = np.eye(m)
+    import scipy.linalg  # here, not with the module (see _place)
+
     ex = scipy.linalg.expm(big)
     Ad, G1, G2 = ex[:n, :n], ex[:n, n : n + m], ex[:n, n + m :]
     return Ad, G1 - G2, G2
@@ -372,6 +374,8 @@ def design(params: GripMixingParams, fs: float) -> GripDesign:
             D = np.zeros(m)
         if p.x0 is not None and len(p.x0) != n:
             raise ParameterError(f"x0: expected {n} values, got {len(p.x0)}")
+        import scipy.linalg  # here, not with the module (see _place)
+
         E = scipy.linalg.expm(-A * T)
         Ad, Bd0, Bd1 = _foh(A, B, Ts)
         lam = np.linalg.eigvals(A)

@@ -288,4 +288,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="the recording's")
     parser.add_argument("--rounds", type=int, default=5, help="blocks per channel per repeat (default 5)")
     parser.add_argument("--repeats", type=int, default=12, help="repeats of each measurement (default 12)")
+    parser.add_argument(
+        "--frame-channels", type=int, default=1, help="channels a SampleFrame (default 1: one SampleBlock a channel)"
+    )
     parser.add_argument("--json", type=Path, help="also write results as JSON")

@@ -17,6 +17,14 @@ The same blocks are also taken through each step alone, to break the cost down:
 * ``rest``: the pipeline's cost less the steps above (sequence checks, dispatch to the
   sinks, counters).
 
+With ``--frame-channels N`` (N > 1) the channels go as SampleFrames of N channels, the
+daemon's frame path: ``estimator`` is then one :func:`~sinewatch.estimators.bank.update_bank`
+call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.presence.update_presence_bank`),
+``encode`` each channel's Estimate bytes, ``hold`` each channel's accept and hold-back
+(:func:`sinewatch.core.hold.hold`, on by default), ``recorder`` the frame's one input message
+and its channels' estimates; ``rest`` is then the per-channel checks, the grouping into banks
+and the hand-out to the sinks.
+
 CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
 time, not wall time, so that other processes on the machine count less): each repeat takes
 ``--rounds`` fresh blocks per channel through every step in turn; a figure is the step's
@@ -38,13 +46,18 @@ import numpy as np
 from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
+from sinewatch.core.hold import hold
 from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
+from sinewatch.estimators.bank import update_bank
+from sinewatch.estimators.presence import update_presence_bank
 from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
+from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, decode_input, encode_frame_binary
 
 STEPS = ("estimator", "decode", "presence", "encode", "recorder")
+FRAME_STEPS = ("estimator", "decode", "presence", "encode", "hold", "recorder")
 
 
 def _params(estimator: str) -> dict[str, Any]:
@@ -99,6 +112,130 @@ class Feed:
 Batch = list[list[tuple[str, bytes, Block]]]
 
 
+def _through(pipe: Pipeline, encoding: str) -> Callable[[Any], None]:
+    """The step that takes a batch (rows of (key, payload, decoded input)) through ``pipe``,
+    each input logged at its first sample's time."""
+
+    def run(batch: Any) -> None:
+        process = pipe.process
+        for row in batch:
+            for key, payload, item in row:
+                process(key, payload, encoding, item.t0_ns)
+
+    return run
+
+
+class FrameFeed(Feed):
+    """The same channels' signals as SampleFrames of ``per`` channels (float32, the layout
+    of ``sinewatch bench e2e --frame-channels``): frame k on ``sinewatch/in/f<k>``, its
+    channels' keys ``sinewatch/in/bench/c<i>``."""
+
+    def __init__(self, channels: int, block: int, rate_hz: float, per: int, seed: int = 0) -> None:
+        super().__init__(channels, block, rate_hz, seed)
+        self.layout = [tuple(self.names[i : i + per]) for i in range(0, channels, per)]
+        self.stacked = [np.stack(self.signals[i : i + per], axis=1) for i in range(0, channels, per)]
+
+    def frames(self, n: int) -> list[list[tuple[str, bytes, Frame]]]:
+        """``n`` rounds of one frame per group: (key, payload, decoded frame of the kernels' kind)."""
+        out = []
+        for _ in range(n):
+            seq, k = self.seq, self.seq % 8
+            self.seq += 1
+            t0 = 1_700_000_000_000_000_000 + seq * self.step_ns
+            row = []
+            for f, (names, x) in enumerate(zip(self.layout, self.stacked, strict=True)):
+                payload = encode_frame_binary(
+                    Frame(names, seq, t0, self.rate_hz, x[k * self.block : (k + 1) * self.block]), "float32"
+                )
+                frame = decode_input(payload, FRAME_BINARY_ENCODING)
+                assert isinstance(frame, Frame)
+                frame.samples = np.ascontiguousarray(frame.samples, dtype=np.float64)
+                row.append((f"sinewatch/in/f{f:04d}", payload, frame))
+            out.append(row)
+        return out
+
+
+FrameBatch = list[list[tuple[str, bytes, Frame]]]
+
+
+def _frame_steps(
+    args: argparse.Namespace, directory: Path, feed: FrameFeed
+) -> tuple[dict[str, Callable[[FrameBatch], None]], list[Any]]:
+    """The frame path's steps (``--frame-channels``), each taking a batch of frames: each
+    step on its own objects (estimators, detectors, channels, a recorder), fed the same frames."""
+    config = _config(args, directory)
+    off = Pipeline(config, [NullSink()])
+    on = Pipeline(_config(args, directory / "pipeline"), [NullSink(), McapRecorder(config)])
+    cls = get_estimator(args.estimator)
+    params = _params(args.estimator)
+    banks = [[cls(args.rate, params) for _ in names] for names in feed.layout]
+    channels = {name: Channel(name, f"sinewatch/in/{name}", cls(args.rate, params), args.rate) for name in feed.names}
+    detectors = [[channels[name].presence for name in names] for names in feed.layout]
+    tracks: dict[str, Any] = {}
+    estimates: dict[str, bytes] = {}
+    step_recorder = McapRecorder(_config(args, directory / "steps"))
+
+    def estimator(batch: FrameBatch) -> None:
+        for row in batch:
+            for (_key, _payload, frame), ests in zip(row, banks, strict=True):
+                out = update_bank(ests, frame.samples, last_only=True, t0_ns=frame.t0_ns)
+                tracks.update(zip(frame.channels, out, strict=True))
+
+    def decode(batch: FrameBatch) -> None:
+        dec = off._decode
+        for row in batch:
+            for _key, payload, _frame in row:
+                dec(payload, FRAME_BINARY_ENCODING)
+
+    def presence(batch: FrameBatch) -> None:  # the channels' detectors: their runs are what encode reads
+        for row in batch:
+            for (_key, _payload, frame), dets in zip(row, detectors, strict=True):
+                runs = update_presence_bank(dets, frame.samples, list(range(len(dets))))  # type: ignore[arg-type]
+                assert runs is not None
+                for name, run in zip(frame.channels, runs, strict=True):
+                    channels[name].last_run = run
+
+    def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch
+        payload = on._estimate_payload
+        for row in batch:
+            for _key, _payload, frame in row:
+                t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
+                for c, name in enumerate(frame.channels):
+                    estimates[name] = payload(
+                        channels[name], frame.block(c), tracks[name], t_last, t_last, 0, False, False
+                    )[0]
+
+    def hold_back(batch: FrameBatch) -> None:  # each channel's accept and hold of the encode step's estimate
+        accept = on._accept
+        for row in batch:
+            for _key, _payload, frame in row:
+                t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
+                for c, name in enumerate(frame.channels):
+                    ch = channels[name]
+                    accept(ch, frame.block(c), 0, False, False)
+                    hold(ch, t_last, [(estimates[name], True, t_last)], False)
+
+    def record(batch: FrameBatch) -> None:  # the frame, and its channels' estimates of the encode step
+        on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate
+        for row in batch:
+            for key, payload, frame in row:
+                on_input(key, payload, FRAME_BINARY_ENCODING, frame.t0_ns)
+                for name in frame.channels:
+                    on_estimate(f"sinewatch/est/{name}", estimates[name], frame.t0_ns)
+
+    steps = {
+        "pipeline_on": _through(on, FRAME_BINARY_ENCODING),
+        "pipeline_off": _through(off, FRAME_BINARY_ENCODING),
+        "estimator": estimator,
+        "decode": decode,
+        "presence": presence,
+        "encode": encode,
+        "hold": hold_back,
+        "recorder": record,
+    }
+    return steps, [on, off, step_recorder]
+
+
 def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
     return SinewatchConfig(
         daemon_id="bench",
@@ -123,15 +260,6 @@ def _steps(
     tracks: dict[str, Any] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
     estimates: dict[str, bytes] = {}
-
-    def pipeline(pipe: Pipeline) -> Callable[[Batch], None]:
-        def run(batch: Batch) -> None:
-            process = pipe.process
-            for row in batch:
-                for key, payload, blk in row:
-                    process(key, payload, BLOCK_BINARY_ENCODING, blk.t0_ns)
-
-        return run
 
     def estimator(batch: Batch) -> None:
         for row in batch:
@@ -169,8 +297,8 @@ def _steps(
                 on_estimate(key.replace("/in/", "/est/"), estimates[blk.channel], blk.t0_ns)
 
     steps = {
-        "pipeline_on": pipeline(on),
-        "pipeline_off": pipeline(off),
+        "pipeline_on": _through(on, BLOCK_BINARY_ENCODING),
+        "pipeline_off": _through(off, BLOCK_BINARY_ENCODING),
         "estimator": estimator,
         "decode": decode,
         "presence": presence,
@@ -186,17 +314,26 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     Each repeat takes a fresh batch of ``rounds`` blocks per channel through every step in
     turn (interleaved, so that a burst of load from elsewhere hits all steps alike); a step's
     figure is its fastest repeat (the least disturbed), its median is given beside it."""
+    per = getattr(args, "frame_channels", 1)
+    step_names = FRAME_STEPS if per > 1 else STEPS
     with tempfile.TemporaryDirectory(prefix="sinewatch-bench-pipeline-") as tmp:
-        feed = Feed(args.channels, args.block, args.rate)
-        steps, to_close = _steps(args, Path(tmp), feed.names)
+        steps: dict[str, Callable[[Any], None]]
+        if per > 1:
+            frame_feed = FrameFeed(args.channels, args.block, args.rate, per)
+            steps, to_close = _frame_steps(args, Path(tmp), frame_feed)
+            make: Callable[[int], Any] = frame_feed.frames
+        else:
+            feed = Feed(args.channels, args.block, args.rate)
+            steps, to_close = _steps(args, Path(tmp), feed.names)
+            make = feed.rounds
         times: dict[str, list[float]] = {name: [] for name in steps}
         for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
-            batch = feed.rounds(args.rounds if repeat else 2)
+            batch = make(args.rounds if repeat else 2)
             for name, step in steps.items():
                 t0 = time.process_time()
                 step(batch)
                 if repeat:
-                    times[name].append((time.process_time() - t0) / (args.rounds * len(feed.names)) * 1e6)
+                    times[name].append((time.process_time() - t0) / (args.rounds * args.channels) * 1e6)
         on, off, step_recorder = to_close
         on.close_sinks()
         step_recorder.close()
@@ -205,11 +342,12 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     us = {name: min(t) for name, t in times.items()}
     median = {name: statistics.median(t) for name, t in times.items()}
     base = us["estimator"]
-    us["rest_on"] = us["pipeline_on"] - sum(us[s] for s in STEPS)
-    us["rest_off"] = us["pipeline_off"] - sum(us[s] for s in STEPS if s != "recorder")
+    us["rest_on"] = us["pipeline_on"] - sum(us[s] for s in step_names)
+    us["rest_off"] = us["pipeline_off"] - sum(us[s] for s in step_names if s != "recorder")
     outside = {"recording_on": us["pipeline_on"] - base, "recording_off": us["pipeline_off"] - base}
     return {
         "channels": args.channels,
+        "frame_channels": per,
         "block": args.block,
         "rate_hz": args.rate,
         "estimator": args.estimator,
@@ -218,6 +356,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         "repeats": args.repeats,
         "us_per_block": us,
         "us_per_block_median": median,
+        "ns_per_sample": {k: 1e3 * v / args.block for k, v in us.items()},
         "ratio_to_estimator": {k: v / base for k, v in us.items()},
         "outside_estimator_us": outside,
         "outside_estimator_ratio": {k: v / base for k, v in outside.items()},
@@ -231,24 +370,32 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 
 def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float | None, float]]:
     us, median, ratio = result["us_per_block"], result["us_per_block_median"], result["ratio_to_estimator"]
-    for name in ("pipeline_on", "pipeline_off", *STEPS, "rest_on", "rest_off"):
+    steps = FRAME_STEPS if result["frame_channels"] > 1 else STEPS
+    for name in ("pipeline_on", "pipeline_off", *steps, "rest_on", "rest_off"):
         yield name, us[name], median.get(name), ratio[name]
 
 
 def run(args: argparse.Namespace) -> int:
     console = make_console()
+    per = getattr(args, "frame_channels", 1)
+    unit = f"frames of {per} channels" if per > 1 else "blocks"
     console.print(
-        f"{args.channels} channels, {args.estimator}, {args.block}-sample float32 blocks at {args.rate:g} Hz, "
+        f"{args.channels} channels, {args.estimator}, {args.block}-sample float32 {unit} at {args.rate:g} Hz, "
         f"{args.rounds} blocks per channel x {args.repeats} repeats ..."
     )
     result = measure(args)
-    table = Table(title="pipeline cost per block (fastest repeat; ratio to the estimator's update alone)")
+    table = Table(
+        title="pipeline cost per channel's block (fastest repeat; ratio to the estimator alone)"
+        + (f", frames of {per}" if per > 1 else "")
+    )
     table.add_column("step")
     table.add_column("us/block", justify="right")
     table.add_column("median", justify="right")
+    table.add_column("ns/sample", justify="right")
     table.add_column("x estimator", justify="right")
     for name, value, median, ratio in _rows(result):
-        table.add_row(name, f"{value:.1f}", "" if median is None else f"{median:.1f}", f"{ratio:.2f}")
+        median_text = "" if median is None else f"{median:.1f}"
+        table.add_row(name, f"{value:.1f}", median_text, f"{1e3 * value / args.block:.1f}", f"{ratio:.2f}")
     print_table(console, table)
     for mode in ("recording_on", "recording_off"):
         console.print(
