@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import datetime
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -277,7 +279,14 @@ connect = ["{router}"]
 
 
 def daemon_config(
-    tmp_path: Path, daemon_id: str, shard: str, role: str, router_port: int, etcd: str, recovery: bool = True
+    tmp_path: Path,
+    daemon_id: str,
+    shard: str,
+    role: str,
+    router_port: int,
+    etcd: str,
+    recovery: bool = True,
+    ttl_s: int = 3,
 ) -> Path:
     cfg = tmp_path / f"{daemon_id}.toml"
     cfg.write_text(
@@ -288,7 +297,7 @@ shard = "{shard}"
 role = "{role}"
 snapshot_interval_s = 0.5
 etcd = "{etcd}"
-lease_ttl_s = 3
+lease_ttl_s = {ttl_s}
 [recording]
 directory = "{tmp_path / daemon_id}"
 [workers]
@@ -456,6 +465,7 @@ class Gateway(threading.Thread):
         self.session = connect([f"tcp/127.0.0.1:{router_port}"])
         self.pub = BlockPublisher(self.session)
         self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
+        self.sent_wall: list[float] = []  # wall time round n (every channel's seq n) began to be put
         self.stop = threading.Event()
 
     def run(self) -> None:
@@ -463,6 +473,7 @@ class Gateway(threading.Thread):
         start = time.monotonic()
         n = 0
         while not self.stop.is_set():
+            self.sent_wall.append(time.time())
             for i, ch in enumerate(CHANNELS):
                 self.pub.publish(ch, np.sin(2 * np.pi * 50.0 * (t + n * BLOCK / FS) + i), sample_rate_hz=FS)
                 self.sent[ch] = n + 1
@@ -506,7 +517,7 @@ def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[
     for d in daemon_ids:
         msgs = out[d] = []
         for path in sorted((tmp_path / d).glob("*.mcap")):
-            for kind, item in read_recording(path):
+            for kind, item in read_recording(path, roles=frozenset({"estimate"})):
                 if kind == "message" and item.role == "estimate":
                     msgs.append({**json.loads(item.payload), "_published_ns": item.log_time_ns})
     return out
@@ -576,12 +587,161 @@ def _late_in_a_gap(msgs: list[dict[str, Any]]) -> set[int]:
     return late
 
 
+_LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) \S+ \S+ ")
+
+
+def log_events(directory: Path, daemon_id: str, since_wall: float, *needles: str) -> list[tuple[float, str]]:
+    """(wall time, text) of each line of ``daemon_id``'s log from ``since_wall`` on that holds one
+    of ``needles`` (the logging module stamps local time to the millisecond)."""
+    path = directory / f"{daemon_id}.log"
+    events = []
+    for line in path.read_text(errors="replace").splitlines() if path.exists() else []:
+        m = _LOG_TIME.match(line)
+        if m is None or not any(n in line for n in needles):
+            continue
+        t = datetime.datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(m.group(2)) / 1e3
+        if t >= since_wall - 1e-3:
+            events.append((t, line[m.end() :]))
+    return events
+
+
+def recorded_inputs(tmp_path: Path, daemon_id: str) -> list[tuple[str, int, int]]:
+    """(channel, seq, log time ns) of each input block ``daemon_id`` recorded: the time its
+    pipeline took the block in (after Zenoh, zenoh-ext's recovery and the intake's queue)."""
+    from sinewatch.runtime.replay import read_recording
+
+    out = []
+    for path in sorted((tmp_path / daemon_id).glob("*.mcap")):
+        for kind, item in read_recording(path, roles=frozenset({"input"})):
+            if kind == "message" and item.role == "input" and len(item.payload) >= 16:
+                out.append(
+                    (item.topic.rsplit("/", 1)[-1], int.from_bytes(item.payload[8:16], "little"), item.log_time_ns)
+                )
+    return out
+
+
+def _first_per_channel(msgs: list[dict[str, Any]], key: str, keep: Any) -> dict[str, dict[str, Any]]:
+    firsts: dict[str, dict[str, Any]] = {}
+    for m in msgs:
+        if keep(m) and (m["channel"] not in firsts or m[key] < firsts[m["channel"]][key]):
+            firsts[m["channel"]] = m
+    return firsts
+
+
+def _sent(sent_wall: list[float], seq: int) -> str:
+    return f"sent {sent_wall[seq]:.3f}" if 0 <= seq < len(sent_wall) else "sent ?"
+
+
+TAKEOVER_STEPS = ("lease is running out", "owner's key is gone", "won term", "took over shard", "block(s) of history")
+
+
+def takeover_timeline(
+    tmp_path: Path,
+    new_owner: str,
+    fencing: dict[str, Any],
+    fault_wall: float,
+    expiry_wall: float,
+    recorded: list[dict[str, Any]],
+    observed: dict[str, list[dict[str, Any]]],
+    sent_wall: list[float],
+) -> str:
+    """Where a takeover's time went, in seconds from the old owner's lease expiry (at its
+    latest): the new owner's log (the lease seen running out, then gone; the election won; the
+    takeover's own work; its history query answered), its first estimate of the new term as it
+    published it (its recording), the last channel's first, and when this test's subscriber
+    got that one (the block each estimate is of, with the gateway's time of sending it)."""
+    rel = lambda t: f"{t - expiry_wall:+7.3f} s"
+    lines = [
+        f"{rel(t)} {new_owner}: {text}" for t, text in log_events(tmp_path, new_owner, fault_wall, *TAKEOVER_STEPS)
+    ]
+    firsts = _first_per_channel(recorded, "_published_ns", lambda m: m.get("fencing") == fencing)
+    if firsts:
+        first = min(firsts.values(), key=lambda m: m["_published_ns"])
+        last = max(firsts.values(), key=lambda m: m["_published_ns"])
+        for what, m in (("first estimate of the term published", first), ("last channel's first published", last)):
+            lines.append(
+                f"{rel(m['_published_ns'] / 1e9)} {what}: {m['channel']} seq {m['seq']} ({_sent(sent_wall, m['seq'])})"
+            )
+        seen = [e["_wall"] for e in observed.get(last["channel"], []) if e.get("fencing") == fencing]
+        if seen:
+            lines.append(f"{rel(min(seen))} ... and drained by this test's subscriber")
+    return f"takeover by {new_owner} ({fencing}), lease expiry at {expiry_wall:.3f}:\n  " + "\n  ".join(
+        sorted(lines, key=lambda line: float(line.split()[0]))
+    )
+
+
+RESTART_STEPS = ("could not be recovered", "block(s) of history", "keep-alive failed", "standing by", "took over")
+
+
+def restart_timeline(
+    tmp_path: Path,
+    daemon_ids: list[str],
+    back_wall: float,
+    recorded: dict[str, list[dict[str, Any]]],
+    observed: dict[str, list[dict[str, Any]]],
+    sent_wall: list[float],
+) -> str:
+    """Where a router restart's time went, in seconds from the router's return (listening
+    again): for each daemon, the first block its pipeline took in after it and the first
+    estimate it published after it, the last channel's first estimate (as published, and as this
+    test's subscriber drained it), and its log's lines on losses and ownership."""
+    rel = lambda t: f"{t - back_wall:+7.3f} s"
+    back_ns = back_wall * 1e9
+    lines = []
+    for d in daemon_ids:
+        lines += [f"{rel(t)} {d}: {text}" for t, text in log_events(tmp_path, d, back_wall - 5, *RESTART_STEPS)[:5]]
+        after_back = [i for i in recorded_inputs(tmp_path, d) if i[2] > back_ns]
+        if after_back:
+            ch, seq, t_ns = min(after_back, key=lambda i: i[2])
+            lines.append(f"{rel(t_ns / 1e9)} {d}: first block taken in: {ch} seq {seq} ({_sent(sent_wall, seq)})")
+            live = [i for i in after_back if 0 <= i[1] < len(sent_wall) and sent_wall[i[1]] > back_wall]
+            if live:
+                ch, seq, t_ns = min(live, key=lambda i: i[2])
+                lines.append(
+                    f"{rel(t_ns / 1e9)} {d}: first block sent after the return taken in: {ch} seq {seq} ({_sent(sent_wall, seq)})"
+                )
+        firsts = _first_per_channel(recorded.get(d, []), "_published_ns", lambda m: m["_published_ns"] > back_ns)
+        if firsts:
+            first = min(firsts.values(), key=lambda m: m["_published_ns"])
+            last = max(firsts.values(), key=lambda m: m["_published_ns"])
+            lines.append(
+                f"{rel(first['_published_ns'] / 1e9)} {d}: first estimate published: {first['channel']} seq {first['seq']}"
+            )
+            lines.append(
+                f"{rel(last['_published_ns'] / 1e9)} {d}: last channel's first published: {last['channel']} seq "
+                f"{last['seq']} ({_sent(sent_wall, last['seq'])})"
+            )
+            seen = [e["_wall"] for e in observed.get(last["channel"], []) if e["_wall"] > back_wall]
+            if seen:
+                lines.append(f"{rel(min(seen))} {d}: ... and drained by this test's subscriber")
+    return f"router back at {back_wall:.3f}:\n  " + "\n  ".join(sorted(lines, key=lambda line: float(line.split()[0])))
+
+
 def admin(session: zenoh.Session) -> list[dict[str, Any]]:
     return [
         json.loads(r.ok.payload.to_bytes())
         for r in session.get("sinewatch/admin/*/channels", timeout=5.0)
         if r.ok is not None
     ]
+
+
+def wait_warm(session: zenoh.Session, daemon_id: str, shard_id: str, timeout: float = WAIT) -> None:
+    """Until ``daemon_id``, a standby of ``shard_id``, holds a snapshot of its shard (its admin
+    reply lists the snapshot's channels), asked at each snapshot its shard's owner puts: a
+    standby that has none yet (just restarted) asks the caches for everything they hold at a
+    takeover (13,312 blocks, 30 s to its first estimate beside the chaos test's burners)."""
+    snapshot = threading.Event()
+    sub = session.declare_subscriber(f"sinewatch/admin/shard/{shard_id}/snapshot", lambda _: snapshot.set())
+    deadline = time.monotonic() + timeout
+    try:
+        while snapshot.wait(max(0.0, deadline - time.monotonic())):
+            snapshot.clear()
+            replies = session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0)
+            if any(json.loads(r.ok.payload.to_bytes())["channels"] for r in replies if r.ok is not None):
+                return
+        raise AssertionError(f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s")
+    finally:
+        sub.undeclare()
 
 
 def check_channel(msgs: list[dict[str, Any]], sent: int, lost_for_good: int = 0) -> tuple[int, int]:

@@ -33,10 +33,14 @@ def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
     with connect([f"tcp/127.0.0.1:{port}"]) as session:
         tokens, estimates = Tokens(session, tmp_path), Estimates(session, tmp_path)  # failed waits show the logs
         try:
-            procs["a1"] = daemon(tmp_path, "a1", "1/1", "active", port, True)
-            tokens.wait_for("active/a1")
-            procs["s1"] = daemon(tmp_path, "s1", "1/1", "standby", port, True)
-            tokens.wait_for("standby/s1")
+            # both at once (the standby campaigns a TTL after its start, so the intended owner usually wins; either
+            # way the owner is killed and the other must take over); a 2-s TTL: how fast is not what is tested here
+            for d, role in (("a1", "active"), ("s1", "standby")):
+                procs[d] = daemon(tmp_path, d, "1/1", role, port, True, ttl_s=2)
+            tokens.wait_count("active", 1)
+            tokens.wait_count("standby", 1)
+            owner = next(p.split("/")[1] for p in tokens.present if p.startswith("active/"))
+            successor = ({"a1", "s1"} - {owner}).pop()
             pub = BlockPublisher(session)
             assert pub.wait_for_subscriber("fs/a", 30.0)
 
@@ -57,13 +61,18 @@ def test_a_forged_snapshot_does_not_stop_the_takeover(tmp_path):
             threads = [threading.Thread(target=feed), threading.Thread(target=forge)]
             for t in threads:
                 t.start()
-            estimates.wait(lambda e: len(e["fs/a"]) >= 10, "a1 estimates")
-            procs["a1"].send_signal(signal.SIGKILL)
-            procs["a1"].wait()
+            estimates.wait(lambda e: len(e["fs/a"]) >= 10, f"{owner} estimates")
+            procs[owner].send_signal(signal.SIGKILL)
+            procs[owner].wait()
             killed = time.monotonic()
-            estimates.wait(lambda e: any(m["_arrival"] > killed + 0.3 for m in e["fs/a"]), "s1 took over")
-            tokens.wait_for("active/s1")
+            estimates.wait(lambda e: any(m["_arrival"] > killed + 0.3 for m in e["fs/a"]), f"{successor} took over")
+            tokens.wait_for(f"active/{successor}")
         finally:
             stop.set()
             stop_all(procs)
             rt.kill()
+    # the forged "snapshots" were set aside, not raised out of an event loop's callback (a channel without its state
+    # did, in the standby's warm-up, until it was skipped)
+    for d in procs:
+        log = (tmp_path / f"{d}.log").read_text(errors="replace")
+        assert "Exception in callback" not in log, log[log.index("Exception in callback") :][:2000]

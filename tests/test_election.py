@@ -113,12 +113,12 @@ def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
     """The keep-alives run on a thread of their own, so that a busy event loop does not depose
     a healthy owner; but an owner whose loop is stuck (a callback that never returns, in a live
     process: not a SIGSTOP, which stops the keep-alive thread too) serves nothing. Its
-    keep-alives stop once its loop has not run for ``loop_stall_s`` (ten TTLs; two here), so its lease
+    keep-alives stop once its loop has not run for ``loop_stall_s`` (ten TTLs; one and a half here), so its lease
     expires and the other candidate is elected while the stuck loop is still stuck."""
     import threading
 
-    stall_s = 2 * TTL  # the daemon's limit is ten TTLs (30 s at its default TTL): shorter here, the same path
-    stuck_for = stall_s + TTL + 2.5  # longer than the stall limit, a TTL and the 2 s a takeover may take
+    stall_s = 1.5 * TTL  # the daemon's limit is ten TTLs (30 s at its default TTL): shorter here, the same path
+    stuck_for = stall_s + TTL + 2.5  # at most: longer than the stall limit, a TTL and the 2 s a takeover may take
 
     async def scenario(endpoint: str) -> tuple[float, float]:
         a = LeaseElection(endpoint, "sinewatch/admin/election/stuck", "a", TTL, loop_stall_s=stall_s)
@@ -129,15 +129,16 @@ def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
         await asyncio.wrap_future(on_a(asyncio.wait_for(a.campaign(), 30), loop_a))
         hold_a = on_a(a.hold(), loop_a)
         campaign_b = asyncio.ensure_future(b.campaign())
-        await asyncio.sleep(TTL * 1.5)  # a keeps its lease while its loop runs
+        await asyncio.sleep(TTL * 1.5)  # a keeps its lease while its loop runs (longer than the stall limit)
         assert not campaign_b.done() and a.may_publish()
-        resumed = threading.Event()
+        release, resumed = threading.Event(), threading.Event()
         stuck = time.monotonic()
-        loop_a.call_soon_threadsafe(lambda: (time.sleep(stuck_for), resumed.set()))  # a's loop stuck
+        loop_a.call_soon_threadsafe(lambda: (release.wait(stuck_for), resumed.set()))  # a's loop stuck
         won_b = await asyncio.wait_for(campaign_b, 30)
         elected = time.monotonic() - stuck
         hold_b = asyncio.ensure_future(b.hold())
         assert not resumed.is_set() and b.may_publish()  # elected while a's loop was still stuck
+        release.set()  # a's loop runs again (no need to wait out the rest of ``stuck_for``)
         await asyncio.wrap_future(hold_a)  # once a's loop runs again, it finds it has stood down
         assert not a.may_publish() and won_b.term > 0
         await b.close()

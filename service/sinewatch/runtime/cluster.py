@@ -338,10 +338,21 @@ class ClusterMember:
         started = time.monotonic()
         kinds: dict[str, dict[str, Any]] = {}
         for item in snapshot.get("channels", []):
-            length = round(item["samples"] / item["blocks"]) if item.get("blocks") else 0
-            kind = json.dumps(
-                [item["estimator"].get("estimator"), item["estimator"].get("params"), item["sample_rate_hz"], length]
-            )
+            try:
+                length = round(item["samples"] / item["blocks"]) if item.get("blocks") else 0
+                kind = json.dumps(
+                    [
+                        item["estimator"].get("estimator"),
+                        item["estimator"].get("params"),
+                        item["sample_rate_hz"],
+                        length,
+                    ]
+                )
+            except (KeyError, TypeError, AttributeError, ValueError, ZeroDivisionError):
+                # not a channel's state (a forged snapshot's: the router's access control keeps them out): nothing
+                # to warm up; it raised out of this callback, logged as an error of the event loop
+                log.warning("cluster: a snapshot's channel without its state: not warmed up")
+                continue
             if length > 0 and kind not in self._warmed:
                 kinds.setdefault(kind, item)
         if not kinds:

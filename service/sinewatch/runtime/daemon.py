@@ -52,7 +52,7 @@ from sinewatch.outputs.c37118_server import C37118Server
 from sinewatch.outputs.publisher import ZenohPublisherSink
 from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.runtime.cluster import ClusterMember
-from sinewatch.runtime.intake import Intake, IntakeCounters, Item
+from sinewatch.runtime.intake import Intake, IntakeCounters, Item, KeyTurns
 from sinewatch.runtime.sdnotify import Notifier
 from sinewatch.runtime.signals import shutdown_signals
 from sinewatch.schemas.codec import encode_status
@@ -174,23 +174,46 @@ class Daemon:
         return self._last_log_time
 
     async def _consume(self) -> None:
+        size = self.config.limits.intake_batch
+        turns = KeyTurns()  # a backlog of more than a batch (a router's return, a catch-up): the keys in turn
+        ending = False
         while True:
-            batch = await self._queue.get()
-            if batch is None:
-                return
-            try:
-                await self._process_gated(batch)
-            except Exception:  # the pipeline isolates faults; this is the last line of defence
-                log.exception("batch of %d inputs not fully processed", len(batch))
-            finally:
-                self._queued -= len(batch)
-                if self._intake is not None:
-                    intake = self._intake
-                    intake.release(sum(intake.weight(item[1]) for item in batch))
-            # Queue.get() does not yield while batches wait: without this, a backlog would keep
-            # the heartbeat, status and flush timers from running until it is gone (a watchdog
-            # or a supervisor would then take the busy daemon for a stuck one).
-            await asyncio.sleep(0)
+            batches: list[list[Item]] = []
+            if not turns:
+                if ending:
+                    return
+                first = await self._queue.get()
+                if first is None:
+                    return
+                batches.append(first)
+            while not ending and not self._queue.empty():
+                batch = self._queue.get_nowait()
+                if batch is None:
+                    ending = True
+                else:
+                    batches.append(batch)
+            if not turns and sum(map(len, batches)) <= size:  # no backlog: in arrival order
+                for batch in batches:
+                    await self._consume_batch(batch)
+                continue
+            for batch in batches:
+                turns.add(batch)
+            await self._consume_batch(turns.take(size))
+
+    async def _consume_batch(self, batch: list[Item]) -> None:
+        try:
+            await self._process_gated(batch)
+        except Exception:  # the pipeline isolates faults; this is the last line of defence
+            log.exception("batch of %d inputs not fully processed", len(batch))
+        finally:
+            self._queued -= len(batch)
+            if self._intake is not None:
+                intake = self._intake
+                intake.release(sum(intake.weight(item[1]) for item in batch))
+        # Queue.get() does not yield while batches wait: without this, a backlog would keep
+        # the heartbeat, status and flush timers from running until it is gone (a watchdog
+        # or a supervisor would then take the busy daemon for a stuck one).
+        await asyncio.sleep(0)
 
     async def _process_gated(self, batch: list[Item]) -> None:
         """Process the batch, block by block, while this daemon may publish (an elected

@@ -197,10 +197,16 @@ def check_recording(path: Path) -> None:
 
 
 def read_recording(
-    path: Path, on_progress: Callable[[int], None] | None = None, *, from_snapshot_before_ns: int | None = None
+    path: Path,
+    on_progress: Callable[[int], None] | None = None,
+    *,
+    from_snapshot_before_ns: int | None = None,
+    roles: frozenset[str] | None = None,
 ) -> Iterator[tuple[str, Any]]:
     """Yield ("metadata", dict), ("snapshot", dict) and ("message", RecordedMessage) in file
-    order; ("incomplete", reason) last if the file ends early.
+    order; ("incomplete", reason) last if the file ends early. ``roles``: only the messages of
+    channels with these roles (the others are skipped undecoded: an input's protobuf decoding
+    is most of a read).
 
     ``from_snapshot_before_ns``: in a finished file (one with a summary), skip what comes
     before its latest state snapshot logged at or before that time (:func:`seek_point`):
@@ -221,7 +227,9 @@ def read_recording(
                 if isinstance(record, Channel):
                     channels[record.id] = record
                 elif isinstance(record, Message):
-                    yield "message", recorded_message(channels[record.channel_id], record)
+                    channel = channels[record.channel_id]
+                    if roles is None or channel.metadata.get("role", "") in roles:
+                        yield "message", recorded_message(channel, record)
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     yield "metadata", dict(record.metadata)
                 elif isinstance(record, Attachment) and record.name == SNAPSHOT_NAME:
