@@ -383,3 +383,27 @@ def _dispatch_rank(nodeid: str) -> int:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: _dispatch_rank(item.nodeid))  # stable: collection order within a rank
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """A run on xdist workers (``-n``) starts with the kernels compiled, as ``make test`` does
+    (``tests/compile_kernels.py``, before the workers start), unless that script has completed
+    since the sources last changed. Otherwise the first test to call a kernel compiles it, for
+    tens of seconds of CPU, which on a loaded machine outlasts pytest-timeout's 300 s; and the
+    timeout's exception, raised in whichever frame runs then, can land inside numba's
+    object-cache callback, where it is swallowed and numba fails to save the kernel ("no
+    compiled object yet"): the estimator stage rejects the block and the test fails on that
+    instead. Runs without ``-n`` (one file, one test) compile on demand as before."""
+    config = session.config
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    if config.option.collectonly:
+        return
+    script = Path(__file__).parent / "compile_kernels.py"
+    sys.path.insert(0, str(script.parent))
+    try:
+        import compile_kernels
+    finally:
+        sys.path.remove(str(script.parent))
+    if not compile_kernels.is_warm():
+        subprocess.run([sys.executable, str(script)], check=True)
