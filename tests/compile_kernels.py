@@ -19,6 +19,7 @@ stage's harmonic analyser; and the recordings in ``tests/data`` replayed.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 import tempfile
@@ -27,6 +28,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from sinewatch.core.pipeline import NullSink, Pipeline
@@ -117,17 +119,51 @@ def _recordings() -> str:
     return "recordings"
 
 
+SOURCES = Path(__file__).resolve().parents[1] / "service" / "sinewatch"
+
+
+def stamp_path() -> Path:
+    """Where a completed run leaves its key: numba's cache directory when one is set, else the
+    ``__pycache__`` beside the sources, where numba keeps its cache by default."""
+    root = Path(numba.config.CACHE_DIR) if numba.config.CACHE_DIR else SOURCES / "__pycache__"
+    return root / "compile_kernels.stamp"
+
+
+def sources_key() -> str:
+    """What the cache this script fills depends on: numba's version and every source file's
+    bytes (numba drops a file's cache entries when that file changes), and the recordings it
+    replays. Reading them takes milliseconds."""
+    h = hashlib.sha256(f"{numba.__version__} {sys.version}".encode())
+    data = Path(__file__).parent / "data"
+    for path in sorted([*SOURCES.rglob("*.py"), *data.glob("*.mcap"), Path(__file__)]):
+        h.update(str(path.relative_to(SOURCES.parents[1])).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def is_warm() -> bool:
+    """Whether this script has completed since the sources last changed."""
+    try:
+        return stamp_path().read_text(encoding="ascii").strip() == sources_key()
+    except OSError:
+        return False
+
+
 def main() -> int:
     """One task per estimator (and the power-quality stage), on two processes: numba compiles
     on one core, and ``make test`` runs this beside the much shorter lint, so a single process
     would leave a core idle for most of the compilation."""
     t0 = time.monotonic()
+    key = sources_key()  # the sources compiled: a file edited meanwhile leaves the stamp stale
     names = sorted(available(), key=lambda n: n != "adaptive-multisine")  # the longest first
     with ProcessPoolExecutor(max_workers=2) as pool:
         for task in as_completed(
             [pool.submit(_power_quality), *(pool.submit(_one, n) for n in names), pool.submit(_recordings)]
         ):
             task.result()  # a kernel that fails to compile fails here
+    stamp = stamp_path()
+    stamp.parent.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(key + "\n", encoding="ascii")
     print(f"compile_kernels: {time.monotonic() - t0:.1f} s", file=sys.stderr)
     return 0
 

@@ -38,6 +38,11 @@ from sinewatch.schemas.config import (
 )
 
 TIMEOUT = 20.0  # a guard for a loaded machine: every wait ends as soon as its message arrives
+# How long a client waits for a ``sinewatch serve`` it started to listen: serve imports, opens
+# its outputs and loads (or, after a source edit, compiles) its kernels before it listens, tens
+# of seconds on a machine whose cores are shared with a dozen busy processes. A wait that ends
+# as soon as it connects, so only a daemon that never comes up costs this long.
+STARTUP_WAIT_S = 180
 R = TypeVar("R")
 
 
@@ -232,14 +237,14 @@ def serve_feed_tail(
         # "tail: waiting for a Zenoh router ..." first, then "tail: subscribed to ..." once it is
         assert any(line.startswith("tail: subscribed to") for line in iter(tail.stderr.readline, ""))
         feed = subprocess.run(
-            sinewatch("feed", *feed_args, "--fast", "--wait", "60"),
+            sinewatch("feed", *feed_args, "--fast", "--wait", str(STARTUP_WAIT_S)),
             capture_output=True,
             text=True,
-            timeout=120,
+            timeout=STARTUP_WAIT_S + 60,
             check=False,
         )
         assert feed.returncode == 0, feed.stderr
-        out, _ = tail.communicate(timeout=120)
+        out, _ = tail.communicate(timeout=STARTUP_WAIT_S + 60)
     finally:
         serve.send_signal(signal.SIGINT)
         _, err = serve.communicate(timeout=60)
@@ -268,7 +273,7 @@ def serve_config_feed_tail(
     cfg_file.write_text(json.dumps(config.model_dump(mode="json")))
     return serve_feed_tail(
         ["--config", str(cfg_file)],
-        ["--connect", ep, "--count", str(n_messages), "--json", "--timeout", "60", "--wait", "60"],
+        ["--connect", ep, "--count", str(n_messages), "--json", "--timeout", "60", "--wait", str(STARTUP_WAIT_S)],
         ["--connect", ep, *feed_args],
     )
 
@@ -383,3 +388,27 @@ def _dispatch_rank(nodeid: str) -> int:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: _dispatch_rank(item.nodeid))  # stable: collection order within a rank
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """A run on xdist workers (``-n``) starts with the kernels compiled, as ``make test`` does
+    (``tests/compile_kernels.py``, before the workers start), unless that script has completed
+    since the sources last changed. Otherwise the first test to call a kernel compiles it, for
+    tens of seconds of CPU, which on a loaded machine outlasts pytest-timeout's 300 s; and the
+    timeout's exception, raised in whichever frame runs then, can land inside numba's
+    object-cache callback, where it is swallowed and numba fails to save the kernel ("no
+    compiled object yet"): the estimator stage rejects the block and the test fails on that
+    instead. Runs without ``-n`` (one file, one test) compile on demand as before."""
+    config = session.config
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    if config.option.collectonly:
+        return
+    script = Path(__file__).parent / "compile_kernels.py"
+    sys.path.insert(0, str(script.parent))
+    try:
+        import compile_kernels
+    finally:
+        sys.path.remove(str(script.parent))
+    if not compile_kernels.is_warm():
+        subprocess.run([sys.executable, str(script)], check=True)

@@ -234,8 +234,8 @@ def test_serve_c37118_frames_equal_the_zenoh_estimates(tmp_path):
         assert row["in_sync"] and row["time_quality"] == 0
 
 
-def daemon_config(tmp_path, **section):
-    station = C37118Station(id_code=ID, name="SINEWATCH A", channels=CHANNELS, data_rate=50)
+def daemon_config(tmp_path, max_skew_s: float = 0.5, **section):
+    station = C37118Station(id_code=ID, name="SINEWATCH A", channels=CHANNELS, data_rate=50, max_skew_s=max_skew_s)
     c37 = C37118Section(enabled=True, port=0, stations=[station], **section)
     return make_config(
         tmp_path,
@@ -249,8 +249,12 @@ def test_a_stalled_client_costs_the_daemon_nothing_and_its_drops_are_counted(tmp
     per_channel = station_blocks(30.0)
     times = report_times(per_channel[0])
     # a small per-client budget, so that the stalled client overflows within the run; one block
-    # per turn of the event loop (as in real time), so that a reading client keeps up
-    config = daemon_config(tmp_path, client_queue_frames=8, client_buffer_bytes=16384)
+    # per turn of the event loop (as in real time), so that a reading client keeps up. The
+    # station keeps its reporting rate with frames of invalid data (STAT error 11) once no
+    # estimate has come for max_skew_s of wall-clock time: 0.5 s by default, which a loaded
+    # machine can starve the publisher or the daemon for. Its reports are not what this test
+    # is about, so the wait is longer than the run.
+    config = daemon_config(tmp_path, max_skew_s=120.0, client_queue_frames=8, client_buffer_bytes=16384)
     config.limits.intake_batch = 1
 
     def client(daemon, ep):

@@ -16,7 +16,7 @@ import sys
 import time
 
 import numpy as np
-from conftest import TIMEOUT, make_config
+from conftest import STARTUP_WAIT_S, TIMEOUT, make_config
 
 from sinewatch.clients import BlockPublisher, JsonSubscription, connect, subscribe_estimates
 from sinewatch.runtime.replay import read_recording, replay
@@ -35,7 +35,7 @@ def test_sigkill_under_load_loses_at_most_the_flush_interval(tmp_path):
     serve = subprocess.Popen([sys.executable, "-m", "sinewatch", "serve", "--config", str(cfg_file), "--workers", "1"])
     handled_at: list[float] = []  # when each block's estimate came back
     try:
-        with connect([config.zenoh.listen[0]], timeout_s=TIMEOUT) as s:
+        with connect([config.zenoh.listen[0]], timeout_s=STARTUP_WAIT_S) as s:  # serve starting up
             with JsonSubscription(s, "sinewatch/status/**") as status:
                 assert status.get(timeout=TIMEOUT) is not None  # the daemon is up
             est = subscribe_estimates(s)

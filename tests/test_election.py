@@ -132,10 +132,18 @@ def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
         await asyncio.sleep(TTL * 1.5)  # a keeps its lease while its loop runs (longer than the stall limit)
         assert not campaign_b.done() and a.may_publish()
         release, resumed = threading.Event(), threading.Event()
-        stuck = time.monotonic()
-        loop_a.call_soon_threadsafe(lambda: (release.wait(stuck_for), resumed.set()))  # a's loop stuck
+        stuck_at: list[float] = []
+
+        def stick() -> None:  # a's loop stuck, from when it runs this (its thread may wake late)
+            stuck_at.append(time.monotonic())
+            release.wait(stuck_for)
+            resumed.set()
+
+        asked = time.monotonic()
+        loop_a.call_soon_threadsafe(stick)
         won_b = await asyncio.wait_for(campaign_b, 30)
-        elected = time.monotonic() - stuck
+        elected = time.monotonic() - stuck_at[0]
+        print(f"a's loop ran the stuck callback {stuck_at[0] - asked:.2f} s after it was scheduled")
         hold_b = asyncio.ensure_future(b.hold())
         assert not resumed.is_set() and b.may_publish()  # elected while a's loop was still stuck
         release.set()  # a's loop runs again (no need to wait out the rest of ``stuck_for``)
