@@ -6,10 +6,9 @@ equations, same order of operations; eq. numbers as in that module).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from sinewatch.estimators import detmath
 from sinewatch.estimators._ges_kalman_kernels import (
     BIAS_SIZE,
     T_NEGLIGIBLE,
@@ -131,6 +130,7 @@ def _bank_bias(S: np.ndarray) -> None:
     offsets in one array, which the compiler vectorises. Inside the lanes' step (one lane's
     whole recursion, 10 + 4 inner loops and a call) it kept the step scalar: the bank ran at
     half the speed of one channel."""
+    detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     L = LANES
     for lane in range(L):
         i = _RB * L + lane
@@ -251,6 +251,7 @@ def ges_kalman_bank_kernel(
     ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
     count over one array), then each channel's noise means (U5)-(U5a) take their log and
     exp lane by lane, the C library's scalar calls that the single kernel makes."""
+    detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = y.shape
     rows = 1 if last_only else n
     out = np.empty((nc, rows, 5))
@@ -319,7 +320,7 @@ def ges_kalman_bank_kernel(
                     _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
         if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
             for i in range(n * L):  # the logs first: independent calls, which overlap
-                logs[i] = math.log(max(us[i], TINY))
+                logs[i] = detmath.log(max(us[i], TINY))
             _bank_means(us, logs, means, refs, lam, n)
             for c in range(width):
                 m_u, w = means[0, c], means[1, c]

@@ -98,6 +98,7 @@ import math
 
 import numpy as np
 
+from sinewatch.estimators import detmath
 from sinewatch.estimators.base import kernel, undefined_row
 
 NOISE_MEMORY = 128  # N_sigma, samples: time constant of the noise-variance estimate (U5)
@@ -226,7 +227,7 @@ def _noise_means(
     (U5a) whatever exp's last bit, and ``min`` returns it: the exp is then skipped, with the
     same result. On a stationary signal the cap rarely binds and the exponent drifts slowly,
     so most samples take the log only."""
-    return _noise_means_of_log(u, math.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
+    return _noise_means_of_log(u, detmath.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
 
 
 @kernel(inline="always")

@@ -21,6 +21,7 @@ from llvmlite import ir as llvm_ir
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from sinewatch.estimators import detmath
 from sinewatch.estimators.base import kernel, undefined_row
 
 ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
@@ -263,13 +264,13 @@ def half_step(wts: float) -> tuple[float, float, float]:
     """sin and cos of omega Ts / 2, and 1 / sinc^2(omega Ts / 2), the first-order hold's
     amplitude correction."""
     half = 0.5 * wts
-    return half_step_of(half, math.sin(half))
+    return half_step_of(half, detmath.sin(half))
 
 
 @kernel(inline="always")
 def half_step_of(half: float, sh: float) -> tuple[float, float, float]:
-    """:func:`half_step` given ``sh = sin(half)``: a bank takes the sines in a loop of their
-    own (C library calls, scalar per lane)."""
+    """:func:`half_step` given ``sh = sin(half)`` (:func:`sinewatch.estimators.detmath.sin`, the
+    same function in the single kernel and in a bank's vectorised lanes)."""
     c2 = 1.0 - sh * sh
     ch = sqrt(0.0 if 0.0 > c2 else c2)  # max(c2, 0.0), as Python's max
     q = half / sh
@@ -650,12 +651,12 @@ def bank_load(
 
 @kernel(inline="always")
 def bank_sines(S: np.ndarray) -> None:
-    """The sine of the first-order hold's correction for every lane: C library calls, lane by
-    lane (a vectorised sine would round differently), in a loop of their own so that the
-    loops around them vectorise."""
+    """The sine of the first-order hold's correction for every lane, by
+    :func:`sinewatch.estimators.detmath.sin` (plain arithmetic, no library call): the
+    compiler vectorises it across the lanes, each lane rounding as the single kernel's."""
     L = LANES
     for lane in range(L):
-        S[_RSH * L + lane] = math.sin(S[_RHALF * L + lane])
+        S[_RSH * L + lane] = detmath.sin(S[_RHALF * L + lane])
 
 
 @kernel(inline="always")
@@ -734,10 +735,11 @@ def _kkl_bank(
     channel per column; returns ``out`` (C, rows, 5), ``extras`` (C, rows, 3), ``sse`` (C,)
     and the new state (m + 10, C). Channels go ``LANES`` at a time through a lane-major work
     array: each step of a sample is a loop over the lanes of literal trip count, over one
-    array at constant offsets (the filters, the inverse map, the read-out, the fit residual:
-    one vector each), except the sine of the first-order hold's correction, a C library
-    call per lane as in the single kernel. The rows are written after the block, channel by
-    channel, by the single kernel's own functions."""
+    array at constant offsets (the filters, the inverse map, the read-out, the fit residual,
+    the sine of the first-order hold's correction: one vector each, 8 doubles wide where the
+    CPU has AVX-512). The rows are written after the block, channel by channel, by the single
+    kernel's own functions."""
+    detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     Ts, w_ref, ell, silence_ratio, env_decay, n_settle, max_fit2, max_pred2, avg_gain, wts_lo, wts_hi, fast_gain, slow_gain = (
         observer_constants(consts)
     )  # fmt: skip

@@ -104,12 +104,11 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
-import numba
 import numpy as np
 from pydantic import Field
 
-from sinewatch.estimators import register
-from sinewatch.estimators.bank import NO_BANK, column_tracks, register_bank
+from sinewatch.estimators import detmath, register
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -168,9 +167,10 @@ class SogiFllParams(EstimatorParams):
 @kernel(inline="always")
 def _sogi_fll_tan(w: float, consts: np.ndarray) -> float:
     """(T) the pre-warped step's ``a = tan(omega' h / 2)``: one tan and the half-angle identities
-    instead of sin and cos (shorter loop-carried chain). Apart from :func:`_sogi_fll_step` so that
-    a bank computes it per lane with the library's scalar tan and vectorises the rest."""
-    return math.tan(0.5 * w * consts[0])
+    instead of sin and cos (shorter loop-carried chain), by :func:`sinewatch.estimators.detmath.tan`
+    (plain arithmetic, no library call), so that a bank vectorises it across its lanes and each
+    lane rounds as the single kernel."""
+    return detmath.tan(0.5 * w * consts[0])
 
 
 @kernel(inline="always")
@@ -410,6 +410,7 @@ def sogi_fll_bank_kernel(
     column one channel's ``x``); returns ``out`` (C, rows, 5), ``extras`` (C, rows, 2), ``sse``
     (C,) and the new state (10, C). Samples outer, channels inner: the C recursions are
     independent, so the CPU overlaps their chains (each the same :func:`_sogi_fll_step`)."""
+    detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = v.shape
     rows = 1 if last_only else n
     out = np.empty((nc, rows, 5))
@@ -439,9 +440,4 @@ def sogi_fll_bank_kernel(
     return out, ext, sse, x
 
 
-# With Intel's SVML installed, numba would vectorise the bank's tan loop with SVML's tan, which
-# rounds differently from the C library's that the single kernel calls: no bank then.
-if not getattr(numba.config, "USING_SVML", False):  # (absent from numba's type information)
-    register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3, tracks=SogiFll._bank_tracks)
-else:  # pragma: no cover (numba without SVML, as tested)
-    NO_BANK["sogi-fll"] = "no compiled bank: numba uses SVML, whose vectorised tan rounds differently"
+register_bank(SogiFll, sogi_fll_bank_kernel, n_outputs=3, tracks=SogiFll._bank_tracks)
