@@ -7,15 +7,17 @@ import math
 
 import numpy as np
 
+from sinewatch.estimators import detmath
 from sinewatch.estimators.ges_kalman import LOG_CHI2_MEAN, NOISE_MEMORY, ROBUST_CAP, TINY, _noise_means
 
 
 def _plain(u: float, w: float, m_u: float, m_l: float, lam: float) -> tuple[float, float, float]:
     """(U5)-(U5a) as written in the module docstring, exp taken every time (Python's math
-    calls the same C library)."""
+    calls the same C library as the kernel's exp); the log is the kernel's own
+    (:func:`sinewatch.estimators.detmath.log`, plain arithmetic, not the C library's)."""
     w = lam * w + (1.0 - lam)
     m_u = lam * m_u + (1.0 - lam) * u
-    m_l = lam * m_l + (1.0 - lam) * math.log(max(u, TINY))
+    m_l = lam * m_l + (1.0 - lam) * detmath.log(max(u, TINY))
     m_u = min(m_u, ROBUST_CAP * w * math.exp(m_l / w - LOG_CHI2_MEAN))
     return w, m_u, m_l
 

@@ -5,7 +5,11 @@ source tree was reorganised into layers (every registered estimator at its examp
 parameters, 12 blocks each, through the real pipeline and MCAP recorder); its 12 ipdft
 estimates were later rewritten, byte for byte this build's, when ipdft began reporting its
 ROCOF's standard deviation in ``extras`` (the one field they gained; every other message is
-the earlier build's, and its Estimate format has no ``std``). Any change
+the earlier build's, and its Estimate format has no ``std``). The estimates of kkl, kkl-biased
+and sogi-fll in it, and sogi-fll's in the two fixtures below, were rewritten byte for byte this
+build's when those kernels' sin and tan became ``sinewatch.estimators.detmath``'s instead of the C
+library's (their last bits: at most 2.2e-11 relative, in a ROCOF; every other message and record
+the same). Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """
