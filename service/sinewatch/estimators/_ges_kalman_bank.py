@@ -249,8 +249,9 @@ def ges_kalman_bank_kernel(
     (C, rows, 4) and the new ``xP`` and ``unc``. Channels go ``LANES`` at a time through a
     lane-major work array (copied in and out once per block): the filter, T and U of the
     ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
-    count over one array), then each channel's noise means (U5)-(U5a) take their log and
-    exp lane by lane, the C library's scalar calls that the single kernel makes."""
+    count over one array), then the noise means (U5)-(U5a): the block's logs in one vectorised
+    loop (:func:`sinewatch.estimators.detmath.log`, as the single kernel), the recursion and
+    its exp (the C library's, where the cap may bind) lane by lane."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = y.shape
     rows = 1 if last_only else n

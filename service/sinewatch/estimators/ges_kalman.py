@@ -201,16 +201,16 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
-        "the bank advances 8 channels as one vector (lane-major state; the filter, T, U and the "
-        "bias recursion (B1)-(B3) in 256-bit AVX registers, LLVM's preferred width here) at "
-        "~1.7-2.5x one channel, and still takes, per sample of every channel, one log from the C "
-        "library for the noise means (U5), scalar per lane (~6.5 ns a call by throughput; a "
-        "vectorised log would round differently). The bias correction, on by default, is ~550 "
-        "flops a sample and channel, more than the filter, T and U together: the bank 55-64 ns a "
-        "sample with it against 32-52 without (8 channels of 1024 samples, CPU time, load 7-12). "
-        "Twice the FFT is ~15 ns a sample on an idle core: it would take the arithmetic at 8 "
-        "doubles a vector (AVX-512, which LLVM does not choose for these loops) and a log "
-        "vectorised with the C library's exact rounding"
+        "the bank advances 8 channels as one 512-bit vector (lane-major state; the filter, T, U and "
+        "the bias recursion (B1)-(B3) on zmm in its assembly, and the noise means' log (U5) in a "
+        "vectorised loop of its own by sinewatch.estimators.detmath.log, plain arithmetic that the "
+        "single kernel uses too: no library call) at ~1.8-2.5x one channel. The bias correction, on "
+        "by default, is ~550 flops a sample and channel, more than the filter, T and U together; the "
+        "means' recursion (U5)-(U5a) runs two lanes at a time (its exp, where the cap may bind, is "
+        "the C library's), and the filter's two divisions sit on each lane's chain. 512-bit lanes "
+        "against 256-bit ones, measured in turn under load 13-23: 1.07x (60 ns a channel-sample) and "
+        "0.75x (106) the streaming FFT. Twice the FFT is ~15 ns a sample on an idle core: about a "
+        "quarter of the bank's arithmetic now"
     )
 
     def _setup(self) -> None:

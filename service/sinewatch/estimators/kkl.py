@@ -487,16 +487,15 @@ class Kkl(FilterBankObserver[KklParams], kernel=kkl_kernel, name="kkl"):
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
-        "the bank advances 8 channels as one vector (lane-major state, the m filters unrolled; "
-        "the filters, the inverse map (8)-(9), the read-out and the fit residual in two loops over "
-        "the lanes that LLVM vectorises at 4 doubles, its preferred width here) at 2.2-4.6x one "
-        "channel, and is bound by that arithmetic itself: per sample and channel ~200 flops, "
-        "three square roots and four divisions (vsqrtpd and vdivpd, long-latency and not fully "
-        "pipelined), plus one sine from the C library per lane (a vectorised sine would round "
-        "differently), which is 15 % of the bank's time (a loop of the same sines timed beside "
-        "it: ~6-7 ns of ~42-48 ns a channel-sample, at load ~25). Twice the FFT would need the "
-        "arithmetic at ~half its cost: 8 doubles a vector (AVX-512), which LLVM does not choose "
-        "for this loop"
+        "the bank advances 8 channels as one 512-bit vector (lane-major state, the m filters "
+        "unrolled; the filters, the inverse map (8)-(9), the sine of the first-order hold's "
+        "correction by sinewatch.estimators.detmath.sin, plain arithmetic that the single kernel uses "
+        "too, the read-out and the fit residual in loops over the lanes that LLVM vectorises 8 "
+        "doubles wide: zmm in its assembly, no library call) at ~4-4.6x one channel, and is bound by "
+        "that arithmetic itself: per sample and channel ~200 flops and the sine's ~40, three square "
+        "roots and four divisions (vsqrtpd and vdivpd, long-latency and not fully pipelined). 512-bit "
+        "lanes against 256-bit ones, measured in turn under load 13-23: 1.48x and 1.35x the streaming "
+        "FFT. Twice the FFT would need fewer divisions and square roots a sample, not wider vectors"
     )
 
     @classmethod

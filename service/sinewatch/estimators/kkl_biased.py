@@ -140,16 +140,15 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
     )
     # Printed by ``sinewatch bench kernels --bank N`` when the bank stays below twice the FFT.
     bank_note: ClassVar[str] = (
-        "the bank is kkl's (lane-major state, the m = 5 filters unrolled, two loops over 8 lanes "
-        "that LLVM vectorises at 4 doubles: vdivpd, vsqrtpd and vmulpd on ymm in its assembly, "
-        "around one sine per lane from the C library) at ~3.5x one channel, and is bound by "
-        "the arithmetic: per sample and channel the work of kkl's bank with one more filter, "
-        "the centred sums and the 4 x 4 solve by its Schur complement: seven divisions (the "
-        "three of the regularised eigenvalues are taken for every lane: a vector computes both "
-        "sides of the select on mu = 0) and two square roots, long-latency and not fully "
-        "pipelined, plus the sine (a vectorised sine would round differently). One run at load "
-        "10-12 (`sinewatch bench kernels --bank 8 --estimators kkl,kkl-biased`): 47 ns a "
-        "channel-sample, 1.00x the streaming FFT, kkl's bank 1.27x in the same run"
+        "the bank is kkl's (lane-major state, the m = 5 filters unrolled, two loops over 8 lanes that "
+        "LLVM vectorises 8 doubles wide: vdivpd, vsqrtpd and vmulpd on zmm in its assembly, the sine "
+        "of the first-order hold's correction by sinewatch.estimators.detmath.sin, no library call) "
+        "at ~3.5-4.7x one channel, and is bound by the arithmetic: per sample and channel the work of "
+        "kkl's bank with one more filter, the centred sums and the 4 x 4 solve by its Schur "
+        "complement: seven divisions (the three of the regularised eigenvalues are taken for every "
+        "lane: a vector computes both sides of the select on mu = 0) and two square roots, "
+        "long-latency and not fully pipelined, plus the sine's ~40 flops. 512-bit lanes against "
+        "256-bit ones, measured in turn under load 13-23: 1.29x and 1.20x the streaming FFT"
     )
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 

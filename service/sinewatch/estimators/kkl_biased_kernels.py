@@ -391,7 +391,7 @@ def _bank_sample(
     ik: tuple[float, float, float], det_k0: float, inv_m: float, back: tuple[float, float, float, float, float],
 ) -> None:  # fmt: skip
     """One sample of every lane: two loops over the lanes that LLVM vectorises and between
-    them the sines, C library calls lane by lane."""
+    them the sines (:func:`sinewatch.estimators.detmath.sin`, vectorised too)."""
     n_settle, max_fit2, max_pred2, wts_lo, wts_hi = back
     for lane in range(LANES):  # (12), eta_bar, the sums over the filters, the inverse map
         _bank_front(S, lane, lam, lp, fa, fb0, fb1, front, kvt, kk, ik, det_k0, inv_m)
