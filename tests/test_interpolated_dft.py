@@ -256,7 +256,7 @@ def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_po
         for n in range(n_w):
             re += wu[n] * cos_tab[k * n % n_w]
             im -= wu[n] * sin_tab[k * n % n_w]
-        mags.append(math.hypot(re, im))
+        mags.append(math.sqrt(re * re + im * im))  # correctly rounded, as the kernel's
     bp = 1  # (P)
     for bb in range(2, k_hi - k_lo + 2):
         if mags[bb] > mags[bp]:
