@@ -106,7 +106,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators.bank import register_bank
+from sinewatch.estimators.bank import column_tracks, register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -369,25 +369,35 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
 
     def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
         """The Tracks of a bank's channels (:func:`ipdft_bank_kernel`'s outputs, channel
-        first) as :meth:`_track` gives each, with (U) computed once over the rows of all
-        channels: element-wise numpy, so each row's bits do not depend on the rows beside
-        it, and the ~20 numpy calls of (U) are paid once a frame instead of once a channel."""
+        first) as :meth:`_track` gives each, built with one numpy call a field for the whole
+        frame (:func:`~sinewatch.estimators.bank.column_tracks`), (U) computed once over the
+        rows of all channels: element-wise numpy, so each row's bits do not depend on the rows
+        beside it (the residual's ``sqrt(sse / n)`` is correctly rounded in numpy as in
+        ``math``)."""
         out, resid, rocof, age, sse, n_pred = outputs
         nc, rows = resid.shape
         std, std_rocof = self._std(out.reshape(nc * rows, 5), resid.reshape(-1), age.reshape(-1))
-        tracks = []
-        for c in range(nc):
-            sl = slice(c * rows, (c + 1) * rows)
-            track = track_from_columns(out[c], float(sse[c]), int(n_pred[c]), {"fit_residual_rms": resid[c]})
-            track.rocof_hz_per_s = rocof[c][:, None]
-            track.std = TrackStd(
-                frequency_hz=std.frequency_hz[sl],
-                amplitude=std.amplitude[sl],
-                phase_rad=std.phase_rad[sl],
-                offset=std.offset[sl],
-            )
-            track.extras["std_rocof_hz_per_s"] = std_rocof[sl]
-            tracks.append(track)
+        shaped = (nc, rows, 1)
+        tracks = column_tracks(
+            out,
+            np.zeros(nc),  # the residuals below: each channel has its own count of predictions
+            1,
+            {"fit_residual_rms": resid, "std_rocof_hz_per_s": std_rocof.reshape(nc, rows)},
+            rocof=rocof.reshape(shaped),
+            std=np.stack(
+                (
+                    std.frequency_hz.reshape(nc, rows),
+                    std.amplitude.reshape(nc, rows),
+                    std.phase_rad.reshape(nc, rows),
+                    std.offset.reshape(nc, rows),
+                ),
+                axis=2,
+            ),
+        )
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.where(n_pred > 0, np.sqrt(sse / n_pred), math.nan).tolist()
+        for track, r in zip(tracks, rms, strict=True):
+            track.residual_rms = r
         return tracks
 
     def _std(self, out: np.ndarray, resid: np.ndarray, age: np.ndarray) -> tuple[TrackStd, np.ndarray]:
