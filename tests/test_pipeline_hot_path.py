@@ -257,6 +257,10 @@ def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tm
             assert fast == estimate_payload(pipe, *args, fast=False), (c, std, rocof)
             assert (ch.template is None) == (c == 4)  # the NaN went the general way
         assert tracks[0].bank_row is not None and tracks[0].bank_row[0].texts is not None  # one pass made them
+        tracks[2].residual_rms = 0.125  # set after column_tracks (as ipdft's bank does): the track's value is written
+        args = (ch, blk, tracks[2], 10**18, 10**18, 0, False, False, False)
+        assert b'"residual_rms":0.125,' in estimate_payload(pipe, *args)[0]
+        assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
 
 
 def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():

@@ -148,13 +148,17 @@ def _usual_texts(track: Track) -> list[str] | None:
             values = bank.values
             bank.finite = np.isfinite(values[:, :-1]).all(axis=1).tolist()
             bank.texts = repr_floats(values.reshape(-1))
-        if not bank.finite[c]:  # type: ignore[index]  # (made with texts)
-            return None
         width = bank.values.shape[1]
-        texts = bank.texts[c * width : (c + 1) * width]
-        if texts[-1] in _NOT_FINITE:
-            texts[-1] = "null"
-        return texts
+        rms, row_rms = track.residual_rms, bank.values.item(c, width - 1)
+        # a bank that set the track's RMS after column_tracks (ipdft's own count of predictions)
+        # leaves the row's stale: then the track's own way
+        if rms == row_rms or (rms != rms and row_rms != row_rms):
+            if not bank.finite[c]:  # type: ignore[index]  # (made with texts)
+                return None
+            texts = bank.texts[c * width : (c + 1) * width]
+            if texts[-1] in _NOT_FINITE:
+                texts[-1] = "null"
+            return texts
     floats = _usual_floats(track)
     if floats is None:
         return None
