@@ -32,7 +32,7 @@ import pytest
 from cluster_procs import (
     CHANNELS,
     Estimates,
-    Gateway,
+    GatewayProcess,
     ProxyProcess,
     Router,
     Tokens,
@@ -86,7 +86,7 @@ def run_chaos(tmp_path: Path, faults: list[str]) -> list[dict[str, Any]]:
                 procs[d] = start_daemon(tmp_path, d, configs[d])
             tokens.wait_count("active", len(SHARDS), timeout=240)  # both shards elected (compiling takes a while)
             tokens.wait_count("standby", len(DAEMONS) - len(SHARDS), timeout=240)
-            gateway = Gateway(router.port)
+            gateway = GatewayProcess(router.port)  # its pace apart from this process's subscriber
             stack.callback(gateway.close)
             gateway.start()
             estimates.wait(lambda e: all(len(e[c]) >= 10 for c in CHANNELS), "every channel estimated")
