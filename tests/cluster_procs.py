@@ -225,6 +225,14 @@ class Proxy:
         self._listener.close()
 
 
+def helper_process(kind: str, port: int) -> subprocess.Popen[str]:
+    """``python cluster_procs.py <kind> <port>``, commanded a line at a time on its stdin,
+    answering on its stdout (:class:`ProxyProcess`, :class:`GatewayProcess`)."""
+    return subprocess.Popen(
+        [sys.executable, __file__, kind, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+
+
 class ProxyProcess:
     """A :class:`Proxy` in a process of its own, severed and healed on command: the daemons'
     keep-alives then do not wait for this test process's interpreter, busy with the gateway
@@ -232,12 +240,7 @@ class ProxyProcess:
     leases when the machine's load average reached 30-40)."""
 
     def __init__(self, target_port: int) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, __file__, "proxy", str(target_port)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        self.proc = helper_process("proxy", target_port)
         assert self.proc.stdout is not None
         self.port = int(self.proc.stdout.readline())
 
@@ -518,12 +521,7 @@ class GatewayProcess:
         self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
         self.sent_wall: list[float] = []
         self._stopped = threading.Event()
-        self.proc = subprocess.Popen(
-            [sys.executable, __file__, "gateway", str(router_port)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        self.proc = helper_process("gateway", router_port)
         assert self.proc.stdout is not None
         for line in self.proc.stdout:  # its session is open once it says so (Zenoh's log may come first)
             if line.strip() == "ready":

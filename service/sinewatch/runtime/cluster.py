@@ -37,6 +37,7 @@ import json
 import logging
 import math
 import re
+import threading
 import time
 import zlib
 from dataclasses import dataclass
@@ -55,6 +56,8 @@ from sinewatch.schemas.messages import Fencing
 log = logging.getLogger("sinewatch.runtime.cluster")
 
 ADMIN_QUERY_TIMEOUT_S = 2.0
+STANDBY_ESTIMATE_FIFO = 10_000  # estimates a standby may fall behind by (10 s of 100 channels at 10 blocks/s)
+READER_JOIN_S = 0.5  # the longest a takeover waits for the standby's reader to note what its FIFO held
 
 
 class IntakeCount(Protocol):
@@ -179,6 +182,7 @@ class ClusterMember:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._watch: list[Any] = []  # the standby's subscribers
+        self._reader: threading.Thread | None = None  # the standby's thread draining the estimates' FIFO
         self._queryable: Any = None
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -292,11 +296,35 @@ class ClusterMember:
         session = self._session()
         self._set_token(self.standby_key)
         self.role = "standby"
-        self._watch = [
-            session.declare_subscriber(self.snapshot_key, self._on_snapshot),
-            session.declare_subscriber(f"{self.daemon.config.keys.estimates_prefix}/**", self._on_estimate),
-        ]
+        # The cluster's every estimate into a FIFO a thread of this daemon drains, not a Python callback on
+        # Zenoh's receiving thread: that thread took the GIL once an estimate, waiting up to Python's switch
+        # interval each time while this process's main thread was busy (loading its kernels at start); at 1,000
+        # estimates a second it fell seconds behind, and the owner's snapshots queued behind the estimates
+        # (a takeover from a snapshot 6 s old beside four CPU burners: 783 blocks to catch up, 4.2 s)
+        estimates = session.declare_subscriber(
+            f"{self.daemon.config.keys.estimates_prefix}/**", zenoh.handlers.FifoChannel(STANDBY_ESTIMATE_FIFO)
+        )
+        self._watch = [session.declare_subscriber(self.snapshot_key, self._on_snapshot), estimates]
+        self._reader = threading.Thread(
+            target=self._read_estimates, args=(estimates.handler,), name="sinewatch-standby", daemon=True
+        )
+        self._reader.start()
         log.info("cluster: standby for shard %s", self.shard_id)
+
+    def _read_estimates(self, handler: Any) -> None:
+        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
+            while True:
+                self._on_estimate(handler.recv())
+
+    def _unwatch(self) -> None:
+        """Undeclare the standby's subscribers and wait (briefly) until what the estimates' FIFO
+        still held is noted: ``published`` is read next, on this thread."""
+        for sub in self._watch:
+            sub.undeclare()
+        self._watch = []
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.join(timeout=READER_JOIN_S)
 
     def _on_snapshot(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -420,16 +448,14 @@ class ClusterMember:
         this state and ``term``)."""
         started = time.monotonic()
         succeeds = self.latest_snapshot is not None or bool(self.published)  # not a cold start: someone served
-        for sub in self._watch:
-            sub.undeclare()
-        self._watch = []
+        self._unwatch()
         pipeline = self.daemon.pipeline
         latest = self.latest_snapshot
         restored_ahead = latest is not None and latest is self._restored
         if latest is not None and not restored_ahead:
             self._restore(latest)
         self._restored = None  # served from here: the pipeline's state is this daemon's own
-        for name, (seq, timestamp_ns) in self.published.items():
+        for name, (seq, timestamp_ns) in dict(self.published).items():  # a copy: a reader left running adds to it
             ch = pipeline.channels.get(name)
             next_t0 = timestamp_ns + round(1e9 / ch.sample_rate_hz) if ch is not None else None
             if ch is None or ch.last_seq is None or ch.last_seq < seq:
@@ -566,9 +592,7 @@ class ClusterMember:
         self.role = "stopped"
         for task in self._tasks:
             task.cancel()
-        for sub in self._watch:
-            sub.undeclare()
-        self._watch = []
+        self._unwatch()
         if self._queryable is not None:
             self._queryable.undeclare()
         if self._token is not None:
