@@ -147,6 +147,23 @@ def shard_id_of(config: SinewatchConfig) -> str:
     return (f"{base}_{config.cluster.shard.replace('/', 'of')}" if config.cluster.shard else base) + worker
 
 
+def last_published(pipeline: Pipeline) -> dict[str, tuple[int, int]]:
+    """Per channel, (seq, timestamp_ns) of the last block whose estimates this daemon has
+    published: its last block, or, while estimates wait in the hold (``hold_estimates``), the
+    block before the first one held (its timestamp one mean block length before that one's)."""
+    out: dict[str, tuple[int, int]] = {}
+    for ch in pipeline.channels.values():
+        if ch.last_seq is None or ch.next_t0_ns is None:
+            continue
+        if ch.held:
+            first = json.loads(ch.held[0][0])
+            block_ns = round(1e9 * ch.samples / ch.blocks / ch.sample_rate_hz) if ch.blocks else 0
+            out[ch.name] = (int(first["seq"]) - 1, int(first["timestamp_ns"]) - block_ns)
+        else:
+            out[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
+    return out
+
+
 class ClusterMember:
     """One daemon's part in the cluster (see the module docstring). Created and driven by
     :class:`sinewatch.runtime.daemon.Daemon` on its event loop; Zenoh callbacks only hand over."""
@@ -283,10 +300,17 @@ class ClusterMember:
         is the successor's (it resumes after the last published estimate)."""
         log.warning("cluster: no longer the owner of shard %s (term %s): standing by", self.shard_id, self.term)
         self.role = "standby"
+        pipeline = self.daemon.pipeline
+        # Before the intake stops: it drops what the channels hold, which this daemon never published
+        self.published.update(last_published(pipeline))
+        holding = [ch.name for ch in pipeline.channels.values() if ch.held]
         await self.daemon.stop_intake()
-        for ch in self.daemon.pipeline.channels.values():
-            if ch.last_seq is not None and ch.next_t0_ns is not None:
-                self.published[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
+        for name in holding:
+            # Its state is past the estimates just dropped: re-elected on it, this daemon took the blocks held
+            # for published ones and never published them, nor flagged them (a block lost without a gap in a
+            # failover round, the owner re-elected after its own lease ran out at load 37). Without it, the
+            # next takeover restores the channel from a snapshot, or from the publishers' history.
+            pipeline.channels.pop(name, None)
         self.term = None
         self._stepped_down = time.monotonic()
         self._stand_by()
