@@ -225,6 +225,14 @@ class Proxy:
         self._listener.close()
 
 
+def helper_process(kind: str, port: int) -> subprocess.Popen[str]:
+    """``python cluster_procs.py <kind> <port>``, commanded a line at a time on its stdin,
+    answering on its stdout (:class:`ProxyProcess`, :class:`GatewayProcess`)."""
+    return subprocess.Popen(
+        [sys.executable, __file__, kind, str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+
+
 class ProxyProcess:
     """A :class:`Proxy` in a process of its own, severed and healed on command: the daemons'
     keep-alives then do not wait for this test process's interpreter, busy with the gateway
@@ -232,12 +240,7 @@ class ProxyProcess:
     leases when the machine's load average reached 30-40)."""
 
     def __init__(self, target_port: int) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, __file__, "proxy", str(target_port)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        self.proc = helper_process("proxy", target_port)
         assert self.proc.stdout is not None
         self.port = int(self.proc.stdout.readline())
 
@@ -467,6 +470,7 @@ class Gateway(threading.Thread):
         self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
         self.sent_wall: list[float] = []  # wall time round n (every channel's seq n) began to be put
         self.stop = threading.Event()
+        self.on_round: Any = None  # called with (n, wall time it began) once round n is put
 
     def run(self) -> None:
         t = np.arange(BLOCK) / FS
@@ -477,6 +481,8 @@ class Gateway(threading.Thread):
             for i, ch in enumerate(CHANNELS):
                 self.pub.publish(ch, np.sin(2 * np.pi * 50.0 * (t + n * BLOCK / FS) + i), sample_rate_hz=FS)
                 self.sent[ch] = n + 1
+            if self.on_round is not None:
+                self.on_round(n, self.sent_wall[-1])
             n += 1
             self.stop.wait(max(0.0, start + n * BLOCK / FS - time.monotonic()))  # the gateway's real-time pace
 
@@ -484,21 +490,100 @@ class Gateway(threading.Thread):
         """Stop publishing, then wait for every channel's last block's estimate."""
         self.stop.set()
         self.join()
-
-        def last(e: dict[str, list[dict[str, Any]]]) -> bool:
-            """Every channel's last block estimated, or the blocks after its last estimate
-            reported lost in transport for good (no later block can flag them as a gap)."""
-            return all(
-                self.sent[c] - 1 - (e[c][-1]["seq"] if e[c] else -1) <= estimates.unrecovered[c] for c in CHANNELS
-            )
-
-        estimates.wait(last, "the last blocks", timeout)
+        wait_last_blocks(self.sent, estimates, timeout)
 
     def close(self) -> None:
         self.stop.set()
         if self.is_alive():
             self.join()
         self.session.close()
+
+
+def wait_last_blocks(sent: dict[str, int], estimates: Estimates, timeout: float) -> None:
+    """Until every channel's last block sent is estimated, or the blocks after its last
+    estimate are reported lost in transport for good (no later block can flag them as a gap)."""
+
+    def last(e: dict[str, list[dict[str, Any]]]) -> bool:
+        return all(sent[c] - 1 - (e[c][-1]["seq"] if e[c] else -1) <= estimates.unrecovered[c] for c in CHANNELS)
+
+    estimates.wait(last, "the last blocks", timeout)
+
+
+class GatewayProcess:
+    """A :class:`Gateway` in a process of its own (``python cluster_procs.py gateway PORT``),
+    with the same ``sent``/``sent_wall``/``finish``/``close``: fed here from its stdout, a
+    line a round. In the 50-fault run, gateway and subscriber in this one process, beside
+    four CPU burners, fell 15 s behind the estimates from the 20th fault on: the router
+    closed this process's link, then the gateway's; in a process apart, the gateway's
+    pace does not wait for this interpreter."""
+
+    def __init__(self, router_port: int) -> None:
+        self.sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
+        self.sent_wall: list[float] = []
+        self._stopped = threading.Event()
+        self.proc = helper_process("gateway", router_port)
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:  # its session is open once it says so (Zenoh's log may come first)
+            if line.strip() == "ready":
+                break
+            print(line, end="")
+        else:
+            raise AssertionError(f"the gateway process ended before publishing (exit {self.proc.wait()})")
+        self._reader = threading.Thread(target=self._read, args=(self.proc.stdout,), daemon=True)
+        self._reader.start()
+
+    def _read(self, out: Any) -> None:
+        for line in out:
+            words = line.split()
+            if len(words) == 3 and words[0] == "round":
+                n = int(words[1])
+                self.sent_wall.append(float(words[2]))
+                for c in CHANNELS:
+                    self.sent[c] = n + 1
+            elif line.strip() == "stopped":
+                self._stopped.set()
+            else:
+                print(line, end="")  # its Zenoh log
+        self._stopped.set()
+
+    def _command(self, what: str) -> None:
+        assert self.proc.stdin is not None
+        with contextlib.suppress(OSError):  # ended already
+            self.proc.stdin.write(what + "\n")
+            self.proc.stdin.flush()
+
+    def start(self) -> None:
+        self._command("start")
+
+    def finish(self, estimates: Estimates, timeout: float = WAIT) -> None:
+        """Stop publishing (every round it put is counted here first), then wait for every
+        channel's last block's estimate."""
+        self._command("stop")
+        assert self._stopped.wait(timeout), "the gateway process did not stop"
+        self._reader.join(timeout)
+        wait_last_blocks(self.sent, estimates, timeout)
+
+    def close(self) -> None:
+        self._command("stop")
+        try:
+            self.proc.wait(timeout=WAIT)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _serve_gateway(router_port: int) -> None:
+    gateway = Gateway(router_port)
+    gateway.on_round = lambda n, wall: print(f"round {n} {wall!r}", flush=True)
+    print("ready", flush=True)
+    if sys.stdin.readline().strip() == "start":
+        gateway.start()
+        sys.stdin.readline()  # "stop", or the test's end (EOF)
+    gateway.stop.set()
+    if gateway.is_alive():
+        gateway.join()
+    print("stopped", flush=True)
+    gateway.session.close()
 
 
 def after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
@@ -773,5 +858,5 @@ def check_channel(msgs: list[dict[str, Any]], sent: int, lost_for_good: int = 0)
     return len(flagged), len(missing) + trailing
 
 
-if __name__ == "__main__":  # ``python cluster_procs.py proxy PORT``: see ProxyProcess
-    _serve_proxy(int(sys.argv[2]))
+if __name__ == "__main__":  # ``python cluster_procs.py proxy|gateway PORT``: see ProxyProcess, GatewayProcess
+    {"proxy": _serve_proxy, "gateway": _serve_gateway}[sys.argv[1]](int(sys.argv[2]))

@@ -217,6 +217,52 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
 
 
+def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tmp_path):
+    """A bank's Tracks (``column_tracks``) carry the bank's last row of every output; the first
+    Estimate of the frame writes every channel's floats in one compiled call and each channel
+    takes its own: the same bytes as the general encoder, channel by channel, with std and rocof
+    or not, values of every magnitude, a channel with a NaN (the general way writes it as null)
+    and one whose residual RMS is not finite."""
+    from sinewatch.core.estimate_bytes import estimate_payload
+    from sinewatch.core.pipeline import Channel
+    from sinewatch.estimators import get
+    from sinewatch.estimators.bank import column_tracks
+
+    rng = np.random.default_rng(26)
+    pipe = Pipeline(make_config(tmp_path), [NullSink()])
+    est = get("ges-kalman")(10_000.0, {})
+    ch = Channel("site/b", "sinewatch/in/site/b", est, 10_000.0)
+    assert ch.presence is not None
+    ch.presence.update(np.sin(np.arange(40_000) * 0.0314))
+    blk = Block("site/b", 3, 10**18, 10_000.0, np.zeros(1024))
+    n_ch = 9
+    for std, rocof in itertools.product((False, True), (False, True)):
+        out = rng.standard_normal((n_ch, 1, 5)) * 10.0 ** rng.integers(-12, 12, size=(n_ch, 1, 5))
+        out[:, :, 4] = 1.0  # converged
+        out[4, 0, 2] = np.nan  # channel 4: a NaN phase
+        sse = np.abs(rng.standard_normal(n_ch))
+        sse[6] = np.inf  # channel 6: no residual RMS
+        tracks = column_tracks(
+            out,
+            sse,
+            1024,
+            rocof=rng.standard_normal((n_ch, 1, 1)) if rocof else None,
+            std=np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None,
+        )
+        for c, tr in enumerate(tracks):
+            assert tr.bank_row is not None and tr.bank_row[1] == c
+            args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
+            ch.template = None
+            fast = estimate_payload(pipe, *args)
+            assert fast == estimate_payload(pipe, *args, fast=False), (c, std, rocof)
+            assert (ch.template is None) == (c == 4)  # the NaN went the general way
+        assert tracks[0].bank_row is not None and tracks[0].bank_row[0].texts is not None  # one pass made them
+        tracks[2].residual_rms = 0.125  # set after column_tracks (as ipdft's bank does): the track's value is written
+        args = (ch, blk, tracks[2], 10**18, 10**18, 0, False, False, False)
+        assert b'"residual_rms":0.125,' in estimate_payload(pipe, *args)[0]
+        assert estimate_payload(pipe, *args) == estimate_payload(pipe, *args, fast=False)
+
+
 def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():
     """update_presence_bank (one compiled call for a frame's channels) against each detector
     run on its own column: the same runs and states, bit for bit, over interruptions, any

@@ -5,11 +5,14 @@ source tree was reorganised into layers (every registered estimator at its examp
 parameters, 12 blocks each, through the real pipeline and MCAP recorder); its 12 ipdft
 estimates were later rewritten, byte for byte this build's, when ipdft began reporting its
 ROCOF's standard deviation in ``extras`` (the one field they gained; every other message is
-the earlier build's, and its Estimate format has no ``std``). The estimates of kkl, kkl-biased
-and sogi-fll in it, and sogi-fll's in the two fixtures below, were rewritten byte for byte this
-build's when those kernels' sin and tan became ``sinewatch.estimators.detmath``'s instead of the C
-library's (their last bits: at most 2.2e-11 relative, in a ROCOF; every other message and record
-the same). Any change
+the earlier build's, and its Estimate format has no ``std``), and again when ipdft's one-step
+predictions took their sines by rotation between anchors and its band bins were summed by
+segments shared between windows (frequency, amplitude, phase, offset, the residuals and the
+ROCOF's standard deviation moved in their last 1-3 digits, ~1e-15 relative). The estimates of
+kkl, kkl-biased and sogi-fll in it, and sogi-fll's in the two fixtures below, were rewritten byte
+for byte this build's when those kernels' sin and tan became ``sinewatch.estimators.detmath``'s
+instead of the C library's (their last bits: at most 2.2e-11 relative, in a ROCOF; every other
+message and record the same). Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """

@@ -12,6 +12,7 @@ from typing import Protocol
 import numpy as np
 
 from sinewatch.core.channel import Channel
+from sinewatch.core.float_repr import repr_floats
 from sinewatch.estimators.base import Track, TrackStd
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
@@ -51,30 +52,31 @@ def estimate_payload(
 
     The usual case (format 3 or later, every value a finite float64, no extras) is one ``%``
     formatting of a template cached on the channel (:func:`_estimate_template`) with every
-    float gathered by one numpy call: ``%r`` of a float is its ``repr``, which is what
-    :func:`encode_estimate_values` writes. Any other case (or ``fast=False``, which tests
+    float written by one compiled call (:func:`sinewatch.core.float_repr.repr_floats`: each
+    float's ``repr``, which is what :func:`encode_estimate_values` writes, at a fifth of
+    CPython's cost). Any other case (or ``fast=False``, which tests
     use to compare the two ways: tests/test_pipeline_hot_path.py) goes through
     :func:`encode_estimate_values`, the same bytes as ``encode_estimate(estimate_model(...))``
     (tests/test_codec_estimate_fast.py)."""
     version = settings.estimate_version
     gap = gap_blocks > 0 or restart or jump
     if fast and version >= 3 and not track.extras:
-        floats = _usual_floats(track)
-        if floats is not None:  # the usual case: every value finite, so valid is presence alone
+        texts = _usual_texts(track)
+        if texts is not None:  # the usual case: every value finite, so valid is presence alone
             valid = _present(ch, timestamp_ns, t_last_ns)
             converged = valid and bool(track.converged[-1])
             sec, nsec = divmod(int(timestamp_ns), 1_000_000_000)
-            rms = track.residual_rms
+            rms_text = texts.pop()  # the residual RMS's, last: the template takes it after the flags
             payload = _template(settings, ch, block, track) % (
                 block.seq,
                 int(timestamp_ns),
                 sec,
                 nsec,
                 block.n_samples,
-                *floats,
+                *texts,
                 _TRUE_FALSE[converged],
                 _TRUE_FALSE[valid],
-                "null" if rms is None or not isfinite(rms) else repr(float(rms)),
+                rms_text,
                 _TRUE_FALSE[gap],
                 gap_blocks,
                 _TRUE_FALSE[restart],
@@ -132,6 +134,45 @@ def _present(ch: Channel, timestamp_ns: int, t_last_ns: int) -> bool:
     assert ch.presence is not None
     lag = max(0, round((t_last_ns - timestamp_ns) * ch.sample_rate_hz / 1e9))
     return ch.presence.run_samples >= ch.valid_memory_samples + lag
+
+
+def _usual_texts(track: Track) -> list[str] | None:
+    """The ``repr`` of every float of the estimate at the track's last row, in the order the
+    template takes them, the residual RMS's last (``null`` when it is not finite); None when
+    another value is not a finite float64 (then the general way writes it). A bank's channel
+    reads its row of the whole frame's texts, written in one compiled call by the frame's first
+    Estimate (:class:`~sinewatch.estimators.base.BankLastRow`); any other track one call of its own."""
+    if track.bank_row is not None:
+        bank, c = track.bank_row
+        if bank.texts is None:
+            values = bank.values
+            bank.finite = np.isfinite(values[:, :-1]).all(axis=1).tolist()
+            bank.texts = repr_floats(values.reshape(-1))
+        width = bank.values.shape[1]
+        rms, row_rms = track.residual_rms, bank.values.item(c, width - 1)
+        # a bank that set the track's RMS after column_tracks (ipdft's own count of predictions)
+        # leaves the row's stale: then the track's own way
+        if rms == row_rms or (rms != rms and row_rms != row_rms):
+            if not bank.finite[c]:  # type: ignore[index]  # (made with texts)
+                return None
+            texts = bank.texts[c * width : (c + 1) * width]
+            if texts[-1] in _NOT_FINITE:
+                texts[-1] = "null"
+            return texts
+    floats = _usual_floats(track)
+    if floats is None:
+        return None
+    rms = track.residual_rms
+    has_rms = rms is not None and isfinite(rms)
+    if has_rms:
+        floats.append(float(rms))
+    texts = repr_floats(np.array(floats))  # every float's repr, in one compiled call
+    if not has_rms:
+        texts.append("null")
+    return texts
+
+
+_NOT_FINITE = ("nan", "inf", "-inf")
 
 
 def _usual_floats(track: Track) -> list[float] | None:
@@ -219,21 +260,21 @@ def _estimate_template(
 ) -> str:
     """The ``%`` template of an Estimate (format 3 or later, no extras) with ``k`` components:
     :func:`encode_estimate_values`'s layout, field for field, with ``%d`` for seq,
-    timestamp_ns, sec, nsec, n_samples and gap_blocks, ``%r`` for each float (in the order
-    :func:`_usual_floats` gathers them) and ``%s`` for converged, valid,
+    timestamp_ns, sec, nsec, n_samples and gap_blocks, ``%s`` for each float's ``repr`` (in
+    the order :func:`_usual_floats` gathers them) and for converged, valid,
     residual_rms, gap, restart and reset. Constant text is escaped (``%`` doubled)."""
 
     def const(text: str) -> str:
         return text.replace("%", "%%")
 
-    floats = "[" + ",".join(["%r"] * k) + "]"
+    floats = "[" + ",".join(["%s"] * k) + "]"
     out = (
         f'{{"format_version":{version},"channel":{const(names[0])},"seq":%d,"timestamp_ns":%d,'
         f'"timestamp":{{"sec":%d,"nsec":%d}},"n_samples":%d,"estimator":{const(names[1])},'
-        f'"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%r,'
+        f'"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%s,'
         f'"rocof_hz_per_s":{floats if rocof else "null"},'
         + (
-            f'"std":{{"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%r}},'
+            f'"std":{{"frequency_hz":{floats},"amplitude":{floats},"phase_rad":{floats},"offset":%s}},'
             if std
             else '"std":null,'
         )

@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import Estimator, Track, TrackStd, _all_finite, kernel_samples
+from sinewatch.estimators.base import BankLastRow, Estimator, Track, TrackStd, _all_finite, kernel_samples
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -228,7 +228,8 @@ def column_tracks(
     nc = out.shape[0]
     freq, amp, phase = list(out[:, :, 0:1]), list(out[:, :, 1:2]), list(out[:, :, 2:3])
     offset, conv = list(out[:, :, 3]), list(out[:, :, 4].astype(np.bool_))
-    rms = np.sqrt(sse / n_samples).tolist() if n_samples else [math.nan] * nc
+    rms_values = np.sqrt(sse / n_samples) if n_samples else None
+    rms = rms_values.tolist() if rms_values is not None else [math.nan] * nc
     names = list(extras) if extras else []
     cols = [list(v) for v in extras.values()] if extras else []
     roc: list[np.ndarray | None] = list(rocof) if rocof is not None else [None] * nc
@@ -241,7 +242,28 @@ def column_tracks(
         sf, sa, sp, so = list(std[:, :, 0:1]), list(std[:, :, 1:2]), list(std[:, :, 2:3]), list(std[:, :, 3])
         for c, track in enumerate(tracks):
             track.std = TrackStd(sf[c], sa[c], sp[c], so[c])
+    if not extras and rms_values is not None and out.shape[1]:
+        _bank_last_row(tracks, out, rms_values, rocof, std)
     return tracks
+
+
+def _bank_last_row(
+    tracks: list[Track], out: np.ndarray, rms: np.ndarray, rocof: np.ndarray | None, std: np.ndarray | None
+) -> None:
+    """Give each track the bank's last row of every output in one array (:class:`BankLastRow`:
+    a frame's Estimates are written from it in one pass); only when every part is float64,
+    what an Estimate's usual case writes."""
+    parts = [out[:, -1, :4]]
+    if rocof is not None:
+        parts.append(rocof[:, -1, :])
+    if std is not None:
+        parts.append(std[:, -1, :])
+    parts.append(rms[:, None])
+    if any(p.dtype != np.float64 for p in parts):
+        return
+    row = BankLastRow(np.concatenate(parts, axis=1))
+    for c, track in enumerate(tracks):
+        track.bank_row = (row, c)
 
 
 def _check_alike(estimators: Sequence[Estimator[Any]], cls: type[Estimator[Any]]) -> None:

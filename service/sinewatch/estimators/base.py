@@ -273,6 +273,20 @@ class TrackStd:
 
 
 @dataclass(slots=True)
+class BankLastRow:
+    """A bank's outputs at the last sample of a frame, every channel's in one float64 array
+    (C, F), each row in the order an Estimate writes them (frequency, amplitude, phase,
+    offset, rocof when present, the four standard deviations when present, then the residual
+    RMS): what :mod:`sinewatch.core.estimate_bytes` writes for the whole frame in one compiled
+    call (``texts``, made by the first of the frame's Estimates, ``finite`` per channel
+    beside them) instead of one call per channel."""
+
+    values: np.ndarray  # (C, F) float64
+    texts: list[str] | None = None  # repr of values.ravel(), once made
+    finite: list[bool] | None = None  # per channel: every value but the RMS finite
+
+
+@dataclass(slots=True)
 class Track:
     """What one ``update`` returns.
 
@@ -295,6 +309,9 @@ class Track:
     # Estimators that report on a time grid (``update(..., t0_ns=...)``): the reports this
     # block completed, zero, one or several; None for estimators that do not.
     reports: GridReports | None = None
+    # A bank's channel: the bank's last row of every output and this channel's index in it
+    # (:func:`sinewatch.estimators.bank.column_tracks`); None otherwise. Same values as the fields.
+    bank_row: tuple[BankLastRow, int] | None = None
 
     @property
     def n_samples(self) -> int:

@@ -205,22 +205,30 @@ def presence_kernel(
     level_out = np.empty(n)
     m_total = 2.0 * half
     thresh = m * 2.0 * FAST_RATIO * FAST_RATIO * max(level, l1) ** 2  # (F), from the last two readings
+    # the ring's indices wrap by a compare, not a modulo (an integer division a sample each,
+    # the larger part of the detector's time); pos is in [0, size) from here on, as a state
+    # this kernel wrote always has it (the modulo once keeps a forged state's reads in the ring)
+    pos = pos % size
     for j in range(n):
         xj = np.float64(x[j])  # float32 samples are summed in float64, as if converted first
         c1 += xj
         c2 += xj * xj
         count += 1
         if fast:  # (F): the ring of the last Q + m samples, the running sum of P, the lag-Q sums
-            xq = ring[(pos - quarter) % size]
+            iq = pos - quarter  # quarter < size, so one wrap at most
+            xq = ring[iq + size if iq < 0 else iq]
             q2 += xj * xq
             if armed:
                 a = xj - mu
                 b = xq - mu
-                c = ring[(pos - m) % size] - mu
+                im = pos - m  # m < size
+                c = ring[im + size if im < 0 else im] - mu
                 d = ring[pos] - mu  # the sample Q + m back, leaving the ring
                 psum += a * a + b * b - c * c - d * d
             ring[pos] = xj
-            pos = (pos + 1) % size
+            pos += 1
+            if pos == size:
+                pos = 0
             if fill < size:
                 fill += 1
         if count == half:  # a half-cycle boundary: read the last cycle

@@ -37,6 +37,7 @@ import json
 import logging
 import math
 import re
+import threading
 import time
 import zlib
 from dataclasses import dataclass
@@ -55,6 +56,8 @@ from sinewatch.schemas.messages import Fencing
 log = logging.getLogger("sinewatch.runtime.cluster")
 
 ADMIN_QUERY_TIMEOUT_S = 2.0
+STANDBY_ESTIMATE_FIFO = 10_000  # estimates a standby may fall behind by (10 s of 100 channels at 10 blocks/s)
+READER_JOIN_S = 0.5  # the longest a takeover waits for the standby's reader to note what its FIFO held
 
 
 class IntakeCount(Protocol):
@@ -144,6 +147,23 @@ def shard_id_of(config: SinewatchConfig) -> str:
     return (f"{base}_{config.cluster.shard.replace('/', 'of')}" if config.cluster.shard else base) + worker
 
 
+def last_published(pipeline: Pipeline) -> dict[str, tuple[int, int]]:
+    """Per channel, (seq, timestamp_ns) of the last block whose estimates this daemon has
+    published: its last block, or, while estimates wait in the hold (``hold_estimates``), the
+    block before the first one held (its timestamp one mean block length before that one's)."""
+    out: dict[str, tuple[int, int]] = {}
+    for ch in pipeline.channels.values():
+        if ch.last_seq is None or ch.next_t0_ns is None:
+            continue
+        if ch.held:
+            first = json.loads(ch.held[0][0])
+            block_ns = round(1e9 * ch.samples / ch.blocks / ch.sample_rate_hz) if ch.blocks else 0
+            out[ch.name] = (int(first["seq"]) - 1, int(first["timestamp_ns"]) - block_ns)
+        else:
+            out[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
+    return out
+
+
 class ClusterMember:
     """One daemon's part in the cluster (see the module docstring). Created and driven by
     :class:`sinewatch.runtime.daemon.Daemon` on its event loop; Zenoh callbacks only hand over."""
@@ -179,6 +199,7 @@ class ClusterMember:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._watch: list[Any] = []  # the standby's subscribers
+        self._reader: threading.Thread | None = None  # the standby's thread draining the estimates' FIFO
         self._queryable: Any = None
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -247,7 +268,15 @@ class ClusterMember:
         milliseconds at a time (py-spy on the daemon during ``sinewatch bench e2e --channels
         1000``). Only while the lease is proven alive, tagged with the term (attachment)."""
         interval = self.daemon.config.cluster.snapshot_interval_s
-        publisher = self._session().declare_publisher(self.snapshot_key, encoding=zenoh.Encoding("application/json"))
+        # BLOCK, not Zenoh's default DROP: a snapshot is ~180 kB at 50 ipdft channels, sent in fragments, and
+        # dropped whole when the link's queue is full, as it is when an owner works off a backlog. A standby
+        # then took over from a snapshot 3 s older than the owner's last estimate (seq 2 against 15 in a failover
+        # round beside four CPU burners): 14 blocks a channel to catch up instead of ~5
+        publisher = self._session().declare_publisher(
+            self.snapshot_key,
+            encoding=zenoh.Encoding("application/json"),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         term = self.term
         try:
             while self.role == "active" and self.term == term:
@@ -271,10 +300,17 @@ class ClusterMember:
         is the successor's (it resumes after the last published estimate)."""
         log.warning("cluster: no longer the owner of shard %s (term %s): standing by", self.shard_id, self.term)
         self.role = "standby"
+        pipeline = self.daemon.pipeline
+        # Before the intake stops: it drops what the channels hold, which this daemon never published
+        self.published.update(last_published(pipeline))
+        holding = [ch.name for ch in pipeline.channels.values() if ch.held]
         await self.daemon.stop_intake()
-        for ch in self.daemon.pipeline.channels.values():
-            if ch.last_seq is not None and ch.next_t0_ns is not None:
-                self.published[ch.name] = (ch.last_seq, ch.next_t0_ns - round(1e9 / ch.sample_rate_hz))
+        for name in holding:
+            # Its state is past the estimates just dropped: re-elected on it, this daemon took the blocks held
+            # for published ones and never published them, nor flagged them (a block lost without a gap in a
+            # failover round, the owner re-elected after its own lease ran out at load 37). Without it, the
+            # next takeover restores the channel from a snapshot, or from the publishers' history.
+            pipeline.channels.pop(name, None)
         self.term = None
         self._stepped_down = time.monotonic()
         self._stand_by()
@@ -284,11 +320,35 @@ class ClusterMember:
         session = self._session()
         self._set_token(self.standby_key)
         self.role = "standby"
-        self._watch = [
-            session.declare_subscriber(self.snapshot_key, self._on_snapshot),
-            session.declare_subscriber(f"{self.daemon.config.keys.estimates_prefix}/**", self._on_estimate),
-        ]
+        # The cluster's every estimate into a FIFO a thread of this daemon drains, not a Python callback on
+        # Zenoh's receiving thread: that thread took the GIL once an estimate, waiting up to Python's switch
+        # interval each time while this process's main thread was busy (loading its kernels at start); at 1,000
+        # estimates a second it fell seconds behind, and the owner's snapshots queued behind the estimates
+        # (a takeover from a snapshot 6 s old beside four CPU burners: 783 blocks to catch up, 4.2 s)
+        estimates = session.declare_subscriber(
+            f"{self.daemon.config.keys.estimates_prefix}/**", zenoh.handlers.FifoChannel(STANDBY_ESTIMATE_FIFO)
+        )
+        self._watch = [session.declare_subscriber(self.snapshot_key, self._on_snapshot), estimates]
+        self._reader = threading.Thread(
+            target=self._read_estimates, args=(estimates.handler,), name="sinewatch-standby", daemon=True
+        )
+        self._reader.start()
         log.info("cluster: standby for shard %s", self.shard_id)
+
+    def _read_estimates(self, handler: Any) -> None:
+        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
+            while True:
+                self._on_estimate(handler.recv())
+
+    def _unwatch(self) -> None:
+        """Undeclare the standby's subscribers and wait (briefly) until what the estimates' FIFO
+        still held is noted: ``published`` is read next, on this thread."""
+        for sub in self._watch:
+            sub.undeclare()
+        self._watch = []
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.join(timeout=READER_JOIN_S)
 
     def _on_snapshot(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -412,16 +472,14 @@ class ClusterMember:
         this state and ``term``)."""
         started = time.monotonic()
         succeeds = self.latest_snapshot is not None or bool(self.published)  # not a cold start: someone served
-        for sub in self._watch:
-            sub.undeclare()
-        self._watch = []
+        self._unwatch()
         pipeline = self.daemon.pipeline
         latest = self.latest_snapshot
         restored_ahead = latest is not None and latest is self._restored
         if latest is not None and not restored_ahead:
             self._restore(latest)
         self._restored = None  # served from here: the pipeline's state is this daemon's own
-        for name, (seq, timestamp_ns) in self.published.items():
+        for name, (seq, timestamp_ns) in dict(self.published).items():  # a copy: a reader left running adds to it
             ch = pipeline.channels.get(name)
             next_t0 = timestamp_ns + round(1e9 / ch.sample_rate_hz) if ch is not None else None
             if ch is None or ch.last_seq is None or ch.last_seq < seq:
@@ -438,11 +496,12 @@ class ClusterMember:
         if self.daemon.recorder is not None:
             self.daemon.recorder.rotate()  # the new file carries this state and term: it replays on its own
         log.warning(
-            "cluster: took over shard %s (term %s): %d channel(s) from the snapshot%s, %d resume point(s), "
+            "cluster: took over shard %s (term %s): %d channel(s) from the snapshot%s%s, %d resume point(s), "
             "history %s block(s) per key, in %.0f ms",
             self.shard_id,
             term,
             len(pipeline.channels),
+            "" if latest is None else f" (received {started - latest[2]:.2f} s before)",
             " (restored ahead)" if restored_ahead else "",
             len(pipeline.resume_points),
             "all" if history is None else history,
@@ -557,9 +616,7 @@ class ClusterMember:
         self.role = "stopped"
         for task in self._tasks:
             task.cancel()
-        for sub in self._watch:
-            sub.undeclare()
-        self._watch = []
+        self._unwatch()
         if self._queryable is not None:
             self._queryable.undeclare()
         if self._token is not None:

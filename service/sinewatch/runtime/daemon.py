@@ -74,6 +74,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     """One rule's kernels: the estimator's on whole blocks and on the last sample only, the
     presence detector's, and for a one-input estimator a frame's (its bank kernel, the
     presence detectors' bank)."""
+    from sinewatch.core.float_repr import repr_floats
     from sinewatch.estimators.bank import bank_of, update_bank
     from sinewatch.estimators.base import kernel_samples
     from sinewatch.estimators.presence import SignalPresence, update_presence_bank
@@ -96,6 +97,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     est.update(x, last_only=True)
     SignalPresence(rate).update(est.presence_samples(x))  # a single block's detector (a frame's: below)
     fast_usable(0.0, 0.0, 1.0)  # what the hold (on by default) asks of a detector per block, from Python
+    repr_floats(np.array([0.5]))  # every Estimate's floats
     if est.n_inputs == 1:
         frame = kernel_samples(np.stack([signal_, signal_], axis=1))
         if bank_of(cls) is not None:
