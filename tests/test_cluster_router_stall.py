@@ -39,7 +39,7 @@ ZENOH_DEFAULT_WAIT_S = 5.0
 LEASE = {"transport/link/tx/lease": 60_000}  # ms: far beyond the stall and a loaded machine's resumption
 AFTER = 100  # samples put once the stopped process runs again: the link still carries them
 PAYLOAD = 8192  # 8-KB samples fill the sockets' and Zenoh's queues (a few MB) within the first ~500 puts
-WAIT_S = 120.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
+WAIT_S = 60.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
 
 
 def long_lease_client(endpoint: list[str], raw: dict[str, Any] | None = None) -> ZenohSection:
