@@ -13,7 +13,12 @@ import pytest
 
 from sinewatch.estimators import create
 from sinewatch.estimators.base import wrap_pi
-from sinewatch.estimators.interpolated_dft_kernels import _one_window_estimate, _window_estimates
+from sinewatch.estimators.interpolated_dft_kernels import (
+    _band_magnitudes,
+    _one_window_estimate,
+    _window_estimates,
+    segment_length,
+)
 from sinewatch.scenarios import SumOfTones, Tone, wrap_phase
 
 FS = 1000.0
@@ -241,22 +246,36 @@ def test_a_snapshot_from_before_rocof_still_loads():
     assert np.isnan(tb.rocof_hz_per_s[0, 0]) and np.isfinite(tb.rocof_hz_per_s[-1, 0])
 
 
-def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point):
+def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, hop):
     """(M)-(LS) for one window in plain Python, each sum accumulated term by term in index
-    order: the arithmetic the kernel must reproduce bit for bit whatever it batches."""
+    order: the arithmetic the kernel must reproduce bit for bit whatever it batches. (D) as
+    the kernel sums it: the plain DFT S_k of the window's segments of L samples, each turned
+    by its offset's twiddle, then the Hann window as S_k/2 - S_(k-1)/4 - S_(k+1)/4 and the
+    mean's share of bin 1 (mu N/4)."""
     n_w = len(xw)
     acc = 0.0
     for n in range(n_w):  # (M)
         acc += hann[n] * xw[n]
     mu = acc / hann_sum
-    wu = [hann[n] * (xw[n] - mu) for n in range(n_w)]
+    seg_len = segment_length(n_w, hop)
+    starts = list(range(0, n_w, seg_len))
+    plain = {}
+    for k in range(k_lo - 2, k_hi + 3):  # (D) S_k by segments
+        sr = si = 0.0
+        for s0 in starts:
+            pr = pi = 0.0
+            for n in range(min(seg_len, n_w - s0)):
+                pr += xw[s0 + n] * cos_tab[k * n % n_w]
+                pi -= xw[s0 + n] * sin_tab[k * n % n_w]
+            c, sn = cos_tab[k * s0 % n_w], sin_tab[k * s0 % n_w]
+            sr += c * pr + sn * pi
+            si += c * pi - sn * pr
+        plain[k] = (sr, si)
     mags = []
-    for k in range(k_lo - 1, k_hi + 2):  # (D)
-        re = im = 0.0
-        for n in range(n_w):
-            re += wu[n] * cos_tab[k * n % n_w]
-            im -= wu[n] * sin_tab[k * n % n_w]
-        mags.append(math.hypot(re, im))
+    for k in range(k_lo - 1, k_hi + 2):
+        re = 0.5 * plain[k][0] - 0.25 * plain[k - 1][0] - 0.25 * plain[k + 1][0] + mu * (0.25 * n_w if k == 1 else 0.0)
+        im = 0.5 * plain[k][1] - 0.25 * plain[k - 1][1] - 0.25 * plain[k + 1][1]
+        mags.append(math.sqrt(re * re + im * im))  # correctly rounded, as the kernel's
     bp = 1  # (P)
     for bb in range(2, k_hi - k_lo + 2):
         if mags[bb] > mags[bp]:
@@ -301,26 +320,33 @@ def _one_window_alone(xw, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_po
 
 @pytest.mark.parametrize("interp", ["3-point", "2-point"])
 @pytest.mark.parametrize("n_win", [1, 3, 37])
-def test_windows_estimated_together_equal_each_window_alone_bit_for_bit(interp, n_win):
-    # The kernel estimates a chunk of windows at once, vectorised across windows, or one by one
-    # with the bins interleaved; every sum must still be added in index order, as for one window
-    # alone in plain Python (recordings replay bit for bit).
-    est = create("ipdft", FS, nominal_frequency_hz=50.0, window_cycles=4.0, interpolation=interp)
+@pytest.mark.parametrize("hop", [20, 7, 80])
+def test_windows_estimated_together_equal_each_window_alone_bit_for_bit(interp, n_win, hop):
+    # The kernel estimates a chunk of windows at once, vectorised across windows, or one by one,
+    # sharing the segments of (D) between windows; every sum must still be added in index
+    # order, as for one window alone in plain Python (recordings replay bit for bit). Hop 7:
+    # segments of 14 samples and a last one of 10; hop 80: one segment a window.
+    est = create("ipdft", FS, nominal_frequency_hz=50.0, window_cycles=4.0, interpolation=interp, hop_samples=hop)
     hann, cos_tab, sin_tab, iconsts, fconsts = est._constants
     n_w = est.window_samples
-    _t, x = tone(49.3, (n_win * 7 + n_w) / FS, noise=0.05, seed=4)
-    windows = np.stack([x[7 * q : 7 * q + n_w] for q in range(n_win)])
-    windows[n_win // 2] = 0.0  # no spectral peak: undefined
+    _t, x = tone(49.3, (n_win * hop + n_w) / FS, noise=0.05, seed=4)
+    silent = n_win // 2  # no spectral peak: undefined
+    x[silent * hop : silent * hop + n_w] = 0.0
+    windows = np.stack([x[hop * q : hop * q + n_w] for q in range(n_win)])
     xt = np.ascontiguousarray(windows.T)
     k_lo, k_hi, three = int(iconsts[1]), int(iconsts[2]), interp == "3-point"
+    mu, mags = np.empty(n_win), np.empty((k_hi - k_lo + 3, n_win))
+    _band_magnitudes(x, 0, hop, xt, n_win, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, mu, mags)
     together = np.zeros((n_win, 6))  # the batch, vectorised across windows
-    _window_estimates(xt, n_win, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, together)
+    _window_estimates(xt, n_win, mu, mags, k_lo, k_hi, three, together)
     one_by_one = np.zeros((n_win, 6))  # the path of chunks with fewer than BATCH_MIN windows
-    scratch = [np.empty(n_w) for _ in range(3)]
+    scratch = [np.empty(n_w) for _ in range(2)]
     for q in range(n_win):
-        _one_window_estimate(xt, q, hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, one_by_one, *scratch)
+        _one_window_estimate(xt, q, mu, mags, k_lo, k_hi, three, one_by_one, *scratch)
     for q in range(n_win):
-        alone = _one_window_alone(list(windows[q]), hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three)
+        alone = _one_window_alone(list(windows[q]), hann, fconsts[3], cos_tab, sin_tab, k_lo, k_hi, three, hop)
+        if q == silent and n_win > 1:
+            assert alone is None
         for out in (together, one_by_one):
             if alone is None:
                 assert out[q, 0] == 0.0

@@ -5,7 +5,11 @@ source tree was reorganised into layers (every registered estimator at its examp
 parameters, 12 blocks each, through the real pipeline and MCAP recorder); its 12 ipdft
 estimates were later rewritten, byte for byte this build's, when ipdft began reporting its
 ROCOF's standard deviation in ``extras`` (the one field they gained; every other message is
-the earlier build's, and its Estimate format has no ``std``). Any change
+the earlier build's, and its Estimate format has no ``std``), and again when ipdft's one-step
+predictions took their sines by rotation between anchors and its band bins were summed by
+segments shared between windows (frequency, amplitude, phase, offset, the residuals and the
+ROCOF's standard deviation moved in their last 1-3 digits, ~1e-15 relative; the 84 other
+estimates untouched). Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """

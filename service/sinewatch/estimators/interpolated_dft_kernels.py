@@ -15,6 +15,18 @@ from sinewatch.estimators.base import kernel, undefined_row, wrap_pi
 
 CHUNK = 64  # windows estimated together (see _window_estimates): bounds the scratch to CHUNK x N
 BATCH_MIN = 8  # fewer windows in a chunk are estimated one by one (_one_window_estimate)
+# the one-step predictions behind residual_rms: sin of the held phase from the C library every
+# PRED_ANCHOR samples after a window, rotated in between (error <= ~PRED_ANCHOR ulp of A)
+PRED_ANCHOR = 32
+
+
+@kernel(inline="always")
+def _magnitude(re: float, im: float) -> float:
+    """|X_k| of (D): a correctly rounded square root of the sum of squares, which vectorises
+    across windows (``math.hypot`` is a C library call per bin and window, ~8 a window: more
+    than the rest of the bins' arithmetic). It differs from hypot in the last bit at most; a
+    bin beyond ~1e154 overflows to inf, which (P) treats as no peak."""
+    return math.sqrt(re * re + im * im)
 
 
 @kernel(inline="always")
@@ -41,50 +53,135 @@ def _peak(mags: np.ndarray, q: int, k_lo: int, k_hi: int, three_point: bool) -> 
     return lam
 
 
+@kernel(inline="always")
+def _prediction_at(th: float, fcy: float, p: int, cw: float, sw: float) -> tuple[float, float]:
+    """``sin`` and ``cos`` of the held estimate's phase ``th + 2 pi fcy p``, p samples after its
+    window: exact (the C library's) at the anchor ``a = p - p % PRED_ANCHOR``, then rotated
+    p - a times by ``(cw, sw) = (cos, sin)(2 pi fcy)``. The kernel rotates on from one sample to
+    the next and anchors again every PRED_ANCHOR samples, so each value depends on p only, not
+    on where a block begins, and a hop of 20 samples takes 4 library calls instead of 20."""
+    ph = th + 2.0 * math.pi * fcy * (p - p % PRED_ANCHOR)
+    s, c = math.sin(ph), math.cos(ph)
+    for _ in range(p % PRED_ANCHOR):
+        s, c = s * cw + c * sw, c * cw - s * sw
+    return s, c
+
+
+@kernel(inline="always")
+def segment_length(n: int, hop: int) -> int:
+    """The length L (a multiple of the hop, <= N) of the segments that (D) sums once and shares
+    between windows: the fewest operations per window and bin, 2 L for the segment's sum
+    (amortised: one segment starts at each window) and 4 per segment combined, ceil(N / L)."""
+    best, best_cost = hop, -1
+    for g in range(1, n // hop + 1):
+        seg = g * hop
+        cost = 2 * seg + 4 * (n // seg + (1 if n % seg else 0))
+        if best_cost < 0 or cost < best_cost:
+            best, best_cost = seg, cost
+    return best
+
+
+@kernel
+def _band_magnitudes(
+    seg: np.ndarray, start0: int, hop: int, xt: np.ndarray, n_win: int, hann: np.ndarray, hann_sum: float,
+    cos_tab: np.ndarray, sin_tab: np.ndarray, k_lo: int, k_hi: int, mu: np.ndarray, mags: np.ndarray,
+) -> None:  # fmt: skip
+    """(M) and (D) of the ``n_win`` windows of a chunk, window q = ``seg[start0 + q hop :][:N]``
+    (the windows of a stream are a hop apart; ``xt[n, q]`` is its sample n): ``mu[q]``, and
+    ``mags[b, q]`` = |X_k|, k = k_lo - 1 + b.
+
+    The Hann window is three complex exponentials, ``w_n = 1/2 - e^{j 2 pi n/N}/4 -
+    e^{-j 2 pi n/N}/4``, so the windowed bin is ``X_k = S_k/2 - S_{k-1}/4 - S_{k+1}/4`` of the
+    plain DFT ``S_k = sum_n x_n e^{-j 2 pi k n/N}``, and removing the mean (M) changes bin 1
+    alone (``X_1(w) = -N/4``): ``X_1 += mu N/4``. ``S_k`` of a window is the sum of its
+    segments of L samples (:func:`segment_length`, the last one r = N mod L samples long),
+    each turned by ``e^{-j 2 pi k s L/N}``: a segment starts every hop, so each is summed once
+    and shared by the windows that hold it (at the example's 80-sample window and hop 20, the
+    bins take 9 x 20 terms a window instead of 7 x 80). Every sum is over a window's own
+    samples, in a fixed order: a window's bits depend on its samples only, not on the chunk."""
+    N = xt.shape[0]
+    Q = n_win
+    seg_len = segment_length(N, hop)
+    g = seg_len // hop
+    m = N // seg_len  # whole segments in a window
+    r = N - m * seg_len  # the last segment's length (0: none)
+    n_full = Q + (m - 1) * g  # segment starts whose whole sum some window needs
+    n_all = Q + m * g if r > 0 else n_full  # and those whose first r terms (the last segment)
+    nbins = k_hi - k_lo + 5  # S_k for k = k_lo - 2 .. k_hi + 2
+    k0 = k_lo - 2
+    mu[:Q] = 0.0
+    for n in range(N):  # (M) the Hann-weighted mean
+        w = hann[n]
+        xn = xt[n]
+        for q in range(Q):
+            mu[q] += w * xn[q]
+    for q in range(Q):
+        mu[q] = mu[q] / hann_sum
+    xs = np.empty((seg_len, n_all))  # xs[n, i]: sample n of the segment starting at start0 + i hop
+    for n in range(seg_len):
+        base = start0 + n
+        for i in range(n_all if n < r else n_full):
+            xs[n, i] = seg[base + i * hop]
+    pre = np.zeros((nbins, n_all))  # the segments' sums, real and imaginary parts
+    pim = np.zeros((nbins, n_all))
+    lre = np.empty((nbins, Q))  # the last segment's (its first r terms) of window q
+    lim = np.empty((nbins, Q))
+    for b in range(nbins):
+        k = k0 + b
+        are, aim = pre[b], pim[b]
+        idx = 0
+        for n in range(seg_len):
+            if n == r:
+                for q in range(Q):
+                    lre[b, q] = are[q + m * g] if r > 0 else 0.0
+                    lim[b, q] = aim[q + m * g] if r > 0 else 0.0
+            cv = cos_tab[idx]
+            sv = sin_tab[idx]
+            xn = xs[n]
+            for i in range(n_all if n < r else n_full):
+                are[i] += xn[i] * cv
+                aim[i] -= xn[i] * sv
+            idx += k
+            if idx >= N:
+                idx -= N
+    sre = np.zeros((nbins, Q))  # S_k of each window
+    sim = np.zeros((nbins, Q))
+    for b in range(nbins):
+        k = k0 + b
+        sr, si = sre[b], sim[b]
+        for s in range(m + (1 if r > 0 else 0)):
+            t = (k * s * seg_len) % N
+            c, sn = cos_tab[t], sin_tab[t]
+            src_re = pre[b, s * g : s * g + Q] if s < m else lre[b]
+            src_im = pim[b, s * g : s * g + Q] if s < m else lim[b]
+            for q in range(Q):
+                sr[q] += c * src_re[q] + sn * src_im[q]
+                si[q] += c * src_im[q] - sn * src_re[q]
+    for bi in range(k_hi - k_lo + 3):  # X_k of the windowed, offset-cancelled samples
+        k = k_lo - 1 + bi
+        fix = 0.25 * N if k == 1 else 0.0
+        lo_r, mid_r, hi_r = sre[bi], sre[bi + 1], sre[bi + 2]
+        lo_i, mid_i, hi_i = sim[bi], sim[bi + 1], sim[bi + 2]
+        mb = mags[bi]
+        for q in range(Q):
+            xr = 0.5 * mid_r[q] - 0.25 * lo_r[q] - 0.25 * hi_r[q] + mu[q] * fix
+            xi = 0.5 * mid_i[q] - 0.25 * lo_i[q] - 0.25 * hi_i[q]
+            mb[q] = _magnitude(xr, xi)
+
+
 @kernel
 def _one_window_estimate(
-    xt: np.ndarray, q: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray, k_lo: int,
-    k_hi: int, three_point: bool, est: np.ndarray, wu: np.ndarray, st: np.ndarray, ct: np.ndarray,
+    xt: np.ndarray, q: int, mu_all: np.ndarray, mags: np.ndarray, k_lo: int, k_hi: int, three_point: bool,
+    est: np.ndarray, st: np.ndarray, ct: np.ndarray,
 ) -> None:  # fmt: skip
     # The arguments of _window_estimates, whose every window this must reproduce bit for bit
     # (a chunk of too few windows takes this path): the same inputs by design, not a copy.
     """``est[q]`` as :func:`_window_estimates` computes it, for window q alone (a chunk of
     fewer than BATCH_MIN windows, where a loop over the windows has too few iterations to pay
-    for itself): the same sums in the same order; the bins of (D) four at a time, so that
-    eight independent sums overlap. ``wu``, ``st``, ``ct`` (N,) are scratch."""
+    for itself): the same sums in the same order. ``st``, ``ct`` (N,) are scratch."""
     N = xt.shape[0]
-    nb = k_hi - k_lo + 3
-    acc = 0.0  # (M) Hann-weighted mean
-    for n in range(N):
-        acc += hann[n] * xt[n, q]
-    mu = acc / hann_sum
-    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
-        wu[n] = hann[n] * (xt[n, q] - mu)
-    mags = np.empty(nb)
-    for b0 in range(0, nb, 4):  # (D) bins b0 .. b0 + 3 (the last group repeats its last bin)
-        b1, b2, b3 = min(b0 + 1, nb - 1), min(b0 + 2, nb - 1), min(b0 + 3, nb - 1)
-        k0, k1, k2, k3 = k_lo - 1 + b0, k_lo - 1 + b1, k_lo - 1 + b2, k_lo - 1 + b3
-        r0 = r1 = r2 = r3 = i0 = i1 = i2 = i3 = 0.0
-        j0 = j1 = j2 = j3 = 0
-        for n in range(N):
-            v = wu[n]
-            r0 += v * cos_tab[j0]
-            i0 -= v * sin_tab[j0]
-            r1 += v * cos_tab[j1]
-            i1 -= v * sin_tab[j1]
-            r2 += v * cos_tab[j2]
-            i2 -= v * sin_tab[j2]
-            r3 += v * cos_tab[j3]
-            i3 -= v * sin_tab[j3]
-            j0 = j0 + k0 if j0 + k0 < N else j0 + k0 - N
-            j1 = j1 + k1 if j1 + k1 < N else j1 + k1 - N
-            j2 = j2 + k2 if j2 + k2 < N else j2 + k2 - N
-            j3 = j3 + k3 if j3 + k3 < N else j3 + k3 - N
-        mags[b0] = math.hypot(r0, i0)
-        mags[b1] = math.hypot(r1, i1)
-        mags[b2] = math.hypot(r2, i2)
-        mags[b3] = math.hypot(r3, i3)
-    lam = _peak(mags.reshape((nb, 1)), 0, k_lo, k_hi, three_point)  # (P), (I3)/(I2), (F)
+    mu = mu_all[q]
+    lam = _peak(mags, q, k_lo, k_hi, three_point)  # (P), (I3)/(I2), (F)
     if math.isnan(lam):
         est[q, 0] = 0.0
         return
@@ -137,11 +234,12 @@ def _one_window_estimate(
 
 @kernel
 def _window_estimates(
-    xt: np.ndarray, n_win: int, hann: np.ndarray, hann_sum: float, cos_tab: np.ndarray, sin_tab: np.ndarray,
-    k_lo: int, k_hi: int, three_point: bool, est: np.ndarray,
+    xt: np.ndarray, n_win: int, mu: np.ndarray, mags: np.ndarray, k_lo: int, k_hi: int, three_point: bool,
+    est: np.ndarray,
 ) -> None:  # fmt: skip
     """``est[q]`` = (defined, f_cycles_per_sample, A, theta_end, B, r) of window q, for
-    q < ``n_win``; ``xt[n, q]`` is sample n (oldest first) of window q.
+    q < ``n_win``, from its mean ``mu[q]`` and band magnitudes ``mags[:, q]``
+    (:func:`_band_magnitudes`); ``xt[n, q]`` is sample n (oldest first) of window q.
 
     The windows are independent, so every step runs over all of them at once, window index
     innermost: each sum of each window is accumulated in its own slot, term by term in the
@@ -151,46 +249,9 @@ def _window_estimates(
     Loops touch few arrays each, so that the compiler's aliasing checks stay cheap."""
     N = xt.shape[0]
     Q = n_win
-    nb = k_hi - k_lo + 3
-    wu = np.empty((N, Q))  # w_n u_n
     st = np.empty((N, Q))  # sin(omega t_n), cos(omega t_n) of (LS)
     ct = np.empty((N, Q))
-    mags = np.empty((nb, Q))
-    mu = np.zeros(Q)
     acc1 = np.zeros(Q)
-    acc2 = np.zeros(Q)
-    # (M) Hann-weighted mean
-    for n in range(N):
-        w = hann[n]
-        xn = xt[n]
-        for q in range(Q):
-            mu[q] += w * xn[q]
-    for q in range(Q):
-        mu[q] = mu[q] / hann_sum
-    for n in range(N):  # windowed, offset-cancelled samples w_n u_n
-        w = hann[n]
-        xn = xt[n]
-        wn = wu[n]
-        for q in range(Q):
-            wn[q] = w * (xn[q] - mu[q])
-    # (D) the bins k_lo-1 .. k_hi+1
-    for bi in range(nb):
-        k = k_lo - 1 + bi
-        acc1[:] = 0.0
-        acc2[:] = 0.0
-        idx = 0
-        for n in range(N):
-            cv = cos_tab[idx]
-            sv = sin_tab[idx]
-            wn = wu[n]
-            for q in range(Q):
-                acc1[q] += wn[q] * cv
-                acc2[q] -= wn[q] * sv
-            idx += k
-            if idx >= N:
-                idx -= N
-        for q in range(Q):
-            mags[bi, q] = math.hypot(acc1[q], acc2[q])
     # (P), (I3)/(I2), (F), then the start of the rotation recurrence of (LS)
     c = 0.5 * (N - 1)
     rot = np.empty((4, Q))  # per window: lambda, omega and the rotation's cos and sin
@@ -337,10 +398,14 @@ def ipdft_kernel(
     seg[N:] = x
     xt = np.empty((N, chunk))  # the chunk's windows, xt[n, q]: sample n of window q
     due_at = np.empty(chunk, dtype=np.int64)
-    wu1, st1, ct1 = np.empty(N), np.empty(N), np.empty(N)  # scratch of _one_window_estimate
+    st1, ct1 = np.empty(N), np.empty(N)  # scratch of _one_window_estimate
+    mu = np.empty(chunk)  # the chunk's windows' means and band magnitudes (_band_magnitudes)
+    mags = np.empty((k_hi - k_lo + 3, chunk))
     est = np.zeros((chunk, 6))
     sse = 0.0
     n_pred = 0
+    p_at = -1  # the offset p whose sine and cosine ps, pc hold (-1: none for this estimate)
+    ps = pc = cw = sw = 0.0
     j0 = 0
     while j0 < n_in:
         n_win = 0  # the ring buffer's counters over the samples, the windows due
@@ -368,23 +433,32 @@ def ipdft_kernel(
         for n in range(N):
             for q in range(n_win):
                 xt[n, q] = seg[due_at[q] + 1 + n]
+        if n_win > 0:  # (M), (D) of the chunk's windows, then the rest of each estimate
+            _band_magnitudes(seg, due_at[0] + 1, hop, xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, mu, mags)
         if n_win >= BATCH_MIN:
-            _window_estimates(xt, n_win, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est)
+            _window_estimates(xt, n_win, mu, mags, k_lo, k_hi, three_point, est)
         else:
             for q in range(n_win):
-                _one_window_estimate(
-                    xt, q, hann, hann_sum, cos_tab, sin_tab, k_lo, k_hi, three_point, est, wu1, st1, ct1
-                )
+                _one_window_estimate(xt, q, mu, mags, k_lo, k_hi, three_point, est, st1, ct1)
         q = 0
         for j in range(j0, j1):
             if held and defined:  # one-step prediction from the estimate held before x_j
-                e = x[j] - (B + A * math.sin(th + 2.0 * math.pi * fcy * (m + 1)))
+                p = m + 1  # sin(th + omega p) by rotation from the anchor p - p % PRED_ANCHOR
+                if p_at >= 0 and p == p_at + 1 and p % PRED_ANCHOR != 0:
+                    ps, pc = ps * cw + pc * sw, pc * cw - ps * sw
+                else:
+                    if p_at < 0:  # a new estimate: its rotation by omega
+                        cw, sw = math.cos(2.0 * math.pi * fcy), math.sin(2.0 * math.pi * fcy)
+                    ps, pc = _prediction_at(th, fcy, p, cw, sw)
+                p_at = p
+                e = x[j] - (B + A * ps)
                 sse += e * e
                 n_pred += 1
             m += 1
             if q < n_win and due_at[q] == j:  # a hop: the estimate of the window ending here
                 held = 1
                 m = 0
+                p_at = -1
                 if est[q, 0] != 0.0:
                     defined = 1
                     fcy, A, th, B, r = est[q, 1], est[q, 2], est[q, 3], est[q, 4], est[q, 5]
