@@ -124,14 +124,16 @@ class Router:
     log: a link it closed is the record of what it lost in flight) appended to
     ``<logs>/router.log``, whose tail a failed wait shows with the daemons'."""
 
-    def __init__(self, logs: Path | None = None) -> None:
+    def __init__(self, logs: Path | None = None, zenoh: dict[str, Any] | None = None) -> None:
         self.port = free_loopback_port()
         self.logs = logs
+        self.zenoh = zenoh or {}  # raw Zenoh config keys (`sinewatch router --zenoh PATH=JSON`)
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> None:
+        raw = [arg for path, value in self.zenoh.items() for arg in ("--zenoh", f"{path}={json.dumps(value)}")]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sinewatch", "router", "--listen", f"tcp/127.0.0.1:{self.port}"],
+            [sys.executable, "-m", "sinewatch", "router", "--listen", f"tcp/127.0.0.1:{self.port}", *raw],
             stdout=subprocess.PIPE,
             text=True,
         )

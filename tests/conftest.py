@@ -235,7 +235,13 @@ def serve_feed_tail(
         )
         assert tail.stderr is not None
         # "tail: waiting for a Zenoh router ..." first, then "tail: subscribed to ..." once it is
-        assert any(line.startswith("tail: subscribed to") for line in iter(tail.stderr.readline, ""))
+        said: list[str] = []
+        for line in iter(tail.stderr.readline, ""):
+            said.append(line)
+            if line.startswith("tail: subscribed to"):
+                break
+        else:  # what tail said is why (a failure that only said `any(...)` was False was seen at load 30)
+            raise AssertionError(f"tail ended (exit {tail.wait()}) before subscribing; it said: {''.join(said)!r}")
         feed = subprocess.run(
             sinewatch("feed", *feed_args, "--fast", "--wait", str(STARTUP_WAIT_S)),
             capture_output=True,
@@ -247,7 +253,9 @@ def serve_feed_tail(
         out, _ = tail.communicate(timeout=STARTUP_WAIT_S + 60)
     finally:
         serve.send_signal(signal.SIGINT)
-        _, err = serve.communicate(timeout=60)
+        # a serve still starting (imports, kernels) stops once it runs Python again: on a loaded
+        # machine that can be longer than a minute, and a timeout here would hide the failure above
+        _, err = serve.communicate(timeout=STARTUP_WAIT_S)
     assert serve.returncode == 0, err
     return feed.stderr, [json.loads(line) for line in out.splitlines()], err
 

@@ -7,28 +7,94 @@ publisher closed its own link to the router and every key's samples in flight we
 every subscriber (the gateway of the 50-fault chaos run, twice, its router stalled on
 a daemon it then cut off). sinewatch gives a client session 30 s
 (:data:`sinewatch.clients.session.CLIENT_WAIT_BEFORE_CLOSE_US`): here the router itself is
-stopped (SIGSTOP) for 7 s while a client publishes as fast as it can, and a second client must
-receive every sample, in order.
+stopped (SIGSTOP) for 7 s while a client publishes, and a second client must receive every
+sample, in order.
+
+Only ``wait_before_close`` is under test, not Zenoh's lease: every session here (the router's
+and the clients') announces a lease of 60 s instead of 10 s. With 10 s, a client that had heard
+nothing from the router for 3 s before the stop (its last keep-alive can be 2.5 s old) found
+the router's link expired before the resumed router spoke again, on a loaded machine, and
+reconnected: the samples put during the stall were lost to it, the later ones arrived.
 """
 
 from __future__ import annotations
 
+import json
 import signal
+import subprocess
+import sys
 import threading
 import time
+from typing import Any
 
 import pytest
 import zenoh
 from cluster_procs import Router
 
 from sinewatch.clients.session import client_section, open_session
+from sinewatch.schemas.config import ZenohSection
 
-STALL_S = 7.0  # longer than Zenoh's 5 s, shorter than the links' lease (10 s): a stalled router, not a dead one
-PAYLOAD = 8192
+STALL_S = 7.0  # longer than Zenoh's default wait_before_close: a stalled router or subscriber, not a dead one
+# A lease (ms) far beyond the stall and a loaded machine's resumption; keep-alives every 2.5 s
+# (lease / keep_alive) as with Zenoh's defaults, so that only the lease differs from a daemon's link
+LEASE = {"transport/link/tx/lease": 60_000, "transport/link/tx/keep_alive": 24}
+AFTER = 100  # samples put once the stopped process runs again: the link still carries them
+PAYLOAD = 8192  # 8-KB samples fill the sockets' and Zenoh's queues (a few MB) within the first ~500 puts
+WAIT_S = 60.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
 
 
-def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int, list[int]]:
-    router = Router(tmp_path)
+def long_lease_client(endpoint: list[str], raw: dict[str, Any] | None = None) -> ZenohSection:
+    section = client_section(endpoint)
+    section.raw.update({**LEASE, **(raw or {})})
+    return section
+
+
+def resume_after(proc: subprocess.Popen[Any], resumed: threading.Event) -> None:
+    """SIGCONT to ``proc`` after ``STALL_S`` (a timer thread: the puts block meanwhile)."""
+
+    def cont() -> None:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGCONT)
+        resumed.set()
+
+    threading.Timer(STALL_S, cont).start()
+
+
+def put_until_after(pub: zenoh.Publisher, resumed: threading.Event) -> tuple[int, float]:
+    """Numbered samples until ``resumed`` is set and ``AFTER`` more; how many, and the longest
+    a put waited (seconds)."""
+    sent, after, longest = 0, 0, 0.0
+    while after < AFTER:
+        was_resumed = resumed.is_set()
+        began = time.monotonic()
+        pub.put(sent.to_bytes(8, "little") + bytes(PAYLOAD - 8))
+        longest = max(longest, time.monotonic() - began)
+        sent += 1
+        after += was_resumed
+    return sent, longest
+
+
+def losses(got: list[int], sent: int) -> str:
+    """'' when ``got`` is every sample 0..sent-1 once, in order; else what is wrong, briefly
+    (a list diff of ~600 numbers says less)."""
+    if got == list(range(sent)):
+        return ""
+    missing = sorted(set(range(sent)) - set(got))
+    runs: list[list[int]] = []
+    for m in missing:
+        if runs and runs[-1][1] == m - 1:
+            runs[-1][1] = m
+        else:
+            runs.append([m, m])
+    disorder = next((i for i in range(1, len(got)) if got[i] <= got[i - 1]), None)
+    return (
+        f"{len(got)} of {sent} received; {len(missing)} missing in runs {[tuple(r) for r in runs[:10]]}; "
+        f"{len(got) - len(set(got))} duplicates; first out of order at index {disorder}"
+    )
+
+
+def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int, list[int], float]:
+    router = Router(tmp_path, LEASE)
     router.start()
     endpoint = [f"tcp/127.0.0.1:{router.port}"]
     got: list[int] = []
@@ -39,47 +105,42 @@ def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int
             got.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
             cond.notify_all()
 
-    section = client_section(endpoint)
-    section.raw.update(raw)
     try:
-        with open_session(client_section(endpoint)) as sub_session, open_session(section) as pub_session:
+        with (
+            open_session(long_lease_client(endpoint)) as sub_session,
+            open_session(long_lease_client(endpoint, raw)) as pub_session,
+        ):
             sub = sub_session.declare_subscriber("stall/test", on)
             pub = pub_session.declare_publisher("stall/test", congestion_control=zenoh.CongestionControl.BLOCK)
             matched = threading.Event()  # the subscriber's declaration reached the publisher through the router
             listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
-            assert matched.wait(30)
+            assert matched.wait(WAIT_S)
             listener.undeclare()
-            sent = 0
             assert router.proc is not None
+            resumed = threading.Event()
             router.proc.send_signal(signal.SIGSTOP)
-            stalled = time.monotonic()
-            threading.Timer(STALL_S, _cont, (router,)).start()  # a thread: the puts below block meanwhile
-            while time.monotonic() < stalled + STALL_S + 0.5:  # past the resumption: the link still carries
-                pub.put(sent.to_bytes(8, "little") + bytes(PAYLOAD - 8))
-                sent += 1
+            resume_after(router.proc, resumed)
+            sent, longest = put_until_after(pub, resumed)
             with cond:
-                cond.wait_for(lambda: bool(got) and got[-1] == sent - 1, timeout=30)
+                cond.wait_for(lambda: bool(got) and got[-1] == sent - 1, timeout=WAIT_S)
             sub.undeclare()
     finally:
         router.kill()
-    return sent, got
-
-
-def _cont(router: Router) -> None:
-    if router.proc is not None and router.proc.poll() is None:
-        router.proc.send_signal(signal.SIGCONT)
+    return sent, got, longest
 
 
 def test_a_publisher_waits_out_a_stalled_router_and_nothing_is_lost(tmp_path):
-    sent, got = publish_through_a_stalled_router(tmp_path, {})
-    print(f"{sent} samples put, {len(got)} received")
-    assert got == list(range(sent))
+    sent, got, longest = publish_through_a_stalled_router(tmp_path, {})
+    # how long a put waited (~7 s) is printed, not asserted: a timed assertion fails on a loaded
+    # machine; that the test catches a publisher giving up after 5 s is the slow test below
+    print(f"{sent} samples put, {len(got)} received; the longest put waited {longest:.1f} s")
+    assert losses(got, sent) == ""
 
 
 @pytest.mark.slow
 def test_with_zenoh_s_5_s_the_publisher_closes_its_own_link_and_samples_are_lost(tmp_path):
     """The same with Zenoh's default on the publisher: what the test above guards against."""
-    sent, got = publish_through_a_stalled_router(
+    sent, got, _ = publish_through_a_stalled_router(
         tmp_path, {"transport/link/tx/queue/congestion_control/block/wait_before_close": 5_000_000}
     )
     print(f"{sent} samples put, {len(got)} received")
@@ -87,19 +148,21 @@ def test_with_zenoh_s_5_s_the_publisher_closes_its_own_link_and_samples_are_lost
 
 
 SUBSCRIBER = """
-import sys, threading
+import json, sys, threading
 from sinewatch.clients.session import client_section, open_session
 seqs, cond = [], threading.Condition()
 def on(sample):
     with cond:
         seqs.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
         cond.notify_all()
-with open_session(client_section([sys.argv[1]])) as session:
+section = client_section([sys.argv[1]])
+section.raw.update(json.loads(sys.argv[2]))
+with open_session(section) as session:
     sub = session.declare_subscriber("stall/test", on)
     print("ready", flush=True)
-    n = int(sys.stdin.readline())  # the samples put: report once they are all here, or after 30 s
+    n = int(sys.stdin.readline())  # the samples put: report once they are all here, or after the wait
     with cond:
-        cond.wait_for(lambda: len(seqs) >= n, timeout=30)
+        cond.wait_for(lambda: len(seqs) >= n, timeout=float(sys.argv[3]))
         print(len(seqs), seqs == list(range(len(seqs))), flush=True)
 """
 
@@ -109,30 +172,27 @@ def test_a_router_waits_for_a_subscriber_that_reads_nothing_for_7_s(tmp_path):
     a daemon catching up after a takeover on a loaded machine did the same) keeps its link, and
     gets every sample once it reads again, the publisher held back meanwhile. With Zenoh's 5 s
     the router closed that daemon's link and what was queued to it was lost."""
-    import subprocess
-    import sys
-
-    router = Router(tmp_path)
+    router = Router(tmp_path, LEASE)
     router.start()
     endpoint = [f"tcp/127.0.0.1:{router.port}"]
     sub = subprocess.Popen(
-        [sys.executable, "-c", SUBSCRIBER, endpoint[0]], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", SUBSCRIBER, endpoint[0], json.dumps(LEASE), str(WAIT_S)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert sub.stdout is not None and sub.stdin is not None and sub.stdout.readline().strip() == "ready"
-        with open_session(client_section(endpoint)) as session:
+        with open_session(long_lease_client(endpoint)) as session:
             pub = session.declare_publisher("stall/test", congestion_control=zenoh.CongestionControl.BLOCK)
             matched = threading.Event()
             listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
-            assert matched.wait(30)
+            assert matched.wait(WAIT_S)
             listener.undeclare()
+            resumed = threading.Event()
             sub.send_signal(signal.SIGSTOP)
-            stopped = time.monotonic()
-            threading.Timer(STALL_S, sub.send_signal, (signal.SIGCONT,)).start()  # the puts below block meanwhile
-            sent = 0
-            while time.monotonic() < stopped + STALL_S + 0.5:
-                pub.put(sent.to_bytes(8, "little") + bytes(PAYLOAD - 8))
-                sent += 1
+            resume_after(sub, resumed)
+            sent, longest = put_until_after(pub, resumed)
             sub.stdin.write(f"{sent}\n")
             sub.stdin.flush()
             count, in_order = sub.stdout.readline().split()
@@ -141,5 +201,7 @@ def test_a_router_waits_for_a_subscriber_that_reads_nothing_for_7_s(tmp_path):
         sub.kill()
         sub.wait()
         router.kill()
-    print(f"{sent} samples put, {count} received by the subscriber stopped {STALL_S} s")
+    # (how long a put waited is not asserted here: the router stops reading the publisher only
+    # once its queue to the stopped subscriber is full, which takes longer on a loaded machine)
+    print(f"{sent} samples put, {count} received by the subscriber stopped {STALL_S} s; longest put {longest:.1f} s")
     assert int(count) == sent and in_order == "True"
