@@ -292,6 +292,10 @@ def serve_comtrade(tmp_path: Path, cfg: Path, *feed_args: str, name: str = "daem
     port = free_loopback_port()
     config = tmp_path / f"{name}.toml"
     config.write_text(
+        # idle_release_s: the record's last estimates go out when its feed ends; mid-record, a block
+        # that reaches the daemon over 0.5 s (the default) after its channel's previous one, as on a
+        # loaded machine, released the held estimate early, not valid, and two runs differed
+        "idle_release_s = 2.0\n"
         f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n\n[recording]\nenabled = false\n\n'
         '[[rules]]\nmatch = "sinewatch/in/comtrade/**"\nestimator = "ipdft"\n'
         "params = { nominal_frequency_hz = 50.0, window_cycles = 10 }\n"
