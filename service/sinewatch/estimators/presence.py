@@ -225,6 +225,8 @@ def presence_kernel(
                 c = ring[im + size if im < 0 else im] - mu
                 d = ring[pos] - mu  # the sample Q + m back, leaving the ring
                 psum += a * a + b * b - c * c - d * d
+            # the ring's push as in base.py's window (a compare, not a modulo, a sample); kept here in
+            # the detector's own loop, whose ring has no hop to count
             ring[pos] = xj
             pos += 1
             if pos == size:

@@ -411,6 +411,8 @@ def sogi_fll_bank_kernel(
     (C,) and the new state (10, C). Samples outer, channels inner: the C recursions are
     independent, so the CPU overlaps their chains (each the same :func:`_sogi_fll_step`)."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
+    # (the same shape as ges-kalman's bank's opening lines: each bank allocates its own outputs, whose
+    # number and widths differ; a shared allocator would be one more call inside a compiled kernel)
     n, nc = v.shape
     rows = 1 if last_only else n
     out = np.empty((nc, rows, 5))
