@@ -136,8 +136,9 @@ import numpy as np
 from pydantic import Field
 
 from sinewatch.estimators import register
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, Track
-from sinewatch.estimators.grip_mixing_kernels import grip_mixing_kernel
+from sinewatch.estimators.grip_mixing_kernels import grip_mixing_bank_kernel, grip_mixing_kernel
 from sinewatch.schemas.errors import ParameterError
 
 DEFAULT_FREQUENCIES_HZ = (50.0, 150.0, 250.0)
@@ -601,6 +602,23 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
     def _kernel_input(self, samples: np.ndarray) -> np.ndarray:
         return samples if samples.ndim == 2 else samples.reshape(-1, 1)
 
+    @staticmethod
+    def _bank_tracks(first: GripMixing, outputs: tuple[Any, ...], samples: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (``out`` (C, rows, columns), ``sse`` (C,)),
+        one numpy call a field for the whole bank: each channel's fields are views of its slice,
+        as the single path's are of its ``out``, and its residual the same correctly rounded
+        sqrt(sse / N)."""
+        out, sse = outputs
+        K, n = first._K, first._n
+        freq, amp, phase = list(out[:, :, 0:K]), list(out[:, :, K : 2 * K]), list(out[:, :, 2 * K : 3 * K])
+        offset, conv = list(out[:, :, 3 * K]), list(out[:, :, 3 * K + 1].astype(np.bool_))
+        dh, xh = list(out[:, :, 3 * K + 2]), list(out[:, :, 3 * K + 3 : 3 * K + 3 + n])
+        rms = np.sqrt(sse / samples.shape[0]).tolist()
+        return [
+            Track(freq[c], amp[c], phase[c], offset[c], conv[c], rms[c], {"x_hat": xh[c], "d_hat": dh[c]})
+            for c in range(out.shape[0])
+        ]
+
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out, sse = outputs
         f, a, p, off, conv, dh, xh = self._columns
@@ -613,3 +631,7 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
             math.sqrt(sse / block.shape[0]),  # residual_rms
             {"x_hat": out[xh], "d_hat": out[dh]},
         )
+
+
+# one-input channels of a frame advance together, each channel's chain beside the others'
+register_bank(GripMixing, grip_mixing_bank_kernel, n_outputs=2, tracks=GripMixing._bank_tracks)

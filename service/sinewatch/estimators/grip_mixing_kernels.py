@@ -7,9 +7,14 @@ of y, u, z and dhat and the modal read-out of each row.
 from __future__ import annotations
 
 import math
+from typing import Any
 
+import numba
 import numpy as np
+from llvmlite import ir as llvm_ir
+from numba.extending import intrinsic
 
+from sinewatch.estimators import detmath
 from sinewatch.estimators.base import cyclic_next, kernel
 
 
@@ -244,3 +249,407 @@ def grip_mixing_kernel(
     count = np.empty(1, dtype=np.int64)
     count[0] = k
     return out, sse, new_state, count
+
+
+@kernel
+def _bank_any(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`grip_mixing_bank_kernel` for any plant (Ad not a bank of 2 x 2 blocks, more than
+    :data:`NMAX` states): samples outer, channels inner, each channel in scalar arithmetic with
+    its own ring position and window phase. Each channel's operations are the single kernel's
+    m = 0 path in the same order (same sums from 0.0, same association), so the bits are the
+    same."""
+    n = iconst[0]
+    m = iconst[1]  # 0 here (one input), kept for the offsets of the state and constants
+    K = iconst[2]
+    nt = iconst[3]
+    Lb = iconst[4]
+    Lz = iconst[5]
+    window = iconst[6]
+    warm = iconst[8]
+    modal_ok = iconst[9] != 0
+    tap_o = iconst[10 : 10 + nt]
+    pairs = iconst[10 + nt] != 0
+    o = 0
+    Ad = fconst[o : o + n * n].reshape((n, n))
+    o += n * n + 2 * n * m  # Bd0, Bd1: empty with m = 0
+    Cr = fconst[o : o + n]
+    Cbar = fconst[o + n : o + 2 * n]
+    Ld = fconst[o + 3 * n : o + 4 * n]
+    o += 4 * n + m
+    tap_h = fconst[o : o + nt]
+    o += nt
+    Wre = fconst[o : o + K * n].reshape((K, n))
+    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
+    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]
+    o_yb = n + m + 2 * n + 2 * Lz * n  # rows of the state: xhat, u, z, z's line, then y's line
+    o_db = o_yb + Lb + Lb * m
+    o_ds = o_db + Lb
+    N, nc = block.shape
+    S = state.copy()
+    k = count0[0].copy()
+    pos = np.empty(nc, dtype=np.int64)
+    kw = np.empty(nc, dtype=np.int64)
+    for c in range(nc):
+        pos[c] = k[c] % Lb
+        kw[c] = k[c] % window
+    rows = 1 if last_only else N
+    out = np.empty((nc, rows, 3 * K + 3 + n))
+    sse = np.zeros(nc)
+    cxs = np.zeros(nc)
+    dhs = np.zeros(nc)
+    xp = np.empty(n)
+    xl = np.empty(n)
+    rd = np.empty(nt, dtype=np.int64)
+    for i in range(N):
+        for c in range(nc):
+            y = block[i, c]
+            p = pos[c]
+            for j in range(nt):
+                q = p - tap_o[j]
+                rd[j] = q + Lb if q < 0 else q
+            qw = p - window
+            if qw < 0:
+                qw += Lb
+            if k[c] == 0:
+                for a in range(n):
+                    xp[a] = S[a, c]
+            elif pairs:
+                for a in range(0, n, 2):
+                    x0 = S[a, c]
+                    x1 = S[a + 1, c]
+                    xp[a] = Ad[a, a] * x0 + Ad[a, a + 1] * x1
+                    xp[a + 1] = Ad[a + 1, a] * x0 + Ad[a + 1, a + 1] * x1
+            else:
+                for a in range(n):
+                    s = 0.0
+                    for b in range(n):
+                        s += Ad[a, b] * S[b, c]
+                    xp[a] = s
+            S[o_yb + p, c] = y
+            yd = 0.0
+            for j in range(nt):
+                yd += tap_h[j] * S[o_yb + rd[j], c]
+            Du = 0.0
+            udel = 0.0
+            eps = y - yd - Du + udel
+            cxp = 0.0
+            for a in range(n):
+                eps -= Cbar[a] * xp[a]
+                cxp += Cr[a] * xp[a]
+            cx = 0.0
+            for a in range(n):
+                S[a, c] = xp[a] + Ld[a] * eps
+                cx += Cr[a] * S[a, c]
+            dhat = y - cx - Du
+            dpred = 0.0
+            for j in range(nt):
+                dpred += tap_h[j] * S[o_db + rd[j], c]
+            e = y - cxp - Du - dpred
+            sse[c] += e * e
+            dsum = S[o_ds, c] + (dhat - S[o_db + qw, c])
+            S[o_db + p, c] = dhat
+            w = kw[c] + 1
+            if w == window:
+                w = 0
+                dsum = 0.0
+                q = p
+                for _ in range(window):
+                    dsum += S[o_db + q, c]
+                    q = q - 1 if q > 0 else Lb - 1
+            S[o_ds, c] = dsum
+            kw[c] = w
+            k[c] += 1
+            pos[c] = cyclic_next(p, Lb)
+            cxs[c] = cx
+            dhs[c] = dhat
+            if not last_only:
+                for a in range(n):
+                    xl[a] = S[a, c]
+                _write_row(out[c], i, xl, cx, Du, dsum, dhat, k[c], Wre, Wim, freq, modal_ok, window, warm)
+    if last_only:
+        for c in range(nc):
+            for a in range(n):
+                xl[a] = S[a, c]
+            _write_row(out[c], 0, xl, cxs[c], 0.0, S[o_ds, c], dhs[c], k[c], Wre, Wim, freq, modal_ok, window, warm)
+    return out, sse, S, k.reshape((1, nc))
+
+
+LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
+NMAX = 8  # states of the lanes' work array (4 oscillators); more run in _bank_any
+# rows of the lanes' work array W (each LANES wide, lane l of row r at W[r * LANES + l]): xhat, the
+# sample, the taps of y's and dhat's delay lines and dhat's window tail, the mean's running sum,
+# the sum of squared prediction errors, C xhat and dhat, xhat^-, then the constants broadcast to
+# every lane (Ad's 2 x 2 blocks, C (I - e^{-AT}), C, Ld, the tap weights): every row is a literal,
+# so the compiler sees the lanes independent and runs the lane loop as one vector
+_RX, _RY, _RYT, _RDT, _RDQ, _RDS, _RSSE, _RCX, _RDH, _RXP = 0, 8, 9, 13, 17, 18, 19, 20, 21, 22
+_RAD, _RCB, _RCR, _RLD, _RH = 30, 46, 54, 62, 70
+_ROWS = 74
+
+
+@intrinsic
+def _copy_lanes_intrinsic(typingctx: Any, dst: Any, dst_at: Any, src: Any, src_at: Any) -> Any:
+    sig = numba.types.void(dst, numba.types.int64, src, numba.types.int64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        d = context.make_array(signature.args[0])(context, builder, args[0])
+        s = context.make_array(signature.args[2])(context, builder, args[2])
+        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), LANES).as_pointer()
+        v = builder.load(builder.bitcast(builder.gep(s.data, [args[3]]), vec), align=8)
+        builder.store(v, builder.bitcast(builder.gep(d.data, [args[1]]), vec), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@kernel(inline="always")
+def _copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> None:
+    """``dst[dst_at : dst_at + LANES] = src[src_at : src_at + LANES]`` as one vector load and one
+    vector store (no bounds check: the callers' offsets are rows of their arrays). Why: a row the
+    lanes' loop reads as one vector must be written as one, not by LANES scalar stores, or the
+    load waits for the stores to reach the cache (store forwarding fails); and a loop of LANES
+    copies between two arrays stays scalar (LLVM adds no overlap check to a loop that short)."""
+    _copy_lanes_intrinsic(dst, dst_at, src, src_at)  # type: ignore[call-arg]  # numba passes the typing context
+
+
+@kernel(inline="always")
+def _lane_step(W: np.ndarray, ln: int, first: bool, nt: int) -> None:
+    """One sample of lane ``ln`` of ``W``: :func:`grip_mixing_kernel`'s m = 0 path for a bank of
+    2 x 2 blocks, operation for operation (its sums from 0.0 in the same order; Du and u_Delta_d
+    are 0.0). The states beyond n and the taps beyond nt are zeros whose products add +0.0 to
+    sums that start at +0.0, which changes no bit. ``first``: the sample at count 0 (xhat^- =
+    xhat); ``first`` and ``nt`` are literals at each call, so the loops unroll to literal rows."""
+    L = LANES
+    y = W[_RY * L + ln]
+    for a in range(0, NMAX, 2):
+        x0 = W[(_RX + a) * L + ln]
+        x1 = W[(_RX + a + 1) * L + ln]
+        if first:
+            xp0, xp1 = x0, x1
+        else:
+            b = (_RAD + 2 * a) * L + ln
+            xp0 = W[b] * x0 + W[b + L] * x1
+            xp1 = W[b + 2 * L] * x0 + W[b + 3 * L] * x1
+        W[(_RXP + a) * L + ln] = xp0
+        W[(_RXP + a + 1) * L + ln] = xp1
+    yd = 0.0
+    for j in range(nt):
+        yd += W[(_RH + j) * L + ln] * W[(_RYT + j) * L + ln]
+    Du = 0.0
+    udel = 0.0
+    eps = y - yd - Du + udel
+    cxp = 0.0
+    for a in range(NMAX):
+        xpa = W[(_RXP + a) * L + ln]
+        eps -= W[(_RCB + a) * L + ln] * xpa
+        cxp += W[(_RCR + a) * L + ln] * xpa
+    cx = 0.0
+    for a in range(NMAX):
+        xa = W[(_RXP + a) * L + ln] + W[(_RLD + a) * L + ln] * eps
+        W[(_RX + a) * L + ln] = xa
+        cx += W[(_RCR + a) * L + ln] * xa
+    dhat = y - cx - Du
+    dpred = 0.0
+    for j in range(nt):
+        dpred += W[(_RH + j) * L + ln] * W[(_RDT + j) * L + ln]
+    e = y - cxp - Du - dpred
+    W[_RSSE * L + ln] += e * e
+    W[_RDS * L + ln] = W[_RDS * L + ln] + (dhat - W[_RDQ * L + ln])
+    W[_RCX * L + ln] = cx
+    W[_RDH * L + ln] = dhat
+
+
+@kernel(inline="always")
+def _lanes(W: np.ndarray, first: bool, nt: int) -> None:
+    """Sample of every lane (:func:`_lane_step`), the switches as literals in each loop."""
+    if first and nt == 1:
+        for ln in range(LANES):  # literal trip count: one vector
+            _lane_step(W, ln, True, 1)
+    elif first:
+        for ln in range(LANES):
+            _lane_step(W, ln, True, 4)
+    elif nt == 1:
+        for ln in range(LANES):
+            _lane_step(W, ln, False, 1)
+    else:
+        for ln in range(LANES):
+            _lane_step(W, ln, False, 4)
+
+
+@kernel
+def _bank_lanes(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`grip_mixing_bank_kernel` for a bank of 2 x 2 blocks with at most :data:`NMAX`
+    states: the channels grouped by sample count (a frame's agree) into groups of :data:`LANES`
+    lanes (padded with copies of the group's first channel), each group advanced in lock step
+    through the lanes' work array, its delay lines in rings of their own (the taps copied into
+    the work array before each sample, the new values out after it)."""
+    detmath.prefer_512_bit_vectors()
+    n = iconst[0]
+    K = iconst[2]
+    nt = iconst[3]
+    Lb = iconst[4]
+    Lz = iconst[5]
+    window = iconst[6]
+    warm = iconst[8]
+    modal_ok = iconst[9] != 0
+    tap_o = iconst[10 : 10 + nt]
+    Ad = fconst[0 : n * n].reshape((n, n))
+    o = n * n
+    Cr = fconst[o : o + n]
+    Cbar = fconst[o + n : o + 2 * n]
+    Ld = fconst[o + 3 * n : o + 4 * n]
+    o += 4 * n
+    tap_h = fconst[o : o + nt]
+    o += nt
+    Wre = fconst[o : o + K * n].reshape((K, n))
+    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
+    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]
+    o_yb = n + 2 * n + 2 * Lz * n  # m = 0: xhat, z, z's line, then y's line, dhat's, the sum
+    o_db = o_yb + Lb
+    o_ds = o_db + Lb
+    N, nc = block.shape
+    L = LANES
+    S = state.copy()
+    kout = count0.copy()
+    rows = 1 if last_only else N
+    out = np.empty((nc, rows, 3 * K + 3 + n))
+    sse = np.zeros(nc)
+    W = np.zeros(_ROWS * L)
+    for a in range(0, n, 2):  # the constants, broadcast to every lane
+        for ln in range(L):
+            b = (_RAD + 2 * a) * L + ln
+            W[b], W[b + L] = Ad[a, a], Ad[a, a + 1]
+            W[b + 2 * L], W[b + 3 * L] = Ad[a + 1, a], Ad[a + 1, a + 1]
+    for a in range(n):
+        for ln in range(L):
+            W[(_RCB + a) * L + ln] = Cbar[a]
+            W[(_RCR + a) * L + ln] = Cr[a]
+            W[(_RLD + a) * L + ln] = Ld[a]
+    for j in range(nt):
+        for ln in range(L):
+            W[(_RH + j) * L + ln] = tap_h[j]
+    yb = np.empty(Lb * L)
+    db = np.empty(Lb * L)
+    yg = np.empty(N * L)
+    rd = np.empty(nt, dtype=np.int64)
+    xl = np.empty(n)
+    cols = np.empty(L, dtype=np.int64)
+    order = np.argsort(count0[0], kind="mergesort")
+    g0 = 0
+    while g0 < nc:
+        k = count0[0, order[g0]]
+        g1 = g0 + 1
+        while g1 < nc and g1 - g0 < L and count0[0, order[g1]] == k:
+            g1 += 1
+        act = g1 - g0
+        for ln in range(L):  # the group's channels, padded with its first
+            cols[ln] = order[g0 + ln] if ln < act else order[g0]
+        for ln in range(L):
+            c = cols[ln]
+            for a in range(NMAX):
+                W[(_RX + a) * L + ln] = S[a, c] if a < n else 0.0
+            for q in range(Lb):
+                yb[q * L + ln] = S[o_yb + q, c]
+                db[q * L + ln] = S[o_db + q, c]
+            W[_RDS * L + ln] = S[o_ds, c]
+            W[_RSSE * L + ln] = 0.0
+            for i in range(N):  # the group's samples lane-major, one vector a sample
+                yg[i * L + ln] = block[i, c]
+        pos = k % Lb
+        kw = k % window
+        for i in range(N):
+            for j in range(nt):
+                q = pos - tap_o[j]
+                rd[j] = q + Lb if q < 0 else q
+            qw = pos - window
+            if qw < 0:
+                qw += Lb
+            _copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
+            _copy_lanes(W, _RDQ * L, db, qw * L)
+            for j in range(nt):
+                _copy_lanes(W, (_RYT + j) * L, yb, rd[j] * L)
+                _copy_lanes(W, (_RDT + j) * L, db, rd[j] * L)
+            _lanes(W, k == 0, nt)
+            _copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
+            _copy_lanes(db, pos * L, W, _RDH * L)
+            kw += 1
+            if kw == window:  # the exact re-sum of the single kernel, lane by lane
+                kw = 0
+                for ln in range(L):
+                    s = 0.0
+                    q = pos
+                    for _ in range(window):
+                        s += db[q * L + ln]
+                        q = q - 1 if q > 0 else Lb - 1
+                    W[_RDS * L + ln] = s
+            k += 1
+            pos = cyclic_next(pos, Lb)
+            if not last_only:
+                for ln in range(act):
+                    _lanes_row(out[cols[ln]], i, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
+        for ln in range(act):
+            c = cols[ln]
+            if last_only:
+                _lanes_row(out[c], 0, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
+            for a in range(n):
+                S[a, c] = W[(_RX + a) * L + ln]
+            for q in range(Lb):
+                S[o_yb + q, c] = yb[q * L + ln]
+                S[o_db + q, c] = db[q * L + ln]
+            S[o_ds, c] = W[_RDS * L + ln]
+            sse[c] = W[_RSSE * L + ln]
+            kout[0, c] = k
+        g0 = g1
+    return out, sse, S, kout
+
+
+@kernel(inline="always")
+def _lanes_row(
+    out: np.ndarray, r: int, W: np.ndarray, ln: int, xl: np.ndarray, k: int,
+    Wre: np.ndarray, Wim: np.ndarray, freq: np.ndarray, modal_ok: bool, window: int, warm: int,
+) -> None:  # fmt: skip
+    """Row ``r`` of one lane's ``out``: :func:`_write_row` of its values in the work array."""
+    for a in range(xl.shape[0]):
+        xl[a] = W[(_RX + a) * LANES + ln]
+    L = LANES
+    _write_row(out, r, xl, W[_RCX * L + ln], 0.0, W[_RDS * L + ln], W[_RDH * L + ln], k, Wre, Wim, freq, modal_ok, window, warm)
+
+
+@kernel
+def grip_mixing_bank_kernel(
+    block: np.ndarray,
+    state: np.ndarray,
+    count0: np.ndarray,
+    fconst: np.ndarray,
+    iconst: np.ndarray,
+    last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`grip_mixing_kernel` for C one-input channels at once (``block`` (N, C); the bank
+    path takes no known input u, so m = 0: no z and no u delay lines): ``state`` (S, C) and
+    ``count0`` (1, C), each column one channel's ``state`` and ``count``. Returns ``out`` (C, rows,
+    columns as the single kernel's), ``sse`` (C,), the new state (S, C) and count (1, C).
+
+    Each channel is its own observer chain (7), independent of the others: one channel waits on
+    its chain's latency at every sample, a bank runs the channels' chains side by side. A bank of
+    oscillators (Ad of 2 x 2 blocks, the ``harmonics`` preset) of at most :data:`NMAX` states runs
+    as vector lanes (:func:`_bank_lanes`), any other plant channel by channel in scalar arithmetic
+    (:func:`_bank_any`). Either way each channel's operations are the single kernel's in the
+    same order, so its bits are the single channel's. Pure: the inputs are not modified."""
+    n = iconst[0]
+    nt = iconst[3]
+    if iconst[10 + nt] != 0 and n <= NMAX and (nt == 1 or nt == 4):
+        return _bank_lanes(block, state, count0, fconst, iconst, last_only)
+    return _bank_any(block, state, count0, fconst, iconst, last_only)
