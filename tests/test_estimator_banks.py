@@ -339,3 +339,39 @@ def test_pmu_bank_of_a_frame_in_lock_step_builds_its_tracks_at_once(monkeypatch)
         pos += step
         t0 += round(step * 1e9 / fs)
     assert len(calls) == 3 and reports > 8 * size
+
+
+@pytest.mark.parametrize(
+    ("params", "path"),
+    [
+        # a fractional period: four-tap delay lines (the lanes' nt = 4 branch)
+        ({"frequencies_hz": [50.0, 150.0], "period_s": 0.05013, "fractional_delay": True}, "_bank_lanes"),
+        # five lines: ten states, more than the lanes' work array holds
+        ({"frequencies_hz": [50.0, 110.0, 150.0, 250.0, 350.0], "period_s": 0.05}, "_bank_any"),
+        # a plant that is not a bank of 2 x 2 blocks (a damped mode and a real one)
+        ({"preset": "plant", "A": [[-5.0, 0.0, 0.0], [0.0, 0.0, 314.159], [0.0, -314.159, -1.0]],
+          "C": [1.0, 1.0, 0.0], "period_s": 0.05}, "_bank_any"),
+    ],
+)  # fmt: skip
+def test_grip_mixing_bank_matches_single_channel_on_every_kernel_path(params: dict, path: str, monkeypatch) -> None:
+    """grip-mixing's bank takes the vector lanes for a bank of oscillators of at most eight
+    states with one or four taps, and each channel through the single kernel otherwise: each
+    path bit for bit with the single channel, for nine channels of which six started together
+    (one group of lanes, padded) and three joined one at a time (groups of their own)."""
+    from sinewatch.estimators import grip_mixing_kernels as gk
+
+    fs, size = 4000.0, 9
+    cls = get("grip-mixing")
+    x = np.stack([cls.example_signal(3000, seed=40 + c) for c in range(size)], axis=1)
+    singles, banked = [cls(fs, params) for _ in range(size)], [cls(fs, params) for _ in range(size)]
+    for c in range(6, size):
+        for est in (singles[c], banked[c]):
+            est.update(np.ascontiguousarray(x[: 37 * (c - 5), c]))
+    iconst = banked[0]._iconst  # the compiled dispatch's test, so the case is the path it names
+    n_taps = int(iconst[3])
+    lanes = bool(iconst[10 + n_taps]) and int(iconst[0]) <= gk.NMAX and n_taps in (1, 4)
+    assert ("_bank_lanes" if lanes else "_bank_any") == path
+    pos = 200
+    for n, last_only in ((700, True), (1, False), (900, False), (1000, True)):
+        _step_alike("grip-mixing", singles, banked, x[pos : pos + n], last_only)
+        pos += n

@@ -49,6 +49,49 @@ def _write_row(
         out[r, 3 * K + 3 + a] = x[a]
 
 
+@kernel(inline="always")
+def _ring_reads(pos: int, tap_o: np.ndarray, Lb: int, window: int, rd: np.ndarray) -> int:
+    """The ring positions the sample at ring position ``pos`` reads: each tap's into ``rd``, and
+    (returned) the one ``window`` samples back, which leaves the mean of dhat."""
+    for j in range(tap_o.shape[0]):
+        q = pos - tap_o[j]
+        rd[j] = q + Lb if q < 0 else q
+    qw = pos - window
+    return qw + Lb if qw < 0 else qw
+
+
+@kernel(inline="always")
+def _model(
+    fconst: np.ndarray, n: int, m: int, K: int, nt: int
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+]:  # fmt: skip
+    """The views of ``fconst`` (its layout: :func:`grip_mixing_kernel`) for n states, m inputs,
+    K modes and nt taps: Ad, Bd0, Bd1, C, Cbar = C (I - e^{-AT}), C e^{-AT}, Ld, D, the tap
+    weights, Wre, Wim and the mode frequencies (Hz; NaN: no modes)."""
+    o = 0
+    Ad = fconst[o : o + n * n].reshape((n, n))
+    o += n * n
+    Bd0 = fconst[o : o + n * m].reshape((n, m))
+    o += n * m
+    Bd1 = fconst[o : o + n * m].reshape((n, m))
+    o += n * m
+    Cr = fconst[o : o + n]
+    Cbar = fconst[o + n : o + 2 * n]
+    CE = fconst[o + 2 * n : o + 3 * n]
+    Ld = fconst[o + 3 * n : o + 4 * n]
+    o += 4 * n
+    Dr = fconst[o : o + m]
+    o += m
+    tap_h = fconst[o : o + nt]
+    o += nt
+    Wre = fconst[o : o + K * n].reshape((K, n))
+    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
+    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]
+    return Ad, Bd0, Bd1, Cr, Cbar, CE, Ld, Dr, tap_h, Wre, Wim, freq
+
+
 @kernel
 def grip_mixing_kernel(
     block: np.ndarray,
@@ -83,25 +126,7 @@ def grip_mixing_kernel(
     modal_ok = iconst[9] != 0
     tap_o = iconst[10 : 10 + nt]
     pairs = iconst[10 + nt] != 0  # Ad block-diagonal with 2 x 2 blocks (oscillator banks)
-    o = 0
-    Ad = fconst[o : o + n * n].reshape((n, n))
-    o += n * n
-    Bd0 = fconst[o : o + n * m].reshape((n, m))
-    o += n * m
-    Bd1 = fconst[o : o + n * m].reshape((n, m))
-    o += n * m
-    Cr = fconst[o : o + n]
-    Cbar = fconst[o + n : o + 2 * n]
-    CE = fconst[o + 2 * n : o + 3 * n]
-    Ld = fconst[o + 3 * n : o + 4 * n]
-    o += 4 * n
-    Dr = fconst[o : o + m]
-    o += m
-    tap_h = fconst[o : o + nt]
-    o += nt
-    Wre = fconst[o : o + K * n].reshape((K, n))
-    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
-    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]  # model frequencies, Hz (NaN: no modes)
+    Ad, Bd0, Bd1, Cr, Cbar, CE, Ld, Dr, tap_h, Wre, Wim, freq = _model(fconst, n, m, K, nt)
     new_state = state.copy()  # the views below write into the copy only
     o = 0
     x = new_state[o : o + n]
@@ -134,12 +159,7 @@ def grip_mixing_kernel(
     kp = k % P  # phase of k in the reset interval of z
     for i in range(N):
         y = block[i, 0]
-        for j in range(nt):
-            q = pos - tap_o[j]
-            rd[j] = q + Lb if q < 0 else q
-        qw = pos - window
-        if qw < 0:
-            qw += Lb
+        qw = _ring_reads(pos, tap_o, Lb, window, rd)
         # (5a) sampled exactly (FOH): xhat^-_k = Ad xhat_{k-1} + Bd0 u_{k-1} + Bd1 u_k
         if k == 0:
             for a in range(n):
@@ -251,134 +271,34 @@ def grip_mixing_kernel(
     return out, sse, new_state, count
 
 
+# the bank kernels' results: out (C, rows, columns), sse (C,), the new state (S, C) and count (1, C)
+_BankResult = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 @kernel
 def _bank_any(
-    block: np.ndarray,
-    state: np.ndarray,
-    count0: np.ndarray,
-    fconst: np.ndarray,
-    iconst: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`grip_mixing_bank_kernel` for any plant (Ad not a bank of 2 x 2 blocks, more than
-    :data:`NMAX` states): samples outer, channels inner, each channel in scalar arithmetic with
-    its own ring position and window phase. Each channel's operations are the single kernel's
-    m = 0 path in the same order (same sums from 0.0, same association), so the bits are the
-    same."""
-    n = iconst[0]
-    m = iconst[1]  # 0 here (one input), kept for the offsets of the state and constants
-    K = iconst[2]
-    nt = iconst[3]
-    Lb = iconst[4]
-    Lz = iconst[5]
-    window = iconst[6]
-    warm = iconst[8]
-    modal_ok = iconst[9] != 0
-    tap_o = iconst[10 : 10 + nt]
-    pairs = iconst[10 + nt] != 0
-    o = 0
-    Ad = fconst[o : o + n * n].reshape((n, n))
-    o += n * n + 2 * n * m  # Bd0, Bd1: empty with m = 0
-    Cr = fconst[o : o + n]
-    Cbar = fconst[o + n : o + 2 * n]
-    Ld = fconst[o + 3 * n : o + 4 * n]
-    o += 4 * n + m
-    tap_h = fconst[o : o + nt]
-    o += nt
-    Wre = fconst[o : o + K * n].reshape((K, n))
-    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
-    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]
-    o_yb = n + m + 2 * n + 2 * Lz * n  # rows of the state: xhat, u, z, z's line, then y's line
-    o_db = o_yb + Lb + Lb * m
-    o_ds = o_db + Lb
+    block: np.ndarray, state: np.ndarray, count0: np.ndarray, fconst: np.ndarray, iconst: np.ndarray, last_only: bool
+) -> _BankResult:
+    """:func:`grip_mixing_bank_kernel` for any other plant (Ad not a bank of 2 x 2 blocks, more
+    than :data:`NMAX` states): each channel through :func:`grip_mixing_kernel` in turn, in one
+    compiled call (its bits by construction; no lanes to share)."""
     N, nc = block.shape
-    S = state.copy()
-    k = count0[0].copy()
-    pos = np.empty(nc, dtype=np.int64)
-    kw = np.empty(nc, dtype=np.int64)
-    for c in range(nc):
-        pos[c] = k[c] % Lb
-        kw[c] = k[c] % window
+    K = iconst[2]
     rows = 1 if last_only else N
-    out = np.empty((nc, rows, 3 * K + 3 + n))
+    out = np.empty((nc, rows, 3 * K + 3 + iconst[0]))
     sse = np.zeros(nc)
-    cxs = np.zeros(nc)
-    dhs = np.zeros(nc)
-    xp = np.empty(n)
-    xl = np.empty(n)
-    rd = np.empty(nt, dtype=np.int64)
-    for i in range(N):
-        for c in range(nc):
-            y = block[i, c]
-            p = pos[c]
-            for j in range(nt):
-                q = p - tap_o[j]
-                rd[j] = q + Lb if q < 0 else q
-            qw = p - window
-            if qw < 0:
-                qw += Lb
-            if k[c] == 0:
-                for a in range(n):
-                    xp[a] = S[a, c]
-            elif pairs:
-                for a in range(0, n, 2):
-                    x0 = S[a, c]
-                    x1 = S[a + 1, c]
-                    xp[a] = Ad[a, a] * x0 + Ad[a, a + 1] * x1
-                    xp[a + 1] = Ad[a + 1, a] * x0 + Ad[a + 1, a + 1] * x1
-            else:
-                for a in range(n):
-                    s = 0.0
-                    for b in range(n):
-                        s += Ad[a, b] * S[b, c]
-                    xp[a] = s
-            S[o_yb + p, c] = y
-            yd = 0.0
-            for j in range(nt):
-                yd += tap_h[j] * S[o_yb + rd[j], c]
-            Du = 0.0
-            udel = 0.0
-            eps = y - yd - Du + udel
-            cxp = 0.0
-            for a in range(n):
-                eps -= Cbar[a] * xp[a]
-                cxp += Cr[a] * xp[a]
-            cx = 0.0
-            for a in range(n):
-                S[a, c] = xp[a] + Ld[a] * eps
-                cx += Cr[a] * S[a, c]
-            dhat = y - cx - Du
-            dpred = 0.0
-            for j in range(nt):
-                dpred += tap_h[j] * S[o_db + rd[j], c]
-            e = y - cxp - Du - dpred
-            sse[c] += e * e
-            dsum = S[o_ds, c] + (dhat - S[o_db + qw, c])
-            S[o_db + p, c] = dhat
-            w = kw[c] + 1
-            if w == window:
-                w = 0
-                dsum = 0.0
-                q = p
-                for _ in range(window):
-                    dsum += S[o_db + q, c]
-                    q = q - 1 if q > 0 else Lb - 1
-            S[o_ds, c] = dsum
-            kw[c] = w
-            k[c] += 1
-            pos[c] = cyclic_next(p, Lb)
-            cxs[c] = cx
-            dhs[c] = dhat
-            if not last_only:
-                for a in range(n):
-                    xl[a] = S[a, c]
-                _write_row(out[c], i, xl, cx, Du, dsum, dhat, k[c], Wre, Wim, freq, modal_ok, window, warm)
-    if last_only:
-        for c in range(nc):
-            for a in range(n):
-                xl[a] = S[a, c]
-            _write_row(out[c], 0, xl, cxs[c], 0.0, S[o_ds, c], dhs[c], k[c], Wre, Wim, freq, modal_ok, window, warm)
-    return out, sse, S, k.reshape((1, nc))
+    S = np.empty_like(state)
+    kout = np.empty_like(count0)
+    for c in range(nc):
+        o, e, st, k = grip_mixing_kernel(
+            np.ascontiguousarray(block[:, c]).reshape((N, 1)), np.ascontiguousarray(state[:, c]), count0[:, c].copy(),
+            fconst, iconst, last_only,
+        )  # fmt: skip
+        out[c] = o
+        sse[c] = e
+        S[:, c] = st
+        kout[0, c] = k[0]
+    return out, sse, S, kout
 
 
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
@@ -484,39 +404,18 @@ def _lanes(W: np.ndarray, first: bool, nt: int) -> None:
 
 @kernel
 def _bank_lanes(
-    block: np.ndarray,
-    state: np.ndarray,
-    count0: np.ndarray,
-    fconst: np.ndarray,
-    iconst: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    block: np.ndarray, state: np.ndarray, count0: np.ndarray, fconst: np.ndarray, iconst: np.ndarray, last_only: bool
+) -> _BankResult:
     """:func:`grip_mixing_bank_kernel` for a bank of 2 x 2 blocks with at most :data:`NMAX`
     states: the channels grouped by sample count (a frame's agree) into groups of :data:`LANES`
     lanes (padded with copies of the group's first channel), each group advanced in lock step
     through the lanes' work array, its delay lines in rings of their own (the taps copied into
     the work array before each sample, the new values out after it)."""
     detmath.prefer_512_bit_vectors()
-    n = iconst[0]
-    K = iconst[2]
-    nt = iconst[3]
-    Lb = iconst[4]
-    Lz = iconst[5]
-    window = iconst[6]
-    warm = iconst[8]
+    n, K, nt, Lb, Lz, window, warm = iconst[0], iconst[2], iconst[3], iconst[4], iconst[5], iconst[6], iconst[8]
     modal_ok = iconst[9] != 0
     tap_o = iconst[10 : 10 + nt]
-    Ad = fconst[0 : n * n].reshape((n, n))
-    o = n * n
-    Cr = fconst[o : o + n]
-    Cbar = fconst[o + n : o + 2 * n]
-    Ld = fconst[o + 3 * n : o + 4 * n]
-    o += 4 * n
-    tap_h = fconst[o : o + nt]
-    o += nt
-    Wre = fconst[o : o + K * n].reshape((K, n))
-    Wim = fconst[o + K * n : o + 2 * K * n].reshape((K, n))
-    freq = fconst[o + 2 * K * n : o + 2 * K * n + K]
+    Ad, _, _, Cr, Cbar, _, Ld, _, tap_h, Wre, Wim, freq = _model(fconst, n, 0, K, nt)  # m = 0
     o_yb = n + 2 * n + 2 * Lz * n  # m = 0: xhat, z, z's line, then y's line, dhat's, the sum
     o_db = o_yb + Lb
     o_ds = o_db + Lb
@@ -571,12 +470,7 @@ def _bank_lanes(
         pos = k % Lb
         kw = k % window
         for i in range(N):
-            for j in range(nt):
-                q = pos - tap_o[j]
-                rd[j] = q + Lb if q < 0 else q
-            qw = pos - window
-            if qw < 0:
-                qw += Lb
+            qw = _ring_reads(pos, tap_o, Lb, window, rd)
             _copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
             _copy_lanes(W, _RDQ * L, db, qw * L)
             for j in range(nt):
@@ -625,18 +519,15 @@ def _lanes_row(
     for a in range(xl.shape[0]):
         xl[a] = W[(_RX + a) * LANES + ln]
     L = LANES
-    _write_row(out, r, xl, W[_RCX * L + ln], 0.0, W[_RDS * L + ln], W[_RDH * L + ln], k, Wre, Wim, freq, modal_ok, window, warm)
+    _write_row(
+        out, r, xl, W[_RCX * L + ln], 0.0, W[_RDS * L + ln], W[_RDH * L + ln], k, Wre, Wim, freq, modal_ok, window, warm
+    )
 
 
 @kernel
 def grip_mixing_bank_kernel(
-    block: np.ndarray,
-    state: np.ndarray,
-    count0: np.ndarray,
-    fconst: np.ndarray,
-    iconst: np.ndarray,
-    last_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    block: np.ndarray, state: np.ndarray, count0: np.ndarray, fconst: np.ndarray, iconst: np.ndarray, last_only: bool
+) -> _BankResult:
     """:func:`grip_mixing_kernel` for C one-input channels at once (``block`` (N, C); the bank
     path takes no known input u, so m = 0: no z and no u delay lines): ``state`` (S, C) and
     ``count0`` (1, C), each column one channel's ``state`` and ``count``. Returns ``out`` (C, rows,
