@@ -276,6 +276,13 @@ def _component_outputs(
 
 
 @kernel(inline="always")
+def sample_and_row(y: np.ndarray, k: int, nsamp: int, last_only: bool) -> tuple[float, bool, int]:
+    """Sample ``k`` of ``y``, whether its outputs are written (every row, or the block's last
+    with ``last_only``) and the row they go to; the head of every automatic-rate kernel's loop."""
+    return y[k], (not last_only) or k == nsamp - 1, 0 if last_only else k
+
+
+@kernel(inline="always")
 def auto_gains(
     cf: np.ndarray,
 ) -> tuple[
@@ -364,9 +371,7 @@ def auto_kernel(
     sse = 0.0
     nsamp = y.shape[0]
     for k in range(nsamp):
-        yk = y[k]
-        write = (not last_only) or k == nsamp - 1
-        j = 0 if last_only else k
+        yk, write, j = sample_and_row(y, k, nsamp, last_only)
         # AD4: smoothed mean and AC power of the input; AD7: is the signal present
         s[osc + _S_STARTED], s[osc + _S_MEAN], s[osc + _S_POW], s[osc + _S_POWL], present = _input_level(
             yk, s[osc + _S_STARTED], s[osc + _S_MEAN], s[osc + _S_POW], s[osc + _S_POWL], p_alpha, min_a

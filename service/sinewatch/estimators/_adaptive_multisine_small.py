@@ -26,6 +26,7 @@ from sinewatch.estimators._adaptive_multisine_auto import (
     auto_gains,
     auto_offsets,
     level_state,
+    sample_and_row,
 )
 from sinewatch.estimators.base import fma, kernel
 
@@ -79,9 +80,7 @@ def auto_kernel_n1(
     sse = 0.0
     nsamp = y.shape[0]
     for k in range(nsamp):
-        yk = y[k]
-        write = (not last_only) or k == nsamp - 1
-        j = 0 if last_only else k
+        yk, write, j = sample_and_row(y, k, nsamp, last_only)
         # AD4: smoothed mean and AC power of the input; AD7: is the signal present
         started, mean, pw, pwl, present = _input_level(yk, started, mean, pw, pwl, p_alpha, min_a)
         # output error C_z zh - eta (16), (22)
@@ -203,6 +202,13 @@ def auto_kernel_n1(
     return out, ext, sse, s
 
 
+@kernel(inline="always")
+def _within(lim: float, z1: float, z2: float, z3: float, z4: float, z0: float, zf: float) -> bool:
+    """Every entry of :func:`auto_kernel_n2`'s zh within ``lim`` (False for a NaN), tested in
+    order and stopping at the first outside, as its guard's two bounds do."""
+    return abs(z1) <= lim and abs(z2) <= lim and abs(z3) <= lim and abs(z4) <= lim and abs(z0) <= lim and abs(zf) <= lim
+
+
 @kernel
 def auto_kernel_n2(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
@@ -258,9 +264,7 @@ def auto_kernel_n2(
     sse = 0.0
     nsamp = y.shape[0]
     for k in range(nsamp):
-        yk = y[k]
-        write = (not last_only) or k == nsamp - 1
-        j = 0 if last_only else k
+        yk, write, j = sample_and_row(y, k, nsamp, last_only)
         # AD4: smoothed mean and AC power of the input; AD7: is the signal present
         started, mean, pw, pwl, present = _input_level(yk, started, mean, pw, pwl, p_alpha, min_a)
         # output error C_z zh - eta (16), (22)
@@ -478,24 +482,10 @@ def auto_kernel_n2(
                 L0 = pz / (-a1 * -a2)
         # guard (D7 of the explicit mode): restart a diverged observer from zero, thetah kept
         lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
-        bad = not (
-            abs(z1) <= lim
-            and abs(z2) <= lim
-            and abs(z3) <= lim
-            and abs(z4) <= lim
-            and abs(z0) <= lim
-            and abs(zf) <= lim
-        )
+        bad = not _within(lim, z1, z2, z3, z4, z0, zf)
         if bad:  # also NaN; then the full bound
             lim = zmax * (1.0 + abs(mean) + math.sqrt(pw))
-            bad = not (
-                abs(z1) <= lim
-                and abs(z2) <= lim
-                and abs(z3) <= lim
-                and abs(z4) <= lim
-                and abs(z0) <= lim
-                and abs(zf) <= lim
-            )
+            bad = not _within(lim, z1, z2, z3, z4, z0, zf)
         if not abs(tr) < math.inf:  # tr(Xi^T Xi) of this sample: Xi finite
             bad = True
         if bad:
