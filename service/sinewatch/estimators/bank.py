@@ -88,18 +88,6 @@ NO_BANK: dict[str, str] = {
         "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
         "loops) would have to be split into a per-sample step shared with a bank first"
     ),
-    "grip-mixing": (
-        "no compiled bank: its state (observer, the two z copies, the delay lines of y, u and "
-        "dhat: 421 values in the example) would have to be re-laid across channels for a "
-        "lane-major bank, and each sample reads the delay lines at ring positions that coincide "
-        "across channels only where their sample counts do (gathers otherwise). Tried and left "
-        "out: one compiled call running each channel through the single kernel in turn (bit for "
-        "bit), 0.93-0.97x the channels one by one (`sinewatch bench kernels --bank 8`, and the "
-        "same 8 signals both ways, load 12-28): the kernel is ~75 of the ~95 ns a sample, one "
-        "dependent chain per sample (the observer (7)), and the Python a bank saves is less than "
-        "its gathering of the states; its channels run one after the other, each at ~0.7-0.9x "
-        "the FFT"
-    ),
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "

@@ -480,15 +480,15 @@ def _bank_lanes(
             _copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
             _copy_lanes(db, pos * L, W, _RDH * L)
             kw += 1
-            if kw == window:  # the exact re-sum of the single kernel, lane by lane
+            if kw == window:  # the exact re-sum of the single kernel, each lane's in its order
                 kw = 0
                 for ln in range(L):
-                    s = 0.0
-                    q = pos
-                    for _ in range(window):
-                        s += db[q * L + ln]
-                        q = q - 1 if q > 0 else Lb - 1
-                    W[_RDS * L + ln] = s
+                    W[_RDS * L + ln] = 0.0
+                q = pos
+                for _ in range(window):  # the lanes inner: eight independent chains, not one
+                    for ln in range(L):
+                        W[_RDS * L + ln] += db[q * L + ln]
+                    q = q - 1 if q > 0 else Lb - 1
             k += 1
             pos = cyclic_next(pos, Lb)
             if not last_only:
