@@ -489,6 +489,19 @@ class GripMixing(Estimator[GripMixingParams], kernel=grip_mixing_kernel, name="g
         "(validation, the state copy, four returned arrays) ~7 us a block, another ~7 ns/sample "
         "at 1024."
     )
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank is below twice the streaming FFT.
+    bank_note: ClassVar[str] = (
+        "grip-mixing's bank runs a bank of oscillators (Ad of 2 x 2 blocks, at most 8 states: the "
+        "harmonics preset up to 4 lines) as 8 vector lanes of one work array, each lane the single "
+        "kernel's operations in order (bit for bit), the delay lines' taps copied in and out as "
+        "one vector each: 2.25x the streaming FFT and 2.63x one channel at bank 8 (`sinewatch "
+        "bench kernels --block 1024 --bank 8 --estimators grip-mixing`, load 15-16). Below 8 "
+        "channels the lanes are padded (3 channels cost what 8 do), and the Python around the "
+        "call (gathering and scattering 421 state values a channel, the Tracks, ~80 us a frame) "
+        "is a larger share of a shorter block; other plants (more states, Ad not of 2 x 2 "
+        "blocks) run each channel through the single kernel in one compiled call, at about the "
+        "single channel's rate"
+    )
     # its memory is already a settling bound (the delays filled and the Theorem 2 bound settled): one is
     # enough, every valid estimate of the validity bench within 0.04 of its target (validity rules 5)
     REFILL_MEMORIES: ClassVar[int] = 1
