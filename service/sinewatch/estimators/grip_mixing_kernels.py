@@ -271,38 +271,12 @@ def grip_mixing_kernel(
     return out, sse, new_state, count
 
 
-# the bank kernels' results: out (C, rows, columns), sse (C,), the new state (S, C) and count (1, C)
+# the bank's results: out (C, rows, columns), sse (C,), the new state (S, C) and count (1, C)
 _BankResult = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-@kernel
-def _bank_any(
-    block: np.ndarray, state: np.ndarray, count0: np.ndarray, fconst: np.ndarray, iconst: np.ndarray, last_only: bool
-) -> _BankResult:
-    """:func:`grip_mixing_bank_kernel` for any other plant (Ad not a bank of 2 x 2 blocks, more
-    than :data:`NMAX` states): each channel through :func:`grip_mixing_kernel` in turn, in one
-    compiled call (its bits by construction; no lanes to share)."""
-    N, nc = block.shape
-    K = iconst[2]
-    rows = 1 if last_only else N
-    out = np.empty((nc, rows, 3 * K + 3 + iconst[0]))
-    sse = np.zeros(nc)
-    S = np.empty_like(state)
-    kout = np.empty_like(count0)
-    for c in range(nc):
-        o, e, st, k = grip_mixing_kernel(
-            np.ascontiguousarray(block[:, c]).reshape((N, 1)), np.ascontiguousarray(state[:, c]), count0[:, c].copy(),
-            fconst, iconst, last_only,
-        )  # fmt: skip
-        out[c] = o
-        sse[c] = e
-        S[:, c] = st
-        kout[0, c] = k[0]
-    return out, sse, S, kout
-
-
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
-NMAX = 8  # states of the lanes' work array (4 oscillators); more run in _bank_any
+NMAX = 8  # states of the lanes' work array (4 oscillators); more run run channel by channel
 # rows of the lanes' work array W (each LANES wide, lane l of row r at W[r * LANES + l]): xhat, the
 # sample, the taps of y's and dhat's delay lines and dhat's window tail, the mean's running sum,
 # the sum of squared prediction errors, C xhat and dhat, xhat^-, then the constants broadcast to
@@ -310,6 +284,7 @@ NMAX = 8  # states of the lanes' work array (4 oscillators); more run in _bank_a
 # so the compiler sees the lanes independent and runs the lane loop as one vector
 _RX, _RY, _RYT, _RDT, _RDQ, _RDS, _RSSE, _RCX, _RDH, _RXP = 0, 8, 9, 13, 17, 18, 19, 20, 21, 22
 _RAD, _RCB, _RCR, _RLD, _RH = 30, 46, 54, 62, 70
+_TAPS = 4  # the taps of a delay line: 4 for a fractional period, 1 (and 3 zero weights) for a whole one
 _ROWS = 74
 
 
@@ -339,27 +314,24 @@ def _copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> N
 
 
 @kernel(inline="always")
-def _lane_step(W: np.ndarray, ln: int, first: bool, nt: int) -> None:
+def _lane_step(W: np.ndarray, ln: int) -> None:
     """One sample of lane ``ln`` of ``W``: :func:`grip_mixing_kernel`'s m = 0 path for a bank of
-    2 x 2 blocks, operation for operation (its sums from 0.0 in the same order; Du and u_Delta_d
-    are 0.0). The states beyond n and the taps beyond nt are zeros whose products add +0.0 to
-    sums that start at +0.0, which changes no bit. ``first``: the sample at count 0 (xhat^- =
-    xhat); ``first`` and ``nt`` are literals at each call, so the loops unroll to literal rows."""
+    2 x 2 blocks after a channel's first sample, operation for operation (its sums from 0.0 in the
+    same order; Du and u_Delta_d are 0.0). The states beyond n, and the taps beyond the plant's
+    (one tap for a whole period, four for a fractional one: four here), are zeros whose products
+    add +-0.0 to sums that start at +0.0 and so are never -0.0, which changes no bit."""
     L = LANES
     y = W[_RY * L + ln]
     for a in range(0, NMAX, 2):
         x0 = W[(_RX + a) * L + ln]
         x1 = W[(_RX + a + 1) * L + ln]
-        if first:
-            xp0, xp1 = x0, x1
-        else:
-            b = (_RAD + 2 * a) * L + ln
-            xp0 = W[b] * x0 + W[b + L] * x1
-            xp1 = W[b + 2 * L] * x0 + W[b + 3 * L] * x1
+        b = (_RAD + 2 * a) * L + ln
+        xp0 = W[b] * x0 + W[b + L] * x1
+        xp1 = W[b + 2 * L] * x0 + W[b + 3 * L] * x1
         W[(_RXP + a) * L + ln] = xp0
         W[(_RXP + a + 1) * L + ln] = xp1
     yd = 0.0
-    for j in range(nt):
+    for j in range(_TAPS):
         yd += W[(_RH + j) * L + ln] * W[(_RYT + j) * L + ln]
     Du = 0.0
     udel = 0.0
@@ -376,30 +348,13 @@ def _lane_step(W: np.ndarray, ln: int, first: bool, nt: int) -> None:
         cx += W[(_RCR + a) * L + ln] * xa
     dhat = y - cx - Du
     dpred = 0.0
-    for j in range(nt):
+    for j in range(_TAPS):
         dpred += W[(_RH + j) * L + ln] * W[(_RDT + j) * L + ln]
     e = y - cxp - Du - dpred
     W[_RSSE * L + ln] += e * e
     W[_RDS * L + ln] = W[_RDS * L + ln] + (dhat - W[_RDQ * L + ln])
     W[_RCX * L + ln] = cx
     W[_RDH * L + ln] = dhat
-
-
-@kernel(inline="always")
-def _lanes(W: np.ndarray, first: bool, nt: int) -> None:
-    """Sample of every lane (:func:`_lane_step`), the switches as literals in each loop."""
-    if first and nt == 1:
-        for ln in range(LANES):  # literal trip count: one vector
-            _lane_step(W, ln, True, 1)
-    elif first:
-        for ln in range(LANES):
-            _lane_step(W, ln, True, 4)
-    elif nt == 1:
-        for ln in range(LANES):
-            _lane_step(W, ln, False, 1)
-    else:
-        for ln in range(LANES):
-            _lane_step(W, ln, False, 4)
 
 
 @kernel
@@ -456,6 +411,19 @@ def _bank_lanes(
         act = g1 - g0
         for ln in range(L):  # the group's channels, padded with its first
             cols[ln] = order[g0 + ln] if ln < act else order[g0]
+        i0 = 0
+        if k == 0:  # the channels' first sample (xhat^- = xhat, no Ad) through the single kernel
+            for ln in range(act):
+                c = cols[ln]
+                o1, e1, s1, _ = grip_mixing_kernel(
+                    np.ascontiguousarray(block[0:1, c]).reshape((1, 1)), np.ascontiguousarray(S[:, c]), count0[:, c].copy(),
+                    fconst, iconst, False,
+                )  # fmt: skip
+                S[:, c] = s1
+                sse[c] = e1  # the block's sum so far, continued by the lanes
+                out[c, 0] = o1[0]  # row 0, also the last row of a one-sample block
+            i0 = 1
+            k = 1
         for ln in range(L):
             c = cols[ln]
             for a in range(NMAX):
@@ -464,19 +432,20 @@ def _bank_lanes(
                 yb[q * L + ln] = S[o_yb + q, c]
                 db[q * L + ln] = S[o_db + q, c]
             W[_RDS * L + ln] = S[o_ds, c]
-            W[_RSSE * L + ln] = 0.0
+            W[_RSSE * L + ln] = sse[c]
             for i in range(N):  # the group's samples lane-major, one vector a sample
                 yg[i * L + ln] = block[i, c]
         pos = k % Lb
         kw = k % window
-        for i in range(N):
+        for i in range(i0, N):
             qw = _ring_reads(pos, tap_o, Lb, window, rd)
             _copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
             _copy_lanes(W, _RDQ * L, db, qw * L)
             for j in range(nt):
                 _copy_lanes(W, (_RYT + j) * L, yb, rd[j] * L)
                 _copy_lanes(W, (_RDT + j) * L, db, rd[j] * L)
-            _lanes(W, k == 0, nt)
+            for ln in range(L):  # literal trip count: one vector
+                _lane_step(W, ln)
             _copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
             _copy_lanes(db, pos * L, W, _RDH * L)
             kw += 1
@@ -496,7 +465,7 @@ def _bank_lanes(
                     _lanes_row(out[cols[ln]], i, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
         for ln in range(act):
             c = cols[ln]
-            if last_only:
+            if last_only and N > i0:  # (else row 0 is the single kernel's, above)
                 _lanes_row(out[c], 0, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
             for a in range(n):
                 S[a, c] = W[(_RX + a) * L + ln]
@@ -524,7 +493,6 @@ def _lanes_row(
     )
 
 
-@kernel
 def grip_mixing_bank_kernel(
     block: np.ndarray, state: np.ndarray, count0: np.ndarray, fconst: np.ndarray, iconst: np.ndarray, last_only: bool
 ) -> _BankResult:
@@ -536,11 +504,20 @@ def grip_mixing_bank_kernel(
     Each channel is its own observer chain (7), independent of the others: one channel waits on
     its chain's latency at every sample, a bank runs the channels' chains side by side. A bank of
     oscillators (Ad of 2 x 2 blocks, the ``harmonics`` preset) of at most :data:`NMAX` states runs
-    as vector lanes (:func:`_bank_lanes`), any other plant channel by channel in scalar arithmetic
-    (:func:`_bank_any`). Either way each channel's operations are the single kernel's in the
-    same order, so its bits are the single channel's. Pure: the inputs are not modified."""
-    n = iconst[0]
-    nt = iconst[3]
-    if iconst[10 + nt] != 0 and n <= NMAX and (nt == 1 or nt == 4):
+    as vector lanes (:func:`_bank_lanes`, each lane the single kernel's operations in order, so
+    its bits are the single channel's); any other plant runs each channel through the single
+    kernel itself, in turn. Plain Python, so that only the kernel it picks is compiled. Pure:
+    the inputs are not modified."""
+    n, nt = int(iconst[0]), int(iconst[3])
+    if iconst[10 + nt] != 0 and n <= NMAX and nt in (1, 4):
         return _bank_lanes(block, state, count0, fconst, iconst, last_only)
-    return _bank_any(block, state, count0, fconst, iconst, last_only)
+    runs = [
+        grip_mixing_kernel(
+            np.ascontiguousarray(block[:, c]).reshape(-1, 1), np.ascontiguousarray(state[:, c]), count0[:, c].copy(),
+            fconst, iconst, last_only,
+        )
+        for c in range(block.shape[1])
+    ]  # fmt: skip
+    out = np.stack([r[0] for r in runs])
+    sse = np.array([r[1] for r in runs])
+    return out, sse, np.stack([r[2] for r in runs], axis=1), np.stack([r[3] for r in runs], axis=1)
