@@ -314,20 +314,24 @@ def _copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> N
 
 
 @kernel(inline="always")
-def _lane_step(W: np.ndarray, ln: int) -> None:
+def _lane_step(W: np.ndarray, ln: int, first: bool) -> None:
     """One sample of lane ``ln`` of ``W``: :func:`grip_mixing_kernel`'s m = 0 path for a bank of
-    2 x 2 blocks after a channel's first sample, operation for operation (its sums from 0.0 in the
-    same order; Du and u_Delta_d are 0.0). The states beyond n, and the taps beyond the plant's
-    (one tap for a whole period, four for a fractional one: four here), are zeros whose products
-    add +-0.0 to sums that start at +0.0 and so are never -0.0, which changes no bit."""
+    2 x 2 blocks, operation for operation (its sums from 0.0 in the same order; Du and u_Delta_d
+    are 0.0). The states beyond n, and the taps beyond the plant's (one tap for a whole period,
+    four for a fractional one: four here), are zeros whose products add +-0.0 to sums that start
+    at +0.0 and so are never -0.0, which changes no bit. ``first`` (a literal at each call): the
+    sample at count 0, xhat^- = xhat."""
     L = LANES
     y = W[_RY * L + ln]
     for a in range(0, NMAX, 2):
         x0 = W[(_RX + a) * L + ln]
         x1 = W[(_RX + a + 1) * L + ln]
-        b = (_RAD + 2 * a) * L + ln
-        xp0 = W[b] * x0 + W[b + L] * x1
-        xp1 = W[b + 2 * L] * x0 + W[b + 3 * L] * x1
+        if first:
+            xp0, xp1 = x0, x1
+        else:
+            b = (_RAD + 2 * a) * L + ln
+            xp0 = W[b] * x0 + W[b + L] * x1
+            xp1 = W[b + 2 * L] * x0 + W[b + 3 * L] * x1
         W[(_RXP + a) * L + ln] = xp0
         W[(_RXP + a + 1) * L + ln] = xp1
     yd = 0.0
@@ -411,19 +415,6 @@ def _bank_lanes(
         act = g1 - g0
         for ln in range(L):  # the group's channels, padded with its first
             cols[ln] = order[g0 + ln] if ln < act else order[g0]
-        i0 = 0
-        if k == 0:  # the channels' first sample (xhat^- = xhat, no Ad) through the single kernel
-            for ln in range(act):
-                c = cols[ln]
-                o1, e1, s1, _ = grip_mixing_kernel(
-                    np.ascontiguousarray(block[0:1, c]).reshape((1, 1)), np.ascontiguousarray(S[:, c]), count0[:, c].copy(),
-                    fconst, iconst, False,
-                )  # fmt: skip
-                S[:, c] = s1
-                sse[c] = e1  # the block's sum so far, continued by the lanes
-                out[c, 0] = o1[0]  # row 0, also the last row of a one-sample block
-            i0 = 1
-            k = 1
         for ln in range(L):
             c = cols[ln]
             for a in range(NMAX):
@@ -432,20 +423,24 @@ def _bank_lanes(
                 yb[q * L + ln] = S[o_yb + q, c]
                 db[q * L + ln] = S[o_db + q, c]
             W[_RDS * L + ln] = S[o_ds, c]
-            W[_RSSE * L + ln] = sse[c]
+            W[_RSSE * L + ln] = 0.0
             for i in range(N):  # the group's samples lane-major, one vector a sample
                 yg[i * L + ln] = block[i, c]
         pos = k % Lb
         kw = k % window
-        for i in range(i0, N):
+        for i in range(N):
             qw = _ring_reads(pos, tap_o, Lb, window, rd)
             _copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
             _copy_lanes(W, _RDQ * L, db, qw * L)
             for j in range(nt):
                 _copy_lanes(W, (_RYT + j) * L, yb, rd[j] * L)
                 _copy_lanes(W, (_RDT + j) * L, db, rd[j] * L)
-            for ln in range(L):  # literal trip count: one vector
-                _lane_step(W, ln)
+            if k == 0:
+                for ln in range(L):  # literal trip count: one vector
+                    _lane_step(W, ln, True)
+            else:
+                for ln in range(L):
+                    _lane_step(W, ln, False)
             _copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
             _copy_lanes(db, pos * L, W, _RDH * L)
             kw += 1
@@ -465,7 +460,7 @@ def _bank_lanes(
                     _lanes_row(out[cols[ln]], i, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
         for ln in range(act):
             c = cols[ln]
-            if last_only and N > i0:  # (else row 0 is the single kernel's, above)
+            if last_only:
                 _lanes_row(out[c], 0, W, ln, xl, k, Wre, Wim, freq, modal_ok, window, warm)
             for a in range(n):
                 S[a, c] = W[(_RX + a) * L + ln]
