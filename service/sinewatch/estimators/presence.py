@@ -110,7 +110,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import decode_array, encode_array, kernel, kernel_samples
+from sinewatch.estimators.base import decode_array, encode_array, kernel, kernel_samples, ring_write
 from sinewatch.schemas.errors import ParameterError
 
 PRESENCE_STATE_VERSION = 4  # 3: no level two readings back (G); 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
@@ -225,14 +225,7 @@ def presence_kernel(
                 c = ring[im + size if im < 0 else im] - mu
                 d = ring[pos] - mu  # the sample Q + m back, leaving the ring
                 psum += a * a + b * b - c * c - d * d
-            # the ring's push as in base.py's window (a compare, not a modulo, a sample); kept here in
-            # the detector's own loop, whose ring has no hop to count
-            ring[pos] = xj
-            pos += 1
-            if pos == size:
-                pos = 0
-            if fill < size:
-                fill += 1
+            pos, fill = ring_write(ring, xj, pos, fill)  # base.py's window push, without its hop
         if count == half:  # a half-cycle boundary: read the last cycle
             if halves < 2:
                 halves += 1
