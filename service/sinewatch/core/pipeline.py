@@ -483,9 +483,7 @@ class Pipeline:
         return sum(
             self._release(ch, at)
             for ch in self.channels.values()
-            if ch.held
-            and now_ns - ch.last_arrival_ns >= idle_ns
-            and (ch.source_key or ch.key) not in waiting
+            if ch.held and now_ns - ch.last_arrival_ns >= idle_ns and (ch.source_key or ch.key) not in waiting
         )
 
     def take_over_held(self, published: Mapping[str, tuple[int, int]]) -> int:
