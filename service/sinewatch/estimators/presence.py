@@ -308,9 +308,11 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
     if x.dtype != np.float64 or x.ndim != 2 or any(d.params != params for d in detectors):
         return None
     x = kernel_samples(x)
-    sums = np.stack([d.sums for d in detectors])
-    counters = np.stack([d.counters for d in detectors])
-    rings = np.stack([d.ring for d in detectors])
+    # np.array of the rows, not np.stack: the same (D, k) array, without np.stack's checks in
+    # Python (1.3 against 5.3 us an array of 8 rows, timeit)
+    sums = np.array([d.sums for d in detectors])
+    counters = np.array([d.counters for d in detectors])
+    rings = np.array([d.ring for d in detectors])
     runs, new_sums, new_counters, new_rings = presence_bank_kernel(
         x, np.asarray(columns, dtype=np.int64), sums, counters, rings, first.consts
     )
