@@ -52,8 +52,20 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
 
 @kernel(inline="always")
 def _row5(
-    r0: float, r1: float, r2: float, r3: float, r4: float, x0: float, x1: float, x2: float, x3: float, x4: float,
-    xa: float, ta: float, den: float, e: float,
+    r0: float,
+    r1: float,
+    r2: float,
+    r3: float,
+    r4: float,
+    x0: float,
+    x1: float,
+    x2: float,
+    x3: float,
+    x4: float,
+    xa: float,
+    ta: float,
+    den: float,
+    e: float,
 ) -> tuple[float, float, float]:
     """Row a of :func:`_rls_scalar`'s first loop for p = 5 (row ``r`` of P, ``xa`` = x[a], ``ta``
     = theta[a]): (P x)[a] summed in its order from 0.0, then ``den`` and ``e`` advanced."""
@@ -68,8 +80,21 @@ def _row5(
 
 @kernel(inline="always")
 def _shrink5(
-    ta: float, qa: float, ge: float, den: float, inv_f: float, c0: float, c1: float, c2: float, c3: float,
-    c4: float, q0: float, q1: float, q2: float, q3: float, q4: float,
+    ta: float,
+    qa: float,
+    ge: float,
+    den: float,
+    inv_f: float,
+    c0: float,
+    c1: float,
+    c2: float,
+    c3: float,
+    c4: float,
+    q0: float,
+    q1: float,
+    q2: float,
+    q3: float,
+    q4: float,
 ) -> tuple[float, float, float, float, float, float]:
     """Row a of :func:`_rls_scalar`'s second loop for p = 5: theta[a] and the row's entries
     ``c`` of P (from the diagonal on), with ``q`` = (P x)[b] for the same columns."""

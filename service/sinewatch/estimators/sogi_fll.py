@@ -165,7 +165,7 @@ class SogiFllParams(EstimatorParams):
 
 
 @kernel(inline="always")
-def _sogi_fll_tan(w: float, consts: np.ndarray) -> float:
+def _sogi_fll_tan(w: float, consts: np.ndarray | tuple[float, ...]) -> float:
     """(T) the pre-warped step's ``a = tan(omega' h / 2)``: one tan and the half-angle identities
     instead of sin and cos (shorter loop-carried chain), by :func:`sinewatch.estimators.detmath.tan`
     (plain arithmetic, no library call), so that a bank vectorises it across its lanes and each
@@ -187,7 +187,7 @@ def _sogi_fll_step(
     lu1: float,
     lu: float,
     pa: float,
-    consts: np.ndarray,
+    consts: np.ndarray | tuple[float, ...],
 ) -> tuple[float, float, float, float, float, float, float, float, float, float, float, float]:
     """One sample ``vn`` of the SOGI-FLL from ``a`` (:func:`_sogi_fll_tan` of omega') and the
     state ``(v', qv', d, omega', v[n-1], u[n-1], LPF(e^2/A^2), LPF(u) stage 1, LPF(u) stage 2,
@@ -255,7 +255,7 @@ def _sogi_fll_step(
 
 @kernel(inline="always")
 def _sogi_fll_row(
-    vp: float, qv: float, d: float, w: float, ms: float, lu: float, amp2: float, consts: np.ndarray
+    vp: float, qv: float, d: float, w: float, ms: float, lu: float, amp2: float, consts: np.ndarray | tuple[float, ...]
 ) -> tuple[float, float, float, float, float, float, float]:
     """One output row from the state after a sample: the ``out`` columns of
     :func:`sogi_fll_kernel` (frequency, amplitude, phase, offset, converged), then its extras
