@@ -50,7 +50,7 @@ def _rls_scalar(P: np.ndarray, theta: np.ndarray, x: np.ndarray, y: float, f: fl
             P[b, a] = v
 
 
-@kernel(inline="always")
+@kernel(refcount=False)
 def _row5(
     r0: float,
     r1: float,
@@ -78,7 +78,7 @@ def _row5(
     return s, den + xa * s, e - xa * ta
 
 
-@kernel(inline="always")
+@kernel(refcount=False)
 def _shrink5(
     ta: float,
     qa: float,
@@ -105,7 +105,7 @@ def _shrink5(
     )  # fmt: skip
 
 
-@kernel(inline="always")
+@kernel(refcount=False)
 def _rls5(
     p00: float, p01: float, p02: float, p03: float, p04: float, p11: float, p12: float, p13: float, p14: float,
     p22: float, p23: float, p24: float, p33: float, p34: float, p44: float,
