@@ -243,6 +243,26 @@ def test_kkl_biased_bank_matches_single_channel_through_every_branch_of_the_inve
     assert all(v > 0 for v in seen.values()), seen
 
 
+def test_sogi_fll_bank_matches_single_channel_through_silence_and_the_clamps() -> None:
+    """sogi-fll's step selects where it once branched (the FLL held below min_amplitude, the
+    flush of what decays to subnormals in silence, the frequency clamps), and its bank runs the
+    step for 8 lanes as one vector: nine channels, each through tone, steps, silence, a 1e-200
+    tone and noise at its own times, bit for bit; the single path is checked to have held its
+    FLL (frequency NaN) and to have run locked, so the selects' both sides were taken."""
+    cls = get("sogi-fll")
+    fs, n, size = cls.example_sample_rate_hz, 12_000, 9
+    x = np.stack([_regimes(500 + c, n, fs) for c in range(size)], axis=1)
+    singles, banked = [cls.example() for _ in range(size)], [cls.example() for _ in range(size)]
+    held = locked = 0
+    pos = 0
+    for step, last_only in ((2500, False), (1500, True), (4000, False), (4000, False)):
+        for tr in _step_alike("sogi-fll", singles, banked, x[pos : pos + step], last_only):
+            held += int(np.isnan(tr.frequency_hz).sum())
+            locked += int(tr.converged.sum())
+        pos += step
+    assert held > 0 and locked > 0, (held, locked)
+
+
 def _pmu_signal(seed: int, n: int, fs: float) -> np.ndarray:
     """A tone near 50 Hz (its own frequency, phase, amplitude, offset, ramp and noise per
     seed) that steps in magnitude and phase part way, so that (T) sees transitions."""

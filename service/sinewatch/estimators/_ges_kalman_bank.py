@@ -26,6 +26,7 @@ from sinewatch.estimators._ges_kalman_kernels import (
     _propagate_error,
     _write_estimates,
 )
+from sinewatch.estimators.bank import bank_outputs
 from sinewatch.estimators.base import kernel
 
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
@@ -254,10 +255,7 @@ def ges_kalman_bank_kernel(
     its exp (the C library's, where the cap may bind) lane by lane."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = y.shape
-    rows = 1 if last_only else n
-    out = np.empty((nc, rows, 5))
-    std = np.empty((nc, rows, 4))
-    sse = np.empty(nc)
+    out, std, sse = bank_outputs(n, nc, 4, last_only)
     new_xP = np.empty((20, nc))
     new_unc = np.empty((UNC_SIZE, nc))
     q0, q1, q2, q3 = consts[0], consts[1], consts[2], consts[3]

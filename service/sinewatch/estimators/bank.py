@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import BankLastRow, Estimator, Track, TrackStd, _all_finite, kernel_samples
+from sinewatch.estimators.base import BankLastRow, Estimator, Track, TrackStd, _all_finite, kernel, kernel_samples
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -184,6 +184,15 @@ def update_bank(
         for c, est in enumerate(estimators):
             est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
     return tracks
+
+
+@kernel(inline="always")
+def bank_outputs(n: int, nc: int, m: int, last_only: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A compiled bank's outputs for ``nc`` channels of ``n`` samples: ``out`` (nc, rows, 5),
+    a second per-row array (nc, rows, m) (extras, or standard deviations) and the sums of
+    squared prediction errors (nc,), zeroed; ``rows`` is 1 when only the last is wanted."""
+    rows = 1 if last_only else n
+    return np.empty((nc, rows, 5)), np.empty((nc, rows, m)), np.zeros(nc)
 
 
 def _channel_last(a: np.ndarray) -> np.ndarray:

@@ -739,11 +739,14 @@ def checked_sample_rate(sample_rate_hz: object) -> float:
 @kernel(error_model="python")
 def _all_finite(x: np.ndarray) -> bool:
     # One compiled pass instead of np.isfinite(x).all(): the numpy version costs ~1 us
-    # of ufunc overhead per block, which shows at high block rates.
+    # of ufunc overhead per block, which shows at high block rates. v - v is 0 for a finite
+    # v and NaN for inf or NaN; counting those over the whole array, without the early exit
+    # a test per value needs, is a loop LLVM vectorises (8192 values, a frame of 8 channels:
+    # ~18 us with the exit, measured, ~1 us without).
+    n_bad = 0
     for v in x:
-        if not math.isfinite(v):
-            return False
-    return True
+        n_bad += 1 if v - v != 0.0 else 0
+    return n_bad == 0
 
 
 def _short(exc: ValidationError) -> str:

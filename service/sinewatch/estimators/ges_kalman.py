@@ -209,8 +209,13 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         "means' recursion (U5)-(U5a) runs two lanes at a time (its exp, where the cap may bind, is "
         "the C library's), and the filter's two divisions sit on each lane's chain. 512-bit lanes "
         "against 256-bit ones, measured in turn under load 13-23: 1.07x (60 ns a channel-sample) and "
-        "0.75x (106) the streaming FFT. Twice the FFT is ~15 ns a sample on an idle core: about a "
-        "quarter of the bank's arithmetic now"
+        "0.75x (106) the streaming FFT. Where the time goes (8 channels of 1024 samples, each part "
+        "timed alone, load 8-17): the kernel is 84-86 % of update_bank, and the bias recursion half "
+        "of the kernel (15-18 ns a channel-sample without it, 30-41 with it, the same signals in "
+        "turn): its M (40 entries a lane) is read and written back through the work array by one "
+        "pass for the head and pairs and four for the columns each sample. Twice the FFT (~20-25 ns "
+        "a channel-sample, update_bank's Python of ~6 included) needs that recursion in one pass "
+        "with M in registers, not built"
     )
 
     def _setup(self) -> None:

@@ -148,7 +148,9 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
         "complement: seven divisions (the three of the regularised eigenvalues are taken for every "
         "lane: a vector computes both sides of the select on mu = 0) and two square roots, "
         "long-latency and not fully pipelined, plus the sine's ~40 flops. 512-bit lanes against "
-        "256-bit ones, measured in turn under load 13-23: 1.29x and 1.20x the streaming FFT"
+        "256-bit ones, measured in turn under load 13-23: 1.29x and 1.20x the streaming FFT. The "
+        "kernel is 84 % of update_bank (268 of 318 us a frame of 8 x 1024, each part timed alone, "
+        "load 16); the rest is the Tracks (28 us), the states (14) and the checks (8)"
     )
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
