@@ -45,15 +45,6 @@ class StderrLines:
         return out
 
 
-def _startup_s() -> float:
-    """How long ``sinewatch --version`` takes here and now: the interpreter and the CLI's
-    imports, the part of a command's first second that is the machine's load, not the
-    command's wait."""
-    t = time.monotonic()
-    subprocess.run(sinewatch("--version"), capture_output=True, check=True, timeout=120)
-    return time.monotonic() - t
-
-
 def _run(*args: str) -> tuple[float, StderrLines]:
     started = time.monotonic()
     proc = subprocess.Popen(sinewatch(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -62,9 +53,10 @@ def _run(*args: str) -> tuple[float, StderrLines]:
 
 def test_tail_says_at_once_what_it_waits_for_then_how_long_then_the_error():
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"  # nothing listens there
-    startup = _startup_s()
     started, err = _run("tail", "--connect", endpoint, "--wait", "6")
-    at, first = err.next(started + startup + 1.0)  # within 1 s of the CLI being up
+    # "at once" is judged against the wait itself (the error comes more than 5 s after the
+    # first line, below), not against a wall-clock deadline that a loaded machine can miss
+    at, first = err.next(started + 120)
     assert first == f"tail: waiting for a Zenoh router or daemon at {endpoint} (up to 6 s; Ctrl-C to stop)"
     rest = err.rest()
     assert err.proc.wait(timeout=120) == 2
