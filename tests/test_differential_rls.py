@@ -691,3 +691,24 @@ def test_iq_zero_input_then_signal():
     x, truth = get_scenario("paper001-iq-fig3").generate(n=6000)
     tr = est.update(x)
     assert tr.converged[-1] and abs(tr.frequency_hz[-1, 0] - truth.frequency_hz[-1, 0]) < 1e-3
+
+
+def test_the_p5_rls_pair_is_two_general_updates_bit_for_bit():
+    """``_rls_pair5`` (p = 5 in registers, the default model's decimated step) performs the
+    operations of two ``_rls_scalar`` calls in their order: the same bits, so a recording
+    replays the same whichever form ran (the module's docstring relies on it)."""
+    from sinewatch.estimators._differential_rls_rls import _rls_pair5, _rls_scalar
+
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        a = rng.standard_normal((5, 5))
+        P0 = a @ a.T + 1e-3 * np.eye(5)
+        theta0 = rng.standard_normal(5)
+        xr, xi = rng.standard_normal(5), rng.standard_normal(5)
+        yr, yi, f = float(rng.standard_normal()), float(rng.standard_normal()), float(rng.uniform(0.9, 1.0))
+        P1, t1 = P0.copy(), theta0.copy()
+        _rls_pair5(P1, t1, xr, yr, f, xi, yi)
+        P2, t2, px = P0.copy(), theta0.copy(), np.empty(5)
+        _rls_scalar(P2, t2, xr, yr, f, px)
+        _rls_scalar(P2, t2, xi, yi, 1.0, px)
+        assert P1.tobytes() == P2.tobytes() and t1.tobytes() == t2.tobytes()
