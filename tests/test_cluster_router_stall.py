@@ -211,3 +211,101 @@ def test_a_router_waits_for_a_subscriber_that_reads_nothing_for_7_s(tmp_path):
     # once its queue to the stopped subscriber is full, which takes longer on a loaded machine)
     print(f"{sent} samples put, {count} received by the subscriber stopped {STALL_S} s; longest put {longest:.1f} s")
     assert int(count) == sent and in_order == "True"
+
+
+STOPPED = """
+import json, sys, threading
+from sinewatch.clients.session import client_section, open_session
+got = threading.Event()
+section = client_section([sys.argv[1]])
+section.raw.update(json.loads(sys.argv[2]))
+with open_session(section) as session:
+    sub = session.declare_subscriber(sys.argv[3], lambda sample: got.set())
+    got.wait()
+    print("ready", flush=True)  # it has a sample: the router forwards to it
+    threading.Event().wait()  # stopped and killed by the test
+"""
+INPUTS = "sinewatch/in/**"  # `sinewatch router`'s default input keys
+STOPPED_N = 2_000  # 8-KB samples put while one subscriber is stopped: 16 MB, beyond the sockets' buffers
+
+
+def other_subscriber_while_one_is_stopped(tmp_path, router_raw: dict[str, Any]) -> tuple[int, float]:
+    """Two subscribers of ``sinewatch/in/**`` through ``sinewatch router``, one of them a process
+    SIGSTOPped; a publisher puts ``STOPPED_N`` samples with ``CongestionControl.BLOCK``. How many
+    the other subscriber got while the stopped one was still stopped (the router neither closes
+    the stopped one's link nor gives up on it meanwhile: a 60-s lease, a 120-s ``wait_before_close``),
+    and the longest a put waited."""
+    router = Router(tmp_path, {**LEASE, **router_raw})
+    router.start()
+    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+    stopped = subprocess.Popen(
+        [sys.executable, "-c", STOPPED, endpoint[0], json.dumps(LEASE), INPUTS], stdout=subprocess.PIPE, text=True
+    )
+    got: list[int] = []
+    cond = threading.Condition()
+
+    def on(sample: zenoh.Sample) -> None:
+        with cond:
+            got.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
+            cond.notify_all()
+
+    longest = [0.0]
+    try:
+        with (
+            open_session(long_lease_client(endpoint)) as sub_session,
+            open_session(long_lease_client(endpoint)) as pub_session,
+        ):
+            sub_session.declare_subscriber(INPUTS, on)
+            pub = pub_session.declare_publisher("sinewatch/in/ch", congestion_control=zenoh.CongestionControl.BLOCK)
+            ready = threading.Event()  # both subscribers' declarations have reached the router
+            threading.Thread(target=lambda: stopped.stdout and stopped.stdout.readline() and ready.set()).start()
+            while not (ready.wait(0.05) and got):  # a warm-up sample every 50 ms until both have one
+                pub.put((2**63).to_bytes(8, "little"))
+            with cond:
+                got.clear()
+            stopped.send_signal(signal.SIGSTOP)
+
+            def put_all() -> None:
+                for n in range(STOPPED_N):
+                    began = time.monotonic()
+                    pub.put(n.to_bytes(8, "little") + bytes(PAYLOAD - 8))
+                    longest[0] = max(longest[0], time.monotonic() - began)
+
+            putter = threading.Thread(target=put_all)
+            putter.start()
+            with cond:  # ends when every sample is here, or after the wait (not reached with the fix)
+                cond.wait_for(lambda: len(got) >= STOPPED_N, timeout=40.0)
+                received = len(got)
+            stopped.send_signal(signal.SIGCONT)  # the router then delivers the rest: the putter ends
+            putter.join()
+    finally:
+        stopped.send_signal(signal.SIGCONT)
+        stopped.kill()
+        stopped.wait()
+        router.kill()
+    return received, longest[0]
+
+
+@pytest.mark.slow
+def test_a_stopped_subscriber_of_the_inputs_holds_back_no_other(tmp_path):
+    """``sinewatch router`` forwards the inputs with ``CongestionControl.DROP``
+    (:func:`sinewatch.clients.session.router_input_qos`): a daemon that reads nothing (SIGSTOP)
+    loses what its queue cannot hold, and its successor, reading the same keys, gets every
+    sample meanwhile. Slow: two sessions' processes and 16 MB through a router."""
+    received, longest = other_subscriber_while_one_is_stopped(
+        tmp_path, {"transport/link/tx/queue/congestion_control/block/wait_before_close": 120_000_000}
+    )
+    print(f"{received} of {STOPPED_N} received while the other subscriber was stopped; longest put {longest:.2f} s")
+    assert received == STOPPED_N
+
+
+@pytest.mark.slow
+def test_without_the_drop_rule_a_stopped_subscriber_holds_back_the_other(tmp_path):
+    """The same with the router forwarding as published (``BLOCK``): what the test above guards
+    against. The router pushes each put to each subscriber in turn on the publisher link's
+    reading task, so once the stopped one's queue is full nobody gets anything."""
+    received, longest = other_subscriber_while_one_is_stopped(
+        tmp_path, {"transport/link/tx/queue/congestion_control/block/wait_before_close": 120_000_000, "qos/network": []}
+    )
+    print(f"{received} of {STOPPED_N} received while the other subscriber was stopped; longest put {longest:.2f} s")
+    assert received < STOPPED_N
