@@ -571,3 +571,44 @@ def test_the_idle_release_publishes_only_the_channels_that_paused():
     released = sink.estimates[before:]
     assert [e["channel"] for e in released] == ["paused"] and not released[0]["diagnostics"]["valid"]
     assert p.channels["going"].held and not p.channels["paused"].held
+
+
+def test_a_backlog_is_not_a_pause_the_idle_release_judges_by_arrival():
+    """A daemon working off a backlog processes a channel's blocks late and far apart, yet its
+    feed never paused: the idle release judges a channel by when its blocks arrived at the
+    intake, and a channel whose next block waits in the queue is not idle. Driven without
+    sleeping: the blocks' receive times are set, and the daemon's log clock is moved 1 s
+    (twice ``idle_release_s``) between taking the two batches. Judged by when its last block
+    was processed, the channel's held estimate left not valid there, its next block queued."""
+    import asyncio
+    import time
+
+    from sinewatch.runtime.daemon import Daemon
+
+    t = np.arange(round(0.3 * LIVE_FS)) / LIVE_FS
+    blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t))
+    cfg = SinewatchConfig(
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True, idle_release_s=0.5
+    )
+    daemon = Daemon(cfg, install_signal_handlers=False)
+    daemon._pipeline = Pipeline(cfg, [sink := Keep()])
+    now = time.monotonic_ns()
+    items = [("sinewatch/in/v", encode_block_binary(b), "", now + i) for i, b in enumerate(blocks)]
+    daemon.enqueue(items[:6])
+    daemon.enqueue(items[6:])  # the channel's next blocks, received 25 ms of signal later: queued
+    asyncio.run(daemon._consume_batch(daemon._queue.get_nowait()))
+    held = list(daemon.pipeline.channels["v"].held)
+    n = len(sink.estimates)
+    assert held
+    daemon._last_log_time = time.time_ns() + 10**9  # taken 1 s later: the backlog, not the feed
+    daemon.release_idle()
+    assert len(sink.estimates) == n, "released while its next block was queued"
+    assert list(daemon.pipeline.channels["v"].held) == held
+    asyncio.run(daemon._consume_batch(daemon._queue.get_nowait()))
+    n = len(sink.estimates)
+    daemon.release_idle()  # received just now, nothing queued: not idle yet
+    assert len(sink.estimates) == n and daemon.pipeline.channels["v"].held
+    daemon.pipeline.channels["v"].last_arrival_ns -= 10**9  # its last block received 1 s ago: idle
+    daemon.release_idle()
+    assert len(sink.estimates) == n + 1 and not sink.estimates[-1]["diagnostics"]["valid"]
+    assert [e["seq"] for e in sink.estimates] == [b.seq for b in blocks]

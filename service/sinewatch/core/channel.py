@@ -41,7 +41,11 @@ class Channel:
     # estimates held back until the presence detector has seen its onset latency past them
     # (validity rules version 3): (payload, release at sample count, window start or -1, converged), see sinewatch.core.hold
     held: deque[tuple[bytes, int, int, bool]] = field(default_factory=deque, repr=False)
-    last_log_ns: int = field(default=0, repr=False)  # log time of its last accepted block (release_idle)
+    last_log_ns: int = field(default=0, repr=False)  # log time of its last accepted block
+    # when its last accepted block arrived (the intake's receive time; its log time when none
+    # is given) and the input key it comes on (a frame's key for a frame's channel): release_idle
+    last_arrival_ns: int = field(default=0, repr=False)
+    source_key: str | None = field(default=None, repr=False)
     last_run: np.ndarray | None = field(default=None, repr=False)  # the presence run of the last block
     # (key, template) of its Estimates' bytes in the usual case (sinewatch.core.estimate_bytes.estimate_payload)
     template: tuple[tuple[Any, ...], str] | None = field(default=None, repr=False)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Container, Mapping
 from typing import Any
 
 import numpy as np
@@ -161,6 +161,7 @@ class Pipeline:
             channel: Channel | None = None
             try:
                 channel = self._channel_for(ckey, block)
+                channel.source_key = key  # a queued frame of this key holds its next block (release_idle)
                 if channel.name in self.resume_points and self._catch_up_checked(channel, block, finite, c):
                     continue
                 member = self._frame_member(channel, block, c, finite)
@@ -440,6 +441,7 @@ class Pipeline:
         channel's latency: the same for a single block and a frame's column."""
         out_key = self._out_key(channel)
         channel.last_log_ns = log_time_ns
+        channel.last_arrival_ns = log_time_ns if received_ns is None else received_ns
         for payload_out in payloads:
             for sink in self.sinks:
                 sink.on_estimate(out_key, payload_out, log_time_ns)
@@ -462,16 +464,26 @@ class Pipeline:
             if ch.held and (out_key is None or self._out_key(ch) == out_key)
         )
 
-    def release_idle(self, now_ns: int) -> int:
-        """A feed that pauses: the estimates of every channel whose last block came at least
-        ``idle_release_s`` before ``now_ns`` are released as at the input's end
+    def release_idle(self, now_ns: int, *, log_time_ns: int | None = None, waiting: Container[str] = ()) -> int:
+        """A feed that pauses: the estimates of every channel whose last block arrived at least
+        ``idle_release_s`` before ``now_ns`` (on the clock of :meth:`process`'s ``received_ns``;
+        its log time where none was given) are released as at the input's end
         (:meth:`release_held`), so that a paused or finished stream's last estimates do not
-        wait for a block that may never come. Their windows stay unconfirmed: not valid. A
-        replay meets them as recorded estimates with nothing produced yet and releases that
-        channel there, so it reproduces them bit for bit. Returns how many were released."""
+        wait for a block that may never come. Their windows stay unconfirmed: not valid.
+
+        Judged by arrival, not by when the last block was processed: a daemon working off a
+        backlog processes each channel's blocks late and far apart, yet its feed never paused.
+        A channel whose input key is in ``waiting`` (inputs received, not processed yet) is not
+        idle: its next block is there to confirm what it holds. A replay meets released
+        estimates as recorded ones with nothing produced yet and releases that channel there, so
+        it reproduces them bit for bit. Returns how many were released (at ``log_time_ns``,
+        ``now_ns`` when not given)."""
         idle_ns = round(self.config.idle_release_s * 1e9)
+        at = now_ns if log_time_ns is None else log_time_ns
         return sum(
-            self._release(ch, now_ns) for ch in self.channels.values() if ch.held and now_ns - ch.last_log_ns >= idle_ns
+            self._release(ch, at)
+            for ch in self.channels.values()
+            if ch.held and now_ns - ch.last_arrival_ns >= idle_ns and (ch.source_key or ch.key) not in waiting
         )
 
     def take_over_held(self, published: Mapping[str, tuple[int, int]]) -> int:

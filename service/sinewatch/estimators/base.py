@@ -204,6 +204,22 @@ def cyclic_next(i: int, n: int) -> int:
 
 
 @kernel(inline="always")
+def ring_write(b: np.ndarray, xj: float, pos: int, fill: int) -> tuple[int, int]:
+    """Write sample ``xj`` at ``pos`` of the ring buffer ``b``; return the next position and
+    the fill (counting up to the ring's length). The position wraps by a compare, not a modulo
+    (an integer division a sample). Inlined where it is called: the same machine code as the
+    lines written out. Mutates ``b``."""
+    n = b.shape[0]
+    b[pos] = xj
+    pos += 1
+    if pos == n:
+        pos = 0
+    if fill < n:
+        fill += 1
+    return pos, fill
+
+
+@kernel(inline="always")
 def ring_push(
     b: np.ndarray, xj: float, pos: int, fill: int, since: int, hop: int, xw: np.ndarray
 ) -> tuple[int, int, int, bool]:
@@ -214,12 +230,7 @@ def ring_push(
     (oldest sample, at the write position, first). Mutates ``b`` and ``xw`` (the kernels'
     own working copies)."""
     N = b.shape[0]
-    b[pos] = xj
-    pos += 1
-    if pos == N:
-        pos = 0
-    if fill < N:
-        fill += 1
+    pos, fill = ring_write(b, xj, pos, fill)
     if since < hop:
         since += 1
     due = fill == N and since >= hop

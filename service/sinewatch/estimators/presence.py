@@ -110,7 +110,7 @@ from typing import Any
 
 import numpy as np
 
-from sinewatch.estimators.base import decode_array, encode_array, kernel, kernel_samples
+from sinewatch.estimators.base import decode_array, encode_array, kernel, kernel_samples, ring_write
 from sinewatch.schemas.errors import ParameterError
 
 PRESENCE_STATE_VERSION = 4  # 3: no level two readings back (G); 2: no quadrature test (its ring and sums); 1: no R one and two half cycles back
@@ -225,14 +225,7 @@ def presence_kernel(
                 c = ring[im + size if im < 0 else im] - mu
                 d = ring[pos] - mu  # the sample Q + m back, leaving the ring
                 psum += a * a + b * b - c * c - d * d
-            # the ring's push as in base.py's window (a compare, not a modulo, a sample); kept here in
-            # the detector's own loop, whose ring has no hop to count
-            ring[pos] = xj
-            pos += 1
-            if pos == size:
-                pos = 0
-            if fill < size:
-                fill += 1
+            pos, fill = ring_write(ring, xj, pos, fill)  # base.py's window push, without its hop
         if count == half:  # a half-cycle boundary: read the last cycle
             if halves < 2:
                 halves += 1
@@ -315,9 +308,11 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
     if x.dtype != np.float64 or x.ndim != 2 or any(d.params != params for d in detectors):
         return None
     x = kernel_samples(x)
-    sums = np.stack([d.sums for d in detectors])
-    counters = np.stack([d.counters for d in detectors])
-    rings = np.stack([d.ring for d in detectors])
+    # np.array of the rows, not np.stack: the same (D, k) array, without np.stack's checks in
+    # Python (1.3 against 5.3 us an array of 8 rows, timeit)
+    sums = np.array([d.sums for d in detectors])
+    counters = np.array([d.counters for d in detectors])
+    rings = np.array([d.ring for d in detectors])
     runs, new_sums, new_counters, new_rings = presence_bank_kernel(
         x, np.asarray(columns, dtype=np.int64), sums, counters, rings, first.consts
     )

@@ -120,6 +120,9 @@ class Daemon:
         self._intake: Intake | None = None
         self._queue: asyncio.Queue[list[Item] | None] = asyncio.Queue()
         self._queued = 0
+        # each input key with inputs received and not processed yet -> its last one's receive
+        # time (release_idle: a channel whose next block waits in the queue is not idle)
+        self._arrived: dict[str, int] = {}
         self._started = time.monotonic()
         self._last_log_time = 0
         self.cluster: ClusterMember | None = None
@@ -156,6 +159,9 @@ class Daemon:
     # ---- intake -> pipeline ---------------------------------------------------------------------
     def enqueue(self, batch: list[Item]) -> None:
         self._queued += len(batch)
+        arrived = self._arrived
+        for item in batch:
+            arrived[item[0]] = item[3]
         self._queue.put_nowait(batch)
 
     def report_drops(self, dropped: Counter[str]) -> None:
@@ -209,6 +215,10 @@ class Daemon:
             log.exception("batch of %d inputs not fully processed", len(batch))
         finally:
             self._queued -= len(batch)
+            arrived = self._arrived
+            for item in batch:  # a key's inputs are taken in order: its last one taken leaves nothing waiting
+                if arrived.get(item[0]) == item[3]:
+                    del arrived[item[0]]
             if self._intake is not None:
                 intake = self._intake
                 intake.release(sum(intake.weight(item[1]) for item in batch))
@@ -330,12 +340,14 @@ class Daemon:
     def release_idle(self) -> None:
         """Publish, not valid, what the channels without a block for ``idle_release_s`` hold
         back (``hold_estimates``): a feed that pauses or ends gets its last estimates within
-        1.5 ``idle_release_s``, not at the daemon's stop. Only while this daemon serves its shard
+        1.5 ``idle_release_s``, not at the daemon's stop. Judged by the blocks' arrival at the
+        intake, so that a backlog does not make a streaming channel look paused: a channel whose
+        next block waits in the queue is not idle. Only while this daemon serves its shard
         (:meth:`ClusterMember.may_release_held`): a standby's held estimates, and a new owner's before
         its takeover has run, carry another term."""
         if self.cluster is not None and not self.cluster.may_release_held():
             return
-        self.pipeline.release_idle(self._log_time())
+        self.pipeline.release_idle(time.monotonic_ns(), log_time_ns=self._log_time(), waiting=self._arrived)
 
     async def _every(self, seconds: float, fn: Callable[[], None]) -> None:
         while True:
