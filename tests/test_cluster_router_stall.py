@@ -211,3 +211,125 @@ def test_a_router_waits_for_a_subscriber_that_reads_nothing_for_7_s(tmp_path):
     # once its queue to the stopped subscriber is full, which takes longer on a loaded machine)
     print(f"{sent} samples put, {count} received by the subscriber stopped {STALL_S} s; longest put {longest:.1f} s")
     assert int(count) == sent and in_order == "True"
+
+
+STOPPED = """
+import json, sys, threading
+from sinewatch.clients.session import client_section, open_session
+got = threading.Event()
+section = client_section([sys.argv[1]])
+section.raw.update(json.loads(sys.argv[2]))
+with open_session(section) as session:
+    sub = session.declare_subscriber(sys.argv[3], lambda sample: got.set())
+    got.wait()
+    print("ready", flush=True)  # it has a sample: the router forwards to it
+    threading.Event().wait()  # stopped and killed by the test
+"""
+INPUTS = "sinewatch/in/**"  # `sinewatch router`'s default input keys
+STOPPED_N = 8_000  # 8-KB samples put while one subscriber is stopped: 64 MB, far beyond the sockets' buffers
+
+
+def other_subscriber_while_one_is_stopped(
+    tmp_path, router_raw: dict[str, Any], shards: bool = False
+) -> tuple[bool, int, float]:
+    """Two subscribers of ``sinewatch/in/**`` through ``sinewatch router``, one of them a process
+    SIGSTOPped; a publisher puts ``STOPPED_N`` samples with ``CongestionControl.BLOCK``, then a
+    marker on a key outside the inputs (which the router forwards as published, never dropped).
+    Whether the other subscriber got the marker while the stopped one was still stopped (the
+    router neither closes the stopped one's link nor gives up on it meanwhile: a 60-s lease, a
+    120-s ``wait_before_close``), how many samples it got, and the longest a put waited. The
+    samples it got are printed, not asserted: the router drops to it too what its own queue
+    cannot take when the puts outrun it (a daemon gets those again from the publishers' caches).
+    ``shards``: per-shard key prefixes, the stopped subscriber on ``sinewatch/in/1/**``, the other on
+    ``sinewatch/in/2/**``, the publisher's puts alternating between the two."""
+    router = Router(
+        tmp_path,
+        {**LEASE, "transport/link/tx/queue/congestion_control/block/wait_before_close": 120_000_000, **router_raw},
+    )
+    router.start()
+    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+    stopped = subprocess.Popen(
+        [sys.executable, "-c", STOPPED, endpoint[0], json.dumps(LEASE), "sinewatch/in/1/**" if shards else INPUTS],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    got: list[int] = []
+    marker = threading.Event()
+    longest = [0.0]
+    try:
+        with (
+            open_session(long_lease_client(endpoint)) as sub_session,
+            open_session(long_lease_client(endpoint)) as pub_session,
+        ):
+            sub_session.declare_subscriber(
+                "sinewatch/in/2/**" if shards else INPUTS,
+                lambda s: got.append(int.from_bytes(s.payload.to_bytes()[:8], "little")),
+            )
+            sub_session.declare_subscriber("stall/end", lambda s: marker.set())
+            keys = ["sinewatch/in/1/ch", "sinewatch/in/2/ch"] if shards else ["sinewatch/in/ch"]
+            pubs = [pub_session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in keys]
+            ready = threading.Event()  # both subscribers' declarations have reached the router
+            threading.Thread(target=lambda: stopped.stdout and stopped.stdout.readline() and ready.set()).start()
+            while not (ready.wait(0.05) and got):  # a warm-up sample every 50 ms until both have one
+                for pub in pubs:
+                    pub.put((2**63).to_bytes(8, "little"))
+            stopped.send_signal(signal.SIGSTOP)
+            got.clear()
+
+            def put_all() -> None:
+                for n in range(STOPPED_N * len(pubs)):  # STOPPED_N to each shard's keys
+                    began = time.monotonic()
+                    pubs[n % len(pubs)].put(n.to_bytes(8, "little") + bytes(PAYLOAD - 8))
+                    longest[0] = max(longest[0], time.monotonic() - began)
+                pub_session.put("stall/end", b"", congestion_control=zenoh.CongestionControl.BLOCK)
+
+            putter = threading.Thread(target=put_all)
+            putter.start()
+            delivered = marker.wait(40.0)  # not reached with the drop rule: the marker comes within seconds
+            received = len(got)
+            stopped.send_signal(signal.SIGCONT)  # the router then delivers the rest: the putter ends
+            putter.join()
+    finally:
+        stopped.send_signal(signal.SIGCONT)
+        stopped.kill()
+        stopped.wait()
+        router.kill()
+    return delivered, received, longest[0]
+
+
+@pytest.mark.slow
+def test_a_stopped_subscriber_of_the_inputs_holds_back_no_other(tmp_path):
+    """``sinewatch router`` forwards the inputs with ``CongestionControl.DROP``
+    (:func:`sinewatch.clients.session.router_input_qos`): a daemon that reads nothing (SIGSTOP)
+    loses what its queue cannot hold, and its successor, reading the same keys, is served
+    meanwhile. Slow: a subscriber's process and 64 MB through a router."""
+    delivered, received, longest = other_subscriber_while_one_is_stopped(tmp_path, {})
+    print(
+        f"marker {delivered}; {received} of {STOPPED_N} received while the other was stopped; longest put {longest:.2f} s"
+    )
+    assert delivered
+
+
+@pytest.mark.slow
+def test_without_the_drop_rule_a_stopped_subscriber_holds_back_the_other(tmp_path):
+    """The same with the router forwarding as published (``BLOCK``): what the test above guards
+    against. The router pushes each put to each subscriber in turn on the publisher link's
+    reading task, so once the stopped one's queue is full nobody gets anything, whatever the key."""
+    delivered, received, longest = other_subscriber_while_one_is_stopped(tmp_path, {"qos/network": []})
+    print(
+        f"marker {delivered}; {received} of {STOPPED_N} received while the other was stopped; longest put {longest:.2f} s"
+    )
+    assert not delivered
+
+
+@pytest.mark.slow
+def test_per_shard_key_prefixes_alone_do_not_keep_a_stopped_subscriber_from_holding_back_the_other(tmp_path):
+    """Without the drop rule, a stopped subscriber of shard 1's keys holds back the subscriber of
+    shard 2's keys all the same: one publisher's link carries both shards' keys, and the router
+    stops reading it while it waits to push shard 1's puts. Why the router's rule, not key
+    prefixes, is the fix."""
+    delivered, received, longest = other_subscriber_while_one_is_stopped(tmp_path, {"qos/network": []}, shards=True)
+    print(
+        f"marker {delivered}; {received} of {STOPPED_N} received while the other was stopped; longest put {longest:.2f} s"
+    )
+    assert not delivered

@@ -54,6 +54,34 @@ CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
 #: the router gives up on a stalled subscriber before any publisher gives up on the router.
 ROUTER_WAIT_BEFORE_CLOSE_US = 15_000_000
 
+#: The daemons' input keys by default (``keys.input``): what ``sinewatch router`` forwards to
+#: subscribers with ``CongestionControl.DROP`` (:func:`router_input_qos`).
+DEFAULT_ROUTER_INPUTS = ["sinewatch/in/**"]
+
+
+def router_input_qos(key_exprs: list[str]) -> list[dict[str, Any]]:
+    """A router's ``qos/network`` rule: puts on ``key_exprs`` leave the router with
+    ``CongestionControl.DROP``, whatever their publisher asked for (the publisher's own put to
+    the router keeps its ``BLOCK``). A router pushes a ``BLOCK`` put to every matching
+    subscriber in turn on the reading task of the publisher's link, so one subscriber that
+    reads nothing (a daemon SIGSTOPped, paused by a VM, swapped out) stops that link for every
+    key and every other subscriber until its queue frees or its link closes: a gateway's
+    other shard and the stopped daemon's own successor got nothing for up to the link's lease
+    (10 s), and per-shard key prefixes do not help, since one gateway link carries every
+    shard's keys (docs/cluster.md, "A stopped daemon holds back no one"). With ``DROP`` the
+    router drops what the full queue of that one subscriber cannot take, at once once it is
+    congested, and goes on; a daemon that was only slow gets what it missed again from the
+    publishers' caches (zenoh-ext's heartbeat recovery), and flags as a gap what is past them."""
+    return [
+        {
+            "id": "sinewatch_inputs_drop",
+            "messages": ["put"],
+            "flows": ["egress"],
+            "key_exprs": list(key_exprs),
+            "overwrite": {"congestion_control": "drop"},
+        }
+    ]
+
 
 def zenoh_config(section: ZenohSection) -> zenoh.Config:
     conf = zenoh.Config()

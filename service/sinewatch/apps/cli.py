@@ -487,18 +487,21 @@ def cmd_router(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from sinewatch.clients.session import open_session
+    from sinewatch.clients.session import DEFAULT_ROUTER_INPUTS, open_session, router_input_qos
     from sinewatch.schemas.config import ZenohSection
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     zenoh_log()
+    inputs = [k for k in args.inputs or DEFAULT_ROUTER_INPUTS if k != "none"]
+    raw: dict[str, Any] = {"qos/network": router_input_qos(inputs)} if inputs else {}
+    raw.update(dict(args.zenoh or []))  # a raw qos/network of the user's replaces the inputs' rule
     section = ZenohSection(
         mode="router",
         listen=args.listen or ["tcp/127.0.0.1:7447"],
         connect=args.connect or [],
-        raw=dict(args.zenoh or []),
+        raw=raw,
     )
     with open_session(section):
         print(f"sinewatch router: listening on {', '.join(section.listen)}", flush=True)
@@ -817,6 +820,13 @@ def build_parser() -> argparse.ArgumentParser:
     ro = _command(sub, "router", "run a Zenoh router (for several daemons and gateways)", cmd_router)
     ro.add_argument("--listen", action="append", help="endpoint (repeatable; default tcp/127.0.0.1:7447)")
     ro.add_argument("--connect", action="append", help="other routers to connect to (repeatable)")
+    ro.add_argument(
+        "--inputs",
+        action="append",
+        metavar="KEYEXPR",
+        help="the daemons' input keys (keys.input; repeatable; default sinewatch/in/**): forwarded to "
+        "subscribers with CongestionControl.DROP, so a stopped daemon holds back no other (none: as published)",
+    )
     ro.add_argument(
         "--zenoh",
         action="append",
