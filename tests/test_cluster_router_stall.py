@@ -20,6 +20,7 @@ reconnected: the samples put during the stall were lost to it, the later ones ar
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -27,11 +28,13 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 import zenoh
 from cluster_procs import Router
 
-from sinewatch.clients.session import client_section, open_session
+from sinewatch.clients import BlockPublisher
+from sinewatch.clients.session import INPUT_QUERIES_RULE, client_section, open_session, router_input_qos
 from sinewatch.schemas.config import ZenohSection
 
 STALL_S = 7.0  # longer than Zenoh's default wait_before_close: a stalled router or subscriber, not a dead one
@@ -332,4 +335,119 @@ def test_per_shard_key_prefixes_alone_do_not_keep_a_stopped_subscriber_from_hold
     print(
         f"marker {delivered}; {received} of {STOPPED_N} received while the other was stopped; longest put {longest:.2f} s"
     )
+    assert not delivered
+
+
+QUERIER = """
+import json, os, signal, sys, threading
+import zenoh
+from sinewatch.clients.session import client_section, open_session
+section = client_section([sys.argv[1]])
+section.raw.update(json.loads(sys.argv[2]))
+congestion = getattr(zenoh.CongestionControl, sys.argv[3])
+with open_session(section) as session:
+    session.get(  # a daemon's history query: every key's cache, replies read by a callback
+        "sinewatch/in/**/@adv/**",
+        lambda reply: os.kill(os.getpid(), signal.SIGSTOP),  # stopped by its first reply, the rest on their way
+        consolidation=zenoh.ConsolidationMode.NONE,
+        accept_replies=zenoh.ReplyKeyExpr.ANY,
+        timeout=600.0,
+        congestion_control=congestion,
+    )
+    threading.Event().wait()  # continued and killed by the test
+"""
+CACHED_KEYS = 8  # channels whose caches answer the stopped querier
+CACHED_N = 1024  # blocks in each cache (BlockPublisher's default history): 8 x 1,024 x 8 KB = 64 MB of replies
+LIVE_N = 4_000  # 8-KB samples put on another key while the querier is stopped: they go out beside the replies
+
+
+def other_subscriber_while_a_querier_is_stopped(
+    tmp_path, query: str, router_raw: dict[str, Any] | None = None
+) -> tuple[bool, int]:
+    """The caches of a publisher (:class:`~sinewatch.clients.BlockPublisher`, ``CACHED_KEYS``
+    keys of ``CACHED_N`` 8-KB blocks) answer a history query from a process that SIGSTOPs itself
+    on its first reply (stopped by the test instead, it had taken every reply before the signal
+    came); the same session then puts ``LIVE_N`` samples on a key outside the inputs, as many
+    bytes as the replies' first half (100 small puts went out before the stopped querier's queue
+    was full), and a marker. Whether a second subscriber got the marker while the querier was
+    still stopped, and how many of the live puts. The router never gives up on the stopped
+    querier during the test (60-s leases, 120-s ``wait_before_close``), nor does the publisher on
+    the router (120 s). ``query``: the query's congestion control (the daemon's history query
+    goes with ``DROP``, zenoh-ext's recovery queries with Zenoh's default, ``BLOCK``);
+    ``router_raw``: raw Zenoh keys of the router (default: ``sinewatch router``'s own rules)."""
+    # shared memory off: the replies' bytes go through the sockets, as between hosts (Zenoh passes payloads of
+    # 3 KB and more between processes of one host through shared memory by default)
+    wait = {
+        "transport/link/tx/queue/congestion_control/block/wait_before_close": 120_000_000,
+        "transport/shared_memory/enabled": False,
+    }
+    router = Router(tmp_path, {**LEASE, **wait, **(router_raw or {})})
+    router.start()
+    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+    live: list[int] = []
+    marker = threading.Event()
+    querier: subprocess.Popen[str] | None = None
+    try:
+        with (
+            open_session(long_lease_client(endpoint)) as sub_session,
+            open_session(long_lease_client(endpoint, wait)) as pub_session,
+        ):
+            sub_session.declare_subscriber("stall/live", lambda s: live.append(1))
+            sub_session.declare_subscriber("stall/end", lambda s: marker.set())
+            publisher = BlockPublisher(pub_session, history=CACHED_N)
+            block = np.zeros(PAYLOAD // 4, dtype=np.float32)
+            for n in range(CACHED_KEYS * CACHED_N):
+                publisher.publish(f"cached{n % CACHED_KEYS}", block, 1000.0)
+            querier = subprocess.Popen(
+                [sys.executable, "-c", QUERIER, endpoint[0], json.dumps({**LEASE, **wait}), query]
+            )
+            _, status = os.waitpid(querier.pid, os.WUNTRACED)  # until it has stopped on its first reply
+            assert os.WIFSTOPPED(status), status
+
+            def put_live() -> None:
+                for n in range(LIVE_N):  # outside the inputs: the router forwards them as put, never dropped
+                    payload = n.to_bytes(8, "little") + bytes(PAYLOAD - 8)
+                    pub_session.put("stall/live", payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                pub_session.put("stall/end", b"", congestion_control=zenoh.CongestionControl.BLOCK)
+
+            putter = threading.Thread(target=put_live)
+            putter.start()
+            delivered = marker.wait(40.0)  # with the caches' replies dropped, it comes within seconds
+            received = len(live)
+            querier.send_signal(signal.SIGCONT)  # the router then delivers the rest: the putter ends
+            putter.join()
+            publisher.close()
+    finally:
+        if querier is not None:
+            querier.send_signal(signal.SIGCONT)
+            querier.kill()
+            querier.wait()
+        router.kill()
+    return delivered, received
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("query", ["DROP", "BLOCK"])
+def test_a_stopped_querier_of_the_caches_holds_back_no_other(tmp_path, query):
+    """``sinewatch router`` makes the queries on the inputs' caches ``DROP`` as they come in
+    (:func:`sinewatch.clients.session.router_input_qos`), and forwards their replies to the
+    querier with the query's QoS: a daemon paused while its history query (``DROP`` already)
+    or a zenoh-ext recovery query (Zenoh's default, ``BLOCK``) is answered loses the replies its
+    queue cannot hold, and the publisher's other keys reach their subscribers meanwhile. Slow:
+    a querier's process and 64 MB through a router."""
+    delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, query)
+    print(f"query {query}: marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
+    assert delivered  # (a few of the live puts can still be on their way to this process's callback)
+
+
+@pytest.mark.slow
+def test_without_the_query_rule_a_stopped_querier_holds_back_the_other(tmp_path):
+    """A ``BLOCK`` query through a router with the inputs' put rule only: what the test above
+    guards against. The router pushes each reply to the querier, with the query's ``BLOCK``, on
+    the task that reads the publisher's link, so once the stopped querier's queue is full nothing
+    of that publisher reaches anyone (whatever the caches' own ``RepliesConfig``: the router
+    replaces a reply's QoS with the query's)."""
+    puts_only = [rule for rule in router_input_qos([INPUTS]) if rule["id"] != INPUT_QUERIES_RULE]
+    delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, "BLOCK", {"qos/network": puts_only})
+    print(f"marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
     assert not delivered

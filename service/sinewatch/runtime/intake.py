@@ -243,6 +243,10 @@ class Intake:
                     consolidation=zenoh.ConsolidationMode.NONE,
                     accept_replies=zenoh.ReplyKeyExpr.ANY,
                     timeout=HISTORY_TIMEOUT_S,
+                    # a router forwards the replies with the query's QoS: with BLOCK, this daemon paused
+                    # while they come would stop its router's reading of the publishers' links
+                    # (sinewatch.clients.session.router_input_qos, which makes it so on its own too)
+                    congestion_control=zenoh.CongestionControl.DROP,
                 )
                 for selector in selectors
             ]
