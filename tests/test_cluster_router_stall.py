@@ -346,8 +346,8 @@ section = client_section([sys.argv[1]])
 section.raw.update(json.loads(sys.argv[2]))
 congestion = getattr(zenoh.CongestionControl, sys.argv[3])
 with open_session(section) as session:
-    session.get(  # a daemon's history query: every key's cache, replies read by a callback
-        "sinewatch/in/**/@adv/**",
+    session.get(  # shaped as zenoh-ext's recovery queries (one publisher's cache), on every key's cache
+        "sinewatch/in/**/@adv/*/*/*/**",
         lambda reply: os.kill(os.getpid(), signal.SIGSTOP),  # stopped by its first reply, the rest on their way
         consolidation=zenoh.ConsolidationMode.NONE,
         accept_replies=zenoh.ReplyKeyExpr.ANY,
@@ -372,8 +372,8 @@ def other_subscriber_while_a_querier_is_stopped(
     was full), and a marker. Whether a second subscriber got the marker while the querier was
     still stopped, and how many of the live puts. The router never gives up on the stopped
     querier during the test (60-s leases, 120-s ``wait_before_close``), nor does the publisher on
-    the router (120 s). ``query``: the query's congestion control (the daemon's history query
-    goes with ``DROP``, zenoh-ext's recovery queries with Zenoh's default, ``BLOCK``);
+    the router (120 s). ``query``: the query's congestion control (zenoh-ext's recovery queries
+    go with Zenoh's default, ``BLOCK``), its key shaped as theirs;
     ``router_raw``: raw Zenoh keys of the router (default: ``sinewatch router``'s own rules)."""
     # shared memory off: the replies' bytes go through the sockets, as between hosts (Zenoh passes payloads of
     # 3 KB and more between processes of one host through shared memory by default)
@@ -427,16 +427,14 @@ def other_subscriber_while_a_querier_is_stopped(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("query", ["DROP", "BLOCK"])
-def test_a_stopped_querier_of_the_caches_holds_back_no_other(tmp_path, query):
-    """``sinewatch router`` makes the queries on the inputs' caches ``DROP`` as they come in
-    (:func:`sinewatch.clients.session.router_input_qos`), and forwards their replies to the
-    querier with the query's QoS: a daemon paused while its history query (``DROP`` already)
-    or a zenoh-ext recovery query (Zenoh's default, ``BLOCK``) is answered loses the replies its
-    queue cannot hold, and the publisher's other keys reach their subscribers meanwhile. Slow:
-    a querier's process and 64 MB through a router."""
-    delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, query)
-    print(f"query {query}: marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
+def test_a_stopped_querier_of_the_caches_holds_back_no_other(tmp_path):
+    """``sinewatch router`` makes zenoh-ext's recovery queries on the inputs' caches ``DROP`` as
+    they come in (:func:`sinewatch.clients.session.router_input_qos`), and forwards their replies
+    to the querier with the query's QoS: a daemon paused while such a query (Zenoh's default,
+    ``BLOCK``) is answered loses the replies its queue cannot hold, and the publisher's other keys
+    reach their subscribers meanwhile. Slow: a querier's process and 64 MB through a router."""
+    delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, "BLOCK")
+    print(f"marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
     assert delivered  # (a few of the live puts can still be on their way to this process's callback)
 
 

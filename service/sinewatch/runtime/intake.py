@@ -280,19 +280,18 @@ class Intake:
         log.info("intake: %d block(s) of history, %d key(s) in turn", total, len(queries))
 
     def _query(self, selector: str, blocks: int | None) -> Any:
-        """One query on the publishers' caches. Its replies go with ``DROP``: a router forwards them
-        with the query's QoS, and with ``BLOCK`` this daemon paused while they come would stop its
-        router's reading of the publishers' links (:func:`sinewatch.clients.session.router_input_qos`
-        makes the router do so on its own too). Its FIFO holds every reply asked for, so that Zenoh's
-        thread never waits for this one to be read while another key's is (a full FIFO stops this
-        session reading its link, and its router then drops the replies queued for it)."""
+        """One query on the publishers' caches, with Zenoh's default ``BLOCK`` (a router forwards the
+        replies with the query's QoS: with ``DROP`` a takeover's burst of replies lost replies and
+        final replies in the router's queue, and each such query waited out its timeout, the key's
+        history flagged as a gap). Its FIFO holds every reply asked for, so that Zenoh's thread
+        never waits for this one to be read while another key's is: the daemon's link is read as
+        fast as the replies come, and its router never waits on it for them."""
         return self._daemon.session.get(
             selector,
             zenoh.handlers.FifoChannel((blocks or HISTORY_FIFO_ALL) + 64),
             consolidation=zenoh.ConsolidationMode.NONE,
             accept_replies=zenoh.ReplyKeyExpr.ANY,
             timeout=HISTORY_TIMEOUT_S,
-            congestion_control=zenoh.CongestionControl.DROP,
         )
 
     def _history_reply(self, reply: zenoh.Reply) -> tuple[Item, Any, int] | None:
