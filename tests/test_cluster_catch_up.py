@@ -89,25 +89,3 @@ def test_a_catch_up_is_taken_as_given_ahead_of_a_backlog_taken_in_turns():
     taken = [(k, int.from_bytes(p, "little")) for k, p, _, _ in turns.take(100)]
     assert taken == [("b", 1), ("c", 0), ("c", 1), ("a", 3), ("b", 2), ("a", 4), ("b", 3)]
     assert len(turns) == 0
-
-
-def test_a_takeover_asks_each_key_back_to_its_states_last_block_by_the_wall_clock():
-    """A state 30 s behind the wall clock (an owner that lagged the gateway) at 10 blocks/s: its
-    history must reach 300 blocks back, not the newest K the snapshot's age gives; a channel
-    whose timestamps are on another clock (a replay, its own epoch) counts nothing."""
-    from types import SimpleNamespace
-
-    from sinewatch.runtime.cluster import MAX_BLOCKS_BEHIND, blocks_behind
-
-    now_ns = 1_800_000_000 * 10**9
-
-    def channel(next_t0_ns: int | None) -> SimpleNamespace:  # 1 kHz, 100-sample blocks: 0.1 s a block
-        return SimpleNamespace(next_t0_ns=next_t0_ns, samples=50 * 100, blocks=50, sample_rate_hz=1000.0)
-
-    assert blocks_behind(channel(now_ns - 30 * 10**9), now_ns) == 300
-    assert blocks_behind(channel(now_ns - 30 * 10**9 - 1), now_ns) == 301  # a part of a block counts whole
-    assert blocks_behind(channel(now_ns), now_ns) == 0
-    assert blocks_behind(channel(now_ns + 10**9), now_ns) == 0  # ahead of this clock: not on it
-    assert blocks_behind(channel(0), now_ns) == 0  # timestamps from their own epoch
-    assert blocks_behind(channel(now_ns - (MAX_BLOCKS_BEHIND + 1) * 10**8), now_ns) == 0
-    assert blocks_behind(channel(None), now_ns) == 0  # no block taken in yet

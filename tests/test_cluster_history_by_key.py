@@ -78,7 +78,7 @@ def test_a_keys_history_and_live_blocks_go_on_while_another_keys_query_is_still_
             publisher.publish("a", np.zeros(100, dtype=np.float32), 1000.0)
         held_back = gateway.declare_queryable(f"{KEY_B}/@adv/**", zenoh.handlers.FifoChannel(8))  # b's "cache"
         host = Host(daemon)
-        intake = Intake(host, loop, {KEY_A: 16, KEY_B: 16})
+        intake = Intake(host, loop, 16)  # a takeover: each key's newest 16 blocks, a query each
         try:
             query_b = held_back.handler.recv()  # b's history query has come; it stays open meanwhile
             assert publisher.wait_for_subscriber("a", WAIT_S)

@@ -74,7 +74,7 @@ class Host(Protocol):
     def session(self) -> zenoh.Session: ...
     @property
     def pipeline(self) -> Pipeline: ...
-    def start_intake(self, history_blocks: int | dict[str, int] | None = None) -> None: ...
+    def start_intake(self, history_blocks: int | None = None) -> None: ...
     async def stop_intake(self) -> None: ...
     def intake_counters(self) -> IntakeCount: ...
 
@@ -164,28 +164,6 @@ def last_published(pipeline: Pipeline) -> dict[str, tuple[int, int]]:
     return out
 
 
-#: The most blocks a channel's state is taken to be behind the wall clock: past it, its timestamps
-#: are not on this clock (a replay, a source with its own epoch), and only the snapshot's age counts.
-MAX_BLOCKS_BEHIND = 4096
-#: How far behind the wall clock a takeover's history reaches at most (seconds of each channel's
-#: blocks beyond what the snapshot's age asks for): every block of it is work the new owner does
-#: before it is live. A 50-fault chaos run (load 17-31) with no cap: a takeover after an owner 28 s
-#: behind asked for 8,170 blocks, and 4 of its 50 channels had no estimate for 60 s after the fault;
-#: an owner further behind loses the older blocks to a gap (flagged), not the new owner's service.
-HISTORY_BEHIND_CAP_S = 10.0
-
-
-def blocks_behind(channel: Any, now_ns: int) -> int:
-    """The blocks of ``channel`` due between its state's next block (``next_t0_ns``) and
-    ``now_ns`` on the wall clock, at its mean block length: what a takeover's history must bring
-    for it (0 when its timestamps are not on this clock)."""
-    if channel.next_t0_ns is None:
-        return 0
-    block_ns = 1e9 * channel.samples / channel.blocks / channel.sample_rate_hz
-    behind = math.ceil((now_ns - channel.next_t0_ns) / block_ns)
-    return behind if 0 <= behind <= MAX_BLOCKS_BEHIND else 0
-
-
 class ClusterMember:
     """One daemon's part in the cluster (see the module docstring). Created and driven by
     :class:`sinewatch.runtime.daemon.Daemon` on its event loop; Zenoh callbacks only hand over."""
@@ -270,7 +248,7 @@ class ClusterMember:
             await self._step_down()
 
     # ---- active ----------------------------------------------------------------------------------
-    def _activate(self, history_blocks: dict[str, int] | None = None) -> None:
+    def _activate(self, history_blocks: int | None = None) -> None:
         # Subscribed first: the token says "serving", and a publisher that sees it may send at once.
         self.daemon.start_intake(history_blocks)
         self._set_token(self.active_key)
@@ -526,23 +504,17 @@ class ClusterMember:
             "" if latest is None else f" (received {started - latest[2]:.2f} s before)",
             " (restored ahead)" if restored_ahead else "",
             len(pipeline.resume_points),
-            "all" if history is None else f"{min(history.values())}-{max(history.values())}",
+            "all" if history is None else history,
             (time.monotonic() - started) * 1e3,
         )
 
-    def _history_needed(self) -> dict[str, int] | None:
-        """How many of each key's newest blocks a takeover asks the publishers' caches for: those
-        since the channel's last block in the restored state, counted on the wall clock from the
-        state's next block's time (so that they reach back to where a lagging owner stopped), and
-        at least those since the snapshot it restored (or since it stood down, re-elected on its
-        own state) twice over (None, all they hold, with neither), and at most
-        ``HISTORY_BEHIND_CAP_S`` more than those.
-        The snapshot's age alone missed what an owner behind real time had not taken in: in the
-        50-fault chaos run owners published up to 30 s behind the gateway, and 10-13.5 % of the
-        blocks were lost at takeovers (flagged as gaps), 260 a channel after one cut. The whole
-        cache (1,024 blocks per key by default) would be read, recorded and skipped before the
-        first new block is estimated: after a minute of 100 channels at 10 blocks/s, that held a
-        takeover's first estimate back by seconds under load."""
+    def _history_needed(self) -> int | None:
+        """How many of each key's newest blocks a takeover asks the publishers' caches for:
+        those since the snapshot it restored (or since it stood down, re-elected on its own
+        state), twice over (None, all they hold, with neither).
+        The whole cache (1,024 blocks per key by default) would be read, recorded and
+        skipped before the first new block is estimated: after a minute of 100 channels at
+        10 blocks/s, that held a takeover's first estimate back by seconds under load."""
         latest = self.latest_snapshot
         if latest is not None:
             since_s = time.monotonic() - latest[2] + self.daemon.config.cluster.snapshot_interval_s
@@ -550,16 +522,14 @@ class ClusterMember:
             since_s = time.monotonic() - self._stepped_down
         else:
             return None
-        channels = [ch for ch in self.daemon.pipeline.channels.values() if ch.blocks and ch.samples]
-        if not channels:
+        rates = [  # blocks per second of each channel, from its mean block length
+            ch.sample_rate_hz * ch.blocks / ch.samples
+            for ch in self.daemon.pipeline.channels.values()
+            if ch.blocks and ch.samples
+        ]
+        if not rates:
             return None
-        floor = 2 * math.ceil(since_s * max(ch.sample_rate_hz * ch.blocks / ch.samples for ch in channels)) + 16
-        now_ns = time.time_ns()
-        wanted: dict[str, int] = {}
-        for ch in channels:
-            cap = math.ceil(HISTORY_BEHIND_CAP_S * ch.sample_rate_hz * ch.blocks / ch.samples)
-            wanted[ch.key] = max(wanted.get(ch.key, floor), floor + min(blocks_behind(ch, now_ns), cap))
-        return wanted
+        return 2 * math.ceil(since_s * max(rates)) + 16
 
     # ---- admin -----------------------------------------------------------------------------------
     def admin_reply(self) -> dict[str, Any]:

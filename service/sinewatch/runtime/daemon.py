@@ -432,10 +432,9 @@ class Daemon:
             self.recorder.attach_first_snapshot = True
         log.warning("resumed %d channel(s) from the state in %s", len(pipeline.channels), path)
 
-    def start_intake(self, history_blocks: int | dict[str, int] | None = None) -> None:
+    def start_intake(self, history_blocks: int | None = None) -> None:
         """Subscribe to the inputs (at start, or when a standby takes over: then the
-        publishers' history is asked for its newest ``history_blocks`` per key only, or as many
-        as the dict gives each key)."""
+        publishers' history is asked for its newest ``history_blocks`` per key only)."""
         if self._intake is None:
             # the state's held estimates were made under its previous owner's term: those it
             # published are dropped, the rest carry this daemon's (set before this is called)

@@ -160,9 +160,7 @@ class IntakeHost(Protocol):
 class Intake:
     """Zenoh subscriber + pump thread feeding the event loop in batches."""
 
-    def __init__(
-        self, daemon: IntakeHost, loop: asyncio.AbstractEventLoop, history_blocks: int | dict[str, int] | None = None
-    ) -> None:
+    def __init__(self, daemon: IntakeHost, loop: asyncio.AbstractEventLoop, history_blocks: int | None = None) -> None:
         cfg = daemon.config
         self._daemon = daemon
         self._loop = loop
@@ -232,19 +230,12 @@ class Intake:
                 if ch.name in resume and keys[ch.key] == 1
             }
             queries: dict[str, int | None]
-            if history_blocks is not None and self._known:  # a takeover: its shard's keys only, each its own query
-                per_key = (
-                    history_blocks if isinstance(history_blocks, dict) else dict.fromkeys(self._known, history_blocks)
-                )
-                fallback = max(per_key.values(), default=None)
-                queries = {key: per_key.get(key, fallback) for key in self._known}
+            if history_blocks and self._known:  # a takeover: its shard's keys only, each its own query
+                queries = dict.fromkeys(self._known, history_blocks)
                 with self._lock:
                     self._awaited = set(queries)
             else:  # every key's whole cache (or its newest ``history_blocks``), in one query
-                limit = (
-                    max(history_blocks.values(), default=None) if isinstance(history_blocks, dict) else history_blocks
-                )
-                queries = {"": limit}
+                queries = {"": history_blocks}
             threading.Thread(target=self._history, args=(queries,), name="sinewatch-history", daemon=True).start()
 
     def _history(self, queries: dict[str, int | None]) -> None:
