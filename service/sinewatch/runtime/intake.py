@@ -33,9 +33,8 @@ from sinewatch.schemas.frame import FRAME_MAGIC
 log = logging.getLogger("sinewatch.runtime.daemon")  # the daemon's log: operators filter on one name
 
 HISTORY_TIMEOUT_S = 10.0  # how long the publishers' caches may take to answer a new subscriber's history query
-HISTORY_FIFO_ALL = (
-    1 << 20
-)  # the replies a query for every key's whole cache may bring (100 keys of 1,024 blocks: 102,400)
+# the replies a query for every key's whole cache may bring (100 keys of 1,024 blocks: 102,400)
+HISTORY_FIFO_ALL = 1 << 20
 
 
 @dataclass
