@@ -34,7 +34,7 @@ import zenoh
 from cluster_procs import Router
 
 from sinewatch.clients import BlockPublisher
-from sinewatch.clients.session import INPUT_QUERIES_RULE, client_section, open_session, router_input_qos
+from sinewatch.clients.session import client_section, open_session
 from sinewatch.schemas.config import ZenohSection
 
 STALL_S = 7.0  # longer than Zenoh's default wait_before_close: a stalled router or subscriber, not a dead one
@@ -361,9 +361,7 @@ CACHED_N = 1024  # blocks in each cache (BlockPublisher's default history): 8 x 
 LIVE_N = 4_000  # 8-KB samples put on another key while the querier is stopped: they go out beside the replies
 
 
-def other_subscriber_while_a_querier_is_stopped(
-    tmp_path, query: str, router_raw: dict[str, Any] | None = None
-) -> tuple[bool, int]:
+def other_subscriber_while_a_querier_is_stopped(tmp_path, query: str) -> tuple[bool, int]:
     """The caches of a publisher (:class:`~sinewatch.clients.BlockPublisher`, ``CACHED_KEYS``
     keys of ``CACHED_N`` 8-KB blocks) answer a history query from a process that SIGSTOPs itself
     on its first reply (stopped by the test instead, it had taken every reply before the signal
@@ -373,15 +371,15 @@ def other_subscriber_while_a_querier_is_stopped(
     still stopped, and how many of the live puts. The router never gives up on the stopped
     querier during the test (60-s leases, 120-s ``wait_before_close``), nor does the publisher on
     the router (120 s). ``query``: the query's congestion control (zenoh-ext's recovery queries
-    go with Zenoh's default, ``BLOCK``), its key shaped as theirs;
-    ``router_raw``: raw Zenoh keys of the router (default: ``sinewatch router``'s own rules)."""
+    go with Zenoh's default, ``BLOCK``), its key shaped as theirs; the router is ``sinewatch router``
+    with its inputs' rule."""
     # shared memory off: the replies' bytes go through the sockets, as between hosts (Zenoh passes payloads of
     # 3 KB and more between processes of one host through shared memory by default)
     wait = {
         "transport/link/tx/queue/congestion_control/block/wait_before_close": 120_000_000,
         "transport/shared_memory/enabled": False,
     }
-    router = Router(tmp_path, {**LEASE, **wait, **(router_raw or {})})
+    router = Router(tmp_path, {**LEASE, **wait})
     router.start()
     endpoint = [f"tcp/127.0.0.1:{router.port}"]
     live: list[int] = []
@@ -412,7 +410,7 @@ def other_subscriber_while_a_querier_is_stopped(
 
             putter = threading.Thread(target=put_live)
             putter.start()
-            delivered = marker.wait(40.0)  # with the caches' replies dropped, it comes within seconds
+            delivered = marker.wait(40.0)  # not stalled, it comes within seconds
             received = len(live)
             querier.send_signal(signal.SIGCONT)  # the router then delivers the rest: the putter ends
             putter.join()
@@ -427,25 +425,16 @@ def other_subscriber_while_a_querier_is_stopped(
 
 
 @pytest.mark.slow
-def test_a_stopped_querier_of_the_caches_holds_back_no_other(tmp_path):
-    """``sinewatch router`` makes zenoh-ext's recovery queries on the inputs' caches ``DROP`` as
-    they come in (:func:`sinewatch.clients.session.router_input_qos`), and forwards their replies
-    to the querier with the query's QoS: a daemon paused while such a query (Zenoh's default,
-    ``BLOCK``) is answered loses the replies its queue cannot hold, and the publisher's other keys
-    reach their subscribers meanwhile. Slow: a querier's process and 64 MB through a router."""
+def test_a_stopped_querier_of_the_caches_holds_back_the_gateway_s_other_keys(tmp_path):
+    """Not fixed, shown: a query shaped as zenoh-ext's recovery queries (Zenoh's default, ``BLOCK``)
+    from a process that stops reading while the caches answer it. The router pushes each reply to
+    the querier with the query's ``BLOCK`` (it replaces a reply's QoS with the query's, whatever
+    the caches' ``RepliesConfig``), on the task that reads the publisher's link, so once the
+    stopped querier's queue is full nothing of that publisher reaches anyone. A router rule making
+    these queries ``DROP`` as they come in lets the marker through (4,000 of 4,000 live puts), but
+    a router restart's burst of recovery queries then waited out their 10 s (a daemon's "could not
+    be recovered" 10.1 s after the router's return): the failover test's router restart served every channel again after 10.4 s, not
+    within 5 s (docs/cluster.md, "A querier that reads nothing")."""
     delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, "BLOCK")
-    print(f"marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
-    assert delivered  # (a few of the live puts can still be on their way to this process's callback)
-
-
-@pytest.mark.slow
-def test_without_the_query_rule_a_stopped_querier_holds_back_the_other(tmp_path):
-    """A ``BLOCK`` query through a router with the inputs' put rule only: what the test above
-    guards against. The router pushes each reply to the querier, with the query's ``BLOCK``, on
-    the task that reads the publisher's link, so once the stopped querier's queue is full nothing
-    of that publisher reaches anyone (whatever the caches' own ``RepliesConfig``: the router
-    replaces a reply's QoS with the query's)."""
-    puts_only = [rule for rule in router_input_qos([INPUTS]) if rule["id"] != INPUT_QUERIES_RULE]
-    delivered, received = other_subscriber_while_a_querier_is_stopped(tmp_path, "BLOCK", {"qos/network": puts_only})
     print(f"marker {delivered}; {received} of {LIVE_N} live puts received while the querier was stopped")
     assert not delivered

@@ -59,10 +59,6 @@ ROUTER_WAIT_BEFORE_CLOSE_US = 15_000_000
 DEFAULT_ROUTER_INPUTS = ["sinewatch/in/**"]
 
 
-#: The id of :func:`router_input_qos`'s rule for the queries on the publishers' caches.
-INPUT_QUERIES_RULE = "sinewatch_input_queries_drop"
-
-
 def router_input_qos(key_exprs: list[str]) -> list[dict[str, Any]]:
     """A router's ``qos/network`` rule: puts on ``key_exprs`` leave the router with
     ``CongestionControl.DROP``, whatever their publisher asked for (the publisher's own put to
@@ -75,20 +71,7 @@ def router_input_qos(key_exprs: list[str]) -> list[dict[str, Any]]:
     shard's keys (docs/cluster.md, "A stopped daemon holds back no one"). With ``DROP`` the
     router drops what the full queue of that one subscriber cannot take, at once once it is
     congested, and goes on; a daemon that was only slow gets what it missed again from the
-    publishers' caches (zenoh-ext's heartbeat recovery), and flags as a gap what is past them.
-
-    The same holds for the replies of the publishers' caches, which a router forwards with the
-    *query's* QoS, not the reply's (Zenoh's ``route_send_response`` sets the reply's QoS to the
-    query's): a daemon that stopped reading while the replies to one of zenoh-ext's recovery
-    queries came (Zenoh's default, ``BLOCK``; a daemon behind real time, missing inputs, asks
-    for them) stopped its router's reading of the gateway's link the same way. So a second rule
-    (:data:`INPUT_QUERIES_RULE`) makes those queries (``<input>/@adv/*/<zid>/<eid>/**``, one
-    publisher's cache) ``DROP`` as they enter the router, and their replies and final reply go
-    to the querier droppable. Not the daemon's own history query at a takeover
-    (``<key>/@adv/**``, which the rule's key does not include): with ``DROP`` a new owner's burst
-    of replies (20,000 blocks after an owner 40 s behind) lost replies and final replies in the
-    router's queue, and each such query waited out its 10 s (docs/cluster.md, "A querier that
-    reads nothing")."""
+    publishers' caches (zenoh-ext's heartbeat recovery), and flags as a gap what is past them."""
     return [
         {
             "id": "sinewatch_inputs_drop",
@@ -96,14 +79,7 @@ def router_input_qos(key_exprs: list[str]) -> list[dict[str, Any]]:
             "flows": ["egress"],
             "key_exprs": list(key_exprs),
             "overwrite": {"congestion_control": "drop"},
-        },
-        {
-            "id": INPUT_QUERIES_RULE,
-            "messages": ["query"],
-            "flows": ["ingress"],  # as the query enters: the router keeps that QoS for its replies
-            "key_exprs": [f"{key.rstrip('/')}/@adv/*/*/*/**" for key in key_exprs],
-            "overwrite": {"congestion_control": "drop"},
-        },
+        }
     ]
 
 
