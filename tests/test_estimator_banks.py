@@ -17,6 +17,7 @@ import pytest
 from sinewatch.estimators import available, get
 from sinewatch.estimators.bank import NO_BANK, bank_of, update_bank
 from sinewatch.estimators.base import Estimator, Track
+from sinewatch.estimators.lanes import host_vector_bits
 from sinewatch.schemas.errors import InputError
 
 NAMES = sorted(available())
@@ -148,6 +149,9 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
     printed = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
     results = json.loads(out_json.read_text())
     assert results["bank_channels"] == 3
+    cpu, bits = host_vector_bits()  # the host the ratios were measured on, printed and kept
+    assert results["host"] == {"cpu": cpu, "vector_bits": bits} and bits in (128, 256, 512)
+    assert f"Kernels compiled for {cpu}: {bits}-bit vectors" in printed
     for name in names:
         r = results["estimators"][name]["256"]
         assert r["bank3_bank"] > 0 and r["bank3_single"] > 0 and r["bank3_fft_stream"] > 0

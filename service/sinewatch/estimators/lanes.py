@@ -4,7 +4,8 @@ A lane-major bank (:mod:`sinewatch.estimators.bank`) keeps each quantity of its 
 row of ``LANES`` doubles, lane ``l`` of row ``r`` at ``W[r * LANES + l]``, and runs each sample's
 step as a loop of literal trip count ``LANES`` over that row, which LLVM vectorises (one 512-bit
 vector on AVX-512, two 256-bit ones on AVX2). :func:`copy_lanes` moves a whole row between
-arrays (a delay line's ring, the samples, the work array) as one vector.
+arrays (a delay line's ring, the samples, the work array) as one vector; :func:`host_vector_bits`
+says which of those widths the kernels are compiled for on this machine.
 """
 
 from __future__ import annotations
@@ -13,12 +14,27 @@ from typing import Any
 
 import numba
 import numpy as np
+from llvmlite import binding as llvm
 from llvmlite import ir as llvm_ir
 from numba.extending import intrinsic
 
 from sinewatch.estimators.base import kernel
 
 LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
+
+
+def host_vector_bits() -> tuple[str, int]:
+    """The CPU the kernels are compiled for (LLVM's name of it, or numba's NUMBA_CPU_NAME) and the
+    widest vector of doubles they can use on it, in bits: 512 with AVX-512F, 256 with AVX, else
+    128. A bank's step over its LANES lanes is one vector at 512 bits and two at 256, so the same
+    bank's speed against one channel and against the streaming FFT differs between such hosts
+    (a virtual machine may also hide AVX-512 from a CPU that has it)."""
+    if numba.config.CPU_FEATURES:  # numba's own override (NUMBA_CPU_FEATURES) is what it compiles for
+        features = {f[1:]: f[0] == "+" for f in str(numba.config.CPU_FEATURES).split(",") if f}
+    else:
+        features = dict(llvm.get_host_cpu_features())
+    name = str(numba.config.CPU_NAME or llvm.get_host_cpu_name())
+    return name, 512 if features.get("avx512f") else 256 if features.get("avx") else 128
 
 
 @intrinsic
