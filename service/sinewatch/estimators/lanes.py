@@ -62,3 +62,11 @@ def copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> No
     (LLVM adds no overlap check to a loop that short). The values are moved, not computed: no bit
     changes."""
     _copy_lanes_intrinsic(dst, dst_at, src, src_at)  # type: ignore[call-arg]  # numba passes the typing context
+
+
+_HOST_CPU, HOST_VECTOR_BITS = host_vector_bits()
+#: the vectors of doubles a bank's LANES lanes take on this host: 1 with AVX-512, 2 with AVX2
+VECTORS = max(1, LANES * 64 // HOST_VECTOR_BITS)
+#: the lanes of one vector: a lane loop runs ``range(HALF)`` and steps lanes ``lane`` and
+#: ``lane + HALF`` in each iteration when VECTORS == 2 (see the banks' ``_bank_lanes``)
+HALF = LANES // 2
