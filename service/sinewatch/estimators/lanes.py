@@ -29,11 +29,12 @@ def host_vector_bits() -> tuple[str, int]:
     128. A bank's step over its LANES lanes is one vector at 512 bits and two at 256, so the same
     bank's speed against one channel and against the streaming FFT differs between such hosts
     (a virtual machine may also hide AVX-512 from a CPU that has it)."""
-    if numba.config.CPU_FEATURES:  # numba's own override (NUMBA_CPU_FEATURES) is what it compiles for
-        features = {f[1:]: f[0] == "+" for f in str(numba.config.CPU_FEATURES).split(",") if f}
+    config: Any = numba.config  # (its settings are set at import, absent from its type stubs)
+    if config.CPU_FEATURES:  # numba's own override (NUMBA_CPU_FEATURES) is what it compiles for
+        features = {f[1:]: f[0] == "+" for f in str(config.CPU_FEATURES).split(",") if f}
     else:
         features = dict(llvm.get_host_cpu_features())
-    name = str(numba.config.CPU_NAME or llvm.get_host_cpu_name())
+    name = str(config.CPU_NAME or llvm.get_host_cpu_name())
     return name, 512 if features.get("avx512f") else 256 if features.get("avx") else 128
 
 
