@@ -75,3 +75,49 @@ def signal(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_adaptive_multisine_gives_the_same_bytes_whatever_kernels_the_host_picks(signal: Path) -> None:
     digests = {name: _digest(env, signal) for name, env in CONFIGURATIONS.items()}
     assert len(set(digests.values())) == 1, digests
+
+
+# ---- detlinalg: the pole placement against scipy's, and the solve ---------------------------------
+def _observer(a: list[float], bias: bool) -> tuple[np.ndarray, np.ndarray]:
+    from sinewatch.estimators._adaptive_multisine_explicit import observer_matrices
+
+    return observer_matrices(np.asarray(a), bias)
+
+
+@pytest.mark.parametrize(
+    ("a", "bias", "poles"),
+    [
+        ([-1.0, -4.0], True, [-0.6, -0.5, -0.3, -1.0, -10.0]),  # the paper's Example 2 (defaults)
+        ([-9.0, -16.0], False, [-2.0, -0.7, -0.5, -0.2]),  # Example 1
+        ([-1.0, -4.0, -9.0], True, [-0.3, -0.4, -0.5, -0.6, -0.7, -0.8, -2.0]),
+    ],
+)
+def test_ackermann_places_the_poles_as_closely_as_scipy(a: list[float], bias: bool, poles: list[float]) -> None:
+    from scipy.signal import place_poles
+
+    from sinewatch.estimators import detlinalg
+
+    fx, cx = _observer(a, bias)
+    mine = np.array(detlinalg.observer_gain(fx.tolist(), cx.tolist(), poles))
+    ref = place_poles(fx.T, cx[:, None], poles).gain_matrix.T[:, 0]
+    np.testing.assert_allclose(mine, ref, rtol=1e-9)
+    placed = np.sort(np.linalg.eigvals(fx - np.outer(mine, cx)).real)
+    np.testing.assert_allclose(placed, np.sort(poles), rtol=1e-9)
+
+
+def test_unobservable_pair_is_a_typed_error() -> None:
+    from sinewatch.estimators import detlinalg
+
+    fx, cx = _observer([-4.0, -4.0], False)  # two oscillators on one line: C cannot tell them apart
+    with pytest.raises(detlinalg.SingularMatrixError, match="pivot"):
+        detlinalg.observer_gain(fx.tolist(), cx.tolist(), [-1.0, -2.0, -3.0, -4.0])
+
+
+def test_solve_pivots_and_matches_numpy() -> None:
+    from sinewatch.estimators import detlinalg
+
+    rng = np.random.default_rng(5)
+    m = rng.standard_normal((6, 6))
+    m[0, 0] = 0.0  # a zero on the diagonal: only pivoting gets past it
+    b = rng.standard_normal(6)
+    np.testing.assert_allclose(detlinalg.solve(m.tolist(), b.tolist()), np.linalg.solve(m, b), rtol=1e-12)

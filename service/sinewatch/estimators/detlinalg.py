@@ -48,7 +48,7 @@ def solve(a: Matrix, b: Sequence[float]) -> list[float]:
     magnitude in the column, the first of equals), then back substitution. Raises
     SingularMatrixError when a pivot is zero or below n eps times the largest entry."""
     n = len(a)
-    m = [list(row) + [float(bi)] for row, bi in zip(a, b, strict=True)]
+    m = [[*row, float(bi)] for row, bi in zip(a, b, strict=True)]
     scale = max((abs(v) for row in a for v in row), default=0.0)
     tiny = n * 2.220446049250313e-16 * scale
     for col in range(n):
