@@ -12,7 +12,13 @@ ROCOF's standard deviation moved in their last 1-3 digits, ~1e-15 relative). The
 kkl, kkl-biased and sogi-fll in it, and sogi-fll's in the two fixtures below, were rewritten byte
 for byte this build's when those kernels' sin and tan became ``sinewatch.estimators.detmath``'s
 instead of the C library's (their last bits: at most 2.2e-11 relative, in a ROCOF; every other
-message and record the same). Any change
+message and record the same). Its 12 adaptive-multisine estimates were rewritten, byte for byte
+this build's, in November 2026 when the explicit design's observer gain L_x stopped going through
+scipy's place_poles (OpenBLAS, whose kernels differ by CPU: the recording host's AVX-512 ones
+gave other last bits than an AVX2 host's) and became Ackermann's formula in exactly rounded sums
+(``sinewatch.estimators.detlinalg``), the same bits on every host; done with
+``tests/rewrite_fixture_estimates.py``, which checks that every other record (header, schemas,
+channels, metadata, every other message with its times and sequence) is unchanged. Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """

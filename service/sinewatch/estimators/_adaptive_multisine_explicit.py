@@ -99,6 +99,7 @@ from typing import Any
 
 import numpy as np
 
+from sinewatch.estimators import detlinalg
 from sinewatch.estimators.base import kernel
 from sinewatch.schemas.errors import ParameterError
 
@@ -733,24 +734,20 @@ def setup(p: Any, sample_rate_hz: float) -> dict[str, Any]:
     nf = n - 1
     nz = nx + nf
     Fx, Cx = observer_matrices(a, bias)
-    # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation)
+    # (16): L_x by pole placement of F_x - L_x C_x (Algorithm 1, initialisation), by
+    # Ackermann's formula in exactly rounded sums (detlinalg): scipy's place_poles goes through
+    # OpenBLAS, whose kernels (chosen by CPU) round differently from host to host, and L_x's
+    # last bits reach every output, so a recording would not replay bit for bit elsewhere
     poles = np.asarray(d["poles"], dtype=np.float64)
-    from scipy.signal import place_poles  # here, not with the module: listing the estimators need not import it
-
     try:
-        res = place_poles(Fx.T, Cx[:, None], poles)
-    except (ValueError, np.linalg.LinAlgError) as exc:
+        Lx = np.array(detlinalg.observer_gain(Fx.tolist(), Cx.tolist(), poles.tolist()))
+    except detlinalg.SingularMatrixError as exc:
         raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} ({exc})") from exc
-    Lx = res.gain_matrix.T[:, 0]
-    got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)
+    got = np.sort(np.linalg.eigvals(Fx - np.outer(Lx, Cx)).real)  # a check only: its bits go nowhere
     if not np.allclose(got, np.sort(poles), rtol=1e-6, atol=1e-9):
         raise ParameterError(f"poles: expected placeable observer poles, got {list(poles)} (placed {list(got)})")
     Ff = np.asarray(d["filter_poles"], dtype=np.float64)
     Bf = np.asarray(d["filter_gains"], dtype=np.float64)
-    AL = np.zeros((nz, nz))
-    AL[:nx, :nx] = Fx - np.outer(Lx, Cx)
-    AL[nx:, :nx] = np.outer(Bf, Cx)
-    AL[nx:, nx:] = np.diag(Ff)
     Lfull = np.zeros(nz)
     Lfull[:nx] = Lx
     tbar = theta_bar(p, list(a))
@@ -758,7 +755,9 @@ def setup(p: Any, sample_rate_hz: float) -> dict[str, Any]:
     h = p.omega_unit_rad_s / sample_rate_hz  # sample period in scaled time
     # RK4 sub-steps: accuracy on the modelled band (phase error ~ (h w)^5 / 120 per step),
     # stability (|h lambda| < 2.78) over all the projection admits and over the linear rates
-    rate = max(float(np.max(np.abs(np.linalg.eigvals(AL)))), d["mu"], d["mu_a"] * w_ball**2)
+    # the linear part [[F_x - L_x C_x, 0], [B_f C_x, F_f]] is block lower triangular: its
+    # eigenvalues are the placed poles (checked above) and F_f's
+    rate = max(float(np.max(np.abs(np.concatenate([poles, Ff])))), d["mu"], d["mu_a"] * w_ball**2)
     m_sub = max(1, math.ceil(h * p.omega_max / 0.25), math.ceil(h * w_ball / 2.0), math.ceil(h * rate / 1.0))
     if m_sub > 256:
         raise ParameterError(
