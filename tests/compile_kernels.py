@@ -24,6 +24,7 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
@@ -149,18 +150,27 @@ def is_warm() -> bool:
         return False
 
 
+def _timed(task: Callable[..., str], *args: str) -> tuple[str, float, float]:
+    """Run ``task`` in a pool worker; its name, wall and CPU seconds (that worker's user +
+    system time: what the task compiled, less what an earlier task on the worker had)."""
+    wall, cpu = time.monotonic(), time.process_time()
+    name = task(*args)
+    return name, time.monotonic() - wall, time.process_time() - cpu
+
+
 def main() -> int:
     """One task per estimator (and the power-quality stage), on two processes: numba compiles
     on one core, and ``make test`` runs this beside the much shorter lint, so a single process
-    would leave a core idle for most of the compilation."""
+    would leave a core idle for most of the compilation. Each task's wall and CPU seconds are
+    printed as it completes (on a warm cache, the loading alone)."""
     t0 = time.monotonic()
     key = sources_key()  # the sources compiled: a file edited meanwhile leaves the stamp stale
     names = sorted(available(), key=lambda n: n != "adaptive-multisine")  # the longest first
     with ProcessPoolExecutor(max_workers=2) as pool:
-        for task in as_completed(
-            [pool.submit(_power_quality), *(pool.submit(_one, n) for n in names), pool.submit(_recordings)]
-        ):
-            task.result()  # a kernel that fails to compile fails here
+        tasks = [pool.submit(_timed, _power_quality), *(pool.submit(_timed, _one, n) for n in names)]
+        for task in as_completed([*tasks, pool.submit(_timed, _recordings)]):
+            name, wall, cpu = task.result()  # a kernel that fails to compile fails here
+            print(f"compile_kernels: {name:<20} {wall:6.1f} s wall {cpu:6.1f} s CPU", file=sys.stderr)
     stamp = stamp_path()
     stamp.parent.mkdir(parents=True, exist_ok=True)
     stamp.write_text(key + "\n", encoding="ascii")
