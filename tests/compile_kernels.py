@@ -153,7 +153,7 @@ def is_warm() -> bool:
 # The estimators' tasks by their compile CPU on a cold cache, longest first (this script prints
 # each task's; 2-core AMD EPYC VM, numba 0.68.1): the pool starts each task as a process frees,
 # so the longest ones first leave the shortest to fill the end (adaptive-multisine 51 s,
-# ges-kalman 25, differential-rls 23, nls 21, kkl-biased 16, pmu, ipdft and kkl 12, grip-mixing
+# ges-kalman ~37, differential-rls 23, nls 21, kkl-biased 16, pmu, ipdft and kkl 12, grip-mixing
 # 11, sogi-fll 7). An estimator not listed goes after these.
 LONGEST_FIRST = (
     "adaptive-multisine", "ges-kalman", "differential-rls", "nls", "kkl-biased", "pmu", "ipdft", "kkl",
