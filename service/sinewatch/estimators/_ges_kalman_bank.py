@@ -6,7 +6,8 @@ equations, same order of operations; eq. numbers as in that module).
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, cast
 
 import numba
 import numpy as np
@@ -47,7 +48,7 @@ _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-m
 
 
 @intrinsic
-def _select(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
+def _select_intrinsic(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
     """``a if cond else b`` for floats as one LLVM ``select`` (no branch): a Python conditional
     is three blocks of numba's IR, which numba copies block by block, each copy with the whole
     function's scope, when it inlines the function (16 of them made ges-kalman's bank the
@@ -58,6 +59,10 @@ def _select(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
         return builder.select(args[0], args[1], args[2])
 
     return sig, codegen
+
+
+# typed as compiled code calls it (numba passes the typing context itself)
+_select = cast(Callable[[bool, float, float], float], _select_intrinsic)
 
 
 @kernel(inline="always")
