@@ -6,7 +6,12 @@ equations, same order of operations; eq. numbers as in that module).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, cast
+
+import numba
 import numpy as np
+from numba.extending import intrinsic
 
 from sinewatch.estimators import detmath
 from sinewatch.estimators._ges_kalman_kernels import (
@@ -40,6 +45,24 @@ _RV = _RB + 11
 _ROWS = _RV + 4
 _P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
 _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
+
+
+@intrinsic
+def _select_intrinsic(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
+    """``a if cond else b`` for floats as one LLVM ``select`` (no branch): a Python conditional
+    is three blocks of numba's IR, which numba copies block by block, each copy with the whole
+    function's scope, when it inlines the function (16 of them made ges-kalman's bank the
+    longest compile of the test run). The value chosen is the same, bit for bit."""
+    sig = numba.types.float64(numba.types.boolean, numba.types.float64, numba.types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.select(args[0], args[1], args[2])
+
+    return sig, codegen
+
+
+# typed as compiled code calls it (numba passes the typing context itself)
+_select = cast(Callable[[bool, float, float], float], _select_intrinsic)
 
 
 @kernel(inline="always")
@@ -84,24 +107,24 @@ def _bank_sample(
             s, k0, k1, k2, k3, k0, h1, k2, k3, 0.0,
         )  # fmt: skip
         keep = t00 + t11 + t22 + t33 > T_NEGLIGIBLE  # (U3) as in ges_kalman_kernel
-        zero = (not keep) and t00 != 0.0
+        zero = (not keep) & (t00 != 0.0)  # not `and`: no branch (see _select)
         # T <- propagated if keep, 0 if zero, else as it was (the single kernel's if / elif)
-        t00 = n00 if keep else (0.0 if zero else t00)
-        t01 = n01 if keep else (0.0 if zero else t01)
-        t02 = n02 if keep else (0.0 if zero else t02)
-        t03 = n03 if keep else (0.0 if zero else t03)
-        t10 = n10 if keep else (0.0 if zero else t10)
-        t11 = n11 if keep else (0.0 if zero else t11)
-        t12 = n12 if keep else (0.0 if zero else t12)
-        t13 = n13 if keep else (0.0 if zero else t13)
-        t20 = n20 if keep else (0.0 if zero else t20)
-        t21 = n21 if keep else (0.0 if zero else t21)
-        t22 = n22 if keep else (0.0 if zero else t22)
-        t23 = n23 if keep else (0.0 if zero else t23)
-        t30 = n30 if keep else (0.0 if zero else t30)
-        t31 = n31 if keep else (0.0 if zero else t31)
-        t32 = n32 if keep else (0.0 if zero else t32)
-        t33 = n33 if keep else (0.0 if zero else t33)
+        t00 = _select(keep, n00, _select(zero, 0.0, t00))
+        t01 = _select(keep, n01, _select(zero, 0.0, t01))
+        t02 = _select(keep, n02, _select(zero, 0.0, t02))
+        t03 = _select(keep, n03, _select(zero, 0.0, t03))
+        t10 = _select(keep, n10, _select(zero, 0.0, t10))
+        t11 = _select(keep, n11, _select(zero, 0.0, t11))
+        t12 = _select(keep, n12, _select(zero, 0.0, t12))
+        t13 = _select(keep, n13, _select(zero, 0.0, t13))
+        t20 = _select(keep, n20, _select(zero, 0.0, t20))
+        t21 = _select(keep, n21, _select(zero, 0.0, t21))
+        t22 = _select(keep, n22, _select(zero, 0.0, t22))
+        t23 = _select(keep, n23, _select(zero, 0.0, t23))
+        t30 = _select(keep, n30, _select(zero, 0.0, t30))
+        t31 = _select(keep, n31, _select(zero, 0.0, t31))
+        t32 = _select(keep, n32, _select(zero, 0.0, t32))
+        t33 = _select(keep, n33, _select(zero, 0.0, t33))
         S[t], S[t + L], S[t + 2 * L], S[t + 3 * L] = t00, t01, t02, t03
         S[t + 4 * L], S[t + 5 * L], S[t + 6 * L], S[t + 7 * L] = t10, t11, t12, t13
         S[t + 8 * L], S[t + 9 * L], S[t + 10 * L], S[t + 11 * L] = t20, t21, t22, t23
@@ -222,23 +245,51 @@ def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.nd
         _bank_means_pair(us, logs, means, refs, lam, n, a)
 
 
-@kernel(inline="always")
-def _bank_lanes(S: np.ndarray, k: int, t_live: bool, q0: float, q1: float, q2: float, q3: float, R: float) -> None:
-    """Sample ``k`` of every lane (:func:`_bank_sample`); the sample's row and the T and bias
-    switches as constants in each loop, so the compiler sees the lanes independent."""
+@kernel(refcount=False)
+def _bank_samples(
+    S: np.ndarray, ys: np.ndarray, us: np.ndarray, start: int, stop: int, t_live: bool, corr: bool,
+    q0: float, q1: float, q2: float, q3: float, R: float,
+) -> bool:  # fmt: skip
+    """Samples ``start`` to ``stop`` of every lane of ``S`` (:func:`_bank_sample`, then the bias
+    recursion :func:`_bank_bias` when ``corr``), each sample's u of (U5) into ``us``; ``ys`` holds
+    the block's samples lane-major; returns whether some lane still propagates its T (U3).
+    Compiled on its own and called once a block (once a sample when each sample's row is
+    reported), not inlined by numba: its four copies of the lanes' step are most of the bank's
+    code, and numba inlines a function by copying its IR block by block, each copy with the
+    whole function's scope (this step inlined into the kernel cost it ~20 s of CPU to compile)."""
+    detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     L = LANES
-    if k % 2 == 0 and t_live:
-        for lane in range(L):  # literal trip count: one vector
-            _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
-    elif t_live:
+    n = ys.shape[0] // L
+    for k in range(start, stop):
+        # sample k + 1 into the row sample k does not read: written one step before it is
+        # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
+        nxt = min(k + 1, n - 1) * L
+        rs_next = (_RS + 1 - k % 2) * L
         for lane in range(L):
-            _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
-    elif k % 2 == 0:
+            S[rs_next + lane] = ys[nxt + lane]
+        if t_live:  # some lane's T is still propagated (U3): half the arithmetic
+            t_live = _bank_t_live(S)
+        if not t_live:  # none: the single kernel's zeroing of T, where it applies
+            _bank_t_zero(S)
+        # the sample's row and the T switch as constants in each loop, so the compiler sees
+        # the lanes independent
+        if k % 2 == 0 and t_live:
+            for lane in range(L):  # literal trip count: one vector
+                _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
+        elif t_live:
+            for lane in range(L):
+                _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
+        elif k % 2 == 0:
+            for lane in range(L):
+                _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
+        else:
+            for lane in range(L):
+                _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
+        if corr:  # (B2)-(B3), as ges_kalman_kernel
+            _bank_bias(S)
         for lane in range(L):
-            _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
-    else:
-        for lane in range(L):
-            _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
+            us[k * L + lane] = S[_RUO * L + lane]
+    return t_live
 
 
 @kernel
@@ -292,31 +343,18 @@ def ges_kalman_bank_kernel(
             means[0, c], means[1, c], means[2, c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
         for lane in range(L):  # sample 0's row
             S[_RS * L + lane] = ys[lane]
-        t_live = True
-        for k in range(n):
-            # sample k + 1 into the row sample k does not read: written one step before it is
-            # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
-            nxt = min(k + 1, n - 1) * L
-            rs_next = (_RS + 1 - k % 2) * L
-            for lane in range(L):
-                S[rs_next + lane] = ys[nxt + lane]
-            if t_live:  # some lane's T is still propagated (U3): half the arithmetic
-                t_live = _bank_t_live(S)
-            if not t_live:  # none: the single kernel's zeroing of T, where it applies
-                _bank_t_zero(S)
-            # rows and the T switch as constants, so the compiler sees the lanes independent
-            _bank_lanes(S, k, t_live, q0, q1, q2, q3, R)  # one copy: compile time
-            if corr:  # (B2)-(B3), as ges_kalman_kernel
-                _bank_bias(S)
-            for lane in range(L):
-                us[k * L + lane] = S[_RUO * L + lane]
-            if not last_only:
-                for c in range(width):  # the means and row k, lane by lane (log, exp: scalar)
-                    w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means(
-                        us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
-                    )
-                    means[0, c], means[1, c], means[2, c] = m_u, w, m_l
-                    _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
+        t_live = width > 0  # True, typed bool: the literal True would compile _bank_samples twice
+        step = max(n, 1) if last_only else 1  # the whole block in one call, or a sample and its row
+        for k in range(0, n, step):  # one call site: one signature compiled
+            t_live = _bank_samples(S, ys, us, k, k + step, t_live, corr, q0, q1, q2, q3, R)
+            if last_only:
+                continue
+            for c in range(width):  # the means and row k, lane by lane (log, exp: scalar)
+                w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means(
+                    us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
+                )
+                means[0, c], means[1, c], means[2, c] = m_u, w, m_l
+                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
         if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
             for i in range(n * L):  # the logs first: independent calls, which overlap
                 logs[i] = detmath.log(max(us[i], TINY))
