@@ -51,7 +51,7 @@ from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.presence import update_presence_bank
-from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.outputs.recorder import FastWriter, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
 from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, decode_input, encode_frame_binary
@@ -308,6 +308,27 @@ def _steps(
     return steps, [on, off, step_recorder]
 
 
+def _recorder_of(item: Any) -> McapRecorder | None:
+    """The MCAP recorder among a pipeline's sinks (or the recorder itself), if any."""
+    if isinstance(item, McapRecorder):
+        return item
+    for sink in getattr(item, "sinks", ()):
+        if isinstance(sink.sink, McapRecorder):
+            return sink.sink
+    return None
+
+
+def _chunks_written(recorders: list[McapRecorder | None]) -> None:
+    """Wait for each recorder's chunk in flight: the recorder compresses and writes a full chunk
+    on a thread of its own (``FastWriter``) while the pipeline goes on, and the process's CPU
+    time counts that thread, so a chunk finished near a step's end would be counted in whichever
+    step ran next (the recorder step's in the next repeat's pipeline, recording on)."""
+    for recorder in recorders:
+        writer = None if recorder is None else recorder._writer
+        if isinstance(writer, FastWriter):
+            writer.wait()
+
+
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Every figure of the bench, as a dict (what ``--json`` writes).
 
@@ -327,11 +348,13 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             steps, to_close = _steps(args, Path(tmp), feed.names)
             make = feed.rounds
         times: dict[str, list[float]] = {name: [] for name in steps}
+        recorders = [_recorder_of(item) for item in to_close]
         for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
             batch = make(args.rounds if repeat else 2)
             for name, step in steps.items():
                 t0 = time.process_time()
                 step(batch)
+                _chunks_written(recorders)
                 if repeat:
                     times[name].append((time.process_time() - t0) / (args.rounds * args.channels) * 1e6)
         on, off, step_recorder = to_close
