@@ -35,7 +35,7 @@ import zenoh
 
 from sinewatch.core.channel import Channel, FrameMember, PipelineCounters, ResumePoint, continues_in_time
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
-from sinewatch.core.estimate_bytes import estimate_model, estimate_payload
+from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimate_payload
 from sinewatch.core.hold import hold, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
@@ -85,6 +85,7 @@ class Pipeline:
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
         self._frame_keys: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {}  # (frame key, names) -> channel keys
+        self._bank_estimate_failures = 0  # bank_payloads raising (a bug): logged the first few times
         self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
         self.fencing: Fencing | None = None  # the shard and term this daemon owns its channels under (cluster)
         self.fencing_json = "null"
@@ -180,9 +181,12 @@ class Pipeline:
             est = channel.estimator
             banks.setdefault((id(self._rule_for(ckey)), est.name, est.sample_rate_hz), []).append(member)
         n_all = len(keys)
+        t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
         for members in banks.values():
             tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
             presence_done = self._presence_bank(members, tracks, x)
+            if presence_done and self._bank_estimates(members, tracks, t_last, log_time_ns, received_ns):
+                continue
             for member, track in zip(members, tracks, strict=True):
                 if track is not None:
                     self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
@@ -313,6 +317,70 @@ class Pipeline:
             return False
         for m, run in zip(live, runs, strict=True):
             m.channel.last_run = run
+        return True
+
+    def _bank_estimates(
+        self,
+        members: list[FrameMember],
+        tracks: list[Track | None],
+        t_last: int,
+        log_time_ns: int,
+        received_ns: int | None,
+    ) -> bool:
+        """What :meth:`_frame_estimate` does for each of a bank's channels, their presence
+        detectors run, for the whole bank at once: every Estimate's bytes in one compiled call
+        (:func:`sinewatch.core.estimate_bytes.bank_payloads`, the same bytes), each channel's
+        accept and hold, then every estimate the bank releases handed to each sink in one call
+        (``on_estimates``: the same messages in the same order). False, with nothing done,
+        where that does not apply (a channel whose bank failed, the power-quality stage on:
+        its messages go out between a channel's estimate and the next, or a bank's tracks
+        that are not its usual case); then each channel goes on its own."""
+        if self.pq.enabled or any(track is None for track in tracks):
+            return False
+        live: list[Track] = tracks  # type: ignore[assignment]  # (none is None)
+        chs = [m.channel for m in members]
+        try:
+            made = bank_payloads(
+                self,
+                chs,
+                [m.block for m in members],
+                live,
+                t_last,
+                [(m.gap_blocks, m.restart, m.reset, m.jump) for m in members],
+            )
+        except Exception:  # nothing changed yet: each channel on its own then isolates the fault
+            self._bank_estimate_failures += 1
+            if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame
+                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
+            return False
+        if made is None:
+            return False
+        out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
+        handed: list[Channel] = []
+        arrival = log_time_ns if received_ns is None else received_ns
+        for m, (payload, converged) in zip(members, made, strict=True):
+            ch = m.channel
+            try:
+                self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
+                if self._holds:
+                    released = hold(ch, t_last, [(payload, converged, t_last)], m.reset)
+                else:
+                    ch.converged, released = converged, [payload]
+            except Exception as exc:  # noqa: BLE001 (one channel's fault)
+                self._forget_unborn(ch)
+                self._fault(ch.key, m.block, ch, "estimate", exc, log_time_ns)
+                continue
+            out_key = self._out_key(ch)
+            out += [(out_key, p) for p in released]
+            ch.last_log_ns, ch.last_arrival_ns = log_time_ns, arrival
+            handed.append(ch)
+        for sink in self.sinks:
+            sink.on_estimates(out, log_time_ns)
+        self.counters.estimates += len(out)
+        if received_ns is not None:
+            latency = time.monotonic_ns() - received_ns
+            for ch in handed:
+                ch.last_latency_ns = latency
         return True
 
     def _frame_estimate(

@@ -20,9 +20,10 @@ The same blocks are also taken through each step alone, to break the cost down:
 With ``--frame-channels N`` (N > 1) the channels go as SampleFrames of N channels, the
 daemon's frame path: ``estimator`` is then one :func:`~sinewatch.estimators.bank.update_bank`
 call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.presence.update_presence_bank`),
-``encode`` each channel's Estimate bytes, ``hold`` each channel's accept and hold-back
+``encode`` the frame's Estimate bytes (one compiled call a frame, as the pipeline writes them),
+``hold`` each channel's accept and hold-back
 (:func:`sinewatch.core.hold.hold`, on by default), ``recorder`` the frame's one input message
-and its channels' estimates; ``rest`` is then the per-channel checks, the grouping into banks
+and its channels' estimates (one ``on_estimates`` call); ``rest`` is then the per-channel checks, the grouping into banks
 and the hand-out to the sinks.
 
 CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
@@ -46,6 +47,7 @@ import numpy as np
 from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
+from sinewatch.core.estimate_bytes import bank_payloads
 from sinewatch.core.hold import hold
 from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
@@ -174,6 +176,7 @@ def _frame_steps(
     tracks: dict[str, Any] = {}
     estimates: dict[str, bytes] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
+    no_gaps = [(0, False, False, False)] * max(len(names) for names in feed.layout)
 
     def estimator(batch: FrameBatch) -> None:
         for row in batch:
@@ -195,15 +198,17 @@ def _frame_steps(
                 for name, run in zip(frame.channels, runs, strict=True):
                     channels[name].last_run = run
 
-    def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch
-        payload = on._estimate_payload
+    def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch, a frame in one call
         for row in batch:
             for _key, _payload, frame in row:
                 t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
-                for c, name in enumerate(frame.channels):
-                    estimates[name] = payload(
-                        channels[name], frame.block(c), tracks[name], t_last, t_last, 0, False, False
-                    )[0]
+                chs = [channels[name] for name in frame.channels]
+                blocks = [frame.block(c) for c in range(len(chs))]
+                made = bank_payloads(
+                    on, chs, blocks, [tracks[name] for name in frame.channels], t_last, no_gaps[: len(chs)]
+                )
+                assert made is not None
+                estimates.update(zip(frame.channels, (payload for payload, _ in made), strict=True))
 
     def hold_back(batch: FrameBatch) -> None:  # each channel's accept and hold of the encode step's estimate
         accept = on._accept
@@ -216,12 +221,11 @@ def _frame_steps(
                     hold(ch, t_last, [(estimates[name], True, t_last)], False)
 
     def record(batch: FrameBatch) -> None:  # the frame, and its channels' estimates of the encode step
-        on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate
+        on_input, on_estimates = step_recorder.on_input, step_recorder.on_estimates
         for row in batch:
             for key, payload, frame in row:
                 on_input(key, payload, FRAME_BINARY_ENCODING, frame.t0_ns)
-                for name in frame.channels:
-                    on_estimate(f"sinewatch/est/{name}", estimates[name], frame.t0_ns)
+                on_estimates([(f"sinewatch/est/{name}", estimates[name]) for name in frame.channels], frame.t0_ns)
 
     steps = {
         "pipeline_on": _through(on, FRAME_BINARY_ENCODING),
