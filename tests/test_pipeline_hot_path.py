@@ -369,17 +369,22 @@ class Batches(NullSink):
 
 
 class ChannelByChannel(Pipeline):
-    """The frame path without a bank's Estimates in one call: each channel on its own."""
+    """The frame path without its per-frame shortcuts: each channel checked and its Estimate
+    written and handed out on its own."""
+
+    def _usual_frame(self, *args, **kwargs):
+        return None
 
     def _bank_estimates(self, *args, **kwargs):
         return False
 
 
 def test_a_frames_estimates_in_one_call_are_channel_by_channel_s_messages_in_order(tmp_path):
-    """Frames of 6 channels (held back, the default) through the pipeline, one bank's Estimates
-    written in one call and handed to the sinks in one batch, against the same pipeline channel
-    by channel: the same estimates (bytes, keys, order) and errors, a NaN column, a lost frame
-    (gap) and a channel that leaves and comes back included."""
+    """Frames of 6 channels (held back, the default) through the pipeline, the usual frame's
+    checks made for the frame at once, one bank's Estimates written in one call and handed to
+    the sinks in one batch, against the same pipeline channel by channel: the same estimates
+    (bytes, keys, order), errors and channel counters, a NaN column, a lost frame (gap) and a
+    channel that leaves and comes back included."""
     from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
 
     fs, n, step = 10_000.0, 512, 51_200_000
@@ -397,7 +402,7 @@ def test_a_frames_estimates_in_one_call_are_channel_by_channel_s_messages_in_ord
             x[100, 1] = np.nan  # that channel's error, the others estimated
         frame = Frame(tuple(names[c] for c in cols), seq, seq * step, fs, x)
         frames.append(encode_frame_binary(frame, "float32"))
-    got = {}
+    got, status = {}, {}
     for cls in (Pipeline, ChannelByChannel):
         sink = Batches()
         pipe = cls(make_config(tmp_path), [sink])
@@ -405,10 +410,13 @@ def test_a_frames_estimates_in_one_call_are_channel_by_channel_s_messages_in_ord
             pipe.process("sinewatch/in/daq", payload, FRAME_BINARY_ENCODING, seq)
         pipe.release_held(10**9)
         got[cls.__name__] = sink
+        status[cls.__name__] = pipe.channel_status()
     one_call, each = got["Pipeline"], got["ChannelByChannel"]
     assert one_call.estimates == each.estimates and len(each.estimates) == 39 * 6 - 3 - 1
     assert one_call.errors == each.errors == [("sinewatch/err/daq/c1", "non_finite")]
     assert each.batches == [] and len(one_call.batches) == 39  # every frame's bank in one batch
+    assert status["Pipeline"] == status["ChannelByChannel"]
+    assert [s["gaps"] for s in status["Pipeline"]] == [1, 2, 1, 2, 1, 1]  # the lost frame; c1's NaN, c3's leave
     valid = [json.loads(p)["diagnostics"]["valid"] for _, p in each.estimates]
     assert True in valid and False in valid  # both kinds were compared
 
