@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from math import isfinite
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -222,18 +222,23 @@ def _one_component_floats(
     return out
 
 
-def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
-    """The channel's cached template (:func:`_estimate_template`), made again when its layout
-    (format, components, rocof and std present, fencing, time quality) changes."""
-    rocof, std = track.rocof_hz_per_s is not None, track.std is not None
-    key = (
+def _template_key(settings: EstimateSettings, block: Block, track: Track) -> tuple[Any, ...]:
+    """What an Estimate's template depends on besides the channel's names: format, components,
+    rocof and std present, fencing, time quality."""
+    return (
         settings.estimate_version,
         track.frequency_hz.shape[-1],
-        rocof,
-        std,
+        track.rocof_hz_per_s is not None,
+        track.std is not None,
         settings.fencing_json,
         block.time_quality,
     )
+
+
+def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
+    """The channel's cached template (:func:`_estimate_template`), made again when its layout
+    (:func:`_template_key`) changes."""
+    key = _template_key(settings, block, track)
     template = ch.template
     if template is None or template[0] != key:
         template = ch.template = (key, _estimate_template(_json_names(ch), *key))
@@ -402,28 +407,33 @@ def bank_payloads(
     tracks: Sequence[Track],
     t_last_ns: int,
     gaps: Sequence[tuple[int, bool, bool, bool]],
-) -> list[tuple[bytes, bool]] | None:
+) -> list[tuple[bytes, bool, bool | None]] | None:
     """:func:`estimate_payload` of every channel of a bank at its frame's last sample (``gaps``:
     each channel's gap_blocks, restart, reset, time jump), the usual case of all of them written
     in one compiled call (:func:`write_estimates_kernel`) from the bank's last row
     (:class:`~sinewatch.estimators.base.BankLastRow`), each channel's template and its flags:
     the same bytes, channel by channel (tests/test_pipeline_hot_path.py). A channel with a value
-    that is not finite goes through :func:`estimate_payload` (the general way). None when the
-    tracks are not one bank's usual case (then the caller writes each on its own)."""
+    that is not finite goes through :func:`estimate_payload` (the general way). Each channel's
+    (bytes, converged, valid), valid None where the general way wrote it (the bytes say it);
+    None when the tracks are not one bank's usual case (then the caller writes each on its own)."""
     values = _bank_values(settings, tracks)
     if values is None:
         return None
     usual = np.isfinite(values[:, :-1]).all(axis=1).tolist()
-    out: list[tuple[bytes, bool] | None] = [None] * len(chs)
+    out: list[tuple[bytes, bool, bool | None] | None] = [None] * len(chs)
     templates, gap_blocks, flags, which = [], [], [], []
+    layout = _template_key(settings, blocks[0], tracks[0])  # a bank's tracks share their layout
     for i, (ch, block, track, gap) in enumerate(zip(chs, blocks, tracks, gaps, strict=True)):
         if not usual[i]:
-            out[i] = estimate_payload(settings, ch, block, track, t_last_ns, t_last_ns, *gap)
+            out[i] = (*estimate_payload(settings, ch, block, track, t_last_ns, t_last_ns, *gap), None)
             continue
         assert ch.presence is not None
         valid = ch.presence.run_samples >= ch.valid_memory_samples  # _present at the block's last sample
         converged = valid and bool(track.converged[-1])
-        templates.append(_template(settings, ch, block, track))
+        template = ch.template
+        templates.append(
+            template[1] if template is not None and template[0] == layout else _template(settings, ch, block, track)
+        )
         gap_blocks.append(gap[0])
         flags.append((converged, valid, gap[0] > 0 or gap[1] or gap[3], gap[1], gap[2]))
         which.append(i)
@@ -445,7 +455,7 @@ def bank_payloads(
     )
     payloads, bounds = data.tobytes(), at.tolist()
     for j, i in enumerate(which):
-        out[i] = (payloads[bounds[j] : bounds[j + 1]], flags[j][0])
+        out[i] = (payloads[bounds[j] : bounds[j + 1]], flags[j][0], flags[j][1])
     return out  # type: ignore[return-value]  # (every slot filled above)
 
 

@@ -43,7 +43,7 @@ from sinewatch.core.channel import (
 )
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
 from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimate_payload
-from sinewatch.core.hold import hold, not_valid, take_over
+from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
@@ -428,14 +428,16 @@ class Pipeline:
         out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
         handed: list[Channel] = []
         arrival = log_time_ns if received_ns is None else received_ns
-        for m, (payload, converged) in zip(members, made, strict=True):
+        for m, (payload, converged, valid) in zip(members, made, strict=True):
             ch = m.channel
             try:
                 self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
-                if self._holds:
+                if not self._holds:
+                    ch.converged, released = converged, [payload]
+                elif valid is None:  # written the general way: its bytes say whether it is valid
                     released = hold(ch, t_last, [(payload, converged, t_last)], m.reset)
                 else:
-                    ch.converged, released = converged, [payload]
+                    released = hold_at_end(ch, payload, valid, converged, m.reset)
             except Exception as exc:  # noqa: BLE001 (one channel's fault)
                 self._forget_unborn(ch)
                 self._fault(ch.key, m.block, ch, "estimate", exc, log_time_ns)

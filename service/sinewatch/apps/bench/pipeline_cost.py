@@ -208,7 +208,7 @@ def _frame_steps(
                     on, chs, blocks, [tracks[name] for name in frame.channels], t_last, no_gaps[: len(chs)]
                 )
                 assert made is not None
-                estimates.update(zip(frame.channels, (payload for payload, _ in made), strict=True))
+                estimates.update(zip(frame.channels, (payload for payload, _, _ in made), strict=True))
 
     def hold_back(batch: FrameBatch) -> None:  # each channel's accept and hold of the encode step's estimate
         accept = on._accept
