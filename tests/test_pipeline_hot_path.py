@@ -217,6 +217,16 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
 
 
+def _bank_tracks(rng, out, sse, *, std: bool, rocof: bool):
+    """A bank's Tracks (``column_tracks``) from its outputs, with random rocof and std or none."""
+    from sinewatch.estimators.bank import column_tracks
+
+    n_ch = out.shape[0]
+    rocof_out = rng.standard_normal((n_ch, 1, 1)) if rocof else None
+    std_out = np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None
+    return column_tracks(out, sse, 1024, rocof=rocof_out, std=std_out)
+
+
 def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tmp_path):
     """A bank's Tracks (``column_tracks``) carry the bank's last row of every output; the first
     Estimate of the frame writes every channel's floats in one compiled call and each channel
@@ -226,7 +236,6 @@ def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tm
     from sinewatch.core.estimate_bytes import estimate_payload
     from sinewatch.core.pipeline import Channel
     from sinewatch.estimators import get
-    from sinewatch.estimators.bank import column_tracks
 
     rng = np.random.default_rng(26)
     pipe = Pipeline(make_config(tmp_path), [NullSink()])
@@ -242,13 +251,7 @@ def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tm
         out[4, 0, 2] = np.nan  # channel 4: a NaN phase
         sse = np.abs(rng.standard_normal(n_ch))
         sse[6] = np.inf  # channel 6: no residual RMS
-        tracks = column_tracks(
-            out,
-            sse,
-            1024,
-            rocof=rng.standard_normal((n_ch, 1, 1)) if rocof else None,
-            std=np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None,
-        )
+        tracks = _bank_tracks(rng, out, sse, std=std, rocof=rocof)
         for c, tr in enumerate(tracks):
             assert tr.bank_row is not None and tr.bank_row[1] == c
             args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
@@ -303,7 +306,6 @@ def test_a_banks_estimates_in_one_compiled_call_are_each_channels_general_bytes(
     from sinewatch.core.estimate_bytes import bank_payloads, estimate_payload
     from sinewatch.core.pipeline import Channel
     from sinewatch.estimators import get
-    from sinewatch.estimators.bank import column_tracks
     from sinewatch.schemas.messages import Fencing
 
     rng = np.random.default_rng(2611)
@@ -327,13 +329,7 @@ def test_a_banks_estimates_in_one_compiled_call_are_each_channels_general_bytes(
         out[5, 0, :4] = (0.0, -0.0, 1e16, 123456789.0)
         sse = np.abs(rng.standard_normal(n_ch))
         sse[6], sse[2] = np.inf, np.nan
-        tracks = column_tracks(
-            out,
-            sse,
-            1024,
-            rocof=rng.standard_normal((n_ch, 1, 1)) if rocof else None,
-            std=np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None,
-        )
+        tracks = _bank_tracks(rng, out, sse, std=std, rocof=rocof)
         blocks = [
             Block(ch.name, 12345, 10**18 + 7, 10_000.0, np.zeros(1024), None, 0x80 | 4 | 1 if c % 2 else 0)
             for c, ch in enumerate(chs)
