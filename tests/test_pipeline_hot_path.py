@@ -146,6 +146,7 @@ def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
         assert result["ratio_to_estimator"]["estimator"] == 1.0
         assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
         assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+        assert ("channel_by_channel_off" in result["us_per_block"]) == (per > 1)  # the frame path's steps off
 
 
 def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):

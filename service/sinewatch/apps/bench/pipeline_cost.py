@@ -23,7 +23,9 @@ call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.pre
 ``encode`` the frame's Estimate bytes (one compiled call a frame, as the pipeline writes them),
 ``hold`` each channel's accept and hold-back
 (:func:`sinewatch.core.hold.hold`, on by default), ``recorder`` the frame's one input message
-and its channels' estimates (one ``on_estimates`` call); ``rest`` is then the per-channel checks, the grouping into banks
+and its channels' estimates (one ``on_estimates`` call); ``channel_by_channel_off`` the
+pipeline (recording off) with its per-frame steps turned off (:class:`ChannelByChannel`), beside
+``pipeline_off`` in the same run; ``rest`` is then the per-channel checks, the grouping into banks
 and the hand-out to the sinks.
 
 CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
@@ -230,6 +232,8 @@ def _frame_steps(
     steps = {
         "pipeline_on": _through(on, FRAME_BINARY_ENCODING),
         "pipeline_off": _through(off, FRAME_BINARY_ENCODING),
+        # the frame path without its per-frame steps, recording off: what they save, in this run
+        "channel_by_channel_off": _through(ChannelByChannel(config, [NullSink()]), FRAME_BINARY_ENCODING),
         "estimator": estimator,
         "decode": decode,
         "presence": presence,
@@ -238,6 +242,18 @@ def _frame_steps(
         "recorder": record,
     }
     return steps, [on, off, step_recorder]
+
+
+class ChannelByChannel(Pipeline):
+    """The frame path as it was before its per-frame steps (``channel_by_channel_off``): each
+    channel checked on its own (no usual frame), its Estimate written, held and handed to
+    the sinks on its own (no bank's Estimates in one call): the same estimates, at their cost."""
+
+    def _usual_frame(self, key: str, frame: Frame) -> None:
+        return None
+
+    def _bank_estimates(self, *args: Any, **kwargs: Any) -> bool:
+        return False
 
 
 def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
@@ -398,7 +414,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float | None, float]]:
     us, median, ratio = result["us_per_block"], result["us_per_block_median"], result["ratio_to_estimator"]
     steps = FRAME_STEPS if result["frame_channels"] > 1 else STEPS
-    for name in ("pipeline_on", "pipeline_off", *steps, "rest_on", "rest_off"):
+    extra = ("channel_by_channel_off",) if result["frame_channels"] > 1 else ()
+    for name in ("pipeline_on", "pipeline_off", *extra, *steps, "rest_on", "rest_off"):
         yield name, us[name], median.get(name), ratio[name]
 
 
