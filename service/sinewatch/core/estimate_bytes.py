@@ -367,10 +367,11 @@ def write_estimates_kernel(
     text: np.ndarray, ends: np.ndarray, ops: np.ndarray, ints: np.ndarray, bits: np.ndarray, flags: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every channel's Estimate, back to back as ASCII, and where channel c's ends (``at[c + 1]``;
-    ``at[0]`` = 0): channel c's template (its constant pieces ``text[ends[c, p - 1]:ends[c, p]]``, the
-    first from the previous channel's last end, ``text`` every channel's pieces back to back) with ``ops[p]`` written after piece p (see ``_OP_INT`` above): ``ints``
-    (C, 6) int64, ``bits`` (C, F) the float64 values' IEEE 754 bits (the RMS last), ``flags``
-    (C, 5) converged, valid, gap, restart, reset. What ``template % (...)`` gives, byte for byte."""
+    ``at[0]`` = 0). ``text``: every channel's constant pieces back to back, channel c's piece p
+    ending at ``ends[c, p]`` (the first starting where the previous channel's last ended); after
+    piece p comes what ``ops[p]`` says (see ``_OP_INT`` above) from ``ints`` (C, 6) int64, ``bits``
+    (C, F) the float64 values' IEEE 754 bits (the RMS last) or ``flags`` (C, 5: converged, valid,
+    gap, restart, reset). What ``template % (...)`` gives, byte for byte."""
     nc, n_ops = ints.shape[0], ops.shape[0]
     out = np.empty(text.shape[0] + nc * n_ops * (MAX_CHARS + 1), dtype=np.uint8)
     at = np.zeros(nc + 1, dtype=np.int64)
@@ -398,6 +399,21 @@ def write_estimates_kernel(
                 w = _write_int(ints[c, op - _OP_INT], out, w, digits)
         at[c + 1] = w
     return out[:w], at
+
+
+def warm_up_bank_payloads() -> None:
+    """Load (or compile) :func:`write_estimates_kernel` for the arrays :func:`bank_payloads`
+    hands it, so that a daemon's first frame does not wait for numba."""
+    ops = _bank_ops(1)
+    n_ops = ops.shape[0]
+    write_estimates_kernel(
+        np.frombuffer(b"{}" * (n_ops + 1), dtype=np.uint8),
+        np.arange(2, 2 * n_ops + 3, 2, dtype=np.int64).reshape(1, n_ops + 1),
+        ops,
+        np.zeros((1, 6), dtype=np.int64),
+        np.ones((1, 2)).view(np.uint64),
+        np.zeros((1, 5), dtype=np.bool_),
+    )
 
 
 def bank_payloads(
