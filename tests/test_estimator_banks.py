@@ -17,6 +17,7 @@ import pytest
 from sinewatch.estimators import available, get
 from sinewatch.estimators.bank import NO_BANK, bank_of, update_bank
 from sinewatch.estimators.base import Estimator, Track
+from sinewatch.estimators.lanes import host_vector_bits
 from sinewatch.schemas.errors import InputError
 
 NAMES = sorted(available())
@@ -148,6 +149,9 @@ def test_bench_kernels_bank_reports_every_estimator_and_why_below_target(tmp_pat
     printed = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
     results = json.loads(out_json.read_text())
     assert results["bank_channels"] == 3
+    cpu, bits = host_vector_bits()  # the host the ratios were measured on, printed and kept
+    assert results["host"] == {"cpu": cpu, "vector_bits": bits} and bits in (128, 256, 512)
+    assert f"Kernels compiled for {cpu}: {bits}-bit vectors" in printed
     for name in names:
         r = results["estimators"][name]["256"]
         assert r["bank3_bank"] > 0 and r["bank3_single"] > 0 and r["bank3_fft_stream"] > 0
@@ -261,6 +265,37 @@ def test_sogi_fll_bank_matches_single_channel_through_silence_and_the_clamps() -
             locked += int(tr.converged.sum())
         pos += step
     assert held > 0 and locked > 0, (held, locked)
+
+
+def test_sogi_fll_lane_loops_of_either_vector_width_step_alike() -> None:
+    """sogi-fll's bank compiles one of two lane loops, by the host's vector width: 8 lanes in a
+    loop (one AVX-512 vector) or lanes i and i + 4 in one body (two 256-bit vectors). Both run
+    here, whatever the host, from the same work array through tone, silence and the clamps, and
+    leave it the same bit for bit after every sample; both sides of the FLL's hold were taken."""
+    from sinewatch.estimators import sogi_fll as sf
+
+    cls = get("sogi-fll")
+    est = cls.example()
+    c = tuple(float(v) for v in est._constants[0])
+    a_min2 = c[6] * c[6]
+    L = sf.LANES
+    x = np.stack([_regimes(900 + ln, 12_000, cls.example_sample_rate_hz) for ln in range(L)], axis=1)
+    wide = np.zeros(sf._ROWS * L)
+    for i, v in enumerate(est._initial_state()["x"]):
+        wide[i * L : (i + 1) * L] = v
+    halves = wide.copy()
+    held = live = 0
+    for k in range(x.shape[0]):
+        row = (sf._RY + k % 2) * L  # the kernel's sample row for sample k
+        wide[row : row + L] = halves[row : row + L] = x[k]
+        sf._bank_lanes_512(wide, k, c)
+        sf._bank_lanes_256(halves, k, c)
+        # (row _RYV, after the shared rows, is the two-vector loop's own copy of the sample)
+        assert wide[: sf._RYV * L].tobytes() == halves[: sf._RYV * L].tobytes(), f"sample {k}"
+        amp2 = wide[sf._RAMP2 * L : (sf._RAMP2 + 1) * L]
+        held += int((amp2 <= a_min2).sum())
+        live += int((amp2 > a_min2).sum())
+    assert held > 0 and live > 0, (held, live)
 
 
 def _pmu_signal(seed: int, n: int, fs: float) -> np.ndarray:

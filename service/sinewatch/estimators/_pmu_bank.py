@@ -34,6 +34,7 @@ from sinewatch.estimators._pmu_kernels import (
     transition_kernel,
 )
 from sinewatch.estimators.base import GridReports, Track, TrackStd, cyclic_next, kernel, track_from_columns
+from sinewatch.estimators.lanes import LANES, copy_lanes
 
 if TYPE_CHECKING:
     from sinewatch.estimators.pmu import Pmu
@@ -92,8 +93,6 @@ def pmu_bank_kernel(
     return out, reps, n_rep, sse, n_pred, conv, rg2, dr2, ist2, fst2, anc2, nz2, tr2
 
 
-#: channels advanced together by the lane-major kernel (the inner loops' literal trip count)
-LANES = 8
 # the rows of _lanes's work array
 _ACR = 0 * LANES
 _ACI = 1 * LANES
@@ -182,7 +181,7 @@ def _lanes(
     f0, fs, spr, min_amp = fconsts[0], fconsts[1], fconsts[5], fconsts[6]
     n, j, k_next, k0, held = istate[b, 0], istate[b, 1], istate[b, 2], istate[b, 3], istate[b, 4]
     delta0 = fstate[b, 0]
-    n_in = x.shape[0]
+    n_in, nc = x.shape
     # every lane variable a row of ONE work array, at constant offsets (what LLVM needs to
     # vectorise the lane loops without run-time overlap checks)
     w = np.zeros(_W_ROWS * LANES)
@@ -209,8 +208,7 @@ def _lanes(
         if held and w[_DEFINED + ln] != 0.0:
             w[_CSTEP + ln] = math.cos(2.0 * math.pi * w[_F + ln] / fs)
             w[_SSTEP + ln] = math.sin(2.0 * math.pi * w[_F + ln] / fs)
-    for ln in range(LANES):  # sample 0's row
-        w[_X0 + ln] = x[0, b + ln]
+    copy_lanes(w, _X0, x, b)  # sample 0's row
     Q = weights.shape[0]
     ph = n % Q
     rho = n % D
@@ -224,9 +222,7 @@ def _lanes(
             weights[ph, 5],
         )
         # sample i + 1 into the row sample i does not read, a step before it is read as a vector
-        xnext = _X1 if i % 2 == 0 else _X0
-        for ln in range(LANES):
-            w[xnext + ln] = x[min(i + 1, n_in - 1), b + ln]
+        copy_lanes(w, _X1 if i % 2 == 0 else _X0, x, min(i + 1, n_in - 1) * nc + b)
         if i % 2 == 0:  # the rows as constants, so the compiler sees the lanes independent
             for ln in range(LANES):
                 _lane_sample(w, ln, _X0, w0, w1, w2, w3, w4, w5)
@@ -243,7 +239,12 @@ def _lanes(
                 ring[c, slot + L, 1] = w[_ACI + ln]
                 dcring[c, slot] = w[_DCC + ln]
                 dcring[c, slot + L] = w[_DCC + ln]
-                w[_ACR + ln], w[_ACI + ln], w[_DCC + ln] = w[_ANR + ln], w[_ANI + ln], w[_DCN + ln]
+            # the next c_j's sums become the current ones as whole rows (the next sample's lane
+            # loop loads them as vectors: 8 scalar stores each would stall those loads)
+            copy_lanes(w, _ACR, w, _ANR)
+            copy_lanes(w, _ACI, w, _ANI)
+            copy_lanes(w, _DCC, w, _DCN)
+            for ln in range(LANES):
                 w[_ANR + ln] = w[_ANI + ln] = w[_DCN + ln] = 0.0
             while True:  # the report schedule, common to the lanes (pmu_kernel's loop)
                 due, u, n_r, ph_r, oldest = _next_report(delta0, k_next, k0, spr, D, m_lo, M, j)

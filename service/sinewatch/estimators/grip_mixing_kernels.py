@@ -7,15 +7,12 @@ of y, u, z and dhat and the modal read-out of each row.
 from __future__ import annotations
 
 import math
-from typing import Any
 
-import numba
 import numpy as np
-from llvmlite import ir as llvm_ir
-from numba.extending import intrinsic
 
 from sinewatch.estimators import detmath
 from sinewatch.estimators.base import cyclic_next, kernel
+from sinewatch.estimators.lanes import LANES, copy_lanes
 
 
 @kernel(inline="always")
@@ -275,7 +272,6 @@ def grip_mixing_kernel(
 _BankResult = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
 NMAX = 8  # states of the lanes' work array (4 oscillators); more run run channel by channel
 # rows of the lanes' work array W (each LANES wide, lane l of row r at W[r * LANES + l]): xhat, the
 # sample, the taps of y's and dhat's delay lines and dhat's window tail, the mean's running sum,
@@ -286,31 +282,6 @@ _RX, _RY, _RYT, _RDT, _RDQ, _RDS, _RSSE, _RCX, _RDH, _RXP = 0, 8, 9, 13, 17, 18,
 _RAD, _RCB, _RCR, _RLD, _RH = 30, 46, 54, 62, 70
 _TAPS = 4  # the taps of a delay line: 4 for a fractional period, 1 (and 3 zero weights) for a whole one
 _ROWS = 74
-
-
-@intrinsic
-def _copy_lanes_intrinsic(typingctx: Any, dst: Any, dst_at: Any, src: Any, src_at: Any) -> Any:
-    sig = numba.types.void(dst, numba.types.int64, src, numba.types.int64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        d = context.make_array(signature.args[0])(context, builder, args[0])
-        s = context.make_array(signature.args[2])(context, builder, args[2])
-        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), LANES).as_pointer()
-        v = builder.load(builder.bitcast(builder.gep(s.data, [args[3]]), vec), align=8)
-        builder.store(v, builder.bitcast(builder.gep(d.data, [args[1]]), vec), align=8)
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-@kernel(inline="always")
-def _copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> None:
-    """``dst[dst_at : dst_at + LANES] = src[src_at : src_at + LANES]`` as one vector load and one
-    vector store (no bounds check: the callers' offsets are rows of their arrays). Why: a row the
-    lanes' loop reads as one vector must be written as one, not by LANES scalar stores, or the
-    load waits for the stores to reach the cache (store forwarding fails); and a loop of LANES
-    copies between two arrays stays scalar (LLVM adds no overlap check to a loop that short)."""
-    _copy_lanes_intrinsic(dst, dst_at, src, src_at)  # type: ignore[call-arg]  # numba passes the typing context
 
 
 @kernel(inline="always")
@@ -430,19 +401,19 @@ def _bank_lanes(
         kw = k % window
         for i in range(N):
             qw = _ring_reads(pos, tap_o, Lb, window, rd)
-            _copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
-            _copy_lanes(W, _RDQ * L, db, qw * L)
+            copy_lanes(W, _RY * L, yg, i * L)  # the sample and the taps into the work array
+            copy_lanes(W, _RDQ * L, db, qw * L)
             for j in range(nt):
-                _copy_lanes(W, (_RYT + j) * L, yb, rd[j] * L)
-                _copy_lanes(W, (_RDT + j) * L, db, rd[j] * L)
+                copy_lanes(W, (_RYT + j) * L, yb, rd[j] * L)
+                copy_lanes(W, (_RDT + j) * L, db, rd[j] * L)
             if k == 0:
                 for ln in range(L):  # literal trip count: one vector
                     _lane_step(W, ln, True)
             else:
                 for ln in range(L):
                     _lane_step(W, ln, False)
-            _copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
-            _copy_lanes(db, pos * L, W, _RDH * L)
+            copy_lanes(yb, pos * L, W, _RY * L)  # the new values into the delay lines
+            copy_lanes(db, pos * L, W, _RDH * L)
             kw += 1
             if kw == window:  # the exact re-sum of the single kernel, each lane's in its order
                 kw = 0

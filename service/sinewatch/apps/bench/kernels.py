@@ -19,7 +19,9 @@ the N channels of a frame, each with its own signal, advanced by one call), per 
 channel. Its ``ratio`` (to the streaming FFT) and ``x 1 ch`` (to the same estimator one channel
 at a time) are medians of paired rounds, the three measured in turn seven times, so that both
 sides of each ratio see the same load from other processes; an estimator whose bank stays below
-twice the streaming FFT says why under the table.
+twice the streaming FFT says why under the table. The run names the CPU the kernels were compiled
+for and its widest vector of doubles (:func:`sinewatch.estimators.lanes.host_vector_bits`): a
+lane-major bank's 8 lanes are one vector with AVX-512 and two without, which moves its ratios.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from sinewatch.apps.console import make_console, print_table
 from sinewatch.estimators import available, get
 from sinewatch.estimators.bank import NO_BANK, update_bank
 from sinewatch.estimators.base import Estimator
+from sinewatch.estimators.lanes import LANES, host_vector_bits
 
 FFT_SIZE = 1024
 FFT_HOP = 256
@@ -182,7 +185,13 @@ def run(args: argparse.Namespace) -> int:
         f"{batch / 1e6:.1f} M samples/s ({1e9 / batch:.1f} ns/sample); streaming, same blocks: "
         + ", ".join(f"{b}: {r / 1e6:.1f} M ({1e9 / r:.1f} ns/sample)" for b, r in stream.items())
     )
+    cpu, bits = host_vector_bits()
+    console.print(
+        f"Kernels compiled for {cpu}: {bits}-bit vectors ({bits // 64} doubles), a lane-major bank's "
+        f"{LANES} lanes {max(1, LANES * 64 // bits)} vector(s) a step"
+    )
     results: dict[str, Any] = {
+        "host": {"cpu": cpu, "vector_bits": bits},
         "fft_batch_samples_per_s": batch,
         "fft_stream_samples_per_s": {str(b): r for b, r in stream.items()},
         "estimators": {},

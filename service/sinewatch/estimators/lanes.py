@@ -1,0 +1,73 @@
+"""What the lane-major banks share: channels as the lanes of one work array, 8 a row.
+
+A lane-major bank (:mod:`sinewatch.estimators.bank`) keeps each quantity of its channels in one
+row of ``LANES`` doubles, lane ``l`` of row ``r`` at ``W[r * LANES + l]``, and runs each sample's
+step as a loop of literal trip count ``LANES`` over that row, which LLVM vectorises (one 512-bit
+vector on AVX-512, two 256-bit ones on AVX2). :func:`copy_lanes` moves a whole row between
+arrays (a delay line's ring, the samples, the work array) as one vector; :func:`host_vector_bits`
+says which of those widths the kernels are compiled for on this machine.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+from llvmlite import binding as llvm
+from llvmlite import ir as llvm_ir
+from numba.extending import intrinsic
+
+from sinewatch.estimators.base import kernel
+
+LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
+
+
+def host_vector_bits() -> tuple[str, int]:
+    """The CPU the kernels are compiled for (LLVM's name of it, or numba's NUMBA_CPU_NAME) and the
+    widest vector of doubles they can use on it, in bits: 512 with AVX-512F, 256 with AVX, else
+    128. A bank's step over its LANES lanes is one vector at 512 bits and two at 256, so the same
+    bank's speed against one channel and against the streaming FFT differs between such hosts
+    (a virtual machine may also hide AVX-512 from a CPU that has it)."""
+    config: Any = numba.config  # (its settings are set at import, absent from its type stubs)
+    if config.CPU_FEATURES:  # numba's own override (NUMBA_CPU_FEATURES) is what it compiles for
+        features = {f[1:]: f[0] == "+" for f in str(config.CPU_FEATURES).split(",") if f}
+    else:
+        features = dict(llvm.get_host_cpu_features())
+    name = str(config.CPU_NAME or llvm.get_host_cpu_name())
+    return name, 512 if features.get("avx512f") else 256 if features.get("avx") else 128
+
+
+@intrinsic
+def _copy_lanes_intrinsic(typingctx: Any, dst: Any, dst_at: Any, src: Any, src_at: Any) -> Any:
+    sig = numba.types.void(dst, numba.types.int64, src, numba.types.int64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        d = context.make_array(signature.args[0])(context, builder, args[0])
+        s = context.make_array(signature.args[2])(context, builder, args[2])
+        vec = llvm_ir.VectorType(llvm_ir.DoubleType(), LANES).as_pointer()
+        v = builder.load(builder.bitcast(builder.gep(s.data, [args[3]]), vec), align=8)
+        builder.store(v, builder.bitcast(builder.gep(d.data, [args[1]]), vec), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@kernel(inline="always")
+def copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> None:
+    """``dst.flat[dst_at : dst_at + LANES] = src.flat[src_at : src_at + LANES]`` (flat indices of
+    C-contiguous arrays of float64) as one vector load and one vector store, no bounds check: the
+    callers' offsets are rows of their own arrays. Why: a row the lanes' loop reads as one vector
+    must be written as one, not by LANES scalar stores, or the load waits for the stores to reach
+    the cache (store forwarding fails); and a loop of LANES copies between two arrays stays scalar
+    (LLVM adds no overlap check to a loop that short). The values are moved, not computed: no bit
+    changes."""
+    _copy_lanes_intrinsic(dst, dst_at, src, src_at)  # type: ignore[call-arg]  # numba passes the typing context
+
+
+_HOST_CPU, HOST_VECTOR_BITS = host_vector_bits()
+#: the vectors of doubles a bank's LANES lanes take on this host: 1 with AVX-512, 2 with AVX2
+VECTORS = max(1, LANES * 64 // HOST_VECTOR_BITS)
+#: the lanes of one vector: a lane loop runs ``range(HALF)`` and steps lanes ``lane`` and
+#: ``lane + HALF`` in each iteration when VECTORS == 2 (see the banks' ``_bank_lanes``)
+HALF = LANES // 2
