@@ -146,6 +146,7 @@ def test_the_pipeline_bench_runs_and_reports_every_figure(tmp_path):
         assert result["ratio_to_estimator"]["estimator"] == 1.0
         assert result["us_per_block"]["pipeline_on"] > result["us_per_block"]["estimator"] > 0
         assert set(result["outside_estimator_us"]) == {"recording_on", "recording_off"}
+        assert ("channel_by_channel_off" in result["us_per_block"]) == (per > 1)  # the frame path's steps off
 
 
 def _track(rng, k: int, *, std: bool, rocof: bool, bad: str | None = None, rms: float = 0.07):
@@ -217,6 +218,16 @@ def test_the_estimate_template_writes_the_bytes_of_the_general_encoder(tmp_path)
     assert cases == 3 * 2 * 2 * 2 * 2 * 2 * 2
 
 
+def _bank_tracks(rng, out, sse, *, std: bool, rocof: bool):
+    """A bank's Tracks (``column_tracks``) from its outputs, with random rocof and std or none."""
+    from sinewatch.estimators.bank import column_tracks
+
+    n_ch = out.shape[0]
+    rocof_out = rng.standard_normal((n_ch, 1, 1)) if rocof else None
+    std_out = np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None
+    return column_tracks(out, sse, 1024, rocof=rocof_out, std=std_out)
+
+
 def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tmp_path):
     """A bank's Tracks (``column_tracks``) carry the bank's last row of every output; the first
     Estimate of the frame writes every channel's floats in one compiled call and each channel
@@ -226,7 +237,6 @@ def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tm
     from sinewatch.core.estimate_bytes import estimate_payload
     from sinewatch.core.pipeline import Channel
     from sinewatch.estimators import get
-    from sinewatch.estimators.bank import column_tracks
 
     rng = np.random.default_rng(26)
     pipe = Pipeline(make_config(tmp_path), [NullSink()])
@@ -242,13 +252,7 @@ def test_a_banks_estimates_written_in_one_pass_are_the_general_encoders_bytes(tm
         out[4, 0, 2] = np.nan  # channel 4: a NaN phase
         sse = np.abs(rng.standard_normal(n_ch))
         sse[6] = np.inf  # channel 6: no residual RMS
-        tracks = column_tracks(
-            out,
-            sse,
-            1024,
-            rocof=rng.standard_normal((n_ch, 1, 1)) if rocof else None,
-            std=np.abs(rng.standard_normal((n_ch, 1, 4))) * 1e-6 if std else None,
-        )
+        tracks = _bank_tracks(rng, out, sse, std=std, rocof=rocof)
         for c, tr in enumerate(tracks):
             assert tr.bank_row is not None and tr.bank_row[1] == c
             args = (ch, blk, tr, 10**18, 10**18, 0, False, False, False)
@@ -292,3 +296,159 @@ def test_a_bank_of_presence_detectors_is_each_detector_on_its_column():
     assert lo == t.size and bank[1].run_samples > 0 and bank[3].run_samples == 0
     other = [SignalPresence(fs), SignalPresence(fs, nominal_frequency_hz=60.0)]
     assert update_presence_bank(other, x[:1024], [0, 1]) is None
+
+
+def test_a_banks_estimates_in_one_compiled_call_are_each_channels_general_bytes(tmp_path):
+    """bank_payloads writes a bank's Estimates in one compiled call: each channel's bytes are
+    estimate_payload's general way (the pydantic model's bytes), over formats 3-5, fencing (a
+    '%' in it), std and rocof, names with a quote and a '%d', time quality, gap/restart/reset/
+    jump flags, converged or not, valid or not, values of every magnitude and sign, 0.0 and
+    -0.0, a NaN value (that channel the general way), a NaN and an infinite residual RMS."""
+    from sinewatch.core.estimate_bytes import bank_payloads, estimate_payload
+    from sinewatch.core.pipeline import Channel
+    from sinewatch.estimators import get
+    from sinewatch.schemas.messages import Fencing
+
+    rng = np.random.default_rng(2611)
+    n_ch, t_last = 9, 10**18 + 102_300_000
+    cases = 0
+    for version, fencing, std, rocof in itertools.product(
+        (3, 4, 5), (None, Fencing(shard="s%1", term=3)), (False, True), (False, True)
+    ):
+        pipe = Pipeline(make_config(tmp_path), [NullSink()], estimate_version=version)
+        pipe.set_fencing(fencing)
+        chs = []
+        for c in range(n_ch):
+            ch = Channel(f'site/"q{c}%d', f"sinewatch/in/site/q{c}", get("ges-kalman")(10_000.0, {}), 10_000.0)
+            assert ch.presence is not None
+            if c % 3:  # the others' signal was never present: not valid
+                ch.presence.update(np.sin(np.arange(40_000) * 0.0314))
+            chs.append(ch)
+        out = rng.standard_normal((n_ch, 1, 5)) * 10.0 ** rng.integers(-300, 300, size=(n_ch, 1, 5))
+        out[:, :, 4] = rng.integers(0, 2, n_ch)[:, None]  # converged or not
+        out[4, 0, 2] = np.nan  # channel 4: a NaN phase
+        out[5, 0, :4] = (0.0, -0.0, 1e16, 123456789.0)
+        sse = np.abs(rng.standard_normal(n_ch))
+        sse[6], sse[2] = np.inf, np.nan
+        tracks = _bank_tracks(rng, out, sse, std=std, rocof=rocof)
+        blocks = [
+            Block(ch.name, 12345, 10**18 + 7, 10_000.0, np.zeros(1024), None, 0x80 | 4 | 1 if c % 2 else 0)
+            for c, ch in enumerate(chs)
+        ]
+        gaps = [(c % 3, c % 2 == 1, c % 4 == 1, c == 8) for c in range(n_ch)]
+        made = bank_payloads(pipe, chs, blocks, tracks, t_last, gaps)
+        assert made is not None
+        for c, ch in enumerate(chs):
+            expected = estimate_payload(pipe, ch, blocks[c], tracks[c], t_last, t_last, *gaps[c], fast=False)
+            assert made[c][:2] == expected, (version, fencing, std, rocof, c)
+            # valid as the bytes say it, None for the channel written the general way (its NaN)
+            assert made[c][2] == (None if c == 4 else b'"valid":true' in expected[0])
+            cases += 1
+        # a bank that set a track's RMS after column_tracks: not its usual case, nothing written
+        tracks[3].residual_rms = 0.125
+        assert bank_payloads(pipe, chs, blocks, tracks, t_last, gaps) is None
+    assert cases == 3 * 2 * 2 * 2 * n_ch
+
+
+class Batches(NullSink):
+    """Keeps every estimate in order, and the size of each ``on_estimates`` batch it got."""
+
+    def __init__(self):
+        self.estimates, self.errors, self.batches = [], [], []
+
+    def on_estimate(self, key, payload, log_time_ns):
+        self.estimates.append((key, payload))
+
+    def on_estimates(self, estimates, log_time_ns):
+        self.batches.append(len(estimates))
+        self.estimates += estimates
+
+    def on_error(self, key, payload, log_time_ns):
+        self.errors.append((key, json.loads(payload)["kind"]))
+
+
+class ChannelByChannel(Pipeline):
+    """The frame path without its per-frame shortcuts: each channel checked and its Estimate
+    written and handed out on its own."""
+
+    def _usual_frame(self, *args, **kwargs):
+        return None
+
+    def _bank_estimates(self, *args, **kwargs):
+        return False
+
+
+def test_a_frames_estimates_in_one_call_are_channel_by_channel_s_messages_in_order(tmp_path):
+    """Frames of 6 channels (held back, the default) through the pipeline, the usual frame's
+    checks made for the frame at once, one bank's Estimates written in one call and handed to
+    the sinks in one batch, against the same pipeline channel by channel: the same estimates
+    (bytes, keys, order), errors and channel counters, a NaN column, a lost frame (gap) and a
+    channel that leaves and comes back included."""
+    from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_binary
+
+    fs, n, step = 10_000.0, 512, 51_200_000
+    rng = np.random.default_rng(5)
+    names = [f"daq/c{c}" for c in range(6)]
+    t = np.arange(n * 40) / fs
+    signals = np.stack([np.sin(2 * np.pi * 50 * t + c) + 0.01 * rng.standard_normal(t.size) for c in range(6)], 1)
+    frames = []
+    for seq in range(40):
+        if seq == 17:
+            continue  # lost: a gap on every channel
+        cols = list(range(6)) if not 25 <= seq < 28 else [0, 1, 2, 4, 5]  # c3 leaves for three frames
+        x = signals[seq * n : (seq + 1) * n, cols].copy()
+        if seq == 9:
+            x[100, 1] = np.nan  # that channel's error, the others estimated
+        frame = Frame(tuple(names[c] for c in cols), seq, seq * step, fs, x)
+        frames.append(encode_frame_binary(frame, "float32"))
+    got, status = {}, {}
+    for cls in (Pipeline, ChannelByChannel):
+        sink = Batches()
+        pipe = cls(make_config(tmp_path), [sink])
+        for seq, payload in enumerate(frames):
+            pipe.process("sinewatch/in/daq", payload, FRAME_BINARY_ENCODING, seq)
+        pipe.release_held(10**9)
+        got[cls.__name__] = sink
+        status[cls.__name__] = pipe.channel_status()
+    one_call, each = got["Pipeline"], got["ChannelByChannel"]
+    assert one_call.estimates == each.estimates and len(each.estimates) == 39 * 6 - 3 - 1
+    assert one_call.errors == each.errors == [("sinewatch/err/daq/c1", "non_finite")]
+    assert each.batches == [] and len(one_call.batches) == 39  # every frame's bank in one batch
+    assert status["Pipeline"] == status["ChannelByChannel"]
+    assert [s["gaps"] for s in status["Pipeline"]] == [1, 2, 1, 2, 1, 1]  # the lost frame; c1's NaN, c3's leave
+    valid = [json.loads(p)["diagnostics"]["valid"] for _, p in each.estimates]
+    assert True in valid and False in valid  # both kinds were compared
+
+
+def test_a_batch_of_estimates_that_fails_part_way_counts_the_rest_as_skipped():
+    """GuardedSink.on_estimates to a sink that takes them one by one: the estimates before the
+    failure are written, the failure reported once, the rest of the batch counted as skipped;
+    a sink's own batch that raises is one failure; a failed sink skips whole batches."""
+    sink = FailingEstimates(OSError("disk full"))
+    reports = []
+    g = GuardedSink(sink, "flaky", lambda name, msg: reports.append(msg), retry_s=1.0, clock=Clock())
+    batch = [(f"k{i}", b"{}") for i in range(5)]
+    g.on_estimates(batch, 1)
+    assert (sink.estimates, g.failures, g.skipped) == (5, 0, 0)
+
+    class BreaksAtThree(FailingEstimates):
+        def on_estimate(self, key, payload, log_time_ns):
+            self.broken = self.broken or self.estimates == 2
+            super().on_estimate(key, payload, log_time_ns)
+
+    sink = BreaksAtThree(OSError("disk full"))
+    g = GuardedSink(sink, "flaky", lambda name, msg: reports.append(msg), retry_s=1.0, clock=Clock())
+    g.on_estimates(batch, 1)
+    assert (sink.estimates, g.ok, g.failures, g.skipped) == (2, False, 1, 2)
+    g.on_estimates(batch, 2)
+    assert (sink.estimates, g.failures, g.skipped) == (2, 1, 7)
+    assert reports == ["flaky failed in on_estimate: OSError: disk full"]
+
+    class OwnBatch(NullSink):
+        def on_estimates(self, estimates, log_time_ns):
+            raise ConnectionError("session closed")
+
+    g = GuardedSink(OwnBatch(), "zenoh", lambda name, msg: reports.append(msg), retry_s=1.0, clock=Clock())
+    g.on_estimates(batch, 1)
+    assert (g.ok, g.failures, g.skipped) == (False, 1, 0)
+    assert reports[-1] == "zenoh failed in on_estimates: ConnectionError: session closed"

@@ -105,6 +105,17 @@ class FrameMember:
     jump: bool = False  # a time jump (sinewatch.core.continuity)
 
 
+@dataclass(frozen=True, slots=True)
+class FrameLayout:
+    """A frame key's last frame whose every channel went into a bank: its channel names, rate,
+    the channels (a column each) and the banks (key, columns), in the order they ran."""
+
+    names: tuple[str, ...]
+    sample_rate_hz: float
+    channels: tuple[Channel, ...]
+    banks: tuple[tuple[tuple[int, str, float], tuple[int, ...]], ...]
+
+
 @dataclass(frozen=True)
 class ResumePoint:
     """Where another daemon left a channel (hot standby, :mod:`sinewatch.runtime.cluster`): the

@@ -6,14 +6,16 @@ second writes any case; both equal ``encode_estimate(estimate_model(...))`` byte
 
 from __future__ import annotations
 
+import re
+from collections.abc import Sequence
 from math import isfinite
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from sinewatch.core.channel import Channel
-from sinewatch.core.float_repr import repr_floats
-from sinewatch.estimators.base import Track, TrackStd
+from sinewatch.core.float_repr import MAX_CHARS, repr_floats, write_repr
+from sinewatch.estimators.base import Track, TrackStd, kernel
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
     Block,
@@ -220,18 +222,23 @@ def _one_component_floats(
     return out
 
 
-def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
-    """The channel's cached template (:func:`_estimate_template`), made again when its layout
-    (format, components, rocof and std present, fencing, time quality) changes."""
-    rocof, std = track.rocof_hz_per_s is not None, track.std is not None
-    key = (
+def _template_key(settings: EstimateSettings, block: Block, track: Track) -> tuple[Any, ...]:
+    """What an Estimate's template depends on besides the channel's names: format, components,
+    rocof and std present, fencing, time quality."""
+    return (
         settings.estimate_version,
         track.frequency_hz.shape[-1],
-        rocof,
-        std,
+        track.rocof_hz_per_s is not None,
+        track.std is not None,
         settings.fencing_json,
         block.time_quality,
     )
+
+
+def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
+    """The channel's cached template (:func:`_estimate_template`), made again when its layout
+    (:func:`_template_key`) changes."""
+    key = _template_key(settings, block, track)
     template = ch.template
     if template is None or template[0] != key:
         template = ch.template = (key, _estimate_template(_json_names(ch), *key))
@@ -284,6 +291,242 @@ def _estimate_template(
         + (f',"time_quality":{const(TIME_QUALITY_JSON[time_quality])}}}' if version >= 5 else "}")
     )
     return out
+
+
+# ---- a bank's Estimates, every channel's bytes in one compiled call ---------------------------
+
+# What a template's conversions take, in the order estimate_payload passes them: the five
+# integers before the floats (seq, timestamp_ns, sec, nsec, n_samples), the floats, then
+# converged, valid, the residual RMS, gap, gap_blocks, restart, reset. An op of the kernel says
+# what goes between two constant pieces: an integer (_OP_INT + column of ``ints``), a float's
+# repr (_OP_FLOAT + column of the values), a flag (_OP_FLAG + column of ``flags``), or the RMS
+# (its repr, ``null`` when it is not finite).
+_OP_INT, _OP_FLOAT, _OP_FLAG, _OP_RMS = 0, 1_000, 2_000, 3_000
+_CONVERSION = re.compile(r"%[%ds]")
+
+
+def _template_ops(n_floats: int) -> np.ndarray:
+    """The ops of a template with ``n_floats`` floats before the RMS (see above)."""
+    head = [_OP_INT + i for i in range(5)] + [_OP_FLOAT + f for f in range(n_floats)]
+    tail = [_OP_FLAG + 0, _OP_FLAG + 1, _OP_RMS, _OP_FLAG + 2, _OP_INT + 5, _OP_FLAG + 3, _OP_FLAG + 4]
+    return np.array(head + tail, dtype=np.int64)
+
+
+def _template_pieces(template: str) -> tuple[bytes, list[int]]:
+    """A ``%`` template's constant text (``%%`` read as ``%``) as ASCII and where each piece
+    ends: the pieces between its conversions, one more than the conversions."""
+    text, ends, at = [], [], 0
+    for match in _CONVERSION.finditer(template):
+        text.append(template[at : match.start()])
+        at = match.end()
+        if match.group() == "%%":
+            text.append("%")
+        else:
+            ends.append(len("".join(text)))
+    text.append(template[at:])
+    joined = "".join(text)
+    ends.append(len(joined))
+    return joined.encode("ascii"), ends
+
+
+@kernel(inline="always", refcount=False)
+def _write_int(v: int, out: np.ndarray, at: int, digits: np.ndarray) -> int:
+    """``str(v)`` of an integer as ASCII at ``out[at:]``; returns the index after it."""
+    if v < 0:
+        out[at] = 45  # -
+        at += 1
+        v = -v
+    n = 0
+    while True:  # the digits, last first
+        digits[n] = 48 + v % 10
+        v //= 10
+        n += 1
+        if v == 0:
+            break
+    for d in range(n - 1, -1, -1):
+        out[at] = digits[d]
+        at += 1
+    return at
+
+
+@kernel(inline="always", refcount=False)
+def _write_text(text: np.ndarray, start: int, end: int, out: np.ndarray, at: int) -> int:
+    for i in range(start, end):
+        out[at] = text[i]
+        at += 1
+    return at
+
+
+_FALSE = np.frombuffer(b"false", dtype=np.uint8)
+_TRUE = np.frombuffer(b"true", dtype=np.uint8)
+_NULL = np.frombuffer(b"null", dtype=np.uint8)
+
+
+@kernel
+def write_estimates_kernel(
+    text: np.ndarray, ends: np.ndarray, ops: np.ndarray, ints: np.ndarray, bits: np.ndarray, flags: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every channel's Estimate, back to back as ASCII, and where channel c's ends (``at[c + 1]``;
+    ``at[0]`` = 0). ``text``: every channel's constant pieces back to back, channel c's piece p
+    ending at ``ends[c, p]`` (the first starting where the previous channel's last ended); after
+    piece p comes what ``ops[p]`` says (see ``_OP_INT`` above) from ``ints`` (C, 6) int64, ``bits``
+    (C, F) the float64 values' IEEE 754 bits (the RMS last) or ``flags`` (C, 5: converged, valid,
+    gap, restart, reset). What ``template % (...)`` gives, byte for byte."""
+    nc, n_ops = ints.shape[0], ops.shape[0]
+    out = np.empty(text.shape[0] + nc * n_ops * (MAX_CHARS + 1), dtype=np.uint8)
+    at = np.zeros(nc + 1, dtype=np.int64)
+    digits = np.empty(24, dtype=np.uint8)
+    false, true, null = _FALSE, _TRUE, _NULL
+    w = 0
+    for c in range(nc):
+        start = ends[c - 1, n_ops] if c else 0
+        for p in range(n_ops + 1):
+            w = _write_text(text, start, ends[c, p], out, w)
+            start = ends[c, p]
+            if p == n_ops:
+                break
+            op = ops[p]
+            if op >= _OP_RMS:
+                v = bits[c, bits.shape[1] - 1]
+                finite = ((v >> np.uint64(52)) & np.uint64(0x7FF)) != np.uint64(0x7FF)
+                w = write_repr(v, out, w, digits) if finite else _write_text(null, 0, 4, out, w)
+            elif op >= _OP_FLAG:
+                word = true if flags[c, op - _OP_FLAG] else false
+                w = _write_text(word, 0, word.shape[0], out, w)
+            elif op >= _OP_FLOAT:
+                w = write_repr(bits[c, op - _OP_FLOAT], out, w, digits)
+            else:
+                w = _write_int(ints[c, op - _OP_INT], out, w, digits)
+        at[c + 1] = w
+    return out[:w], at
+
+
+def warm_up_bank_payloads() -> None:
+    """Load (or compile) :func:`write_estimates_kernel` for the arrays :func:`bank_payloads`
+    hands it, so that a daemon's first frame does not wait for numba."""
+    ops = _bank_ops(1)
+    n_ops = ops.shape[0]
+    write_estimates_kernel(
+        np.frombuffer(b"{}" * (n_ops + 1), dtype=np.uint8),
+        np.arange(2, 2 * n_ops + 3, 2, dtype=np.int64).reshape(1, n_ops + 1),
+        ops,
+        np.zeros((1, 6), dtype=np.int64),
+        np.ones((1, 2)).view(np.uint64),
+        np.zeros((1, 5), dtype=np.bool_),
+    )
+
+
+def bank_payloads(
+    settings: EstimateSettings,
+    chs: Sequence[Channel],
+    blocks: Sequence[Block],
+    tracks: Sequence[Track],
+    t_last_ns: int,
+    gaps: Sequence[tuple[int, bool, bool, bool]],
+) -> list[tuple[bytes, bool, bool | None]] | None:
+    """:func:`estimate_payload` of every channel of a bank at its frame's last sample (``gaps``:
+    each channel's gap_blocks, restart, reset, time jump), the usual case of all of them written
+    in one compiled call (:func:`write_estimates_kernel`) from the bank's last row
+    (:class:`~sinewatch.estimators.base.BankLastRow`), each channel's template and its flags:
+    the same bytes, channel by channel (tests/test_pipeline_hot_path.py). A channel with a value
+    that is not finite goes through :func:`estimate_payload` (the general way). Each channel's
+    (bytes, converged, valid), valid None where the general way wrote it (the bytes say it);
+    None when the tracks are not one bank's usual case (then the caller writes each on its own)."""
+    values = _bank_values(settings, tracks)
+    if values is None:
+        return None
+    usual = np.isfinite(values[:, :-1]).all(axis=1).tolist()
+    out: list[tuple[bytes, bool, bool | None] | None] = [None] * len(chs)
+    templates, gap_blocks, flags, which = [], [], [], []
+    layout = _template_key(settings, blocks[0], tracks[0])  # a bank's tracks share their layout
+    for i, (ch, block, track, gap) in enumerate(zip(chs, blocks, tracks, gaps, strict=True)):
+        if not usual[i]:
+            out[i] = (*estimate_payload(settings, ch, block, track, t_last_ns, t_last_ns, *gap), None)
+            continue
+        assert ch.presence is not None
+        valid = ch.presence.run_samples >= ch.valid_memory_samples  # _present at the block's last sample
+        converged = valid and bool(track.converged[-1])
+        template = ch.template
+        templates.append(
+            template[1] if template is not None and template[0] == layout else _template(settings, ch, block, track)
+        )
+        gap_blocks.append(gap[0])
+        flags.append((converged, valid, gap[0] > 0 or gap[1] or gap[3], gap[1], gap[2]))
+        which.append(i)
+    if not which:
+        return out  # type: ignore[return-value]  # (every slot filled above)
+    text, ends = _bank_pieces(tuple(templates), values.shape[1] - 1)
+    sec, nsec = divmod(int(t_last_ns), 1_000_000_000)
+    block = blocks[which[0]]  # a frame's channels share seq, time and sample count
+    ints = np.empty((len(which), 6), dtype=np.int64)
+    ints[:, :5] = (block.seq, int(t_last_ns), sec, nsec, block.n_samples)
+    ints[:, 5] = gap_blocks
+    data, at = write_estimates_kernel(
+        text,
+        ends,
+        _bank_ops(values.shape[1] - 1),
+        ints,
+        (values[which] if len(which) < len(chs) else values).view(np.uint64),
+        np.array(flags, dtype=np.bool_),
+    )
+    payloads, bounds = data.tobytes(), at.tolist()
+    for j, i in enumerate(which):
+        out[i] = (payloads[bounds[j] : bounds[j + 1]], flags[j][0], flags[j][1])
+    return out  # type: ignore[return-value]  # (every slot filled above)
+
+
+def _bank_values(settings: EstimateSettings, tracks: Sequence[Track]) -> np.ndarray | None:
+    """The bank's last row of every output for ``tracks`` (C-contiguous, a row a track), or None
+    when they are not one bank's usual case: format 3 or later, every track a row of one
+    :class:`BankLastRow`, no extras, no grid reports, the RMS still the track's (a bank that
+    sets a track's RMS after column_tracks leaves the row's stale)."""
+    first = tracks[0].bank_row
+    if settings.estimate_version < 3 or first is None:
+        return None
+    bank = first[0]
+    rows = []
+    for track in tracks:
+        row = track.bank_row
+        if row is None or row[0] is not bank or track.extras or track.reports is not None:
+            return None
+        rows.append(row[1])
+    values = bank.values if rows == list(range(bank.values.shape[0])) else np.ascontiguousarray(bank.values[rows])
+    for rms, track in zip(values[:, -1].tolist(), tracks, strict=True):
+        if not (rms == track.residual_rms or (rms != rms and track.residual_rms != track.residual_rms)):
+            return None
+    return values
+
+
+_OPS: dict[int, np.ndarray] = {}
+_PIECES: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _bank_ops(n_floats: int) -> np.ndarray:
+    ops = _OPS.get(n_floats)
+    if ops is None:
+        ops = _OPS[n_floats] = _template_ops(n_floats)
+    return ops
+
+
+def _bank_pieces(templates: tuple[str, ...], n_floats: int) -> tuple[np.ndarray, np.ndarray]:
+    """The templates' constant pieces back to back (uint8) and where each piece ends (C, P + 1),
+    as :func:`write_estimates_kernel` takes them; kept per tuple of templates (a bank's layout
+    changes with its channels, the fencing or the format only)."""
+    cached = _PIECES.get(templates)
+    if cached is None:
+        n_ops = _bank_ops(n_floats).shape[0]
+        texts, ends, length = [], [], 0
+        for template in templates:
+            text, piece_ends = _template_pieces(template)
+            if len(piece_ends) != n_ops + 1:
+                raise ValueError(f"an Estimate template: expected {n_ops} conversions, got {len(piece_ends) - 1}")
+            texts.append(text)
+            ends.append([length + e for e in piece_ends])
+            length += len(text)
+        if len(_PIECES) > 4_096:
+            _PIECES.clear()  # bounded: channels come and go
+        cached = _PIECES[templates] = (np.frombuffer(b"".join(texts), dtype=np.uint8), np.array(ends, dtype=np.int64))
+    return cached
 
 
 _F64 = np.dtype(np.float64)

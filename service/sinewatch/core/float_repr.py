@@ -284,4 +284,7 @@ def repr_floats(values: np.ndarray) -> list[str]:
     return repr_floats_kernel(bits).tobytes().decode("ascii").split(",")
 
 
-__all__ = ["MAX_CHARS", "repr_floats", "repr_floats_kernel"]
+# one float's repr into a byte buffer, for kernels that write whole messages (an Estimate's)
+write_repr = _write_one
+
+__all__ = ["MAX_CHARS", "repr_floats", "repr_floats_kernel", "write_repr"]

@@ -24,22 +24,49 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     valid: the detector that was to confirm them starts afresh. Order is kept: an
     estimate leaves after every estimate made before it."""
     assert ch.presence is not None
-    out: list[bytes] = []
-    held = ch.held
-    if reset:
-        while held:
-            payload, _, window_start, _ = held.popleft()
-            out.append(not_valid(payload) if window_start >= 0 else payload)
+    out = _started_over(ch) if reset else []
     n_now = ch.samples
     latency = ch.presence.onset_latency_samples
     memory = ch.valid_memory_samples
     fs = ch.sample_rate_hz
     ahead = getattr(ch.estimator, "lookahead_samples", None)  # a grid report's window ends after its time
+    held = ch.held
     for payload, converged, t_ns in made:
         valid = DIAGNOSTICS_VALID[0] in payload or DIAGNOSTICS_VALID[1] in payload
         lag = max(0, round((t_last_ns - t_ns) * fs / 1e9))
         end = n_now if ahead is None else min(n_now, n_now - lag + ahead)  # the window's last sample
         held.append((payload, end + latency, n_now - lag - memory if valid else -1, converged))
+    return _released(ch, n_now, out)
+
+
+def hold_at_end(ch: Channel, payload: bytes, valid: bool, converged: bool, reset: bool) -> list[bytes]:
+    """:func:`hold` of one estimate at its block's last sample whose ``valid`` is known (a bank's,
+    written in one call: :func:`sinewatch.core.estimate_bytes.bank_payloads`), without reading
+    it back from the bytes: the same estimates released, in the same order."""
+    assert ch.presence is not None
+    out = _started_over(ch) if reset else []
+    n_now = ch.samples
+    ahead = getattr(ch.estimator, "lookahead_samples", None)
+    end = n_now if ahead is None else min(n_now, n_now + ahead)  # as hold's at a lag of 0
+    window_start = n_now - ch.valid_memory_samples if valid else -1
+    ch.held.append((payload, end + ch.presence.onset_latency_samples, window_start, converged))
+    return _released(ch, n_now, out)
+
+
+def _started_over(ch: Channel) -> list[bytes]:
+    """What ``ch`` held when it starts over, all out now: not valid where it waited to be confirmed."""
+    out = []
+    held = ch.held
+    while held:
+        payload, _, window_start, _ = held.popleft()
+        out.append(not_valid(payload) if window_start >= 0 else payload)
+    return out
+
+
+def _released(ch: Channel, n_now: int, out: list[bytes]) -> list[bytes]:
+    """``out`` and, after it, every estimate ``ch`` holds whose release point the detector has
+    reached (``n_now``: the channel's samples), each confirmed or made not valid by the run."""
+    held = ch.held
     run = ch.last_run
     start = n_now if run is None else n_now - run.shape[0]  # the channel's sample count before this block
     converged_out = None

@@ -33,10 +33,17 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from sinewatch.core.channel import Channel, FrameMember, PipelineCounters, ResumePoint, continues_in_time
+from sinewatch.core.channel import (
+    Channel,
+    FrameLayout,
+    FrameMember,
+    PipelineCounters,
+    ResumePoint,
+    continues_in_time,
+)
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
-from sinewatch.core.estimate_bytes import estimate_model, estimate_payload
-from sinewatch.core.hold import hold, not_valid, take_over
+from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimate_payload
+from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
@@ -85,6 +92,8 @@ class Pipeline:
         self._error_counts: Counter[tuple[str, str]] = Counter()  # (key, kind) -> count, for ErrorReport.count
         self._rule_cache: dict[str, EstimatorRule | None] = {}
         self._frame_keys: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {}  # (frame key, names) -> channel keys
+        self._layouts: dict[str, FrameLayout] = {}  # by frame key: its last frame's channels and banks
+        self._bank_estimate_failures = 0  # bank_payloads raising (a bug): logged the first few times
         self.resume_points: dict[str, ResumePoint] = {}  # by channel: after a takeover (cluster)
         self.fencing: Fencing | None = None  # the shard and term this daemon owns its channels under (cluster)
         self.fencing_json = "null"
@@ -155,7 +164,58 @@ class Pipeline:
         keys = self._frame_channel_keys(key, frame.channels)
         x = frame.samples  # of the kernels' kind (``_decode``): each column what its block would give
         finite = np.isfinite(x).all(axis=0).tolist() if not _all_finite_2d(x) else None
+        banks = self._usual_frame(key, frame) if finite is None else None
+        if banks is None:
+            banks = self._checked_frame(key, keys, frame, finite, log_time_ns)
+        n_all = len(keys)
+        t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
+        for members in banks.values():
+            tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
+            presence_done = self._presence_bank(members, tracks, x)
+            if presence_done and self._bank_estimates(members, tracks, t_last, log_time_ns, received_ns):
+                continue
+            for member, track in zip(members, tracks, strict=True):
+                if track is not None:
+                    self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
+
+    def _usual_frame(self, key: str, frame: Frame) -> dict[tuple[int, str, float], list[FrameMember]] | None:
+        """The banks of a frame in the usual case, without :meth:`_checked_frame`'s calls a
+        channel: the same layout as the key's last frame, every one of whose channels was
+        accepted into the same banks (:attr:`_layouts`), every value finite, every channel the
+        next block of its sequence and time, no takeover under way. None otherwise (then every
+        channel is checked on its own): nothing is changed before that is known."""
+        layout = self._layouts.get(key)
+        if layout is None or layout.names != frame.channels or self.resume_points:
+            return None
+        if frame.sample_rate_hz != layout.sample_rate_hz:
+            return None
+        channels, seq, t0 = self.channels, frame.seq, frame.t0_ns
+        # continues_in_time, once for the frame: its channels share t0, rate and length
+        period_ns = 1e9 / frame.sample_rate_hz
+        tolerance = max(0.5 * frame.n_samples * period_ns, period_ns) if self.validity_version >= 2 else None
+        for ch in layout.channels:
+            if channels.get(ch.name) is not ch or ch.last_seq != seq - 1:
+                return None
+            if tolerance is not None and ch.next_t0_ns is not None and abs(t0 - ch.next_t0_ns) > tolerance:
+                return None
         banks: dict[tuple[int, str, float], list[FrameMember]] = {}
+        for bank_key, columns in layout.banks:
+            banks[bank_key] = [
+                FrameMember(layout.channels[c], frame.block(c), c, 0, False, False, False) for c in columns
+            ]
+        for ch in layout.channels:
+            ch.source_key = key  # a queued frame of this key holds its next block (release_idle)
+        return banks
+
+    def _checked_frame(
+        self, key: str, keys: tuple[str, ...], frame: Frame, finite: list[bool] | None, log_time_ns: int
+    ) -> dict[tuple[int, str, float], list[FrameMember]]:
+        """Each column checked as its channel's block would be (a refused one reported on its
+        channel's key); the accepted ones grouped into banks (the channels that share a rule,
+        an estimator and a rate), in column order. A frame all of whose channels went into
+        banks is kept as its key's layout (:meth:`_usual_frame`)."""
+        banks: dict[tuple[int, str, float], list[FrameMember]] = {}
+        accepted = 0
         for c, ckey in enumerate(keys):
             block = frame.block(c)
             channel: Channel | None = None
@@ -179,13 +239,27 @@ class Pipeline:
                 continue
             est = channel.estimator
             banks.setdefault((id(self._rule_for(ckey)), est.name, est.sample_rate_hz), []).append(member)
-        n_all = len(keys)
+            accepted += 1
+        if accepted == len(keys):
+            self._keep_layout(key, frame, banks)
+        else:
+            self._layouts.pop(key, None)
+        return banks
+
+    def _keep_layout(self, key: str, frame: Frame, banks: dict[tuple[int, str, float], list[FrameMember]]) -> None:
+        """Remember a frame key's channels and banks (every channel accepted, one column each)."""
+        channels: list[Channel | None] = [None] * len(frame.channels)
         for members in banks.values():
-            tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
-            presence_done = self._presence_bank(members, tracks, x)
-            for member, track in zip(members, tracks, strict=True):
-                if track is not None:
-                    self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
+            for m in members:
+                channels[m.column] = m.channel
+        if len(self._layouts) > self.config.limits.max_channels:
+            self._layouts.clear()  # bounded: hostile senders may invent frame keys
+        self._layouts[key] = FrameLayout(
+            frame.channels,
+            frame.sample_rate_hz,
+            tuple(channels),  # type: ignore[arg-type]  # (every column is one accepted channel's)
+            tuple((bank_key, tuple(m.column for m in members)) for bank_key, members in banks.items()),
+        )
 
     def _frame_channel_keys(self, key: str, names: tuple[str, ...]) -> tuple[str, ...]:
         """Each channel's key (:func:`sinewatch.schemas.frame.channel_key`), once per layout."""
@@ -313,6 +387,72 @@ class Pipeline:
             return False
         for m, run in zip(live, runs, strict=True):
             m.channel.last_run = run
+        return True
+
+    def _bank_estimates(
+        self,
+        members: list[FrameMember],
+        tracks: list[Track | None],
+        t_last: int,
+        log_time_ns: int,
+        received_ns: int | None,
+    ) -> bool:
+        """What :meth:`_frame_estimate` does for each of a bank's channels, their presence
+        detectors run, for the whole bank at once: every Estimate's bytes in one compiled call
+        (:func:`sinewatch.core.estimate_bytes.bank_payloads`, the same bytes), each channel's
+        accept and hold, then every estimate the bank releases handed to each sink in one call
+        (``on_estimates``: the same messages in the same order). False, with nothing done,
+        where that does not apply (a channel whose bank failed, the power-quality stage on:
+        its messages go out between a channel's estimate and the next, or a bank's tracks
+        that are not its usual case); then each channel goes on its own."""
+        if self.pq.enabled or any(track is None for track in tracks):
+            return False
+        live: list[Track] = tracks  # type: ignore[assignment]  # (none is None)
+        chs = [m.channel for m in members]
+        try:
+            made = bank_payloads(
+                self,
+                chs,
+                [m.block for m in members],
+                live,
+                t_last,
+                [(m.gap_blocks, m.restart, m.reset, m.jump) for m in members],
+            )
+        except Exception:  # nothing changed yet: each channel on its own then isolates the fault
+            self._bank_estimate_failures += 1
+            if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame
+                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
+            return False
+        if made is None:
+            return False
+        out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
+        handed: list[Channel] = []
+        arrival = log_time_ns if received_ns is None else received_ns
+        for m, (payload, converged, valid) in zip(members, made, strict=True):
+            ch = m.channel
+            try:
+                self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
+                if not self._holds:
+                    ch.converged, released = converged, [payload]
+                elif valid is None:  # written the general way: its bytes say whether it is valid
+                    released = hold(ch, t_last, [(payload, converged, t_last)], m.reset)
+                else:
+                    released = hold_at_end(ch, payload, valid, converged, m.reset)
+            except Exception as exc:  # noqa: BLE001 (one channel's fault)
+                self._forget_unborn(ch)
+                self._fault(ch.key, m.block, ch, "estimate", exc, log_time_ns)
+                continue
+            out_key = self._out_key(ch)
+            out += [(out_key, p) for p in released]
+            ch.last_log_ns, ch.last_arrival_ns = log_time_ns, arrival
+            handed.append(ch)
+        for sink in self.sinks:
+            sink.on_estimates(out, log_time_ns)
+        self.counters.estimates += len(out)
+        if received_ns is not None:
+            latency = time.monotonic_ns() - received_ns
+            for ch in handed:
+                ch.last_latency_ns = latency
         return True
 
     def _frame_estimate(

@@ -20,6 +20,8 @@ class Sink(Protocol):
     def on_input(self, key: str, payload: bytes, encoding: str, log_time_ns: int) -> None: ...
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
+    # optional: ``on_estimates(estimates: list[tuple[str, bytes]], log_time_ns)``, each (key,
+    # payload) as on_estimate takes it, in order, in one call (a frame's: GuardedSink.on_estimates)
     def on_status(self, key: str, payload: bytes, log_time_ns: int) -> None: ...
     def on_output(self, kind: str, key: str, payload: bytes, log_time_ns: int) -> None:
         """Any other output message; ``kind`` is its message name (e.g. ``HarmonicsReport``)."""
@@ -84,6 +86,8 @@ class GuardedSink:
         self._on_input: Callable[[str, bytes, str, int], None] | None = _own_method(sink, "on_input")
         self._on_estimate: Callable[[str, bytes, int], None] | None = _own_method(sink, "on_estimate")
         self._on_output: Callable[[str, str, bytes, int], None] | None = _own_method(sink, "on_output")
+        # a sink's own batch of estimates (a frame's), if it has one: else on_estimate each
+        self._on_estimates: Callable[[list[tuple[str, bytes]], int], None] | None = getattr(sink, "on_estimates", None)
 
     def _call(self, method: str, *args: Any) -> None:
         if not self.ok and (method != "on_input" or self._clock() < self._retry_at or not self._recover()):
@@ -144,6 +148,33 @@ class GuardedSink:
                 self._on_estimate(key, payload, log_time_ns)
             except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
                 self._fail("on_estimate", exc)
+
+    def on_estimates(self, estimates: list[tuple[str, bytes]], log_time_ns: int) -> None:
+        """Each (key, payload) of ``estimates`` as :meth:`on_estimate` takes it, in order, in
+        one call (a frame's estimates): the sink's own ``on_estimates`` where it has one (the
+        recorder, the Zenoh publisher: one loop without a call a layer an estimate), else its
+        ``on_estimate`` for each. After a failure the rest of the batch is counted as skipped
+        where the sink takes them one by one; a sink's own batch that fails is one failure (what
+        it had not written is not counted)."""
+        if not self.ok:
+            self.skipped += len(estimates)
+            return
+        if self._on_estimates is not None:
+            try:
+                self._on_estimates(estimates, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_estimates", exc)
+            return
+        on_estimate = self._on_estimate
+        if on_estimate is None:
+            return
+        for i, (key, payload) in enumerate(estimates):
+            try:
+                on_estimate(key, payload, log_time_ns)
+            except Exception as exc:  # noqa: BLE001 (isolated, as in _call)
+                self._fail("on_estimate", exc)
+                self.skipped += len(estimates) - i - 1
+                return
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._call("on_error", key, payload, log_time_ns)

@@ -34,6 +34,15 @@ class ZenohPublisherSink(NullSink):
     def on_estimate(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._publisher(key, ESTIMATE_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
 
+    def on_estimates(self, estimates: list[tuple[str, bytes]], log_time_ns: int) -> None:
+        """A frame's estimates, each put as :meth:`on_estimate` puts it, in one loop."""
+        publishers = self._publishers
+        for key, payload in estimates:
+            pub = publishers.get(key)
+            if pub is None:
+                pub = self._publisher(key, ESTIMATE_JSON_ENCODING, zenoh.CongestionControl.BLOCK)
+            pub.put(payload)
+
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         self._publisher(key, ERROR_JSON_ENCODING, zenoh.CongestionControl.BLOCK).put(payload)
 

@@ -593,6 +593,16 @@ class McapRecorder:
             cid = self._channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING)
             self._write(cid, payload, log_time_ns)
 
+    def on_estimates(self, estimates: list[tuple[str, bytes]], log_time_ns: int) -> None:
+        """A frame's estimates, each as :meth:`on_estimate` writes it, in one loop."""
+        if not self.section.estimates:
+            return
+        channel_id, write = self._channel_id, self._write
+        for key, payload in estimates:
+            write(
+                channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING), payload, log_time_ns
+            )
+
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self._writer is None:
             self.open()

@@ -74,6 +74,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     """One rule's kernels: the estimator's on whole blocks and on the last sample only, the
     presence detector's, and for a one-input estimator a frame's (its bank kernel, the
     presence detectors' bank)."""
+    from sinewatch.core.estimate_bytes import warm_up_bank_payloads
     from sinewatch.core.float_repr import repr_floats
     from sinewatch.estimators.bank import bank_of, update_bank
     from sinewatch.estimators.base import kernel_samples
@@ -99,6 +100,7 @@ def _warm_up_rule(cls: type[Estimator[Any]], params: dict[str, Any]) -> None:
     fast_usable(0.0, 0.0, 1.0)  # what the hold (on by default) asks of a detector per block, from Python
     repr_floats(np.array([0.5]))  # every Estimate's floats
     if est.n_inputs == 1:
+        warm_up_bank_payloads()  # a bank's Estimates in one call
         frame = kernel_samples(np.stack([signal_, signal_], axis=1))
         if bank_of(cls) is not None:
             update_bank([cls(rate, params), cls(rate, params)], frame, last_only=True)

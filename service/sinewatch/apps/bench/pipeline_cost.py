@@ -20,9 +20,12 @@ The same blocks are also taken through each step alone, to break the cost down:
 With ``--frame-channels N`` (N > 1) the channels go as SampleFrames of N channels, the
 daemon's frame path: ``estimator`` is then one :func:`~sinewatch.estimators.bank.update_bank`
 call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.presence.update_presence_bank`),
-``encode`` each channel's Estimate bytes, ``hold`` each channel's accept and hold-back
+``encode`` the frame's Estimate bytes (one compiled call a frame, as the pipeline writes them),
+``hold`` each channel's accept and hold-back
 (:func:`sinewatch.core.hold.hold`, on by default), ``recorder`` the frame's one input message
-and its channels' estimates; ``rest`` is then the per-channel checks, the grouping into banks
+and its channels' estimates (one ``on_estimates`` call); ``channel_by_channel_off`` the
+pipeline (recording off) with its per-frame steps turned off (:class:`ChannelByChannel`), beside
+``pipeline_off`` in the same run; ``rest`` is then the per-channel checks, the grouping into banks
 and the hand-out to the sinks.
 
 CPU microseconds per block (one block = one channel's ``--block`` samples; the process's CPU
@@ -46,12 +49,13 @@ import numpy as np
 from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
+from sinewatch.core.estimate_bytes import bank_payloads
 from sinewatch.core.hold import hold
 from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
 from sinewatch.estimators.presence import update_presence_bank
-from sinewatch.outputs.recorder import McapRecorder
+from sinewatch.outputs.recorder import FastWriter, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
 from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, decode_input, encode_frame_binary
@@ -174,6 +178,7 @@ def _frame_steps(
     tracks: dict[str, Any] = {}
     estimates: dict[str, bytes] = {}
     step_recorder = McapRecorder(_config(args, directory / "steps"))
+    no_gaps = [(0, False, False, False)] * max(len(names) for names in feed.layout)
 
     def estimator(batch: FrameBatch) -> None:
         for row in batch:
@@ -195,15 +200,17 @@ def _frame_steps(
                 for name, run in zip(frame.channels, runs, strict=True):
                     channels[name].last_run = run
 
-    def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch
-        payload = on._estimate_payload
+    def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch, a frame in one call
         for row in batch:
             for _key, _payload, frame in row:
                 t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
-                for c, name in enumerate(frame.channels):
-                    estimates[name] = payload(
-                        channels[name], frame.block(c), tracks[name], t_last, t_last, 0, False, False
-                    )[0]
+                chs = [channels[name] for name in frame.channels]
+                blocks = [frame.block(c) for c in range(len(chs))]
+                made = bank_payloads(
+                    on, chs, blocks, [tracks[name] for name in frame.channels], t_last, no_gaps[: len(chs)]
+                )
+                assert made is not None
+                estimates.update(zip(frame.channels, (payload for payload, _, _ in made), strict=True))
 
     def hold_back(batch: FrameBatch) -> None:  # each channel's accept and hold of the encode step's estimate
         accept = on._accept
@@ -216,16 +223,17 @@ def _frame_steps(
                     hold(ch, t_last, [(estimates[name], True, t_last)], False)
 
     def record(batch: FrameBatch) -> None:  # the frame, and its channels' estimates of the encode step
-        on_input, on_estimate = step_recorder.on_input, step_recorder.on_estimate
+        on_input, on_estimates = step_recorder.on_input, step_recorder.on_estimates
         for row in batch:
             for key, payload, frame in row:
                 on_input(key, payload, FRAME_BINARY_ENCODING, frame.t0_ns)
-                for name in frame.channels:
-                    on_estimate(f"sinewatch/est/{name}", estimates[name], frame.t0_ns)
+                on_estimates([(f"sinewatch/est/{name}", estimates[name]) for name in frame.channels], frame.t0_ns)
 
     steps = {
         "pipeline_on": _through(on, FRAME_BINARY_ENCODING),
         "pipeline_off": _through(off, FRAME_BINARY_ENCODING),
+        # the frame path without its per-frame steps, recording off: what they save, in this run
+        "channel_by_channel_off": _through(ChannelByChannel(config, [NullSink()]), FRAME_BINARY_ENCODING),
         "estimator": estimator,
         "decode": decode,
         "presence": presence,
@@ -234,6 +242,18 @@ def _frame_steps(
         "recorder": record,
     }
     return steps, [on, off, step_recorder]
+
+
+class ChannelByChannel(Pipeline):
+    """The frame path as it was before its per-frame steps (``channel_by_channel_off``): each
+    channel checked on its own (no usual frame), its Estimate written, held and handed to
+    the sinks on its own (no bank's Estimates in one call): the same estimates, at their cost."""
+
+    def _usual_frame(self, key: str, frame: Frame) -> None:
+        return None
+
+    def _bank_estimates(self, *args: Any, **kwargs: Any) -> bool:
+        return False
 
 
 def _config(args: argparse.Namespace, directory: Path) -> SinewatchConfig:
@@ -308,6 +328,27 @@ def _steps(
     return steps, [on, off, step_recorder]
 
 
+def _recorder_of(item: Any) -> McapRecorder | None:
+    """The MCAP recorder among a pipeline's sinks (or the recorder itself), if any."""
+    if isinstance(item, McapRecorder):
+        return item
+    for sink in getattr(item, "sinks", ()):
+        if isinstance(sink.sink, McapRecorder):
+            return sink.sink
+    return None
+
+
+def _chunks_written(recorders: list[McapRecorder | None]) -> None:
+    """Wait for each recorder's chunk in flight: the recorder compresses and writes a full chunk
+    on a thread of its own (``FastWriter``) while the pipeline goes on, and the process's CPU
+    time counts that thread, so a chunk finished near a step's end would be counted in whichever
+    step ran next (the recorder step's in the next repeat's pipeline, recording on)."""
+    for recorder in recorders:
+        writer = None if recorder is None else recorder._writer
+        if isinstance(writer, FastWriter):
+            writer.wait()
+
+
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Every figure of the bench, as a dict (what ``--json`` writes).
 
@@ -327,11 +368,13 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             steps, to_close = _steps(args, Path(tmp), feed.names)
             make = feed.rounds
         times: dict[str, list[float]] = {name: [] for name in steps}
+        recorders = [_recorder_of(item) for item in to_close]
         for repeat in range(args.repeats + 1):  # the first is the warm-up (compile, caches)
             batch = make(args.rounds if repeat else 2)
             for name, step in steps.items():
                 t0 = time.process_time()
                 step(batch)
+                _chunks_written(recorders)
                 if repeat:
                     times[name].append((time.process_time() - t0) / (args.rounds * args.channels) * 1e6)
         on, off, step_recorder = to_close
@@ -371,7 +414,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 def _rows(result: dict[str, Any]) -> Iterator[tuple[str, float, float | None, float]]:
     us, median, ratio = result["us_per_block"], result["us_per_block_median"], result["ratio_to_estimator"]
     steps = FRAME_STEPS if result["frame_channels"] > 1 else STEPS
-    for name in ("pipeline_on", "pipeline_off", *steps, "rest_on", "rest_off"):
+    extra = ("channel_by_channel_off",) if result["frame_channels"] > 1 else ()
+    for name in ("pipeline_on", "pipeline_off", *extra, *steps, "rest_on", "rest_off"):
         yield name, us[name], median.get(name), ratio[name]
 
 
