@@ -7,6 +7,10 @@ Integration tests run a real daemon in-process (``run_daemon``) with its Zenoh p
 
 from __future__ import annotations
 
+import sinewatch.host_arithmetic  # first, before numpy loads (its docstring says why)
+
+# isort: split
+
 import asyncio
 import contextlib
 import functools

@@ -121,3 +121,42 @@ def test_solve_pivots_and_matches_numpy() -> None:
     m[0, 0] = 0.0  # a zero on the diagonal: only pivoting gets past it
     b = rng.standard_normal(6)
     np.testing.assert_allclose(detlinalg.solve(m.tolist(), b.tolist()), np.linalg.solve(m, b), rtol=1e-12)
+
+
+# A child that imports sinewatch first, as the daemon, replay and the command line do.
+PINNED_CHILD = r"""
+import os
+import sinewatch.estimators
+import numpy
+from numpy._core._multiarray_umath import __cpu_features__
+from sinewatch import host_arithmetic
+print(host_arithmetic.PINNED, os.environ.get("OPENBLAS_CORETYPE"), host_arithmetic.openblas_core(),
+      __cpu_features__.get("X86_V4", False), __cpu_features__.get("AVX512F", False))
+"""
+
+
+def _child(code: str, env: dict[str, str]) -> list[str]:
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return done.stdout.split()
+
+
+def _env_without_choices() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")}
+
+
+def test_sinewatch_imported_first_runs_openblas_haswell_kernels_and_no_avx512_numpy_loops() -> None:
+    """What makes kkl's, kkl-biased's, grip-mixing's and differential-rls's designs (solves,
+    eigenvalues, matrix exponentials through OpenBLAS) the same bits on an AVX-512 host as on an
+    AVX2 one: sinewatch chooses the kernels before numpy loads them."""
+    if not {"avx2", "fma"} <= __import__("sinewatch.host_arithmetic").host_arithmetic._cpu_flags():
+        pytest.skip("a CPU without AVX2 and FMA keeps OpenBLAS's own choice")
+    pinned, coretype, core, v4, avx512f = _child(PINNED_CHILD, _env_without_choices())
+    assert (pinned, coretype, core) == ("True", "Haswell", "Haswell")
+    assert (v4, avx512f) == ("False", "False")  # numpy's AVX-512 loops off, on a host that has them too
+
+
+def test_a_users_choice_is_kept_and_numpy_loaded_first_is_left_alone() -> None:
+    env = _env_without_choices() | {"OPENBLAS_CORETYPE": "SandyBridge"}
+    assert _child(PINNED_CHILD, env)[1:3] == ["SandyBridge", "Sandybridge"]
+    late = "import numpy, os\nfrom sinewatch import host_arithmetic\nprint(host_arithmetic.PINNED, os.environ.get('OPENBLAS_CORETYPE'))"
+    assert _child(late, _env_without_choices()) == ["False", "None"]

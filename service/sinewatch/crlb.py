@@ -49,6 +49,10 @@ tests use it to check the bound by Monte Carlo.
 
 from __future__ import annotations
 
+import sinewatch.host_arithmetic  # noqa: F401  # first, before numpy loads (its docstring says why)
+
+# isort: split
+
 import dataclasses
 import math
 from dataclasses import dataclass

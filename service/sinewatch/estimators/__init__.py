@@ -8,6 +8,10 @@ package (other than ``base``) is imported once and registers its class with
 
 from __future__ import annotations
 
+import sinewatch.host_arithmetic  # noqa: F401  # first, before numpy loads (its docstring says why)
+
+# isort: split
+
 from typing import Any, TypeVar
 
 from pydantic import ValidationError

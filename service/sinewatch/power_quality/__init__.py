@@ -10,6 +10,10 @@ MCAP, no asyncio.
 * ``reports``: windows to wire messages (:mod:`sinewatch.schemas.power_quality`).
 """
 
+import sinewatch.host_arithmetic  # noqa: F401  # first, before numpy loads (its docstring says why)
+
+# isort: split
+
 from sinewatch.power_quality.aggregation import Aggregator, WindowValues
 from sinewatch.power_quality.harmonics import HarmonicAnalyser, HarmonicParams, HarmonicWindow
 from sinewatch.power_quality.reports import (

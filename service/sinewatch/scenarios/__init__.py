@@ -13,6 +13,10 @@ a signal that is not a sum of sinusoids, a :class:`Scenario` subclass of its own
 
 from __future__ import annotations
 
+import sinewatch.host_arithmetic  # noqa: F401  # first, before numpy loads (its docstring says why)
+
+# isort: split
+
 import copy
 from collections.abc import Callable
 from typing import Any
