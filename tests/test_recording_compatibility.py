@@ -18,7 +18,11 @@ scipy's place_poles (OpenBLAS, whose kernels differ by CPU: the recording host's
 gave other last bits than an AVX2 host's) and became Ackermann's formula in exactly rounded sums
 (``sinewatch.estimators.detlinalg``), the same bits on every host; done with
 ``tests/rewrite_fixture_estimates.py``, which checks that every other record (header, schemas,
-channels, metadata, every other message with its times and sequence) is unchanged. Any change
+channels, metadata, every other message with its times and sequence) is unchanged. Then, the
+same way, the estimates of kkl (12), kkl-biased (12), grip-mixing (12) and differential-rls (9),
+when sinewatch began choosing OpenBLAS's Haswell kernels and numpy without its AVX-512 loops
+on every x86-64 host with AVX2 and FMA (``sinewatch.host_arithmetic``): their designs go
+through OpenBLAS, and the recording host's AVX-512 kernels had given their last bits. Any change
 that alters an estimator's arithmetic, the estimate's JSON bytes or the replay reader
 fails here.
 """
