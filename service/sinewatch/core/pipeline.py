@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Container, Mapping
+from collections.abc import Container, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,7 @@ from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimat
 from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
-from sinewatch.estimators.bank import update_bank
+from sinewatch.estimators.bank import ColumnTracks, update_bank
 from sinewatch.estimators.base import Estimator, Track, kernel_samples
 from sinewatch.estimators.presence import update_presence_bank
 from sinewatch.power_quality.stage import PqStage
@@ -334,22 +334,24 @@ class Pipeline:
 
     def _run_bank(
         self, members: list[FrameMember], x: np.ndarray, n_all: int, t0_ns: int, log_time_ns: int
-    ) -> list[Track | None]:
+    ) -> Sequence[Track | None]:
         """Advance one rule's channels together; a bank that raises is rolled back (kernels
         return new states, so the old ones are intact) and run channel by channel, so that
-        only the faulty channel's block is lost (``estimator_fault``)."""
+        only the faulty channel's block is lost (``estimator_fault``). The bank's Tracks as
+        :func:`update_bank` gives them (a :class:`ColumnTracks` is made only when read);
+        None for a channel whose block was lost."""
         ests = [m.channel.estimator for m in members]
         for m in members:
             if m.reset:
                 m.channel.estimator.reset()
         cols = [m.column for m in members]
         samples = x if len(cols) == n_all and cols == list(range(n_all)) else x[:, cols]
-        saved = [est._state for est in ests]
+        saved = [est._state_checkpoint() for est in ests]  # (not est._state: that takes it out of its bank's stack)
         try:
-            return list(update_bank(ests, samples, last_only=True, t0_ns=t0_ns))
+            return update_bank(ests, samples, last_only=True, t0_ns=t0_ns)
         except Exception:  # noqa: BLE001 (isolated below, channel by channel)
             for est, state in zip(ests, saved, strict=True):
-                est._state = state
+                est._state_rollback(state)
         tracks: list[Track | None] = []
         for m in members:
             try:
@@ -365,12 +367,12 @@ class Pipeline:
         return tracks
 
     @staticmethod
-    def _presence_bank(members: list[FrameMember], tracks: list[Track | None], x: np.ndarray) -> bool:
+    def _presence_bank(members: list[FrameMember], tracks: Sequence[Track | None], x: np.ndarray) -> bool:
         """The presence detectors of a bank's accepted channels in one compiled call
         (:func:`update_presence_bank`: each detector's run and state exactly what
         :meth:`_presence` gives it); False when it does not apply (then each channel's own
         runs in :meth:`_frame_estimate`, which also isolates a fault to its channel)."""
-        live = [m for m, track in zip(members, tracks, strict=True) if track is not None]
+        live = members if _every_track(tracks) else [m for m, t in zip(members, tracks, strict=True) if t is not None]
         # a bank's channels share one estimator class (its rule's): asked of the first
         if len(live) < 2 or type(live[0].channel.estimator).presence_samples is not Estimator.presence_samples:
             return False
@@ -392,7 +394,7 @@ class Pipeline:
     def _bank_estimates(
         self,
         members: list[FrameMember],
-        tracks: list[Track | None],
+        tracks: Sequence[Track | None],
         t_last: int,
         log_time_ns: int,
         received_ns: int | None,
@@ -405,9 +407,9 @@ class Pipeline:
         where that does not apply (a channel whose bank failed, the power-quality stage on:
         its messages go out between a channel's estimate and the next, or a bank's tracks
         that are not its usual case); then each channel goes on its own."""
-        if self.pq.enabled or any(track is None for track in tracks):
+        if self.pq.enabled or not _every_track(tracks):
             return False
-        live: list[Track] = tracks  # type: ignore[assignment]  # (none is None)
+        live: Sequence[Track] = tracks  # type: ignore[assignment]  # (none is None)
         chs = [m.channel for m in members]
         try:
             made = bank_payloads(
@@ -906,6 +908,11 @@ def _is_power_of_ten(n: int) -> bool:
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1
+
+
+def _every_track(tracks: Sequence[Track | None]) -> bool:
+    """Whether no channel of a bank lost its block (a bank's own Tracks, unread, hold none)."""
+    return isinstance(tracks, ColumnTracks) or all(track is not None for track in tracks)
 
 
 def _all_finite_2d(x: np.ndarray) -> bool:
