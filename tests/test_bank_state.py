@@ -19,6 +19,7 @@ from test_estimator_banks import assert_states_bitwise, assert_tracks_bitwise
 from sinewatch.estimators import get
 from sinewatch.estimators.bank import ColumnTracks, update_bank
 from sinewatch.estimators.base import StackedStates
+from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, EDGE_RATIO, SignalPresence, read_presence_bank
 from sinewatch.schemas.errors import InputError
 from sinewatch.scenarios.demo import KALMAN_10K
 
@@ -137,3 +138,30 @@ def test_a_bank_s_tracks_are_made_only_when_read_and_their_last_row_is_every_tra
         assert values[c].tobytes() == np.array(row).tobytes()
         assert tracks[c].bank_row == (tracks.last_row, c)
     assert len(tracks) == C and len(list(tracks)) == C and tracks[1:3] == [tracks[1], tracks[2]]
+
+
+def test_a_bank_of_detectors_reads_each_one_s_run_and_onset_latency_as_its_properties():
+    """``read_presence_bank``'s readings after each frame are each detector's ``run_samples``
+    and ``onset_latency_samples``, through the quadrature test's arming (latency 4 H, then
+    Q + m - 1), a DC offset on one channel (the test off there) and an interruption."""
+    x = _signals(14, seed=11)
+    x[:, 2] += 0.6  # a DC part above FAST_DC of the reference: (F) does not apply there
+    x[6 * N + 40 : 7 * N + 10, 4] = 0.0  # an interruption
+    detectors, alone = [_detector() for _ in range(C)], [_detector() for _ in range(C)]
+    seen = set()
+    for k in range(14):
+        block = x[k * N : (k + 1) * N]
+        readings = read_presence_bank(detectors, block, list(range(C)))
+        assert readings is not None
+        for c in range(C):
+            run, _ = alone[c].update(np.ascontiguousarray(block[:, c]))
+            assert readings.runs[c].tobytes() == run.tobytes()
+            assert readings.run_samples[c] == alone[c].run_samples == detectors[c].run_samples
+            assert readings.onset_latency_samples[c] == alone[c].onset_latency_samples
+            seen.add(readings.onset_latency_samples[c])
+    assert len(seen) == 2  # both tests' latencies were read
+
+
+def _detector() -> SignalPresence:
+    """A detector as the pipeline makes one under today's validity rules."""
+    return SignalPresence(FS, 50.0, hold=True, hysteresis=DEFAULT_HYSTERESIS, fast=True, edge=EDGE_RATIO)

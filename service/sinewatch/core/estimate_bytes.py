@@ -424,6 +424,7 @@ def bank_payloads(
     tracks: Sequence[Track],
     t_last_ns: int,
     gaps: Sequence[tuple[int, bool, bool, bool]],
+    run_samples: Sequence[int] | None = None,
 ) -> list[tuple[bytes, bool, bool | None]] | None:
     """:func:`estimate_payload` of every channel of a bank at its frame's last sample (``gaps``:
     each channel's gap_blocks, restart, reset, time jump), the usual case of all of them written
@@ -432,7 +433,9 @@ def bank_payloads(
     the same bytes, channel by channel (tests/test_pipeline_hot_path.py). A channel with a value
     that is not finite goes through :func:`estimate_payload` (the general way). Each channel's
     (bytes, converged, valid), valid None where the general way wrote it (the bytes say it);
-    None when the tracks are not one bank's usual case (then the caller writes each on its own)."""
+    None when the tracks are not one bank's usual case (then the caller writes each on its own).
+    ``run_samples``: each channel's presence run after the block, when the caller has read it
+    (``read_presence_bank``); else each detector's own."""
     if isinstance(tracks, ColumnTracks) and tracks.sealed and tracks.last_row is not None:
         # a bank's own Tracks, unread: the last row and converged flags without making them
         if settings.estimate_version < 3:
@@ -454,7 +457,8 @@ def bank_payloads(
             out[i] = (*estimate_payload(settings, ch, block, tracks[i], t_last_ns, t_last_ns, *gap), None)
             continue
         assert ch.presence is not None
-        valid = ch.presence.run_samples >= ch.valid_memory_samples  # _present at the block's last sample
+        run = ch.presence.run_samples if run_samples is None else run_samples[i]
+        valid = run >= ch.valid_memory_samples  # _present at the block's last sample
         converged = valid and converged_last[i]
         template = ch.template
         templates.append(
