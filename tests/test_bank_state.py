@@ -143,7 +143,9 @@ def test_a_bank_s_tracks_are_made_only_when_read_and_their_last_row_is_every_tra
 def test_a_bank_of_detectors_reads_each_one_s_run_and_onset_latency_as_its_properties():
     """``read_presence_bank``'s readings after each frame are each detector's ``run_samples``
     and ``onset_latency_samples``, through the quadrature test's arming (latency 4 H, then
-    Q + m - 1), a DC offset on one channel (the test off there) and an interruption."""
+    Q + m - 1), a DC offset on one channel (the test off there) and an interruption; the
+    bank's state arrays are passed on from frame to frame, and gathered afresh after one
+    detector ran on its own: the runs are each detector's alone, bit for bit."""
     x = _signals(14, seed=11)
     x[:, 2] += 0.6  # a DC part above FAST_DC of the reference: (F) does not apply there
     x[6 * N + 40 : 7 * N + 10, 4] = 0.0  # an interruption
@@ -151,6 +153,11 @@ def test_a_bank_of_detectors_reads_each_one_s_run_and_onset_latency_as_its_prope
     seen = set()
     for k in range(14):
         block = x[k * N : (k + 1) * N]
+        if k == 8:  # detector 3 run on its own between frames: the bank is gathered afresh
+            extra = np.ascontiguousarray(x[:N, 3])
+            assert detectors[0].bank_rows is not None and detectors[0].bank_rows.holds(detectors)
+            assert detectors[3].update(extra)[0].tobytes() == alone[3].update(extra)[0].tobytes()
+            assert not detectors[0].bank_rows.holds(detectors)
         readings = read_presence_bank(detectors, block, list(range(C)))
         assert readings is not None
         for c in range(C):
