@@ -20,8 +20,8 @@ from sinewatch.estimators import get
 from sinewatch.estimators.bank import ColumnTracks, update_bank
 from sinewatch.estimators.base import StackedStates
 from sinewatch.estimators.presence import DEFAULT_HYSTERESIS, EDGE_RATIO, SignalPresence, read_presence_bank
-from sinewatch.schemas.errors import InputError
 from sinewatch.scenarios.demo import KALMAN_10K
+from sinewatch.schemas.errors import InputError
 
 FS = 10_000.0
 N = 256
@@ -67,7 +67,7 @@ def test_a_bank_kept_stacked_between_frames_gives_each_channel_its_own_bits(name
     extra = _signals(1, seed=99)[:, 0]
     # the frames whose bank is the last frame's, nobody having read or replaced a state on
     # its own since (a snapshot's read and a refused frame leave the stack as it is)
-    KEPT = {1, 2, 3, 5, 10, 11}  # noqa: N806
+    kept = {1, 2, 3, 5, 10, 11}
     for k, (event, cols) in plan.items():
         block = x[k * N : (k + 1) * N]
         if event == "peek":
@@ -99,7 +99,7 @@ def test_a_bank_kept_stacked_between_frames_gives_each_channel_its_own_bits(name
         got = update_bank([banked[c] for c in cols], np.ascontiguousarray(block[:, cols]), last_only=True)
         stack = banked[cols[0]]._stack
         assert stack is not None and stack.live and stack.holds([banked[c] for c in cols])
-        assert (stack is before) == (k in KEPT), f"frame {k}: the stack kept or gathered afresh"
+        assert (stack is before) == (k in kept), f"frame {k}: the stack kept or gathered afresh"
         for i, c in enumerate(cols):
             want = alone[c].update(np.ascontiguousarray(block[:, c]), last_only=True)
             assert_tracks_bitwise(got[i], want, f"{name} frame {k} channel {c}")

@@ -444,9 +444,10 @@ def bank_payloads(
         converged_last = tracks.converged_last()
         layout = _layout_key(settings, blocks[0], *tracks.layout)
     else:
-        values = _bank_values(settings, tracks)
-        if values is None:
+        general = _bank_values(settings, tracks)
+        if general is None:
             return None
+        values = general
         converged_last = [bool(track.converged[-1]) for track in tracks]
         layout = _template_key(settings, blocks[0], tracks[0])  # a bank's tracks share their layout
     usual = np.isfinite(values[:, :-1]).all(axis=1).tolist()

@@ -173,7 +173,9 @@ class Pipeline:
             tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
             readings = self._presence_bank(members, tracks, x)
             presence_done = readings is not None
-            if presence_done and self._bank_estimates(members, tracks, t_last, log_time_ns, received_ns, readings):
+            if readings is not None and self._bank_estimates(
+                members, tracks, t_last, log_time_ns, received_ns, readings
+            ):
                 continue
             for member, track in zip(members, tracks, strict=True):
                 if track is not None:

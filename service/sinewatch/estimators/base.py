@@ -469,7 +469,9 @@ class StackedStates:
         """Whether the stack is live and its members are exactly ``estimators``, in order."""
         members = self.members
         return (
-            self.live and len(members) == len(estimators) and all(a is b for a, b in zip(members, estimators, strict=True))
+            self.live
+            and len(members) == len(estimators)
+            and all(a is b for a, b in zip(members, estimators, strict=True))
         )
 
     def column(self, c: int) -> dict[str, np.ndarray]:

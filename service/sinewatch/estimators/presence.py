@@ -328,7 +328,9 @@ class PresenceBankReadings:
     onset_latency_samples: list[int]
 
 
-def read_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns: list[int]) -> PresenceBankReadings | None:
+def read_presence_bank(
+    detectors: list[SignalPresence], x: np.ndarray, columns: list[int]
+) -> PresenceBankReadings | None:
     """:func:`update_presence_bank`, with the detectors' readings after the frame."""
     first = detectors[0]
     params = first.params
@@ -518,9 +520,9 @@ __all__ = [
     "EDGE_RATIO",
     "FAST_DC",
     "FAST_RATIO",
+    "PresenceBankReadings",
     "SignalPresence",
     "presence_bank_kernel",
-    "PresenceBankReadings",
     "presence_kernel",
     "read_presence_bank",
     "update_presence_bank",
