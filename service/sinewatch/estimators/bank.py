@@ -34,11 +34,15 @@ is vectorised, so such loops are kept out of the vectoriser's reach.
 A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
 outputs with the channel as the leading axis, then the new stacked state arrays. The
-estimators' state is gathered into the stacked arrays before the call and scattered back
-after it: one copy a state array each way (``np.array`` of the channels' arrays, then each
-channel's row of the new array as a contiguous view), ~2 us a state array at 8 channels. A
-class whose ``_track`` is :func:`~sinewatch.estimators.base.track_from_columns` passes
-``tracks`` built by :func:`column_tracks`: one numpy call a field for the whole frame.
+estimators' states are gathered into the stacked arrays (``np.array`` of the channels'
+arrays, then channel last) the first time a bank runs, and stay stacked between frames
+(:class:`~sinewatch.estimators.base.StackedStates`): the kernel's new arrays are the next
+frame's arguments while the bank holds the same channels and none of them was read or given a
+state on its own (then it leaves the stack with a copy of its column, and the next frame
+gathers the bank afresh). A class whose ``_track`` is
+:func:`~sinewatch.estimators.base.track_from_columns` passes ``tracks`` built by
+:func:`column_tracks`: one numpy call a field for the whole frame, made only when a Track is
+read (:class:`ColumnTracks`; a frame's usual Estimates read the bank's last row instead).
 A class without one runs each channel's own kernel in turn; :data:`NO_BANK` says why.
 """
 
