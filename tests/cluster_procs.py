@@ -103,6 +103,33 @@ def etcd_server(tmp_path: Path) -> Iterator[Etcd]:
         server.kill()
 
 
+#: gRPC's own retries for the test's reads of etcd (a read is idempotent): a call waits for the
+#: channel to connect (``waitForReady``) and is tried again on ``UNAVAILABLE``, with gRPC's backoff,
+#: not failed at once. The chaos test restarts etcd and reads the election key right before the next
+#: fault; under load a read failed with "recvmsg:Connection reset by peer" and took the test down,
+#: where a daemon's election (``sinewatch.runtime.election``) only tries again.
+ETCD_READ_OPTIONS = {
+    "grpc.enable_retries": 1,
+    "grpc.service_config": json.dumps(
+        {
+            "methodConfig": [
+                {
+                    "name": [{"service": "etcdserverpb.KV"}],
+                    "waitForReady": True,
+                    "retryPolicy": {
+                        "maxAttempts": 5,
+                        "initialBackoff": "0.2s",
+                        "maxBackoff": "2s",
+                        "backoffMultiplier": 2,
+                        "retryableStatusCodes": ["UNAVAILABLE"],
+                    },
+                }
+            ]
+        }
+    ),
+}
+
+
 def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
     """(owner, term) of a shard as etcd has them: the election key's value and create revision."""
     import asyncio
@@ -111,7 +138,7 @@ def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
 
     async def get() -> tuple[str, int]:
         host, _, port = endpoint.rpartition(":")
-        async with aetcd.Client(host, int(port)) as client:
+        async with aetcd.Client(host, int(port), options=ETCD_READ_OPTIONS) as client:
             kv = await asyncio.wait_for(client.get(f"sinewatch/admin/election/{shard_id}".encode()), 30)
             assert kv is not None, f"no election key for {shard_id}"
             return kv.value.decode(), int(kv.create_revision)
@@ -169,6 +196,7 @@ class Proxy:
         self.target = target_port
         self.cut = False
         self.handshake_delay_s = 0.0
+        self.refused = threading.Event()  # a connection came while severed, and was closed
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
         self._listener = socket.create_server(("127.0.0.1", 0))
@@ -184,6 +212,7 @@ class Proxy:
             with self._lock:
                 if self.cut:
                     client.close()
+                    self.refused.set()
                     continue
                 try:
                     upstream = socket.create_connection(("127.0.0.1", self.target), timeout=2)
