@@ -849,13 +849,24 @@ def wait_warm(session: zenoh.Session, daemon_id: str, shard_id: str, timeout: fl
     snapshot = threading.Event()
     sub = session.declare_subscriber(f"sinewatch/admin/shard/{shard_id}/snapshot", lambda _: snapshot.set())
     deadline = time.monotonic() + timeout
+    puts, answers = 0, 0  # the owner's snapshots seen here, and the daemon's admin answers to them
     try:
         while snapshot.wait(max(0.0, deadline - time.monotonic())):
             snapshot.clear()
-            replies = session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0)
-            if any(json.loads(r.ok.payload.to_bytes())["channels"] for r in replies if r.ok is not None):
+            puts += 1
+            replies = [r.ok for r in session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0) if r.ok]
+            answers += len(replies)
+            if any(json.loads(r.payload.to_bytes())["channels"] for r in replies):
                 return
-        raise AssertionError(f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s")
+        # what each daemon says of itself, for the failure's message: who owns the shard, whose lease is proven
+        roles = [
+            {k: a.get(k) for k in ("daemon_id", "role", "term", "lease_proven")} | {"channels": len(a["channels"])}
+            for a in admin(session)
+        ]
+        raise AssertionError(
+            f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s: {puts} snapshot(s) of the shard "
+            f"seen here, {answers} answer(s) from {daemon_id}; the daemons: {roles}"
+        )
     finally:
         sub.undeclare()
 
