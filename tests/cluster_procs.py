@@ -334,6 +334,8 @@ etcd = "{etcd}"
 lease_ttl_s = {ttl_s}
 [recording]
 directory = "{tmp_path / daemon_id}"
+[limits]
+queue_policy = "drop"  # behind a router, a daemon never stops reading its link (docs/cluster.md)
 [workers]
 count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
 [[rules]]  # one estimate per block (the default rule reports on its own grid)
