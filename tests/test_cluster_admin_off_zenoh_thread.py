@@ -17,10 +17,10 @@ from types import SimpleNamespace
 from typing import Any
 
 import zenoh
+from peer_pair import loop_and_two_peers
 
-from sinewatch.clients.session import free_loopback_port, open_session
 from sinewatch.runtime.cluster import ClusterMember
-from sinewatch.schemas.config import SinewatchConfig, ZenohSection
+from sinewatch.schemas.config import SinewatchConfig
 
 QUERIES = 300  # past what zenoh-python's channel to a callback's thread holds (over 60 here)
 WAIT_S = 30.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
@@ -48,15 +48,7 @@ class Host:
 
 
 def test_a_members_link_is_read_while_its_event_loop_is_busy_and_the_admin_query_is_answered_after():
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    loop = asyncio.new_event_loop()
-    runner = threading.Thread(target=loop.run_forever, daemon=True)
-    runner.start()
-    quiet = {"multicast_scouting": False}
-    with (
-        open_session(ZenohSection(mode="peer", listen=[endpoint], connect=[], **quiet)) as asker,
-        open_session(ZenohSection(mode="peer", listen=[], connect=[endpoint], **quiet)) as member_session,
-    ):
+    with loop_and_two_peers() as (loop, asker, member_session):
         marker = threading.Event()
         member_session.declare_subscriber("test/marker", lambda _: marker.set())
         host = Host(member_session)
@@ -78,5 +70,3 @@ def test_a_members_link_is_read_while_its_event_loop_is_busy_and_the_admin_query
         answers = [json.loads(r.ok.payload.to_bytes()) for r in asked[-1] if r.ok is not None]
         assert [(a["daemon_id"], a["role"], a["shard"]) for a in answers] == [("d1", "active", "1/2")]
         asyncio.run_coroutine_threadsafe(cluster.close(), loop).result(WAIT_S)
-    loop.call_soon_threadsafe(loop.stop)
-    runner.join(WAIT_S)

@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from peer_pair import loop_and_two_peers
 
 from sinewatch.clients import BlockPublisher
-from sinewatch.clients.session import free_loopback_port, open_session
 from sinewatch.runtime import intake as intake_module
 from sinewatch.runtime.intake import Intake, _block_seq
 from sinewatch.schemas.codec import Block, encode_block_binary
-from sinewatch.schemas.config import SinewatchConfig, ZenohSection
+from sinewatch.schemas.config import SinewatchConfig
 
 WAIT_S = 30.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
 KEY_A, KEY_B = "sinewatch/in/a", "sinewatch/in/b"
@@ -72,15 +72,7 @@ def block_b(seq: int) -> bytes:
 
 
 def test_a_keys_history_and_live_blocks_go_on_while_another_keys_query_is_still_open():
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    loop = asyncio.new_event_loop()
-    runner = threading.Thread(target=loop.run_forever, daemon=True)
-    runner.start()
-    quiet = {"multicast_scouting": False}
-    with (
-        open_session(ZenohSection(mode="peer", listen=[endpoint], connect=[], **quiet)) as gateway,
-        open_session(ZenohSection(mode="peer", listen=[], connect=[endpoint], **quiet)) as daemon,
-    ):
+    with loop_and_two_peers() as (loop, gateway, daemon):
         publisher = BlockPublisher(gateway, history=64)
         for _ in range(10):  # a's cache: blocks 0-9
             publisher.publish("a", np.zeros(100, dtype=np.float32), 1000.0)
@@ -103,8 +95,6 @@ def test_a_keys_history_and_live_blocks_go_on_while_another_keys_query_is_still_
             asyncio.run_coroutine_threadsafe(intake.stop(), loop).result(WAIT_S)
             held_back.undeclare()
             publisher.close()
-    loop.call_soon_threadsafe(loop.stop)
-    runner.join(WAIT_S)
 
 
 def test_the_history_queries_go_a_few_at_a_time_each_key_handed_over_as_its_own_ends(monkeypatch):
@@ -115,15 +105,7 @@ def test_the_history_queries_go_a_few_at_a_time_each_key_handed_over_as_its_own_
     after their 10-s timeout (a 50-fault chaos run: ch092-ch099 unserved for 60 s)."""
     monkeypatch.setattr(intake_module, "HISTORY_QUERIES_AT_ONCE", 2)
     keys = [f"sinewatch/in/k{n}" for n in range(4)]
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    loop = asyncio.new_event_loop()
-    runner = threading.Thread(target=loop.run_forever, daemon=True)
-    runner.start()
-    quiet = {"multicast_scouting": False}
-    with (
-        open_session(ZenohSection(mode="peer", listen=[endpoint], connect=[], **quiet)) as gateway,
-        open_session(ZenohSection(mode="peer", listen=[], connect=[endpoint], **quiet)) as daemon,
-    ):
+    with loop_and_two_peers() as (loop, gateway, daemon):
         caches = gateway.declare_queryable("sinewatch/in/*/@adv/**", zenoh.handlers.FifoChannel(8))
         host = Host(daemon)
         host.pipeline.channels = {
@@ -166,5 +148,3 @@ def test_the_history_queries_go_a_few_at_a_time_each_key_handed_over_as_its_own_
         finally:
             asyncio.run_coroutine_threadsafe(intake.stop(), loop).result(WAIT_S)
             caches.undeclare()
-    loop.call_soon_threadsafe(loop.stop)
-    runner.join(WAIT_S)
