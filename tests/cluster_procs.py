@@ -334,8 +334,9 @@ etcd = "{etcd}"
 lease_ttl_s = {ttl_s}
 [recording]
 directory = "{tmp_path / daemon_id}"
-[limits]
-queue_policy = "drop"  # behind a router, a daemon never stops reading its link (docs/cluster.md)
+[limits]  # behind a router, a daemon never stops reading its link; it drops past ~2 min of its inputs (docs/cluster.md)
+queue_policy = "drop"
+queue_capacity = 65536
 [workers]
 count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
 [[rules]]  # one estimate per block (the default rule reports on its own grid)
