@@ -103,6 +103,33 @@ def etcd_server(tmp_path: Path) -> Iterator[Etcd]:
         server.kill()
 
 
+#: gRPC's own retries for the test's reads of etcd (a read is idempotent): a call waits for the
+#: channel to connect (``waitForReady``) and is tried again on ``UNAVAILABLE``, with gRPC's backoff,
+#: not failed at once. The chaos test restarts etcd and reads the election key right before the next
+#: fault; under load a read failed with "recvmsg:Connection reset by peer" and took the test down,
+#: where a daemon's election (``sinewatch.runtime.election``) only tries again.
+ETCD_READ_OPTIONS = {
+    "grpc.enable_retries": 1,
+    "grpc.service_config": json.dumps(
+        {
+            "methodConfig": [
+                {
+                    "name": [{"service": "etcdserverpb.KV"}],
+                    "waitForReady": True,
+                    "retryPolicy": {
+                        "maxAttempts": 5,
+                        "initialBackoff": "0.2s",
+                        "maxBackoff": "2s",
+                        "backoffMultiplier": 2,
+                        "retryableStatusCodes": ["UNAVAILABLE"],
+                    },
+                }
+            ]
+        }
+    ),
+}
+
+
 def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
     """(owner, term) of a shard as etcd has them: the election key's value and create revision."""
     import asyncio
@@ -111,7 +138,7 @@ def election_key(endpoint: str, shard_id: str) -> tuple[str, int]:
 
     async def get() -> tuple[str, int]:
         host, _, port = endpoint.rpartition(":")
-        async with aetcd.Client(host, int(port)) as client:
+        async with aetcd.Client(host, int(port), options=ETCD_READ_OPTIONS) as client:
             kv = await asyncio.wait_for(client.get(f"sinewatch/admin/election/{shard_id}".encode()), 30)
             assert kv is not None, f"no election key for {shard_id}"
             return kv.value.decode(), int(kv.create_revision)
@@ -169,6 +196,7 @@ class Proxy:
         self.target = target_port
         self.cut = False
         self.handshake_delay_s = 0.0
+        self.refused = threading.Event()  # a connection came while severed, and was closed
         self._lock = threading.Lock()
         self._conns: list[socket.socket] = []
         self._listener = socket.create_server(("127.0.0.1", 0))
@@ -184,6 +212,7 @@ class Proxy:
             with self._lock:
                 if self.cut:
                     client.close()
+                    self.refused.set()
                     continue
                 try:
                     upstream = socket.create_connection(("127.0.0.1", self.target), timeout=2)
@@ -305,6 +334,9 @@ etcd = "{etcd}"
 lease_ttl_s = {ttl_s}
 [recording]
 directory = "{tmp_path / daemon_id}"
+[limits]  # behind a router, a daemon never stops reading its link; it drops past ~2 min of its inputs (docs/cluster.md)
+queue_policy = "drop"
+queue_capacity = 65536
 [workers]
 count = 1  # each daemon one process: the failover of whole daemons (workers: test_workers.py)
 [[rules]]  # one estimate per block (the default rule reports on its own grid)
@@ -589,8 +621,14 @@ def _serve_gateway(router_port: int) -> None:
 
 
 def after(msgs: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
-    """The estimates that arrived after monotonic time ``t``."""
-    return [m for m in msgs if m["_arrival"] > t]
+    """The estimates that arrived after monotonic time ``t`` (``msgs`` in arrival order: a binary
+    search). A scan of every estimate so far, for each of 100 channels, on every estimate that came
+    (the waits' conditions run at each notify, under the lock the subscriber's thread needs) costs
+    the test's process more as a 50-fault run goes on (~3,600 estimates a channel by fault 26): a
+    subscriber that falls behind holds its Zenoh session back, and the router, pushing it the
+    daemons' estimates with ``BLOCK``, stops reading their links ("A querier that reads nothing",
+    docs/cluster.md)."""
+    return msgs[bisect.bisect_right(msgs, t, key=lambda m: m["_arrival"]) :]
 
 
 def recorded_estimates(tmp_path: Path, daemon_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
@@ -820,13 +858,24 @@ def wait_warm(session: zenoh.Session, daemon_id: str, shard_id: str, timeout: fl
     snapshot = threading.Event()
     sub = session.declare_subscriber(f"sinewatch/admin/shard/{shard_id}/snapshot", lambda _: snapshot.set())
     deadline = time.monotonic() + timeout
+    puts, answers = 0, 0  # the owner's snapshots seen here, and the daemon's admin answers to them
     try:
         while snapshot.wait(max(0.0, deadline - time.monotonic())):
             snapshot.clear()
-            replies = session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0)
-            if any(json.loads(r.ok.payload.to_bytes())["channels"] for r in replies if r.ok is not None):
+            puts += 1
+            replies = [r.ok for r in session.get(f"sinewatch/admin/{daemon_id}/channels", timeout=5.0) if r.ok]
+            answers += len(replies)
+            if any(json.loads(r.payload.to_bytes())["channels"] for r in replies):
                 return
-        raise AssertionError(f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s")
+        # what each daemon says of itself, for the failure's message: who owns the shard, whose lease is proven
+        roles = [
+            {k: a.get(k) for k in ("daemon_id", "role", "term", "lease_proven")} | {"channels": len(a["channels"])}
+            for a in admin(session)
+        ]
+        raise AssertionError(
+            f"{daemon_id} holds no snapshot of {shard_id} after {timeout} s: {puts} snapshot(s) of the shard "
+            f"seen here, {answers} answer(s) from {daemon_id}; the daemons: {roles}"
+        )
     finally:
         sub.undeclare()
 

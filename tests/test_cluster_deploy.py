@@ -30,6 +30,7 @@ def test_compose_runs_a_router_two_shards_and_a_standby():
     for c in configs.values():
         assert c.zenoh.mode == "client" and c.zenoh.connect == ["tcp/router:7447"] and c.zenoh.listen == []
         assert c.cluster.etcd == "etcd:2379"  # the shards' elections, beside the router
+        assert (c.limits.queue_policy, c.limits.queue_capacity) == ("drop", 65536)  # never stops reading its link
     etcd = services["etcd"]
     assert "--data-dir=/etcd-data" in etcd["command"] and etcd["volumes"] == ["etcd-data:/etcd-data"]
     assert all("etcd" in s["depends_on"] for s in daemons.values())
@@ -57,6 +58,7 @@ def test_kubernetes_statefulset_maps_pod_ordinals_to_shards_and_a_standby():
         pod_env = dict(line.split("=", 1) for line in out.splitlines() if line.startswith("SINEWATCH"))
         config = load_config(env=pod_env)
         assert config.daemon_id == f"sinewatch-{ordinal}" and config.zenoh.connect == ["tcp/zenoh-router:7447"]
-        assert config.cluster.etcd == "etcd:2379"
+        assert config.cluster.etcd == "etcd:2379" and config.limits.queue_policy == "drop"
+        assert config.limits.queue_capacity == 65536
         seen.add((config.cluster.shard, config.cluster.role))
     assert seen == EXPECTED

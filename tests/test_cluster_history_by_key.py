@@ -15,12 +15,13 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from peer_pair import loop_and_two_peers
 
 from sinewatch.clients import BlockPublisher
-from sinewatch.clients.session import free_loopback_port, open_session
+from sinewatch.runtime import intake as intake_module
 from sinewatch.runtime.intake import Intake, _block_seq
 from sinewatch.schemas.codec import Block, encode_block_binary
-from sinewatch.schemas.config import SinewatchConfig, ZenohSection
+from sinewatch.schemas.config import SinewatchConfig
 
 WAIT_S = 30.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
 KEY_A, KEY_B = "sinewatch/in/a", "sinewatch/in/b"
@@ -36,7 +37,8 @@ class Host:
         self.session = session
         self.force_exit = threading.Event()
         channels = {
-            name: SimpleNamespace(name=name, key=key, last_seq=IN_STATE) for name, key in (("a", KEY_A), ("b", KEY_B))
+            name: SimpleNamespace(name=name, key=key, last_seq=IN_STATE, blocks=0, samples=0)
+            for name, key in (("a", KEY_A), ("b", KEY_B))
         }
         self.pipeline = SimpleNamespace(channels=channels, resume_points={})
         self.taken: list[tuple[str, int | None]] = []
@@ -59,20 +61,18 @@ class Host:
             return list(self.taken)
 
 
+def block_of(key: str, seq: int) -> bytes:
+    return encode_block_binary(
+        Block(key.rsplit("/", 1)[-1], seq, seq * 100_000_000, 1000.0, np.zeros(100, dtype=np.float32))
+    )
+
+
 def block_b(seq: int) -> bytes:
-    return encode_block_binary(Block("b", seq, seq * 100_000_000, 1000.0, np.zeros(100, dtype=np.float32)))
+    return block_of(KEY_B, seq)
 
 
 def test_a_keys_history_and_live_blocks_go_on_while_another_keys_query_is_still_open():
-    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    loop = asyncio.new_event_loop()
-    runner = threading.Thread(target=loop.run_forever, daemon=True)
-    runner.start()
-    quiet = {"multicast_scouting": False}
-    with (
-        open_session(ZenohSection(mode="peer", listen=[endpoint], connect=[], **quiet)) as gateway,
-        open_session(ZenohSection(mode="peer", listen=[], connect=[endpoint], **quiet)) as daemon,
-    ):
+    with loop_and_two_peers() as (loop, gateway, daemon):
         publisher = BlockPublisher(gateway, history=64)
         for _ in range(10):  # a's cache: blocks 0-9
             publisher.publish("a", np.zeros(100, dtype=np.float32), 1000.0)
@@ -95,5 +95,56 @@ def test_a_keys_history_and_live_blocks_go_on_while_another_keys_query_is_still_
             asyncio.run_coroutine_threadsafe(intake.stop(), loop).result(WAIT_S)
             held_back.undeclare()
             publisher.close()
-    loop.call_soon_threadsafe(loop.stop)
-    runner.join(WAIT_S)
+
+
+def test_the_history_queries_go_a_few_at_a_time_each_key_handed_over_as_its_own_ends(monkeypatch):
+    """Four keys, two queries open at a time: the first two keys' queries are sent, the third only
+    once one of them has ended; the second key's history goes on while the first key's query is
+    still open (the order the queries end in, not the order they were sent in). With every key's
+    query sent at once, the caches answered all of them together and the last keys' replies came
+    after their 10-s timeout (a 50-fault chaos run: ch092-ch099 unserved for 60 s)."""
+    monkeypatch.setattr(intake_module, "HISTORY_QUERIES_AT_ONCE", 2)
+    keys = [f"sinewatch/in/k{n}" for n in range(4)]
+    with loop_and_two_peers() as (loop, gateway, daemon):
+        caches = gateway.declare_queryable("sinewatch/in/*/@adv/**", zenoh.handlers.FifoChannel(8))
+        host = Host(daemon)
+        host.pipeline.channels = {
+            key: SimpleNamespace(name=key, key=key, last_seq=IN_STATE, sample_rate_hz=1e6, blocks=1000, samples=1000)
+            for key in keys
+        }  # fmt: skip
+        sent: list[str] = []
+        asked: list[int | None] = []
+        ask = Intake._query
+
+        def recorded(self: Intake, selector: str, blocks: int | None) -> Any:
+            sent.append(selector.split("/@adv")[0])  # before it goes: the queries sent so far, at any moment
+            asked.append(blocks)
+            return ask(self, selector, blocks)
+
+        monkeypatch.setattr(Intake, "_query", recorded)
+        intake = Intake(host, loop, 16)
+        try:
+            first, second = (caches.handler.recv() for _ in range(2))
+            assert [str(first.key_expr).split("/@adv")[0], str(second.key_expr).split("/@adv")[0]] == keys[:2]
+            assert sent == keys[:2], sent  # the other two wait for one of these to end
+            for seq in (4, 5):
+                second.reply(keys[1], block_of(keys[1], seq))
+            second.drop()  # the second key's query ends first: its history goes on, the third key's query goes out
+            assert host.wait_for((keys[1], 5)) == [(keys[1], 4), (keys[1], 5)]
+            third = caches.handler.recv()
+            assert str(third.key_expr).split("/@adv")[0] == keys[2] and sent == keys[:3], sent
+            for query, key in ((first, keys[0]), (third, keys[2])):
+                query.reply(key, block_of(key, 4))
+                query.drop()
+            fourth = caches.handler.recv()
+            fourth.reply(keys[3], block_of(keys[3], 4))
+            fourth.drop()
+            taken = host.wait_for((keys[3], 4))
+            assert sorted(taken) == sorted([(keys[1], 4), (keys[1], 5)] + [(k, 4) for k in (keys[0], keys[2], keys[3])])
+            assert sent == keys
+            # a million blocks a second each (a microsecond counts): a query sent later, after another's round
+            # trip, asks for the blocks that came meanwhile as well
+            assert all(n is not None and n >= 16 for n in asked) and asked[2] > asked[1] and asked[3] > asked[1], asked
+        finally:
+            asyncio.run_coroutine_threadsafe(intake.stop(), loop).result(WAIT_S)
+            caches.undeclare()

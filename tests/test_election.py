@@ -160,3 +160,36 @@ def test_an_owner_whose_event_loop_is_stuck_lets_its_lease_go(tmp_path):
     print(f"elected {elected:.2f} s after the owner's loop got stuck (stall limit {stall_s} s, TTL {TTL} s)")
     # the last keep-alive went out before the stall limit; the lease expires at most a TTL after it
     assert stall_s <= elected < stall_s + TTL + 2.0
+
+
+def test_the_tests_read_of_the_election_key_waits_out_a_reset_connection(tmp_path):
+    """The chaos test reads the election key right after faults that restart etcd or sever its
+    connections: the read waits for etcd to answer again and is tried again on a reset
+    connection (gRPC's retries, ``cluster_procs.ETCD_READ_OPTIONS``), rather than failing the test
+    (it did under load, with "recvmsg:Connection reset by peer"). Here the read's first connection
+    is closed at once (a severed proxy in front of etcd), then the proxy heals."""
+    import threading
+
+    import aetcd
+    from cluster_procs import election_key
+
+    async def put(endpoint: str) -> None:
+        host, _, port = endpoint.rpartition(":")
+        async with aetcd.Client(host, int(port)) as client:
+            await client.put(b"sinewatch/admin/election/shard-x", b"d1")
+
+    with etcd_server(tmp_path) as etcd:
+        asyncio.run(put(etcd.endpoint))
+        proxy = Proxy(etcd.port)
+        proxy.sever()
+        result: list[tuple[str, int]] = []
+        reader = threading.Thread(target=lambda: result.append(election_key(f"127.0.0.1:{proxy.port}", "shard-x")))
+        reader.start()
+        try:
+            assert proxy.refused.wait(30)  # the read's first connection was closed
+            proxy.heal()
+            reader.join(60)
+        finally:
+            proxy.close()
+        assert not reader.is_alive()
+        assert len(result) == 1 and result[0][0] == "d1" and result[0][1] > 0, result

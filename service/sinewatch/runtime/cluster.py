@@ -56,6 +56,8 @@ from sinewatch.schemas.messages import Fencing
 log = logging.getLogger("sinewatch.runtime.cluster")
 
 ADMIN_QUERY_TIMEOUT_S = 2.0
+ADMIN_QUERY_RING = 64  # admin queries waiting for an answer; past it the oldest goes unanswered (its asker times out)
+SNAPSHOT_RING = 2  # snapshots waiting to be read by a standby: only the newest counts
 STANDBY_ESTIMATE_FIFO = 10_000  # estimates a standby may fall behind by (10 s of 100 channels at 10 blocks/s)
 READER_JOIN_S = 0.5  # the longest a takeover waits for the standby's reader to note what its FIFO held
 
@@ -206,7 +208,18 @@ class ClusterMember:
     # ---- start ---------------------------------------------------------------------------------
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
-        self._queryable = self.daemon.session.declare_queryable(self.admin_key, self._on_query)
+        # Queries into a ring a thread of this daemon answers, not a Python callback on Zenoh's
+        # receiving thread: that callback waited for the event loop (up to ADMIN_QUERY_TIMEOUT_S a
+        # query) and for the GIL, and meanwhile Zenoh read nothing more from the router; the router,
+        # pushing this daemon a BLOCK message (a snapshot, a query), then stopped reading the
+        # sender's link for everyone: a takeover's history queries sent in that time waited out
+        # their 10 s (a 50-fault chaos run, while a killed daemon was starting again)
+        self._queryable = self.daemon.session.declare_queryable(
+            self.admin_key, zenoh.handlers.RingChannel(ADMIN_QUERY_RING)
+        )
+        threading.Thread(
+            target=self._drain, args=(self._queryable.handler, self._on_query), name="sinewatch-admin", daemon=True
+        ).start()
         if self.election is None:
             self._activate()  # no election: this daemon owns its keys alone
             return
@@ -328,7 +341,12 @@ class ClusterMember:
         estimates = session.declare_subscriber(
             f"{self.daemon.config.keys.estimates_prefix}/**", zenoh.handlers.FifoChannel(STANDBY_ESTIMATE_FIFO)
         )
-        self._watch = [session.declare_subscriber(self.snapshot_key, self._on_snapshot), estimates]
+        # the newest snapshots in a ring (only the newest counts), read on a thread: no Python on Zenoh's thread
+        snapshots = session.declare_subscriber(self.snapshot_key, zenoh.handlers.RingChannel(SNAPSHOT_RING))
+        threading.Thread(
+            target=self._drain, args=(snapshots.handler, self._on_snapshot), name="sinewatch-snapshots", daemon=True
+        ).start()
+        self._watch = [snapshots, estimates]
         self._reader = threading.Thread(
             target=self._read_estimates, args=(estimates.handler,), name="sinewatch-standby", daemon=True
         )
@@ -339,6 +357,13 @@ class ClusterMember:
         with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
             while True:
                 self._on_estimate(handler.recv())
+
+    @staticmethod
+    def _drain(handler: Any, on_item: Any) -> None:
+        """Hand each item of a Zenoh channel to ``on_item`` on this thread, until it is undeclared."""
+        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
+            while True:
+                on_item(handler.recv())
 
     def _unwatch(self) -> None:
         """Undeclare the standby's subscribers and wait (briefly) until what the estimates' FIFO
@@ -579,7 +604,7 @@ class ClusterMember:
         }
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """On a Zenoh thread: the reply is built on the event loop (which owns the pipeline)."""
+        """On the admin thread: the reply is built on the event loop (which owns the pipeline)."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return

@@ -14,6 +14,8 @@ import collections
 import contextlib
 import itertools
 import logging
+import math
+import queue
 import threading
 import time
 from collections import Counter
@@ -35,6 +37,12 @@ log = logging.getLogger("sinewatch.runtime.daemon")  # the daemon's log: operato
 HISTORY_TIMEOUT_S = 10.0  # how long the publishers' caches may take to answer a new subscriber's history query
 # the replies a query for every key's whole cache may bring (100 keys of 1,024 blocks: 102,400)
 HISTORY_FIFO_ALL = 1 << 20
+# A takeover's history queries open at a time, one per key (Intake._histories_by_key): a shard of up
+# to 64 keys asks for all of them at once. Eight at a time, a 50-key shard's last channel had its
+# first estimate 2.49 s after the lease's expiry in a failover test beside four burners (load 8-16;
+# the history 1.19 s), the round trips one after another; a shard of thousands of keys is not asked
+# for every one at once
+HISTORY_QUERIES_AT_ONCE = 64
 
 
 @dataclass
@@ -184,6 +192,7 @@ class Intake:
         self._known: dict[str, int] = {}  # key -> the seq of its last block in the state (history up to it is dropped)
         self._key_of: dict[str, str] = {}  # publisher (source id) -> its key: which channel a miss belongs to
         self._published: dict[str, int] = {}  # key -> the seq of its last block the previous owner published
+        self._block_rate: dict[str, float] = {}  # key -> its blocks a second (a takeover's later queries)
         if cfg.zenoh.recovery:
             # Blocks a subscriber missed (a router restart, a reconnect) are fetched again
             # from the publishers' caches (heartbeats tell what was missed); what is past their
@@ -228,6 +237,13 @@ class Intake:
                 for ch in daemon.pipeline.channels.values()
                 if ch.name in resume and keys[ch.key] == 1
             }
+            # each key's blocks a second (from its channel's mean block length): a key's query sent later
+            # asks for as many more as came meanwhile (Intake._histories_by_key)
+            self._block_rate = {
+                ch.key: ch.sample_rate_hz * ch.blocks / ch.samples
+                for ch in daemon.pipeline.channels.values()
+                if keys[ch.key] == 1 and ch.blocks and ch.samples
+            }
             queries: dict[str, int | None]
             if history_blocks and self._known:  # a takeover: its shard's keys only, each its own query
                 queries = dict.fromkeys(self._known, history_blocks)
@@ -240,34 +256,79 @@ class Intake:
     def _history(self, queries: dict[str, int | None]) -> None:
         """The publishers' cached samples asked for once, after subscribing: per key (``queries``:
         key -> its newest blocks to ask for; the key "" for every key of ``keys.input`` at once, None
-        for all the caches hold), each key's handed over as soon as its query ends (its catch-up
+        for all the caches hold), each key's handed over as soon as its own query ends (its catch-up
         first, :func:`catch_up_order`), then what arrived live for that key meanwhile (held back
         until then), each sample once; from then on the pump hands that key's over directly. Handed
         over key by key, a takeover's first estimate waits for one key's history, not for every
         key's: a history of 6,397 blocks took 1.82 s through a loaded router, and the first estimate
         came after all of it (a 50-fault chaos run's kill: 2.35 s after the lease's expiry)."""
-        input_keys = self._daemon.config.keys.input
         total = 0
         try:
-            pending = [  # all sent at once, then read in turn
-                (key, self._query(f"{key or input_keys}/@adv/**" + (f"?_max={n}" if n else ""), n))
-                for key, n in queries.items()
-            ]
-            for key, query in pending:
-                replies = [item for reply in query if (item := self._history_reply(reply)) is not None]
-                total += len(replies)
-                if key and not self._hand_over_history(replies, key):
+            if "" in queries:
+                replies = self._drain(self._query(f"{self._daemon.config.keys.input}/@adv/**", queries[""]))
+                total = len(replies)
+                if not self._hand_over_history(replies, None):
                     return
+            else:
+                by_key = self._histories_by_key(queries)
+                if by_key is None:
+                    return
+                total = by_key
         except zenoh.ZError as exc:  # the session closing under it: the live samples still go on
             log.warning("intake: history query failed: %s", exc)
-            replies = []
-        if "" in queries and not self._hand_over_history(replies, None):
-            return
         with self._lock:  # whatever is still held (a query that failed): on in arrival order
             held, self._held, self._awaited = self._held or [], None, None
             if not self._stopping:
                 self._hand_over(held)
         log.info("intake: %d block(s) of history, %d key(s) in turn", total, len(queries))
+
+    def _histories_by_key(self, queries: dict[str, int | None]) -> int | None:
+        """Each key's history query, ``HISTORY_QUERIES_AT_ONCE`` of them open at a time (the next
+        sent as one ends), each key handed over as its own query ends, in the order they end; the
+        blocks of history (None once unsubscribed). With every key's query sent at once, the
+        caches answered them all through the router together: the last keys' replies came last,
+        some after their 10-s timeout (a 50-fault chaos run's takeover after an 11,578-block history
+        left ch092-ch099 unserved for 60 s), and every key's newest blocks were as old as the
+        takeover. A query sent later asks for blocks that are newer by then, and a key whose query
+        is slow holds back no other key's history."""
+        ended: queue.Queue[tuple[str, list[tuple[Item, Any, int]]]] = queue.Queue()
+        waiting = iter(queries.items())
+        total = 0
+        started = time.monotonic()
+
+        def ask_next() -> bool:
+            key, blocks = next(waiting, ("", None))
+            if not key:
+                return False
+            if blocks:  # the newest blocks reach back as far as when the first queries went out
+                blocks += math.ceil((time.monotonic() - started) * self._block_rate.get(key, 0.0))
+            query = self._query(f"{key}/@adv/**" + (f"?_max={blocks}" if blocks else ""), blocks)
+            threading.Thread(
+                target=lambda: ended.put((key, self._drain(query, key))), name="sinewatch-history-key", daemon=True
+            ).start()
+            return True
+
+        open_queries = sum(ask_next() for _ in range(HISTORY_QUERIES_AT_ONCE))
+        while open_queries:
+            key, replies = ended.get()  # every drain ends: a query ends by its timeout at the latest
+            open_queries -= 1
+            total += len(replies)
+            if not self._hand_over_history(replies, key):
+                return None
+            open_queries += ask_next()
+        return total
+
+    def _drain(self, query: Any, key: str = "") -> list[tuple[Item, Any, int]]:
+        """One query's replies of keys this process owns, until the query ends (its final reply,
+        or its timeout: what came before it is kept)."""
+        replies: list[tuple[Item, Any, int]] = []
+        with contextlib.suppress(zenoh.ZError):  # the session closing under it: what came is kept
+            for reply in query:
+                if (item := self._history_reply(reply)) is not None:
+                    replies.append(item)
+                elif reply.err is not None:  # its timeout: what is past it is the held blocks' gap
+                    log.info("intake: history query of %s: %s", key or "every key", reply.err.payload.to_string())
+        return replies
 
     def _query(self, selector: str, blocks: int | None) -> Any:
         """One query on the publishers' caches, with Zenoh's default ``BLOCK`` (a router forwards the
