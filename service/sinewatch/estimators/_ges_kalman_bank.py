@@ -307,11 +307,11 @@ def ges_kalman_bank_kernel(
     """:func:`ges_kalman_kernel` for C channels at once: ``y`` (N, C), ``xP`` (20, C), ``unc``
     (35, C), one channel per column; returns ``out`` (C, rows, 5), ``sse`` (C,), ``std``
     (C, rows, 4) and the new ``xP`` and ``unc``. Channels go ``LANES`` at a time through a
-    lane-major work array (copied in and out once per block): the filter, T and U of the
-    ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
-    count over one array), then the noise means (U5)-(U5a): the block's logs in one vectorised
-    loop (:func:`sinewatch.estimators.detmath.log`, as the single kernel), the recursion and
-    its exp (the C library's, where the cap may bind) lane by lane."""
+    lane-major work array (copied in and out once per block): each sample, the filter, T and U
+    of the ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
+    count over one array), then the bias recursion (:func:`_bank_bias`) and the noise means
+    (U5) with u's log (:func:`_bank_means_lane`, :func:`sinewatch.estimators.detmath.log` as the
+    single kernel), the cap's exp (U5a, the C library's) only in the lanes whose bound fails."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = y.shape
     out, std, sse = bank_outputs(n, nc, 4, last_only)

@@ -166,7 +166,6 @@ def bank_rates(name: str, block: int, bank: int, seconds: float, repeats: int = 
     fns = [fft_stream_runner(block), run_single, run_bank]
     compiled = bank_of(cls)
     if compiled is not None and compiled.run is None:  # a kernel called as update_bank calls it
-        run_bank()  # the channels' states past their first block, as the kernel sees them
         fns.append(_kernel_runner(compiled, banked, frames, state))
     rounds = [[_rate(fn, seconds / (len(fns) * repeats), repeats=1) for fn in fns] for _ in range(repeats)]
     rates = {
@@ -187,8 +186,9 @@ def _kernel_runner(
     compiled: BankKernel, ests: list[Estimator], frames: list[np.ndarray], state: dict[str, int]
 ) -> Callable[[], int]:
     """One frame through a compiled bank's kernel alone per call, from the channels' states
-    stacked as :func:`update_bank` stacks them (each call from the same states: the kernel is
-    pure); returns the samples of every channel."""
+    stacked as :func:`update_bank` stacks them, each call from the states the last returned (as
+    update_bank's channels advance: ges-kalman's start covariance, for one, is propagated only
+    in its first thousands of samples); returns the samples of every channel."""
     first = ests[0]
     stacked = [np.array([e._state[k] for e in ests]) for k in first._state]
     if compiled.channel_first:
@@ -199,7 +199,7 @@ def _kernel_runner(
 
     def run() -> int:
         x = inputs[state["kernel"] % len(inputs)]
-        compiled.kernel(x, *stacked, *first._constants, True)
+        stacked[:] = compiled.kernel(x, *stacked, *first._constants, True)[compiled.n_outputs :]
         state["kernel"] += 1
         return int(x.size)
 
