@@ -269,7 +269,7 @@ def _bank_samples(
     q0: float, q1: float, q2: float, q3: float, R: float, lam: float,
 ) -> bool:  # fmt: skip
     """Samples ``start`` to ``stop`` of every lane of ``S`` (:func:`_bank_sample`, then the bias
-    recursion :func:`_bank_bias` when ``corr``), each sample's u of (U5) into ``us``; ``ys`` holds
+    recursion :func:`_bank_bias` when ``corr``, and the noise means (U5)-(U5a)); ``ys`` holds
     the block's samples lane-major; returns whether some lane still propagates its T (U3).
     Compiled on its own and called once a block (once a sample when each sample's row is
     reported), not inlined by numba: its two copies of the lanes' step are most of the bank's

@@ -227,16 +227,7 @@ def _noise_means(
     (U5a) whatever exp's last bit, and ``min`` returns it: the exp is then skipped, with the
     same result. On a stationary signal the cap rarely binds and the exponent drifts slowly,
     so most samples take the log only."""
-    return _noise_means_of_log(u, detmath.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
-
-
-@kernel(inline="always")
-def _noise_means_of_log(
-    u: float, log_u: float, w: float, m_u: float, m_l: float, lam: float, x_ref: float, e_ref: float
-) -> tuple[float, float, float, float, float]:
-    """:func:`_noise_means` with ``log_u = log(max(u, TINY))`` given: a caller may take the
-    logs of a block's u in a loop of their own, where the calls overlap."""
-    w, m_u, m_l, x, screened = _noise_means_screened(u, log_u, w, m_u, m_l, lam, x_ref, e_ref)
+    w, m_u, m_l, x, screened = _noise_means_screened(u, detmath.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
     if screened:
         return w, m_u, m_l, x_ref, e_ref
     m_u, e = _noise_means_cap(m_u, w, x)
