@@ -13,7 +13,7 @@ import numba
 import numpy as np
 from numba.extending import intrinsic
 
-from sinewatch.estimators import detmath
+from sinewatch.estimators import detmath, lanes
 from sinewatch.estimators._ges_kalman_kernels import (
     BIAS_SIZE,
     T_NEGLIGIBLE,
@@ -25,8 +25,8 @@ from sinewatch.estimators._ges_kalman_kernels import (
     _bias_pair,
     _corrected,
     _filter_step,
-    _noise_means,
-    _noise_means_of_log,
+    _noise_means_cap,
+    _noise_means_screened,
     _parameter_std,
     _propagate_error,
     _write_estimates,
@@ -38,11 +38,13 @@ LANES = 8  # channels advanced together: 8 doubles, one AVX-512 register
 # rows of the bank's lane-major work array: one row of LANES doubles per per-sample quantity
 # x1..x4; the 10 entries of P; T (16); U (16); sse; the sample in; u of (U5) out; M and b (B2-B3);
 # the bias recursion's inputs from the filter's step (_RB: s, k0..k3, h1, 1/S, the prior p02, p12,
-# p22, p23) and its Dv entries (_RV: v01, v11, v12, v13)
-_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO, _RG = 0, 4, 14, 30, 46, 47, 49, 50  # _RS: two rows, see the bank kernel
+# p22, p23) and its Dv entries (_RV: v01, v11, v12, v13); the noise means (_RM: w, <u>, <log u>,
+# _noise_means' x_ref and e_ref, the cap's exponent x, 1 where the cap's exp is taken, u, log u)
+_RX, _RP, _RT, _RU, _RSSE, _RS, _RUO, _RG = 0, 4, 14, 30, 46, 47, 48, 49
 _RB = _RG + BIAS_SIZE
 _RV = _RB + 11
-_ROWS = _RV + 4
+_RM = _RV + 4
+_ROWS = _RM + 9
 _P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p22 p23 p33 in ``xP``
 _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
 
@@ -202,6 +204,13 @@ def _bank_t_zero(S: np.ndarray) -> None:
 
 
 @kernel(inline="always")
+def _bank_noise_variance(S: np.ndarray, lane: int, R: float) -> float:
+    """sigma_hat^2 = <u> / w (U5) of lane ``lane``, R while no weight has built up."""
+    m_u, w = S[(_RM + 1) * LANES + lane], S[_RM * LANES + lane]
+    return m_u / w if w > 0.0 else R
+
+
+@kernel(inline="always")
 def _bank_row(
     S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float, corr: bool,
     out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
@@ -219,76 +228,75 @@ def _bank_row(
 
 
 @kernel(inline="always")
-def _bank_means_pair(
-    us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int, a: int
-) -> None:
-    """:func:`_noise_means_of_log` over the block's u of lanes ``a`` and ``a + 1``, each in
-    order; the two chains side by side, so that each waits less on its own latency."""
-    b = a + 1
-    m_ua, w_a, m_la, x_ra, e_ra = means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a]
-    m_ub, w_b, m_lb, x_rb, e_rb = means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b]
-    for k in range(n):
-        i = k * LANES + a
-        w_a, m_ua, m_la, x_ra, e_ra = _noise_means_of_log(us[i], logs[i], w_a, m_ua, m_la, lam, x_ra, e_ra)
-        w_b, m_ub, m_lb, x_rb, e_rb = _noise_means_of_log(us[i + 1], logs[i + 1], w_b, m_ub, m_lb, lam, x_rb, e_rb)
-    means[0, a], means[1, a], means[2, a], refs[0, a], refs[1, a] = m_ua, w_a, m_la, x_ra, e_ra
-    means[0, b], means[1, b], means[2, b], refs[0, b], refs[1, b] = m_ub, w_b, m_lb, x_rb, e_rb
+def _bank_means_lane(S: np.ndarray, lane: int, lam: float) -> None:
+    """One sample of the noise means (U5) of lane ``lane`` from its u (row ``_RUO``), as
+    :func:`_noise_means` takes it: u's log (:func:`sinewatch.estimators.detmath.log`, plain
+    arithmetic) and :func:`_noise_means_screened`, the new means and the cap's exponent, and 1 in
+    row ``_RM + 6`` where the cap (U5a) needs its exp (:func:`_bank_means_caps`)."""
+    L = LANES
+    m = _RM * L + lane
+    u = S[_RUO * L + lane]
+    w, m_u, m_l, x, screened = _noise_means_screened(
+        u, detmath.log(max(u, TINY)), S[m], S[m + L], S[m + 2 * L], lam, S[m + 3 * L], S[m + 4 * L]
+    )
+    S[m], S[m + L], S[m + 2 * L], S[m + 5 * L] = w, m_u, m_l, x
+    S[m + 6 * L] = _select(screened, 0.0, 1.0)
 
 
 @kernel(inline="always")
-def _bank_means(us: np.ndarray, logs: np.ndarray, means: np.ndarray, refs: np.ndarray, lam: float, n: int) -> None:
-    """The noise means (U5)-(U5a) of the block's u, every lane (lanes past the last channel
-    run on their zeros harmlessly), two lanes at a time. Not all lanes in one loop: the
-    compiler would vectorise it and, taking exp for a pure function, call exp for every lane
-    on every sample, which undoes :func:`_noise_means`' skipping of it."""
-    for a in range(0, LANES, 2):
-        _bank_means_pair(us, logs, means, refs, lam, n, a)
+def _bank_means_caps(S: np.ndarray) -> None:
+    """The cap (U5a) with its exp (the C library's, as the single kernel's) in the lanes where
+    :func:`_bank_means_lane` found that the bound does not show it idle (x_ref and e_ref move
+    on there). The lanes are searched with an early exit: such a loop stays scalar, so that the
+    exp under its branch is not taken for every lane (a vectorised loop speculates it)."""
+    L = LANES
+    first = L
+    for lane in range(L):
+        if S[(_RM + 6) * L + lane] != 0.0:
+            first = lane
+            break
+    for lane in range(first, L):
+        if S[(_RM + 6) * L + lane] != 0.0:
+            m = _RM * L + lane
+            x = S[m + 5 * L]
+            S[m + L], S[m + 4 * L] = _noise_means_cap(S[m + L], S[m], x)
+            S[m + 3 * L] = x
 
 
 @kernel(refcount=False)
 def _bank_samples(
-    S: np.ndarray, ys: np.ndarray, us: np.ndarray, start: int, stop: int, t_live: bool, corr: bool,
-    q0: float, q1: float, q2: float, q3: float, R: float,
+    S: np.ndarray, ys: np.ndarray, start: int, stop: int, t_live: bool, corr: bool,
+    q0: float, q1: float, q2: float, q3: float, R: float, lam: float,
 ) -> bool:  # fmt: skip
     """Samples ``start`` to ``stop`` of every lane of ``S`` (:func:`_bank_sample`, then the bias
-    recursion :func:`_bank_bias` when ``corr``), each sample's u of (U5) into ``us``; ``ys`` holds
+    recursion :func:`_bank_bias` when ``corr``, and the noise means (U5)-(U5a)); ``ys`` holds
     the block's samples lane-major; returns whether some lane still propagates its T (U3).
     Compiled on its own and called once a block (once a sample when each sample's row is
-    reported), not inlined by numba: its four copies of the lanes' step are most of the bank's
+    reported), not inlined by numba: its two copies of the lanes' step are most of the bank's
     code, and numba inlines a function by copying its IR block by block, each copy with the
     whole function's scope (this step inlined into the kernel cost it ~20 s of CPU to compile)."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     L = LANES
-    n = ys.shape[0] // L
     for k in range(start, stop):
-        # sample k + 1 into the row sample k does not read: written one step before it is
-        # read as a vector (read at once, 8 scalar stores would stall its load ~15 cycles)
-        nxt = min(k + 1, n - 1) * L
-        rs_next = (_RS + 1 - k % 2) * L
-        for lane in range(L):
-            S[rs_next + lane] = ys[nxt + lane]
+        # the sample's row as one vector store, which the lanes' vector loads then read (8 scalar
+        # stores would stall them: store forwarding fails); ys was written before the block
+        lanes.copy_lanes(S, _RS * L, ys, k * L)
         if t_live:  # some lane's T is still propagated (U3): half the arithmetic
             t_live = _bank_t_live(S)
-        if not t_live:  # none: the single kernel's zeroing of T, where it applies
-            _bank_t_zero(S)
-        # the sample's row and the T switch as constants in each loop, so the compiler sees
-        # the lanes independent
-        if k % 2 == 0 and t_live:
-            for lane in range(L):  # literal trip count: one vector
+            if not t_live:  # none from now on: the single kernel's zeroing of T where it applies,
+                _bank_t_zero(S)  # once: after it every lane's T[0, 0] is 0 and T no longer changes
+        # T's switch a constant in each loop, so the compiler sees the lanes independent
+        if t_live:
+            for lane in range(L):  # literal trip count: one vector (two with AVX2)
                 _bank_sample(S, lane, _RS, True, q0, q1, q2, q3, R)
-        elif t_live:
-            for lane in range(L):
-                _bank_sample(S, lane, _RS + 1, True, q0, q1, q2, q3, R)
-        elif k % 2 == 0:
-            for lane in range(L):
-                _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
         else:
             for lane in range(L):
-                _bank_sample(S, lane, _RS + 1, False, q0, q1, q2, q3, R)
+                _bank_sample(S, lane, _RS, False, q0, q1, q2, q3, R)
         if corr:  # (B2)-(B3), as ges_kalman_kernel
             _bank_bias(S)
-        for lane in range(L):
-            us[k * L + lane] = S[_RUO * L + lane]
+        for lane in range(L):  # the noise means (U5) of the 8 lanes as vectors
+            _bank_means_lane(S, lane, lam)
+        _bank_means_caps(S)  # (U5a) where its bound fails, lane by lane
     return t_live
 
 
@@ -299,11 +307,11 @@ def ges_kalman_bank_kernel(
     """:func:`ges_kalman_kernel` for C channels at once: ``y`` (N, C), ``xP`` (20, C), ``unc``
     (35, C), one channel per column; returns ``out`` (C, rows, 5), ``sse`` (C,), ``std``
     (C, rows, 4) and the new ``xP`` and ``unc``. Channels go ``LANES`` at a time through a
-    lane-major work array (copied in and out once per block): the filter, T and U of the
-    ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
-    count over one array), then the noise means (U5)-(U5a): the block's logs in one vectorised
-    loop (:func:`sinewatch.estimators.detmath.log`, as the single kernel), the recursion and
-    its exp (the C library's, where the cap may bind) lane by lane."""
+    lane-major work array (copied in and out once per block): each sample, the filter, T and U
+    of the ``LANES`` channels advance as one vector (:func:`_bank_sample`, a loop of literal trip
+    count over one array), then the bias recursion (:func:`_bank_bias`) and the noise means
+    (U5) with u's log (:func:`_bank_means_lane`, :func:`sinewatch.estimators.detmath.log` as the
+    single kernel), the cap's exp (U5a, the C library's) only in the lanes whose bound fails."""
     detmath.prefer_512_bit_vectors()  # 8 lanes: one 512-bit vector
     n, nc = y.shape
     out, std, sse = bank_outputs(n, nc, 4, last_only)
@@ -314,10 +322,13 @@ def ges_kalman_bank_kernel(
     lam = 1.0 - 1.0 / consts[7]  # (U5)
     corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
     L = LANES
-    S = np.empty(_ROWS * L)
+    # rows on 64-byte boundaries: a row is one cache line, so no vector load of half a row splits
+    # across two (an allocation's own alignment varies from process to process: the same kernel
+    # measured ~30 % slower in one process of seven)
+    buf = np.empty(_ROWS * L + L)
+    at = (L - (buf.ctypes.data // 8) % L) % L
+    S = buf[at : at + _ROWS * L]
     ys = np.empty(n * L)
-    us = np.empty(n * L)
-    logs = np.empty(n * L if last_only else 0)
     T = np.empty((4, 4))
     U = np.empty((4, 4))
     for g in range(0, nc, L):
@@ -337,31 +348,18 @@ def ges_kalman_bank_kernel(
         for k in range(n):  # row by row: y (N, C) is read in its own order
             for c in range(width):
                 ys[k * L + c] = y[k, g + c]
-        means = np.zeros((3, L))  # <u>, w, <log u>
-        refs = np.zeros((2, L))  # _noise_means' x_ref, e_ref
-        for c in range(width):
-            means[0, c], means[1, c], means[2, c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
-        for lane in range(L):  # sample 0's row
-            S[_RS * L + lane] = ys[lane]
+        for c in range(width):  # <u>, w, <log u>; x_ref and e_ref start each block at 0 (S's zeros)
+            S[(_RM + 1) * L + c], S[_RM * L + c], S[(_RM + 2) * L + c] = unc[32, g + c], unc[33, g + c], unc[34, g + c]
         t_live = width > 0  # True, typed bool: the literal True would compile _bank_samples twice
         step = max(n, 1) if last_only else 1  # the whole block in one call, or a sample and its row
         for k in range(0, n, step):  # one call site: one signature compiled
-            t_live = _bank_samples(S, ys, us, k, k + step, t_live, corr, q0, q1, q2, q3, R)
-            if last_only:
-                continue
-            for c in range(width):  # the means and row k, lane by lane (log, exp: scalar)
-                w, m_u, m_l, refs[0, c], refs[1, c] = _noise_means(
-                    us[k * L + c], means[1, c], means[0, c], means[2, c], lam, refs[0, c], refs[1, c]
-                )
-                means[0, c], means[1, c], means[2, c] = m_u, w, m_l
-                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
-        if last_only:  # (U5)-(U5a) over the block's u, in order, then the last row
-            for i in range(n * L):  # the logs first: independent calls, which overlap
-                logs[i] = detmath.log(max(us[i], TINY))
-            _bank_means(us, logs, means, refs, lam, n)
+            t_live = _bank_samples(S, ys, k, k + step, t_live, corr, q0, q1, q2, q3, R, lam)
+            if not last_only:
+                for c in range(width):  # row k
+                    _bank_row(S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
+        if last_only:  # the last row (an empty block: the state's, as ges_kalman_kernel writes it)
             for c in range(width):
-                m_u, w = means[0, c], means[1, c]
-                _bank_row(S, c, m_u / w if w > 0.0 else R, Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U)
+                _bank_row(S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U)
         for c in range(width):
             ch = g + c
             sse[ch] = S[_RSSE * L + c]
@@ -371,7 +369,8 @@ def ges_kalman_bank_kernel(
                 new_xP[4 + i, ch] = S[(_RP + _P_OF_ENTRY[i]) * L + c]
             for i in range(32):
                 new_unc[i, ch] = S[(_RT + i) * L + c]
-            new_unc[32, ch], new_unc[33, ch], new_unc[34, ch] = means[0, c], means[1, c], means[2, c]
+            new_unc[32, ch], new_unc[33, ch] = S[(_RM + 1) * L + c], S[_RM * L + c]
+            new_unc[34, ch] = S[(_RM + 2) * L + c]
             for i in range(BIAS_SIZE):
                 new_unc[UNC_BASE + i, ch] = S[(_RG + i) * L + c]
     return out, sse, std, new_xP, new_unc

@@ -227,25 +227,34 @@ def _noise_means(
     (U5a) whatever exp's last bit, and ``min`` returns it: the exp is then skipped, with the
     same result. On a stationary signal the cap rarely binds and the exponent drifts slowly,
     so most samples take the log only."""
-    return _noise_means_of_log(u, detmath.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
+    w, m_u, m_l, x, screened = _noise_means_screened(u, detmath.log(max(u, TINY)), w, m_u, m_l, lam, x_ref, e_ref)
+    if screened:
+        return w, m_u, m_l, x_ref, e_ref
+    m_u, e = _noise_means_cap(m_u, w, x)
+    return w, m_u, m_l, x, e
 
 
 @kernel(inline="always")
-def _noise_means_of_log(
+def _noise_means_screened(
     u: float, log_u: float, w: float, m_u: float, m_l: float, lam: float, x_ref: float, e_ref: float
-) -> tuple[float, float, float, float, float]:
-    """:func:`_noise_means` with ``log_u = log(max(u, TINY))`` given: a caller may take the
-    logs of a block's u in a loop of their own, where the calls overlap."""
-    w = lam * w + (1.0 - lam)
+) -> tuple[float, float, float, float, bool]:
+    """The means' step (U5) without the cap: the new ``(w, <u>, <log u>)``, the cap's exponent
+    ``x`` (U5a) and whether the bound of :func:`_noise_means` shows that the cap cannot bind (then
+    ``<u>`` is final and exp is not taken). Branch-free (``&``, not ``and``), so that a bank can
+    run it for 8 lanes as vectors and take :func:`_noise_means_cap` only for the lanes it fails."""
+    w = lam * w + (1.0 - lam)  # (U5)
     m_u = lam * m_u + (1.0 - lam) * u
     m_l = lam * m_l + (1.0 - lam) * log_u
-    x = m_l / w - LOG_CHI2_MEAN
-    d1 = 1.0 + (x - x_ref)
-    if d1 > 0.5 and m_u <= ROBUST_CAP * w * e_ref * d1 * EXP_SCREEN_MARGIN:  # False on NaN
-        return w, m_u, m_l, x_ref, e_ref
+    x = m_l / w - LOG_CHI2_MEAN  # (U5a)'s exponent
+    d1 = 1.0 + (x - x_ref)  # exp(x) >= e_ref d1
+    return w, m_u, m_l, x, (d1 > 0.5) & (m_u <= ROBUST_CAP * w * e_ref * d1 * EXP_SCREEN_MARGIN)  # False on NaN
+
+
+@kernel(inline="always")
+def _noise_means_cap(m_u: float, w: float, x: float) -> tuple[float, float]:
+    """The cap (U5a) on ``<u>`` with its exp taken: the new ``<u>`` and ``exp(x)``."""
     e = math.exp(x)
-    m_u = min(m_u, ROBUST_CAP * w * e)  # (U5a)
-    return w, m_u, m_l, x, e
+    return min(m_u, ROBUST_CAP * w * e), e  # (U5a)
 
 
 @kernel(inline="always")

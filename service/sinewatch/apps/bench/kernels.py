@@ -38,7 +38,7 @@ from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
 from sinewatch.estimators import available, get
-from sinewatch.estimators.bank import NO_BANK, update_bank
+from sinewatch.estimators.bank import NO_BANK, BankKernel, bank_of, update_bank
 from sinewatch.estimators.base import Estimator
 from sinewatch.estimators.lanes import LANES, host_vector_bits
 
@@ -140,7 +140,10 @@ def bank_rates(name: str, block: int, bank: int, seconds: float, repeats: int = 
     time and the streaming FFT, measured in turn ``repeats`` times: samples/s of each (every
     channel's samples; medians), and the medians of the ratios of each round (bank / FFT,
     bank / one channel). Paired rounds: on a machine whose other load changes from second to
-    second, the two sides of a ratio see the same load."""
+    second, the two sides of a ratio see the same load. A compiled bank's kernel is also timed
+    alone in the same rounds (``kernel``, ``kernel_vs_fft``: the same frames and stacked states,
+    no Python around the call), which tells what bounds a bank below the target: its arithmetic,
+    or :func:`update_bank`'s gathering, checks and Tracks around it."""
     cls = get(name)
     n_blocks = 16
     x = np.stack([cls.example_signal(block * n_blocks, seed=1 + c) for c in range(bank)], axis=1)
@@ -148,7 +151,7 @@ def bank_rates(name: str, block: int, bank: int, seconds: float, repeats: int = 
     blocks = [np.ascontiguousarray(f[:, 0]) for f in frames]
     banked = [cls.example() for _ in range(bank)]
     single = cls.example()
-    state = {"bank": 0, "single": 0}
+    state = {"bank": 0, "single": 0, "kernel": 0}
 
     def run_bank() -> int:
         update_bank(banked, frames[state["bank"] % n_blocks], last_only=True)
@@ -160,11 +163,12 @@ def bank_rates(name: str, block: int, bank: int, seconds: float, repeats: int = 
         state["single"] += 1
         return block
 
-    fft = fft_stream_runner(block)
-    rounds = [
-        [_rate(fn, seconds / (3 * repeats), repeats=1) for fn in (fft, run_single, run_bank)] for _ in range(repeats)
-    ]
-    return {
+    fns = [fft_stream_runner(block), run_single, run_bank]
+    compiled = bank_of(cls)
+    if compiled is not None and compiled.run is None:  # a kernel called as update_bank calls it
+        fns.append(_kernel_runner(compiled, banked, frames, state))
+    rounds = [[_rate(fn, seconds / (len(fns) * repeats), repeats=1) for fn in fns] for _ in range(repeats)]
+    rates = {
         "fft_stream": statistics.median(r[0] for r in rounds),
         "single": statistics.median(r[1] for r in rounds),
         "bank": statistics.median(r[2] for r in rounds),
@@ -172,6 +176,49 @@ def bank_rates(name: str, block: int, bank: int, seconds: float, repeats: int = 
         "bank_vs_single": statistics.median(r[2] / r[1] for r in rounds),
         "single_vs_fft": statistics.median(r[1] / r[0] for r in rounds),
     }
+    if len(fns) == 4:
+        rates["kernel"] = statistics.median(r[3] for r in rounds)
+        rates["kernel_vs_fft"] = statistics.median(r[3] / r[0] for r in rounds)
+    return rates
+
+
+def _kernel_runner(
+    compiled: BankKernel, ests: list[Estimator], frames: list[np.ndarray], state: dict[str, int]
+) -> Callable[[], int]:
+    """One frame through a compiled bank's kernel alone per call, from the channels' states
+    stacked as :func:`update_bank` stacks them, each call from the states the last returned (as
+    update_bank's channels advance: ges-kalman's start covariance, for one, is propagated only
+    in its first thousands of samples); returns the samples of every channel."""
+    first = ests[0]
+    stacked = [np.array([e._state[k] for e in ests]) for k in first._state]
+    if compiled.channel_first:
+        inputs = [np.ascontiguousarray(f.T) for f in frames]
+    else:  # channel last, as the lane-major kernels take their states
+        stacked = [np.ascontiguousarray(np.moveaxis(a, 0, -1)) for a in stacked]
+        inputs = frames
+
+    def run() -> int:
+        x = inputs[state["kernel"] % len(inputs)]
+        stacked[:] = compiled.kernel(x, *stacked, *first._constants, True)[compiled.n_outputs :]
+        state["kernel"] += 1
+        return int(x.size)
+
+    return run
+
+
+def bank_why(name: str, rates: dict[str, float]) -> str:
+    """Why ``name``'s bank stays below the target: the estimator's own reason
+    (:data:`NO_BANK` or its ``bank_note``), then, for a compiled kernel, the measured split of a
+    channel-sample's time between the kernel alone and the Python around it."""
+    why = NO_BANK.get(name) or getattr(get(name), "bank_note", None) or "(no reason given)"
+    if "kernel" not in rates:
+        return why
+    k_ns, b_ns = 1e9 / rates["kernel"], 1e9 / rates["bank"]
+    return (
+        f"{why}. Measured in this run: the kernel alone {k_ns:.1f} ns a channel-sample "
+        f"({rates['kernel_vs_fft']:.2f}x the streaming FFT), update_bank {b_ns:.1f} "
+        f"(the Python around the call {b_ns - k_ns:.1f})"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -243,9 +290,11 @@ def run(args: argparse.Namespace) -> int:
         note = getattr(get(name), "bench_note", None)
         if note:
             console.print(f"note: {note}")
-    for name in names:  # and a bank below the target, why
+    for name in names:  # and a bank below the target, why (measured at the first block size)
         if min(bank_ratios[name]) < BANK_TARGET:
-            why = NO_BANK.get(name) or getattr(get(name), "bank_note", None) or "(no reason given)"
+            rates = results["estimators"][name][str(blocks[0])]
+            why = bank_why(name, {k.removeprefix(f"bank{args.bank}_"): v for k, v in rates.items()})
+            results.setdefault("why", {})[name] = why
             console.print(f"bank note: {name}'s bank {args.bank} is below {BANK_TARGET:g}x the streaming FFT: {why}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
