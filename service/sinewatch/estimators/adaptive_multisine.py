@@ -155,10 +155,12 @@ from sinewatch.estimators._adaptive_multisine_auto import (
     adaptive_multisine_kernel,
     auto_design,
 )
+from sinewatch.estimators._adaptive_multisine_bank import adaptive_multisine_n2_bank_kernel, run_adaptive_multisine_bank
 from sinewatch.estimators._adaptive_multisine_small import (
     auto_kernel_n1,
     auto_kernel_n2,
 )
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import Estimator, EstimatorParams, NonNegativeFinite, PositiveFinite, Track
 from sinewatch.schemas.errors import ParameterError
 
@@ -569,3 +571,7 @@ class AdaptiveMultisine(
                 2 * n + 1,
             )
         )
+
+
+# n = 2 of the automatic mode only (run_adaptive_multisine_bank); other channels run one by one
+register_bank(AdaptiveMultisine, adaptive_multisine_n2_bank_kernel, n_outputs=3, run=run_adaptive_multisine_bank)
