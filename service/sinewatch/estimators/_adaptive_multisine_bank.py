@@ -50,12 +50,12 @@ def _lane_state(S: np.ndarray, lane: int) -> tuple[float, ...]:
     L = LANES
     # a tuple literal of more than 30 entries compiles to a list turned into a tuple (CPython),
     # which numba does not take: two literals joined
-    return (
+    return (  # noqa: RUF005
         S[0 * L + lane], S[1 * L + lane], S[2 * L + lane], S[3 * L + lane], S[4 * L + lane], S[5 * L + lane],
         S[6 * L + lane], S[7 * L + lane], S[8 * L + lane], S[9 * L + lane], S[10 * L + lane], S[11 * L + lane],
         S[12 * L + lane], S[13 * L + lane], S[14 * L + lane], S[15 * L + lane], S[16 * L + lane], S[17 * L + lane],
         S[18 * L + lane], S[19 * L + lane], S[20 * L + lane], S[21 * L + lane],
-    ) + (  # noqa: RUF005
+    ) + (
         S[22 * L + lane], S[23 * L + lane], S[24 * L + lane], S[25 * L + lane], S[26 * L + lane], S[27 * L + lane],
         S[28 * L + lane], S[29 * L + lane], S[30 * L + lane], S[31 * L + lane], S[32 * L + lane], S[33 * L + lane],
         S[34 * L + lane], S[35 * L + lane], S[36 * L + lane], S[37 * L + lane], S[38 * L + lane], S[39 * L + lane],
@@ -76,7 +76,7 @@ def _set_lane_state(S: np.ndarray, lane: int, st: tuple[float, ...]) -> None:
         S[28 * L + lane], S[29 * L + lane], S[30 * L + lane], S[31 * L + lane], S[32 * L + lane], S[33 * L + lane],
         S[34 * L + lane], S[35 * L + lane], S[36 * L + lane], S[37 * L + lane], S[38 * L + lane], S[39 * L + lane],
         S[40 * L + lane], S[41 * L + lane], S[42 * L + lane],
-    ) = st
+    ) = st  # fmt: skip
 
 
 @kernel(inline="always")
@@ -188,7 +188,8 @@ def run_adaptive_multisine_bank(
     if first._small_n_kernel is not auto_kernel_n2:
         return None
     s_in = np.concatenate([e._state["s"] for e in estimators]).reshape(len(estimators), -1)
-    out, ext, sse, s_out = adaptive_multisine_n2_bank_kernel(x, s_in, *first._constants, last_only)
+    cf, ci = first._constants
+    out, ext, sse, s_out = adaptive_multisine_n2_bank_kernel(x, s_in, cf, ci, last_only)
     tracks = [e._track((out[c], ext[c], sse[c]), x[:, c]) for c, e in enumerate(estimators)]
     for e, s in zip(estimators, list(s_out), strict=True):
         e._state = {"s": s}

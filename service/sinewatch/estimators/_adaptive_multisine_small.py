@@ -217,8 +217,8 @@ def _within(lim: float, z1: float, z2: float, z3: float, z4: float, z0: float, z
 N2_STATE = (
     "yf", "z1", "z2", "z3", "z4", "z0", "zf", "p1", "p2", "p3", "p4", "p0", "pf", "q1", "q2", "q3", "q4",
     "q0", "qf", "th1", "th2", "A1", "A2", "ps1", "ps2", "wb1", "wb2", "dv1", "dv2", "clock", "mean", "pw",
-    "started", "sxi", "pwl", "a1", "a2", "L1", "L2", "L3", "L4", "L0", "sse"
-)
+    "started", "sxi", "pwl", "a1", "a2", "L1", "L2", "L3", "L4", "L0", "sse",
+)  # fmt: skip
 N2_ROW = 17  # the outputs of one sample (:func:`n2_observe`), before (8) and (10)
 _N2_ROWS = 3 * 2 + 2  # out's and ext's columns for n = 2
 
@@ -246,7 +246,7 @@ def n2_load(s: np.ndarray, ci: np.ndarray) -> tuple[float, ...]:
     oz, oxi, oth, oA, ops, owb, odv, osc, oa_c, oL = auto_offsets(2, 1, nx + 1)  # nf = 1
     b = oxi + nx + 1
     clock, mean, pw, started, sxi, pwl = level_state(s, osc)
-    return (
+    return (  # noqa: RUF005
         s[0], s[oz], s[oz + 1], s[oz + 2], s[oz + 3], s[oz + 4] if bias else 0.0, s[oz + nx],
         s[oxi], s[oxi + 1], s[oxi + 2], s[oxi + 3], s[oxi + 4] if bias else 0.0, s[oxi + nx],
         s[b], s[b + 1], s[b + 2], s[b + 3], s[b + 4] if bias else 0.0, s[b + nx],
@@ -266,7 +266,7 @@ def n2_store(s: np.ndarray, ci: np.ndarray, st: tuple[float, ...]) -> float:
     (
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf, th1, th2, A1, A2, ps1,
         ps2, wb1, wb2, dv1, dv2, clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse
-    ) = st
+    ) = st  # fmt: skip
     s[0] = yf
     s[oz], s[oz + 1], s[oz + 2], s[oz + 3] = z1, z2, z3, z4
     s[oxi], s[oxi + 1], s[oxi + 2], s[oxi + 3] = p1, p2, p3, p4
@@ -298,11 +298,11 @@ def n2_observe(
     (
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf, th1, th2, A1, A2, ps1,
         ps2, wb1, wb2, dv1, dv2, clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse
-    ) = st
+    ) = st  # fmt: skip
     (
         h, mu, rho2rel, mu_a, d_hi, d_lo, tb2, itb2, om_lo, om_hi, sep, isep, xi_floor, p_alpha, lcap, Ff,
         Bf, min_a, fade, c_alpha, c_tol, delay, bias, l_alpha
-    ) = g
+    ) = g  # fmt: skip
     # AD4: smoothed mean and AC power of the input; AD7: is the signal present
     started, mean, pw, pwl, present = _input_level(yk, started, mean, pw, pwl, p_alpha, min_a)
     # output error C_z zh - eta (16), (22)
@@ -492,12 +492,12 @@ def n2_observe(
     w1 = min(w1, w2 * isep)
     th1 = a1 + w1
     th2 = a2 + w2
-    return (
+    return (  # noqa: RUF005
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf,
     ) + (
         th1, th2, A1, A2, ps1, ps2, wb1, wb2, dv1, dv2,
         clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse,
-    ), row, tr
+    ), row, tr  # fmt: skip
 
 
 @kernel(inline="always")
@@ -513,7 +513,7 @@ def n2_recentred(st: tuple[float, ...], rc: float, poles: np.ndarray, bias: floa
     (
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf, th1, th2, A1, A2, ps1,
         ps2, wb1, wb2, dv1, dv2, clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse
-    ) = st
+    ) = st  # fmt: skip
     if abs(th1) > rc * abs(a1) or abs(th2) > rc * abs(a2):
         a1 -= th1
         a2 -= th2
@@ -526,12 +526,12 @@ def n2_recentred(st: tuple[float, ...], rc: float, poles: np.ndarray, bias: floa
             for m in range(poles.shape[0]):
                 pz *= -poles[m]
             L0 = pz / (-a1 * -a2)
-    return (
+    return (  # noqa: RUF005
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf,
     ) + (
         th1, th2, A1, A2, ps1, ps2, wb1, wb2, dv1, dv2,
         clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse,
-    )
+    )  # fmt: skip
 
 
 @kernel(inline="always")
@@ -541,7 +541,7 @@ def n2_guard(st: tuple[float, ...], tr: float, zmax: float, tbar: float) -> tupl
     (
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf, th1, th2, A1, A2, ps1,
         ps2, wb1, wb2, dv1, dv2, clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse
-    ) = st
+    ) = st  # fmt: skip
     lim = zmax * (1.0 + abs(mean))  # the bound without sqrt(AC power): the common case
     bad = not _within(lim, z1, z2, z3, z4, z0, zf)
     if bad:  # also NaN; then the full bound
@@ -559,18 +559,16 @@ def n2_guard(st: tuple[float, ...], tr: float, zmax: float, tbar: float) -> tupl
             th2 = 0.0
         ps1 = ps2 = 0.0
         clock = 0.0
-    return (
+    return (  # noqa: RUF005
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf,
     ) + (
         th1, th2, A1, A2, ps1, ps2, wb1, wb2, dv1, dv2,
         clock, mean, pw, started, sxi, pwl, a1, a2, L1, L2, L3, L4, L0, sse,
-    ), bad
+    ), bad  # fmt: skip
 
 
 @kernel(inline="always")
-def n2_write_row(
-    out: np.ndarray, ext: np.ndarray, cph: np.ndarray, j: int, row: tuple[float, ...], bad: bool
-) -> None:
+def n2_write_row(out: np.ndarray, ext: np.ndarray, cph: np.ndarray, j: int, row: tuple[float, ...], bad: bool) -> None:
     """Row ``j`` of the outputs from a sample's :data:`N2_ROW` values and the guard's verdict:
     Omegah_i, A_i, x_1 and x_3 (turned into (8) and (10) by :func:`n2_phases`), A0, converged;
     A cos(phi) sin(omega_d h); lambda_i, psi_i, faded_i, present, reset."""
