@@ -133,8 +133,12 @@ def net(certs) -> Iterator[Net]:  # noqa: F811
             # a daemon's admin queryable and standby token, for the query checks
             wd.declare_queryable(OWN_ADMIN, lambda q: q.reply(OWN_ADMIN, b"{}"))
             token = wd.liveliness().declare_token("sinewatch/admin/shard/acl/standby/acl-daemon")
-            # every watcher's subscription is known to the router and to each writer
+            # every watcher's subscription is known to the router and to each writer: the
+            # watcher's barrier returns once the router has routed its declaration (and sent it
+            # on to the writer's link); the writer's, once that declaration is in the writer's
+            # hands. A put before then can be dropped as having no subscriber.
             for space in SPACES:
+                barrier(n.watcher_session(space), n.writer(space))
                 payload = f"ready-{space}".encode()
                 n.writer(space).put(SPACES[space], payload)
                 assert wait_for(n.watchers[space], payload), f"the {space} watcher never saw its writer"

@@ -388,6 +388,22 @@ def pcap_frames(path: str, *, realtime: bool, stop: threading.Event) -> Iterator
         yield captured.data, t_ns
 
 
+#: Linux's SO_RCVBUFFORCE (not exported by Python's socket module): SO_RCVBUF beyond
+#: net.core.rmem_max, for a process with CAP_NET_ADMIN
+_SO_RCVBUFFORCE = 33
+
+
+def _large_receive_buffer(sock: socket.socket, size: int) -> None:
+    """A receive buffer of ``size`` bytes, to absorb the bursts of a gateway that is late on a
+    loaded machine. SO_RCVBUF alone is capped at net.core.rmem_max (208 KiB on many
+    distributions); a process allowed to (root, or CAP_NET_ADMIN, as a capture usually is)
+    forces the size past it."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, size)
+    except OSError:  # not permitted: the largest the system allows
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+
+
 def iface_frames(
     iface: str, *, stop: threading.Event, on_ready: Callable[[], None] | None = None, idle_s: float = 0.0
 ) -> Iterator[tuple[bytes, int]]:
@@ -398,8 +414,7 @@ def iface_frames(
     eth_p_all = 0x0003
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(eth_p_all))
     try:
-        # a large buffer absorbs the bursts of a gateway that is late on a loaded machine
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 32 * 1024 * 1024)
+        _large_receive_buffer(sock, 32 * 1024 * 1024)
         sock.bind((iface, 0))
         sock.settimeout(0.2)  # how often ``stop`` and ``idle_s`` are looked at while silent
         if on_ready is not None:
