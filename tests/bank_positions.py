@@ -66,8 +66,12 @@ def assert_every_position(
                     if c == p:
                         track, state = want[i // block]
                         assert_tracks_bitwise(track, got[c], where)
-                        assert {k: np.ascontiguousarray(v).tobytes() for k, v in banked[c]._state.items()} == state, where
+                        assert {k: np.ascontiguousarray(v).tobytes() for k, v in banked[c]._state.items()} == state, (
+                            where
+                        )
                     else:
-                        assert_tracks_bitwise(singles[c].update(np.ascontiguousarray(x[i : i + block, c])), got[c], where)
+                        assert_tracks_bitwise(
+                            singles[c].update(np.ascontiguousarray(x[i : i + block, c])), got[c], where
+                        )
                         assert_states_bitwise(singles[c], banked[c], where)
     return want

@@ -64,7 +64,8 @@ def test_bank_of_64_matches_each_channel_alone_at_every_position() -> None:
 
 
 @pytest.mark.parametrize(
-    "params", [{"n_sinusoids": 1, "band_hz": (5.0, 25.0)}, {"n_sinusoids": 3, "band_hz": (5.0, 25.0)}, {"n_sinusoids": 2}]
+    "params",
+    [{"n_sinusoids": 1, "band_hz": (5.0, 25.0)}, {"n_sinusoids": 3, "band_hz": (5.0, 25.0)}, {"n_sinusoids": 2}],
 )
 def test_other_modes_run_one_by_one_with_the_same_bits(params: dict) -> None:
     ests = [create(NAME, FS, **params) for _ in range(3)]
