@@ -7,6 +7,7 @@ reference (the clamp and the re-centring) in the probe alone."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from bank_positions import assert_every_position
 
 from sinewatch.estimators import get
@@ -36,6 +37,9 @@ def test_bank_matches_each_channel_alone_at_every_position() -> None:
     assert abs(float(runs[-1][0].frequency_hz[-1, 0]) - 51.5) < 0.5  # it followed the step
 
 
+# 64 banks of 64 channels (~45 s on a loaded 2-core VM): the default run has every position at 1, 3
+# and 8 here and a bank of 64 with every channel checked (tests/test_estimator_banks.py)
+@pytest.mark.slow
 def test_bank_of_64_matches_each_channel_alone_at_every_position() -> None:
     probe = _probe(2 * BLOCK)
     fillers = [get(NAME).example_signal(probe.size, seed=40 + k) for k in range(5)]

@@ -246,6 +246,8 @@ def n2_load(s: np.ndarray, ci: np.ndarray) -> tuple[float, ...]:
     oz, oxi, oth, oA, ops, owb, odv, osc, oa_c, oL = auto_offsets(2, 1, nx + 1)  # nf = 1
     b = oxi + nx + 1
     clock, mean, pw, started, sxi, pwl = level_state(s, osc)
+    # two tuple literals joined: one of more than 30 entries compiles to a list turned into a
+    # tuple (CPython), which numba does not take; so in every 43-entry tuple below
     return (  # noqa: RUF005
         s[0], s[oz], s[oz + 1], s[oz + 2], s[oz + 3], s[oz + 4] if bias else 0.0, s[oz + nx],
         s[oxi], s[oxi + 1], s[oxi + 2], s[oxi + 3], s[oxi + 4] if bias else 0.0, s[oxi + nx],
@@ -293,7 +295,7 @@ def n2_observe(
     (:data:`N2_STATE`), the sample's outputs (:data:`N2_ROW`: out's columns 0-7 before (8) and
     (10), then A_i cos(phi_i) sin(omega_d h), then ext's columns 0-6; the eigenvalues only when
     ``write``) and tr(M) for the guard. Floats and selects only, no array and no library call but
-    sqrt: a bank's lanes run it as one vector. The re-centring AD8 (:func:`n2_recentre`) and the
+    sqrt: a bank's lanes run it as one vector. The re-centring AD8 (:func:`n2_recentred`) and the
     guard (:func:`n2_guard`) follow it."""
     (
         yf, z1, z2, z3, z4, z0, zf, p1, p2, p3, p4, p0, pf, q1, q2, q3, q4, q0, qf, th1, th2, A1, A2, ps1,
