@@ -587,11 +587,20 @@ def test_a_backlog_is_not_a_pause_the_idle_release_judges_by_arrival():
 
     t = np.arange(round(0.3 * LIVE_FS)) / LIVE_FS
     blocks = _live_blocks(np.sin(2 * np.pi * 50.0 * t))
+    # "received just now" must stay true while the first batch runs: idle_release_s far above
+    # a batch's time on a loaded machine, and the kernels loaded (1-1.25 s from numba's cache in
+    # a fresh process; longer if they compile) by a first daemon before the clock starts
+    idle_s = 5.0
     cfg = SinewatchConfig(
-        rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True, idle_release_s=0.5
+        rules=[EstimatorRule(match="sinewatch/in/**", estimator="ipdft")], hold_estimates=True, idle_release_s=idle_s
     )
+    warm = Daemon(cfg, install_signal_handlers=False)
+    warm._pipeline = Pipeline(cfg, [Keep()])
+    warm.enqueue([("sinewatch/in/v", encode_block_binary(b), "", time.monotonic_ns()) for b in blocks[:2]])
+    asyncio.run(warm._consume_batch(warm._queue.get_nowait()))
     daemon = Daemon(cfg, install_signal_handlers=False)
     daemon._pipeline = Pipeline(cfg, [sink := Keep()])
+    later_ns = round(2 * idle_s * 1e9)
     now = time.monotonic_ns()
     items = [("sinewatch/in/v", encode_block_binary(b), "", now + i) for i, b in enumerate(blocks)]
     daemon.enqueue(items[:6])
@@ -600,7 +609,7 @@ def test_a_backlog_is_not_a_pause_the_idle_release_judges_by_arrival():
     held = list(daemon.pipeline.channels["v"].held)
     n = len(sink.estimates)
     assert held
-    daemon._last_log_time = time.time_ns() + 10**9  # taken 1 s later: the backlog, not the feed
+    daemon._last_log_time = time.time_ns() + later_ns  # taken 10 s later: the backlog, not the feed
     daemon.release_idle()
     assert len(sink.estimates) == n, "released while its next block was queued"
     assert list(daemon.pipeline.channels["v"].held) == held
@@ -608,7 +617,7 @@ def test_a_backlog_is_not_a_pause_the_idle_release_judges_by_arrival():
     n = len(sink.estimates)
     daemon.release_idle()  # received just now, nothing queued: not idle yet
     assert len(sink.estimates) == n and daemon.pipeline.channels["v"].held
-    daemon.pipeline.channels["v"].last_arrival_ns -= 10**9  # its last block received 1 s ago: idle
+    daemon.pipeline.channels["v"].last_arrival_ns -= later_ns  # its last block received 10 s ago: idle
     daemon.release_idle()
     assert len(sink.estimates) == n + 1 and not sink.estimates[-1]["diagnostics"]["valid"]
     assert [e["seq"] for e in sink.estimates] == [b.seq for b in blocks]

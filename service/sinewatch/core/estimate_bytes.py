@@ -15,6 +15,7 @@ import numpy as np
 
 from sinewatch.core.channel import Channel
 from sinewatch.core.float_repr import MAX_CHARS, repr_floats, write_repr
+from sinewatch.estimators.bank import ColumnTracks
 from sinewatch.estimators.base import Track, TrackStd, kernel
 from sinewatch.schemas.codec import (
     TIME_QUALITY_JSON,
@@ -225,14 +226,14 @@ def _one_component_floats(
 def _template_key(settings: EstimateSettings, block: Block, track: Track) -> tuple[Any, ...]:
     """What an Estimate's template depends on besides the channel's names: format, components,
     rocof and std present, fencing, time quality."""
-    return (
-        settings.estimate_version,
-        track.frequency_hz.shape[-1],
-        track.rocof_hz_per_s is not None,
-        track.std is not None,
-        settings.fencing_json,
-        block.time_quality,
+    return _layout_key(
+        settings, block, track.frequency_hz.shape[-1], track.rocof_hz_per_s is not None, track.std is not None
     )
+
+
+def _layout_key(settings: EstimateSettings, block: Block, k: int, rocof: bool, std: bool) -> tuple[Any, ...]:
+    """:func:`_template_key` from the track's layout (``k`` components, rocof and std present)."""
+    return (settings.estimate_version, k, rocof, std, settings.fencing_json, block.time_quality)
 
 
 def _template(settings: EstimateSettings, ch: Channel, block: Block, track: Track) -> str:
@@ -423,6 +424,7 @@ def bank_payloads(
     tracks: Sequence[Track],
     t_last_ns: int,
     gaps: Sequence[tuple[int, bool, bool, bool]],
+    run_samples: Sequence[int] | None = None,
 ) -> list[tuple[bytes, bool, bool | None]] | None:
     """:func:`estimate_payload` of every channel of a bank at its frame's last sample (``gaps``:
     each channel's gap_blocks, restart, reset, time jump), the usual case of all of them written
@@ -431,24 +433,37 @@ def bank_payloads(
     the same bytes, channel by channel (tests/test_pipeline_hot_path.py). A channel with a value
     that is not finite goes through :func:`estimate_payload` (the general way). Each channel's
     (bytes, converged, valid), valid None where the general way wrote it (the bytes say it);
-    None when the tracks are not one bank's usual case (then the caller writes each on its own)."""
-    values = _bank_values(settings, tracks)
-    if values is None:
-        return None
+    None when the tracks are not one bank's usual case (then the caller writes each on its own).
+    ``run_samples``: each channel's presence run after the block, when the caller has read it
+    (``read_presence_bank``); else each detector's own."""
+    if isinstance(tracks, ColumnTracks) and tracks.sealed and tracks.last_row is not None:
+        # a bank's own Tracks, unread: the last row and converged flags without making them
+        if settings.estimate_version < 3:
+            return None
+        values = tracks.last_row.values
+        converged_last = tracks.converged_last()
+        layout = _layout_key(settings, blocks[0], *tracks.layout)
+    else:
+        general = _bank_values(settings, tracks)
+        if general is None:
+            return None
+        values = general
+        converged_last = [bool(track.converged[-1]) for track in tracks]
+        layout = _template_key(settings, blocks[0], tracks[0])  # a bank's tracks share their layout
     usual = np.isfinite(values[:, :-1]).all(axis=1).tolist()
     out: list[tuple[bytes, bool, bool | None] | None] = [None] * len(chs)
     templates, gap_blocks, flags, which = [], [], [], []
-    layout = _template_key(settings, blocks[0], tracks[0])  # a bank's tracks share their layout
-    for i, (ch, block, track, gap) in enumerate(zip(chs, blocks, tracks, gaps, strict=True)):
+    for i, (ch, block, gap) in enumerate(zip(chs, blocks, gaps, strict=True)):
         if not usual[i]:
-            out[i] = (*estimate_payload(settings, ch, block, track, t_last_ns, t_last_ns, *gap), None)
+            out[i] = (*estimate_payload(settings, ch, block, tracks[i], t_last_ns, t_last_ns, *gap), None)
             continue
         assert ch.presence is not None
-        valid = ch.presence.run_samples >= ch.valid_memory_samples  # _present at the block's last sample
-        converged = valid and bool(track.converged[-1])
+        run = ch.presence.run_samples if run_samples is None else run_samples[i]
+        valid = run >= ch.valid_memory_samples  # _present at the block's last sample
+        converged = valid and converged_last[i]
         template = ch.template
         templates.append(
-            template[1] if template is not None and template[0] == layout else _template(settings, ch, block, track)
+            template[1] if template is not None and template[0] == layout else _template(settings, ch, block, tracks[i])
         )
         gap_blocks.append(gap[0])
         flags.append((converged, valid, gap[0] > 0 or gap[1] or gap[3], gap[1], gap[2]))

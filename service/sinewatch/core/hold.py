@@ -39,17 +39,23 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     return _released(ch, n_now, out)
 
 
-def hold_at_end(ch: Channel, payload: bytes, valid: bool, converged: bool, reset: bool) -> list[bytes]:
+def hold_at_end(
+    ch: Channel, payload: bytes, valid: bool, converged: bool, reset: bool, latency: int | None = None
+) -> list[bytes]:
     """:func:`hold` of one estimate at its block's last sample whose ``valid`` is known (a bank's,
     written in one call: :func:`sinewatch.core.estimate_bytes.bank_payloads`), without reading
-    it back from the bytes: the same estimates released, in the same order."""
+    it back from the bytes: the same estimates released, in the same order. ``latency``: the
+    detector's ``onset_latency_samples`` now, when the caller has read it (a bank of detectors
+    reads it for every channel at once: ``read_presence_bank``)."""
     assert ch.presence is not None
     out = _started_over(ch) if reset else []
     n_now = ch.samples
     ahead = getattr(ch.estimator, "lookahead_samples", None)
     end = n_now if ahead is None else min(n_now, n_now + ahead)  # as hold's at a lag of 0
     window_start = n_now - ch.valid_memory_samples if valid else -1
-    ch.held.append((payload, end + ch.presence.onset_latency_samples, window_start, converged))
+    if latency is None:
+        latency = ch.presence.onset_latency_samples
+    ch.held.append((payload, end + latency, window_start, converged))
     return _released(ch, n_now, out)
 
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Container, Mapping
+from collections.abc import Container, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -46,9 +46,9 @@ from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimat
 from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
-from sinewatch.estimators.bank import update_bank
+from sinewatch.estimators.bank import ColumnTracks, update_bank
 from sinewatch.estimators.base import Estimator, Track, kernel_samples
-from sinewatch.estimators.presence import update_presence_bank
+from sinewatch.estimators.presence import PresenceBankReadings, read_presence_bank
 from sinewatch.power_quality.stage import PqStage
 from sinewatch.schemas.codec import Block, dumps, encode_error, is_json_block
 from sinewatch.schemas.config import EstimatorRule, SinewatchConfig
@@ -171,8 +171,11 @@ class Pipeline:
         t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
         for members in banks.values():
             tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
-            presence_done = self._presence_bank(members, tracks, x)
-            if presence_done and self._bank_estimates(members, tracks, t_last, log_time_ns, received_ns):
+            readings = self._presence_bank(members, tracks, x)
+            presence_done = readings is not None
+            if readings is not None and self._bank_estimates(
+                members, tracks, t_last, log_time_ns, received_ns, readings
+            ):
                 continue
             for member, track in zip(members, tracks, strict=True):
                 if track is not None:
@@ -334,22 +337,24 @@ class Pipeline:
 
     def _run_bank(
         self, members: list[FrameMember], x: np.ndarray, n_all: int, t0_ns: int, log_time_ns: int
-    ) -> list[Track | None]:
+    ) -> Sequence[Track | None]:
         """Advance one rule's channels together; a bank that raises is rolled back (kernels
         return new states, so the old ones are intact) and run channel by channel, so that
-        only the faulty channel's block is lost (``estimator_fault``)."""
+        only the faulty channel's block is lost (``estimator_fault``). The bank's Tracks as
+        :func:`update_bank` gives them (a :class:`ColumnTracks` is made only when read);
+        None for a channel whose block was lost."""
         ests = [m.channel.estimator for m in members]
         for m in members:
             if m.reset:
                 m.channel.estimator.reset()
         cols = [m.column for m in members]
         samples = x if len(cols) == n_all and cols == list(range(n_all)) else x[:, cols]
-        saved = [est._state for est in ests]
+        saved = [est._state_checkpoint() for est in ests]  # (not est._state: that takes it out of its bank's stack)
         try:
-            return list(update_bank(ests, samples, last_only=True, t0_ns=t0_ns))
+            return update_bank(ests, samples, last_only=True, t0_ns=t0_ns)
         except Exception:  # noqa: BLE001 (isolated below, channel by channel)
             for est, state in zip(ests, saved, strict=True):
-                est._state = state
+                est._state_rollback(state)
         tracks: list[Track | None] = []
         for m in members:
             try:
@@ -365,49 +370,54 @@ class Pipeline:
         return tracks
 
     @staticmethod
-    def _presence_bank(members: list[FrameMember], tracks: list[Track | None], x: np.ndarray) -> bool:
+    def _presence_bank(
+        members: list[FrameMember], tracks: Sequence[Track | None], x: np.ndarray
+    ) -> PresenceBankReadings | None:
         """The presence detectors of a bank's accepted channels in one compiled call
-        (:func:`update_presence_bank`: each detector's run and state exactly what
-        :meth:`_presence` gives it); False when it does not apply (then each channel's own
-        runs in :meth:`_frame_estimate`, which also isolates a fault to its channel)."""
-        live = [m for m, track in zip(members, tracks, strict=True) if track is not None]
+        (:func:`read_presence_bank`: each detector's run and state exactly what
+        :meth:`_presence` gives it), and what they read after the frame; None when it does not
+        apply (then each channel's own runs in :meth:`_frame_estimate`, which also isolates a
+        fault to its channel)."""
+        live = members if _every_track(tracks) else [m for m, t in zip(members, tracks, strict=True) if t is not None]
         # a bank's channels share one estimator class (its rule's): asked of the first
         if len(live) < 2 or type(live[0].channel.estimator).presence_samples is not Estimator.presence_samples:
-            return False
+            return None
         detectors = [m.channel.presence for m in live]
         for m, det in zip(live, detectors, strict=True):
             assert det is not None
             if m.reset:
                 det.reset()
         try:
-            runs = update_presence_bank(detectors, x, [m.column for m in live])  # type: ignore[arg-type]
+            readings = read_presence_bank(detectors, x, [m.column for m in live])  # type: ignore[arg-type]
         except Exception:  # noqa: BLE001 (the state is untouched: each channel runs its own, isolated)
-            return False
-        if runs is None:
-            return False
-        for m, run in zip(live, runs, strict=True):
+            return None
+        if readings is None:
+            return None
+        for m, run in zip(live, readings.runs, strict=True):
             m.channel.last_run = run
-        return True
+        return readings
 
     def _bank_estimates(
         self,
         members: list[FrameMember],
-        tracks: list[Track | None],
+        tracks: Sequence[Track | None],
         t_last: int,
         log_time_ns: int,
         received_ns: int | None,
+        readings: PresenceBankReadings,
     ) -> bool:
         """What :meth:`_frame_estimate` does for each of a bank's channels, their presence
-        detectors run, for the whole bank at once: every Estimate's bytes in one compiled call
+        detectors run (``readings``: what they read, a channel each), for the whole bank at
+        once: every Estimate's bytes in one compiled call
         (:func:`sinewatch.core.estimate_bytes.bank_payloads`, the same bytes), each channel's
         accept and hold, then every estimate the bank releases handed to each sink in one call
         (``on_estimates``: the same messages in the same order). False, with nothing done,
         where that does not apply (a channel whose bank failed, the power-quality stage on:
         its messages go out between a channel's estimate and the next, or a bank's tracks
         that are not its usual case); then each channel goes on its own."""
-        if self.pq.enabled or any(track is None for track in tracks):
+        if self.pq.enabled or not _every_track(tracks):
             return False
-        live: list[Track] = tracks  # type: ignore[assignment]  # (none is None)
+        live: Sequence[Track] = tracks  # type: ignore[assignment]  # (none is None)
         chs = [m.channel for m in members]
         try:
             made = bank_payloads(
@@ -417,6 +427,7 @@ class Pipeline:
                 live,
                 t_last,
                 [(m.gap_blocks, m.restart, m.reset, m.jump) for m in members],
+                readings.run_samples,
             )
         except Exception:  # nothing changed yet: each channel on its own then isolates the fault
             self._bank_estimate_failures += 1
@@ -428,7 +439,8 @@ class Pipeline:
         out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
         handed: list[Channel] = []
         arrival = log_time_ns if received_ns is None else received_ns
-        for m, (payload, converged, valid) in zip(members, made, strict=True):
+        latencies = readings.onset_latency_samples
+        for i, (m, (payload, converged, valid)) in enumerate(zip(members, made, strict=True)):
             ch = m.channel
             try:
                 self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
@@ -437,7 +449,7 @@ class Pipeline:
                 elif valid is None:  # written the general way: its bytes say whether it is valid
                     released = hold(ch, t_last, [(payload, converged, t_last)], m.reset)
                 else:
-                    released = hold_at_end(ch, payload, valid, converged, m.reset)
+                    released = hold_at_end(ch, payload, valid, converged, m.reset, latencies[i])
             except Exception as exc:  # noqa: BLE001 (one channel's fault)
                 self._forget_unborn(ch)
                 self._fault(ch.key, m.block, ch, "estimate", exc, log_time_ns)
@@ -906,6 +918,11 @@ def _is_power_of_ten(n: int) -> bool:
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1
+
+
+def _every_track(tracks: Sequence[Track | None]) -> bool:
+    """Whether no channel of a bank lost its block (a bank's own Tracks, unread, hold none)."""
+    return isinstance(tracks, ColumnTracks) or all(track is not None for track in tracks)
 
 
 def _all_finite_2d(x: np.ndarray) -> bool:

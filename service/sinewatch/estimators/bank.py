@@ -34,24 +34,37 @@ is vectorised, so such loops are kept out of the vectoriser's reach.
 A class plugs a compiled bank in with :func:`register_bank`: a kernel that takes
 ``(X (N, C), *stacked state arrays (*shape, C), *constants, last_only)`` and returns its
 outputs with the channel as the leading axis, then the new stacked state arrays. The
-estimators' state is gathered into the stacked arrays before the call and scattered back
-after it: one copy a state array each way (``np.array`` of the channels' arrays, then each
-channel's row of the new array as a contiguous view), ~2 us a state array at 8 channels. A
-class whose ``_track`` is :func:`~sinewatch.estimators.base.track_from_columns` passes
-``tracks`` built by :func:`column_tracks`: one numpy call a field for the whole frame.
+estimators' states are gathered into the stacked arrays (``np.array`` of the channels'
+arrays, then channel last) the first time a bank runs, and stay stacked between frames
+(:class:`~sinewatch.estimators.base.StackedStates`): the kernel's new arrays are the next
+frame's arguments while the bank holds the same channels and none of them was read or given a
+state on its own (then it leaves the stack with a copy of its column, and the next frame
+gathers the bank afresh). A class whose ``_track`` is
+:func:`~sinewatch.estimators.base.track_from_columns` passes ``tracks`` built by
+:func:`column_tracks`: one numpy call a field for the whole frame, made only when a Track is
+read (:class:`ColumnTracks`; a frame's usual Estimates read the bank's last row instead).
 A class without one runs each channel's own kernel in turn; :data:`NO_BANK` says why.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
-from sinewatch.estimators.base import BankLastRow, Estimator, Track, TrackStd, _all_finite, kernel, kernel_samples
+from sinewatch.estimators.base import (
+    BankLastRow,
+    Estimator,
+    StackedStates,
+    Track,
+    TrackStd,
+    _all_finite,
+    kernel,
+    kernel_samples,
+)
 from sinewatch.schemas.errors import InputError, InputTypeError, ParameterError
 
 
@@ -66,7 +79,7 @@ class BankKernel:
     #: the channels' Tracks from the stacked outputs in one pass (``tracks(first estimator,
     #: outputs, samples)``), for a class whose ``_track`` does numpy work that a whole frame
     #: can share; None: each channel's ``_track`` on its slice of the outputs
-    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], Sequence[Track]] | None = None
     #: a bank that runs each channel through the single kernel in turn (a windowed estimator)
     #: takes the samples as (C, N) and the state arrays stacked channel first, (C, *shape):
     #: each channel's row and state are then contiguous, gathered by one copy a state array
@@ -102,7 +115,7 @@ def register_bank(
     cls: type[Estimator[Any]],
     kernel: Callable[..., tuple[Any, ...]],
     n_outputs: int,
-    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], list[Track]] | None = None,
+    tracks: Callable[[Any, tuple[Any, ...], np.ndarray], Sequence[Track]] | None = None,
     channel_first: bool = False,
     run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None,
 ) -> None:
@@ -123,7 +136,7 @@ def update_bank(
     *,
     last_only: bool = False,
     t0_ns: int | None = None,
-) -> list[Track]:
+) -> Sequence[Track]:
     """Advance ``estimators[c]`` by column ``c`` of ``samples`` (shape (N, C), one column per
     estimator, all of one class, parameters and sample rate) and return one Track each.
 
@@ -148,7 +161,10 @@ def update_bank(
         or any("update" in vars(est) for est in estimators)
     ):
         return _one_by_one(estimators, samples, last_only, t0_ns)
-    _check_alike(estimators, cls)
+    stack = first._stack
+    if stack is None or not stack.holds(estimators):  # (a live stack's members were checked alike when stacked)
+        stack = None
+        _check_alike(estimators, cls)
     x = kernel_samples(samples)  # one numba type per bank kernel
     if not _all_finite(x.reshape(-1)):
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
@@ -156,29 +172,55 @@ def update_bank(
     if bank.run is not None:
         ran = bank.run(estimators, x, last_only, t0_ns)
         return _one_by_one(estimators, x, last_only, t0_ns) if ran is None else ran
-    keys = list(first._state)
     if bank.channel_first:
-        x = np.ascontiguousarray(x.T)  # row c: channel c's samples
-        n = len(estimators)
-        # one C call a state array (np.stack costs ~5x as much: a Python loop over the arrays)
-        stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
+        return _channel_first_bank(bank, estimators, x, last_only)
+    if stack is not None:  # the same bank as last frame: its states are stacked already
+        stacked = stack.arrays
     else:  # (C, *shape) in one C call, then channel last (np.stack: ~3x the Python)
+        keys = tuple(first._state)
         stacked = [_channel_last(np.array([e._state[k] for e in estimators])) for k in keys]
+    result = bank.kernel(x, *stacked, *first._constants, last_only)
+    outputs, new_state = result[: bank.n_outputs], list(result[bank.n_outputs :])
+    if bank.tracks is not None:
+        tracks = bank.tracks(first, outputs, x)
+        if isinstance(tracks, ColumnTracks):
+            tracks.seal()
+    else:
+        tracks = [est._track(tuple(o[c] for o in outputs), x[:, c]) for c, est in enumerate(estimators)]
+    # the new states kept stacked (as the kernel returns them: (*shape, C), C-contiguous), only
+    # now that nothing can fail: a bank that raised leaves every channel's state as it was
+    if stack is not None:
+        stack.arrays = new_state
+    else:
+        stack = StackedStates(tuple(estimators), keys, new_state)
+        for c, est in enumerate(estimators):
+            est._state = {}  # (the old dict let go; the stack holds the state from here)
+            est._stack, est._stack_index = stack, c
+    return tracks
+
+
+def _channel_first_bank(
+    bank: BankKernel, estimators: Sequence[Estimator[Any]], x: np.ndarray, last_only: bool
+) -> Sequence[Track]:
+    """A channel-first bank (:attr:`BankKernel.channel_first`): the states gathered channel
+    first before the call and each channel's row of the new ones kept as its state (a view)."""
+    first = estimators[0]
+    keys = list(first._state)
+    x = np.ascontiguousarray(x.T)  # row c: channel c's samples
+    n = len(estimators)
+    # one C call a state array (np.stack costs ~5x as much: a Python loop over the arrays)
+    stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
     if bank.tracks is not None:
         tracks = bank.tracks(first, outputs, x)
+        if isinstance(tracks, ColumnTracks):
+            tracks.seal()
     else:
-        cols = x if bank.channel_first else x.T
-        tracks = [est._track(tuple(o[c] for o in outputs), cols[c]) for c, est in enumerate(estimators)]
-    if bank.channel_first:  # row c of each new array is channel c's, contiguous: kept as a view
-        rows = [list(s) for s in new_state]
-        for c, est in enumerate(estimators):
-            est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
-    else:  # one transposing copy a state array; row c of it is channel c's, contiguous
-        rows = [list(_channel_first(s)) for s in new_state]
-        for c, est in enumerate(estimators):
-            est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
+        tracks = [est._track(tuple(o[c] for o in outputs), x[c]) for c, est in enumerate(estimators)]
+    rows = [list(s) for s in new_state]  # row c of each new array is channel c's, contiguous: kept as a view
+    for c, est in enumerate(estimators):
+        est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
     return tracks
 
 
@@ -196,12 +238,6 @@ def _channel_last(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a.transpose(*range(1, a.ndim), 0))
 
 
-def _channel_first(a: np.ndarray) -> np.ndarray:
-    """``a`` (*shape, C) as a C-contiguous (C, *shape): each channel's state one contiguous row,
-    of the kernels' array kind (a view per channel, no copy each)."""
-    return np.ascontiguousarray(a.transpose(a.ndim - 1, *range(a.ndim - 1)))
-
-
 def column_tracks(
     out: np.ndarray,
     sse: np.ndarray,
@@ -209,43 +245,103 @@ def column_tracks(
     extras: dict[str, np.ndarray] | None = None,
     rocof: np.ndarray | None = None,
     std: np.ndarray | None = None,
-) -> list[Track]:
+) -> ColumnTracks:
     """The Tracks of a bank's channels, each exactly what
     :func:`~sinewatch.estimators.base.track_from_columns` makes of that channel's outputs, built
-    with one numpy call a field for the whole bank instead of one a field and channel
-    (1.3-1.4x faster at 8 channels, ~10 us a frame, measured). ``out`` (C, rows, 5) and ``sse`` (C,) as a bank
+    with one numpy call a field for the whole bank instead of one a field and channel, and only
+    when first asked for (:class:`ColumnTracks`). ``out`` (C, rows, 5) and ``sse`` (C,) as a bank
     kernel returns them; ``extras``: name -> (C, rows) or (C, rows, m); ``rocof``: (C, rows, 1);
     ``std``: (C, rows, 4), the standard deviations of frequency, amplitude, phase and offset.
     Element-wise throughout (the residual's ``sse / n`` and square root are correctly rounded
     in numpy as in ``math``), so each channel's bits do not depend on the channels beside it."""
-    nc = out.shape[0]
-    freq, amp, phase = list(out[:, :, 0:1]), list(out[:, :, 1:2]), list(out[:, :, 2:3])
-    offset, conv = list(out[:, :, 3]), list(out[:, :, 4].astype(np.bool_))
-    rms_values = np.sqrt(sse / n_samples) if n_samples else None
-    rms = rms_values.tolist() if rms_values is not None else [math.nan] * nc
-    names = list(extras) if extras else []
-    cols = [list(v) for v in extras.values()] if extras else []
-    roc: list[np.ndarray | None] = list(rocof) if rocof is not None else [None] * nc
-    pairs = list(zip(names, cols, strict=True))
-    tracks = [
-        Track(freq[c], amp[c], phase[c], offset[c], conv[c], rms[c], {k: col[c] for k, col in pairs}, roc[c])
-        for c in range(nc)
-    ]
-    if std is not None:
-        sf, sa, sp, so = list(std[:, :, 0:1]), list(std[:, :, 1:2]), list(std[:, :, 2:3]), list(std[:, :, 3])
-        for c, track in enumerate(tracks):
-            track.std = TrackStd(sf[c], sa[c], sp[c], so[c])
-    if not extras and rms_values is not None and out.shape[1]:
-        _bank_last_row(tracks, out, rms_values, rocof, std)
-    return tracks
+    return ColumnTracks(out, sse, n_samples, extras, rocof, std)
+
+
+class ColumnTracks(Sequence[Track]):
+    """A bank's Tracks (:func:`column_tracks`), made all at once when one is first asked for.
+
+    A frame's usual Estimates need none of them: they are written from :attr:`last_row`
+    (every channel's last row of every output in one array) and :meth:`converged_last`, so the
+    daemon's frame path does not build eight Track and TrackStd objects and their ~70 views a
+    frame (~30 us a frame of 8, ``sinewatch bench pipeline --frame-channels 8``). ``sealed``:
+    the bank's own ``tracks`` function returned them untouched (:func:`update_bank` seals
+    them), so :attr:`last_row` says what every Track would (a bank that changes a Track after
+    making it, e.g. ipdft's residual RMS, has made them all by then and is not sealed)."""
+
+    __slots__ = ("_args", "_tracks", "last_row", "layout", "sealed")
+
+    def __init__(
+        self,
+        out: np.ndarray,
+        sse: np.ndarray,
+        n_samples: int,
+        extras: dict[str, np.ndarray] | None,
+        rocof: np.ndarray | None,
+        std: np.ndarray | None,
+    ) -> None:
+        self._args = (out, sse, n_samples, extras, rocof, std)
+        self._tracks: list[Track] | None = None
+        #: (components, rocof present, std present): what an Estimate's template depends on
+        self.layout = (1, rocof is not None, std is not None)
+        rms = np.sqrt(sse / n_samples) if n_samples else None
+        self.last_row = None if extras or rms is None or not out.shape[1] else _bank_last_row(out, rms, rocof, std)
+        self.sealed = False
+
+    def seal(self) -> None:
+        self.sealed = self._tracks is None
+
+    def converged_last(self) -> list[bool]:
+        """Each channel's ``converged`` at its last row (what ``bool(track.converged[-1])`` reads)."""
+        return self._args[0][:, -1, 4].astype(np.bool_).tolist()  # type: ignore[no-any-return]
+
+    def __len__(self) -> int:
+        return int(self._args[0].shape[0])
+
+    @overload
+    def __getitem__(self, index: int) -> Track: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Track]: ...
+
+    def __getitem__(self, index: int | slice) -> Track | list[Track]:
+        tracks = self._tracks
+        if tracks is None:
+            tracks = self._tracks = self._make()
+        return tracks[index]
+
+    def __iter__(self) -> Iterator[Track]:
+        return iter(self[:])
+
+    def _make(self) -> list[Track]:
+        out, sse, n_samples, extras, rocof, std = self._args
+        nc = out.shape[0]
+        freq, amp, phase = list(out[:, :, 0:1]), list(out[:, :, 1:2]), list(out[:, :, 2:3])
+        offset, conv = list(out[:, :, 3]), list(out[:, :, 4].astype(np.bool_))
+        rms = np.sqrt(sse / n_samples).tolist() if n_samples else [math.nan] * nc
+        names = list(extras) if extras else []
+        cols = [list(v) for v in extras.values()] if extras else []
+        roc: list[np.ndarray | None] = list(rocof) if rocof is not None else [None] * nc
+        pairs = list(zip(names, cols, strict=True))
+        tracks = [
+            Track(freq[c], amp[c], phase[c], offset[c], conv[c], rms[c], {k: col[c] for k, col in pairs}, roc[c])
+            for c in range(nc)
+        ]
+        if std is not None:
+            sf, sa, sp, so = list(std[:, :, 0:1]), list(std[:, :, 1:2]), list(std[:, :, 2:3]), list(std[:, :, 3])
+            for c, track in enumerate(tracks):
+                track.std = TrackStd(sf[c], sa[c], sp[c], so[c])
+        if self.last_row is not None:
+            for c, track in enumerate(tracks):
+                track.bank_row = (self.last_row, c)
+        return tracks
 
 
 def _bank_last_row(
-    tracks: list[Track], out: np.ndarray, rms: np.ndarray, rocof: np.ndarray | None, std: np.ndarray | None
-) -> None:
-    """Give each track the bank's last row of every output in one array (:class:`BankLastRow`:
-    a frame's Estimates are written from it in one pass); only when every part is float64,
-    what an Estimate's usual case writes."""
+    out: np.ndarray, rms: np.ndarray, rocof: np.ndarray | None, std: np.ndarray | None
+) -> BankLastRow | None:
+    """The bank's last row of every output in one array (:class:`BankLastRow`: a frame's
+    Estimates are written from it in one pass); only when every part is float64, what an
+    Estimate's usual case writes."""
     parts = [out[:, -1, :4]]
     if rocof is not None:
         parts.append(rocof[:, -1, :])
@@ -253,10 +349,8 @@ def _bank_last_row(
         parts.append(std[:, -1, :])
     parts.append(rms[:, None])
     if any(p.dtype != np.float64 for p in parts):
-        return
-    row = BankLastRow(np.concatenate(parts, axis=1))
-    for c, track in enumerate(tracks):
-        track.bank_row = (row, c)
+        return None
+    return BankLastRow(np.concatenate(parts, axis=1))
 
 
 def _check_alike(estimators: Sequence[Estimator[Any]], cls: type[Estimator[Any]]) -> None:

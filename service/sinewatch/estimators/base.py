@@ -80,7 +80,7 @@ from __future__ import annotations
 import base64
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Generic, Literal, ParamSpec, cast, get_args, get_origin, overload
 
@@ -448,6 +448,42 @@ def decode_array(d: Mapping[str, Any]) -> np.ndarray:
     return out
 
 
+class StackedStates:
+    """A bank's channels' state arrays kept stacked between frames: each array (*shape, C),
+    C-contiguous, channel last, as a compiled bank takes and returns it
+    (:func:`sinewatch.estimators.bank.update_bank`), so that a bank whose channels are the
+    same frame after frame is not gathered before and scattered after every kernel call (two
+    copies a state array and a dict a channel). ``members[c]``'s state is column ``c``; a
+    member read or given a state on its own leaves (:attr:`Estimator._state`) and the stack is
+    then no longer ``live``: the next frame gathers its bank afresh."""
+
+    __slots__ = ("arrays", "keys", "live", "members")
+
+    def __init__(self, members: tuple[Any, ...], keys: tuple[str, ...], arrays: list[np.ndarray]) -> None:
+        self.members = members
+        self.keys = keys
+        self.arrays = arrays
+        self.live = True
+
+    def holds(self, estimators: Sequence[Any]) -> bool:
+        """Whether the stack is live and its members are exactly ``estimators``, in order."""
+        members = self.members
+        return (
+            self.live
+            and len(members) == len(estimators)
+            and all(a is b for a, b in zip(members, estimators, strict=True))
+        )
+
+    def column(self, c: int) -> dict[str, np.ndarray]:
+        """Channel ``c``'s state as a dict of contiguous arrays of its own (copies)."""
+        return {k: np.ascontiguousarray(a[..., c]) for k, a in zip(self.keys, self.arrays, strict=True)}
+
+    def leave(self, c: int) -> dict[str, np.ndarray]:
+        """Channel ``c`` taken out: its state (:meth:`column`); the stack is no longer live."""
+        self.live = False
+        return self.column(c)
+
+
 class Estimator(ABC, Generic[ParamsT]):
     """Base class of all estimators, declared as
     ``class MyEstimator(Estimator[MyParams], kernel=my_kernel)``: the parameter model
@@ -528,7 +564,46 @@ class Estimator(ABC, Generic[ParamsT]):
         self.params = cast(ParamsT, self._validate_params(params, kwargs))
         self._check_params()
         self._setup()
-        self._state: dict[str, np.ndarray] = self._initial_state()
+        self._state = self._initial_state()
+
+    # ---- the state, or a bank's column of it ------------------------------------------------
+    # Between a bank's frames its channels' states stay stacked, channel last, in one
+    # StackedStates (sinewatch.estimators.bank.update_bank): the state of a channel in it is
+    # column ``_stack_index`` of the stack's arrays. Reading or replacing ``_state`` takes the
+    # channel out of the stack (its column copied into a dict of its own, the stack no longer
+    # advanced as a whole), so everything but the bank sees the plain dict of arrays.
+    _stack: StackedStates | None = None
+    _stack_index: int = 0
+    _own_state: dict[str, np.ndarray]
+
+    @property
+    def _state(self) -> dict[str, np.ndarray]:
+        stack = self._stack
+        if stack is not None:
+            self._own_state = stack.leave(self._stack_index)
+            self._stack = None
+        return self._own_state
+
+    @_state.setter
+    def _state(self, state: dict[str, np.ndarray]) -> None:
+        if self._stack is not None:
+            self._stack.live = False
+            self._stack = None
+        self._own_state = state
+
+    def _state_peek(self) -> dict[str, np.ndarray]:
+        """The state, for reading only, without taking the channel out of a bank's stack."""
+        stack = self._stack
+        return self._own_state if stack is None else stack.column(self._stack_index)
+
+    def _state_checkpoint(self) -> tuple[Any, ...]:
+        """Where the state is now (its dict, or its stack and column), without moving it: what
+        :meth:`_state_rollback` puts back after a failed update (kernels return new arrays and
+        a stack is advanced only when its kernel has returned, so what this names is intact)."""
+        return self._stack, self._stack_index, self.__dict__.get("_own_state")
+
+    def _state_rollback(self, checkpoint: tuple[Any, ...]) -> None:
+        self._stack, self._stack_index, self._own_state = checkpoint
 
     # ---- parameters -------------------------------------------------------------------
     @classmethod
@@ -638,7 +713,7 @@ class Estimator(ABC, Generic[ParamsT]):
     def get_state(self) -> dict[str, Any]:
         """A JSON-serialisable snapshot that :meth:`set_state` restores exactly."""
         return state_snapshot(
-            STATE_FORMAT_VERSION, "estimator", self.name, self.sample_rate_hz, self.params, self._state
+            STATE_FORMAT_VERSION, "estimator", self.name, self.sample_rate_hz, self.params, self._state_peek()
         )
 
     def set_state(self, snapshot: Mapping[str, Any]) -> None:

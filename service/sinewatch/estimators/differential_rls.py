@@ -143,7 +143,7 @@ has the measured figures beside the paper's.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -565,7 +565,7 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
             track.rocof_hz_per_s = rocof[:, None]
         return track
 
-    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
         """:meth:`_track` of every channel of a bank (:func:`differential_rls_bank_kernel`'s outputs)."""
         out, ext, sse = outputs
         on = self.params.rocof_model

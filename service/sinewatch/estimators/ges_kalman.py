@@ -78,7 +78,7 @@ which then describes the noise it assumes, not the model error.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -267,7 +267,7 @@ class GesKalman(Estimator[GesKalmanParams], kernel=ges_kalman_kernel, name="ges-
         track.std = TrackStd(frequency_hz=std[:, 0:1], amplitude=std[:, 1:2], phase_rad=std[:, 2:3], offset=std[:, 3])
         return track
 
-    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
         """:meth:`_track` of every channel of a bank (:func:`ges_kalman_bank_kernel`'s outputs)."""
         out, sse, std = outputs
         return column_tracks(out, sse, block.shape[0], std=std)

@@ -109,7 +109,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -381,7 +381,7 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         track.extras["std_rocof_hz_per_s"] = std_rocof
         return track
 
-    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
         """The Tracks of a bank's channels (:func:`ipdft_bank_kernel`'s outputs, channel
         first) as :meth:`_track` gives each, built with one numpy call a field for the whole
         frame (:func:`~sinewatch.estimators.bank.column_tracks`), (U) computed once over the

@@ -119,7 +119,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -422,7 +422,7 @@ def observer_track(outputs: tuple[Any, ...], block: np.ndarray) -> Track:
     )
 
 
-def observer_bank_tracks(_first: Any, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+def observer_bank_tracks(_first: Any, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
     """:func:`observer_track` of every channel of a bank (outputs channel first, ``block`` (N, C))."""
     out, ext, sse = outputs
     extras = {EXTRA_NAMES[0]: ext[:, :, 0], EXTRA_NAMES[1]: ext[:, :, 1], EXTRA_NAMES[2]: ext[:, :, 2]}

@@ -106,6 +106,7 @@ blocks.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -277,24 +278,33 @@ def presence_kernel(
 @kernel
 def presence_bank_kernel(
     x: np.ndarray, columns: np.ndarray, sums: np.ndarray, counters: np.ndarray, rings: np.ndarray, consts: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`presence_kernel` on columns ``columns`` of ``x`` (n, C), detector i's state in
-    row i of ``sums``, ``counters`` and ``rings``: returns the runs (D, n) and the new state
-    rows. Each detector's are exactly presence_kernel's on its column alone: it is that
-    kernel, called per column (one call from Python for a frame's channels instead of one
-    each)."""
+    row i of ``sums``, ``counters`` and ``rings``: returns the runs (D, n), the new state
+    rows and each detector's onset latency after the frame (what
+    :attr:`SignalPresence.onset_latency_samples` reads from its new state: the same
+    comparisons, :func:`_fast_usable`). Each detector's are exactly presence_kernel's on its
+    column alone: it is that kernel, called per column (one call from Python for a frame's
+    channels instead of one each)."""
     d = columns.shape[0]
     runs = np.empty((d, x.shape[0]), dtype=np.int64)
     new_sums = np.empty_like(sums)
     new_counters = np.empty_like(counters)
     new_rings = np.empty_like(rings)
+    latency = np.empty(d, dtype=np.int64)
+    fast = consts[_K_FAST] != 0.0
+    level_test = (4 if fast else 3) * int(consts[_K_HALF])  # the level test's latency, 3 H or 4 H
+    quadrature_test = int(consts[_K_QUARTER]) + int(consts[_K_MEAN]) - 1  # (F)'s, Q + m - 1
     for i in range(d):
         run, _level, s, c, g = presence_kernel(x[:, columns[i]], sums[i], counters[i], rings[i], consts)
         runs[i] = run
         new_sums[i] = s
         new_counters[i] = c
         new_rings[i] = g
-    return runs, new_sums, new_counters, new_rings
+        latency[i] = level_test
+        if fast and c[_ARMED] != 0 and _fast_usable(s[_MU], s[_CQ], s[_R]) and _fast_usable(s[_MU1], s[_CQ1], s[_R]):
+            latency[i] = quadrature_test
+    return runs, new_sums, new_counters, new_rings, latency
 
 
 def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns: list[int]) -> np.ndarray | None:
@@ -303,22 +313,72 @@ def update_presence_bank(detectors: list[SignalPresence], x: np.ndarray, columns
     returns, and each detector's state as that call leaves it. None (nothing done) when the
     detectors do not share their parameters or ``x`` is not float64: the caller then runs
     them one by one."""
+    readings = read_presence_bank(detectors, x, columns)
+    return None if readings is None else readings.runs
+
+
+@dataclass(frozen=True, slots=True)
+class PresenceBankReadings:
+    """What a bank of detectors read over a frame: each one's runs, and after the frame its
+    ``run_samples`` and ``onset_latency_samples``, read from the bank's new state arrays at
+    once (the same values as the properties, without their Python a detector)."""
+
+    runs: np.ndarray  # (D, n)
+    run_samples: list[int]
+    onset_latency_samples: list[int]
+
+
+def read_presence_bank(
+    detectors: list[SignalPresence], x: np.ndarray, columns: list[int]
+) -> PresenceBankReadings | None:
+    """:func:`update_presence_bank`, with the detectors' readings after the frame."""
     first = detectors[0]
     params = first.params
     if x.dtype != np.float64 or x.ndim != 2 or any(d.params != params for d in detectors):
         return None
     x = kernel_samples(x)
-    # np.array of the rows, not np.stack: the same (D, k) array, without np.stack's checks in
-    # Python (1.3 against 5.3 us an array of 8 rows, timeit)
-    sums = np.array([d.sums for d in detectors])
-    counters = np.array([d.counters for d in detectors])
-    rings = np.array([d.ring for d in detectors])
-    runs, new_sums, new_counters, new_rings = presence_bank_kernel(
+    stacked = first.bank_rows
+    if stacked is not None and stacked.holds(detectors):  # the last frame's bank, untouched since
+        sums, counters, rings = stacked.arrays
+    else:
+        # np.array of the rows, not np.stack: the same (D, k) array, without np.stack's checks
+        # in Python (1.3 against 5.3 us an array of 8 rows, timeit)
+        sums = np.array([d.sums for d in detectors])
+        counters = np.array([d.counters for d in detectors])
+        rings = np.array([d.ring for d in detectors])
+    runs, new_sums, new_counters, new_rings, latency = presence_bank_kernel(
         x, np.asarray(columns, dtype=np.int64), sums, counters, rings, first.consts
     )
-    for i, d in enumerate(detectors):
-        d.sums, d.counters, d.ring = new_sums[i], new_counters[i], new_rings[i]
-    return runs
+    rows = _BankRows(tuple(detectors), (new_sums, new_counters, new_rings))
+    for d, s, c, g in zip(detectors, *rows.rows, strict=True):
+        d.sums, d.counters, d.ring = s, c, g
+    first.bank_rows = rows
+    return PresenceBankReadings(runs, new_counters[:, _RUN].tolist(), latency.tolist())
+
+
+class _BankRows:
+    """A bank's new state arrays (sums, counters, rings: a row a detector) and the row views
+    each detector was given: the next frame of the same bank passes the arrays as they are,
+    without gathering them again, while every detector still holds exactly those rows (a
+    detector updated, reset or restored on its own holds new arrays, and the bank is then
+    gathered afresh)."""
+
+    __slots__ = ("arrays", "members", "rows")
+
+    def __init__(self, members: tuple[SignalPresence, ...], arrays: tuple[np.ndarray, np.ndarray, np.ndarray]):
+        self.members = members
+        self.arrays = arrays
+        self.rows = tuple(list(a) for a in arrays)  # each row a view, made in one C call an array
+
+    def holds(self, detectors: list[SignalPresence]) -> bool:
+        members = self.members
+        if len(members) != len(detectors):
+            return False
+        sums, counters, rings = self.rows
+        return all(
+            a is d and d.sums is s and d.counters is c and d.ring is g
+            for a, d, s, c, g in zip(members, detectors, sums, counters, rings, strict=True)
+        )
 
 
 class SignalPresence:
@@ -358,6 +418,7 @@ class SignalPresence:
             raise ParameterError(f"edge: expected 0 (off) or 0 < edge < 1, got {edge}")
         self.edge = float(edge)  # (G); 0: the rules of earlier builds (validity rules version 4 and before)
         self.consts = np.array(self.params, dtype=np.float64)
+        self.bank_rows: _BankRows | None = None  # the bank this detector led last (read_presence_bank)
         self.reset()
 
     def reset(self) -> None:
@@ -459,8 +520,10 @@ __all__ = [
     "EDGE_RATIO",
     "FAST_DC",
     "FAST_RATIO",
+    "PresenceBankReadings",
     "SignalPresence",
     "presence_bank_kernel",
     "presence_kernel",
+    "read_presence_bank",
     "update_presence_bank",
 ]

@@ -102,6 +102,7 @@ frequency lags by R / Gamma and this reads R).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -398,7 +399,7 @@ class SogiFll(Estimator[SogiFllParams], kernel=sogi_fll_kernel, name="sogi-fll")
         # rocof first class too (Estimate v2), the extra kept
         return track_from_columns(out, sse, block.shape[0], extras, rocof_hz_per_s=ext[:, 1:2])
 
-    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
         """:meth:`_track` of every channel of a bank (:func:`sogi_fll_bank_kernel`'s outputs)."""
         out, ext, sse = outputs
         extras = {"relative_error_rms": ext[:, :, 0], "rocof_hz_per_s": ext[:, :, 1]}

@@ -22,7 +22,7 @@ daemon's frame path: ``estimator`` is then one :func:`~sinewatch.estimators.bank
 call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.presence.update_presence_bank`),
 ``encode`` the frame's Estimate bytes (one compiled call a frame, as the pipeline writes them),
 ``hold`` each channel's accept and hold-back
-(:func:`sinewatch.core.hold.hold`, on by default), ``recorder`` the frame's one input message
+(:func:`sinewatch.core.hold.hold_at_end`, on by default), ``recorder`` the frame's one input message
 and its channels' estimates (one ``on_estimates`` call); ``channel_by_channel_off`` the
 pipeline (recording off) with its per-frame steps turned off (:class:`ChannelByChannel`), beside
 ``pipeline_off`` in the same run; ``rest`` is then the per-channel checks, the grouping into banks
@@ -50,11 +50,11 @@ from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
 from sinewatch.core.estimate_bytes import bank_payloads
-from sinewatch.core.hold import hold
+from sinewatch.core.hold import hold_at_end
 from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
 from sinewatch.estimators.bank import update_bank
-from sinewatch.estimators.presence import update_presence_bank
+from sinewatch.estimators.presence import PresenceBankReadings, read_presence_bank
 from sinewatch.outputs.recorder import FastWriter, McapRecorder
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
 from sinewatch.schemas.config import EstimatorRule, RecordingSection, SinewatchConfig
@@ -175,16 +175,17 @@ def _frame_steps(
     banks = [[cls(args.rate, params) for _ in names] for names in feed.layout]
     channels = {name: Channel(name, f"sinewatch/in/{name}", cls(args.rate, params), args.rate) for name in feed.names}
     detectors = [[channels[name].presence for name in names] for names in feed.layout]
-    tracks: dict[str, Any] = {}
+    tracks: dict[str, Any] = {}  # by frame key: the bank's Tracks, as update_bank gives them
+    readings: dict[str, PresenceBankReadings] = {}  # by frame key: what its detectors read
     estimates: dict[str, bytes] = {}
+    written: dict[str, tuple[bool, bool | None]] = {}  # by channel: its estimate's converged and valid
     step_recorder = McapRecorder(_config(args, directory / "steps"))
     no_gaps = [(0, False, False, False)] * max(len(names) for names in feed.layout)
 
     def estimator(batch: FrameBatch) -> None:
         for row in batch:
-            for (_key, _payload, frame), ests in zip(row, banks, strict=True):
-                out = update_bank(ests, frame.samples, last_only=True, t0_ns=frame.t0_ns)
-                tracks.update(zip(frame.channels, out, strict=True))
+            for (key, _payload, frame), ests in zip(row, banks, strict=True):
+                tracks[key] = update_bank(ests, frame.samples, last_only=True, t0_ns=frame.t0_ns)
 
     def decode(batch: FrameBatch) -> None:
         dec = off._decode
@@ -194,33 +195,36 @@ def _frame_steps(
 
     def presence(batch: FrameBatch) -> None:  # the channels' detectors: their runs are what encode reads
         for row in batch:
-            for (_key, _payload, frame), dets in zip(row, detectors, strict=True):
-                runs = update_presence_bank(dets, frame.samples, list(range(len(dets))))  # type: ignore[arg-type]
-                assert runs is not None
-                for name, run in zip(frame.channels, runs, strict=True):
+            for (key, _payload, frame), dets in zip(row, detectors, strict=True):
+                read = read_presence_bank(dets, frame.samples, list(range(len(dets))))  # type: ignore[arg-type]
+                assert read is not None
+                readings[key] = read
+                for name, run in zip(frame.channels, read.runs, strict=True):
                     channels[name].last_run = run
 
     def encode(batch: FrameBatch) -> None:  # the tracks of the estimator step on this batch, a frame in one call
         for row in batch:
-            for _key, _payload, frame in row:
+            for key, _payload, frame in row:
                 t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
                 chs = [channels[name] for name in frame.channels]
                 blocks = [frame.block(c) for c in range(len(chs))]
                 made = bank_payloads(
-                    on, chs, blocks, [tracks[name] for name in frame.channels], t_last, no_gaps[: len(chs)]
+                    on, chs, blocks, tracks[key], t_last, no_gaps[: len(chs)], readings[key].run_samples
                 )
                 assert made is not None
                 estimates.update(zip(frame.channels, (payload for payload, _, _ in made), strict=True))
+                written.update(zip(frame.channels, ((c, v) for _, c, v in made), strict=True))
 
     def hold_back(batch: FrameBatch) -> None:  # each channel's accept and hold of the encode step's estimate
         accept = on._accept
         for row in batch:
-            for _key, _payload, frame in row:
-                t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
+            for key, _payload, frame in row:
+                latencies = readings[key].onset_latency_samples
                 for c, name in enumerate(frame.channels):
                     ch = channels[name]
                     accept(ch, frame.block(c), 0, False, False)
-                    hold(ch, t_last, [(estimates[name], True, t_last)], False)
+                    converged, valid = written[name]
+                    hold_at_end(ch, estimates[name], bool(valid), converged, False, latencies[c])
 
     def record(batch: FrameBatch) -> None:  # the frame, and its channels' estimates of the encode step
         on_input, on_estimates = step_recorder.on_input, step_recorder.on_estimates
