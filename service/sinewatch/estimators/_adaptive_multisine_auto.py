@@ -691,11 +691,14 @@ def auto_kernel(
     return out, ext, sse, s
 
 
-@kernel
 def adaptive_multisine_kernel(
     y: np.ndarray, state: np.ndarray, cf: np.ndarray, ci: np.ndarray, last_only: bool
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Run the estimator over block ``y`` from ``state``; return ``(out, extras, sse, new_state)``.
+    A Python function choosing one of two compiled kernels: compiled, it would be a third copy
+    of both (numba generates a caller's machine code again with every kernel it calls linked
+    in: 6.3 s of CPU more on a cold cache, ``tests/compile_kernels.py``'s longest task), for
+    a saving of ~0.1 us a block.
 
     ``ci[6]`` selects the mode: 1 the automatic design (:func:`auto_kernel`; for n = 1 and 2 the
     class runs the same written out, :func:`auto_kernel_n1`, :func:`auto_kernel_n2`), 0 the explicit gains
@@ -703,6 +706,6 @@ def adaptive_multisine_kernel(
     ``out`` columns: frequency_hz (n), amplitude (n), phase (n), offset, converged;
     ``extras``: lambda (n), psi (n), faded (n), signal present, observer reset. One row per
     sample, or only the last with ``last_only``. Pure: the inputs are not modified."""
-    if ci[_I_MODE] == 1:
+    if int(ci[_I_MODE]) == 1:
         return auto_kernel(y, state, cf, ci, last_only)
     return explicit.explicit_kernel(y, state, cf, ci, last_only)

@@ -277,11 +277,13 @@ def _rk4_substep(
     ya: float,
     yb: float,
     hs: float,
-    fresh: bool,
+    fresh: float,
 ) -> None:
     """One classical RK4 step of length ``hs`` of (12), (16), (17), (19)-(22) and (11) on the
     integrated part of ``s`` (updated in place), the measurement going linearly from ``ya`` to
-    ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``:
+    ``yb`` and the switching held in psi_eff. ``x`` (ns) and ``K`` (4 ns) are scratch; ``fresh``
+    (1.0 or 0.0: a float, which numba has no literal type for, so that it compiles this one
+    function once and not again for a literal ``False`` met while typing the caller's loop):
     ``work`` already holds the decomposition of ``s``. One function with the right-hand side
     written out, because every call of a compiled helper costs ~15 ns per array argument."""
     n, nx, nf, nz = ci[_I_N], ci[_I_NX], ci[_I_NF], ci[_I_NZ]
@@ -327,7 +329,7 @@ def _rk4_substep(
         for i in range(n):
             K[d + oth + i] = 0.0
         if n_on > 0:
-            if st > 0 or not fresh:
+            if st > 0 or fresh == 0.0:
                 _chol(x, work, cf, ci)
                 if n_on < n:
                     _eig(work, n)
@@ -501,7 +503,7 @@ def explicit_kernel(
     ext = np.empty((nrow, 3 * n + 2))
     hs = h / m_sub
     sse = 0.0
-    fresh = False  # work holds the decomposition of s
+    fresh = 0.0  # 1.0: work holds the decomposition of s (a float: see _rk4_substep)
     nsamp = y.shape[0]
     for k in range(nsamp):
         yk = y[k] / amp_u
@@ -547,7 +549,7 @@ def explicit_kernel(
                 ua = y0 + (yk - y0) * (j / m_sub)  # first-order hold between samples
                 ub = y0 + (yk - y0) * ((j + 1.0) / m_sub)
                 _rk4_substep(s, tmp, kbuf, work, cf, ci, ua, ub, hs, fresh)
-                fresh = False
+                fresh = 0.0
                 # projection: radial clip to |thetah| <= theta_bar (19); Ah >= 0 (11)
                 tt = 0.0
                 for i in range(n):
@@ -592,7 +594,7 @@ def explicit_kernel(
                     s[oyp + _CLOCK] = 0.0
             # (23)-(25) at t_k: excitation levels and hysteretic switching
             _excitation(s, work, cf, ci)
-            fresh = True
+            fresh = 1.0
             any_on = False
             for i in range(n):
                 if work[wl + i] >= d_hi:
@@ -612,7 +614,7 @@ def explicit_kernel(
         else:
             s[oyp + _STARTED] = 1.0
             _excitation(s, work, cf, ci)
-            fresh = True
+            fresh = 1.0
         s[oyp + _Y_PREV] = yk
         # ---- outputs at t_k: (8), (10), (11); convergence statistics; next-sample prediction
         amax = 0.0

@@ -97,10 +97,6 @@ _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
 NO_BANK: dict[str, str] = {
-    "adaptive-multisine": (
-        "no compiled bank yet: its kernels (explicit and automatic-rate variants, per-component "
-        "loops) would have to be split into a per-sample step shared with a bank first"
-    ),
     "nls": (
         "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
         "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
