@@ -181,12 +181,7 @@ def update_bank(
         stacked = [_channel_last(np.array([e._state[k] for e in estimators])) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], list(result[bank.n_outputs :])
-    if bank.tracks is not None:
-        tracks = bank.tracks(first, outputs, x)
-        if isinstance(tracks, ColumnTracks):
-            tracks.seal()
-    else:
-        tracks = [est._track(tuple(o[c] for o in outputs), x[:, c]) for c, est in enumerate(estimators)]
+    tracks = _bank_tracks(bank, estimators, outputs, x, x.T)
     # the new states kept stacked (as the kernel returns them: (*shape, C), C-contiguous), only
     # now that nothing can fail: a bank that raised leaves every channel's state as it was
     if stack is not None:
@@ -197,6 +192,24 @@ def update_bank(
             est._state = {}  # (the old dict let go; the stack holds the state from here)
             est._stack, est._stack_index = stack, c
     return tracks
+
+
+def _bank_tracks(
+    bank: BankKernel,
+    estimators: Sequence[Estimator[Any]],
+    outputs: tuple[Any, ...],
+    x: np.ndarray,
+    channel_rows: np.ndarray,
+) -> Sequence[Track]:
+    """The channels' Tracks from a bank kernel's outputs: the bank's own ``tracks`` (sealed
+    when they are a :class:`ColumnTracks`), else each channel's ``_track`` on its slice of the
+    outputs and its samples (``channel_rows[c]``)."""
+    if bank.tracks is not None:
+        tracks = bank.tracks(estimators[0], outputs, x)
+        if isinstance(tracks, ColumnTracks):
+            tracks.seal()
+        return tracks
+    return [est._track(tuple(o[c] for o in outputs), channel_rows[c]) for c, est in enumerate(estimators)]
 
 
 def _channel_first_bank(
@@ -212,12 +225,7 @@ def _channel_first_bank(
     stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
     result = bank.kernel(x, *stacked, *first._constants, last_only)
     outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
-    if bank.tracks is not None:
-        tracks = bank.tracks(first, outputs, x)
-        if isinstance(tracks, ColumnTracks):
-            tracks.seal()
-    else:
-        tracks = [est._track(tuple(o[c] for o in outputs), x[c]) for c, est in enumerate(estimators)]
+    tracks = _bank_tracks(bank, estimators, outputs, x, x)
     rows = [list(s) for s in new_state]  # row c of each new array is channel c's, contiguous: kept as a view
     for c, est in enumerate(estimators):
         est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
