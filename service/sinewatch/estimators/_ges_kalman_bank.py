@@ -322,13 +322,8 @@ def ges_kalman_bank_kernel(
     lam = 1.0 - 1.0 / consts[7]  # (U5)
     corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
     L = LANES
-    # rows on 64-byte boundaries: a row is one cache line, so no vector load of half a row splits
-    # across two (an allocation's own alignment varies from process to process: the same kernel
-    # measured ~30 % slower in one process of seven)
-    buf = np.empty(_ROWS * L + L)
-    at = (L - (buf.ctypes.data // 8) % L) % L
-    S = buf[at : at + _ROWS * L]
-    ys = np.empty(n * L)
+    S = lanes.aligned_lanes(_ROWS * L)  # rows on 64-byte boundaries: a row is one cache line
+    ys = lanes.aligned_lanes(n * L)
     T = np.empty((4, 4))
     U = np.empty((4, 4))
     for g in range(0, nc, L):
