@@ -128,7 +128,7 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         "holds 63 packed double operations on ymm (the 8 lanes' prediction, (D)'s six sums and the "
         "rotor: ~8 operations a channel-sample) against 113 scalar ones, 6 scalar divisions and 40 "
         "calls in its report branch, so the vector part is a few ns of update_bank's 42-53 ns a "
-        "channel-sample (ten processes, load 18-28)"
+        "channel-sample (ten processes, load 18-29)"
     )
     paper = None
     example_sample_rate_hz = 10_000.0
