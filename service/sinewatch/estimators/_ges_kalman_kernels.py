@@ -428,6 +428,7 @@ def _parameter_std(
     x4: float,
     T: np.ndarray,
     U: np.ndarray,
+    J: np.ndarray,
     s2: float,
     Ts: float,
     std: np.ndarray,
@@ -435,26 +436,9 @@ def _parameter_std(
 ) -> None:
     """Row ``row`` of ``std``: sd of (f [Hz], A, theta, B) = sqrt(diag(J Pa J^T)) with
     ``Pa = T + s2 U`` (U1, U6); NaN outside (-4, 0) (eq. 20). J is the Jacobian of the
-    recovery formulas (:mod:`sinewatch.estimators.ges_kalman`'s docstring) at x_hat."""
-    _parameter_std_into(x1, x2, x3, x4, T, U, np.empty((4, 4)), s2, Ts, std, row)
-
-
-@kernel(inline="always")
-def _parameter_std_into(
-    x1: float,
-    x2: float,
-    x3: float,
-    x4: float,
-    T: np.ndarray,
-    U: np.ndarray,
-    J: np.ndarray,
-    s2: float,
-    Ts: float,
-    std: np.ndarray,
-    row: int,
-) -> None:
-    """:func:`_parameter_std` with the Jacobian in ``J`` (4 x 4, overwritten), which the caller
-    owns: a function compiled without reference counting allocates nothing."""
+    recovery formulas (:mod:`sinewatch.estimators.ges_kalman`'s docstring) at x_hat, written into
+    ``J`` (4 x 4, overwritten), which the caller owns: :func:`_estimate_row`, compiled without
+    reference counting, allocates nothing."""
     if not (-4.0 < x3 < 0.0):
         for i in range(4):
             std[row, i] = np.nan
@@ -533,7 +517,7 @@ def _estimate_row(
     single kernel and the bank). Without reference counting, so a call costs no atomic operations
     and LLVM may still inline it."""
     c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, o, st, s2, corr)  # (B4)
-    _parameter_std_into(c1, c2, c3, c4, T, U, J, s2, Ts, std, row)
+    _parameter_std(c1, c2, c3, c4, T, U, J, s2, Ts, std, row)
     _write_estimates(out, row, c1, c2, c3, c4, p22, Ts, rel_std)
 
 
