@@ -106,14 +106,45 @@ class FrameMember:
 
 
 @dataclass(frozen=True, slots=True)
+class UsualBank:
+    """One bank of a :class:`FrameLayout`: what its usual frame hands the compiled calls, made
+    once for the layout rather than once a frame (the pipeline's usual frame builds no
+    per-column object)."""
+
+    columns: list[int]
+    channels: tuple[Channel, ...]
+    estimators: list[Estimator]
+    detectors: list[SignalPresence]
+    every_column: bool  # the bank is the whole frame, in column order (its samples as they are)
+    # its detectors run as one bank (read_presence_bank): two or more channels, each estimator's
+    # presence signal its block itself
+    presence_bank: bool
+
+
+@dataclass(frozen=True, slots=True)
 class FrameLayout:
     """A frame key's last frame whose every channel went into a bank: its channel names, rate,
-    the channels (a column each) and the banks (key, columns), in the order they ran."""
+    the channels (a column each) and the banks, in the order they ran."""
 
     names: tuple[str, ...]
     sample_rate_hz: float
     channels: tuple[Channel, ...]
-    banks: tuple[tuple[tuple[int, str, float], tuple[int, ...]], ...]
+    banks: tuple[UsualBank, ...]
+
+
+def usual_bank(columns: tuple[int, ...], channels: tuple[Channel, ...], n_columns: int) -> UsualBank:
+    """The :class:`UsualBank` of a frame's accepted ``channels`` in ``columns`` (of ``n_columns``)."""
+    bank = [channels[c] for c in columns]
+    estimators = [ch.estimator for ch in bank]
+    return UsualBank(
+        list(columns),
+        tuple(bank),
+        estimators,
+        [ch.presence for ch in bank],  # type: ignore[misc]  # (every channel has its detector)
+        list(columns) == list(range(n_columns)),
+        # a bank's channels share one estimator class (its rule's): asked of the first
+        len(bank) >= 2 and type(estimators[0]).presence_samples is Estimator.presence_samples,
+    )
 
 
 @dataclass(frozen=True)
