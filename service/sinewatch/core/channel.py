@@ -81,6 +81,12 @@ class Channel:
             self._valid_memory = value
         return value
 
+    @property
+    def fixed_valid_memory(self) -> int | None:
+        """:attr:`valid_memory_samples` where it cannot change (kept), else None."""
+        _ = self.valid_memory_samples
+        return self._valid_memory
+
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
         assert self.presence is not None
@@ -105,7 +111,7 @@ class FrameMember:
     jump: bool = False  # a time jump (sinewatch.core.continuity)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class UsualBank:
     """One bank of a :class:`FrameLayout`: what its usual frame hands the compiled calls, made
     once for the layout rather than once a frame (the pipeline's usual frame builds no
@@ -119,6 +125,9 @@ class UsualBank:
     # its detectors run as one bank (read_presence_bank): two or more channels, each estimator's
     # presence signal its block itself
     presence_bank: bool
+    # what its Estimates' bytes keep between frames (sinewatch.core.estimate_bytes.BankWriting),
+    # once a frame has written them the usual way
+    writing: Any = None
 
 
 @dataclass(frozen=True, slots=True)

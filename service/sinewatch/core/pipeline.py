@@ -44,7 +44,13 @@ from sinewatch.core.channel import (
     usual_bank,
 )
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
-from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimate_payload
+from sinewatch.core.estimate_bytes import (
+    bank_payloads,
+    bank_writing,
+    estimate_model,
+    estimate_payload,
+    usual_bank_payloads,
+)
 from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
@@ -526,16 +532,16 @@ class Pipeline:
         the layout's lists. The Estimates' bytes read of a block only what a frame's columns
         share (seq, sample count, time quality): the first column's block stands for all."""
         n = len(bank.channels)
+        block = frame.block(bank.columns[0])
         try:
-            made = bank_payloads(
-                self,
-                bank.channels,
-                [frame.block(bank.columns[0])] * n,
-                tracks,
-                t_last,
-                _NO_GAPS * n,
-                readings.run_samples,
-            )
+            made = None
+            if bank.writing is not None:  # the bank's usual case, from what its last frame's left
+                made = usual_bank_payloads(self, bank.writing, block, tracks, t_last, readings.run_samples)
+            if made is None:
+                made = bank_payloads(
+                    self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples
+                )
+                bank.writing = None if made is None else bank_writing(self, bank.channels, block, tracks)
         except Exception:  # nothing changed yet: each channel on its own then isolates the fault
             self._bank_estimate_failures += 1
             if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame

@@ -303,7 +303,11 @@ class ColumnTracks(Sequence[Track]):
 
     def converged_last(self) -> list[bool]:
         """Each channel's ``converged`` at its last row (what ``bool(track.converged[-1])`` reads)."""
-        return self._args[0][:, -1, 4].astype(np.bool_).tolist()  # type: ignore[no-any-return]
+        return self.converged_last_array().tolist()  # type: ignore[no-any-return]
+
+    def converged_last_array(self) -> np.ndarray:
+        """:meth:`converged_last` as a boolean array, a channel each."""
+        return self._args[0][:, -1, 4].astype(np.bool_)
 
     def __len__(self) -> int:
         return int(self._args[0].shape[0])
