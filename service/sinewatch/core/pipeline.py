@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Container, Mapping, Sequence
+from collections.abc import Callable, Container, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -496,8 +496,8 @@ class Pipeline:
             return False
         live: Sequence[Track] = tracks  # type: ignore[assignment]  # (none is None)
         chs = [m.channel for m in members]
-        try:
-            made = bank_payloads(
+        made = self._in_one_call(
+            lambda: bank_payloads(
                 self,
                 chs,
                 [m.block for m in members],
@@ -506,17 +506,27 @@ class Pipeline:
                 [(m.gap_blocks, m.restart, m.reset, m.jump) for m in members],
                 readings.run_samples,
             )
-        except Exception:  # nothing changed yet: each channel on its own then isolates the fault
-            self._bank_estimate_failures += 1
-            if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame
-                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
-            return False
+        )
         if made is None:
             return False
         self._hold_and_hand_out(
             chs, made, readings.onset_latency_samples, t_last, log_time_ns, received_ns, members=members
         )
         return True
+
+    def _in_one_call(
+        self, write: Callable[[], list[tuple[bytes, bool, bool | None]] | None]
+    ) -> list[tuple[bytes, bool, bool | None]] | None:
+        """A bank's Estimates written in one call (``write``), or None where that does not apply
+        or failed: nothing is changed by then, so each channel written on its own then isolates
+        the fault (a bug, logged the first few times, not every frame)."""
+        try:
+            return write()
+        except Exception:  # nothing changed by then: each channel on its own isolates it
+            self._bank_estimate_failures += 1
+            if self._bank_estimate_failures <= 5:
+                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
+            return None
 
     def _usual_estimates(
         self,
@@ -531,22 +541,19 @@ class Pipeline:
         """:meth:`_bank_estimates` of a usual frame's bank (no gap, restart, reset or jump), from
         the layout's lists. The Estimates' bytes read of a block only what a frame's columns
         share (seq, sample count, time quality): the first column's block stands for all."""
-        n = len(bank.channels)
         block = frame.block(bank.columns[0])
-        try:
-            made = None
-            if bank.writing is not None:  # the bank's usual case, from what its last frame's left
+
+        def write() -> list[tuple[bytes, bool, bool | None]] | None:
+            if bank.writing is not None:  # the bank's usual case, from what its last frame left
                 made = usual_bank_payloads(self, bank.writing, block, tracks, t_last, readings.run_samples)
-            if made is None:
-                made = bank_payloads(
-                    self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples
-                )
-                bank.writing = None if made is None else bank_writing(self, bank.channels, block, tracks)
-        except Exception:  # nothing changed yet: each channel on its own then isolates the fault
-            self._bank_estimate_failures += 1
-            if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame
-                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
-            return False
+                if made is not None:
+                    return made
+            n = len(bank.channels)
+            made = bank_payloads(self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples)
+            bank.writing = None if made is None else bank_writing(self, bank.channels, block, tracks)
+            return made
+
+        made = self._in_one_call(write)
         if made is None:
             return False
         self._hold_and_hand_out(
