@@ -154,3 +154,23 @@ def test_a_kept_writing_gives_bank_payloads_bytes_converged_and_valid(tmp_path):
     assert flags == [(False, False), (False, False), (True, True), (True, True), (False, True), (True, True)]
     pipe.set_fencing(Fencing(shard="s", term=2))
     assert usual_bank_payloads(pipe, writing, block, tracks, t_last, runs) is None
+
+
+def test_a_bank_whose_estimates_in_one_call_fail_writes_each_channel_on_its_own(tmp_path, caplog):
+    """The kept writing broken from the third frame on (a bug, say): each following frame's
+    Estimates in one call fail, are counted and logged the first few times only, and each
+    channel's Estimate is written, held and handed out on its own: the same estimates as every
+    frame checked."""
+
+    class Broken(Pipeline):
+        def _usual_bank(self, bank, *args, **kwargs):
+            if bank.writing is not None:
+                bank.writing = "not a BankWriting"
+            return super()._usual_bank(bank, *args, **kwargs)
+
+    broken, pipe = _run(Broken, tmp_path, fault=False)
+    checked, _ = _run(NoUsualFrame, tmp_path, fault=False)
+    assert broken.estimates == checked.estimates and len(broken.estimates) == 14 * 5
+    assert broken.errors == checked.errors == []
+    assert pipe._bank_estimate_failures == 14 - 2  # every frame after the one that made the writing
+    assert len([r for r in caplog.records if "in one call failed" in r.getMessage()]) == 5
