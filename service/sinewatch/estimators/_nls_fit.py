@@ -624,7 +624,8 @@ def window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab: 
     # The order 0 and a single iteration as int64, not as literals: numba compiles a callee once
     # per argument type and a literal int is a type of its own (Literal[int](0)), so literal
     # arguments compiled _fit, _gram, _gn_step and _residual a second time (3 s of CPU cold).
-    no_tones, one_iteration = np.int64(0), np.int64(1)
+    # (int() of a numpy int64 is int64 to numba, not a literal, and int to mypy.)
+    no_tones, one_iteration = int(np.int64(0)), int(np.int64(1))
     max_rel = fconsts[1]
     c = 0.5 * (N - 1)
     nu_max = math.pi * c * (1.0 - 1e-9)
