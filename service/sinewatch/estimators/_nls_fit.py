@@ -621,6 +621,11 @@ def window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab: 
     ``tones`` (k_cols, 7) and ``glob`` (8,)."""
     N = xw.shape[0]
     k_fixed, k_max, use_aic, n_lin0, max_iter = iconsts[0], iconsts[1], iconsts[2], iconsts[3], iconsts[6]
+    # The order 0 and a single iteration as int64, not as literals: numba compiles a callee once
+    # per argument type and a literal int is a type of its own (Literal[int](0)), so literal
+    # arguments compiled _fit, _gram, _gn_step and _residual a second time (3 s of CPU cold).
+    # (int() of a numpy int64 is int64 to numba, not a literal, and int to mypy.)
+    no_tones, one_iteration = int(np.int64(0)), int(np.int64(1))
     max_rel = fconsts[1]
     c = 0.5 * (N - 1)
     nu_max = math.pi * c * (1.0 - 1e-9)
@@ -669,16 +674,16 @@ def window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab: 
             coef[0] = np.sum(xw) / N
             cov[0, 0] = 1.0 / N
         else:
-            ok, cv, r2, nu = _fit(xw, nu, 0, n_lin0, 1, nu_max, coef, cov)
+            ok, cv, r2, nu = _fit(xw, nu, no_tones, n_lin0, one_iteration, nu_max, coef, cov)
         if ok:
             mean = 0.0
             if n_lin0 == 1:  # the residual is x - mean: subtracted in (4) directly
                 mean = coef[0]
                 if k_fixed == 0:
-                    r2s[0] = _residual(xw, nu, 0, n_lin0, coef, resid)
+                    r2s[0] = _residual(xw, nu, no_tones, n_lin0, coef, resid)
                 src = xw
             else:
-                r2s[0] = _residual(xw, nu, 0, n_lin0, coef, resid)
+                r2s[0] = _residual(xw, nu, no_tones, n_lin0, coef, resid)
                 src = resid
             convs[0] = True
             coefs[0, :n_lin0] = coef
@@ -736,7 +741,7 @@ def window_estimate(xw: Arr, iconsts: Arr, fconsts: Arr, cos_tab: Arr, sin_tab: 
     p = n_lin0 + 2 * kk
     q = p + kk
     if kk == 0 and not math.isfinite(r2s[0]):  # K fixed and no tone found: offset only
-        r2s[0] = _residual(xw, nus[0, :0].copy(), 0, n_lin0, coefs[0, :n_lin0].copy(), resid)
+        r2s[0] = _residual(xw, nus[0, :0].copy(), no_tones, n_lin0, coefs[0, :n_lin0].copy(), resid)
     nu = nus[kk, :kk].copy()
     coef = coefs[kk, :p].copy()
     cov = covs[kk, :q, :q].copy()
