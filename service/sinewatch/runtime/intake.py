@@ -43,6 +43,26 @@ HISTORY_FIFO_ALL = 1 << 20
 # the history 1.19 s), the round trips one after another; a shard of thousands of keys is not asked
 # for every one at once
 HISTORY_QUERIES_AT_ONCE = 64
+MISS_FIFO = 4096  # zenoh-ext's reports of blocks lost for good, waiting for the intake's thread (one a publisher)
+
+
+def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
+    """The channel Zenoh's receiving thread hands this intake its samples through.
+
+    ``"block"``: a small FIFO; past it Zenoh itself holds the data back, and so does the
+    publisher (peer mode: the back-pressure loses nothing). ``"drop"`` (a daemon behind a
+    router): a ring as deep as the queue, which never makes Zenoh's thread wait. That thread
+    also reads this daemon's query replies, snapshots and admin queries off the same link; a
+    full FIFO stopped it, and the router, pushing it a ``BLOCK`` reply (a takeover's history
+    queries), stopped reading the sender's link for everyone: in a 50-fault chaos run (load
+    15-18) a new owner's pump fell behind while its 50 history queries' threads took the GIL,
+    its history queries all ran out of time (10 s), and the gateway's puts waited out their
+    30 s and closed its link (docs/cluster.md, "A daemon that falls behind keeps reading").
+    Past the ring, the oldest samples go: the pipeline flags them as a gap on the channel's
+    next estimate, as it does the inputs the queue drops."""
+    if policy == "drop":
+        return zenoh.handlers.RingChannel(max(64, capacity))
+    return zenoh.handlers.FifoChannel(max(64, batch * 2))
 
 
 @dataclass
@@ -177,8 +197,7 @@ class Intake:
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
-        # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
-        fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        fifo = zenoh_side_channel(self._policy, self._batch, self._capacity)
         self._miss_listener = None
         self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
         # The newest sample handed over per publisher (its source id -> sequence number): the
@@ -222,7 +241,10 @@ class Intake:
         # FIFO holding the subscriber's lock, which registering a listener takes too; with the
         # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
         if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
-            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
+            # Into a FIFO a thread of this intake drains, not a Python callback on Zenoh's thread,
+            # which would wait there for the GIL (zenoh_side_channel says why that thread must not)
+            self._miss_listener = self._subscriber.sample_miss_listener(zenoh.handlers.FifoChannel(MISS_FIFO))
+            threading.Thread(target=self._read_misses, name="sinewatch-misses", daemon=True).start()
             # each key's last block already in the state (restored from a snapshot or a file): the
             # history up to it is dropped unread rather than decoded, recorded and skipped
             keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
@@ -443,8 +465,15 @@ class Intake:
         finally:
             self._closed.set()
 
+    def _read_misses(self) -> None:
+        listener = self._miss_listener
+        assert listener is not None
+        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
+            while True:
+                self._on_miss(listener.handler.recv())
+
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
-        """On a Zenoh thread: blocks lost for good. Counted here, and reported at once as an
+        """On the misses' thread: blocks lost for good. Counted here, and reported at once as an
         ``unrecovered`` ErrorReport on the publisher's key: the pipeline flags the gap on the
         channel's next estimate, but the last blocks of a stream that ends (or pauses) have
         no next estimate, and their loss must still be told (a failover test waited for the
