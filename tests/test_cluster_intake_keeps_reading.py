@@ -1,10 +1,9 @@
 """A daemon behind a router (``queue_policy = "drop"``) keeps reading its Zenoh link while its
 intake's pump is behind (``sinewatch.runtime.intake.zenoh_side_channel``). With a small FIFO
-between Zenoh's receiving thread and the pump, a pump starved of the GIL (a takeover's 50 history
-threads beside it, on a loaded machine) let the FIFO fill; Zenoh's thread then waited on it and read
-nothing more off the link, replies included, and the router, pushing the daemon a ``BLOCK`` reply,
-stopped reading the sender's link for everyone (a 50-fault chaos run: every history query of the
-new owner ran out of time, the gateway closed its link after 30 s).
+between Zenoh's receiving thread and the pump, a pump starved of the GIL or of CPU (a takeover's
+50 history threads beside it, on a loaded machine) lets the FIFO fill; Zenoh's thread then waits
+on it and reads nothing more off the link, replies included, and the router, pushing the daemon
+a ``BLOCK`` reply, stops reading the sender's link (the gateway's) for everyone.
 
 On real Zenoh sessions on 127.0.0.1: the pump is held (it waits for the intake's lock), a
 publisher puts ``INPUTS`` blocks (more than the old FIFO held), then a marker on another key of

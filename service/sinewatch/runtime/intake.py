@@ -52,14 +52,13 @@ def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
     ``"block"``: a small FIFO; past it Zenoh itself holds the data back, and so does the
     publisher (peer mode: the back-pressure loses nothing). ``"drop"`` (a daemon behind a
     router): a ring as deep as the queue, which never makes Zenoh's thread wait. That thread
-    also reads this daemon's query replies, snapshots and admin queries off the same link; a
-    full FIFO stopped it, and the router, pushing it a ``BLOCK`` reply (a takeover's history
-    queries), stopped reading the sender's link for everyone: in a 50-fault chaos run (load
-    15-18) a new owner's pump fell behind while its 50 history queries' threads took the GIL,
-    its history queries all ran out of time (10 s), and the gateway's puts waited out their
-    30 s and closed its link (docs/cluster.md, "A daemon that falls behind keeps reading").
-    Past the ring, the oldest samples go: the pipeline flags them as a gap on the channel's
-    next estimate, as it does the inputs the queue drops."""
+    also reads this daemon's query replies, snapshots and admin queries off the same link; with
+    a full FIFO it stops, and the router, pushing the daemon a ``BLOCK`` reply (a takeover's
+    history queries), stops reading the sender's link, the gateway's, for everyone, and past
+    the lease expires it (docs/cluster.md, "A daemon behind real time keeps reading its link").
+    A pump is behind when its process is starved (a takeover's 50 history threads share the GIL
+    with it). Past the ring, the oldest samples go: the pipeline flags them as a gap on the
+    channel's next estimate, as it does the inputs the queue drops."""
     if policy == "drop":
         return zenoh.handlers.RingChannel(max(64, capacity))
     return zenoh.handlers.FifoChannel(max(64, batch * 2))
