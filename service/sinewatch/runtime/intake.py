@@ -1,8 +1,9 @@
 """The daemon's intake: a Zenoh subscriber and a pump thread that hand the event loop its inputs
 in batches, and the order a takeover's history goes to the pipeline.
 
-Why a thread: Zenoh delivers samples on its own threads into a bounded FIFO channel (never
-blocking a Zenoh callback on Python work); the pump drains it in batches and hands each batch
+Why a thread: Zenoh delivers samples on its own threads into a bounded channel (never
+blocking a Zenoh callback on Python work; a FIFO, or a ring with ``queue_policy = "drop"``:
+:func:`zenoh_side_channel`); the pump drains it in batches and hands each batch
 to the event loop with one ``call_soon_threadsafe`` (:mod:`sinewatch.runtime.daemon` says how
 backpressure and shutdown use it).
 """
