@@ -44,7 +44,6 @@ HISTORY_FIFO_ALL = 1 << 20
 # the history 1.19 s), the round trips one after another; a shard of thousands of keys is not asked
 # for every one at once
 HISTORY_QUERIES_AT_ONCE = 64
-MISS_FIFO = 4096  # zenoh-ext's reports of blocks lost for good, waiting for the intake's thread (one a publisher)
 
 
 def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
@@ -241,10 +240,7 @@ class Intake:
         # FIFO holding the subscriber's lock, which registering a listener takes too; with the
         # FIFO full and nobody draining it yet, a takeover's daemon hung here for good.
         if isinstance(self._subscriber, zenoh.ext.AdvancedSubscriber):
-            # Into a FIFO a thread of this intake drains, not a Python callback on Zenoh's thread,
-            # which would wait there for the GIL (zenoh_side_channel says why that thread must not)
-            self._miss_listener = self._subscriber.sample_miss_listener(zenoh.handlers.FifoChannel(MISS_FIFO))
-            threading.Thread(target=self._read_misses, name="sinewatch-misses", daemon=True).start()
+            self._miss_listener = self._subscriber.sample_miss_listener(self._on_miss)
             # each key's last block already in the state (restored from a snapshot or a file): the
             # history up to it is dropped unread rather than decoded, recorded and skipped
             keys = Counter(ch.key for ch in daemon.pipeline.channels.values())
@@ -465,15 +461,8 @@ class Intake:
         finally:
             self._closed.set()
 
-    def _read_misses(self) -> None:
-        listener = self._miss_listener
-        assert listener is not None
-        with contextlib.suppress(zenoh.ZError):  # raised once undeclared and drained
-            while True:
-                self._on_miss(listener.handler.recv())
-
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
-        """On the misses' thread: blocks lost for good. Counted here, and reported at once as an
+        """On a Zenoh thread: blocks lost for good. Counted here, and reported at once as an
         ``unrecovered`` ErrorReport on the publisher's key: the pipeline flags the gap on the
         channel's next estimate, but the last blocks of a stream that ends (or pauses) have
         no next estimate, and their loss must still be told (a failover test waited for the
