@@ -96,10 +96,8 @@ def losses(got: list[int], sent: int) -> str:
     )
 
 
-def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int, list[int], float]:
-    router = Router(tmp_path, LEASE)
-    router.start()
-    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+def numbered_samples() -> tuple[list[int], threading.Condition, Any]:
+    """(the numbers received so far, a condition notified at each, the subscriber's callback)."""
     got: list[int] = []
     cond = threading.Condition()
 
@@ -108,6 +106,14 @@ def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int
             got.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
             cond.notify_all()
 
+    return got, cond, on
+
+
+def publish_through_a_stalled_router(tmp_path, raw: dict[str, int]) -> tuple[int, list[int], float]:
+    router = Router(tmp_path, LEASE)
+    router.start()
+    endpoint = [f"tcp/127.0.0.1:{router.port}"]
+    got, cond, on = numbered_samples()
     try:
         with (
             open_session(long_lease_client(endpoint)) as sub_session,
@@ -193,14 +199,7 @@ def test_a_router_gives_up_a_stopped_subscriber_before_the_publishers_link_expir
         stdout=subprocess.PIPE,
         text=True,
     )
-    got: list[int] = []
-    cond = threading.Condition()
-
-    def on(sample: zenoh.Sample) -> None:
-        with cond:
-            got.append(int.from_bytes(sample.payload.to_bytes()[:8], "little"))
-            cond.notify_all()
-
+    got, cond, on = numbered_samples()
     try:
         assert sub.stdout is not None and sub.stdin is not None and sub.stdout.readline().strip() == "ready"
         with (
