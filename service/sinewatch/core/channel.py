@@ -81,6 +81,12 @@ class Channel:
             self._valid_memory = value
         return value
 
+    @property
+    def fixed_valid_memory(self) -> int | None:
+        """:attr:`valid_memory_samples` where it cannot change (kept), else None."""
+        _ = self.valid_memory_samples
+        return self._valid_memory
+
     def snapshot(self) -> dict[str, Any]:
         counters = ("last_seq", "next_t0_ns", "blocks", "samples", "gaps", "errors", "converged")
         assert self.presence is not None
@@ -105,15 +111,49 @@ class FrameMember:
     jump: bool = False  # a time jump (sinewatch.core.continuity)
 
 
+@dataclass(slots=True)
+class UsualBank:
+    """One bank of a :class:`FrameLayout`: what its usual frame hands the compiled calls, made
+    once for the layout rather than once a frame (the pipeline's usual frame builds no
+    per-column object)."""
+
+    columns: list[int]
+    channels: tuple[Channel, ...]
+    estimators: list[Estimator]
+    detectors: list[SignalPresence]
+    every_column: bool  # the bank is the whole frame, in column order (its samples as they are)
+    # its detectors run as one bank (read_presence_bank): two or more channels, each estimator's
+    # presence signal its block itself
+    presence_bank: bool
+    # what its Estimates' bytes keep between frames (sinewatch.core.estimate_bytes.BankWriting),
+    # once a frame has written them the usual way
+    writing: Any = None
+
+
 @dataclass(frozen=True, slots=True)
 class FrameLayout:
     """A frame key's last frame whose every channel went into a bank: its channel names, rate,
-    the channels (a column each) and the banks (key, columns), in the order they ran."""
+    the channels (a column each) and the banks, in the order they ran."""
 
     names: tuple[str, ...]
     sample_rate_hz: float
     channels: tuple[Channel, ...]
-    banks: tuple[tuple[tuple[int, str, float], tuple[int, ...]], ...]
+    banks: tuple[UsualBank, ...]
+
+
+def usual_bank(columns: tuple[int, ...], channels: tuple[Channel, ...], n_columns: int) -> UsualBank:
+    """The :class:`UsualBank` of a frame's accepted ``channels`` in ``columns`` (of ``n_columns``)."""
+    bank = [channels[c] for c in columns]
+    estimators = [ch.estimator for ch in bank]
+    return UsualBank(
+        list(columns),
+        tuple(bank),
+        estimators,
+        [ch.presence for ch in bank],  # type: ignore[misc]  # (every channel has its detector)
+        list(columns) == list(range(n_columns)),
+        # a bank's channels share one estimator class (its rule's): asked of the first
+        len(bank) >= 2 and type(estimators[0]).presence_samples is Estimator.presence_samples,
+    )
 
 
 @dataclass(frozen=True)

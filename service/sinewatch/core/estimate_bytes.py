@@ -490,6 +490,72 @@ def bank_payloads(
     return out  # type: ignore[return-value]  # (every slot filled above)
 
 
+class BankWriting:
+    """What :func:`usual_bank_payloads` keeps for one bank between frames: everything of its
+    Estimates that stays the same from frame to frame while the layout does (the channels'
+    templates cut into pieces, the ops, the memory each channel's valid flag compares its run
+    with), made from what :func:`bank_payloads` leaves on the channels (:func:`bank_writing`)."""
+
+    __slots__ = ("ends", "ints", "layout", "memory", "ops", "text")
+
+    def __init__(self, layout: tuple[Any, ...], chs: Sequence[Channel], n_floats: int) -> None:
+        self.layout = layout
+        self.text, self.ends = _bank_pieces(tuple(ch.template[1] for ch in chs), n_floats)  # type: ignore[index]
+        self.ops = _bank_ops(n_floats)
+        self.memory = np.array([ch.fixed_valid_memory for ch in chs], dtype=np.int64)
+        self.ints = np.zeros((len(chs), 6), dtype=np.int64)  # gap_blocks (column 5) stays 0
+
+
+def bank_writing(
+    settings: EstimateSettings, chs: Sequence[Channel], block: Block, tracks: Sequence[Track]
+) -> BankWriting | None:
+    """A bank's :class:`BankWriting`, once :func:`bank_payloads` has written every channel's
+    Estimate the usual way (each channel's template made for this layout); None where it cannot
+    be kept: another layout on some channel, or a channel whose memory may change (an
+    estimator whose design follows the signal: ``Channel.fixed_valid_memory``)."""
+    if settings.estimate_version < 3 or not (isinstance(tracks, ColumnTracks) and tracks.last_row is not None):
+        return None
+    layout = _layout_key(settings, block, *tracks.layout)
+    for ch in chs:
+        if ch.template is None or ch.template[0] != layout or ch.fixed_valid_memory is None:
+            return None
+    return BankWriting(layout, chs, tracks.last_row.values.shape[1] - 1)
+
+
+def usual_bank_payloads(
+    settings: EstimateSettings,
+    writing: BankWriting,
+    block: Block,
+    tracks: Sequence[Track],
+    t_last_ns: int,
+    run_samples: Sequence[int],
+) -> list[tuple[bytes, bool, bool | None]] | None:
+    """:func:`bank_payloads` of a usual frame's bank (no gap, restart, reset or time jump on any
+    channel) from what ``writing`` keeps: the same bytes, converged and valid, with no Python a
+    channel before the compiled call. None, with nothing done, unless every channel's values are
+    finite and the bank's Tracks are its own, unread, in ``writing``'s layout (then
+    :func:`bank_payloads`). ``block``: any of the frame's columns (they share seq, time, sample
+    count and time quality, all an Estimate reads of its block)."""
+    if not (isinstance(tracks, ColumnTracks) and tracks.sealed and tracks.last_row is not None):
+        return None
+    if settings.estimate_version < 3 or _layout_key(settings, block, *tracks.layout) != writing.layout:
+        return None
+    values = tracks.last_row.values
+    if not np.isfinite(values[:, :-1]).all():
+        return None
+    valid = np.array(run_samples, dtype=np.int64) >= writing.memory  # _present at the block's last sample
+    flags = np.zeros((values.shape[0], 5), dtype=np.bool_)  # converged, valid, gap, restart, reset
+    flags[:, 1] = valid
+    flags[:, 0] = valid & tracks.converged_last_array()
+    sec, nsec = divmod(int(t_last_ns), 1_000_000_000)
+    ints = writing.ints
+    ints[:, :5] = (block.seq, int(t_last_ns), sec, nsec, block.n_samples)
+    data, at = write_estimates_kernel(writing.text, writing.ends, writing.ops, ints, values.view(np.uint64), flags)
+    payloads, bounds = data.tobytes(), at.tolist()
+    converged_out, valid_out = flags[:, 0].tolist(), flags[:, 1].tolist()
+    return [(payloads[bounds[c] : bounds[c + 1]], converged_out[c], valid_out[c]) for c in range(values.shape[0])]
+
+
 def _bank_values(settings: EstimateSettings, tracks: Sequence[Track]) -> np.ndarray | None:
     """The bank's last row of every output for ``tracks`` (C-contiguous, a row a track), or None
     when they are not one bank's usual case: format 3 or later, every track a row of one

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Container, Mapping, Sequence
+from collections.abc import Callable, Container, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -39,10 +39,18 @@ from sinewatch.core.channel import (
     FrameMember,
     PipelineCounters,
     ResumePoint,
+    UsualBank,
     continues_in_time,
+    usual_bank,
 )
 from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
-from sinewatch.core.estimate_bytes import bank_payloads, estimate_model, estimate_payload
+from sinewatch.core.estimate_bytes import (
+    bank_payloads,
+    bank_writing,
+    estimate_model,
+    estimate_payload,
+    usual_bank_payloads,
+)
 from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
@@ -161,32 +169,49 @@ class Pipeline:
         each channel is followed as if its column had been sent alone with the frame's seq,
         so a channel that comes back after k frames without it is flagged as a gap of k
         blocks, and a new one starts afresh."""
-        keys = self._frame_channel_keys(key, frame.channels)
         x = frame.samples  # of the kernels' kind (``_decode``): each column what its block would give
         finite = np.isfinite(x).all(axis=0).tolist() if not _all_finite_2d(x) else None
-        banks = self._usual_frame(key, frame) if finite is None else None
-        if banks is None:
-            banks = self._checked_frame(key, keys, frame, finite, log_time_ns)
-        n_all = len(keys)
         t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
+        layout = self._usual_frame(key, frame) if finite is None else None
+        if layout is not None:
+            for bank in layout.banks:
+                self._usual_bank(bank, frame, x, t_last, log_time_ns, received_ns)
+            return
+        keys = self._frame_channel_keys(key, frame.channels)
+        banks = self._checked_frame(key, keys, frame, finite, log_time_ns)
         for members in banks.values():
-            tracks = self._run_bank(members, x, n_all, frame.t0_ns, log_time_ns)
-            readings = self._presence_bank(members, tracks, x)
-            presence_done = readings is not None
-            if readings is not None and self._bank_estimates(
-                members, tracks, t_last, log_time_ns, received_ns, readings
-            ):
-                continue
-            for member, track in zip(members, tracks, strict=True):
-                if track is not None:
-                    self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
+            self._bank(members, x, len(keys), frame.t0_ns, t_last, log_time_ns, received_ns)
 
-    def _usual_frame(self, key: str, frame: Frame) -> dict[tuple[int, str, float], list[FrameMember]] | None:
-        """The banks of a frame in the usual case, without :meth:`_checked_frame`'s calls a
-        channel: the same layout as the key's last frame, every one of whose channels was
-        accepted into the same banks (:attr:`_layouts`), every value finite, every channel the
-        next block of its sequence and time, no takeover under way. None otherwise (then every
-        channel is checked on its own): nothing is changed before that is known."""
+    def _bank(
+        self,
+        members: list[FrameMember],
+        x: np.ndarray,
+        n_all: int,
+        t0_ns: int,
+        t_last: int,
+        log_time_ns: int,
+        received_ns: int | None,
+        tracks: Sequence[Track | None] | None = None,
+    ) -> None:
+        """One bank of a frame, each channel checked on its own: the estimators together
+        (:meth:`_run_bank`; ``tracks`` when they have run already), then the detectors, each
+        channel's Estimate, hold and hand-out (together where :meth:`_bank_estimates` applies)."""
+        if tracks is None:
+            tracks = self._run_bank(members, x, n_all, t0_ns, log_time_ns)
+        readings = self._presence_bank(members, tracks, x)
+        presence_done = readings is not None
+        if readings is not None and self._bank_estimates(members, tracks, t_last, log_time_ns, received_ns, readings):
+            return
+        for member, track in zip(members, tracks, strict=True):
+            if track is not None:
+                self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
+
+    def _usual_frame(self, key: str, frame: Frame) -> FrameLayout | None:
+        """The key's last layout when this frame is its usual case, without
+        :meth:`_checked_frame`'s calls a channel: the same channels as the key's last frame, every
+        one of which was accepted into the same banks (:attr:`_layouts`), every value finite,
+        every channel the next block of its sequence and time, no takeover under way. None
+        otherwise (then every channel is checked on its own): nothing is changed before that is known."""
         layout = self._layouts.get(key)
         if layout is None or layout.names != frame.channels or self.resume_points:
             return None
@@ -201,14 +226,63 @@ class Pipeline:
                 return None
             if tolerance is not None and ch.next_t0_ns is not None and abs(t0 - ch.next_t0_ns) > tolerance:
                 return None
-        banks: dict[tuple[int, str, float], list[FrameMember]] = {}
-        for bank_key, columns in layout.banks:
-            banks[bank_key] = [
-                FrameMember(layout.channels[c], frame.block(c), c, 0, False, False, False) for c in columns
-            ]
         for ch in layout.channels:
             ch.source_key = key  # a queued frame of this key holds its next block (release_idle)
-        return banks
+        return layout
+
+    def _usual_bank(
+        self, bank: UsualBank, frame: Frame, x: np.ndarray, t_last: int, log_time_ns: int, received_ns: int | None
+    ) -> None:
+        """One bank of a usual frame (:meth:`_usual_frame`: every channel the next block of its
+        sequence, no gap, reset or time jump, every value finite): what :meth:`_bank` does, from
+        the layout's lists, without a :class:`FrameMember` or a :class:`Block` a column. Anything
+        unusual on the way (a bank that raises, detectors that do not run as a bank, the
+        power-quality stage, Estimates not written in one call) hands the bank to
+        :meth:`_bank` at that point, with the same results."""
+        ests = bank.estimators
+        samples = x if bank.every_column else x[:, bank.columns]
+        saved = [est._state_checkpoint() for est in ests]  # (not est._state: that takes it out of its bank's stack)
+        try:
+            tracks = update_bank(ests, samples, last_only=True, t0_ns=frame.t0_ns, finite=True)
+        except Exception:  # noqa: BLE001 (isolated by _bank, which runs the bank again, channel by channel)
+            for est, state in zip(ests, saved, strict=True):
+                est._state_rollback(state)
+            self._bank(self._members(bank, frame), x, frame.n_channels, frame.t0_ns, t_last, log_time_ns, received_ns)
+            return
+        readings = self._usual_presence(bank, x)
+        if (
+            readings is None
+            or self.pq.enabled
+            or not self._usual_estimates(bank, frame, tracks, t_last, log_time_ns, received_ns, readings)
+        ):
+            members = self._members(bank, frame)
+            if readings is None:  # each channel's own detector, isolated (as _bank does it)
+                self._bank(members, x, frame.n_channels, frame.t0_ns, t_last, log_time_ns, received_ns, tracks)
+                return
+            for member, track in zip(members, tracks, strict=True):
+                self._frame_estimate(member, track, log_time_ns, received_ns, True)
+
+    @staticmethod
+    def _usual_presence(bank: UsualBank, x: np.ndarray) -> PresenceBankReadings | None:
+        """:meth:`_presence_bank` of a usual frame's bank (no channel reset, every track made)."""
+        if not bank.presence_bank:
+            return None
+        try:
+            readings = read_presence_bank(bank.detectors, x, bank.columns)
+        except Exception:  # noqa: BLE001 (the state is untouched: each channel runs its own, isolated)
+            return None
+        if readings is not None:
+            for ch, run in zip(bank.channels, readings.runs, strict=True):
+                ch.last_run = run
+        return readings
+
+    @staticmethod
+    def _members(bank: UsualBank, frame: Frame) -> list[FrameMember]:
+        """A usual bank's channels as :meth:`_checked_frame` would have made them (no gap, no reset)."""
+        return [
+            FrameMember(ch, frame.block(c), c, 0, False, False, False)
+            for c, ch in zip(bank.columns, bank.channels, strict=True)
+        ]
 
     def _checked_frame(
         self, key: str, keys: tuple[str, ...], frame: Frame, finite: list[bool] | None, log_time_ns: int
@@ -261,7 +335,10 @@ class Pipeline:
             frame.channels,
             frame.sample_rate_hz,
             tuple(channels),  # type: ignore[arg-type]  # (every column is one accepted channel's)
-            tuple((bank_key, tuple(m.column for m in members)) for bank_key, members in banks.items()),
+            tuple(
+                usual_bank(tuple(m.column for m in members), tuple(channels), len(channels))  # type: ignore[arg-type]
+                for members in banks.values()
+            ),
         )
 
     def _frame_channel_keys(self, key: str, names: tuple[str, ...]) -> tuple[str, ...]:
@@ -419,8 +496,8 @@ class Pipeline:
             return False
         live: Sequence[Track] = tracks  # type: ignore[assignment]  # (none is None)
         chs = [m.channel for m in members]
-        try:
-            made = bank_payloads(
+        made = self._in_one_call(
+            lambda: bank_payloads(
                 self,
                 chs,
                 [m.block for m in members],
@@ -429,33 +506,111 @@ class Pipeline:
                 [(m.gap_blocks, m.restart, m.reset, m.jump) for m in members],
                 readings.run_samples,
             )
-        except Exception:  # nothing changed yet: each channel on its own then isolates the fault
-            self._bank_estimate_failures += 1
-            if self._bank_estimate_failures <= 5:  # a bug here must not flood the log a frame
-                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
-            return False
+        )
         if made is None:
             return False
+        self._hold_and_hand_out(
+            chs, made, readings.onset_latency_samples, t_last, log_time_ns, received_ns, members=members
+        )
+        return True
+
+    def _in_one_call(
+        self, write: Callable[[], list[tuple[bytes, bool, bool | None]] | None]
+    ) -> list[tuple[bytes, bool, bool | None]] | None:
+        """A bank's Estimates written in one call (``write``), or None where that does not apply
+        or failed: nothing is changed by then, so each channel written on its own then isolates
+        the fault (a bug, logged the first few times, not every frame)."""
+        try:
+            return write()
+        except Exception:  # nothing changed by then: each channel on its own isolates it
+            self._bank_estimate_failures += 1
+            if self._bank_estimate_failures <= 5:
+                log.exception("a bank's Estimates in one call failed; each channel's written on its own")
+            return None
+
+    def _usual_estimates(
+        self,
+        bank: UsualBank,
+        frame: Frame,
+        tracks: Sequence[Track],
+        t_last: int,
+        log_time_ns: int,
+        received_ns: int | None,
+        readings: PresenceBankReadings,
+    ) -> bool:
+        """:meth:`_bank_estimates` of a usual frame's bank (no gap, restart, reset or jump), from
+        the layout's lists. The Estimates' bytes read of a block only what a frame's columns
+        share (seq, sample count, time quality): the first column's block stands for all."""
+        block = frame.block(bank.columns[0])
+
+        def write() -> list[tuple[bytes, bool, bool | None]] | None:
+            if bank.writing is not None:  # the bank's usual case, from what its last frame left
+                made = usual_bank_payloads(self, bank.writing, block, tracks, t_last, readings.run_samples)
+                if made is not None:
+                    return made
+            n = len(bank.channels)
+            made = bank_payloads(self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples)
+            bank.writing = None if made is None else bank_writing(self, bank.channels, block, tracks)
+            return made
+
+        made = self._in_one_call(write)
+        if made is None:
+            return False
+        self._hold_and_hand_out(
+            bank.channels, made, readings.onset_latency_samples, t_last, log_time_ns, received_ns, usual=(bank, frame)
+        )
+        return True
+
+    def _hold_and_hand_out(
+        self,
+        chs: Sequence[Channel],
+        made: list[tuple[bytes, bool, bool | None]],
+        latencies: list[int],
+        t_last: int,
+        log_time_ns: int,
+        received_ns: int | None,
+        *,
+        members: list[FrameMember] | None = None,
+        usual: tuple[UsualBank, Frame] | None = None,
+    ) -> None:
+        """A bank's written Estimates (``made``: bytes, converged, valid) on: each channel's block
+        accepted (``members``' own checks; ``usual``: a usual frame's, every channel the next
+        block of its sequence, so without _accept's call and gap test a channel), each estimate
+        held (:func:`hold_at_end`), then every estimate the bank releases handed to each sink in
+        one call (``on_estimates``: the same messages in the same order)."""
         out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
         handed: list[Channel] = []
         arrival = log_time_ns if received_ns is None else received_ns
-        latencies = readings.onset_latency_samples
-        for i, (m, (payload, converged, valid)) in enumerate(zip(members, made, strict=True)):
-            ch = m.channel
+        holds = self._holds
+        if usual is not None:
+            frame = usual[1]
+            seq, n = frame.seq, frame.n_samples
+            next_t0 = frame.t0_ns + round(n * 1e9 / frame.sample_rate_hz)  # what _accept gives each column
+        for i, (ch, (payload, converged, valid)) in enumerate(zip(chs, made, strict=True)):
+            reset = False
             try:
-                self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
-                if not self._holds:
+                if members is not None:
+                    m = members[i]
+                    self._accept(ch, m.block, m.gap_blocks, m.restart, m.reset, m.jump)
+                    reset = m.reset
+                else:
+                    ch.last_seq, ch.next_t0_ns = seq, next_t0
+                    ch.blocks += 1
+                    ch.samples += n
+                if not holds:
                     ch.converged, released = converged, [payload]
                 elif valid is None:  # written the general way: its bytes say whether it is valid
-                    released = hold(ch, t_last, [(payload, converged, t_last)], m.reset)
+                    released = hold(ch, t_last, [(payload, converged, t_last)], reset)
                 else:
-                    released = hold_at_end(ch, payload, valid, converged, m.reset, latencies[i])
+                    released = hold_at_end(ch, payload, valid, converged, reset, latencies[i])
             except Exception as exc:  # noqa: BLE001 (one channel's fault)
                 self._forget_unborn(ch)
-                self._fault(ch.key, m.block, ch, "estimate", exc, log_time_ns)
+                block = members[i].block if members is not None else usual[1].block(usual[0].columns[i])  # type: ignore[index]
+                self._fault(ch.key, block, ch, "estimate", exc, log_time_ns)
                 continue
-            out_key = self._out_key(ch)
-            out += [(out_key, p) for p in released]
+            out_key = ch.out_key if ch.out_key is not None else self._out_key(ch)
+            for p in released:
+                out.append((out_key, p))
             ch.last_log_ns, ch.last_arrival_ns = log_time_ns, arrival
             handed.append(ch)
         for sink in self.sinks:
@@ -465,7 +620,6 @@ class Pipeline:
             latency = time.monotonic_ns() - received_ns
             for ch in handed:
                 ch.last_latency_ns = latency
-        return True
 
     def _frame_estimate(
         self, m: FrameMember, track: Track, log_time_ns: int, received_ns: int | None, presence_done: bool = False
@@ -918,6 +1072,9 @@ def _is_power_of_ten(n: int) -> bool:
     while n >= 10 and n % 10 == 0:
         n //= 10
     return n == 1
+
+
+_NO_GAPS = [(0, False, False, False)]  # a usual frame's channel: no gap, restart, reset or time jump
 
 
 def _every_track(tracks: Sequence[Track | None]) -> bool:

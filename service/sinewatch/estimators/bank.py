@@ -136,13 +136,16 @@ def update_bank(
     *,
     last_only: bool = False,
     t0_ns: int | None = None,
+    finite: bool = False,
 ) -> Sequence[Track]:
     """Advance ``estimators[c]`` by column ``c`` of ``samples`` (shape (N, C), one column per
     estimator, all of one class, parameters and sample rate) and return one Track each.
 
     A block that ``update`` would reject (wrong type or shape, no samples, a NaN or Inf in any
     column) raises the same typed error before any estimator changes: the caller takes the
-    bad channels out (one NaN column is that channel's error) and calls again with the rest."""
+    bad channels out (one NaN column is that channel's error) and calls again with the rest.
+    ``finite``: the caller has found every value finite already (the pipeline's frame check),
+    so the bank does not read the samples a second time for it."""
     if not isinstance(samples, np.ndarray):
         raise InputTypeError(f"samples: expected a numpy array, got {type(samples).__name__}")
     if samples.ndim != 2 or samples.shape[1] != len(estimators):
@@ -166,7 +169,7 @@ def update_bank(
         stack = None
         _check_alike(estimators, cls)
     x = kernel_samples(samples)  # one numba type per bank kernel
-    if not _all_finite(x.reshape(-1)):
+    if not finite and not _all_finite(x.reshape(-1)):
         bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
     if bank.run is not None:
@@ -300,7 +303,11 @@ class ColumnTracks(Sequence[Track]):
 
     def converged_last(self) -> list[bool]:
         """Each channel's ``converged`` at its last row (what ``bool(track.converged[-1])`` reads)."""
-        return self._args[0][:, -1, 4].astype(np.bool_).tolist()  # type: ignore[no-any-return]
+        return self.converged_last_array().tolist()  # type: ignore[no-any-return]
+
+    def converged_last_array(self) -> np.ndarray:
+        """:meth:`converged_last` as a boolean array, a channel each."""
+        return self._args[0][:, -1, 4].astype(np.bool_)
 
     def __len__(self) -> int:
         return int(self._args[0].shape[0])

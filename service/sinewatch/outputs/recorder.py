@@ -32,7 +32,7 @@ import os
 import struct
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from itertools import chain
 from pathlib import Path
@@ -268,29 +268,37 @@ class FastWriter(Writer):
         )
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
-        head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+        self.add_messages(((channel_id, sequence, data),), log_time, publish_time)
+
+    def add_messages(self, messages: Sequence[tuple[int, int, bytes]], log_time: int, publish_time: int) -> None:
+        """:meth:`add_message` of each (channel_id, sequence, data) in turn at one log and
+        publish time (a frame's Estimates): the same records, chunks and indexes; what depends
+        on the log time alone is updated once."""
         stats = self._statistics
         if stats.message_count == 0 or log_time < stats.message_start_time:
             stats.message_start_time = log_time
         if log_time > stats.message_end_time:
             stats.message_end_time = log_time
-        stats.channel_message_counts[channel_id] += 1
-        stats.message_count += 1
-        cb = self._chunk_builder
-        if cb.num_messages == 0 or log_time < cb.message_start_time:
-            cb.message_start_time = log_time
-        if log_time > cb.message_end_time:
-            cb.message_end_time = log_time
-        buf = cb.record_writer._buffer
-        index = cb.message_indices.get(channel_id)
-        if index is None:
-            index = cb.message_indices[channel_id] = _PackedMessageIndex(channel_id=channel_id, records=[])
-        index.records.append((log_time, buf.tell()))
-        cb.num_messages += 1
-        buf.write(head)
-        buf.write(data)
-        if buf.tell() > self._chunk_limit:
-            self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
+        stats.message_count += len(messages)
+        counts = stats.channel_message_counts
+        cb = self._chunk_builder  # (the same object after a chunk is finished: reset() empties it)
+        for channel_id, sequence, data in messages:
+            head = _MESSAGE_HEAD.pack(_MESSAGE_OPCODE, 22 + len(data), channel_id, sequence, log_time, publish_time)
+            counts[channel_id] += 1
+            if cb.num_messages == 0 or log_time < cb.message_start_time:
+                cb.message_start_time = log_time
+            if log_time > cb.message_end_time:
+                cb.message_end_time = log_time
+            buf = cb.record_writer._buffer
+            index = cb.message_indices.get(channel_id)
+            if index is None:
+                index = cb.message_indices[channel_id] = _PackedMessageIndex(channel_id=channel_id, records=[])
+            index.records.append((log_time, buf.tell()))
+            cb.num_messages += 1
+            buf.write(head)
+            buf.write(data)
+            if buf.tell() > self._chunk_limit:
+                self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
 
 
 def _writer(file: BinaryIO, chunk_size: int, compression: CompressionType) -> Writer:
@@ -594,14 +602,26 @@ class McapRecorder:
             self._write(cid, payload, log_time_ns)
 
     def on_estimates(self, estimates: list[tuple[str, bytes]], log_time_ns: int) -> None:
-        """A frame's estimates, each as :meth:`on_estimate` writes it, in one loop."""
+        """A frame's estimates, each as :meth:`on_estimate` writes it (the same messages, in
+        order), handed to the writer in one call where it takes them so (FastWriter)."""
         if not self.section.estimates:
             return
-        channel_id, write = self._channel_id, self._write
+        writer = self._writer
+        if not isinstance(writer, FastWriter):  # (mcap's own Writer: one at a time)
+            for key, payload in estimates:
+                self.on_estimate(key, payload, log_time_ns)
+            return
+        channels, sequence = self._channels, self._sequence
+        messages = []
         for key, payload in estimates:
-            write(
-                channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING), payload, log_time_ns
-            )
+            cid = channels.get((key, "json", ESTIMATE_JSON_ENCODING, "sinewatch.Estimate"))
+            if cid is None:  # (_channel_id's key, above)
+                cid = self._channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING)
+            seq = sequence.get(cid, 0)
+            sequence[cid] = seq + 1
+            messages.append((cid, seq, payload))
+        writer.add_messages(messages, log_time_ns, time.time_ns())
+        self.messages_written += len(messages)
 
     def on_error(self, key: str, payload: bytes, log_time_ns: int) -> None:
         if self._writer is None:

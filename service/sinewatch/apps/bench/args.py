@@ -147,6 +147,11 @@ def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
         "channels; several values run one after the other into one table (e.g. 1,8)",
     )
     parser.add_argument("--plot", type=Path, help="with --sweep: the PNG (default: the --json path with .png)")
+    parser.add_argument(
+        "--no-hold",
+        action="store_true",
+        help="the daemon's hold_estimates off: each estimate published as made (what the latency is without the hold)",
+    )
 
 
 def add_gateway_arguments(parser: argparse.ArgumentParser) -> None:

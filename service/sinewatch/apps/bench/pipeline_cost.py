@@ -20,7 +20,8 @@ The same blocks are also taken through each step alone, to break the cost down:
 With ``--frame-channels N`` (N > 1) the channels go as SampleFrames of N channels, the
 daemon's frame path: ``estimator`` is then one :func:`~sinewatch.estimators.bank.update_bank`
 call a frame, ``presence`` the detectors' bank (:func:`~sinewatch.estimators.presence.update_presence_bank`),
-``encode`` the frame's Estimate bytes (one compiled call a frame, as the pipeline writes them),
+``encode`` the frame's Estimate bytes (one compiled call a frame from what the bank keeps between
+frames, as the pipeline writes a usual frame's),
 ``hold`` each channel's accept and hold-back
 (:func:`sinewatch.core.hold.hold_at_end`, on by default), ``recorder`` the frame's one input message
 and its channels' estimates (one ``on_estimates`` call); ``channel_by_channel_off`` the
@@ -49,7 +50,7 @@ import numpy as np
 from rich.table import Table
 
 from sinewatch.apps.console import make_console, print_table
-from sinewatch.core.estimate_bytes import bank_payloads
+from sinewatch.core.estimate_bytes import BankWriting, bank_payloads, bank_writing, usual_bank_payloads
 from sinewatch.core.hold import hold_at_end
 from sinewatch.core.pipeline import Channel, NullSink, Pipeline
 from sinewatch.estimators import get as get_estimator
@@ -179,6 +180,7 @@ def _frame_steps(
     readings: dict[str, PresenceBankReadings] = {}  # by frame key: what its detectors read
     estimates: dict[str, bytes] = {}
     written: dict[str, tuple[bool, bool | None]] = {}  # by channel: its estimate's converged and valid
+    writings: dict[str, BankWriting | None] = {}  # by frame key: what its bank's Estimates keep
     step_recorder = McapRecorder(_config(args, directory / "steps"))
     no_gaps = [(0, False, False, False)] * max(len(names) for names in feed.layout)
 
@@ -207,10 +209,13 @@ def _frame_steps(
             for key, _payload, frame in row:
                 t_last = frame.t0_ns + round((frame.n_samples - 1) * 1e9 / frame.sample_rate_hz)
                 chs = [channels[name] for name in frame.channels]
-                blocks = [frame.block(c) for c in range(len(chs))]
-                made = bank_payloads(
-                    on, chs, blocks, tracks[key], t_last, no_gaps[: len(chs)], readings[key].run_samples
-                )
+                block, runs = frame.block(0), readings[key].run_samples
+                # as the pipeline writes a usual frame's: from what the bank keeps, once made
+                kept = writings.get(key)
+                made = None if kept is None else usual_bank_payloads(on, kept, block, tracks[key], t_last, runs)
+                if made is None:
+                    made = bank_payloads(on, chs, [block] * len(chs), tracks[key], t_last, no_gaps[: len(chs)], runs)
+                    writings[key] = bank_writing(on, chs, block, tracks[key])
                 assert made is not None
                 estimates.update(zip(frame.channels, (payload for payload, _, _ in made), strict=True))
                 written.update(zip(frame.channels, ((c, v) for _, c, v in made), strict=True))
