@@ -25,7 +25,7 @@ from sinewatch.runtime.intake import Intake, zenoh_side_channel
 from sinewatch.schemas.config import SinewatchConfig
 
 INPUTS = 3000  # past the FIFO a pump's batch of 256 had (512)
-QUEUE = 65536  # the cluster daemons' queue (and so the ring): it holds every input here, none is dropped
+QUEUE = 65536  # the cluster daemons' queue (and so the FIFO): it holds every input here, none is dropped
 WAIT_S = 30.0  # the longest a delivery may take on a loaded machine (a wait that ends when it is done)
 
 
@@ -83,4 +83,4 @@ def test_a_dropping_intake_keeps_its_link_read_while_its_pump_is_held():
 
 def test_the_blocking_policy_keeps_a_small_fifo_that_holds_the_publisher_back():
     assert isinstance(zenoh_side_channel("block", 256, 8192), zenoh.handlers.FifoChannel)
-    assert isinstance(zenoh_side_channel("drop", 256, 8192), zenoh.handlers.RingChannel)
+    assert isinstance(zenoh_side_channel("drop", 256, 8192), zenoh.handlers.FifoChannel)

@@ -54,7 +54,7 @@ CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
 #: the gateway's blocked put then held its queue's lock for its own 30 s, its link's sender
 #: waiting on it, and no daemon had an input for 30 s). Under the lease, the router gives the stalled subscriber up first, twice over if two
 #: pushes in a row wait. A daemon behind a router never stops reading its link on its own (its
-#: intake's ring, its channels' rings: docs/cluster.md), so what a router closes is a daemon
+#: intake's deep FIFO, its channels' rings: docs/cluster.md), so what a router closes is a daemon
 #: stopped (SIGSTOP, a VM paused) or starved for seconds; it reconnects when it runs again.
 ROUTER_WAIT_BEFORE_CLOSE_US = 4_000_000
 

@@ -2,7 +2,7 @@
 in batches, and the order a takeover's history goes to the pipeline.
 
 Why a thread: Zenoh delivers samples on its own threads into a bounded channel (never
-blocking a Zenoh callback on Python work; a FIFO, or a ring with ``queue_policy = "drop"``:
+blocking a Zenoh callback on Python work; as deep as the queue with ``queue_policy = "drop"``:
 :func:`zenoh_side_channel`); the pump drains it in batches and hands each batch
 to the event loop with one ``call_soon_threadsafe`` (:mod:`sinewatch.runtime.daemon` says how
 backpressure and shutdown use it).
@@ -51,16 +51,16 @@ def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
 
     ``"block"``: a small FIFO; past it Zenoh itself holds the data back, and so does the
     publisher (peer mode: the back-pressure loses nothing). ``"drop"`` (a daemon behind a
-    router): a ring as deep as the queue, which never makes Zenoh's thread wait. That thread
-    also reads this daemon's query replies, snapshots and admin queries off the same link; with
-    a full FIFO it stops, and the router, pushing the daemon a ``BLOCK`` reply (a takeover's
-    history queries), stops reading the sender's link, the gateway's, for everyone, and past
-    the lease expires it (docs/cluster.md, "A daemon behind real time keeps reading its link").
-    A pump is behind when its process is starved (a takeover's 50 history threads share the GIL
-    with it). Past the ring, the oldest samples go: the pipeline flags them as a gap on the
-    channel's next estimate, as it does the inputs the queue drops."""
+    router): a FIFO as deep as the queue, so that Zenoh's thread does not wait while the pump
+    is behind. That thread also reads this daemon's query replies, snapshots and admin queries
+    off the same link; with a full FIFO it stops, and the router, pushing the daemon a ``BLOCK``
+    reply (a takeover's history queries), stops reading the sender's link, the gateway's, for
+    everyone (docs/cluster.md, "A daemon behind real time keeps reading its link"). A pump is
+    behind when its process is starved (a takeover's 50 history threads share the GIL with it).
+    Not a ring: what a ring drops is counted nowhere, where the pump counts every input the
+    queue drops."""
     if policy == "drop":
-        return zenoh.handlers.RingChannel(max(64, capacity))
+        return zenoh.handlers.FifoChannel(max(64, capacity))
     return zenoh.handlers.FifoChannel(max(64, batch * 2))
 
 
