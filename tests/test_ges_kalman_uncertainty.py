@@ -177,7 +177,7 @@ def test_the_delta_method_uses_the_jacobian_of_the_recovery_formulas() -> None:
     m = rng.standard_normal((4, 4))
     t_part, u_part, s2 = m @ m.T * 1e-4, np.eye(4) * 1e-5, 2.0
     std = np.empty((1, 4))
-    _parameter_std(x[0], x[1], x[2], x[3], t_part, u_part, s2, ts, std, 0)
+    _parameter_std(x[0], x[1], x[2], x[3], t_part, u_part, np.empty((4, 4)), s2, ts, std, 0)
     np.testing.assert_allclose(std[0], np.sqrt(np.diag(jac @ (t_part + s2 * u_part) @ jac.T)), rtol=1e-6)
-    _parameter_std(x[0], x[1], 0.5, x[3], t_part, u_part, s2, ts, std, 0)  # outside (-4, 0), eq. (20)
+    _parameter_std(x[0], x[1], 0.5, x[3], t_part, u_part, np.empty((4, 4)), s2, ts, std, 0)  # outside (-4, 0), eq. (20)
     assert np.all(np.isnan(std[0]))

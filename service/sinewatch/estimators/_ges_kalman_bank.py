@@ -23,13 +23,11 @@ from sinewatch.estimators._ges_kalman_kernels import (
     _bias_column,
     _bias_head,
     _bias_pair,
-    _corrected,
+    _estimate_row,
     _filter_step,
     _noise_means_cap,
     _noise_means_screened,
-    _parameter_std,
     _propagate_error,
-    _write_estimates,
 )
 from sinewatch.estimators.bank import bank_outputs
 from sinewatch.estimators.base import kernel
@@ -213,18 +211,17 @@ def _bank_noise_variance(S: np.ndarray, lane: int, R: float) -> float:
 @kernel(inline="always")
 def _bank_row(
     S: np.ndarray, lane: int, s2: float, Ts: float, rel_std: float, corr: bool,
-    out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray,
+    out: np.ndarray, std: np.ndarray, row: int, T: np.ndarray, U: np.ndarray, J: np.ndarray,
 ) -> None:  # fmt: skip
     """Row ``row`` of ``out`` and ``std`` (one channel's) from lane ``lane`` of ``S``, as
-    :func:`ges_kalman_kernel` writes it."""
+    :func:`ges_kalman_kernel` writes it (its own :func:`_estimate_row`)."""
     L = LANES
     for i in range(16):
         T[i // 4, i % 4] = S[(_RT + i) * L + lane]
         U[i // 4, i % 4] = S[(_RU + i) * L + lane]
     x1, x2, x3, x4 = S[(_RX + 0) * L + lane], S[(_RX + 1) * L + lane], S[(_RX + 2) * L + lane], S[(_RX + 3) * L + lane]
-    x1, x2, x3, x4 = _corrected(x1, x2, x3, x4, S, _RG * L + lane, L, s2, corr)  # (B4)
-    _parameter_std(x1, x2, x3, x4, T, U, s2, Ts, std, row)
-    _write_estimates(out, row, x1, x2, x3, x4, S[(_RP + 7) * L + lane], Ts, rel_std)
+    p22 = S[(_RP + 7) * L + lane]
+    _estimate_row(out, std, row, x1, x2, x3, x4, S, _RG * L + lane, L, s2, corr, T, U, J, p22, Ts, rel_std)
 
 
 @kernel(inline="always")
@@ -322,15 +319,11 @@ def ges_kalman_bank_kernel(
     lam = 1.0 - 1.0 / consts[7]  # (U5)
     corr = consts[8] != 0.0  # the bias recursion (B1)-(B4)
     L = LANES
-    # rows on 64-byte boundaries: a row is one cache line, so no vector load of half a row splits
-    # across two (an allocation's own alignment varies from process to process: the same kernel
-    # measured ~30 % slower in one process of seven)
-    buf = np.empty(_ROWS * L + L)
-    at = (L - (buf.ctypes.data // 8) % L) % L
-    S = buf[at : at + _ROWS * L]
-    ys = np.empty(n * L)
+    S = lanes.aligned_lanes(_ROWS * L)  # rows on 64-byte boundaries: a row is one cache line
+    ys = lanes.aligned_lanes(n * L)
     T = np.empty((4, 4))
     U = np.empty((4, 4))
+    J = np.empty((4, 4))
     for g in range(0, nc, L):
         width = min(L, nc - g)
         S[:] = 0.0  # lanes past the last channel run on zeros, their results dropped
@@ -356,10 +349,12 @@ def ges_kalman_bank_kernel(
             t_live = _bank_samples(S, ys, k, k + step, t_live, corr, q0, q1, q2, q3, R, lam)
             if not last_only:
                 for c in range(width):  # row k
-                    _bank_row(S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], k, T, U)
+                    _bank_row(
+                        S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], k, T, U, J
+                    )
         if last_only:  # the last row (an empty block: the state's, as ges_kalman_kernel writes it)
             for c in range(width):
-                _bank_row(S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U)
+                _bank_row(S, c, _bank_noise_variance(S, c, R), Ts, rel_std, corr, out[g + c], std[g + c], 0, T, U, J)
         for c in range(width):
             ch = g + c
             sse[ch] = S[_RSSE * L + c]

@@ -428,6 +428,7 @@ def _parameter_std(
     x4: float,
     T: np.ndarray,
     U: np.ndarray,
+    J: np.ndarray,
     s2: float,
     Ts: float,
     std: np.ndarray,
@@ -435,7 +436,9 @@ def _parameter_std(
 ) -> None:
     """Row ``row`` of ``std``: sd of (f [Hz], A, theta, B) = sqrt(diag(J Pa J^T)) with
     ``Pa = T + s2 U`` (U1, U6); NaN outside (-4, 0) (eq. 20). J is the Jacobian of the
-    recovery formulas (:mod:`sinewatch.estimators.ges_kalman`'s docstring) at x_hat."""
+    recovery formulas (:mod:`sinewatch.estimators.ges_kalman`'s docstring) at x_hat, written into
+    ``J`` (4 x 4, overwritten), which the caller owns: :func:`_estimate_row`, compiled without
+    reference counting, allocates nothing."""
     if not (-4.0 < x3 < 0.0):
         for i in range(4):
             std[row, i] = np.nan
@@ -461,7 +464,9 @@ def _parameter_std(
     dac1 = dnum1 / ch
     dac2 = dnum2 / ch - num / (ch * ch) * dch
     dac3 = dnum3 / ch
-    J = np.zeros((4, 4))
+    for r in range(4):
+        for i in range(4):
+            J[r, i] = 0.0
     J[0, 2] = dsh / ch / (math.pi * Ts)  # f = asin(sh) / (pi Ts), eq. (21)
     das = (das0, 0.0, das2, das3)
     dac = (dac0, dac1, dac2, dac3)
@@ -496,6 +501,24 @@ def _write_estimates(
         out[j, 4] = 1.0 if math.sqrt(max(p22, 0.0)) < rel_std * -x3 else 0.0
     else:
         undefined_row(out, j)
+
+
+@kernel(refcount=False)
+def _estimate_row(
+    out: np.ndarray, std: np.ndarray, row: int, x1: float, x2: float, x3: float, x4: float, G: np.ndarray,
+    o: int, st: int, s2: float, corr: bool, T: np.ndarray, U: np.ndarray, J: np.ndarray, p22: float, Ts: float,
+    rel_std: float,
+) -> None:  # fmt: skip
+    """Row ``row`` of ``out`` and ``std`` from x_hat, its bias in ``G`` (from ``o``, stride ``st``),
+    sigma_hat^2 ``s2``, T and U (in ``T`` and ``U``) and ``J`` as scratch: x_hat less its bias (B4),
+    the standard deviations (U1, U6) and the parameters (eq. 21). Compiled once and called from
+    both of the single kernel's rows (every sample's, or the last) and the bank's, not inlined by
+    numba: each inlined copy of these bodies was typed and lowered anew (four copies across the
+    single kernel and the bank). Without reference counting, so a call costs no atomic operations
+    and LLVM may still inline it."""
+    c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, o, st, s2, corr)  # (B4)
+    _parameter_std(c1, c2, c3, c4, T, U, J, s2, Ts, std, row)
+    _write_estimates(out, row, c1, c2, c3, c4, p22, Ts, rel_std)
 
 
 @kernel
@@ -536,6 +559,7 @@ def ges_kalman_kernel(
     x_ref, e_ref = 0.0, 0.0  # _noise_means: no exp taken yet
     T = np.empty((4, 4))
     U = np.empty((4, 4))
+    J = np.empty((4, 4))
     # last_only: the u of (U5) per sample, for a second pass that keeps log and exp (calls,
     # which spill every register) out of the filter's loop
     u_seq = np.empty(n if last_only else 0)
@@ -573,18 +597,14 @@ def ges_kalman_kernel(
             _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
             _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
             s2 = m_u / w if w > 0.0 else R
-            c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, 0, 1, s2, corr)  # (B4)
-            _parameter_std(c1, c2, c3, c4, T, U, s2, Ts, std, k)
-            _write_estimates(out, k, c1, c2, c3, c4, p22, Ts, rel_std)
+            _estimate_row(out, std, k, x1, x2, x3, x4, G, 0, 1, s2, corr, T, U, J, p22, Ts, rel_std)
     if last_only:  # (U5)-(U5a) over the block's u, in order: the same values as in the loop
         for k in range(n):
             w, m_u, m_l, x_ref, e_ref = _noise_means(u_seq[k], w, m_u, m_l, lam, x_ref, e_ref)
         _store4x4(T, t00, t01, t02, t03, t10, t11, t12, t13, t20, t21, t22, t23, t30, t31, t32, t33)
         _store4x4(U, u00, u01, u02, u03, u10, u11, u12, u13, u20, u21, u22, u23, u30, u31, u32, u33)
         s2 = m_u / w if w > 0.0 else R
-        c1, c2, c3, c4 = _corrected(x1, x2, x3, x4, G, 0, 1, s2, corr)  # (B4)
-        _parameter_std(c1, c2, c3, c4, T, U, s2, Ts, std, 0)
-        _write_estimates(out, 0, c1, c2, c3, c4, p22, Ts, rel_std)
+        _estimate_row(out, std, 0, x1, x2, x3, x4, G, 0, 1, s2, corr, T, U, J, p22, Ts, rel_std)
     new_state = np.array(
         [x1, x2, x3, x4,
          p00, p01, p02, p03,

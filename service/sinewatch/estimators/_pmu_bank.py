@@ -34,7 +34,7 @@ from sinewatch.estimators._pmu_kernels import (
     transition_kernel,
 )
 from sinewatch.estimators.base import GridReports, Track, TrackStd, cyclic_next, kernel, track_from_columns
-from sinewatch.estimators.lanes import LANES, copy_lanes
+from sinewatch.estimators.lanes import LANES, aligned_lanes, copy_lanes
 
 if TYPE_CHECKING:
     from sinewatch.estimators.pmu import Pmu
@@ -184,7 +184,8 @@ def _lanes(
     n_in, nc = x.shape
     # every lane variable a row of ONE work array, at constant offsets (what LLVM needs to
     # vectorise the lane loops without run-time overlap checks)
-    w = np.zeros(_W_ROWS * LANES)
+    w = aligned_lanes(_W_ROWS * LANES)  # rows on 64-byte boundaries: a row is one cache line
+    w[:] = 0.0
     est = np.zeros((LANES, 12))
     for ln in range(LANES):
         c = b + ln

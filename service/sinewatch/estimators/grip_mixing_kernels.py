@@ -12,7 +12,7 @@ import numpy as np
 
 from sinewatch.estimators import detmath
 from sinewatch.estimators.base import cyclic_next, kernel
-from sinewatch.estimators.lanes import LANES, copy_lanes
+from sinewatch.estimators.lanes import LANES, aligned_lanes, copy_lanes
 
 
 @kernel(inline="always")
@@ -356,7 +356,8 @@ def _bank_lanes(
     rows = 1 if last_only else N
     out = np.empty((nc, rows, 3 * K + 3 + n))
     sse = np.zeros(nc)
-    W = np.zeros(_ROWS * L)
+    W = aligned_lanes(_ROWS * L)  # rows on 64-byte boundaries: a row is one cache line
+    W[:] = 0.0
     for a in range(0, n, 2):  # the constants, broadcast to every lane
         for ln in range(L):
             b = (_RAD + 2 * a) * L + ln
@@ -370,9 +371,9 @@ def _bank_lanes(
     for j in range(nt):
         for ln in range(L):
             W[(_RH + j) * L + ln] = tap_h[j]
-    yb = np.empty(Lb * L)
-    db = np.empty(Lb * L)
-    yg = np.empty(N * L)
+    yb = aligned_lanes(Lb * L)
+    db = aligned_lanes(Lb * L)
+    yg = aligned_lanes(N * L)
     rd = np.empty(nt, dtype=np.int64)
     xl = np.empty(n)
     cols = np.empty(L, dtype=np.int64)

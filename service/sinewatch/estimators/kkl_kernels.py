@@ -23,6 +23,7 @@ from numba.extending import intrinsic
 
 from sinewatch.estimators import detmath
 from sinewatch.estimators.base import kernel, undefined_row
+from sinewatch.estimators.lanes import aligned_lanes, copy_lanes
 
 ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
 FLUSH = 1e-250  # xi entries below this are set to 0 (no denormals in long silences)
@@ -613,11 +614,12 @@ def bank_arrays(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A bank's arrays for ``nc`` channels of ``n`` samples, ``m`` filters: ``out`` (nc, rows,
     5), ``extras`` (nc, rows, 3), ``sse`` (nc,), the new state (m + n_tail, nc), the work
-    array S (rows up to ``rxi``, then the filters'), the lanes' samples and their rows."""
+    array S (rows up to ``rxi``, then the filters'), the lanes' samples and their rows (S and
+    the samples with their rows on 64-byte boundaries, :func:`aligned_lanes`)."""
     rows = 1 if last_only else n
     return (
         np.empty((nc, rows, 5)), np.empty((nc, rows, 3)), np.empty(nc), np.empty((m + n_tail, nc)),
-        np.empty((rxi + m) * LANES), np.empty(n * LANES), np.empty((LANES, 0 if last_only else n, RECORD_SIZE)),
+        aligned_lanes((rxi + m) * LANES), aligned_lanes(n * LANES), np.empty((LANES, 0 if last_only else n, RECORD_SIZE)),
     )  # fmt: skip
 
 
@@ -665,14 +667,15 @@ def bank_next_sample(
 ) -> None:
     """After sample ``k`` of a bank's block: its rows kept (unless only the last is wanted;
     the offset from row ``roff``, see :func:`bank_lane_row`), then the next sample into row
-    ``_RY``, in place once this one is done with it."""
+    ``_RY``, in place once this one is done with it, as one vector store: the next sample's lane
+    loop loads that row as a vector, which waits for 8 scalar stores to reach the cache (store
+    forwarding fails) but is forwarded one vector store."""
     L = LANES
     if not last_only:
         for c in range(width):
             bank_record(rec[c], k, bank_lane_row(S, c, roff))
     nxt = min(k + 1, ys.shape[0] // L - 1) * L
-    for lane in range(L):
-        S[_RY * L + lane] = ys[nxt + lane]
+    copy_lanes(S, _RY * L, ys, nxt)
 
 
 @kernel(inline="always")

@@ -124,7 +124,11 @@ class Pmu(Estimator[PmuParams], kernel=pmu_kernel, name="pmu"):
         "channel) is about as much again (CPU time of update_bank against its kernel alone, load "
         "~19). Twice the FFT would take the reports' sums across the lanes (their complex "
         "rotations written as the same real operations, so the bits stay) and a Track for the "
-        "whole frame"
+        "whole frame. Read in the bank's AVX2 assembly (2-core AMD EPYC VM): the whole sample loop "
+        "holds 63 packed double operations on ymm (the 8 lanes' prediction, (D)'s six sums and the "
+        "rotor: ~8 operations a channel-sample) against 113 scalar ones, 6 scalar divisions and 40 "
+        "calls in its report branch, so the vector part is a few ns of update_bank's 42-53 ns a "
+        "channel-sample (ten processes, load 18-29)"
     )
     paper = None
     example_sample_rate_hz = 10_000.0

@@ -499,8 +499,8 @@ def sogi_fll_bank_kernel(
     c = (consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6], consts[7], consts[8],
          consts[9], consts[10], consts[11])  # fmt: skip
     L = LANES
-    S = np.empty(_ROWS * L)
-    ys = np.empty(n * L)
+    S = lanes.aligned_lanes(_ROWS * L)  # rows on 64-byte boundaries: a row is one cache line
+    ys = lanes.aligned_lanes(n * L)
     for g in range(0, nc, L):
         width = min(L, nc - g)
         S[:] = 0.0  # lanes past the last channel run on zeros, their results dropped
