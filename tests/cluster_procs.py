@@ -31,6 +31,7 @@ from sinewatch.clients import BlockPublisher, Fence
 from sinewatch.clients.session import free_loopback_port
 
 WAIT = 60.0  # the longest any condition may take on a loaded 2-core machine
+DRAIN_BATCH = 1000  # estimates the test's subscriber takes under one hold of its lock
 OBSERVER_FIFO = 60_000  # estimates the test's subscriber may fall behind by (a minute of the cluster's)
 CHANNELS = [f"ch{i:03d}" for i in range(100)]
 FS = 1000.0
@@ -167,11 +168,14 @@ class Router:
         assert self.proc.stdout is not None
         first = self.proc.stdout.readline()
         assert first.startswith("sinewatch router: listening"), first
-        threading.Thread(target=self._drain, args=(self.proc.stdout,), daemon=True).start()
+        threading.Thread(target=self._drain, args=(self.proc.stdout, first), daemon=True).start()
 
-    def _drain(self, out: Any) -> None:
-        """Keep the router's pipe drained (a full pipe would stop it), into its log file."""
+    def _drain(self, out: Any, first: str) -> None:
+        """Keep the router's pipe drained (a full pipe would stop it), into its log file (its
+        first line too: the Zenoh id the other processes' logs name it by)."""
         sink = open(self.logs / "router.log", "a") if self.logs is not None else None
+        if sink is not None:
+            sink.write(first)
         with contextlib.suppress(ValueError, OSError):
             for line in out:
                 if sink is not None:
@@ -435,37 +439,44 @@ class Estimates:
         # process) fell behind, Zenoh's receiving thread waited on it, the router could not push estimates
         # to this session for its `wait_before_close` (5 s) and closed it (router.log of the 50-fault run)
         self._sub = session.declare_subscriber("sinewatch/est/**", zenoh.handlers.FifoChannel(OBSERVER_FIFO))
-        threading.Thread(target=self._drain, daemon=True).start()
-        self._err = session.declare_subscriber("sinewatch/err/**", self._on_error)
+        threading.Thread(target=self._drain, args=(self._sub.handler, self._on), daemon=True).start()
+        # the ErrorReports too through a FIFO a thread drains: a Python callback waits on Zenoh's thread for the
+        # GIL and for the lock the waits hold, and meanwhile this session reads nothing of the estimates
+        self._err = session.declare_subscriber("sinewatch/err/**", zenoh.handlers.FifoChannel(OBSERVER_FIFO))
+        threading.Thread(target=self._drain, args=(self._err.handler, self._on_error), daemon=True).start()
         print(f"the test's Zenoh session: {session.info.zid()}", flush=True)  # as Zenoh's logs name it
 
-    def _drain(self) -> None:
+    def _drain(self, handler: Any, on: Any) -> None:
+        """What ``handler`` holds, each sample to ``on``, as many as have come at once under one hold of the
+        lock and one notify: a wait's condition (over every channel) runs once a notify, and run once an
+        estimate (1,000 a second) it kept this loaded process's subscriber behind the cluster."""
         with contextlib.suppress(zenoh.ZError):  # raised once the session closes
             while True:
-                self._on(self._sub.handler.recv())
+                samples = [handler.recv()]
+                while len(samples) < DRAIN_BATCH and (more := handler.try_recv()) is not None:
+                    samples.append(more)
+                msgs = [json.loads(s.payload.to_bytes()) for s in samples]
+                with self._cond:
+                    for msg in msgs:
+                        on(msg)
+                    self._cond.notify_all()
 
-    def _on_error(self, sample: zenoh.Sample) -> None:
-        msg = json.loads(sample.payload.to_bytes())
+    def _on_error(self, msg: dict[str, Any]) -> None:
         if msg.get("kind") == "unrecovered":
-            with self._cond:
-                channel = msg["key"].rsplit("/", 1)[-1]
-                self.unrecovered[channel] = max(self.unrecovered[channel], msg["count"])
-                self._cond.notify_all()
+            channel = msg["key"].rsplit("/", 1)[-1]
+            self.unrecovered[channel] = max(self.unrecovered[channel], msg["count"])
 
-    def _on(self, sample: zenoh.Sample) -> None:
-        msg = json.loads(sample.payload.to_bytes())
+    def _on(self, msg: dict[str, Any]) -> None:
         msg["_arrival"] = time.monotonic()
         msg["_wall"] = time.time()
-        with self._cond:
-            self.raw.append(msg)
-            f = msg.get("fencing")
-            if f is not None:
-                self.first_of_term.setdefault((f["shard"], f["term"]), msg["_arrival"])
-            if self.fence.accept(msg):
-                self.by_channel[msg["channel"]].append(msg)
-            else:  # a deposed owner's late estimate, after its successor's first: readers drop it
-                self.fenced_off.add((msg["channel"], msg["seq"]))
-            self._cond.notify_all()
+        self.raw.append(msg)
+        f = msg.get("fencing")
+        if f is not None:
+            self.first_of_term.setdefault((f["shard"], f["term"]), msg["_arrival"])
+        if self.fence.accept(msg):
+            self.by_channel[msg["channel"]].append(msg)
+        else:  # a deposed owner's late estimate, after its successor's first: readers drop it
+            self.fenced_off.add((msg["channel"], msg["seq"]))
 
     def wait(self, condition: Any, what: str, timeout: float = WAIT) -> None:
         with self._cond:
@@ -609,6 +620,7 @@ class GatewayProcess:
 def _serve_gateway(router_port: int) -> None:
     gateway = Gateway(router_port)
     gateway.on_round = lambda n, wall: print(f"round {n} {wall!r}", flush=True)
+    print(f"the gateway's Zenoh session: {gateway.session.info.zid()}", flush=True)  # as Zenoh's logs name it
     print("ready", flush=True)
     if sys.stdin.readline().strip() == "start":
         gateway.start()

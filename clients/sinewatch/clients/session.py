@@ -45,14 +45,18 @@ RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increas
 #: run did, twice). A client's only link is its router's: it waits longer than the router
 #: does; a router that is gone, not stalled, is found by the link's lease (10 s) all the same.
 CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
-#: The same bound on a router (``sinewatch router``): 15 s, not Zenoh's 5 s. With 5 s the router
-#: closed the link of a daemon that had read nothing for 5 s while it caught up after a takeover
-#: on a loaded machine, losing what was queued to it, which zenoh-ext's recovery then could not
-#: fetch again in time (153 blocks of each of its 50 channels, in a failover test beside four CPU
-#: burners); waiting holds the publishers back instead (their puts block: nothing is lost). A
-#: subscriber that is gone is still found by its link's lease (10 s). Shorter than a client's, so
-#: the router gives up on a stalled subscriber before any publisher gives up on the router.
-ROUTER_WAIT_BEFORE_CLOSE_US = 15_000_000
+#: The same bound on a router (``sinewatch router``): 4 s, under the 10-s lease of the links it
+#: reads. A router pushes a message on the task that reads the link it came from; waiting for a
+#: subscriber that reads nothing, that task reads nothing more from the sender, whose link the
+#: router then expires once a lease has passed without a message read from it (Zenoh's
+#: ``read_loop``: the lease timer runs beside the push). With 15 s the router closed the
+#: gateway's link instead of the stalled subscriber's (once in each of three 50-fault chaos runs:
+#: the gateway's blocked put then held its queue's lock for its own 30 s, its link's sender
+#: waiting on it, and no daemon had an input for 30 s). Under the lease, the router gives the stalled subscriber up first, twice over if two
+#: pushes in a row wait. A daemon behind a router never stops reading its link on its own (its
+#: intake's deep FIFO, its channels' rings: docs/cluster.md), so what a router closes is a daemon
+#: stopped (SIGSTOP, a VM paused) or starved for seconds; it reconnects when it runs again.
+ROUTER_WAIT_BEFORE_CLOSE_US = 4_000_000
 
 #: The daemons' input keys by default (``keys.input``): what ``sinewatch router`` forwards to
 #: subscribers with ``CongestionControl.DROP`` (:func:`router_input_qos`).

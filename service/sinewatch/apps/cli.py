@@ -503,8 +503,8 @@ def cmd_router(args: argparse.Namespace) -> int:
         connect=args.connect or [],
         raw=raw,
     )
-    with open_session(section):
-        print(f"sinewatch router: listening on {', '.join(section.listen)}", flush=True)
+    with open_session(section) as session:  # its Zenoh id: what a client's log names it by
+        print(f"sinewatch router: listening on {', '.join(section.listen)}, zenoh id {session.info.zid()}", flush=True)
         stop.wait()
     return 0
 

@@ -58,7 +58,11 @@ log = logging.getLogger("sinewatch.runtime.cluster")
 ADMIN_QUERY_TIMEOUT_S = 2.0
 ADMIN_QUERY_RING = 64  # admin queries waiting for an answer; past it the oldest goes unanswered (its asker times out)
 SNAPSHOT_RING = 2  # snapshots waiting to be read by a standby: only the newest counts
-STANDBY_ESTIMATE_FIFO = 10_000  # estimates a standby may fall behind by (10 s of 100 channels at 10 blocks/s)
+# Estimates a standby may fall behind by (10 s of 100 channels at 10 blocks/s): a ring, past it the
+# oldest go (only each channel's newest counts), so that a standby starved of CPU never stops Zenoh's
+# thread reading its link; a FIFO there, full, did, and the router, pushing it the owner's estimates
+# with BLOCK, stopped reading the owner's link (its estimates, its snapshots) for everyone
+STANDBY_ESTIMATE_RING = 10_000
 READER_JOIN_S = 0.5  # the longest a takeover waits for the standby's reader to note what its FIFO held
 
 
@@ -339,7 +343,7 @@ class ClusterMember:
         # estimates a second it fell seconds behind, and the owner's snapshots queued behind the estimates
         # (a takeover from a snapshot 6 s old beside four CPU burners: 783 blocks to catch up, 4.2 s)
         estimates = session.declare_subscriber(
-            f"{self.daemon.config.keys.estimates_prefix}/**", zenoh.handlers.FifoChannel(STANDBY_ESTIMATE_FIFO)
+            f"{self.daemon.config.keys.estimates_prefix}/**", zenoh.handlers.RingChannel(STANDBY_ESTIMATE_RING)
         )
         # the newest snapshots in a ring (only the newest counts), read on a thread: no Python on Zenoh's thread
         snapshots = session.declare_subscriber(self.snapshot_key, zenoh.handlers.RingChannel(SNAPSHOT_RING))

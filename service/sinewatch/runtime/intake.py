@@ -1,8 +1,9 @@
 """The daemon's intake: a Zenoh subscriber and a pump thread that hand the event loop its inputs
 in batches, and the order a takeover's history goes to the pipeline.
 
-Why a thread: Zenoh delivers samples on its own threads into a bounded FIFO channel (never
-blocking a Zenoh callback on Python work); the pump drains it in batches and hands each batch
+Why a thread: Zenoh delivers samples on its own threads into a bounded channel (never
+blocking a Zenoh callback on Python work; as deep as the queue with ``queue_policy = "drop"``:
+:func:`zenoh_side_channel`); the pump drains it in batches and hands each batch
 to the event loop with one ``call_soon_threadsafe`` (:mod:`sinewatch.runtime.daemon` says how
 backpressure and shutdown use it).
 """
@@ -43,6 +44,24 @@ HISTORY_FIFO_ALL = 1 << 20
 # the history 1.19 s), the round trips one after another; a shard of thousands of keys is not asked
 # for every one at once
 HISTORY_QUERIES_AT_ONCE = 64
+
+
+def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
+    """The channel Zenoh's receiving thread hands this intake its samples through.
+
+    ``"block"``: a small FIFO; past it Zenoh itself holds the data back, and so does the
+    publisher (peer mode: the back-pressure loses nothing). ``"drop"`` (a daemon behind a
+    router): a FIFO as deep as the queue, so that Zenoh's thread does not wait while the pump
+    is behind. That thread also reads this daemon's query replies, snapshots and admin queries
+    off the same link; with a full FIFO it stops, and the router, pushing the daemon a ``BLOCK``
+    reply (a takeover's history queries), stops reading the sender's link, the gateway's, for
+    everyone (docs/cluster.md, "A daemon behind real time keeps reading its link"). A pump is
+    behind when its process is starved (a takeover's 50 history threads share the GIL with it).
+    Not a ring: what a ring drops is counted nowhere, where the pump counts every input the
+    queue drops."""
+    if policy == "drop":
+        return zenoh.handlers.FifoChannel(max(64, capacity))
+    return zenoh.handlers.FifoChannel(max(64, batch * 2))
 
 
 @dataclass
@@ -177,8 +196,7 @@ class Intake:
         self._room = threading.Semaphore(cfg.limits.queue_capacity)
         self.counters = IntakeCounters()
         self._owner = Ownership.of(cfg)  # a shard (cluster.shard) and/or a worker's share of the keys
-        # The Zenoh-side FIFO is small: past it, Zenoh itself holds the data back.
-        fifo: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(max(64, self._batch * 2))
+        fifo = zenoh_side_channel(self._policy, self._batch, self._capacity)
         self._miss_listener = None
         self._subscriber: zenoh.Subscriber[Any] | zenoh.ext.AdvancedSubscriber[Any]
         # The newest sample handed over per publisher (its source id -> sequence number): the
