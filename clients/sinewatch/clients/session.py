@@ -52,8 +52,8 @@ CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
 #: ``read_loop``: the lease timer runs beside the push). With 15 s the router closed the
 #: gateway's link instead of the stalled subscriber's (once in each of three 50-fault chaos runs:
 #: the gateway's blocked put then held its queue's lock for its own 30 s, its link's sender
-#: waiting on it, and no daemon had an input for 30 s). Under the lease, the router gives the stalled subscriber up first, twice over if two
-#: pushes in a row wait. A daemon behind a router never stops reading its link on its own (its
+#: waiting on it, and no daemon had an input for 30 s). Under the lease, the router gives the
+#: stalled subscriber up first, twice over if two pushes in a row wait. A daemon behind a router never stops reading its link on its own (its
 #: intake's deep FIFO, its channels' rings: docs/cluster.md), so what a router closes is a daemon
 #: stopped (SIGSTOP, a VM paused) or starved for seconds; it reconnects when it runs again.
 ROUTER_WAIT_BEFORE_CLOSE_US = 4_000_000
