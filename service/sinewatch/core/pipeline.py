@@ -608,7 +608,7 @@ class Pipeline:
                 block = members[i].block if members is not None else usual[1].block(usual[0].columns[i])  # type: ignore[index]
                 self._fault(ch.key, block, ch, "estimate", exc, log_time_ns)
                 continue
-            out_key = ch.out_key if ch.out_key is not None else self._out_key(ch)
+            out_key = self._out_key(ch)
             for p in released:
                 out.append((out_key, p))
             ch.last_log_ns, ch.last_arrival_ns = log_time_ns, arrival

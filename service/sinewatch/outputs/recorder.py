@@ -565,9 +565,14 @@ class McapRecorder:
             self._channels[key] = cid
         return cid
 
-    def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
+    def _next_sequence(self, cid: int) -> int:
+        """The sequence number of channel ``cid``'s next message (0, 1, 2, ... a channel)."""
         seq = self._sequence.get(cid, 0)
         self._sequence[cid] = seq + 1
+        return seq
+
+    def _write(self, cid: int, payload: bytes, log_time_ns: int) -> None:
+        seq = self._next_sequence(cid)
         writer = self._writer
         if writer is None:
             raise RuntimeError("recorder: no open file (call open() first)")
@@ -611,15 +616,10 @@ class McapRecorder:
             for key, payload in estimates:
                 self.on_estimate(key, payload, log_time_ns)
             return
-        channels, sequence = self._channels, self._sequence
         messages = []
         for key, payload in estimates:
-            cid = channels.get((key, "json", ESTIMATE_JSON_ENCODING, "sinewatch.Estimate"))
-            if cid is None:  # (_channel_id's key, above)
-                cid = self._channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING)
-            seq = sequence.get(cid, 0)
-            sequence[cid] = seq + 1
-            messages.append((cid, seq, payload))
+            cid = self._channel_id(key, "json", "sinewatch.Estimate", "estimate", ESTIMATE_JSON_ENCODING)
+            messages.append((cid, self._next_sequence(cid), payload))
         writer.add_messages(messages, log_time_ns, time.time_ns())
         self.messages_written += len(messages)
 
