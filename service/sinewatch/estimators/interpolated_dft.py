@@ -383,39 +383,35 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
 
     def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> Sequence[Track]:
         """The Tracks of a bank's channels (:func:`ipdft_bank_kernel`'s outputs, channel
-        first) as :meth:`_track` gives each, built with one numpy call a field for the whole
-        frame (:func:`~sinewatch.estimators.bank.column_tracks`), (U) computed once over the
-        rows of all channels: element-wise numpy, so each row's bits do not depend on the rows
-        beside it (the residual's ``sqrt(sse / n)`` is correctly rounded in numpy as in
-        ``math``)."""
+        first) as :meth:`_track` gives each, made only when one is read
+        (:func:`~sinewatch.estimators.bank.column_tracks`), (U) computed once over the rows of
+        all channels: element-wise numpy, so each row's bits do not depend on the rows beside
+        it. Each channel's residual RMS is ``sqrt(sse / n_pred)`` over its own count of
+        predictions: the quotient is taken here and handed over as the sum over one sample,
+        ``sqrt(q / 1)``, the same bits (``q / 1`` is exact), so no Track needs changing after
+        it is made and none is made for a caller that reads none (the bench; the daemon reads
+        them to write Estimates with extras)."""
         out, resid, rocof, age, sse, n_pred = outputs
         nc, rows = resid.shape
-        std, std_rocof = self._std(out.reshape(nc * rows, 5), resid.reshape(-1), age.reshape(-1))
-        shaped = (nc, rows, 1)
-        tracks = column_tracks(
-            out,
-            np.zeros(nc),  # the residuals below: each channel has its own count of predictions
-            1,
-            {"fit_residual_rms": resid, "std_rocof_hz_per_s": std_rocof.reshape(nc, rows)},
-            rocof=rocof.reshape(shaped),
-            std=np.stack(
-                (
-                    std.frequency_hz.reshape(nc, rows),
-                    std.amplitude.reshape(nc, rows),
-                    std.phase_rad.reshape(nc, rows),
-                    std.offset.reshape(nc, rows),
-                ),
-                axis=2,
-            ),
-        )
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rms = np.where(n_pred > 0, np.sqrt(sse / n_pred), math.nan).tolist()
-        for track, r in zip(tracks, rms, strict=True):
-            track.residual_rms = r
-        return tracks
+        freq, amp, phase, offset, std_rocof = self._std_values(out.reshape(nc * rows, 5), resid.ravel(), age.ravel())
+        std = np.empty((nc, rows, 4))
+        for i, column in enumerate((freq, amp, phase, offset)):
+            std[:, :, i] = column.reshape(nc, rows)
+        with np.errstate(invalid="ignore", divide="ignore"):  # no prediction: math.nan, as track_from_columns
+            quotient = np.where(n_pred > 0, sse / n_pred, math.nan)
+        extras = {"fit_residual_rms": resid, "std_rocof_hz_per_s": std_rocof.reshape(nc, rows)}
+        return column_tracks(out, quotient, 1, extras, rocof=rocof.reshape(nc, rows, 1), std=std)
 
     def _std(self, out: np.ndarray, resid: np.ndarray, age: np.ndarray) -> tuple[TrackStd, np.ndarray]:
         """(U) one standard deviation of each output row, and of its ROCOF."""
+        freq, amp, phase, offset, std_rocof = self._std_values(out, resid, age)
+        return TrackStd(freq[:, None], amp[:, None], phase[:, None], offset), std_rocof
+
+    def _std_values(
+        self, out: np.ndarray, resid: np.ndarray, age: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(U) the standard deviations of frequency (Hz), amplitude, phase (rad), offset and
+        ROCOF (Hz/s) of each output row, each (rows,)."""
         n, fs, hop = self.window_samples, self.sample_rate_hz, self.hop_samples
         t = self._std_tables
         sig2 = resid * resid * (n / (n - 3.0))  # the fit has 3 linear parameters
@@ -427,17 +423,17 @@ class InterpolatedDft(Estimator[IpdftParams], kernel=ipdft_kernel, name="ipdft")
         var_dlam = rel * np.interp(lam, t.lam, t.var_dlam) + np.interp(lam, t.lam, t.bias_dlam) ** 2
         omega_sd2 = (2.0 * np.pi / n) ** 2 * var_lam  # rad / sample
         c = 0.5 * (n - 1)
-        std = TrackStd(
-            frequency_hz=(np.sqrt(var_lam) * fs / n)[:, None],
-            amplitude=np.sqrt(2.0 * sig2 / n)[:, None],
-            phase_rad=np.sqrt(2.0 * rel / n + (c + age) ** 2 * omega_sd2)[:, None],
-            offset=np.sqrt(sig2 / n),
+        return (
+            np.sqrt(var_lam) * fs / n,
+            np.sqrt(2.0 * sig2 / n),
+            np.sqrt(2.0 * rel / n + (c + age) ** 2 * omega_sd2),
+            np.sqrt(sig2 / n),
+            np.sqrt(var_dlam) * (fs / n) * (fs / hop),
         )
-        return std, np.sqrt(var_dlam) * (fs / n) * (fs / hop)
 
     @functools.cached_property
     def _std_tables(self) -> StdTables:
         return std_tables(self.window_samples, self.hop_samples, self.k_lo, self.k_hi, self.params.interpolation)
 
 
-register_bank(InterpolatedDft, ipdft_bank_kernel, n_outputs=6, tracks=InterpolatedDft._bank_tracks, channel_first=True)
+register_bank(InterpolatedDft, ipdft_bank_kernel, n_outputs=6, tracks=InterpolatedDft._bank_tracks)

@@ -505,24 +505,31 @@ def ipdft_bank_kernel(
     cos_tab: np.ndarray, sin_tab: np.ndarray, iconsts: np.ndarray, fconsts: np.ndarray, last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`ipdft_kernel` for the C channels of a frame in one compiled call (the bank of
-    :mod:`sinewatch.estimators.bank`, channel first): ``y`` (C, N) and the state arrays
-    stacked along a first channel axis; returns the outputs and the new state likewise. Each
-    channel runs through :func:`ipdft_kernel` itself, on its own row and state, so its bits
-    are the single channel's: the kernel's work is per window and already vectorised across
-    the windows of a block, and what a bank saves is the Python around each channel's call."""
-    nc = y.shape[0]
-    r = ipdft_kernel(y[0], buf[0], istate[0], fstate[0], rstate[0], hann, cos_tab, sin_tab, iconsts, fconsts, last_only)
-    rows = r[1].shape[0]
-    out = np.empty((nc, rows, 5))
-    resid, rocof, age = np.empty((nc, rows)), np.empty((nc, rows)), np.empty((nc, rows))
+    :mod:`sinewatch.estimators.bank`): ``y`` (N, C) and the state arrays stacked channel last,
+    ``(*shape, C)``, as a lane-major bank's, so that :func:`~sinewatch.estimators.bank.update_bank`
+    keeps them stacked between frames instead of gathering and scattering a dict a channel
+    around every call; returns the outputs channel first (``out`` (C, rows, 5), ``resid``,
+    ``rocof``, ``age`` (C, rows), ``sse``, ``n_pred`` (C,)) and the new states channel last.
+    Each channel runs through :func:`ipdft_kernel` itself, on contiguous copies of its column
+    of the samples and of each state array (the single kernel's own argument types, so it is
+    compiled once for both), so its bits are the single channel's: the kernel's work is per
+    window and already vectorised across the windows of a block."""
+    nc = y.shape[1]
+    out = np.empty((0, 0, 5))  # (each of these four sized by the first channel's rows)
+    resid, rocof, age = np.empty((0, 0)), np.empty((0, 0)), np.empty((0, 0))
     sse, n_pred = np.empty(nc), np.empty(nc, dtype=np.int64)
     new_buf, new_i = np.empty_like(buf), np.empty_like(istate)
     new_f, new_r = np.empty_like(fstate), np.empty_like(rstate)
     for c in range(nc):
-        if c > 0:
-            r = ipdft_kernel(
-                y[c], buf[c], istate[c], fstate[c], rstate[c], hann, cos_tab, sin_tab, iconsts, fconsts, last_only
-            )
+        r = ipdft_kernel(
+            np.ascontiguousarray(y[:, c]), np.ascontiguousarray(buf[:, c]), np.ascontiguousarray(istate[:, c]),
+            np.ascontiguousarray(fstate[:, c]), np.ascontiguousarray(rstate[:, c]), hann, cos_tab, sin_tab, iconsts,
+            fconsts, last_only,
+        )  # fmt: skip
+        if c == 0:
+            rows = r[1].shape[0]  # 1 or N: every channel's the same
+            out = np.empty((nc, rows, 5))
+            resid, rocof, age = np.empty((nc, rows)), np.empty((nc, rows)), np.empty((nc, rows))
         out[c], resid[c], rocof[c], age[c], sse[c], n_pred[c] = r[0], r[1], r[2], r[3], r[4], r[5]
-        new_buf[c], new_i[c], new_f[c], new_r[c] = r[6], r[7], r[8], r[9]
+        new_buf[:, c], new_i[:, c], new_f[:, c], new_r[:, c] = r[6], r[7], r[8], r[9]
     return out, resid, rocof, age, sse, n_pred, new_buf, new_i, new_f, new_r
