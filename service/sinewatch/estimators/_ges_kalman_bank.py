@@ -6,12 +6,7 @@ equations, same order of operations; eq. numbers as in that module).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, cast
-
-import numba
 import numpy as np
-from numba.extending import intrinsic
 
 from sinewatch.estimators import detmath, lanes
 from sinewatch.estimators._ges_kalman_kernels import (
@@ -47,22 +42,7 @@ _P_IN_XP = (4, 5, 6, 7, 9, 10, 11, 14, 15, 19)  # p00 p01 p02 p03 p11 p12 p13 p2
 _P_OF_ENTRY = (0, 1, 2, 3, 1, 4, 5, 6, 2, 5, 7, 8, 3, 6, 8, 9)  # P[i, j] (row-major) -> its distinct entry
 
 
-@intrinsic
-def _select_intrinsic(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
-    """``a if cond else b`` for floats as one LLVM ``select`` (no branch): a Python conditional
-    is three blocks of numba's IR, which numba copies block by block, each copy with the whole
-    function's scope, when it inlines the function (16 of them made ges-kalman's bank the
-    longest compile of the test run). The value chosen is the same, bit for bit."""
-    sig = numba.types.float64(numba.types.boolean, numba.types.float64, numba.types.float64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        return builder.select(args[0], args[1], args[2])
-
-    return sig, codegen
-
-
-# typed as compiled code calls it (numba passes the typing context itself)
-_select = cast(Callable[[bool, float, float], float], _select_intrinsic)
+_select = lanes.select  # (a Python conditional's branches kept ges-kalman's bank the longest compile)
 
 
 @kernel(inline="always")

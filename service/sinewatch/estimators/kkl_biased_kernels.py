@@ -73,6 +73,7 @@ from sinewatch.estimators.kkl_kernels import (
     undefined_sample,
     write_rows,
 )
+from sinewatch.estimators.lanes import frozen, select
 
 DC_FLOOR = 1e-9  # |eta_c| below 1e-9 |eta_bar| is rounding of a constant input, not an oscillation
 
@@ -90,7 +91,7 @@ def level_step(yk: float, y_avg: float, yv_avg: float, avg_gain: float) -> tuple
 @kernel(inline="always")
 def run_step(n_run: float, have_prev: float, n_settle: float) -> float:
     """Samples the filters have run, counted up to n_settle (not the first sample)."""
-    return n_run + 1.0 if have_prev != 0.0 and n_run < n_settle else n_run
+    return select((have_prev != 0.0) & (n_run < n_settle), n_run + 1.0, frozen(n_run))  # (see lanes.frozen)
 
 
 @kernel(inline="always")
@@ -107,7 +108,7 @@ def centred_sums(
 def live_oscillation(s: float, eta_bar: float, env: float, silence_ratio: float) -> bool:
     """An oscillation to estimate: |eta_c| above zero, above rounding of a constant input
     and above ``silence_ratio`` of its recent peak."""
-    return s > ABS_FLOOR + DC_FLOOR * abs(eta_bar) and s >= silence_ratio * env
+    return (s > ABS_FLOOR + DC_FLOOR * abs(eta_bar)) & (s >= silence_ratio * env)
 
 
 @kernel(inline="always")
@@ -142,12 +143,12 @@ def biased_inverse_map(
     # Gram determinant det(L_c^T L_c) = det(C^T C) (1 - c^T (C^T C)^-1 c)
     det = det_k0 * (1.0 - ch0 * ch0 * ik[0] - ch1 * ch1 * ik[1] - ch2 * ch2 * ik[2])
     mu = ell - 2.0 * det
-    mu = 0.0 if 0.0 > mu else mu  # max(mu, 0), as Python's max (a select)
+    mu = select(0.0 > mu, 0.0, mu)  # max(mu, 0), as Python's max
     # (C^T C + mu I)^-1 in the eigenbasis; at mu = 0, 1/(k + 0) is 1/k bit for bit, so
     # the select only spares the single kernel three divisions
-    i0 = ik[0] if mu == 0.0 else 1.0 / (kk[0] + mu)
-    i1 = ik[1] if mu == 0.0 else 1.0 / (kk[1] + mu)
-    i2 = ik[2] if mu == 0.0 else 1.0 / (kk[2] + mu)
+    i0 = select(mu == 0.0, ik[0], 1.0 / (kk[0] + mu))
+    i1 = select(mu == 0.0, ik[1], 1.0 / (kk[1] + mu))
+    i2 = select(mu == 0.0, ik[2], 1.0 / (kk[2] + mu))
     schur = 1.0 + mu - (ch0 * ch0 * i0 + ch1 * ch1 * i1 + ch2 * ch2 * i2)
     z3 = (r3 - (ch0 * rh0 * i0 + ch1 * rh1 * i1 + ch2 * rh2 * i2)) / schur
     w0 = (rh0 - ch0 * z3) * i0
@@ -156,7 +157,7 @@ def biased_inverse_map(
     z0 = v00 * w0 + v01 * w1 + v02 * w2
     z1 = v10 * w0 + v11 * w1 + v12 * w2
     z2 = v20 * w0 + v21 * w1 + v22 * w2
-    return inv, det, mu, schur > 1e-300 and z3 > 0.0, z0, z1, z2, z3
+    return inv, det, mu, (schur > 1e-300) & (z3 > 0.0), z0, z1, z2, z3
 
 
 @kernel(inline="always")
@@ -330,23 +331,23 @@ def _bank_front(
     jump, e2_fast, e2_slow = jump_detector(e2, S[_REF * L + lane], S[_RES * L + lane], fast_gain, slow_gain, yv_avg)
     S[_RSSE * L + lane], S[_RE2 * L + lane], S[_YA * L + lane], S[_RLEV * L + lane] = sse, e2_avg, y_avg, yv_avg
     S[_REF * L + lane], S[_RES * L + lane] = e2_fast, e2_slow
-    S[_RJUMP * L + lane] = 1.0 if jump else 0.0
+    S[_RJUMP * L + lane] = select(jump, 1.0, 0.0)
     s2 = a1 = a2 = a3 = a4 = q2 = 0.0
     for i in range(len(lam)):
         c = lp[i] * S[(_XI + i) * L + lane] - eta_bar
         s2, a1, a2, a3, a4, q2 = centred_sums(lam[i], c, s2, a1, a2, a3, a4, q2)
     s = sqrt(s2)
     decayed = S[_RENV * L + lane] * env_decay
-    env = decayed if decayed > s else s  # max(s, decayed), as Python's max
+    env = select(decayed > s, decayed, s)  # max(s, decayed), as Python's max
     S[_RENV * L + lane] = env
     inv, det, mu, solved, z0, z1, z2, z3 = biased_inverse_map(a1, a2, a3, a4, q2, s, kvt, kk, ik, det_k0, ell)
     live = live_oscillation(s, eta_bar, env, silence_ratio)
-    solved = live and solved
+    solved = live & solved
     sq = sqrt(z3)  # (NaN where z3 < 0: not solved, not used)
-    wts = w_ref * sq * Ts if solved else 0.0
-    S[_RDEF * L + lane] = 1.0 if solved and wts < math.pi else 0.0
+    wts = select(solved, w_ref * sq * Ts, 0.0)
+    S[_RDEF * L + lane] = select(solved & (wts < math.pi), 1.0, 0.0)
     S[_RS * L + lane], S[_EB * L + lane], S[_RINV * L + lane] = s, eta_bar, inv
-    S[_RDET * L + lane], S[_RMU * L + lane] = det if live else 0.0, mu
+    S[_RDET * L + lane], S[_RMU * L + lane] = select(live, det, 0.0), mu
     S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_Z3 * L + lane] = z0, z1, z2, z3
     S[_RSQ * L + lane], S[_RWTS * L + lane], S[_RHALF * L + lane] = sq, wts, 0.5 * wts
 
@@ -372,14 +373,12 @@ def _bank_back(
         rr += res * res
         ff += t * t
     S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff  # (bank_good keeps them where defined)
-    S[_RASIN * L + lane] = a_sin if defined else 0.0
-    S[_RACOS * L + lane] = a_cos if defined else 0.0
-    fallback = eta_bar if settled else np.nan
-    S[_OFF * L + lane] = offset if defined else fallback
-    y_old = S[_RYPRED * L + lane]
-    kept = eta_bar if settled else y_old
-    S[_RYPRED * L + lane] = y_pred if defined else kept
-    S[_RPV * L + lane] = 1.0 if defined or settled else 0.0
+    S[_RASIN * L + lane] = select(defined, a_sin, 0.0)
+    S[_RACOS * L + lane] = select(defined, a_cos, 0.0)
+    S[_OFF * L + lane] = select(defined, offset, select(settled, eta_bar, np.nan))
+    kept = select(settled, eta_bar, S[_RYPRED * L + lane])
+    S[_RYPRED * L + lane] = select(defined, y_pred, kept)
+    S[_RPV * L + lane] = select(defined | settled, 1.0, 0.0)
     bank_good(S, lane, settled, n_settle, max_fit2, max_pred2, wts_lo, wts_hi)
 
 

@@ -23,7 +23,7 @@ from numba.extending import intrinsic
 
 from sinewatch.estimators import detmath
 from sinewatch.estimators.base import kernel, undefined_row
-from sinewatch.estimators.lanes import aligned_lanes, copy_lanes
+from sinewatch.estimators.lanes import aligned_lanes, copy_lanes, frozen, select
 
 ABS_FLOOR = 1e-150  # |xi| at or below this is "zero"
 FLUSH = 1e-250  # xi entries below this are set to 0 (no denormals in long silences)
@@ -92,7 +92,7 @@ def prediction_error(
 ) -> tuple[float, float, float]:
     """The squared one-step prediction error of sample ``yk`` (against 0 while there is no
     prediction), the block's sum of squares and the running mean square, updated."""
-    e = yk - y_pred if pred_valid != 0.0 else yk
+    e = select(pred_valid != 0.0, yk - y_pred, yk)
     e2 = e * e
     return e2, sse + e2, e2_avg + avg_gain * (e2 - e2_avg)
 
@@ -113,7 +113,15 @@ def consistent(
     """ "Good" (module docstring, converged): mu = 0, the relative fit residual and the
     running prediction error (against ``level``, the running mean square or variance of y)
     within bounds, no jump, and omega Ts inside the converged range."""
-    return mu == 0.0 and rr <= max_fit2 * ff and e2_avg <= max_pred2 * level and not jump and wts_lo <= wts <= wts_hi
+    # (& not `and`: no branch, see lanes.select; every operand is a plain comparison)
+    return (
+        (mu == 0.0)
+        & (rr <= max_fit2 * ff)
+        & (e2_avg <= max_pred2 * level)
+        & (not jump)
+        & (wts_lo <= wts)
+        & (wts <= wts_hi)
+    )
 
 
 @kernel(inline="always")
@@ -137,7 +145,7 @@ def record_sample(
 def count_good(good: bool, n_good: float, n_settle: float) -> float:
     """The run of good samples, counted up to n_settle (converged once it is reached)."""
     up = n_good + 1.0
-    return (n_settle if n_settle < up else up) if good else 0.0  # min(up, n_settle), as Python's min
+    return select(good, select(n_settle < up, n_settle, up), 0.0)  # min(up, n_settle), as Python's min
 
 
 @kernel(inline="always")
@@ -235,7 +243,7 @@ def next_sample(
 def filter_one(a: float, b0: float, b1: float, x: float, y_prev: float, yk: float) -> float:
     """One filter of (12) over one sample; below FLUSH, 0."""
     v = a * x + b0 * y_prev + b1 * yk
-    return v if abs(v) > FLUSH else 0.0
+    return select(abs(v) > FLUSH, v, 0.0)
 
 
 @kernel(inline="always")
@@ -257,7 +265,7 @@ def jump_detector(
     jump = e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level
     e2_fast += fast_gain * (e2 - e2_fast)
     e2_slow += slow_gain * (e2 - e2_slow)
-    return jump or e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level, e2_fast, e2_slow
+    return jump | (e2_fast > JUMP_RATIO * e2_slow + JUMP_FLOOR * level), e2_fast, e2_slow
 
 
 @kernel(inline="always")
@@ -273,9 +281,9 @@ def half_step_of(half: float, sh: float) -> tuple[float, float, float]:
     """:func:`half_step` given ``sh = sin(half)`` (:func:`sinewatch.estimators.detmath.sin`, the
     same function in the single kernel and in a bank's vectorised lanes)."""
     c2 = 1.0 - sh * sh
-    ch = sqrt(0.0 if 0.0 > c2 else c2)  # max(c2, 0.0), as Python's max
+    ch = sqrt(select(0.0 > c2, 0.0, c2))  # max(c2, 0.0), as Python's max
     q = half / sh
-    return sh, ch, q * q if half > 1e-8 else 1.0
+    return sh, ch, select(half > 1e-8, q * q, 1.0)
 
 
 @kernel(inline="always")
@@ -327,7 +335,7 @@ def inverse_map(
     # |M xi|^2 = det(L^T L) (Gram determinant; equals the printed M for m = 4)
     det = s_ll * (s_11 - b12 * b12) - s_l * (s_l - b12 * b02) + b02 * (s_l * b12 - s_11 * b02)
     mu = ell - 2.0 * det
-    mu = 0.0 if 0.0 > mu else mu  # (9) with |xi| = 1: max(mu, 0), as Python's max (a select)
+    mu = select(0.0 > mu, 0.0, mu)  # (9) with |xi| = 1: max(mu, 0), as Python's max
     # Phi = L^T L + mu I, solved with its adjugate (8)
     a = s_ll + mu
     d = s_11 + mu
@@ -343,7 +351,7 @@ def inverse_map(
     z0 = (k00 * r0 + k01 * r1 + k02 * r2) * idet
     z1 = (k01 * r0 + k11 * r1 + k12 * r2) * idet
     z2 = (k02 * r0 + k12 * r1 + k22 * r2) * idet
-    return inv, det, mu, det_phi > 1e-300 and z2 > 0.0, z0, z1, z2
+    return inv, det, mu, (det_phi > 1e-300) & (z2 > 0.0), z0, z1, z2
 
 
 @kernel(inline="always")
@@ -467,7 +475,7 @@ def bank_filter(S: np.ndarray, r: int, a: float, b0: float, b1: float, yp: float
     before the first sample, ``hp`` = 0): its new value."""
     xo = S[r]
     v = filter_one(a, b0, b1, xo, yp, yk)
-    v = v if hp != 0.0 else xo
+    v = select(hp != 0.0, v, frozen(xo))  # (frozen: a blend and a plain store, see lanes.frozen)
     S[r] = v
     return v
 
@@ -529,22 +537,22 @@ def _bank_front(
     S[_RSSE * L + lane], S[_RE2 * L + lane], S[_REF * L + lane], S[_RES * L + lane] = sse, e2_avg, e2_fast, e2_slow
     S[_RHP * L + lane] = 1.0
     S[_RYP * L + lane] = yk
-    S[_RJUMP * L + lane] = 1.0 if jump else 0.0
+    S[_RJUMP * L + lane] = select(jump, 1.0, 0.0)
     s = sqrt(S[_RS2 * L + lane])
     decayed = S[_RENV * L + lane] * env_decay
-    env = decayed if decayed > s else s  # max(s, decayed), as Python's max
+    env = select(decayed > s, decayed, s)  # max(s, decayed), as Python's max
     S[_RENV * L + lane] = env
     S[_RS * L + lane] = s
     inv, det, mu, solved, z0, z1, z2 = inverse_map(
         s_ll, s_l, s_11, S[_RP0 * L + lane], S[_RP1 * L + lane], S[_RP2 * L + lane], S[_RP3 * L + lane],
         S[_RQ2 * L + lane], s, ell,
     )  # fmt: skip
-    live = s > ABS_FLOOR and s >= silence_ratio * env  # else "xi near 0": undefined
-    solved = live and solved
+    live = (s > ABS_FLOOR) & (s >= silence_ratio * env)  # else "xi near 0": undefined
+    solved = live & solved
     sq = sqrt(z2)  # (NaN where z2 < 0: not solved, not used)
-    wts = w_ref * sq * Ts if solved else 0.0
-    S[_RDEF * L + lane] = 1.0 if solved and wts < math.pi else 0.0
-    S[_RINV * L + lane], S[_RDET * L + lane], S[_RMU * L + lane] = inv, det if live else 0.0, mu
+    wts = select(solved, w_ref * sq * Ts, 0.0)
+    S[_RDEF * L + lane] = select(solved & (wts < math.pi), 1.0, 0.0)
+    S[_RINV * L + lane], S[_RDET * L + lane], S[_RMU * L + lane] = inv, select(live, det, 0.0), mu
     S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RZ2 * L + lane], S[_RSQ * L + lane] = z0, z1, z2, sq
     S[_RWTS * L + lane] = wts
     S[_RHALF * L + lane] = 0.5 * wts
@@ -560,11 +568,10 @@ def _bank_read_out(S: np.ndarray, lane: int, w_ref: float) -> None:
     a_sin, a_cos, y_pred = read_out(
         w_ref, S[_RS * L + lane], S[_RZ0 * L + lane], S[_RZ1 * L + lane], S[_RSQ * L + lane], sh, ch, g
     )
-    S[_RASIN * L + lane] = a_sin if defined else 0.0
-    S[_RACOS * L + lane] = a_cos if defined else 0.0
-    y_old = S[_RYPRED * L + lane]
-    S[_RYPRED * L + lane] = y_pred if defined else y_old
-    S[_RPV * L + lane] = 1.0 if defined else 0.0
+    S[_RASIN * L + lane] = select(defined, a_sin, 0.0)
+    S[_RACOS * L + lane] = select(defined, a_cos, 0.0)
+    S[_RYPRED * L + lane] = select(defined, y_pred, S[_RYPRED * L + lane])
+    S[_RPV * L + lane] = select(defined, 1.0, 0.0)
 
 
 @kernel(inline="always")
@@ -577,14 +584,14 @@ def bank_good(
     L = LANES
     defined = S[_RDEF * L + lane] != 0.0
     rr, ff = S[_RRR * L + lane], S[_RFF * L + lane]  # loaded whatever the lane, then kept or not
-    rr = rr if defined else 0.0
-    ff = ff if defined else 1.0
+    rr = select(defined, rr, 0.0)
+    ff = select(defined, ff, 1.0)
     S[_RRR * L + lane], S[_RFF * L + lane] = rr, ff
-    good = defined and settled and consistent(
+    good = defined & settled & consistent(
         S[_RMU * L + lane], rr, ff, max_fit2, S[_RE2 * L + lane], max_pred2, S[_RLEV * L + lane],
         S[_RJUMP * L + lane] != 0.0, S[_RWTS * L + lane], wts_lo, wts_hi,
     )  # fmt: skip
-    S[_RGOOD * L + lane] = 1.0 if good else 0.0
+    S[_RGOOD * L + lane] = select(good, 1.0, 0.0)
     S[_RNG * L + lane] = count_good(good, S[_RNG * L + lane], n_settle)
 
 

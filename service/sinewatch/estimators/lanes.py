@@ -11,7 +11,8 @@ allocates a lane-major array whose rows each lie in one cache line.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, cast
 
 import numba
 import numpy as np
@@ -64,6 +65,47 @@ def copy_lanes(dst: np.ndarray, dst_at: int, src: np.ndarray, src_at: int) -> No
     (LLVM adds no overlap check to a loop that short). The values are moved, not computed: no bit
     changes."""
     _copy_lanes_intrinsic(dst, dst_at, src, src_at)  # type: ignore[call-arg]  # numba passes the typing context
+
+
+@intrinsic
+def _select_intrinsic(typingctx: Any, cond: Any, a: Any, b: Any) -> Any:
+    sig = numba.types.float64(numba.types.boolean, numba.types.float64, numba.types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.select(args[0], args[1], args[2])
+
+    return sig, codegen
+
+
+#: ``a if cond else b`` for floats as one LLVM ``select``, no branch; the value chosen is the
+#: same, bit for bit (both sides are computed: callers pass values, not calls that could fail).
+#: Why: a Python conditional is a branch in numba's IR, and a lane loop of several branches on
+#: the same lane's flag is threaded by LLVM (each path's code copied), whose stores the
+#: vectoriser then predicates: masked stores (``vmaskmovpd``, microcoded on AMD's cores) and
+#: masked loads where a select is one ``vblendvpd``. Also a Python conditional is three
+#: blocks of numba's IR, which numba copies with the whole function's scope when it inlines
+#: the function (compile time).
+select = cast(Callable[[bool, float, float], float], _select_intrinsic)
+
+
+@intrinsic
+def _frozen_intrinsic(typingctx: Any, x: Any) -> Any:
+    sig = numba.types.float64(numba.types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        frozen = llvm_ir.Instruction(builder.block, args[0].type, "freeze", [args[0]])
+        builder._insert(frozen)  # (llvmlite's builder has no freeze)
+        return frozen
+
+    return sig, codegen
+
+
+#: ``x`` itself, through LLVM's ``freeze`` (which returns a value that is not poison as it is: no
+#: bit changes). Why: a lane loop's ``S[r] = select(c, v, S[r])``, a row kept where a lane's flag
+#: is off, is recognised by LLVM as a conditional store of ``v`` and vectorised as a masked store
+#: (``vmaskmovpd``, microcoded on AMD's cores: ~6 of kkl-biased's sample); ``select(c, v,
+#: frozen(S[r]))`` is not the row's own value to LLVM, so it stays a blend and a plain store.
+frozen = cast(Callable[[float], float], _frozen_intrinsic)
 
 
 #: a cache line, in doubles: a row of LANES doubles that starts on one lies in one line
