@@ -570,7 +570,7 @@ def _bank_read_out(S: np.ndarray, lane: int, w_ref: float) -> None:
     )
     S[_RASIN * L + lane] = select(defined, a_sin, 0.0)
     S[_RACOS * L + lane] = select(defined, a_cos, 0.0)
-    S[_RYPRED * L + lane] = select(defined, y_pred, S[_RYPRED * L + lane])
+    S[_RYPRED * L + lane] = select(defined, y_pred, frozen(S[_RYPRED * L + lane]))  # (see lanes.frozen)
     S[_RPV * L + lane] = select(defined, 1.0, 0.0)
 
 
