@@ -148,16 +148,20 @@ class KklBiased(FilterBankObserver[KklBiasedParams], kernel=kkl_biased_kernel, n
         "complement: seven divisions (the three of the regularised eigenvalues are taken for every "
         "lane: a vector computes both sides of the select on mu = 0) and two square roots, "
         "long-latency and not fully pipelined, plus the sine's ~40 flops. 512-bit lanes against "
-        "256-bit ones, measured in turn under load 13-23: 1.29x and 1.20x the streaming FFT. The "
-        "kernel is 84 % of update_bank (268 of 318 us a frame of 8 x 1024, each part timed alone, "
-        "load 16); the rest is the Tracks (28 us), the states (14) and the checks (8). Without "
-        "AVX-512 (2-core AMD EPYC VM (AVX2)), read in the bank's assembly: a sample of 8 lanes is "
-        "~1,520 instructions, 518 of them packed double operations on ymm, 8 vdivpd and 3 vsqrtpd, "
-        "87 spills or reloads (more live values than AVX2's 16 registers) and 26 masked moves "
-        "(vmaskmovpd, microcode on AMD's cores): LLVM makes a row kept where a lane's branch is not "
-        "taken (a filter before the lane's first sample, the read-out where undefined) a "
-        "conditional store, and writing the choice as a select compiles to the same masked store"
+        "256-bit ones, measured in turn under load 13-23: 1.29x and 1.20x the streaming FFT. Without "
+        "AVX-512 (2-core AMD EPYC VM (AVX2)), read in the bank's assembly: its sample loop is 810 "
+        "instructions, 527 of them packed double arithmetic, 8 vdivpd and 3 vsqrtpd, 155 loads and "
+        "stores on the stack (more live values than AVX2's 16 registers) and no masked move (863 "
+        "instructions, 167 on the stack and 26 vmaskmovpd before): the lanes' flags are LLVM selects "
+        "and & (a Python conditional or `and` is a branch in numba's IR, and the vectoriser predicated "
+        "the stores behind those branches: pairs of masked stores of complementary masks) and a row "
+        "kept where a lane's flag is off goes through freeze (sinewatch.estimators.lanes.select and "
+        "frozen; vmaskmovpd is microcode on AMD's cores): the kernel 35.5-36.4 -> 28.9-30.5 ns a "
+        "channel-sample, update_bank 1.21-1.27x -> 1.52-1.65x the streaming FFT (`sinewatch bench "
+        "kernels --block 1024 --bank 8`, paired "
+        "rounds, load 4-16). What is left is that arithmetic, ~90 % of update_bank"
     )
+
     # the default example signal is 0.5 + sin(2 pi 50 t + 0.3) + noise
 
     def _ell(self, x3_lo: float, x3_hi: float) -> tuple[float, float]:
