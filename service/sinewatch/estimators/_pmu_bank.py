@@ -34,7 +34,7 @@ from sinewatch.estimators._pmu_kernels import (
     transition_kernel,
 )
 from sinewatch.estimators.base import GridReports, Track, TrackStd, cyclic_next, kernel, track_from_columns
-from sinewatch.estimators.lanes import LANES, aligned_lanes, copy_lanes
+from sinewatch.estimators.lanes import LANES, aligned_lanes, copy_lanes, frozen, select
 
 if TYPE_CHECKING:
     from sinewatch.estimators.pmu import Pmu
@@ -128,8 +128,9 @@ def _lane_sample(
     xi = w[xrow + ln]
     live = w[_LIVE + ln] != 0.0
     e = xi - (w[_B + ln] + w[_A + ln] * w[_STH + ln])
-    w[_SSE + ln] = w[_SSE + ln] + e * e if live else w[_SSE + ln]
-    w[_N_PRED + ln] = w[_N_PRED + ln] + 1.0 if live else w[_N_PRED + ln]
+    # selects, the kept rows frozen: blends and plain stores, not masked ones (see lanes.frozen)
+    w[_SSE + ln] = select(live, w[_SSE + ln] + e * e, frozen(w[_SSE + ln]))
+    w[_N_PRED + ln] = select(live, w[_N_PRED + ln] + 1.0, frozen(w[_N_PRED + ln]))
     w[_ACR + ln] += xi * w0
     w[_ACI + ln] += xi * w1
     w[_ANR + ln] += xi * w2
@@ -144,8 +145,8 @@ def _lane_rotor(w: np.ndarray, ln: int) -> None:
     live = w[_LIVE + ln] != 0.0
     c2 = w[_CTH + ln] * w[_CSTEP + ln] - w[_STH + ln] * w[_SSTEP + ln]
     s2 = w[_STH + ln] * w[_CSTEP + ln] + w[_CTH + ln] * w[_SSTEP + ln]
-    w[_CTH + ln] = c2 if live else w[_CTH + ln]
-    w[_STH + ln] = s2 if live else w[_STH + ln]
+    w[_CTH + ln] = select(live, c2, frozen(w[_CTH + ln]))  # (see lanes.frozen)
+    w[_STH + ln] = select(live, s2, frozen(w[_STH + ln]))
 
 
 @kernel
