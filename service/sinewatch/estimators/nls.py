@@ -28,7 +28,9 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
+from sinewatch.estimators._nls_bank import nls_bank_kernel, write_row
 from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS, window_estimate
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
@@ -36,7 +38,6 @@ from sinewatch.estimators.base import (
     TrackStd,
     require_below_nyquist,
     ring_push,
-    wrap_pi,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -138,8 +139,6 @@ def nls_kernel(
     rows = 1 if last_only else n_in
     out_k = np.empty((6, rows, kc))
     out_g = np.empty((5, rows))
-    freq, amp, phase, sf, sa, sp = out_k[0], out_k[1], out_k[2], out_k[3], out_k[4], out_k[5]
-    off, sb, conv, ntones, fit_rms = out_g[0], out_g[1], out_g[2], out_g[3], out_g[4]
     xw = np.empty(N)
     sse = 0.0
     n_pred = 0
@@ -165,39 +164,24 @@ def nls_kernel(
             nt = int(glob[7])
         if last_only and j != n_in - 1:
             continue
-        r = 0 if last_only else j
-        shown = nt if held else 0  # tones written; the rest of the kc columns are NaN
-        for i in range(kc):
-            if i < shown:
-                w = tones[i, 0]
-                freq[r, i] = w * fs / (2.0 * math.pi)
-                amp[r, i] = tones[i, 1]
-                phase[r, i] = wrap_pi(tones[i, 2] + w * m)
-                sf[r, i] = math.sqrt(tones[i, 3]) * fs / (2.0 * math.pi)
-                sa[r, i] = math.sqrt(tones[i, 4])
-                vphi = tones[i, 5] + m * m * tones[i, 3] + 2.0 * m * tones[i, 6]
-                sp[r, i] = math.sqrt(max(vphi, 0.0))
-            else:
-                freq[r, i] = np.nan
-                amp[r, i] = np.nan
-                phase[r, i] = np.nan
-                sf[r, i] = np.nan
-                sa[r, i] = np.nan
-                sp[r, i] = np.nan
-        if held:
-            off[r] = glob[0] + glob[1] * m
-            sb[r] = math.sqrt(max(glob[2] + m * m * glob[3] + 2.0 * m * glob[4], 0.0))
-            conv[r] = glob[6]
-            ntones[r] = nt
-            fit_rms[r] = glob[5]
-        else:
-            off[r] = np.nan
-            sb[r] = np.nan
-            conv[r] = 0.0
-            ntones[r] = np.nan
-            fit_rms[r] = np.nan
+        write_row(out_k, out_g, 0 if last_only else j, tones, glob, held, m, fs)
     new_istate = np.array([pos, fill, since, held, m], dtype=np.int64)
     return out_k, out_g, sse, n_pred, b, new_istate, tones, glob
+
+
+def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, residual_rms: float) -> Track:
+    """The Track of one channel's :func:`nls_kernel` outputs (``out_k`` (6, rows, k_cols),
+    ``out_g`` (5, rows)), its converged flags and residual RMS given."""
+    return Track(
+        frequency_hz=out_k[0],
+        amplitude=out_k[1],
+        phase_rad=out_k[2],
+        offset=out_g[0],
+        converged=converged,
+        residual_rms=residual_rms,
+        extras={"n_tones": out_g[3], "fit_residual_rms": out_g[4]},
+        std=TrackStd(frequency_hz=out_k[3], amplitude=out_k[4], phase_rad=out_k[5], offset=out_g[1]),
+    )
 
 
 @register
@@ -301,16 +285,16 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out_k, out_g, sse, n_pred = outputs
-        return Track(
-            frequency_hz=out_k[0],
-            amplitude=out_k[1],
-            phase_rad=out_k[2],
-            offset=out_g[0],
-            converged=out_g[2] != 0.0,
-            residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
-            extras={"n_tones": out_g[3], "fit_residual_rms": out_g[4]},
-            std=TrackStd(frequency_hz=out_k[3], amplitude=out_k[4], phase_rad=out_k[5], offset=out_g[1]),
-        )
+        return _nls_track(out_k, out_g, out_g[2] != 0.0, math.sqrt(sse / n_pred) if n_pred else math.nan)
+
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`nls_bank_kernel`'s outputs, the
+        channel first): the converged flags compared and the residuals taken for the whole
+        frame at once (the same operations on the same values: the same bits)."""
+        out_k, out_g, sse, n_pred = outputs
+        conv = out_g[:, 2] != 0.0
+        rms = [math.sqrt(s / n) if n else math.nan for s, n in zip(sse.tolist(), n_pred.tolist(), strict=True)]
+        return [_nls_track(out_k[c], out_g[c], conv[c], rms[c]) for c in range(out_k.shape[0])]
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
@@ -331,3 +315,6 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
             "hop_samples": max(1, n // 4),
             "zero_pad": 4,
         }
+
+
+register_bank(Nls, nls_bank_kernel, n_outputs=4, tracks=Nls._bank_tracks)
