@@ -1,17 +1,20 @@
-"""``nls``: the compiled bank (:mod:`sinewatch.estimators.bank`), the channels of a frame through
-one kernel call, each channel's outputs and state bit for bit those of
-:func:`~sinewatch.estimators.nls.nls_kernel` run on it alone.
+"""``nls``: the streaming kernel, for the channels of a frame at once (the compiled bank of
+:mod:`sinewatch.estimators.bank`) and for one channel (the class runs it as a bank of one): one
+kernel, so that numba compiles the window's fit once, and a channel's outputs and state are the
+same bits whatever the bank's size and the channel's position in it.
 
-Where a channel's time goes (:func:`nls_kernel`, 1024-sample window and hop, one tone, read in a
-profile of its machine code): about half in the one-step prediction of every input sample (the
-held tones' rotation and the squared error, one chain through memory from sample to sample) and
-half in the window's fit (:func:`~sinewatch.estimators._nls_fit.window_estimate`, once a hop). The
-bank runs the prediction for 8 channels as one lane loop over a lane-major work array (the
-recipe of :mod:`sinewatch.estimators.lanes`: every quantity a row of 8 doubles, the loop's loads
-and stores in that one array at constant offsets, each lane's operations the single kernel's in
-its order, so that LLVM vectorises the lanes and no bit changes). The ring buffer, the window's
-fit and the output rows stay lane by lane, as the single kernel runs them: the fit iterates
-until it converges, a number of steps that differs between channels.
+Where a channel's time goes (1024-sample window and hop, one tone, read in a profile of the
+single-channel kernel's machine code): about half in the one-step prediction of every input
+sample (the held tones' rotation and the squared error, one chain through memory from sample to
+sample) and half in the window's fit (:func:`~sinewatch.estimators._nls_fit.window_estimate`,
+once a hop). The kernel runs the prediction for 8 channels as one lane loop over a lane-major
+work array (the recipe of :mod:`sinewatch.estimators.lanes`: every quantity a row of 8 doubles,
+the loop's loads and stores in that one array at constant offsets, each lane's operations in
+the order of the single-channel kernel it replaces, so that LLVM vectorises the lanes and no
+bit changes). The ring buffer is written only when a window is due and at the block's end, a
+row of 8 channels as one vector while the channels stay in step. The window's fit and the
+output rows stay lane by lane: the fit iterates until it converges, a number of steps that
+differs between channels.
 """
 
 from __future__ import annotations
@@ -42,9 +45,7 @@ def write_row(
 ) -> None:
     """Row ``r`` of ``out_k`` (6, rows, k_cols) and ``out_g`` (5, rows): the held estimate ``m``
     samples after its window's last sample (phase advanced at the held frequency, its variance
-    grown as the module :mod:`sinewatch.estimators.nls` gives), NaN where no tone is held. The
-    one definition, called by :func:`~sinewatch.estimators.nls.nls_kernel` and, lane by lane,
-    by its bank."""
+    grown as the module :mod:`sinewatch.estimators.nls` gives), NaN where no tone is held."""
     kc = tones.shape[0]
     nt = int(glob[7])
     shown = nt if held else 0  # tones written; the rest of the kc columns are NaN
@@ -237,20 +238,28 @@ def _chronological(b: np.ndarray, ch: int, p: int, xw: np.ndarray) -> None:
         xw[N - p + k] = b[k, ch]
 
 
-# the arguments of nls_kernel, by the bank's calling convention (sinewatch.estimators.bank): the
-# same list, each state array with a channel axis added last
+# the bank's calling convention (sinewatch.estimators.bank): the samples, each state array with a
+# channel axis added last, the constants
 @kernel
 def nls_bank_kernel(
     x: np.ndarray, buf_in: np.ndarray, istate_in: np.ndarray, tones_in: np.ndarray, glob_in: np.ndarray,
     iconsts: np.ndarray, fconsts: np.ndarray, cos_tab: np.ndarray, sin_tab: np.ndarray, last_only: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """:func:`~sinewatch.estimators.nls.nls_kernel` for C channels at once: ``x`` (N, C), the
-    state arrays stacked with the channel last (``buffer`` (W, C), ``counters`` (5, C),
-    ``tones`` (k_cols, 11, C), ``fit`` (8, C)); returns ``out_k`` (C, 6, rows, k_cols),
-    ``out_g`` (C, 5, rows), ``sse`` (C,), ``n_pred`` (C,) and the new stacked state. Channels go
-    ``LANES`` at a time: every input sample's prediction runs the lanes as one vector
-    (:func:`_start_lane`, :func:`_tone_lane` a tone, :func:`_finish_lane`), the ring buffer, the
-    window fits and the output rows lane by lane."""
+    """The sliding fit over block ``x`` (N, C), a channel a column, from the channels' state
+    arrays stacked with the channel last: ``buf_in`` (W, C) the rings of the last W samples;
+    ``istate_in`` (5, C) = write position, fill, samples since the last hop, estimate held,
+    samples since the held estimate; ``tones_in`` (k_cols, 11, C) and ``glob_in`` (8, C) the held
+    estimate (TONE_FIELDS, GLOBAL_FIELDS of :mod:`sinewatch.estimators._nls_fit`). ``iconsts`` =
+    (K fixed or 0, k_max, AIC?, 1 + trend, padded band low bin, padded band high bin, max
+    iterations, hop, warm start?); ``fconsts`` = (fs, max_relative_residual).
+
+    Returns ``out_k`` (C, 6, rows, k_cols) = frequency_hz, amplitude, phase_rad and their
+    standard deviations; ``out_g`` (C, 5, rows) = offset, its standard deviation, converged
+    (0/1), number of tones, fit residual RMS; ``sse`` and ``n_pred`` (C,), the one-step
+    prediction errors' sum of squares and count; then the new stacked state. Pure: the inputs
+    are not modified. Channels go ``LANES`` at a time: every input sample's prediction runs the
+    lanes as one vector (:func:`_start_lane`, :func:`_tone_lane` a tone, :func:`_finish_lane`),
+    the window fits and the output rows lane by lane."""
     n, nc = x.shape
     N = buf_in.shape[0]
     kc = tones_in.shape[0]
@@ -269,7 +278,7 @@ def nls_bank_kernel(
     W = aligned_lanes((_FIXED_ROWS + _TONE_ROWS * kc) * L)
     xw = np.empty(N)
     xf = x.reshape(n * nc)  # the samples, flat (C order), for copy_lanes
-    tones = np.empty((L, kc, 11))  # each lane's held estimate, as nls_kernel keeps it
+    tones = np.empty((L, kc, 11))  # each lane's held estimate (tones[i, 7:9] kept in W between fits)
     glob = np.empty((L, 8))
     pos = np.zeros(L, dtype=np.int64)  # the ring's write position once samples 0 .. written - 1 are in
     fill = np.zeros(L, dtype=np.int64)

@@ -4,8 +4,9 @@ The maximum-likelihood estimator of tones in white Gaussian noise is the least-s
 of the exact model; it attains the Cramer-Rao bound at moderate SNR. The fit of one window
 (variable projection after Golub and Pereyra, Kaufman's Gauss-Newton step, the periodogram
 start, the order by Djuric's MDL, the Fisher-information standard deviations) and its
-equations, numbered (1)-(8), are in :mod:`sinewatch.estimators._nls_fit`. This module is the
-parameter model, the streaming kernel that slides that fit over the stream, and the class.
+equations, numbered (1)-(8), are in :mod:`sinewatch.estimators._nls_fit`; the streaming kernel
+that slides that fit over the stream, for one channel or a frame's channels at once, in
+:mod:`sinewatch.estimators._nls_bank`. This module is the parameter model and the class.
 
 Between estimates (every ``hop_samples``) the estimate is held and the phase advances at
 the held frequency, ``phi(m) = phi + w m`` m samples after the window's last sample, its
@@ -24,12 +25,11 @@ import math
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators._nls_bank import nls_bank_kernel, write_row
-from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS, window_estimate
+from sinewatch.estimators._nls_bank import nls_bank_kernel
+from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS
 from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
@@ -37,7 +37,6 @@ from sinewatch.estimators.base import (
     Track,
     TrackStd,
     require_below_nyquist,
-    ring_push,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -101,76 +100,8 @@ class NlsParams(EstimatorParams):
         return self
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def nls_kernel(
-    x: Arr,
-    buf: Arr,
-    istate: Arr,
-    tones_in: Arr,
-    glob_in: Arr,
-    iconsts: Arr,
-    fconsts: Arr,
-    cos_tab: Arr,
-    sin_tab: Arr,
-    last_only: bool,
-) -> tuple[Arr, Arr, float, int, Arr, Arr, Arr, Arr]:
-    """Run the sliding fit over block ``x``; return ``(out_k, out_g, sse, n_pred, buf,
-    istate, tones, glob)``: ``out_k`` (6, rows, k_cols) = frequency_hz, amplitude,
-    phase_rad and their standard deviations; ``out_g`` (5, rows) = offset, its standard
-    deviation, converged (0/1), number of tones, fit residual RMS (two arrays rather than
-    eleven: each array returned costs ~0.5 us of boxing).
-
-    ``buf``: ring buffer (N,); ``istate`` = (write position, fill, samples since the last
-    hop, estimate held, samples since the held estimate); ``tones_in`` (k_cols, 11) and
-    ``glob_in`` (8,) the held estimate (see TONE_FIELDS, GLOBAL_FIELDS). ``iconsts`` =
-    (K fixed or 0, k_max, AIC?, 1 + trend, padded band low bin, padded band high bin,
-    max iterations, hop, warm start?); ``fconsts`` = (fs, max_relative_residual). Pure: the inputs are
-    not modified.
-    """
-    N = buf.shape[0]
-    kc = tones_in.shape[0]
-    hop = iconsts[7]
-    fs = fconsts[0]
-    b = buf.copy()
-    tones = tones_in.copy()
-    glob = glob_in.copy()
-    pos, fill, since, held, m = istate[0], istate[1], istate[2], istate[3], istate[4]
-    n_in = x.shape[0]
-    rows = 1 if last_only else n_in
-    out_k = np.empty((6, rows, kc))
-    out_g = np.empty((5, rows))
-    xw = np.empty(N)
-    sse = 0.0
-    n_pred = 0
-    for j in range(n_in):
-        xj = x[j]
-        nt = int(glob[7])
-        if held:  # one-step prediction of the held estimate
-            pred = glob[0] + glob[1] * (m + 1)
-            for i in range(nt):  # phase m + 1 by rotation
-                sn = tones[i, 7] * tones[i, 9] + tones[i, 8] * tones[i, 10]
-                tones[i, 8] = tones[i, 8] * tones[i, 9] - tones[i, 7] * tones[i, 10]
-                tones[i, 7] = sn
-                pred += tones[i, 1] * sn
-            e = xj - pred
-            sse += e * e
-            n_pred += 1
-        m += 1
-        pos, fill, since, due = ring_push(b, xj, pos, fill, since, hop, xw)
-        if due:
-            window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob)
-            held = 1 if glob[7] > 0.0 else 0
-            m = 0
-            nt = int(glob[7])
-        if last_only and j != n_in - 1:
-            continue
-        write_row(out_k, out_g, 0 if last_only else j, tones, glob, held, m, fs)
-    new_istate = np.array([pos, fill, since, held, m], dtype=np.int64)
-    return out_k, out_g, sse, n_pred, b, new_istate, tones, glob
-
-
 def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, residual_rms: float) -> Track:
-    """The Track of one channel's :func:`nls_kernel` outputs (``out_k`` (6, rows, k_cols),
+    """The Track of one channel's :func:`nls_bank_kernel` outputs (``out_k`` (6, rows, k_cols),
     ``out_g`` (5, rows)), its converged flags and residual RMS given."""
     return Track(
         frequency_hz=out_k[0],
@@ -185,7 +116,7 @@ def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, resi
 
 
 @register
-class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
+class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
     """Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"""
 
     paper = (
@@ -282,6 +213,21 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
             "tones": np.zeros((self.k_cols, TONE_FIELDS)),
             "fit": np.zeros(GLOBAL_FIELDS),
         }
+
+    def _run(
+        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
+    ) -> tuple[Track, dict[str, np.ndarray]]:
+        """One channel through :func:`nls_bank_kernel` as a bank of one, its arrays viewed with a
+        channel axis of length 1 (no copy). Why one kernel for both paths: numba compiles a
+        kernel's callees again into each kernel that calls them, and a second kernel calling the
+        window's fit took 16 s more CPU to compile on a cold cache (the CI's limit); and a
+        channel's bits are then the bank's by construction, whatever the bank."""
+        out_k, out_g, sse, n_pred, buf, counters, tones, fit = nls_bank_kernel(
+            samples[:, None], state["buffer"][:, None], state["counters"][:, None], state["tones"][:, :, None],
+            state["fit"][:, None], *self._constants, last_only,
+        )  # fmt: skip
+        track = self._track((out_k[0], out_g[0], float(sse[0]), int(n_pred[0])), samples)
+        return track, {"buffer": buf[:, 0], "counters": counters[:, 0], "tones": tones[:, :, 0], "fit": fit[:, 0]}
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out_k, out_g, sse, n_pred = outputs
