@@ -118,6 +118,40 @@ def _finish_lane(W: np.ndarray, lane: int) -> None:
 
 
 @kernel(inline="always")
+def _predict_lanes(W: np.ndarray, kc: int) -> None:
+    """Every lane's one-step prediction of its sample and its error (:func:`_start_lane`,
+    :func:`_tone_lane` a tone, :func:`_finish_lane`), each a loop of literal trip count over the
+    lanes: one vector (two with AVX2)."""
+    for lane in range(LANES):
+        _start_lane(W, lane)
+    for i in range(kc):
+        t = _tone_base(kc, i)
+        if t != _RACT:
+            _move_rows(W, _RACT, t, _TONE_ROWS)
+        for lane in range(LANES):
+            _tone_lane(W, lane)
+        if t != _RACT:
+            _move_rows(W, t + (_RSIN - _RACT), _RSIN, 2)
+    for lane in range(LANES):
+        _finish_lane(W, lane)
+
+
+@kernel(inline="always")
+def _predict_lane(W: np.ndarray, lane: int, kc: int) -> None:
+    """:func:`_predict_lanes` for one lane, as scalars: a channel alone pays for one lane, not
+    eight (the same functions, the same operations: the same bits)."""
+    _start_lane(W, lane)
+    for i in range(kc):
+        t = _tone_base(kc, i)
+        if t != _RACT:
+            _move_rows(W, _RACT, t, _TONE_ROWS)
+        _tone_lane(W, lane)
+        if t != _RACT:
+            _move_rows(W, t + (_RSIN - _RACT), _RSIN, 2)
+    _finish_lane(W, lane)
+
+
+@kernel(inline="always")
 def _move_rows(W: np.ndarray, to: int, frm: int, rows: int) -> None:
     """Rows ``frm .. frm + rows - 1`` of ``W`` copied to rows ``to ..``, a row as one vector
     (:func:`copy_lanes`: the lane loop then loads what one vector stored; a tone in and out of the
@@ -304,23 +338,16 @@ def nls_bank_kernel(
             _load_lane(W, c, tones[c], glob[c], held[c], istate_in[4, ch])
         next_due = _earliest(due, width)
         for j in range(n):
-            if width == L:  # the sample row as one vector (the lane loop loads it as one)
-                copy_lanes(W, _RX * L, xf, j * nc + g)
+            if width == 1:  # one channel (the class's own path): lane 0 alone, scalar
+                W[_RX * L] = x[j, g]
+                _predict_lane(W, 0, kc)
             else:
-                for c in range(width):
-                    W[_RX * L + c] = x[j, g + c]
-            for lane in range(L):  # literal trip count: one vector
-                _start_lane(W, lane)
-            for i in range(kc):
-                t = _tone_base(kc, i)
-                if t != _RACT:
-                    _move_rows(W, _RACT, t, _TONE_ROWS)
-                for lane in range(L):
-                    _tone_lane(W, lane)
-                if t != _RACT:
-                    _move_rows(W, t + (_RSIN - _RACT), _RSIN, 2)
-            for lane in range(L):
-                _finish_lane(W, lane)
+                if width == L:  # the sample row as one vector (the lane loop loads it as one)
+                    copy_lanes(W, _RX * L, xf, j * nc + g)
+                else:
+                    for c in range(width):
+                        W[_RX * L + c] = x[j, g + c]
+                _predict_lanes(W, kc)
             if j == next_due:  # a window is due in some lane: its fit, lane by lane
                 _catch_up_lanes(b, x, g, width, written, pos, fill, j + 1)
                 for c in range(width):

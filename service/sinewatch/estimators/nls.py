@@ -132,6 +132,16 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
         "zero_pad": 1,
     }
 
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
+    bank_note: ClassVar[str] = (
+        "the bank runs each sample's one-step prediction for 8 channels as one vector and writes the rings a "
+        "row of 8 channels at a time; each channel's window fit (Gauss-Newton to convergence, a number of "
+        "steps that differs between channels) stays scalar, about half of the kernel's time. Measured in "
+        "`sinewatch bench kernels --block 1024 --bank 8 --estimators nls` (2-core AMD EPYC VM (AVX2), load "
+        "3-25): bank 8 2.02-2.08x the streaming FFT, the kernel alone 2.9-3.2x, update_bank's Python (the "
+        "channels' Tracks) 6.7-9.5 ns a channel-sample: a loaded run can put it just under 2x"
+    )
+
     def _check_params(self) -> None:
         p = self.params
         fs = self.sample_rate_hz
@@ -220,8 +230,9 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
         """One channel through :func:`nls_bank_kernel` as a bank of one, its arrays viewed with a
         channel axis of length 1 (no copy). Why one kernel for both paths: numba compiles a
         kernel's callees again into each kernel that calls them, and a second kernel calling the
-        window's fit took 16 s more CPU to compile on a cold cache (the CI's limit); and a
-        channel's bits are then the bank's by construction, whatever the bank."""
+        window's fit compiled the whole fit again (the nls task's cold compile 41.1 s of CPU against
+        main's 24.9, load 4-12; compile time is the CI's limit); and a channel's bits are then the
+        bank's by construction, whatever the bank."""
         out_k, out_g, sse, n_pred, buf, counters, tones, fit = nls_bank_kernel(
             samples[:, None], state["buffer"][:, None], state["counters"][:, None], state["tones"][:, :, None],
             state["fit"][:, None], *self._constants, last_only,
