@@ -123,15 +123,7 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
         'G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares '
         'problems whose variables separate", 1973 (variable projection)'
     )
-    # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
     REFILL_MEMORIES: ClassVar[int] = 1  # its memory is its window (validity rules version 5)
-    example_params: ClassVar[dict[str, Any]] = {
-        "min_frequency_hz": 20.0,
-        "window_samples": 1024,
-        "hop_samples": 1024,
-        "zero_pad": 1,
-    }
-
     # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
     bank_note: ClassVar[str] = (
         "the bank runs each sample's one-step prediction for 8 channels as one vector and writes the rings a "
@@ -141,6 +133,13 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
         "3-25): bank 8 2.02-2.08x the streaming FFT, the kernel alone 2.9-3.2x, update_bank's Python (the "
         "channels' Tracks) 6.7-9.5 ns a channel-sample: a loaded run can put it just under 2x"
     )
+    # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
+    example_params: ClassVar[dict[str, Any]] = {
+        "min_frequency_hz": 20.0,
+        "window_samples": 1024,
+        "hop_samples": 1024,
+        "zero_pad": 1,
+    }
 
     def _check_params(self) -> None:
         p = self.params
