@@ -232,9 +232,10 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
         window's fit compiled the whole fit again (the nls task's cold compile 41.1 s of CPU against
         main's 24.9, load 4-12; compile time is the CI's limit); and a channel's bits are then the
         bank's by construction, whatever the bank."""
+        iconsts, fconsts, cos_tab, sin_tab = self._constants
         out_k, out_g, sse, n_pred, buf, counters, tones, fit = nls_bank_kernel(
             samples[:, None], state["buffer"][:, None], state["counters"][:, None], state["tones"][:, :, None],
-            state["fit"][:, None], *self._constants, last_only,
+            state["fit"][:, None], iconsts, fconsts, cos_tab, sin_tab, last_only,
         )  # fmt: skip
         track = self._track((out_k[0], out_g[0], float(sse[0]), int(n_pred[0])), samples)
         return track, {"buffer": buf[:, 0], "counters": counters[:, 0], "tones": tones[:, :, 0], "fit": fit[:, 0]}
