@@ -100,6 +100,25 @@ class NlsParams(EstimatorParams):
         return self
 
 
+def nls_kernel(
+    x: np.ndarray, buf: np.ndarray, istate: np.ndarray, tones: np.ndarray, glob: np.ndarray, iconsts: np.ndarray,
+    fconsts: np.ndarray, cos_tab: np.ndarray, sin_tab: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """One channel's block ``x`` (N,) through :func:`nls_bank_kernel` as a bank of one, its arrays
+    viewed with a channel axis of length 1 (no copy): ``(out_k (6, rows, k_cols), out_g (5, rows),
+    sse, n_pred, buffer, counters, tones, fit)``. Why one compiled kernel for both paths: numba
+    compiles a kernel's callees again into each kernel that calls them, and a second kernel
+    calling the window's fit compiled the whole fit again (the nls task's cold compile 41.1 s of
+    CPU against main's 24.9, load 4-12; compile time is the CI's limit); and a channel's bits are
+    then the bank's by construction, whatever the bank. A Python function: compiled, it would be
+    a second copy of the kernel."""
+    out_k, out_g, sse, n_pred, b, ist, t, g = nls_bank_kernel(
+        x[:, None], buf[:, None], istate[:, None], tones[:, :, None], glob[:, None], iconsts, fconsts, cos_tab,
+        sin_tab, last_only,
+    )  # fmt: skip
+    return out_k[0], out_g[0], float(sse[0]), int(n_pred[0]), b[:, 0], ist[:, 0], t[:, :, 0], g[:, 0]
+
+
 def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, residual_rms: float) -> Track:
     """The Track of one channel's :func:`nls_bank_kernel` outputs (``out_k`` (6, rows, k_cols),
     ``out_g`` (5, rows)), its converged flags and residual RMS given."""
@@ -116,7 +135,7 @@ def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, resi
 
 
 @register
-class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
+class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
     """Windowed maximum-likelihood (nonlinear least squares) fit of K tones + offset, with CRLB-based std"""
 
     paper = (
@@ -222,23 +241,6 @@ class Nls(Estimator[NlsParams], kernel=nls_bank_kernel, name="nls"):
             "tones": np.zeros((self.k_cols, TONE_FIELDS)),
             "fit": np.zeros(GLOBAL_FIELDS),
         }
-
-    def _run(
-        self, samples: np.ndarray, state: dict[str, np.ndarray], last_only: bool
-    ) -> tuple[Track, dict[str, np.ndarray]]:
-        """One channel through :func:`nls_bank_kernel` as a bank of one, its arrays viewed with a
-        channel axis of length 1 (no copy). Why one kernel for both paths: numba compiles a
-        kernel's callees again into each kernel that calls them, and a second kernel calling the
-        window's fit compiled the whole fit again (the nls task's cold compile 41.1 s of CPU against
-        main's 24.9, load 4-12; compile time is the CI's limit); and a channel's bits are then the
-        bank's by construction, whatever the bank."""
-        iconsts, fconsts, cos_tab, sin_tab = self._constants
-        out_k, out_g, sse, n_pred, buf, counters, tones, fit = nls_bank_kernel(
-            samples[:, None], state["buffer"][:, None], state["counters"][:, None], state["tones"][:, :, None],
-            state["fit"][:, None], iconsts, fconsts, cos_tab, sin_tab, last_only,
-        )  # fmt: skip
-        track = self._track((out_k[0], out_g[0], float(sse[0]), int(n_pred[0])), samples)
-        return track, {"buffer": buf[:, 0], "counters": counters[:, 0], "tones": tones[:, :, 0], "fit": fit[:, 0]}
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out_k, out_g, sse, n_pred = outputs
