@@ -362,16 +362,19 @@ class DifferentialRls(Estimator[DifferentialRlsParams], kernel=differential_rls_
     # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
     bank_note: ClassVar[str] = (
         "the bank vectorises the per-input-sample work across 8 channels (the demodulator's six biquads, the "
-        "prediction and the two rotators, packed vmulpd/vaddpd on ymm registers): timed alone (the bank kernel "
-        "with the decimated stage switched off, 1024-sample blocks, 8 channels), it costs 11 ns a sample and "
-        "channel against 25 for one channel at a time. The decimated stage is not vectorised: once every 10 "
-        "input samples each channel runs the RLS pair (12) on 5 parameters, the ELS recursion (13), the phase "
-        "stage (21)-(23), the re-centring and the low-pass compensation, one dependent chain with sin, cos, "
-        "atan2, hypot and sqrt from the C library (a vectorised version would round differently) and branches "
-        "that differ between channels; it is the same ~35 ns a sample and channel in the bank as alone, more "
-        "than the whole budget of 2x the streaming FFT (~17 ns a sample on an idle machine), so the bank stays "
-        "near one channel's rate: 0.98x at 1024-sample blocks and 1.09x at 4096 in one run of `sinewatch bench "
-        "kernels --bank 8` under load (the kernel alone, without update_bank's Python per call: 1.1-1.4x)"
+        "prediction and the two rotators, packed operations on ymm registers): timed alone (the bank kernel "
+        "with the decimated stage switched off, 1024-sample blocks, 8 channels) it costs 14.3 ns a sample and "
+        "channel, 3.15x the streaming FFT in the same paired rounds (2-core AMD EPYC VM (AVX2), load 4-10). The "
+        "decimated stage is not vectorised: once every 10 input samples each channel runs the RLS pair (12) on "
+        "5 parameters, the ELS recursion (13), the phase stage (21)-(23), the re-centring and the low-pass "
+        "compensation, one dependent chain with sin, cos, atan2, hypot and sqrt from the C library (a "
+        "vectorised version would round differently) and branches that differ between channels: ~590 ns a "
+        "decimated sample and channel, 59 of the bank kernel's 73.6 ns a channel-sample (0.60x the FFT), "
+        "nearly three times the whole budget of 2x the FFT (~21 ns). Compiled without reference counting "
+        "(its atomic counts took ~20 % of a profile's samples) that stage measured 0.99-1.11x its time in "
+        "three paired runs (load 4-8): the counts wait on the chain, they do not lengthen it. 2x needs the "
+        "decimated stage itself lane-major (the RLS and phase arithmetic as vectors, the library calls "
+        "scalar per lane), not built"
     )
 
     @classmethod

@@ -4,8 +4,9 @@ The maximum-likelihood estimator of tones in white Gaussian noise is the least-s
 of the exact model; it attains the Cramer-Rao bound at moderate SNR. The fit of one window
 (variable projection after Golub and Pereyra, Kaufman's Gauss-Newton step, the periodogram
 start, the order by Djuric's MDL, the Fisher-information standard deviations) and its
-equations, numbered (1)-(8), are in :mod:`sinewatch.estimators._nls_fit`. This module is the
-parameter model, the streaming kernel that slides that fit over the stream, and the class.
+equations, numbered (1)-(8), are in :mod:`sinewatch.estimators._nls_fit`; the streaming kernel
+that slides that fit over the stream, for one channel or a frame's channels at once, in
+:mod:`sinewatch.estimators._nls_bank`. This module is the parameter model and the class.
 
 Between estimates (every ``hop_samples``) the estimate is held and the phase advances at
 the held frequency, ``phi(m) = phi + w m`` m samples after the window's last sample, its
@@ -24,19 +25,18 @@ import math
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from sinewatch.estimators import register
-from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS, window_estimate
+from sinewatch.estimators._nls_bank import nls_bank_kernel
+from sinewatch.estimators._nls_fit import GLOBAL_FIELDS, MAX_TONES, TONE_FIELDS
+from sinewatch.estimators.bank import register_bank
 from sinewatch.estimators.base import (
     Estimator,
     EstimatorParams,
     Track,
     TrackStd,
     require_below_nyquist,
-    ring_push,
-    wrap_pi,
 )
 from sinewatch.schemas.errors import ParameterError
 
@@ -100,104 +100,38 @@ class NlsParams(EstimatorParams):
         return self
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
 def nls_kernel(
-    x: Arr,
-    buf: Arr,
-    istate: Arr,
-    tones_in: Arr,
-    glob_in: Arr,
-    iconsts: Arr,
-    fconsts: Arr,
-    cos_tab: Arr,
-    sin_tab: Arr,
-    last_only: bool,
-) -> tuple[Arr, Arr, float, int, Arr, Arr, Arr, Arr]:
-    """Run the sliding fit over block ``x``; return ``(out_k, out_g, sse, n_pred, buf,
-    istate, tones, glob)``: ``out_k`` (6, rows, k_cols) = frequency_hz, amplitude,
-    phase_rad and their standard deviations; ``out_g`` (5, rows) = offset, its standard
-    deviation, converged (0/1), number of tones, fit residual RMS (two arrays rather than
-    eleven: each array returned costs ~0.5 us of boxing).
+    x: np.ndarray, buf: np.ndarray, istate: np.ndarray, tones: np.ndarray, glob: np.ndarray, iconsts: np.ndarray,
+    fconsts: np.ndarray, cos_tab: np.ndarray, sin_tab: np.ndarray, last_only: bool,
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """One channel's block ``x`` (N,) through :func:`nls_bank_kernel` as a bank of one, its arrays
+    viewed with a channel axis of length 1 (no copy): ``(out_k (6, rows, k_cols), out_g (5, rows),
+    sse, n_pred, buffer, counters, tones, fit)``. Why one compiled kernel for both paths: numba
+    compiles a kernel's callees again into each kernel that calls them, and a second kernel
+    calling the window's fit compiled the whole fit again (the nls task's cold compile 41.1 s of
+    CPU against main's 24.9, load 4-12; compile time is the CI's limit); and a channel's bits are
+    then the bank's by construction, whatever the bank. A Python function: compiled, it would be
+    a second copy of the kernel."""
+    out_k, out_g, sse, n_pred, b, ist, t, g = nls_bank_kernel(
+        x[:, None], buf[:, None], istate[:, None], tones[:, :, None], glob[:, None], iconsts, fconsts, cos_tab,
+        sin_tab, last_only,
+    )  # fmt: skip
+    return out_k[0], out_g[0], float(sse[0]), int(n_pred[0]), b[:, 0], ist[:, 0], t[:, :, 0], g[:, 0]
 
-    ``buf``: ring buffer (N,); ``istate`` = (write position, fill, samples since the last
-    hop, estimate held, samples since the held estimate); ``tones_in`` (k_cols, 11) and
-    ``glob_in`` (8,) the held estimate (see TONE_FIELDS, GLOBAL_FIELDS). ``iconsts`` =
-    (K fixed or 0, k_max, AIC?, 1 + trend, padded band low bin, padded band high bin,
-    max iterations, hop, warm start?); ``fconsts`` = (fs, max_relative_residual). Pure: the inputs are
-    not modified.
-    """
-    N = buf.shape[0]
-    kc = tones_in.shape[0]
-    hop = iconsts[7]
-    fs = fconsts[0]
-    b = buf.copy()
-    tones = tones_in.copy()
-    glob = glob_in.copy()
-    pos, fill, since, held, m = istate[0], istate[1], istate[2], istate[3], istate[4]
-    n_in = x.shape[0]
-    rows = 1 if last_only else n_in
-    out_k = np.empty((6, rows, kc))
-    out_g = np.empty((5, rows))
-    freq, amp, phase, sf, sa, sp = out_k[0], out_k[1], out_k[2], out_k[3], out_k[4], out_k[5]
-    off, sb, conv, ntones, fit_rms = out_g[0], out_g[1], out_g[2], out_g[3], out_g[4]
-    xw = np.empty(N)
-    sse = 0.0
-    n_pred = 0
-    for j in range(n_in):
-        xj = x[j]
-        nt = int(glob[7])
-        if held:  # one-step prediction of the held estimate
-            pred = glob[0] + glob[1] * (m + 1)
-            for i in range(nt):  # phase m + 1 by rotation
-                sn = tones[i, 7] * tones[i, 9] + tones[i, 8] * tones[i, 10]
-                tones[i, 8] = tones[i, 8] * tones[i, 9] - tones[i, 7] * tones[i, 10]
-                tones[i, 7] = sn
-                pred += tones[i, 1] * sn
-            e = xj - pred
-            sse += e * e
-            n_pred += 1
-        m += 1
-        pos, fill, since, due = ring_push(b, xj, pos, fill, since, hop, xw)
-        if due:
-            window_estimate(xw, iconsts, fconsts, cos_tab, sin_tab, tones, glob)
-            held = 1 if glob[7] > 0.0 else 0
-            m = 0
-            nt = int(glob[7])
-        if last_only and j != n_in - 1:
-            continue
-        r = 0 if last_only else j
-        shown = nt if held else 0  # tones written; the rest of the kc columns are NaN
-        for i in range(kc):
-            if i < shown:
-                w = tones[i, 0]
-                freq[r, i] = w * fs / (2.0 * math.pi)
-                amp[r, i] = tones[i, 1]
-                phase[r, i] = wrap_pi(tones[i, 2] + w * m)
-                sf[r, i] = math.sqrt(tones[i, 3]) * fs / (2.0 * math.pi)
-                sa[r, i] = math.sqrt(tones[i, 4])
-                vphi = tones[i, 5] + m * m * tones[i, 3] + 2.0 * m * tones[i, 6]
-                sp[r, i] = math.sqrt(max(vphi, 0.0))
-            else:
-                freq[r, i] = np.nan
-                amp[r, i] = np.nan
-                phase[r, i] = np.nan
-                sf[r, i] = np.nan
-                sa[r, i] = np.nan
-                sp[r, i] = np.nan
-        if held:
-            off[r] = glob[0] + glob[1] * m
-            sb[r] = math.sqrt(max(glob[2] + m * m * glob[3] + 2.0 * m * glob[4], 0.0))
-            conv[r] = glob[6]
-            ntones[r] = nt
-            fit_rms[r] = glob[5]
-        else:
-            off[r] = np.nan
-            sb[r] = np.nan
-            conv[r] = 0.0
-            ntones[r] = np.nan
-            fit_rms[r] = np.nan
-    new_istate = np.array([pos, fill, since, held, m], dtype=np.int64)
-    return out_k, out_g, sse, n_pred, b, new_istate, tones, glob
+
+def _nls_track(out_k: np.ndarray, out_g: np.ndarray, converged: np.ndarray, residual_rms: float) -> Track:
+    """The Track of one channel's :func:`nls_bank_kernel` outputs (``out_k`` (6, rows, k_cols),
+    ``out_g`` (5, rows)), its converged flags and residual RMS given."""
+    return Track(
+        frequency_hz=out_k[0],
+        amplitude=out_k[1],
+        phase_rad=out_k[2],
+        offset=out_g[0],
+        converged=converged,
+        residual_rms=residual_rms,
+        extras={"n_tones": out_g[3], "fit_residual_rms": out_g[4]},
+        std=TrackStd(frequency_hz=out_k[3], amplitude=out_k[4], phase_rad=out_k[5], offset=out_g[1]),
+    )
 
 
 @register
@@ -208,8 +142,17 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
         'G. H. Golub, V. Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares '
         'problems whose variables separate", 1973 (variable projection)'
     )
-    # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
     REFILL_MEMORIES: ClassVar[int] = 1  # its memory is its window (validity rules version 5)
+    # Printed by ``sinewatch bench kernels --bank N`` when the bank is below its target.
+    bank_note: ClassVar[str] = (
+        "the bank runs each sample's one-step prediction for 8 channels as one vector and writes the rings a "
+        "row of 8 channels at a time; each channel's window fit (Gauss-Newton to convergence, a number of "
+        "steps that differs between channels) stays scalar, about half of the kernel's time. Measured in "
+        "`sinewatch bench kernels --block 1024 --bank 8 --estimators nls` (2-core AMD EPYC VM (AVX2), load "
+        "3-25): bank 8 2.02-2.08x the streaming FFT, the kernel alone 2.9-3.2x, update_bank's Python (the "
+        "channels' Tracks) 6.7-9.5 ns a channel-sample: a loaded run can put it just under 2x"
+    )
+    # One estimate per 1024-sample block from a 1024-sample window (the kernel benchmark).
     example_params: ClassVar[dict[str, Any]] = {
         "min_frequency_hz": 20.0,
         "window_samples": 1024,
@@ -301,16 +244,16 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
 
     def _track(self, outputs: tuple[Any, ...], block: np.ndarray) -> Track:
         out_k, out_g, sse, n_pred = outputs
-        return Track(
-            frequency_hz=out_k[0],
-            amplitude=out_k[1],
-            phase_rad=out_k[2],
-            offset=out_g[0],
-            converged=out_g[2] != 0.0,
-            residual_rms=math.sqrt(sse / n_pred) if n_pred else math.nan,
-            extras={"n_tones": out_g[3], "fit_residual_rms": out_g[4]},
-            std=TrackStd(frequency_hz=out_k[3], amplitude=out_k[4], phase_rad=out_k[5], offset=out_g[1]),
-        )
+        return _nls_track(out_k, out_g, out_g[2] != 0.0, math.sqrt(sse / n_pred) if n_pred else math.nan)
+
+    def _bank_tracks(self, outputs: tuple[Any, ...], block: np.ndarray) -> list[Track]:
+        """:meth:`_track` of every channel of a bank (:func:`nls_bank_kernel`'s outputs, the
+        channel first): the converged flags compared and the residuals taken for the whole
+        frame at once (the same operations on the same values: the same bits)."""
+        out_k, out_g, sse, n_pred = outputs
+        conv = out_g[:, 2] != 0.0
+        rms = [math.sqrt(s / n) if n else math.nan for s, n in zip(sse.tolist(), n_pred.tolist(), strict=True)]
+        return [_nls_track(out_k[c], out_g[c], conv[c], rms[c]) for c in range(out_k.shape[0])]
 
     @classmethod
     def params_for(cls, sample_rate_hz: float, hints: dict[str, Any]) -> dict[str, Any]:
@@ -331,3 +274,6 @@ class Nls(Estimator[NlsParams], kernel=nls_kernel, name="nls"):
             "hop_samples": max(1, n // 4),
             "zero_pad": 4,
         }
+
+
+register_bank(Nls, nls_bank_kernel, n_outputs=4, tracks=Nls._bank_tracks)
