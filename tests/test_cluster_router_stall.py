@@ -433,12 +433,17 @@ def other_subscriber_while_a_querier_is_stopped(tmp_path, query: str) -> tuple[b
             putter.join()
             publisher.close()
     finally:
-        if querier is not None:
-            querier.send_signal(signal.SIGCONT)
-            querier.kill()
-            querier.wait()
-        router.kill()
+        end_stopped(querier, router)
     return delivered, received
+
+
+def end_stopped(proc: subprocess.Popen[str] | None, router: Router) -> None:
+    """A test's stopped (or running) helper process continued and killed, then its router."""
+    if proc is not None:
+        proc.send_signal(signal.SIGCONT)
+        proc.kill()
+        proc.wait()
+    router.kill()
 
 
 @pytest.mark.slow
@@ -496,11 +501,7 @@ def router_keeps_a_silent_clients_link(tmp_path, raw: dict[str, Any]) -> bool:
             kept = not gone.wait(QUIET_S)  # the link's expiry would end the token within the stop
             holder.send_signal(signal.SIGCONT)
     finally:
-        if holder is not None:
-            holder.send_signal(signal.SIGCONT)
-            holder.kill()
-            holder.wait()
-        router.kill()
+        end_stopped(holder, router)
     return kept
 
 
