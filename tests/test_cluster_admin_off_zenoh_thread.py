@@ -17,7 +17,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import zenoh
-from peer_pair import loop_and_two_peers
+from peer_pair import loop_and_two_peers, wait_until_routed
 
 from sinewatch.runtime.cluster import ClusterMember
 from sinewatch.schemas.config import SinewatchConfig
@@ -56,6 +56,10 @@ def test_a_members_link_is_read_while_its_event_loop_is_busy_and_the_admin_query
         started = threading.Event()
         loop.call_soon_threadsafe(lambda: (cluster.start(loop), started.set()))
         assert started.wait(WAIT_S) and host.intakes == 1  # no etcd: it owns its shard at once
+        # the marker's subscriber and the admin queryable known to the asker's session: a put or a query sent before
+        # a declaration has come goes nowhere (the marker would never arrive, however the member read its link)
+        assert wait_until_routed(asker, "test/marker", to_queryable=False, timeout=WAIT_S)
+        assert wait_until_routed(asker, cluster.admin_key, to_queryable=True, timeout=WAIT_S)
         busy, free = threading.Event(), threading.Event()
         loop.call_soon_threadsafe(lambda: (busy.set(), free.wait(WAIT_S)))  # the loop held: a long batch, a start
         assert busy.wait(WAIT_S)

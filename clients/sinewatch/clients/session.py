@@ -58,6 +58,23 @@ CLIENT_WAIT_BEFORE_CLOSE_US = 30_000_000
 #: stopped (SIGSTOP, a VM paused) or starved for seconds; it reconnects when it runs again.
 ROUTER_WAIT_BEFORE_CLOSE_US = 4_000_000
 
+#: The lease a client session announces (``transport/link/tx/lease``, ms): how long its router
+#: may go without reading anything from the client's link before it expires the link. A router's
+#: task that reads a link also pushes what came on it to the other sessions, and its lease timer
+#: counts the time spent in those pushes: pushing a gateway's history replies to a new owner that
+#: read them slowly (each push within the router's 4-s wait), a router read nothing more from the
+#: gateway for over Zenoh's 10 s and expired the gateway's link, silently; the gateway's session,
+#: its reading task blocked meanwhile in a reply of its own (zenoh-ext's cache answers a query on
+#: that task, holding the cache's lock, which every put of the publisher then waits for), found
+#: out only when that reply's 30-s wait ran out: no input reached any daemon for 30 s, three times
+#: in two 50-fault chaos runs (stacks taken with gdb during the stall: the router idle, the
+#: gateway's puts waiting for the cache's lock and the transport's, its reply waiting for room).
+#: The router's own lease, what its clients expire its link by, stays Zenoh's 10 s: a router that
+#: is gone is found as soon as before. `tests/test_cluster_router_stall.py -k keeps_the_link`.
+CLIENT_LEASE_MS = 60_000
+#: Keep-alives every lease / this: 2.5 s, as with Zenoh's defaults (10 s / 4).
+CLIENT_KEEP_ALIVES_A_LEASE = 24
+
 #: The daemons' input keys by default (``keys.input``): what ``sinewatch router`` forwards to
 #: subscribers with ``CongestionControl.DROP`` (:func:`router_input_qos`).
 DEFAULT_ROUTER_INPUTS = ["sinewatch/in/**"]
@@ -102,6 +119,9 @@ def zenoh_config(section: ZenohSection) -> zenoh.Config:
     wait = {"client": CLIENT_WAIT_BEFORE_CLOSE_US, "router": ROUTER_WAIT_BEFORE_CLOSE_US}.get(section.mode)
     if wait is not None:
         _insert(conf, "transport/link/tx/queue/congestion_control/block/wait_before_close", wait)
+    if section.mode == "client":
+        _insert(conf, "transport/link/tx/lease", CLIENT_LEASE_MS)
+        _insert(conf, "transport/link/tx/keep_alive", CLIENT_KEEP_ALIVES_A_LEASE)
     for path, value in section.raw.items():
         _insert(conf, path, value)
     return conf

@@ -44,6 +44,13 @@ HISTORY_FIFO_ALL = 1 << 20
 # the history 1.19 s), the round trips one after another; a shard of thousands of keys is not asked
 # for every one at once
 HISTORY_QUERIES_AT_ONCE = 64
+# The priority a history query asks its replies to travel at: a reply goes with its query's QoS, hop
+# by hop (the publisher's session to the router, the router to this daemon). Not the inputs' ``data``:
+# at the publisher's session its cache's replies then fill a queue of their own, not the one its
+# puts go through, and at the router they reach a new owner ahead of the live inputs (which the
+# router drops for a daemon whose link is congested), so that the router's pushes of those BLOCK
+# replies wait only for the link, not behind the inputs as well (tests/test_cluster_history_priority.py)
+HISTORY_PRIORITY = zenoh.Priority.DATA_HIGH
 
 
 def zenoh_side_channel(policy: str, batch: int, capacity: int) -> Any:
@@ -181,6 +188,23 @@ class IntakeHost(Protocol):
     def report_drops(self, dropped: Counter[str]) -> None: ...
 
     def report_unrecovered(self, key: str, n: int) -> None: ...
+
+
+def history_query(session: zenoh.Session, selector: str, blocks: int | None) -> Any:
+    """One query on the publishers' caches, with Zenoh's default ``BLOCK`` (a router forwards the
+    replies with the query's QoS: with ``DROP`` a takeover's burst of replies lost replies and
+    final replies in the router's queue, and each such query waited out its timeout, the key's
+    history flagged as a gap), at ``HISTORY_PRIORITY``. Its FIFO holds every reply asked for, so
+    that Zenoh's thread never waits for this one to be read while another key's is: the daemon's
+    link is read as fast as the replies come, and its router never waits on it for them."""
+    return session.get(
+        selector,
+        zenoh.handlers.FifoChannel((blocks or HISTORY_FIFO_ALL) + 64),
+        consolidation=zenoh.ConsolidationMode.NONE,
+        accept_replies=zenoh.ReplyKeyExpr.ANY,
+        timeout=HISTORY_TIMEOUT_S,
+        priority=HISTORY_PRIORITY,
+    )
 
 
 class Intake:
@@ -349,19 +373,7 @@ class Intake:
         return replies
 
     def _query(self, selector: str, blocks: int | None) -> Any:
-        """One query on the publishers' caches, with Zenoh's default ``BLOCK`` (a router forwards the
-        replies with the query's QoS: with ``DROP`` a takeover's burst of replies lost replies and
-        final replies in the router's queue, and each such query waited out its timeout, the key's
-        history flagged as a gap). Its FIFO holds every reply asked for, so that Zenoh's thread
-        never waits for this one to be read while another key's is: the daemon's link is read as
-        fast as the replies come, and its router never waits on it for them."""
-        return self._daemon.session.get(
-            selector,
-            zenoh.handlers.FifoChannel((blocks or HISTORY_FIFO_ALL) + 64),
-            consolidation=zenoh.ConsolidationMode.NONE,
-            accept_replies=zenoh.ReplyKeyExpr.ANY,
-            timeout=HISTORY_TIMEOUT_S,
-        )
+        return history_query(self._daemon.session, selector, blocks)
 
     def _history_reply(self, reply: zenoh.Reply) -> tuple[Item, Any, int] | None:
         sample = reply.ok
