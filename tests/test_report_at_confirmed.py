@@ -49,11 +49,11 @@ def assert_row_of(full: Track, row: int, got: Track, where: str) -> None:
             assert _same_bits(getattr(full.std, f)[row : row + 1], getattr(got.std, f)), f"{where}: std.{f}"
 
 
-def _pair(name: str, seed: int) -> tuple[np.ndarray, Estimator, Estimator]:
-    """A block and two estimators with the same history of ``seed``'s signal."""
+def _pair(name: str, seed: int) -> tuple[np.ndarray, Estimator, Estimator, Estimator]:
+    """A block and three estimators with the same history of ``seed``'s signal."""
     cls = get(name)
     x = cls.example_signal(HISTORY + N, seed=seed)
-    ests = (cls.example(), cls.example())
+    ests = (cls.example(), cls.example(), cls.example())
     for est in ests:
         est.update(np.ascontiguousarray(x[:HISTORY]), last_only=True)
     return np.ascontiguousarray(x[HISTORY:]), *ests
@@ -62,7 +62,7 @@ def _pair(name: str, seed: int) -> tuple[np.ndarray, Estimator, Estimator]:
 @pytest.mark.parametrize("name", NAMES)
 def test_two_calls_split_after_row_n_minus_l_are_one_call(name: str) -> None:
     for latency in LATENCIES:
-        block, one, split = _pair(name, seed=3)
+        block, one, split, _ = _pair(name, seed=3)
         row = N - 1 - latency
         full = one.update(block, last_only=False)
         got = update_reporting_at(split, block, row)
@@ -86,6 +86,9 @@ def test_a_bank_reporting_at_each_channels_own_row_is_each_channel_alone(name: s
         where = f"{name} bank position {c}, row {row}"
         assert_row_of(full, row, got[c], where)
         assert_states_bitwise(pairs[c][1], banked[c], where)
+        # the residual RMS: of the channel's samples up to its row, as its single split says
+        alone = update_reporting_at(pairs[c][3], pairs[c][0], row)
+        assert np.float64(alone.residual_rms).tobytes() == np.float64(got[c].residual_rms).tobytes(), where
 
 
 @pytest.mark.parametrize("name", ["sogi-fll", "ges-kalman"])
@@ -100,7 +103,7 @@ def test_a_bank_at_one_row_is_two_calls_and_each_channel_alone(name: str) -> Non
 
 
 def test_a_non_finite_sample_after_the_row_changes_no_state() -> None:
-    block, _, est = _pair("sogi-fll", seed=5)
+    block, _, est, _ = _pair("sogi-fll", seed=5)
     before = {k: v.copy() for k, v in est._state.items()}
     bad = block.copy()
     bad[N - 10] = np.nan  # after the row: the first call alone would have accepted its part
@@ -118,7 +121,7 @@ def test_a_non_finite_sample_after_the_row_changes_no_state() -> None:
 
 
 def test_a_row_outside_the_block_is_a_typed_error() -> None:
-    block, _, est = _pair("sogi-fll", seed=7)
+    block, _, est, _ = _pair("sogi-fll", seed=7)
     with pytest.raises(InputError, match=r"expected 0 <= row < 1024, got 1024"):
         update_reporting_at(est, block, N)
     with pytest.raises(InputError, match=r"expected 2 rows in \[0, 1024\), got \[-1, 3\]"):

@@ -197,9 +197,7 @@ def update_bank(
     return tracks
 
 
-def update_reporting_at(
-    estimator: Estimator[Any], samples: np.ndarray, row: int, *, t0_ns: int | None = None
-) -> Track:
+def update_reporting_at(estimator: Estimator[Any], samples: np.ndarray, row: int, *, t0_ns: int | None = None) -> Track:
     """``estimator.update(samples)`` whose Track is the one row ``row`` (0-based; the block's
     last is ``len(samples) - 1``), as ``update(samples, last_only=False)`` gives it, without
     writing the others: two ``last_only`` calls split after ``row``. Every estimator's output
@@ -219,6 +217,17 @@ def update_reporting_at(
     return track
 
 
+def _bank_split_after(
+    estimators: Sequence[Estimator[Any]], samples: np.ndarray, row: int, t0_ns: int | None, finite: bool
+) -> Sequence[Track]:
+    """One bank's block in two :func:`update_bank` calls split after ``row``: the first call's Tracks."""
+    first = update_bank(estimators, samples[: row + 1], last_only=True, t0_ns=t0_ns, finite=finite)
+    if row + 1 < samples.shape[0]:
+        t0_rest = _piece_t0(t0_ns, row + 1, estimators[0].sample_rate_hz)
+        update_bank(estimators, samples[row + 1 :], last_only=True, t0_ns=t0_rest, finite=finite)
+    return first
+
+
 def _piece_t0(t0_ns: int | None, start: int, sample_rate_hz: float) -> int | None:
     """The time of a block's sample ``start``, as the next block's ``t0_ns`` is reckoned."""
     return None if t0_ns is None else t0_ns + round(start * 1e9 / sample_rate_hz)
@@ -233,37 +242,28 @@ def update_bank_reporting_at(
     finite: bool = False,
 ) -> Sequence[Track]:
     """:func:`update_bank` whose ``tracks[c]`` is row ``rows[c]`` of channel ``c``'s track
-    (:func:`update_reporting_at` for a bank): the block split at each distinct row, one bank
-    call a piece (usually two: every channel reporting at the same row), each channel's Track
-    taken from the piece that ends at its row. Each channel's row and state are the single
-    path's, bit for bit, as :func:`update_bank`'s are."""
+    (:func:`update_reporting_at` for a bank): the channels that report at one row advance as one
+    bank split after it, two bank calls a distinct row (usually one row for all: two calls). Each
+    channel's row, residual RMS (of its samples up to its row) and state are its single path's,
+    bit for bit, as :func:`update_bank`'s are."""
     n = samples.shape[0]
     if len(rows) != len(estimators) or any(not 0 <= r < n for r in rows):
         raise InputError(f"rows: expected {len(estimators)} rows in [0, {n}), got {list(rows)}", kind="shape_mismatch")
     if not estimators:
         return []
     if not finite and isinstance(samples, np.ndarray) and samples.dtype.kind == "f" and not np.isfinite(samples).all():
-        # the whole block checked before the first piece: a bad sample after a row changes nothing
+        # the whole block checked before the first call: a bad sample after a row changes nothing
         bad = [c for c in range(samples.shape[1]) if not np.isfinite(samples[:, c]).all()]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
-    fs = estimators[0].sample_rate_hz
-    ends = sorted({r + 1 for r in rows} | {n})
-    if len(ends) <= 2 and len(set(rows)) == 1:  # every channel at one row: the first piece's Tracks as they are
-        first = update_bank(estimators, samples[: ends[0]], last_only=True, t0_ns=t0_ns, finite=finite)
-        if ends[0] < n:
-            update_bank(estimators, samples[ends[0] :], last_only=True, t0_ns=_piece_t0(t0_ns, ends[0], fs), finite=finite)
-        return first
+    if rows.count(rows[0]) == len(rows):  # the usual case: the first call's Tracks as they are
+        return _bank_split_after(estimators, samples, rows[0], t0_ns, finite)
     tracks: list[Track | None] = [None] * len(estimators)
-    start = 0
-    for end in ends:
-        piece = update_bank(
-            estimators, samples[start:end], last_only=True, t0_ns=_piece_t0(t0_ns, start, fs), finite=finite
-        )
-        for c, r in enumerate(rows):
-            if r + 1 == end:
-                tracks[c] = piece[c]
-        start = end
-    return tracks  # type: ignore[return-value]  # (every row is below n, so one piece ended at each)
+    for row in sorted(set(rows)):
+        lanes = [c for c, r in enumerate(rows) if r == row]
+        got = _bank_split_after([estimators[c] for c in lanes], samples[:, lanes], row, t0_ns, finite)
+        for c, track in zip(lanes, got, strict=True):
+            tracks[c] = track
+    return tracks  # type: ignore[return-value]  # (every channel is in its row's group)
 
 
 def _bank_tracks(
