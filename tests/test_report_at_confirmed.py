@@ -126,3 +126,52 @@ def test_a_row_outside_the_block_is_a_typed_error() -> None:
         update_reporting_at(est, block, N)
     with pytest.raises(InputError, match=r"expected 2 rows in \[0, 1024\), got \[-1, 3\]"):
         update_bank_reporting_at([est, get("sogi-fll").example()], np.stack([block, block], axis=1), [-1, 3])
+
+
+@pytest.mark.parametrize("kept_stacked", [False, True])
+def test_a_fault_after_the_first_call_leaves_every_state_as_it_was(monkeypatch, kept_stacked: bool) -> None:
+    """A kernel fault in the call after the row (the first call has advanced the bank's stack):
+    the call raises and every channel's state, stacked or not, is what it was before."""
+    from sinewatch.estimators import bank as bank_module
+
+    pairs = [_pair("sogi-fll", seed=60 + c) for c in range(3)]
+    x = np.stack([p[0] for p in pairs], axis=1)
+    banked = [p[2] for p in pairs]
+    if kept_stacked:  # a bank kept stacked from a previous frame: the first call advances its arrays
+        bank_module.update_bank(banked, x[:10], last_only=True)
+        for p in pairs:
+            p[1].update(np.ascontiguousarray(p[0][:10]), last_only=True)
+    real, calls = bank_module.update_bank, []
+
+    def second_call_faults(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("injected kernel fault")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bank_module, "update_bank", second_call_faults)
+    with pytest.raises(ZeroDivisionError):
+        update_bank_reporting_at(banked, x, [N - 62] * 3, finite=True)
+    monkeypatch.setattr(bank_module, "update_bank", real)
+    for p in pairs:  # each continues exactly as its single twin, which never saw the faulty call
+        assert_states_bitwise(p[1], p[2], "after the fault")
+    single = pairs[0][3]
+    if kept_stacked:
+        single.update(np.ascontiguousarray(pairs[0][0][:10]), last_only=True)
+    before = {k: v.copy() for k, v in single._state.items()}
+    monkeypatch.setattr(single, "update", _fault_on_second(single.update))
+    with pytest.raises(ZeroDivisionError):
+        update_reporting_at(single, pairs[0][0], N - 62)
+    assert all(_same_bits(single._state[k], v) for k, v in before.items())
+
+
+def _fault_on_second(update):
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("injected kernel fault")
+        return update(*args, **kwargs)
+
+    return wrapped

@@ -212,8 +212,13 @@ def update_reporting_at(estimator: Estimator[Any], samples: np.ndarray, row: int
     if row == n - 1:
         return estimator.update(samples, last_only=True, t0_ns=t0_ns)
     x = estimator._as_block(samples)  # checked whole first: a bad sample after the row changes nothing
+    saved = estimator._state_checkpoint()  # (kernels return new arrays: what it names stays intact)
     track = estimator.update(x[: row + 1], last_only=True, t0_ns=t0_ns)
-    estimator.update(x[row + 1 :], last_only=True, t0_ns=_piece_t0(t0_ns, row + 1, estimator.sample_rate_hz))
+    try:
+        estimator.update(x[row + 1 :], last_only=True, t0_ns=_piece_t0(t0_ns, row + 1, estimator.sample_rate_hz))
+    except Exception:
+        estimator._state_rollback(saved)  # a fault in the second call: the state as before the first
+        raise
     return track
 
 
@@ -255,15 +260,26 @@ def update_bank_reporting_at(
         # the whole block checked before the first call: a bad sample after a row changes nothing
         bad = [c for c in range(samples.shape[1]) if not np.isfinite(samples[:, c]).all()]
         raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
-    if rows.count(rows[0]) == len(rows):  # the usual case: the first call's Tracks as they are
-        return _bank_split_after(estimators, samples, rows[0], t0_ns, finite)
-    tracks: list[Track | None] = [None] * len(estimators)
-    for row in sorted(set(rows)):
-        lanes = [c for c, r in enumerate(rows) if r == row]
-        got = _bank_split_after([estimators[c] for c in lanes], samples[:, lanes], row, t0_ns, finite)
-        for c, track in zip(lanes, got, strict=True):
-            tracks[c] = track
-    return tracks  # type: ignore[return-value]  # (every channel is in its row's group)
+    # where every state is now: a call that raises after another has advanced a stack puts it
+    # back, so that this function, as update_bank, leaves every state as it was when it raises
+    saved = [est._state_checkpoint() for est in estimators]
+    stacks = {id(e._stack): (e._stack, e._stack.arrays, e._stack.live) for e in estimators if e._stack is not None}
+    try:
+        if rows.count(rows[0]) == len(rows):  # the usual case: the first call's Tracks as they are
+            return _bank_split_after(estimators, samples, rows[0], t0_ns, finite)
+        tracks: list[Track | None] = [None] * len(estimators)
+        for row in sorted(set(rows)):
+            lanes = [c for c, r in enumerate(rows) if r == row]
+            got = _bank_split_after([estimators[c] for c in lanes], samples[:, lanes], row, t0_ns, finite)
+            for c, track in zip(lanes, got, strict=True):
+                tracks[c] = track
+        return tracks  # type: ignore[return-value]  # (every channel is in its row's group)
+    except Exception:
+        for stack, arrays, live in stacks.values():
+            stack.arrays, stack.live = arrays, live
+        for est, checkpoint in zip(estimators, saved, strict=True):
+            est._state_rollback(checkpoint)
+        raise
 
 
 def _bank_tracks(
