@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 from conftest import make_config
 from mcap.reader import make_reader
+from test_pipeline_hot_path import Batches as Keep  # every estimate (key, payload) in order, errors (key, kind)
 
 from sinewatch.core.continuity import REPORT_IN_BLOCK_RULES_VERSION, VALIDITY_RULES_VERSION
-from sinewatch.core.pipeline import NullSink, Pipeline
+from sinewatch.core.pipeline import Pipeline
 from sinewatch.outputs.recorder import McapRecorder
 from sinewatch.runtime.replay import replay
 from sinewatch.schemas.codec import BLOCK_BINARY_ENCODING, Block, encode_block_binary
@@ -29,23 +30,6 @@ from sinewatch.schemas.frame import FRAME_BINARY_ENCODING, Frame, encode_frame_b
 FS, N, F0 = 10_000.0, 1024, 50.0
 STEP_NS = round(N * 1e9 / FS)
 SOGI = [EstimatorRule(match="sinewatch/in/**", estimator="sogi-fll", params={"nominal_frequency_hz": 50.0})]
-
-
-class Keep(NullSink):
-    """Every estimate in order (key, payload), and the errors' kinds."""
-
-    def __init__(self) -> None:
-        self.estimates: list[tuple[str, bytes]] = []
-        self.errors: list[str] = []
-
-    def on_estimate(self, key, payload, log_time_ns):
-        self.estimates.append((key, payload))
-
-    def on_estimates(self, estimates, log_time_ns):
-        self.estimates += estimates
-
-    def on_error(self, key, payload, log_time_ns):
-        self.errors.append(json.loads(payload)["kind"])
 
 
 def _sine(n_blocks: int, seed: int, phase: float = 0.0) -> np.ndarray:
@@ -166,7 +150,7 @@ def test_a_frames_banks_give_each_channel_what_its_own_path_gives(tmp_path):
         got[cls.__name__] = (keep, pipe.channel_status())
     (banks, banks_status), (alone, alone_status) = got["Pipeline"], got["ChannelByChannel"]
     assert banks.estimates == alone.estimates and banks_status == alone_status
-    assert banks.errors == alone.errors == ["non_finite"]
+    assert banks.errors == alone.errors == [("sinewatch/err/daq/c1", "non_finite")]
     assert len(banks.estimates) == 35 * 6 - 3 - 1
     # two rows in one frame's bank were exercised: c5's time differs from c0's in early frames
     times = {(k, json.loads(p)["seq"]): json.loads(p)["timestamp_ns"] for k, p in banks.estimates}
@@ -205,3 +189,17 @@ def test_without_it_the_default_rules_and_bytes_are_the_last_versions(tmp_path):
         pipe.process("sinewatch/in/s/a", payload, BLOCK_BINARY_ENCODING, seq + 1)
     assert len(keep.estimates) == 2  # held to the next block
     assert json.loads(keep.estimates[0][1])["timestamp_ns"] == round((N - 1) * 1e9 / FS)
+
+
+def test_frames_of_one_channel_report_in_block_too(tmp_path):
+    """A frame key whose layout is one channel (a bank of one, whose detector runs alone): its
+    usual frames report at row n - 1 - L and release with their frame, as single blocks do."""
+    keep = Keep()
+    pipe = _pipeline(tmp_path, [keep])
+    x = _sine(8, seed=9)
+    for seq in range(8):
+        frame = Frame(("one/a",), seq, seq * STEP_NS, FS, x[seq * N : (seq + 1) * N, None].copy())
+        pipe.process("sinewatch/in/one", encode_frame_binary(frame, "float64"), FRAME_BINARY_ENCODING, seq + 1)
+        assert len(keep.estimates) == seq + 1
+        latency = pipe.channels["one/a"].presence.onset_latency_samples
+        assert json.loads(keep.estimates[-1][1])["timestamp_ns"] == seq * STEP_NS + round((N - 1 - latency) * 1e9 / FS)

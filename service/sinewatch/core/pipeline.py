@@ -146,7 +146,7 @@ class Pipeline:
             track, lag = self._estimate_and_detect(channel, block, reset)
             stage = "estimate"
             self._accept(channel, block, gap_blocks, restart, reset, jump)
-            payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset, jump, lag)
+            payloads = self._estimate_payloads(channel, block, track, (gap_blocks, restart, reset, jump), lag)
         except InputError as exc:
             self._forget_unborn(channel)
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
@@ -225,7 +225,7 @@ class Pipeline:
             track, lag = self._estimate_and_detect(channel, block, m.reset)
             stage = "estimate"
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
-            payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset, m.jump, lag)
+            payloads = self._estimate_payloads(channel, block, track, (m.gap_blocks, m.restart, m.reset, m.jump), lag)
         except InputError as exc:
             self._forget_unborn(channel)
             self._reject(channel.key, block, channel, exc.kind, str(exc), log_time_ns)
@@ -274,8 +274,12 @@ class Pipeline:
         power-quality stage, Estimates not written in one call) hands the bank to
         :meth:`_bank` at that point, with the same results."""
         ests = bank.estimators
-        if self._reports_early and bank.presence_bank and _not_grid(ests[0]):
-            self._usual_bank_early(bank, frame, x, t_last, log_time_ns, received_ns)
+        if self._reports_early and _not_grid(ests[0]):
+            if bank.presence_bank:
+                self._usual_bank_early(bank, frame, x, t_last, log_time_ns, received_ns)
+            else:  # (a bank of one, or detectors that read another signal than the block's)
+                for m in self._members(bank, frame):
+                    self._column_alone(m, log_time_ns, received_ns)
             return
         samples = x if bank.every_column else x[:, bank.columns]
         saved = [est._state_checkpoint() for est in ests]  # (not est._state: that takes it out of its bank's stack)
@@ -764,7 +768,7 @@ class Pipeline:
             if not presence_done:
                 self._presence(channel, block, m.reset)
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
-            payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset, m.jump, lag)
+            payloads = self._estimate_payloads(channel, block, track, (m.gap_blocks, m.restart, m.reset, m.jump), lag)
         except Exception as exc:  # noqa: BLE001 (one channel's fault)
             self._forget_unborn(channel)
             self._fault(channel.key, block, channel, "estimate", exc, log_time_ns)
@@ -1037,21 +1041,15 @@ class Pipeline:
             log.warning("channel %s: %s seq %d%s", ch.name, what, block.seq, " (estimator reset)" if reset else "")
 
     def _estimate_payloads(
-        self,
-        ch: Channel,
-        block: Block,
-        track: Track,
-        gap_blocks: int,
-        restart: bool,
-        reset: bool,
-        jump: bool = False,
-        lag: int = 0,
+        self, ch: Channel, block: Block, track: Track, flags: tuple[int, bool, bool, bool], lag: int = 0
     ) -> list[bytes]:
         """One Estimate at the block's sample ``lag`` before its last (validity rules version 6:
         :meth:`_estimate_and_detect`; else its last); or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        With ``hold_estimates`` (on by default) they are held back
-        (:func:`sinewatch.core.hold.hold`) and what this block releases is returned."""
+        ``flags``: the block's gap blocks, restart, reset and time jump. With ``hold_estimates``
+        (on by default) they are held back (:func:`sinewatch.core.hold.hold`) and what this
+        block releases is returned."""
+        gap_blocks, restart, reset, jump = flags
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
         made: list[tuple[bytes, bool, int]] = []  # payload, converged, timestamp
