@@ -203,3 +203,24 @@ def test_frames_of_one_channel_report_in_block_too(tmp_path):
         assert len(keep.estimates) == seq + 1
         latency = pipe.channels["one/a"].presence.onset_latency_samples
         assert json.loads(keep.estimates[-1][1])["timestamp_ns"] == seq * STEP_NS + round((N - 1 - latency) * 1e9 / FS)
+
+
+def test_a_rerun_with_other_rules_says_the_rules_it_ran_by(tmp_path):
+    """A re-run of a recording made reporting in block, with another estimator, runs under its
+    config's rules (version 6) and its file says so: that file replays bit for bit."""
+    from sinewatch.apps.cli import main
+
+    config = make_config(tmp_path, rules=SOGI, report_in_block=True)
+    recorder = McapRecorder(config)
+    pipe = Pipeline(config, [recorder])
+    for i, payload in enumerate(_frames(12)):
+        pipe.process("sinewatch/in/daq", payload, FRAME_BINARY_ENCODING, 1_000 + i)
+    recorder.close()
+    out = tmp_path / "rerun.mcap"
+    kkl = ["--estimator", "kkl"]
+    assert main(["replay", str(recorder.paths[0]), "--no-progress", *kkl, "--out", str(out)]) == 0
+    with open(out, "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert meta["sinewatch"]["validity_rules_version"] == str(REPORT_IN_BLOCK_RULES_VERSION)
+    again = replay([out])
+    assert again.ok and again.matched == again.recorded_estimates > 0
