@@ -519,6 +519,14 @@ class SinewatchConfig(_Section):
         "(97 of C37.118.1's 100 ms). false: published at once; valid may then be wrong in the third of a cycle "
         "before the detector reads an onset",
     )
+    report_in_block: bool = Field(
+        False,
+        description="With hold_estimates: report each block's estimate at the sample the signal-presence "
+        "detector has read its onset latency L past (L samples before the block's last: 6.1 ms at 50 Hz, "
+        "10 kHz), so that the block itself confirms it and it leaves at once instead of with the next block "
+        "(validity rules version 6; its timestamp_ns is that sample's). A block of L samples or fewer, and an "
+        "estimator reporting on a time grid (pmu), report and hold as without it",
+    )
     idle_release_s: float = Field(
         0.5,
         gt=0,

@@ -35,7 +35,13 @@ starts over, presence (G)), wants two memories of signal behind a recursive esti
 releasing block's end; ``hold_estimates`` is on by default from this version. Files of version 2
 replay without the hold and the hysteresis, files of versions 3 and 4 with what their recorded
 config says of the hold (version 3 without the quarter-cycle test), and without the edges and
-the second memory.
+the second memory. Version 6 (``report_in_block``, off by default) reports each block's estimate, with the hold on, at the sample
+L = ``onset_latency_samples`` before the block's last instead of at its last (its
+``timestamp_ns`` is that sample's): the detector runs first and has read L past it by the block's
+end, so the hold confirms it and releases it with its own block instead of the next one (the
+same guarantee, a block period less latency). A block of L samples or fewer, and an estimator
+that reports on a time grid, report and hold as in version 5; files of version 5 replay as they
+were made.
 """
 
 from __future__ import annotations
@@ -45,8 +51,17 @@ from dataclasses import dataclass
 from sinewatch.schemas.errors import InputError
 
 #: Recorded in every file's metadata (``validity_rules_version``); files of earlier builds
-#: have no key and replay under version 1.
+#: have no key and replay under version 1. The rules a daemon runs unless its config asks for
+#: :data:`REPORT_IN_BLOCK_RULES_VERSION`.
 VALIDITY_RULES_VERSION = 5
+#: The rules of a daemon whose config says ``report_in_block``: version 5's, each estimate
+#: reported where its own block confirms it (the module's docstring).
+REPORT_IN_BLOCK_RULES_VERSION = 6
+
+
+def rules_version(report_in_block: bool) -> int:
+    """The validity rules a new pipeline (and its recordings) run by, from its config."""
+    return REPORT_IN_BLOCK_RULES_VERSION if report_in_block else VALIDITY_RULES_VERSION
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,4 +122,11 @@ def check_continuity(
     return Continuity(gap_blocks=seq - last_seq - 1)
 
 
-__all__ = ["CONTINUES", "VALIDITY_RULES_VERSION", "Continuity", "check_continuity"]
+__all__ = [
+    "CONTINUES",
+    "REPORT_IN_BLOCK_RULES_VERSION",
+    "VALIDITY_RULES_VERSION",
+    "Continuity",
+    "check_continuity",
+    "rules_version",
+]

@@ -425,6 +425,8 @@ def bank_payloads(
     t_last_ns: int,
     gaps: Sequence[tuple[int, bool, bool, bool]],
     run_samples: Sequence[int] | None = None,
+    lag: int = 0,
+    report_ns: int | None = None,
 ) -> list[tuple[bytes, bool, bool | None]] | None:
     """:func:`estimate_payload` of every channel of a bank at its frame's last sample (``gaps``:
     each channel's gap_blocks, restart, reset, time jump), the usual case of all of them written
@@ -435,7 +437,10 @@ def bank_payloads(
     (bytes, converged, valid), valid None where the general way wrote it (the bytes say it);
     None when the tracks are not one bank's usual case (then the caller writes each on its own).
     ``run_samples``: each channel's presence run after the block, when the caller has read it
-    (``read_presence_bank``); else each detector's own."""
+    (``read_presence_bank``); else each detector's own. ``lag``, ``report_ns``: every channel's
+    estimate at the block's sample ``lag`` before its last, whose time is ``report_ns``
+    (validity rules version 6: at the detector's onset latency before it)."""
+    timestamp_ns = t_last_ns if report_ns is None else report_ns
     if isinstance(tracks, ColumnTracks) and tracks.sealed and tracks.last_row is not None:
         # a bank's own Tracks, unread: the last row and converged flags without making them
         if settings.estimate_version < 3:
@@ -455,11 +460,11 @@ def bank_payloads(
     templates, gap_blocks, flags, which = [], [], [], []
     for i, (ch, block, gap) in enumerate(zip(chs, blocks, gaps, strict=True)):
         if not usual[i]:
-            out[i] = (*estimate_payload(settings, ch, block, tracks[i], t_last_ns, t_last_ns, *gap), None)
+            out[i] = (*estimate_payload(settings, ch, block, tracks[i], timestamp_ns, t_last_ns, *gap), None)
             continue
         assert ch.presence is not None
         run = ch.presence.run_samples if run_samples is None else run_samples[i]
-        valid = run >= ch.valid_memory_samples  # _present at the block's last sample
+        valid = run >= ch.valid_memory_samples + lag  # _present
         converged = valid and converged_last[i]
         template = ch.template
         templates.append(
@@ -471,10 +476,10 @@ def bank_payloads(
     if not which:
         return out  # type: ignore[return-value]  # (every slot filled above)
     text, ends = _bank_pieces(tuple(templates), values.shape[1] - 1)
-    sec, nsec = divmod(int(t_last_ns), 1_000_000_000)
+    sec, nsec = divmod(int(timestamp_ns), 1_000_000_000)
     block = blocks[which[0]]  # a frame's channels share seq, time and sample count
     ints = np.empty((len(which), 6), dtype=np.int64)
-    ints[:, :5] = (block.seq, int(t_last_ns), sec, nsec, block.n_samples)
+    ints[:, :5] = (block.seq, int(timestamp_ns), sec, nsec, block.n_samples)
     ints[:, 5] = gap_blocks
     data, at = write_estimates_kernel(
         text,
@@ -529,13 +534,15 @@ def usual_bank_payloads(
     tracks: Sequence[Track],
     t_last_ns: int,
     run_samples: Sequence[int],
+    lag: int = 0,
 ) -> list[tuple[bytes, bool, bool | None]] | None:
     """:func:`bank_payloads` of a usual frame's bank (no gap, restart, reset or time jump on any
     channel) from what ``writing`` keeps: the same bytes, converged and valid, with no Python a
     channel before the compiled call. None, with nothing done, unless every channel's values are
     finite and the bank's Tracks are its own, unread, in ``writing``'s layout (then
     :func:`bank_payloads`). ``block``: any of the frame's columns (they share seq, time, sample
-    count and time quality, all an Estimate reads of its block)."""
+    count and time quality, all an Estimate reads of its block). ``t_last_ns``: the estimates'
+    time, at the block's sample ``lag`` before its last (:func:`bank_payloads`)."""
     if not (isinstance(tracks, ColumnTracks) and tracks.sealed and tracks.last_row is not None):
         return None
     if settings.estimate_version < 3 or _layout_key(settings, block, *tracks.layout) != writing.layout:
@@ -543,7 +550,7 @@ def usual_bank_payloads(
     values = tracks.last_row.values
     if not np.isfinite(values[:, :-1]).all():
         return None
-    valid = np.array(run_samples, dtype=np.int64) >= writing.memory  # _present at the block's last sample
+    valid = np.array(run_samples, dtype=np.int64) >= writing.memory + lag  # _present
     flags = np.zeros((values.shape[0], 5), dtype=np.bool_)  # converged, valid, gap, restart, reset
     flags[:, 1] = valid
     flags[:, 0] = valid & tracks.converged_last_array()

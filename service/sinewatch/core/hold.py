@@ -13,8 +13,10 @@ from sinewatch.core.channel import Channel
 def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset: bool) -> list[bytes]:
     """No estimate is published valid while its window may hold
     an event the presence detector has not read yet. Each estimate waits until the
-    detector has seen ``onset_latency_samples`` past the last sample its window holds (the
-    block's last, or a grid report's ``lookahead_samples`` after its time; counted in
+    detector has seen ``onset_latency_samples`` past the last sample its window holds (its
+    time's: the block's last, from validity rules version 6 with ``report_in_block`` that
+    latency before it, so that it leaves with its own block; or a grid report's
+    ``lookahead_samples`` after its time; counted in
     samples, not wall time: replay reproduces it), and is then published valid only if
     the signal was present at that sample throughout its window and since (the run of
     presence there reaches back to the window's start, which from validity rules version 5
@@ -34,25 +36,35 @@ def hold(ch: Channel, t_last_ns: int, made: list[tuple[bytes, bool, int]], reset
     for payload, converged, t_ns in made:
         valid = DIAGNOSTICS_VALID[0] in payload or DIAGNOSTICS_VALID[1] in payload
         lag = max(0, round((t_last_ns - t_ns) * fs / 1e9))
-        end = n_now if ahead is None else min(n_now, n_now - lag + ahead)  # the window's last sample
+        # the window's last sample: the estimate's own (a block-end estimate's lag is 0 up to
+        # validity rules version 5; from 6 the detector's latency, so that it leaves now)
+        end = n_now - lag if ahead is None else min(n_now, n_now - lag + ahead)
         held.append((payload, end + latency, n_now - lag - memory if valid else -1, converged))
     return _released(ch, n_now, out)
 
 
 def hold_at_end(
-    ch: Channel, payload: bytes, valid: bool, converged: bool, reset: bool, latency: int | None = None
+    ch: Channel,
+    payload: bytes,
+    valid: bool,
+    converged: bool,
+    reset: bool,
+    latency: int | None = None,
+    lag: int = 0,
 ) -> list[bytes]:
     """:func:`hold` of one estimate at its block's last sample whose ``valid`` is known (a bank's,
     written in one call: :func:`sinewatch.core.estimate_bytes.bank_payloads`), without reading
     it back from the bytes: the same estimates released, in the same order. ``latency``: the
     detector's ``onset_latency_samples`` now, when the caller has read it (a bank of detectors
-    reads it for every channel at once: ``read_presence_bank``)."""
+    reads it for every channel at once: ``read_presence_bank``). ``lag``: the estimate is at
+    the block's sample ``lag`` before its last (validity rules version 6 reports at the
+    latency before it, so that this block's detector confirms it: released at once)."""
     assert ch.presence is not None
     out = _started_over(ch) if reset else []
     n_now = ch.samples
     ahead = getattr(ch.estimator, "lookahead_samples", None)
-    end = n_now if ahead is None else min(n_now, n_now + ahead)  # as hold's at a lag of 0
-    window_start = n_now - ch.valid_memory_samples if valid else -1
+    end = n_now - lag if ahead is None else min(n_now - lag, n_now - lag + ahead)  # as hold's
+    window_start = end - ch.valid_memory_samples if valid else -1
     if latency is None:
         latency = ch.presence.onset_latency_samples
     ch.held.append((payload, end + latency, window_start, converged))

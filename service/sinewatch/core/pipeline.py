@@ -43,7 +43,7 @@ from sinewatch.core.channel import (
     continues_in_time,
     usual_bank,
 )
-from sinewatch.core.continuity import VALIDITY_RULES_VERSION, check_continuity
+from sinewatch.core.continuity import check_continuity, rules_version
 from sinewatch.core.estimate_bytes import (
     bank_payloads,
     bank_writing,
@@ -54,7 +54,7 @@ from sinewatch.core.estimate_bytes import (
 from sinewatch.core.hold import hold, hold_at_end, not_valid, take_over
 from sinewatch.core.sinks import GuardedSink, NullSink, Sink
 from sinewatch.estimators import get as get_estimator
-from sinewatch.estimators.bank import ColumnTracks, update_bank
+from sinewatch.estimators.bank import ColumnTracks, update_bank, update_bank_reporting_at, update_reporting_at
 from sinewatch.estimators.base import Estimator, Track, kernel_samples
 from sinewatch.estimators.presence import PresenceBankReadings, read_presence_bank
 from sinewatch.power_quality.stage import PqStage
@@ -77,13 +77,18 @@ class Pipeline:
         rules: list[EstimatorRule] | None = None,
         estimate_version: int = ESTIMATE_FORMAT_VERSION,
         pq_version: int = PQ_FORMAT_VERSION,
-        validity_version: int = VALIDITY_RULES_VERSION,
+        validity_version: int | None = None,
     ) -> None:
         self.config = config
+        if validity_version is None:  # a new pipeline's: what its config asks for
+            validity_version = rules_version(config.report_in_block)
         self.estimate_version = estimate_version  # < current to reproduce recordings of earlier builds
         self.validity_version = validity_version  # likewise (sinewatch.core.continuity)
         # hold estimates back (_hold) where the config asks, from validity rules version 3 on
         self._holds = config.hold_estimates and validity_version >= 3 and estimate_version >= 3
+        # with the hold, from validity rules version 6: each block's estimate at the sample its
+        # detector has read its onset latency past, in the same block (released at once)
+        self._reports_early = self._holds and validity_version >= 6
         self.sinks = [
             GuardedSink(
                 sink,
@@ -138,11 +143,10 @@ class Pipeline:
                 return
             gap_blocks, restart, jump, reset = self._continuity(channel, block)
             stage = "estimator"
-            track = self._update(channel, block, reset)
-            self._presence(channel, block, reset)
+            track, lag = self._estimate_and_detect(channel, block, reset)
             stage = "estimate"
             self._accept(channel, block, gap_blocks, restart, reset, jump)
-            payloads = self._estimate_payloads(channel, block, track, gap_blocks, restart, reset, jump)
+            payloads = self._estimate_payloads(channel, block, track, (gap_blocks, restart, reset, jump), lag)
         except InputError as exc:
             self._forget_unborn(channel)
             self._reject(key, block, channel, exc.kind, str(exc), log_time_ns)
@@ -195,7 +199,14 @@ class Pipeline:
     ) -> None:
         """One bank of a frame, each channel checked on its own: the estimators together
         (:meth:`_run_bank`; ``tracks`` when they have run already), then the detectors, each
-        channel's Estimate, hold and hand-out (together where :meth:`_bank_estimates` applies)."""
+        channel's Estimate, hold and hand-out (together where :meth:`_bank_estimates` applies).
+        Reporting early (validity rules version 6), each channel as its block alone would go
+        (:meth:`_column_alone`: its detector first); a usual frame's bank goes together
+        (:meth:`_usual_bank`)."""
+        if tracks is None and self._reports_early and _not_grid(members[0].channel.estimator):
+            for m in members:
+                self._column_alone(m, log_time_ns, received_ns)
+            return
         if tracks is None:
             tracks = self._run_bank(members, x, n_all, t0_ns, log_time_ns)
         readings = self._presence_bank(members, tracks, x)
@@ -205,6 +216,29 @@ class Pipeline:
         for member, track in zip(members, tracks, strict=True):
             if track is not None:
                 self._frame_estimate(member, track, log_time_ns, received_ns, presence_done)
+
+    def _column_alone(self, m: FrameMember, log_time_ns: int, received_ns: int | None) -> None:
+        """What :meth:`process` does with a checked block, for one channel of a frame."""
+        channel, block = m.channel, m.block
+        stage = "estimator"
+        try:
+            track, lag = self._estimate_and_detect(channel, block, m.reset)
+            stage = "estimate"
+            self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
+            payloads = self._estimate_payloads(channel, block, track, (m.gap_blocks, m.restart, m.reset, m.jump), lag)
+        except InputError as exc:
+            self._forget_unborn(channel)
+            self._reject(channel.key, block, channel, exc.kind, str(exc), log_time_ns)
+            return
+        except SinewatchError as exc:  # as process reports it
+            self._forget_unborn(channel)
+            self._reject(channel.key, block, channel, "estimator_error", str(exc), log_time_ns)
+            return
+        except Exception as exc:  # noqa: BLE001 (one channel's fault)
+            self._forget_unborn(channel)
+            self._fault(channel.key, block, channel, stage, exc, log_time_ns)
+            return
+        self._hand_out(channel.key, channel, block, track, payloads, m.reset, log_time_ns, received_ns)
 
     def _usual_frame(self, key: str, frame: Frame) -> FrameLayout | None:
         """The key's last layout when this frame is its usual case, without
@@ -240,6 +274,13 @@ class Pipeline:
         power-quality stage, Estimates not written in one call) hands the bank to
         :meth:`_bank` at that point, with the same results."""
         ests = bank.estimators
+        if self._reports_early and _not_grid(ests[0]):
+            if bank.presence_bank:
+                self._usual_bank_early(bank, frame, x, t_last, log_time_ns, received_ns)
+            else:  # (a bank of one, or detectors that read another signal than the block's)
+                for m in self._members(bank, frame):
+                    self._column_alone(m, log_time_ns, received_ns)
+            return
         samples = x if bank.every_column else x[:, bank.columns]
         saved = [est._state_checkpoint() for est in ests]  # (not est._state: that takes it out of its bank's stack)
         try:
@@ -261,6 +302,46 @@ class Pipeline:
                 return
             for member, track in zip(members, tracks, strict=True):
                 self._frame_estimate(member, track, log_time_ns, received_ns, True)
+
+    def _usual_bank_early(
+        self, bank: UsualBank, frame: Frame, x: np.ndarray, t_last: int, log_time_ns: int, received_ns: int | None
+    ) -> None:
+        """:meth:`_usual_bank` reporting early (validity rules version 6): the detectors' bank
+        first, then the estimators' bank reporting each channel at the sample its detector has
+        read its onset latency past (:func:`update_bank_reporting_at`: one call a distinct row,
+        usually two in all), each channel exactly as :meth:`_estimate_and_detect` runs it alone.
+        A bank that raises leaves every estimator and detector as it was, and each channel then
+        goes alone (:meth:`_column_alone`)."""
+        ests, detectors = bank.estimators, bank.detectors
+        before = [(d.sums, d.counters, d.ring) for d in detectors]  # (the kernels return new arrays)
+        readings = self._usual_presence(bank, x)
+        n = frame.n_samples
+        if readings is not None:
+            lags = [lat if lat < n else 0 for lat in readings.onset_latency_samples]
+            samples = x if bank.every_column else x[:, bank.columns]
+            saved = [est._state_checkpoint() for est in ests]
+            try:
+                tracks = update_bank_reporting_at(
+                    ests, samples, [n - 1 - lag for lag in lags], t0_ns=frame.t0_ns, finite=True
+                )
+            except Exception:  # noqa: BLE001 (isolated below, channel by channel)
+                for est, state in zip(ests, saved, strict=True):
+                    est._state_rollback(state)
+                readings = None
+        if readings is None:
+            for d, (sums, counters, ring) in zip(detectors, before, strict=True):
+                d.sums, d.counters, d.ring = sums, counters, ring
+            for m in self._members(bank, frame):
+                self._column_alone(m, log_time_ns, received_ns)
+            return
+        lag = lags[0] if lags.count(lags[0]) == len(lags) else None
+        if (
+            lag is None
+            or self.pq.enabled
+            or not self._usual_estimates(bank, frame, tracks, t_last, log_time_ns, received_ns, readings, lag)
+        ):
+            for member, track, lag_c in zip(self._members(bank, frame), tracks, lags, strict=True):
+                self._frame_estimate(member, track, log_time_ns, received_ns, True, lag_c)
 
     @staticmethod
     def _usual_presence(bank: UsualBank, x: np.ndarray) -> PresenceBankReadings | None:
@@ -350,18 +431,52 @@ class Pipeline:
             cached = self._frame_keys[(key, names)] = tuple(channel_key(key, name) for name in names)
         return cached
 
+    def _estimate_and_detect(self, channel: Channel, block: Block, reset: bool) -> tuple[Track, int]:
+        """The channel's estimator and presence detector over an accepted block (reset first when
+        ``reset``): the Track its estimate is made of, and that estimate's lag, the samples from
+        its row to the block's last. Up to validity rules version 5 (or without the hold) the
+        estimator runs first and reports at the block's last sample (lag 0). From version 6 the
+        detector (which reads the block's samples, not the estimator's output) runs first, and
+        the estimator reports at the sample L = ``onset_latency_samples`` before the block's last
+        (:func:`update_reporting_at`): the detector has read L past it, so the hold confirms it in
+        this block. A block of L samples or fewer, and an estimator that reports on a time grid,
+        report as before. A block the estimator rejects leaves both states as they were."""
+        est = channel.estimator
+        if not self._reports_early or not _not_grid(est):
+            track = self._update(channel, block, reset)
+            self._presence(channel, block, reset)
+            return track, 0
+        x = est._as_block(block.samples)  # the typed errors of a bad block, before any state changes
+        detector = channel.presence
+        assert detector is not None
+        before = (detector.sums, detector.counters, detector.ring)  # (the kernel returns new arrays)
+        if reset:
+            detector.reset()
+        channel.last_run = detector.update(est.presence_samples(x))[0]
+        latency = detector.onset_latency_samples
+        lag = latency if latency < block.n_samples else 0  # a block of L samples or fewer: held as before
+        try:
+            return self._update(channel, block, reset, block.n_samples - 1 - lag), lag
+        except Exception:
+            detector.sums, detector.counters, detector.ring = before
+            raise
+
     @staticmethod
-    def _update(channel: Channel, block: Block, reset: bool) -> Track:
+    def _update(channel: Channel, block: Block, reset: bool, row: int | None = None) -> Track:
         """The channel's estimator on the block, reset first when ``reset``. A block the
         estimator rejects (a NaN, the wrong shape) leaves the state as it was, reset or not:
         a rejected block must not start a channel over."""
         est = channel.estimator
         if not reset:
-            return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            if row is None:
+                return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            return update_reporting_at(est, block.samples, row, t0_ns=block.t0_ns)
         before = est.get_state()
         est.reset()
         try:
-            return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            if row is None:
+                return est.update(block.samples, last_only=True, t0_ns=block.t0_ns)
+            return update_reporting_at(est, block.samples, row, t0_ns=block.t0_ns)
         except Exception:
             est.set_state(before)
             raise
@@ -537,19 +652,24 @@ class Pipeline:
         log_time_ns: int,
         received_ns: int | None,
         readings: PresenceBankReadings,
+        lag: int = 0,
     ) -> bool:
         """:meth:`_bank_estimates` of a usual frame's bank (no gap, restart, reset or jump), from
         the layout's lists. The Estimates' bytes read of a block only what a frame's columns
-        share (seq, sample count, time quality): the first column's block stands for all."""
+        share (seq, sample count, time quality): the first column's block stands for all.
+        ``lag``: every channel's estimate at the block's sample ``lag`` before its last."""
         block = frame.block(bank.columns[0])
+        t_row = t_last if lag == 0 else _row_time(frame.t0_ns, frame.n_samples - 1 - lag, frame.sample_rate_hz)
 
         def write() -> list[tuple[bytes, bool, bool | None]] | None:
             if bank.writing is not None:  # the bank's usual case, from what its last frame left
-                made = usual_bank_payloads(self, bank.writing, block, tracks, t_last, readings.run_samples)
+                made = usual_bank_payloads(self, bank.writing, block, tracks, t_row, readings.run_samples, lag)
                 if made is not None:
                     return made
             n = len(bank.channels)
-            made = bank_payloads(self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples)
+            made = bank_payloads(
+                self, bank.channels, [block] * n, tracks, t_last, _NO_GAPS * n, readings.run_samples, lag, t_row
+            )
             bank.writing = None if made is None else bank_writing(self, bank.channels, block, tracks)
             return made
 
@@ -557,7 +677,15 @@ class Pipeline:
         if made is None:
             return False
         self._hold_and_hand_out(
-            bank.channels, made, readings.onset_latency_samples, t_last, log_time_ns, received_ns, usual=(bank, frame)
+            bank.channels,
+            made,
+            readings.onset_latency_samples,
+            t_last,
+            log_time_ns,
+            received_ns,
+            usual=(bank, frame),
+            lag=lag,
+            t_row=t_row,
         )
         return True
 
@@ -572,12 +700,15 @@ class Pipeline:
         *,
         members: list[FrameMember] | None = None,
         usual: tuple[UsualBank, Frame] | None = None,
+        lag: int = 0,
+        t_row: int | None = None,
     ) -> None:
         """A bank's written Estimates (``made``: bytes, converged, valid) on: each channel's block
         accepted (``members``' own checks; ``usual``: a usual frame's, every channel the next
         block of its sequence, so without _accept's call and gap test a channel), each estimate
         held (:func:`hold_at_end`), then every estimate the bank releases handed to each sink in
-        one call (``on_estimates``: the same messages in the same order)."""
+        one call (``on_estimates``: the same messages in the same order). ``lag``, ``t_row``: the
+        estimates are at the block's sample ``lag`` before its last, at time ``t_row``."""
         out: list[tuple[str, bytes]] = []  # (key, payload) of every estimate the bank releases, in order
         handed: list[Channel] = []
         arrival = log_time_ns if received_ns is None else received_ns
@@ -600,9 +731,9 @@ class Pipeline:
                 if not holds:
                     ch.converged, released = converged, [payload]
                 elif valid is None:  # written the general way: its bytes say whether it is valid
-                    released = hold(ch, t_last, [(payload, converged, t_last)], reset)
+                    released = hold(ch, t_last, [(payload, converged, t_last if t_row is None else t_row)], reset)
                 else:
-                    released = hold_at_end(ch, payload, valid, converged, reset, latencies[i])
+                    released = hold_at_end(ch, payload, valid, converged, reset, latencies[i], lag)
             except Exception as exc:  # noqa: BLE001 (one channel's fault)
                 self._forget_unborn(ch)
                 block = members[i].block if members is not None else usual[1].block(usual[0].columns[i])  # type: ignore[index]
@@ -622,7 +753,13 @@ class Pipeline:
                 ch.last_latency_ns = latency
 
     def _frame_estimate(
-        self, m: FrameMember, track: Track, log_time_ns: int, received_ns: int | None, presence_done: bool = False
+        self,
+        m: FrameMember,
+        track: Track,
+        log_time_ns: int,
+        received_ns: int | None,
+        presence_done: bool = False,
+        lag: int = 0,
     ) -> None:
         """What :meth:`process` does after the estimator, for one channel of a frame (its
         presence detector already run by :meth:`_presence_bank` when ``presence_done``)."""
@@ -631,7 +768,7 @@ class Pipeline:
             if not presence_done:
                 self._presence(channel, block, m.reset)
             self._accept(channel, block, m.gap_blocks, m.restart, m.reset, m.jump)
-            payloads = self._estimate_payloads(channel, block, track, m.gap_blocks, m.restart, m.reset, m.jump)
+            payloads = self._estimate_payloads(channel, block, track, (m.gap_blocks, m.restart, m.reset, m.jump), lag)
         except Exception as exc:  # noqa: BLE001 (one channel's fault)
             self._forget_unborn(channel)
             self._fault(channel.key, block, channel, "estimate", exc, log_time_ns)
@@ -904,20 +1041,24 @@ class Pipeline:
             log.warning("channel %s: %s seq %d%s", ch.name, what, block.seq, " (estimator reset)" if reset else "")
 
     def _estimate_payloads(
-        self, ch: Channel, block: Block, track: Track, gap_blocks: int, restart: bool, reset: bool, jump: bool = False
+        self, ch: Channel, block: Block, track: Track, flags: tuple[int, bool, bool, bool], lag: int = 0
     ) -> list[bytes]:
-        """One Estimate at the block's last sample; or, for an estimator that reports on a
+        """One Estimate at the block's sample ``lag`` before its last (validity rules version 6:
+        :meth:`_estimate_and_detect`; else its last); or, for an estimator that reports on a
         time grid, one per report the block completed (zero, one or several), at its time.
-        With ``hold_estimates`` (on by default) they are held back
-        (:func:`sinewatch.core.hold.hold`) and what this block releases is returned."""
+        ``flags``: the block's gap blocks, restart, reset and time jump. With ``hold_estimates``
+        (on by default) they are held back (:func:`sinewatch.core.hold.hold`) and what this
+        block releases is returned."""
+        gap_blocks, restart, reset, jump = flags
         grid = track.reports
         t_last = block.t0_ns + round((block.n_samples - 1) * 1e9 / block.sample_rate_hz)
         made: list[tuple[bytes, bool, int]] = []  # payload, converged, timestamp
         if grid is None:
+            t_row = t_last if lag == 0 else _row_time(block.t0_ns, block.n_samples - 1 - lag, block.sample_rate_hz)
             payload, converged = self._estimate_payload(
-                ch, block, track, t_last, t_last, gap_blocks, restart, reset, jump
+                ch, block, track, t_row, t_last, gap_blocks, restart, reset, jump
             )
-            made.append((payload, converged, t_last))
+            made.append((payload, converged, t_row))
         else:
             if self.validity_version >= 2:  # a block without a report passes its flags on to the next report
                 held = ch.held_flags
@@ -1080,6 +1221,16 @@ _NO_GAPS = [(0, False, False, False)]  # a usual frame's channel: no gap, restar
 def _every_track(tracks: Sequence[Track | None]) -> bool:
     """Whether no channel of a bank lost its block (a bank's own Tracks, unread, hold none)."""
     return isinstance(tracks, ColumnTracks) or all(track is not None for track in tracks)
+
+
+def _not_grid(est: Estimator) -> bool:
+    """Whether ``est`` reports at a block's samples, not on a time grid of its own (pmu's)."""
+    return getattr(est, "lookahead_samples", None) is None
+
+
+def _row_time(t0_ns: int, row: int, sample_rate_hz: float) -> int:
+    """The time of a block's sample ``row`` (its last's is reckoned so: ``t_last``)."""
+    return t0_ns + round(row * 1e9 / sample_rate_hz)
 
 
 def _all_finite_2d(x: np.ndarray) -> bool:

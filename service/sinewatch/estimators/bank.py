@@ -197,6 +197,91 @@ def update_bank(
     return tracks
 
 
+def update_reporting_at(estimator: Estimator[Any], samples: np.ndarray, row: int, *, t0_ns: int | None = None) -> Track:
+    """``estimator.update(samples)`` whose Track is the one row ``row`` (0-based; the block's
+    last is ``len(samples) - 1``), as ``update(samples, last_only=False)`` gives it, without
+    writing the others: two ``last_only`` calls split after ``row``. Every estimator's output
+    does not depend on where its blocks are split (tests/test_estimator_conformance.py's block
+    boundaries; tests/test_report_at_confirmed.py for this split), so the row and the state left
+    are the one call's, bit for bit. The Track's ``residual_rms`` is that of the samples up to
+    ``row``. A rejected block raises before the state changes; a fault in the second call
+    leaves the first call's state (the pipeline rolls both back)."""
+    n = samples.shape[0]
+    if not 0 <= row < n:
+        raise InputError(f"row: expected 0 <= row < {n}, got {row}", kind="shape_mismatch")
+    if row == n - 1:
+        return estimator.update(samples, last_only=True, t0_ns=t0_ns)
+    x = estimator._as_block(samples)  # checked whole first: a bad sample after the row changes nothing
+    saved = estimator._state_checkpoint()  # (kernels return new arrays: what it names stays intact)
+    track = estimator.update(x[: row + 1], last_only=True, t0_ns=t0_ns)
+    try:
+        estimator.update(x[row + 1 :], last_only=True, t0_ns=_piece_t0(t0_ns, row + 1, estimator.sample_rate_hz))
+    except Exception:
+        estimator._state_rollback(saved)  # a fault in the second call: the state as before the first
+        raise
+    return track
+
+
+def _bank_split_after(
+    estimators: Sequence[Estimator[Any]], samples: np.ndarray, row: int, t0_ns: int | None, finite: bool
+) -> Sequence[Track]:
+    """One bank's block in two :func:`update_bank` calls split after ``row``: the first call's Tracks."""
+    first = update_bank(estimators, samples[: row + 1], last_only=True, t0_ns=t0_ns, finite=finite)
+    if row + 1 < samples.shape[0]:
+        t0_rest = _piece_t0(t0_ns, row + 1, estimators[0].sample_rate_hz)
+        update_bank(estimators, samples[row + 1 :], last_only=True, t0_ns=t0_rest, finite=finite)
+    return first
+
+
+def _piece_t0(t0_ns: int | None, start: int, sample_rate_hz: float) -> int | None:
+    """The time of a block's sample ``start``, as the next block's ``t0_ns`` is reckoned."""
+    return None if t0_ns is None else t0_ns + round(start * 1e9 / sample_rate_hz)
+
+
+def update_bank_reporting_at(
+    estimators: Sequence[Estimator[Any]],
+    samples: np.ndarray,
+    rows: Sequence[int],
+    *,
+    t0_ns: int | None = None,
+    finite: bool = False,
+) -> Sequence[Track]:
+    """:func:`update_bank` whose ``tracks[c]`` is row ``rows[c]`` of channel ``c``'s track
+    (:func:`update_reporting_at` for a bank): the channels that report at one row advance as one
+    bank split after it, two bank calls a distinct row (usually one row for all: two calls). Each
+    channel's row, residual RMS (of its samples up to its row) and state are its single path's,
+    bit for bit, as :func:`update_bank`'s are."""
+    n = samples.shape[0]
+    if len(rows) != len(estimators) or any(not 0 <= r < n for r in rows):
+        raise InputError(f"rows: expected {len(estimators)} rows in [0, {n}), got {list(rows)}", kind="shape_mismatch")
+    if not estimators:
+        return []
+    if not finite and isinstance(samples, np.ndarray) and samples.dtype.kind == "f" and not np.isfinite(samples).all():
+        # the whole block checked before the first call: a bad sample after a row changes nothing
+        bad = [c for c in range(samples.shape[1]) if not np.isfinite(samples[:, c]).all()]
+        raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+    # where every state is now: a call that raises after another has advanced a stack puts it
+    # back, so that this function, as update_bank, leaves every state as it was when it raises
+    saved = [est._state_checkpoint() for est in estimators]
+    stacks = {id(e._stack): (e._stack, e._stack.arrays, e._stack.live) for e in estimators if e._stack is not None}
+    try:
+        if rows.count(rows[0]) == len(rows):  # the usual case: the first call's Tracks as they are
+            return _bank_split_after(estimators, samples, rows[0], t0_ns, finite)
+        tracks: list[Track | None] = [None] * len(estimators)
+        for row in sorted(set(rows)):
+            lanes = [c for c, r in enumerate(rows) if r == row]
+            got = _bank_split_after([estimators[c] for c in lanes], samples[:, lanes], row, t0_ns, finite)
+            for c, track in zip(lanes, got, strict=True):
+                tracks[c] = track
+        return tracks  # type: ignore[return-value]  # (every channel is in its row's group)
+    except Exception:
+        for stack, arrays, live in stacks.values():
+            stack.arrays, stack.live = arrays, live
+        for est, checkpoint in zip(estimators, saved, strict=True):
+            est._state_rollback(checkpoint)
+        raise
+
+
 def _bank_tracks(
     bank: BankKernel,
     estimators: Sequence[Estimator[Any]],

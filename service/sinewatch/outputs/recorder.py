@@ -45,7 +45,7 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, MessageIndex, Statistics
 from mcap.writer import CompressionType, Writer
 
-from sinewatch.core.continuity import VALIDITY_RULES_VERSION
+from sinewatch.core.continuity import REPORT_IN_BLOCK_RULES_VERSION, VALIDITY_RULES_VERSION
 from sinewatch.schemas import __version__
 from sinewatch.schemas.codec import (
     BLOCK_BINARY_ENCODING,
@@ -400,7 +400,10 @@ class McapRecorder:
                 "format_version": str(RECORDING_FORMAT_VERSION),
                 "estimate_format_version": str(ESTIMATE_FORMAT_VERSION),
                 "pq_format_version": str(PQ_FORMAT_VERSION),
-                "validity_rules_version": str(VALIDITY_RULES_VERSION),
+                # the rules its pipeline runs by (Pipeline's, from the same config)
+                "validity_rules_version": str(
+                    REPORT_IN_BLOCK_RULES_VERSION if self.config.report_in_block else VALIDITY_RULES_VERSION
+                ),
                 "estimator_defaults_version": str(ESTIMATOR_DEFAULTS_VERSION),
                 "sinewatch_version": __version__,
                 "file_index": str(self.index),

@@ -36,7 +36,6 @@ from mcap.records import Attachment, Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from sinewatch.core.comtrade_file import ComtradeError, ComtradeRecord, interleaved_blocks, read_comtrade
-from sinewatch.core.continuity import VALIDITY_RULES_VERSION
 from sinewatch.core.pipeline import NullSink, Pipeline, Sink
 from sinewatch.core.window import ChannelFilter, Window
 from sinewatch.outputs.recorder import ESTIMATOR_DEFAULTS_VERSION, METADATA_NAME, SNAPSHOT_NAME, McapRecorder
@@ -450,17 +449,18 @@ def merge_results(paths: list[Path], results: list[ReplayResult]) -> ReplayResul
     return merged
 
 
+# (no validity version: a re-run's follows its config, as the daemon's and its recorder's do)
 _CURRENT_VERSIONS = {
     "estimate_version": ESTIMATE_FORMAT_VERSION,
     "pq_version": PQ_FORMAT_VERSION,
-    "validity_version": VALIDITY_RULES_VERSION,
 }
 
 
 def _recorded_versions(metadata: dict[str, str], rules: list[EstimatorRule] | None) -> dict[str, int]:
     """The Pipeline's version arguments for a file: a check runs in the recording's own
     formats and validity rules (files of earlier builds have no key: 1); a re-run with other
-    ``rules`` in today's."""
+    ``rules`` in today's, its validity rules those its recorded config asks for (``report_in_block``:
+    version 6, else 5), which its output file then says."""
     if rules is not None:
         return _CURRENT_VERSIONS
     return {

@@ -152,6 +152,12 @@ def add_e2e_only_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the daemon's hold_estimates off: each estimate published as made (what the latency is without the hold)",
     )
+    parser.add_argument(
+        "--report-in-block",
+        action="store_true",
+        help="the daemon's report_in_block on: each estimate at the sample its block's presence detector has "
+        "read its onset latency past, released with its own block (its timestamp that latency before the block's end)",
+    )
 
 
 def add_gateway_arguments(parser: argparse.ArgumentParser) -> None:

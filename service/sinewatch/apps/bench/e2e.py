@@ -320,6 +320,7 @@ def running_daemon(
             # the hold makes every estimate wait a block for its confirmation (docs/benchmarks.md,
             # "The hold and a 5 ms p99"): --no-hold measures the latency without it
             "hold_estimates": not getattr(args, "no_hold", False),
+            "report_in_block": getattr(args, "report_in_block", False),
             **(extra or {}),
         }
         if getattr(args, "foxglove", False):
@@ -436,6 +437,7 @@ def _drive(
         "daemon_loop_asleep_fraction": 1.0 - (sched1[0] - sched0[0] + sched1[1] - sched0[1]) / 1e9 / drained_s,
         "queue_policy": args.queue_policy,
         "hold_estimates": not getattr(args, "no_hold", False),
+        "report_in_block": getattr(args, "report_in_block", False),
         "estimates_flagging_a_gap": probe.gaps,
         "gap_blocks_flagged": probe.gap_blocks,
         "daemon_rss_mb_start": rss0,
