@@ -80,12 +80,6 @@ class BankKernel:
     #: outputs, samples)``), for a class whose ``_track`` does numpy work that a whole frame
     #: can share; None: each channel's ``_track`` on its slice of the outputs
     tracks: Callable[[Any, tuple[Any, ...], np.ndarray], Sequence[Track]] | None = None
-    #: a bank that runs each channel through the single kernel in turn (a windowed estimator)
-    #: takes the samples as (C, N) and the state arrays stacked channel first, (C, *shape):
-    #: each channel's row and state are then contiguous, gathered by one copy a state array
-    #: and scattered as views (stacked channel last, nls's 1024-sample ring buffers cost ~12
-    #: ns a sample to gather and ~8 to scatter, measured: more than the Python a bank saves)
-    channel_first: bool = False
     #: a bank that runs the frame itself (``run(estimators, samples (N, C), last_only, t0_ns)``,
     #: the samples validated): an estimator whose per-block Python (pmu's time anchor, its (T)
     #: test over the reports) is part of the call; it returns the Tracks, or None for channels
@@ -96,19 +90,7 @@ class BankKernel:
 _BANKS: dict[type[Estimator[Any]], BankKernel] = {}
 
 #: Registered estimators without a compiled bank, and why (``sinewatch bench kernels`` prints it).
-NO_BANK: dict[str, str] = {
-    "nls": (
-        "no compiled bank: a windowed estimator whose work is a nonlinear least-squares fit per "
-        "window (Gauss-Newton, iterated until it converges, so the channels' fits take different "
-        "numbers of steps and do not advance in lock step). What bounds it is the fit: its kernel "
-        "alone runs at 1.73-1.81x the streaming FFT and is ~80 % of update's CPU time (1024-sample "
-        "blocks, one estimate a block, paired medians, load 12-20), so even a bank that removed "
-        "all the Python would stay below 2x. A channel-first bank (each channel through nls_kernel "
-        "in one compiled call, the states stacked channel first, bit for bit) measured 0.85-0.97x "
-        "the channels one by one (`sinewatch bench kernels --bank 8`, load 12-20): left out; its "
-        "channels run one after the other"
-    ),
-}
+NO_BANK: dict[str, str] = {}
 
 
 def register_bank(
@@ -116,12 +98,11 @@ def register_bank(
     kernel: Callable[..., tuple[Any, ...]],
     n_outputs: int,
     tracks: Callable[[Any, tuple[Any, ...], np.ndarray], Sequence[Track]] | None = None,
-    channel_first: bool = False,
     run: Callable[[Sequence[Any], np.ndarray, bool, int | None], list[Track] | None] | None = None,
 ) -> None:
     """Make ``kernel`` the compiled bank of ``cls`` (exactly that class, not subclasses);
-    ``tracks``, ``channel_first`` and ``run``: see :class:`BankKernel`."""
-    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, channel_first, run)
+    ``tracks`` and ``run``: see :class:`BankKernel`."""
+    _BANKS[cls] = BankKernel(kernel, n_outputs, tracks, run)
     NO_BANK.pop(cls.name, None)
 
 
@@ -175,8 +156,6 @@ def update_bank(
     if bank.run is not None:
         ran = bank.run(estimators, x, last_only, t0_ns)
         return _one_by_one(estimators, x, last_only, t0_ns) if ran is None else ran
-    if bank.channel_first:
-        return _channel_first_bank(bank, estimators, x, last_only)
     if stack is not None:  # the same bank as last frame: its states are stacked already
         stacked = stack.arrays
     else:  # (C, *shape) in one C call, then channel last (np.stack: ~3x the Python)
@@ -298,26 +277,6 @@ def _bank_tracks(
             tracks.seal()
         return tracks
     return [est._track(tuple(o[c] for o in outputs), channel_rows[c]) for c, est in enumerate(estimators)]
-
-
-def _channel_first_bank(
-    bank: BankKernel, estimators: Sequence[Estimator[Any]], x: np.ndarray, last_only: bool
-) -> Sequence[Track]:
-    """A channel-first bank (:attr:`BankKernel.channel_first`): the states gathered channel
-    first before the call and each channel's row of the new ones kept as its state (a view)."""
-    first = estimators[0]
-    keys = list(first._state)
-    x = np.ascontiguousarray(x.T)  # row c: channel c's samples
-    n = len(estimators)
-    # one C call a state array (np.stack costs ~5x as much: a Python loop over the arrays)
-    stacked = [np.concatenate([e._state[k] for e in estimators]).reshape((n, *first._state[k].shape)) for k in keys]
-    result = bank.kernel(x, *stacked, *first._constants, last_only)
-    outputs, new_state = result[: bank.n_outputs], result[bank.n_outputs :]
-    tracks = _bank_tracks(bank, estimators, outputs, x, x)
-    rows = [list(s) for s in new_state]  # row c of each new array is channel c's, contiguous: kept as a view
-    for c, est in enumerate(estimators):
-        est._state = {k: r[c] for k, r in zip(keys, rows, strict=True)}
-    return tracks
 
 
 @kernel(inline="always")

@@ -191,11 +191,9 @@ def _kernel_runner(
     in its first thousands of samples); returns the samples of every channel."""
     first = ests[0]
     stacked = [np.array([e._state[k] for e in ests]) for k in first._state]
-    if compiled.channel_first:
-        inputs = [np.ascontiguousarray(f.T) for f in frames]
-    else:  # channel last, as the lane-major kernels take their states
-        stacked = [np.ascontiguousarray(np.moveaxis(a, 0, -1)) for a in stacked]
-        inputs = frames
+    # channel last, as the lane-major kernels take their states
+    stacked = [np.ascontiguousarray(np.moveaxis(a, 0, -1)) for a in stacked]
+    inputs = frames
 
     def run() -> int:
         x = inputs[state["kernel"] % len(inputs)]
