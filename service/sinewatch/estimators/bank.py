@@ -151,8 +151,7 @@ def update_bank(
         _check_alike(estimators, cls)
     x = kernel_samples(samples)  # one numba type per bank kernel
     if not finite and not _all_finite(x.reshape(-1)):
-        bad = [c for c in range(x.shape[1]) if not _all_finite(np.ascontiguousarray(x[:, c]))]
-        raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+        raise _non_finite_columns(x)
     if bank.run is not None:
         ran = bank.run(estimators, x, last_only, t0_ns)
         return _one_by_one(estimators, x, last_only, t0_ns) if ran is None else ran
@@ -212,6 +211,12 @@ def _bank_split_after(
     return first
 
 
+def _non_finite_columns(x: np.ndarray) -> InputError:
+    """The error for a frame with NaN/Inf samples, naming every column that holds one."""
+    bad = [c for c in range(x.shape[1]) if not np.isfinite(x[:, c]).all()]
+    return InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+
+
 def _piece_t0(t0_ns: int | None, start: int, sample_rate_hz: float) -> int | None:
     """The time of a block's sample ``start``, as the next block's ``t0_ns`` is reckoned."""
     return None if t0_ns is None else t0_ns + round(start * 1e9 / sample_rate_hz)
@@ -237,8 +242,7 @@ def update_bank_reporting_at(
         return []
     if not finite and isinstance(samples, np.ndarray) and samples.dtype.kind == "f" and not np.isfinite(samples).all():
         # the whole block checked before the first call: a bad sample after a row changes nothing
-        bad = [c for c in range(samples.shape[1]) if not np.isfinite(samples[:, c]).all()]
-        raise InputError(f"samples: expected finite values, got NaN/Inf in columns {bad}", kind="non_finite")
+        raise _non_finite_columns(samples)
     # where every state is now: a call that raises after another has advanced a stack puts it
     # back, so that this function, as update_bank, leaves every state as it was when it raises
     saved = [est._state_checkpoint() for est in estimators]
