@@ -19,7 +19,7 @@ import threading
 from collections import Counter
 
 import zenoh
-from peer_pair import loop_and_two_peers
+from peer_pair import loop_and_two_peers, wait_until_routed
 
 from sinewatch.runtime.intake import Intake, zenoh_side_channel
 from sinewatch.schemas.config import SinewatchConfig
@@ -68,6 +68,10 @@ def test_a_dropping_intake_keeps_its_link_read_while_its_pump_is_held():
         daemon_session.declare_subscriber("test/marker", lambda _: marker.set())
         host = Host(daemon_session)
         intake = host.intake = Intake(host, loop)  # type: ignore[arg-type]
+        # both subscriptions known to the publisher first: a put sent before goes nowhere (a
+        # loaded run lost its first inputs so, and waited for 3,000 that could never come)
+        for key in ("sinewatch/in/ch0", "test/marker"):
+            assert wait_until_routed(publisher, key, to_queryable=False, timeout=WAIT_S), key
         with intake._lock:  # the pump held, as a pump starved of the GIL is
             for seq in range(INPUTS):  # a binary block's header: its seq at bytes 8-16 (all the intake reads)
                 block = b"SWSB\0\0\0\0" + seq.to_bytes(8, "little")
@@ -76,7 +80,11 @@ def test_a_dropping_intake_keeps_its_link_read_while_its_pump_is_held():
             arrived_while_held = marker.wait(WAIT_S)
         assert arrived_while_held
         with host.got:  # then every input, once each, in order
-            assert host.got.wait_for(lambda: len(host.seqs) >= INPUTS, WAIT_S), host.seqs[-5:]
+            assert host.got.wait_for(lambda: len(host.seqs) >= INPUTS, WAIT_S), (
+                len(host.seqs),
+                host.seqs[:5],
+                host.seqs[-5:],
+            )
         assert host.seqs == list(range(INPUTS)) and not host.drops
         asyncio.run_coroutine_threadsafe(intake.stop(), loop).result(WAIT_S)
 
